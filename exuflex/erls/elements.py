@@ -1,0 +1,76 @@
+"""Two-node planar Euler-Bernoulli beam element (axial + bending, consistent mass).
+
+Local dofs per element: ``(u1, v1, th1, u2, v2, th2)`` with ``u`` axial, ``v`` lateral, ``th`` the
+cross-section rotation. Global = R local with R the block rotation by the element angle.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["beam_stiffness", "beam_mass", "rotation", "hermite_curvature_row", "GENERATOR"]
+
+
+def beam_stiffness(EA: float, EI: float, L: float) -> np.ndarray:
+    """Local 6x6 stiffness matrix."""
+    k = np.zeros((6, 6))
+    a = EA / L
+    k[np.ix_([0, 3], [0, 3])] = a * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    b = EI / L**3
+    kb = b * np.array(
+        [
+            [12.0, 6 * L, -12.0, 6 * L],
+            [6 * L, 4 * L * L, -6 * L, 2 * L * L],
+            [-12.0, -6 * L, 12.0, -6 * L],
+            [6 * L, 2 * L * L, -6 * L, 4 * L * L],
+        ]
+    )
+    k[np.ix_([1, 2, 4, 5], [1, 2, 4, 5])] = kb
+    return k
+
+
+def beam_mass(rhoA: float, L: float) -> np.ndarray:
+    """Local 6x6 consistent mass matrix (no rotary inertia of the section)."""
+    m = np.zeros((6, 6))
+    mt = rhoA * L
+    m[np.ix_([0, 3], [0, 3])] = mt / 6 * np.array([[2.0, 1.0], [1.0, 2.0]])
+    mb = mt / 420 * np.array(
+        [
+            [156.0, 22 * L, 54.0, -13 * L],
+            [22 * L, 4 * L * L, 13 * L, -3 * L * L],
+            [54.0, 13 * L, 156.0, -22 * L],
+            [-13 * L, -3 * L * L, -22 * L, 4 * L * L],
+        ]
+    )
+    m[np.ix_([1, 2, 4, 5], [1, 2, 4, 5])] = mb
+    return m
+
+
+# d R / d theta = R @ GENERATOR for the 6x6 element rotation
+GENERATOR = np.zeros((6, 6))
+GENERATOR[0, 1] = GENERATOR[3, 4] = -1.0
+GENERATOR[1, 0] = GENERATOR[4, 3] = 1.0
+
+
+def rotation(theta) -> np.ndarray:
+    """Element rotation matrices for angles ``theta`` (shape (..., 6, 6))."""
+    theta = np.asarray(theta, float)
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.zeros(theta.shape + (6, 6))
+    for o in (0, 3):
+        R[..., o, o] = c
+        R[..., o, o + 1] = -s
+        R[..., o + 1, o] = s
+        R[..., o + 1, o + 1] = c
+        R[..., o + 2, o + 2] = 1.0
+    return R
+
+
+def hermite_curvature_row(L: float, xi: float) -> np.ndarray:
+    """Row ``c`` with curvature = c @ local_dofs at ``xi`` in [0, 1] (d^2 v / ds^2 of the cubic)."""
+    c = np.zeros(6)
+    c[1] = (-6 + 12 * xi) / L**2
+    c[2] = (-4 + 6 * xi) / L
+    c[4] = (6 - 12 * xi) / L**2
+    c[5] = (-2 + 6 * xi) / L
+    return c

@@ -1,0 +1,299 @@
+"""ERLS kinematics of a planar closed chain of revolute joints.
+
+The equivalent rigid-link system (ERLS) places every link rigidly; its pose is
+``z = [x_1, y_1, th_1, ..., x_L, y_L, th_L]`` (origin and absolute angle of each link), fixed by
+the independent ERLS coordinates ``q`` through the closure equations ``Phi(z, q) = 0``:
+
+- each joint: the link points it joins coincide (or sit at the ground position);
+- each coordinate: ``th_link - th_ref - offset - q_j = 0`` (``th_ref = 0`` for an absolute angle).
+
+Given ``q`` the closure is solved by Newton's method; the sensitivity ``S_z = dz/dq`` and its time
+derivative follow exactly from the closure's Jacobian (no finite differences):
+``Phi_z S_z = E`` and ``Phi_z dS_z/dt = -(dPhi_z/dt) S_z``.
+The nodal rigid coordinates ``r`` (x, y, theta of every FE node) and their sensitivity
+``S = dr/dq`` (the paper's S in eq. 2) are then direct.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..mechanism import Mechanism
+
+__all__ = ["Kinematics", "Pose", "KinematicsError"]
+
+log = logging.getLogger(__name__)
+
+
+class KinematicsError(ValueError):
+    """The closure cannot be solved, or the configuration is at or near a singularity."""
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The ERLS at ``q``: link poses, nodal rigid coordinates and their sensitivities."""
+
+    q: np.ndarray  # (nq,)
+    z: np.ndarray  # (3 n_links,) link origin x, y and angle
+    Sz: np.ndarray  # (3 n_links, nq) dz/dq
+    r: np.ndarray  # (3 n_nodes,) nodal x, y, theta of the ERLS
+    S: np.ndarray  # (3 n_nodes, nq) dr/dq
+    cond: float  # condition number of the closure Jacobian
+
+    @property
+    def link_angles(self) -> np.ndarray:
+        return self.z[2::3]
+
+    def node_xy(self, index: int) -> np.ndarray:
+        return self.r[3 * index : 3 * index + 2]
+
+
+class Kinematics:
+    """Closure solver and sensitivities for a mechanism.
+
+    Parameters
+    ----------
+    mech : Mechanism
+    cond_max : float
+        Closure Jacobians with a larger condition number are reported as singular.
+    """
+
+    def __init__(self, mech: Mechanism, cond_max: float = 1e8):
+        self.mech = mech
+        self.cond_max = cond_max
+        self.link_names = [lk.name for lk in mech.links]
+        li = {n: i for i, n in enumerate(self.link_names)}
+        self.nl = len(mech.links)
+        self.nq = len(mech.coordinates)
+        # position equations: rows of (link a, station a, link b or -1, station b, ground xy)
+        eqs = []
+        for j in mech.joints:
+            pts = [(li[p.link], p.station) for p in j.points]
+            if j.ground is not None:
+                for a, sa in pts:
+                    eqs.append((a, sa, -1, 0.0, np.asarray(j.ground, float)))
+            else:
+                a0, s0 = pts[0]
+                for b, sb in pts[1:]:
+                    eqs.append((b, sb, a0, s0, np.zeros(2)))
+        self._pos_eqs = eqs
+        self._ang_eqs = [
+            (li[c.link], -1 if c.relative_to is None else li[c.relative_to], c.offset) for c in mech.coordinates
+        ]
+        self.n_eq = 2 * len(eqs) + len(self._ang_eqs)
+        if self.n_eq != 3 * self.nl:
+            raise KinematicsError(
+                f"{mech.source or mech.name}: {self.n_eq} closure equations for {3 * self.nl} link coordinates"
+            )
+        E = np.zeros((self.n_eq, self.nq))
+        E[2 * len(eqs) + np.arange(self.nq), np.arange(self.nq)] = 1.0
+        self._E = E
+        # nodes: link index and station of every node, in mech.node_ids order
+        self.node_ids = mech.node_ids
+        self.node_link = np.empty(len(self.node_ids), int)
+        self.node_station = np.empty(len(self.node_ids))
+        for k, n in enumerate(self.node_ids):
+            name, s = mech.node_location(n)
+            self.node_link[k] = li[name]
+            self.node_station[k] = s
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+
+    # ------------------------------------------------------------------ closure
+    def residual(self, z: np.ndarray, q: np.ndarray) -> np.ndarray:
+        x, y, th = z[0::3], z[1::3], z[2::3]
+        out = np.empty(self.n_eq)
+        for k, (a, sa, b, sb, g) in enumerate(self._pos_eqs):
+            pa = np.array([x[a] + sa * np.cos(th[a]), y[a] + sa * np.sin(th[a])])
+            pb = g if b < 0 else np.array([x[b] + sb * np.cos(th[b]), y[b] + sb * np.sin(th[b])])
+            out[2 * k : 2 * k + 2] = pa - pb
+        base = 2 * len(self._pos_eqs)
+        for j, (a, r, off) in enumerate(self._ang_eqs):
+            out[base + j] = th[a] - (th[r] if r >= 0 else 0.0) - off - q[j]
+        return out
+
+    def jacobian(self, z: np.ndarray) -> np.ndarray:
+        """Phi_z (n_eq, 3 n_links)."""
+        th = z[2::3]
+        J = np.zeros((self.n_eq, 3 * self.nl))
+        for k, (a, sa, b, sb, _) in enumerate(self._pos_eqs):
+            rows = slice(2 * k, 2 * k + 2)
+            J[rows, 3 * a : 3 * a + 2] += np.eye(2)
+            J[rows, 3 * a + 2] += sa * np.array([-np.sin(th[a]), np.cos(th[a])])
+            if b >= 0:
+                J[rows, 3 * b : 3 * b + 2] -= np.eye(2)
+                J[rows, 3 * b + 2] -= sb * np.array([-np.sin(th[b]), np.cos(th[b])])
+        base = 2 * len(self._pos_eqs)
+        for j, (a, r, _) in enumerate(self._ang_eqs):
+            J[base + j, 3 * a + 2] = 1.0
+            if r >= 0:
+                J[base + j, 3 * r + 2] = -1.0
+        return J
+
+    def _jacobian_rate(self, z: np.ndarray, zd: np.ndarray) -> np.ndarray:
+        """d(Phi_z)/dt along the velocity zd."""
+        th, thd = z[2::3], zd[2::3]
+        J = np.zeros((self.n_eq, 3 * self.nl))
+        for k, (a, sa, b, sb, _) in enumerate(self._pos_eqs):
+            rows = slice(2 * k, 2 * k + 2)
+            J[rows, 3 * a + 2] += -sa * thd[a] * np.array([np.cos(th[a]), np.sin(th[a])])
+            if b >= 0:
+                J[rows, 3 * b + 2] -= -sb * thd[b] * np.array([np.cos(th[b]), np.sin(th[b])])
+        return J
+
+    def initial_guess(self, q: np.ndarray) -> np.ndarray:
+        """Link poses from the angle guesses, placed by walking the joints from the ground."""
+        mech = self.mech
+        li = {n: i for i, n in enumerate(self.link_names)}
+        th = np.zeros(self.nl)
+        for i, lk in enumerate(mech.links):
+            if lk.angle_guess is not None:
+                th[i] = lk.angle_guess
+        for j, c in enumerate(mech.coordinates):
+            if c.relative_to is None:
+                th[li[c.link]] = q[j] + c.offset
+        for j, c in enumerate(mech.coordinates):
+            if c.relative_to is not None:
+                th[li[c.link]] = th[li[c.relative_to]] + q[j] + c.offset
+        z = np.zeros(3 * self.nl)
+        z[2::3] = th
+        placed = set()
+        for jt in mech.joints:
+            if jt.ground is not None:
+                for p in jt.points:
+                    i = li[p.link]
+                    z[3 * i : 3 * i + 2] = np.asarray(jt.ground) - p.station * np.array([np.cos(th[i]), np.sin(th[i])])
+                    placed.add(i)
+        changed = True
+        while changed:
+            changed = False
+            for jt in mech.joints:
+                done = [p for p in jt.points if li[p.link] in placed]
+                if not done:
+                    continue
+                p0 = done[0]
+                i0 = li[p0.link]
+                pos = z[3 * i0 : 3 * i0 + 2] + p0.station * np.array([np.cos(th[i0]), np.sin(th[i0])])
+                for p in jt.points:
+                    i = li[p.link]
+                    if i not in placed:
+                        z[3 * i : 3 * i + 2] = pos - p.station * np.array([np.cos(th[i]), np.sin(th[i])])
+                        placed.add(i)
+                        changed = True
+        return z
+
+    def solve(self, q, z0: np.ndarray | None = None, tol: float = 1e-12, max_iter: int = 30) -> np.ndarray:
+        """Solve the closure for the link poses z at q (Newton, warm-started from the last solution)."""
+        q = np.asarray(q, float)
+        if q.shape != (self.nq,):
+            raise KinematicsError(f"q must have {self.nq} entries ({list(self.mech.coordinate_names)}), got {q.shape}")
+        if z0 is None:
+            if self._last is not None and np.max(np.abs(self._last[0] - q)) < 0.5:
+                z0 = self._last[1]
+            else:
+                z0 = self.initial_guess(q)
+        z = self._newton(z0, q, tol, max_iter)
+        if z is None:
+            # continuation from the guess configuration towards q
+            z = self._continuation(q, tol, max_iter)
+        self._last = (q.copy(), z.copy())
+        return z
+
+    def _newton(self, z, q, tol, max_iter):
+        z = np.array(z, float)
+        scale = max(lk.length for lk in self.mech.links)
+        for _ in range(max_iter):
+            res = self.residual(z, q)
+            J = self.jacobian(z)
+            if np.max(np.abs(res)) < tol * scale:
+                # one more step polishes the solution to round-off (quadratic convergence)
+                return z - np.linalg.solve(J, res)
+            try:
+                dz = np.linalg.solve(J, -res)
+            except np.linalg.LinAlgError:
+                return None
+            z += dz
+            if not np.all(np.isfinite(z)):
+                return None
+        return z if np.max(np.abs(self.residual(z, q))) < 1e3 * tol * scale else None
+
+    def _continuation(self, q, tol, max_iter):
+        start_q = self._last[0] if self._last is not None else np.asarray(self.mech.q_ref or q, float)
+        z = self._last[1] if self._last is not None else self.initial_guess(start_q)
+        z = self._newton(z, start_q, tol, max_iter)
+        if z is None:
+            raise KinematicsError(
+                f"{self.mech.source or self.mech.name}: the loop cannot close at q = {np.round(q, 6).tolist()} "
+                "(check the link lengths, joints and angle guesses)"
+            )
+        for lam in np.linspace(0.0, 1.0, 41)[1:]:
+            z_new = self._newton(z, start_q + lam * (q - start_q), tol, max_iter)
+            if z_new is None:
+                raise KinematicsError(
+                    f"{self.mech.source or self.mech.name}: the loop cannot close at q = {np.round(q, 6).tolist()}"
+                    " (no assembly, or a singular configuration on the way)"
+                )
+            z = z_new
+        return z
+
+    # ------------------------------------------------------------------ sensitivities
+    def pose(self, q, z0: np.ndarray | None = None) -> Pose:
+        """Solve the closure and return the ERLS pose with S_z and the nodal S."""
+        q = np.asarray(q, float)
+        z = self.solve(q, z0)
+        J = self.jacobian(z)
+        cond = np.linalg.cond(J)
+        if not np.isfinite(cond) or cond > self.cond_max:
+            raise KinematicsError(
+                f"{self.mech.source or self.mech.name}: configuration q = {np.round(q, 6).tolist()} is at or near a "
+                f"singularity (closure Jacobian condition number {cond:.3g} > {self.cond_max:.0e})"
+            )
+        Sz = np.linalg.solve(J, self._E)
+        r, S = self._nodal(z, Sz)
+        return Pose(q, z, Sz, r, S, float(cond))
+
+    def _nodal(self, z, Sz):
+        li, s = self.node_link, self.node_station
+        th = z[2::3][li]
+        c, sn = np.cos(th), np.sin(th)
+        nn = len(li)
+        r = np.empty(3 * nn)
+        r[0::3] = z[0::3][li] + s * c
+        r[1::3] = z[1::3][li] + s * sn
+        r[2::3] = th
+        S = np.empty((3 * nn, self.nq))
+        Sx, Sy, St = Sz[0::3][li], Sz[1::3][li], Sz[2::3][li]
+        S[0::3] = Sx - (s * sn)[:, None] * St
+        S[1::3] = Sy + (s * c)[:, None] * St
+        S[2::3] = St
+        return r, S
+
+    def rates(self, pose: Pose, qd) -> tuple[np.ndarray, np.ndarray]:
+        """dS_z/dt and dS/dt (nodal) at ``pose`` for the coordinate rates ``qd`` (exact)."""
+        qd = np.asarray(qd, float)
+        zd = pose.Sz @ qd
+        J = self.jacobian(pose.z)
+        Jd = self._jacobian_rate(pose.z, zd)
+        Szd = -np.linalg.solve(J, Jd @ pose.Sz)
+        li, s = self.node_link, self.node_station
+        th = pose.z[2::3][li]
+        thd = zd[2::3][li]
+        c, sn = np.cos(th), np.sin(th)
+        St = pose.Sz[2::3][li]
+        Sxd, Syd, Std = Szd[0::3][li], Szd[1::3][li], Szd[2::3][li]
+        Sd = np.empty_like(pose.S)
+        Sd[0::3] = Sxd - (s * sn)[:, None] * Std - (s * c * thd)[:, None] * St
+        Sd[1::3] = Syd + (s * c)[:, None] * Std - (s * sn * thd)[:, None] * St
+        Sd[2::3] = Std
+        return Szd, Sd
+
+    def point(self, pose: Pose, link: str, station: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position of a point on a link's axis and its sensitivity (2,), (2, nq)."""
+        i = self.link_names.index(link)
+        x, y, th = pose.z[3 * i : 3 * i + 3]
+        c, sn = np.cos(th), np.sin(th)
+        p = np.array([x + station * c, y + station * sn])
+        Sp = pose.Sz[3 * i : 3 * i + 2] + station * np.outer([-sn, c], pose.Sz[3 * i + 2])
+        return p, Sp

@@ -1,0 +1,283 @@
+"""Full-order ERLS model of a planar flexible-link mechanism (the paper's eq. 2).
+
+Coordinates ``x = [q; u]``: the independent ERLS coordinates ``q`` and the elastic displacements
+``u`` (global frame, relative to the ERLS, after the ERLS-defining constraints, see
+:mod:`exuflex.mechanism.dofs`). Every node's absolute coordinates are ``b = r(q) + T u`` with
+``r`` the ERLS nodal coordinates and ``T`` the 0/1 map from ``u`` to nodal displacements, so
+``db/dt = S q' + T u' = W v`` with ``W = [S, T]`` and ``v = [q'; u']``.
+
+Equations of motion (Lagrange, kinetic energy ``b'^T M_N(q) b' / 2``, strain energy
+``u^T T^T K_N(q) T u / 2``; ``M_N``, ``K_N`` assembled from element matrices rotated with the ERLS):
+
+``W^T M_N W v' + h(x, v) + C v + K x = W^T (B tau + f + M_N g)``
+
+with ``W^T M_N W`` eq. 2's mass matrix, ``K = diag(0, K_uu)``, ``C = diag(0, alpha M_uu + beta K_uu)``
+and the velocity-dependent forces ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]``,
+where ``M_N' b' = sum_e theta_e' G_e b'`` is eq. 2's ``2 M_G`` term (Coriolis/centrifugal forces of
+the rotating element frames) and the two ``q``-row terms are second order in the elastic motion.
+Keeping them makes the model exactly energy-consistent (``dE/dt = -u'^T C_uu u' + v^T Q``), which
+the paper's compact eq. 2 leaves implicit. Rayleigh damping acts on the elastic rates only (its
+dissipation function), so rigid motion is undamped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..mechanism import ElasticDofs, Mechanism, elastic_dofs
+from .elements import GENERATOR, beam_mass, beam_stiffness, hermite_curvature_row, rotation
+from .kinematics import Kinematics, Pose
+
+__all__ = ["ErlsModel", "Configuration"]
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """Everything that depends on q only: the pose, rotated and assembled nodal matrices, W."""
+
+    pose: Pose
+    R: np.ndarray  # (n_el, 6, 6) element rotations
+    M_N: np.ndarray  # (N, N) nodal mass (elements + lumped)
+    K_N: np.ndarray  # (N, N) nodal stiffness
+    W: np.ndarray  # (N, n) = [S, T]
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.pose.q
+
+
+class ErlsModel:
+    """Full-order ERLS model: assembly, equations of motion, outputs.
+
+    Parameters
+    ----------
+    mech : Mechanism
+        The mechanism (e.g. from :func:`exuflex.mechanism.load_mechanism`).
+    """
+
+    def __init__(self, mech: Mechanism):
+        self.mech = mech
+        self.kin = Kinematics(mech)
+        self.dofs: ElasticDofs = elastic_dofs(mech)
+        self.nq = len(mech.coordinates)
+        self.ne = self.dofs.n
+        self.n = self.nq + self.ne
+        nodes = list(mech.node_ids)
+        self.n_nodes = len(nodes)
+        self.N = 3 * self.n_nodes
+        T = np.zeros((self.N, self.ne))
+        for d, k in enumerate(self.dofs.nodal_to_u):
+            if k >= 0:
+                T[d, k] = 1.0
+        self.T = T
+        # elements
+        link_index = {lk.name: i for i, lk in enumerate(mech.links)}
+        el_link, el_dofs, Kl, Ml, el_len, el_station = [], [], [], [], [], []
+        for lk in mech.links:
+            EA = lk.material.E * lk.section.A
+            EI = lk.material.E * lk.section.I
+            rhoA = lk.material.rho * lk.section.A
+            for a in range(lk.n_elements):
+                L = lk.stations[a + 1] - lk.stations[a]
+                na, nb = nodes.index(lk.node_ids[a]), nodes.index(lk.node_ids[a + 1])
+                el_link.append(link_index[lk.name])
+                el_dofs.append([3 * na, 3 * na + 1, 3 * na + 2, 3 * nb, 3 * nb + 1, 3 * nb + 2])
+                Kl.append(beam_stiffness(EA, EI, L))
+                Ml.append(beam_mass(rhoA, L))
+                el_len.append(L)
+                el_station.append(lk.stations[a])
+        self.el_link = np.array(el_link)
+        self.el_dofs = np.array(el_dofs)
+        self.el_len = np.array(el_len)
+        self.el_station = np.array(el_station)
+        self.Kl = np.array(Kl)
+        self.Ml = np.array(Ml)
+        self.Gl = GENERATOR @ self.Ml - self.Ml @ GENERATOR  # dM/dtheta in local form
+        self.KGl = GENERATOR @ self.Kl - self.Kl @ GENERATOR
+        self.n_el = len(el_link)
+        lump = np.zeros(self.N)
+        for lm in mech.all_masses():
+            i = nodes.index(lm.node)
+            lump[3 * i : 3 * i + 3] += (lm.mass, lm.mass, lm.inertia)
+        self.lumped = lump
+        # motors: nodal moment pattern
+        B = np.zeros((self.N, len(mech.motors)))
+        for j, m in enumerate(mech.motors):
+            B[self._joint_node_dof(m.joint, m.link, 2), j] += 1.0
+            if m.reaction is not None:
+                B[self._joint_node_dof(m.joint, m.reaction, 2), j] -= 1.0
+        self.B_N = B
+        g = np.zeros(self.N)
+        g[0::3], g[1::3] = mech.gravity
+        self.g_N = g
+        self.alpha, self.beta = mech.damping.alpha, mech.damping.beta
+        self.names = tuple(mech.coordinate_names) + self.dofs.names
+        # scatter indices for assembly
+        self._rows = np.repeat(self.el_dofs, 6, axis=1).ravel()
+        self._cols = np.tile(self.el_dofs, (1, 6)).ravel()
+
+    # ------------------------------------------------------------------ helpers
+    def _joint_node_dof(self, joint: str, link: str, comp: int) -> int:
+        j = self.mech.joint(joint)
+        st = next(p.station for p in j.points if p.link == link)
+        node = self.mech.node_at(link, st)
+        return 3 * list(self.mech.node_ids).index(node) + comp
+
+    def index(self, name: str) -> int:
+        """Index in x of a coordinate (``q1``) or elastic dof (``x25``, ``node14.x``)."""
+        if name in self.mech.coordinate_names:
+            return self.mech.coordinate_names.index(name)
+        return self.nq + self.dofs.index(name)
+
+    def _assemble(self, Ke: np.ndarray) -> np.ndarray:
+        A = np.zeros((self.N, self.N))
+        np.add.at(A, (self._rows, self._cols), Ke.reshape(self.n_el, 36).ravel())
+        return A
+
+    # ------------------------------------------------------------------ configuration
+    def configuration(self, q, z0=None) -> Configuration:
+        pose = self.kin.pose(q, z0)
+        th = pose.link_angles[self.el_link]
+        R = rotation(th)
+        Rt = np.swapaxes(R, 1, 2)
+        M_N = self._assemble(R @ self.Ml @ Rt) + np.diag(self.lumped)
+        K_N = self._assemble(R @ self.Kl @ Rt)
+        W = np.hstack([pose.S, self.T])
+        return Configuration(pose, R, M_N, K_N, W)
+
+    def mass(self, cfg: Configuration) -> np.ndarray:
+        """M(q) of eq. 2 (n x n)."""
+        return cfg.W.T @ cfg.M_N @ cfg.W
+
+    def stiffness(self, cfg: Configuration) -> np.ndarray:
+        """K(q) of eq. 2: zero q rows and columns, K_uu = T^T K_N T."""
+        K = np.zeros((self.n, self.n))
+        K[self.nq :, self.nq :] = self.T.T @ cfg.K_N @ self.T
+        return K
+
+    def damping(self, cfg: Configuration) -> np.ndarray:
+        """Rayleigh damping on the elastic block, alpha M_uu + beta K_uu."""
+        C = np.zeros((self.n, self.n))
+        Tt = self.T.T
+        C[self.nq :, self.nq :] = self.alpha * (Tt @ cfg.M_N @ self.T) + self.beta * (Tt @ cfg.K_N @ self.T)
+        return C
+
+    def input_matrix(self, cfg: Configuration) -> np.ndarray:
+        """Generalised forces of unit motor torques, W^T B (n x n_motors)."""
+        return cfg.W.T @ self.B_N
+
+    def nodal_load_vector(self, cfg: Configuration, f_nodal: np.ndarray) -> np.ndarray:
+        """Generalised forces W^T f of nodal loads (N,) in the global frame."""
+        return cfg.W.T @ f_nodal
+
+    def velocity_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """h(x, v): velocity-dependent forces plus the q-row geometric term (see module docstring)."""
+        nq = self.nq
+        qd, ud = v[:nq], v[nq:]
+        _, Sd = self.kin.rates(cfg.pose, qd)
+        bd = cfg.pose.S @ qd + self.T @ ud
+        f = cfg.M_N @ (Sd @ qd)
+        th_d = (cfg.pose.Sz[2::3] @ qd)[self.el_link]  # element angular rates
+        R = cfg.R
+        Rt = np.swapaxes(R, 1, 2)
+        bl = np.einsum("eij,ej->ei", Rt, bd[self.el_dofs])  # element velocities in local frames
+        Gb = np.einsum("eij,ej->ei", self.Gl, bl)
+        fe = np.einsum("eij,ej->ei", R, Gb) * th_d[:, None]
+        np.add.at(f, self.el_dofs, fe)
+        h = cfg.W.T @ f
+        # q rows: -dT/dq (explicit) + dV/dq, both through the element angles
+        d = self.T @ x[nq:]
+        dl = np.einsum("eij,ej->ei", Rt, d[self.el_dofs])
+        gT = 0.5 * np.einsum("ei,ei->e", bl, Gb)
+        gV = 0.5 * np.einsum("ei,eij,ej->e", dl, self.KGl, dl)
+        S_th = cfg.pose.Sz[2::3][self.el_link]  # (n_el, nq)
+        h[:nq] += S_th.T @ (gV - gT)
+        return h
+
+    # ------------------------------------------------------------------ dynamics
+    def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):
+        F = cfg.W.T @ (self.B_N @ tau + cfg.M_N @ self.g_N)
+        if f_nodal is not None:
+            F = F + cfg.W.T @ f_nodal
+        return F
+
+    def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
+        """v' from eq. 2 at state (x, v) under motor torques tau."""
+        if cfg is None:
+            cfg = self.configuration(x[: self.nq])
+        nq = self.nq
+        M = self.mass(cfg)
+        rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
+        Tt = self.T.T
+        Kuu = Tt @ cfg.K_N @ self.T
+        rhs[nq:] -= Kuu @ x[nq:]
+        if self.alpha or self.beta:
+            rhs[nq:] -= (self.alpha * (Tt @ cfg.M_N @ self.T) + self.beta * Kuu) @ v[nq:]
+        return np.linalg.solve(M, rhs)
+
+    def rhs(self, t: float, y: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """First-order form y = [x; v] -> y'."""
+        n = self.n
+        return np.concatenate([y[n:], self.accelerations(y[:n], y[n:], tau)])
+
+    def energy(self, y: np.ndarray) -> float:
+        """Kinetic + strain energy (no gravity)."""
+        n = self.n
+        cfg = self.configuration(y[: self.nq])
+        v = y[n:]
+        u = y[self.nq : n]
+        return 0.5 * v @ self.mass(cfg) @ v + 0.5 * u @ (self.T.T @ cfg.K_N @ self.T) @ u
+
+    # ------------------------------------------------------------------ outputs
+    def nodal_displacements(self, u: np.ndarray) -> np.ndarray:
+        """Elastic nodal displacement vector d = T u (N,)."""
+        return self.T @ u
+
+    def locate(self, link: str, station: float) -> list[tuple[int, float]]:
+        """Element(s) and xi of a link station; two entries at an interior node (both sides)."""
+        li = [lk.name for lk in self.mech.links].index(link)
+        els = np.flatnonzero(self.el_link == li)
+        out = []
+        for e in els:
+            a, L = self.el_station[e], self.el_len[e]
+            xi = (station - a) / L
+            if -1e-9 <= xi <= 1 + 1e-9:
+                out.append((int(e), float(min(max(xi, 0.0), 1.0))))
+        if len(out) > 1:
+            out = [o for o in out if o[1] in (0.0, 1.0)] or out[:1]
+        if not out:
+            raise KeyError(f"link {link!r} has no station {station}")
+        return out
+
+    def curvature_row(self, cfg: Configuration, link: str, station: float) -> np.ndarray:
+        """Row c (ne,) with bending curvature (1/m) at a link station = c @ u (configuration dependent).
+
+        At an interior node the curvature of the two adjacent cubic elements is averaged.
+        """
+        row = np.zeros(self.N)
+        locs = self.locate(link, station)
+        for e, xi in locs:
+            cl = hermite_curvature_row(self.el_len[e], xi)
+            row[self.el_dofs[e]] += (cl @ cfg.R[e].T) / len(locs)
+        return row @ self.T
+
+    def point_displacement_rows(self, cfg: Configuration, link: str, station: float) -> np.ndarray:
+        """(2, ne) map from u to the global elastic displacement of a link point."""
+        e, xi = self.locate(link, station)[0]
+        L = self.el_len[e]
+        N = np.zeros((2, 6))
+        N[0, 0], N[0, 3] = 1 - xi, xi
+        N[1, 1] = 1 - 3 * xi**2 + 2 * xi**3
+        N[1, 2] = L * (xi - 2 * xi**2 + xi**3)
+        N[1, 4] = 3 * xi**2 - 2 * xi**3
+        N[1, 5] = L * (-(xi**2) + xi**3)
+        r2 = cfg.R[e][:2, :2]
+        rows = np.zeros((2, self.N))
+        rows[:, self.el_dofs[e]] = r2 @ N @ cfg.R[e].T
+        return rows @ self.T
+
+    def rotation_row(self, link: str, joint: str) -> np.ndarray:
+        """(ne,) map from u to the elastic rotation of ``link``'s node at ``joint``."""
+        return self.T[self._joint_node_dof(joint, link, 2)]

@@ -1,0 +1,79 @@
+"""Time integration of first-order models ``y' = f(t, y, u(t))``: fixed-step RK4 or scipy's solve_ivp."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+__all__ = ["Trajectory", "simulate", "rk4_step"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    t: np.ndarray  # (n_steps,)
+    y: np.ndarray  # (n_steps, n_states), time-first
+    names: tuple[str, ...] = ()
+
+
+def rk4_step(f, t, y, h, u):
+    k1 = f(t, y, u)
+    k2 = f(t + h / 2, y + h / 2 * k1, u)
+    k3 = f(t + h / 2, y + h / 2 * k2, u)
+    k4 = f(t + h, y + h * k3, u)
+    return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def simulate(
+    f: Callable[[float, np.ndarray, np.ndarray], np.ndarray],
+    y0: np.ndarray,
+    t_end: float,
+    inputs: Callable[[float], np.ndarray],
+    *,
+    h: float = 1e-4,
+    method: str = "rk4",
+    output_every: int = 1,
+    progress: Callable[[float], None] | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+) -> Trajectory:
+    """Integrate ``y' = f(t, y, inputs(t))`` from 0 to ``t_end``.
+
+    Parameters
+    ----------
+    method : "rk4" (fixed step ``h``, inputs held over each step at their start value, as a
+        zero-order hold) or any ``solve_ivp`` method name ("RK45", "Radau", "LSODA", ...), which
+        samples the output every ``h * output_every``.
+    output_every : store every k-th step.
+    progress : called with the fraction done (0..1) from time to time.
+    """
+    y0 = np.asarray(y0, float)
+    n_steps = int(round(t_end / h))
+    if method == "rk4":
+        ts = [0.0]
+        ys = [y0.copy()]
+        y = y0.copy()
+        report = max(1, n_steps // 100)
+        for k in range(n_steps):
+            t = k * h
+            y = rk4_step(f, t, y, h, inputs(t))
+            if not np.all(np.isfinite(y)):
+                raise FloatingPointError(f"simulation diverged at t = {t + h:.6g} s (step h = {h:g} s too large?)")
+            if (k + 1) % output_every == 0:
+                ts.append((k + 1) * h)
+                ys.append(y.copy())
+            if progress is not None and (k + 1) % report == 0:
+                progress((k + 1) / n_steps)
+        return Trajectory(np.array(ts), np.array(ys))
+    t_eval = np.arange(0, n_steps + 1, output_every) * h
+    sol = solve_ivp(
+        lambda t, y: f(t, y, inputs(t)), (0.0, t_end), y0, method=method, t_eval=t_eval, rtol=rtol, atol=atol
+    )
+    if not sol.success:
+        raise FloatingPointError(f"solve_ivp ({method}) failed: {sol.message}")
+    return Trajectory(sol.t, sol.y.T)

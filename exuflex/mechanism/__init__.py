@@ -1,0 +1,43 @@
+"""Mechanism descriptions: frozen data loaded from TOML model files. Imports nothing from exuflex."""
+
+from .dofs import COMPONENTS, ElasticDofs, elastic_dofs
+from .loader import ModelFileError, load_mechanism, parse_mechanism
+from .refine import refine_mechanism
+from .spec import (
+    Coordinate,
+    Damping,
+    Joint,
+    Link,
+    LinkPoint,
+    LumpedMass,
+    Manoeuvre,
+    Material,
+    Mechanism,
+    Motor,
+    ReductionSpec,
+    Section,
+    Sensor,
+)
+
+__all__ = [
+    "COMPONENTS",
+    "ElasticDofs",
+    "elastic_dofs",
+    "ModelFileError",
+    "load_mechanism",
+    "parse_mechanism",
+    "refine_mechanism",
+    "Coordinate",
+    "Damping",
+    "Joint",
+    "Link",
+    "LinkPoint",
+    "LumpedMass",
+    "Manoeuvre",
+    "Material",
+    "Mechanism",
+    "Motor",
+    "ReductionSpec",
+    "Section",
+    "Sensor",
+]

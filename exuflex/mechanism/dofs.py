@@ -1,0 +1,108 @@
+"""Elastic degrees of freedom of a mechanism: which nodal displacements are free, tied or zero.
+
+Each node carries three nodal displacements in the global frame, ``x``, ``y`` and ``theta``.
+The ERLS-defining constraints (derived from the joints and the coordinates, never per mechanism):
+
+- a grounded joint fixes the translations of its nodes;
+- the nodes of a joint share their translations; the lowest node id owns them;
+- an absolute ERLS coordinate of link L at joint J fixes the rotation of L's node at J (so that
+  ``q`` is the angle an encoder there reads); a relative one ties it to the other link's node.
+
+The free displacements, taken node by node (ascending id) and component by component, are the
+elastic dofs ``u``. They are named ``x{k}``, ``y{k}``, ``theta{k}`` with ``k`` the 1-based index
+in ``u`` (the paper's numbering for the six-bar: ``x14``, ``theta24``, ``x25``) and, stably under
+mesh refinement, ``node{n}.x``, ``node{n}.y``, ``node{n}.theta``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .spec import Mechanism
+
+__all__ = ["ElasticDofs", "elastic_dofs", "COMPONENTS"]
+
+COMPONENTS = ("x", "y", "theta")
+
+
+@dataclass(frozen=True)
+class ElasticDofs:
+    nodes: tuple[int, ...]  # node ids in nodal-vector order
+    free: tuple[tuple[int, str], ...]  # (node, component) of each elastic dof, in u order
+    nodal_to_u: tuple[int, ...]  # for nodal dof 3*i+c: index into u, or -1 if fixed at zero
+    names: tuple[str, ...]  # x{k} / y{k} / theta{k}
+    node_names: tuple[str, ...]  # node{n}.{c}
+
+    @property
+    def n(self) -> int:
+        return len(self.free)
+
+    def index(self, name: str) -> int:
+        """Index in u of a dof given as ``x14`` or ``node8.x``."""
+        if name in self.names:
+            return self.names.index(name)
+        if name in self.node_names:
+            return self.node_names.index(name)
+        raise KeyError(
+            f"no elastic dof named {name!r}; expected a name such as {self.names[0]!r} or {self.node_names[0]!r}"
+        )
+
+    def node_name(self, name: str) -> str:
+        return self.node_names[self.index(name)]
+
+    def nodal_index(self, node: int, comp: str) -> int:
+        return 3 * self.nodes.index(node) + COMPONENTS.index(comp)
+
+
+def elastic_dofs(mech: Mechanism) -> ElasticDofs:
+    nodes = mech.node_ids
+    pos = {n: i for i, n in enumerate(nodes)}
+    nn = 3 * len(nodes)
+    ZERO = -1
+    parent = list(range(nn))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    fixed: set[int] = set()
+
+    def tie(a: int, b: int) -> None:
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+
+    for j in mech.joints:
+        ids = [mech.node_at(p.link, p.station) for p in j.points]
+        for c in (0, 1):
+            dofs = [3 * pos[n] + c for n in ids]
+            for d in dofs[1:]:
+                tie(dofs[0], d)
+            if j.ground is not None:
+                fixed.update(dofs)
+    for co in mech.coordinates:
+        j = mech.joint(co.joint)
+        st = next(p.station for p in j.points if p.link == co.link)
+        d = 3 * pos[mech.node_at(co.link, st)] + 2
+        if co.relative_to is None:
+            fixed.add(d)
+        else:
+            st2 = next(p.station for p in j.points if p.link == co.relative_to)
+            tie(d, 3 * pos[mech.node_at(co.relative_to, st2)] + 2)
+    fixed_roots = {find(d) for d in fixed}
+    to_u = [ZERO] * nn
+    free: list[tuple[int, str]] = []
+    root_index: dict[int, int] = {}
+    for d in range(nn):
+        r = find(d)
+        if r in fixed_roots:
+            continue
+        if r not in root_index:
+            root_index[r] = len(free)
+            free.append((nodes[r // 3], COMPONENTS[r % 3]))
+        to_u[d] = root_index[r]
+    names = tuple(f"{c}{k + 1}" for k, (_, c) in enumerate(free))
+    node_names = tuple(f"node{n}.{c}" for n, c in free)
+    return ElasticDofs(nodes, tuple(free), tuple(to_u), names, node_names)

@@ -1,0 +1,527 @@
+"""Load and validate TOML mechanism files (schema: ``models/README.md``).
+
+Every mistake becomes a :class:`ModelFileError` naming the file, the field (a dotted path such
+as ``links[2].diameter``) and what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from .spec import (
+    Coordinate,
+    Damping,
+    Joint,
+    Link,
+    LinkPoint,
+    LumpedMass,
+    Manoeuvre,
+    Material,
+    Mechanism,
+    Motor,
+    ReductionSpec,
+    Section,
+    Sensor,
+)
+
+__all__ = ["ModelFileError", "load_mechanism", "parse_mechanism"]
+
+SENSOR_KINDS = ("encoder", "curvature", "tip_x", "tip_y")
+TIME_LAWS = ("trapezoid", "quintic", "cycloidal")
+MANOEUVRE_KINDS = ("tip_arc", "joint")
+
+
+class ModelFileError(ValueError):
+    """A model file is malformed; the message names the file, the field and what was expected."""
+
+    def __init__(self, source: str, field: str, expected: str, got: Any = None, *, has_got: bool = True):
+        self.source, self.field, self.expected = source, field, expected
+        msg = f"{source}: {field}: expected {expected}"
+        if has_got:
+            msg += f", got {got!r}"
+        super().__init__(msg)
+
+
+class _Reader:
+    """Typed access to a TOML table that reports errors with the field path."""
+
+    def __init__(self, source: str, table: dict, path: str):
+        self.source, self.table, self.path = source, table, path
+        self.used: set[str] = set()
+
+    def _f(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def err(self, key: str, expected: str, got: Any = None, has_got: bool = True) -> ModelFileError:
+        return ModelFileError(self.source, self._f(key), expected, got, has_got=has_got)
+
+    def has(self, key: str) -> bool:
+        return key in self.table
+
+    def raw(self, key: str, default: Any = ...) -> Any:
+        self.used.add(key)
+        if key not in self.table:
+            if default is ...:
+                raise self.err(key, "this required key", has_got=False)
+            return default
+        return self.table[key]
+
+    def str(self, key: str, default: Any = ...) -> str:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if not isinstance(v, str) or not v:
+            raise self.err(key, "a non-empty string", v)
+        return v
+
+    def num(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None, unit="") -> float:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.err(key, f"a finite number{(' in ' + unit) if unit else ''}", v)
+        v = float(v)
+        if positive and v <= 0:
+            raise self.err(key, f"a positive number{(' in ' + unit) if unit else ''}", v)
+        if nonneg and v < 0:
+            raise self.err(key, f"a number >= 0{(' in ' + unit) if unit else ''}", v)
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise self.err(key, f"a value in [{lo:g}, {hi:g}] {unit} (SI units)".rstrip(), v)
+        return v
+
+    def int(self, key: str, default: Any = ..., *, positive=False) -> int:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.err(key, "an integer", v)
+        if positive and v <= 0:
+            raise self.err(key, "a positive integer", v)
+        return v
+
+    def nums(self, key: str, default: Any = ..., *, length: int | None = None) -> tuple[float, ...]:
+        v = self.raw(key, default)
+        if v is default and default is not ...:
+            return v
+        ok = isinstance(v, list) and all(
+            not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) for x in v
+        )
+        if not ok or (length is not None and len(v) != length):
+            what = f"a list of {length} numbers" if length is not None else "a list of numbers"
+            raise self.err(key, what, v)
+        return tuple(float(x) for x in v)
+
+    def table_list(self, key: str, required: bool = True) -> list[_Reader]:
+        v = self.raw(key, ... if required else [])
+        if not isinstance(v, list) or not all(isinstance(x, dict) for x in v):
+            raise self.err(key, "an array of tables ([[" + key + "]])", type(v).__name__)
+        return [_Reader(self.source, x, f"{self._f(key)}[{i}]") for i, x in enumerate(v)]
+
+    def sub(self, key: str, required: bool = False) -> _Reader | None:
+        v = self.raw(key, ... if required else None)
+        if v is None:
+            return None
+        if not isinstance(v, dict):
+            raise self.err(key, "a table", v)
+        return _Reader(self.source, v, self._f(key))
+
+    def check_unknown(self) -> None:
+        extra = sorted(set(self.table) - self.used)
+        if extra:
+            raise ModelFileError(
+                self.source, self._f(extra[0]), f"one of the known keys {sorted(self.used)}", extra[0]
+            )
+
+
+def load_mechanism(path: str | Path) -> Mechanism:
+    """Read and validate a TOML mechanism file."""
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise ModelFileError(src, "(file)", "an existing TOML model file", has_got=False)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelFileError(src, "(syntax)", f"valid TOML ({exc})", has_got=False) from None
+    except UnicodeDecodeError:
+        raise ModelFileError(src, "(file)", "a UTF-8 text file", has_got=False) from None
+    return parse_mechanism(data, src)
+
+
+def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
+    """Validate a parsed TOML document and build the :class:`Mechanism`."""
+    root = _Reader(source, data, "")
+    model = root.sub("model", required=True)
+    name = model.str("name")
+    description = model.str("description", "")
+    sample_rate = model.num("sample_rate_hz", 500.0, positive=True, unit="Hz")
+    gravity = model.nums("gravity", (0.0, 0.0), length=2)
+    model.raw("reference", "")  # free-text provenance
+    q_ref_raw = model.raw("q_ref", None)
+
+    materials: dict[str, Material] = {}
+    for r in root.table_list("materials"):
+        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=1.0, hi=3e4, unit="kg/m^3"))
+        if m.name in materials:
+            raise r.err("name", "a unique material name", m.name)
+        materials[m.name] = m
+        r.check_unknown()
+
+    links = _parse_links(root, materials)
+    link_by = {lk.name: lk for lk in links}
+
+    def link_ref(r: _Reader, key: str, default: Any = ...) -> str | None:
+        v = r.raw(key, default)
+        if v is None and default is None:
+            return None
+        if v not in link_by:
+            raise r.err(key, f"a link name, one of {sorted(link_by)}", v)
+        return v
+
+    def point(r: _Reader, where: str) -> LinkPoint:
+        lk = link_by[link_ref(r, "link")]
+        s = r.num("station", lo=0.0, hi=lk.length, unit="m")
+        if where == "node":
+            try:
+                lk.station_index(s)
+            except KeyError:
+                raise r.err("station", f"one of link {lk.name!r}'s stations {list(lk.stations)}", s) from None
+        return LinkPoint(lk.name, s)
+
+    joints: list[Joint] = []
+    for r in root.table_list("joints"):
+        pts = []
+        for i, p in enumerate(r.raw("points")if r.has("points") else r.raw("points")):
+            if not isinstance(p, dict):
+                raise r.err(f"points[{i}]", "an inline table {link = ..., station = ...}", p)
+            pr = _Reader(source, p, f"{r.path}.points[{i}]")
+            pts.append(point(pr, "node"))
+            pr.check_unknown()
+        ground = r.nums("ground", None, length=2)
+        jname = r.str("name")
+        if len(pts) < (1 if ground is not None else 2):
+            raise r.err("points", "at least two link points (or one with a ground position)", len(pts))
+        if any(j.name == jname for j in joints):
+            raise r.err("name", "a unique joint name", jname)
+        joints.append(Joint(jname, tuple(pts), ground))
+        r.check_unknown()
+    joint_by = {j.name: j for j in joints}
+
+    def joint_ref(r: _Reader, key: str, link: str | None = None) -> str:
+        v = r.raw(key)
+        if v not in joint_by:
+            raise r.err(key, f"a joint name, one of {sorted(joint_by)}", v)
+        if link is not None and link not in [p.link for p in joint_by[v].points]:
+            raise r.err(key, f"a joint that link {link!r} takes part in", v)
+        return v
+
+    coords = []
+    for r in root.table_list("coordinates"):
+        lk = link_ref(r, "link")
+        c = Coordinate(
+            r.str("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
+        )
+        if c.relative_to is not None and c.relative_to not in [p.link for p in joint_by[c.joint].points]:
+            raise r.err("relative_to", f"a link at joint {c.joint!r}", c.relative_to)
+        coords.append(c)
+        r.check_unknown()
+    if not coords:
+        raise root.err("coordinates", "at least one ERLS coordinate", has_got=False)
+    _unique(source, "coordinates", [c.name for c in coords])
+
+    motors = []
+    for r in root.table_list("motors", required=False):
+        lk = link_ref(r, "link")
+        m = Motor(
+            r.str("name"),
+            joint_ref(r, "joint", lk),
+            lk,
+            link_ref(r, "reaction", None),
+            r.num("noise_std", 0.0, nonneg=True, unit="N m"),
+            r.num("full_scale", None, positive=True, unit="N m"),
+        )
+        if m.reaction is not None and m.reaction not in [p.link for p in joint_by[m.joint].points]:
+            raise r.err("reaction", f"a link at joint {m.joint!r}", m.reaction)
+        if m.reaction is None and joint_by[m.joint].ground is None:
+            raise r.err("reaction", f"a reaction link (joint {m.joint!r} is not grounded)", None)
+        motors.append(m)
+        r.check_unknown()
+    _unique(source, "motors", [m.name for m in motors])
+
+    all_nodes = {n for lk in links for n in lk.node_ids}
+
+    def mass_entry(r: _Reader) -> LumpedMass:
+        if r.has("node"):
+            node = r.int("node", positive=True)
+            if node not in all_nodes:
+                raise r.err("node", f"an existing node id (1..{max(all_nodes)})", node)
+        else:
+            p = point(r, "node")
+            node = link_by[p.link].node_ids[link_by[p.link].station_index(p.station)]
+        lm = LumpedMass(node, r.num("mass", nonneg=True, unit="kg"), r.num("inertia", 0.0, nonneg=True, unit="kg m^2"),
+                        r.str("label", ""))
+        r.check_unknown()
+        return lm
+
+    masses = tuple(mass_entry(r) for r in root.table_list("masses", required=False))
+    pr = root.sub("payload")
+    payload = mass_entry(pr) if pr is not None else None
+
+    dr = root.sub("damping")
+    damping = Damping()
+    if dr is not None:
+        damping = Damping(dr.num("alpha", 0.0, nonneg=True, unit="1/s"), dr.num("beta", 0.0, nonneg=True, unit="s"))
+        dr.check_unknown()
+
+    sensors = []
+    for r in root.table_list("sensors", required=False):
+        kind = r.str("kind")
+        if kind not in SENSOR_KINDS:
+            raise r.err("kind", f"one of {list(SENSOR_KINDS)}", kind)
+        lk = link_ref(r, "link")
+        joint = station = rel = None
+        if kind == "encoder":
+            joint = joint_ref(r, "joint", lk)
+            rel = link_ref(r, "relative_to", None)
+            if rel is not None and rel not in [p.link for p in joint_by[joint].points]:
+                raise r.err("relative_to", f"a link at joint {joint!r}", rel)
+        else:
+            station = point(r, "any").station
+        sensors.append(
+            Sensor(
+                r.str("name"), kind, lk, joint, station, rel,
+                r.num("noise_std", 0.0, nonneg=True),
+                r.num("full_scale", None, positive=True),
+                r.num("rate_hz", None, positive=True, unit="Hz"),
+            )
+        )
+        r.check_unknown()
+    _unique(source, "sensors", [s.name for s in sensors] + [m.name for m in motors])
+
+    nq = len(coords)
+    q_ref: tuple[float, ...] = ()
+    if q_ref_raw is not None:
+        q_ref = model.nums("q_ref", length=nq)
+    model.check_unknown()
+
+    manoeuvre = _parse_manoeuvre(root, link_by, [c.name for c in coords], point)
+
+    red = root.sub("reduction")
+    reduction = ReductionSpec()
+    if red is not None:
+        masters = red.raw("masters", [])
+        if not isinstance(masters, list) or not all(isinstance(m, str) for m in masters):
+            raise red.err("masters", "a list of elastic dof names such as 'x14' or 'node8.x'", masters)
+        n_int = red.raw("n_interior", "auto")
+        if n_int != "auto" and (isinstance(n_int, bool) or not isinstance(n_int, int) or n_int < 0):
+            raise red.err("n_interior", "a non-negative integer or \"auto\"", n_int)
+        reduction = ReductionSpec(
+            tuple(masters),
+            red.nums("q_star", None, length=nq),
+            red.num("band_hz", 180.0, positive=True, unit="Hz"),
+            None if n_int == "auto" else n_int,
+            red.num("nco_min", 0.99, lo=0.0, hi=1.0),
+            red.num("freq_error_max_pct", 2.0, positive=True, unit="%"),
+        )
+        red.check_unknown()
+    root.check_unknown()
+
+    mech = Mechanism(
+        name=name,
+        source=source,
+        links=links,
+        joints=tuple(joints),
+        coordinates=tuple(coords),
+        motors=tuple(motors),
+        masses=masses,
+        payload=payload,
+        damping=damping,
+        sensors=tuple(sensors),
+        q_ref=q_ref,
+        manoeuvre=manoeuvre,
+        reduction=reduction,
+        sample_rate_hz=sample_rate,
+        gravity=tuple(gravity),
+        description=description,
+    )
+    _check_topology(mech)
+    return mech
+
+
+def _unique(source: str, field: str, names: list[str]) -> None:
+    seen = set()
+    for n in names:
+        if n in seen:
+            raise ModelFileError(source, field, "unique names (sensor, motor and coordinate names may not repeat)", n)
+        seen.add(n)
+
+
+def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, ...]:
+    links: list[Link] = []
+    next_auto = None
+    readers = root.table_list("links")
+    if not readers:
+        raise root.err("links", "at least one [[links]] table", has_got=False)
+    explicit_ids = set()
+    for r in readers:
+        if r.has("nodes"):
+            v = r.table["nodes"]
+            if isinstance(v, list):
+                explicit_ids.update(x for x in v if isinstance(x, int))
+    next_auto = max(explicit_ids, default=0) + 1
+    for r in readers:
+        name = r.str("name")
+        length = r.num("length", positive=True, unit="m")
+        mat = r.raw("material")
+        if mat not in materials:
+            raise r.err("material", f"a material name, one of {sorted(materials)}", mat)
+        if r.has("diameter"):
+            d = r.num("diameter", positive=True, unit="m")
+            if d >= length:
+                raise r.err("diameter", f"a diameter (m) smaller than the link length {length} m: mm by mistake?", d)
+            if r.has("A") or r.has("I"):
+                raise r.err("A", "either diameter or A and I, not both", r.table.get("A"))
+            sec = Section(math.pi * d**2 / 4, math.pi * d**4 / 64, d, d)
+        else:
+            if not (r.has("A") and r.has("I")):
+                raise r.err("diameter", "a diameter (m) or both A (m^2) and I (m^4)", has_got=False)
+            A = r.num("A", positive=True, unit="m^2")
+            I = r.num("I", positive=True, unit="m^4")  # noqa: E741
+            if A >= length**2:
+                raise r.err("A", f"an area (m^2) much smaller than length^2 = {length**2:g}", A)
+            h = r.num("height", None, positive=True, unit="m")
+            sec = Section(A, I, None, h)
+        if r.has("stations"):
+            st = r.nums("stations")
+            if r.has("n_elements"):
+                raise r.err("n_elements", "either stations or n_elements, not both", r.table["n_elements"])
+            if len(st) < 2 or abs(st[0]) > 1e-12 or abs(st[-1] - length) > 1e-9 * length or any(
+                b <= a for a, b in zip(st, st[1:])
+            ):
+                raise r.err("stations", f"ascending stations from 0 to the length {length} m", list(st))
+            st = (0.0,) + tuple(st[1:-1]) + (length,)
+        else:
+            ne = r.int("n_elements", 1, positive=True)
+            st = tuple(length * i / ne for i in range(ne + 1))
+        if r.has("nodes"):
+            ids = r.raw("nodes")
+            if not isinstance(ids, list) or len(ids) != len(st) or not all(
+                isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in ids
+            ):
+                raise r.err("nodes", f"a list of {len(st)} positive node ids (one per station)", ids)
+            ids = tuple(ids)
+        else:
+            ids = tuple(range(next_auto, next_auto + len(st)))
+            next_auto += len(st)
+        for other in links:
+            if other.name == name:
+                raise r.err("name", "a unique link name", name)
+            if set(other.node_ids) & set(ids):
+                raise r.err("nodes", f"node ids not used by link {other.name!r}", list(ids))
+        if len(set(ids)) != len(ids):
+            raise r.err("nodes", "distinct node ids", list(ids))
+        links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None)))
+        r.check_unknown()
+    return tuple(links)
+
+
+def _parse_manoeuvre(root: _Reader, link_by, coord_names, point) -> Manoeuvre | None:
+    r = root.sub("manoeuvre")
+    if r is None:
+        return None
+    kind = r.str("kind")
+    if kind not in MANOEUVRE_KINDS:
+        raise r.err("kind", f"one of {list(MANOEUVRE_KINDS)}", kind)
+    law = r.str("time_law", "trapezoid")
+    if law not in TIME_LAWS:
+        raise r.err("time_law", f"one of {list(TIME_LAWS)}", law)
+    duration = r.num("duration", positive=True, unit="s")
+    ramp = r.num("ramp_time", 0.0, nonneg=True, unit="s")
+    if law == "trapezoid" and not 0 < ramp <= duration / 2:
+        raise r.err("ramp_time", f"a ramp time in (0, duration/2 = {duration / 2:g}] s", ramp)
+    rules = []
+    for i, rule in enumerate(r.raw("rules", [])):
+        rr = _Reader(r.source, rule if isinstance(rule, dict) else {}, f"{r.path}.rules[{i}]")
+        if not isinstance(rule, dict):
+            raise rr.err("", "an inline table {coordinate, start, end}", rule)
+        c = rr.str("coordinate")
+        if c not in coord_names:
+            raise rr.err("coordinate", f"an ERLS coordinate name, one of {coord_names}", c)
+        rules.append((c, rr.num("start", unit="rad"), rr.num("end", unit="rad")))
+        rr.check_unknown()
+    torque_noise = ()
+    tip = centre = radius = phi0 = phi1 = None
+    if kind == "tip_arc":
+        tr = r.sub("tip", required=True)
+        tip = point(tr, "any")
+        tr.check_unknown()
+        centre = r.nums("centre", length=2)
+        radius = r.num("radius", positive=True, unit="m")
+        phi0 = r.num("phi_start", unit="rad")
+        phi1 = r.num("phi_end", unit="rad")
+        if len(rules) != len(coord_names) - 2:
+            raise r.err("rules", f"{len(coord_names) - 2} coordinate rule(s) besides the 2 tip dofs", len(rules))
+    elif len(rules) != len(coord_names):
+        raise r.err("rules", f"one rule per ERLS coordinate ({len(coord_names)})", len(rules))
+    r.check_unknown()
+    return Manoeuvre(kind, duration, law, ramp, tip, centre, radius, phi0, phi1, tuple(rules), torque_noise)
+
+
+def _check_topology(mech: Mechanism) -> None:
+    """Joints connect every link to the ground; the coordinates match the mobility."""
+    src = mech.source
+    if not any(j.ground is not None for j in mech.joints):
+        raise ModelFileError(src, "joints", "at least one joint with a ground position", has_got=False)
+    adj: dict[str, set[str]] = {lk.name: set() for lk in mech.links}
+    grounded: set[str] = set()
+    n_eq = 0
+    for j in mech.joints:
+        names = [p.link for p in j.points]
+        if len(set(names)) != len(names):
+            raise ModelFileError(src, f"joints.{j.name}.points", "each link at most once per joint", names)
+        for a in names:
+            adj[a].update(n for n in names if n != a)
+        if j.ground is not None:
+            grounded.update(names)
+        n_eq += 2 * (len(names) - (0 if j.ground is not None else 1))
+    seen, todo = set(grounded), list(grounded)
+    while todo:
+        for n in adj[todo.pop()]:
+            if n not in seen:
+                seen.add(n)
+                todo.append(n)
+    loose = sorted(set(adj) - seen)
+    if loose:
+        raise ModelFileError(src, "joints", f"joints that connect every link to the ground; not connected: {loose}",
+                             has_got=False)
+    mobility = 3 * len(mech.links) - n_eq
+    if mobility != len(mech.coordinates):
+        raise ModelFileError(
+            src, "coordinates",
+            f"as many ERLS coordinates as the mechanism's mobility ({mobility}, from 3 x {len(mech.links)} links "
+            f"- {n_eq} joint equations)",
+            len(mech.coordinates),
+        )
+    # each coordinate's link node at its joint must be distinct (one ERLS constraint per node rotation)
+    seen_c = set()
+    for c in mech.coordinates:
+        key = (c.link, c.joint)
+        if key in seen_c:
+            raise ModelFileError(src, f"coordinates.{c.name}", "a link/joint pair not used by another coordinate",
+                                 key)
+        seen_c.add(key)
+    from .dofs import elastic_dofs
+
+    dofs = elastic_dofs(mech)
+    for i, m in enumerate(mech.reduction.masters):
+        try:
+            dofs.index(m)
+        except KeyError:
+            raise ModelFileError(
+                src, f"reduction.masters[{i}]",
+                f"an elastic dof name such as {dofs.names[0]!r} or {dofs.node_names[0]!r} "
+                f"(this mesh has {dofs.n} elastic dofs)", m) from None

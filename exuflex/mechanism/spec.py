@@ -1,0 +1,266 @@
+"""Frozen description of a planar flexible-link mechanism.
+
+This module is the root of exuflex's data flow: it imports nothing from the rest of the
+package. A :class:`Mechanism` is produced by :func:`exuflex.mechanism.load_mechanism` from a
+TOML model file (schema in ``models/README.md``) and consumed by both formulations: the ERLS
+model (:mod:`exuflex.erls`) and the Exudyn ground truth (:mod:`exuflex.groundtruth`).
+
+Conventions
+-----------
+- SI units throughout (m, kg, s, rad, N, N m, Pa).
+- A link is a straight beam; its *stations* are distances from the link's start along its axis.
+  Every station carries one finite-element node; nodes have global 1-based ids.
+- Joints are revolute; each joins two or more link stations, optionally to ground.
+- ERLS coordinates ``q`` are absolute link angles (or relative angles at a joint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+__all__ = [
+    "Material",
+    "Section",
+    "Link",
+    "LinkPoint",
+    "Joint",
+    "Coordinate",
+    "Motor",
+    "LumpedMass",
+    "Sensor",
+    "Damping",
+    "Manoeuvre",
+    "ReductionSpec",
+    "Mechanism",
+]
+
+
+@dataclass(frozen=True)
+class Material:
+    name: str
+    E: float  # Young's modulus, Pa
+    rho: float  # density, kg/m^3
+
+
+@dataclass(frozen=True)
+class Section:
+    """Cross-section: area A (m^2) and second moment I (m^4); ``diameter`` if circular."""
+
+    A: float
+    I: float  # noqa: E741 - the conventional name
+    diameter: float | None = None  # outer diameter of a solid circle (used for gauges, m)
+    height: float | None = None  # distance from neutral axis to the surface * 2 (m)
+
+
+@dataclass(frozen=True)
+class Link:
+    name: str
+    length: float
+    material: Material
+    section: Section
+    stations: tuple[float, ...]  # node stations along the axis, ascending, first 0, last length
+    node_ids: tuple[int, ...]  # global 1-based node id of each station
+    angle_guess: float | None = None  # absolute angle at the reference configuration (branch selection)
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.stations) - 1
+
+    @property
+    def mass(self) -> float:
+        return self.material.rho * self.section.A * self.length
+
+    def station_index(self, s: float, tol: float = 1e-9) -> int:
+        for i, si in enumerate(self.stations):
+            if abs(si - s) <= tol * max(1.0, self.length):
+                return i
+        raise KeyError(f"link {self.name!r} has no station at {s} m")
+
+
+@dataclass(frozen=True)
+class LinkPoint:
+    """A point on a link's axis: link name and distance from the link's start (m)."""
+
+    link: str
+    station: float
+
+
+@dataclass(frozen=True)
+class Joint:
+    """Revolute joint joining link points (all at one place); ``ground`` pins them to the frame."""
+
+    name: str
+    points: tuple[LinkPoint, ...]
+    ground: tuple[float, float] | None = None  # ground pin position (m) if pinned to the frame
+
+
+@dataclass(frozen=True)
+class Coordinate:
+    """An ERLS coordinate: the absolute angle of ``link`` (or relative to ``relative_to``) at ``joint``.
+
+    Its ERLS-defining constraint sets the elastic rotation of ``link``'s node at ``joint`` to zero
+    (absolute) or equal to that of ``relative_to``'s node there (relative), so that ``q`` is the
+    angle an encoder at that joint reads.
+    """
+
+    name: str
+    link: str
+    joint: str
+    relative_to: str | None = None
+    offset: float = 0.0  # q = angle(link) - angle(relative_to) - offset
+
+
+@dataclass(frozen=True)
+class Motor:
+    """A torque actuator at ``joint``: +T on ``link``'s node there, -T on ``reaction``'s (None: ground)."""
+
+    name: str
+    joint: str
+    link: str
+    reaction: str | None = None
+    noise_std: float = 0.0  # std of the measured torque (N m)
+    full_scale: float | None = None  # ADC full scale of the measured torque (N m)
+
+
+@dataclass(frozen=True)
+class LumpedMass:
+    node: int
+    mass: float
+    inertia: float = 0.0
+    label: str = ""
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A measured channel.
+
+    kind: ``encoder`` (absolute angle of ``link`` at ``joint``, or relative to ``relative_to``),
+    ``curvature`` (bending curvature of ``link`` at ``station``, 1/m),
+    ``tip_x`` / ``tip_y`` (position of ``link`` at ``station``, m).
+    ``noise_std`` is the white-noise standard deviation in the channel's unit;
+    ``full_scale`` is the ADC full scale in that unit (``None``: no quantisation).
+    """
+
+    name: str
+    kind: str
+    link: str
+    joint: str | None = None
+    station: float | None = None
+    relative_to: str | None = None
+    noise_std: float = 0.0
+    full_scale: float | None = None
+    rate_hz: float | None = None  # None: the model's default measurement rate
+
+
+@dataclass(frozen=True)
+class Damping:
+    """Rayleigh damping on the elastic block: C = alpha M_uu + beta K_uu."""
+
+    alpha: float = 0.0
+    beta: float = 0.0
+
+
+@dataclass(frozen=True)
+class Manoeuvre:
+    """A planned motion: a path (in task or joint space) and a time law on s in [0, 1].
+
+    kind ``tip_arc``: the point ``tip`` follows centre + radius [cos phi, sin phi],
+    phi = phi_start + (phi_end - phi_start) s; the coordinates in ``rules`` follow q = start + (end - start) s.
+    kind ``joint``: every coordinate follows a rule.
+    """
+
+    kind: str
+    duration: float
+    time_law: str = "trapezoid"  # trapezoid | quintic | cycloidal
+    ramp_time: float = 0.0  # trapezoid acceleration time (s)
+    tip: LinkPoint | None = None
+    centre: tuple[float, float] | None = None
+    radius: float | None = None
+    phi_start: float | None = None
+    phi_end: float | None = None
+    rules: tuple[tuple[str, float, float], ...] = ()  # (coordinate, start, end)
+    torque_noise: tuple[tuple[str, float], ...] = ()  # (motor name, std N m)
+
+
+@dataclass(frozen=True)
+class ReductionSpec:
+    masters: tuple[str, ...] = ()  # elastic master dof names (the q are always masters)
+    q_star: tuple[float, ...] | None = None
+    band_hz: float = 180.0
+    n_interior: int | None = None  # None: automatic from the accuracy thresholds
+    nco_min: float = 0.99
+    freq_error_max_pct: float = 2.0
+
+
+@dataclass(frozen=True)
+class Mechanism:
+    """A planar flexible-link mechanism (see module docstring for conventions)."""
+
+    name: str
+    source: str  # path of the model file it came from ("" if built in code)
+    links: tuple[Link, ...]
+    joints: tuple[Joint, ...]
+    coordinates: tuple[Coordinate, ...]
+    motors: tuple[Motor, ...]
+    masses: tuple[LumpedMass, ...] = ()
+    payload: LumpedMass | None = None
+    damping: Damping = field(default_factory=Damping)
+    sensors: tuple[Sensor, ...] = ()
+    q_ref: tuple[float, ...] = ()
+    manoeuvre: Manoeuvre | None = None
+    reduction: ReductionSpec = field(default_factory=ReductionSpec)
+    sample_rate_hz: float = 500.0
+    gravity: tuple[float, float] = (0.0, 0.0)
+    description: str = ""
+
+    # ------------------------------------------------------------------ look-ups
+    def link(self, name: str) -> Link:
+        for lk in self.links:
+            if lk.name == name:
+                return lk
+        raise KeyError(f"no link named {name!r}")
+
+    def joint(self, name: str) -> Joint:
+        for j in self.joints:
+            if j.name == name:
+                return j
+        raise KeyError(f"no joint named {name!r}")
+
+    @property
+    def coordinate_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.coordinates)
+
+    @property
+    def motor_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.motors)
+
+    @property
+    def node_ids(self) -> tuple[int, ...]:
+        return tuple(sorted({n for lk in self.links for n in lk.node_ids}))
+
+    def node_location(self, node: int) -> tuple[str, float]:
+        """(link name, station) of a node id."""
+        for lk in self.links:
+            if node in lk.node_ids:
+                return lk.name, lk.stations[lk.node_ids.index(node)]
+        raise KeyError(f"no node {node}")
+
+    def node_at(self, link: str, station: float) -> int:
+        lk = self.link(link)
+        return lk.node_ids[lk.station_index(station)]
+
+    def all_masses(self) -> tuple[LumpedMass, ...]:
+        """Lumped masses including the tip payload."""
+        return self.masses + ((self.payload,) if self.payload is not None else ())
+
+    # ------------------------------------------------------------------ variants
+    def with_payload_scale(self, scale: float) -> Mechanism:
+        """A copy whose tip payload (mass and inertia) is multiplied by ``scale``."""
+        if self.payload is None:
+            raise ValueError(f"{self.source or self.name}: model has no [payload] to scale")
+        p = dataclasses.replace(self.payload, mass=self.payload.mass * scale, inertia=self.payload.inertia * scale)
+        return dataclasses.replace(self, payload=p)
+
+    def replace(self, **changes) -> Mechanism:
+        return dataclasses.replace(self, **changes)
