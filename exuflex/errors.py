@@ -1,0 +1,15 @@
+"""The errors exuflex raises for bad input; the CLI reports these in one line without a traceback."""
+
+from __future__ import annotations
+
+from .erls.kinematics import KinematicsError
+from .mechanism import ModelFileError
+
+__all__ = ["LogFormatError", "ModelFileError", "KinematicsError", "EXPECTED_ERRORS"]
+
+
+class LogFormatError(ValueError):
+    """A sensor log is malformed; the message names the file, the channel or row, and what was expected."""
+
+
+EXPECTED_ERRORS = (ModelFileError, KinematicsError, LogFormatError, FileNotFoundError)
