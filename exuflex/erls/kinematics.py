@@ -41,7 +41,8 @@ class Pose:
     Sz: np.ndarray  # (3 n_links, nq) dz/dq
     r: np.ndarray  # (3 n_nodes,) nodal x, y, theta of the ERLS
     S: np.ndarray  # (3 n_nodes, nq) dr/dq
-    cond: float  # condition number of the closure Jacobian
+    cond: float  # condition number (1-norm) of the closure Jacobian
+    Jinv: np.ndarray | None = None  # inverse of the closure Jacobian (reused by ``rates``)
 
     @property
     def link_angles(self) -> np.ndarray:
@@ -100,47 +101,75 @@ class Kinematics:
             self.node_link[k] = li[name]
             self.node_station[k] = s
         self._last: tuple[np.ndarray, np.ndarray] | None = None
+        self._vectorise()
 
     # ------------------------------------------------------------------ closure
+    def _vectorise(self):
+        """Index arrays for the position equations, so residual and Jacobians need no Python loops."""
+        eqs = self._pos_eqs
+        self._ea = np.array([e[0] for e in eqs], int)
+        self._esa = np.array([e[1] for e in eqs], float)
+        self._eb = np.array([max(e[2], 0) for e in eqs], int)
+        self._ebm = np.array([1.0 if e[2] >= 0 else 0.0 for e in eqs])  # 1 where the second point is a link
+        self._esb = np.array([e[3] for e in eqs], float) * self._ebm
+        self._eg = np.array([e[4] for e in eqs], float).reshape(-1, 2)
+        self._ang_a = np.array([e[0] for e in self._ang_eqs], int)
+        self._ang_r = np.array([max(e[1], 0) for e in self._ang_eqs], int)
+        self._ang_rm = np.array([1.0 if e[1] >= 0 else 0.0 for e in self._ang_eqs])
+        self._ang_off = np.array([e[2] for e in self._ang_eqs], float)
+        npos = len(eqs)
+        self._rx = 2 * np.arange(npos)
+        self._ry = self._rx + 1
+        J0 = np.zeros((self.n_eq, 3 * self.nl))
+        for k, (a, _, b, _, _) in enumerate(eqs):
+            J0[2 * k : 2 * k + 2, 3 * a : 3 * a + 2] += np.eye(2)
+            if b >= 0:
+                J0[2 * k : 2 * k + 2, 3 * b : 3 * b + 2] -= np.eye(2)
+        base = 2 * npos
+        for j, (a, r, _) in enumerate(self._ang_eqs):
+            J0[base + j, 3 * a + 2] = 1.0
+            if r >= 0:
+                J0[base + j, 3 * r + 2] = -1.0
+        self._J0 = J0
+        self._ca = 3 * self._ea + 2
+        self._cb = 3 * self._eb + 2
+        self._link_eq = self._ebm > 0
+
     def residual(self, z: np.ndarray, q: np.ndarray) -> np.ndarray:
         x, y, th = z[0::3], z[1::3], z[2::3]
+        a, b = self._ea, self._eb
         out = np.empty(self.n_eq)
-        for k, (a, sa, b, sb, g) in enumerate(self._pos_eqs):
-            pa = np.array([x[a] + sa * np.cos(th[a]), y[a] + sa * np.sin(th[a])])
-            pb = g if b < 0 else np.array([x[b] + sb * np.cos(th[b]), y[b] + sb * np.sin(th[b])])
-            out[2 * k : 2 * k + 2] = pa - pb
+        m = self._ebm
+        ca, sa_ = np.cos(th[a]), np.sin(th[a])
+        cb, sb_ = np.cos(th[b]), np.sin(th[b])
+        out[self._rx] = x[a] + self._esa * ca - m * (x[b] + self._esb * cb) - self._eg[:, 0]
+        out[self._ry] = y[a] + self._esa * sa_ - m * (y[b] + self._esb * sb_) - self._eg[:, 1]
         base = 2 * len(self._pos_eqs)
-        for j, (a, r, off) in enumerate(self._ang_eqs):
-            out[base + j] = th[a] - (th[r] if r >= 0 else 0.0) - off - q[j]
+        out[base:] = th[self._ang_a] - self._ang_rm * th[self._ang_r] - self._ang_off - q
         return out
 
     def jacobian(self, z: np.ndarray) -> np.ndarray:
         """Phi_z (n_eq, 3 n_links)."""
         th = z[2::3]
-        J = np.zeros((self.n_eq, 3 * self.nl))
-        for k, (a, sa, b, sb, _) in enumerate(self._pos_eqs):
-            rows = slice(2 * k, 2 * k + 2)
-            J[rows, 3 * a : 3 * a + 2] += np.eye(2)
-            J[rows, 3 * a + 2] += sa * np.array([-np.sin(th[a]), np.cos(th[a])])
-            if b >= 0:
-                J[rows, 3 * b : 3 * b + 2] -= np.eye(2)
-                J[rows, 3 * b + 2] -= sb * np.array([-np.sin(th[b]), np.cos(th[b])])
-        base = 2 * len(self._pos_eqs)
-        for j, (a, r, _) in enumerate(self._ang_eqs):
-            J[base + j, 3 * a + 2] = 1.0
-            if r >= 0:
-                J[base + j, 3 * r + 2] = -1.0
+        J = self._J0.copy()
+        a, b = self._ea, self._eb
+        J[self._rx, self._ca] = -self._esa * np.sin(th[a])
+        J[self._ry, self._ca] = self._esa * np.cos(th[a])
+        lk = self._link_eq
+        J[self._rx[lk], self._cb[lk]] = self._esb[lk] * np.sin(th[b[lk]])
+        J[self._ry[lk], self._cb[lk]] = -self._esb[lk] * np.cos(th[b[lk]])
         return J
 
     def _jacobian_rate(self, z: np.ndarray, zd: np.ndarray) -> np.ndarray:
         """d(Phi_z)/dt along the velocity zd."""
         th, thd = z[2::3], zd[2::3]
         J = np.zeros((self.n_eq, 3 * self.nl))
-        for k, (a, sa, b, sb, _) in enumerate(self._pos_eqs):
-            rows = slice(2 * k, 2 * k + 2)
-            J[rows, 3 * a + 2] += -sa * thd[a] * np.array([np.cos(th[a]), np.sin(th[a])])
-            if b >= 0:
-                J[rows, 3 * b + 2] -= -sb * thd[b] * np.array([np.cos(th[b]), np.sin(th[b])])
+        a, b = self._ea, self._eb
+        J[self._rx, self._ca] = -self._esa * thd[a] * np.cos(th[a])
+        J[self._ry, self._ca] = -self._esa * thd[a] * np.sin(th[a])
+        lk = self._link_eq
+        J[self._rx[lk], self._cb[lk]] = self._esb[lk] * thd[b[lk]] * np.cos(th[b[lk]])
+        J[self._ry[lk], self._cb[lk]] = self._esb[lk] * thd[b[lk]] * np.sin(th[b[lk]])
         return J
 
     def initial_guess(self, q: np.ndarray) -> np.ndarray:
@@ -244,15 +273,19 @@ class Kinematics:
         q = np.asarray(q, float)
         z = self.solve(q, z0)
         J = self.jacobian(z)
-        cond = np.linalg.cond(J)
+        try:
+            Jinv = np.linalg.inv(J)
+            cond = float(np.linalg.norm(J, 1) * np.linalg.norm(Jinv, 1))
+        except np.linalg.LinAlgError:
+            Jinv, cond = None, np.inf
         if not np.isfinite(cond) or cond > self.cond_max:
             raise KinematicsError(
                 f"{self.mech.source or self.mech.name}: configuration q = {np.round(q, 6).tolist()} is at or near a "
                 f"singularity (closure Jacobian condition number {cond:.3g} > {self.cond_max:.0e})"
             )
-        Sz = np.linalg.solve(J, self._E)
+        Sz = Jinv @ self._E
         r, S = self._nodal(z, Sz)
-        return Pose(q, z, Sz, r, S, float(cond))
+        return Pose(q, z, Sz, r, S, cond, Jinv)
 
     def _nodal(self, z, Sz):
         li, s = self.node_link, self.node_station
@@ -274,9 +307,11 @@ class Kinematics:
         """dS_z/dt and dS/dt (nodal) at ``pose`` for the coordinate rates ``qd`` (exact)."""
         qd = np.asarray(qd, float)
         zd = pose.Sz @ qd
-        J = self.jacobian(pose.z)
         Jd = self._jacobian_rate(pose.z, zd)
-        Szd = -np.linalg.solve(J, Jd @ pose.Sz)
+        if pose.Jinv is not None:
+            Szd = -pose.Jinv @ (Jd @ pose.Sz)
+        else:
+            Szd = -np.linalg.solve(self.jacobian(pose.z), Jd @ pose.Sz)
         li, s = self.node_link, self.node_station
         th = pose.z[2::3][li]
         thd = zd[2::3][li]

@@ -117,6 +117,8 @@ class ErlsModel:
         # scatter indices for assembly
         self._rows = np.repeat(self.el_dofs, 6, axis=1).ravel()
         self._cols = np.tile(self.el_dofs, (1, 6)).ravel()
+        self._flat = self._rows * self.N + self._cols
+        self._el_flat = self.el_dofs.ravel()
 
     # ------------------------------------------------------------------ helpers
     def _joint_node_dof(self, joint: str, link: str, comp: int) -> int:
@@ -132,9 +134,7 @@ class ErlsModel:
         return self.nq + self.dofs.index(name)
 
     def _assemble(self, Ke: np.ndarray) -> np.ndarray:
-        A = np.zeros((self.N, self.N))
-        np.add.at(A, (self._rows, self._cols), Ke.reshape(self.n_el, 36).ravel())
-        return A
+        return np.bincount(self._flat, Ke.reshape(-1), minlength=self.N * self.N).reshape(self.N, self.N)
 
     # ------------------------------------------------------------------ configuration
     def configuration(self, q, z0=None) -> Configuration:
@@ -185,7 +185,7 @@ class ErlsModel:
         bl = np.einsum("eij,ej->ei", Rt, bd[self.el_dofs])  # element velocities in local frames
         Gb = np.einsum("eij,ej->ei", self.Gl, bl)
         fe = np.einsum("eij,ej->ei", R, Gb) * th_d[:, None]
-        np.add.at(f, self.el_dofs, fe)
+        f += np.bincount(self._el_flat, fe.reshape(-1), minlength=self.N)
         h = cfg.W.T @ f
         # q rows: -dT/dq (explicit) + dV/dq, both through the element angles
         d = self.T @ x[nq:]
