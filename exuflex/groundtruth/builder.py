@@ -1,0 +1,552 @@
+"""Build an Exudyn model of a :class:`~exuflex.mechanism.Mechanism` (the independent "real mechanism").
+
+This is the only module family of exuflex that imports :mod:`exudyn`. Every link becomes a chain of
+planar flexible beams, independent of the ERLS mesh:
+
+- ``formulation="ancf"`` (default): ``ObjectANCFCable2D`` elements (cubic Hermite, absolute nodal
+  coordinates ``x, y, x', y'``; Euler-Bernoulli, like the ERLS elements);
+- ``formulation="gebeam"``: ``ObjectBeamGeometricallyExact2D`` (linear, shear-deformable, nodes
+  ``x, y, phi``): an independent cross-check that needs a fine mesh (16-32 elements per link).
+
+Each link has its own nodes; the links' nodes at a joint coincide and are connected by
+``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). Lumped masses and rotary
+inertias sit on the node at their station (``ObjectGenericODE2``); motor torques are
+``LoadTorqueVector`` loads on the motor link's node at the joint and, reversed, on the reaction
+link's node (nothing on ground). The model is built directly in the closed, rigid configuration of
+the ERLS at ``q`` (links straight, at rest), so no assembly step is needed.
+
+Damping (the model file's Rayleigh ``C = alpha M_uu + beta K_uu`` on the ERLS elastic block)
+--------------------------------------------------------------------------------------------
+- ``beta``: exact and mesh-consistent, as material damping of the beams: bending moment
+  ``EI kappa + beta EI kappa'``, axial force ``EA eps + beta EA eps'`` (``bendingDamping``,
+  ``axialDamping``); linearised, this is ``beta K``, as in the ERLS.
+- ``alpha`` (``damping="erls"``, default): an absolute-coordinate model has no elastic block, and
+  ``alpha M`` on absolute velocities would brake the rigid motion. The ERLS elastic rates are,
+  to first order, a linear map of the Exudyn coordinate rates, ``u' = U c'`` (Exudyn nodes ->
+  ERLS nodal x, y, theta by the beam shape functions, then ``[q'; u'] = W^+ b'`` with the ERLS
+  ``W = [S, T]``, exact on motions that satisfy the joints). The damper
+  ``D = alpha U^T M_uu U`` (one ``ObjectGenericODE2`` holding only a damping matrix) therefore does
+  the same virtual work as the ERLS term ``alpha M_uu u'`` and no work on any rigid motion of the
+  mechanism. ``U`` and ``M_uu`` depend on the configuration and are refreshed during a simulation
+  (every ``damping_update`` s in :func:`exuflex.groundtruth.simulate_truth`); between refreshes a
+  rigid motion leaks a force of relative size ``alpha dq`` (dq = change of q since the refresh).
+- ``damping="corotational"``: an ERLS-independent alternative, ``D_l = alpha (M_l - M_l R
+  (R^T M_l R)^-1 R^T M_l)`` per link (``R``: the link's rigid velocity fields), which damps each
+  link's deformation relative to its own mass-weighted rigid motion. It gives different modal
+  damping than the ERLS (link-local "elastic" motion is defined differently);
+  :func:`exuflex.groundtruth.modal_damping` measures either.
+- ``damping="stiffness"``: ``beta`` only; ``None``: undamped (generalized-alpha still damps the
+  highest frequencies numerically).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..erls.kinematics import Kinematics
+from ..erls.model import ErlsModel
+from ..mechanism import Mechanism
+
+__all__ = ["TruthModel", "LinkMesh", "build_truth", "link_mesh_stations", "ancf_shape", "FORMULATIONS", "DAMPINGS"]
+
+log = logging.getLogger(__name__)
+
+FORMULATIONS = ("ancf", "gebeam")
+DAMPINGS = ("erls", "corotational", "stiffness", None)
+SHEAR_CORRECTION = 0.9  # circular section (gebeam only)
+POISSON = 0.33  # (gebeam only) shear modulus G = E / (2 (1 + nu))
+
+
+def _exu():
+    try:
+        import exudyn as exu
+        import exudyn.itemInterface as items
+    except ImportError as err:  # pragma: no cover - exudyn is a declared dependency of this subpackage
+        raise ImportError("exuflex.groundtruth needs exudyn (pip install exudyn)") from err
+    return exu, items
+
+
+@dataclass
+class LinkMesh:
+    """Exudyn mesh of one link: element boundaries (stations, m) and handles."""
+
+    name: str
+    stations: np.ndarray  # (n_nodes,) ascending, first 0, last length
+    nodes: list[int] = field(default_factory=list)  # exudyn node numbers
+    elements: list[int] = field(default_factory=list)  # exudyn object numbers
+    ode2: np.ndarray | None = None  # (n_nodes, n_node_coords) global ODE2 indices (after Assemble)
+    damper: int | None = None  # ObjectGenericODE2 of the co-rotational alpha damper
+    mass_matrix: np.ndarray | None = None  # (n_c, n_c) consistent + lumped mass on the link's coordinates
+
+    def node_at(self, station: float, length: float) -> int:
+        """Index (into ``nodes``) of the node at ``station``; raises if the station is not a node."""
+        i = int(np.argmin(np.abs(self.stations - station)))
+        if abs(self.stations[i] - station) > 1e-9 * max(1.0, length):
+            raise KeyError(f"link {self.name!r} has no Exudyn node at station {station} m")
+        return i
+
+    def locate(self, station: float) -> list[tuple[int, float]]:
+        """Element(s) and local xi in [0, 1] of a station; both neighbours at an interior node."""
+        st = self.stations
+        L = st[-1]
+        tol = 1e-9 * max(1.0, L)
+        if station < -tol or station > L + tol:
+            raise KeyError(f"station {station} m is outside link {self.name!r} (length {L} m)")
+        out = []
+        for e in range(len(st) - 1):
+            a, b = st[e], st[e + 1]
+            if a - tol <= station <= b + tol:
+                out.append((e, float(min(max((station - a) / (b - a), 0.0), 1.0))))
+        return out
+
+
+def ancf_shape(xi: float, L: float, d: int = 0) -> np.ndarray:
+    """Cubic Hermite shape functions of ``ObjectANCFCable2D`` (or their d-th x-derivative), (4,).
+
+    ``r(x) = S1 r0 + S2 r0' + S3 r1 + S4 r1'`` with ``xi = x / L``; ``r'`` are slopes d r / d x.
+    """
+    if d == 0:
+        return np.array([1 - 3 * xi**2 + 2 * xi**3, L * (xi - 2 * xi**2 + xi**3), 3 * xi**2 - 2 * xi**3, L * (-(xi**2) + xi**3)])
+    if d == 1:
+        return np.array([-6 * xi + 6 * xi**2, L * (1 - 4 * xi + 3 * xi**2), 6 * xi - 6 * xi**2, L * (-2 * xi + 3 * xi**2)]) / L
+    if d == 2:
+        return np.array([-6 + 12 * xi, L * (-4 + 6 * xi), 6 - 12 * xi, L * (-2 + 6 * xi)]) / L**2
+    raise ValueError(f"derivative order must be 0, 1 or 2, got {d}")
+
+
+@dataclass
+class TruthModel:
+    """An Exudyn model of a mechanism plus the handles needed to drive it and read probes."""
+
+    mech: Mechanism
+    q: np.ndarray
+    formulation: str
+    SC: object
+    mbs: object
+    links: dict[str, LinkMesh]
+    motor_loads: list[tuple[int, ...]]  # per motor: (load on link, load on reaction link or nothing)
+    node_size: int  # coordinates per node (4 ancf, 3 gebeam)
+    damping: str | None
+    alpha: float
+    beta: float
+    damper: int | None = None  # ObjectGenericODE2 of the ERLS-mapped alpha damper (damping="erls")
+    erls: ErlsModel | None = None
+    _q_last: np.ndarray | None = None
+
+    @property
+    def n_coordinates(self) -> int:
+        return self.mbs.systemData.ODE2Size()
+
+    def coordinates(self) -> np.ndarray:
+        """Current total ODE2 coordinates (reference + displacement)."""
+        exu, _ = _exu()
+        sd = self.mbs.systemData
+        return np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Current)) + np.asarray(
+            sd.GetODE2Coordinates(exu.ConfigurationType.Reference)
+        )
+
+    def set_torques(self, tau) -> None:
+        """Set the motor torques (N m, one per motor, in ``mech.motors`` order)."""
+        for (load, *reac), T in zip(self.motor_loads, tau):
+            self.mbs.SetLoadParameter(load, "loadVector", [0.0, 0.0, float(T)])
+            for r in reac:
+                self.mbs.SetLoadParameter(r, "loadVector", [0.0, 0.0, -float(T)])
+
+    # ------------------------------------------------------------------ kinematic read-out
+    def point_rows(self, link: str, station: float, c: np.ndarray):
+        """Position (2,), tangent angle and the linear maps (2, nc), (nc,) at a link station.
+
+        The maps give the first-order changes of position and tangent angle with the total ODE2
+        coordinates ``c`` (used for the ERLS-mapped damper); at an interior node the first
+        adjacent element is used (position and slope are continuous there).
+        """
+        lm = self.links[link]
+        e, xi = lm.locate(station)[0]
+        L = lm.stations[e + 1] - lm.stations[e]
+        nc = len(c)
+        P = np.zeros((2, nc))
+        A = np.zeros(nc)
+        if self.formulation == "ancf":
+            idx = lm.ode2[e : e + 2].ravel()  # [x0, y0, x0', y0', x1, y1, x1', y1']
+            S0, S1 = ancf_shape(xi, L, 0), ancf_shape(xi, L, 1)
+            for k in range(4):
+                P[0, idx[2 * k]] = S0[k]
+                P[1, idx[2 * k + 1]] = S0[k]
+            ce = c[idx].reshape(4, 2)
+            r = S0 @ ce
+            rp = S1 @ ce
+            n2 = rp @ rp
+            # d atan2(ry', rx') = (rx' d ry' - ry' d rx') / |r'|^2
+            for k in range(4):
+                A[idx[2 * k]] += -rp[1] * S1[k] / n2
+                A[idx[2 * k + 1]] += rp[0] * S1[k] / n2
+            return r, float(np.arctan2(rp[1], rp[0])), P, A
+        i0, i1 = lm.ode2[e], lm.ode2[e + 1]
+        for comp in (0, 1):
+            P[comp, i0[comp]], P[comp, i1[comp]] = 1 - xi, xi
+        A[i0[2]], A[i1[2]] = 1 - xi, xi
+        r = (1 - xi) * c[i0[:2]] + xi * c[i1[:2]]
+        return r, float((1 - xi) * c[i0[2]] + xi * c[i1[2]]), P, A
+
+    def coordinate_values(self, c: np.ndarray | None = None) -> np.ndarray:
+        """The ERLS coordinates q read from the Exudyn state (slope angles at the coordinate joints).
+
+        Angles are put on the branch nearest to the last value (the build ``q`` at first).
+        """
+        c = self.coordinates() if c is None else c
+        ref = self.q if self._q_last is None else self._q_last
+        out = np.empty(len(self.mech.coordinates))
+        for j, co in enumerate(self.mech.coordinates):
+            jt = self.mech.joint(co.joint)
+            st = next(p.station for p in jt.points if p.link == co.link)
+            th = self.point_rows(co.link, st, c)[1]
+            if co.relative_to is not None:
+                st2 = next(p.station for p in jt.points if p.link == co.relative_to)
+                th -= self.point_rows(co.relative_to, st2, c)[1]
+            v = th - co.offset
+            out[j] = ref[j] + (v - ref[j] + np.pi) % (2 * np.pi) - np.pi
+        return out
+
+    # ------------------------------------------------------------------ damping
+    def update_dampers(self, c: np.ndarray | None = None) -> None:
+        """Refresh the configuration-dependent alpha damper(s) for the current (or given) coordinates."""
+        if self.alpha == 0.0 or self.damping not in ("erls", "corotational"):
+            return
+        c = self.coordinates() if c is None else np.asarray(c, float)
+        if self.damping == "corotational":
+            for lm in self.links.values():
+                D = _corotational_damping(lm, c[lm.ode2.ravel()], self.alpha, self.formulation)
+                self.mbs.SetObjectParameter(lm.damper, "dampingMatrix", D)
+            return
+        q = self.coordinate_values(c)
+        self._q_last = q
+        m = self.erls
+        cfg = m.configuration(q)
+        # ERLS nodal coordinates b (x, y, theta of every ERLS node) as a linear map of dc
+        B = np.zeros((m.N, len(c)))
+        for k, node in enumerate(m.mech.node_ids):
+            link, st = m.mech.node_location(node)
+            _, _, P, A = self.point_rows(link, st, c)
+            B[3 * k : 3 * k + 2] = P
+            B[3 * k + 2] = A
+        U = np.linalg.pinv(cfg.W)[m.nq :] @ B  # du = U dc on motions that satisfy the joints
+        Muu = m.T.T @ cfg.M_N @ m.T
+        D = self.alpha * (U.T @ Muu @ U)
+        self.mbs.SetObjectParameter(self.damper, "dampingMatrix", 0.5 * (D + D.T))
+
+
+def link_mesh_stations(
+    mech: Mechanism, link: str, elements_per_link: int | None = 4, extra: tuple[float, ...] = ()
+) -> np.ndarray:
+    """Element boundaries of a link's Exudyn mesh.
+
+    The stations of the link's joints and lumped masses (and ``extra``, e.g. gauges) are always
+    element boundaries; between them, segments are split evenly so that no element is longer than
+    ``length / elements_per_link`` (``None``: one element per segment).
+    """
+    lk = mech.link(link)
+    L = lk.length
+    req = {0.0, L}
+    for j in mech.joints:
+        for p in j.points:
+            if p.link == link:
+                req.add(float(p.station))
+    for m in mech.all_masses():
+        name, s = mech.node_location(m.node)
+        if name == link:
+            req.add(float(s))
+    for s in extra:
+        if not 0.0 <= s <= L:
+            raise ValueError(f"station {s} m is outside link {link!r} (length {L} m)")
+        req.add(float(s))
+    req = sorted(req)
+    # merge stations closer than round-off
+    base = [req[0]]
+    for s in req[1:]:
+        if s - base[-1] > 1e-9 * max(1.0, L):
+            base.append(s)
+    base[-1] = L
+    if elements_per_link is None:
+        return np.array(base)
+    if elements_per_link < 1:
+        raise ValueError(f"elements_per_link must be >= 1 or None, got {elements_per_link}")
+    hmax = L / elements_per_link
+    out = [base[0]]
+    for a, b in zip(base, base[1:]):
+        n = max(1, math.ceil((b - a) / hmax - 1e-9))
+        out.extend(a + (b - a) * k / n for k in range(1, n + 1))
+    return np.array(out)
+
+
+def _hermite_mass(L: float) -> np.ndarray:
+    """int_0^L S^T S dx for the cubic Hermite shape functions [S1, S2, S3, S4] (S2, S4 scaled by L)."""
+    return (L / 420.0) * np.array(
+        [
+            [156, 22 * L, 54, -13 * L],
+            [22 * L, 4 * L * L, 13 * L, -3 * L * L],
+            [54, 13 * L, 156, -22 * L],
+            [-13 * L, -3 * L * L, -22 * L, 4 * L * L],
+        ]
+    )
+
+
+def _link_mass_matrix(lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, tuple[float, float]], form: str):
+    """Consistent mass of the link's beams plus its lumped masses, on the link's coordinates."""
+    nn = len(lm.stations)
+    if form == "ancf":
+        nc = 4
+        M = np.zeros((nn * nc, nn * nc))
+        for e in range(nn - 1):
+            L = lm.stations[e + 1] - lm.stations[e]
+            Me = np.kron(rhoA * _hermite_mass(L), np.eye(2))  # dofs [x0, y0, x0', y0', x1, y1, x1', y1']
+            M[e * nc : e * nc + 8, e * nc : e * nc + 8] += Me
+        for i, (m, J) in lumped.items():
+            M[i * nc : i * nc + 4, i * nc : i * nc + 4] += np.diag([m, m, J, J])
+    else:
+        nc = 3
+        M = np.zeros((nn * nc, nn * nc))
+        lin = np.array([[2.0, 1.0], [1.0, 2.0]]) / 6.0
+        for e in range(nn - 1):
+            L = lm.stations[e + 1] - lm.stations[e]
+            idx = np.array([e * nc, e * nc + 1, e * nc + 2, e * nc + 3, e * nc + 4, e * nc + 5])
+            Me = np.zeros((6, 6))
+            for c, r in ((0, rhoA), (1, rhoA), (2, rhoI)):
+                Me[np.ix_([c, 3 + c], [c, 3 + c])] = r * L * lin
+            M[np.ix_(idx, idx)] += Me
+        for i, (m, J) in lumped.items():
+            M[i * nc : i * nc + 3, i * nc : i * nc + 3] += np.diag([m, m, J])
+    return M
+
+
+def _rigid_fields(c: np.ndarray, form: str) -> np.ndarray:
+    """(n_c, 3) velocity fields of the link's rigid translations and rotation about the origin."""
+    if form == "ancf":
+        c = c.reshape(-1, 4)
+        n = len(c)
+        R = np.zeros((n, 4, 3))
+        R[:, 0, 0] = 1.0
+        R[:, 1, 1] = 1.0
+        R[:, 0, 2], R[:, 1, 2] = -c[:, 1], c[:, 0]
+        R[:, 2, 2], R[:, 3, 2] = -c[:, 3], c[:, 2]
+        return R.reshape(4 * n, 3)
+    c = c.reshape(-1, 3)
+    n = len(c)
+    R = np.zeros((n, 3, 3))
+    R[:, 0, 0] = 1.0
+    R[:, 1, 1] = 1.0
+    R[:, 0, 2], R[:, 1, 2], R[:, 2, 2] = -c[:, 1], c[:, 0], 1.0
+    return R.reshape(3 * n, 3)
+
+
+def _corotational_damping(lm: LinkMesh, coords: np.ndarray, alpha: float, form: str) -> np.ndarray:
+    M = lm.mass_matrix
+    MR = M @ _rigid_fields(coords, form)
+    P = MR @ np.linalg.solve(MR.T @ _rigid_fields(coords, form), MR.T)
+    D = alpha * (M - P)
+    return 0.5 * (D + D.T)
+
+
+def build_truth(
+    mech: Mechanism,
+    q=None,
+    elements_per_link: int | None = 4,
+    formulation: str = "ancf",
+    align_stations: tuple[tuple[str, float], ...] = (),
+    damping: str | None = "erls",
+) -> TruthModel:
+    """Build the Exudyn model of ``mech`` at rest in the closed rigid configuration at ``q``.
+
+    Parameters
+    ----------
+    mech : Mechanism
+    q : array-like, optional
+        Independent ERLS coordinates of the initial configuration (default ``mech.q_ref``).
+    elements_per_link : int or None
+        Target number of elements per link (see :func:`link_mesh_stations`); joints and lumped
+        masses always sit on element boundaries. ``None``: one element between such stations.
+    formulation : "ancf" or "gebeam"
+    align_stations : (link, station) pairs that must also be element boundaries (e.g. gauges).
+    damping : "erls", "corotational", "stiffness" or None
+        How the model file's Rayleigh damping is reproduced (see module docstring).
+
+    Returns
+    -------
+    TruthModel
+        Assembled model (``mbs.Assemble()`` done) with handles for torques and probes.
+    """
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
+    if damping not in DAMPINGS:
+        raise ValueError(f"damping must be one of {DAMPINGS}, got {damping!r}")
+    exu, it = _exu()
+    q = np.asarray(mech.q_ref if q is None else q, float)
+    pose = Kinematics(mech).pose(q)
+    z = pose.z
+    SC = exu.SystemContainer()
+    mbs = SC.AddSystem()
+    ground = mbs.AddObject(it.ObjectGround(referencePosition=[0.0, 0.0, 0.0]))
+    alpha = mech.damping.alpha if damping in ("erls", "corotational") else 0.0
+    beta = mech.damping.beta if damping is not None else 0.0
+
+    extra: dict[str, list[float]] = {}
+    for name, s in align_stations:
+        extra.setdefault(name, []).append(float(s))
+
+    node_size = 4 if formulation == "ancf" else 3
+    links: dict[str, LinkMesh] = {}
+    for i, lk in enumerate(mech.links):
+        x0, y0, th = z[3 * i : 3 * i + 3]
+        th = float(th)
+        c, s = math.cos(th), math.sin(th)
+        st = link_mesh_stations(mech, lk.name, elements_per_link, tuple(extra.get(lk.name, ())))
+        lm = LinkMesh(lk.name, st)
+        for sj in st:
+            px, py = float(x0 + sj * c), float(y0 + sj * s)
+            if formulation == "ancf":
+                node = it.NodePoint2DSlope1(referenceCoordinates=[px, py, c, s])
+            else:
+                node = it.NodeRigidBody2D(referenceCoordinates=[px, py, th])
+            lm.nodes.append(mbs.AddNode(node))
+        E, A, I = lk.material.E, lk.section.A, lk.section.I
+        rhoA, EI, EA = lk.material.rho * A, E * I, E * A
+        for e in range(len(st) - 1):
+            Le = float(st[e + 1] - st[e])
+            nodes = [lm.nodes[e], lm.nodes[e + 1]]
+            if formulation == "ancf":
+                obj = it.ObjectANCFCable2D(
+                    nodeNumbers=nodes,
+                    physicsLength=Le,
+                    physicsMassPerLength=rhoA,
+                    physicsBendingStiffness=EI,
+                    physicsAxialStiffness=EA,
+                    physicsBendingDamping=beta * EI,
+                    physicsAxialDamping=beta * EA,
+                )
+            else:
+                GA = SHEAR_CORRECTION * E / (2.0 * (1.0 + POISSON)) * A
+                obj = it.ObjectBeamGeometricallyExact2D(
+                    nodeNumbers=nodes,
+                    physicsLength=Le,
+                    physicsMassPerLength=rhoA,
+                    physicsCrossSectionInertia=lk.material.rho * I,
+                    physicsBendingStiffness=EI,
+                    physicsAxialStiffness=EA,
+                    physicsShearStiffness=GA,
+                    physicsBendingDamping=beta * EI,
+                    physicsAxialDamping=beta * EA,
+                    physicsShearDamping=beta * GA,
+                )
+            lm.elements.append(mbs.AddObject(obj))
+        links[lk.name] = lm
+
+    # lumped masses and rotary inertias at their stations
+    lumped: dict[str, dict[int, tuple[float, float]]] = {name: {} for name in links}
+    for m in mech.all_masses():
+        name, s = mech.node_location(m.node)
+        lm = links[name]
+        k = lm.node_at(s, mech.link(name).length)
+        mm, JJ = lumped[name].get(k, (0.0, 0.0))
+        lumped[name][k] = (mm + m.mass, JJ + m.inertia)
+    for name, d in lumped.items():
+        for k, (mm, JJ) in d.items():
+            diag = [mm, mm, JJ, JJ] if formulation == "ancf" else [mm, mm, JJ]
+            mbs.AddObject(
+                it.ObjectGenericODE2(
+                    nodeNumbers=[links[name].nodes[k]], massMatrix=np.diag(diag)
+                )
+            )
+
+    # joints: revolute between coincident nodes; ground pins
+    def node_marker(link: str, station: float) -> int:
+        lm = links[link]
+        k = lm.node_at(station, mech.link(link).length)
+        return mbs.AddMarker(it.MarkerNodePosition(nodeNumber=lm.nodes[k]))
+
+    for jt in mech.joints:
+        markers = [node_marker(p.link, p.station) for p in jt.points]
+        if jt.ground is not None:
+            gm = mbs.AddMarker(
+                it.MarkerBodyPosition(bodyNumber=ground, localPosition=[jt.ground[0], jt.ground[1], 0.0])
+            )
+            for mk in markers:
+                mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=[gm, mk]))
+        else:
+            for mk in markers[1:]:
+                mbs.AddObject(
+                    it.ObjectJointRevolute2D(markerNumbers=[markers[0], mk])
+                )
+
+    # motors: +T on the motor link's node at the joint, -T on the reaction link's node
+    motor_loads = []
+    for mo in mech.motors:
+        jt = mech.joint(mo.joint)
+        loads = []
+        for lname in (mo.link, mo.reaction):
+            if lname is None:
+                continue
+            st = next((p.station for p in jt.points if p.link == lname), None)
+            if st is None:
+                raise KeyError(f"motor {mo.name!r}: link {lname!r} is not at joint {mo.joint!r}")
+            lm = links[lname]
+            k = lm.node_at(st, mech.link(lname).length)
+            mk = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=lm.nodes[k]))
+            loads.append(mbs.AddLoad(it.LoadTorqueVector(markerNumber=mk, loadVector=[0.0, 0.0, 0.0])))
+        motor_loads.append(tuple(loads))
+
+    # alpha dampers (matrices filled after Assemble, refreshed by update_dampers)
+    all_nodes = [n for lm in links.values() for n in lm.nodes]
+    damper = None
+    for i, lk in enumerate(mech.links):
+        lm = links[lk.name]
+        lm.mass_matrix = _link_mass_matrix(
+            lm, lk.material.rho * lk.section.A, lk.material.rho * lk.section.I, lumped[lk.name], formulation
+        )
+        if alpha != 0.0 and damping == "corotational":
+            n_c = node_size * len(lm.nodes)
+            lm.damper = mbs.AddObject(
+                it.ObjectGenericODE2(
+                    nodeNumbers=list(lm.nodes), massMatrix=np.zeros((n_c, n_c)), dampingMatrix=np.zeros((n_c, n_c))
+                )
+            )
+    if alpha != 0.0 and damping == "erls":
+        n_c = node_size * len(all_nodes)
+        damper = mbs.AddObject(
+            it.ObjectGenericODE2(
+                nodeNumbers=all_nodes, massMatrix=np.zeros((n_c, n_c)), dampingMatrix=np.zeros((n_c, n_c))
+            )
+        )
+    mbs.Assemble()
+    for lm in links.values():
+        lm.ode2 = np.array([mbs.GetNodeODE2Index(n) + np.arange(node_size) for n in lm.nodes], dtype=int)
+    order = np.concatenate([lm.ode2.ravel() for lm in links.values()])
+    if damper is not None and not np.array_equal(order, np.arange(len(order))):
+        raise RuntimeError("Exudyn numbered the node coordinates out of node order; the ERLS damper assumes it")
+    tm = TruthModel(
+        mech,
+        q,
+        formulation,
+        SC,
+        mbs,
+        links,
+        motor_loads,
+        node_size,
+        damping,
+        alpha,
+        beta,
+        damper=damper,
+        erls=ErlsModel(mech) if damper is not None else None,
+    )
+    ref = np.asarray(mbs.systemData.GetODE2Coordinates(exu.ConfigurationType.Reference))
+    tm.update_dampers(ref)
+    log.debug(
+        "built %s truth of %s at q=%s: %d ODE2 coordinates",
+        formulation,
+        mech.name,
+        np.round(q, 4).tolist(),
+        tm.n_coordinates,
+    )
+    return tm
