@@ -290,7 +290,7 @@ def plan(
         bias = _point_bias(kin, pose, Szd, man.tip.link, man.tip.station, qd[k])
         rhs = pdd[:, k] - bias - (J[:, idx] @ qdd[k, idx] if len(idx) else 0.0)
         qdd[k, free] = np.linalg.solve(Jf, rhs)
-        if progress is not None and (k + 1) % report == 0:
+        if progress is not None and ((k + 1) % report == 0 or k == n - 1):
             progress((k + 1) / n)
     return Plan(t, q, qd, qdd, names, s)
 
@@ -352,6 +352,6 @@ def computed_torque(
                     f"{nq} coordinates {list(mech.coordinate_names)}; computed torque needs rank {nq}"
                 )
         tau[k] = np.linalg.solve(A, b) if nm == nq else np.linalg.lstsq(A, b, rcond=None)[0]
-        if progress is not None and (k + 1) % report == 0:
+        if progress is not None and ((k + 1) % report == 0 or k == len(plan.t) - 1):
             progress((k + 1) / len(plan.t))
     return tau

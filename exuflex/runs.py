@@ -1,0 +1,405 @@
+"""Run folders: the measured log, the true states and the metadata of one simulated (or lab) run.
+
+A run folder (format ``exuflex-run/1``, specified in ``docs/run_format.md``) holds
+
+- ``sensors.csv``: ``time`` then the measured motor torques (the observer's inputs) then the sensor
+  channels, named as in the model file (six-bar: ``time,T1,T2,T3,q1,q2,q3,q3rel,c1,c2,c4,tip_x,tip_y``).
+  An empty cell means "not sampled at this time" (a channel slower than the base rate);
+- ``truth.csv``: ``time`` then the true states (``q1..``, ``dq1..``, tip elastic ``x25,y26,dx25,dy26``);
+  optional (a lab run has none);
+- ``meta.json``: engine, model file and its sha256, mechanism name, settings, seed, package versions,
+  creation time, and the unit of every column.
+
+Files are written atomically (temporary file in the same folder, then ``os.replace``). The readers
+raise :class:`~exuflex.errors.LogFormatError` naming the file, the column or row, and what was expected.
+
+Also here: :func:`read_csv_log` for a generic CSV log with a user channel mapping, and
+:func:`read_exudyn_sensor` for Exudyn's own sensor output files.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from .errors import LogFormatError
+from .sensors import Signals
+
+__all__ = [
+    "FORMAT",
+    "Run",
+    "write_run",
+    "read_run",
+    "read_signals_csv",
+    "write_signals_csv",
+    "read_csv_log",
+    "read_exudyn_sensor",
+    "package_versions",
+    "file_sha256",
+    "atomic_write_text",
+]
+
+log = logging.getLogger(__name__)
+
+FORMAT = "exuflex-run/1"
+SENSORS_FILE, TRUTH_FILE, META_FILE = "sensors.csv", "truth.csv", "meta.json"
+TIME = "time"
+
+
+@dataclass(frozen=True)
+class Run:
+    """A run read from disk: measured channels, true states (None for a lab run), metadata."""
+
+    path: Path
+    sensors: Signals  # time, measured torques, sensor channels
+    truth: Signals | None
+    meta: dict
+
+    @property
+    def motors(self) -> tuple[str, ...]:
+        return tuple(self.meta.get("motors", ()))
+
+    @property
+    def sensor_names(self) -> tuple[str, ...]:
+        return tuple(self.meta.get("sensors", ()))
+
+    @property
+    def inputs(self) -> Signals:
+        """The measured torques (observer inputs)."""
+        return self.sensors.select(self.motors)
+
+    @property
+    def outputs(self) -> Signals:
+        """The measured sensor channels."""
+        return self.sensors.select(self.sensor_names)
+
+
+# ------------------------------------------------------------------------------------------ writing
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to a temporary file beside ``path``, then rename it over ``path``."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _fmt(x: float) -> str:
+    return "" if math.isnan(x) else repr(float(x))
+
+
+def write_signals_csv(path: str | os.PathLike, sig: Signals) -> None:
+    """Write ``time`` plus the channels of ``sig`` as CSV (full precision; NaN as an empty cell)."""
+    lines = [",".join((TIME,) + sig.names)]
+    for k in range(len(sig.t)):
+        lines.append(",".join([repr(float(sig.t[k]))] + [_fmt(v) for v in sig.data[k]]))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def package_versions() -> dict[str, str | None]:
+    """Installed versions of the packages a run depends on (None if absent)."""
+    out: dict[str, str | None] = {}
+    for name in ("numpy", "scipy", "filterpy", "exudyn", "exuflex"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 16), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_run(
+    out_dir: str | os.PathLike,
+    sensors: Signals,
+    truth: Signals | None,
+    meta: Mapping,
+    *,
+    motors: Sequence[str] = (),
+) -> Path:
+    """Write a run folder (created if needed); returns its path.
+
+    Parameters
+    ----------
+    out_dir : path
+    sensors : Signals
+        Measured torques then sensor channels.
+    truth : Signals or None
+        True states (same or different time grid).
+    meta : mapping
+        Run metadata (engine, model, settings, seed, ...); ``format``, ``created``, ``versions``,
+        ``motors``, ``sensors``, ``truth`` and ``units`` are filled in if absent.
+    motors : sequence of str
+        Which columns of ``sensors`` are measured torques (default: ``meta['motors']``).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = dict(meta)
+    motors = tuple(motors or meta.get("motors", ()))
+    missing = [m for m in motors if m not in sensors.names]
+    if missing:
+        raise ValueError(f"write_run: motor column(s) {missing} not in the sensor channels {list(sensors.names)}")
+    meta.setdefault("format", FORMAT)
+    meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    meta.setdefault("versions", package_versions())
+    meta["motors"] = list(motors)
+    meta["sensors"] = [n for n in sensors.names if n not in motors]
+    meta["truth"] = list(truth.names) if truth is not None else []
+    units = {SENSORS_FILE: {TIME: "s", **dict(zip(sensors.names, sensors.units or [""] * len(sensors.names)))}}
+    if truth is not None:
+        units[TRUTH_FILE] = {TIME: "s", **dict(zip(truth.names, truth.units or [""] * len(truth.names)))}
+    meta["units"] = units
+    write_signals_csv(out / SENSORS_FILE, sensors)
+    if truth is not None:
+        write_signals_csv(out / TRUTH_FILE, truth)
+    elif (out / TRUTH_FILE).exists():
+        os.unlink(out / TRUTH_FILE)  # a stale truth would not belong to this run
+    # meta last: a folder with a meta.json is complete
+    atomic_write_text(out / META_FILE, json.dumps(meta, indent=2, sort_keys=False, default=_json_default) + "\n")
+    return out
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"meta: cannot store {type(o).__name__} in JSON")
+
+
+# ------------------------------------------------------------------------------------------ reading
+def _parse_table(
+    path: Path,
+    lines: Sequence[tuple[int, str]],
+    header: Sequence[str],
+    *,
+    allow_empty: bool,
+    delimiter: str = ",",
+) -> np.ndarray:
+    """Parse data lines (line number, text) into an (n, n_cols) float array with clear errors."""
+    n_col = len(header)
+    data = np.empty((len(lines), n_col))
+    for r, (lineno, text) in enumerate(lines):
+        cells = [c.strip() for c in text.split(delimiter)]
+        if len(cells) != n_col:
+            raise LogFormatError(f"{path}: line {lineno}: {len(cells)} fields, expected {n_col} ({', '.join(header)})")
+        for c, cell in enumerate(cells):
+            if cell == "":
+                if allow_empty and c > 0:
+                    data[r, c] = np.nan
+                    continue
+                raise LogFormatError(f"{path}: line {lineno}, column {header[c]!r}: empty cell, expected a number")
+            try:
+                v = float(cell)
+            except ValueError:
+                raise LogFormatError(
+                    f"{path}: line {lineno}, column {header[c]!r}: {cell!r} is not a number"
+                ) from None
+            if not math.isfinite(v):
+                raise LogFormatError(
+                    f"{path}: line {lineno}, column {header[c]!r}: {cell!r} is not a finite number"
+                    + (" (leave the cell empty for 'not sampled')" if allow_empty and c > 0 else "")
+                )
+            data[r, c] = v
+    return data
+
+
+def _check_time(path: Path, t: np.ndarray, lines: Sequence[tuple[int, str]], column: str = TIME) -> None:
+    if len(t) == 0:
+        raise LogFormatError(f"{path}: no data rows (expected a header line and at least one row)")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if len(bad):
+        i = int(bad[0]) + 1
+        raise LogFormatError(
+            f"{path}: column {column!r} is not strictly increasing at line {lines[i][0]} "
+            f"({t[i - 1]!r} then {t[i]!r})"
+        )
+
+
+def _read_lines(path: Path) -> list[tuple[int, str]]:
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    with open(path, encoding="utf-8") as f:
+        return [(i + 1, ln.rstrip("\r\n")) for i, ln in enumerate(f)]
+
+
+def read_signals_csv(
+    path: str | os.PathLike,
+    required: Sequence[str] = (),
+    *,
+    allow_empty: bool = False,
+    units: Mapping[str, str] | None = None,
+) -> Signals:
+    """Read a ``time,...`` CSV written by :func:`write_signals_csv`.
+
+    Lines starting with ``#`` and blank lines are skipped. Errors name the file, the column and the line.
+    """
+    path = Path(path)
+    lines = [(n, s) for n, s in _read_lines(path) if s.strip() and not s.lstrip().startswith("#")]
+    if not lines:
+        raise LogFormatError(f"{path}: empty file (expected a header line 'time,...' and data rows)")
+    header = [h.strip() for h in lines[0][1].split(",")]
+    if header[0] != TIME:
+        raise LogFormatError(f"{path}: first column is {header[0]!r}, expected {TIME!r}")
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise LogFormatError(f"{path}: duplicate column(s) {dup}")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise LogFormatError(f"{path}: missing column(s) {missing}; the header has {header}")
+    body = lines[1:]
+    data = _parse_table(path, body, header, allow_empty=allow_empty)
+    _check_time(path, data[:, 0], body)
+    names = tuple(header[1:])
+    u = tuple((units or {}).get(n, "") for n in names)
+    return Signals(data[:, 0], names, data[:, 1:], u)
+
+
+def read_run(run_dir: str | os.PathLike) -> Run:
+    """Read a run folder written by :func:`write_run` (or by hand following ``docs/run_format.md``)."""
+    d = Path(run_dir)
+    if not d.is_dir():
+        raise FileNotFoundError(f"{d}: run folder does not exist")
+    mp = d / META_FILE
+    if not mp.exists():
+        raise FileNotFoundError(f"{mp}: missing (a run folder needs {META_FILE}, {SENSORS_FILE} and optionally {TRUTH_FILE})")
+    try:
+        meta = json.loads(mp.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise LogFormatError(f"{mp}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise LogFormatError(f"{mp}: expected a JSON object")
+    for key in ("motors", "sensors"):
+        if not isinstance(meta.get(key), list):
+            raise LogFormatError(f"{mp}: field {key!r} missing or not a list of column names")
+    units = meta.get("units", {})
+    sensors = read_signals_csv(
+        d / SENSORS_FILE, meta["motors"] + meta["sensors"], allow_empty=True, units=units.get(SENSORS_FILE)
+    )
+    # the torques are the observer's inputs: they must be sampled at every time
+    for m in meta["motors"]:
+        if np.isnan(sensors[m]).any():
+            row = int(np.flatnonzero(np.isnan(sensors[m]))[0])
+            raise LogFormatError(f"{d / SENSORS_FILE}: torque column {m!r} has an empty cell at data row {row + 1}")
+    truth = None
+    if (d / TRUTH_FILE).exists():
+        truth = read_signals_csv(d / TRUTH_FILE, meta.get("truth", []), units=units.get(TRUTH_FILE))
+    elif meta.get("truth"):
+        raise FileNotFoundError(f"{d / TRUTH_FILE}: missing, but {META_FILE} lists truth columns {meta['truth']}")
+    return Run(d, sensors, truth, meta)
+
+
+def read_csv_log(
+    path: str | os.PathLike,
+    channels: Mapping[str, str] | None = None,
+    *,
+    time_column: str = "time",
+    time_scale: float = 1.0,
+    delimiter: str = ",",
+    comment: str = "#",
+    allow_empty: bool = True,
+) -> Signals:
+    """Read a generic CSV log with a header row, mapping its columns to exuflex channel names.
+
+    Parameters
+    ----------
+    path : path
+    channels : mapping, optional
+        exuflex channel name -> column name in the file (e.g. ``{"q1": "enc1_rad", "T1": "motor1_Nm"}``);
+        the result has the channels in the mapping's order. None keeps every column under its own name.
+    time_column : str
+        Name of the time column.
+    time_scale : float
+        Multiplies the time column (e.g. 1e-3 for milliseconds).
+    delimiter, comment : str
+        Field separator; lines starting with ``comment`` are skipped.
+    allow_empty : bool
+        Empty cells read as NaN (not sampled) instead of an error.
+    """
+    path = Path(path)
+    lines = [(n, s) for n, s in _read_lines(path) if s.strip() and not s.lstrip().startswith(comment)]
+    if not lines:
+        raise LogFormatError(f"{path}: empty file (expected a header row and data rows)")
+    header = [h.strip() for h in lines[0][1].split(delimiter)]
+    if time_column not in header:
+        raise LogFormatError(f"{path}: no time column {time_column!r}; the header has {header}")
+    mapping = dict(channels) if channels is not None else {h: h for h in header if h != time_column}
+    missing = {ours: theirs for ours, theirs in mapping.items() if theirs not in header}
+    if missing:
+        raise LogFormatError(
+            f"{path}: missing column(s) {list(missing.values())} (for channel(s) {list(missing)}); "
+            f"the header has {header}"
+        )
+    body = lines[1:]
+    data = _parse_table(path, body, header, allow_empty=allow_empty, delimiter=delimiter)
+    ti = header.index(time_column)
+    if np.isnan(data[:, ti]).any():
+        raise LogFormatError(f"{path}: empty cell in the time column {time_column!r}")
+    t = data[:, ti] * time_scale
+    _check_time(path, t, body, time_column)
+    cols = [header.index(c) for c in mapping.values()]
+    return Signals(t, tuple(mapping), data[:, cols], ("",) * len(mapping))
+
+
+def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = None) -> Signals:
+    """Read an Exudyn sensor output file (text; ``#`` comment header; rows ``time,v1,v2,...``).
+
+    Parameters
+    ----------
+    path : path
+    names : sequence of str, optional
+        Channel names of the value columns; default ``v0, v1, ...``.
+
+    Notes
+    -----
+    Rows with a repeated time (Exudyn writes the initial state twice in some solvers) keep the last
+    one. Binary sensor files (``sensorsWriteFileBinary``) are not supported.
+    """
+    path = Path(path)
+    raw = _read_lines(path)
+    if raw and "\x00" in raw[0][1]:
+        raise LogFormatError(f"{path}: looks binary; write Exudyn sensor files as text")
+    lines = [(n, s) for n, s in raw if s.strip() and not s.lstrip().startswith("#")]
+    if not lines:
+        raise LogFormatError(f"{path}: no data rows (expected Exudyn sensor rows 'time,values...')")
+    n_col = len(lines[0][1].split(","))
+    if n_col < 2:
+        raise LogFormatError(f"{path}: line {lines[0][0]}: expected 'time,value[,value...]'")
+    names = tuple(names) if names is not None else tuple(f"v{i}" for i in range(n_col - 1))
+    if len(names) != n_col - 1:
+        raise LogFormatError(f"{path}: {n_col - 1} value column(s), but {len(names)} names given: {list(names)}")
+    header = (TIME,) + names
+    data = _parse_table(path, lines, header, allow_empty=False)
+    keep = np.append(np.diff(data[:, 0]) != 0, True)  # drop repeated times, keep the last
+    if not keep.all():
+        log.debug("%s: dropped %d rows with a repeated time", path, int((~keep).sum()))
+    data = data[keep]
+    lines = [ln for ln, k in zip(lines, keep, strict=True) if k]
+    _check_time(path, data[:, 0], lines)
+    return Signals(data[:, 0], names, data[:, 1:], ("",) * len(names))
