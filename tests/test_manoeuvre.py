@@ -1,0 +1,177 @@
+"""Time laws, exact inverse kinematics and rigid computed torque (exuflex.manoeuvre)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.erls.kinematics import Kinematics
+from exuflex.manoeuvre import ActuationError, computed_torque, plan, time_law
+from exuflex.mechanism import Manoeuvre, load_mechanism
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "sixbar.toml"
+
+# Reference numbers of the six-bar reconstruction (team reference sixbar.json,
+# trajectory_proposal.resulting: rigid model, upper semicircle, trapezoid ta = 0.08 s, q3 rule).
+REF_Q_MIN = (0.6642, 2.5413, 4.2124)
+REF_Q_MAX = (0.8372, 2.7197, 5.2124)
+REF_QD_MIN = (-0.239, -0.131, 0.0)
+REF_QD_MAX = (0.138, 0.252, 0.342)
+REF_T1 = (-6.025, 0.481)
+REF_T2 = (-14.419, 1.087)
+REF_T3 = (-0.0523, 0.0523)
+# Fig. 4 of the paper (axes): T1 in [-10, 5], T2 in [-20, 10], T3 about +-0.05 N m.
+
+
+@pytest.fixture(scope="module")
+def mech():
+    return load_mechanism(MODEL)
+
+
+@pytest.fixture(scope="module")
+def sixbar_plan(mech):
+    return plan(mech, dt=1e-3)
+
+
+# ------------------------------------------------------------------------------------------ time laws
+@pytest.mark.parametrize("law", ["trapezoid", "quintic", "cycloidal"])
+def test_time_law_boundaries_and_rest_outside(law):
+    T, ta = 3.0, 0.08
+    s, sd, sdd = time_law(law, np.array([-1.0, 0.0, T, T + 1.0]), T, ta)
+    np.testing.assert_allclose(s, [0, 0, 1, 1], atol=1e-15)
+    np.testing.assert_allclose(sd, 0, atol=1e-12)
+    np.testing.assert_allclose(sdd[[0, 3]], 0, atol=0)
+    if law != "trapezoid":
+        np.testing.assert_allclose(sdd, 0, atol=1e-12)
+
+
+@pytest.mark.parametrize("law", ["trapezoid", "quintic", "cycloidal"])
+def test_time_law_continuity_and_derivatives(law):
+    T, ta = 2.0, 0.1
+    t = np.linspace(0, T, 200001)
+    dt = t[1] - t[0]
+    s, sd, sdd = time_law(law, t, T, ta)
+    # s and s' continuous: no jump larger than a step's worth of change
+    assert np.max(np.abs(np.diff(s))) <= 1.01 * np.max(sd) * dt
+    assert np.max(np.abs(np.diff(sd))) <= 1.01 * np.max(np.abs(sdd)) * dt
+    # derivatives agree with central differences (away from the trapezoid's acceleration jumps)
+    ok = np.ones(len(t) - 2, bool)
+    if law == "trapezoid":
+        for tj in (ta, T - ta):
+            ok &= np.abs(t[1:-1] - tj) > 2 * dt
+    np.testing.assert_allclose(((s[2:] - s[:-2]) / (2 * dt))[ok], sd[1:-1][ok], atol=1e-7)
+    np.testing.assert_allclose(((sd[2:] - sd[:-2]) / (2 * dt))[ok], sdd[1:-1][ok], atol=1e-5 * np.max(np.abs(sdd)))
+    assert np.all(np.diff(s) >= 0)
+
+
+def test_trapezoid_cruise_speed():
+    T, ta = 3.0, 0.08
+    _, sd, sdd = time_law("trapezoid", np.array([0.04, 1.5]), T, ta)
+    assert sd[1] == pytest.approx(1 / (T - ta))
+    assert sdd[0] == pytest.approx(1 / (T - ta) / ta)
+    assert sdd[1] == 0
+
+
+def test_time_law_errors():
+    with pytest.raises(ValueError, match="time law must be one of"):
+        time_law("linear", 0.0, 1.0)
+    with pytest.raises(ValueError, match="ramp_time must be in"):
+        time_law("trapezoid", 0.0, 1.0, 0.6)
+
+
+# ------------------------------------------------------------------------------------------ planning
+def test_ik_closes_tip_on_arc(mech, sixbar_plan):
+    pl = sixbar_plan
+    man = mech.manoeuvre
+    kin = Kinematics(mech)
+    err = 0.0
+    for k in range(0, len(pl.t), 25):
+        pose = kin.pose(pl.q[k])
+        p, _ = kin.point(pose, man.tip.link, man.tip.station)
+        phi = man.phi_start + (man.phi_end - man.phi_start) * pl.s[k]
+        target = np.asarray(man.centre) + man.radius * np.array([np.cos(phi), np.sin(phi)])
+        err = max(err, float(np.max(np.abs(p - target))))
+    assert err < 1e-9
+    # the ruled coordinate follows its linear rule
+    c, a, b = man.rules[0]
+    j = mech.coordinate_names.index(c)
+    np.testing.assert_allclose(pl.q[:, j], a + (b - a) * pl.s, atol=1e-14)
+
+
+def test_plan_ranges_match_reconstruction(sixbar_plan):
+    pl = sixbar_plan
+    np.testing.assert_allclose(pl.q.min(0), REF_Q_MIN, atol=2e-4)
+    np.testing.assert_allclose(pl.q.max(0), REF_Q_MAX, atol=2e-4)
+    np.testing.assert_allclose(pl.qd.min(0), REF_QD_MIN, atol=2e-3)
+    np.testing.assert_allclose(pl.qd.max(0), REF_QD_MAX, atol=2e-3)
+
+
+def test_plan_rates_match_finite_differences(mech):
+    # a smooth law so that central differences are accurate; a short manoeuvre for speed
+    man = dataclasses.replace(mech.manoeuvre, time_law="quintic", duration=0.5)
+    pl = plan(mech, man, dt=5e-4)
+    dt = pl.dt
+    fd_qd = (pl.q[2:] - pl.q[:-2]) / (2 * dt)
+    fd_qdd = (pl.qd[2:] - pl.qd[:-2]) / (2 * dt)
+    np.testing.assert_allclose(fd_qd, pl.qd[1:-1], atol=2e-5 * np.abs(pl.qd).max())
+    np.testing.assert_allclose(fd_qdd, pl.qdd[1:-1], atol=2e-4 * np.abs(pl.qdd).max())
+
+
+def test_joint_manoeuvre(mech):
+    q0 = np.array(mech.q_ref)
+    rules = tuple((n, q0[i], q0[i] + 0.01) for i, n in enumerate(mech.coordinate_names))
+    man = Manoeuvre(kind="joint", duration=0.2, time_law="cycloidal", rules=rules)
+    pl = plan(mech, man, dt=0.01)
+    np.testing.assert_allclose(pl.q, q0 + 0.01 * pl.s[:, None], atol=1e-15)
+    np.testing.assert_allclose(pl.q[-1], q0 + 0.01)
+
+
+def test_tip_arc_needs_two_free_coordinates(mech):
+    man = dataclasses.replace(mech.manoeuvre, rules=())
+    with pytest.raises(ValueError, match="exactly 2 coordinates without rules"):
+        plan(mech, man, dt=0.1)
+
+
+# ------------------------------------------------------------------------------------------ computed torque
+def test_computed_torque_ranges(mech, sixbar_plan):
+    tau = computed_torque(mech, sixbar_plan)
+    lo, hi = tau.min(0), tau.max(0)
+    for j, ref in enumerate((REF_T1, REF_T2, REF_T3)):
+        assert lo[j] == pytest.approx(ref[0], rel=0.01)
+        assert hi[j] == pytest.approx(ref[1], rel=0.01)
+    # inside the axes of the paper's Fig. 4 (T3 within its +-0.05 axis to 5 %)
+    assert -10 <= lo[0] and hi[0] <= 5
+    assert -20 <= lo[1] and hi[1] <= 10
+    assert np.max(np.abs(tau[:, 2])) < 0.0525
+    # at rest after the manoeuvre the torque vanishes
+    pl = plan(mech, dt=0.5, t_end=3.5)
+    np.testing.assert_allclose(computed_torque(mech, pl)[-1], 0.0, atol=1e-10)
+
+
+def test_computed_torque_power_balance(mech):
+    """Rigid power: tau . (W^T B)_q^T q' = d/dt (q'^T M_qq q' / 2) (no gravity, no elasticity)."""
+    from exuflex.erls.model import ErlsModel
+
+    model = ErlsModel(mech)
+    man = dataclasses.replace(mech.manoeuvre, time_law="quintic", duration=0.5)
+    pl = plan(mech, man, dt=1e-3, t_end=0.2)
+    tau = computed_torque(mech, pl, model=model)
+    nq = model.nq
+    ke, power = [], []
+    for k in range(len(pl.t)):
+        cfg = model.configuration(pl.q[k])
+        ke.append(0.5 * pl.qd[k] @ model.mass(cfg)[:nq, :nq] @ pl.qd[k])
+        power.append(tau[k] @ model.input_matrix(cfg)[:nq].T @ pl.qd[k])
+    ke, power = np.array(ke), np.array(power)
+    dke = (ke[2:] - ke[:-2]) / (2 * pl.dt)
+    np.testing.assert_allclose(dke, power[1:-1], atol=3e-4 * np.abs(power).max())  # O(dt^2) differences
+
+
+def test_computed_torque_underactuated(mech):
+    weak = dataclasses.replace(mech, motors=mech.motors[:2])
+    pl = plan(mech, dt=0.5, t_end=0.5)
+    with pytest.raises(ActuationError, match="actuate only 2 of the 3"):
+        computed_torque(weak, pl)
