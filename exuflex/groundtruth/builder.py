@@ -10,9 +10,13 @@ planar flexible beams, independent of the ERLS mesh:
 
 Each link has its own nodes; the links' nodes at a joint coincide and are connected by
 ``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). Lumped masses and rotary
-inertias sit on the node at their station (``ObjectGenericODE2``); motor torques are
-``LoadTorqueVector`` loads on the motor link's node at the joint and, reversed, on the reaction
-link's node (nothing on ground). The model is built directly in the closed, rigid configuration of
+inertias sit on the node at their station (``ObjectGenericODE2``). Motor torques act on the motor
+link's node at the joint and, reversed, on the reaction link's node (nothing on ground), as the
+generalized forces of a torque on that node's tangent angle, ``T d(atan2(y', x'))/dc``
+(``T (-y', x') / |r'|^2`` on the ANCF slopes, ``T`` on a rotation coordinate). They sit, with the
+alpha damper's forces, in the ``forceVector`` of one ``ObjectGenericODE2`` spanning all nodes,
+which the simulation sets once per time step (``LoadTorqueVector`` on ``MarkerNodeRigid`` does the
+same but costs the solver 60 % more time per step). The model is built directly in the closed, rigid configuration of
 the ERLS at ``q`` (links straight, at rest), so no assembly step is needed.
 
 Damping (the model file's Rayleigh ``C = alpha M_uu + beta K_uu`` on the ERLS elastic block)
@@ -24,12 +28,15 @@ Damping (the model file's Rayleigh ``C = alpha M_uu + beta K_uu`` on the ERLS el
   ``alpha M`` on absolute velocities would brake the rigid motion. The ERLS elastic rates are,
   to first order, a linear map of the Exudyn coordinate rates, ``u' = U c'`` (Exudyn nodes ->
   ERLS nodal x, y, theta by the beam shape functions, then ``[q'; u'] = W^+ b'`` with the ERLS
-  ``W = [S, T]``, exact on motions that satisfy the joints). The damper
-  ``D = alpha U^T M_uu U`` (one ``ObjectGenericODE2`` holding only a damping matrix) therefore does
-  the same virtual work as the ERLS term ``alpha M_uu u'`` and no work on any rigid motion of the
-  mechanism. ``U`` and ``M_uu`` depend on the configuration and are refreshed during a simulation
-  (every ``damping_update`` s in :func:`exuflex.groundtruth.simulate_truth`); between refreshes a
-  rigid motion leaks a force of relative size ``alpha dq`` (dq = change of q since the refresh).
+  ``W = [S, T]``, exact on motions that satisfy the joints). The damper ``D = alpha U^T M_uu U``
+  therefore does the same virtual work as the ERLS term ``alpha M_uu u'`` and no work on any rigid
+  motion of the mechanism. ``U`` and ``M_uu`` depend on the configuration and are refreshed during
+  a simulation (every ``damping_update`` s in :func:`exuflex.groundtruth.simulate_truth`); between
+  refreshes a rigid motion leaks a force of relative size ``alpha dq`` (dq = change of q since the
+  refresh). In a simulation the damper force ``-D c'`` is applied explicitly, with the rates at
+  the start of each step (``alpha h`` and ``zeta omega h`` are below 0.01 for the damped modes, so
+  this is stable and its lag negligible; a dense implicit damping matrix would make the sparse
+  solver 50 % slower); for modal analysis ``D`` is the object's damping matrix.
 - ``damping="corotational"``: an ERLS-independent alternative, ``D_l = alpha (M_l - M_l R
   (R^T M_l R)^-1 R^T M_l)`` per link (``R``: the link's rigid velocity fields), which damps each
   link's deformation relative to its own mass-weighted rigid motion. It gives different modal
@@ -79,7 +86,6 @@ class LinkMesh:
     nodes: list[int] = field(default_factory=list)  # exudyn node numbers
     elements: list[int] = field(default_factory=list)  # exudyn object numbers
     ode2: np.ndarray | None = None  # (n_nodes, n_node_coords) global ODE2 indices (after Assemble)
-    damper: int | None = None  # ObjectGenericODE2 of the co-rotational alpha damper
     mass_matrix: np.ndarray | None = None  # (n_c, n_c) consistent + lumped mass on the link's coordinates
 
     def node_at(self, station: float, length: float) -> int:
@@ -128,14 +134,17 @@ class TruthModel:
     SC: object
     mbs: object
     links: dict[str, LinkMesh]
-    motor_loads: list[tuple[int, ...]]  # per motor: (load on link, load on reaction link or nothing)
+    motor_nodes: list[list[tuple[np.ndarray, float]]]  # per motor: (ODE2 indices of the node, sign)
     node_size: int  # coordinates per node (4 ancf, 3 gebeam)
     damping: str | None
     alpha: float
     beta: float
-    damper: int | None = None  # ObjectGenericODE2 of the ERLS-mapped alpha damper (damping="erls")
+    forces: int  # ObjectGenericODE2 over all nodes: motor torques and alpha damper (forceVector)
+    explicit_damping: bool = True  # alpha damper as explicit force (simulation) or damping matrix (modal)
+    D_alpha: np.ndarray | None = None  # current alpha damping matrix on all ODE2 coordinates
     erls: ErlsModel | None = None
     _q_last: np.ndarray | None = None
+    _ref: np.ndarray | None = None
 
     @property
     def n_coordinates(self) -> int:
@@ -145,16 +154,40 @@ class TruthModel:
         """Current total ODE2 coordinates (reference + displacement)."""
         exu, _ = _exu()
         sd = self.mbs.systemData
-        return np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Current)) + np.asarray(
-            sd.GetODE2Coordinates(exu.ConfigurationType.Reference)
-        )
+        if self._ref is None:
+            self._ref = np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Reference))
+        return np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Current)) + self._ref
+
+    def velocities(self) -> np.ndarray:
+        """Current ODE2 coordinate rates."""
+        exu, _ = _exu()
+        return np.asarray(self.mbs.systemData.GetODE2Coordinates_t(exu.ConfigurationType.Current))
+
+    def generalized_forces(self, tau, c: np.ndarray, cd: np.ndarray | None = None) -> np.ndarray:
+        """Generalized forces (all ODE2 coordinates) of motor torques ``tau`` at total coordinates ``c``,
+        minus the explicit alpha-damper force ``D c'`` if ``cd`` is given."""
+        f = np.zeros(len(c))
+        for nodes, T in zip(self.motor_nodes, tau):
+            for idx, sign in nodes:
+                if self.formulation == "ancf":
+                    rx, ry = c[idx[2]], c[idx[3]]
+                    n2 = rx * rx + ry * ry
+                    f[idx[2]] += -sign * T * ry / n2
+                    f[idx[3]] += sign * T * rx / n2
+                else:
+                    f[idx[2]] += sign * T
+        if cd is not None and self.explicit_damping and self.D_alpha is not None:
+            f -= self.D_alpha @ cd
+        return f
 
     def set_torques(self, tau) -> None:
-        """Set the motor torques (N m, one per motor, in ``mech.motors`` order)."""
-        for (load, *reac), T in zip(self.motor_loads, tau):
-            self.mbs.SetLoadParameter(load, "loadVector", [0.0, 0.0, float(T)])
-            for r in reac:
-                self.mbs.SetLoadParameter(r, "loadVector", [0.0, 0.0, -float(T)])
+        """Set the motor torques (N m, one per motor, in ``mech.motors`` order) for the current state.
+
+        Also applies the explicit alpha-damper force for the current rates. Call once per time step.
+        """
+        c = self.coordinates()
+        cd = self.velocities() if self.explicit_damping and self.D_alpha is not None else None
+        self.mbs.SetObjectParameter(self.forces, "forceVector", self.generalized_forces(tau, c, cd))
 
     # ------------------------------------------------------------------ kinematic read-out
     def point_rows(self, link: str, station: float, c: np.ndarray):
@@ -218,9 +251,11 @@ class TruthModel:
             return
         c = self.coordinates() if c is None else np.asarray(c, float)
         if self.damping == "corotational":
+            D = np.zeros((len(c), len(c)))
             for lm in self.links.values():
-                D = _corotational_damping(lm, c[lm.ode2.ravel()], self.alpha, self.formulation)
-                self.mbs.SetObjectParameter(lm.damper, "dampingMatrix", D)
+                idx = lm.ode2.ravel()
+                D[np.ix_(idx, idx)] = _corotational_damping(lm, c[idx], self.alpha, self.formulation)
+            self._set_damping(D)
             return
         q = self.coordinate_values(c)
         self._q_last = q
@@ -236,7 +271,12 @@ class TruthModel:
         U = np.linalg.pinv(cfg.W)[m.nq :] @ B  # du = U dc on motions that satisfy the joints
         Muu = m.T.T @ cfg.M_N @ m.T
         D = self.alpha * (U.T @ Muu @ U)
-        self.mbs.SetObjectParameter(self.damper, "dampingMatrix", 0.5 * (D + D.T))
+        self._set_damping(0.5 * (D + D.T))
+
+    def _set_damping(self, D: np.ndarray) -> None:
+        self.D_alpha = D
+        if not self.explicit_damping:
+            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D)
 
 
 def link_mesh_stations(
@@ -357,6 +397,7 @@ def build_truth(
     formulation: str = "ancf",
     align_stations: tuple[tuple[str, float], ...] = (),
     damping: str | None = "erls",
+    explicit_damping: bool = True,
 ) -> TruthModel:
     """Build the Exudyn model of ``mech`` at rest in the closed rigid configuration at ``q``.
 
@@ -372,6 +413,9 @@ def build_truth(
     align_stations : (link, station) pairs that must also be element boundaries (e.g. gauges).
     damping : "erls", "corotational", "stiffness" or None
         How the model file's Rayleigh damping is reproduced (see module docstring).
+    explicit_damping : bool
+        Apply the alpha damper as an explicit force (for simulation, refreshed by
+        :meth:`TruthModel.set_torques`) rather than as a damping matrix (for linearised analysis).
 
     Returns
     -------
@@ -481,50 +525,42 @@ def build_truth(
                 )
 
     # motors: +T on the motor link's node at the joint, -T on the reaction link's node
-    motor_loads = []
+    motor_at = []
     for mo in mech.motors:
         jt = mech.joint(mo.joint)
-        loads = []
-        for lname in (mo.link, mo.reaction):
+        at = []
+        for lname, sign in ((mo.link, 1.0), (mo.reaction, -1.0)):
             if lname is None:
                 continue
             st = next((p.station for p in jt.points if p.link == lname), None)
             if st is None:
                 raise KeyError(f"motor {mo.name!r}: link {lname!r} is not at joint {mo.joint!r}")
-            lm = links[lname]
-            k = lm.node_at(st, mech.link(lname).length)
-            mk = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=lm.nodes[k]))
-            loads.append(mbs.AddLoad(it.LoadTorqueVector(markerNumber=mk, loadVector=[0.0, 0.0, 0.0])))
-        motor_loads.append(tuple(loads))
+            at.append((lname, links[lname].node_at(st, mech.link(lname).length), sign))
+        motor_at.append(at)
 
-    # alpha dampers (matrices filled after Assemble, refreshed by update_dampers)
+    # one generic object over all nodes: motor torques and the alpha damper (filled after Assemble)
     all_nodes = [n for lm in links.values() for n in lm.nodes]
-    damper = None
-    for i, lk in enumerate(mech.links):
+    for lk in mech.links:
         lm = links[lk.name]
         lm.mass_matrix = _link_mass_matrix(
             lm, lk.material.rho * lk.section.A, lk.material.rho * lk.section.I, lumped[lk.name], formulation
         )
-        if alpha != 0.0 and damping == "corotational":
-            n_c = node_size * len(lm.nodes)
-            lm.damper = mbs.AddObject(
-                it.ObjectGenericODE2(
-                    nodeNumbers=list(lm.nodes), massMatrix=np.zeros((n_c, n_c)), dampingMatrix=np.zeros((n_c, n_c))
-                )
-            )
-    if alpha != 0.0 and damping == "erls":
-        n_c = node_size * len(all_nodes)
-        damper = mbs.AddObject(
-            it.ObjectGenericODE2(
-                nodeNumbers=all_nodes, massMatrix=np.zeros((n_c, n_c)), dampingMatrix=np.zeros((n_c, n_c))
-            )
+    n_c = node_size * len(all_nodes)
+    forces = mbs.AddObject(
+        it.ObjectGenericODE2(
+            nodeNumbers=all_nodes,
+            massMatrix=np.zeros((n_c, n_c)) if not explicit_damping else None,
+            dampingMatrix=np.zeros((n_c, n_c)) if not explicit_damping else None,
+            forceVector=np.zeros(n_c),
         )
+    )
     mbs.Assemble()
     for lm in links.values():
         lm.ode2 = np.array([mbs.GetNodeODE2Index(n) + np.arange(node_size) for n in lm.nodes], dtype=int)
     order = np.concatenate([lm.ode2.ravel() for lm in links.values()])
-    if damper is not None and not np.array_equal(order, np.arange(len(order))):
-        raise RuntimeError("Exudyn numbered the node coordinates out of node order; the ERLS damper assumes it")
+    if not np.array_equal(order, np.arange(len(order))):
+        raise RuntimeError("Exudyn numbered the node coordinates out of node order; the force object assumes it")
+    motor_nodes = [[(links[ln].ode2[k], sign) for ln, k, sign in at] for at in motor_at]
     tm = TruthModel(
         mech,
         q,
@@ -532,13 +568,14 @@ def build_truth(
         SC,
         mbs,
         links,
-        motor_loads,
+        motor_nodes,
         node_size,
         damping,
         alpha,
         beta,
-        damper=damper,
-        erls=ErlsModel(mech) if damper is not None else None,
+        forces,
+        explicit_damping=explicit_damping,
+        erls=ErlsModel(mech) if (alpha != 0.0 and damping == "erls") else None,
     )
     ref = np.asarray(mbs.systemData.GetODE2Coordinates(exu.ConfigurationType.Reference))
     tm.update_dampers(ref)

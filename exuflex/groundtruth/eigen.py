@@ -60,7 +60,7 @@ def modal_damping(
     -------
     f_hz, zeta : (n_modes,) arrays, ascending in frequency, rigid modes dropped, up to ``fmax``.
     """
-    tm = build_truth(mech, q, elements_per_link=elements_per_link, formulation=formulation, damping="erls")
+    tm = build_truth(mech, q, elements_per_link=elements_per_link, formulation=formulation, damping="erls", explicit_damping=False)
     M, K, D, *_ = tm.mbs.ComputeLinearizedSystem(projectIntoConstraintNullspace=True)
     M, K, D = (np.asarray(a) for a in (M, K, D))
     n = M.shape[0]

@@ -1,0 +1,25 @@
+"""Exudyn ground truth: an independent flexible-multibody model of a mechanism (the "real mechanism").
+
+This subpackage is the only place in exuflex that imports :mod:`exudyn`. It builds the mechanism from
+planar flexible beams (:func:`build_truth`), computes its eigenfrequencies and modal damping
+(:func:`exudyn_frequencies`, :func:`modal_damping`) and simulates it under motor torques, recording
+the probes of :mod:`exuflex.probes` (:func:`simulate_truth`).
+"""
+
+from .builder import DAMPINGS, FORMULATIONS, LinkMesh, TruthModel, build_truth, link_mesh_stations
+from .eigen import exudyn_frequencies, modal_damping
+from .simulate import smooth_torque_table, simulate_truth, time_truth
+
+__all__ = [
+    "DAMPINGS",
+    "FORMULATIONS",
+    "LinkMesh",
+    "TruthModel",
+    "build_truth",
+    "link_mesh_stations",
+    "exudyn_frequencies",
+    "modal_damping",
+    "simulate_truth",
+    "smooth_torque_table",
+    "time_truth",
+]
