@@ -15,7 +15,7 @@ them with a 24-bit ADC (+-10 V). Here each channel carries
 Time grid
 ---------
 All channels share one *base grid* ``t_k = k / f_base`` with ``f_base`` the mechanism's sample rate
-(or the ``rate_hz`` argument). A channel with a lower rate ``r`` is sampled at the base-grid instants
+(or the ``rate_hz`` argument), over the span of the clean record (from its first to ``t_end``). A channel with a lower rate ``r`` is sampled at the base-grid instants
 nearest to ``m / r`` (m = 0, 1, ...) and holds NaN at the other rows; a rate above the base rate is
 an error. Clean channels are linearly interpolated onto the grid (exact when the engine's output grid
 contains it); torques are read as the zero-order hold the simulation applied (the table value in
@@ -127,7 +127,10 @@ def measure(
     if not base > 0:
         raise ValueError(f"{mech.source or mech.name}: sample rate must be positive, got {base}")
     t_end = float(clean.t[-1] if t_end is None else t_end)
-    t = np.arange(int(np.floor(t_end * base + 1e-9)) + 1) / base
+    if t_end > clean.t[-1] + 1e-9 * max(1.0, t_end):
+        raise ValueError(f"measure: t_end = {t_end} s is past the last clean sample at {float(clean.t[-1])} s")
+    k0 = int(np.ceil(clean.t[0] * base - 1e-6))  # first base-grid instant the engine recorded
+    t = np.arange(k0, int(np.floor(t_end * base + 1e-6)) + 1) / base
     torque_t = np.asarray(torque_t, float)
     torques = np.asarray(torques, float).reshape(len(torque_t), -1)
     if torques.shape[1] != len(mech.motors):

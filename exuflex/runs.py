@@ -238,7 +238,7 @@ def _check_time(path: Path, t: np.ndarray, lines: Sequence[tuple[int, str]], col
         i = int(bad[0]) + 1
         raise LogFormatError(
             f"{path}: column {column!r} is not strictly increasing at line {lines[i][0]} "
-            f"({t[i - 1]!r} then {t[i]!r})"
+            f"({float(t[i - 1])!r} then {float(t[i])!r})"
         )
 
 

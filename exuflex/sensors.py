@@ -46,6 +46,7 @@ __all__ = [
     "tip_dof_names",
     "truth_names",
     "erls_probe_record",
+    "monotonic_record",
     "SENSOR_UNITS",
 ]
 
@@ -190,6 +191,26 @@ def truth_names(mech: Mechanism) -> tuple[str, ...]:
         ex, ey = tip_dof_names(mech)
         names += (ex, ey, "d" + ex, "d" + ey)
     return names
+
+
+def monotonic_record(record: ProbeRecord) -> ProbeRecord:
+    """The record with repeated times removed (the last sample of a repeated time is kept).
+
+    Engines may record the final state twice; any decreasing time is an error.
+    """
+    t = np.asarray(record.t, float)
+    d = np.diff(t)
+    if np.any(d < 0):
+        i = int(np.flatnonzero(d < 0)[0]) + 1
+        raise ValueError(f"probe record: time decreases at sample {i} ({float(t[i - 1])!r} then {float(t[i])!r})")
+    keep = np.append(d > 0, True)
+    if keep.all():
+        return record
+    log.warning("probe record: dropped %d sample(s) with a repeated time (kept the last)", int((~keep).sum()))
+    return ProbeRecord(
+        t[keep], {k: np.asarray(v)[keep] for k, v in record.values.items()},
+        {k: np.asarray(v)[keep] for k, v in record.rates.items()},
+    )
 
 
 # ------------------------------------------------------------------------------------------ channels

@@ -314,3 +314,21 @@ def test_cli_simulate_rejects_bad_arguments(tmp_path, capsys):
     assert "--duration must be positive" in capsys.readouterr().err
     rc = main(["simulate", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "x"), "--engine", "erls"])
     assert rc == 2
+
+
+def test_exudyn_and_erls_engines_give_comparable_truths(tmp_path):
+    """Same manoeuvre, two independent formulations: the truths agree (0.04 s of the first ramp)."""
+    pytest.importorskip("exudyn")
+    from exuflex.cli.simulate import simulate_run
+
+    runs = {}
+    for engine in ("erls", "exudyn"):
+        runs[engine] = read_run(simulate_run(MODEL, tmp_path / engine, engine=engine, duration=0.04, seed=1))
+    a, b = runs["erls"].truth, runs["exudyn"].truth
+    common, ia, ib = np.intersect1d(np.round(a.t, 9), np.round(b.t, 9), return_indices=True)
+    assert len(common) >= 19
+    da, db = a.data[ia], b.data[ib]
+    np.testing.assert_allclose(db[:, :3], da[:, :3], atol=1e-4)  # q (rad)
+    peak_a, peak_b = np.abs(da[:, 6:8]).max(0), np.abs(db[:, 6:8]).max(0)  # tip elastic x25, y26 (m)
+    np.testing.assert_allclose(peak_b, peak_a, rtol=0.1)
+    assert runs["exudyn"].meta["engine"] == "exudyn"

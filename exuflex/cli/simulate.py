@@ -109,7 +109,7 @@ def simulate_run(
     from ..measure import measure, new_seed
     from ..mechanism import load_mechanism
     from ..runs import file_sha256, write_run
-    from ..sensors import sensor_channels, true_states
+    from ..sensors import monotonic_record, sensor_channels, true_states
 
     model_path = Path(model_path)
     mech = load_mechanism(model_path)
@@ -147,6 +147,7 @@ def simulate_run(
     bar.close()
     timings["truth_s"] = time.perf_counter() - t0
 
+    record = monotonic_record(record)
     clean = sensor_channels(mech, record)
     truth = true_states(mech, record)
     meas = measure(mech, clean, pl.t, tau, seed=seed, t_end=duration)
