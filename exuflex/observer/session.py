@@ -1,0 +1,318 @@
+"""The observer as users run it: a mechanism, a sensor log, and the estimated physical states.
+
+:func:`make_observer` builds the reduced model and the multirate EKF for a mechanism and a channel set;
+:func:`estimate` filters a log (offline) and reconstructs the physical states the truth files use
+(q, dq/dt, tip elastic displacement and velocity, see :mod:`exuflex.sensors`); :func:`metrics` compares
+them with a truth; :func:`estimation_bound` gives the best RMS error any filter can reach with these
+sensors (the steady-state Kalman covariance of the linearised reduced model at a configuration).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..erls.model import ErlsModel
+from ..mechanism import Mechanism
+from ..reduction import CraigBampton
+from ..sensors import Signals, tip_dof_names, tip_point
+from .bound import steady_state_covariance
+from .ekf import EstimationResult, MultirateEKF
+from .reduced import ReducedObserverModel
+
+__all__ = [
+    "ObserverConfig",
+    "Observer",
+    "default_channels",
+    "make_observer",
+    "estimate",
+    "metrics",
+    "estimation_bound",
+    "physical_names",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ObserverConfig:
+    """Observer settings (all recorded in result files).
+
+    channels : measured sensor channels used (default :func:`default_channels`).
+    masters, n_interior, q_star, ranking : the reduction (default: the model file's).
+    h : RK4 sub-step (s); dt : measurement interval (s, default 1 / the model's sample rate).
+    method : ``"frozen"`` (fast) or ``"rk4"`` (reference) step map, see :mod:`.reduced`.
+    backend : ``"numpy"`` or ``"filterpy"`` covariance algebra.
+    q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations.
+    q_scale : multiplies the torque-noise process covariance; q_extra_std : extra white noise per interval
+        on the elastic rates (unmodelled dynamics), as a standard deviation in the state's unit.
+    start_up : seconds left out of the error metrics (the filter's transient).
+    """
+
+    channels: tuple[str, ...] | None = None
+    masters: tuple[str, ...] | None = None
+    n_interior: int | str | None = None
+    q_star: tuple[float, ...] | None = None
+    ranking: str = "imr"
+    h: float = 1e-4
+    dt: float | None = None
+    method: str = "frozen"
+    backend: str = "numpy"
+    q0_std: float = 0.05
+    qd0_std: float = 0.1
+    elastic0_std: float = 1e-3
+    elastic_rate0_std: float = 0.1
+    q_scale: float = 1.0
+    q_extra_std: float = 0.0
+    start_up: float = 0.3
+
+    def as_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
+
+
+def default_channels(mech: Mechanism) -> tuple[str, ...]:
+    """Sensors with a stated noise, except tip positions (truth-only) and relative encoders duplicating an
+    absolute one on the same link and joint (the six-bar: ``q1 q2 q3 c1 c2 c4``, the paper's set)."""
+    absolute = {(s.link, s.joint) for s in mech.sensors if s.kind == "encoder" and not s.relative_to}
+    out = []
+    for s in mech.sensors:
+        if s.noise_std <= 0 or s.kind in ("tip_x", "tip_y"):
+            continue
+        if s.kind == "encoder" and s.relative_to and (s.link, s.joint) in absolute:
+            continue
+        out.append(s.name)
+    return tuple(out)
+
+
+def physical_names(mech: Mechanism) -> tuple[str, ...]:
+    qn = mech.coordinate_names
+    names = qn + tuple("d" + n for n in qn)
+    if tip_point(mech) is not None:
+        ex, ey = tip_dof_names(mech)
+        names += (ex, ey, "d" + ex, "d" + ey)
+    return names
+
+
+@dataclass
+class Observer:
+    """A ready-to-run observer: reduced model, EKF, and the map to physical states."""
+
+    mech: Mechanism
+    config: ObserverConfig
+    model: ReducedObserverModel
+    ekf: MultirateEKF
+    channels: tuple[str, ...]
+    basis_s: float
+    info: dict = field(default_factory=dict)
+
+    def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-3) -> Signals:
+        """Physical estimates (q, dq, tip elastic displacement and rate) from reduced states (n, nx).
+
+        The tip rows depend on q; they are refreshed whenever q moved by more than ``refresh_rad``.
+        """
+        nq, r = self.model.nq, self.model.r
+        names = physical_names(self.mech)
+        out = np.full((len(t), len(names)), np.nan)
+        out[:, :nq] = Z[:, :nq]
+        out[:, nq : 2 * nq] = Z[:, r : r + nq]
+        tp = tip_point(self.mech)
+        if tp is not None:
+            rows, q_last = None, None
+            for k in range(len(t)):
+                q = Z[k, :nq]
+                if not np.all(np.isfinite(Z[k])):
+                    continue
+                if rows is None or np.max(np.abs(q - q_last)) > refresh_rad:
+                    rows, q_last = self.model.tip_rows(q, *tp), q.copy()
+                out[k, 2 * nq : 2 * nq + 2] = rows @ Z[k, :r]
+                out[k, 2 * nq + 2 : 2 * nq + 4] = rows @ Z[k, r:]
+        units = ("rad",) * nq + ("rad/s",) * nq + (("m", "m", "m/s", "m/s") if tp is not None else ())
+        return Signals(np.asarray(t, float), names, out, units)
+
+
+def _noise_std(mech: Mechanism, channels: Sequence[str]) -> dict[str, float]:
+    sensors = {s.name: s for s in mech.sensors}
+    out = {}
+    for c in channels:
+        if c not in sensors:
+            raise KeyError(f"{mech.source or mech.name}: no sensor channel {c!r}; the model has {sorted(sensors)}")
+        if not sensors[c].noise_std > 0:
+            raise ValueError(
+                f"{mech.source or mech.name}: sensor {c!r} has no noise_std; the observer needs a positive "
+                "standard deviation for every channel it uses"
+            )
+        out[c] = sensors[c].noise_std
+    return out
+
+
+def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None, model: ErlsModel | None = None,
+                  cb: CraigBampton | None = None) -> Observer:
+    """Build the reduced model and the EKF for ``mech``.
+
+    ``x0`` is the prior mean (reduced state); default: at rest at the manoeuvre's start, else q_ref.
+    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers.
+    """
+    config = config or ObserverConfig()
+    t0 = time.perf_counter()
+    model = model or (cb.model if cb is not None else ErlsModel(mech))
+    if cb is None:
+        cb = CraigBampton(model, masters=config.masters, q_star=config.q_star, n_interior=config.n_interior,
+                          ranking=config.ranking)
+    basis_s = time.perf_counter() - t0
+    channels = tuple(config.channels) if config.channels else default_channels(mech)
+    dt = config.dt or 1.0 / mech.sample_rate_hz
+    som = ReducedObserverModel(cb, h=config.h, method=config.method)
+    if config.q_scale != 1.0:
+        som.torque_var = som.torque_var * config.q_scale
+    r, nq = som.r, som.nq
+    if config.q_extra_std > 0:
+        qe = np.zeros(som.nx)
+        qe[r + nq :] = config.q_extra_std**2
+        som.q_extra = qe
+    if x0 is None:
+        x0 = som.initial_state(_start_q(mech))
+    P0 = np.empty(som.nx)
+    P0[:nq] = config.q0_std**2
+    P0[nq:r] = config.elastic0_std**2
+    P0[r : r + nq] = config.qd0_std**2
+    P0[r + nq :] = config.elastic_rate0_std**2
+    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, backend=config.backend)
+    info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
+            "interior_modes": int(cb.n_interior), "channels": list(channels)}
+    return Observer(mech, config, som, ekf, channels, basis_s, info)
+
+
+def _start_q(mech: Mechanism) -> np.ndarray:
+    if mech.manoeuvre is not None:
+        from ..manoeuvre import plan
+
+        try:
+            p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
+            return np.asarray(p.q[0], float)
+        except Exception as exc:  # noqa: BLE001 - fall back to q_ref, with a note
+            log.warning("could not plan the manoeuvre's start (%s); starting the observer at q_ref", exc)
+    return np.asarray(mech.q_ref, float)
+
+
+@dataclass
+class Estimate:
+    result: EstimationResult
+    physical: Signals
+    wall_s: float
+    real_time_factor: float
+
+
+def estimate(obs: Observer, t, U, Y, x0=None) -> Estimate:
+    """Filter a record: times (n,), measured torques (n, n_motors), channels (n, m) in ``obs.channels`` order."""
+    if x0 is not None:
+        obs.ekf.reset(x0=x0)
+    t = np.asarray(t, float)
+    t0 = time.perf_counter()
+    res = obs.ekf.run(t, U, Y)
+    wall = time.perf_counter() - t0
+    phys = obs.physical(res.t, res.x_hat)
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+
+
+def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None) -> dict:
+    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times)."""
+    names = [n for n in (names or est.names) if n in truth]
+    sel = est.t >= est.t[0] + start_up
+    rms, mx = {}, {}
+    for n in names:
+        tr = np.interp(est.t[sel], truth.t, truth[n])
+        e = est[n][sel] - tr
+        e = e[np.isfinite(e)]
+        rms[n] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+        mx[n] = float(np.max(np.abs(e))) if e.size else float("nan")
+    return {"rms_error": rms, "max_error": mx}
+
+
+def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
+    """Best achievable RMS error per physical quantity: steady-state Kalman covariance of the reduced model
+    linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise."""
+    mech, som = obs.mech, obs.model
+    if q is None:
+        q = _mid_q(mech)
+    z = som.initial_state(q, qd)
+    u = np.zeros(len(mech.motors))
+    _, A = som.step(z, u, obs.ekf.dt)
+    Q = som.process_noise(z, u, obs.ekf.dt)
+    _, H = som.measure(z, obs.channels)
+    R = np.array([s**2 for s in obs.ekf.R_std])
+    P = _steady_posterior(A, Q, H, R)
+    nq, r = som.nq, som.r
+    names = physical_names(mech)
+    out = {}
+    sd = np.sqrt(np.diag(P))
+    for i in range(nq):
+        out[names[i]] = float(sd[i])
+        out[names[nq + i]] = float(sd[r + i])
+    tp = tip_point(mech)
+    if tp is not None:
+        rows = som.tip_rows(q, *tp)
+        for k in range(2):
+            C = np.zeros(som.nx)
+            C[:r] = rows[k]
+            out[names[2 * nq + k]] = float(np.sqrt(C @ P @ C))
+            Cd = np.zeros(som.nx)
+            Cd[r:] = rows[k]
+            out[names[2 * nq + 2 + k]] = float(np.sqrt(Cd @ P @ Cd))
+    return out
+
+
+def _steady_posterior(A, Q, H, R, tol: float = 1e-10, max_iter: int = 200_000) -> np.ndarray:
+    """Steady-state posterior covariance: DARE on a scaled state, else the Riccati recursion to convergence.
+
+    The rigid coordinates and the elastic ones differ by orders of magnitude, which can make the DARE's
+    Schur reordering fail; scaling the state by the process noise's spread, and iterating the filter
+    recursion as a fallback, make the result robust.
+    """
+    d = np.sqrt(np.clip(np.diag(Q), 0, None))
+    d = np.where(d > 0, d, d[d > 0].min() if np.any(d > 0) else 1.0)
+    Di = 1.0 / d
+    As, Qs, Hs = Di[:, None] * A * d[None, :], Di[:, None] * Q * Di[None, :], H * d[None, :]
+    try:
+        _, Ps = steady_state_covariance(As, Qs, Hs, R)
+        if np.all(np.isfinite(Ps)):
+            return d[:, None] * Ps * d[None, :]
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        log.info("DARE failed (%s); iterating the Riccati recursion", exc)
+    Rm = np.diag(R)
+    P = Q.copy()
+    I = np.eye(len(A))
+    for _ in range(max_iter):
+        S = H @ P @ H.T + Rm
+        K = np.linalg.solve(S, H @ P).T
+        Pp = (I - K @ H) @ P @ (I - K @ H).T + K @ Rm @ K.T
+        Pn = A @ Pp @ A.T + Q
+        Pn = 0.5 * (Pn + Pn.T)
+        if np.max(np.abs(Pn - P) / (np.abs(np.diag(P))[:, None] ** 0.5 * np.abs(np.diag(P))[None, :] ** 0.5 + 1e-300)) < tol:
+            P = Pn
+            break
+        P = Pn
+    S = H @ P @ H.T + Rm
+    K = np.linalg.solve(S, H @ P).T
+    return (I - K @ H) @ P @ (I - K @ H).T + K @ Rm @ K.T
+
+
+def _mid_q(mech: Mechanism) -> np.ndarray:
+    if mech.manoeuvre is not None:
+        from ..manoeuvre import plan
+
+        try:
+            d = mech.manoeuvre.duration
+            p = plan(mech, dt=d / 2, t_end=d)
+            return np.asarray(p.q[len(p.q) // 2], float)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("could not plan the manoeuvre's middle (%s); using q_ref", exc)
+    return np.asarray(mech.q_ref, float)
+
+
+def with_channels(config: ObserverConfig, channels) -> ObserverConfig:
+    return replace(config, channels=tuple(channels))
