@@ -38,7 +38,7 @@ from .erls.kinematics import Kinematics, KinematicsError, Pose
 from .erls.model import ErlsModel
 from .mechanism import Manoeuvre, Mechanism
 
-__all__ = ["TIME_LAWS", "time_law", "Plan", "plan", "computed_torque", "ActuationError"]
+__all__ = ["TIME_LAWS", "ActuationError", "Plan", "computed_torque", "plan", "time_law"]
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,11 @@ def time_law(
         a = v / ta
         acc = tc < ta
         dec = tc > T - ta
-        s = np.where(acc, 0.5 * a * tc**2, np.where(dec, 1.0 - 0.5 * a * (T - tc) ** 2, 0.5 * a * ta**2 + v * (tc - ta)))
+        s = np.where(
+            acc,
+            0.5 * a * tc**2,
+            np.where(dec, 1.0 - 0.5 * a * (T - tc) ** 2, 0.5 * a * ta**2 + v * (tc - ta)),
+        )
         sd = np.where(acc, a * tc, np.where(dec, a * (T - tc), v))
         sdd = np.where(acc, a, np.where(dec, -a, 0.0))
     elif law == "quintic":
@@ -146,13 +150,17 @@ def _point_bias(kin: Kinematics, pose: Pose, Szd: np.ndarray, link: str, station
     th = pose.z[3 * i + 2]
     thd = pose.Sz[3 * i + 2] @ qd
     c, sn = np.cos(th), np.sin(th)
-    return Szd[3 * i : 3 * i + 2] @ qd + station * (np.array([-sn, c]) * (Szd[3 * i + 2] @ qd) - np.array([c, sn]) * thd**2)
+    return Szd[3 * i : 3 * i + 2] @ qd + station * (
+        np.array([-sn, c]) * (Szd[3 * i + 2] @ qd) - np.array([c, sn]) * thd**2
+    )
 
 
 class _TipIK:
     """Newton on the closure plus the tip equations; unknowns z and the free coordinates."""
 
-    def __init__(self, kin: Kinematics, man: Manoeuvre, free: list[int], ruled: dict[int, tuple[float, float]]):
+    def __init__(
+        self, kin: Kinematics, man: Manoeuvre, free: list[int], ruled: dict[int, tuple[float, float]]
+    ):
         self.kin, self.man, self.free, self.ruled = kin, man, free, ruled
         self.li = kin.link_names.index(man.tip.link)
         self.st = man.tip.station
@@ -162,7 +170,9 @@ class _TipIK:
         i, s = self.li, self.st
         return np.array([z[3 * i] + s * np.cos(z[3 * i + 2]), z[3 * i + 1] + s * np.sin(z[3 * i + 2])])
 
-    def solve(self, q_guess: np.ndarray, z_guess: np.ndarray, p: np.ndarray, tol: float = 1e-13, max_iter: int = 30):
+    def solve(
+        self, q_guess: np.ndarray, z_guess: np.ndarray, p: np.ndarray, tol: float = 1e-13, max_iter: int = 30
+    ):
         kin, free = self.kin, self.free
         q = q_guess.copy()
         z = z_guess.copy()
@@ -232,7 +242,7 @@ def plan(
     if not dt > 0:
         raise ValueError(f"plan: dt must be positive, got {dt}")
     t_end = man.duration if t_end is None else float(t_end)
-    n = int(round(t_end / dt)) + 1
+    n = round(t_end / dt) + 1
     t = np.arange(n) * dt
     s, sd, sdd = time_law(man.time_law, t, man.duration, man.ramp_time)
     names = mech.coordinate_names
@@ -297,7 +307,11 @@ def plan(
 
 # ---------------------------------------------------------------------------------------- inverse dynamics
 def computed_torque(
-    mech: Mechanism, plan: Plan, *, model: ErlsModel | None = None, progress: Callable[[float], None] | None = None
+    mech: Mechanism,
+    plan: Plan,
+    *,
+    model: ErlsModel | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> np.ndarray:
     """Open-loop motor torques from the rigid-body inverse dynamics along ``plan``.
 

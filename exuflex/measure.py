@@ -35,7 +35,7 @@ import numpy as np
 from .mechanism import Mechanism
 from .sensors import Signals
 
-__all__ = ["Measurement", "measure", "quantise", "ADC_BITS", "new_seed"]
+__all__ = ["ADC_BITS", "Measurement", "measure", "new_seed", "quantise"]
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,9 @@ def measure(
         raise ValueError(f"{mech.source or mech.name}: sample rate must be positive, got {base}")
     t_end = float(clean.t[-1] if t_end is None else t_end)
     if t_end > clean.t[-1] + 1e-9 * max(1.0, t_end):
-        raise ValueError(f"measure: t_end = {t_end} s is past the last clean sample at {float(clean.t[-1])} s")
+        raise ValueError(
+            f"measure: t_end = {t_end} s is past the last clean sample at {float(clean.t[-1])} s"
+        )
     k0 = int(np.ceil(clean.t[0] * base - 1e-6))  # first base-grid instant the engine recorded
     t = np.arange(k0, int(np.floor(t_end * base + 1e-6)) + 1) / base
     torque_t = np.asarray(torque_t, float)

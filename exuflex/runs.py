@@ -39,15 +39,15 @@ from .sensors import Signals
 __all__ = [
     "FORMAT",
     "Run",
-    "write_run",
-    "read_run",
-    "read_signals_csv",
-    "write_signals_csv",
+    "atomic_write_text",
+    "file_sha256",
+    "package_versions",
     "read_csv_log",
     "read_exudyn_sensor",
-    "package_versions",
-    "file_sha256",
-    "atomic_write_text",
+    "read_run",
+    "read_signals_csv",
+    "write_run",
+    "write_signals_csv",
 ]
 
 log = logging.getLogger(__name__)
@@ -162,14 +162,18 @@ def write_run(
     motors = tuple(motors or meta.get("motors", ()))
     missing = [m for m in motors if m not in sensors.names]
     if missing:
-        raise ValueError(f"write_run: motor column(s) {missing} not in the sensor channels {list(sensors.names)}")
+        raise ValueError(
+            f"write_run: motor column(s) {missing} not in the sensor channels {list(sensors.names)}"
+        )
     meta.setdefault("format", FORMAT)
-    meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    meta.setdefault("created", _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
     meta.setdefault("versions", package_versions())
     meta["motors"] = list(motors)
     meta["sensors"] = [n for n in sensors.names if n not in motors]
     meta["truth"] = list(truth.names) if truth is not None else []
-    units = {SENSORS_FILE: {TIME: "s", **dict(zip(sensors.names, sensors.units or [""] * len(sensors.names)))}}
+    units = {
+        SENSORS_FILE: {TIME: "s", **dict(zip(sensors.names, sensors.units or [""] * len(sensors.names)))}
+    }
     if truth is not None:
         units[TRUTH_FILE] = {TIME: "s", **dict(zip(truth.names, truth.units or [""] * len(truth.names)))}
     meta["units"] = units
@@ -179,7 +183,9 @@ def write_run(
     elif (out / TRUTH_FILE).exists():
         os.unlink(out / TRUTH_FILE)  # a stale truth would not belong to this run
     # meta last: a folder with a meta.json is complete
-    atomic_write_text(out / META_FILE, json.dumps(meta, indent=2, sort_keys=False, default=_json_default) + "\n")
+    atomic_write_text(
+        out / META_FILE, json.dumps(meta, indent=2, sort_keys=False, default=_json_default) + "\n"
+    )
     return out
 
 
@@ -208,13 +214,17 @@ def _parse_table(
     for r, (lineno, text) in enumerate(lines):
         cells = [c.strip() for c in text.split(delimiter)]
         if len(cells) != n_col:
-            raise LogFormatError(f"{path}: line {lineno}: {len(cells)} fields, expected {n_col} ({', '.join(header)})")
+            raise LogFormatError(
+                f"{path}: line {lineno}: {len(cells)} fields, expected {n_col} ({', '.join(header)})"
+            )
         for c, cell in enumerate(cells):
             if cell == "":
                 if allow_empty and c > 0:
                     data[r, c] = np.nan
                     continue
-                raise LogFormatError(f"{path}: line {lineno}, column {header[c]!r}: empty cell, expected a number")
+                raise LogFormatError(
+                    f"{path}: line {lineno}, column {header[c]!r}: empty cell, expected a number"
+                )
             try:
                 v = float(cell)
             except ValueError:
@@ -288,7 +298,9 @@ def read_run(run_dir: str | os.PathLike) -> Run:
         raise FileNotFoundError(f"{d}: run folder does not exist")
     mp = d / META_FILE
     if not mp.exists():
-        raise FileNotFoundError(f"{mp}: missing (a run folder needs {META_FILE}, {SENSORS_FILE} and optionally {TRUTH_FILE})")
+        raise FileNotFoundError(
+            f"{mp}: missing (a run folder needs {META_FILE}, {SENSORS_FILE} and optionally {TRUTH_FILE})"
+        )
     try:
         meta = json.loads(mp.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
@@ -306,12 +318,16 @@ def read_run(run_dir: str | os.PathLike) -> Run:
     for m in meta["motors"]:
         if np.isnan(sensors[m]).any():
             row = int(np.flatnonzero(np.isnan(sensors[m]))[0])
-            raise LogFormatError(f"{d / SENSORS_FILE}: torque column {m!r} has an empty cell at data row {row + 1}")
+            raise LogFormatError(
+                f"{d / SENSORS_FILE}: torque column {m!r} has an empty cell at data row {row + 1}"
+            )
     truth = None
     if (d / TRUTH_FILE).exists():
         truth = read_signals_csv(d / TRUTH_FILE, meta.get("truth", []), units=units.get(TRUTH_FILE))
     elif meta.get("truth"):
-        raise FileNotFoundError(f"{d / TRUTH_FILE}: missing, but {META_FILE} lists truth columns {meta['truth']}")
+        raise FileNotFoundError(
+            f"{d / TRUTH_FILE}: missing, but {META_FILE} lists truth columns {meta['truth']}"
+        )
     return Run(d, sensors, truth, meta)
 
 
@@ -393,7 +409,9 @@ def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = No
         raise LogFormatError(f"{path}: line {lines[0][0]}: expected 'time,value[,value...]'")
     names = tuple(names) if names is not None else tuple(f"v{i}" for i in range(n_col - 1))
     if len(names) != n_col - 1:
-        raise LogFormatError(f"{path}: {n_col - 1} value column(s), but {len(names)} names given: {list(names)}")
+        raise LogFormatError(
+            f"{path}: {n_col - 1} value column(s), but {len(names)} names given: {list(names)}"
+        )
     header = (TIME,) + names
     data = _parse_table(path, lines, header, allow_empty=False)
     keep = np.append(np.diff(data[:, 0]) != 0, True)  # drop repeated times, keep the last

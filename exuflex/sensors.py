@@ -39,15 +39,15 @@ from .mechanism import Mechanism, elastic_dofs
 from .probes import Probe, ProbeRecord, probes_for
 
 __all__ = [
+    "SENSOR_UNITS",
     "Signals",
-    "sensor_channels",
-    "true_states",
-    "tip_point",
-    "tip_dof_names",
-    "truth_names",
     "erls_probe_record",
     "monotonic_record",
-    "SENSOR_UNITS",
+    "sensor_channels",
+    "tip_dof_names",
+    "tip_point",
+    "true_states",
+    "truth_names",
 ]
 
 log = logging.getLogger(__name__)
@@ -168,7 +168,9 @@ def tip_dof_names(mech: Mechanism) -> tuple[str, str]:
     """
     tp = tip_point(mech)
     if tp is None:
-        raise ValueError(f"{mech.source or mech.name}: no tip point (no manoeuvre tip and no tip_x/tip_y sensor)")
+        raise ValueError(
+            f"{mech.source or mech.name}: no tip point (no manoeuvre tip and no tip_x/tip_y sensor)"
+        )
     try:
         node = mech.node_at(*tp)
     except KeyError:
@@ -202,13 +204,16 @@ def monotonic_record(record: ProbeRecord) -> ProbeRecord:
     d = np.diff(t)
     if np.any(d < 0):
         i = int(np.flatnonzero(d < 0)[0]) + 1
-        raise ValueError(f"probe record: time decreases at sample {i} ({float(t[i - 1])!r} then {float(t[i])!r})")
+        raise ValueError(
+            f"probe record: time decreases at sample {i} ({float(t[i - 1])!r} then {float(t[i])!r})"
+        )
     keep = np.append(d > 0, True)
     if keep.all():
         return record
     log.warning("probe record: dropped %d sample(s) with a repeated time (kept the last)", int((~keep).sum()))
     return ProbeRecord(
-        t[keep], {k: np.asarray(v)[keep] for k, v in record.values.items()},
+        t[keep],
+        {k: np.asarray(v)[keep] for k, v in record.values.items()},
         {k: np.asarray(v)[keep] for k, v in record.rates.items()},
     )
 
@@ -336,7 +341,9 @@ def _local_rows(model: ErlsModel, e: int, xi: float, kind: str) -> np.ndarray:
     return N
 
 
-def _elastic_rows(model: ErlsModel, cfg, link: str, station: float, kind: str) -> tuple[np.ndarray, np.ndarray]:
+def _elastic_rows(
+    model: ErlsModel, cfg, link: str, station: float, kind: str
+) -> tuple[np.ndarray, np.ndarray]:
     """(A, A_th): elastic part ``A @ u`` of a probe and ``dA/dtheta`` (theta: the link angle), both (w, ne).
 
     Element rows map global nodal displacements to the probe through ``R^T`` (global to local); a point
@@ -367,9 +374,7 @@ def _elastic_rows(model: ErlsModel, cfg, link: str, station: float, kind: str) -
     return A @ model.T, A_th @ model.T
 
 
-def erls_probe_record(
-    model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None = None
-) -> ProbeRecord:
+def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None = None) -> ProbeRecord:
     """Evaluate probes on a full-order ERLS state history.
 
     Parameters

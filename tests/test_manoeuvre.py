@@ -63,7 +63,9 @@ def test_time_law_continuity_and_derivatives(law):
         for tj in (ta, T - ta):
             ok &= np.abs(t[1:-1] - tj) > 2 * dt
     np.testing.assert_allclose(((s[2:] - s[:-2]) / (2 * dt))[ok], sd[1:-1][ok], atol=1e-7)
-    np.testing.assert_allclose(((sd[2:] - sd[:-2]) / (2 * dt))[ok], sdd[1:-1][ok], atol=1e-5 * np.max(np.abs(sdd)))
+    np.testing.assert_allclose(
+        ((sd[2:] - sd[:-2]) / (2 * dt))[ok], sdd[1:-1][ok], atol=1e-5 * np.max(np.abs(sdd))
+    )
     assert np.all(np.diff(s) >= 0)
 
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from exuflex.cli import main
-from exuflex.errors import LogFormatError
 from exuflex.erls.model import ErlsModel
+from exuflex.errors import LogFormatError
 from exuflex.manoeuvre import plan
 from exuflex.measure import ADC_BITS, measure, quantise
 from exuflex.mechanism import LinkPoint, load_mechanism
@@ -53,7 +53,6 @@ def rigid(mech, model):
 # ------------------------------------------------------------------------------------------ probes and truth
 def test_erls_probe_rates_are_time_derivatives(mech, model):
     rng = np.random.default_rng(0)
-    n = model.n
     q0, u0 = np.array(mech.q_ref), rng.normal(0, 1e-3, model.ne)
     qd, ud = rng.normal(0, 0.5, model.nq), rng.normal(0, 1e-2, model.ne)
     eps = 1e-6
@@ -68,7 +67,9 @@ def test_erls_probe_rates_are_time_derivatives(mech, model):
     for name in ("c1", "c2", "c4"):
         s = next(s for s in mech.sensors if s.name == name)
         key = f"curvature:{s.link}@{s.station:.9g}"
-        assert rec.values[key][1, 0] == pytest.approx(model.curvature_row(cfg, s.link, s.station) @ u0, abs=1e-15)
+        assert rec.values[key][1, 0] == pytest.approx(
+            model.curvature_row(cfg, s.link, s.station) @ u0, abs=1e-15
+        )
     # the tip truth of an ERLS state is its tip node's elastic dofs
     tr = true_states(mech, rec)
     for name in ("x25", "y26"):
@@ -195,7 +196,9 @@ def _run(tmp_path, mech):
     data[1, 4] = np.nan  # not sampled
     sensors = Signals(t, names, data, ("N m",) * 3 + ("rad", "1/m"))
     truth = Signals(t, ("q1", "dq1"), np.column_stack([t, t**2]), ("rad", "rad/s"))
-    out = write_run(tmp_path / "run", sensors, truth, {"engine": "test", "seed": 3}, motors=("T1", "T2", "T3"))
+    out = write_run(
+        tmp_path / "run", sensors, truth, {"engine": "test", "seed": 3}, motors=("T1", "T2", "T3")
+    )
     return out, sensors, truth
 
 
@@ -291,11 +294,26 @@ def test_exudyn_sensor_reader(tmp_path):
 # ------------------------------------------------------------------------------------------ CLI
 def test_cli_simulate_erls(tmp_path):
     out = tmp_path / "sim"
-    rc = main(["simulate", str(MODEL), "--out", str(out), "--engine", "erls", "--duration", "0.05", "--seed", "5"])
+    rc = main(
+        ["simulate", str(MODEL), "--out", str(out), "--engine", "erls", "--duration", "0.05", "--seed", "5"]
+    )
     assert rc == 0
     assert sorted(p.name for p in out.iterdir()) == ["meta.json", "sensors.csv", "truth.csv"]
     run = read_run(out)
-    assert run.sensors.names == ("T1", "T2", "T3", "q1", "q2", "q3", "q3rel", "c1", "c2", "c4", "tip_x", "tip_y")
+    assert run.sensors.names == (
+        "T1",
+        "T2",
+        "T3",
+        "q1",
+        "q2",
+        "q3",
+        "q3rel",
+        "c1",
+        "c2",
+        "c4",
+        "tip_x",
+        "tip_y",
+    )
     assert run.truth.names == ("q1", "q2", "q3", "dq1", "dq2", "dq3", "x25", "y26", "dx25", "dy26")
     np.testing.assert_allclose(run.sensors.t, np.arange(26) * 0.002, atol=1e-12)
     meta = json.loads((out / "meta.json").read_text())

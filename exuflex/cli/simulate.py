@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["add_parser", "run", "ProgressBar", "simulate_run"]
+__all__ = ["ProgressBar", "add_parser", "run", "simulate_run"]
 
 log = logging.getLogger(__name__)
 
@@ -62,12 +62,22 @@ def add_parser(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--out", required=True, help="run folder to write (created if needed)")
-    p.add_argument("--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default: exudyn)")
-    p.add_argument("--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's")
-    p.add_argument("--payload-scale", type=float, default=1.0, help="tip payload multiplier of the truth (default 1)")
-    p.add_argument("--seed", type=int, default=None, help="measurement noise seed (default: random, recorded)")
+    p.add_argument(
+        "--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default: exudyn)"
+    )
+    p.add_argument(
+        "--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's"
+    )
+    p.add_argument(
+        "--payload-scale", type=float, default=1.0, help="tip payload multiplier of the truth (default 1)"
+    )
+    p.add_argument(
+        "--seed", type=int, default=None, help="measurement noise seed (default: random, recorded)"
+    )
     p.add_argument("--h", type=float, default=1e-4, help="integration step (s), also the torque table step")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)")
+    p.add_argument(
+        "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
+    )
     p.set_defaults(func=run)
     return p
 
@@ -88,7 +98,7 @@ def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress):
     def inputs(t):
         return tau[min(int(np.floor(t / dt_tab + 1e-6)), len(tau) - 1)]
 
-    every = max(1, int(round(output_dt / h)))
+    every = max(1, round(output_dt / h))
     traj = simulate(model.rhs, y0, duration, inputs, h=h, method="rk4", output_every=every, progress=progress)
     return erls_probe_record(model, traj.t, traj.y)
 
@@ -181,7 +191,11 @@ def simulate_run(
 
 
 def run(args) -> int:
-    for flag, value in (("--duration", args.duration), ("--h", args.h), ("--payload-scale", args.payload_scale)):
+    for flag, value in (
+        ("--duration", args.duration),
+        ("--h", args.h),
+        ("--payload-scale", args.payload_scale),
+    ):
         if value is not None and not value > 0:
             print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
             return 2
