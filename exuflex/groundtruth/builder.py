@@ -463,26 +463,26 @@ def build_truth(
             if formulation == "ancf":
                 obj = it.ObjectANCFCable2D(
                     nodeNumbers=nodes,
-                    physicsLength=Le,
-                    physicsMassPerLength=rhoA,
-                    physicsBendingStiffness=EI,
-                    physicsAxialStiffness=EA,
-                    physicsBendingDamping=beta * EI,
-                    physicsAxialDamping=beta * EA,
+                    length=Le,
+                    massPerLength=rhoA,
+                    bendingStiffness=EI,
+                    axialStiffness=EA,
+                    bendingDamping=beta * EI,
+                    axialDamping=beta * EA,
                 )
             else:
                 GA = SHEAR_CORRECTION * E / (2.0 * (1.0 + POISSON)) * A
                 obj = it.ObjectBeamGeometricallyExact2D(
                     nodeNumbers=nodes,
-                    physicsLength=Le,
-                    physicsMassPerLength=rhoA,
-                    physicsCrossSectionInertia=lk.material.rho * I,
-                    physicsBendingStiffness=EI,
-                    physicsAxialStiffness=EA,
-                    physicsShearStiffness=GA,
-                    physicsBendingDamping=beta * EI,
-                    physicsAxialDamping=beta * EA,
-                    physicsShearDamping=beta * GA,
+                    length=Le,
+                    massPerLength=rhoA,
+                    crossSectionInertia=lk.material.rho * I,
+                    bendingStiffness=EI,
+                    axialStiffness=EA,
+                    shearStiffness=GA,
+                    bendingDamping=beta * EI,
+                    axialDamping=beta * EA,
+                    shearDamping=beta * GA,
                 )
             lm.elements.append(mbs.AddObject(obj))
         links[lk.name] = lm

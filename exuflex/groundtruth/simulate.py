@@ -155,7 +155,7 @@ def simulate_truth(
     Notes
     -----
     Torques are set once per step by a pre-step user function (value at the step's end time, where
-    the implicit integrator balances forces), so the C++ solver runs without Python calls inside
+    the implicit integrator balances forces; Exudyn passes that end time to the function), so the C++ solver runs without Python calls inside
     Newton iterations. The same function records the state and refreshes the damper.
     """
     exu, _ = _exu()
@@ -204,7 +204,8 @@ def simulate_truth(
             state["i"] = i + 1
 
     def pre_step(mbs_, t):
-        k = int(round(t / h))  # the step runs from t_k to t_k+1
+        # Exudyn passes the step's end time t_k+1; the current state is the one at t_k
+        k = int(round(t / h)) - 1
         c = np.asarray(sd.GetODE2Coordinates(cur)) + ref
         cd = np.asarray(sd.GetODE2Coordinates_t(cur))
         if k % every == 0:
@@ -228,8 +229,8 @@ def simulate_truth(
     ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
     ss.solution.file.write = False
     ss.solution.sensors.active = False
-    ss.displayStatistics = False
-    ss.displayComputationTime = False
+    ss.show.statistics = False
+    ss.show.computationTime = False
     tm.set_torques(tau[0])
     mbs.SetPreStepUserFunction(pre_step)
     t0 = time.perf_counter()

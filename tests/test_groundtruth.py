@@ -1,0 +1,151 @@
+"""Cross-validation of the Exudyn ground truth against the ERLS full model (an independent implementation).
+
+Default tests take about 30 s; the step-size convergence and the full manoeuvre are marked slow.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+pytest.importorskip("exudyn")
+
+from exuflex.erls.kinematics import Kinematics  # noqa: E402
+from exuflex.erls.modal import modal_analysis  # noqa: E402
+from exuflex.erls.model import ErlsModel  # noqa: E402
+from exuflex.erls.simulate import simulate  # noqa: E402
+from exuflex.groundtruth import (  # noqa: E402
+    build_truth,
+    exudyn_frequencies,
+    link_mesh_stations,
+    modal_damping,
+    simulate_truth,
+)
+from exuflex.mechanism import load_mechanism  # noqa: E402
+from exuflex.mechanism.refine import refine_mechanism  # noqa: E402
+from exuflex.probes import probes_for  # noqa: E402
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "sixbar.toml"
+BAND_HZ = 180.0
+# q* and four configurations of the six-bar workspace around it (tips span x -1.18..-0.93, y -0.68..-0.29 m)
+CONFIGS = [None, (0.95, 2.45, 4.3), (1.25, 2.85, 5.1), (1.1, 2.7, 4.5), (0.92, 2.75, 4.95)]
+
+
+@pytest.fixture(scope="module")
+def mech():
+    return load_mechanism(MODEL)
+
+
+def test_mesh_keeps_joints_and_masses_on_element_boundaries(mech):
+    st = link_mesh_stations(mech, "L4", 4)
+    for s in (0.0, 0.5, 1.2):  # joints B, C, E (masses at nodes 9, 10, 12)
+        assert np.min(np.abs(st - s)) < 1e-12
+    assert np.max(np.diff(st)) <= 1.2 / 4 + 1e-12
+    np.testing.assert_allclose(link_mesh_stations(mech, "L4", None), [0.0, 0.5, 1.2])
+    assert 0.6 in link_mesh_stations(mech, "L4", None, extra=(0.6,))
+
+
+def test_bad_arguments_are_named(mech):
+    with pytest.raises(ValueError, match="formulation must be one of"):
+        build_truth(mech, formulation="ffrf")
+    with pytest.raises(ValueError, match="damping must be one of"):
+        build_truth(mech, damping="modal")
+    with pytest.raises(ValueError, match="one column per motor"):
+        simulate_truth(mech, [0.0, 1.0], np.zeros((2, 2)), 0.001)
+
+
+@pytest.mark.parametrize("q", CONFIGS, ids=["qstar", "c1", "c2", "c3", "c4"])
+def test_modes_agree_with_converged_erls(mech, q):
+    """Both models refined until converged: every mode below 180 Hz within 0.5 % (seen: 0.012 %)."""
+    qq = np.asarray(mech.q_ref if q is None else q, float)
+    Kinematics(mech).pose(qq)  # the loop closes and is far from singular
+    f_erls = modal_analysis(ErlsModel(refine_mechanism(mech, 4)), qq).frequencies_hz
+    f_erls = f_erls[f_erls < BAND_HZ]
+    f_exu = exudyn_frequencies(mech, qq, elements_per_link=8)
+    assert len(f_erls) == 7  # link 3's second bending mode drops below 180 Hz once refined
+    assert np.count_nonzero(f_exu < BAND_HZ) == len(f_erls)
+    np.testing.assert_allclose(f_exu[: len(f_erls)], f_erls, rtol=5e-3)
+
+
+def test_damping_is_equivalent_to_erls_rayleigh(mech):
+    """The ERLS-mapped alpha damper plus beta material damping give the ERLS model's modal damping."""
+    f, zeta = modal_damping(mech, elements_per_link=4, fmax=BAND_HZ)
+    m = ErlsModel(refine_mechanism(mech, 2))
+    cfg = m.configuration(mech.q_ref)
+    M, K, C = m.mass(cfg), m.stiffness(cfg), m.damping(cfg)
+    n = m.n
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-np.linalg.solve(M, K), -np.linalg.solve(M, C)]])
+    s = sla.eigvals(A)
+    s = s[(s.imag > 1e-6) & (np.abs(s) > 2 * np.pi * 0.5)]
+    wn = np.sort(np.abs(s))
+    zeta_erls = (-s.real / np.abs(s))[np.argsort(np.abs(s))]
+    k = len(f)
+    np.testing.assert_allclose(f, wn[:k] / (2 * np.pi), rtol=1e-2)
+    np.testing.assert_allclose(zeta, zeta_erls[:k], rtol=0.05)
+
+
+def _pulse(duration, amp):
+    t = np.linspace(0.0, duration, 401)
+    return t, np.outer(np.sin(2 * np.pi * t / duration), amp)
+
+
+def test_time_response_agrees_with_erls(mech):
+    """0.2 s smooth torque pulse from rest at q*: q from slope probes within 1e-3 rad of the ERLS model (seen 3e-6)."""
+    duration = 0.2
+    amp = np.array([2.0, 4.0, 0.02])
+    t_tab, tau_tab = _pulse(duration, amp)
+    rec = simulate_truth(mech, t_tab, tau_tab, duration, h=1e-4, output_dt=2e-3)
+    model = ErlsModel(mech)
+    y0 = np.zeros(2 * model.n)
+    y0[: model.nq] = mech.q_ref
+
+    def tau(t):
+        return np.array([np.interp(t, t_tab, tau_tab[:, j]) for j in range(3)])
+
+    traj = simulate(model.rhs, y0, duration, tau, h=1e-4, output_every=20)
+    np.testing.assert_allclose(rec.t, traj.t, atol=1e-12)
+    keys = [p.key for p in probes_for(mech)[:3]]  # slopes at the coordinates' joints: q1, q2, q3
+    assert keys == ["slope:L1@0", "slope:L2@0", "slope:L5@0"]
+    q_exu = np.column_stack([rec.values[k][:, 0] for k in keys])
+    qd_exu = np.column_stack([rec.rates[k][:, 0] for k in keys])
+    q_erls, qd_erls = traj.y[:, :3], traj.y[:, model.n : model.n + 3]
+    assert np.max(np.abs(q_erls - mech.q_ref)) > 3e-3  # the mechanism did move
+    np.testing.assert_allclose(q_exu, q_erls, atol=1e-3)
+    np.testing.assert_allclose(qd_exu, qd_erls, atol=0.1 * np.max(np.abs(qd_erls)))
+    # the tip position too (mm level)
+    tip = rec.values["point:L5@0.282"]
+    kin = Kinematics(mech)
+    cfg0 = model.configuration(traj.y[-1, :3])
+    tip_erls = kin.point(cfg0.pose, "L5", 0.282)[0] + model.point_displacement_rows(cfg0, "L5", 0.282) @ traj.y[
+        -1, 3 : model.n
+    ]
+    np.testing.assert_allclose(tip[-1], tip_erls, atol=2e-4)
+
+
+def test_slope_probes_start_on_the_erls_branch(mech):
+    rec = simulate_truth(mech, [0.0, 1.0], np.zeros((2, 3)), 0.002, output_dt=1e-3)
+    assert rec.t.shape == (3,)
+    assert rec.values["slope:L4@1.2"][0, 0] == pytest.approx(Kinematics(mech).pose(mech.q_ref).z[3 * 3 + 2], abs=1e-9)
+    for p in probes_for(mech):
+        assert rec.values[p.key].shape == (3, p.width)
+        assert rec.rates[p.key].shape == (3, p.width)
+        if p.kind == "curvature":
+            np.testing.assert_allclose(rec.values[p.key], 0.0, atol=1e-9)  # at rest, undeformed
+
+
+@pytest.mark.slow
+def test_step_size_convergence(mech):
+    """Tip position and curvatures at h and h/2 agree (0.3 s of the pulse excitation)."""
+    duration = 0.3
+    t_tab, tau_tab = _pulse(duration, np.array([2.0, 4.0, 0.02]))
+    a = simulate_truth(mech, t_tab, tau_tab, duration, h=1e-4)
+    b = simulate_truth(mech, t_tab, tau_tab, duration, h=5e-5)
+    tip_a, tip_b = a.values["point:L5@0.282"], b.values["point:L5@0.282"]
+    assert np.max(np.abs(tip_a - tip_b)) < 1e-5
+    for p in probes_for(mech):
+        if p.kind == "curvature":
+            ka, kb = a.values[p.key], b.values[p.key]
+            assert np.max(np.abs(ka - kb)) < 0.02 * np.max(np.abs(kb))
