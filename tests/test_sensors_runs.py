@@ -350,3 +350,14 @@ def test_exudyn_and_erls_engines_give_comparable_truths(tmp_path):
     peak_a, peak_b = np.abs(da[:, 6:8]).max(0), np.abs(db[:, 6:8]).max(0)  # tip elastic x25, y26 (m)
     np.testing.assert_allclose(peak_b, peak_a, rtol=0.1)
     assert runs["exudyn"].meta["engine"] == "exudyn"
+
+
+def test_cli_simulate_needs_a_manoeuvre(tmp_path, capsys):
+    text = MODEL.read_text()
+    start = text.index("[manoeuvre]")
+    end = text.index("[reduction]")
+    model = tmp_path / "no_manoeuvre.toml"
+    model.write_text(text[:start] + text[end:])
+    rc = main(["simulate", str(model), "--out", str(tmp_path / "x"), "--engine", "erls"])
+    assert rc == 2
+    assert "manoeuvre: expected a [manoeuvre] table to simulate" in capsys.readouterr().err

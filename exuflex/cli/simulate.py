@@ -117,14 +117,14 @@ def simulate_run(
     """Library form of the command: simulate and write a run folder; returns its path."""
     from ..manoeuvre import computed_torque, plan
     from ..measure import measure, new_seed
-    from ..mechanism import load_mechanism
+    from ..mechanism import ModelFileError, load_mechanism
     from ..runs import file_sha256, write_run
     from ..sensors import monotonic_record, sensor_channels, true_states
 
     model_path = Path(model_path)
     mech = load_mechanism(model_path)
     if mech.manoeuvre is None:
-        raise ValueError(f"{model_path}: the model has no [manoeuvre] to simulate")
+        raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
     duration = float(mech.manoeuvre.duration if duration is None else duration)
     if not duration > 0 or not h > 0:
         raise ValueError(f"duration and --h must be positive (got {duration}, {h})")
