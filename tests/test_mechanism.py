@@ -1,0 +1,169 @@
+"""Mechanism files: the three models load; every malformed file is rejected naming file and field."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.mechanism import ModelFileError, elastic_dofs, load_mechanism, parse_mechanism, refine_mechanism
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+NAMES = ("sixbar", "single_link", "fourbar")
+
+
+def _doc(name: str) -> dict:
+    with open(MODELS / f"{name}.toml", "rb") as fh:
+        return tomllib.load(fh)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_models_load(name):
+    mech = load_mechanism(MODELS / f"{name}.toml")
+    assert mech.name == name
+    assert len(mech.q_ref) == len(mech.coordinates)
+    dofs = elastic_dofs(mech)
+    for m in mech.reduction.masters:
+        dofs.index(m)  # every master is a real elastic dof
+    assert mech.sensors and mech.motors and mech.manoeuvre is not None and mech.payload is not None
+
+
+def test_sixbar_numbering_matches_paper():
+    """The paper's masters x14, y15 (node 8), theta24 (node 12), x25, y26 (tip node 14)."""
+    dofs = elastic_dofs(load_mechanism(MODELS / "sixbar.toml"))
+    assert dofs.n == 27
+    assert [dofs.node_name(m) for m in ("x14", "y15", "theta24", "x25", "y26")] == [
+        "node8.x", "node8.y", "node12.theta", "node14.x", "node14.y"
+    ]
+
+
+def test_n_elements_equals_explicit_stations():
+    doc = _doc("single_link")
+    doc["links"][0].pop("n_elements")
+    doc["links"][0]["stations"] = [0.0, 0.25, 0.5, 0.75, 1.0]
+    a = parse_mechanism(doc, "explicit.toml")
+    b = load_mechanism(MODELS / "single_link.toml")
+    assert a.links[0].stations == b.links[0].stations and a.links[0].node_ids == b.links[0].node_ids
+
+
+def test_refine_keeps_node_ids_and_masters():
+    mech = load_mechanism(MODELS / "sixbar.toml")
+    fine = refine_mechanism(mech, 3)
+    assert all(set(a.node_ids) <= set(b.node_ids) for a, b in zip(mech.links, fine.links))
+    assert sum(lk.n_elements for lk in fine.links) == 3 * sum(lk.n_elements for lk in mech.links)
+    assert fine.reduction.masters[0] == "node8.x"
+    d = elastic_dofs(fine)
+    for m in fine.reduction.masters:
+        d.index(m)
+
+
+# ---------------------------------------------------------------------- malformed files
+def _edit(doc: dict, path: str, value) -> dict:
+    """Set (or delete, for value=DELETE) the entry at a dotted path like ``links.2.diameter``."""
+    keys = [int(k) if k.isdigit() else k for k in path.split(".")]
+    node = doc
+    for k in keys[:-1]:
+        node = node[k]
+    if value is DELETE:
+        del node[keys[-1]]
+    else:
+        node[keys[-1]] = value
+    return doc
+
+
+DELETE = object()
+
+CASES = [
+    # (model, dotted path, new value, field named in the message, phrase of what was expected)
+    ("sixbar", "links.0.length", DELETE, "links[0].length", "required key"),
+    ("sixbar", "model.name", DELETE, "model.name", "required key"),
+    ("sixbar", "links.1.colour", "red", "links[1].colour", "known keys"),
+    ("sixbar", "model.sample_rate", 500.0, "model.sample_rate", "known keys"),
+    ("sixbar", "links.0.length", -0.5, "links[0].length", "positive number in m"),
+    ("sixbar", "links.0.length", "0.5", "links[0].length", "finite number"),
+    ("sixbar", "links.2.diameter", 16.0, "links[2].diameter", "mm by mistake"),
+    ("sixbar", "materials.0.E", 69.0, "materials[0].E", "Pa"),
+    ("sixbar", "masses.0.mass", -1.0, "masses[0].mass", ">= 0"),
+    ("sixbar", "masses.0.node", 99, "masses[0].node", "existing node id"),
+    ("sixbar", "joints.1.points.0.link", "L9", "joints[1].points[0].link", "link name"),
+    ("sixbar", "joints.1.points.0.station", 0.3, "joints[1].points[0].station", "stations"),
+    ("sixbar", "motors.2.reaction", DELETE, "motors[2].reaction", "reaction link"),
+    ("sixbar", "coordinates.0.joint", "B", "coordinates[0].joint", "takes part in"),
+    ("sixbar", "sensors.4.kind", "strain", "sensors[4].kind", "one of"),
+    ("sixbar", "damping.alpha", -1.0, "damping.alpha", ">= 0"),
+    ("sixbar", "reduction.masters", ["x14", "x99"], "reduction.masters[1]", "elastic dof name"),
+    ("sixbar", "reduction.masters", "x14", "reduction.masters", "list of elastic dof names"),
+    ("sixbar", "model.q_ref", [1.0, 2.0], "model.q_ref", "list of 3 numbers"),
+    ("sixbar", "manoeuvre.ramp_time", 2.0, "manoeuvre.ramp_time", "ramp time"),
+    ("single_link", "links.0.n_elements", 0, "links[0].n_elements", "positive integer"),
+    ("single_link", "links.0.n_elements", 2.5, "links[0].n_elements", "an integer"),
+    ("single_link", "links.0.stations", [0.0, 0.6, 0.4, 1.0], "links[0].n_elements", "either stations or n_elements"),
+    ("fourbar", "coordinates", [], "coordinates", "at least one ERLS coordinate"),
+    ("fourbar", "links.1.A", 1e-4, "links[1].A", "either diameter or A and I"),
+]
+
+
+@pytest.mark.parametrize("model,path,value,field,expected", CASES, ids=[c[3] + "=" + repr(c[2])[:12] for c in CASES])
+def test_bad_field_is_named(model, path, value, field, expected):
+    doc = _edit(_doc(model), path, value)
+    with pytest.raises(ModelFileError, match=rf"^bad_{model}\.toml: {re.escape(field)}: expected .*{re.escape(expected)}"):
+        parse_mechanism(doc, f"bad_{model}.toml")
+
+
+def test_disconnected_link():
+    """A link joined only to another link that never reaches the ground."""
+    doc = _doc("fourbar")
+    doc["links"].append(dict(name="stray", length=0.2, material="aluminium", diameter=0.01, n_elements=1))
+    doc["links"].append(dict(name="stray2", length=0.2, material="aluminium", diameter=0.01, n_elements=1))
+    doc["joints"].append(dict(name="S", points=[dict(link="stray", station=0.2), dict(link="stray2", station=0.0)]))
+    with pytest.raises(ModelFileError, match=r"^loose\.toml: joints: expected .*not connected: \['stray', 'stray2'\]"):
+        parse_mechanism(doc, "loose.toml")
+
+
+def test_unsorted_stations():
+    doc = _doc("single_link")
+    doc["links"][0].pop("n_elements")
+    doc["links"][0]["stations"] = [0.0, 0.6, 0.4, 1.0]
+    with pytest.raises(ModelFileError, match=r"^s\.toml: links\[0\]\.stations: expected ascending stations from 0"):
+        parse_mechanism(doc, "s.toml")
+
+
+def test_mobility_mismatch():
+    """A second coordinate on the one-dof four-bar."""
+    doc = _doc("fourbar")
+    doc["coordinates"].append(dict(name="q2", link="rocker", joint="O4"))
+    doc["model"]["q_ref"] = [1.57, 1.97]
+    doc.pop("manoeuvre")
+    doc["reduction"].pop("q_star")
+    with pytest.raises(ModelFileError, match=r"^mob\.toml: coordinates: expected as many ERLS coordinates .*mobility \(1"):
+        parse_mechanism(doc, "mob.toml")
+
+
+def test_no_ground():
+    doc = _doc("single_link")
+    doc["joints"][0].pop("ground")
+    doc["joints"][0]["points"].append(dict(link="arm", station=1.0))
+    doc.pop("motors")
+    with pytest.raises(ModelFileError, match=r"^g\.toml: joints"):
+        parse_mechanism(doc, "g.toml")
+
+
+def test_file_errors(tmp_path):
+    with pytest.raises(ModelFileError, match=r"nope\.toml: \(file\): expected an existing TOML model file"):
+        load_mechanism(tmp_path / "nope.toml")
+    bad = tmp_path / "syntax.toml"
+    bad.write_text("[model\nname = 'x'\n")
+    with pytest.raises(ModelFileError, match=r"syntax\.toml: \(syntax\): expected valid TOML"):
+        load_mechanism(bad)
+
+
+def test_loaded_values_are_si():
+    mech = load_mechanism(MODELS / "fourbar.toml")
+    cr = mech.link("crank")
+    assert cr.section.A == pytest.approx(np.pi * 0.025**2 / 4)
+    assert cr.section.I == pytest.approx(np.pi * 0.025**4 / 64)
+    assert mech.payload.mass == 0.15 and mech.node_location(mech.payload.node) == ("coupler", 0.7)
+    assert mech.link("coupler").stations[4] == 0.5
