@@ -1,0 +1,94 @@
+"""ERLS kinematics: S(q) and dS/dt agree with central differences of the closure solution."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.erls.kinematics import Kinematics
+from exuflex.mechanism import load_mechanism
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+NAMES = ("sixbar", "single_link", "fourbar")
+H = 1e-5  # central-difference step (rad): truncation ~H^2 = 1e-10, round-off ~1e-16 / H = 1e-11
+
+
+def _configs(mech, n=3, seed=0):
+    """q_ref and a few configurations near it (0.1 rad away: inside the same assembly branch)."""
+    rng = np.random.default_rng(seed)
+    q0 = np.array(mech.q_ref)
+    return [q0] + [q0 + 0.1 * rng.standard_normal(q0.size) for _ in range(n - 1)]
+
+
+def _rel(a, b, scale=0.0):
+    """Largest entry error relative to the largest entry of b (or ``scale`` if larger)."""
+    return np.abs(a - b).max() / max(np.abs(b).max(), scale)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_closure_residual(name):
+    kin = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    for q in _configs(kin.mech):
+        z = kin.solve(q)
+        assert np.abs(kin.residual(z, q)).max() < 1e-13
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_S_matches_finite_differences(name):
+    kin = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    worst = 0.0
+    for q in _configs(kin.mech):
+        pose = kin.pose(q)
+        S_fd = np.empty_like(pose.S)
+        Sz_fd = np.empty_like(pose.Sz)
+        for j in range(q.size):
+            e = np.zeros(q.size)
+            e[j] = H
+            pp, pm = kin.pose(q + e), kin.pose(q - e)
+            S_fd[:, j] = (pp.r - pm.r) / (2 * H)
+            Sz_fd[:, j] = (pp.z - pm.z) / (2 * H)
+        worst = max(worst, _rel(pose.S, S_fd), _rel(pose.Sz, Sz_fd))
+    print(f"{name}: max relative |S - S_fd| = {worst:.2e}")
+    assert worst < 1e-6
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_Sdot_matches_finite_differences(name):
+    """dS/dt along q(t) = q + t qd equals (S(q + h qd) - S(q - h qd)) / 2h."""
+    kin = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    rng = np.random.default_rng(1)
+    worst = 0.0
+    for q in _configs(kin.mech):
+        qd = rng.standard_normal(q.size)
+        pose = kin.pose(q)
+        Szd, Sd = kin.rates(pose, qd)
+        pp, pm = kin.pose(q + H * qd), kin.pose(q - H * qd)
+        Sd_fd = (pp.S - pm.S) / (2 * H)
+        Szd_fd = (pp.Sz - pm.Sz) / (2 * H)
+        # the link-pose rates vanish for the single link (fixed origin, angle = q): scale by |S_z| |qd|
+        worst = max(worst, _rel(Sd, Sd_fd), _rel(Szd, Szd_fd, np.abs(pose.Sz).max() * np.abs(qd).max()))
+    print(f"{name}: max relative |dS/dt - FD| = {worst:.2e}")
+    assert worst < 1e-6
+
+
+def test_fourbar_closure_is_nonlinear():
+    """The four-bar's coupler and rocker angles are nonlinear in the crank angle: dS/dt != 0."""
+    kin = Kinematics(load_mechanism(MODELS / "fourbar.toml"))
+    pose = kin.pose(kin.mech.q_ref)
+    Szd, _ = kin.rates(pose, [1.0])
+    coupler_rocker = Szd[[5, 8]]  # d/dt of the angle sensitivities of links 2 and 3
+    assert np.abs(coupler_rocker).min() > 0.05
+
+
+def test_fourbar_geometry():
+    """Closed form at the crank-vertical reference: A = (0, 0.15), B from the two circles."""
+    kin = Kinematics(load_mechanism(MODELS / "fourbar.toml"))
+    pose = kin.pose(kin.mech.q_ref)
+    A, _ = kin.point(pose, "crank", 0.15)
+    B, _ = kin.point(pose, "rocker", 0.45)
+    np.testing.assert_allclose(A, [0.0, 0.15], atol=1e-14)
+    assert np.linalg.norm(B - A) == pytest.approx(0.5, abs=1e-13)
+    assert np.linalg.norm(B - [0.6, 0.0]) == pytest.approx(0.45, abs=1e-13)
+    assert B[1] > 0  # the assembly branch of the angle guesses (open configuration)
