@@ -1,0 +1,617 @@
+"""Multirate extended Kalman filter over a :class:`~exuflex.observer.base.DiscreteModel` (paper eqs. 10-15).
+
+One call of :meth:`MultirateEKF.step` processes one measurement sample::
+
+    predict  x_k|k-1 = f_d(x_k-1, u_k-1),   P_k|k-1 = F P_k-1 F' + Q          (eqs. 12-13)
+    update   r = y_k - g(x_k|k-1),  S = H P H' + R,  K = P H' S^-1                (eqs. 14-15)
+             x_k = x_k|k-1 + K r,   P_k = (I - K H) P (I - K H)' + K R K'      (Joseph form)
+
+Multirate sensors are handled per sample: entries of ``y`` that are NaN are not available at this sample and
+the update uses only the finite channels (``R`` restricted to them). An all-NaN sample (missing or late
+packet) is a prediction only and is counted in ``n_missing``; so is every whole interval skipped in time
+between two calls. After every predict and update ``P`` is symmetrised and its diagonal floored; a
+non-finite state or covariance never leaves silently (:class:`FilterDivergedError`, or a flag).
+
+Filter consistency is monitored with the normalised innovation squared (NIS): over a moving window of the
+last ``nis_window`` updates, the summed NIS is chi-square with the summed number of channels for a
+consistent filter. The filter is declared diverged when that sum exceeds the ``divergence_confidence``
+(99.9 %) quantile in ``divergence_confirm`` consecutive *disjoint* windows (default 2: a single outlier cannot
+trigger it, and the false-alarm rate of a consistent filter is ~1e-6 per window instead of 1e-3).
+
+Two numerically equivalent back-ends share all bookkeeping: ``backend="numpy"`` (lean, the default) and
+``backend="filterpy"`` (the covariance algebra done by :class:`filterpy.kalman.ExtendedKalmanFilter`, whose
+``update`` is in Joseph form; kept as the reference implementation).
+
+Timing convention: ``x0``, ``P0`` are the *prior* at the first sample time. ``step(t_k, u_k, y_k)``
+first predicts from the previous sample time to ``t_k`` with the input stored at the previous call
+(zero-order hold, ``u_k-1`` drives ``x_k`` as in eq. 10), then updates with ``y_k``, stores ``u_k`` for the
+next interval and returns the posterior estimate at ``t_k``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+from scipy.linalg import lapack
+from scipy.stats import chi2
+
+from .base import DiscreteModel, FilterDivergedError
+
+__all__ = ["MultirateEKF", "EstimationResult", "NISMonitor"]
+
+log = logging.getLogger(__name__)
+
+_BACKENDS = ("numpy", "filterpy")
+
+
+@dataclass
+class EstimationResult:
+    """Output of :meth:`MultirateEKF.run`.
+
+    Attributes
+    ----------
+    t : ndarray, shape (n,)
+        Sample times.
+    x_hat : ndarray, shape (n, nx)
+        Posterior state estimates (the prior where a sample was missing).
+    P : ndarray or None
+        Posterior covariance: diagonal, shape (n, nx) (``store_P="diag"``), full, shape (n, nx, nx)
+        (``"full"``), or None (``"none"``).
+    innovations : ndarray, shape (n, m)
+        Innovation ``y - g(x_prior)`` per channel; NaN for channels not used at that sample.
+    S : ndarray, shape (n, m, m)
+        Innovation covariance; NaN rows/columns for channels not used.
+    nis : ndarray, shape (n,)
+        Normalised innovation squared ``r' S^-1 r``; NaN at samples without an update.
+    nis_dof : ndarray of int, shape (n,)
+        Number of channels used at each sample (the chi-square degrees of freedom of ``nis``).
+    n_missing : int
+        Prediction-only intervals: all-NaN samples plus whole intervals skipped between samples.
+    n_updates : int
+        Samples with at least one finite channel.
+    diverged : bool
+        NIS divergence test failed, or the filter went non-finite (in ``nonfinite="flag"`` mode).
+    diverged_at : float or None
+        Time of the first divergence detection.
+    nonfinite : bool
+        The filter produced a non-finite value (estimates from then on are NaN).
+    wall_s : float
+        Wall-clock time of the run (s).
+    channels : tuple of str
+        Channel order of the columns of ``innovations`` and ``S``.
+    """
+
+    t: np.ndarray
+    x_hat: np.ndarray
+    P: np.ndarray | None
+    innovations: np.ndarray
+    S: np.ndarray
+    nis: np.ndarray
+    nis_dof: np.ndarray
+    n_missing: int
+    n_updates: int
+    diverged: bool
+    diverged_at: float | None
+    nonfinite: bool
+    wall_s: float
+    channels: tuple[str, ...] = ()
+
+    @property
+    def P_diag(self) -> np.ndarray | None:
+        """Posterior variances, shape (n, nx), whatever ``P`` storage was chosen (None if not stored)."""
+        if self.P is None:
+            return None
+        return self.P if self.P.ndim == 2 else np.diagonal(self.P, axis1=1, axis2=2)
+
+    def mean_nis(self, burn_in: int = 0) -> tuple[float, float]:
+        """Time-averaged NIS and its expected value (mean number of channels per update) after ``burn_in``
+        samples."""
+        sel = np.isfinite(self.nis)
+        sel[:burn_in] = False
+        if not sel.any():
+            return float("nan"), float("nan")
+        return float(self.nis[sel].mean()), float(self.nis_dof[sel].mean())
+
+    def summary(self) -> dict:
+        """Small dict of run-level figures (for logs and reports)."""
+        mn, ex = self.mean_nis()
+        n = len(self.t)
+        return {
+            "n_samples": n,
+            "n_updates": self.n_updates,
+            "n_missing": self.n_missing,
+            "mean_nis": mn,
+            "expected_nis": ex,
+            "diverged": self.diverged,
+            "diverged_at": self.diverged_at,
+            "nonfinite": self.nonfinite,
+            "wall_s": self.wall_s,
+            "us_per_sample": 1e6 * self.wall_s / max(n, 1),
+        }
+
+
+class NISMonitor:
+    """Moving-window chi-square test on the NIS sequence.
+
+    Parameters
+    ----------
+    window : int
+        Number of updates in a window.
+    confidence : float
+        One-sided chi-square quantile of the bound (0.999 = 99.9 %).
+    confirm : int
+        Number of consecutive disjoint windows that must all exceed the bound (>= 1).
+    """
+
+    def __init__(self, window: int = 100, confidence: float = 0.999, confirm: int = 2):
+        if window < 1 or confirm < 1 or not 0 < confidence < 1:
+            raise ValueError("need window >= 1, confirm >= 1 and 0 < confidence < 1")
+        self.window = int(window)
+        self.confidence = float(confidence)
+        self.confirm = int(confirm)
+        self._bounds: dict[int, float] = {}
+        self.reset()
+
+    def reset(self) -> None:
+        self._nis = [0.0] * self.window
+        self._dof = [0] * self.window
+        self._sum = 0.0
+        self._sdof = 0
+        self._n = 0
+        self._hist = [False] * ((self.confirm - 1) * self.window + 1)
+
+    def bound(self, dof: int) -> float:
+        """Chi-square ``confidence`` quantile for ``dof`` degrees of freedom (cached)."""
+        b = self._bounds.get(dof)
+        if b is None:
+            b = float(chi2.ppf(self.confidence, dof))
+            self._bounds[dof] = b
+        return b
+
+    def push(self, nis: float, dof: int) -> bool:
+        """Add one update's NIS; return True if the divergence test fails at this update."""
+        i = self._n % self.window
+        self._sdof += dof - self._dof[i]
+        self._sum += nis - self._nis[i]
+        self._nis[i] = nis
+        self._dof[i] = dof
+        self._n += 1
+        if i == self.window - 1:  # once per window: exact sum (no drift or cancellation after outliers)
+            self._sum = math.fsum(self._nis)
+        if self._n < self.window:
+            return False
+        exceed = self._sum > self.bound(self._sdof)
+        h = self._hist
+        j = (self._n - 1) % len(h)
+        h[j] = exceed
+        if not exceed:
+            return False
+        if self._n < self.confirm * self.window:
+            return False
+        for c in range(1, self.confirm):
+            if not h[(j - c * self.window) % len(h)]:
+                return False
+        return True
+
+
+def _make_filterpy_ekf(nx: int, m: int):
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    class _ModelEKF(ExtendedKalmanFilter):
+        """filterpy EKF whose state prediction is the model's step (set ``_x_next`` before ``predict``)."""
+
+        def predict_x(self, u=0):
+            self.x = self._x_next
+
+    kf = _ModelEKF(dim_x=nx, dim_z=m)
+    kf.x = np.zeros(nx)
+    return kf
+
+
+class MultirateEKF:
+    """Multirate extended Kalman filter over a :class:`DiscreteModel`.
+
+    Parameters
+    ----------
+    model : DiscreteModel
+        Step map with Jacobian, measurement map with Jacobian, process noise.
+    channels : sequence of str
+        Names of the scalar sensor channels; the order of the columns of the measurement arrays.
+    R_std : mapping str -> float
+        Measurement-noise standard deviation of every channel (``R`` is diagonal).
+    x0 : array_like, shape (nx,)
+        Prior mean at the first sample time.
+    P0 : array_like, shape (nx, nx) or (nx,)
+        Prior covariance (a vector is taken as the diagonal).
+    dt : float
+        Measurement interval (s); samples must lie on a grid of this spacing (gaps allowed).
+    backend : {"numpy", "filterpy"}
+        Lean numpy algebra or filterpy's ``ExtendedKalmanFilter`` (reference).
+    store_P : {"diag", "full", "none"}
+        What :meth:`run` records of the posterior covariance.
+    nis_window, divergence_confidence, divergence_confirm
+        NIS divergence test, see :class:`NISMonitor`. ``nis_window=0`` disables it.
+    divergence_action : {"flag", "raise"}
+        On a failed NIS test: record it and go on, or raise :class:`FilterDivergedError`.
+    nonfinite : {"raise", "flag"}
+        On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run as diverged and
+        return NaN estimates from then on.
+    p_floor : float or array_like
+        Floor on the diagonal of ``P`` (in the state's squared units).
+    time_tol : float
+        Relative tolerance of the sample grid check.
+    """
+
+    def __init__(
+        self,
+        model: DiscreteModel,
+        channels: Sequence[str],
+        R_std: Mapping[str, float],
+        x0,
+        P0,
+        dt: float = 1 / 500,
+        *,
+        backend: str = "numpy",
+        store_P: str = "diag",
+        nis_window: int = 100,
+        divergence_confidence: float = 0.999,
+        divergence_confirm: int = 2,
+        divergence_action: str = "flag",
+        nonfinite: str = "raise",
+        p_floor=1e-18,
+        time_tol: float = 1e-6,
+    ):
+        if backend not in _BACKENDS:
+            raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+        if store_P not in ("diag", "full", "none"):
+            raise ValueError(f"store_P must be 'diag', 'full' or 'none', got {store_P!r}")
+        if divergence_action not in ("flag", "raise"):
+            raise ValueError(f"divergence_action must be 'flag' or 'raise', got {divergence_action!r}")
+        if nonfinite not in ("flag", "raise"):
+            raise ValueError(f"nonfinite must be 'flag' or 'raise', got {nonfinite!r}")
+        if not dt > 0:
+            raise ValueError(f"dt must be positive, got {dt}")
+        self.model = model
+        self.nx = int(model.nx)
+        self.channels = tuple(channels)
+        if len(set(self.channels)) != len(self.channels):
+            raise ValueError(f"duplicate channel names in {self.channels}")
+        missing = [c for c in self.channels if c not in R_std]
+        if missing:
+            raise ValueError(f"R_std has no standard deviation for channel(s) {missing}")
+        self.R_std = np.array([float(R_std[c]) for c in self.channels])
+        if not np.all(self.R_std > 0):
+            raise ValueError("all measurement standard deviations must be positive")
+        self._Rdiag = self.R_std**2
+        self.m = len(self.channels)
+        self.dt = float(dt)
+        self.backend = backend
+        self.store_P = store_P
+        self.divergence_action = divergence_action
+        self.nonfinite_action = nonfinite
+        self._scalar_floor = np.ndim(p_floor) == 0
+        self.p_floor = float(p_floor) if self._scalar_floor else np.asarray(p_floor, float).reshape(-1)
+        self.time_tol = float(time_tol)
+        self.monitor = (
+            NISMonitor(nis_window, divergence_confidence, divergence_confirm) if nis_window > 0 else None
+        )
+
+        self._x0 = np.array(x0, dtype=float).reshape(-1)
+        if self._x0.shape != (self.nx,):
+            raise ValueError(f"x0 has shape {self._x0.shape}, expected ({self.nx},)")
+        P0 = np.array(P0, dtype=float)
+        if P0.ndim == 1:
+            P0 = np.diag(P0)
+        if P0.shape != (self.nx, self.nx):
+            raise ValueError(f"P0 has shape {P0.shape}, expected ({self.nx}, {self.nx})")
+        self._P0 = 0.5 * (P0 + P0.T)
+
+        y0, H0 = model.measure(self._x0, self.channels)
+        if np.shape(y0) != (self.m,) or np.shape(H0) != (self.m, self.nx):
+            raise ValueError(
+                f"model.measure returned y {np.shape(y0)}, H {np.shape(H0)} for {self.m} channels; expected "
+                f"({self.m},) and ({self.m}, {self.nx}) (every channel must be scalar)"
+            )
+        self._I = np.eye(self.nx)
+        self._all = np.arange(self.m)
+        self._Rfull = np.diag(self._Rdiag)
+        self._subsets: dict[bytes, tuple] = {}
+        self._kf = _make_filterpy_ekf(self.nx, self.m) if backend == "filterpy" else None
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self, x0=None, P0=None) -> None:
+        """Restart from the prior (``x0``, ``P0`` of the constructor unless given) and clear all counters."""
+        self._x = self._x0.copy() if x0 is None else np.array(x0, dtype=float).reshape(self.nx)
+        P = self._P0.copy() if P0 is None else np.array(P0, dtype=float)
+        self._P = np.diag(P) if P.ndim == 1 else P
+        if self._kf is not None:
+            self._kf.x = self._x
+            self._kf.P = self._P
+        self._t_prev: float | None = None
+        self._u_prev = None
+        self.n_missing = 0
+        self.n_updates = 0
+        self.diverged = False
+        self.diverged_at: float | None = None
+        self.nonfinite = False
+        self.last_idx = None
+        self.last_innovation = None
+        self.last_S = None
+        self.last_nis = float("nan")
+        self.last_dof = 0
+        if self.monitor is not None:
+            self.monitor.reset()
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current state estimate (a copy)."""
+        return self._x.copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        """Current covariance (a copy)."""
+        return self._P.copy()
+
+    @property
+    def t(self) -> float | None:
+        """Time of the current estimate (None before the first sample)."""
+        return self._t_prev
+
+    # ------------------------------------------------------------------ algebra
+    def _fix_P(self, P: np.ndarray) -> np.ndarray:
+        P = P + P.T
+        P *= 0.5
+        d = P.diagonal()
+        if self._scalar_floor:
+            if d.min() < self.p_floor:
+                np.fill_diagonal(P, np.maximum(d, self.p_floor))
+        else:
+            low = d < self.p_floor
+            if low.any():
+                np.fill_diagonal(P, np.where(low, self.p_floor, d))
+        return P
+
+    def _predict(self, u) -> None:
+        x = self._x
+        x_next, F = self.model.step(x, u, self.dt)
+        Q = self.model.process_noise(x, u, self.dt)
+        if self._kf is None:
+            P = F @ self._P @ F.T + Q
+        else:
+            kf = self._kf
+            kf.F = F
+            kf.Q = Q
+            kf._x_next = np.asarray(x_next, dtype=float)
+            kf.predict()
+            x_next, P = kf.x, kf.P
+        self._x = np.asarray(x_next, dtype=float)
+        self._P = self._fix_P(P)
+        if self._kf is not None:
+            self._kf.x, self._kf.P = self._x, self._P
+
+    def _subset(self, mask: np.ndarray) -> tuple:
+        key = mask.tobytes()
+        s = self._subsets.get(key)
+        if s is None:
+            idx = np.flatnonzero(mask)
+            chans = tuple(self.channels[i] for i in idx)
+            Rd = self._Rdiag[idx]
+            s = (idx, chans, Rd, np.diag(Rd))
+            self._subsets[key] = s
+        return s
+
+    def _update(self, y: np.ndarray, idx: np.ndarray, chans: tuple, Rd: np.ndarray, R: np.ndarray) -> None:
+        x, P = self._x, self._P
+        y_pred, H = self.model.measure(x, chans)
+        if self._kf is None:
+            r = y - y_pred
+            nx = self.nx
+            HP = H @ P  # = (P H')' since P is kept exactly symmetric
+            S = HP @ H.T
+            S += R
+            # one Cholesky solve gives both K' = S^-1 H P and S^-1 r
+            rhs = np.empty((len(r), nx + 1))
+            rhs[:, :nx] = HP
+            rhs[:, nx] = r
+            _, sol, info = lapack.dposv(S, rhs)
+            if info != 0:
+                sol = self._solve_indefinite(S, rhs)
+            K = sol[:, :nx].T
+            nis = float(r @ sol[:, nx])
+            x = x + K @ r
+            IKH = self._I - K @ H
+            P = (IKH @ P) @ IKH.T
+            P += (K * Rd) @ K.T
+        else:
+            kf = self._kf
+            kf.update(y, HJacobian=lambda _x: H, Hx=lambda _x: y_pred, R=R)
+            r, S, x, P = kf.y, kf.S, kf.x, kf.P
+            nis = float(r @ kf.SI @ r)
+        self._x = x
+        self._P = self._fix_P(P)
+        if self._kf is not None:
+            self._kf.x, self._kf.P = self._x, self._P
+        self.last_idx = idx
+        self.last_innovation = r
+        self.last_S = S
+        self.last_nis = nis
+        self.last_dof = len(idx)
+
+    def _solve_indefinite(self, S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        log.warning("innovation covariance not positive definite (t=%s); using an LU solve", self._t_prev)
+        try:
+            return np.linalg.solve(S, rhs)
+        except np.linalg.LinAlgError as exc:
+            raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
+
+    def _flag_divergence(self, t: float, why: str) -> None:
+        if not self.diverged:
+            self.diverged = True
+            self.diverged_at = float(t)
+            log.warning("EKF diverged at t=%.6g s: %s", t, why)
+
+    # ------------------------------------------------------------------ public
+    def step(self, t: float, u, y) -> np.ndarray:
+        """Process one sample: predict to ``t`` (held input of the previous call), update with ``y``.
+
+        Parameters
+        ----------
+        t : float
+            Sample time; must lie on the ``dt`` grid after the previous sample. Skipped grid points are
+            predicted through (input held) and counted as missing.
+        u : array_like or None
+            Input applied from ``t`` over the next interval (zero-order hold).
+        y : array_like, shape (m,) or None
+            Measurement in channel order; NaN entries are channels without a sample at ``t``. ``None`` or
+            all-NaN: prediction only.
+
+        Returns
+        -------
+        ndarray, shape (nx,)
+            Posterior estimate at ``t`` (a new array).
+
+        Raises
+        ------
+        FilterDivergedError
+            Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test
+            (``divergence_action="raise"``).
+        ValueError
+            ``t`` not after the previous sample or off the grid.
+        """
+        t = float(t)
+        if self._t_prev is not None:
+            k = (t - self._t_prev) / self.dt
+            n = int(round(k))
+            if n < 1 or abs(k - n) > self.time_tol * max(1.0, k):
+                raise ValueError(
+                    f"sample time {t!r} is not a positive multiple of dt={self.dt} after {self._t_prev!r}"
+                )
+            if not self.nonfinite:
+                for _ in range(n):
+                    self._predict(self._u_prev)
+            self.n_missing += n - 1
+        self._t_prev = t
+        self._u_prev = None if u is None else np.array(u, dtype=float)
+        self.last_idx = None
+        self.last_nis = float("nan")
+        self.last_dof = 0
+        if self.nonfinite:
+            self.n_missing += 1
+            return np.full(self.nx, np.nan)
+
+        if y is None:
+            self.n_missing += 1
+        else:
+            y = np.asarray(y, dtype=float)
+            if y.shape != (self.m,):
+                raise ValueError(f"measurement has shape {y.shape}, expected ({self.m},)")
+            if math.isfinite(y.sum()):  # every channel present (one reduction, the common case)
+                self._update(y, self._all, self.channels, self._Rdiag, self._Rfull)
+            else:
+                mask = np.isfinite(y)
+                if mask.any():
+                    idx, chans, Rd, R = self._subset(mask)
+                    self._update(y[idx], idx, chans, Rd, R)
+                else:
+                    self.n_missing += 1
+
+        # a NaN or inf anywhere makes a sum non-finite (finite overflow to inf is flagged too, harmlessly)
+        if not math.isfinite(self._x.sum() + self._P.sum()):
+            self._flag_divergence(t, "non-finite state or covariance")
+            self.nonfinite = True
+            if self.nonfinite_action == "raise":
+                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+            return np.full(self.nx, np.nan)
+
+        if self.last_idx is not None:
+            self.n_updates += 1
+            if self.monitor is not None and self.monitor.push(self.last_nis, self.last_dof):
+                self._flag_divergence(
+                    t, f"NIS over {self.monitor.window} updates above its {self.monitor.confidence:.1%} bound"
+                )
+                if self.divergence_action == "raise":
+                    raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
+        return self._x.copy()
+
+    def run(self, t, U, Y, *, reset: bool = True) -> EstimationResult:
+        """Filter a whole record offline, through exactly the same code as :meth:`step`.
+
+        Parameters
+        ----------
+        t : array_like, shape (n,)
+            Sample times (on the ``dt`` grid).
+        U : array_like, shape (n, nu) or (n,), or None
+            Input at each sample time, held over the following interval.
+        Y : array_like, shape (n, m)
+            Measurements in channel order, NaN where a channel has no sample.
+        reset : bool
+            Restart from the prior first (default). With False the run continues from the current state.
+
+        Returns
+        -------
+        EstimationResult
+        """
+        t = np.asarray(t, dtype=float).reshape(-1)
+        Y = np.asarray(Y, dtype=float)
+        n = len(t)
+        if Y.shape != (n, self.m):
+            raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {self.m})")
+        if U is not None:
+            U = np.asarray(U, dtype=float)
+            if len(U) != n:
+                raise ValueError(f"U has {len(U)} rows, expected {n}")
+        if reset:
+            self.reset()
+        nx, m = self.nx, self.m
+        x_hat = np.empty((n, nx))
+        Pst = {"diag": np.empty((n, nx)), "full": np.empty((n, nx, nx)), "none": None}[self.store_P]
+        innov = np.full((n, m), np.nan)
+        S_all = np.full((n, m, m), np.nan)
+        nis = np.full(n, np.nan)
+        dof = np.zeros(n, dtype=np.int64)
+        step = self.step
+        t_start = time.perf_counter()
+        for k in range(n):
+            x_hat[k] = step(t[k], None if U is None else U[k], Y[k])
+            if Pst is not None:
+                if self.nonfinite:
+                    Pst[k] = np.nan
+                elif self.store_P == "diag":
+                    Pst[k] = self._P.diagonal()
+                else:
+                    Pst[k] = self._P
+            idx = self.last_idx
+            if idx is not None:
+                nis[k] = self.last_nis
+                dof[k] = self.last_dof
+                if len(idx) == m:
+                    innov[k] = self.last_innovation
+                    S_all[k] = self.last_S
+                else:
+                    innov[k, idx] = self.last_innovation
+                    S_all[k][np.ix_(idx, idx)] = self.last_S
+        wall = time.perf_counter() - t_start
+        res = EstimationResult(
+            t=t,
+            x_hat=x_hat,
+            P=Pst,
+            innovations=innov,
+            S=S_all,
+            nis=nis,
+            nis_dof=dof,
+            n_missing=self.n_missing,
+            n_updates=self.n_updates,
+            diverged=self.diverged,
+            diverged_at=self.diverged_at,
+            nonfinite=self.nonfinite,
+            wall_s=wall,
+            channels=self.channels,
+        )
+        log.info("EKF run: %s", res.summary())
+        return res
