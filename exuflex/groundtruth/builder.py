@@ -145,6 +145,7 @@ class TruthModel:
     erls: ErlsModel | None = None
     _q_last: np.ndarray | None = None
     _ref: np.ndarray | None = None
+    _motor_map: tuple | None = None
 
     @property
     def n_coordinates(self) -> int:
@@ -166,18 +167,27 @@ class TruthModel:
     def generalized_forces(self, tau, c: np.ndarray, cd: np.ndarray | None = None) -> np.ndarray:
         """Generalized forces (all ODE2 coordinates) of motor torques ``tau`` at total coordinates ``c``,
         minus the explicit alpha-damper force ``D c'`` if ``cd`` is given."""
-        f = np.zeros(len(c))
-        for nodes, T in zip(self.motor_nodes, tau):
-            for idx, sign in nodes:
-                if self.formulation == "ancf":
-                    rx, ry = c[idx[2]], c[idx[3]]
-                    n2 = rx * rx + ry * ry
-                    f[idx[2]] += -sign * T * ry / n2
-                    f[idx[3]] += sign * T * rx / n2
-                else:
-                    f[idx[2]] += sign * T
+        if self._motor_map is None:
+            rows = [(idx, sign, j) for j, nodes in enumerate(self.motor_nodes) for idx, sign in nodes]
+            self._motor_map = (
+                np.array([r[0][2] for r in rows], dtype=int),  # slope x' (ancf) or rotation (gebeam)
+                np.array([r[0][min(3, self.node_size - 1)] for r in rows], dtype=int),
+                np.array([r[1] for r in rows]),
+                np.array([r[2] for r in rows], dtype=int),
+            )
+        ix, iy, sign, j = self._motor_map
+        T = sign * np.asarray(tau, float)[j]
         if cd is not None and self.explicit_damping and self.D_alpha is not None:
-            f -= self.D_alpha @ cd
+            f = -(self.D_alpha @ cd)
+        else:
+            f = np.zeros(len(c))
+        if self.formulation == "ancf":
+            rx, ry = c[ix], c[iy]
+            n2 = rx * rx + ry * ry
+            np.add.at(f, ix, -T * ry / n2)  # T d(atan2(y', x'))/d(x', y')
+            np.add.at(f, iy, T * rx / n2)
+        else:
+            np.add.at(f, ix, T)
         return f
 
     def set_torques(self, tau) -> None:

@@ -234,8 +234,11 @@ def simulate_truth(
     tm.set_torques(tau[0])
     mbs.SetPreStepUserFunction(pre_step)
     t0 = time.perf_counter()
-    ok = mbs.SolveDynamic(ss, solverType=exu.DynamicSolverType.GeneralizedAlpha)
+    solver = exu.MainSolverImplicitSecondOrder()
+    ok = solver.SolveSystem(mbs, ss)
     wall = time.perf_counter() - t0
+    it = solver.it
+    log.debug("Newton iterations %d, Jacobians %d", it.newtonStepsCount, it.newtonJacobiCount)
     if not ok:
         raise RuntimeError(f"Exudyn dynamic solver failed before t = {duration} s (see Exudyn's messages)")
     if n_steps % every == 0:
