@@ -40,16 +40,17 @@ def _det(beta: float, EI: float, rhoA: float, L: float, hub, m_t: float, J_t: fl
     return float(np.linalg.det(A))
 
 
-def beam_frequencies(EI, rhoA, L, *, hub="clamped", m_t=0.0, J_t=0.0, n=3, beta_max=40.0) -> np.ndarray:
-    """First ``n`` non-zero natural frequencies (Hz); ``hub`` is "clamped" or a hub inertia (kg m^2)."""
-    grid = np.linspace(1e-3, beta_max, 40000)
+def beam_frequencies(EI, rhoA, L, *, hub="clamped", m_t=0.0, J_t=0.0, n=3) -> np.ndarray:
+    """First ``n`` non-zero natural frequencies (Hz); ``hub`` is "clamped" or a hub inertia (kg m^2).
+
+    The roots beta = k L are bracketed on a grid (consecutive roots are about pi apart) and polished.
+    """
+    grid = np.linspace(1e-3, np.pi * (n + 1.5), 400 * (n + 2))
     vals = np.array([_det(b, EI, rhoA, L, hub, m_t, J_t) for b in grid])
     betas = []
     for a, b, fa, fb in zip(grid, grid[1:], vals, vals[1:]):
         if fa == 0.0 or np.sign(fa) != np.sign(fb):
-            r = brentq(_det, a, b, args=(EI, rhoA, L, hub, m_t, J_t), xtol=1e-14)
-            # reject sign changes through poles (the determinant is continuous, so none expected)
-            betas.append(r)
+            betas.append(brentq(_det, a, b, args=(EI, rhoA, L, hub, m_t, J_t), xtol=1e-14))
             if len(betas) == n:
                 break
     betas = np.array(betas)
