@@ -33,8 +33,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import lu_factor, lu_solve
 
-from .erls.kinematics import Kinematics, KinematicsError, Pose
+from .erls.kinematics import Kinematics, KinematicsError
 from .erls.model import ErlsModel
 from .mechanism import Manoeuvre, Mechanism
 
@@ -144,65 +145,74 @@ def _arc(man: Manoeuvre, s, sd, sdd):
     return p, p_s * sd, p_ss * sd**2 + p_s * sdd
 
 
-def _point_bias(kin: Kinematics, pose: Pose, Szd: np.ndarray, link: str, station: float, qd) -> np.ndarray:
-    """(dJ/dt) q' of a link point: its acceleration minus J q''."""
-    i = kin.link_names.index(link)
-    th = pose.z[3 * i + 2]
-    thd = pose.Sz[3 * i + 2] @ qd
-    c, sn = np.cos(th), np.sin(th)
-    return Szd[3 * i : 3 * i + 2] @ qd + station * (
-        np.array([-sn, c]) * (Szd[3 * i + 2] @ qd) - np.array([c, sn]) * thd**2
-    )
-
-
 class _TipIK:
-    """Newton on the closure plus the tip equations; unknowns z and the free coordinates."""
+    """Newton on the closure plus the tip equations; unknowns the link poses z and the free coordinates.
 
-    def __init__(
-        self, kin: Kinematics, man: Manoeuvre, free: list[int], ruled: dict[int, tuple[float, float]]
-    ):
-        self.kin, self.man, self.free, self.ruled = kin, man, free, ruled
+    The same augmented Jacobian ``A = [[Phi_z, -E_free], [P_z, 0]]`` gives the exact rates:
+    ``A [z'; q'_free] = [E_ruled q'_ruled; p']`` and
+    ``A [z''; q''_free] = [E_ruled q''_ruled - (dPhi_z/dt) z'; p'' - (dP_z/dt) z']``.
+    """
+
+    def __init__(self, kin: Kinematics, man: Manoeuvre, free: list[int], ruled: list[int]):
+        self.kin, self.free, self.ruled = kin, free, ruled
         self.li = kin.link_names.index(man.tip.link)
         self.st = man.tip.station
         self.scale = max(lk.length for lk in kin.mech.links)
+        self.nz = 3 * kin.nl
 
     def tip(self, z):
         i, s = self.li, self.st
         return np.array([z[3 * i] + s * np.cos(z[3 * i + 2]), z[3 * i + 1] + s * np.sin(z[3 * i + 2])])
 
+    def jacobian(self, z) -> np.ndarray:
+        kin, i, nz = self.kin, self.li, self.nz
+        J = np.zeros((kin.n_eq + 2, nz + len(self.free)))
+        J[: kin.n_eq, :nz] = kin.jacobian(z)
+        J[: kin.n_eq, nz:] = -kin._E[:, self.free]  # dPhi/dq = -E
+        th = z[3 * i + 2]
+        J[kin.n_eq :, 3 * i : 3 * i + 2] = np.eye(2)
+        J[kin.n_eq :, 3 * i + 2] = self.st * np.array([-np.sin(th), np.cos(th)])
+        return J
+
+    def _fail(self, p, msg):
+        kin = self.kin
+        return KinematicsError(
+            f"{kin.mech.source or kin.mech.name}: inverse kinematics {msg} for tip target {p.round(6).tolist()}"
+            " (is the path reachable, away from singular configurations?)"
+        )
+
     def solve(
         self, q_guess: np.ndarray, z_guess: np.ndarray, p: np.ndarray, tol: float = 1e-13, max_iter: int = 30
     ):
-        kin, free = self.kin, self.free
+        kin, nz = self.kin, self.nz
         q = q_guess.copy()
         z = z_guess.copy()
-        nz = z.size
-        i, s = self.li, self.st
         for it in range(max_iter):
             res = np.concatenate([kin.residual(z, q), self.tip(z) - p])
-            if np.max(np.abs(res)) < tol * self.scale and it > 0:
+            if it > 0 and np.max(np.abs(res)) < tol * self.scale:
                 return q, z
-            J = np.zeros((res.size, nz + len(free)))
-            J[: kin.n_eq, :nz] = kin.jacobian(z)
-            J[: kin.n_eq, nz:] = -kin._E[:, free]  # dPhi/dq = -E
-            th = z[3 * i + 2]
-            J[kin.n_eq :, 3 * i : 3 * i + 2] = np.eye(2)
-            J[kin.n_eq :, 3 * i + 2] = s * np.array([-np.sin(th), np.cos(th)])
             try:
-                dx = np.linalg.solve(J, -res)
-            except np.linalg.LinAlgError as exc:
-                raise KinematicsError(
-                    f"{kin.mech.source or kin.mech.name}: inverse kinematics singular at tip {p.round(6).tolist()}"
-                ) from exc
+                dx = np.linalg.solve(self.jacobian(z), -res)
+            except np.linalg.LinAlgError:
+                raise self._fail(p, "is singular") from None
             z = z + dx[:nz]
-            q[free] += dx[nz:]
+            q[self.free] += dx[nz:]
         res = np.concatenate([kin.residual(z, q), self.tip(z) - p])
         if np.max(np.abs(res)) < 1e3 * tol * self.scale:
             return q, z
-        raise KinematicsError(
-            f"{kin.mech.source or kin.mech.name}: inverse kinematics did not converge for tip target "
-            f"{p.round(6).tolist()} (residual {np.max(np.abs(res)):.3g}); is the path reachable?"
-        )
+        raise self._fail(p, f"did not converge (residual {np.max(np.abs(res)):.3g})")
+
+    def rates(self, z, qd_r, qdd_r, pd, pdd):
+        """Exact (q'_free, q''_free) at the solved pose z."""
+        kin, nz, i = self.kin, self.nz, self.li
+        lu = lu_factor(self.jacobian(z))
+        E_r = kin._E[:, self.ruled]
+        sol = lu_solve(lu, np.concatenate([E_r @ qd_r, pd]))
+        zd, qd_f = sol[:nz], sol[nz:]
+        th, thd = z[3 * i + 2], zd[3 * i + 2]
+        tip_bias = -self.st * thd**2 * np.array([np.cos(th), np.sin(th)])
+        rhs = np.concatenate([E_r @ qdd_r - kin._jacobian_rate(z, zd) @ zd, pdd - tip_bias])
+        return qd_f, lu_solve(lu, rhs)[nz:]
 
 
 def plan(
@@ -278,9 +288,10 @@ def plan(
             f"free: {[names[k] for k in free]}"
         )
     p, pd, pdd = _arc(man, s, sd, sdd)
-    ik = _TipIK(kin, man, free, ruled)
+    ik = _TipIK(kin, man, free, list(idx))
     qg = np.array(q_guess if q_guess is not None else (mech.q_ref or np.zeros(nq)), float)
-    qg[idx] = q[0, idx] if len(idx) else qg[idx]
+    if len(idx):
+        qg[idx] = q[0, idx]
     z = kin.pose(qg).z
     qk = qg
     for k in range(n):
@@ -291,17 +302,12 @@ def plan(
             qk[free] += qd[k - 1, free] * dt + 0.5 * qdd[k - 1, free] * dt**2
         qk, z = ik.solve(qk, z, p[:, k])
         q[k] = qk
-        pose = kin.pose(qk, z)
-        _, J = kin.point(pose, man.tip.link, man.tip.station)
-        Jf = J[:, free]
-        rhs = pd[:, k] - J[:, idx] @ qd[k, idx] if len(idx) else pd[:, k].copy()
-        qd[k, free] = np.linalg.solve(Jf, rhs)
-        Szd, _ = kin.rates(pose, qd[k])
-        bias = _point_bias(kin, pose, Szd, man.tip.link, man.tip.station, qd[k])
-        rhs = pdd[:, k] - bias - (J[:, idx] @ qdd[k, idx] if len(idx) else 0.0)
-        qdd[k, free] = np.linalg.solve(Jf, rhs)
+        qd[k, free], qdd[k, free] = ik.rates(z, qd[k, idx], qdd[k, idx], pd[:, k], pdd[:, k])
         if progress is not None and ((k + 1) % report == 0 or k == n - 1):
             progress((k + 1) / n)
+    # the end configurations must be regular (the loop itself stays on the branch by continuation)
+    for k in (0, n - 1):
+        kin.pose(q[k])
     return Plan(t, q, qd, qdd, names, s)
 
 
