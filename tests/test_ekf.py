@@ -347,16 +347,17 @@ def test_nan_samples_are_predictions_only_and_counted():
 # ----------------------------------------------------------------------------------------------- (d)
 def test_nees_nis_consistent_over_monte_carlo():
     model = two_mass()
-    n_runs, n = 50, 400
+    n_runs, n = 50, 250
     E, NI, DOF = [], [], []
     for seed in range(n_runs):
         rng = np.random.default_rng(100 + seed)
         t, U, X, Y = simulate_linear(model, CH2, R2, X0_2, P0_2, n, rng, rates={"x2": 2, "v2": 5}, p_drop=0.02)
         res = MultirateEKF(model, CH2, R2, X0_2, P0_2, DT, store_P="full").run(t, U, Y)
         E.append(nees(X - res.x_hat, res.P))
-        v, d = nis(res.innovations, res.S)
-        np.testing.assert_allclose(v, res.nis, rtol=1e-9)
-        assert np.array_equal(d, res.nis_dof)
+        if seed == 0:  # the stats helper recomputes the filter's NIS from innovations and S
+            v, d = nis(res.innovations, res.S)
+            np.testing.assert_allclose(v, res.nis, rtol=1e-9)
+            assert np.array_equal(d, res.nis_dof)
         NI.append(res.nis)
         DOF.append(res.nis_dof)
     c_nees = mc_consistency(np.array(E), 4)
@@ -511,9 +512,9 @@ def test_tune_q_scale_restores_nis():
     R = {"x1": 2e-5, "x2": 5e-5, "v2": 2e-3}
     truth = two_mass()
     rng = np.random.default_rng(0)
-    t, U, X, Y = simulate_linear(truth, CH2, R, X0_2, P0_2, 2000, rng)
+    t, U, X, Y = simulate_linear(truth, CH2, R, X0_2, P0_2, 1500, rng)
     low_q = ScaledNoiseModel(truth, 0.02)
-    r = tune_q_scale(low_q, CH2, R, X0_2, P0_2, t, U, Y, DT, bounds=(1e-2, 1e4), burn_in=100)
+    r = tune_q_scale(low_q, CH2, R, X0_2, P0_2, t, U, Y, DT, bounds=(1e-1, 1e4), burn_in=100, rtol=0.05)
     assert r.converged and abs(r.mean_nis / r.expected_nis - 1) < 0.02
     assert 10 < r.scale < 250, r.scale  # the truth is scale 50
     assert low_q.A is truth.A  # attribute delegation
@@ -552,7 +553,7 @@ def test_fft_peaks_and_stats():
 
 
 # ----------------------------------------------------------------------------------------------- speed
-def _per_update_us(backend, model, ch, R, n=2000, repeat=3):
+def _per_update_us(backend, model, ch, R, n=1000, repeat=2):
     """Best-of-``repeat`` wall time per ``step`` (predict + update) in microseconds."""
     rng = np.random.default_rng(2)
     x0, P0 = np.zeros(model.nx), np.eye(model.nx) * 1e-4

@@ -9,8 +9,9 @@ One call of :meth:`MultirateEKF.step` processes one measurement sample::
 Multirate sensors are handled per sample: entries of ``y`` that are NaN are not available at this sample and
 the update uses only the finite channels (``R`` restricted to them). An all-NaN sample (missing or late
 packet) is a prediction only and is counted in ``n_missing``; so is every whole interval skipped in time
-between two calls. After every predict and update ``P`` is symmetrised and its diagonal floored; a
-non-finite state or covariance never leaves silently (:class:`FilterDivergedError`, or a flag).
+between two calls. At the end of every sample (after its prediction(s) and update) ``P`` is symmetrised and
+its diagonal floored; a non-finite state or covariance never leaves silently (:class:`FilterDivergedError`,
+or a flag).
 
 Filter consistency is monitored with the normalised innovation squared (NIS): over a moving window of the
 last ``nis_window`` updates, the summed NIS is chi-square with the summed number of channels for a
@@ -391,7 +392,7 @@ class MultirateEKF:
             kf.predict()
             x_next, P = kf.x, kf.P
         self._x = np.asarray(x_next, dtype=float)
-        self._P = self._fix_P(P)
+        self._P = P  # symmetrised and floored once per sample, at the end of step()
         if self._kf is not None:
             self._kf.x, self._kf.P = self._x, self._P
 
@@ -412,7 +413,7 @@ class MultirateEKF:
         if self._kf is None:
             r = y - y_pred
             nx = self.nx
-            HP = H @ P  # = (P H')' since P is kept exactly symmetric
+            HP = H @ P  # = (P H')' up to rounding (P symmetric)
             S = HP @ H.T
             S += R
             # one Cholesky solve gives both K' = S^-1 H P and S^-1 r
@@ -434,9 +435,7 @@ class MultirateEKF:
             r, S, x, P = kf.y, kf.S, kf.x, kf.P
             nis = float(r @ kf.SI @ r)
         self._x = x
-        self._P = self._fix_P(P)
-        if self._kf is not None:
-            self._kf.x, self._kf.P = self._x, self._P
+        self._P = P
         self.last_idx = idx
         self.last_innovation = r
         self.last_S = S
@@ -521,8 +520,12 @@ class MultirateEKF:
                 else:
                     self.n_missing += 1
 
+        P = self._fix_P(self._P)
+        self._P = P
+        if self._kf is not None:
+            self._kf.x, self._kf.P = self._x, P
         # a NaN or inf anywhere makes a sum non-finite (finite overflow to inf is flagged too, harmlessly)
-        if not math.isfinite(self._x.sum() + self._P.sum()):
+        if not math.isfinite(self._x.sum() + P.sum()):
             self._flag_divergence(t, "non-finite state or covariance")
             self.nonfinite = True
             if self.nonfinite_action == "raise":
