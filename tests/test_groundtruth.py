@@ -13,20 +13,20 @@ import scipy.linalg as sla
 
 pytest.importorskip("exudyn")
 
-from exuflex.erls.kinematics import Kinematics  # noqa: E402
-from exuflex.erls.modal import modal_analysis  # noqa: E402
-from exuflex.erls.model import ErlsModel  # noqa: E402
-from exuflex.erls.simulate import simulate  # noqa: E402
-from exuflex.groundtruth import (  # noqa: E402
+from exuflex.erls.kinematics import Kinematics
+from exuflex.erls.modal import modal_analysis
+from exuflex.erls.model import ErlsModel
+from exuflex.erls.simulate import simulate
+from exuflex.groundtruth import (
     build_truth,
     exudyn_frequencies,
     link_mesh_stations,
     modal_damping,
     simulate_truth,
 )
-from exuflex.mechanism import load_mechanism  # noqa: E402
-from exuflex.mechanism.refine import refine_mechanism  # noqa: E402
-from exuflex.probes import probes_for  # noqa: E402
+from exuflex.mechanism import load_mechanism
+from exuflex.mechanism.refine import refine_mechanism
+from exuflex.probes import probes_for
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "sixbar.toml"
 BAND_HZ = 180.0
@@ -119,16 +119,19 @@ def test_time_response_agrees_with_erls(mech):
     tip = rec.values["point:L5@0.282"]
     kin = Kinematics(mech)
     cfg0 = model.configuration(traj.y[-1, :3])
-    tip_erls = kin.point(cfg0.pose, "L5", 0.282)[0] + model.point_displacement_rows(cfg0, "L5", 0.282) @ traj.y[
-        -1, 3 : model.n
-    ]
+    tip_erls = (
+        kin.point(cfg0.pose, "L5", 0.282)[0]
+        + model.point_displacement_rows(cfg0, "L5", 0.282) @ traj.y[-1, 3 : model.n]
+    )
     np.testing.assert_allclose(tip[-1], tip_erls, atol=2e-4)
 
 
 def test_slope_probes_start_on_the_erls_branch(mech):
     rec = simulate_truth(mech, [0.0, 1.0], np.zeros((2, 3)), 0.002, output_dt=1e-3)
     assert rec.t.shape == (3,)
-    assert rec.values["slope:L4@1.2"][0, 0] == pytest.approx(Kinematics(mech).pose(mech.q_ref).z[3 * 3 + 2], abs=1e-9)
+    assert rec.values["slope:L4@1.2"][0, 0] == pytest.approx(
+        Kinematics(mech).pose(mech.q_ref).z[3 * 3 + 2], abs=1e-9
+    )
     for p in probes_for(mech):
         assert rec.values[p.key].shape == (3, p.width)
         assert rec.rates[p.key].shape == (3, p.width)

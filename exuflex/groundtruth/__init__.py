@@ -8,7 +8,7 @@ the probes of :mod:`exuflex.probes` (:func:`simulate_truth`).
 
 from .builder import DAMPINGS, FORMULATIONS, LinkMesh, TruthModel, build_truth, link_mesh_stations
 from .eigen import exudyn_frequencies, modal_damping
-from .simulate import smooth_torque_table, simulate_truth, time_truth
+from .simulate import simulate_truth, smooth_torque_table, time_truth
 
 __all__ = [
     "DAMPINGS",
@@ -16,8 +16,8 @@ __all__ = [
     "LinkMesh",
     "TruthModel",
     "build_truth",
-    "link_mesh_stations",
     "exudyn_frequencies",
+    "link_mesh_stations",
     "modal_damping",
     "simulate_truth",
     "smooth_torque_table",

@@ -48,6 +48,7 @@ Damping (the model file's Rayleigh ``C = alpha M_uu + beta K_uu`` on the ERLS el
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -58,7 +59,15 @@ from ..erls.kinematics import Kinematics
 from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
 
-__all__ = ["TruthModel", "LinkMesh", "build_truth", "link_mesh_stations", "ancf_shape", "FORMULATIONS", "DAMPINGS"]
+__all__ = [
+    "DAMPINGS",
+    "FORMULATIONS",
+    "LinkMesh",
+    "TruthModel",
+    "ancf_shape",
+    "build_truth",
+    "link_mesh_stations",
+]
 
 log = logging.getLogger(__name__)
 
@@ -116,9 +125,26 @@ def ancf_shape(xi: float, L: float, d: int = 0) -> np.ndarray:
     ``r(x) = S1 r0 + S2 r0' + S3 r1 + S4 r1'`` with ``xi = x / L``; ``r'`` are slopes d r / d x.
     """
     if d == 0:
-        return np.array([1 - 3 * xi**2 + 2 * xi**3, L * (xi - 2 * xi**2 + xi**3), 3 * xi**2 - 2 * xi**3, L * (-(xi**2) + xi**3)])
+        return np.array(
+            [
+                1 - 3 * xi**2 + 2 * xi**3,
+                L * (xi - 2 * xi**2 + xi**3),
+                3 * xi**2 - 2 * xi**3,
+                L * (-(xi**2) + xi**3),
+            ]
+        )
     if d == 1:
-        return np.array([-6 * xi + 6 * xi**2, L * (1 - 4 * xi + 3 * xi**2), 6 * xi - 6 * xi**2, L * (-2 * xi + 3 * xi**2)]) / L
+        return (
+            np.array(
+                [
+                    -6 * xi + 6 * xi**2,
+                    L * (1 - 4 * xi + 3 * xi**2),
+                    6 * xi - 6 * xi**2,
+                    L * (-2 * xi + 3 * xi**2),
+                ]
+            )
+            / L
+        )
     if d == 2:
         return np.array([-6 + 12 * xi, L * (-4 + 6 * xi), 6 - 12 * xi, L * (-2 + 6 * xi)]) / L**2
     raise ValueError(f"derivative order must be 0, 1 or 2, got {d}")
@@ -326,7 +352,7 @@ def link_mesh_stations(
         raise ValueError(f"elements_per_link must be >= 1 or None, got {elements_per_link}")
     hmax = L / elements_per_link
     out = [base[0]]
-    for a, b in zip(base, base[1:]):
+    for a, b in itertools.pairwise(base):
         n = max(1, math.ceil((b - a) / hmax - 1e-9))
         out.extend(a + (b - a) * k / n for k in range(1, n + 1))
     return np.array(out)
@@ -344,7 +370,9 @@ def _hermite_mass(L: float) -> np.ndarray:
     )
 
 
-def _link_mass_matrix(lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, tuple[float, float]], form: str):
+def _link_mass_matrix(
+    lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, tuple[float, float]], form: str
+):
     """Consistent mass of the link's beams plus its lumped masses, on the link's coordinates."""
     nn = len(lm.stations)
     if form == "ancf":
@@ -508,11 +536,7 @@ def build_truth(
     for name, d in lumped.items():
         for k, (mm, JJ) in d.items():
             diag = [mm, mm, JJ, JJ] if formulation == "ancf" else [mm, mm, JJ]
-            mbs.AddObject(
-                it.ObjectGenericODE2(
-                    nodeNumbers=[links[name].nodes[k]], massMatrix=np.diag(diag)
-                )
-            )
+            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[links[name].nodes[k]], massMatrix=np.diag(diag)))
 
     # joints: revolute between coincident nodes; ground pins
     def node_marker(link: str, station: float) -> int:
@@ -530,9 +554,7 @@ def build_truth(
                 mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=[gm, mk]))
         else:
             for mk in markers[1:]:
-                mbs.AddObject(
-                    it.ObjectJointRevolute2D(markerNumbers=[markers[0], mk])
-                )
+                mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=[markers[0], mk]))
 
     # motors: +T on the motor link's node at the joint, -T on the reaction link's node
     motor_at = []
@@ -569,7 +591,9 @@ def build_truth(
         lm.ode2 = np.array([mbs.GetNodeODE2Index(n) + np.arange(node_size) for n in lm.nodes], dtype=int)
     order = np.concatenate([lm.ode2.ravel() for lm in links.values()])
     if not np.array_equal(order, np.arange(len(order))):
-        raise RuntimeError("Exudyn numbered the node coordinates out of node order; the force object assumes it")
+        raise RuntimeError(
+            "Exudyn numbered the node coordinates out of node order; the force object assumes it"
+        )
     motor_nodes = [[(links[ln].ode2[k], sign) for ln, k, sign in at] for at in motor_at]
     tm = TruthModel(
         mech,

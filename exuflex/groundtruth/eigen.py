@@ -43,13 +43,20 @@ def exudyn_frequencies(
     """
     tm = build_truth(mech, q, elements_per_link=elements_per_link, formulation=formulation, damping=None)
     f, _ = tm.mbs.ComputeODE2Eigenvalues(
-        convert2Frequencies=True, useSparseSolver=False, ignoreAlgebraicEquations=False, useAbsoluteValues=True
+        convert2Frequencies=True,
+        useSparseSolver=False,
+        ignoreAlgebraicEquations=False,
+        useAbsoluteValues=True,
     )
     return _drop_rigid(f, len(mech.coordinates), f"Exudyn {formulation} model of {mech.name}")
 
 
 def modal_damping(
-    mech: Mechanism, q=None, elements_per_link: int | None = 4, formulation: str = "ancf", fmax: float | None = None
+    mech: Mechanism,
+    q=None,
+    elements_per_link: int | None = 4,
+    formulation: str = "ancf",
+    fmax: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Damped natural frequencies (Hz) and damping ratios of the Exudyn model with its damping.
 
@@ -60,7 +67,14 @@ def modal_damping(
     -------
     f_hz, zeta : (n_modes,) arrays, ascending in frequency, rigid modes dropped, up to ``fmax``.
     """
-    tm = build_truth(mech, q, elements_per_link=elements_per_link, formulation=formulation, damping="erls", explicit_damping=False)
+    tm = build_truth(
+        mech,
+        q,
+        elements_per_link=elements_per_link,
+        formulation=formulation,
+        damping="erls",
+        explicit_damping=False,
+    )
     M, K, D, *_ = tm.mbs.ComputeLinearizedSystem(projectIntoConstraintNullspace=True)
     M, K, D = (np.asarray(a) for a in (M, K, D))
     n = M.shape[0]

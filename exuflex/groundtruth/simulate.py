@@ -12,13 +12,17 @@ from ..mechanism import Mechanism
 from ..probes import Probe, ProbeRecord, probes_for
 from .builder import TruthModel, _exu, ancf_shape, build_truth
 
-__all__ = ["simulate_truth", "smooth_torque_table", "time_truth", "probe_values"]
+__all__ = ["probe_values", "simulate_truth", "smooth_torque_table", "time_truth"]
 
 log = logging.getLogger(__name__)
 
 
 def smooth_torque_table(
-    mech: Mechanism, duration: float, amplitudes: Sequence[float] | None = None, period: float = 0.5, dt: float = 1e-3
+    mech: Mechanism,
+    duration: float,
+    amplitudes: Sequence[float] | None = None,
+    period: float = 0.5,
+    dt: float = 1e-3,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A smooth test excitation: full-sine torque pulses ``A_j sin(2 pi t / period)`` of alternating sign.
 
@@ -33,7 +37,9 @@ def smooth_torque_table(
         amplitudes = [0.01 if m.reaction is not None else 1.0 for m in mech.motors]
     amplitudes = np.asarray(amplitudes, float)
     if amplitudes.shape != (len(mech.motors),):
-        raise ValueError(f"amplitudes must have one entry per motor {list(mech.motor_names)}, got {amplitudes.shape}")
+        raise ValueError(
+            f"amplitudes must have one entry per motor {list(mech.motor_names)}, got {amplitudes.shape}"
+        )
     t = np.arange(0.0, duration + dt / 2, dt)
     k = np.floor(t / period)
     sign = np.where(k % 2 == 0, 1.0, -1.0)
@@ -65,7 +71,9 @@ def _probe_geometry(tm: TruthModel, probe: Probe):
     return [(e, xi, lm.stations[e + 1] - lm.stations[e], lm.ode2[e : e + 2].ravel()) for e, xi in locs]
 
 
-def probe_values(tm: TruthModel, probe: Probe, c: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def probe_values(
+    tm: TruthModel, probe: Probe, c: np.ndarray, cd: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Probe values and rates (n_t, width) from total coordinates and their rates (n_t, n_coords).
 
     Slopes are wrapped to (-pi, pi] here; :func:`simulate_truth` unwraps them in time.
@@ -91,7 +99,12 @@ def probe_values(tm: TruthModel, probe: Probe, c: np.ndarray, cd: np.ndarray) ->
                 rates.append(((rp[:, 0] * rpd[:, 1] - rp[:, 1] * rpd[:, 0]) / n2)[:, None])
             else:  # geometric curvature of the deformed axis, d(slope)/d(arc length)
                 n3 = n2**1.5
-                crossd = rpd[:, 0] * rpp[:, 1] - rpd[:, 1] * rpp[:, 0] + rp[:, 0] * rppd[:, 1] - rp[:, 1] * rppd[:, 0]
+                crossd = (
+                    rpd[:, 0] * rpp[:, 1]
+                    - rpd[:, 1] * rpp[:, 0]
+                    + rp[:, 0] * rppd[:, 1]
+                    - rp[:, 1] * rppd[:, 0]
+                )
                 n2d = 2 * np.einsum("ti,ti->t", rp, rpd)
                 vals.append((cross / n3)[:, None])
                 rates.append((crossd / n3 - 1.5 * cross * n2d / (n2 * n3))[:, None])
@@ -161,13 +174,13 @@ def simulate_truth(
     exu, _ = _exu()
     if h <= 0 or duration <= 0:
         raise ValueError(f"h and duration must be positive, got h={h}, duration={duration}")
-    n_steps = int(round(duration / h))
+    n_steps = round(duration / h)
     if abs(n_steps * h - duration) > 1e-9 * max(1.0, duration):
         raise ValueError(f"duration {duration} s is not a multiple of the step h = {h} s")
     if output_dt is None:
         every = 1
     else:
-        every = int(round(output_dt / h))
+        every = round(output_dt / h)
         if every < 1 or abs(every * h - output_dt) > 1e-9:
             raise ValueError(f"output_dt {output_dt} s must be a positive multiple of the step h = {h} s")
     probes = tuple(probes_for(mech) if probes is None else probes)
@@ -187,7 +200,7 @@ def simulate_truth(
     T_out = np.empty(n_out)
     sd = mbs.systemData
     cur = exu.ConfigurationType.Current
-    upd_every = max(1, int(round(damping_update / h)))
+    upd_every = max(1, round(damping_update / h))
     rep_every = max(1, n_steps // 100)
     state = {"i": 0}
 
@@ -205,7 +218,7 @@ def simulate_truth(
 
     def pre_step(mbs_, t):
         # Exudyn passes the step's end time t_k+1; the current state is the one at t_k
-        k = int(round(t / h)) - 1
+        k = round(t / h) - 1
         c = np.asarray(sd.GetODE2Coordinates(cur)) + ref
         cd = np.asarray(sd.GetODE2Coordinates_t(cur))
         if k % every == 0:
@@ -246,7 +259,14 @@ def simulate_truth(
     if progress is not None:
         progress(1.0)
     n = state["i"]
-    log.info("Exudyn truth %s: %.3g s simulated in %.3g s wall (h = %g s, %d outputs)", mech.name, duration, wall, h, n)
+    log.info(
+        "Exudyn truth %s: %.3g s simulated in %.3g s wall (h = %g s, %d outputs)",
+        mech.name,
+        duration,
+        wall,
+        h,
+        n,
+    )
 
     c_full = np.zeros((n, len(ref)))
     cd_full = np.zeros((n, len(ref)))
@@ -269,11 +289,36 @@ def simulate_truth(
 
 
 def time_truth(
-    mech: Mechanism, duration: float = 3.0, h: float = 1e-4, t_table=None, torque_table=None, **kwargs
+    mech: Mechanism,
+    duration: float = 3.0,
+    h: float = 1e-4,
+    t_table=None,
+    torque_table=None,
+    q0=None,
+    torques: str = "auto",
+    **kwargs,
 ) -> float:
-    """Wall time (s) of one ground-truth simulation (default: ``duration`` s of :func:`smooth_torque_table`)."""
+    """Wall time (s) of one ground-truth simulation of ``duration`` s (planning time excluded).
+
+    Parameters
+    ----------
+    torques : "auto", "manoeuvre" or "smooth"
+        Unless a table is given: the rigid computed torques of the mechanism's manoeuvre
+        (:mod:`exuflex.manoeuvre`; "auto" uses them when the model has a manoeuvre) or
+        :func:`smooth_torque_table`.
+    **kwargs : passed to :func:`simulate_truth`.
+    """
     if t_table is None or torque_table is None:
-        t_table, torque_table = smooth_torque_table(mech, duration)
+        if torques not in ("auto", "manoeuvre", "smooth"):
+            raise ValueError(f"torques must be 'auto', 'manoeuvre' or 'smooth', got {torques!r}")
+        if torques == "manoeuvre" or (torques == "auto" and mech.manoeuvre is not None):
+            from ..manoeuvre import computed_torque, plan
+
+            p = plan(mech, dt=1e-3, t_end=duration)
+            t_table, torque_table = p.t, computed_torque(mech, p)
+            q0 = p.q[0] if q0 is None else q0
+        else:
+            t_table, torque_table = smooth_torque_table(mech, duration)
     t0 = time.perf_counter()
-    simulate_truth(mech, t_table, torque_table, duration, h=h, **kwargs)
+    simulate_truth(mech, t_table, torque_table, duration, h=h, q0=q0, **kwargs)
     return time.perf_counter() - t0
