@@ -253,7 +253,9 @@ def filterpy_kf(model, channels, R_std, x0, P0, U, Y):
 def multirate_data():
     model = two_mass()
     rng = np.random.default_rng(1)
-    t, U, X, Y = simulate_linear(model, CH2, R2, X0_2, P0_2, 1500, rng, rates={"x2": 5, "v2": 10}, p_drop=0.05)
+    t, U, X, Y = simulate_linear(
+        model, CH2, R2, X0_2, P0_2, 1500, rng, rates={"x2": 5, "v2": 10}, p_drop=0.05
+    )
     return model, t, U, X, Y
 
 
@@ -351,7 +353,9 @@ def test_nees_nis_consistent_over_monte_carlo():
     E, NI, DOF = [], [], []
     for seed in range(n_runs):
         rng = np.random.default_rng(100 + seed)
-        t, U, X, Y = simulate_linear(model, CH2, R2, X0_2, P0_2, n, rng, rates={"x2": 2, "v2": 5}, p_drop=0.02)
+        t, U, X, Y = simulate_linear(
+            model, CH2, R2, X0_2, P0_2, n, rng, rates={"x2": 2, "v2": 5}, p_drop=0.02
+        )
         res = MultirateEKF(model, CH2, R2, X0_2, P0_2, DT, store_P="full").run(t, U, Y)
         E.append(nees(X - res.x_hat, res.P))
         if seed == 0:  # the stats helper recomputes the filter's NIS from innovations and S
@@ -388,7 +392,7 @@ def test_steady_state_bound_equals_converged_covariance():
     # the bound is the RMS error achieved in steady state (within sampling error)
     rms = rms_error(X[500:], res.x_hat[500:])
     b = bound_rms(P_post, slice(None))
-    assert np.all((rms > 0.8 * b) & (rms < 1.25 * b)), (rms / b)
+    assert np.all((rms > 0.8 * b) & (rms < 1.25 * b)), rms / b
     assert np.allclose(bound_rms(P_post, np.eye(4)[[1, 3]]), b[[1, 3]])
     # continuous option == Van Loan discretised
     A_c, B_c = chain_continuous([1.0, 0.5], [400.0, 200.0], [0.6, 0.3])
@@ -466,8 +470,9 @@ def test_pendulum_jacobians_exact():
     x, u = np.array([1.2, -0.7]), 0.3
     xn, F, G = p.step_full(x, u, DT)
     eps = 1e-6
-    F_fd = np.column_stack([(p.step(x + eps * e, u, DT)[0] - p.step(x - eps * e, u, DT)[0]) / (2 * eps)
-                            for e in np.eye(2)])
+    F_fd = np.column_stack(
+        [(p.step(x + eps * e, u, DT)[0] - p.step(x - eps * e, u, DT)[0]) / (2 * eps) for e in np.eye(2)]
+    )
     np.testing.assert_allclose(F, F_fd, rtol=1e-8, atol=2e-9)  # FD round-off ~1e-10
     np.testing.assert_allclose(G, input_jacobian(p, x, [u], DT)[:, 0], rtol=1e-7, atol=2e-12)
     y, H = p.measure(x, ["omega", "bob_x"])
@@ -487,13 +492,13 @@ def test_pendulum_ekf_tracks():
         x = p.step(x, U[k] + p.sigma_tau * rng.standard_normal(), DT)[0]
     ch = ("bob_x", "bob_y", "omega")
     R = {"bob_x": 2e-3, "bob_y": 2e-3, "omega": 0.05}
-    Y = np.column_stack([p.measure(xk, ch)[0] for xk in X]).T + np.array(list(R.values())) * rng.standard_normal(
-        (n, 3))
+    Y = np.column_stack([p.measure(xk, ch)[0] for xk in X]).T + np.array(
+        list(R.values())
+    ) * rng.standard_normal((n, 3))
     Y[np.arange(n) % 5 != 0, 2] = np.nan  # gyro at 100 Hz
     x0 = np.array([1.2, 0.5])  # wrong initial guess
     res = MultirateEKF(p, ch, R, x0, np.diag([0.1, 1.0]), DT, store_P="full").run(t, U, Y)
     assert not res.diverged
-    err = X - res.x_hat
     steady = slice(250, None)
     assert np.all(rms_error(X[steady], res.x_hat[steady]) < [5e-3, 0.1])
     # errors are of the size the filter claims (a single run's NEES average scatters widely: the omega error
@@ -536,8 +541,11 @@ def test_zoh_torque_noise_matches_truth_covariance():
 def test_fft_peaks_and_stats():
     fs = 500.0
     t = np.arange(4000) / fs
-    s = np.sin(2 * np.pi * 12.34 * t) + 0.5 * np.sin(2 * np.pi * 47.9 * t + 1) + 0.01 * np.random.default_rng(0
-                                                                                                 ).standard_normal(4000)
+    s = (
+        np.sin(2 * np.pi * 12.34 * t)
+        + 0.5 * np.sin(2 * np.pi * 47.9 * t + 1)
+        + 0.01 * np.random.default_rng(0).standard_normal(4000)
+    )
     f = fft_peaks(t, s, fmax=100, n_peaks=2)
     np.testing.assert_allclose(f, [12.34, 47.9], rtol=2e-3)
     f2, a2 = fft_peaks(t, s, fmax=100, n_peaks=2, return_amplitudes=True)
@@ -576,6 +584,8 @@ def test_per_update_overhead_26_states(capsys):
     lean = _per_update_us("numpy", model, ch, R)
     ref = _per_update_us("filterpy", model, ch, R)
     with capsys.disabled():
-        print(f"\n26-state per-update (predict+update, linear model step): numpy {lean:.1f} us, "
-              f"filterpy {ref:.1f} us")
+        print(
+            f"\n26-state per-update (predict+update, linear model step): numpy {lean:.1f} us, "
+            f"filterpy {ref:.1f} us"
+        )
     assert lean < 1000.0  # sanity only: wall-clock figures on a shared machine are not a test criterion

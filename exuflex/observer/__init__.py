@@ -13,12 +13,12 @@ from .ekf import EstimationResult, MultirateEKF, NISMonitor
 
 __all__ = [
     "DiscreteModel",
+    "EstimationResult",
     "FilterDivergedError",
     "LinearDiscreteModel",
     "MultirateEKF",
-    "EstimationResult",
     "NISMonitor",
-    "steady_state_covariance",
     "bound_rms",
     "linearise",
+    "steady_state_covariance",
 ]

@@ -13,14 +13,14 @@ near that operating point.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.linalg import expm, solve_discrete_are
 
 from .base import DiscreteModel
 
-__all__ = ["steady_state_covariance", "bound_rms", "linearise", "van_loan"]
+__all__ = ["bound_rms", "linearise", "steady_state_covariance", "van_loan"]
 
 
 def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -34,8 +34,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import lapack
@@ -43,7 +43,7 @@ from scipy.stats import chi2
 
 from .base import DiscreteModel, FilterDivergedError
 
-__all__ = ["MultirateEKF", "EstimationResult", "NISMonitor"]
+__all__ = ["EstimationResult", "MultirateEKF", "NISMonitor"]
 
 log = logging.getLogger(__name__)
 
@@ -378,6 +378,12 @@ class MultirateEKF:
                 np.fill_diagonal(P, np.where(low, self.p_floor, d))
         return P
 
+    def _settle_P(self) -> np.ndarray:
+        P = self._P = self._fix_P(self._P)
+        if self._kf is not None:
+            self._kf.x, self._kf.P = self._x, P
+        return P
+
     def _predict(self, u) -> None:
         x = self._x
         x_next, F = self.model.step(x, u, self.dt)
@@ -426,9 +432,10 @@ class MultirateEKF:
             K = sol[:, :nx].T
             nis = float(r @ sol[:, nx])
             x = x + K @ r
-            IKH = self._I - K @ H
-            P = (IKH @ P) @ IKH.T
-            P += (K * Rd) @ K.T
+            # Joseph form (I - K H) P (I - K H)' + K R K', factored without nx^3 products:
+            # with A = (I - K H) P = P - K (H P) it equals A - (A H' - K R) K' (valid for any gain K)
+            A = P - K @ HP
+            P = A - (A @ H.T - K * Rd) @ K.T
         else:
             kf = self._kf
             kf.update(y, HJacobian=lambda _x: H, Hx=lambda _x: y_pred, R=R)
@@ -486,14 +493,16 @@ class MultirateEKF:
         t = float(t)
         if self._t_prev is not None:
             k = (t - self._t_prev) / self.dt
-            n = int(round(k))
+            n = round(k)
             if n < 1 or abs(k - n) > self.time_tol * max(1.0, k):
                 raise ValueError(
                     f"sample time {t!r} is not a positive multiple of dt={self.dt} after {self._t_prev!r}"
                 )
             if not self.nonfinite:
-                for _ in range(n):
+                for i in range(n):
                     self._predict(self._u_prev)
+                    if i < n - 1:  # a skipped sample: settle P exactly as for an all-NaN sample
+                        self._settle_P()
             self.n_missing += n - 1
         self._t_prev = t
         self._u_prev = None if u is None else np.array(u, dtype=float)
@@ -520,10 +529,7 @@ class MultirateEKF:
                 else:
                     self.n_missing += 1
 
-        P = self._fix_P(self._P)
-        self._P = P
-        if self._kf is not None:
-            self._kf.x, self._kf.P = self._x, P
+        P = self._settle_P()
         # a NaN or inf anywhere makes a sum non-finite (finite overflow to inf is flagged too, harmlessly)
         if not math.isfinite(self._x.sum() + P.sum()):
             self._flag_divergence(t, "non-finite state or covariance")

@@ -18,16 +18,16 @@ import numpy as np
 from scipy.stats import chi2
 
 __all__ = [
-    "nees",
-    "nis",
-    "chi2_band",
     "ConsistencyCheck",
-    "mc_consistency",
-    "rms_error",
-    "max_error",
+    "chi2_band",
     "eq21_stats",
     "fft_peaks",
     "match_peaks",
+    "max_error",
+    "mc_consistency",
+    "nees",
+    "nis",
+    "rms_error",
 ]
 
 

@@ -32,8 +32,8 @@ wide range of ``s``; check ``QScaleResult.history`` before trusting the factor.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import brentq
@@ -42,12 +42,12 @@ from .base import DiscreteModel
 from .bound import van_loan
 
 __all__ = [
-    "zoh_torque_noise",
+    "QScaleResult",
+    "ScaledNoiseModel",
     "continuous_torque_noise",
     "input_jacobian",
-    "ScaledNoiseModel",
-    "QScaleResult",
     "tune_q_scale",
+    "zoh_torque_noise",
 ]
 
 log = logging.getLogger(__name__)
