@@ -25,38 +25,41 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
 
-matplotlib.use("Agg")
+if "matplotlib.pyplot" not in sys.modules:  # never switch the backend of a session already using pyplot
+    matplotlib.use("Agg")
 
-import numpy as np  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-from .erls.kinematics import Kinematics, KinematicsError  # noqa: E402
-from .sensors import Signals, tip_dof_names, tip_point  # noqa: E402
+from .erls.kinematics import Kinematics, KinematicsError
+from .sensors import Signals, tip_dof_names, tip_point
 
 __all__ = [
-    "TRUTH_COLOUR",
     "ESTIMATE_COLOUR",
-    "observer_figures",
-    "trajectory_figure",
-    "torques_figure",
-    "measurements_figure",
-    "joint_states_figure",
+    "TRUTH_COLOUR",
+    "animate_manoeuvre",
+    "clean_torques",
+    "fft_figure",
     "joint_errors_figure",
+    "joint_states_figure",
+    "measurements_figure",
+    "modes_figure",
+    "nis_figure",
+    "observer_figures",
+    "payload_study_figure",
+    "spectrum",
     "tip_displacement_figure",
     "tip_errors_figure",
-    "fft_figure",
-    "nis_figure",
-    "payload_study_figure",
-    "animate_manoeuvre",
-    "modes_figure",
     "tip_path",
-    "spectrum",
+    "torques_figure",
+    "trajectory_figure",
 ]
 
 log = logging.getLogger(__name__)
@@ -67,7 +70,6 @@ MEASURED_COLOUR = "0.55"
 BOUND_COLOUR = "tab:green"
 DPI = 110
 
-_UNIT_BY_PREFIX = {"rad": "rad", "rad/s": "rad/s", "m": "m", "m/s": "m/s"}
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -350,7 +352,7 @@ def _state_grid(names: Sequence[str], truth: Signals | None, estimate: Signals, 
                 rms = float(np.sqrt(np.mean(ef**2)))
                 ax.text(0.01, 0.97, f"RMS {rms:.3g} {unit}" + (f" (bound {b:.3g})" if b else ""),
                         transform=ax.transAxes, va="top", fontsize=7,
-                        bbox=dict(fc="white", ec="none", alpha=0.7))
+                        bbox={"fc": "white", "ec": "none", "alpha": 0.7})
                 lim = 1.3 * max(np.max(np.abs(ef)), 3 * b if b else 0.0)
                 if lim > 0:
                     ax.set_ylim(-lim, lim)
@@ -436,7 +438,7 @@ def spectrum(t, x, pad: int = 4) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float = 180.0, n_peaks: int = 4,
-               start: float = 0.0) -> Path:
+               start: float = 0.0, peak_floor: float = 0.05) -> Path:
     """FFT magnitude of the true and estimated tip elastic displacements over 0-``fmax`` Hz, strongest peaks
     marked (the paper's Fig. 10).
 
@@ -449,7 +451,10 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
     fmax : float
         Upper frequency shown (Hz); the paper's reduced model is tuned for 0-180 Hz.
     n_peaks : int
-        Peaks marked per curve (by :func:`exuflex.observer.stats.fft_peaks`).
+        Peaks marked per curve (by :func:`exuflex.observer.stats.fft_peaks`), searched above
+        ``max(5 Hz, 4 / record length)`` (below that is the manoeuvre's own rigid-motion content).
+    peak_floor : float
+        Peaks weaker than this fraction of the curve's strongest peak are not marked.
     start : float
         Samples before ``t0 + start`` are left out (e.g. the filter's start-up).
 
@@ -478,11 +483,15 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
                 continue
             band = f <= fmax
             ax.plot(f[band], a[band], color=col, lw=lw, label=lab)
+            span = float(ts[ok][-1] - ts[ok][0])
+            fmin = max(5.0, 4.0 / span) if span > 0 else 5.0  # leave the manoeuvre's own low-frequency content
             try:
                 fp, ap = fft_peaks(np.linspace(ts[ok][0], ts[ok][-1], ok.sum()), xs[ok], fmax=fmax,
-                                   n_peaks=n_peaks, fmin=1.0, return_amplitudes=True)
+                                   n_peaks=n_peaks, fmin=fmin, return_amplitudes=True)
             except ValueError:
                 fp, ap = np.zeros(0), np.zeros(0)
+            keep = ap >= peak_floor * (ap.max() if ap.size else 0.0)
+            fp, ap = fp[keep], ap[keep]
             marker = "v" if lab == "Simulator" else "^"
             ax.plot(fp, ap, marker, color=col, ms=6, mfc="none", ls="none")
             for f0, a0 in zip(fp, ap, strict=True):
@@ -530,7 +539,7 @@ def nis_figure(result, path, window: int = 50, confidence: float = 0.95, start_u
     if ok.any():
         _shade_start_up(ax, t[0], start_up)
         tt, vv, dd = t[ok], v[ok], d[ok]
-        lo, hi = chi2_band(dd, 1, confidence)
+        _lo, hi = chi2_band(dd, 1, confidence)
         ax.plot(tt, vv, ".", color=MEASURED_COLOUR, ms=1.5, label="NIS per update")
         ax.plot(tt, hi, color=MEASURED_COLOUR, lw=0.6, ls=":", label=f"{confidence:.0%} band per update")
         w = int(min(max(window, 1), len(vv)))
@@ -781,10 +790,10 @@ def animate_manoeuvre(mech, truth: Signals, estimate: Signals | None, path, magn
     def frames_of(sig: Signals, on_truth: bool):
         if on_truth:
             Q = sig.select(qn).data[idx]
-            get = lambda n: sig[n][idx]  # noqa: E731
+            get = lambda n: sig[n][idx]
         else:
             Q = np.column_stack([_on(tf, sig, n) for n in qn])
-            get = lambda n: _on(tf, sig, n)  # noqa: E731
+            get = lambda n: _on(tf, sig, n)
         full = model is not None and _full_elastic(model, sig)
         U = np.column_stack([get(n) for n in model.dofs.names]) if full else None
         E = None
@@ -907,7 +916,7 @@ def _write_movie(frames: list[np.ndarray], path: Path, fps: int) -> Path:
         # one palette (from the first and last frames) for all: fast, and no palette flicker
         ref = Image.fromarray(np.vstack([frames[0], frames[-1]])).quantize(colors=64, method=Image.Quantize.MEDIANCUT)
         ims = [Image.fromarray(f).quantize(palette=ref, dither=Image.Dither.NONE) for f in frames]
-        ims[0].save(tmp, format="GIF", save_all=True, append_images=ims[1:], duration=int(round(1000 / fps)),
+        ims[0].save(tmp, format="GIF", save_all=True, append_images=ims[1:], duration=round(1000 / fps),
                     loop=0, optimize=False)
     os.replace(tmp, path)
     return path
