@@ -91,3 +91,20 @@ def test_sixbar_matches_table2():
     print(f"RMS deviation {rms:.2f} %")
     assert rms <= 7.0
 
+
+
+def test_paper_reference_data():
+    """Package data: every entry names its source; Table 2 is complete; the reduced frequencies follow eq. 17."""
+    ref = paper_reference()
+    for key, entry in ref.items():
+        if key.startswith("_"):
+            continue
+        entries = entry.values() if key == "exuflex_reference" else [entry]
+        assert all("source" in e for e in entries), key
+    t2 = ref["table2_reduced_model_accuracy"]
+    assert len(t2["frequencies_hz"]) == len(t2["nco"]) == len(t2["frequency_error_pct"]) == 6
+    err = 100 * np.abs(np.array(t2["reduced_frequencies_hz"]) / t2["frequencies_hz"] - 1)
+    np.testing.assert_allclose(err, t2["frequency_error_pct"], atol=1e-3)
+    assert ref["model_sizes"]["full"]["ndof"] == 30 and ref["table3_noise_std"]["values"]["T2"] == 0.4
+    ref["model_sizes"]["full"]["ndof"] = 0  # callers get a copy
+    assert paper_reference()["model_sizes"]["full"]["ndof"] == 30
