@@ -21,7 +21,7 @@ def props(draw):
     """(EA, EI, L, rho A, angle) of a solid circular rod of realistic material and size."""
     E, rho = draw(st.floats(1e9, 3e11)), draw(st.floats(1e3, 2e4))
     d, L = draw(st.floats(1e-3, 0.1)), draw(st.floats(1e-2, 2.0))
-    A, I = np.pi * d**2 / 4, np.pi * d**4 / 64  # noqa: E741
+    A, I = np.pi * d**2 / 4, np.pi * d**4 / 64
     return E * A, E * I, L, rho * A, draw(st.floats(-np.pi, np.pi))
 
 
@@ -74,8 +74,8 @@ def test_curvature_row_is_exact_on_cubics(xi):
     """For v(s) = a + b s + c s^2 + d s^3 the row gives v''(xi L) exactly."""
     L = 0.37
     a, b, c, d = 0.1, -0.3, 0.7, 1.9
-    v = lambda s: a + b * s + c * s**2 + d * s**3  # noqa: E731
-    dv = lambda s: b + 2 * c * s + 3 * d * s**2  # noqa: E731
+    v = lambda s: a + b * s + c * s**2 + d * s**3
+    dv = lambda s: b + 2 * c * s + 3 * d * s**2
     dofs = np.array([0.0, v(0), dv(0), 0.0, v(L), dv(L)])
     assert hermite_curvature_row(L, xi) @ dofs == pytest.approx(2 * c + 6 * d * xi * L, rel=1e-12)
 

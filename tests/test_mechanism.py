@@ -102,6 +102,17 @@ CASES = [
     ("single_link", "links.0.n_elements", 2.5, "links[0].n_elements", "an integer"),
     ("single_link", "links.0.stations", [0.0, 0.6, 0.4, 1.0], "links[0].n_elements", "either stations or n_elements"),
     ("fourbar", "coordinates", [], "coordinates", "at least one ERLS coordinate"),
+    ("fourbar", "joints.1.points", "A", "joints[1].points", "a list of points"),
+    ("fourbar", "joints.1.points", [{"link": "crank", "station": 0.15}], "joints[1].points", "at least two link points"),
+    ("fourbar", "manoeuvre.rules", "q1", "manoeuvre.rules", "a list of rules"),
+    ("fourbar", "manoeuvre.rules", ["q1"], "manoeuvre.rules[0]", "an inline table"),
+    ("fourbar", "manoeuvre.rules", [], "manoeuvre.rules", "one rule per ERLS coordinate"),
+    ("fourbar", "manoeuvre.time_law", "sine", "manoeuvre.time_law", "one of"),
+    ("fourbar", "sensors.2.relative_to", "crank", "sensors[2].relative_to", "a link at joint 'B'"),
+    ("fourbar", "reduction.q_star", [1.0, 2.0], "reduction.q_star", "list of 1 numbers"),
+    ("fourbar", "reduction.n_interior", -2, "reduction.n_interior", "non-negative integer"),
+    ("fourbar", "links.0.material", "steel", "links[0].material", "a material name"),
+    ("fourbar", "materials.0.rho", 2.7, "materials[0].rho", "kg/m^3"),
     ("fourbar", "links.1.A", 1e-4, "links[1].A", "either diameter or A and I"),
 ]
 
@@ -116,9 +127,9 @@ def test_bad_field_is_named(model, path, value, field, expected):
 def test_disconnected_link():
     """A link joined only to another link that never reaches the ground."""
     doc = _doc("fourbar")
-    doc["links"].append(dict(name="stray", length=0.2, material="aluminium", diameter=0.01, n_elements=1))
-    doc["links"].append(dict(name="stray2", length=0.2, material="aluminium", diameter=0.01, n_elements=1))
-    doc["joints"].append(dict(name="S", points=[dict(link="stray", station=0.2), dict(link="stray2", station=0.0)]))
+    doc["links"].append({"name": "stray", "length": 0.2, "material": "aluminium", "diameter": 0.01, "n_elements": 1})
+    doc["links"].append({"name": "stray2", "length": 0.2, "material": "aluminium", "diameter": 0.01, "n_elements": 1})
+    doc["joints"].append({"name": "S", "points": [{"link": "stray", "station": 0.2}, {"link": "stray2", "station": 0.0}]})
     with pytest.raises(ModelFileError, match=r"^loose\.toml: joints: expected .*not connected: \['stray', 'stray2'\]"):
         parse_mechanism(doc, "loose.toml")
 
@@ -134,7 +145,7 @@ def test_unsorted_stations():
 def test_mobility_mismatch():
     """A second coordinate on the one-dof four-bar."""
     doc = _doc("fourbar")
-    doc["coordinates"].append(dict(name="q2", link="rocker", joint="O4"))
+    doc["coordinates"].append({"name": "q2", "link": "rocker", "joint": "O4"})
     doc["model"]["q_ref"] = [1.57, 1.97]
     doc.pop("manoeuvre")
     doc["reduction"].pop("q_star")
@@ -145,7 +156,7 @@ def test_mobility_mismatch():
 def test_no_ground():
     doc = _doc("single_link")
     doc["joints"][0].pop("ground")
-    doc["joints"][0]["points"].append(dict(link="arm", station=1.0))
+    doc["joints"][0]["points"].append({"link": "arm", "station": 1.0})
     doc.pop("motors")
     with pytest.raises(ModelFileError, match=r"^g\.toml: joints"):
         parse_mechanism(doc, "g.toml")

@@ -20,7 +20,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["add_parser", "run", "modes_report"]
+__all__ = ["add_parser", "modes_report", "run"]
 
 
 def _floats(text: str) -> list[float]:
@@ -106,10 +106,10 @@ def _table(rep: dict) -> str:
     exu = rep.get("exudyn", {}).get("frequencies_hz")
     red = rep.get("reduced")
     lines = [
-        f"{rep['model']} ({rep['source']}) at q = [{', '.join(f'{v:.4f}' for v in rep['q'])}], "
-        f"motors {'locked' if rep['locked'] else 'free'}",
-        f"full-order ERLS model: {rep['full']['ndof']} dofs ({rep['full']['n_elastic']} elastic), "
-        f"{len(full)} modes <= {rep['fmax_hz']:g} Hz",
+        (f"{rep['model']} ({rep['source']}) at q = [{', '.join(f'{v:.4f}' for v in rep['q'])}], "
+        f"motors {'locked' if rep['locked'] else 'free'}"),
+        (f"full-order ERLS model: {rep['full']['ndof']} dofs ({rep['full']['n_elastic']} elastic), "
+        f"{len(full)} modes <= {rep['fmax_hz']:g} Hz"),
     ]
     if red is not None:
         lines.append(f"reduced model: {red.get('ndof')} dofs, masters {red.get('masters')}, "

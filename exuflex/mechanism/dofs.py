@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from .spec import Mechanism
 
-__all__ = ["ElasticDofs", "elastic_dofs", "COMPONENTS"]
+__all__ = ["COMPONENTS", "ElasticDofs", "elastic_dofs"]
 
 COMPONENTS = ("x", "y", "theta")
 

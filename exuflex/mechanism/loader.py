@@ -53,7 +53,7 @@ class _Reader:
         self.used: set[str] = set()
 
     def _f(self, key: str) -> str:
-        return f"{self.path}.{key}" if self.path else key
+        return f"{self.path}.{key}" if self.path and key else (self.path or key)
 
     def err(self, key: str, expected: str, got: Any = None, has_got: bool = True) -> ModelFileError:
         return ModelFileError(self.source, self._f(key), expected, got, has_got=has_got)
@@ -165,7 +165,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
 
     materials: dict[str, Material] = {}
     for r in root.table_list("materials"):
-        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=1.0, hi=3e4, unit="kg/m^3"))
+        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=30.0, hi=3e4, unit="kg/m^3"))
         if m.name in materials:
             raise r.err("name", "a unique material name", m.name)
         materials[m.name] = m
@@ -195,7 +195,10 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
     joints: list[Joint] = []
     for r in root.table_list("joints"):
         pts = []
-        for i, p in enumerate(r.raw("points")if r.has("points") else r.raw("points")):
+        raw_points = r.raw("points")
+        if not isinstance(raw_points, list):
+            raise r.err("points", "a list of points [{link = ..., station = ...}, ...]", raw_points)
+        for i, p in enumerate(raw_points):
             if not isinstance(p, dict):
                 raise r.err(f"points[{i}]", "an inline table {link = ..., station = ...}", p)
             pr = _Reader(source, p, f"{r.path}.points[{i}]")
@@ -390,7 +393,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             if not (r.has("A") and r.has("I")):
                 raise r.err("diameter", "a diameter (m) or both A (m^2) and I (m^4)", has_got=False)
             A = r.num("A", positive=True, unit="m^2")
-            I = r.num("I", positive=True, unit="m^4")  # noqa: E741
+            I = r.num("I", positive=True, unit="m^4")
             if A >= length**2:
                 raise r.err("A", f"an area (m^2) much smaller than length^2 = {length**2:g}", A)
             h = r.num("height", None, positive=True, unit="m")
@@ -444,7 +447,10 @@ def _parse_manoeuvre(root: _Reader, link_by, coord_names, point) -> Manoeuvre | 
     if law == "trapezoid" and not 0 < ramp <= duration / 2:
         raise r.err("ramp_time", f"a ramp time in (0, duration/2 = {duration / 2:g}] s", ramp)
     rules = []
-    for i, rule in enumerate(r.raw("rules", [])):
+    raw_rules = r.raw("rules", [])
+    if not isinstance(raw_rules, list):
+        raise r.err("rules", "a list of rules [{coordinate = ..., start = ..., end = ...}, ...]", raw_rules)
+    for i, rule in enumerate(raw_rules):
         rr = _Reader(r.source, rule if isinstance(rule, dict) else {}, f"{r.path}.rules[{i}]")
         if not isinstance(rule, dict):
             raise rr.err("", "an inline table {coordinate, start, end}", rule)

@@ -20,19 +20,19 @@ import dataclasses
 from dataclasses import dataclass, field
 
 __all__ = [
-    "Material",
-    "Section",
+    "Coordinate",
+    "Damping",
+    "Joint",
     "Link",
     "LinkPoint",
-    "Joint",
-    "Coordinate",
-    "Motor",
     "LumpedMass",
-    "Sensor",
-    "Damping",
     "Manoeuvre",
-    "ReductionSpec",
+    "Material",
     "Mechanism",
+    "Motor",
+    "ReductionSpec",
+    "Section",
+    "Sensor",
 ]
 
 
@@ -48,7 +48,7 @@ class Section:
     """Cross-section: area A (m^2) and second moment I (m^4); ``diameter`` if circular."""
 
     A: float
-    I: float  # noqa: E741 - the conventional name
+    I: float
     diameter: float | None = None  # outer diameter of a solid circle (used for gauges, m)
     height: float | None = None  # distance from neutral axis to the surface * 2 (m)
 
