@@ -196,6 +196,36 @@ class ErlsModel:
         h[:nq] += S_th.T @ (gV - gT)
         return h
 
+    def velocity_force_jacobian(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """dh/dv (n x n) of :meth:`velocity_forces`, exact (h is a quadratic form in v)."""
+        nq = self.nq
+        qd = v[:nq]
+        W = cfg.W
+        S_th = cfg.pose.Sz[2::3][self.el_link]  # (n_el, nq)
+        th_d = S_th @ qd
+        R = cfg.R
+        Rt = np.swapaxes(R, 1, 2)
+        bd = W @ v
+        RGR = R @ self.Gl @ Rt  # (n_el, 6, 6) dM_N/dtheta_e in global form
+        ye = np.einsum("eij,ej->ei", RGR, bd[self.el_dofs])  # (n_el, 6)
+        Md = self._assemble(RGR * th_d[:, None, None])  # M_N'
+        dfdv = Md @ W
+        _, Sd = self.kin.rates(cfg.pose, qd)
+        Y = np.zeros((self.N, nq))
+        for j in range(nq):
+            e = np.zeros(nq)
+            e[j] = 1.0
+            _, Sdj = self.kin.rates(cfg.pose, e)
+            Y[:, j] = cfg.M_N @ (Sdj @ qd + Sd @ e)
+            Y[:, j] += np.bincount(self._el_flat, (ye * S_th[:, j][:, None]).reshape(-1), minlength=self.N)
+        dfdv[:, :nq] += Y
+        Jh = W.T @ dfdv
+        # q rows: -d(gT)/dv, gT_e = 1/2 bd_e' (R Gl R') bd_e
+        Yall = np.zeros((self.n_el, self.N))
+        Yall[np.arange(self.n_el)[:, None], self.el_dofs] = ye
+        Jh[:nq] -= S_th.T @ (Yall @ W)
+        return Jh
+
     # ------------------------------------------------------------------ dynamics
     def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):
         F = cfg.W.T @ (self.B_N @ tau + cfg.M_N @ self.g_N)

@@ -80,7 +80,8 @@ class ReducedObserverModel:
     q_extra : optional (nx,) diagonal added to Q per interval (unmodelled dynamics).
     """
 
-    def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None):
+    def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None,
+                 midpoint: bool = False, gyro: bool = False):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in ("frozen", "rk4"):
@@ -93,6 +94,8 @@ class ReducedObserverModel:
         self.nx = 2 * reduced.r
         self.h = float(h)
         self.method = method
+        self.midpoint = midpoint
+        self.gyro = gyro
         sig = [m.noise_std for m in self.mech.motors] if torque_std is None else list(torque_std)
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
@@ -106,13 +109,13 @@ class ReducedObserverModel:
     def _interval(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Interval, np.ndarray]:
         r, nq = self.r, self.nq
         p, pd = z[:r], z[r:]
-        mats = self.rm.matrices(p[:nq])
+        mats = self.rm.matrices(p + (0.5 * dt) * pd if self.midpoint else p, pd, gyro=self.gyro)
         self.n_evaluations += 1
         Minv = np.linalg.inv(mats.Mr)
         A = np.zeros((self.nx, self.nx))
         A[:r, r:] = np.eye(r)
         A[r:, :r] = -Minv @ mats.Kr
-        A[r:, r:] = -Minv @ mats.Cr
+        A[r:, r:] = -Minv @ mats.Cr if mats.Gv is None else Minv @ (mats.Gv - mats.Cr)
         hA = self.h * A
         hA2 = hA @ hA
         hA3 = hA2 @ hA
@@ -127,8 +130,8 @@ class ReducedObserverModel:
         L = SQ[:, r:] @ (Minv @ mats.Gr)
         pose = mats.rc.cfg.pose
         iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy())
-        hv = self.rm.velocity_forces(mats, p, pd)
-        b_acc = Minv @ (mats.Gr @ u + mats.fr0 - hv)
+        f0 = mats.fr if mats.Gv is None else mats.fr - mats.Gv @ pd
+        b_acc = Minv @ (mats.Gr @ u + f0)
         return iv, Pn @ z + SQ[:, r:] @ b_acc
 
     def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -316,3 +316,73 @@ def _mid_q(mech: Mechanism) -> np.ndarray:
 
 def with_channels(config: ObserverConfig, channels) -> ObserverConfig:
     return replace(config, channels=tuple(channels))
+
+
+# ------------------------------------------------------------------------------------------ runs
+@dataclass
+class Outcome:
+    """The observer run on one log, with everything a result file records."""
+
+    estimate: Estimate
+    metrics: dict | None
+    bound: dict | None
+    summary: dict
+
+
+def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
+                observer: Observer | None = None) -> Outcome:
+    """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth."""
+    config = config or ObserverConfig()
+    obs = observer or make_observer(mech, config)
+    S = run.sensors
+    motors = run.motors or mech.motor_names
+    missing = [c for c in (*motors, *obs.channels) if c not in S]
+    if missing:
+        raise KeyError(f"{run.path}: sensors.csv has no channel(s) {missing}; it has {list(S.names)}")
+    U = S.select(motors).data
+    Y = S.select(obs.channels).data
+    if np.any(~np.isfinite(U)):
+        # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
+        U = _hold(U)
+    est = estimate(obs, S.t, U, Y)
+    met = metrics(est.physical, run.truth, config.start_up) if run.truth is not None else None
+    bnd = estimation_bound(obs) if with_bound else None
+    res = est.result
+    summary = {
+        "model": mech.name,
+        "model_file": mech.source,
+        "run": str(run.path),
+        "channels": list(obs.channels),
+        "reduced_ndof": obs.info["reduced_ndof"],
+        "config": config.as_dict(),
+        "nis_mean": res.mean_nis()[0],
+        "nis_expected": res.mean_nis()[1],
+        "n_updates": res.n_updates,
+        "n_missing": res.n_missing,
+        "diverged": res.diverged,
+        "diverged_at": res.diverged_at,
+        "wall_s": est.wall_s,
+        "real_time_factor": est.real_time_factor,
+        "basis_s": obs.basis_s,
+    }
+    if met is not None:
+        summary.update(met)
+    if bnd is not None:
+        summary["bound_rms"] = bnd
+        if met is not None:
+            summary["ratio_to_bound"] = {k: met["rms_error"][k] / bnd[k] for k in met["rms_error"] if bnd.get(k)}
+    return Outcome(est, met, bnd, summary)
+
+
+def _hold(U: np.ndarray) -> np.ndarray:
+    U = U.copy()
+    for j in range(U.shape[1]):
+        col = U[:, j]
+        ok = np.isfinite(col)
+        if not ok.any():
+            raise ValueError(f"torque column {j} has no finite sample")
+        idx = np.where(ok, np.arange(len(col)), 0)
+        np.maximum.accumulate(idx, out=idx)
+        col[:] = col[idx]
+        col[: np.argmax(ok)] = col[np.argmax(ok)]
+    return U

@@ -58,6 +58,8 @@ class ReducedConfiguration:
     B: np.ndarray  # (s, n_m_elastic) Guyan shapes of the elastic masters
     Psi: np.ndarray  # (s, k) rotated interior modes
     H: np.ndarray  # (n, r)
+    Kuu: np.ndarray | None = None  # (ne, ne) elastic stiffness at q
+    Kss_lu: tuple | None = None  # LU factors of the slave stiffness block
 
     @property
     def q(self) -> np.ndarray:
@@ -214,6 +216,11 @@ class CraigBampton:
         s_, m_ = self.is_, self.im
         return -np.linalg.solve(Kuu[np.ix_(s_, s_)], Kuu[np.ix_(s_, m_)])
 
+    def _guyan_lu(self, Kuu: np.ndarray):
+        s_, m_ = self.is_, self.im
+        lu = sla.lu_factor(Kuu[np.ix_(s_, s_)], check_finite=False)
+        return -sla.lu_solve(lu, Kuu[np.ix_(s_, m_)], check_finite=False), lu
+
     def rotation(self, cfg: Configuration) -> np.ndarray:
         """R(q, q*) as a (ne, ne) matrix acting on global-frame elastic displacement vectors."""
         ne = self.model.ne
@@ -240,7 +247,7 @@ class CraigBampton:
         nq, ne = self.nq, self.model.ne
         T = self.model.T
         Kuu = T.T @ cfg.K_N @ T
-        B = self._guyan(Kuu)
+        B, lu = self._guyan_lu(Kuu)
         Psi = self.rotated_modes(cfg)
         H = np.zeros((nq + ne, self.r))
         H[:nq, :nq] = np.eye(nq)
@@ -248,7 +255,61 @@ class CraigBampton:
         H[nq + self.im, nq : nq + me] = np.eye(me)
         H[nq + self.is_, nq : nq + me] = B
         H[nq + self.is_, nq + me :] = Psi
-        return ReducedConfiguration(cfg, B, Psi, H)
+        return ReducedConfiguration(cfg, B, Psi, H, Kuu, lu)
+
+    def basis_derivative(self, rc: ReducedConfiguration, V: np.ndarray) -> np.ndarray:
+        """``d(H(q) v)/dq`` for each column ``v`` of ``V`` (r, k): array (k, n, nq), exact.
+
+        Only the slave rows depend on q: ``d(B u_m)/dq_i = -K_ss^-1 (dK_uu/dq_i w)_s`` with ``w`` the Guyan
+        field ``[u_m; B u_m]`` (``dK_N/dtheta_e = R (G K - K G) R^T`` per element), and
+        ``d(Psi eta)/dq_i = G2 (Psi eta)`` per node pair, times ``d theta_node / dq_i``.
+        """
+        model = self.model
+        cfg = rc.cfg
+        nq, ne, me = self.nq, model.ne, len(self.im)
+        V = np.atleast_2d(np.asarray(V, float).T).T
+        k = V.shape[1]
+        T = model.T
+        # Guyan fields w (ne, k)
+        W = np.zeros((ne, k))
+        W[self.im] = V[nq : nq + me]
+        W[self.is_] = rc.B @ V[nq : nq + me]
+        d = T @ W  # nodal (N, k)
+        R = cfg.R
+        Rt = np.swapaxes(R, 1, 2)
+        dl = np.einsum("eij,ejk->eik", Rt, d[model.el_dofs])  # (n_el, 6, k)
+        ye = np.einsum("eij,ejk->eik", R, np.einsum("eij,ejk->eik", model.KGl, dl))  # (n_el, 6, k)
+        S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
+        N = model.N
+        rhs = np.empty((len(self.is_), k * nq))
+        for i in range(nq):
+            contrib = ye * S_th[:, i][:, None, None]  # (n_el, 6, k)
+            f = np.zeros((N, k))
+            np.add.at(f, model.el_dofs, contrib)
+            rhs[:, i * k : (i + 1) * k] = (T.T @ f)[self.is_]
+        dB = -sla.lu_solve(rc.Kss_lu, rhs, check_finite=False)  # (s, k*nq)
+        out = np.zeros((k, nq + ne, nq))
+        for i in range(nq):
+            out[:, nq + self.is_, i] = dB[:, i * k : (i + 1) * k].T
+        # rotated interior modes
+        if self.n_interior:
+            dth = cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+            c, s_ = np.cos(dth)[:, None], np.sin(dth)[:, None]
+            Wu = self._Phi_u @ V[nq + me :]  # (ne, k) unrotated
+            X, Y = Wu[self._px], Wu[self._py]
+            RX, RY = c * X - s_ * Y, s_ * X + c * Y  # rotated
+            Sn = cfg.pose.S[2::3][self._pnode]  # (n_pairs, nq) d theta_node / dq
+            slave_pos = -np.ones(ne, int)
+            slave_pos[self.is_] = np.arange(len(self.is_))
+            gx, gy = -RY, RX  # G2 applied
+            for i in range(nq):
+                dx = gx * Sn[:, i][:, None]
+                dy = gy * Sn[:, i][:, None]
+                ux = np.zeros((ne, k))
+                ux[self._px] = dx
+                ux[self._py] = dy
+                out[:, nq + self.is_, i] += ux[self.is_].T
+        return out
 
     @property
     def names(self) -> tuple[str, ...]:
