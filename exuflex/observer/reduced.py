@@ -66,6 +66,7 @@ class _Interval:
     L: np.ndarray  # (nx, n_motors) response to a unit torque held over the interval
     Sz_theta: np.ndarray  # (n_links, nq) link-angle sensitivity at q0
     theta0: np.ndarray  # link angles at q0
+    serial: int = 0  # identifies the interval in the measurement-row cache
 
 
 class ReducedObserverModel:
@@ -101,6 +102,7 @@ class ReducedObserverModel:
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
         self._last: _Interval | None = None
         self._channel_cache: dict = {}
+        self._serial = 0
         self.link_names = [lk.name for lk in self.mech.links]
         self.sensors = {s.name: s for s in self.mech.sensors}
         self.n_evaluations = 0
@@ -129,7 +131,8 @@ class ReducedObserverModel:
         SQ = Sn @ Qm
         L = SQ[:, r:] @ (Minv @ mats.Gr)
         pose = mats.rc.cfg.pose
-        iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy())
+        self._serial += 1
+        iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy(), self._serial)
         f0 = mats.fr if mats.Gv is None else mats.fr - mats.Gv @ pd
         b_acc = Minv @ (mats.Gr @ u + f0)
         return iv, Pn @ z + SQ[:, r:] @ b_acc
@@ -163,12 +166,12 @@ class ReducedObserverModel:
     # ------------------------------------------------------------------ measurements
     def _rows(self, iv: _Interval, channel: str):
         """(rigid link angle combination or point, row in p) for a channel, cached per interval."""
-        key = (id(iv), channel)
+        key = (iv.serial, channel)
         hit = self._channel_cache.get(key)
         if hit is not None:
             return hit
         if len(self._channel_cache) > 64:
-            self._channel_cache.clear()
+            self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] == iv.serial}
         s = self.sensors.get(channel)
         if s is None:
             raise KeyError(
