@@ -147,7 +147,8 @@ def simulate_truth(
     ----------
     mech : Mechanism
     t_table : (n_t,) increasing times (s); torque_table : (n_t, n_motors) torques (N m), motors in
-        ``mech.motors`` order, linearly interpolated (held constant outside the table).
+        ``mech.motors`` order, linearly interpolated at the step times ``t_k = k h`` (held constant
+        outside the table) and held over each step ``[t_k, t_k+1]`` (zero-order hold, as the ERLS engine).
     duration : simulated time (s).
     h : time step of the implicit generalized-alpha integrator (s); 1e-4 resolves the 0-200 Hz band.
     output_dt : recording interval (s, a multiple of ``h``); ``None`` records every step.
@@ -167,9 +168,14 @@ def simulate_truth(
 
     Notes
     -----
-    Torques are set once per step by a pre-step user function (value at the step's end time, where
-    the implicit integrator balances forces; Exudyn passes that end time to the function), so the C++ solver runs without Python calls inside
-    Newton iterations. The same function records the state and refreshes the damper.
+    Torques are set once per step by a pre-step user function, so the C++ solver runs without Python
+    calls inside Newton iterations. Exudyn calls it with the step's *end* time ``t_k+1`` while the
+    state is still the one at ``t_k``; the function records that state at ``t_k`` (so the record
+    starts at ``t = 0`` and holds every ``output_dt``, the final state is recorded after the solve)
+    and applies the table torque at ``t_k`` over the step ``[t_k, t_k+1]``: a zero-order hold at the
+    step's start, exactly as the ERLS engine (:func:`exuflex.erls.simulate.simulate`, RK4) does, so a
+    torque change at ``t_k`` moves both engines from ``t_k+1`` on. The same function refreshes the
+    damper.
     """
     exu, _ = _exu()
     if h <= 0 or duration <= 0:
@@ -217,7 +223,7 @@ def simulate_truth(
             state["i"] = i + 1
 
     def pre_step(mbs_, t):
-        # Exudyn passes the step's end time t_k+1; the current state is the one at t_k
+        # Exudyn passes the step's END time t_k+1 (verified on 1.13.6); the current state is the one at t_k
         k = round(t / h) - 1
         c = np.asarray(sd.GetODE2Coordinates(cur)) + ref
         cd = np.asarray(sd.GetODE2Coordinates_t(cur))
@@ -225,8 +231,8 @@ def simulate_truth(
             record(k * h, c, cd)
         if damped and k % upd_every == 0 and k > 0:
             tm.update_dampers(c)
-        # motor torques at the step's end time (where the implicit step balances forces)
-        mbs_.SetObjectParameter(forces, "forceVector", tm.generalized_forces(tau[min(k + 1, n_steps)], c, cd))
+        # zero-order hold, as the ERLS engine: the table value at the step's start t_k acts over [t_k, t_k+1]
+        mbs_.SetObjectParameter(forces, "forceVector", tm.generalized_forces(tau[k], c, cd))
         if progress is not None and k % rep_every == 0:
             progress(k / n_steps)
         return True
