@@ -158,6 +158,9 @@ def write_run(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # overwriting a run: mark the folder incomplete first, so an interruption cannot leave new data
+    # files beside the old meta.json (a folder with a meta.json is complete)
+    (out / META_FILE).unlink(missing_ok=True)
     meta = dict(meta)
     motors = tuple(motors or meta.get("motors", ()))
     missing = [m for m in motors if m not in sensors.names]
@@ -255,8 +258,17 @@ def _check_time(path: Path, t: np.ndarray, lines: Sequence[tuple[int, str]], col
 def _read_lines(path: Path) -> list[tuple[int, str]]:
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file")
-    with open(path, encoding="utf-8") as f:
-        return [(i + 1, ln.rstrip("\r\n")) for i, ln in enumerate(f)]
+    if path.is_dir():
+        raise LogFormatError(f"{path}: is a folder, expected a text file")
+    try:
+        with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel) is not part of 'time'
+            return [(i + 1, ln.rstrip("\r\n")) for i, ln in enumerate(f)]
+    except UnicodeDecodeError as exc:
+        raise LogFormatError(
+            f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the log as UTF-8 CSV"
+        ) from None
+    except OSError as exc:
+        raise LogFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
 
 
 def read_signals_csv(
@@ -303,14 +315,28 @@ def read_run(run_dir: str | os.PathLike) -> Run:
         )
     try:
         meta = json.loads(mp.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise LogFormatError(f"{mp}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise LogFormatError(f"{mp}: cannot be read ({exc.strerror or exc})") from None
     if not isinstance(meta, dict):
         raise LogFormatError(f"{mp}: expected a JSON object")
     for key in ("motors", "sensors"):
-        if not isinstance(meta.get(key), list):
-            raise LogFormatError(f"{mp}: field {key!r} missing or not a list of column names")
+        v = meta.get(key)
+        if not isinstance(v, list) or not all(isinstance(x, str) and x for x in v):
+            raise LogFormatError(f"{mp}: field {key!r} missing or not a list of column names, got {v!r}")
+    tr = meta.get("truth", [])
+    if tr is None:
+        tr = []
+    if not isinstance(tr, list) or not all(isinstance(x, str) and x for x in tr):
+        raise LogFormatError(f"{mp}: field 'truth' is not a list of column names, got {tr!r}")
     units = meta.get("units", {})
+    if units is None:
+        units = {}
+    if not isinstance(units, dict) or not all(isinstance(v, dict) for v in units.values()):
+        raise LogFormatError(
+            f"{mp}: field 'units' is not an object {{file: {{column: unit}}}}, got {units!r}"
+        )
     sensors = read_signals_csv(
         d / SENSORS_FILE, meta["motors"] + meta["sensors"], allow_empty=True, units=units.get(SENSORS_FILE)
     )
@@ -323,10 +349,10 @@ def read_run(run_dir: str | os.PathLike) -> Run:
             )
     truth = None
     if (d / TRUTH_FILE).exists():
-        truth = read_signals_csv(d / TRUTH_FILE, meta.get("truth", []), units=units.get(TRUTH_FILE))
-    elif meta.get("truth"):
+        truth = read_signals_csv(d / TRUTH_FILE, tr, units=units.get(TRUTH_FILE))
+    elif tr:
         raise FileNotFoundError(
-            f"{d / TRUTH_FILE}: missing, but {META_FILE} lists truth columns {meta['truth']}"
+            f"{d / TRUTH_FILE}: missing, but {META_FILE} lists truth columns {tr}"
         )
     return Run(d, sensors, truth, meta)
 
@@ -359,6 +385,10 @@ def read_csv_log(
         Empty cells read as NaN (not sampled) instead of an error.
     """
     path = Path(path)
+    if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)) or not (
+        math.isfinite(time_scale) and time_scale > 0
+    ):
+        raise ValueError(f"read_csv_log: time_scale must be a positive number, got {time_scale!r}")
     lines = [(n, s) for n, s in _read_lines(path) if s.strip() and not s.lstrip().startswith(comment)]
     if not lines:
         raise LogFormatError(f"{path}: empty file (expected a header row and data rows)")

@@ -29,6 +29,12 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line(exc: BaseException) -> str:
+    """The message of an expected error on one line (a long message keeps its first 2000 characters)."""
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    return msg if len(msg) <= 2000 else msg[:2000] + " ..."
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
@@ -40,7 +46,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except EXPECTED_ERRORS as exc:
-        print(f"exuflex {args.command}: error: {exc}", file=sys.stderr)
+        print(f"exuflex {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unreadable or unwritable paths (permissions, a folder given for a file, ...)
+        print(f"exuflex {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:
+        from ..observer.base import FilterDivergedError
+
+        if not isinstance(exc, FilterDivergedError):
+            raise
+        print(f"exuflex {args.command}: error: the filter diverged: {_one_line(exc)}\n"
+              "  check the log's units and channels against the model file (--debug for details)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"exuflex {args.command}: interrupted; finished results are kept", file=sys.stderr)
