@@ -1,0 +1,34 @@
+"""Model-mismatch studies (truth with changed parameters, nominal observer) and their aggregation."""
+
+from .overrides import OverrideError, apply_overrides, parse_set, parse_value
+from .runner import (
+    FORMAT,
+    Level,
+    LevelTruth,
+    StudyResult,
+    StudySpec,
+    figure_rows,
+    make_executor,
+    payload_levels,
+    run_study,
+    simulate_level,
+    sweep_levels,
+)
+
+__all__ = [
+    "FORMAT",
+    "Level",
+    "LevelTruth",
+    "OverrideError",
+    "StudyResult",
+    "StudySpec",
+    "apply_overrides",
+    "figure_rows",
+    "make_executor",
+    "parse_set",
+    "parse_value",
+    "payload_levels",
+    "run_study",
+    "simulate_level",
+    "sweep_levels",
+]

@@ -1,0 +1,230 @@
+"""Parameter overrides on a :class:`~exuflex.mechanism.Mechanism`: ``"links.L1.diameter" = 0.031``.
+
+A field path names a model-file field the way the TOML spells it:
+
+- top-level scalars: ``sample_rate_hz``, ``gravity``;
+- tables: ``payload.mass``, ``payload.inertia``, ``damping.alpha``, ``damping.beta``, ``manoeuvre.duration``,
+  ``reduction.n_interior``;
+- named entries of an array of tables: ``links.L1.diameter``, ``sensors.c1.noise_std``, ``motors.T1.noise_std``,
+  ``joints.O.ground``, ``coordinates.q1.offset``; lumped masses by node id: ``masses.12.mass``;
+- materials by name: ``materials.aluminium.E`` (changes every link of that material).
+
+Link fields as written in a model file: ``length`` (keeps the stations' fractions), ``diameter`` (solid circle:
+A and I recomputed), ``A``, ``I``, ``E``, ``rho`` (this link's material only), ``material`` (a material's name).
+Values keep the field's type (numbers, tuples for lists). Every error names the field path, what exists, and
+what was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from ..mechanism import Mechanism
+
+__all__ = ["OverrideError", "apply_overrides", "parse_set", "parse_value"]
+
+
+class OverrideError(ValueError):
+    """A parameter override names an unknown field or gives a value of the wrong kind."""
+
+
+# arrays of tables addressed by an entry's name (or, for masses, the node id)
+_NAMED = {"links": "name", "joints": "name", "coordinates": "name", "motors": "name", "sensors": "name",
+          "masses": "node"}
+_TABLES = ("payload", "damping", "manoeuvre", "reduction")
+
+
+def parse_value(text: str) -> Any:
+    """``"0.031"`` -> 0.031, ``"5"`` -> 5, ``"[1,2]"`` -> (1.0, 2.0), ``"none"`` -> None, else the string."""
+    s = text.strip()
+    if s.lower() in ("none", "null"):
+        return None
+    if s.lower() in ("true", "false"):
+        return s.lower() == "true"
+    if s.startswith("[") and s.endswith("]"):
+        inner = s[1:-1].strip()
+        return tuple(parse_value(x) for x in inner.split(";" if ";" in inner else ",")) if inner else ()
+    try:
+        return int(s)
+    except ValueError:
+        pass
+    try:
+        return float(s)
+    except ValueError:
+        return s
+
+
+def _split_values(text: str) -> list[str]:
+    """Split ``"1,2,[3;4]"`` at top-level commas (brackets may hold a list; use ``;`` inside them)."""
+    out, depth, cur = [], 0, ""
+    for ch in text:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth -= 1
+        if ch == "," and depth == 0:
+            out.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    out.append(cur)
+    return [v for v in (x.strip() for x in out) if v]
+
+
+def parse_set(spec: str) -> tuple[str, list[Any]]:
+    """``"links.L1.diameter=0.03,0.031"`` -> ``("links.L1.diameter", [0.03, 0.031])``."""
+    if "=" not in spec:
+        raise OverrideError(f"--set {spec!r}: expected FIELD=V1,V2,... (e.g. links.L1.diameter=0.03,0.031)")
+    field, _, values = spec.partition("=")
+    field = field.strip()
+    vals = [parse_value(v) for v in _split_values(values)]
+    if not field or not vals:
+        raise OverrideError(f"--set {spec!r}: expected FIELD=V1,V2,... with at least one value")
+    return field, vals
+
+
+def _coerce(path: str, old: Any, value: Any) -> Any:
+    """Give ``value`` the kind of ``old`` (a number for a number, a tuple of numbers for a tuple)."""
+    if isinstance(old, bool):
+        if not isinstance(value, bool):
+            raise OverrideError(f"{path}: expected true or false, got {value!r}")
+        return value
+    if isinstance(old, (int, float)) or (old is None and isinstance(value, (int, float))):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise OverrideError(f"{path}: expected a number, got {value!r}")
+        if isinstance(old, int) and not isinstance(old, bool) and isinstance(value, float):
+            if not value.is_integer():
+                raise OverrideError(f"{path}: expected an integer, got {value!r}")
+            return int(value)
+        return float(value) if isinstance(old, float) else value
+    if isinstance(old, tuple):
+        if not isinstance(value, tuple):
+            value = (value,)
+        if old and len(value) != len(old):
+            raise OverrideError(f"{path}: expected {len(old)} values, got {len(value)}: {value!r}")
+        return tuple(_coerce(f"{path}[{i}]", o, v) for i, (o, v) in enumerate(zip(old, value, strict=False))) \
+            if old else value
+    if isinstance(old, str) or old is None:
+        return value
+    raise OverrideError(f"{path}: a {type(old).__name__} cannot be overridden; set its fields (e.g. {path}.mass)")
+
+
+def _fields(obj) -> list[str]:
+    return [f.name for f in dataclasses.fields(obj)]
+
+
+def _set_field(path: str, obj, name: str, value: Any):
+    if not dataclasses.is_dataclass(obj) or name not in _fields(obj):
+        raise OverrideError(f"{path}: no field {name!r}; {type(obj).__name__} has {_fields(obj)}")
+    return dataclasses.replace(obj, **{name: _coerce(path, getattr(obj, name), value)})
+
+
+def _positive(path: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise OverrideError(f"{path}: expected a positive number, got {value!r}")
+    return float(value)
+
+
+def _set_link(path: str, link, name: str, value: Any, mech: Mechanism):
+    sec = link.section
+    if name == "diameter":
+        d = _positive(path, value)
+        sec = dataclasses.replace(sec, diameter=d, A=math.pi * d**2 / 4, I=math.pi * d**4 / 64,
+                                  height=d if sec.height is not None else None)
+        return dataclasses.replace(link, section=sec)
+    if name in ("A", "I"):
+        v = _positive(path, value)
+        return dataclasses.replace(link, section=dataclasses.replace(sec, **{name: v}, diameter=None))
+    if name in ("E", "rho"):
+        v = _positive(path, value)
+        return dataclasses.replace(link, material=dataclasses.replace(link.material, **{name: v}))
+    if name == "material":
+        mats = {lk.material.name: lk.material for lk in mech.links}
+        if value not in mats:
+            raise OverrideError(f"{path}: no material {value!r}; the model has {sorted(mats)}")
+        return dataclasses.replace(link, material=mats[value])
+    if name == "length":
+        L = _positive(path, value)
+        f = L / link.length
+        return dataclasses.replace(link, length=L, stations=tuple(s * f for s in link.stations))
+    if name in ("name", "stations", "node_ids", "section"):
+        raise OverrideError(f"{path}: {name!r} is structural and cannot be overridden in a study")
+    if name != "angle_guess":
+        raise OverrideError(f"{path}: no link field {name!r}; a link has "
+                            "['length', 'diameter', 'A', 'I', 'E', 'rho', 'material', 'angle_guess']")
+    return _set_field(path, link, name, value)
+
+
+def _override_one(mech: Mechanism, path: str, value: Any) -> Mechanism:
+    parts = path.split(".")
+    if any(not p for p in parts):
+        raise OverrideError(f"{path!r}: empty part in the field path (expected e.g. links.L1.diameter)")
+    head = parts[0]
+    if head in _NAMED:
+        if len(parts) != 3:
+            raise OverrideError(f"{path}: expected {head}.<{_NAMED[head]}>.<field>")
+        key, name = parts[1], parts[2]
+        entries = list(getattr(mech, head))
+        attr = _NAMED[head]
+        idx = [i for i, e in enumerate(entries) if str(getattr(e, attr)) == key]
+        if head == "masses" and not idx and mech.payload is not None and str(mech.payload.node) == key:
+            raise OverrideError(f"{path}: node {key} carries the payload; use payload.{name}")
+        if not idx:
+            have = [str(getattr(e, attr)) for e in entries]
+            raise OverrideError(f"{path}: no {head[:-1]} with {attr} {key!r}; the model has {have}")
+        i = idx[0]
+        old = entries[i]
+        if head == "links":
+            entries[i] = _set_link(path, old, name, value, mech)
+        else:
+            if name == attr:
+                raise OverrideError(f"{path}: {name!r} identifies the entry and cannot be overridden")
+            entries[i] = _set_field(path, old, name, value)
+        return dataclasses.replace(mech, **{head: tuple(entries)})
+    if head == "materials":
+        if len(parts) != 3:
+            raise OverrideError(f"{path}: expected materials.<name>.<E|rho>")
+        key, name = parts[1], parts[2]
+        mats = {lk.material.name for lk in mech.links}
+        if key not in mats:
+            raise OverrideError(f"{path}: no material {key!r}; the model has {sorted(mats)}")
+        if name not in ("E", "rho"):
+            raise OverrideError(f"{path}: no field {name!r}; a material has ['E', 'rho']")
+        v = _positive(path, value)
+        links = tuple(dataclasses.replace(lk, material=dataclasses.replace(lk.material, **{name: v}))
+                      if lk.material.name == key else lk for lk in mech.links)
+        return dataclasses.replace(mech, links=links)
+    if head in _TABLES:
+        sub = getattr(mech, head)
+        if sub is None:
+            raise OverrideError(f"{path}: the model has no [{head}] table")
+        if len(parts) != 2:
+            raise OverrideError(f"{path}: expected {head}.<field>; [{head}] has {_fields(sub)}")
+        name = parts[1]
+        if head == "payload" and name in ("mass", "inertia") and value is not None:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                raise OverrideError(f"{path}: expected a non-negative number, got {value!r}")
+        return dataclasses.replace(mech, **{head: _set_field(path, sub, name, value)})
+    if len(parts) == 1:
+        if head in ("links", "joints", "name", "source", "coordinates", "motors", "sensors", "masses"):
+            raise OverrideError(f"{path}: structural field; name an entry's field, e.g. links.L1.diameter")
+        return _set_field(path, mech, head, value)
+    top = [f for f in _fields(Mechanism) if f not in ("name", "source", "description")]
+    raise OverrideError(f"{path}: unknown field {head!r}; the model has {top + ['materials']}")
+
+
+def apply_overrides(mech: Mechanism, overrides: Mapping[str, Any] | Iterable[tuple[str, Any]]) -> Mechanism:
+    """A copy of ``mech`` with each ``field path -> value`` applied in order (see the module docstring).
+
+    Raises
+    ------
+    OverrideError
+        Naming the field path, what the model has there and what was expected.
+    """
+    items = overrides.items() if isinstance(overrides, Mapping) else overrides
+    for path, value in items:
+        mech = _override_one(mech, str(path).strip(), value)
+    return mech

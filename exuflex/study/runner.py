@@ -1,0 +1,691 @@
+"""Model-mismatch studies: the truth with changed parameters, the observer with the nominal model.
+
+A study is a list of *levels* (a payload scale and/or parameter overrides applied to the truth only) and
+``runs`` noise realisations per level. For each level the truth (manoeuvre, computed torque from the
+*nominal* model, truth simulation with the changed parameters) is simulated once and cached on disk; each
+run then draws seeded Table-3 noise on it (:func:`exuflex.measure.measure`, ``seed = base_seed + run``) and
+runs the nominal observer. Per run: mean, standard deviation (eq. 21's per-run terms), RMS and maximum of the
+absolute error of every estimated quantity after ``start_up``, NIS, divergence, wall time. Per level: the
+paper's eq. 21 statistics mu and sigma (the run averages of those per-run terms, over the non-diverged runs).
+
+Layout of the output folder (everything written atomically; a study restarted with the same arguments skips
+every finished run and every cached truth):
+
+- ``truth/<level key>/truth.npz`` and ``level.json``: the cached truth of a level;
+- ``runs/<level key>/run_NNNN.json``: one finished run (with the hash of all settings that determine it);
+- ``results.csv`` (one row per run), ``summary.json`` (eq. 21 per level, settings, model and its sha256,
+  seeds, package versions, wall time), and the figure (``fig_payload.png`` / ``fig_sweep.png``).
+
+Execution goes through a :class:`concurrent.futures.Executor`: in-process (``workers=1``), a
+``ProcessPoolExecutor`` (``workers > 1``) or a Dask cluster (``scheduler="tcp://..."``). Workers get all their
+data in the task (no shared file system needed) and build the observer once per process.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import dataclasses
+import datetime as _dt
+import hashlib
+import io
+import json
+import logging
+import math
+import os
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..mechanism import Mechanism, load_mechanism
+from ..observer.session import ObserverConfig
+from ..runs import atomic_write_text, file_sha256, package_versions
+from ..sensors import Signals
+from .overrides import apply_overrides
+
+__all__ = [
+    "FORMAT",
+    "Level",
+    "LevelTruth",
+    "StudySpec",
+    "StudyResult",
+    "make_executor",
+    "payload_levels",
+    "run_study",
+    "sweep_levels",
+]
+
+log = logging.getLogger(__name__)
+
+FORMAT = "exuflex-study/1"
+TIP_QUANTITIES = ("x25", "y26", "dx25", "dy26")
+
+
+# ------------------------------------------------------------------------------------------ spec
+@dataclass(frozen=True)
+class Level:
+    """One mismatch level: what the truth changes (the observer keeps the nominal model).
+
+    label : shown in tables; value : the x-axis value (payload increase in %, or the swept value);
+    overrides : ``(field path, value)`` pairs (:func:`exuflex.study.overrides.apply_overrides`);
+    payload_scale : multiplies the truth's tip payload (after the overrides).
+    """
+
+    label: str
+    value: Any
+    overrides: tuple[tuple[str, Any], ...] = ()
+    payload_scale: float = 1.0
+
+    def as_dict(self) -> dict:
+        return {"label": self.label, "value": self.value, "overrides": [list(o) for o in self.overrides],
+                "payload_scale": self.payload_scale}
+
+
+def payload_levels(increases_pct: Sequence[float]) -> tuple[Level, ...]:
+    """Levels of the paper's Fig. 11: payload increase in % over nominal (scale ``1 + pct / 100``)."""
+    out = []
+    for p in increases_pct:
+        p = float(p)
+        if not 1 + p / 100 > 0:
+            raise ValueError(f"payload increase {p} % leaves no payload (scale {1 + p / 100})")
+        out.append(Level(f"{p:+g} %", p, (), 1.0 + p / 100.0))
+    return tuple(out)
+
+
+def sweep_levels(sets: Sequence[tuple[str, Sequence[Any]]]) -> tuple[Level, ...]:
+    """Levels of a sweep: one ``(field, values)`` gives one level per value; several fields are combined as a
+    full grid (every combination), the first field varying slowest."""
+    if not sets:
+        raise ValueError("a sweep needs at least one --set FIELD=V1,V2,...")
+    combos: list[tuple[tuple[str, Any], ...]] = [()]
+    for fld, vals in sets:
+        combos = [c + ((fld, v),) for c in combos for v in vals]
+    out = []
+    for c in combos:
+        label = ", ".join(f"{f}={v}" for f, v in c)
+        value = c[0][1] if len(c) == 1 else label
+        out.append(Level(label, value, c, 1.0))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """Everything that determines a study's numbers (recorded in ``summary.json``)."""
+
+    model: str
+    levels: tuple[Level, ...]
+    runs: int = 100
+    base_seed: int = 0
+    engine: str = "exudyn"
+    duration: float | None = None  # None: the manoeuvre's
+    h: float = 1e-4
+    start_up: float | None = None  # None: min(observer.start_up, duration / 4)
+    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    kind: str = "payload"
+
+    def settings(self, duration: float, start_up: float) -> dict:
+        return {
+            "kind": self.kind,
+            "runs_per_level": self.runs,
+            "base_seed": self.base_seed,
+            "seeds": f"base_seed + run index ({self.base_seed} .. {self.base_seed + self.runs - 1}), same per level",
+            "engine": self.engine,
+            "duration_s": duration,
+            "h_s": self.h,
+            "start_up_s": start_up,
+            "observer": self.observer.as_dict(),
+            "computed_torque_model": "rigid ERLS, nominal model (the controller's knowledge)",
+            "observer_model": "nominal model",
+        }
+
+
+# ------------------------------------------------------------------------------------------ level truth
+@dataclass
+class LevelTruth:
+    """The truth of a level: clean sensor channels and true states, and the torques as the measurement
+    sees them (``torque_t``, ``torques``: the zero-order-hold table)."""
+
+    clean: Signals
+    truth: Signals
+    torque_t: np.ndarray
+    torques: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+
+def _hash(obj: Any, n: int = 12) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:n]
+
+
+def _sig_arrays(prefix: str, s: Signals) -> dict:
+    return {f"{prefix}_t": s.t, f"{prefix}_data": s.data, f"{prefix}_names": np.array(s.names, dtype=str),
+            f"{prefix}_units": np.array(s.units or ("",) * len(s.names), dtype=str)}
+
+
+def _sig_from(z, prefix: str) -> Signals:
+    return Signals(np.asarray(z[f"{prefix}_t"]), tuple(str(x) for x in z[f"{prefix}_names"]),
+                   np.asarray(z[f"{prefix}_data"]), tuple(str(x) for x in z[f"{prefix}_units"]))
+
+
+def _save_truth(path: Path, lt: LevelTruth) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, torque_t=lt.torque_t, torques=lt.torques, **_sig_arrays("clean", lt.clean),
+             **_sig_arrays("truth", lt.truth))
+    fd, tmp = tempfile.mkstemp(prefix=".truth.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buf.getvalue())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _load_truth(path: Path, timings: dict) -> LevelTruth:
+    with np.load(path) as z:
+        return LevelTruth(_sig_from(z, "clean"), _sig_from(z, "truth"), np.asarray(z["torque_t"]),
+                          np.asarray(z["torques"]), timings)
+
+
+def _hold_on_grid(lt: LevelTruth, rate: float, t_end: float) -> LevelTruth:
+    """The torque table reduced to the measurement grid (the values :func:`measure` would read): keeps tasks
+    small; ``measure`` gives bit-identical results on it."""
+    k0 = int(np.ceil(lt.clean.t[0] * rate - 1e-6))
+    t = np.arange(k0, int(np.floor(t_end * rate + 1e-6)) + 1) / rate
+    tt = lt.torque_t
+    dt_tab = np.min(np.diff(tt)) if len(tt) > 1 else 1.0
+    i = np.clip(np.searchsorted(tt, t + 1e-6 * dt_tab, side="right") - 1, 0, len(tt) - 1)
+    return LevelTruth(lt.clean, lt.truth, t, lt.torques[i], lt.timings)
+
+
+def simulate_level(nominal: Mechanism, truth_mech: Mechanism, engine: str, duration: float, h: float) -> LevelTruth:
+    """Plan the manoeuvre and the computed torque on the *nominal* model, simulate ``truth_mech`` under it."""
+    from ..manoeuvre import computed_torque, plan
+    from ..sensors import monotonic_record, sensor_channels, true_states
+
+    timings = {}
+    t0 = time.perf_counter()
+    pl = plan(nominal, dt=h, t_end=duration)
+    tau = computed_torque(nominal, pl)
+    timings["plan_and_torque_s"] = time.perf_counter() - t0
+    output_dt = 1.0 / truth_mech.sample_rate_hz
+    t0 = time.perf_counter()
+    if engine == "exudyn":
+        from ..groundtruth import simulate_truth
+
+        record = simulate_truth(truth_mech, pl.t, tau, duration, h=h, output_dt=output_dt, q0=pl.q[0])
+    elif engine == "erls":
+        from ..cli.simulate import _erls_truth
+
+        record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], None)
+    else:
+        raise ValueError(f"engine must be 'exudyn' or 'erls', got {engine!r}")
+    timings["truth_s"] = time.perf_counter() - t0
+    record = monotonic_record(record)
+    return LevelTruth(sensor_channels(truth_mech, record), true_states(truth_mech, record),
+                      np.asarray(pl.t, float), np.asarray(tau, float), timings)
+
+
+# ------------------------------------------------------------------------------------------ one run
+@dataclass(frozen=True)
+class RunTask:
+    level_index: int
+    level_key: str
+    run: int
+    seed: int
+    run_hash: str
+    observer_key: str
+    nominal: Mechanism
+    truth_mech: Mechanism
+    level_truth: LevelTruth
+    config: ObserverConfig
+    start_up: float
+    duration: float
+
+
+_OBSERVERS: dict[str, Any] = {}
+OBSERVER_RUNS = 0  # runs filtered in this process (tests count recomputations with it)
+
+
+def _observer(key: str, mech: Mechanism, config: ObserverConfig):
+    from ..observer.session import make_observer
+
+    obs = _OBSERVERS.get(key)
+    if obs is None:
+        _OBSERVERS.clear()
+        obs = _OBSERVERS[key] = make_observer(mech, config)
+    return obs
+
+
+def _reset_observer(obs) -> None:
+    """Restart the filter from its prior. Also drops the reduced model's per-interval cache: it outlives
+    ``ekf.reset()`` and would linearise the first update at the previous run's last configuration."""
+    obs.ekf.reset()
+    model = obs.model
+    if hasattr(model, "_last"):
+        model._last = None
+    cache = getattr(model, "_channel_cache", None)
+    if isinstance(cache, dict):
+        cache.clear()
+
+
+def _abs_error_stats(est: Signals, truth: Signals, start_up: float) -> dict:
+    from ..observer.stats import eq21_stats
+
+    sel = est.t >= est.t[0] + start_up
+    out = {"mean_abs": {}, "std_abs": {}, "rms": {}, "max": {}}
+    for n in est.names:
+        if n not in truth:
+            continue
+        tr = np.interp(est.t[sel], truth.t, truth[n])
+        e = est[n][sel]
+        ok = np.isfinite(e)
+        if ok.sum() < 2 or not ok.all():
+            for k in out:
+                out[k][n] = float("nan")
+            continue
+        mu, sg = eq21_stats(tr[None, :], e[None, :])
+        d = e - tr
+        out["mean_abs"][n], out["std_abs"][n] = mu, sg
+        out["rms"][n] = float(np.sqrt(np.mean(d**2)))
+        out["max"][n] = float(np.max(np.abs(d)))
+    return out
+
+
+def run_one(task: RunTask) -> dict:
+    """One noise realisation on a level's truth, filtered by the nominal observer (runs in a worker)."""
+    global OBSERVER_RUNS
+    from ..measure import measure
+    from ..observer.session import estimate
+
+    t0 = time.perf_counter()
+    obs = _observer(task.observer_key, task.nominal, task.config)
+    lt = task.level_truth
+    meas = measure(task.truth_mech, lt.clean, lt.torque_t, lt.torques, seed=task.seed, t_end=task.duration)
+    S = meas.signals
+    U = S.select(task.nominal.motor_names).data
+    Y = S.select(obs.channels).data
+    _reset_observer(obs)
+    est = estimate(obs, S.t, U, Y)
+    OBSERVER_RUNS += 1
+    res = est.result
+    nis_mean, nis_exp = res.mean_nis()
+    stats = _abs_error_stats(est.physical, lt.truth, task.start_up)
+    return {
+        "level_index": task.level_index,
+        "level_key": task.level_key,
+        "run": task.run,
+        "seed": task.seed,
+        "run_hash": task.run_hash,
+        "diverged": bool(res.diverged),
+        "diverged_at": res.diverged_at,
+        "nonfinite": bool(getattr(res, "nonfinite", False)),
+        "nis_mean": float(nis_mean),
+        "nis_expected": float(nis_exp),
+        "n_samples": int(len(S.t)),
+        "filter_wall_s": float(est.wall_s),
+        "wall_s": time.perf_counter() - t0,
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+        **stats,
+    }
+
+
+# ------------------------------------------------------------------------------------------ executors
+class InlineExecutor(cf.Executor):
+    """Runs each task at submission, in this process (``workers=1``): same interface, no pickling."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        f: cf.Future = cf.Future()
+        try:
+            f.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - delivered through the future, like a pool
+            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                raise
+            f.set_exception(exc)
+        return f
+
+
+@contextlib.contextmanager
+def make_executor(workers: int = 1, scheduler: str | None = None):
+    """Yield ``(executor, max_in_flight)``: Dask if ``scheduler`` is given, else a process pool for
+    ``workers > 1``, else in-process."""
+    if scheduler:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise RuntimeError(
+                "--scheduler needs Dask's 'distributed' package: pip install 'dask[distributed]'"
+            ) from None
+        client = Client(scheduler)
+        try:
+            n = sum(client.nthreads().values()) or max(workers, 1)
+            with client.get_executor() as ex:
+                yield ex, 2 * n
+        finally:
+            client.close()
+    elif workers > 1:
+        with cf.ProcessPoolExecutor(max_workers=workers) as ex:
+            yield ex, 2 * workers
+    else:
+        yield InlineExecutor(), 1
+
+
+# ------------------------------------------------------------------------------------------ progress
+class StudyProgress:
+    """``study [######......]  12/50 runs  elapsed 31 s  ETA 1 m 38 s`` on stderr (disabled: silent)."""
+
+    def __init__(self, total: int, enabled: bool, stream=None, width: int = 28):
+        self.total, self.enabled, self.width = total, enabled, width
+        self.stream = stream or sys.stderr
+        self.done = 0
+        self.t0 = time.perf_counter()
+        self.note = ""
+
+    @staticmethod
+    def _fmt(s: float) -> str:
+        if not math.isfinite(s):
+            return "?"
+        s = int(round(s))
+        return f"{s // 3600} h {s % 3600 // 60:02d} m" if s >= 3600 else (f"{s // 60} m {s % 60:02d} s" if s >= 60
+                                                                           else f"{s} s")
+
+    def update(self, done: int | None = None, note: str | None = None) -> None:
+        if done is not None:
+            self.done = done
+        if note is not None:
+            self.note = note
+        if not self.enabled:
+            return
+        el = time.perf_counter() - self.t0
+        frac = self.done / self.total if self.total else 1.0
+        eta = el / self.done * (self.total - self.done) if self.done else float("nan")
+        n = int(self.width * frac)
+        self.stream.write(f"\rstudy [{'#' * n}{'.' * (self.width - n)}] {self.done}/{self.total} runs  "
+                          f"elapsed {self._fmt(el)}  ETA {self._fmt(eta)}  {self.note:<24s}")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# ------------------------------------------------------------------------------------------ the study
+@dataclass
+class StudyResult:
+    out: Path
+    rows: list[dict]
+    summary: dict
+    figure: Path | None
+    n_computed: int
+    n_reused: int
+
+
+def _level_mech(nominal: Mechanism, level: Level) -> Mechanism:
+    m = apply_overrides(nominal, level.overrides) if level.overrides else nominal
+    return m.with_payload_scale(level.payload_scale) if level.payload_scale != 1.0 else m
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def run_study(
+    spec: StudySpec,
+    out: str | os.PathLike,
+    *,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: bool = False,
+    on_result: Callable[[dict], None] | None = None,
+    figure: bool = True,
+) -> StudyResult:
+    """Run (or resume) a study into ``out``; returns the per-run rows and the summary.
+
+    ``on_result`` is called in this process after each finished run has been written (tests use it to
+    interrupt a study).
+    """
+    t_start = time.perf_counter()
+    out = Path(out)
+    model_path = Path(spec.model)
+    nominal = load_mechanism(model_path)
+    if spec.runs < 1:
+        raise ValueError(f"runs must be at least 1, got {spec.runs}")
+    if not spec.levels:
+        raise ValueError("a study needs at least one level")
+    if nominal.manoeuvre is None and spec.duration is None:
+        raise ValueError(f"{model_path}: no [manoeuvre] in the model; a study simulates its manoeuvre")
+    duration = float(spec.duration if spec.duration is not None else nominal.manoeuvre.duration)
+    start_up = float(spec.start_up if spec.start_up is not None else min(spec.observer.start_up, duration / 4))
+    if not 0 <= start_up < duration:
+        raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
+    model_sha = file_sha256(model_path)
+    truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
+    settings = spec.settings(duration, start_up)
+    obs_key = _hash({"model": model_sha, "observer": spec.observer.as_dict()})
+    keys, hashes = [], []
+    for i, lv in enumerate(spec.levels):
+        truth_def = {"model": model_sha, "level": lv.as_dict(), "engine": spec.engine, "duration": duration,
+                     "h": spec.h}
+        keys.append(f"L{i:02d}-{_hash(truth_def, 10)}")
+        hashes.append(_hash({"truth": truth_def, "observer": obs_key, "start_up": start_up}))
+    for sub in ("truth", "runs"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "study.json", json.dumps(
+        {"format": FORMAT, "model": str(model_path.resolve()), "model_sha256": model_sha, "settings": settings,
+         "levels": [dict(lv.as_dict(), key=k) for lv, k in zip(spec.levels, keys, strict=True)]},
+        indent=1, default=str) + "\n")
+
+    # what is done already
+    done: dict[tuple[int, int], dict] = {}
+    pending: dict[int, list[int]] = {}
+    for i, key in enumerate(keys):
+        d = out / "runs" / key
+        d.mkdir(parents=True, exist_ok=True)
+        for j in range(spec.runs):
+            r = _read_json(d / f"run_{j:04d}.json")
+            if r is not None and r.get("run_hash") == hashes[i] and r.get("seed") == spec.base_seed + j:
+                done[(i, j)] = r
+            else:
+                pending.setdefault(i, []).append(j)
+    n_reused = len(done)
+    if n_reused:
+        log.info("%s: %d finished run(s) found, %d to do", out, n_reused, sum(map(len, pending.values())))
+    bar = StudyProgress(sum(map(len, pending.values())), progress)
+    timings: dict[str, dict] = {}
+    n_new = 0
+
+    def level_truth_file(i: int) -> Path:
+        return out / "truth" / keys[i] / "truth.npz"
+
+    with make_executor(workers, scheduler) as (ex, max_in_flight):
+        queue: list[RunTask] = []
+        in_flight: dict[cf.Future, tuple[str, Any]] = {}
+        bar.update(0, "simulating truth" if pending else "")
+
+        def enqueue_runs(i: int, lt: LevelTruth) -> None:
+            small = _hold_on_grid(lt, nominal.sample_rate_hz, duration)
+            for j in pending.get(i, []):
+                queue.append(RunTask(i, keys[i], j, spec.base_seed + j, hashes[i], obs_key, nominal, truth_mechs[i],
+                                     small, spec.observer, start_up, duration))
+
+        # truths: cached ones are loaded, the others simulated through the executor (in parallel with runs)
+        truth_jobs = []
+        for i in sorted(pending):
+            f = level_truth_file(i)
+            meta = _read_json(f.parent / "level.json")
+            if f.exists() and meta is not None and meta.get("key") == keys[i]:
+                timings[keys[i]] = meta.get("timings", {})
+                enqueue_runs(i, _load_truth(f, timings[keys[i]]))
+            else:
+                truth_jobs.append(i)
+        for i in truth_jobs:
+            fut = ex.submit(simulate_level, nominal, truth_mechs[i], spec.engine, duration, spec.h)
+            in_flight[fut] = ("truth", i)
+            if isinstance(ex, InlineExecutor):
+                break  # in-process: simulate one level, run it, then the next
+        waiting_truth = [i for i in truth_jobs if ("truth", i) not in in_flight.values()]
+
+        def fill() -> None:
+            while queue and sum(1 for v in in_flight.values() if v[0] == "run") < max_in_flight:
+                task = queue.pop(0)
+                in_flight[ex.submit(run_one, task)] = ("run", task)
+
+        fill()
+        while in_flight:
+            finished, _ = cf.wait(list(in_flight), return_when=cf.FIRST_COMPLETED)
+            for fut in finished:
+                kind, what = in_flight.pop(fut)
+                if kind == "truth":
+                    i = what
+                    lt = fut.result()  # a failed truth simulation stops the study (finished runs are kept)
+                    f = level_truth_file(i)
+                    f.parent.mkdir(parents=True, exist_ok=True)
+                    _save_truth(f, lt)
+                    timings[keys[i]] = lt.timings
+                    atomic_write_text(f.parent / "level.json", json.dumps(
+                        {"key": keys[i], "level": spec.levels[i].as_dict(), "engine": spec.engine,
+                         "duration_s": duration, "h_s": spec.h, "model_sha256": model_sha, "timings": lt.timings,
+                         "versions": package_versions()}, indent=1, default=str) + "\n")
+                    log.info("truth of level %s simulated in %.1f s", spec.levels[i].label,
+                             lt.timings.get("truth_s", float("nan")))
+                    enqueue_runs(i, lt)
+                else:
+                    r = fut.result()
+                    atomic_write_text(out / "runs" / r["level_key"] / f"run_{r['run']:04d}.json",
+                                      json.dumps(r, indent=1, default=float) + "\n")
+                    done[(r["level_index"], r["run"])] = r
+                    n_new += 1
+                    bar.update(n_new, f"level {spec.levels[r['level_index']].label}")
+                    if on_result is not None:
+                        on_result(r)
+            if waiting_truth and not any(v[0] == "truth" for v in in_flight.values()) and not queue:
+                i = waiting_truth.pop(0)
+                in_flight[ex.submit(simulate_level, nominal, truth_mechs[i], spec.engine, duration, spec.h)] = \
+                    ("truth", i)
+            fill()
+    bar.close()
+
+    rows = [done[k] for k in sorted(done)]
+    summary = _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings,
+                       time.perf_counter() - t_start, n_new, n_reused, workers, scheduler)
+    _write_results_csv(out / "results.csv", spec, rows)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
+    fig = None
+    if figure:
+        fig = _figure(out, spec, summary)
+    return StudyResult(out, rows, summary, fig, n_new, n_reused)
+
+
+# ------------------------------------------------------------------------------------------ aggregation
+def _quantities(rows: Sequence[dict]) -> list[str]:
+    for r in rows:
+        return list(r["mean_abs"])
+    return []
+
+
+def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings, wall, n_new, n_reused,
+             workers, scheduler) -> dict:
+    qs = _quantities(rows)
+    levels = []
+    for i, lv in enumerate(spec.levels):
+        rs = [r for r in rows if r["level_index"] == i]
+        good = [r for r in rs if not r["diverged"] and not r["nonfinite"]]
+        eq21 = {}
+        for q in qs:
+            mu = [r["mean_abs"][q] for r in good]
+            sg = [r["std_abs"][q] for r in good]
+            eq21[q] = {"mu": float(np.mean(mu)) if mu else float("nan"),
+                       "sigma": float(np.mean(sg)) if sg else float("nan")}
+        levels.append({
+            "index": i,
+            "key": keys[i],
+            **lv.as_dict(),
+            "n_runs": len(rs),
+            "n_diverged": sum(1 for r in rs if r["diverged"] or r["nonfinite"]),
+            "seeds": [r["seed"] for r in rs],
+            "eq21": eq21,
+            "rms_mean": {q: float(np.mean([r["rms"][q] for r in good])) if good else float("nan") for q in qs},
+            "max_mean": {q: float(np.mean([r["max"][q] for r in good])) if good else float("nan") for q in qs},
+            "nis_mean": float(np.mean([r["nis_mean"] for r in good])) if good else float("nan"),
+            "nis_expected": float(np.mean([r["nis_expected"] for r in good])) if good else float("nan"),
+            "observer_wall_s_mean": float(np.mean([r["wall_s"] for r in rs])) if rs else float("nan"),
+            "truth_timings": timings.get(keys[i], {}),
+        })
+    return {
+        "format": FORMAT,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "model": {"path": str(model_path.resolve()), "sha256": model_sha, "name": nominal.name},
+        "settings": settings,
+        "quantities": qs,
+        "eq21": "mu = mean over runs of the per-run mean |error|; sigma = mean over runs of the per-run "
+                "standard deviation (ddof 1) of |error|; samples after start_up; diverged runs left out",
+        "levels": levels,
+        "execution": {"workers": workers, "scheduler": scheduler, "runs_computed": n_new, "runs_reused": n_reused,
+                      "wall_s": wall},
+        "versions": package_versions(),
+    }
+
+
+def _write_results_csv(path: Path, spec: StudySpec, rows: Sequence[dict]) -> None:
+    qs = _quantities(rows)
+    head = ["level_index", "level", "value", "payload_scale", "run", "seed", "diverged", "nis_mean",
+            "nis_expected", "n_samples", "wall_s"]
+    for stat in ("mean_abs", "std_abs", "rms", "max"):
+        head += [f"{stat}_{q}" for q in qs]
+    lines = [",".join(head)]
+
+    def cell(v) -> str:
+        if isinstance(v, bool):
+            return str(int(v))
+        if isinstance(v, float):
+            return "" if math.isnan(v) else repr(v)
+        s = str(v)
+        return f'"{s}"' if ("," in s or '"' in s) else s
+
+    for r in rows:
+        lv = spec.levels[r["level_index"]]
+        vals = [r["level_index"], lv.label, lv.value, lv.payload_scale, r["run"], r["seed"],
+                r["diverged"] or r["nonfinite"], r["nis_mean"], r["nis_expected"], r["n_samples"], r["wall_s"]]
+        for stat in ("mean_abs", "std_abs", "rms", "max"):
+            vals += [r[stat].get(q, float("nan")) for q in qs]
+        lines.append(",".join(cell(v) for v in vals))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def figure_rows(summary: dict, quantities: Sequence[str] | None = None) -> list[dict]:
+    """Rows for :func:`exuflex.plots.payload_study_figure`: level value, quantity, mu, sigma."""
+    qs = list(quantities) if quantities else ([q for q in TIP_QUANTITIES if q in summary["quantities"]]
+                                              or summary["quantities"])
+    return [{"level": lv["value"], "quantity": q, "mu": lv["eq21"][q]["mu"], "sigma": lv["eq21"][q]["sigma"]}
+            for lv in summary["levels"] for q in qs]
+
+
+def _figure(out: Path, spec: StudySpec, summary: dict) -> Path | None:
+    try:
+        if spec.kind == "payload":
+            from ..plots import payload_study_figure
+
+            return payload_study_figure(figure_rows(summary), out / "fig_payload.png")
+        from .figures import sweep_figure
+
+        return sweep_figure(summary, out / "fig_sweep.png")
+    except Exception as exc:  # noqa: BLE001 - the numbers are written; a figure failure must not lose them
+        log.warning("study figure failed: %s: %s", type(exc).__name__, exc)
+        return None
+
+
+def replace_levels(spec: StudySpec, levels: Sequence[Level]) -> StudySpec:
+    return dataclasses.replace(spec, levels=tuple(levels))
