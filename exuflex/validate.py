@@ -102,12 +102,13 @@ def check_log(
             f"needed); the log has {list(names)}"
         )
     t = np.asarray(sensors.t, float)
+    f = float  # plain floats in messages (no np.float64(...) reprs)
     n = len(t)
     if n == 0:
         raise LogFormatError(f"{source}: no data rows (expected at least one sample)")
     if not np.all(np.isfinite(t)):
         k = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise LogFormatError(f"{source}: {_row_line(k)}: time {t[k]!r} is not a finite number")
+        raise LogFormatError(f"{source}: {_row_line(k)}: time {f(t[k])!r} is not a finite number")
     rep = LogCheck(n_samples=n, dt=dt)
     if n > 1:
         steps = np.diff(t)
@@ -115,7 +116,7 @@ def check_log(
         if len(bad):
             k = int(bad[0]) + 1
             raise LogFormatError(
-                f"{source}: time is not strictly increasing at {_row_line(k)} ({t[k - 1]!r} then {t[k]!r})"
+                f"{source}: time is not strictly increasing at {_row_line(k)} ({f(t[k - 1])!r} then {f(t[k])!r})"
             )
         med = float(np.median(steps))
         ratio = med / dt
@@ -139,12 +140,12 @@ def check_log(
             k = int(np.flatnonzero(off)[0])
             if abs(t[0]) * np.finfo(float).eps > 1e-7 * dt:
                 raise LogFormatError(
-                    f"{source}: time stamps start at {t[0]!r} s; at that size they cannot resolve the {dt:g} s "
+                    f"{source}: time stamps start at {f(t[0])!r} s; at that size they cannot resolve the {dt:g} s "
                     "grid (epoch times?): write the time relative to the start of the log"
                 )
             raise LogFormatError(
-                f"{source}: {_row_line(k)}: time {t[k]!r} is not on the {dt:g} s grid starting at {t[0]!r} "
-                f"(expected {t[0] + kk[k] * dt!r}); resample the log to the model's sample rate"
+                f"{source}: {_row_line(k)}: time {f(t[k])!r} is not on the {dt:g} s grid starting at {f(t[0])!r} "
+                f"(expected {f(t[0] + kk[k] * dt)!r}); resample the log to the model's sample rate"
             )
         jumps = np.diff(kk).astype(np.int64)
         gaps = np.flatnonzero(jumps > 1)
@@ -155,8 +156,8 @@ def check_log(
             rep.longest_gap_s = float(t[g + 1] - t[g])
             if rep.longest_gap_s > max_gap_s:
                 raise LogFormatError(
-                    f"{source}: a gap of {rep.longest_gap_s:g} s between {_row_line(g)} (t = {t[g]!r}) and "
-                    f"{_row_line(g + 1)} (t = {t[g + 1]!r}); the observer predicts through gaps up to "
+                    f"{source}: a gap of {rep.longest_gap_s:g} s between {_row_line(g)} (t = {f(t[g])!r}) and "
+                    f"{_row_line(g + 1)} (t = {f(t[g + 1])!r}); the observer predicts through gaps up to "
                     f"{max_gap_s:g} s: split the log there"
                 )
             rep.warnings.append(
@@ -169,7 +170,7 @@ def check_log(
         col = U[:, j]
         if np.isinf(col).any():
             k = int(np.flatnonzero(np.isinf(col))[0])
-            raise LogFormatError(f"{source}: {_row_line(k)}, torque {c!r}: {col[k]!r} is not a finite number")
+            raise LogFormatError(f"{source}: {_row_line(k)}, torque {c!r}: {f(col[k])!r} is not a finite number")
         if np.isnan(col).all():
             raise LogFormatError(f"{source}: torque column {c!r} has no sample (the observer's input)")
     rep.held_torques = int(np.isnan(U).sum())
@@ -180,7 +181,7 @@ def check_log(
         if np.isinf(col).any():
             k = int(np.flatnonzero(np.isinf(col))[0])
             raise LogFormatError(
-                f"{source}: {_row_line(k)}, channel {c!r}: {col[k]!r} is not a finite number (leave the cell "
+                f"{source}: {_row_line(k)}, channel {c!r}: {f(col[k])!r} is not a finite number (leave the cell "
                 "empty for 'not sampled')"
             )
     if check_full_scale:
@@ -196,7 +197,7 @@ def check_log(
                 if len(over):
                     k = int(over[0])
                     raise LogFormatError(
-                        f"{source}: {_row_line(k)}, channel {c!r}: {col[k]!r} is outside the channel's full scale "
+                        f"{source}: {_row_line(k)}, channel {c!r}: {f(col[k])!r} is outside the channel's full scale "
                         f"+-{lim:g} (model file: full_scale); a glitch, or wrong units (degrees? mm?)"
                     )
     if channels:
