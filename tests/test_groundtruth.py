@@ -164,35 +164,32 @@ def test_record_times_start_at_zero_without_repeats(mech):
     np.testing.assert_allclose(every.t, np.arange(11) * 1e-4, rtol=0, atol=1e-12)
 
 
-def test_torque_step_moves_both_engines_at_the_same_time(mech):
-    """A torque switched on at t_s (zero-order hold at each step's start) first moves q at t_s + h in both
-    engines, and the first steps agree (regression: the torque used to be applied one step early)."""
-    h, ts, duration = 1e-4, 1e-3, 2e-3
+def test_torque_step_timing_matches_erls_zero_order_hold(mech):
+    """Torques switched on at t_on and off at t_off (ERLS: zero-order hold at each step's start): both
+    engines start moving at the switch (Exudyn's force ramps over the two steps around it) and after the
+    pulse coast with the same rigid momentum. Regression: the torque of the step's end time (seen 3.9e-6
+    rad at 0.2 s) or of its start (-3.2e-6) moves the truth h/2 early or late; the mean of the two: 3-4e-7."""
+    h, duration, t_on, t_off = 1e-4, 0.2, 0.01, 0.06
     amp = np.array([2.0, 4.0, 0.02])
-    t_tab = np.array([0.0, ts - 0.5 * h, ts - 0.4 * h, 1.0])
-    tau_tab = np.outer([0.0, 0.0, 1.0, 1.0], amp)
-    rec = simulate_truth(mech, t_tab, tau_tab, duration, h=h, output_dt=None)
+    n = round(duration / h) + 1
+    tg = np.arange(n) * h
+    tau_tab = np.outer((tg >= t_on - h / 2) & (tg < t_off - h / 2), amp)
+    rec = simulate_truth(mech, tg, tau_tab, duration, h=h, output_dt=None)
     keys = [p.key for p in probes_for(mech)[:3]]
     q_exu = np.column_stack([rec.values[k][:, 0] for k in keys])
 
     model = ErlsModel(mech)
     y0 = np.zeros(2 * model.n)
     y0[: model.nq] = mech.q_ref
-
-    def tau(t):
-        return np.array([np.interp(t, t_tab, tau_tab[:, j]) for j in range(3)])
-
-    traj = simulate(model.rhs, y0, duration, tau, h=h)
+    traj = simulate(model.rhs, y0, duration, lambda t: tau_tab[min(round(t / h), n - 1)], h=h)
     q_erls = traj.y[:, :3]
     np.testing.assert_allclose(rec.t, traj.t, atol=1e-12)
 
     def first_motion(q):
         return int(np.flatnonzero(np.max(np.abs(q - q[0]), axis=1) > 1e-12)[0])
 
-    m = round(ts / h)
-    assert first_motion(q_exu) == m + 1
-    assert first_motion(q_erls) == m + 1
-    # generalized-alpha spreads a force jump over a few steps (its acceleration variable lags: after one
-    # step it has moved about half as far as RK4's exact ZOH response); ten steps on, both agree
-    k = m + 10
-    np.testing.assert_allclose(q_exu[k] - q_exu[0], q_erls[k] - q_erls[0], rtol=0.1)  # seen 1-8 %
+    m = round(t_on / h)
+    assert first_motion(q_erls) == m + 1  # RK4 under the hold of tau_m over [t_m, t_m+1]
+    assert first_motion(q_exu) == m  # the ramp centred on t_m: a quarter of a step's impulse by t_m
+    assert np.max(np.abs(q_erls[-1] - q_erls[0])) > 5e-3  # it moved
+    np.testing.assert_allclose(q_exu[-1], q_erls[-1], atol=1.5e-6)

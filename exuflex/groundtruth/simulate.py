@@ -172,10 +172,17 @@ def simulate_truth(
     calls inside Newton iterations. Exudyn calls it with the step's *end* time ``t_k+1`` while the
     state is still the one at ``t_k``; the function records that state at ``t_k`` (so the record
     starts at ``t = 0`` and holds every ``output_dt``, the final state is recorded after the solve)
-    and applies the table torque at ``t_k`` over the step ``[t_k, t_k+1]``: a zero-order hold at the
-    step's start, exactly as the ERLS engine (:func:`exuflex.erls.simulate.simulate`, RK4) does, so a
-    torque change at ``t_k`` moves both engines from ``t_k+1`` on. The same function refreshes the
-    damper.
+    sets the torque for the step.
+
+    Torque timing: the ERLS engine (:func:`exuflex.erls.simulate.simulate`, RK4) holds the table
+    value ``tau_k`` at the step's start over ``[t_k, t_k+1]`` (zero-order hold). Generalized-alpha
+    balances forces at the step ends and, through its acceleration variable, acts as if the force
+    were linear between them. Setting ``tau_k`` at the end ``t_k+1`` would therefore lag the ERLS
+    hold by h/2 (and ``tau_k+1`` lead it by h/2): on the paper's 3 s open-loop manoeuvre either
+    makes q drift 1.2-1.3e-3 rad from the ERLS engine. The force at ``t_k+1`` is the mean
+    ``(tau_k + tau_k+1) / 2`` of the held values either side: its linear interpolation has the
+    hold's impulse over every step and no lag (drift 4.5e-5 rad). A torque switched on at ``t_k``
+    thus ramps over ``[t_k-1, t_k+1]``, centred on ``t_k``. The same function refreshes the damper.
     """
     exu, _ = _exu()
     if h <= 0 or duration <= 0:
@@ -195,6 +202,7 @@ def simulate_truth(
     nm = len(mech.motors)
     t_steps = np.arange(n_steps + 1) * h
     tau = _interp_table(t_table, torque_table, t_steps, nm) if nm else np.zeros((n_steps + 1, 0))
+    tau_end = 0.5 * (tau[:-1] + tau[1:])  # torque at the end t_k+1 of step k (see Notes)
 
     # coordinates needed by the probes (and all, if the damper needs q)
     need = sorted({int(i) for p in probes for (_, _, _, idx) in _probe_geometry(tm, p) for i in idx})
@@ -231,8 +239,9 @@ def simulate_truth(
             record(k * h, c, cd)
         if damped and k % upd_every == 0 and k > 0:
             tm.update_dampers(c)
-        # zero-order hold, as the ERLS engine: the table value at the step's start t_k acts over [t_k, t_k+1]
-        mbs_.SetObjectParameter(forces, "forceVector", tm.generalized_forces(tau[k], c, cd))
+        # the ERLS engine's zero-order hold of tau[k] over [t_k, t_k+1], as generalized-alpha sees it
+        # (forces at step ends, linear in between): the mean of the held values either side of t_k+1
+        mbs_.SetObjectParameter(forces, "forceVector", tm.generalized_forces(tau_end[k], c, cd))
         if progress is not None and k % rep_every == 0:
             progress(k / n_steps)
         return True
