@@ -174,9 +174,13 @@ def _sig_from(z, prefix: str) -> Signals:
 
 
 def _save_truth(path: Path, lt: LevelTruth) -> None:
+    _atomic_npz(path, torque_t=lt.torque_t, torques=lt.torques, **_sig_arrays("clean", lt.clean),
+                **_sig_arrays("truth", lt.truth))
+
+
+def _atomic_npz(path: Path, **arrays) -> None:
     buf = io.BytesIO()
-    np.savez(buf, torque_t=lt.torque_t, torques=lt.torques, **_sig_arrays("clean", lt.clean),
-             **_sig_arrays("truth", lt.truth))
+    np.savez(buf, **arrays)
     fd, tmp = tempfile.mkstemp(prefix=".truth.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -207,32 +211,62 @@ def _hold_on_grid(lt: LevelTruth, rate: float, t_end: float) -> LevelTruth:
     return LevelTruth(lt.clean, lt.truth, t, lt.torques[i], lt.timings)
 
 
-def simulate_level(nominal: Mechanism, truth_mech: Mechanism, engine: str, duration: float, h: float) -> LevelTruth:
-    """Plan the manoeuvre and the computed torque on the *nominal* model, simulate ``truth_mech`` under it."""
-    from ..manoeuvre import computed_torque, plan
-    from ..sensors import monotonic_record, sensor_channels, true_states
+@dataclass
+class Drive:
+    """The manoeuvre's torque table (computed torque of the *nominal* model) and initial state: the same for
+    every level, computed once per study."""
 
-    timings = {}
+    t: np.ndarray
+    tau: np.ndarray
+    q0: np.ndarray
+    qd0: np.ndarray
+    seconds: float = 0.0
+
+
+def plan_drive(nominal: Mechanism, duration: float, h: float) -> Drive:
+    """Plan the manoeuvre and its open-loop computed torque on the nominal model (the controller's knowledge)."""
+    from ..manoeuvre import computed_torque, plan
+
     t0 = time.perf_counter()
     pl = plan(nominal, dt=h, t_end=duration)
     tau = computed_torque(nominal, pl)
-    timings["plan_and_torque_s"] = time.perf_counter() - t0
+    return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
+                 np.asarray(pl.qd[0], float), time.perf_counter() - t0)
+
+
+def _cached_drive(path: Path, nominal: Mechanism, duration: float, h: float) -> Drive:
+    if path.exists():
+        try:
+            with np.load(path) as z:
+                return Drive(z["t"], z["tau"], z["q0"], z["qd0"], float(z["seconds"]))
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("%s unreadable (%s); planning again", path, exc)
+    d = plan_drive(nominal, duration, h)
+    _atomic_npz(path, t=d.t, tau=d.tau, q0=d.q0, qd0=d.qd0, seconds=d.seconds)
+    return d
+
+
+def simulate_level(truth_mech: Mechanism, drive: Drive, engine: str, duration: float, h: float) -> LevelTruth:
+    """Simulate ``truth_mech`` under the nominal model's computed torque ``drive``."""
+    from ..sensors import monotonic_record, sensor_channels, true_states
+
+    timings = {"plan_and_torque_s": drive.seconds}
     output_dt = 1.0 / truth_mech.sample_rate_hz
     t0 = time.perf_counter()
     if engine == "exudyn":
         from ..groundtruth import simulate_truth
 
-        record = simulate_truth(truth_mech, pl.t, tau, duration, h=h, output_dt=output_dt, q0=pl.q[0])
+        record = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0)
     elif engine == "erls":
         from ..cli.simulate import _erls_truth
 
-        record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], None)
+        record = _erls_truth(truth_mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, None)
     else:
         raise ValueError(f"engine must be 'exudyn' or 'erls', got {engine!r}")
     timings["truth_s"] = time.perf_counter() - t0
     record = monotonic_record(record)
-    return LevelTruth(sensor_channels(truth_mech, record), true_states(truth_mech, record),
-                      np.asarray(pl.t, float), np.asarray(tau, float), timings)
+    return LevelTruth(sensor_channels(truth_mech, record), true_states(truth_mech, record), drive.t, drive.tau,
+                      timings)
 
 
 # ------------------------------------------------------------------------------------------ one run
@@ -475,6 +509,7 @@ def run_study(
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     settings = spec.settings(duration, start_up)
     obs_key = _hash({"model": model_sha, "observer": spec.observer.as_dict()})
+    drive_key = _hash({"model": model_sha, "duration": duration, "h": spec.h}, 10)
     keys, hashes = [], []
     for i, lv in enumerate(spec.levels):
         truth_def = {"model": model_sha, "level": lv.as_dict(), "engine": spec.engine, "duration": duration,
@@ -531,8 +566,13 @@ def run_study(
                 enqueue_runs(i, _load_truth(f, timings[keys[i]]))
             else:
                 truth_jobs.append(i)
+        drive = None
+        if truth_jobs:
+            bar.update(0, "planning the manoeuvre")
+            drive = _cached_drive(out / "truth" / f"drive-{drive_key}.npz", nominal, duration, spec.h)
+            bar.update(0, "simulating truth")
         for i in truth_jobs:
-            fut = ex.submit(simulate_level, nominal, truth_mechs[i], spec.engine, duration, spec.h)
+            fut = ex.submit(simulate_level, truth_mechs[i], drive, spec.engine, duration, spec.h)
             in_flight[fut] = ("truth", i)
             if isinstance(ex, InlineExecutor):
                 break  # in-process: simulate one level, run it, then the next
@@ -573,7 +613,7 @@ def run_study(
                         on_result(r)
             if waiting_truth and not any(v[0] == "truth" for v in in_flight.values()) and not queue:
                 i = waiting_truth.pop(0)
-                in_flight[ex.submit(simulate_level, nominal, truth_mechs[i], spec.engine, duration, spec.h)] = \
+                in_flight[ex.submit(simulate_level, truth_mechs[i], drive, spec.engine, duration, spec.h)] = \
                     ("truth", i)
             fill()
     bar.close()

@@ -1,0 +1,104 @@
+"""``exuflex study payload|sweep MODEL --out DIR``: model-mismatch studies (truth changed, observer nominal).
+
+``payload``: the paper's Fig. 11 study, the truth's tip payload raised by each of ``--levels`` percent.
+``sweep``: any model-file field(s) of the truth, ``--set links.L1.diameter=0.030,0.031`` (several ``--set``
+form a grid). Each writes ``results.csv`` (one row per run), ``summary.json`` (eq. 21 mu and sigma per level
+and quantity, settings, model and sha256, seeds, versions, wall time) and a figure. A study restarted with
+the same arguments skips its finished runs and cached truths.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+__all__ = ["QUICK", "add_parser", "build_spec", "run"]
+
+QUICK = {"duration": 0.4, "runs": 3, "levels": "0,50,100"}
+DEFAULT_LEVELS = "0,25,50,75,100"
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
+    p.add_argument("--out", required=True, help="study folder (created; an existing study there is resumed)")
+    p.add_argument("--runs", type=int, default=None, help="noise realisations per level (default 100)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: in-process)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786): run there")
+    p.add_argument("--quick", action="store_true",
+                   help=f"short check: {QUICK['duration']} s, {QUICK['runs']} runs per level")
+    p.add_argument("--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default exudyn)")
+    p.add_argument("--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's")
+    p.add_argument("--seed", type=int, default=0, help="base seed; run j uses seed + j (default 0)")
+    p.add_argument("--start-up", type=float, default=None,
+                   help="seconds left out of the error statistics (default min(0.3, duration / 4))")
+    p.add_argument("--h", type=float, default=1e-4, help="truth integration step (s)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("study", help="model-mismatch studies: payload (Fig. 11) or a parameter sweep",
+                       description=__doc__.split("\n")[0])
+    ss = p.add_subparsers(dest="study_kind", required=True)
+    pp = ss.add_parser("payload", help="truth payload raised by --levels percent (the paper's Fig. 11)")
+    _common(pp)
+    pp.add_argument("--levels", default=None, help=f"payload increases in %% (default {DEFAULT_LEVELS})")
+    sp = ss.add_parser("sweep", help="truth parameter sweep: --set FIELD=V1,V2,...")
+    _common(sp)
+    sp.add_argument("--set", dest="sets", action="append", required=True, metavar="FIELD=V1,V2,...",
+                    help="a model-file field of the truth and its values, e.g. links.L1.diameter=0.03,0.031; "
+                         "repeat for a grid")
+    p.set_defaults(func=run)
+    return p
+
+
+def build_spec(args):
+    """The :class:`~exuflex.study.StudySpec` of parsed arguments (``--quick`` fills unset options)."""
+    from ..study import StudySpec, parse_set, payload_levels, sweep_levels
+
+    runs = args.runs if args.runs is not None else (QUICK["runs"] if args.quick else 100)
+    duration = args.duration if args.duration is not None else (QUICK["duration"] if args.quick else None)
+    if args.study_kind == "payload":
+        text = args.levels or (QUICK["levels"] if args.quick else DEFAULT_LEVELS)
+        try:
+            pct = [float(x) for x in text.split(",") if x.strip()]
+        except ValueError:
+            raise ValueError(f"--levels {text!r}: expected comma-separated percentages, e.g. 0,25,50") from None
+        levels = payload_levels(pct)
+    else:
+        levels = sweep_levels([parse_set(s) for s in args.sets])
+    return StudySpec(model=args.model, levels=levels, runs=runs, base_seed=args.seed, engine=args.engine,
+                     duration=duration, h=args.h, start_up=args.start_up, kind=args.study_kind)
+
+
+def print_summary(summary: dict, stream=None) -> None:
+    from ..study.runner import TIP_QUANTITIES
+
+    stream = stream or sys.stdout
+    qs = [q for q in TIP_QUANTITIES if q in summary["quantities"]] or summary["quantities"][:4]
+    print(f"{'level':>24s} {'runs':>4s} {'div':>3s} " + " ".join(f"{'mu ' + q:>10s} {'sigma':>9s}" for q in qs),
+          file=stream)
+    for lv in summary["levels"]:
+        cells = " ".join(f"{lv['eq21'][q]['mu']:10.3g} {lv['eq21'][q]['sigma']:9.3g}" for q in qs)
+        print(f"{lv['label'][:24]:>24s} {lv['n_runs']:4d} {lv['n_diverged']:3d} {cells}", file=stream)
+
+
+def run(args) -> int:
+    from ..study import OverrideError, run_study
+
+    for flag, v in (("--runs", args.runs), ("--workers", args.workers), ("--duration", args.duration)):
+        if v is not None and not v > 0:
+            print(f"exuflex study: error: {flag} must be positive, got {v}", file=sys.stderr)
+            return 2
+    try:
+        spec = build_spec(args)
+        t0 = time.perf_counter()
+        res = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler,
+                        progress=not args.no_progress and sys.stderr.isatty())
+    except (OverrideError, ValueError, RuntimeError) as exc:
+        print(f"exuflex study: error: {exc}", file=sys.stderr)
+        return 2
+    print_summary(res.summary)
+    print(f"{res.n_computed} run(s) computed, {res.n_reused} reused, {time.perf_counter() - t0:.1f} s; "
+          f"wrote {res.out}/results.csv, summary.json" + (f", {res.figure.name}" if res.figure else ""))
+    return 0
