@@ -193,3 +193,17 @@ def test_torque_step_timing_matches_erls_zero_order_hold(mech):
     assert first_motion(q_exu) == m  # the ramp centred on t_m: a quarter of a step's impulse by t_m
     assert np.max(np.abs(q_erls[-1] - q_erls[0])) > 5e-3  # it moved
     np.testing.assert_allclose(q_exu[-1], q_erls[-1], atol=1.5e-6)
+
+
+@pytest.mark.slow
+def test_manoeuvre_truth_agrees_with_erls_full_order(mech):
+    """Acceptance of the ground truth: the paper's 3 s manoeuvre under the rigid computed torques, Exudyn vs
+    the ERLS full-order engine: q within 1e-3 rad (seen 4.5e-5), tip elastic displacement x25, y26 within
+    10 % normalised RMS (seen 0.5 %, 0.4 %). About 6 min (the ERLS engine). Figure:
+    ``python benchmarks/truth_vs_erls.py --plot out.png``."""
+    from exuflex.groundtruth.crossval import truth_vs_erls
+
+    cmp, _, _ = truth_vs_erls(mech, 3.0, h=1e-4)
+    assert cmp.q_max < 1e-3, cmp.q_max_abs
+    assert set(cmp.tip_nrms) == {"x25", "y26"}
+    assert cmp.tip_nrms_max < 0.10, cmp.tip_nrms
