@@ -178,7 +178,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         v = r.raw(key, default)
         if v is None and default is None:
             return None
-        if v not in link_by:
+        if not isinstance(v, str) or v not in link_by:
             raise r.err(key, f"a link name, one of {sorted(link_by)}", v)
         return v
 
@@ -216,7 +216,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
 
     def joint_ref(r: _Reader, key: str, link: str | None = None) -> str:
         v = r.raw(key)
-        if v not in joint_by:
+        if not isinstance(v, str) or v not in joint_by:
             raise r.err(key, f"a joint name, one of {sorted(joint_by)}", v)
         if link is not None and link not in [p.link for p in joint_by[v].points]:
             raise r.err(key, f"a joint that link {link!r} takes part in", v)
@@ -380,7 +380,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
         name = r.str("name")
         length = r.num("length", positive=True, unit="m")
         mat = r.raw("material")
-        if mat not in materials:
+        if not isinstance(mat, str) or mat not in materials:
             raise r.err("material", f"a material name, one of {sorted(materials)}", mat)
         if r.has("diameter"):
             d = r.num("diameter", positive=True, unit="m")
