@@ -119,6 +119,9 @@ class ErlsModel:
         self._cols = np.tile(self.el_dofs, (1, 6)).ravel()
         self._flat = self._rows * self.N + self._cols
         self._el_flat = self.el_dofs.ravel()
+        # (N, 6 n_el) 0/1 map scattering stacked element vectors into nodal vectors
+        self.scatter = np.zeros((self.N, 6 * self.n_el))
+        self.scatter[self._el_flat, np.arange(6 * self.n_el)] = 1.0
 
     # ------------------------------------------------------------------ helpers
     def _joint_node_dof(self, joint: str, link: str, comp: int) -> int:
@@ -225,6 +228,36 @@ class ErlsModel:
         Yall[np.arange(self.n_el)[:, None], self.el_dofs] = ye
         Jh[:nq] -= S_th.T @ (Yall @ W)
         return Jh
+
+    def velocity_force_tensor(self, cfg: Configuration, J: np.ndarray) -> np.ndarray:
+        """``T[k] = J^T (dh/dv)(J e_k) J`` for a velocity map ``v = J w`` whose first ``nq`` rows are ``[I 0]``.
+
+        Since ``h`` is a quadratic form in ``v``, ``J^T h(J w) = 1/2 sum_k w_k T[k] w`` (the position-dependent
+        ``dV/dq`` term aside). Batched over all k (a few einsums instead of ``r`` Jacobian evaluations).
+        """
+        nq = self.nq
+        r = J.shape[1]
+        WJ = cfg.W @ J
+        R = cfg.R
+        RGR = R @ self.Gl @ np.swapaxes(R, 1, 2)
+        S_th = cfg.pose.Sz[2::3][self.el_link]  # (n_el, nq)
+        WJe = WJ[self.el_dofs]  # (n_el, 6, r)
+        Ye = RGR @ WJe  # (n_el, 6, r)
+        E = np.einsum("eak,eaj->ekj", WJe, Ye)  # (n_el, r, r) = WJe^T RGR WJe
+        T = np.zeros((r, r, r))
+        T[:nq] += np.einsum("ek,eij->kij", S_th, E)  # M_N' b' through the element rates
+        T[:, :, :nq] += np.einsum("ej,eik->kij", S_th, E)  # ... through b'
+        T[:, :nq, :] -= np.einsum("ei,emk->kim", S_th, E)  # q rows: -d(gT)/dv
+        Sd = []
+        for j in range(nq):
+            e = np.zeros(nq)
+            e[j] = 1.0
+            Sd.append(self.kin.rates(cfg.pose, e)[1])
+        MW = WJ.T @ cfg.M_N  # (r, N)
+        for k in range(nq):
+            for j in range(nq):
+                T[k, :, j] += MW @ (Sd[j][:, k] + Sd[k][:, j])
+        return T
 
     # ------------------------------------------------------------------ dynamics
     def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):

@@ -37,7 +37,9 @@ import numpy as np
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
 
-__all__ = ["ReducedObserverModel", "power_sum"]
+__all__ = ["ReducedObserverModel", "power_sum", "METHODS"]
+
+METHODS = ("cached", "frozen", "rk4")
 
 
 def power_sum(P: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -67,6 +69,10 @@ class _Interval:
     Sz_theta: np.ndarray  # (n_links, nq) link-angle sensitivity at q0
     theta0: np.ndarray  # link angles at q0
     serial: int = 0  # identifies the interval in the measurement-row cache
+    SQM: np.ndarray | None = None  # (nx, r) response to a unit generalised force held over the interval
+    forces: object = None  # QuadraticForces at the held configuration (cached method)
+    Q: np.ndarray | None = None
+    dt: float = 0.0
 
 
 class ReducedObserverModel:
@@ -82,11 +88,11 @@ class ReducedObserverModel:
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None,
-                 midpoint: bool = False, gyro: bool = False):
+                 midpoint: bool = False, gyro: bool = False, refresh_rad: float = 2e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
-        if method not in ("frozen", "rk4"):
-            raise ValueError(f"method must be 'frozen' or 'rk4', got {method!r}")
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.rm = reduced
         self.model = reduced.model
         self.mech = self.model.mech
@@ -97,6 +103,8 @@ class ReducedObserverModel:
         self.method = method
         self.midpoint = midpoint
         self.gyro = gyro
+        self.refresh_rad = float(refresh_rad)
+        self.n_refresh = 0
         sig = [m.noise_std for m in self.mech.motors] if torque_std is None else list(torque_std)
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
@@ -132,13 +140,28 @@ class ReducedObserverModel:
         L = SQ[:, r:] @ (Minv @ mats.Gr)
         pose = mats.rc.cfg.pose
         self._serial += 1
-        iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy(), self._serial)
+        SQM = SQ[:, r:] @ Minv
+        iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy(), self._serial, SQM)
         f0 = mats.fr if mats.Gv is None else mats.fr - mats.Gv @ pd
-        b_acc = Minv @ (mats.Gr @ u + f0)
-        return iv, Pn @ z + SQ[:, r:] @ b_acc
+        return iv, Pn @ z + L @ u + SQM @ f0
+
+    def _cached_step(self, z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        """Matrices held while q stays within ``refresh_rad`` of the last refresh; forces from quadratic forms."""
+        r, nq = self.r, self.nq
+        iv = self._last
+        if iv is None or iv.forces is None or np.max(np.abs(z[:nq] - iv.q0)) > self.refresh_rad or iv.dt != dt:
+            iv, _ = self._interval(z, u, dt)
+            iv.forces = self.rm.force_model(iv.mats, z[:r])
+            iv.Q = (iv.L * self.torque_var) @ iv.L.T + (np.diag(self.q_extra) if self.q_extra is not None else 0.0)
+            iv.dt = dt
+            self.n_refresh += 1
+            self._last = iv
+        return iv.Pn @ z + iv.L @ u + iv.SQM @ iv.forces(z[:r], z[r:])
 
     def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:
         u = np.zeros(len(self.mech.motors)) if u is None else np.asarray(u, float)
+        if self.method == "cached":
+            return self._cached_step(np.asarray(x, float), u, dt), self._last.Pn
         iv, z_frozen = self._interval(x, u, dt)
         self._last = iv
         if self.method == "frozen":
@@ -156,6 +179,8 @@ class ReducedObserverModel:
 
     def process_noise(self, x: np.ndarray, u, dt: float) -> np.ndarray:
         iv = self._last
+        if self.method == "cached" and iv is not None and iv.Q is not None:
+            return iv.Q
         if iv is None or not np.array_equal(iv.q0, np.asarray(x)[: self.nq]):
             iv, _ = self._interval(np.asarray(x, float), np.zeros(len(self.mech.motors)) if u is None else u, dt)
         Q = (iv.L * self.torque_var) @ iv.L.T

@@ -280,17 +280,12 @@ class CraigBampton:
         dl = np.einsum("eij,ejk->eik", Rt, d[model.el_dofs])  # (n_el, 6, k)
         ye = np.einsum("eij,ejk->eik", R, np.einsum("eij,ejk->eik", model.KGl, dl))  # (n_el, 6, k)
         S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
-        N = model.N
-        rhs = np.empty((len(self.is_), k * nq))
-        for i in range(nq):
-            contrib = ye * S_th[:, i][:, None, None]  # (n_el, 6, k)
-            f = np.zeros((N, k))
-            np.add.at(f, model.el_dofs, contrib)
-            rhs[:, i * k : (i + 1) * k] = (T.T @ f)[self.is_]
-        dB = -sla.lu_solve(rc.Kss_lu, rhs, check_finite=False)  # (s, k*nq)
+        C = (ye[:, :, :, None] * S_th[:, None, None, :]).reshape(-1, k * nq)  # (n_el*6, k*nq)
+        f = model.scatter @ C  # (N, k*nq): dK_N/dq_i w, column kk*nq + i
+        rhs = (T.T @ f)[self.is_]
+        dB = -sla.lu_solve(rc.Kss_lu, rhs, check_finite=False).reshape(-1, k, nq)  # (s, k, nq)
         out = np.zeros((k, nq + ne, nq))
-        for i in range(nq):
-            out[:, nq + self.is_, i] = dB[:, i * k : (i + 1) * k].T
+        out[:, nq + self.is_, :] = dB.transpose(1, 0, 2)
         # rotated interior modes
         if self.n_interior:
             dth = cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
@@ -299,16 +294,10 @@ class CraigBampton:
             X, Y = Wu[self._px], Wu[self._py]
             RX, RY = c * X - s_ * Y, s_ * X + c * Y  # rotated
             Sn = cfg.pose.S[2::3][self._pnode]  # (n_pairs, nq) d theta_node / dq
-            slave_pos = -np.ones(ne, int)
-            slave_pos[self.is_] = np.arange(len(self.is_))
-            gx, gy = -RY, RX  # G2 applied
-            for i in range(nq):
-                dx = gx * Sn[:, i][:, None]
-                dy = gy * Sn[:, i][:, None]
-                ux = np.zeros((ne, k))
-                ux[self._px] = dx
-                ux[self._py] = dy
-                out[:, nq + self.is_, i] += ux[self.is_].T
+            dU = np.zeros((ne, k, nq))
+            dU[self._px] = -RY[:, :, None] * Sn[:, None, :]  # G2 applied: (x, y) -> (-y, x)
+            dU[self._py] = RX[:, :, None] * Sn[:, None, :]
+            out[:, nq + self.is_, :] += dU[self.is_].transpose(1, 0, 2)
         return out
 
     @property

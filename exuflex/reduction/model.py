@@ -45,6 +45,38 @@ class ReducedMatrices:
     Gv: np.ndarray | None = None  # (r, r) d fr / d p' (gyroscopic linearisation), if requested
 
 
+class QuadraticForces:
+    """``fr(p, p') = fg - 1/2 sum_k p'_k T_k p' - [p^T V_i p]_i - J^T M a_b(q', p')`` at a held configuration.
+
+    Stored flattened so that one evaluation is three small matrix-vector products.
+    """
+
+    def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
+                 JtM: np.ndarray | None, q0: np.ndarray | None = None, dKr: np.ndarray | None = None):
+        r = len(fg)
+        self.nq, self.r = nq, r
+        self.fg = fg
+        self.q0 = q0
+        self.dKr2 = None if dKr is None else dKr.reshape(nq, r * r)  # d(K_r)/dq_i, flattened
+        self.T2 = Tk.reshape(r, r * r)
+        self.V2 = V.reshape(nq * r, r)
+        self.C2 = None
+        if dHdq is not None:
+            C = np.einsum("rn,knj->kjr", JtM, dHdq)  # J^T M dH/dq_j e_k
+            self.C2 = 2.0 * C.reshape(r * nq, r)
+
+    def __call__(self, p: np.ndarray, pd: np.ndarray) -> np.ndarray:
+        nq, r = self.nq, self.r
+        f = self.fg - 0.5 * ((pd @ self.T2).reshape(r, r) @ pd)
+        f[:nq] -= (self.V2 @ p).reshape(nq, r) @ p
+        if self.C2 is not None:
+            f -= np.outer(pd, pd[:nq]).ravel() @ self.C2
+        if self.dKr2 is not None:
+            # first-order change of the stiffness forces as the links turn away from the held configuration
+            f -= ((p[:nq] - self.q0) @ self.dKr2).reshape(r, r) @ p
+        return f
+
+
 class ReducedModel:
     """Reduced ERLS model on a :class:`CraigBampton` basis.
 
@@ -116,6 +148,44 @@ class ReducedModel:
                 dab[:, :nq] += 2.0 * D[1]
                 Gv -= JtM @ dab
         return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr, Gv)
+
+    def force_model(self, mats: ReducedMatrices, p: np.ndarray) -> QuadraticForces:
+        """The state-dependent forces ``fr(p, p')`` at ``mats``' configuration as explicit quadratic forms.
+
+        With the configuration (and ``J``) held, every velocity-dependent term is a quadratic form in ``p'``
+        (``h_2``: ``J^T h_2(J p') = 1/2 sum_k p'_k T_k p'`` with ``T_k = J^T (dh/dv)(J e_k) J``), the bias
+        acceleration is bilinear in ``q'`` and ``p'``, and the q-row geometric term of the elastic
+        displacements is a quadratic form in ``p``. Evaluating them costs a few tensor contractions instead of
+        a kinematic and finite-element evaluation, which is what makes the cached observer step cheap.
+        """
+        model, cb, nq, r = self.model, self.cb, self.nq, self.r
+        rc, J = mats.rc, mats.J
+        cfg = rc.cfg
+        Tk = model.velocity_force_tensor(cfg, J)
+        # q-row geometric term h_V(p) = S_th^T gV(u): quadratic form in p
+        TH = model.T @ rc.H[nq:]  # (N, r)
+        R = cfg.R
+        Rt = np.swapaxes(R, 1, 2)
+        Ae = np.einsum("eij,ejk->eik", Rt, TH[model.el_dofs])  # (n_el, 6, r)
+        KGs = 0.5 * (model.KGl + np.swapaxes(model.KGl, 1, 2))
+        Ve = 0.5 * np.einsum("eji,ejk,ekl->eil", Ae, KGs, Ae)  # (n_el, r, r)
+        S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
+        V = np.einsum("ei,ejk->ijk", S_th, Ve)  # (nq, r, r); J's q rows are [I 0]
+        dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
+        JtM = (cfg.W @ J).T @ cfg.M_N @ cfg.W if self.consistent else None
+        fg = (cfg.W @ J).T @ (cfg.M_N @ model.g_N)
+        # d K_r / d q_i with K_r = H_u^T K_uu H_u: stiffness rotated with the elements, basis with the links
+        Hu = rc.H[nq:]
+        Kuu = rc.Kuu
+        RKR = R @ model.KGl @ Rt  # (n_el, 6, 6)
+        dKr = np.empty((nq, r, r))
+        for i in range(nq):
+            dKN = model._assemble(RKR * S_th[:, i][:, None, None])
+            dKuu = model.T.T @ dKN @ model.T
+            dHu = dHdq[:, nq:, i].T  # (ne, r)
+            KH = Kuu @ Hu
+            dKr[i] = dHu.T @ KH + Hu.T @ dKuu @ Hu + KH.T @ dHu
+        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, rc.q.copy(), dKr)
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         if mats is None:
