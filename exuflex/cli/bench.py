@@ -1,0 +1,80 @@
+"""``exuflex bench [MODEL] [--json] [--quick]``: observer speed (reduced vs full order), basis build, truth.
+
+Measures in one run on one core (see :mod:`exuflex.bench`): the reduced and the full-order observer on
+the paper's manoeuvre at the paper's rates (RK4 0.1 ms, updates at 500 Hz) as wall time, real-time
+factor (simulated time / wall) and per-update latency p50/p99; the reduction basis build time; the
+Exudyn ground-truth time. ``--quick``: a 0.2 s manoeuvre. With ``--json`` one JSON object is printed::
+
+    {"reduced": {"wall_s", "real_time_factor", "p50_update_ms", "p99_update_ms", ...},
+     "full": {"wall_s", "real_time_factor", ...}, "speedup_reduced_vs_full": float,
+     "basis_s": float, "truth_s": float, ...}
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "bench",
+        help="time the reduced and full-order observers, the basis build and the ground truth",
+        description=__doc__.split("\n")[0],
+    )
+    p.add_argument("model", nargs="?", default=None, help="model file (default: models/sixbar.toml)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p.add_argument("--quick", action="store_true", help="a 0.2 s manoeuvre (seconds instead of minutes)")
+    p.add_argument("--duration", type=float, default=None, help="simulated time (s); overrides --quick")
+    p.add_argument("--no-full", action="store_true", help="skip the (slow) full-order observer")
+    p.add_argument("--seed", type=int, default=1, help="measurement noise seed (default 1)")
+    p.set_defaults(func=run)
+    return p
+
+
+def _fmt(r: dict) -> str:
+    lines = [
+        (
+            f"exuflex bench: {r['model']}, {r['duration_s']:g} s manoeuvre, RK4 {r['h_s'] * 1e3:g} ms, "
+            f"updates every {r['dt_s'] * 1e3:g} ms, CPU {r['machine']['cpu_pinned']} "
+            f"(load {r['machine']['load_average_1min']:.1f} on {r['machine']['cpus']} cores)"
+        ),
+    ]
+    for name in ("reduced", "full"):
+        o = r.get(name)
+        if not o:
+            continue
+        lines.append(
+            f"  {name:8s} observer ({o['n_states']} states): wall {o['wall_s']:8.2f} s  "
+            f"real-time x{o['real_time_factor']:7.2f}  update p50 {o['p50_update_ms']:7.3f} ms  "
+            f"p99 {o['p99_update_ms']:7.3f} ms  q RMS error {o['q_rms_error_rad']:.2e} rad"
+            + (f"  FAILED: {o['failed']}" if o.get("failed") else "")
+        )
+    if r.get("speedup_reduced_vs_full"):
+        lines.append(f"  speed-up reduced vs full: {r['speedup_reduced_vs_full']:.1f}x")
+    lines.append(f"  reduction basis: {r['basis_s']:.3f} s")
+    lines.append(f"  Exudyn truth:    {r['truth_s']:.2f} s  (real-time x{r['truth_real_time_factor']:.2f})")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from ..bench import DEFAULT_MODEL, run_bench
+
+    if args.duration is not None and not args.duration > 0:
+        print(f"exuflex bench: error: --duration must be positive, got {args.duration}", file=sys.stderr)
+        return 2
+    res = run_bench(
+        args.model or DEFAULT_MODEL,
+        quick=args.quick,
+        duration=args.duration,
+        seed=args.seed,
+        full=not args.no_full,
+        progress=None
+        if args.json or not sys.stderr.isatty()
+        else lambda m: print(f"... {m}", file=sys.stderr),
+    )
+    print(json.dumps(res, indent=2) if args.json else _fmt(res))
+    return 0
