@@ -76,6 +76,7 @@ def test_resume_after_interruption(done_study, tmp_path):
             raise Stop
 
     out = tmp_path / "s"
+    shutil.copytree(done_study.out / "truth", out / "truth")  # the truth cache is exercised by the fixture
     with pytest.raises(Stop):
         run_study(_tiny(), out, on_result=stop_after_two)
     files = sorted((out / "runs").glob("*/run_*.json"))
@@ -158,8 +159,9 @@ def test_cli_errors(tmp_path, capsys):
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path), "--runs", "0"]) == 2
 
 
-def test_studies_script_quick(tmp_path):
+def test_studies_script_quick(done_study, tmp_path):
     mod = _studies("payload")
+    shutil.copytree(done_study.out / "truth", tmp_path / "truth")  # same model, levels and duration
     res = mod.compute(tmp_path, mod.QUICK)
     assert res.n_computed == 4
     assert mod.plot(res.summary, tmp_path / "f.png").exists()
