@@ -134,6 +134,11 @@ def check_log(
             rep.warnings.append(f"the log is sampled every {med:g} s, {round(ratio)} model intervals: the observer "
                                 "predicts through the instants in between")
         k_rel = (t - t[0]) / dt
+        if not np.isfinite(k_rel[-1]) or k_rel[-1] > 1e9:
+            raise LogFormatError(
+                f"{source}: the time column spans {f(t[-1] - t[0])!r} s, more than 1e9 samples of {dt:g} s; "
+                "expected seconds from the start of the log"
+            )
         kk = np.rint(k_rel)
         off = np.abs(k_rel - kk) > 1e-6 * np.maximum(1.0, kk)
         if off.any():
