@@ -140,6 +140,8 @@ def simulate_truth(
     damping_update: float = 0.02,
     newton_tol: float = 1e-4,
     spectral_radius: float = 0.9,
+    solver_settings: dict | None = None,
+    stats: dict | None = None,
 ) -> ProbeRecord:
     """Simulate the Exudyn model of ``mech`` from rest at ``q0`` under tabulated motor torques.
 
@@ -159,6 +161,10 @@ def simulate_truth(
     damping_update : refresh interval (s) of the configuration-dependent alpha damper.
     newton_tol : absolute Newton tolerance (residual in N); Exudyn's default 1e-10 stalls on round-off.
     spectral_radius : generalized-alpha numerical damping at infinite frequency.
+    solver_settings : further Exudyn ``SimulationSettings`` by dotted path, e.g.
+        ``{"timeIntegration.newton.useModifiedNewton": True}``.
+    stats : if a dict, filled with the solver's statistics (Newton iterations and Jacobians per step,
+        wall and CPU time of the solve, time spent in the pre-step function).
 
     Returns
     -------
@@ -230,9 +236,19 @@ def simulate_truth(
             T_out[i] = t
             state["i"] = i + 1
 
+    pre_time = [0.0]
+
+    def pre_step_timed(mbs_, t):
+        c0 = time.perf_counter()
+        out = pre_step(mbs_, t)
+        pre_time[0] += time.perf_counter() - c0
+        return out
+
     def pre_step(mbs_, t):
         # Exudyn passes the step's END time t_k+1 (verified on 1.13.6); the current state is the one at t_k
         k = round(t / h) - 1
+        if abs(t - (k + 1) * h) > 1e-6 * h:
+            raise RuntimeError(f"Exudyn left the step grid (t = {t!r}, h = {h!r})")
         c = np.asarray(sd.GetODE2Coordinates(cur)) + ref
         cd = np.asarray(sd.GetODE2Coordinates_t(cur))
         if k % every == 0:
@@ -252,6 +268,7 @@ def simulate_truth(
     ti.endTime = duration
     ti.verboseMode = 0
     ti.newton.absoluteTolerance = newton_tol
+    ti.adaptiveStep = False  # a reduced step would leave the grid of the torque table and the record
     ti.generalizedAlpha.spectralRadius = spectral_radius
     ti.generalizedAlpha.computeInitialAccelerations = True
     ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
@@ -259,16 +276,38 @@ def simulate_truth(
     ss.solution.sensors.active = False
     ss.show.statistics = False
     ss.show.computationTime = False
+    for path, value in (solver_settings or {}).items():
+        obj = ss
+        *parents, leaf = path.split(".")
+        for name in parents:
+            obj = getattr(obj, name)
+        if not hasattr(obj, leaf):
+            raise ValueError(f"Exudyn SimulationSettings has no {path!r}")
+        setattr(obj, leaf, value)
     tm.set_torques(tau[0])
-    mbs.SetPreStepUserFunction(pre_step)
+    mbs.SetPreStepUserFunction(pre_step if stats is None else pre_step_timed)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     solver = exu.MainSolverImplicitSecondOrder()
     ok = solver.SolveSystem(mbs, ss)
     wall = time.perf_counter() - t0
     it = solver.it
     log.debug("Newton iterations %d, Jacobians %d", it.newtonStepsCount, it.newtonJacobiCount)
+    if stats is not None:
+        stats.update(
+            wall_s=wall,
+            cpu_s=time.process_time() - c0,
+            pre_step_s=pre_time[0],
+            newton_per_step=it.newtonStepsCount / n_steps,
+            jacobians_per_step=it.newtonJacobiCount / n_steps,
+            n_steps=n_steps,
+            n_coordinates=len(ref),
+        )
     if not ok:
-        raise RuntimeError(f"Exudyn dynamic solver failed before t = {duration} s (see Exudyn's messages)")
+        raise RuntimeError(
+            f"Exudyn dynamic solver failed before t = {duration} s (see Exudyn's messages); a Newton tolerance "
+            f"({newton_tol:g} N) far below the round-off of the axial forces stalls Newton, try 1e-4"
+        )
     if n_steps % every == 0:
         record(n_steps * h, tm.coordinates(), tm.velocities())
     if progress is not None:
