@@ -122,7 +122,7 @@ def test_overrides():
     assert s.diameter == 0.031 and s.A == pytest.approx(np.pi * 0.031**2 / 4) and s.I == pytest.approx(np.pi * 0.031**4 / 64)
     assert m2.damping.alpha == 2.0 and m2.payload.mass == 0.1
     assert {x.name: x for x in m2.sensors}["c1"].noise_std == 1e-4
-    assert [x for x in m2.masses if x.node == 12][0].mass == 2.0
+    assert next(x for x in m2.masses if x.node == 12).mass == 2.0
     assert all(lk.material.E == 70e9 for lk in m2.links)
     assert m.link("L1").section.diameter == 0.03  # the nominal model is unchanged
 

@@ -153,12 +153,12 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
 def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, walls, versions, fig_rows) -> str:
     s = outcome.summary
     L = [f"# exuflex reproduction of Palomba, Richiedei, Trevisani (2018){' (quick)' if quick else ''}", ""]
-    L += [f"Model `{model}` ({mech.name}), sha256 `{sha[:16]}...`. "
-          f"{'QUICK settings: short runs, tiny payload study; numbers are not comparable with the paper.' if quick else ''}",
+    L += [(f"Model `{model}` ({mech.name}), sha256 `{sha[:16]}...`. "
+          f"{'QUICK settings: short runs, tiny payload study; numbers are not comparable with the paper.' if quick else ''}"),
           ""]
     L += ["## Table 2: reduced model accuracy at q*", "",
-          f"Reduced model: {t2['ndof']} dofs (paper 13), masters {', '.join(t2['masters'])}, "
-          f"{t2['interior_modes']} interior modes; q* = {t2['q_star']}.", "",
+          (f"Reduced model: {t2['ndof']} dofs (paper 13), masters {', '.join(t2['masters'])}, "
+          f"{t2['interior_modes']} interior modes; q* = {t2['q_star']}."), "",
           "| mode | full (Hz) | paper full (Hz) | diff (%) | NCO | paper NCO | freq. error (%) | paper error (%) |",
           "|---|---|---|---|---|---|---|---|"]
     for r in t2["rows"]:
@@ -168,10 +168,10 @@ def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, wa
     L += ["", "## Manoeuvre and torques (Figs 3-4)", "",
           "![trajectory](observer/fig_trajectory.png)", "", "![torques](observer/fig_torques.png)", "",
           "## Observer on one run (Figs 5-10)", "",
-          f"Truth engine {run_.meta.get('engine')}, {run_.sensors.t[-1]:.2f} s, noise seed {run_.meta.get('seed')}; "
+          (f"Truth engine {run_.meta.get('engine')}, {run_.sensors.t[-1]:.2f} s, noise seed {run_.meta.get('seed')}; "
           f"reduced model {s['reduced_ndof']} dofs, channels {' '.join(s['channels'])}; wall {s['wall_s']:.1f} s "
           f"(real-time factor {s['real_time_factor']:.2f}); mean NIS {s['nis_mean']:.2f} (expected "
-          f"{s['nis_expected']:.1f}); diverged: {s['diverged']}.", "",
+          f"{s['nis_expected']:.1f}); diverged: {s['diverged']}."), "",
           "| quantity | RMS error | max error | steady-state bound (RMS) | ratio | paper's plotted error band |",
           "|---|---|---|---|---|---|"]
     paper_err = ref.get("fig6_to_9_signal_and_error_ranges", {})
@@ -180,8 +180,8 @@ def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, wa
         pe = paper_err.get(q, {}).get("error_abs")
         L.append(f"| {q} | {v:.3g} | {outcome.metrics['max_error'][q]:.3g} | {_fmt(b, '.3g')} | "
                  f"{_fmt(v / b if b else None, '.2f')} | {'+-' + format(pe, '.2g') if pe else '-'} |")
-    L += ["", "The bound is the steady-state Kalman RMS error of the linearised reduced model with these sensors "
-          "(no filter can do better); the paper's bands are read from its figure axes.", ""]
+    L += ["", ("The bound is the steady-state Kalman RMS error of the linearised reduced model with these sensors "
+          "(no filter can do better); the paper's bands are read from its figure axes."), ""]
     for name, cap in (("fig_measurements.png", "Measurements (Fig. 5)"), ("fig_joint_states.png", "Joint states"),
                       ("fig_joint_errors.png", "Joint errors (Figs 6-7)"),
                       ("fig_tip_displacement.png", "Tip elastic displacement"),
@@ -192,10 +192,10 @@ def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, wa
         L += ["## Animation", "", f"![manoeuvre]({Path(gif).name})", ""]
     sm = study.summary
     L += ["## Payload mismatch (Fig. 11, eq. 21)", "",
-          f"{sm['settings']['runs_per_level']} noise realisations per level (seeds {sm['settings']['seeds']}), "
+          (f"{sm['settings']['runs_per_level']} noise realisations per level (seeds {sm['settings']['seeds']}), "
           f"duration {sm['settings']['duration_s']} s, start-up {sm['settings']['start_up_s']} s left out; "
           f"engine {sm['settings']['engine']}. The paper: 100 runs per level, errors grow with the mismatch but "
-          "stay small at +100 %.", "",
+          "stay small at +100 %."), "",
           "| level | runs | diverged | " + " | ".join(f"{q} mu / sigma" for q in dict.fromkeys(
               r["quantity"] for r in fig_rows)) + " |",
           "|---|---|---|" + "---|" * len(dict.fromkeys(r["quantity"] for r in fig_rows))]

@@ -54,8 +54,8 @@ __all__ = [
     "FORMAT",
     "Level",
     "LevelTruth",
-    "StudySpec",
     "StudyResult",
+    "StudySpec",
     "make_executor",
     "payload_levels",
     "run_study",
@@ -365,7 +365,7 @@ def run_one(task: RunTask) -> dict:
         "nonfinite": bool(getattr(res, "nonfinite", False)),
         "nis_mean": float(nis_mean),
         "nis_expected": float(nis_exp),
-        "n_samples": int(len(S.t)),
+        "n_samples": len(S.t),
         "filter_wall_s": float(est.wall_s),
         "wall_s": time.perf_counter() - t0,
         "worker": f"{socket.gethostname()}:{os.getpid()}",
@@ -381,7 +381,7 @@ class InlineExecutor(cf.Executor):
         f: cf.Future = cf.Future()
         try:
             f.set_result(fn(*args, **kwargs))
-        except BaseException as exc:  # noqa: BLE001 - delivered through the future, like a pool
+        except BaseException as exc:
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             f.set_exception(exc)
@@ -428,7 +428,7 @@ class StudyProgress:
     def _fmt(s: float) -> str:
         if not math.isfinite(s):
             return "?"
-        s = int(round(s))
+        s = round(s)
         return f"{s // 3600} h {s % 3600 // 60:02d} m" if s >= 3600 else (f"{s // 60} m {s % 60:02d} s" if s >= 60
                                                                            else f"{s} s")
 
