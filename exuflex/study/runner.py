@@ -305,7 +305,9 @@ def _reset_observer(obs) -> None:
     ``ekf.reset()`` and would linearise the first update at the previous run's last configuration."""
     obs.ekf.reset()
     model = obs.model
-    if hasattr(model, "_last"):
+    if callable(getattr(model, "reset", None)):
+        model.reset()
+    elif hasattr(model, "_last"):
         model._last = None
     cache = getattr(model, "_channel_cache", None)
     if isinstance(cache, dict):
@@ -642,7 +644,8 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
     levels = []
     for i, lv in enumerate(spec.levels):
         rs = [r for r in rows if r["level_index"] == i]
-        good = [r for r in rs if not r["diverged"] and not r["nonfinite"]]
+        # the NIS test flags mismatch-induced inconsistency: such runs still count; only non-finite ones are left out
+        good = [r for r in rs if not r["nonfinite"] and all(np.isfinite(v) for v in r["mean_abs"].values())]
         eq21 = {}
         for q in qs:
             mu = [r["mean_abs"][q] for r in good]
@@ -655,6 +658,8 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
             **lv.as_dict(),
             "n_runs": len(rs),
             "n_diverged": sum(1 for r in rs if r["diverged"] or r["nonfinite"]),
+            "n_nonfinite": sum(1 for r in rs if r["nonfinite"]),
+            "n_in_stats": len(good),
             "seeds": [r["seed"] for r in rs],
             "eq21": eq21,
             "rms_mean": {q: float(np.mean([r["rms"][q] for r in good])) if good else float("nan") for q in qs},
@@ -671,7 +676,7 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
         "settings": settings,
         "quantities": qs,
         "eq21": "mu = mean over runs of the per-run mean |error|; sigma = mean over runs of the per-run "
-                "standard deviation (ddof 1) of |error|; samples after start_up; diverged runs left out",
+                "standard deviation (ddof 1) of |error|; samples after start_up; runs with non-finite estimates left out (runs the NIS test flags are kept and counted in n_diverged)",
         "levels": levels,
         "execution": {"workers": workers, "scheduler": scheduler, "runs_computed": n_new, "runs_reused": n_reused,
                       "wall_s": wall},
