@@ -327,7 +327,13 @@ class MultirateEKF:
 
     # ------------------------------------------------------------------ state
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from the prior (``x0``, ``P0`` of the constructor unless given) and clear all counters."""
+        """Restart from the prior (``x0``, ``P0`` of the constructor unless given) and clear all counters.
+
+        A model with internal caches (e.g. held configuration-dependent matrices) is reset too, if it has a
+        ``reset()`` method, so that a run never depends on what the model saw before.
+        """
+        if hasattr(self.model, "reset"):
+            self.model.reset()
         self._x = self._x0.copy() if x0 is None else np.array(x0, dtype=float).reshape(self.nx)
         P = self._P0.copy() if P0 is None else np.array(P0, dtype=float)
         self._P = np.diag(P) if P.ndim == 1 else P

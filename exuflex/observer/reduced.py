@@ -73,6 +73,7 @@ class _Interval:
     forces: object = None  # QuadraticForces at the held configuration (cached method)
     Q: np.ndarray | None = None
     dt: float = 0.0
+    Minv: np.ndarray | None = None
 
 
 class ReducedObserverModel:
@@ -115,17 +116,20 @@ class ReducedObserverModel:
         self.sensors = {s.name: s for s in self.mech.sensors}
         self.n_evaluations = 0
 
+    def reset(self) -> None:
+        """Forget the held interval and the cached measurement rows (a new run starts clean)."""
+        self._last = None
+        self._channel_cache = {}
+
     # ------------------------------------------------------------------ step
-    def _interval(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Interval, np.ndarray]:
-        r, nq = self.r, self.nq
-        p, pd = z[:r], z[r:]
-        mats = self.rm.matrices(p + (0.5 * dt) * pd if self.midpoint else p, pd, gyro=self.gyro)
-        self.n_evaluations += 1
-        Minv = np.linalg.inv(mats.Mr)
+    def _step_maps(self, Minv, Kr, Cr, Gr, dt):
+        """Pn, SQM (response to held generalised forces) and L (to held torques) of n RK4 steps of the
+        linear system with these matrices."""
+        r = self.r
         A = np.zeros((self.nx, self.nx))
         A[:r, r:] = np.eye(r)
-        A[r:, :r] = -Minv @ mats.Kr
-        A[r:, r:] = -Minv @ mats.Cr if mats.Gv is None else Minv @ (mats.Gv - mats.Cr)
+        A[r:, :r] = -Minv @ Kr
+        A[r:, r:] = -Minv @ Cr
         hA = self.h * A
         hA2 = hA @ hA
         hA3 = hA2 @ hA
@@ -136,27 +140,43 @@ class ReducedObserverModel:
         if n < 1 or abs(n * self.h - dt) > 1e-9 * dt:
             raise ValueError(f"measurement interval {dt:g} s is not a multiple of the RK4 step {self.h:g} s")
         Pn, Sn = power_sum(P, n)
-        SQ = Sn @ Qm
-        L = SQ[:, r:] @ (Minv @ mats.Gr)
+        SQM = (Sn @ Qm[:, r:]) @ Minv
+        return Pn, SQM, SQM @ Gr
+
+    def _interval(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Interval, np.ndarray]:
+        r, nq = self.r, self.nq
+        p, pd = z[:r], z[r:]
+        mats = self.rm.matrices(p + (0.5 * dt) * pd if self.midpoint else p, pd, gyro=self.gyro)
+        self.n_evaluations += 1
+        Minv = np.linalg.inv(mats.Mr)
+        Cr = mats.Cr if mats.Gv is None else mats.Cr - mats.Gv
+        Pn, SQM, L = self._step_maps(Minv, mats.Kr, Cr, mats.Gr, dt)
         pose = mats.rc.cfg.pose
         self._serial += 1
-        SQM = SQ[:, r:] @ Minv
         iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy(), self._serial, SQM)
+        iv.Minv = Minv
         f0 = mats.fr if mats.Gv is None else mats.fr - mats.Gv @ pd
         return iv, Pn @ z + L @ u + SQM @ f0
 
     def _cached_step(self, z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """Matrices held while q stays within ``refresh_rad`` of the last refresh; forces from quadratic forms."""
+        """Configuration evaluated only when q leaves ``refresh_rad`` of the last one; in between, the
+        stiffness follows the links to first order and the step map is rebuilt from it (cheap, 26x26);
+        the state-dependent forces come from the held quadratic forms."""
         r, nq = self.r, self.nq
         iv = self._last
         if iv is None or iv.forces is None or np.max(np.abs(z[:nq] - iv.q0)) > self.refresh_rad or iv.dt != dt:
             iv, _ = self._interval(z, u, dt)
             iv.forces = self.rm.force_model(iv.mats, z[:r])
-            iv.Q = (iv.L * self.torque_var) @ iv.L.T + (np.diag(self.q_extra) if self.q_extra is not None else 0.0)
             iv.dt = dt
             self.n_refresh += 1
             self._last = iv
-        return iv.Pn @ z + iv.L @ u + iv.SQM @ iv.forces(z[:r], z[r:])
+        dK = iv.forces.stiffness_change(z[:nq])
+        m = iv.mats
+        Minv = np.linalg.inv(m.Mr + iv.forces.mass_change(z[:nq]))
+        Pn, SQM, L = self._step_maps(Minv, m.Kr + dK, m.Cr + self.model.beta * dK, m.Gr, dt)
+        iv.Pn, iv.SQM, iv.L = Pn, SQM, L
+        iv.Q = (L * self.torque_var) @ L.T + (np.diag(self.q_extra) if self.q_extra is not None else 0.0)
+        return Pn @ z + L @ u + SQM @ iv.forces(z[:r], z[r:])
 
     def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:
         u = np.zeros(len(self.mech.motors)) if u is None else np.asarray(u, float)
@@ -227,7 +247,8 @@ class ReducedObserverModel:
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, float)
         iv = self._last
-        if iv is None:
+        if iv is None or np.max(np.abs(x[: self.nq] - iv.q0)) > max(self.refresh_rad, 0.01):
+            # no held configuration near x (first sample of a run): evaluate one at x
             iv, _ = self._interval(x, np.zeros(len(self.mech.motors)), 10 * self.h)
             self._last = iv
         nq, r = self.nq, self.r

@@ -52,11 +52,14 @@ class QuadraticForces:
     """
 
     def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
-                 JtM: np.ndarray | None, q0: np.ndarray | None = None, dKr: np.ndarray | None = None):
+                 JtM: np.ndarray | None, q0: np.ndarray | None = None, dKr: np.ndarray | None = None,
+                 beta: float = 0.0):
         r = len(fg)
         self.nq, self.r = nq, r
         self.fg = fg
         self.q0 = q0
+        self.beta = beta
+        self.dMr2 = None
         self.dKr2 = None if dKr is None else dKr.reshape(nq, r * r)  # d(K_r)/dq_i, flattened
         self.T2 = Tk.reshape(r, r * r)
         self.V2 = V.reshape(nq * r, r)
@@ -71,10 +74,15 @@ class QuadraticForces:
         f[:nq] -= (self.V2 @ p).reshape(nq, r) @ p
         if self.C2 is not None:
             f -= np.outer(pd, pd[:nq]).ravel() @ self.C2
-        if self.dKr2 is not None:
-            # first-order change of the stiffness forces as the links turn away from the held configuration
-            f -= ((p[:nq] - self.q0) @ self.dKr2).reshape(r, r) @ p
         return f
+
+    def mass_change(self, q: np.ndarray) -> np.ndarray:
+        """First-order change of ``M_r`` from the held configuration to ``q``."""
+        return ((np.asarray(q) - self.q0) @ self.dMr2).reshape(self.r, self.r)
+
+    def stiffness_change(self, q: np.ndarray) -> np.ndarray:
+        """First-order change of ``K_r`` as the links turn from the held configuration to ``q``."""
+        return ((np.asarray(q) - self.q0) @ self.dKr2).reshape(self.r, self.r)
 
 
 class ReducedModel:
@@ -149,6 +157,27 @@ class ReducedModel:
                 Gv -= JtM @ dab
         return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr, Gv)
 
+    def reduced_mass(self, p: np.ndarray) -> np.ndarray:
+        """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
+        nq = self.nq
+        rc = self.cb.at(p[:nq])
+        J = rc.H
+        if self.consistent:
+            J = rc.H.copy()
+            J[:, :nq] += self.cb.basis_derivative(rc, p[:, None])[0]
+        WJ = rc.cfg.W @ J
+        return WJ.T @ rc.cfg.M_N @ WJ
+
+    def mass_derivative(self, mats: ReducedMatrices, p: np.ndarray, delta: float = 1e-6) -> np.ndarray:
+        """``d M_r / d q_i`` (nq, r, r) by forward differences (``M_r`` is smooth in q; error ~ delta)."""
+        out = np.empty((self.nq, self.r, self.r))
+        for i in range(self.nq):
+            pp = np.array(p, float)
+            pp[i] += delta
+            out[i] = (self.reduced_mass(pp) - mats.Mr) / delta
+        self.cb.at(p[: self.nq])  # leave the closure solver warm-started at p
+        return out
+
     def force_model(self, mats: ReducedMatrices, p: np.ndarray) -> QuadraticForces:
         """The state-dependent forces ``fr(p, p')`` at ``mats``' configuration as explicit quadratic forms.
 
@@ -185,7 +214,9 @@ class ReducedModel:
             dHu = dHdq[:, nq:, i].T  # (ne, r)
             KH = Kuu @ Hu
             dKr[i] = dHu.T @ KH + Hu.T @ dKuu @ Hu + KH.T @ dHu
-        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, rc.q.copy(), dKr)
+        qf = QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, rc.q.copy(), dKr, model.beta)
+        qf.dMr2 = self.mass_derivative(mats, p).reshape(nq, r * r)
+        return qf
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         if mats is None:

@@ -1,0 +1,122 @@
+"""The reduced-order EKF on the six-bar: bound, observability, offline = online, convergence, fast path.
+
+The log is the paper's setting: the manoeuvre simulated by the full-order ERLS model with Table 3 noise
+(``exuflex simulate models/sixbar.toml --engine erls --duration 3 --seed 1``, stored in
+``tests/data/sixbar_erls_3s``). The Exudyn truth and the 50-run consistency study are in
+``benchmarks/observer_accuracy.py`` and the slow tests.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.data import paper_reference
+from exuflex.manoeuvre import plan
+from exuflex.mechanism import load_mechanism
+from exuflex.observer.observability import observability
+from exuflex.observer.session import (
+    ObserverConfig,
+    estimate,
+    estimation_bound,
+    make_observer,
+    metrics,
+    physical_names,
+)
+from exuflex.runs import read_run
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+DATA = Path(__file__).resolve().parent / "data"
+DT = 0.002
+
+
+@pytest.fixture(scope="module")
+def sixbar():
+    return load_mechanism(MODELS / "sixbar.toml")
+
+
+@pytest.fixture(scope="module")
+def observer(sixbar):
+    return make_observer(sixbar)
+
+
+@pytest.fixture(scope="module")
+def erls_log():
+    return read_run(DATA / "sixbar_erls_3s")
+
+
+def _arrays(run, channels, n):
+    S = run.sensors
+    return S.t[:n], S.select(run.motors).data[:n], S.select(channels).data[:n]
+
+
+def test_bound_matches_independent_riccati_solution(sixbar, observer):
+    ref = paper_reference()["exuflex_reference"]["rms_bound_steady_state_kf"]
+    expected = dict(zip(ref["columns"], ref["rows"]["mid-path, 13 dofs, encoders + gauges"]))
+    got = estimation_bound(observer)
+    for name, value in expected.items():
+        assert got[name] == pytest.approx(value, rel=0.1), name
+
+
+def test_observability_of_the_papers_sensor_set(sixbar, observer):
+    qs = plan(sixbar, dt=0.5, t_end=3.0).q
+    full = observability(observer.model, sixbar, ("q1", "q2", "q3", "c1", "c2", "c4"), qs)
+    enc = observability(observer.model, sixbar, ("q1", "q2", "q3"), qs)
+    gauges = observability(observer.model, sixbar, ("c1", "c2", "c4"), qs)
+    assert full.observable
+    assert not gauges.observable  # strain gauges cannot see the rigid positions
+    assert np.all(enc.sigma_min < 0.01 * full.sigma_min)  # encoders alone: barely observable
+
+
+def test_offline_run_equals_online_steps(sixbar, observer, erls_log):
+    t, U, Y = _arrays(erls_log, observer.channels, 60)
+    res = observer.ekf.run(t, U, Y)
+    obs2 = make_observer(sixbar)
+    online = np.array([obs2.ekf.step(t[k], U[k], Y[k]) for k in range(len(t))])
+    np.testing.assert_array_equal(res.x_hat, online)
+
+
+def test_rerun_of_a_reused_observer_is_identical(sixbar, observer, erls_log):
+    t, U, Y = _arrays(erls_log, observer.channels, 40)
+    a = observer.ekf.run(t, U, Y).x_hat
+    observer.ekf.run(t[20:30], U[20:30], Y[20:30])  # another record in between
+    b = observer.ekf.run(t, U, Y).x_hat
+    np.testing.assert_array_equal(a, b)
+
+
+def test_converges_from_wrong_start_within_twice_the_bound(sixbar, observer, erls_log):
+    t, U, Y = _arrays(erls_log, observer.channels, 301)
+    q0 = erls_log.truth.data[0, :3]
+    observer.ekf.reset(x0=observer.model.initial_state(q0 + 0.05))
+    res = observer.ekf.run(t, U, Y, reset=False)
+    phys = observer.physical(res.t, res.x_hat)
+    m = metrics(phys, erls_log.truth, start_up=0.3)
+    bound = estimation_bound(observer)
+    for name in ("q1", "q2", "q3", "dq1", "dq2", "dq3"):
+        assert m["rms_error"][name] < 2 * bound[name], (name, m["rms_error"][name], bound[name])
+    assert not res.diverged
+
+
+def test_cached_path_agrees_with_reference_path(sixbar, observer, erls_log):
+    t, U, Y = _arrays(erls_log, observer.channels, 501)
+    cb = observer.model.rm.cb
+    ref = estimate(make_observer(sixbar, ObserverConfig(method="frozen"), cb=cb), t, U, Y)
+    fast = estimate(make_observer(sixbar, ObserverConfig(method="cached"), cb=cb), t, U, Y)
+    err = metrics(ref.physical, erls_log.truth, start_up=0.3)["rms_error"]
+    diff = metrics(fast.physical, ref.physical, start_up=0.3)["rms_error"]
+    for name in physical_names(sixbar):
+        assert diff[name] < 0.25 * err[name], (name, diff[name], err[name])
+
+
+def test_missing_samples_are_predictions_and_counted(sixbar, observer, erls_log):
+    t, U, Y = _arrays(erls_log, observer.channels, 80)
+    Y = Y.copy()
+    Y[10:15] = np.nan  # a gap
+    Y[20:40:2, 3:] = np.nan  # gauges at half rate
+    res = observer.ekf.run(t, U, Y)
+    assert res.n_missing == 5
+    assert np.all(np.isfinite(res.x_hat))
+
+
+def test_physical_names_follow_the_truth_columns(sixbar):
+    assert physical_names(sixbar) == ("q1", "q2", "q3", "dq1", "dq2", "dq3", "x25", "y26", "dx25", "dy26")
