@@ -41,6 +41,7 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.stats import chi2
 
+from ..erls.kinematics import KinematicsError
 from .base import DiscreteModel, FilterDivergedError
 
 __all__ = ["EstimationResult", "MultirateEKF", "NISMonitor"]
@@ -392,8 +393,15 @@ class MultirateEKF:
 
     def _predict(self, u) -> None:
         x = self._x
-        x_next, F = self.model.step(x, u, self.dt)
-        Q = self.model.process_noise(x, u, self.dt)
+        try:
+            x_next, F = self.model.step(x, u, self.dt)
+            Q = self.model.process_noise(x, u, self.dt)
+        except (ArithmeticError, np.linalg.LinAlgError, KinematicsError) as exc:
+            # the model cannot be evaluated at the estimate (e.g. a runaway state where the mechanism's
+            # loops no longer close): that is the filter diverging, not a bad model file
+            n = self.nx
+            x_next, F, Q = np.full(n, np.nan), np.eye(n), np.zeros((n, n))
+            self._model_failure = f"{type(exc).__name__}: {exc}"
         if self._kf is None:
             P = F @ self._P @ F.T + Q
         else:
@@ -541,7 +549,10 @@ class MultirateEKF:
             self._flag_divergence(t, "non-finite state or covariance")
             self.nonfinite = True
             if self.nonfinite_action == "raise":
-                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+                why = getattr(self, "_model_failure", None)
+                raise FilterDivergedError(
+                    f"non-finite state or covariance at t={t:.6g} s" + (f" (model step failed: {why})" if why else "")
+                )
             return np.full(self.nx, np.nan)
 
         if self.last_idx is not None:

@@ -223,6 +223,11 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
     """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times)."""
     names = [n for n in (names or est.names) if n in truth]
     sel = est.t >= est.t[0] + start_up
+    if not np.any(sel):
+        raise ValueError(
+            f"the log is {est.t[-1] - est.t[0]:.3g} s long, not longer than the start-up period left out of the "
+            f"error metrics ({start_up:g} s); use a longer log or a shorter start_up"
+        )
     rms, mx = {}, {}
     for n in names:
         tr = np.interp(est.t[sel], truth.t, truth[n])
@@ -332,20 +337,25 @@ class Outcome:
 def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
                 observer: Observer | None = None) -> Outcome:
     """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth."""
+    from ..validate import check_run
+
     config = config or ObserverConfig()
     obs = observer or make_observer(mech, config)
+    log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
     S = run.sensors
     motors = run.motors or mech.motor_names
-    missing = [c for c in (*motors, *obs.channels) if c not in S]
-    if missing:
-        raise KeyError(f"{run.path}: sensors.csv has no channel(s) {missing}; it has {list(S.names)}")
     U = S.select(motors).data
     Y = S.select(obs.channels).data
     if np.any(~np.isfinite(U)):
         # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
         U = _hold(U)
     est = estimate(obs, S.t, U, Y)
-    met = metrics(est.physical, run.truth, config.start_up) if run.truth is not None else None
+    span = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
+    start_up = config.start_up if span > config.start_up else 0.5 * span
+    if start_up != config.start_up:
+        log.warning("log is %.3g s long: error metrics from %.3g s instead of the %.3g s start-up", span, start_up,
+                    config.start_up)
+    met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
     bnd = estimation_bound(obs) if with_bound else None
     res = est.result
     summary = {
@@ -364,6 +374,8 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         "wall_s": est.wall_s,
         "real_time_factor": est.real_time_factor,
         "basis_s": obs.basis_s,
+        "log_check": log_check.as_dict(),
+        "metrics_from_s": start_up,
     }
     if met is not None:
         summary.update(met)
