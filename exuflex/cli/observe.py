@@ -19,7 +19,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--channels", help="comma-separated sensor channels (default: the paper's set for the model)")
     p.add_argument("--masters", help="comma-separated elastic master dofs (default: the model file's)")
     p.add_argument("--n-interior", default=None, help="interior modes: a number or 'auto'")
-    p.add_argument("--method", choices=("cached", "frozen", "rk4"), default="frozen", help="step map (default frozen)")
+    p.add_argument(
+        "--method",
+        choices=("cached", "frozen", "rk4"),
+        default="cached",
+        help="step map: cached (fast, default), frozen (matrices every interval), rk4 (the paper's, reference)",
+    )
     p.add_argument("--backend", choices=("numpy", "filterpy"), default="numpy")
     p.add_argument("--bound", action="store_true", help="also print the steady-state RMS bound (always in --json)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")

@@ -6,7 +6,14 @@ channels (encoders, curvature gauges, tip position) as the nonlinear functions o
 
 Step map over one interval ``dt`` (``n = dt / h`` RK4 sub-steps, ``h = 0.1 ms`` by default):
 
-- ``method="frozen"`` (default): the configuration-dependent matrices ``M_r, K_r, C_r, G_r`` and the
+- ``method="cached"`` (fast; the observer's default): the configuration (pose, basis, reduced matrices and
+  the velocity-dependent forces as explicit quadratic forms, :meth:`ReducedModel.force_model`) is
+  evaluated only when q leaves ``refresh_rad`` (1e-2 rad) of the last evaluation; in between, ``M_r`` and
+  ``K_r`` follow the links to first order in q (their q-derivatives are part of the evaluation) and the
+  step map below is rebuilt from them whenever q moved by ``remap_rad`` (2e-3 rad). Measured on the
+  six-bar's manoeuvre: estimates differ from ``frozen``'s by at most 12 % of the estimation error
+  (RMS), at about a third of its cost (``tests/test_observer.py``).
+- ``method="frozen"``: the configuration-dependent matrices ``M_r, K_r, C_r, G_r`` and the
   velocity-dependent forces are evaluated once at the start of the interval; the remaining linear
   system ``z' = A z + b`` is advanced by exactly what ``n`` RK4 steps would do,
   ``z_n = P^n z_0 + (sum_k P^k) Q b`` with ``P, Q`` the RK4 polynomials of ``h A`` (computed by
@@ -74,6 +81,7 @@ class _Interval:
     Q: np.ndarray | None = None
     dt: float = 0.0
     Minv: np.ndarray | None = None
+    q_map: np.ndarray | None = None  # configuration of the current step map (cached method)
 
 
 class ReducedObserverModel:
@@ -89,7 +97,7 @@ class ReducedObserverModel:
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None,
-                 midpoint: bool = False, gyro: bool = False, refresh_rad: float = 2e-3):
+                 midpoint: bool = False, gyro: bool = False, refresh_rad: float = 1e-2, remap_rad: float = 2e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -105,7 +113,9 @@ class ReducedObserverModel:
         self.midpoint = midpoint
         self.gyro = gyro
         self.refresh_rad = float(refresh_rad)
+        self.remap_rad = float(remap_rad)
         self.n_refresh = 0
+        self.n_remap = 0
         sig = [m.noise_std for m in self.mech.motors] if torque_std is None else list(torque_std)
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
@@ -170,13 +180,16 @@ class ReducedObserverModel:
             iv.dt = dt
             self.n_refresh += 1
             self._last = iv
-        dK = iv.forces.stiffness_change(z[:nq])
-        m = iv.mats
-        Minv = np.linalg.inv(m.Mr + iv.forces.mass_change(z[:nq]))
-        Pn, SQM, L = self._step_maps(Minv, m.Kr + dK, m.Cr + self.model.beta * dK, m.Gr, dt)
-        iv.Pn, iv.SQM, iv.L = Pn, SQM, L
-        iv.Q = (L * self.torque_var) @ L.T + (np.diag(self.q_extra) if self.q_extra is not None else 0.0)
-        return Pn @ z + L @ u + SQM @ iv.forces(z[:r], z[r:])
+        if iv.q_map is None or np.max(np.abs(z[:nq] - iv.q_map)) > self.remap_rad:
+            dK = iv.forces.stiffness_change(z[:nq])
+            m = iv.mats
+            Minv = np.linalg.inv(m.Mr + iv.forces.mass_change(z[:nq]))
+            Pn, SQM, L = self._step_maps(Minv, m.Kr + dK, m.Cr + self.model.beta * dK, m.Gr, dt)
+            iv.Pn, iv.SQM, iv.L = Pn, SQM, L
+            iv.Q = (L * self.torque_var) @ L.T + (np.diag(self.q_extra) if self.q_extra is not None else 0.0)
+            iv.q_map = z[:nq].copy()
+            self.n_remap += 1
+        return iv.Pn @ z + iv.L @ u + iv.SQM @ iv.forces(z[:r], z[r:])
 
     def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:
         u = np.zeros(len(self.mech.motors)) if u is None else np.asarray(u, float)
@@ -251,22 +264,32 @@ class ReducedObserverModel:
             # no held configuration near x (first sample of a run): evaluate one at x
             iv, _ = self._interval(x, np.zeros(len(self.mech.motors)), 10 * self.h)
             self._last = iv
+        key = (iv.serial, tuple(channels))
+        lin = self._channel_cache.get(key)
+        if lin is None:
+            lin = self._affine(iv, channels)
+            self._channel_cache[key] = lin
+        c0, Hm = lin
+        return c0 + Hm @ x, Hm
+
+    def _affine(self, iv: _Interval, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """``y = c0 + Hm x`` for the channels, about the interval's configuration (rigid parts to first
+        order in q, elastic parts exact in p)."""
         nq, r = self.nq, self.r
-        dq = x[:nq] - iv.q0
-        y = np.empty(len(channels))
+        c0 = np.zeros(len(channels))
         Hm = np.zeros((len(channels), self.nx))
         for i, ch in enumerate(channels):
             kind, rigid, prow = self._rows(iv, ch)
-            y[i] = prow @ x[:r]
             Hm[i, :r] = prow
             if kind == "angle":
-                y[i] += rigid @ (iv.theta0 + iv.Sz_theta @ dq)
-                Hm[i, :nq] += rigid @ iv.Sz_theta
+                row = rigid @ iv.Sz_theta
+                c0[i] = rigid @ iv.theta0 - row @ iv.q0
+                Hm[i, :nq] += row
             elif kind == "point":
                 p0, Sp = rigid
-                y[i] += p0 + Sp @ dq
+                c0[i] = p0 - Sp @ iv.q0
                 Hm[i, :nq] += Sp
-        return y, Hm
+        return c0, Hm
 
     # ------------------------------------------------------------------ physical states
     def initial_state(self, q, qd=None) -> np.ndarray:

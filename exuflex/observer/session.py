@@ -60,7 +60,7 @@ class ObserverConfig:
     ranking: str = "imr"
     h: float = 1e-4
     dt: float | None = None
-    method: str = "frozen"
+    method: str = "cached"
     backend: str = "numpy"
     q0_std: float = 0.05
     qd0_std: float = 0.1
