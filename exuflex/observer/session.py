@@ -48,8 +48,13 @@ class ObserverConfig:
     method : ``"frozen"`` (fast) or ``"rk4"`` (reference) step map, see :mod:`.reduced`.
     backend : ``"numpy"`` or ``"filterpy"`` covariance algebra.
     q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations.
-    q_scale : multiplies the torque-noise process covariance; q_extra_std : extra white noise per interval
-        on the elastic rates (unmodelled dynamics), as a standard deviation in the state's unit.
+    q_scale : multiplies the torque-noise process covariance. The default 1.4 covers the reduced model's
+        mismatch with the real mechanism (truncated modes, the held matrices of the step map): tuned so that the
+        mean NIS on the six-bar with the full-order ERLS truth equals its expected value (measured 5.99 for 6
+        over 4 noise realisations, ``benchmarks/observer_accuracy.py --q-scale``); 1.0 is the stated noise.
+        The steady-state bound always uses the stated noise.
+    q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
+        deviation in the state's unit.
     start_up : seconds left out of the error metrics (the filter's transient).
     """
 
@@ -66,7 +71,7 @@ class ObserverConfig:
     qd0_std: float = 0.1
     elastic0_std: float = 1e-3
     elastic_rate0_std: float = 0.1
-    q_scale: float = 1.0
+    q_scale: float = 1.4
     q_extra_std: float = 0.0
     start_up: float = 0.3
 
@@ -166,6 +171,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     channels = tuple(config.channels) if config.channels else default_channels(mech)
     dt = config.dt or 1.0 / mech.sample_rate_hz
     som = ReducedObserverModel(cb, h=config.h, method=config.method)
+    som.torque_var_nominal = som.torque_var.copy()
     if config.q_scale != 1.0:
         som.torque_var = som.torque_var * config.q_scale
     r, nq = som.r, som.nq
@@ -241,13 +247,18 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
 def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
     """Best achievable RMS error per physical quantity: steady-state Kalman covariance of the reduced model
     linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise."""
-    mech, som = obs.mech, obs.model
+    mech = obs.mech
+    # a model of its own, so that the observer's caches are left alone
+    som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="frozen")
     if q is None:
         q = _mid_q(mech)
     z = som.initial_state(q, qd)
     u = np.zeros(len(mech.motors))
     _, A = som.step(z, u, obs.ekf.dt)
-    Q = som.process_noise(z, u, obs.ekf.dt)
+    # the bound is a property of the sensors and the *stated* noise, not of the filter's tuning
+    var = getattr(obs.model, "torque_var_nominal", som.torque_var)
+    L = som._last.L
+    Q = (L * var) @ L.T
     _, H = som.measure(z, obs.channels)
     R = np.array([s**2 for s in obs.ekf.R_std])
     P = _steady_posterior(A, Q, H, R)
