@@ -281,8 +281,19 @@ def test_non_finite_never_leaves_silently():
 
 
 def test_cli_reports_divergence_as_a_warning(tmp_path, capsys):
-    """A biased encoder (20 sigma): the run completes; the result says diverged + time; stderr warns."""
-    run = _rest_run(tmp_path / "run", n=260, bias={"q1": 0.03})
+    """A strain-gauge gain error (c1 reads 3x): the run completes; the result says diverged + time; stderr warns.
+
+    (A constant encoder offset at rest is *not* a divergence: it is indistinguishable from another rest
+    position, and the filter rightly absorbs it.)"""
+    from exuflex.runs import read_run, write_run
+    from exuflex.sensors import Signals
+
+    src = read_run(Path(__file__).resolve().parent / "data" / "sixbar_erls_3s")
+    S, n = src.sensors, 501
+    data = S.data[:n].copy()
+    data[:, S.names.index("c1")] *= 3.0
+    run = write_run(tmp_path / "run", Signals(S.t[:n], S.names, data, S.units), None, dict(src.meta),
+                    motors=src.motors)
     rc, out, err = _cli(["observe", str(MODELS / "sixbar.toml"), str(run), "--json"], capsys)
     assert rc == 0
     s = json.loads(out)

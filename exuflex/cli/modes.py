@@ -70,6 +70,9 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     from ..mechanism import load_mechanism, refine_mechanism
 
     mech = load_mechanism(model_path)
+    from ..validate import check_configurations
+
+    check_configurations(mech)  # loops close, away from singularities
     if refine > 1:
         mech = refine_mechanism(mech, refine)
     q = np.asarray(mech.q_ref if q is None else q, float)

@@ -53,6 +53,9 @@ def run(args) -> int:
     from ..runs import read_run
 
     mech = load_mechanism(args.model)
+    from ..validate import check_configurations
+
+    check_configurations(mech)  # loops close, away from singularities
     log = read_run(args.run_dir)
     out = observe_run(mech, log, _config(args))
     s = out.summary

@@ -99,6 +99,9 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     out.mkdir(parents=True, exist_ok=True)
     model = Path(model) if model else _default_model()
     mech = load_mechanism(model)
+    from ..validate import check_configurations
+
+    check_configurations(mech)  # loops close, away from singularities
     ref = paper_reference()
     walls: dict[str, float] = {}
     t_all = time.perf_counter()

@@ -123,6 +123,9 @@ def simulate_run(
 
     model_path = Path(model_path)
     mech = load_mechanism(model_path)
+    from ..validate import check_configurations
+
+    check_configurations(mech)  # loops close, away from singularities
     if mech.manoeuvre is None:
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
     duration = float(mech.manoeuvre.duration if duration is None else duration)

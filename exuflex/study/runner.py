@@ -497,6 +497,9 @@ def run_study(
     out = Path(out)
     model_path = Path(spec.model)
     nominal = load_mechanism(model_path)
+    from ..validate import check_configurations
+
+    check_configurations(nominal)  # loops close, away from singularities
     if spec.runs < 1:
         raise ValueError(f"runs must be at least 1, got {spec.runs}")
     if not spec.levels:
