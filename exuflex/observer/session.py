@@ -70,7 +70,7 @@ class ObserverConfig:
     q0_std: float = 0.05
     qd0_std: float = 0.1
     elastic0_std: float = 1e-3
-    elastic_rate0_std: float = 0.1
+    elastic_rate0_std: float = 0.01
     q_scale: float = 1.4
     q_extra_std: float = 0.0
     start_up: float = 0.3
