@@ -114,7 +114,7 @@ class Observer:
     basis_s: float
     info: dict = field(default_factory=dict)
 
-    def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-3) -> Signals:
+    def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-2) -> Signals:
         """Physical estimates (q, dq, tip elastic displacement and rate) from reduced states (n, nx).
 
         The tip rows depend on q; they are refreshed whenever q moved by more than ``refresh_rad``.
