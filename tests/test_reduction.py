@@ -115,3 +115,31 @@ def test_reduced_matrices_symmetric_positive(sixbar):
     np.testing.assert_allclose(mats.Mr, mats.Mr.T, atol=1e-12)
     np.testing.assert_allclose(mats.Kr, mats.Kr.T, atol=1e-6 * np.abs(mats.Kr).max())
     assert np.all(np.linalg.eigvalsh(mats.Mr) > 0)
+
+
+def test_along_the_manoeuvre_config_dependent_basis_keeps_accuracy(sixbar):
+    """>= 20 configurations of the paper's manoeuvre, one basis built at q*: NCO >= 0.98, error <= 3 %;
+    a constant basis H(q*) (B and Phi frozen) fails badly, which is what R(q, q*) and B(q) buy."""
+    from exuflex.manoeuvre import plan
+    from exuflex.reduction import accuracy_along
+
+    qs = plan(sixbar.mech, dt=3.0 / 24, t_end=3.0).q  # 25 configurations
+    cb = CraigBampton(sixbar)
+    accs = accuracy_along(cb, qs)
+    assert len(accs) >= 20
+    assert min(a.worst_nco for a in accs) >= 0.98
+    assert max(a.worst_error_pct for a in accs) <= 3.0
+    import dataclasses
+
+    rc_star = cb.at(cb.q_star)
+    at = cb.at
+
+    def constant(q, z0=None):  # matrices at q, basis H(q*)
+        return dataclasses.replace(at(q, z0), B=rc_star.B, Psi=rc_star.Psi, H=rc_star.H)
+
+    cb.at = constant
+    try:
+        frozen = [accuracy_indices(cb, q) for q in qs[::6]]
+    finally:
+        del cb.at
+    assert max(a.worst_error_pct for a in frozen) > 100.0
