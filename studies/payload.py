@@ -30,7 +30,7 @@ def compute(out, config: dict = FULL, *, workers: int = 1, scheduler=None, progr
 
 
 def plot(summary: dict, path):
-    """Fig. 11 from a study summary (tip displacements and velocities, mu +- sigma per payload level)."""
+    """Fig. 11 from a study summary (every estimated quantity, mu +- sigma per payload level)."""
     from exuflex.plots import payload_study_figure
 
     return payload_study_figure(figure_rows(summary), path)

@@ -715,8 +715,9 @@ def _write_results_csv(path: Path, spec: StudySpec, rows: Sequence[dict]) -> Non
 
 def figure_rows(summary: dict, quantities: Sequence[str] | None = None) -> list[dict]:
     """Rows for :func:`exuflex.plots.payload_study_figure`: level value, quantity, mu, sigma."""
-    qs = list(quantities) if quantities else ([q for q in TIP_QUANTITIES if q in summary["quantities"]]
-                                              or summary["quantities"])
+    # every estimated quantity: the tip ones (the paper's Fig. 11) and the joint ones, where the payload
+    # mismatch shows most (it changes link 5's inertia, which the encoders and the dynamics must reconcile)
+    qs = list(quantities) if quantities else list(summary["quantities"])
     return [{"level": lv["value"], "quantity": q, "mu": lv["eq21"][q]["mu"], "sigma": lv["eq21"][q]["sigma"]}
             for lv in summary["levels"] for q in qs]
 
