@@ -143,3 +143,14 @@ def test_along_the_manoeuvre_config_dependent_basis_keeps_accuracy(sixbar):
     finally:
         del cb.at
     assert max(a.worst_error_pct for a in frozen) > 100.0
+
+
+def test_analytic_mass_derivative_matches_finite_differences(sixbar):
+    rm = ReducedModel(CraigBampton(sixbar))
+    rng = np.random.default_rng(2)
+    p = np.r_[0.9, 2.5, 4.5, 1e-4 * rng.standard_normal(rm.r - 3)]
+    mats = rm.matrices(p)
+    dHdq = rm.cb.basis_derivative(mats.rc, np.eye(rm.r))
+    analytic = rm.mass_derivative_analytic(mats, dHdq)
+    fd = rm.mass_derivative(mats, p, delta=1e-7)
+    assert np.abs(analytic - fd).max() < 1e-3 * np.abs(fd).max()
