@@ -260,7 +260,7 @@ class ReducedObserverModel:
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, float)
         iv = self._last
-        if iv is None or np.max(np.abs(x[: self.nq] - iv.q0)) > max(self.refresh_rad, 0.01):
+        if iv is None or np.max(np.abs(x[: self.nq] - iv.q0)) > 1.5 * max(self.refresh_rad, 0.01):
             # no held configuration near x (first sample of a run): evaluate one at x
             iv, _ = self._interval(x, np.zeros(len(self.mech.motors)), 10 * self.h)
             self._last = iv
