@@ -28,19 +28,39 @@ def main() -> None:
     args = ap.parse_args()
     mech = load_mechanism(args.model)
     duration = mech.manoeuvre.duration if mech.manoeuvre is not None else 3.0
-    walls, cpus = [], []
+
+    def load() -> float:
+        return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+
+    walls, cpus, stats = [], [], []
+    load_before = load()
     for _ in range(args.repeat):
+        st: dict = {}
         c0 = time.process_time()
-        walls.append(time_truth(mech, duration, h=args.h, torques="smooth" if args.smooth else "auto"))
+        walls.append(
+            time_truth(mech, duration, h=args.h, torques="smooth" if args.smooth else "auto", stats=st)
+        )
         cpus.append(time.process_time() - c0)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        stats.append(st)
+    import exudyn
+
     print(
         f"model {mech.name}: {duration:g} s simulated, h = {args.h:g} s, torques: {'smooth' if args.smooth else 'manoeuvre'}"
+        f", Exudyn {exudyn.__version__} ({getattr(exudyn, '_compiledModuleName', '?')})"
     )
     print(f"wall time  best {min(walls):.2f} s  (all: {', '.join(f'{w:.2f}' for w in walls)})")
-    print(f"cpu  time  best {min(cpus):.2f} s  (includes planning the manoeuvre)")
+
+    def joined(key: str) -> str:
+        return ", ".join(f"{st[key]:.2f}" for st in stats)
+
     print(
-        f"real-time factor {min(walls) / duration:.2f}  (target <= 1); load average {load:.1f} on {os.cpu_count()} cores"
+        f"solve      wall {joined('wall_s')} s, cpu {joined('cpu_s')} s (of which pre-step "
+        f"{joined('pre_step_s')} s); Newton {stats[0]['newton_per_step']:.2f} iterations/step"
+    )
+    print(f"cpu  time  all {', '.join(f'{c:.2f}' for c in cpus)} s  (includes planning the manoeuvre)")
+    print(
+        f"real-time factor {min(walls) / duration:.2f}  (target <= 1); load average {load_before:.1f} before, "
+        f"{load():.1f} after, on {os.cpu_count()} cores"
     )
 
 
