@@ -258,10 +258,8 @@ def simulate_truth(
     # the few rows are done in Python floats (IEEE arithmetic, the same results as numpy's)
     ixy = np.concatenate([ix, iy]) if ancf else ix
     fast = len(np.unique(ixy)) == len(ixy)
-    ref_ixy = ref[ixy]
-    n_rows = len(ix)
-    rows = range(n_rows)
-    g = [0.0] * (2 * n_rows)
+    # per loaded node: (row, index of x', index of y', reference x', reference y') as Python scalars
+    rows = list(zip(range(len(ix)), ix.tolist(), iy.tolist(), ref[ix].tolist(), ref[iy].tolist()))
     n_c = len(ref)
     neg_D = [-tm.D_alpha if damped else None]
     inv_h = 1.0 / h
@@ -293,15 +291,14 @@ def simulate_truth(
         # (forces at step ends, linear in between): the mean of the held values either side of t_k+1.
         # Same arithmetic as TruthModel.generalized_forces (T d(atan2(y', x'))/d(x', y') at t_k).
         if fast and ancf:
-            r = (u[ixy] + ref_ixy).tolist()
             mT = neg_T[k].tolist()
-            for i in rows:
-                rx = r[i]
-                ry = r[n_rows + i]
+            item = u.item
+            for i, a, b, ra, rb in rows:
+                rx = item(a) + ra
+                ry = item(b) + rb
                 n2 = rx * rx + ry * ry
-                g[i] = mT[i] * ry / n2
-                g[n_rows + i] = -mT[i] * rx / n2
-            f[ixy] += g
+                f[a] += mT[i] * ry / n2
+                f[b] += -mT[i] * rx / n2
         elif ancf:
             rx = u[ix] + ref[ix]
             ry = u[iy] + ref[iy]
