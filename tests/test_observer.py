@@ -113,6 +113,22 @@ def test_cached_path_agrees_with_reference_path(sixbar, observer, erls_log):
         assert diff[name] < 0.25 * err[name], (name, diff[name], err[name])
 
 
+def test_fft_of_estimated_tip_matches_the_truths_peaks(sixbar, observer, erls_log):
+    """Significant spectral peaks (>= 10 % of the largest, 5-180 Hz) of the true tip elastic displacement are
+    found in the estimate's spectrum within 2 % (paper Fig. 10)."""
+    from exuflex.observer.stats import fft_peaks, match_peaks
+
+    t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
+    phys = observer.physical(t, observer.ekf.run(t, U, Y).x_hat)
+    sel = phys.t >= 0.3
+    for name in ("x25", "y26"):
+        truth = np.interp(phys.t[sel], erls_log.truth.t, erls_log.truth[name])
+        ft, at = fft_peaks(phys.t[sel], truth, fmax=180.0, n_peaks=6, fmin=5.0, return_amplitudes=True)
+        fe = fft_peaks(phys.t[sel], phys[name][sel], fmax=180.0, n_peaks=6, fmin=5.0)
+        _, err = match_peaks(ft[at >= 0.1 * at.max()], fe)
+        assert np.all(err < 2.0), (name, ft, fe, err)
+
+
 def test_missing_samples_are_predictions_and_counted(sixbar, observer, erls_log):
     t, U, Y = _arrays(erls_log, observer.channels, 80)
     Y = Y.copy()
