@@ -19,7 +19,7 @@ import numpy as np
 from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
-from ..sensors import Signals, tip_dof_names, tip_point
+from ..sensors import Signals, tip_point, truth_names
 from .bound import steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF
 from .reduced import ReducedObserverModel
@@ -96,12 +96,8 @@ def default_channels(mech: Mechanism) -> tuple[str, ...]:
 
 
 def physical_names(mech: Mechanism) -> tuple[str, ...]:
-    qn = mech.coordinate_names
-    names = qn + tuple("d" + n for n in qn)
-    if tip_point(mech) is not None:
-        ex, ey = tip_dof_names(mech)
-        names += (ex, ey, "d" + ex, "d" + ey)
-    return names
+    """Names of the physical estimates: exactly the truth columns (:func:`exuflex.sensors.truth_names`)."""
+    return truth_names(mech)
 
 
 @dataclass
