@@ -141,3 +141,24 @@ def test_missing_samples_are_predictions_and_counted(sixbar, observer, erls_log)
 
 def test_physical_names_follow_the_truth_columns(sixbar):
     assert physical_names(sixbar) == ("q1", "q2", "q3", "dq1", "dq2", "dq3", "x25", "y26", "dx25", "dy26")
+
+
+def test_cli_observes_a_lab_csv_with_a_channel_map(tmp_path, erls_log, capsys):
+    """A lab log: other column names, time in milliseconds, mapped on the command line."""
+    import json
+
+    from exuflex.cli import main
+
+    S = erls_log.sensors
+    cols = {"T1": "m1", "T2": "m2", "T3": "m3", "q1": "enc1", "q2": "enc2", "q3": "enc3", "c1": "sg1",
+            "c2": "sg2", "c4": "sg4"}
+    n = 400
+    lines = ["t_ms," + ",".join(cols.values())]
+    lines += [f"{S.t[k] * 1000:.6f}," + ",".join(repr(float(S[c][k])) for c in cols) for k in range(n)]
+    (tmp_path / "lab.csv").write_text("\n".join(lines) + "\n")
+    rc = main(["observe", str(MODELS / "sixbar.toml"), str(tmp_path / "lab.csv"), "--json", "--time-column", "t_ms",
+               "--time-scale", "1e-3", "--map", ",".join(f"{k}={v}" for k, v in cols.items()),
+               "--truth", str(DATA / "sixbar_erls_3s" / "truth.csv")])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["n_updates"] == n
+    assert out["rms_error"]["q1"] < 3 * out["bound_rms"]["q1"]

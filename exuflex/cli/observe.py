@@ -13,7 +13,14 @@ __all__ = ["add_parser", "run"]
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("observe", help="estimate the states of a logged run with the reduced-order EKF")
     p.add_argument("model", help="mechanism model file (TOML)")
-    p.add_argument("run_dir", help="run folder (sensors.csv, meta.json, optional truth.csv)")
+    p.add_argument("run_dir", help="run folder (sensors.csv, meta.json, optional truth.csv), or a CSV log file "
+                   "(then see --map)")
+    p.add_argument("--map", help="for a CSV log: channel=column pairs, e.g. T1=motor1_Nm,q1=enc1_rad (default: "
+                   "columns named like the model's motors and sensors)")
+    p.add_argument("--time-column", default="time", help="for a CSV log: the time column (default time)")
+    p.add_argument("--time-scale", type=float, default=1.0, help="for a CSV log: multiplies the time column, "
+                   "e.g. 1e-3 for milliseconds")
+    p.add_argument("--truth", help="for a CSV log: a truth CSV (time + columns named like the truth states)")
     p.add_argument("--out", help="write estimates.csv, result.json and plots here")
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
     p.add_argument("--channels", help="comma-separated sensor channels (default: the paper's set for the model)")
@@ -47,6 +54,36 @@ def _config(args):
     )
 
 
+def _read_log(args, mech):
+    """A CSV log (a lab's, or Exudyn's sensor output converted to CSV) as a run: channels mapped by name."""
+    from ..errors import LogFormatError
+    from ..runs import Run, read_csv_log
+
+    names = list(mech.motor_names) + [s.name for s in mech.sensors]
+    if args.map:
+        mapping = {}
+        for pair in args.map.split(","):
+            if "=" not in pair:
+                raise LogFormatError(f"--map: expected channel=column pairs separated by commas, got {pair!r}")
+            ours, theirs = (x.strip() for x in pair.split("=", 1))
+            if ours not in names:
+                raise LogFormatError(f"--map: {ours!r} is not a motor or sensor of {mech.name}; expected one of {names}")
+            mapping[ours] = theirs
+        for m in mech.motor_names:
+            mapping.setdefault(m, m)
+    else:
+        mapping = None
+    sig = read_csv_log(args.run_dir, mapping, time_column=args.time_column, time_scale=args.time_scale)
+    motors = [m for m in mech.motor_names if m in sig]
+    if len(motors) != len(mech.motor_names):
+        raise LogFormatError(f"{args.run_dir}: the observer needs the measured torques {list(mech.motor_names)}; "
+                             f"the log has {list(sig.names)} (use --map)")
+    truth = read_csv_log(args.truth, time_column="time") if args.truth else None
+    sensors = [n for n in sig.names if n not in motors]
+    meta = {"engine": "csv", "source": str(args.run_dir), "motors": motors, "sensors": sensors}
+    return Run(Path(args.run_dir), sig, truth, meta)
+
+
 def run(args) -> int:
     from ..mechanism import load_mechanism
     from ..observer.session import observe_run
@@ -56,7 +93,7 @@ def run(args) -> int:
     from ..validate import check_configurations
 
     check_configurations(mech)  # loops close, away from singularities
-    log = read_run(args.run_dir)
+    log = _read_log(args, mech) if Path(args.run_dir).is_file() else read_run(args.run_dir)
     out = observe_run(mech, log, _config(args))
     s = out.summary
     if s["diverged"]:
