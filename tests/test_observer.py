@@ -178,3 +178,16 @@ def test_fast_steps_agree_with_the_papers_rk4_reference(sixbar, observer, erls_l
         diff = metrics(est, ref, start_up=0.3)["rms_error"]
         for name in physical_names(sixbar):
             assert diff[name] < tol * bound[name], (method, name, diff[name], bound[name])
+
+
+def test_runaway_estimate_is_a_divergence_not_a_model_error(sixbar):
+    """Encoders reading 0 rad (a dead channel): the estimate runs away until the loops cannot close; that
+    must surface as FilterDivergedError, never as a KinematicsError blaming the model file."""
+    from exuflex.observer import FilterDivergedError
+
+    obs = make_observer(sixbar)
+    t = np.arange(200) * DT
+    U = np.tile([-2.0, -5.0, 0.02], (len(t), 1))
+    Y = np.zeros((len(t), len(obs.channels)))
+    with pytest.raises(FilterDivergedError):
+        obs.ekf.run(t, U, Y)

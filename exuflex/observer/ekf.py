@@ -429,7 +429,13 @@ class MultirateEKF:
 
     def _update(self, y: np.ndarray, idx: np.ndarray, chans: tuple, Rd: np.ndarray, R: np.ndarray) -> None:
         x, P = self._x, self._P
-        y_pred, H = self.model.measure(x, chans)
+        try:
+            y_pred, H = self.model.measure(x, chans)
+        except (ArithmeticError, np.linalg.LinAlgError, KinematicsError) as exc:
+            # cannot evaluate the sensors at a runaway estimate: the filter has diverged (see _predict)
+            self._model_failure = f"{type(exc).__name__}: {exc}"
+            self._x = np.full(self.nx, np.nan)
+            return
         if self._kf is None:
             r = y - y_pred
             nx = self.nx
