@@ -36,6 +36,7 @@ import numpy as np
 from ..erls.model import Configuration, ErlsModel
 from ..erls.simulate import rk4_step
 from .reduced import power_sum
+from .rows import sensor, sensor_rows
 
 __all__ = ["FullObserverModel"]
 
@@ -155,30 +156,8 @@ class FullObserverModel:
             return hit
         if len(self._rows_cache) > 64:
             self._rows_cache = {k: v for k, v in self._rows_cache.items() if k[0] == iv.serial}
-        s = self.sensors.get(channel)
-        if s is None:
-            raise KeyError(
-                f"{self.mech.source or self.mech.name}: no sensor channel {channel!r}; "
-                f"the model has {sorted(self.sensors)}"
-            )
-        model, cfg = self.model, iv.cfg
-        if s.kind == "encoder":
-            a = np.zeros(len(self.link_names))
-            a[self.link_names.index(s.link)] = 1.0
-            row = model.rotation_row(s.link, s.joint)
-            if s.relative_to:
-                a[self.link_names.index(s.relative_to)] -= 1.0
-                row = row - model.rotation_row(s.relative_to, s.joint)
-            out = ("angle", a, row)
-        elif s.kind == "curvature":
-            out = ("linear", None, model.curvature_row(cfg, s.link, s.station))
-        elif s.kind in ("tip_x", "tip_y"):
-            c = 0 if s.kind == "tip_x" else 1
-            rows = model.point_displacement_rows(cfg, s.link, s.station)
-            p0, Sp = model.kin.point(cfg.pose, s.link, s.station)
-            out = ("point", (p0[c], Sp[c]), rows[c])
-        else:  # pragma: no cover - the loader admits only these kinds
-            raise KeyError(f"unsupported sensor kind {s.kind!r}")
+        s = sensor(self.mech, self.sensors, channel)
+        out = sensor_rows(self.model, iv.cfg, s, self.link_names)
         self._rows_cache[key] = out
         return out
 

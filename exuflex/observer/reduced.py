@@ -43,6 +43,7 @@ import numpy as np
 
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
+from .rows import sensor, sensor_rows
 
 __all__ = ["ReducedObserverModel", "power_sum", "METHODS"]
 
@@ -230,30 +231,9 @@ class ReducedObserverModel:
             return hit
         if len(self._channel_cache) > 64:
             self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] == iv.serial}
-        s = self.sensors.get(channel)
-        if s is None:
-            raise KeyError(
-                f"{self.mech.source or self.mech.name}: no sensor channel {channel!r}; the model has {sorted(self.sensors)}"
-            )
-        model, cfg, H = self.model, iv.mats.rc.cfg, iv.mats.rc.H
-        Hu = H[self.nq :]
-        if s.kind == "encoder":
-            a = np.zeros(len(self.link_names))
-            a[self.link_names.index(s.link)] = 1.0
-            row = model.rotation_row(s.link, s.joint)
-            if s.relative_to:
-                a[self.link_names.index(s.relative_to)] -= 1.0
-                row = row - model.rotation_row(s.relative_to, s.joint)
-            out = ("angle", a, row @ Hu)
-        elif s.kind == "curvature":
-            out = ("linear", None, model.curvature_row(cfg, s.link, s.station) @ Hu)
-        elif s.kind in ("tip_x", "tip_y"):
-            c = 0 if s.kind == "tip_x" else 1
-            rows = model.point_displacement_rows(cfg, s.link, s.station)
-            p0, Sp = model.kin.point(cfg.pose, s.link, s.station)
-            out = ("point", (p0[c], Sp[c]), rows[c] @ Hu)
-        else:  # pragma: no cover - the loader admits only these kinds
-            raise KeyError(f"unsupported sensor kind {s.kind!r}")
+        s = sensor(self.mech, self.sensors, channel)
+        kind, rigid, urow = sensor_rows(self.model, iv.mats.rc.cfg, s, self.link_names)
+        out = (kind, rigid, urow @ iv.mats.rc.H[self.nq :])
         self._channel_cache[key] = out
         return out
 
