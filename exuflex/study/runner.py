@@ -35,7 +35,6 @@ import math
 import os
 import socket
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -46,7 +45,7 @@ import numpy as np
 
 from ..mechanism import Mechanism, load_mechanism
 from ..observer.session import ObserverConfig
-from ..runs import atomic_write_text, file_sha256, package_versions
+from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
 from ..sensors import Signals
 from .overrides import apply_overrides
 
@@ -181,17 +180,7 @@ def _save_truth(path: Path, lt: LevelTruth) -> None:
 def _atomic_npz(path: Path, **arrays) -> None:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
-    fd, tmp = tempfile.mkstemp(prefix=".truth.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.getvalue())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _load_truth(path: Path, timings: dict) -> LevelTruth:
