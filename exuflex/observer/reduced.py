@@ -81,7 +81,6 @@ class _Interval:
     forces: object = None  # QuadraticForces at the held configuration (cached method)
     Q: np.ndarray | None = None
     dt: float = 0.0
-    Minv: np.ndarray | None = None
     q_map: np.ndarray | None = None  # configuration of the current step map (cached method)
 
 
@@ -92,13 +91,14 @@ class ReducedObserverModel:
     ----------
     reduced : ReducedModel or CraigBampton
     h : RK4 sub-step (s), default 1e-4 (the paper's).
-    method : ``"frozen"`` (fast, default) or ``"rk4"`` (reference).
+    method : ``"cached"`` (fast), ``"frozen"`` or ``"rk4"`` (the paper's scheme, reference); see the module
+        docstring. The observer session uses ``"cached"``.
     torque_std : std of the measured torques (N m) per motor; default the motors' ``noise_std``.
     q_extra : optional (nx,) diagonal added to Q per interval (unmodelled dynamics).
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None,
-                 midpoint: bool = False, gyro: bool = False, refresh_rad: float = 1e-2, remap_rad: float = 2e-3):
+                 refresh_rad: float = 1e-2, remap_rad: float = 2e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -111,8 +111,6 @@ class ReducedObserverModel:
         self.nx = 2 * reduced.r
         self.h = float(h)
         self.method = method
-        self.midpoint = midpoint
-        self.gyro = gyro
         self.refresh_rad = float(refresh_rad)
         self.remap_rad = float(remap_rad)
         self.n_refresh = 0
@@ -154,20 +152,21 @@ class ReducedObserverModel:
         SQM = (Sn @ Qm[:, r:]) @ Minv
         return Pn, SQM, SQM @ Gr
 
-    def _interval(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Interval, np.ndarray]:
-        r, nq = self.r, self.nq
-        p, pd = z[:r], z[r:]
-        mats = self.rm.matrices(p + (0.5 * dt) * pd if self.midpoint else p, pd, gyro=self.gyro)
+    def _configuration(self, z: np.ndarray) -> _Interval:
+        """Evaluate the configuration at the state z (reduced matrices, pose data); no step map yet."""
+        mats = self.rm.matrices(z[: self.r], z[self.r :])
         self.n_evaluations += 1
-        Minv = np.linalg.inv(mats.Mr)
-        Cr = mats.Cr if mats.Gv is None else mats.Cr - mats.Gv
-        Pn, SQM, L = self._step_maps(Minv, mats.Kr, Cr, mats.Gr, dt)
         pose = mats.rc.cfg.pose
         self._serial += 1
-        iv = _Interval(p[:nq].copy(), mats, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy(), self._serial, SQM)
-        iv.Minv = Minv
-        f0 = mats.fr if mats.Gv is None else mats.fr - mats.Gv @ pd
-        return iv, Pn @ z + L @ u + SQM @ f0
+        return _Interval(z[: self.nq].copy(), mats, None, None, pose.Sz[2::3].copy(), pose.z[2::3].copy(),
+                         self._serial)
+
+    def _interval(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Interval, np.ndarray]:
+        """The frozen step: configuration at the interval's start, its step map, and the state at the end."""
+        iv = self._configuration(z)
+        mats = iv.mats
+        iv.Pn, iv.SQM, iv.L = self._step_maps(np.linalg.inv(mats.Mr), mats.Kr, mats.Cr, mats.Gr, dt)
+        return iv, iv.Pn @ z + iv.L @ u + iv.SQM @ mats.fr
 
     def _cached_step(self, z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """Configuration evaluated only when q leaves ``refresh_rad`` of the last one; in between, the
@@ -176,7 +175,7 @@ class ReducedObserverModel:
         r, nq = self.r, self.nq
         iv = self._last
         if iv is None or iv.forces is None or np.max(np.abs(z[:nq] - iv.q0)) > self.refresh_rad or iv.dt != dt:
-            iv, _ = self._interval(z, u, dt)
+            iv = self._configuration(z)  # its step map is built just below
             iv.forces = self.rm.force_model(iv.mats, z[:r])
             iv.dt = dt
             self.n_refresh += 1
@@ -242,7 +241,7 @@ class ReducedObserverModel:
         iv = self._last
         if iv is None or np.max(np.abs(x[: self.nq] - iv.q0)) > 1.5 * max(self.refresh_rad, 0.01):
             # no held configuration near x (first sample of a run): evaluate one at x
-            iv, _ = self._interval(x, np.zeros(len(self.mech.motors)), 10 * self.h)
+            iv = self._configuration(x)
             self._last = iv
         key = (iv.serial, tuple(channels))
         lin = self._channel_cache.get(key)

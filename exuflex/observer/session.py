@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -327,9 +327,6 @@ def _mid_q(mech: Mechanism) -> np.ndarray:
             log.warning("could not plan the manoeuvre's middle (%s); using q_ref", exc)
     return np.asarray(mech.q_ref, float)
 
-
-def with_channels(config: ObserverConfig, channels) -> ObserverConfig:
-    return replace(config, channels=tuple(channels))
 
 
 # ------------------------------------------------------------------------------------------ runs

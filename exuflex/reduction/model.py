@@ -42,7 +42,6 @@ class ReducedMatrices:
     Cr: np.ndarray
     Gr: np.ndarray  # (r, n_motors) generalised forces of unit motor torques
     fr: np.ndarray  # (r,) gravity minus velocity-dependent forces at the state
-    Gv: np.ndarray | None = None  # (r, r) d fr / d p' (gyroscopic linearisation), if requested
 
 
 class QuadraticForces:
@@ -104,11 +103,8 @@ class ReducedModel:
         self.consistent = consistent
 
     # ------------------------------------------------------------------ matrices
-    def matrices(self, p, pd=None, gyro: bool = False) -> ReducedMatrices:
-        """Reduced matrices and state-dependent forces at (p, p'); ``pd=None``: at rest.
-
-        ``gyro=True`` also returns ``Gv = d fr / d p'``, exact since ``fr`` is a quadratic form in ``p'``.
-        """
+    def matrices(self, p, pd=None) -> ReducedMatrices:
+        """Reduced matrices and state-dependent forces at (p, p'); ``pd=None``: at rest."""
         model, cb, nq = self.model, self.cb, self.nq
         p = np.asarray(p, float)
         if p.shape == (nq,):  # a configuration: undeformed
@@ -119,13 +115,8 @@ class ReducedModel:
         x = H @ p
         J = H
         a_b = None
-        dHdq = None
         if self.consistent:
-            if gyro:
-                D = cb.basis_derivative(rc, np.column_stack([p, pd, np.eye(self.r)]))
-                dHdq = D[2:]  # (r, n, nq): column k of dH/dq_i is dHdq[k, :, i]
-            else:
-                D = cb.basis_derivative(rc, np.column_stack([p, pd]))  # (2, n, nq)
+            D = cb.basis_derivative(rc, np.column_stack([p, pd]))  # (2, n, nq)
             J = H.copy()
             J[:, :nq] += D[0]
             if np.any(pd[:nq]):
@@ -145,17 +136,9 @@ class ReducedModel:
         Gr = WJ.T @ model.B_N
         f = cfg.M_N @ model.g_N
         fr = WJ.T @ f - J.T @ model.velocity_forces(cfg, x, v)
-        JtM = WJ.T @ cfg.M_N @ cfg.W  # J^T M
         if a_b is not None:
-            fr -= JtM @ a_b
-        Gv = None
-        if gyro:
-            Gv = -J.T @ model.velocity_force_jacobian(cfg, x, v) @ J
-            if dHdq is not None:
-                dab = 2.0 * (dHdq @ pd[:nq]).T  # (n, r): 2 sum_i q'_i dH/dq_i
-                dab[:, :nq] += 2.0 * D[1]
-                Gv -= JtM @ dab
-        return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr, Gv)
+            fr -= (WJ.T @ cfg.M_N @ cfg.W) @ a_b  # J^T M a_b
+        return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr)
 
     def reduced_mass(self, p: np.ndarray) -> np.ndarray:
         """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
