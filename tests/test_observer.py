@@ -103,14 +103,20 @@ def test_converges_from_wrong_start_within_twice_the_bound(sixbar, observer, erl
 
 
 def test_cached_path_agrees_with_reference_path(sixbar, observer, erls_log):
-    t, U, Y = _arrays(erls_log, observer.channels, 501)
+    """The cached step (configuration evaluated 50 times in 3 s) against the frozen one (every interval):
+    differences far below the estimation error (measured on the 3 s log: <= 7 % of it, dq3; <= 4 %
+    elsewhere)."""
+    t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
     cb = observer.model.rm.cb
     ref = estimate(make_observer(sixbar, ObserverConfig(method="frozen"), cb=cb), t, U, Y)
-    fast = estimate(make_observer(sixbar, ObserverConfig(method="cached"), cb=cb), t, U, Y)
+    fast_obs = make_observer(sixbar, ObserverConfig(method="cached"), cb=cb)
+    fast = estimate(fast_obs, t, U, Y)
     err = metrics(ref.physical, erls_log.truth, start_up=0.3)["rms_error"]
     diff = metrics(fast.physical, ref.physical, start_up=0.3)["rms_error"]
+    print({name: round(diff[name] / err[name], 3) for name in err}, fast_obs.model.n_refresh, "evaluations")
+    assert fast_obs.model.n_refresh < 100
     for name in physical_names(sixbar):
-        assert diff[name] < 0.25 * err[name], (name, diff[name], err[name])
+        assert diff[name] < 0.1 * err[name], (name, diff[name], err[name])
 
 
 def test_fft_of_estimated_tip_matches_the_truths_peaks(sixbar, observer, erls_log):

@@ -32,7 +32,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
         default="cached",
         help="step map: cached (fast, default), frozen (matrices every interval), rk4 (the paper's, reference)",
     )
-    p.add_argument("--backend", choices=("numpy", "filterpy"), default="numpy")
+    p.add_argument("--backend", choices=("auto", "numba", "numpy", "filterpy"), default="auto",
+                   help="covariance algebra (auto: numba where installed)")
     p.add_argument("--bound", action="store_true", help="also print the steady-state RMS bound (always in --json)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)

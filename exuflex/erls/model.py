@@ -229,11 +229,12 @@ class ErlsModel:
         Jh[:nq] -= S_th.T @ (Yall @ W)
         return Jh
 
-    def velocity_force_tensor(self, cfg: Configuration, J: np.ndarray) -> np.ndarray:
+    def velocity_force_tensor(self, cfg: Configuration, J: np.ndarray, Sd: list | None = None) -> np.ndarray:
         """``T[k] = J^T (dh/dv)(J e_k) J`` for a velocity map ``v = J w`` whose first ``nq`` rows are ``[I 0]``.
 
         Since ``h`` is a quadratic form in ``v``, ``J^T h(J w) = 1/2 sum_k w_k T[k] w`` (the position-dependent
         ``dV/dq`` term aside). Batched over all k (a few einsums instead of ``r`` Jacobian evaluations).
+        ``Sd``: ``dS/dq_j`` for every coordinate (:meth:`coordinate_derivatives`), if already computed.
         """
         nq = self.nq
         r = J.shape[1]
@@ -243,21 +244,24 @@ class ErlsModel:
         S_th = cfg.pose.Sz[2::3][self.el_link]  # (n_el, nq)
         WJe = WJ[self.el_dofs]  # (n_el, 6, r)
         Ye = RGR @ WJe  # (n_el, 6, r)
-        E = np.einsum("eak,eaj->ekj", WJe, Ye)  # (n_el, r, r) = WJe^T RGR WJe
+        E = np.swapaxes(WJe, 1, 2) @ Ye  # (n_el, r, r) = WJe^T RGR WJe
+        SE = (S_th.T @ E.reshape(len(E), -1)).reshape(nq, r, r)  # [k, i, j] = sum_e S_th[e, k] E[e, i, j]
         T = np.zeros((r, r, r))
-        T[:nq] += np.einsum("ek,eij->kij", S_th, E)  # M_N' b' through the element rates
-        T[:, :, :nq] += np.einsum("ej,eik->kij", S_th, E)  # ... through b'
-        T[:, :nq, :] -= np.einsum("ei,emk->kim", S_th, E)  # q rows: -d(gT)/dv
-        Sd = []
-        for j in range(nq):
-            e = np.zeros(nq)
-            e[j] = 1.0
-            Sd.append(self.kin.rates(cfg.pose, e)[1])
+        T[:nq] += SE  # M_N' b' through the element rates
+        T[:, :, :nq] += np.transpose(SE, (2, 1, 0))  # ... through b'
+        T[:, :nq, :] -= np.transpose(SE, (2, 0, 1))  # q rows: -d(gT)/dv
+        if Sd is None:
+            Sd = self.coordinate_derivatives(cfg)
         MW = WJ.T @ cfg.M_N  # (r, N)
         for k in range(nq):
             for j in range(nq):
                 T[k, :, j] += MW @ (Sd[j][:, k] + Sd[k][:, j])
         return T
+
+    def coordinate_derivatives(self, cfg: Configuration) -> list[np.ndarray]:
+        """``dS/dq_j`` (N, nq) for every coordinate j (the rate of S along ``q' = e_j``)."""
+        eye = np.eye(self.nq)
+        return [self.kin.rates(cfg.pose, eye[j])[1] for j in range(self.nq)]
 
     # ------------------------------------------------------------------ dynamics
     def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):

@@ -22,6 +22,7 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, tip_point, truth_names
 from .bound import steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF
+from .held import HAVE_NUMBA
 from .reduced import ReducedObserverModel
 
 __all__ = [
@@ -45,8 +46,10 @@ class ObserverConfig:
     channels : measured sensor channels used (default :func:`default_channels`).
     masters, n_interior, q_star, ranking : the reduction (default: the model file's).
     h : RK4 sub-step (s); dt : measurement interval (s, default 1 / the model's sample rate).
-    method : ``"frozen"`` (fast) or ``"rk4"`` (reference) step map, see :mod:`.reduced`.
-    backend : ``"numpy"`` or ``"filterpy"`` covariance algebra.
+    method : ``"cached"`` (fast, default), ``"frozen"`` or ``"rk4"`` (reference) step map, see :mod:`.reduced`.
+    backend : covariance algebra: ``"numba"`` (compiled), ``"numpy"`` (reference) or ``"filterpy"``;
+        ``"auto"`` (default) is numba where it is installed, else numpy. The cached step's own arithmetic
+        is compiled whenever numba is installed (:mod:`.held`).
     q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations.
     q_scale : multiplies the torque-noise process covariance. The default 1.5 covers the reduced model's
         mismatch with the real mechanism (truncated modes, the held matrices of the step map): tuned on the
@@ -68,7 +71,7 @@ class ObserverConfig:
     h: float = 1e-4
     dt: float | None = None
     method: str = "cached"
-    backend: str = "numpy"
+    backend: str = "auto"
     q0_std: float = 0.05
     qd0_std: float = 0.1
     elastic0_std: float = 1e-3
@@ -184,9 +187,13 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
-    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, backend=config.backend)
+    backend = config.backend
+    if backend == "auto":
+        backend = "numba" if HAVE_NUMBA else "numpy"
+    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, backend=backend)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
-            "interior_modes": int(cb.n_interior), "channels": list(channels)}
+            "interior_modes": int(cb.n_interior), "channels": list(channels), "backend": backend,
+            "step_kernel": som.kernel_name}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
 
 

@@ -277,8 +277,8 @@ class CraigBampton:
         d = T @ W  # nodal (N, k)
         R = cfg.R
         Rt = np.swapaxes(R, 1, 2)
-        dl = np.einsum("eij,ejk->eik", Rt, d[model.el_dofs])  # (n_el, 6, k)
-        ye = np.einsum("eij,ejk->eik", R, np.einsum("eij,ejk->eik", model.KGl, dl))  # (n_el, 6, k)
+        dl = Rt @ d[model.el_dofs]  # (n_el, 6, k)
+        ye = R @ (model.KGl @ dl)  # (n_el, 6, k)
         S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
         C = (ye[:, :, :, None] * S_th[:, None, None, :]).reshape(-1, k * nq)  # (n_el*6, k*nq)
         f = model.scatter @ C  # (N, k*nq): dK_N/dq_i w, column kk*nq + i

@@ -64,7 +64,7 @@ class QuadraticForces:
         self.V2 = V.reshape(nq * r, r)
         self.C2 = None
         if dHdq is not None:
-            C = np.einsum("rn,knj->kjr", JtM, dHdq)  # J^T M dH/dq_j e_k
+            C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
 
     def __call__(self, p: np.ndarray, pd: np.ndarray) -> np.ndarray:
@@ -103,25 +103,33 @@ class ReducedModel:
         self.consistent = consistent
 
     # ------------------------------------------------------------------ matrices
-    def matrices(self, p, pd=None) -> ReducedMatrices:
-        """Reduced matrices and state-dependent forces at (p, p'); ``pd=None``: at rest."""
+    def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
+                 rc: ReducedConfiguration | None = None) -> ReducedMatrices:
+        """Reduced matrices and state-dependent forces at (p, p'); ``pd=None``: at rest.
+
+        ``forces=False`` leaves ``fr`` out (``None``: the cached observer step takes the forces from
+        :meth:`force_model`); ``dHdq`` (``d(H e_k)/dq`` for every reduced coordinate) and ``rc`` (the basis
+        at ``p``'s configuration) if already computed.
+        """
         model, cb, nq = self.model, self.cb, self.nq
         p = np.asarray(p, float)
         if p.shape == (nq,):  # a configuration: undeformed
             p = np.concatenate([p, np.zeros(self.r - nq)])
         pd = np.zeros(self.r) if pd is None else np.asarray(pd, float)
-        rc = cb.at(p[:nq])
+        if rc is None:
+            rc = cb.at(p[:nq])
         cfg, H = rc.cfg, rc.H
-        x = H @ p
         J = H
         a_b = None
         if self.consistent:
-            D = cb.basis_derivative(rc, np.column_stack([p, pd]))  # (2, n, nq)
+            if dHdq is None:
+                D = cb.basis_derivative(rc, np.column_stack([p, pd]))  # (2, n, nq)
+            else:
+                D = np.tensordot(np.column_stack([p, pd]), dHdq, axes=(0, 0))
             J = H.copy()
             J[:, :nq] += D[0]
             if np.any(pd[:nq]):
                 a_b = 2.0 * (D[1] @ pd[:nq])
-        v = J @ pd
         WJ = cfg.W @ J
         Mr = WJ.T @ cfg.M_N @ WJ
         Hu, Ju = H[nq:], J[nq:]
@@ -134,11 +142,22 @@ class ReducedModel:
         else:
             Cr = np.zeros((self.r, self.r))
         Gr = WJ.T @ model.B_N
+        if not forces:
+            return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
         f = cfg.M_N @ model.g_N
-        fr = WJ.T @ f - J.T @ model.velocity_forces(cfg, x, v)
+        fr = WJ.T @ f - J.T @ model.velocity_forces(cfg, H @ p, J @ pd)
         if a_b is not None:
             fr -= (WJ.T @ cfg.M_N @ cfg.W) @ a_b  # J^T M a_b
         return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr)
+
+    def held(self, p, pd) -> tuple[ReducedMatrices, QuadraticForces]:
+        """Everything the cached observer step holds at a configuration, computed once with shared terms:
+        the reduced matrices (``fr`` left out) and :meth:`force_model` with its q-derivatives."""
+        p = np.asarray(p, float)
+        rc = self.cb.at(p[: self.nq])
+        dHdq = self.cb.basis_derivative(rc, np.eye(self.r)) if self.consistent else None
+        mats = self.matrices(p, pd, forces=False, dHdq=dHdq, rc=rc)
+        return mats, self.force_model(mats, p, dHdq=dHdq)
 
     def reduced_mass(self, p: np.ndarray) -> np.ndarray:
         """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
@@ -161,7 +180,7 @@ class ReducedModel:
         self.cb.at(p[: self.nq])  # leave the closure solver warm-started at p
         return out
 
-    def force_model(self, mats: ReducedMatrices, p: np.ndarray) -> QuadraticForces:
+    def force_model(self, mats: ReducedMatrices, p: np.ndarray, dHdq: np.ndarray | None = None) -> QuadraticForces:
         """The state-dependent forces ``fr(p, p')`` at ``mats``' configuration as explicit quadratic forms.
 
         With the configuration (and ``J``) held, every velocity-dependent term is a quadratic form in ``p'``
@@ -173,60 +192,56 @@ class ReducedModel:
         model, cb, nq, r = self.model, self.cb, self.nq, self.r
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
-        Tk = model.velocity_force_tensor(cfg, J)
+        Sd = model.coordinate_derivatives(cfg)
+        Tk = model.velocity_force_tensor(cfg, J, Sd)
         # q-row geometric term h_V(p) = S_th^T gV(u): quadratic form in p
         TH = model.T @ rc.H[nq:]  # (N, r)
         R = cfg.R
         Rt = np.swapaxes(R, 1, 2)
-        Ae = np.einsum("eij,ejk->eik", Rt, TH[model.el_dofs])  # (n_el, 6, r)
+        Ae = Rt @ TH[model.el_dofs]  # (n_el, 6, r)
         KGs = 0.5 * (model.KGl + np.swapaxes(model.KGl, 1, 2))
-        Ve = 0.5 * np.einsum("eji,ejk,ekl->eil", Ae, KGs, Ae)  # (n_el, r, r)
+        AeT = np.swapaxes(Ae, 1, 2)
+        Ve = 0.5 * (AeT @ (KGs @ Ae))  # (n_el, r, r)
         S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
-        V = np.einsum("ei,ejk->ijk", S_th, Ve)  # (nq, r, r); J's q rows are [I 0]
-        dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
+        V = (S_th.T @ Ve.reshape(len(Ve), -1)).reshape(nq, r, r)  # J's q rows are [I 0]
+        if dHdq is None:
+            dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
         JtM = (cfg.W @ J).T @ cfg.M_N @ cfg.W if self.consistent else None
         fg = (cfg.W @ J).T @ (cfg.M_N @ model.g_N)
-        # d K_r / d q_i with K_r = H_u^T K_uu H_u: stiffness rotated with the elements, basis with the links
-        Hu = rc.H[nq:]
-        Kuu = rc.Kuu
-        RKR = R @ model.KGl @ Rt  # (n_el, 6, 6)
-        dKr = np.empty((nq, r, r))
-        for i in range(nq):
-            dKN = model._assemble(RKR * S_th[:, i][:, None, None])
-            dKuu = model.T.T @ dKN @ model.T
-            dHu = dHdq[:, nq:, i].T  # (ne, r)
-            KH = Kuu @ Hu
-            dKr[i] = dHu.T @ KH + Hu.T @ dKuu @ Hu + KH.T @ dHu
+        # d K_r / d q_i with K_r = H_u^T K_uu H_u: stiffness rotated with the elements, basis with the links;
+        # per element (T H)_e^T R K_G R^T (T H)_e = A_e^T K_G A_e, so no assembly is needed
+        KH = rc.Kuu @ rc.H[nq:]
+        dHK = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_uu H_u per q_i
+        Ee = AeT @ (model.KGl @ Ae)
+        dKr = (S_th.T @ Ee.reshape(len(Ee), -1)).reshape(nq, r, r) + dHK + np.swapaxes(dHK, 1, 2)
         qf = QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, rc.q.copy(), dKr, model.beta)
-        qf.dMr2 = self.mass_derivative_analytic(mats, dHdq).reshape(nq, r * r)
+        qf.dMr2 = self.mass_derivative_analytic(mats, dHdq, Sd).reshape(nq, r * r)
         return qf
 
-    def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray) -> np.ndarray:
+    def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None) -> np.ndarray:
         """``d M_r / d q_i`` (nq, r, r) from the element rotations, ``dS/dq_i`` and ``dH/dq_i``.
 
         ``M_r = (W J)^T M_N (W J)``; the second derivatives of the basis in q times the elastic coordinates
         (``d D0 / dq``) are left out (relative size of the elastic displacements, 1e-4). Checked against
-        :meth:`mass_derivative` (finite differences) in the tests.
+        :meth:`mass_derivative` (finite differences) in the tests. ``Sd``: ``dS/dq_i`` if already computed.
         """
-        model, nq, r = self.model, self.nq, self.r
+        model, nq = self.model, self.nq
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
-        W = cfg.W
-        WJ = W @ J
+        if Sd is None:
+            Sd = model.coordinate_derivatives(cfg)
+        WJ = cfg.W @ J
         R = cfg.R
         RGR = R @ model.Gl @ np.swapaxes(R, 1, 2)
         S_th = cfg.pose.Sz[2::3][model.el_link]
-        MWJ = cfg.M_N @ WJ
-        out = np.empty((nq, r, r))
-        for i in range(nq):
-            e = np.zeros(nq)
-            e[i] = 1.0
-            dS = model.kin.rates(cfg.pose, e)[1]  # dS/dq_i (the rate of S along q' = e_i)
-            dWJ = dS @ J[:nq] + W @ dHdq[:, :, i].T
-            dMN = model._assemble(RGR * S_th[:, i][:, None, None])
-            A = dWJ.T @ MWJ
-            out[i] = A + A.T + WJ.T @ dMN @ WJ
-        return out
+        # d(W J)/dq_i = dS/dq_i J_q + W dH/dq_i
+        dWJ = np.stack([Sdi @ J[:nq] + cfg.W @ dHdq[:, :, i].T for i, Sdi in enumerate(Sd)])
+        A = np.swapaxes(dWJ, 1, 2) @ (cfg.M_N @ WJ)
+        # W J^T dM_N/dq_i W J per element: the element mass rotates with its link
+        WJe = WJ[model.el_dofs]
+        E = np.swapaxes(WJe, 1, 2) @ (RGR @ WJe)
+        r = WJ.shape[1]
+        return A + np.swapaxes(A, 1, 2) + (S_th.T @ E.reshape(len(E), -1)).reshape(nq, r, r)
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         if mats is None:

@@ -1,0 +1,332 @@
+"""Compiled (numba) kernels of the covariance algebra of :class:`~exuflex.observer.ekf.MultirateEKF`.
+
+The ``"numba"`` back-end of the EKF does the algebra of its ``"numpy"`` back-end in three compiled calls
+per sample instead of some twenty numpy calls: at the observer's size (26 states, 6 channels) a numpy call
+costs more in dispatch and temporaries than in arithmetic. The covariance prediction keeps BLAS (two
+``dgemm``, as numpy does; at 26 states the register-blocked BLAS kernel is twice as fast as a loop). The
+update's thin products (``m`` of 6 rows) are loops over contiguous rows, ``row_i += a * row_k``, the form
+LLVM vectorises without reassociating a sum; the kernels are compiled without ``fastmath``, so each entry
+is an ordinary evaluation of the same formula and the two back-ends agree to rounding (only the order of
+the terms in each sum differs).
+
+Calling convention: arrays are float64; results go to caller-owned ``out`` arrays where that saves numba
+the cost of returning a new array (about half a microsecond each). An ``out`` argument is never read
+before it is written and must not alias an input unless its docstring says so.
+
+This module imports without numba: ``HAVE_NUMBA`` is then False, :func:`require` raises, and the kernels
+are plain (slow) Python functions that nothing calls.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:
+    import numba
+except ImportError:  # the numpy back-end works without it
+    numba = None
+
+__all__ = ["HAVE_NUMBA", "apply_gain", "fix_cov", "predict_cov", "require", "settle", "update", "warm_up"]
+
+HAVE_NUMBA = numba is not None
+
+if HAVE_NUMBA:
+    # error_model="numpy": a division by zero gives inf/nan as in numpy, with no exception checks in the
+    # loops; no fastmath: the results must round like the numpy back-end's
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+else:
+
+    def _jit(f):
+        return f
+
+
+def require() -> None:
+    """Raise a ValueError naming the missing package if numba is not installed."""
+    if not HAVE_NUMBA:
+        raise ValueError("backend='numba' needs the numba package: pip install numba")
+
+
+# --------------------------------------------------------------------------------------------- helpers
+@_jit
+def _cholesky_solve(S, sol, U):
+    """Solve ``S X = sol`` in place through the Cholesky factor ``S = U' U`` of the upper triangle of ``S``.
+
+    The strict lower triangle of ``S`` is not read, as in LAPACK's ``dposv(uplo="U")`` that the numpy
+    back-end calls. Returns False (``sol`` partly overwritten) if a pivot is not positive or is NaN, the
+    test of LAPACK's ``dpotrf``: ``S`` is not positive definite.
+    """
+    m = S.shape[0]
+    for j in range(m):
+        a = S[j, j]
+        for k in range(j):
+            a -= U[k, j] * U[k, j]
+        if not a > 0.0:
+            return False
+        d = math.sqrt(a)
+        U[j, j] = d
+        for i in range(j + 1, m):
+            s = S[j, i]
+            for k in range(j):
+                s -= U[k, j] * U[k, i]
+            U[j, i] = s / d
+    c = sol.shape[1]
+    for i in range(m):  # U' Z = B
+        row = sol[i]
+        for k in range(i):
+            u = U[k, i]
+            prev = sol[k]
+            for j in range(c):
+                row[j] -= u * prev[j]
+        d = U[i, i]
+        for j in range(c):
+            row[j] /= d
+    for i in range(m - 1, -1, -1):  # U X = Z
+        row = sol[i]
+        for k in range(i + 1, m):
+            u = U[i, k]
+            nxt = sol[k]
+            for j in range(c):
+                row[j] -= u * nxt[j]
+        d = U[i, i]
+        for j in range(c):
+            row[j] /= d
+    return True
+
+
+# --------------------------------------------------------------------------------------------- kernels
+@_jit
+def predict_cov(F, P, Q, out, work):
+    """``out = F P F' + Q``, evaluated as the numpy back-end does (two BLAS products, then ``+ Q``).
+
+    Parameters
+    ----------
+    F, P, Q : ndarray, shape (n, n)
+    out : ndarray, shape (n, n)
+        Result (must not alias ``F``, ``P`` or ``Q``).
+    work : ndarray, shape (n, n)
+        C-contiguous scratch.
+    """
+    np.dot(F, P, work)
+    np.dot(work, F.T, out)
+    n = out.shape[0]
+    for i in range(n):
+        row = out[i]
+        q = Q[i]
+        for j in range(n):
+            row[j] += q[j]
+
+
+@_jit
+def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
+    """Posterior from the solved gain system: the part of :func:`update` after the solve.
+
+    ``sol`` holds ``S^-1 [H P, r]`` (``K'`` in the first ``n`` columns, ``S^-1 r`` in the last). Writes
+    ``x_out = x + K r`` and the Joseph form ``A - (A H' - K R) K'`` with ``A = P - K H P`` (valid for any
+    gain) and returns the NIS ``r' S^-1 r``.
+
+    The Joseph form is evaluated transposed, ``A' - K (H A' - R K')`` with ``A' = P - (H P)' K'`` (``P``
+    symmetric, as the numpy back-end also assumes when it takes ``H P`` for ``(P H')'``): every product then
+    runs along contiguous rows. ``P_out`` is the numpy back-end's unsymmetrised result transposed (up to
+    rounding), which the end-of-sample symmetrisation makes the same.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+    P : ndarray, shape (n, n)
+        Symmetric prior covariance.
+    H : ndarray, shape (m, n)
+    HP : ndarray, shape (>= m, n)
+        ``H P`` in its first ``m`` rows.
+    Rd : ndarray, shape (m,)
+        Diagonal of ``R``.
+    r : ndarray, shape (m,)
+        Innovation.
+    sol : ndarray, shape (>= m, n + 1)
+    x_out : ndarray, shape (n,)
+        Posterior mean (may alias ``x``).
+    P_out : ndarray, shape (n, n)
+        Posterior covariance, not symmetrised (must not alias an input).
+
+    Returns
+    -------
+    float
+    """
+    m, n = H.shape
+    nis = 0.0
+    for i in range(m):
+        nis += r[i] * sol[i, n]
+    tmp = np.zeros(n)
+    for i in range(m):  # K r
+        ri = r[i]
+        k = sol[i]
+        for j in range(n):
+            tmp[j] += k[j] * ri
+    for j in range(n):
+        x_out[j] = x[j] + tmp[j]
+    for l in range(n):  # A' = P - (H P)' K', kept in P_out
+        tmp[:] = 0.0
+        for i in range(m):
+            hp = HP[i, l]
+            k = sol[i]
+            for j in range(n):
+                tmp[j] += hp * k[j]
+        row = P_out[l]
+        p = P[l]
+        for j in range(n):
+            row[j] = p[j] - tmp[j]
+    Bt = np.zeros((m, n))
+    for i in range(m):  # B' = H A' - R K'
+        row = Bt[i]
+        for l in range(n):
+            h = H[i, l]
+            a = P_out[l]
+            for j in range(n):
+                row[j] += h * a[j]
+        rd = Rd[i]
+        k = sol[i]
+        for j in range(n):
+            row[j] -= k[j] * rd
+    for l in range(n):  # A' - K B'
+        tmp[:] = 0.0
+        for i in range(m):
+            k = sol[i, l]
+            b = Bt[i]
+            for j in range(n):
+                tmp[j] += k * b[j]
+        row = P_out[l]
+        for j in range(n):
+            row[j] -= tmp[j]
+    return nis
+
+
+@_jit
+def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
+    """Measurement update with the algebra of the numpy back-end's ``MultirateEKF._update``.
+
+    ``r = y - y_pred``, ``S = H P H' + diag(Rd)``, one Cholesky solve of ``S`` for ``[H P, r]`` (the gain
+    ``K' = S^-1 H P`` and ``S^-1 r``), then :func:`apply_gain`.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Prior mean.
+    P : ndarray, shape (n, n)
+        Prior covariance (symmetric).
+    y, y_pred : ndarray, shape (m,)
+        Measured and predicted channels.
+    H : ndarray, shape (m, n)
+        Measurement Jacobian.
+    Rd : ndarray, shape (m,)
+        Measurement variances.
+    HP : ndarray, shape (>= m, n)
+        Out: ``H P`` in the first ``m`` rows (what a fallback solve needs).
+    r : ndarray, shape (m,)
+        Out: innovation.
+    S : ndarray, shape (m, m)
+        Out: innovation covariance.
+    x_out : ndarray, shape (n,)
+        Out: posterior mean (may alias ``x``).
+    P_out : ndarray, shape (n, n)
+        Out: posterior covariance, not symmetrised (must not alias an input).
+
+    Returns
+    -------
+    nis : float
+        ``r' S^-1 r`` (NaN if not ``ok``).
+    ok : bool
+        False if ``S`` is not positive definite: ``x_out`` and ``P_out`` are then not written; the caller
+        solves ``S`` otherwise and finishes with :func:`apply_gain`.
+    """
+    m, n = H.shape
+    for i in range(m):
+        r[i] = y[i] - y_pred[i]
+    for i in range(m):  # H P
+        row = HP[i]
+        row[:] = 0.0
+        for k in range(n):
+            h = H[i, k]
+            p = P[k]
+            for j in range(n):
+                row[j] += h * p[j]
+    for i in range(m):  # (H P) H' + R
+        hp = HP[i]
+        for j in range(m):
+            h = H[j]
+            s = 0.0
+            for k in range(n):
+                s += hp[k] * h[k]
+            S[i, j] = s
+        S[i, i] += Rd[i]
+    sol = np.empty((m, n + 1))
+    for i in range(m):
+        sol[i, :n] = HP[i]
+        sol[i, n] = r[i]
+    if not _cholesky_solve(S, sol, np.empty((m, m))):
+        return math.nan, False
+    return apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out), True
+
+
+@_jit
+def fix_cov(P, floor):
+    """Symmetrise ``P`` in place, ``(P + P') / 2``, and floor its diagonal at ``floor`` (shape (n,)).
+
+    The numpy back-end's ``_fix_P`` entry by entry (a NaN on the diagonal stays NaN).
+    """
+    n = P.shape[0]
+    for i in range(n):
+        d = (P[i, i] + P[i, i]) * 0.5
+        if d < floor[i]:  # noqa: PLR1730 - not max(): a NaN must stay NaN
+            d = floor[i]
+        P[i, i] = d
+        for j in range(i + 1, n):
+            s = (P[i, j] + P[j, i]) * 0.5
+            P[i, j] = s
+            P[j, i] = s
+
+
+@_jit
+def settle(x, P, floor):
+    """:func:`fix_cov` on ``P``, then the filter's end-of-sample test: is ``sum(x) + sum(P)`` finite?
+
+    A NaN or inf anywhere makes the sum non-finite (as in the numpy back-end, a finite sum overflowing to
+    inf fails the test too). Four partial sums keep the additions from waiting on each other.
+    """
+    fix_cov(P, floor)
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    n = P.shape[0]
+    n4 = n - n % 4
+    for i in range(n):
+        row = P[i]
+        for j in range(0, n4, 4):
+            s0 += row[j]
+            s1 += row[j + 1]
+            s2 += row[j + 2]
+            s3 += row[j + 3]
+        for j in range(n4, n):
+            s0 += row[j]
+    for j in range(x.shape[0]):
+        s1 += x[j]
+    return math.isfinite((s0 + s1) + (s2 + s3))
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the kernels for C-ordered float64 arrays, so that the
+    first sample of a filter does not carry the compilation. A no-op without numba."""
+    if not HAVE_NUMBA:
+        return
+    n, m = 3, 2
+    P = np.eye(n)
+    out = np.empty((n, n))
+    predict_cov(np.eye(n), P, np.zeros((n, n)), out, np.empty((n, n)))
+    H = np.ones((m, n))
+    HP = np.empty((m, n))
+    r = np.empty(m)
+    x = np.zeros(n)
+    update(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), x, out)
+    apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
+    settle(x, out, np.zeros(n))

@@ -1,0 +1,310 @@
+"""The arithmetic of one cached observer step, compiled with numba when it is installed.
+
+The cached step (:class:`exuflex.observer.reduced.ReducedObserverModel`, ``method="cached"``) holds the
+reduced model at a configuration ``q0`` and follows the links from there: ``M_r`` and ``K_r`` to second
+order in ``q - q0`` (their analytic gradients at ``q0``, and the change of the gradients since the previous
+held configuration along the line joining the two), the damping, input matrix and velocity-dependent forces
+to first order along that line (a secant). Per measurement interval it then advances the linear system
+``M p'' + C p' + K p = G u + f`` (forces and input held over the interval, as the paper's RK4 does between
+two samples) by ``n`` RK4 steps.
+
+Two implementations of the same arithmetic: NumPy expressions (:func:`rk4_held_numpy`, the reference, and
+what runs without numba) and explicit loops compiled by numba (:func:`rk4_held_loops`), which remove the
+per-call overhead of some 200 small NumPy operations per interval. ``tests/test_held.py`` checks that they
+agree to rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["HAVE_NUMBA", "held_matrices", "quadratic_forces", "rk4_held", "rk4_held_numpy", "rk4_held_loops",
+           "held_step", "held_step_numpy", "held_step_loops"]
+
+try:  # numba is a core dependency, but exuflex must still run (slower) where it cannot be installed
+    import numba
+    import numba.extending
+
+    HAVE_NUMBA = True
+
+    def _jit(f):
+        return numba.njit(cache=True, nogil=True)(f)
+
+    def _shared(f):
+        """Plain NumPy function outside compiled code, compiled inline where a kernel calls it."""
+        return numba.extending.register_jitable(f)
+
+except ImportError:  # pragma: no cover - exercised only on machines without numba
+    HAVE_NUMBA = False
+
+    def _jit(f):
+        return f
+
+    _shared = _jit
+
+
+def held_matrices(dl, s, Mr0, Kr0, Ca0, Gr0, dM2, dK2, beta, old=None):
+    """``(M_r, K_r, C_r, G_r)`` at ``q = q0 + dl``.
+
+    ``dM2, dK2``: (nq, r*r) gradients at ``q0``; ``Ca0``: the mass-proportional part of ``C_r`` (the
+    stiffness part is ``beta K_r``). ``old = (dM2, dK2, Ca, Gr)`` of the previous held configuration and
+    ``s = (dl . d) / (d . d)`` with ``d = q0 - q_old`` give the second-order term of ``M_r, K_r`` and the
+    secant of ``Ca, G_r``.
+    """
+    r = Mr0.shape[0]
+    gM = dl @ dM2
+    gK = dl @ dK2
+    Ca, Gr = Ca0, Gr0
+    if old is not None:
+        dM_old, dK_old, Ca_old, Gr_old = old
+        gM = gM + 0.5 * s * (gM - dl @ dM_old)
+        gK = gK + 0.5 * s * (gK - dl @ dK_old)
+        Ca = Ca0 + s * (Ca0 - Ca_old)
+        Gr = Gr0 + s * (Gr0 - Gr_old)
+    Kr = Kr0 + gK.reshape(r, r)
+    return Mr0 + gM.reshape(r, r), Kr, Ca + beta * Kr, Gr
+
+
+def quadratic_forces(p, pd, nq, fg, T2, V2, C2):
+    """``f = fg - 1/2 (p' T p') - [p V_i p]_i - C(p' (x) q')`` (see :class:`exuflex.reduction.model.QuadraticForces`)."""
+    r = p.shape[0]
+    f = fg - 0.5 * ((pd @ T2).reshape(r, r) @ pd)
+    f[:nq] -= (V2 @ p).reshape(nq, r) @ p
+    if C2.shape[0]:
+        f -= np.outer(pd, pd[:nq]).ravel() @ C2
+    return f
+
+
+def rk4_held_numpy(z, u, Mr, Kr, Cr, Gr, f, h, n):
+    """``n`` RK4 steps of ``M p'' + C p' + K p = G u + f`` from ``z = [p; p']`` (NumPy reference)."""
+    r = Mr.shape[0]
+    X = np.linalg.solve(Mr, np.column_stack([Kr, Cr, Gr @ u + f]))
+    Ak, Ac, c = X[:, :r], X[:, r : 2 * r], X[:, 2 * r]
+    p, v = z[:r].copy(), z[r:].copy()
+    for _ in range(n):
+        a1 = c - Ak @ p - Ac @ v
+        p2, v2 = p + 0.5 * h * v, v + 0.5 * h * a1
+        a2 = c - Ak @ p2 - Ac @ v2
+        p3, v3 = p + 0.5 * h * v2, v + 0.5 * h * a2
+        a3 = c - Ak @ p3 - Ac @ v3
+        p4, v4 = p + h * v3, v + h * a3
+        a4 = c - Ak @ p4 - Ac @ v4
+        p = p + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+        v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+    return np.concatenate([p, v])
+
+
+@_shared
+def _cholesky_solve(A, B):  # pragma: no cover - compiled
+    """``A^-1 B`` for a symmetric positive definite ``A`` (a reduced mass matrix); NaN if it is not."""
+    r = A.shape[0]
+    L = np.zeros((r, r))
+    for j in range(r):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return np.full(B.shape, np.nan)
+        L[j, j] = np.sqrt(d)
+        for i in range(j + 1, r):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / L[j, j]
+    X = B.copy()
+    m = B.shape[1]
+    for i in range(r):  # forward: L Y = B, row i of Y from the rows above (axpy over the columns)
+        for k in range(i):
+            lik = L[i, k]
+            for c in range(m):
+                X[i, c] -= lik * X[k, c]
+        d = 1.0 / L[i, i]
+        for c in range(m):
+            X[i, c] *= d
+    for i in range(r - 1, -1, -1):  # backward: L^T X = Y
+        for k in range(i + 1, r):
+            lki = L[k, i]
+            for c in range(m):
+                X[i, c] -= lki * X[k, c]
+        d = 1.0 / L[i, i]
+        for c in range(m):
+            X[i, c] *= d
+    return X
+
+
+def _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled; its twin is tested
+    r = Mr.shape[0]
+    rhs = np.empty((r, 2 * r + 1))
+    rhs[:, :r] = Kr
+    rhs[:, r : 2 * r] = Cr
+    for i in range(r):
+        acc = f[i]
+        for j in range(u.shape[0]):
+            acc += Gr[i, j] * u[j]
+        rhs[i, 2 * r] = acc
+    X = _cholesky_solve(Mr, rhs)
+    p = z[:r].copy()
+    v = z[r:].copy()
+    XT = np.ascontiguousarray(X.T)  # (2r+1, r): column j of the operator is the contiguous row XT[j]
+    a = np.empty((4, r))  # stage accelerations
+    w = np.empty((4, r))  # stage velocities
+    y = np.empty(2 * r)  # stage state [p; v]
+    for _ in range(n):
+        for st in range(4):
+            c = 0.0 if st == 0 else (0.5 * h if st < 3 else h)
+            for i in range(r):
+                # stage st at (p + c w_{st-1}, v + c a_{st-1})
+                y[i] = p[i] if st == 0 else p[i] + c * w[st - 1, i]
+                w[st, i] = v[i] if st == 0 else v[i] + c * a[st - 1, i]
+                y[r + i] = w[st, i]
+            # a = X[:, 2r] - X[:, :2r] y, as axpy sweeps (independent lanes: no serial add chain)
+            for i in range(r):
+                a[st, i] = XT[2 * r, i]
+            for j in range(2 * r):
+                yj = y[j]
+                for i in range(r):
+                    a[st, i] -= XT[j, i] * yj
+        for i in range(r):
+            p[i] += h / 6.0 * (w[0, i] + 2.0 * w[1, i] + 2.0 * w[2, i] + w[3, i])
+            v[i] += h / 6.0 * (a[0, i] + 2.0 * a[1, i] + 2.0 * a[2, i] + a[3, i])
+    out = np.empty(2 * r)
+    out[:r] = p
+    out[r:] = v
+    return out
+
+
+def _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
+    r = p.shape[0]
+    f = fg.copy()
+    for k in range(r):
+        if pd[k] != 0.0:
+            for i in range(r):
+                acc = 0.0
+                for j in range(r):
+                    acc += T2[k, i * r + j] * pd[j]
+                f[i] -= 0.5 * pd[k] * acc
+    for i in range(nq):
+        for a in range(r):
+            acc = 0.0
+            for b in range(r):
+                acc += V2[i * r + a, b] * p[b]
+            f[i] -= acc * p[a]
+    if C2.shape[0]:
+        for k in range(r):
+            for j in range(nq):
+                w = pd[k] * pd[j]
+                if w != 0.0:
+                    for c in range(r):
+                        f[c] -= w * C2[k * nq + j, c]
+    return f
+
+
+def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
+                     oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):  # pragma: no cover - compiled
+    r = Mr0.shape[0]
+    p = z[:r]
+    pd = z[r:]
+    gM = np.zeros(r * r)
+    gK = np.zeros(r * r)
+    for i in range(nq):
+        for k in range(r * r):
+            gM[k] += dl[i] * dM2[i, k]
+            gK[k] += dl[i] * dK2[i, k]
+    f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
+    Ca = Ca0.copy()
+    Gr = Gr0.copy()
+    if has_old:
+        hM = np.zeros(r * r)
+        hK = np.zeros(r * r)
+        for i in range(nq):
+            for k in range(r * r):
+                hM[k] += dl[i] * oM2[i, k]
+                hK[k] += dl[i] * oK2[i, k]
+        for k in range(r * r):
+            gM[k] += 0.5 * s * (gM[k] - hM[k])
+            gK[k] += 0.5 * s * (gK[k] - hK[k])
+        fo = _quadratic_forces_loops(p, pd, nq, ofg, oT2, oV2, oC2)
+        for i in range(r):
+            f[i] += s * (f[i] - fo[i])
+        Ca += s * (Ca0 - oCa)
+        Gr += s * (Gr0 - oGr)
+    Mr = Mr0 + gM.reshape(r, r)
+    Kr = Kr0 + gK.reshape(r, r)
+    Cr = Ca + beta * Kr
+    z_next = _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n)
+    return z_next, Mr, Kr, Cr, Gr
+
+
+def held_step_numpy(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
+                    oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):
+    """One cached step: the model at ``q0 + dl`` (:func:`held_matrices`, forces with their secant) and the
+    interval's RK4 steps. Returns ``(z_next, M_r, K_r, C_r, G_r)``. NumPy reference of the compiled kernel."""
+    r = Mr0.shape[0]
+    old = (oM2, oK2, oCa, oGr) if has_old else None
+    Mr, Kr, Cr, Gr = held_matrices(dl, s, Mr0, Kr0, Ca0, Gr0, dM2, dK2, beta, old)
+    f = quadratic_forces(z[:r], z[r:], nq, fg, T2, V2, C2)
+    if has_old:
+        f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, ofg, oT2, oV2, oC2))
+    return rk4_held_numpy(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
+
+
+@_shared
+def power_sum(P, n):
+    """``P^n`` and ``sum_{k<n} P^k`` by binary doubling (O(log n) products)."""
+    m = P.shape[0]
+    Pk, Sk = P.copy(), np.eye(m)  # P^1, S_1 = I
+    Pn, Sn = np.eye(m), np.zeros((m, m))  # accumulators for n = 0
+    bits = n
+    while bits:
+        if bits & 1:
+            Sn = Sn + Pn @ Sk  # S_{a+b} = S_a + P^a S_b
+            Pn = Pn @ Pk
+        bits >>= 1
+        if bits:
+            Sk = Sk + Pk @ Sk
+            Pk = Pk @ Pk
+    return Pn, Sn
+
+
+@_shared
+def step_maps(Minv, Kr, Cr, Gr, h, n):
+    """``(P^n, SQM, L)`` of ``n`` RK4 steps of ``M p'' + C p' + K p = G u + f`` with the inputs held: the
+    state map, the response to a held generalised force and to held motor torques (``L = SQM G``)."""
+    r = Kr.shape[0]
+    nx = 2 * r
+    A = np.zeros((nx, nx))
+    A[:r, r:] = np.eye(r)
+    A[r:, :r] = -(Minv @ Kr)
+    A[r:, r:] = -(Minv @ Cr)
+    hA = h * A
+    hA2 = hA @ hA
+    hA3 = hA2 @ hA
+    I = np.eye(nx)
+    P = I + hA + hA2 / 2 + hA3 / 6 + hA3 @ hA / 24
+    Qm = h * (I + hA / 2 + hA2 / 6 + hA3 / 24)
+    Pn, Sn = power_sum(P, n)
+    SQM = (Sn @ np.ascontiguousarray(Qm[:, r:])) @ Minv
+    return Pn, SQM, SQM @ Gr
+
+
+def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - compiled twin of the NumPy path
+    """:func:`step_maps` from ``M_r`` (not its inverse), plus the process noise ``L diag(var) L^T``."""
+    Minv = _cholesky_solve(Mr, np.eye(Mr.shape[0]))
+    Pn, SQM, L = step_maps(Minv, Kr, Cr, Gr, h, n)
+    return Pn, SQM, L, (L * torque_var) @ L.T
+
+
+def step_maps_held_numpy(Mr, Kr, Cr, Gr, h, n, torque_var):
+    """NumPy reference of the compiled :func:`_step_maps_held`."""
+    Pn, SQM, L = step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, h, n)
+    return Pn, SQM, L, (L * torque_var) @ L.T
+
+
+step_maps_held = _jit(_step_maps_held) if HAVE_NUMBA else step_maps_held_numpy
+
+_rk4_held_loops = _jit(_rk4_held_loops)
+_quadratic_forces_loops = _jit(_quadratic_forces_loops)
+rk4_held_loops = _rk4_held_loops
+held_step_loops = _jit(_held_step_loops)
+rk4_held = rk4_held_loops if HAVE_NUMBA else rk4_held_numpy
+held_step = held_step_loops if HAVE_NUMBA else held_step_numpy
