@@ -58,6 +58,11 @@ def test_study_files_and_eq21(done_study):
             assert lv["eq21"][q]["mu"] == pytest.approx(np.mean([r["mean_abs"][q] for r in rs]))
             assert lv["eq21"][q]["sigma"] == pytest.approx(np.mean([r["std_abs"][q] for r in rs]))
             assert 0 < lv["eq21"][q]["mu"] < 1
+    for lv in s["levels"]:
+        assert lv["n_diverged"] == 0 and 0 <= lv["n_nis_flagged"] <= lv["n_runs"]
+        assert 0 < lv["max_q_error_rad"] < 0.05
+    assert "lost the mechanism" in s["divergence"]
+    assert {"diverged", "nis_flagged"} <= set(rows[0])
     # the truth differs between levels, the noise seeds do not
     t0 = np.load(next((out / "truth").glob("L00-*/truth.npz")))["truth_data"]
     t1 = np.load(next((out / "truth").glob("L01-*/truth.npz")))["truth_data"]
@@ -112,6 +117,20 @@ def test_process_pool_gives_the_same_numbers(done_study, tmp_path):
     assert res.n_computed == 4
     assert _numbers(res.rows) == _numbers(done_study.rows)
     assert len({r["worker"] for r in res.rows}) >= 1
+
+
+def test_divergence_is_a_lost_track_not_an_nis_flag():
+    from exuflex.study.runner import TRACK_LOST_RAD, diverged
+
+    coords = ("q1", "q2")
+
+    def row(e1, e2, nonfinite=False, nis=False):
+        return {"max": {"q1": e1, "q2": e2, "x25": 1.0}, "nonfinite": nonfinite, "nis_flagged": nis}
+
+    assert not diverged(row(1e-3, 2e-3, nis=True), coords)  # inconsistent, still tracking
+    assert diverged(row(1e-3, 2 * TRACK_LOST_RAD), coords)  # lost the mechanism
+    assert diverged(row(1e-3, float("nan")), coords)
+    assert diverged(row(1e-3, 1e-3, nonfinite=True), coords)
 
 
 def test_overrides():

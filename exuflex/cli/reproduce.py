@@ -199,12 +199,14 @@ def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, wa
           f"duration {sm['settings']['duration_s']} s, start-up {sm['settings']['start_up_s']} s left out; "
           f"engine {sm['settings']['engine']}. The paper: 100 runs per level, errors grow with the mismatch but "
           "stay small at +100 %."), "",
-          "| level | runs | diverged | " + " | ".join(f"{q} mu / sigma" for q in dict.fromkeys(
-              r["quantity"] for r in fig_rows)) + " |",
-          "|---|---|---|" + "---|" * len(dict.fromkeys(r["quantity"] for r in fig_rows))]
+          f"Diverged: {sm.get('divergence', 'non-finite estimates')}", "",
+          "| level | runs | diverged | NIS-flagged | max joint error (rad) | " + " | ".join(
+              f"{q} mu / sigma" for q in dict.fromkeys(r["quantity"] for r in fig_rows)) + " |",
+          "|---|---|---|---|---|" + "---|" * len(dict.fromkeys(r["quantity"] for r in fig_rows))]
     for lv in sm["levels"]:
         qs = list(dict.fromkeys(r["quantity"] for r in fig_rows))
-        L.append(f"| {lv['label']} | {lv['n_runs']} | {lv['n_diverged']} | " + " | ".join(
+        L.append(f"| {lv['label']} | {lv['n_runs']} | {lv['n_diverged']} | {lv.get('n_nis_flagged', 0)} | "
+                 f"{lv.get('max_q_error_rad', float('nan')):.3g} | " + " | ".join(
             f"{lv['eq21'][q]['mu']:.3g} / {lv['eq21'][q]['sigma']:.3g}" for q in qs) + " |")
     L += ["", "![payload study](payload_study/fig_payload.png)", "",
           "## Settings and versions", "", "```json",

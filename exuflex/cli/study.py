@@ -76,11 +76,14 @@ def print_summary(summary: dict, stream=None) -> None:
 
     stream = stream or sys.stdout
     qs = [q for q in TIP_QUANTITIES if q in summary["quantities"]] or summary["quantities"][:4]
-    print(f"{'level':>24s} {'runs':>4s} {'div':>3s} " + " ".join(f"{'mu ' + q:>10s} {'sigma':>9s}" for q in qs),
-          file=stream)
+    print(f"{'level':>24s} {'runs':>4s} {'div':>3s} {'nis':>3s} {'max|dq|':>8s} "
+          + " ".join(f"{'mu ' + q:>10s} {'sigma':>9s}" for q in qs), file=stream)
     for lv in summary["levels"]:
         cells = " ".join(f"{lv['eq21'][q]['mu']:10.3g} {lv['eq21'][q]['sigma']:9.3g}" for q in qs)
-        print(f"{lv['label'][:24]:>24s} {lv['n_runs']:4d} {lv['n_diverged']:3d} {cells}", file=stream)
+        print(f"{lv['label'][:24]:>24s} {lv['n_runs']:4d} {lv['n_diverged']:3d} {lv.get('n_nis_flagged', 0):3d} "
+              f"{lv.get('max_q_error_rad', float('nan')):8.2g} {cells}", file=stream)
+    print("div: diverged runs (non-finite, or a joint-angle error above the track-loss limit); nis: runs the "
+          "NIS window test flags (inconsistency, expected under mismatch)", file=stream)
 
 
 def run(args) -> int:
