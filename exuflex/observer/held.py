@@ -308,3 +308,23 @@ rk4_held_loops = _rk4_held_loops
 held_step_loops = _jit(_held_step_loops)
 rk4_held = rk4_held_loops if HAVE_NUMBA else rk4_held_numpy
 held_step = held_step_loops if HAVE_NUMBA else held_step_numpy
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the kernels once per process, so that the first
+    interval of a filter does not carry it (about 0.1 s from the cache, 10 s the very first time)."""
+    global _warm
+    if _warm or not HAVE_NUMBA:
+        return
+    r, nq = 2, 1
+    z, u, dl = np.zeros(2 * r), np.zeros(nq), np.zeros(nq)
+    M, g2, f = np.eye(r), np.zeros((nq, r * r)), np.zeros(r)
+    T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
+    G = np.zeros((r, nq))
+    held_step_loops(z, u, dl, 0.0, False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2,
+                    V2, C2)
+    step_maps_held(M, M, M, G, 1e-4, 1, np.ones(nq))
+    _warm = True

@@ -8,15 +8,19 @@ Step map over one interval ``dt`` (``n = dt / h`` RK4 sub-steps, ``h = 0.1 ms`` 
 
 - ``method="cached"`` (fast; the observer's default): the configuration (pose, basis, reduced matrices, the
   velocity-dependent forces as explicit quadratic forms and the q-gradients of ``M_r`` and ``K_r``,
-  :meth:`ReducedModel.held`) is evaluated only when q leaves ``refresh_rad`` (2e-2 rad) of the held one. In
+  :meth:`ReducedModel.held`) is evaluated only when q leaves a refresh radius around the held one. In
   between, the model follows the links: ``M_r`` and ``K_r`` to second order in q (gradients at the held
   configuration, their change since the previous one along the line joining the two), damping, input
   matrix, forces and sensor rows along that secant to first order; every interval is then advanced by its
-  RK4 steps with the matrices at the interval's start (compiled, :mod:`.held`). The Jacobian and process
-  noise are rebuilt when q moved by ``remap_rad`` (2e-3 rad). Measured on the six-bar's 3 s manoeuvre
-  (``tests/test_observer.py``): estimates within 7 % of the estimation error of ``frozen``'s (RMS, worst
-  quantity dq3), at 50 evaluations instead of 1500. Holding first-order ``M_r`` alone is not enough: over
-  2e-2 rad it loses positive definiteness on this mechanism.
+  RK4 steps with the matrices at the interval's start (compiled, :mod:`.held`). The radius adapts like an
+  ODE step size: at each evaluation the previous held model's prediction of ``M_r`` and ``K_r`` is compared
+  with the exact ones, and the next radius keeps that error near ``refresh_tol`` (3e-2, relative in the
+  mass metric; radius within 2e-3 .. 4e-2 rad). The Jacobian and process noise are rebuilt when q moved by
+  ``remap_rad`` (2e-3 rad). Measured on the six-bar's 3 s manoeuvre (``tests/test_observer.py``): 54
+  evaluations instead of 1500, estimates within 4 % of the estimation error of ``frozen``'s (RMS, worst
+  quantity q1). A fixed radius does not work: the prediction error over 2e-2 rad falls from 0.6 at the
+  start of the manoeuvre to 5e-3 later, and a first-order ``M_r`` held over 2e-2 rad loses positive
+  definiteness there.
 - ``method="frozen"``: the configuration-dependent matrices ``M_r, K_r, C_r, G_r`` and the
   velocity-dependent forces are evaluated once at the start of the interval; the remaining linear
   system ``z' = A z + b`` is advanced by exactly what ``n`` RK4 steps would do,
@@ -43,11 +47,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
-from .held import HAVE_NUMBA, held_step_loops, held_step_numpy, power_sum, step_maps, step_maps_held, step_maps_held_numpy
+from .held import HAVE_NUMBA, held_matrices, held_step_loops, held_step_numpy, power_sum, step_maps, step_maps_held, step_maps_held_numpy
+from .held import warm_up as held_warm_up
 from .rows import sensor, sensor_rows
 
 __all__ = ["ReducedObserverModel", "power_sum", "METHODS"]
@@ -79,6 +86,7 @@ class _Interval:
     d: np.ndarray | None = None  # q0 - old.q0
     dd: float = 0.0  # d . d
     rad: float = 0.0  # refresh radius while held (cached method)
+    err: float = float("nan")  # prediction error of the previous held model at q0 (cached method)
     kargs: tuple | None = None  # held arguments of the step kernel (cached method)
 
 
@@ -91,12 +99,16 @@ class ReducedObserverModel:
     h : RK4 sub-step (s), default 1e-4 (the paper's).
     method : ``"cached"`` (fast), ``"frozen"`` or ``"rk4"`` (the paper's scheme, reference); see the module
         docstring. The observer session uses ``"cached"``.
+    refresh_tol, refresh_min, refresh_rad : error target and radius limits (rad) of the cached method's
+        configuration evaluations; remap_rad : when its Jacobian and process noise are rebuilt.
+    kernel : ``"numba"`` (compiled cached step), ``"numpy"`` (its reference twin) or ``"auto"``.
     torque_std : std of the measured torques (N m) per motor; default the motors' ``noise_std``.
     q_extra : optional (nx,) diagonal added to Q per interval (unmodelled dynamics).
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None,
-                 refresh_rad: float = 2e-2, remap_rad: float = 2e-3, kernel: str = "auto"):
+                 refresh_rad: float = 4e-2, remap_rad: float = 2e-3, kernel: str = "auto",
+                 refresh_tol: float = 3e-2, refresh_min: float = 2e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -110,6 +122,9 @@ class ReducedObserverModel:
         self.h = float(h)
         self.method = method
         self.refresh_rad = float(refresh_rad)
+        self.refresh_tol = float(refresh_tol)
+        self.refresh_min = float(refresh_min)
+        self.n_rescue = 0
         self.remap_rad = float(remap_rad)
         self.n_refresh = 0
         self.n_remap = 0
@@ -128,6 +143,8 @@ class ReducedObserverModel:
             raise ValueError("kernel='numba' needs the numba package (pip install numba)")
         self.kernel_name = "numba" if (kernel == "numba" or (kernel == "auto" and HAVE_NUMBA)) else "numpy"
         self.kernel = held_step_loops if self.kernel_name == "numba" else held_step_numpy
+        if self.kernel_name == "numba" and method == "cached":
+            held_warm_up()
         self._noC2 = np.zeros((0, self.r))
 
     def reset(self) -> None:
@@ -169,23 +186,59 @@ class ReducedObserverModel:
         return iv, iv.Pn @ z + iv.L @ u + iv.SQM @ mats.fr
 
     def _refresh(self, z: np.ndarray, dt: float) -> _Interval:
-        """Evaluate and hold the configuration at z; the previous held one becomes its secant partner if it
-        lies far enough away to give a usable direction."""
-        r = self.r
+        """Evaluate and hold the configuration at z. The previous held one becomes its secant partner if it
+        lies far enough away to give a usable direction, and how well it predicted this configuration sets
+        the next refresh radius (see :meth:`_radius`)."""
         old = self._last
         iv = self._configuration(z, held=True)
         iv.dt = dt
         iv.Ca = iv.mats.Cr - self.model.beta * iv.mats.Kr
+        iv.rad = self.refresh_min
         if old is not None and old.forces is not None and old.dt == dt:
-            d = iv.q0 - old.q0
-            if np.max(np.abs(d)) >= 0.25 * self.refresh_rad:
+            iv.err = self._prediction_error(old, iv)
+            dist = _max_abs(iv.q0 - old.q0)
+            iv.rad = self._radius(old, dist, iv.err)
+            if dist >= 0.25 * old.rad:
+                d = iv.q0 - old.q0
                 iv.old, iv.d, iv.dd = old, d, float(d @ d)
-                old.old = None  # keep one partner only (no chain of held configurations)
-        iv.rad = self.refresh_rad if iv.old is not None else 0.5 * self.refresh_rad
+            old.old = None  # keep one partner only (no chain of held configurations)
         iv.kargs = self._held_args(iv)
         self.n_refresh += 1
         self._last = iv
         return iv
+
+    def _radius(self, old: _Interval, dist: float, err: float) -> float:
+        """Next refresh radius from the prediction error ``err`` of the last held model after ``dist`` rad:
+        the error of the held model grows as ``dist^3`` (second order, with a secant partner) or ``dist^2``,
+        so the radius that keeps it at ``refresh_tol`` is ``dist (tol / err)^(1/p)`` (with a 0.9 margin, at
+        most twice the last radius, within ``[refresh_min, refresh_rad]``). The model's curvature in q varies
+        along a path (on the six-bar's manoeuvre the error over 2e-2 rad falls from 0.6 at the start to 5e-3),
+        and a fixed radius would be either wasteful or unsafe."""
+        if not err > 0:
+            return min(2.0 * old.rad, self.refresh_rad)
+        p = 3.0 if old.old is not None else 2.0
+        rad = 0.9 * dist * (self.refresh_tol / err) ** (1.0 / p)
+        return float(min(max(rad, self.refresh_min), 2.0 * old.rad, self.refresh_rad))
+
+    def _prediction_error(self, old: _Interval, iv: _Interval) -> float:
+        """How well the previously held model predicted the new configuration: the largest relative error
+        of ``M_r`` and ``K_r`` predicted by ``old`` at ``iv.q0``, in the metric of the new ``M_r`` (1 would
+        allow an indefinite mass matrix; ``K_r`` relative to its largest eigenvalue in that metric)."""
+        dl = iv.q0 - old.q0
+        oo = old.old
+        s = float(dl @ old.d) / old.dd if oo is not None else 0.0
+        part = None if oo is None else (oo.forces.dMr2, oo.forces.dKr2, oo.Ca, oo.mats.Gr)
+        Mp, Kp, _, _ = held_matrices(dl, s, old.mats.Mr, old.mats.Kr, old.Ca, old.mats.Gr, old.forces.dMr2,
+                                     old.forces.dKr2, self.model.beta, part)
+        try:
+            Li = np.linalg.inv(np.linalg.cholesky(iv.mats.Mr))
+        except np.linalg.LinAlgError:
+            return float("inf")
+        m = iv.mats
+        EM = Li @ (Mp - m.Mr) @ Li.T
+        EK = Li @ (Kp - m.Kr) @ Li.T
+        KK = Li @ m.Kr @ Li.T
+        return float(max(np.linalg.norm(EM, 2), np.linalg.norm(EK, 2) / np.linalg.norm(KK, 2)))
 
     def _held_args(self, iv: _Interval) -> tuple:
         """The arguments of :func:`.held.held_step` after ``(z, u, dl, s)``: fixed while iv is held."""
@@ -200,9 +253,9 @@ class ReducedObserverModel:
         return self._noC2 if fm.C2 is None else fm.C2
 
     def _cached_step(self, z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """Configuration held while q stays within ``refresh_rad`` of it (half that before a secant partner
-        exists); the model at z follows from it to second order (:mod:`.held`) and is advanced by the RK4
-        steps of the interval; the Jacobian and process noise are rebuilt when q moved by ``remap_rad``."""
+        """Configuration held while q stays within the held radius of it (:meth:`_radius`); the model at z
+        follows from it to second order (:mod:`.held`) and is advanced by the RK4 steps of the interval; the
+        Jacobian and process noise are rebuilt when q moved by ``remap_rad``."""
         q = z[: self.nq]
         iv = self._last
         if iv is None or iv.kargs is None or iv.dt != dt or _max_abs(q - iv.q0) > iv.rad:
@@ -210,6 +263,12 @@ class ReducedObserverModel:
         dl = q - iv.q0
         s = float(dl @ iv.d) / iv.dd if iv.old is not None else 0.0
         z_next, Mr, Kr, Cr, Gr = self.kernel(z, u, dl, s, *iv.kargs)
+        if not math.isfinite(z_next[0]) and (s or any(dl)):
+            # the held model broke down before the radius said so (M_r not positive definite): evaluate here
+            self.n_rescue += 1
+            iv = self._refresh(z, dt)
+            dl = q - iv.q0
+            z_next, Mr, Kr, Cr, Gr = self.kernel(z, u, dl, 0.0, *iv.kargs)
         if iv.q_map is None or _max_abs(q - iv.q_map) > self.remap_rad:
             maps = step_maps_held if self.kernel_name == "numba" else step_maps_held_numpy
             iv.Pn, iv.SQM, iv.L, iv.Q = maps(Mr, Kr, Cr, Gr, self.h, self._n_steps(dt), self.torque_var)
@@ -270,7 +329,7 @@ class ReducedObserverModel:
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, float)
         iv = self._last
-        if iv is None or _max_abs(x[: self.nq] - iv.q0) > 1.5 * max(self.refresh_rad, 0.01):
+        if iv is None or _max_abs(x[: self.nq] - iv.q0) > 1.5 * max(iv.rad, self.refresh_min):
             # no held configuration near x (first sample of a run): evaluate one at x
             iv = self._configuration(x)
             self._last = iv
