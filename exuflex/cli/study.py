@@ -27,7 +27,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786): run there")
     p.add_argument("--quick", action="store_true",
                    help=f"short check: {QUICK['duration']} s, {QUICK['runs']} runs per level")
-    p.add_argument("--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default exudyn)")
+    p.add_argument("--engine", choices=("exudyn", "erls", "reduced"), default="exudyn",
+                   help="truth engine (default exudyn; reduced: the observer's own model, a consistency check)")
     p.add_argument("--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's")
     p.add_argument("--seed", type=int, default=0, help="base seed; run j uses seed + j (default 0)")
     p.add_argument("--start-up", type=float, default=None,

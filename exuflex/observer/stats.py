@@ -25,6 +25,7 @@ __all__ = [
     "match_peaks",
     "max_error",
     "mc_consistency",
+    "autocorrelation_time",
     "nees",
     "nis",
     "rms_error",
@@ -116,6 +117,12 @@ class ConsistencyCheck:
     expected : float
         Expected value of ``time_avg`` (mean dof).
     confidence : float
+    tau : float
+        Integrated autocorrelation time of the sequence (steps; 1 for white terms such as the NIS of a
+        consistent filter, tens of steps for a NEES: estimation errors are correlated in time).
+    time_avg_lo_eff, time_avg_hi_eff : float
+        The time-average band with ``n / tau`` independent terms per run instead of ``n``: the valid band
+        for correlated terms (the independent-term band is then too narrow by ``sqrt(tau)``).
     """
 
     per_step: np.ndarray
@@ -127,6 +134,9 @@ class ConsistencyCheck:
     time_avg_hi: float
     expected: float
     confidence: float
+    tau: float = 1.0
+    time_avg_lo_eff: float = float("nan")
+    time_avg_hi_eff: float = float("nan")
 
     @property
     def time_avg_inside(self) -> bool:
@@ -165,6 +175,8 @@ def mc_consistency(values, dof, confidence: float = 0.95, burn_in: int = 0) -> C
     n_terms = ok.sum()
     tavg = float(v[ok].mean())
     tlo, thi = chi2_band(d.sum(), n_terms, confidence)
+    tau = autocorrelation_time(v)
+    elo, ehi = chi2_band(d.sum() / tau, n_terms / tau, confidence)
     return ConsistencyCheck(
         per_step=per,
         per_step_lo=lo,
@@ -175,7 +187,33 @@ def mc_consistency(values, dof, confidence: float = 0.95, burn_in: int = 0) -> C
         time_avg_hi=float(thi),
         expected=float(d.sum() / n_terms),
         confidence=confidence,
+        tau=tau,
+        time_avg_lo_eff=float(elo),
+        time_avg_hi_eff=float(ehi),
     )
+
+
+def autocorrelation_time(values, c: float = 5.0) -> float:
+    """Integrated autocorrelation time ``1 + 2 sum_l rho(l)`` of sequences (N runs, n steps), with Sokal's
+    automatic window (the sum stops at the first lag ``l >= c tau(l)``). NaN entries (missing terms) are
+    replaced by the run's mean. At least 1."""
+    v = np.atleast_2d(np.asarray(values, float))
+    v = np.where(np.isfinite(v), v, np.nanmean(v, axis=1, keepdims=True))
+    v = v - v.mean(axis=1, keepdims=True)
+    n = v.shape[1]
+    if n < 4:
+        return 1.0
+    f = np.fft.rfft(v, 2 * n, axis=1)
+    acf = np.fft.irfft(f * np.conj(f), axis=1)[:, :n].sum(axis=0)
+    if not acf[0] > 0:
+        return 1.0
+    rho = acf / acf[0]
+    tau = 1.0
+    for lag in range(1, n):
+        tau += 2.0 * rho[lag]
+        if lag >= c * tau:
+            break
+    return float(max(tau, 1.0))
 
 
 def rms_error(x_true, x_hat, axis: int = 0) -> np.ndarray:
