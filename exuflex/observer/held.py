@@ -235,6 +235,52 @@ def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, d
     return z_next, Mr, Kr, Cr, Gr
 
 
+def _step_jacobian_loops(z, u, Mr, Kr, Cr, Gr, fg, T2, V2, C2, Ts, Vs, C3, dK3, dM3, beta, Pn,
+                         SQM):  # pragma: no cover - compiled twin of ReducedObserverModel._jacobian
+    r = Mr.shape[0]
+    nq = Vs.shape[0]
+    p = z[:r]
+    pd = z[r:]
+    f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
+    rhs = np.zeros((r, 2 * r + 1))
+    for i in range(r):  # residual force of the acceleration a = M^-1 (G u + f - K p - C p')
+        acc = f[i]
+        for j in range(u.shape[0]):
+            acc += Gr[i, j] * u[j]
+        for j in range(r):
+            acc -= Kr[i, j] * p[j] + Cr[i, j] * pd[j]
+        rhs[i, 2 * r] = acc
+    for m in range(r):  # df/dp'_m of -1/2 p' T p': -1/2 sum_j (T[m,i,j] + T[j,i,m]) p'_j
+        for i in range(r):
+            acc = 0.0
+            for j in range(r):
+                acc += Ts[m, i, j] * pd[j]
+            rhs[i, r + m] = -0.5 * acc
+    for i in range(nq):  # df_i/dp_m of -p V_i p (q rows)
+        for m in range(r):
+            acc = 0.0
+            for b in range(r):
+                acc += Vs[i, m, b] * p[b]
+            rhs[i, m] = -acc
+    for k in range(C3.shape[0]):  # d/dp' of -sum p'_k p'_j C[k, j, :] (j < nq)
+        for j in range(nq):
+            for c in range(r):
+                rhs[c, r + k] -= C3[k, j, c] * pd[j]
+                rhs[c, r + j] -= pd[k] * C3[k, j, c]
+    b = np.empty((r, 1))
+    b[:, 0] = rhs[:, 2 * r]
+    a = _cholesky_solve(Mr, b)[:, 0]
+    G = np.ascontiguousarray(rhs[:, : 2 * r])  # generalised forces per unit state change
+    for j in range(nq):  # q-derivatives of the held matrices: -(dK_j (p + beta p') + dM_j a)
+        for i in range(r):
+            acc = 0.0
+            for k in range(r):
+                acc += dK3[j, i, k] * (p[k] + beta * pd[k]) + dM3[j, i, k] * a[k]
+            G[i, j] -= acc
+    F = Pn + SQM @ G
+    return F
+
+
 def held_step_numpy(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
                     oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):
     """One cached step: the model at ``q0 + dl`` (:func:`held_matrices`, forces with their secant) and the
@@ -306,6 +352,7 @@ _rk4_held_loops = _jit(_rk4_held_loops)
 _quadratic_forces_loops = _jit(_quadratic_forces_loops)
 rk4_held_loops = _rk4_held_loops
 held_step_loops = _jit(_held_step_loops)
+step_jacobian_loops = _jit(_step_jacobian_loops)
 rk4_held = rk4_held_loops if HAVE_NUMBA else rk4_held_numpy
 held_step = held_step_loops if HAVE_NUMBA else held_step_numpy
 
@@ -327,4 +374,7 @@ def warm_up() -> None:
     held_step_loops(z, u, dl, 0.0, False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2,
                     V2, C2)
     step_maps_held(M, M, M, G, 1e-4, 1, np.ones(nq))
+    t3 = np.zeros((r, r, r))
+    step_jacobian_loops(z, u, M, M, M, G, f, T2, V2, C2, t3, np.zeros((nq, r, r)), np.zeros((r, nq, r)),
+                        np.zeros((nq, r, r)), np.zeros((nq, r, r)), 0.0, np.eye(2 * r), np.zeros((2 * r, r)))
     _warm = True

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
@@ -133,7 +134,11 @@ class Observer:
                 if not np.all(np.isfinite(Z[k])):
                     continue
                 if rows is None or np.max(np.abs(q - q_last)) > refresh_rad:
-                    rows, q_last = self.model.tip_rows(q, *tp), q.copy()
+                    try:
+                        rows, q_last = self.model.tip_rows(q, *tp), q.copy()
+                    except KinematicsError:  # a runaway estimate where the loops cannot close: no tip value
+                        rows = None
+                        continue
                 out[k, 2 * nq : 2 * nq + 2] = rows @ Z[k, :r]
                 out[k, 2 * nq + 2 : 2 * nq + 4] = rows @ Z[k, r:]
         units = ("rad",) * nq + ("rad/s",) * nq + (("m", "m", "m/s", "m/s") if tp is not None else ())

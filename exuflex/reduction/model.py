@@ -75,6 +75,24 @@ class QuadraticForces:
             f -= np.outer(pd, pd[:nq]).ravel() @ self.C2
         return f
 
+    def jacobian(self, p: np.ndarray, pd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(df/dp, df/dp')`` (r, r) each, of the forces at the held configuration (exact: quadratic forms)."""
+        nq, r = self.nq, self.r
+        if getattr(self, "_Ts", None) is None:
+            T3 = self.T2.reshape(r, r, r)  # [k, i, j]
+            self._Ts = np.ascontiguousarray(T3 + np.transpose(T3, (2, 1, 0)))  # [m, i, j] = T[m,i,j] + T[j,i,m]
+            V3 = self.V2.reshape(nq, r, r)  # [i, a, b]
+            self._Vs = np.ascontiguousarray(V3 + np.swapaxes(V3, 1, 2))
+            self._C3 = None if self.C2 is None else self.C2.reshape(r, nq, r)  # [k, j, c]
+        Gpd = -0.5 * (self._Ts @ pd).T
+        Gp = np.zeros((r, r))
+        Gp[:nq] = -(self._Vs @ p)
+        if self._C3 is not None:
+            C3 = self._C3
+            Gpd -= np.tensordot(pd[:nq], C3, axes=(0, 1)).T  # d/dp'_m of p'_m p'_j terms, j < nq
+            Gpd[:, :nq] -= np.tensordot(pd, C3, axes=(0, 0)).T  # ... of p'_k p'_m, m < nq
+        return Gp, Gpd
+
     def mass_change(self, q: np.ndarray) -> np.ndarray:
         """First-order change of ``M_r`` from the held configuration to ``q``."""
         return ((np.asarray(q) - self.q0) @ self.dMr2).reshape(self.r, self.r)

@@ -377,7 +377,12 @@ def run_one(task: RunTask) -> dict:
     U = S.select(task.nominal.motor_names).data
     Y = S.select(obs.channels).data
     _reset_observer(obs)
+    # a run whose estimate blows up is a result (a diverged run, NaN errors from then on), not a study failure
+    obs.ekf.nonfinite_action = "flag"
     est = estimate(obs, S.t, U, Y)
+    if est.result.nonfinite:
+        log.warning("level %s run %d (seed %d): estimate non-finite from t = %.4g s", task.level_key, task.run,
+                    task.seed, est.result.diverged_at)
     OBSERVER_RUNS += 1
     res = est.result
     nis_mean, nis_exp = res.mean_nis()
