@@ -11,9 +11,9 @@ Step map over one interval ``dt``: ``n = dt / h`` RK4 sub-steps of the full nonl
 
 ``A = [[0, I], [-M^-1 K, -M^-1 (C + dh/dv)]]``, ``F = P^n``,
 
-with ``P`` the RK4 polynomial of ``h A`` (what ``n`` RK4 steps do to the frozen linear system). As in the
-reduced model, ``F`` leaves out the derivatives of the configuration-dependent matrices and forces with
-respect to q.
+with ``P`` the RK4 polynomial of ``h A`` (what ``n`` RK4 steps do to the frozen linear system). ``F`` leaves
+out the derivatives of the configuration-dependent matrices with respect to q (the reduced model now has
+them, :mod:`exuflex.observer.reduced`; this comparison model is kept as it was measured).
 
 Process noise: the measured torques carry white noise of std ``sigma`` (the motors' ``noise_std``)
 held over the interval, ``Q = L diag(sigma^2) L^T`` with ``L = (sum_k P^k) Q_h [0; M^-1 W^T B]`` the

@@ -25,13 +25,14 @@ Step map over one interval ``dt`` (``n = dt / h`` RK4 sub-steps, ``h = 0.1 ms`` 
   velocity-dependent forces are evaluated once at the start of the interval; the remaining linear
   system ``z' = A z + b`` is advanced by exactly what ``n`` RK4 steps would do,
   ``z_n = P^n z_0 + (sum_k P^k) Q b`` with ``P, Q`` the RK4 polynomials of ``h A`` (computed by
-  repeated doubling, a few 26x26 products). The Jacobian of this step is ``F = P^n``.
+  repeated doubling, a few 26x26 products).
 - ``method="rk4"`` (reference): the paper's scheme, every RK4 stage with the matrices at its own state;
   ``F`` is the same linearisation about the interval start.
 
-``F`` leaves out the derivatives of the configuration-dependent matrices with respect to ``q`` and of the
-velocity forces with respect to the state (small on this time scale; the NEES test of the observer checks
-that the covariance stays consistent).
+Jacobian (every method): ``F = P^n + SQM dF/dz``: the held linear system's map plus the response to the
+change of the held generalised forces with the start state (the velocity-dependent forces, exactly, and
+``M_r``, ``K_r`` through their q-gradients), see :meth:`ReducedObserverModel._jacobian`. ``P^n`` alone let the
+filter diverge in the start-up transient on some noise realisations.
 
 Process noise: the measured torques carry white noise of std ``sigma`` (the motors' ``noise_std``),
 held over the interval, so ``Q = L diag(sigma^2) L^T`` with ``L`` the interval's response to a unit
