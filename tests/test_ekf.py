@@ -589,3 +589,28 @@ def test_per_update_overhead_26_states(capsys):
             f"filterpy {ref:.1f} us"
         )
     assert lean < 1000.0  # sanity only: wall-clock figures on a shared machine are not a test criterion
+
+
+def test_linear_input_hold_predicts_with_the_mean_of_the_two_samples():
+    """input_hold="linear": the interval ending at a sample is predicted with the mean of its two inputs (a
+    ramp through a pure integrator is then exact); across a missing sample the input is held."""
+    from exuflex.observer.base import LinearDiscreteModel
+
+    dt = 0.01
+    model = LinearDiscreteModel(A=np.eye(1), B=np.array([[dt]]), C={"x": np.array([1.0])}, Q=np.eye(1) * 1e-12)
+    t = np.arange(6) * dt
+    U = (10.0 * t)[:, None]  # a ramp
+    exact = 10.0 * t**2 / 2  # its integral
+    runs = {}
+    for hold in ("zoh", "linear"):
+        ekf = MultirateEKF(model, ["x"], {"x": 1e3}, [0.0], [1e-12], dt=dt, input_hold=hold)
+        runs[hold] = ekf.run(t, U, np.full((len(t), 1), np.nan)).x_hat[:, 0]
+    np.testing.assert_allclose(runs["linear"], exact, rtol=1e-12, atol=1e-15)
+    assert np.abs(runs["zoh"] - exact).max() > 1e-4  # ZOH lags the ramp by half an interval
+    # a gap: the missing interval is predicted with the held input
+    ekf = MultirateEKF(model, ["x"], {"x": 1e3}, [0.0], [1e-12], dt=dt, input_hold="linear")
+    ekf.step(0.0, [0.0], None)
+    x = ekf.step(2 * dt, [0.2], None)
+    assert x[0] == pytest.approx(0.0, abs=1e-15)  # both intervals with the held input 0
+    with pytest.raises(ValueError, match="input_hold"):
+        MultirateEKF(model, ["x"], {"x": 1e3}, [0.0], [1e-12], dt=dt, input_hold="spline")

@@ -251,6 +251,12 @@ class MultirateEKF:
         Floor on the diagonal of ``P`` (in the state's squared units).
     time_tol : float
         Relative tolerance of the sample grid check.
+    input_hold : {"zoh", "linear"}
+        How the input behaves between two samples: held at the earlier sample's value (``"zoh"``), or
+        varying linearly between the two (``"linear"``: the interval is predicted with their mean, which is
+        the exact effect of a linear input on the held system to first order). ``"linear"`` adds no latency:
+        the interval ending at a sample is predicted when that sample, and its input, arrive. Across missing
+        samples the input is held.
     """
 
     def __init__(
@@ -271,6 +277,7 @@ class MultirateEKF:
         nonfinite: str = "raise",
         p_floor=1e-18,
         time_tol: float = 1e-6,
+        input_hold: str = "zoh",
     ):
         if backend not in _BACKENDS:
             raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
@@ -284,6 +291,9 @@ class MultirateEKF:
             raise ValueError(f"nonfinite must be 'flag' or 'raise', got {nonfinite!r}")
         if not dt > 0:
             raise ValueError(f"dt must be positive, got {dt}")
+        if input_hold not in ("zoh", "linear"):
+            raise ValueError(f"input_hold must be 'zoh' or 'linear', got {input_hold!r}")
+        self.input_hold = input_hold
         self.model = model
         self.nx = int(model.nx)
         self.channels = tuple(channels)
@@ -586,8 +596,13 @@ class MultirateEKF:
                     f"sample time {t!r} is not a positive multiple of dt={self.dt} after {self._t_prev!r}"
                 )
             if not self.nonfinite:
+                u_step = self._u_prev
+                if self.input_hold == "linear" and n == 1 and u is not None and u_step is not None:
+                    u_new = np.asarray(u, dtype=float)
+                    if u_new.shape == u_step.shape and math.isfinite(sum(u_new.tolist())):
+                        u_step = 0.5 * (u_step + u_new)  # the mean of the linear input over the interval
                 for i in range(n):
-                    self._predict(self._u_prev)
+                    self._predict(u_step if i == 0 else self._u_prev)
                     if i < n - 1:  # a skipped sample: settle P exactly as for an all-NaN sample
                         self._settle_P()
             self.n_missing += n - 1

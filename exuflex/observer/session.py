@@ -59,6 +59,13 @@ class ObserverConfig:
         values: 1.4 gives NEES 10.79 / NIS 6.05, 1.5 gives 10.11 / 5.92, 1.6 gives 9.83 / 5.84 (expected 10 / 6).
         1.0 is the stated noise.
         The steady-state bound always uses the stated noise.
+    input_hold : how the measured torques are used between samples: ``"zoh"`` (held, the paper's scheme) or
+        ``"linear"`` (the mean of the two samples bounding the interval, no added latency; its process noise is
+        half the torque variance per interval, correlated between neighbouring intervals, which the filter
+        does not model). Measured with the full-order ERLS truth (20 runs): the zero-order hold of a torque
+        that varies within the interval is the largest deterministic error of the filter (squared bias over
+        variance 0.50 on dq2, 0.47 on y26), ``"linear"`` reduces it to 0.27 / 0.21 but leaves the per-quantity
+        consistency uneven (NEES contributions 0.56-1.33 instead of 0.83-1.23), so ``"zoh"`` stays the default.
     q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
     start_up : seconds left out of the error metrics (the filter's transient).
@@ -78,6 +85,7 @@ class ObserverConfig:
     elastic0_std: float = 1e-3
     elastic_rate0_std: float = 0.01
     q_scale: float = 1.5
+    input_hold: str = "zoh"
     q_extra_std: float = 0.0
     start_up: float = 0.3
 
@@ -178,6 +186,8 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     dt = config.dt or 1.0 / mech.sample_rate_hz
     som = ReducedObserverModel(cb, h=config.h, method=config.method)
     som.torque_var_nominal = som.torque_var.copy()
+    if config.input_hold == "linear":  # the interval's input is the mean of two independent samples
+        som.torque_var = 0.5 * som.torque_var
     if config.q_scale != 1.0:
         som.torque_var = som.torque_var * config.q_scale
     r, nq = som.r, som.nq
@@ -195,7 +205,8 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     backend = config.backend
     if backend == "auto":
         backend = "numba" if HAVE_NUMBA else "numpy"
-    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, backend=backend)
+    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, backend=backend,
+                       input_hold=config.input_hold)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels), "backend": backend,
             "step_kernel": som.kernel_name}
