@@ -28,7 +28,7 @@ try:  # numba is a core dependency, but exuflex must still run (slower) where it
     HAVE_NUMBA = True
 
     def _jit(f):
-        return numba.njit(cache=True, nogil=True)(f)
+        return numba.njit(cache=True, nogil=True, error_model="numpy")(f)
 
     def _shared(f):
         """Plain NumPy function outside compiled code, compiled inline where a kernel calls it."""
@@ -176,13 +176,17 @@ def _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compil
 def _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
     r = p.shape[0]
     f = fg.copy()
+    tmp = np.zeros(r * r)  # sum_k p'_k T[k] (flattened rows: contiguous axpy sweeps)
     for k in range(r):
-        if pd[k] != 0.0:
-            for i in range(r):
-                acc = 0.0
-                for j in range(r):
-                    acc += T2[k, i * r + j] * pd[j]
-                f[i] -= 0.5 * pd[k] * acc
+        w = pd[k]
+        if w != 0.0:
+            for ij in range(r * r):
+                tmp[ij] += w * T2[k, ij]
+    for i in range(r):
+        acc = 0.0
+        for j in range(r):
+            acc += tmp[i * r + j] * pd[j]
+        f[i] -= 0.5 * acc
     for i in range(nq):
         for a in range(r):
             acc = 0.0
@@ -235,50 +239,32 @@ def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, d
     return z_next, Mr, Kr, Cr, Gr
 
 
-def _step_jacobian_loops(z, u, Mr, Kr, Cr, Gr, fg, T2, V2, C2, Ts, Vs, C3, dK3, dM3, beta, Pn,
-                         SQM):  # pragma: no cover - compiled twin of ReducedObserverModel._jacobian
-    r = Mr.shape[0]
+def _step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled twin of _jacobian
+    """``Pn + SQM dF/dz`` with ``dF/dz`` the derivatives of the held quadratic forces (see
+    :meth:`exuflex.observer.reduced.ReducedObserverModel._jacobian`)."""
+    r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
     pd = z[r:]
-    f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
-    rhs = np.zeros((r, 2 * r + 1))
-    for i in range(r):  # residual force of the acceleration a = M^-1 (G u + f - K p - C p')
-        acc = f[i]
-        for j in range(u.shape[0]):
-            acc += Gr[i, j] * u[j]
-        for j in range(r):
-            acc -= Kr[i, j] * p[j] + Cr[i, j] * pd[j]
-        rhs[i, 2 * r] = acc
+    G = np.zeros((r, 2 * r))  # generalised forces per unit state change
     for m in range(r):  # df/dp'_m of -1/2 p' T p': -1/2 sum_j (T[m,i,j] + T[j,i,m]) p'_j
         for i in range(r):
             acc = 0.0
             for j in range(r):
                 acc += Ts[m, i, j] * pd[j]
-            rhs[i, r + m] = -0.5 * acc
+            G[i, r + m] = -0.5 * acc
     for i in range(nq):  # df_i/dp_m of -p V_i p (q rows)
         for m in range(r):
             acc = 0.0
             for b in range(r):
                 acc += Vs[i, m, b] * p[b]
-            rhs[i, m] = -acc
+            G[i, m] = -acc
     for k in range(C3.shape[0]):  # d/dp' of -sum p'_k p'_j C[k, j, :] (j < nq)
         for j in range(nq):
             for c in range(r):
-                rhs[c, r + k] -= C3[k, j, c] * pd[j]
-                rhs[c, r + j] -= pd[k] * C3[k, j, c]
-    b = np.empty((r, 1))
-    b[:, 0] = rhs[:, 2 * r]
-    a = _cholesky_solve(Mr, b)[:, 0]
-    G = np.ascontiguousarray(rhs[:, : 2 * r])  # generalised forces per unit state change
-    for j in range(nq):  # q-derivatives of the held matrices: -(dK_j (p + beta p') + dM_j a)
-        for i in range(r):
-            acc = 0.0
-            for k in range(r):
-                acc += dK3[j, i, k] * (p[k] + beta * pd[k]) + dM3[j, i, k] * a[k]
-            G[i, j] -= acc
-    F = Pn + SQM @ G
-    return F
+                G[c, r + k] -= C3[k, j, c] * pd[j]
+                G[c, r + j] -= pd[k] * C3[k, j, c]
+    return Pn + SQM @ G
 
 
 def held_step_numpy(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
@@ -374,7 +360,6 @@ def warm_up() -> None:
     held_step_loops(z, u, dl, 0.0, False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2,
                     V2, C2)
     step_maps_held(M, M, M, G, 1e-4, 1, np.ones(nq))
-    t3 = np.zeros((r, r, r))
-    step_jacobian_loops(z, u, M, M, M, G, f, T2, V2, C2, t3, np.zeros((nq, r, r)), np.zeros((r, nq, r)),
-                        np.zeros((nq, r, r)), np.zeros((nq, r, r)), 0.0, np.eye(2 * r), np.zeros((2 * r, r)))
+    step_jacobian_loops(z, np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r),
+                        np.zeros((2 * r, r)))
     _warm = True
