@@ -16,9 +16,9 @@ Step map over one interval ``dt`` (``n = dt / h`` RK4 sub-steps, ``h = 0.1 ms`` 
   ODE step size: at each evaluation the previous held model's prediction of ``M_r`` and ``K_r`` is compared
   with the exact ones, and the next radius keeps that error near ``refresh_tol`` (3e-2, relative in the
   mass metric; radius within 2e-3 .. 4e-2 rad). The Jacobian and process noise are rebuilt when q moved by
-  ``remap_rad`` (2e-3 rad). Measured on the six-bar's 3 s manoeuvre (``tests/test_observer.py``): 54
+  ``remap_rad`` (2e-3 rad). Measured on the six-bar's 3 s manoeuvre (``tests/test_observer.py``): 45
   evaluations instead of 1500, estimates within 4 % of the estimation error of ``frozen``'s (RMS, worst
-  quantity q1). A fixed radius does not work: the prediction error over 2e-2 rad falls from 0.6 at the
+  quantity dq3). A fixed radius does not work: the prediction error over 2e-2 rad falls from 0.6 at the
   start of the manoeuvre to 5e-3 later, and a first-order ``M_r`` held over 2e-2 rad loses positive
   definiteness there.
 - ``method="frozen"``: the configuration-dependent matrices ``M_r, K_r, C_r, G_r`` and the
