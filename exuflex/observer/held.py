@@ -18,8 +18,21 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["HAVE_NUMBA", "held_matrices", "quadratic_forces", "rk4_held", "rk4_held_numpy", "rk4_held_loops",
-           "held_step", "held_step_numpy", "held_step_loops"]
+__all__ = [
+    "HAVE_NUMBA",
+    "held_matrices",
+    "held_step_loops",
+    "held_step_numpy",
+    "power_sum",
+    "quadratic_forces",
+    "rk4_held_loops",
+    "rk4_held_numpy",
+    "step_jacobian_loops",
+    "step_maps",
+    "step_maps_held",
+    "step_maps_held_numpy",
+    "warm_up",
+]
 
 try:  # numba is a core dependency, but exuflex must still run (slower) where it cannot be installed
     import numba
@@ -339,8 +352,6 @@ _quadratic_forces_loops = _jit(_quadratic_forces_loops)
 rk4_held_loops = _rk4_held_loops
 held_step_loops = _jit(_held_step_loops)
 step_jacobian_loops = _jit(_step_jacobian_loops)
-rk4_held = rk4_held_loops if HAVE_NUMBA else rk4_held_numpy
-held_step = held_step_loops if HAVE_NUMBA else held_step_numpy
 
 
 _warm = False

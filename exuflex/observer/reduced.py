@@ -45,16 +45,25 @@ rigid tip position); the dependence of the curvature and elastic-displacement ro
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-
-import math
 
 import numpy as np
 
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
-from .held import HAVE_NUMBA, held_matrices, held_step_loops, step_jacobian_loops, held_step_numpy, power_sum, step_maps, step_maps_held, step_maps_held_numpy
+from .held import (
+    HAVE_NUMBA,
+    held_matrices,
+    held_step_loops,
+    held_step_numpy,
+    power_sum,
+    step_jacobian_loops,
+    step_maps,
+    step_maps_held,
+    step_maps_held_numpy,
+)
 from .held import warm_up as held_warm_up
 from .rows import sensor, sensor_rows
 
@@ -76,7 +85,7 @@ def _jacobian_arrays(fm, C2: np.ndarray) -> tuple:
     return fm._Ts, fm._Vs, C3
 
 
-def _secant_factor(iv: "_Interval", dl: np.ndarray) -> float:
+def _secant_factor(iv: _Interval, dl: np.ndarray) -> float:
     """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved.
 
     Zero (first order only) without a partner or when q moves away from the secant's line (cosine below
@@ -107,7 +116,7 @@ class _Interval:
     dt: float = 0.0
     q_map: np.ndarray | None = None  # configuration of the current step map (cached method)
     Ca: np.ndarray | None = None  # C_r - beta K_r at the held configuration (cached method)
-    old: "_Interval | None" = None  # secant partner: the previous held configuration (cached method)
+    old: _Interval | None = None  # secant partner: the previous held configuration (cached method)
     d: np.ndarray | None = None  # q0 - old.q0
     dd: float = 0.0  # d . d
     rad: float = 0.0  # refresh radius while held (cached method)
@@ -151,7 +160,6 @@ class ReducedObserverModel:
         self.refresh_tol = float(refresh_tol)
         self.refresh_min = float(refresh_min)
         self.n_rescue = 0
-        self.secant = True
         self.full_jacobian = True
         self.remap_rad = float(remap_rad)
         self.n_refresh = 0
@@ -226,7 +234,7 @@ class ReducedObserverModel:
             iv.err = self._prediction_error(old, iv)
             dist = _max_abs(iv.q0 - old.q0)
             iv.rad = self._radius(old, dist, iv.err)
-            if self.secant and dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
+            if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
                 d = iv.q0 - old.q0
                 iv.old, iv.d, iv.dd = old, d, float(d @ d)
             old.old = None  # keep one partner only (no chain of held configurations)
@@ -271,7 +279,7 @@ class ReducedObserverModel:
         return float(max(np.abs(EM).max(), np.abs(EK).max() / np.abs(KK).max()))
 
     def _held_args(self, iv: _Interval) -> tuple:
-        """The arguments of :func:`.held.held_step` after ``(z, u, dl, s)``: fixed while iv is held."""
+        """The arguments of :func:`.held.held_step_loops` after ``(z, u, dl, s)``: fixed while iv is held."""
         fm, m = iv.forces, iv.mats
         old = iv.old
         o, om, oCa = (fm, m, iv.Ca) if old is None else (old.forces, old.mats, old.Ca)
@@ -399,18 +407,18 @@ class ReducedObserverModel:
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
-                lin = (c0, Hm, None, None)
+                lin = (c0, Hm, None)
             else:
                 # the elastic rows follow the configuration along the secant (the gauges' rows change with
                 # H(q)); the rigid parts stay the exact first-order expansion about q0: a secant of their
                 # intercepts would make y depend on q through s, which the Jacobian below leaves out, and
                 # that inconsistency breaks the filter during the start-up transient
-                c1, H1 = self._linear(iv.old, channels)
+                H1 = self._linear(iv.old, channels)[1]
                 dH = np.zeros_like(Hm)
                 dH[:, self.nq : self.r] = (Hm[:, self.nq : self.r] - H1[:, self.nq : self.r]) / iv.dd
-                lin = (c0, Hm, 0.0, dH)
+                lin = (c0, Hm, dH)
             self._channel_cache[key] = lin
-        c0, Hm, dc, dH = lin
+        c0, Hm, dH = lin
         if dH is not None:
             s = _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
             if s:
