@@ -137,6 +137,13 @@ class ReducedObserverModel:
     refresh_tol, refresh_min, refresh_rad : error target and radius limits (rad) of the cached method's
         configuration evaluations; remap_rad : when its Jacobian and process noise are rebuilt.
     kernel : ``"numba"`` (compiled cached step), ``"numpy"`` (its reference twin) or ``"auto"``.
+
+    Attributes
+    ----------
+    full_jacobian : bool
+        ``F = Pn + SQM dF/dz`` (default, see :meth:`_jacobian`) or the held system's ``Pn`` alone.
+    n_refresh, n_remap, n_rescue : counters of configuration evaluations, step-map rebuilds and evaluations
+        forced by a held mass matrix that lost positive definiteness.
     torque_std : std of the measured torques (N m) per motor; default the motors' ``noise_std``.
     q_extra : optional (nx,) diagonal added to Q per interval (unmodelled dynamics).
     """
@@ -290,7 +297,7 @@ class ReducedObserverModel:
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
 
-    def _cached_step(self, z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    def _cached_step(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Configuration held while q stays within the held radius of it (:meth:`_radius`); the model at z
         follows from it to second order (:mod:`.held`) and is advanced by the RK4 steps of the interval; the
         Jacobian and process noise are rebuilt when q moved by ``remap_rad``."""
@@ -326,7 +333,7 @@ class ReducedObserverModel:
         return z_next, F
 
     def _jacobian(self, fm, z, Pn, SQM) -> np.ndarray:
-        """The step's Jacobian with the state dependence of the forces and of the configuration.
+        """The step's Jacobian with the state dependence of the held forces.
 
         ``Pn`` is the Jacobian of the interval's RK4 steps with the matrices and forces held. The forces
         held over the interval depend on the start state (the velocity-dependent forces and the geometric
