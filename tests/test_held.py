@@ -109,14 +109,12 @@ def test_a_mass_matrix_that_is_not_positive_definite_gives_nan_not_garbage():
 
 def test_step_jacobian_kernel_equals_numpy_reference(sixbar_observer_state):
     """The compiled step Jacobian equals ReducedObserverModel._jacobian."""
-    from exuflex.observer.reduced import _jacobian_arrays
-
     m, iv, z, u = sixbar_observer_state
     z = z.copy()
     z[m.r + m.nq :] = np.random.default_rng(5).normal(size=m.r - m.nq)  # start-up size elastic rates
     ref = m._jacobian(iv.forces, z, iv.Pn, iv.SQM)
     fm = iv.forces
-    fast = held.step_jacobian_loops(z, *_jacobian_arrays(fm, m._c2(fm)), iv.Pn, iv.SQM)
+    fast = held.step_jacobian_loops(z, *fm.jacobian_tensors(), iv.Pn, iv.SQM)
     assert np.abs(ref - iv.Pn).max() > 1.0  # the correction matters
     np.testing.assert_allclose(fast, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
 

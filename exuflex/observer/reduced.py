@@ -77,14 +77,6 @@ def _max_abs(v: np.ndarray) -> float:
     return max(map(abs, v.tolist()))
 
 
-def _jacobian_arrays(fm, C2: np.ndarray) -> tuple:
-    """The force model's tensors in the layout of :func:`.held.step_jacobian_loops`."""
-    nq, r = fm.nq, fm.r
-    fm.jacobian(np.zeros(r), np.zeros(r))  # builds the symmetrised tensors
-    C3 = np.ascontiguousarray(C2.reshape(-1, nq, r)) if len(C2) else np.zeros((0, nq, r))
-    return fm._Ts, fm._Vs, C3
-
-
 def _secant_factor(iv: _Interval, dl: np.ndarray) -> float:
     """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved.
 
@@ -122,7 +114,6 @@ class _Interval:
     rad: float = 0.0  # refresh radius while held (cached method)
     err: float = float("nan")  # prediction error of the previous held model at q0 (cached method)
     kargs: tuple | None = None  # held arguments of the step kernel (cached method)
-    jargs: tuple | None = None  # held arguments of the compiled step Jacobian (cached method)
 
 
 class ReducedObserverModel:
@@ -324,10 +315,7 @@ class ReducedObserverModel:
         if not self.full_jacobian:
             return z_next, iv.Pn
         if self.kernel_name == "numba":
-            fm = iv.forces
-            if iv.jargs is None:
-                iv.jargs = _jacobian_arrays(fm, self._c2(fm))
-            F = step_jacobian_loops(z, *iv.jargs, iv.Pn, iv.SQM)
+            F = step_jacobian_loops(z, *iv.forces.jacobian_tensors(), iv.Pn, iv.SQM)
         else:
             F = self._jacobian(iv.forces, z, iv.Pn, iv.SQM)
         return z_next, F

@@ -47,19 +47,18 @@ class ReducedMatrices:
 class QuadraticForces:
     """``fr(p, p') = fg - 1/2 sum_k p'_k T_k p' - [p^T V_i p]_i - J^T M a_b(q', p')`` at a held configuration.
 
-    Stored flattened so that one evaluation is three small matrix-vector products.
+    Stored flattened so that one evaluation is three small matrix-vector products. ``dMr2``, ``dKr2``: the
+    q-gradients of ``M_r`` and ``K_r`` at the held configuration, flattened (nq, r*r), for the cached step.
     """
 
     def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
-                 JtM: np.ndarray | None, q0: np.ndarray | None = None, dKr: np.ndarray | None = None,
-                 beta: float = 0.0):
+                 JtM: np.ndarray | None, dMr: np.ndarray | None = None, dKr: np.ndarray | None = None):
         r = len(fg)
         self.nq, self.r = nq, r
         self.fg = fg
-        self.q0 = q0
-        self.beta = beta
-        self.dMr2 = None
-        self.dKr2 = None if dKr is None else dKr.reshape(nq, r * r)  # d(K_r)/dq_i, flattened
+        self.dMr2 = None if dMr is None else dMr.reshape(nq, r * r)
+        self.dKr2 = None if dKr is None else dKr.reshape(nq, r * r)
+        self._tensors = None
         self.T2 = Tk.reshape(r, r * r)
         self.V2 = V.reshape(nq * r, r)
         self.C2 = None
@@ -75,31 +74,31 @@ class QuadraticForces:
             f -= np.outer(pd, pd[:nq]).ravel() @ self.C2
         return f
 
+    def jacobian_tensors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(Ts, Vs, C3)``: the symmetrised forms whose contractions with ``p'`` and ``p`` are the forces'
+        derivatives, ``Ts[m, i, j] = T[m,i,j] + T[j,i,m]`` (r, r, r), ``Vs[i, a, b] = V[i,a,b] + V[i,b,a]``
+        (nq, r, r) and ``C3[k, j, c]`` (r, nq, r; empty without the bias term). Built once per held
+        configuration."""
+        if self._tensors is None:
+            nq, r = self.nq, self.r
+            T3 = self.T2.reshape(r, r, r)  # [k, i, j]
+            V3 = self.V2.reshape(nq, r, r)  # [i, a, b]
+            C3 = np.zeros((0, nq, r)) if self.C2 is None else self.C2.reshape(r, nq, r)
+            self._tensors = (np.ascontiguousarray(T3 + np.transpose(T3, (2, 1, 0))),
+                             np.ascontiguousarray(V3 + np.swapaxes(V3, 1, 2)), np.ascontiguousarray(C3))
+        return self._tensors
+
     def jacobian(self, p: np.ndarray, pd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(df/dp, df/dp')`` (r, r) each, of the forces at the held configuration (exact: quadratic forms)."""
         nq, r = self.nq, self.r
-        if getattr(self, "_Ts", None) is None:
-            T3 = self.T2.reshape(r, r, r)  # [k, i, j]
-            self._Ts = np.ascontiguousarray(T3 + np.transpose(T3, (2, 1, 0)))  # [m, i, j] = T[m,i,j] + T[j,i,m]
-            V3 = self.V2.reshape(nq, r, r)  # [i, a, b]
-            self._Vs = np.ascontiguousarray(V3 + np.swapaxes(V3, 1, 2))
-            self._C3 = None if self.C2 is None else self.C2.reshape(r, nq, r)  # [k, j, c]
-        Gpd = -0.5 * (self._Ts @ pd).T
+        Ts, Vs, C3 = self.jacobian_tensors()
+        Gpd = -0.5 * (Ts @ pd).T
         Gp = np.zeros((r, r))
-        Gp[:nq] = -(self._Vs @ p)
-        if self._C3 is not None:
-            C3 = self._C3
+        Gp[:nq] = -(Vs @ p)
+        if len(C3):
             Gpd -= np.tensordot(pd[:nq], C3, axes=(0, 1)).T  # d/dp'_m of p'_m p'_j terms, j < nq
             Gpd[:, :nq] -= np.tensordot(pd, C3, axes=(0, 0)).T  # ... of p'_k p'_m, m < nq
         return Gp, Gpd
-
-    def mass_change(self, q: np.ndarray) -> np.ndarray:
-        """First-order change of ``M_r`` from the held configuration to ``q``."""
-        return ((np.asarray(q) - self.q0) @ self.dMr2).reshape(self.r, self.r)
-
-    def stiffness_change(self, q: np.ndarray) -> np.ndarray:
-        """First-order change of ``K_r`` as the links turn from the held configuration to ``q``."""
-        return ((np.asarray(q) - self.q0) @ self.dKr2).reshape(self.r, self.r)
 
 
 class ReducedModel:
@@ -232,9 +231,8 @@ class ReducedModel:
         dHK = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_uu H_u per q_i
         Ee = AeT @ (model.KGl @ Ae)
         dKr = (S_th.T @ Ee.reshape(len(Ee), -1)).reshape(nq, r, r) + dHK + np.swapaxes(dHK, 1, 2)
-        qf = QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, rc.q.copy(), dKr, model.beta)
-        qf.dMr2 = self.mass_derivative_analytic(mats, dHdq, Sd).reshape(nq, r * r)
-        return qf
+        dMr = self.mass_derivative_analytic(mats, dHdq, Sd)
+        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr)
 
     def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None) -> np.ndarray:
         """``d M_r / d q_i`` (nq, r, r) from the element rotations, ``dS/dq_i`` and ``dH/dq_i``.
