@@ -353,7 +353,11 @@ class MultirateEKF:
             self._Pspare = np.empty((n, n))
             self._work = np.empty((n, n))
             self._HP = np.empty((self.m, n))
+            self._Ppred = np.empty((n, n))
             _compiled.warm_up()
+        # a model that can do a whole sample in one compiled call (the cached reduced observer) is given the
+        # chance to, with the numba back-end: see _fused_sample
+        self._fused = getattr(model, "fused_sample", None) if self._compiled else None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -379,6 +383,7 @@ class MultirateEKF:
         self._u_prev = None
         self.n_missing = 0
         self.n_updates = 0
+        self.n_fused = 0
         self.diverged = False
         self.diverged_at: float | None = None
         self.nonfinite = False
@@ -546,6 +551,32 @@ class MultirateEKF:
         self.last_nis = nis
         self.last_dof = len(idx)
 
+    def _fused_sample(self, u, y) -> bool:
+        """One whole sample (predict one interval, update with every channel, settle) in the model's single
+        compiled call, if the model offers one (``fused_sample``, the cached reduced observer) and every
+        channel of ``y`` is present. Same arithmetic as the step-by-step path, to rounding; False (nothing
+        changed) where it does not apply or the model declines, and the step-by-step path runs instead."""
+        y = np.asarray(y, dtype=float)
+        if y.shape != (self.m,) or not math.isfinite(sum(y.tolist())):
+            return False
+        try:
+            out = self._fused(self._x, self._P, u, np.ascontiguousarray(y), self.channels, self._Rdiag,
+                              self._floor, self.dt, (self._Pspare, self._Ppred, self._work, self._HP))
+        except (ArithmeticError, np.linalg.LinAlgError, KinematicsError):
+            return False  # the step-by-step path meets the same failure and handles it (see _predict)
+        if out is None:
+            return False
+        x, P, r, S, nis, self._fused_finite = out
+        self._Pspare = self._P
+        self._x, self._P = x, P
+        self.last_idx = self._all
+        self.last_innovation = r
+        self.last_S = S
+        self.last_nis = nis
+        self.last_dof = self.m
+        self.n_fused += 1
+        return True
+
     def _solve_indefinite(self, S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         log.warning("innovation covariance not positive definite (t=%s); using an LU solve", self._t_prev)
         try:
@@ -588,6 +619,7 @@ class MultirateEKF:
             ``t`` not after the previous sample or off the grid.
         """
         t = float(t)
+        fused = False
         if self._t_prev is not None:
             k = (t - self._t_prev) / self.dt
             n = round(k)
@@ -601,44 +633,50 @@ class MultirateEKF:
                     u_new = np.asarray(u, dtype=float)
                     if u_new.shape == u_step.shape and math.isfinite(sum(u_new.tolist())):
                         u_step = 0.5 * (u_step + u_new)  # the mean of the linear input over the interval
-                for i in range(n):
-                    self._predict(u_step if i == 0 else self._u_prev)
-                    if i < n - 1:  # a skipped sample: settle P exactly as for an all-NaN sample
-                        self._settle_P()
+                if n == 1 and self._fused is not None and y is not None:
+                    fused = self._fused_sample(u_step, y)
+                if not fused:
+                    for i in range(n):
+                        self._predict(u_step if i == 0 else self._u_prev)
+                        if i < n - 1:  # a skipped sample: settle P exactly as for an all-NaN sample
+                            self._settle_P()
             self.n_missing += n - 1
         self._t_prev = t
         self._u_prev = None if u is None else np.array(u, dtype=float)
-        self.last_idx = None
-        self.last_nis = math.nan
-        self.last_dof = 0
-        if self.nonfinite:
-            self.n_missing += 1
-            return np.full(self.nx, np.nan)
-
-        if y is None:
-            self.n_missing += 1
+        if fused:
+            finite = self._fused_finite
         else:
-            y = np.asarray(y, dtype=float)
-            if y.shape != (self.m,):
-                raise ValueError(f"measurement has shape {y.shape}, expected ({self.m},)")
-            # every channel present (the common case): one sum, of a list (a numpy reduction of a few
-            # entries costs five times as much); a NaN or inf anywhere makes it non-finite
-            if math.isfinite(sum(y.tolist())):
-                self._update(y, self._all, self.channels, self._Rdiag, self._Rfull)
+            self.last_idx = None
+            self.last_nis = math.nan
+            self.last_dof = 0
+            if self.nonfinite:
+                self.n_missing += 1
+                return np.full(self.nx, np.nan)
+
+            if y is None:
+                self.n_missing += 1
             else:
-                mask = np.isfinite(y)
-                if mask.any():
-                    idx, chans, Rd, R = self._subset(mask)
-                    self._update(y[idx], idx, chans, Rd, R)
+                y = np.asarray(y, dtype=float)
+                if y.shape != (self.m,):
+                    raise ValueError(f"measurement has shape {y.shape}, expected ({self.m},)")
+                # every channel present (the common case): one sum, of a list (a numpy reduction of a few
+                # entries costs five times as much); a NaN or inf anywhere makes it non-finite
+                if math.isfinite(sum(y.tolist())):
+                    self._update(y, self._all, self.channels, self._Rdiag, self._Rfull)
                 else:
-                    self.n_missing += 1
+                    mask = np.isfinite(y)
+                    if mask.any():
+                        idx, chans, Rd, R = self._subset(mask)
+                        self._update(y[idx], idx, chans, Rd, R)
+                    else:
+                        self.n_missing += 1
 
-        if self._compiled:
-            finite = _compiled.settle(self._x, self._P, self._floor)  # _settle_P and the same test, fused
-        else:
-            P = self._settle_P()
-            # a NaN or inf anywhere makes a sum non-finite (finite overflow to inf is flagged too, harmlessly)
-            finite = math.isfinite(self._x.sum() + P.sum())
+            if self._compiled:
+                finite = _compiled.settle(self._x, self._P, self._floor)  # _settle_P and the same test, fused
+            else:
+                P = self._settle_P()
+                # a NaN or inf anywhere makes a sum non-finite (finite overflow to inf is flagged too)
+                finite = math.isfinite(self._x.sum() + P.sum())
         if not finite:
             self._flag_divergence(t, "non-finite state or covariance")
             self.nonfinite = True

@@ -64,6 +64,8 @@ from .held import (
     step_maps_held,
     step_maps_held_numpy,
 )
+from .fused import DONE, cached_sample
+from .fused import warm_up as fused_warm_up
 from .held import warm_up as held_warm_up
 from .rows import sensor, sensor_rows
 
@@ -180,6 +182,12 @@ class ReducedObserverModel:
         if self.kernel_name == "numba" and method == "cached":
             held_warm_up()
         self._noC2 = np.zeros((0, self.r))
+        self._noQ = np.zeros(0)
+        self._noRows = np.zeros((0, self.nx))
+        self.fused = self.kernel_name == "numba"
+        self.n_declined = 0
+        if self.fused and method == "cached":
+            fused_warm_up()
 
     def reset(self) -> None:
         """Forget the held interval and the cached measurement rows (a new run starts clean)."""
@@ -305,7 +313,7 @@ class ReducedObserverModel:
             iv = self._refresh(z, dt)
             dl = q - iv.q0
             z_next, Mr, Kr, Cr, Gr = self.kernel(z, u, dl, 0.0, *iv.kargs)
-        if iv.q_map is None or _max_abs(q - iv.q_map) > self.remap_rad:
+        if iv.q_map is None or not _max_abs(q - iv.q_map) <= self.remap_rad:  # NaN: no map yet
             maps = step_maps_held if self.kernel_name == "numba" else step_maps_held_numpy
             iv.Pn, iv.SQM, iv.L, iv.Q = maps(Mr, Kr, Cr, Gr, self.h, self._n_steps(dt), self.torque_var)
             if self.q_extra is not None:
@@ -390,14 +398,19 @@ class ReducedObserverModel:
         self._channel_cache[key] = out
         return out
 
-    def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        x = np.asarray(x, float)
+    def _measurement_interval(self, x: np.ndarray) -> _Interval:
+        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near)."""
         iv = self._last
         if iv is None or _max_abs(x[: self.nq] - iv.q0) > 1.5 * max(iv.rad, self.refresh_min):
             # no held configuration near x (first sample of a run): evaluate one at x
             iv = self._configuration(x)
             self._last = iv
-        key = (iv.serial, "secant", tuple(channels))
+        return iv
+
+    def _secant_rows(self, iv: _Interval, channels: tuple) -> tuple:
+        """``(c0, Hm, dH)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x
+        (``dH`` None without a secant partner); cached per held configuration."""
+        key = (iv.serial, "secant", channels)
         lin = self._channel_cache.get(key)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
@@ -413,12 +426,64 @@ class ReducedObserverModel:
                 dH[:, self.nq : self.r] = (Hm[:, self.nq : self.r] - H1[:, self.nq : self.r]) / iv.dd
                 lin = (c0, Hm, dH)
             self._channel_cache[key] = lin
-        c0, Hm, dH = lin
+        return lin
+
+    def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        x = np.asarray(x, float)
+        iv = self._measurement_interval(x)
+        c0, Hm, dH = self._secant_rows(iv, tuple(channels))
         if dH is not None:
             s = _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
             if s:
                 Hm = Hm + s * dH
         return c0 + Hm @ x, Hm
+
+    # ------------------------------------------------------------------ one compiled sample
+    def fused_sample(self, x: np.ndarray, P: np.ndarray, u, y: np.ndarray, channels: tuple, Rd: np.ndarray,
+                     floor: np.ndarray, dt: float, bufs: tuple) -> tuple | None:
+        """Predict over one interval and update with every channel in one compiled call
+        (:func:`.fused.cached_sample`), for :class:`~exuflex.observer.ekf.MultirateEKF`'s ``numba`` back-end.
+
+        Same arithmetic as :meth:`step`, :meth:`process_noise` and :meth:`measure` followed by the filter's
+        update and end-of-sample settling, in the same order (``tests/test_fused.py``). Returns None where
+        the fused path does not apply or declines the sample (a rescue evaluation, a predicted state far from
+        the held configuration, an indefinite innovation covariance): the filter then takes its step-by-step
+        path, and nothing of its state has changed. Otherwise ``(x_post, P_post, innovation, S, nis,
+        finite)``, with ``P_post`` written into ``bufs[0]``.
+
+        ``bufs``: ``(P_out, P_pred, work, HP)`` scratch of the filter.
+        """
+        if not self.fused or self.method != "cached" or self.kernel_name != "numba":
+            return None
+        nq, nx = self.nq, self.nx
+        u = np.zeros(len(self.mech.motors)) if u is None else u
+        if u.shape != (len(self.mech.motors),):
+            raise ValueError(f"input has shape {u.shape}, expected ({len(self.mech.motors)},) motor torques")
+        iv = self._last
+        if iv is None or iv.kargs is None or iv.dt != dt or _max_abs(x[:nq] - iv.q0) > iv.rad:
+            iv = self._refresh(x, dt)
+        if iv.q_map is None:  # no step map yet: the kernel builds one into these
+            nu = len(self.mech.motors)
+            iv.q_map = np.full(nq, np.nan)
+            iv.Pn, iv.SQM = np.empty((nx, nx)), np.empty((nx, self.r))
+            iv.L, iv.Q = np.empty((nx, nu)), np.empty((nx, nx))
+        c0, Hm, dH = self._secant_rows(iv, channels)
+        m = len(channels)
+        r, S = np.empty(m), np.empty((m, m))
+        x_out = np.empty(nx)
+        P_out, P_pred, work, HP = bufs
+        status, nis, remapped, finite = cached_sample(
+            x, P, u, y, Rd, floor, iv.q0, 1.5 * max(iv.rad, self.refresh_min), iv.d if iv.old is not None
+            else iv.q0, iv.dd, iv.kargs, self.remap_rad, self.torque_var,
+            self._noQ if self.q_extra is None else self.q_extra, iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q,
+            *iv.forces.jacobian_tensors(), c0, Hm, self._noRows if dH is None else dH, x_out, P_out, P_pred,
+            work, HP, r, S)
+        if remapped:
+            self.n_remap += 1
+        if status != DONE:
+            self.n_declined += 1
+            return None
+        return x_out, P_out, r, S, nis, finite
 
     def _linear(self, iv: _Interval, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         key = (iv.serial, tuple(channels))
