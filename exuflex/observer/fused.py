@@ -15,7 +15,9 @@ changed the filter's state, and the filter takes its step-by-step path for that 
 
 - ``RESCUE``: the held model broke down (NaN step; the step-by-step path evaluates the configuration);
 - ``FAR``: the predicted q left the held configuration's measurement radius;
-- ``INDEFINITE``: the innovation covariance is not positive definite (the step-by-step path's LU solve).
+- ``INDEFINITE``: the innovation covariance is not positive definite (the step-by-step path's LU solve);
+- ``REFRESH``: q left the held configuration's radius; the caller evaluates the configuration and calls
+  again.
 """
 
 from __future__ import annotations
@@ -27,9 +29,9 @@ import numpy as np
 from ._compiled import predict_cov, settle, update
 from .held import HAVE_NUMBA, _jit, held_step_loops, step_jacobian_loops, step_maps_held
 
-__all__ = ["DONE", "FAR", "INDEFINITE", "RESCUE", "cached_sample", "secant_factor", "warm_up"]
+__all__ = ["DONE", "FAR", "INDEFINITE", "REFRESH", "RESCUE", "cached_sample", "secant_factor", "warm_up"]
 
-DONE, RESCUE, FAR, INDEFINITE = 0, 1, 2, 3
+DONE, RESCUE, FAR, INDEFINITE, REFRESH = 0, 1, 2, 3, 4
 
 
 def _secant_factor(dl, d, dd, has_old):  # pragma: no cover - compiled; twin of reduced._secant_factor
@@ -45,8 +47,8 @@ def _secant_factor(dl, d, dd, has_old):  # pragma: no cover - compiled; twin of 
     return a / dd
 
 
-def _cached_sample(z, P, u, y, Rd, floor, q0, meas_rad, d, dd, held, remap_rad, torque_var, q_extra, q_map, Pn,
-                   SQM, L, Q, Ts, Vs, C3, c0, Hm, dH, x_out, P_out, P_pred, work, HP, r, S):  # pragma: no cover
+def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, q0, rad, meas_rad, d, dd, held,
+                   remap_rad, torque_var, q_extra, q_map, Pn, SQM, L, Q, Ts, Vs, C3, c0, Hm, dH):  # pragma: no cover
     """Predict over one interval and update with all channels of ``y``.
 
     Parameters
@@ -54,7 +56,10 @@ def _cached_sample(z, P, u, y, Rd, floor, q0, meas_rad, d, dd, held, remap_rad, 
     z, P : prior state and covariance at the previous sample (not written).
     u : input held over the interval; y, Rd : measurement and its variances (all channels finite).
     floor : diagonal floor of the posterior covariance.
-    q0, meas_rad, d, dd : held configuration, its measurement radius, secant direction and ``d . d``.
+    x_out, r, S, P_out : out: posterior mean, innovation and its covariance, posterior covariance (``P_out``
+        symmetrised and floored); P_pred, work, HP : scratch.
+    q0, rad, meas_rad, d, dd : held configuration, its refresh radius (``REFRESH`` beyond it) and
+        measurement radius, secant direction and ``d . d``.
     held : the arguments of :func:`.held.held_step_loops` after ``(z, u, dl, s)`` (``held[0]``: has a secant
         partner; ``held[1]``: nq).
     remap_rad, torque_var, q_extra : step-map rebuild distance, torque variances, extra diagonal of ``Q``
@@ -63,8 +68,6 @@ def _cached_sample(z, P, u, y, Rd, floor, q0, meas_rad, d, dd, held, remap_rad, 
         by ``remap_rad``; a NaN ``q_map`` forces the rebuild).
     Ts, Vs, C3 : the held forces' Jacobian tensors.
     c0, Hm, dH : ``y = c0 + (Hm + s dH) x`` (``dH`` with 0 rows: no secant).
-    x_out, P_out : posterior (``P_out`` symmetrised and floored); P_pred, work, HP : scratch; r, S : out,
-        innovation and its covariance.
 
     Returns
     -------
@@ -77,6 +80,9 @@ def _cached_sample(z, P, u, y, Rd, floor, q0, meas_rad, d, dd, held, remap_rad, 
     """
     nq = held[1]
     dl = z[:nq] - q0
+    for i in range(nq):
+        if abs(dl[i]) > rad:
+            return REFRESH, math.nan, False, False
     s = _secant_factor(dl, d, dd, held[0])
     z_next, Mr, Kr, Cr, Gr = held_step_loops(z, u, dl, s, *held)
     if not math.isfinite(z_next[0]) and (s != 0.0 or np.any(dl != 0.0)):
@@ -129,8 +135,9 @@ def warm_up() -> None:
     G = np.zeros((r, nq))
     held = (False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2)
     P = np.eye(nx)
-    cached_sample(z, P, u, np.zeros(m), np.ones(m), np.zeros(nx), dl, 1.0, dl, 1.0, held, 1e-3, np.ones(nq),
-                  np.zeros(0), np.full(nq, np.nan), np.empty((nx, nx)), np.empty((nx, r)), np.empty((nx, nq)),
-                  np.empty((nx, nx)), np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.zeros(m),
-                  np.zeros((m, nx)), np.zeros((0, nx)), np.empty(nx), np.empty((nx, nx)), np.empty((nx, nx)),
-                  np.empty((nx, nx)), np.empty((m, nx)), np.empty(m), np.empty((m, m)))
+    sq = np.empty((nx, nx))
+    cached_sample(z, P, u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m), np.empty((m, m)), sq,
+                  sq.copy(), sq.copy(), np.empty((m, nx)), dl, 1.0, 1.0, dl, 1.0, held, 1e-3, np.ones(nq), np.zeros(0),
+                  np.full(nq, np.nan), sq.copy(), np.empty((nx, r)), np.empty((nx, nq)), sq.copy(),
+                  np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.zeros(m), np.zeros((m, nx)),
+                  np.zeros((0, nx)))

@@ -332,11 +332,50 @@ def step_maps(Minv, Kr, Cr, Gr, h, n):
     return Pn, SQM, SQM @ Gr
 
 
+def _times_hA(Ak, Ac, h, X):  # pragma: no cover - compiled
+    """``h A X`` for ``A = [[0, I], [-Ak, -Ac]]``: the top half is ``h X_v``, only the bottom needs products."""
+    r = Ak.shape[0]
+    out = np.empty(X.shape)
+    out[:r] = h * X[r:]
+    out[r:] = -h * (Ak @ np.ascontiguousarray(X[:r]) + Ac @ np.ascontiguousarray(X[r:]))
+    return out
+
+
 def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - compiled twin of the NumPy path
-    """:func:`step_maps` from ``M_r`` (not its inverse), plus the process noise ``L diag(var) L^T``."""
-    Minv = _cholesky_solve(Mr, np.eye(Mr.shape[0]))
-    Pn, SQM, L = step_maps(Minv, Kr, Cr, Gr, h, n)
-    return Pn, SQM, L, (L * torque_var) @ L.T
+    """:func:`step_maps` from ``M_r`` (not its inverse), plus the process noise ``L diag(var) L^T``.
+
+    The same maps with about half the arithmetic (it runs some 450 times per 3 s of the six-bar):
+
+    - the RK4 polynomials share one Horner chain, ``U = I + hA/2 (I + hA/3 (I + hA/4))``, ``P = I + hA U``
+      and ``Q = h U``, and a product with ``hA`` only has ``A``'s lower block row to compute;
+    - ``P^n`` and the response ``S_n B`` (``S_n = sum_{k<n} P^k``, ``B = Q[:, r:] M^-1``) by binary powering
+      from the leading bit, ``S_2a B = S_a B + P^a S_a B`` and ``S_a+1 B = B + P S_a B``: the sum is only
+      ever multiplied as the thin ``S B`` (nx x r).
+    """
+    r = Mr.shape[0]
+    nx = 2 * r
+    Minv = _cholesky_solve(Mr, np.eye(r))
+    Ak = Minv @ Kr
+    Ac = Minv @ Cr
+    I = np.eye(nx)
+    W = I + 0.25 * _times_hA(Ak, Ac, h, I)
+    V = I + _times_hA(Ak, Ac, h, W) / 3.0
+    U = I + 0.5 * _times_hA(Ak, Ac, h, V)
+    P = I + _times_hA(Ak, Ac, h, U)
+    B = (h * np.ascontiguousarray(U[:, r:])) @ Minv
+    Pa = P.copy()
+    SB = B.copy()
+    top = 0
+    while (n >> (top + 1)) > 0:
+        top += 1
+    for bit in range(top - 1, -1, -1):
+        SB = SB + Pa @ SB
+        Pa = Pa @ Pa
+        if (n >> bit) & 1:
+            SB = B + P @ SB
+            Pa = P @ Pa
+    L = SB @ Gr
+    return Pa, SB, L, (L * torque_var) @ L.T
 
 
 def step_maps_held_numpy(Mr, Kr, Cr, Gr, h, n, torque_var):
@@ -345,6 +384,7 @@ def step_maps_held_numpy(Mr, Kr, Cr, Gr, h, n, torque_var):
     return Pn, SQM, L, (L * torque_var) @ L.T
 
 
+_times_hA = _shared(_times_hA)
 step_maps_held = _jit(_step_maps_held) if HAVE_NUMBA else step_maps_held_numpy
 
 _rk4_held_loops = _jit(_rk4_held_loops)
