@@ -92,3 +92,34 @@ def test_fourbar_geometry():
     assert np.linalg.norm(B - A) == pytest.approx(0.5, abs=1e-13)
     assert np.linalg.norm(B - [0.6, 0.0]) == pytest.approx(0.45, abs=1e-13)
     assert B[1] > 0  # the assembly branch of the angle guesses (open configuration)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_batched_coordinate_rates_equal_one_rate_per_coordinate(name):
+    """``coordinate_rates`` (all unit rates at once, for the force model) equals :meth:`rates` per e_j."""
+    kin = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    for q in _configs(kin.mech):
+        pose = kin.pose(q)
+        batched = kin.coordinate_rates(pose)
+        for j, e in enumerate(np.eye(q.size)):
+            np.testing.assert_allclose(batched[j], kin.rates(pose, e)[1], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_compiled_newton_equals_numpy_newton(name):
+    """The compiled closure iteration (:mod:`exuflex.erls._closure`) against its NumPy reference, from the
+    initial guess and from a neighbouring solution."""
+    from exuflex.erls._closure import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    kin = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    rng = np.random.default_rng(3)
+    for q in _configs(kin.mech):
+        near = kin.solve(q + 0.03 * rng.standard_normal(q.size))
+        for z0 in (kin.initial_guess(q), near):
+            a = kin._newton(z0, q, 1e-12, 30)
+            b = kin._newton_numpy(z0, q, 1e-12, 30)
+            assert (a is None) == (b is None)
+            if a is not None:
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)

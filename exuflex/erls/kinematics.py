@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mechanism import Mechanism
+from ._closure import closure_newton
 
 __all__ = ["Kinematics", "Pose", "KinematicsError"]
 
@@ -65,6 +66,7 @@ class Kinematics:
     def __init__(self, mech: Mechanism, cond_max: float = 1e8):
         self.mech = mech
         self.cond_max = cond_max
+        self.compiled = True  # the Newton iteration in compiled code where numba is installed (_closure)
         self.link_names = [lk.name for lk in mech.links]
         li = {n: i for i, n in enumerate(self.link_names)}
         self.nl = len(mech.links)
@@ -231,6 +233,20 @@ class Kinematics:
         return z
 
     def _newton(self, z, q, tol, max_iter):
+        """Newton from z at q; None if it does not converge (compiled where numba is installed, see
+        :mod:`._closure`; :meth:`_newton_numpy` is the reference)."""
+        if closure_newton is None or not self.compiled:
+            return self._newton_numpy(z, q, tol, max_iter)
+        scale = max(lk.length for lk in self.mech.links)
+        try:
+            z, ok = closure_newton(np.asarray(z, float), np.asarray(q, float), self._ea, self._esa, self._eb,
+                                   self._ebm, self._esb, self._eg, self._ang_a, self._ang_r, self._ang_rm,
+                                   self._ang_off, self._J0, tol * scale, max_iter)
+        except np.linalg.LinAlgError:  # a singular closure Jacobian on the way
+            return None
+        return z if ok else None
+
+    def _newton_numpy(self, z, q, tol, max_iter):
         z = np.array(z, float)
         scale = max(lk.length for lk in self.mech.links)
         for _ in range(max_iter):
@@ -323,6 +339,38 @@ class Kinematics:
         Sd[1::3] = Syd + (s * c)[:, None] * Std - (s * sn * thd)[:, None] * St
         Sd[2::3] = Std
         return Szd, Sd
+
+    def coordinate_rates(self, pose: Pose) -> np.ndarray:
+        """``dS/dq_j`` for every coordinate j at once: array (nq, 3 n_nodes, nq), entry j the nodal ``dS/dt`` of
+        :meth:`rates` along ``q' = e_j`` (the same formulas, batched over j)."""
+        Sz = pose.Sz
+        th = pose.z[2::3]
+        thd = Sz[2::3].T  # (nq, n_links): link angle rates along each e_j
+        nq = Sz.shape[1]
+        a, b = self._ea, self._eb
+        Jd = np.zeros((nq, self.n_eq, 3 * self.nl))
+        Jd[:, self._rx, self._ca] = -self._esa * thd[:, a] * np.cos(th[a])
+        Jd[:, self._ry, self._ca] = -self._esa * thd[:, a] * np.sin(th[a])
+        lk = self._link_eq
+        bl = b[lk]
+        Jd[:, self._rx[lk], self._cb[lk]] = self._esb[lk] * thd[:, bl] * np.cos(th[bl])
+        Jd[:, self._ry[lk], self._cb[lk]] = self._esb[lk] * thd[:, bl] * np.sin(th[bl])
+        JdS = Jd @ Sz  # (nq, n_eq, nq)
+        if pose.Jinv is not None:
+            Szd = -(pose.Jinv @ JdS)
+        else:
+            Szd = -np.linalg.solve(self.jacobian(pose.z), JdS)
+        li, s = self.node_link, self.node_station
+        c, sn = np.cos(th[li]), np.sin(th[li])
+        thn = thd[:, li][:, :, None]  # (nq, nn, 1)
+        St = Sz[2::3][li][None]  # (1, nn, nq)
+        Sxd, Syd, Std = Szd[:, 0::3][:, li], Szd[:, 1::3][:, li], Szd[:, 2::3][:, li]
+        sc, ss = (s * c)[:, None], (s * sn)[:, None]
+        Sd = np.empty((nq, 3 * len(li), nq))
+        Sd[:, 0::3] = Sxd - ss * Std - sc * thn * St
+        Sd[:, 1::3] = Syd + sc * Std - ss * thn * St
+        Sd[:, 2::3] = Std
+        return Sd
 
     def point(self, pose: Pose, link: str, station: float) -> tuple[np.ndarray, np.ndarray]:
         """Position of a point on a link's axis and its sensitivity (2,), (2, nq)."""

@@ -229,23 +229,34 @@ class ErlsModel:
         Jh[:nq] -= S_th.T @ (Yall @ W)
         return Jh
 
-    def velocity_force_tensor(self, cfg: Configuration, J: np.ndarray, Sd: list | None = None) -> np.ndarray:
-        """``T[k] = J^T (dh/dv)(J e_k) J`` for a velocity map ``v = J w`` whose first ``nq`` rows are ``[I 0]``.
-
-        Since ``h`` is a quadratic form in ``v``, ``J^T h(J w) = 1/2 sum_k w_k T[k] w`` (the position-dependent
-        ``dV/dq`` term aside). Batched over all k (a few einsums instead of ``r`` Jacobian evaluations).
-        ``Sd``: ``dS/dq_j`` for every coordinate (:meth:`coordinate_derivatives`), if already computed.
-        """
+    def element_rotation_term(self, cfg: Configuration, WJ: np.ndarray) -> np.ndarray:
+        """``SE[k] = sum_e (dtheta_e/dq_k) (W J)_e^T R_e G R_e^T (W J)_e`` (nq, r, r): the change of ``(W J)^T M_N
+        (W J)`` with q through the rotation of the element masses with their links (shared by the velocity
+        force tensor and ``d M_r / dq``)."""
         nq = self.nq
-        r = J.shape[1]
-        WJ = cfg.W @ J
+        r = WJ.shape[1]
         R = cfg.R
         RGR = R @ self.Gl @ np.swapaxes(R, 1, 2)
         S_th = cfg.pose.Sz[2::3][self.el_link]  # (n_el, nq)
         WJe = WJ[self.el_dofs]  # (n_el, 6, r)
-        Ye = RGR @ WJe  # (n_el, 6, r)
-        E = np.swapaxes(WJe, 1, 2) @ Ye  # (n_el, r, r) = WJe^T RGR WJe
-        SE = (S_th.T @ E.reshape(len(E), -1)).reshape(nq, r, r)  # [k, i, j] = sum_e S_th[e, k] E[e, i, j]
+        E = np.swapaxes(WJe, 1, 2) @ (RGR @ WJe)  # (n_el, r, r)
+        return (S_th.T @ E.reshape(len(E), -1)).reshape(nq, r, r)  # [k, i, j] = sum_e S_th[e, k] E[e, i, j]
+
+    def velocity_force_tensor(self, cfg: Configuration, J: np.ndarray, Sd: list | None = None,
+                              WJ: np.ndarray | None = None, SE: np.ndarray | None = None) -> np.ndarray:
+        """``T[k] = J^T (dh/dv)(J e_k) J`` for a velocity map ``v = J w`` whose first ``nq`` rows are ``[I 0]``.
+
+        Since ``h`` is a quadratic form in ``v``, ``J^T h(J w) = 1/2 sum_k w_k T[k] w`` (the position-dependent
+        ``dV/dq`` term aside). Batched over all k (a few einsums instead of ``r`` Jacobian evaluations).
+        ``Sd``: ``dS/dq_j`` for every coordinate (:meth:`coordinate_derivatives`), ``WJ = W J`` and ``SE``
+        (:meth:`element_rotation_term`), if already computed.
+        """
+        nq = self.nq
+        r = J.shape[1]
+        if WJ is None:
+            WJ = cfg.W @ J
+        if SE is None:
+            SE = self.element_rotation_term(cfg, WJ)
         T = np.zeros((r, r, r))
         T[:nq] += SE  # M_N' b' through the element rates
         T[:, :, :nq] += np.transpose(SE, (2, 1, 0))  # ... through b'
@@ -260,8 +271,7 @@ class ErlsModel:
 
     def coordinate_derivatives(self, cfg: Configuration) -> list[np.ndarray]:
         """``dS/dq_j`` (N, nq) for every coordinate j (the rate of S along ``q' = e_j``)."""
-        eye = np.eye(self.nq)
-        return [self.kin.rates(cfg.pose, eye[j])[1] for j in range(self.nq)]
+        return list(self.kin.coordinate_rates(cfg.pose))
 
     # ------------------------------------------------------------------ dynamics
     def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):

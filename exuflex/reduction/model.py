@@ -142,7 +142,7 @@ class ReducedModel:
             if dHdq is None:
                 D = cb.basis_derivative(rc, np.column_stack([p, pd]))  # (2, n, nq)
             else:
-                D = np.tensordot(np.column_stack([p, pd]), dHdq, axes=(0, 0))
+                D = (np.column_stack([p, pd]).T @ dHdq.reshape(self.r, -1)).reshape(2, -1, nq)
             J = H.copy()
             J[:, :nq] += D[0]
             if np.any(pd[:nq]):
@@ -210,7 +210,9 @@ class ReducedModel:
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
         Sd = model.coordinate_derivatives(cfg)
-        Tk = model.velocity_force_tensor(cfg, J, Sd)
+        WJ = cfg.W @ J
+        SE = model.element_rotation_term(cfg, WJ)
+        Tk = model.velocity_force_tensor(cfg, J, Sd, WJ, SE)
         # q-row geometric term h_V(p) = S_th^T gV(u): quadratic form in p
         TH = model.T @ rc.H[nq:]  # (N, r)
         R = cfg.R
@@ -223,41 +225,42 @@ class ReducedModel:
         V = (S_th.T @ Ve.reshape(len(Ve), -1)).reshape(nq, r, r)  # J's q rows are [I 0]
         if dHdq is None:
             dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
-        JtM = (cfg.W @ J).T @ cfg.M_N @ cfg.W if self.consistent else None
-        fg = (cfg.W @ J).T @ (cfg.M_N @ model.g_N)
+        JtM = WJ.T @ cfg.M_N @ cfg.W if self.consistent else None
+        fg = WJ.T @ (cfg.M_N @ model.g_N)
         # d K_r / d q_i with K_r = H_u^T K_uu H_u: stiffness rotated with the elements, basis with the links;
         # per element (T H)_e^T R K_G R^T (T H)_e = A_e^T K_G A_e, so no assembly is needed
         KH = rc.Kuu @ rc.H[nq:]
         dHK = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_uu H_u per q_i
         Ee = AeT @ (model.KGl @ Ae)
         dKr = (S_th.T @ Ee.reshape(len(Ee), -1)).reshape(nq, r, r) + dHK + np.swapaxes(dHK, 1, 2)
-        dMr = self.mass_derivative_analytic(mats, dHdq, Sd)
+        dMr = self.mass_derivative_analytic(mats, dHdq, Sd, WJ, SE)
         return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr)
 
-    def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None) -> np.ndarray:
+    def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None,
+                                 WJ: np.ndarray | None = None, SE: np.ndarray | None = None) -> np.ndarray:
         """``d M_r / d q_i`` (nq, r, r) from the element rotations, ``dS/dq_i`` and ``dH/dq_i``.
 
         ``M_r = (W J)^T M_N (W J)``; the second derivatives of the basis in q times the elastic coordinates
         (``d D0 / dq``) are left out (relative size of the elastic displacements, 1e-4). Checked against
-        :meth:`mass_derivative` (finite differences) in the tests. ``Sd``: ``dS/dq_i`` if already computed.
+        :meth:`mass_derivative` (finite differences) in the tests. ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
+        ``SE`` (:meth:`~exuflex.erls.model.ErlsModel.element_rotation_term`) if already computed.
         """
         model, nq = self.model, self.nq
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
         if Sd is None:
             Sd = model.coordinate_derivatives(cfg)
-        WJ = cfg.W @ J
-        R = cfg.R
-        RGR = R @ model.Gl @ np.swapaxes(R, 1, 2)
-        S_th = cfg.pose.Sz[2::3][model.el_link]
-        # d(W J)/dq_i = dS/dq_i J_q + W dH/dq_i
-        dWJ = np.stack([Sdi @ J[:nq] + cfg.W @ dHdq[:, :, i].T for i, Sdi in enumerate(Sd)])
-        A = np.swapaxes(dWJ, 1, 2) @ (cfg.M_N @ WJ)
-        # W J^T dM_N/dq_i W J per element: the element mass rotates with its link
-        WJe = WJ[model.el_dofs]
-        E = np.swapaxes(WJe, 1, 2) @ (RGR @ WJe)
+        if WJ is None:
+            WJ = cfg.W @ J
+        if SE is None:  # W J^T dM_N/dq_i W J: the element masses rotate with their links
+            SE = model.element_rotation_term(cfg, WJ)
         r = WJ.shape[1]
-        return A + np.swapaxes(A, 1, 2) + (S_th.T @ E.reshape(len(E), -1)).reshape(nq, r, r)
+        n = dHdq.shape[1]
+        # d(W J)/dq_i = dS/dq_i J_q + W dH/dq_i
+        WdH = (cfg.W @ dHdq.transpose(1, 0, 2).reshape(n, r * nq)).reshape(-1, r, nq)
+        dWJ = np.stack([Sdi @ J[:nq] + WdH[:, :, i] for i, Sdi in enumerate(Sd)])
+        A = np.swapaxes(dWJ, 1, 2) @ (cfg.M_N @ WJ)
+        return A + np.swapaxes(A, 1, 2) + SE
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         if mats is None:
