@@ -58,6 +58,7 @@ class ErlsModel:
     """
 
     def __init__(self, mech: Mechanism):
+        self._locate_cache: dict = {}
         self.mech = mech
         self.kin = Kinematics(mech)
         self.dofs: ElasticDofs = elastic_dofs(mech)
@@ -312,8 +313,15 @@ class ErlsModel:
         """Elastic nodal displacement vector d = T u (N,)."""
         return self.T @ u
 
-    def locate(self, link: str, station: float) -> list[tuple[int, float]]:
-        """Element(s) and xi of a link station; two entries at an interior node (both sides)."""
+    def locate(self, link: str, station: float) -> tuple[tuple[int, float], ...]:
+        """Element(s) and xi of a link station; two entries at an interior node (both sides). Cached: the
+        observer asks for its sensors' stations at every configuration evaluation."""
+        hit = self._locate_cache.get((link, station))
+        if hit is None:
+            hit = self._locate_cache[(link, station)] = self._locate(link, station)
+        return hit
+
+    def _locate(self, link: str, station: float) -> tuple[tuple[int, float], ...]:
         li = [lk.name for lk in self.mech.links].index(link)
         els = np.flatnonzero(self.el_link == li)
         out = []
@@ -326,7 +334,7 @@ class ErlsModel:
             out = [o for o in out if o[1] in (0.0, 1.0)] or out[:1]
         if not out:
             raise KeyError(f"link {link!r} has no station {station}")
-        return out
+        return tuple(out)
 
     def curvature_row(self, cfg: Configuration, link: str, station: float) -> np.ndarray:
         """Row c (ne,) with bending curvature (1/m) at a link station = c @ u (configuration dependent).
