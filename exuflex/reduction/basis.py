@@ -126,6 +126,7 @@ class CraigBampton:
         self.masters = masters
         self.im = np.array(im, int)
         self.is_ = np.array([k for k in range(model.ne) if k not in set(im)], int)
+        self._TtS_s = None  # slave rows of T^T times the element scatter map (basis_derivative)
         self.nq = model.nq
         self.n_m = self.nq + len(im)
         self.band_hz = float(spec.band_hz if band_hz is None else band_hz)
@@ -281,8 +282,11 @@ class CraigBampton:
         ye = R @ (model.KGl @ dl)  # (n_el, 6, k)
         S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
         C = (ye[:, :, :, None] * S_th[:, None, None, :]).reshape(-1, k * nq)  # (n_el*6, k*nq)
-        f = model.scatter @ C  # (N, k*nq): dK_N/dq_i w, column kk*nq + i
-        rhs = (T.T @ f)[self.is_]
+        # slave rows of T^T (dK_N/dq_i w), column kk*nq + i: the element vectors scattered to the nodes and
+        # projected on the slave dofs in one product (T_s^T S, built once)
+        if self._TtS_s is None:
+            self._TtS_s = np.ascontiguousarray((T.T @ model.scatter)[self.is_])
+        rhs = self._TtS_s @ C
         dB = -sla.lu_solve(rc.Kss_lu, rhs, check_finite=False).reshape(-1, k, nq)  # (s, k, nq)
         out = np.zeros((k, nq + ne, nq))
         out[:, nq + self.is_, :] = dB.transpose(1, 0, 2)

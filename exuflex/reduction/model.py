@@ -152,10 +152,11 @@ class ReducedModel:
         Hu, Ju = H[nq:], J[nq:]
         T = model.T
         Kuu = rc.Kuu
-        Kr = Ju.T @ Kuu @ Hu
-        if model.alpha or model.beta:
-            Muu = T.T @ cfg.M_N @ T
-            Cr = Ju.T @ (model.alpha * Muu + model.beta * Kuu) @ Ju
+        JtK = Ju.T @ Kuu
+        Kr = JtK @ Hu
+        if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha T^T M_N T + beta K_uu) J_u, thin products only
+            TJ = T @ Ju
+            Cr = model.alpha * (TJ.T @ (cfg.M_N @ TJ)) + model.beta * (JtK @ Ju)
         else:
             Cr = np.zeros((self.r, self.r))
         Gr = WJ.T @ model.B_N
@@ -213,16 +214,16 @@ class ReducedModel:
         WJ = cfg.W @ J
         SE = model.element_rotation_term(cfg, WJ)
         Tk = model.velocity_force_tensor(cfg, J, Sd, WJ, SE)
-        # q-row geometric term h_V(p) = S_th^T gV(u): quadratic form in p
+        # per element A_e = R_e^T (T H)_e: the element's displacements in its own frame per reduced coordinate;
+        # E_e = A_e^T K_G A_e, summed with the element rotation rates, is both the q-row geometric term and the
+        # element part of d K_r / dq
         TH = model.T @ rc.H[nq:]  # (N, r)
-        R = cfg.R
-        Rt = np.swapaxes(R, 1, 2)
-        Ae = Rt @ TH[model.el_dofs]  # (n_el, 6, r)
-        KGs = 0.5 * (model.KGl + np.swapaxes(model.KGl, 1, 2))
-        AeT = np.swapaxes(Ae, 1, 2)
-        Ve = 0.5 * (AeT @ (KGs @ Ae))  # (n_el, r, r)
+        Ae = np.swapaxes(cfg.R, 1, 2) @ TH[model.el_dofs]  # (n_el, 6, r)
+        Ee = np.swapaxes(Ae, 1, 2) @ (model.KGl @ Ae)  # (n_el, r, r)
         S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
-        V = (S_th.T @ Ve.reshape(len(Ve), -1)).reshape(nq, r, r)  # J's q rows are [I 0]
+        SEe = (S_th.T @ Ee.reshape(len(Ee), -1)).reshape(nq, r, r)
+        # q-row geometric term h_V(p) = S_th^T gV(u): the quadratic form in p of the symmetric part of K_G
+        V = 0.25 * (SEe + np.swapaxes(SEe, 1, 2))  # J's q rows are [I 0]
         if dHdq is None:
             dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
         JtM = WJ.T @ cfg.M_N @ cfg.W if self.consistent else None
@@ -231,8 +232,7 @@ class ReducedModel:
         # per element (T H)_e^T R K_G R^T (T H)_e = A_e^T K_G A_e, so no assembly is needed
         KH = rc.Kuu @ rc.H[nq:]
         dHK = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_uu H_u per q_i
-        Ee = AeT @ (model.KGl @ Ae)
-        dKr = (S_th.T @ Ee.reshape(len(Ee), -1)).reshape(nq, r, r) + dHK + np.swapaxes(dHK, 1, 2)
+        dKr = SEe + dHK + np.swapaxes(dHK, 1, 2)
         dMr = self.mass_derivative_analytic(mats, dHdq, Sd, WJ, SE)
         return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr)
 
