@@ -30,6 +30,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="a 0.2 s manoeuvre (seconds instead of minutes)")
     p.add_argument("--duration", type=float, default=None, help="simulated time (s); overrides --quick")
     p.add_argument("--no-full", action="store_true", help="skip the (slow) full-order observer")
+    p.add_argument("--no-reference", action="store_true",
+                   help="skip the comparison with the reduced observer's reference path (frozen step)")
     p.add_argument("--seed", type=int, default=1, help="measurement noise seed (default 1)")
     p.set_defaults(func=run)
     return p
@@ -53,6 +55,13 @@ def _fmt(r: dict) -> str:
             f"p99 {o['p99_update_ms']:7.3f} ms  q RMS error {o['q_rms_error_rad']:.2e} rad"
             + (f"  FAILED: {o['failed']}" if o.get("failed") else "")
         )
+    ref = r.get("reference")
+    if ref:
+        w = ref["worst"]
+        lines.append(
+            f"  reduced vs its reference path ({ref['method']}): RMS difference / RMS estimation error at most "
+            f"{ref['worst_ratio']:.3f} ({w}: {ref['rms_difference'][w]:.2e} vs {ref['rms_error'][w]:.2e})"
+        )
     if r.get("speedup_reduced_vs_full"):
         lines.append(f"  speed-up reduced vs full: {r['speedup_reduced_vs_full']:.1f}x")
     lines.append(f"  reduction basis: {r['basis_s']:.3f} s")
@@ -72,6 +81,7 @@ def run(args) -> int:
         duration=args.duration,
         seed=args.seed,
         full=not args.no_full,
+        reference=not args.no_reference,
         progress=None
         if args.json or not sys.stderr.isatty()
         else lambda m: print(f"... {m}", file=sys.stderr),
