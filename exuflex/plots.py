@@ -629,7 +629,10 @@ def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str
     Parameters
     ----------
     table_rows : sequence of dict
-        ``{"level": float (%), "quantity": str, "mu": float, "sigma": float}``.
+        ``{"level": float (%), "quantity": str, "mu": float, "sigma": float}``, optionally ``"title"``: the
+        panel's title (default the quantity's name; :func:`exuflex.study.figure_rows` names the tip panels
+        "tip elastic displacement" or "tip position (rigid + elastic)"). Panels follow the rows' order of
+        quantities, two per row of the figure.
     path : path-like
     units : dict, optional
         Unit per quantity; default guessed from the name (``q*`` rad, ``dq*`` rad/s, others m, ``d*`` m/s).
@@ -639,9 +642,12 @@ def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str
     Path
     """
     quantities: list[str] = []
+    titles: dict[str, str] = {}
     for r in table_rows:
         if r["quantity"] not in quantities:
             quantities.append(r["quantity"])
+        if r.get("title"):
+            titles.setdefault(r["quantity"], str(r["title"]))
     n = max(len(quantities), 1)
     ncols = 2 if n > 1 else 1
     nrows = int(np.ceil(n / ncols))
@@ -657,7 +663,7 @@ def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str
                     label="mean μ ± std σ of |error|")
         ax.set_xlabel("payload increase (%)")
         ax.set_ylabel(f"|{_label(qname)} error| ({unit})")
-        ax.set_title(_label(qname), fontsize=10)
+        ax.set_title(titles.get(qname, _label(qname)), fontsize=10)
         ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 2))
         if lv.size:
             span = max(lv.max() - lv.min(), 1.0)

@@ -10,7 +10,9 @@ An engine (the ERLS full model, the Exudyn ground truth, a lab rig) records the 
 - the *true states* an observer is judged against (:func:`true_states`):
   ``q_j = slope(link at joint) - slope(relative_to at joint) - offset`` and its rate ``dq_j``;
   the tip elastic displacement ``e = p_tip - p_rigid(q)``, the actual tip position minus the ERLS
-  (rigid) tip position at the true ``q``, and its rate ``e' = p_tip' - (dp_rigid/dq) q'``.
+  (rigid) tip position at the true ``q``, and its rate ``e' = p_tip' - (dp_rigid/dq) q'``;
+- the *absolute tip* position and velocity of true or estimated states (:func:`absolute_tip`):
+  ``p_rigid(q) + e`` and ``(dp_rigid/dq) q' + e'``, the inverse of the split above.
 
 Both are returned as :class:`Signals` (time-first table with named columns and units).
 
@@ -33,14 +35,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from .erls.elements import GENERATOR
-from .erls.kinematics import Kinematics
+from .erls.kinematics import Kinematics, KinematicsError
 from .erls.model import ErlsModel
 from .mechanism import Mechanism, elastic_dofs
 from .probes import Probe, ProbeRecord, probes_for
 
 __all__ = [
+    "ABSOLUTE_TIP_NAMES",
     "SENSOR_UNITS",
     "Signals",
+    "absolute_tip",
     "erls_probe_record",
     "monotonic_record",
     "sensor_channels",
@@ -54,6 +58,8 @@ log = logging.getLogger(__name__)
 
 TWO_PI = 2.0 * np.pi
 SENSOR_UNITS = {"encoder": "rad", "curvature": "1/m", "tip_x": "m", "tip_y": "m"}
+ABSOLUTE_TIP_NAMES = ("tip_x", "tip_y", "dtip_x", "dtip_y")
+ABSOLUTE_TIP_UNITS = ("m", "m", "m/s", "m/s")
 
 
 @dataclass(frozen=True)
@@ -312,6 +318,124 @@ def true_states(mech: Mechanism, record: ProbeRecord, *, kinematics: Kinematics 
         cols += [e, ed]
         units += ["m", "m", "m/s", "m/s"]
     return Signals(t, truth_names(mech), np.hstack(cols), tuple(units))
+
+
+def absolute_tip(
+    mech: Mechanism, signals: Signals, *, kinematics: Kinematics | None = None, on_error: str = "raise"
+) -> Signals:
+    """Absolute tip position and velocity (rigid + elastic) of true or estimated states.
+
+    The inverse of the tip split of :func:`true_states`: ``p_tip = p_rigid(q) + e`` and
+    ``p_tip' = (dp_rigid/dq) q' + e'``, with ``p_rigid`` the ERLS (rigid) tip point of ``mech`` at ``q``
+    (:meth:`~exuflex.erls.kinematics.Kinematics.point`) and ``e``, ``e'`` the tip elastic columns
+    (:func:`tip_dof_names`). On a truth it gives back the recorded tip point (the noise-free ``tip_x`` /
+    ``tip_y`` sensor channels); applied the same way to an estimate, the difference of the two is the
+    absolute tip estimation error, which the joint-angle errors drive through the lever of the links, unlike
+    the elastic columns alone.
+
+    Parameters
+    ----------
+    mech : Mechanism
+        Its geometry defines ``p_rigid`` (a payload change does not alter it: pass the nominal model).
+    signals : Signals
+        Columns ``q``, ``d`` + ``q`` and the tip elastic displacement and rate, named as :func:`truth_names`
+        (the layout of :func:`true_states` and of the observer's physical estimate); other columns are ignored.
+    kinematics : Kinematics, optional
+        Reuse a solver for ``mech``; each sample's closure is warm-started from the previous sample's.
+    on_error : {"raise", "nan"}
+        A sample whose closure cannot be solved, or whose closure Jacobian is singular or near it (condition
+        number above ``kinematics.cond_max``, as :meth:`Kinematics.pose`), raises
+        :class:`~exuflex.erls.kinematics.KinematicsError` (``"raise"``) or is NaN (``"nan"``).
+
+    Returns
+    -------
+    Signals
+        Columns :data:`ABSOLUTE_TIP_NAMES` = ``tip_x tip_y dtip_x dtip_y`` (m, m, m/s, m/s) at ``signals.t``.
+        A sample with a non-finite input is NaN.
+
+    Raises
+    ------
+    ValueError
+        ``mech`` has no tip point, or ``on_error`` is neither ``"raise"`` nor ``"nan"``.
+    KeyError
+        ``signals`` lacks one of the columns.
+    KinematicsError
+        With ``on_error="raise"``: the closure fails at a sample (the message names its time).
+
+    Notes
+    -----
+    Equal to ``Kinematics.point(kin.pose(q), link, station)`` per sample, evaluated in fewer steps (a pose
+    also computes every node's sensitivities, of which the tip needs one link's): the closure is solved per
+    sample (:meth:`Kinematics.solve`), then the link rates ``z' = Phi_z^-1 E q'`` of all samples in one batched
+    inverse, ``E = -dPhi/dq`` (the closure is affine in ``q``), and the tip point and its velocity from the tip
+    link's pose and rates.
+    """
+    if on_error not in ("raise", "nan"):
+        raise ValueError(f"absolute_tip: on_error must be 'raise' or 'nan', got {on_error!r}")
+    tp = tip_point(mech)
+    if tp is None:
+        raise ValueError(
+            f"{mech.source or mech.name}: no tip point (no manoeuvre tip and no tip_x/tip_y sensor)"
+        )
+    link, station = tp
+    qn = mech.coordinate_names
+    nq = len(qn)
+    ex, ey = tip_dof_names(mech)
+    X = signals.select(qn + tuple("d" + n for n in qn) + (ex, ey, "d" + ex, "d" + ey)).data
+    t = np.asarray(signals.t, float)
+    kin = kinematics if kinematics is not None else Kinematics(mech)
+    i = kin.link_names.index(link)
+    nz = 3 * kin.nl
+    z_any, q0 = np.zeros(nz), np.zeros(nq)
+    E = np.column_stack([kin.residual(z_any, q0) - kin.residual(z_any, e) for e in np.eye(nq)])
+
+    out = np.full((len(t), 4), np.nan)
+    rows = np.flatnonzero(np.all(np.isfinite(X), axis=1))
+    kin.reset_warm_start()  # the first sample from the initial guess: the result must not depend on kin's history
+    Z = np.empty((len(rows), nz))
+    solved = np.zeros(len(rows), bool)
+    z = None
+    for k, r in enumerate(rows):
+        try:
+            z = kin.solve(X[r, :nq], z)
+        except KinematicsError as exc:
+            if on_error == "raise":
+                raise KinematicsError(f"absolute tip at t = {t[r]:.6g} s: {exc}") from exc
+            z = None
+            continue
+        Z[k] = z
+        solved[k] = True
+    rows, Z = rows[solved], Z[solved]
+    if len(rows) == 0:
+        return Signals(t, ABSOLUTE_TIP_NAMES, out, ABSOLUTE_TIP_UNITS)
+    J = np.array([kin.jacobian(zk) for zk in Z])
+    Jinv = np.full_like(J, np.nan)
+    try:
+        Jinv[:] = np.linalg.inv(J)
+    except np.linalg.LinAlgError:  # a singular sample: the others one by one
+        for k in range(len(J)):
+            try:
+                Jinv[k] = np.linalg.inv(J[k])
+            except np.linalg.LinAlgError:
+                pass
+    with np.errstate(invalid="ignore", over="ignore"):
+        cond = np.abs(J).sum(axis=1).max(axis=1) * np.abs(Jinv).sum(axis=1).max(axis=1)  # 1-norm, as pose
+    bad = ~(cond <= kin.cond_max)
+    if bad.any() and on_error == "raise":
+        k = int(np.flatnonzero(bad)[0])
+        raise KinematicsError(
+            f"absolute tip at t = {t[rows[k]]:.6g} s: configuration q = {np.round(X[rows[k], :nq], 6).tolist()} is "
+            f"at or near a singularity (closure Jacobian condition number {cond[k]:.3g} > {kin.cond_max:.0e})"
+        )
+    rows, Z, Jinv = rows[~bad], Z[~bad], Jinv[~bad]
+    Zd = np.einsum("kab,bj,kj->ka", Jinv, E, X[rows, nq : 2 * nq])
+    th, thd = Z[:, 3 * i + 2], Zd[:, 3 * i + 2]
+    c, sn = np.cos(th), np.sin(th)
+    out[rows, 0] = Z[:, 3 * i] + station * c + X[rows, 2 * nq]
+    out[rows, 1] = Z[:, 3 * i + 1] + station * sn + X[rows, 2 * nq + 1]
+    out[rows, 2] = Zd[:, 3 * i] - station * sn * thd + X[rows, 2 * nq + 2]
+    out[rows, 3] = Zd[:, 3 * i + 1] + station * c * thd + X[rows, 2 * nq + 3]
+    return Signals(t, ABSOLUTE_TIP_NAMES, out, ABSOLUTE_TIP_UNITS)
 
 
 # ------------------------------------------------------------------------------------------ ERLS engine

@@ -94,6 +94,12 @@ def check_log(
     motors = tuple(motors) if motors is not None else tuple(mech.motor_names)
     channels = tuple(channels)
     dt = float(dt or 1.0 / mech.sample_rate_hz)
+    if len(motors) != len(mech.motors):
+        raise LogFormatError(
+            f"{source}: {len(motors)} torque column(s) {list(motors)}, but the model "
+            f"{mech.source or mech.name} has {len(mech.motors)} motors {list(mech.motor_names)}: list one measured "
+            "torque per motor, in the model's order (meta.json 'motors')"
+        )
     names = tuple(sensors.names)
     missing = [c for c in (*motors, *channels) if c not in names]
     if missing:

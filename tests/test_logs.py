@@ -162,6 +162,19 @@ def test_channel_missing_for_the_observer(tmp_path, mech):
         check_run(mech, run)
 
 
+def test_fewer_torque_columns_than_motors(tmp_path, mech):
+    """meta.json lists one torque for the six-bar's three motors: an error naming the file and the motors
+    (found by the fuzz campaign: the observer would have driven two motors with nothing)."""
+    d = _copy(tmp_path)
+    meta = json.loads((d / "meta.json").read_text())
+    meta["sensors"] += meta["motors"][1:]
+    meta["motors"] = meta["motors"][:1]
+    (d / "meta.json").write_text(json.dumps(meta))
+    run = read_run(d)
+    with pytest.raises(LogFormatError, match=r"sensors.csv: 1 torque column\(s\) \['T1'\], but the model .* has 3 motors"):
+        check_run(mech, run)
+
+
 def test_gaps_empty_rows_and_unsampled_channels_are_counted(tmp_path, mech):
     d = _copy(tmp_path)
     rows = _rows(d)

@@ -114,6 +114,8 @@ def test_payload_study_figure(tmp_path):
             for lv in (0, 25, 50, 75, 100) for i, q in enumerate(("x25", "y26", "dx25", "dy26"))]
     p = plots.payload_study_figure(rows, tmp_path / "fig11.png")
     assert _is_png(p)
+    rows = [dict(r, title=f"{r['quantity']}: tip position (rigid + elastic)") for r in rows]
+    assert _is_png(plots.payload_study_figure(rows, tmp_path / "fig11_titles.png"))
 
 
 def test_animation_gif(mech, fake, tmp_path):

@@ -54,7 +54,7 @@ def test_study_files_and_eq21(done_study):
     assert [lv["payload_scale"] for lv in s["levels"]] == [1.0, 2.0]
     for lv in s["levels"]:
         rs = [r for r in done_study.rows if r["level_index"] == lv["index"]]
-        for q in ("x25", "dq1"):
+        for q in ("x25", "dq1", "tip_x", "dtip_y"):  # tip_x ...: absolute tip (rigid + elastic)
             assert lv["eq21"][q]["mu"] == pytest.approx(np.mean([r["mean_abs"][q] for r in rs]))
             assert lv["eq21"][q]["sigma"] == pytest.approx(np.mean([r["std_abs"][q] for r in rs]))
             assert 0 < lv["eq21"][q]["mu"] < 1

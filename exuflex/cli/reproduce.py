@@ -208,11 +208,38 @@ def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, wa
         L.append(f"| {lv['label']} | {lv['n_runs']} | {lv['n_diverged']} | {lv.get('n_nis_flagged', 0)} | "
                  f"{lv.get('max_q_error_rad', float('nan')):.3g} | " + " | ".join(
             f"{lv['eq21'][q]['mu']:.3g} / {lv['eq21'][q]['sigma']:.3g}" for q in qs) + " |")
-    L += ["", "![payload study](payload_study/fig_payload.png)", "",
+    L += ["", *_tip_readings(sm), "![payload study](payload_study/fig_payload.png)", "",
           "## Settings and versions", "", "```json",
           json.dumps({"settings": cfg, "walls_s": walls, "versions": versions,
                       "observer_config": s["config"]}, indent=1, default=str), "```", ""]
     return "\n".join(L)
+
+
+def _tip_readings(sm: dict) -> list[str]:
+    """The report's paragraph on the two readings of Fig. 11's tip quantities, with this study's numbers."""
+    from ..study.runner import TIP_READINGS
+
+    tips = sm.get("tip_quantities") or {}
+    elastic, absolute = list(tips.get("elastic") or ()), list(tips.get("absolute") or ())
+    levels = sm["levels"]
+    if not elastic or not absolute or not levels:
+        return []
+
+    def span(q: str, unit: str) -> str:
+        a, b = levels[0]["eq21"][q]["mu"], levels[-1]["eq21"][q]["mu"]
+        return f"{q} {a:.3g} to {b:.3g} {unit}"
+
+    first, last = levels[0]["label"], levels[-1]["label"]
+    coords = [q for q in sm["quantities"] if q.startswith("q") and q[1:].isdigit()]
+    joint = f"; the joint angle errors (e.g. {span(coords[-1], 'rad')}) drive the latter" if coords else ""
+    return [
+        "**Which tip quantities?** " + TIP_READINGS, "",
+        (f"Mean absolute error mu from level {first} to level {last}: tip elastic displacement "
+         f"{span(elastic[0], 'm')}, {span(elastic[1], 'm')} and rate {span(elastic[2], 'm/s')}, "
+         f"{span(elastic[3], 'm/s')}; absolute tip position {span(absolute[0], 'm')}, {span(absolute[1], 'm')} "
+         f"and velocity {span(absolute[2], 'm/s')}, {span(absolute[3], 'm/s')}{joint}. The figure shows each "
+         "elastic panel (left) beside its absolute counterpart (right)."), "",
+    ]
 
 
 def run(args) -> int:

@@ -72,17 +72,30 @@ def build_spec(args):
                      duration=duration, h=args.h, start_up=args.start_up, kind=args.study_kind)
 
 
-def print_summary(summary: dict, stream=None) -> None:
-    from ..study.runner import TIP_QUANTITIES
-
-    stream = stream or sys.stdout
-    qs = [q for q in TIP_QUANTITIES if q in summary["quantities"]] or summary["quantities"][:4]
+def _print_table(summary: dict, qs, stream) -> None:
     print(f"{'level':>24s} {'runs':>4s} {'div':>3s} {'nis':>3s} {'max|dq|':>8s} "
           + " ".join(f"{'mu ' + q:>10s} {'sigma':>9s}" for q in qs), file=stream)
     for lv in summary["levels"]:
         cells = " ".join(f"{lv['eq21'][q]['mu']:10.3g} {lv['eq21'][q]['sigma']:9.3g}" for q in qs)
         print(f"{lv['label'][:24]:>24s} {lv['n_runs']:4d} {lv['n_diverged']:3d} {lv.get('n_nis_flagged', 0):3d} "
               f"{lv.get('max_q_error_rad', float('nan')):8.2g} {cells}", file=stream)
+
+
+def print_summary(summary: dict, stream=None) -> None:
+    """eq. 21 mu and sigma per level: the tip elastic quantities, then (if present) the absolute tip ones."""
+    from ..study.runner import ABS_TIP_QUANTITIES, TIP_QUANTITIES
+
+    stream = stream or sys.stdout
+    elastic = list((summary.get("tip_quantities") or {}).get("elastic") or
+                   [q for q in TIP_QUANTITIES if q in summary["quantities"]])
+    qs = elastic or summary["quantities"][:4]
+    absolute = [q for q in ABS_TIP_QUANTITIES if q in summary["quantities"]]
+    if absolute and elastic:
+        print("tip elastic displacement and velocity (m, m/s):", file=stream)
+    _print_table(summary, qs, stream)
+    if absolute:
+        print("absolute tip position and velocity, rigid + elastic (m, m/s):", file=stream)
+        _print_table(summary, absolute, stream)
     print("div: diverged runs (non-finite, or a joint-angle error above the track-loss limit); nis: runs the "
           "NIS window test flags (inconsistency, expected under mismatch)", file=stream)
 

@@ -215,6 +215,13 @@ class Kinematics:
                         changed = True
         return z
 
+    def reset_warm_start(self) -> None:
+        """Forget the last solution, so that the next :meth:`solve` without ``z0`` starts from the initial guess:
+        a computation that must not depend on what this solver did before (a new observer run, in whatever
+        process it lands) calls this first. Newton converges to the same closure either way, but the last bits
+        of the solution depend on where it started."""
+        self._last = None
+
     def solve(self, q, z0: np.ndarray | None = None, tol: float = 1e-12, max_iter: int = 30) -> np.ndarray:
         """Solve the closure for the link poses z at q (Newton, warm-started from the last solution)."""
         q = np.asarray(q, float)

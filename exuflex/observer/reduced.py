@@ -196,9 +196,11 @@ class ReducedObserverModel:
             fused_warm_up()
 
     def reset(self) -> None:
-        """Forget the held interval and the cached measurement rows (a new run starts clean)."""
+        """Forget the held interval, the cached measurement rows and the closure solver's warm start (a new run
+        starts clean: its estimates do not depend on what the model evaluated before, e.g. in a study worker)."""
         self._last = None
         self._channel_cache = {}
+        self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ step
     def _n_steps(self, dt: float) -> int:
@@ -366,8 +368,20 @@ class ReducedObserverModel:
         Gp, Gpd = fm.jacobian(z[:r], z[r:])
         return Pn + SQM @ np.hstack([Gp, Gpd])
 
+    def _input(self, u) -> np.ndarray:
+        """The motor torques as an array of the model's motor count (zeros for None); a clear error else (the
+        compiled kernels would read past a short one)."""
+        n = len(self.mech.motors)
+        if u is None:
+            return np.zeros(n)
+        u = np.asarray(u, float)
+        if u.shape != (n,):
+            raise ValueError(f"input has shape {u.shape}, expected ({n},): one torque per motor "
+                             f"{list(self.mech.motor_names)}")
+        return u
+
     def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        u = np.zeros(len(self.mech.motors)) if u is None else np.asarray(u, float)
+        u = self._input(u)
         if self.method == "cached":
             return self._cached_step(np.asarray(x, float), u, dt)
         iv, z_frozen = self._interval(x, u, dt)
@@ -476,10 +490,7 @@ class ReducedObserverModel:
         """
         if not self.fused or self.method != "cached" or self.kernel_name != "numba":
             return None
-        if u is None:
-            u = np.zeros(len(self.mech.motors))
-        elif u.shape != (len(self.mech.motors),):
-            raise ValueError(f"input has shape {u.shape}, expected ({len(self.mech.motors)},) motor torques")
+        u = self._input(u)
         m = len(channels)
         x_out, r, S = np.empty(self.nx), np.empty(m), np.empty((m, m))
         iv = self._last

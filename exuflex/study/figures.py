@@ -10,16 +10,20 @@ __all__ = ["sweep_figure"]
 
 
 def sweep_figure(summary: dict, path, quantities=None) -> Path:
-    """eq. 21 mu (markers) +- sigma (bars) of each quantity per sweep level (levels on the x axis)."""
+    """eq. 21 mu (markers) +- sigma (bars) of each quantity per sweep level (levels on the x axis).
+
+    Default quantities: the tip ones, elastic (``x25 y26 dx25 dy26``) beside absolute (``tip_x tip_y dtip_x
+    dtip_y``), else every quantity of the summary.
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from .runner import TIP_QUANTITIES
+    from .runner import ABS_TIP_QUANTITIES, TIP_QUANTITIES, ordered_quantities, quantity_title
 
-    qs = list(quantities) if quantities else ([q for q in TIP_QUANTITIES if q in summary["quantities"]]
-                                              or summary["quantities"])
+    tips = [q for q in TIP_QUANTITIES + ABS_TIP_QUANTITIES if q in summary["quantities"]]
+    qs = ordered_quantities(summary, quantities or tips or summary["quantities"])
     levels = summary["levels"]
     numeric = all(isinstance(lv["value"], (int, float)) and not isinstance(lv["value"], bool) for lv in levels)
     x = np.array([lv["value"] for lv in levels], float) if numeric else np.arange(len(levels), dtype=float)
@@ -31,7 +35,7 @@ def sweep_figure(summary: dict, path, quantities=None) -> Path:
         mu = np.array([lv["eq21"][q]["mu"] for lv in levels])
         sg = np.array([lv["eq21"][q]["sigma"] for lv in levels])
         ax.errorbar(x, mu, yerr=sg, fmt="o", capsize=4, ecolor="k")
-        ax.set_title(q, fontsize=10)
+        ax.set_title(quantity_title(q, summary), fontsize=10)
         ax.set_ylabel(f"|{q} error|")
         ax.grid(True, lw=0.3)
         ax.set_xticks(x)

@@ -8,6 +8,12 @@ runs the nominal observer. Per run: mean, standard deviation (eq. 21's per-run t
 absolute error of every estimated quantity after ``start_up``, NIS, divergence, wall time. Per level: the
 paper's eq. 21 statistics mu and sigma (the run averages of those per-run terms, over the non-diverged runs).
 
+The quantities are the observer's physical estimates (joint angles and rates, the tip *elastic* displacement
+and its rate, e.g. ``x25 y26 dx25 dy26``) and the *absolute* tip position and velocity ``tip_x tip_y dtip_x
+dtip_y`` (rigid tip point at q plus the elastic displacement, :func:`exuflex.sensors.absolute_tip`, computed
+alike from the true and the estimated states with the nominal geometry): the paper's Fig. 11 caption, "the
+linear displacements and velocities of the tip coordinates", reads either way (see :data:`TIP_READINGS`).
+
 Layout of the output folder (everything written atomically; a study restarted with the same arguments skips
 every finished run and every cached truth):
 
@@ -46,7 +52,7 @@ import numpy as np
 from ..mechanism import Mechanism, load_mechanism
 from ..observer.session import ObserverConfig
 from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
-from ..sensors import Signals
+from ..sensors import ABSOLUTE_TIP_NAMES, Signals
 from .overrides import apply_overrides
 
 __all__ = [
@@ -64,7 +70,17 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FORMAT = "exuflex-study/1"
-TIP_QUANTITIES = ("x25", "y26", "dx25", "dy26")
+TIP_QUANTITIES = ("x25", "y26", "dx25", "dy26")  # the six-bar's tip elastic displacement and rate
+ABS_TIP_QUANTITIES = ABSOLUTE_TIP_NAMES  # tip_x tip_y dtip_x dtip_y: absolute tip position and velocity
+STATS_VERSION = "abs-tip/1"  # the set of per-run statistics; part of the run hash (older run files are redone)
+TIP_READINGS = (
+    "The paper's Fig. 11 caption ('the linear displacements and velocities of the tip coordinates') reads two "
+    "ways: the tip ELASTIC displacement and rate (the ERLS elastic dofs of the tip node, e.g. x25 y26 dx25 dy26: "
+    "the tip's deflection from the rigid linkage at the same q), or the ABSOLUTE tip position and velocity "
+    "(tip_x tip_y dtip_x dtip_y: rigid tip point at q plus the elastic displacement, true q and elastic states "
+    "for the truth, estimated ones for the estimate, nominal geometry for both), whose error the joint-angle "
+    "errors drive."
+)
 
 
 # ------------------------------------------------------------------------------------------ spec
@@ -200,6 +216,19 @@ def _hold_on_grid(lt: LevelTruth, rate: float, t_end: float) -> LevelTruth:
     return LevelTruth(lt.clean, lt.truth, t, lt.torques[i], lt.timings)
 
 
+def with_absolute_tip(nominal: Mechanism, lt: LevelTruth) -> LevelTruth:
+    """The level truth with the absolute tip columns ``tip_x tip_y dtip_x dtip_y`` added to its true states
+    (:func:`exuflex.sensors.absolute_tip` with the nominal geometry; computed once per level). Unchanged if the
+    mechanism has no tip point, the truth lacks the tip elastic columns or already has the absolute ones."""
+    from ..sensors import absolute_tip, tip_point, truth_names
+
+    if tip_point(nominal) is None or any(n in lt.truth for n in ABS_TIP_QUANTITIES) or \
+            any(n not in lt.truth for n in truth_names(nominal)):
+        return lt
+    tip = absolute_tip(nominal, lt.truth)
+    return dataclasses.replace(lt, truth=lt.truth.hstack(tip))
+
+
 @dataclass
 class Drive:
     """The manoeuvre's torque table (computed torque of the *nominal* model) and initial state: the same for
@@ -313,6 +342,7 @@ class RunTask:
 
 
 _OBSERVERS: dict[str, Any] = {}
+_KINEMATICS: dict[str, Any] = {}
 OBSERVER_RUNS = 0  # runs filtered in this process (tests count recomputations with it)
 
 
@@ -324,6 +354,18 @@ def _observer(key: str, mech: Mechanism, config: ObserverConfig):
         _OBSERVERS.clear()
         obs = _OBSERVERS[key] = make_observer(mech, config)
     return obs
+
+
+def _kinematics(key: str, mech: Mechanism):
+    """A closure solver of the nominal model for the absolute tip, kept per process (its own instance: the
+    observer's solvers keep warm starts that must not depend on this evaluation)."""
+    from ..erls.kinematics import Kinematics
+
+    kin = _KINEMATICS.get(key)
+    if kin is None:
+        _KINEMATICS.clear()
+        kin = _KINEMATICS[key] = Kinematics(mech)
+    return kin
 
 
 def _reset_observer(obs) -> None:
@@ -363,6 +405,26 @@ def _abs_error_stats(est: Signals, truth: Signals, start_up: float) -> dict:
     return out
 
 
+def _abs_tip_error_stats(task: RunTask, est: Signals, truth: Signals) -> dict | None:
+    """eq. 21 terms of the absolute tip errors (``tip_x tip_y dtip_x dtip_y``) after the start-up, or None if the
+    truth has no absolute tip columns. The estimate's absolute tip is evaluated at its samples after the
+    start-up only; non-finite estimates or a closure that cannot be solved give NaN statistics (the run's
+    divergence is judged from the joint angles, as before)."""
+    from ..erls.kinematics import KinematicsError
+    from ..sensors import absolute_tip
+
+    if not all(n in truth for n in ABS_TIP_QUANTITIES):
+        return None
+    sel = est.t >= est.t[0] + task.start_up
+    try:
+        tip = absolute_tip(task.nominal, Signals(est.t[sel], est.names, est.data[sel], est.units),
+                           kinematics=_kinematics(task.observer_key, task.nominal), on_error="nan")
+    except (KeyError, KinematicsError) as exc:
+        log.warning("level %s run %d: no absolute tip estimate (%s)", task.level_key, task.run, exc)
+        tip = Signals(est.t[sel], ABS_TIP_QUANTITIES, np.full((int(sel.sum()), len(ABS_TIP_QUANTITIES)), np.nan))
+    return _abs_error_stats(tip, truth, 0.0)
+
+
 def run_one(task: RunTask) -> dict:
     """One noise realisation on a level's truth, filtered by the nominal observer (runs in a worker)."""
     global OBSERVER_RUNS
@@ -387,6 +449,10 @@ def run_one(task: RunTask) -> dict:
     res = est.result
     nis_mean, nis_exp = res.mean_nis()
     stats = _abs_error_stats(est.physical, lt.truth, task.start_up)
+    tip_stats = _abs_tip_error_stats(task, est.physical, lt.truth)
+    if tip_stats is not None:
+        for k in stats:
+            stats[k].update(tip_stats[k])
     return {
         "level_index": task.level_index,
         "level_key": task.level_key,
@@ -551,7 +617,8 @@ def run_study(
         truth_def = {"model": model_sha, "level": lv.as_dict(), "engine": spec.engine, "duration": duration,
                      "h": spec.h}
         keys.append(f"L{i:02d}-{_hash(truth_def, 10)}")
-        hashes.append(_hash({"truth": truth_def, "observer": obs_key, "start_up": start_up}))
+        hashes.append(_hash({"truth": truth_def, "observer": obs_key, "start_up": start_up,
+                             "stats": STATS_VERSION}))
     for sub in ("truth", "runs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "study.json", json.dumps(
@@ -587,7 +654,7 @@ def run_study(
         bar.update(0, "simulating truth" if pending else "")
 
         def enqueue_runs(i: int, lt: LevelTruth) -> None:
-            small = _hold_on_grid(lt, nominal.sample_rate_hz, duration)
+            small = _hold_on_grid(with_absolute_tip(nominal, lt), nominal.sample_rate_hz, duration)
             for j in pending.get(i, []):
                 queue.append(RunTask(i, keys[i], j, spec.base_seed + j, hashes[i], obs_key, nominal, truth_mechs[i],
                                      small, spec.observer, start_up, duration))
@@ -697,21 +764,29 @@ def diverged(r: dict, coords) -> bool:
     return bool(r["nonfinite"]) or not (err <= TRACK_LOST_RAD)
 
 
+def _finite_mean(values) -> float:
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return float(np.mean(v)) if v else float("nan")
+
+
 def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings, wall, n_new, n_reused,
              workers, scheduler) -> dict:
     qs = _quantities(rows)
+    base_qs = [q for q in qs if q not in ABS_TIP_QUANTITIES]
+    nan = float("nan")
     levels = []
     for i, lv in enumerate(spec.levels):
         rs = [r for r in rows if r["level_index"] == i]
-        # the NIS test flags mismatch-induced inconsistency: such runs still count; only non-finite ones are left out
-        good = [r for r in rs if not r["nonfinite"] and all(np.isfinite(v) for v in r["mean_abs"].values())]
+        # the NIS test flags mismatch-induced inconsistency: such runs still count; only non-finite ones are left out.
+        # The absolute tip does not decide this: a run whose estimated pose could not be solved has NaN tip_*
+        # statistics and is left out of those alone (eq21[q]["n_runs"])
+        good = [r for r in rs if not r["nonfinite"] and all(np.isfinite(r["mean_abs"].get(q, nan)) for q in base_qs)]
         coords = nominal.coordinate_names
         eq21 = {}
         for q in qs:
-            mu = [r["mean_abs"][q] for r in good]
-            sg = [r["std_abs"][q] for r in good]
-            eq21[q] = {"mu": float(np.mean(mu)) if mu else float("nan"),
-                       "sigma": float(np.mean(sg)) if sg else float("nan")}
+            ok = [r for r in good if math.isfinite(r["mean_abs"].get(q, nan))]
+            eq21[q] = {"mu": _finite_mean(r["mean_abs"][q] for r in ok),
+                       "sigma": _finite_mean(r["std_abs"][q] for r in ok), "n_runs": len(ok)}
         levels.append({
             "index": i,
             "key": keys[i],
@@ -724,8 +799,8 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
             "n_in_stats": len(good),
             "seeds": [r["seed"] for r in rs],
             "eq21": eq21,
-            "rms_mean": {q: float(np.mean([r["rms"][q] for r in good])) if good else float("nan") for q in qs},
-            "max_mean": {q: float(np.mean([r["max"][q] for r in good])) if good else float("nan") for q in qs},
+            "rms_mean": {q: _finite_mean(r["rms"].get(q, nan) for r in good) for q in qs},
+            "max_mean": {q: _finite_mean(r["max"].get(q, nan) for r in good) for q in qs},
             "nis_mean": float(np.mean([r["nis_mean"] for r in good])) if good else float("nan"),
             "nis_expected": float(np.mean([r["nis_expected"] for r in good])) if good else float("nan"),
             "observer_wall_s_mean": float(np.mean([r["wall_s"] for r in rs])) if rs else float("nan"),
@@ -737,6 +812,8 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
         "model": {"path": str(model_path.resolve()), "sha256": model_sha, "name": nominal.name},
         "settings": settings,
         "quantities": qs,
+        "tip_quantities": _tip_quantities(nominal, qs),
+        "tip_readings": TIP_READINGS,
         "eq21": "mu = mean over runs of the per-run mean |error|; sigma = mean over runs of the per-run "
                 "standard deviation (ddof 1) of |error|; samples after start_up; runs with non-finite estimates left out (runs the NIS test flags are kept)",
         "divergence": DIVERGENCE,
@@ -745,6 +822,45 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
                       "wall_s": wall},
         "versions": package_versions(),
     }
+
+
+def _tip_quantities(nominal: Mechanism, qs: Sequence[str]) -> dict:
+    """The tip elastic and absolute quantities among ``qs``, in the order x, y, rate x, rate y."""
+    from ..sensors import tip_dof_names, tip_point
+
+    elastic: list[str] = []
+    if tip_point(nominal) is not None:
+        ex, ey = tip_dof_names(nominal)
+        elastic = [q for q in (ex, ey, "d" + ex, "d" + ey) if q in qs]
+    return {"elastic": elastic, "absolute": [q for q in ABS_TIP_QUANTITIES if q in qs]}
+
+
+def quantity_title(q: str, summary: dict | None = None) -> str:
+    """Panel title of a study quantity: the tip ones say whether they are elastic or absolute (rigid + elastic)."""
+    tips = (summary or {}).get("tip_quantities") or {}
+    elastic = list(tips.get("elastic") or TIP_QUANTITIES)
+    comp = {0: "x", 1: "y", 2: "x", 3: "y"}
+    if q in ABS_TIP_QUANTITIES:
+        k = ABS_TIP_QUANTITIES.index(q)
+        return f"{q}: tip {'velocity' if k >= 2 else 'position'} {comp[k]} (rigid + elastic)"
+    if q in elastic[:4]:
+        k = elastic.index(q)
+        return f"{q}: tip elastic {'velocity' if k >= 2 else 'displacement'} {comp[k]}"
+    return q
+
+
+def ordered_quantities(summary: dict, quantities: Sequence[str] | None = None) -> list[str]:
+    """``quantities`` (default: all of the summary's) with each tip elastic quantity followed by its absolute
+    counterpart (``x25 tip_x y26 tip_y dx25 dtip_x dy26 dtip_y``), so a two-column figure shows them side by side."""
+    qs = list(quantities) if quantities else list(summary["quantities"])
+    tips = summary.get("tip_quantities") or {}
+    elastic, absolute = list(tips.get("elastic") or ()), list(tips.get("absolute") or ())
+    if len(elastic) != 4 or len(absolute) != 4 or not all(q in qs for q in elastic + absolute):
+        return qs
+    out = [q for q in qs if q not in elastic and q not in absolute]
+    for e, a in zip(elastic, absolute, strict=True):
+        out += [e, a]
+    return out
 
 
 def _write_results_csv(path: Path, spec: StudySpec, rows: Sequence[dict], coords: Sequence[str]) -> None:
@@ -774,11 +890,13 @@ def _write_results_csv(path: Path, spec: StudySpec, rows: Sequence[dict], coords
 
 
 def figure_rows(summary: dict, quantities: Sequence[str] | None = None) -> list[dict]:
-    """Rows for :func:`exuflex.plots.payload_study_figure`: level value, quantity, mu, sigma."""
-    # every estimated quantity: the tip ones (the paper's Fig. 11) and the joint ones, where the payload
-    # mismatch shows most (it changes link 5's inertia, which the encoders and the dynamics must reconcile)
-    qs = list(quantities) if quantities else list(summary["quantities"])
-    return [{"level": lv["value"], "quantity": q, "mu": lv["eq21"][q]["mu"], "sigma": lv["eq21"][q]["sigma"]}
+    """Rows for :func:`exuflex.plots.payload_study_figure`: level value, quantity, mu, sigma and panel title."""
+    # every estimated quantity: the tip ones (the paper's Fig. 11, elastic and absolute side by side, see
+    # TIP_READINGS) and the joint ones, where the payload mismatch shows most (it changes link 5's inertia,
+    # which the encoders and the dynamics must reconcile)
+    qs = ordered_quantities(summary, quantities)
+    return [{"level": lv["value"], "quantity": q, "mu": lv["eq21"][q]["mu"], "sigma": lv["eq21"][q]["sigma"],
+             "title": quantity_title(q, summary)}
             for lv in summary["levels"] for q in qs]
 
 
