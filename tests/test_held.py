@@ -153,3 +153,17 @@ def test_step_jacobian_matches_finite_differences_of_the_step(sixbar_observer_st
     # (measured with the q-gradient terms of M_r, K_r; without them, as now, the same)
     assert errs[1][0] < 1e-6 and errs[3][0] < 1e-6 and errs[1][1] > 1e-3
     assert errs[0][0] < 1.5 * errs[0][1] and errs[2][0] < 1.5 * errs[2][1]
+
+
+@pytest.mark.parametrize("has_old", [False, True])
+def test_prediction_error_kernel_equals_numpy_reference(has_old):
+    r, nq = 13, 3
+    rng, Mr, Kr, Ca, Gr, grad, _ = _system(r, nq)
+    dl = 2e-2 * rng.normal(size=nq)
+    args = (dl, 0.7, has_old, Mr, Kr, grad(), grad(), grad(), grad())
+    Mx = Mr + 0.05 * np.diag(rng.uniform(size=r))
+    Kx = Kr + 10.0 * np.eye(r)
+    ref = held.prediction_error(*args, Mx, Kx)
+    assert 0 < ref < 1
+    assert held.prediction_error_loops(*args, Mx, Kx) == pytest.approx(ref, rel=1e-10)
+    assert held.prediction_error_loops(*args, -Mx, Kx) == np.inf == held.prediction_error(*args, -Mx, Kx)

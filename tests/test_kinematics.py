@@ -123,3 +123,21 @@ def test_compiled_newton_equals_numpy_newton(name):
             assert (a is None) == (b is None)
             if a is not None:
                 np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_compiled_pose_equals_numpy_pose(name):
+    """The compiled pose sensitivities (closure Jacobian, its inverse, condition, S_z, nodal r and S) against
+    the NumPy path they replace."""
+    from exuflex.erls._closure import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    fast = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    ref = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    ref.compiled = False
+    for q in _configs(fast.mech):
+        a, b = fast.pose(q), ref.pose(q)
+        for x, y in ((a.z, b.z), (a.Sz, b.Sz), (a.r, b.r), (a.S, b.S), (a.Jinv, b.Jinv)):
+            np.testing.assert_allclose(x, y, rtol=1e-11, atol=1e-13)
+        assert a.cond == pytest.approx(b.cond, rel=1e-10)

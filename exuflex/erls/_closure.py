@@ -26,7 +26,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "closure_newton"]
+__all__ = ["HAVE_NUMBA", "closure_newton", "pose_sensitivities"]
 
 
 def _residual(z, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, out):  # pragma: no cover
@@ -83,11 +83,55 @@ def _closure_newton(z0, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_
     return z, _max_abs(res) < 1e3 * tol
 
 
+def _norm1(A):  # pragma: no cover
+    """The matrix 1-norm (largest column sum of |A|), as ``np.linalg.norm(A, 1)``."""
+    m = 0.0
+    for j in range(A.shape[1]):
+        c = 0.0
+        for i in range(A.shape[0]):
+            c += abs(A[i, j])
+        if not c <= m:
+            m = c
+    return m
+
+
+def _pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station):  # pragma: no cover
+    """What :meth:`~exuflex.erls.kinematics.Kinematics.pose` computes after the closure is solved: the closure
+    Jacobian ``J``, its inverse, the 1-norm condition number, ``S_z = J^-1 E`` and the nodal poses ``r`` and
+    sensitivities ``S`` (rows x, y, theta per node). A singular ``J`` raises numpy's LinAlgError."""
+    J = np.empty(J0.shape)
+    _jacobian(z, ea, esa, eb, ebm, esb, J0, J)
+    Jinv = np.linalg.inv(J)
+    cond = _norm1(J) * _norm1(Jinv)
+    Sz = Jinv @ E
+    nn = node_link.shape[0]
+    nq = E.shape[1]
+    r = np.empty(3 * nn)
+    S = np.empty((3 * nn, nq))
+    for k in range(nn):
+        li = node_link[k]
+        s = node_station[k]
+        th = z[3 * li + 2]
+        c, sn = math.cos(th), math.sin(th)
+        r[3 * k] = z[3 * li] + s * c
+        r[3 * k + 1] = z[3 * li + 1] + s * sn
+        r[3 * k + 2] = th
+        for j in range(nq):
+            st = Sz[3 * li + 2, j]
+            S[3 * k, j] = Sz[3 * li, j] - (s * sn) * st
+            S[3 * k + 1, j] = Sz[3 * li + 1, j] + (s * c) * st
+            S[3 * k + 2, j] = st
+    return J, Jinv, cond, Sz, r, S
+
+
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     _residual = _jit(_residual)
     _jacobian = _jit(_jacobian)
     _max_abs = _jit(_max_abs)
+    _norm1 = _jit(_norm1)
     closure_newton = _jit(_closure_newton)
+    pose_sensitivities = _jit(_pose_sensitivities)
 else:  # pragma: no cover
     closure_newton = None
+    pose_sensitivities = None

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mechanism import Mechanism
-from ._closure import closure_newton
+from ._closure import closure_newton, pose_sensitivities
 
-__all__ = ["Kinematics", "Pose", "KinematicsError"]
+__all__ = ["Kinematics", "KinematicsError", "Pose"]
 
 log = logging.getLogger(__name__)
 
@@ -295,20 +295,29 @@ class Kinematics:
         """Solve the closure and return the ERLS pose with S_z and the nodal S."""
         q = np.asarray(q, float)
         z = self.solve(q, z0)
-        J = self.jacobian(z)
-        try:
-            Jinv = np.linalg.inv(J)
-            cond = float(np.linalg.norm(J, 1) * np.linalg.norm(Jinv, 1))
-        except np.linalg.LinAlgError:
-            Jinv, cond = None, np.inf
+        if pose_sensitivities is not None and self.compiled:
+            try:
+                J, Jinv, cond, Sz, r, S = pose_sensitivities(
+                    z, self._ea, self._esa, self._eb, self._ebm, self._esb, self._J0, self._E, self.node_link,
+                    self.node_station)
+            except np.linalg.LinAlgError:
+                Jinv, cond = None, np.inf
+        else:
+            J = self.jacobian(z)
+            try:
+                Jinv = np.linalg.inv(J)
+                cond = float(np.linalg.norm(J, 1) * np.linalg.norm(Jinv, 1))
+            except np.linalg.LinAlgError:
+                Jinv, cond = None, np.inf
         if not np.isfinite(cond) or cond > self.cond_max:
             raise KinematicsError(
                 f"{self.mech.source or self.mech.name}: configuration q = {np.round(q, 6).tolist()} is at or near a "
                 f"singularity (closure Jacobian condition number {cond:.3g} > {self.cond_max:.0e})"
             )
-        Sz = Jinv @ self._E
-        r, S = self._nodal(z, Sz)
-        return Pose(q, z, Sz, r, S, cond, Jinv)
+        if pose_sensitivities is None or not self.compiled:
+            Sz = Jinv @ self._E
+            r, S = self._nodal(z, Sz)
+        return Pose(q, z, Sz, r, S, float(cond), Jinv)
 
     def _nodal(self, z, Sz):
         li, s = self.node_link, self.node_station

@@ -24,6 +24,8 @@ __all__ = [
     "held_step_loops",
     "held_step_numpy",
     "power_sum",
+    "prediction_error",
+    "prediction_error_loops",
     "quadratic_forces",
     "rk4_held_loops",
     "rk4_held_numpy",
@@ -280,6 +282,77 @@ def _step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
     return Pn + SQM @ G
 
 
+def prediction_error(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):
+    """How well a held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` (:func:`held_matrices`), against the
+    exact ``Mr``, ``Kr`` there: the largest entry of the differences whitened by the exact mass matrix,
+    ``L^-1 (M_pred - M) L^-T`` (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s
+    relative to the largest entry of ``L^-1 K L^-T``. ``inf`` if ``Mr`` is not positive definite. NumPy
+    reference of the compiled kernel."""
+    old = (oM2, oK2, Mr0, Mr0) if has_old else None
+    Mp, Kp, _, _ = held_matrices(dl, s, Mr0, Kr0, Mr0, Mr0, dM2, dK2, 0.0, old)
+    try:
+        Li = np.linalg.inv(np.linalg.cholesky(Mr))
+    except np.linalg.LinAlgError:
+        return float("inf")
+    EM = Li @ (Mp - Mr) @ Li.T
+    EK = Li @ (Kp - Kr) @ Li.T
+    KK = Li @ Kr @ Li.T
+    return float(max(np.abs(EM).max(), np.abs(EK).max() / np.abs(KK).max()))
+
+
+def _prediction_error_loops(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):  # pragma: no cover - compiled
+    r = Mr0.shape[0]
+    nq = dl.shape[0]
+    gM = np.zeros(r * r)
+    gK = np.zeros(r * r)
+    for i in range(nq):
+        for k in range(r * r):
+            gM[k] += dl[i] * dM2[i, k]
+            gK[k] += dl[i] * dK2[i, k]
+    if has_old:
+        for i in range(nq):
+            for k in range(r * r):
+                gM[k] += 0.5 * s * (dl[i] * dM2[i, k] - dl[i] * oM2[i, k])
+                gK[k] += 0.5 * s * (dl[i] * dK2[i, k] - dl[i] * oK2[i, k])
+    # L^-1 by forward substitution on the Cholesky factor (NaN if Mr is not positive definite)
+    Li = _cholesky_solve_lower_inverse(Mr)
+    if not np.isfinite(Li[0, 0]):
+        return np.inf
+    DM = (Mr0 + gM.reshape(r, r)) - Mr
+    DK = (Kr0 + gK.reshape(r, r)) - Kr
+    em = np.abs(Li @ DM @ Li.T).max()
+    ek = np.abs(Li @ DK @ Li.T).max()
+    kk = np.abs(Li @ Kr @ Li.T).max()
+    return max(em, ek / kk)
+
+
+@_shared
+def _cholesky_solve_lower_inverse(A):  # pragma: no cover - compiled
+    """``L^-1`` of the Cholesky factor ``A = L L^T`` (NaN if ``A`` is not positive definite)."""
+    r = A.shape[0]
+    L = np.zeros((r, r))
+    for j in range(r):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return np.full((r, r), np.nan)
+        L[j, j] = np.sqrt(d)
+        for i in range(j + 1, r):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / L[j, j]
+    Li = np.zeros((r, r))
+    for c in range(r):  # column c of L^-1: L x = e_c
+        for i in range(c, r):
+            acc = 1.0 if i == c else 0.0
+            for k in range(c, i):
+                acc -= L[i, k] * Li[k, c]
+            Li[i, c] = acc / L[i, i]
+    return Li
+
+
 def held_step_numpy(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
                     oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):
     """One cached step: the model at ``q0 + dl`` (:func:`held_matrices`, forces with their secant) and the
@@ -392,6 +465,7 @@ _quadratic_forces_loops = _jit(_quadratic_forces_loops)
 rk4_held_loops = _rk4_held_loops
 held_step_loops = _jit(_held_step_loops)
 step_jacobian_loops = _jit(_step_jacobian_loops)
+prediction_error_loops = _jit(_prediction_error_loops) if HAVE_NUMBA else prediction_error
 
 
 _warm = False

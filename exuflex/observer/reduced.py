@@ -56,23 +56,24 @@ import numpy as np
 from ..erls.kinematics import KinematicsError
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
+from .fused import DONE, REFRESH, cached_sample
+from .fused import warm_up as fused_warm_up
 from .held import (
     HAVE_NUMBA,
-    held_matrices,
     held_step_loops,
     held_step_numpy,
     power_sum,
+    prediction_error,
+    prediction_error_loops,
     step_jacobian_loops,
     step_maps,
     step_maps_held,
     step_maps_held_numpy,
 )
-from .fused import DONE, REFRESH, cached_sample
-from .fused import warm_up as fused_warm_up
 from .held import warm_up as held_warm_up
 from .rows import sensor, sensor_rows
 
-__all__ = ["ReducedObserverModel", "power_sum", "METHODS"]
+__all__ = ["METHODS", "ReducedObserverModel", "power_sum"]
 
 METHODS = ("cached", "frozen", "rk4")
 
@@ -291,20 +292,13 @@ class ReducedObserverModel:
         dl = iv.q0 - old.q0
         oo = old.old
         s = float(dl @ old.d) / old.dd if oo is not None else 0.0
-        part = None if oo is None else (oo.forces.dMr2, oo.forces.dKr2, oo.Ca, oo.mats.Gr)
-        Mp, Kp, _, _ = held_matrices(dl, s, old.mats.Mr, old.mats.Kr, old.Ca, old.mats.Gr, old.forces.dMr2,
-                                     old.forces.dKr2, self.model.beta, part)
-        try:
-            Li = np.linalg.inv(np.linalg.cholesky(iv.mats.Mr))
-        except np.linalg.LinAlgError:
-            return float("inf")
-        m = iv.mats
+        fo = old.forces
+        po = (fo.dMr2, fo.dKr2) if oo is None else (oo.forces.dMr2, oo.forces.dKr2)
+        kernel = prediction_error_loops if self.kernel_name == "numba" else prediction_error
         # largest entry of the whitened differences (within a factor r of the spectral norm, and a tenth of
         # its cost: this runs at every evaluation)
-        EM = Li @ (Mp - m.Mr) @ Li.T
-        EK = Li @ (Kp - m.Kr) @ Li.T
-        KK = Li @ m.Kr @ Li.T
-        return float(max(np.abs(EM).max(), np.abs(EK).max() / np.abs(KK).max()))
+        return float(kernel(dl, s, oo is not None, old.mats.Mr, old.mats.Kr, fo.dMr2, fo.dKr2, *po, iv.mats.Mr,
+                            iv.mats.Kr))
 
     def _held_args(self, iv: _Interval) -> tuple:
         """The arguments of :func:`.held.held_step_loops` after ``(z, u, dl, s)``: fixed while iv is held."""
