@@ -26,7 +26,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "closure_newton", "pose_sensitivities"]
+__all__ = ["HAVE_NUMBA", "closure_newton", "coordinate_rates", "pose_sensitivities"]
 
 
 def _residual(z, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, out):  # pragma: no cover
@@ -124,6 +124,51 @@ def _pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station
     return J, Jinv, cond, Sz, r, S
 
 
+def _coordinate_rates(z, Sz, Jinv, ea, esa, eb, ebm, esb, node_link, node_station):  # pragma: no cover
+    """``dS/dq_j`` for every coordinate j (nq, 3 n_nodes, nq): the formulas of
+    :meth:`~exuflex.erls.kinematics.Kinematics.coordinate_rates`, with the sparse ``dPhi_z/dt`` applied
+    directly (only the angle columns of the position equations are nonzero)."""
+    nq = Sz.shape[1]
+    n_eq = Jinv.shape[0]
+    nn = node_link.shape[0]
+    out = np.empty((nq, 3 * nn, nq))
+    JdS = np.zeros((n_eq, nq))
+    for j in range(nq):
+        JdS[:] = 0.0
+        for k in range(ea.shape[0]):
+            a = ea[k]
+            ta = z[3 * a + 2]
+            wa = esa[k] * Sz[3 * a + 2, j]  # esa * (link a's angle rate along e_j)
+            ca, sa = wa * math.cos(ta), wa * math.sin(ta)
+            for c in range(nq):
+                st = Sz[3 * a + 2, c]
+                JdS[2 * k, c] -= ca * st
+                JdS[2 * k + 1, c] -= sa * st
+            if ebm[k] > 0:
+                b = eb[k]
+                tb = z[3 * b + 2]
+                wb = esb[k] * Sz[3 * b + 2, j]
+                cb, sb = wb * math.cos(tb), wb * math.sin(tb)
+                for c in range(nq):
+                    st = Sz[3 * b + 2, c]
+                    JdS[2 * k, c] += cb * st
+                    JdS[2 * k + 1, c] += sb * st
+        Szd = -(Jinv @ JdS)
+        for m in range(nn):
+            li = node_link[m]
+            s = node_station[m]
+            th = z[3 * li + 2]
+            c, sn = math.cos(th), math.sin(th)
+            thd = Sz[3 * li + 2, j]
+            for col in range(nq):
+                std = Szd[3 * li + 2, col]
+                st = Sz[3 * li + 2, col]
+                out[j, 3 * m, col] = Szd[3 * li, col] - s * sn * std - s * c * thd * st
+                out[j, 3 * m + 1, col] = Szd[3 * li + 1, col] + s * c * std - s * sn * thd * st
+                out[j, 3 * m + 2, col] = std
+    return out
+
+
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     _residual = _jit(_residual)
@@ -132,6 +177,8 @@ if HAVE_NUMBA:
     _norm1 = _jit(_norm1)
     closure_newton = _jit(_closure_newton)
     pose_sensitivities = _jit(_pose_sensitivities)
+    coordinate_rates = _jit(_coordinate_rates)
 else:  # pragma: no cover
     closure_newton = None
+    coordinate_rates = None
     pose_sensitivities = None

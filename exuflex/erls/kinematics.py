@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mechanism import Mechanism
-from ._closure import closure_newton, pose_sensitivities
+from ._closure import closure_newton, coordinate_rates, pose_sensitivities
 
 __all__ = ["Kinematics", "KinematicsError", "Pose"]
 
@@ -359,6 +359,9 @@ class Kinematics:
     def coordinate_rates(self, pose: Pose) -> np.ndarray:
         """``dS/dq_j`` for every coordinate j at once: array (nq, 3 n_nodes, nq), entry j the nodal ``dS/dt`` of
         :meth:`rates` along ``q' = e_j`` (the same formulas, batched over j)."""
+        if coordinate_rates is not None and self.compiled and pose.Jinv is not None:
+            return coordinate_rates(pose.z, np.ascontiguousarray(pose.Sz), pose.Jinv, self._ea, self._esa, self._eb,
+                                    self._ebm, self._esb, self.node_link, self.node_station)
         Sz = pose.Sz
         th = pose.z[2::3]
         thd = Sz[2::3].T  # (nq, n_links): link angle rates along each e_j

@@ -103,6 +103,7 @@ class ErlsModel:
             i = nodes.index(lm.node)
             lump[3 * i : 3 * i + 3] += (lm.mass, lm.mass, lm.inertia)
         self.lumped = lump
+        self._diag_idx = np.diag_indices(self.N)
         # motors: nodal moment pattern
         B = np.zeros((self.N, len(mech.motors)))
         for j, m in enumerate(mech.motors):
@@ -146,7 +147,8 @@ class ErlsModel:
         th = pose.link_angles[self.el_link]
         R = rotation(th)
         Rt = np.swapaxes(R, 1, 2)
-        M_N = self._assemble(R @ self.Ml @ Rt) + np.diag(self.lumped)
+        M_N = self._assemble(R @ self.Ml @ Rt)
+        M_N[self._diag_idx] += self.lumped
         K_N = self._assemble(R @ self.Kl @ Rt)
         W = np.hstack([pose.S, self.T])
         return Configuration(pose, R, M_N, K_N, W)
