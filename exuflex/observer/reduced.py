@@ -190,6 +190,7 @@ class ReducedObserverModel:
             held_warm_up()
         self._noC2 = np.zeros((0, self.r))
         self._noQ = np.zeros(0)
+        self._fixed_rows: dict = {}  # configuration-independent sensor rows (encoders), per channel
         self._noRows = np.zeros((0, self.nx))
         self.fused = self.kernel_name == "numba"
         self.n_declined = 0
@@ -422,7 +423,13 @@ class ReducedObserverModel:
                 keep.add(self._last.old.serial)
             self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] in keep}
         s = sensor(self.mech, self.sensors, channel)
-        kind, rigid, urow = sensor_rows(self.model, iv.mats.rc.cfg, s, self.link_names)
+        if s.kind == "encoder":  # link angles and the joint's elastic rotation: rows independent of q
+            fixed = self._fixed_rows.get(channel)
+            if fixed is None:
+                fixed = self._fixed_rows[channel] = sensor_rows(self.model, iv.mats.rc.cfg, s, self.link_names)
+            kind, rigid, urow = fixed
+        else:
+            kind, rigid, urow = sensor_rows(self.model, iv.mats.rc.cfg, s, self.link_names)
         out = (kind, rigid, urow @ iv.mats.rc.H[self.nq :])
         self._channel_cache[key] = out
         return out
