@@ -23,7 +23,11 @@ Three numerically equivalent back-ends share all bookkeeping: ``backend="numpy"`
 ``backend="filterpy"`` (the covariance algebra done by :class:`filterpy.kalman.ExtendedKalmanFilter`, whose
 ``update`` is in Joseph form; kept as the reference implementation) and ``backend="numba"`` (the numpy
 back-end's algebra in compiled kernels, :mod:`._compiled`; at 26 states and 6 channels the filter's own
-cost per sample is about a third of the numpy back-end's, for real-time use; needs the numba package).
+cost per sample is about a third of the numpy back-end's, for real-time use; needs the numba package). With the
+numba back-end, a model that offers ``fused_sample`` (the cached reduced observer, :mod:`.fused`) does a whole
+sample with every channel present (predict, update, settle) in one compiled call, with the same arithmetic as the
+step-by-step path (``tests/test_fused.py``); other samples, and a sample the model declines, take the
+step-by-step path. ``n_fused`` counts the fused samples.
 
 Timing convention: ``x0``, ``P0`` are the *prior* at the first sample time. ``step(t_k, u_k, y_k)``
 first predicts from the previous sample time to ``t_k`` with the input stored at the previous call
