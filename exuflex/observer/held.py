@@ -110,8 +110,9 @@ def rk4_held_numpy(z, u, Mr, Kr, Cr, Gr, f, h, n):
 
 
 @_shared
-def _cholesky_solve(A, B):  # pragma: no cover - compiled
-    """``A^-1 B`` for a symmetric positive definite ``A`` (a reduced mass matrix); NaN if it is not."""
+def _cholesky_factor(A):  # pragma: no cover - compiled
+    """``(L, ok)``: the lower Cholesky factor ``A = L L^T``; ``ok`` False (``L`` incomplete) if a pivot is not
+    positive or is NaN: ``A`` is not positive definite."""
     r = A.shape[0]
     L = np.zeros((r, r))
     for j in range(r):
@@ -119,13 +120,23 @@ def _cholesky_solve(A, B):  # pragma: no cover - compiled
         for k in range(j):
             d -= L[j, k] * L[j, k]
         if not d > 0.0:
-            return np.full(B.shape, np.nan)
+            return L, False
         L[j, j] = np.sqrt(d)
         for i in range(j + 1, r):
             acc = A[i, j]
             for k in range(j):
                 acc -= L[i, k] * L[j, k]
             L[i, j] = acc / L[j, j]
+    return L, True
+
+
+@_shared
+def _cholesky_solve(A, B):  # pragma: no cover - compiled
+    """``A^-1 B`` for a symmetric positive definite ``A`` (a reduced mass matrix); NaN if it is not."""
+    r = A.shape[0]
+    L, ok = _cholesky_factor(A)
+    if not ok:
+        return np.full(B.shape, np.nan)
     X = B.copy()
     m = B.shape[1]
     for i in range(r):  # forward: L Y = B, row i of Y from the rows above (axpy over the columns)
@@ -315,7 +326,7 @@ def _prediction_error_loops(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr
                 gM[k] += 0.5 * s * (dl[i] * dM2[i, k] - dl[i] * oM2[i, k])
                 gK[k] += 0.5 * s * (dl[i] * dK2[i, k] - dl[i] * oK2[i, k])
     # L^-1 by forward substitution on the Cholesky factor (NaN if Mr is not positive definite)
-    Li = _cholesky_solve_lower_inverse(Mr)
+    Li = _inverse_cholesky_factor(Mr)
     if not np.isfinite(Li[0, 0]):
         return np.inf
     DM = (Mr0 + gM.reshape(r, r)) - Mr
@@ -327,22 +338,12 @@ def _prediction_error_loops(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr
 
 
 @_shared
-def _cholesky_solve_lower_inverse(A):  # pragma: no cover - compiled
+def _inverse_cholesky_factor(A):  # pragma: no cover - compiled
     """``L^-1`` of the Cholesky factor ``A = L L^T`` (NaN if ``A`` is not positive definite)."""
     r = A.shape[0]
-    L = np.zeros((r, r))
-    for j in range(r):
-        d = A[j, j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not d > 0.0:
-            return np.full((r, r), np.nan)
-        L[j, j] = np.sqrt(d)
-        for i in range(j + 1, r):
-            acc = A[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            L[i, j] = acc / L[j, j]
+    L, ok = _cholesky_factor(A)
+    if not ok:
+        return np.full((r, r), np.nan)
     Li = np.zeros((r, r))
     for c in range(r):  # column c of L^-1: L x = e_c
         for i in range(c, r):
