@@ -229,20 +229,17 @@ def _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - co
     return f
 
 
-def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
-                     oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):  # pragma: no cover - compiled
+@_shared
+def _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2):  # pragma: no cover - compiled
+    """``M_r``, ``K_r`` of the held model at ``q0 + dl``: the compiled twin of :func:`held_matrices`' first two."""
     r = Mr0.shape[0]
-    p = z[:r]
-    pd = z[r:]
+    nq = dl.shape[0]
     gM = np.zeros(r * r)
     gK = np.zeros(r * r)
     for i in range(nq):
         for k in range(r * r):
             gM[k] += dl[i] * dM2[i, k]
             gK[k] += dl[i] * dK2[i, k]
-    f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
-    Ca = Ca0.copy()
-    Gr = Gr0.copy()
     if has_old:
         hM = np.zeros(r * r)
         hK = np.zeros(r * r)
@@ -253,13 +250,24 @@ def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, d
         for k in range(r * r):
             gM[k] += 0.5 * s * (gM[k] - hM[k])
             gK[k] += 0.5 * s * (gK[k] - hK[k])
+    return Mr0 + gM.reshape(r, r), Kr0 + gK.reshape(r, r)
+
+
+def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
+                     oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):  # pragma: no cover - compiled
+    r = Mr0.shape[0]
+    p = z[:r]
+    pd = z[r:]
+    Mr, Kr = _held_mass_stiffness(dl[:nq], s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2)
+    f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
+    Ca = Ca0.copy()
+    Gr = Gr0.copy()
+    if has_old:
         fo = _quadratic_forces_loops(p, pd, nq, ofg, oT2, oV2, oC2)
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
         Ca += s * (Ca0 - oCa)
         Gr += s * (Gr0 - oGr)
-    Mr = Mr0 + gM.reshape(r, r)
-    Kr = Kr0 + gK.reshape(r, r)
     Cr = Ca + beta * Kr
     z_next = _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n)
     return z_next, Mr, Kr, Cr, Gr
@@ -312,27 +320,12 @@ def prediction_error(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):
 
 
 def _prediction_error_loops(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):  # pragma: no cover - compiled
-    r = Mr0.shape[0]
-    nq = dl.shape[0]
-    gM = np.zeros(r * r)
-    gK = np.zeros(r * r)
-    for i in range(nq):
-        for k in range(r * r):
-            gM[k] += dl[i] * dM2[i, k]
-            gK[k] += dl[i] * dK2[i, k]
-    if has_old:
-        for i in range(nq):
-            for k in range(r * r):
-                gM[k] += 0.5 * s * (dl[i] * dM2[i, k] - dl[i] * oM2[i, k])
-                gK[k] += 0.5 * s * (dl[i] * dK2[i, k] - dl[i] * oK2[i, k])
-    # L^-1 by forward substitution on the Cholesky factor (NaN if Mr is not positive definite)
-    Li = _inverse_cholesky_factor(Mr)
+    Mp, Kp = _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2)
+    Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
         return np.inf
-    DM = (Mr0 + gM.reshape(r, r)) - Mr
-    DK = (Kr0 + gK.reshape(r, r)) - Kr
-    em = np.abs(Li @ DM @ Li.T).max()
-    ek = np.abs(Li @ DK @ Li.T).max()
+    em = np.abs(Li @ (Mp - Mr) @ Li.T).max()
+    ek = np.abs(Li @ (Kp - Kr) @ Li.T).max()
     kk = np.abs(Li @ Kr @ Li.T).max()
     return max(em, ek / kk)
 
