@@ -341,7 +341,8 @@ def absolute_tip(
         Columns ``q``, ``d`` + ``q`` and the tip elastic displacement and rate, named as :func:`truth_names`
         (the layout of :func:`true_states` and of the observer's physical estimate); other columns are ignored.
     kinematics : Kinematics, optional
-        Reuse a solver for ``mech``; each sample's closure is warm-started from the previous sample's.
+        Reuse a solver for ``mech``; each sample's pose (:meth:`Kinematics.pose`, :meth:`Kinematics.point`) is
+        warm-started from the previous sample's.
     on_error : {"raise", "nan"}
         A sample whose closure cannot be solved, or whose closure Jacobian is singular or near it (condition
         number above ``kinematics.cond_max``, as :meth:`Kinematics.pose`), raises
@@ -362,13 +363,6 @@ def absolute_tip(
     KinematicsError
         With ``on_error="raise"``: the closure fails at a sample (the message names its time).
 
-    Notes
-    -----
-    Equal to ``Kinematics.point(kin.pose(q), link, station)`` per sample, evaluated in fewer steps (a pose
-    also computes every node's sensitivities, of which the tip needs one link's): the closure is solved per
-    sample (:meth:`Kinematics.solve`), then the link rates ``z' = Phi_z^-1 E q'`` of all samples in one batched
-    inverse, ``E = -dPhi/dq`` (the closure is affine in ``q``), and the tip point and its velocity from the tip
-    link's pose and rates.
     """
     if on_error not in ("raise", "nan"):
         raise ValueError(f"absolute_tip: on_error must be 'raise' or 'nan', got {on_error!r}")
@@ -384,57 +378,21 @@ def absolute_tip(
     X = signals.select(qn + tuple("d" + n for n in qn) + (ex, ey, "d" + ex, "d" + ey)).data
     t = np.asarray(signals.t, float)
     kin = kinematics if kinematics is not None else Kinematics(mech)
-    i = kin.link_names.index(link)
-    nz = 3 * kin.nl
-    z_any, q0 = np.zeros(nz), np.zeros(nq)
-    E = np.column_stack([kin.residual(z_any, q0) - kin.residual(z_any, e) for e in np.eye(nq)])
-
     out = np.full((len(t), 4), np.nan)
-    rows = np.flatnonzero(np.all(np.isfinite(X), axis=1))
     kin.reset_warm_start()  # the first sample from the initial guess: the result must not depend on kin's history
-    Z = np.empty((len(rows), nz))
-    solved = np.zeros(len(rows), bool)
     z = None
-    for k, r in enumerate(rows):
+    for k in np.flatnonzero(np.all(np.isfinite(X), axis=1)):
         try:
-            z = kin.solve(X[r, :nq], z)
+            pose = kin.pose(X[k, :nq], z)
         except KinematicsError as exc:
             if on_error == "raise":
-                raise KinematicsError(f"absolute tip at t = {t[r]:.6g} s: {exc}") from exc
+                raise KinematicsError(f"absolute tip at t = {t[k]:.6g} s: {exc}") from exc
             z = None
             continue
-        Z[k] = z
-        solved[k] = True
-    rows, Z = rows[solved], Z[solved]
-    if len(rows) == 0:
-        return Signals(t, ABSOLUTE_TIP_NAMES, out, ABSOLUTE_TIP_UNITS)
-    J = np.array([kin.jacobian(zk) for zk in Z])
-    Jinv = np.full_like(J, np.nan)
-    try:
-        Jinv[:] = np.linalg.inv(J)
-    except np.linalg.LinAlgError:  # a singular sample: the others one by one
-        for k in range(len(J)):
-            try:
-                Jinv[k] = np.linalg.inv(J[k])
-            except np.linalg.LinAlgError:
-                pass
-    with np.errstate(invalid="ignore", over="ignore"):
-        cond = np.abs(J).sum(axis=1).max(axis=1) * np.abs(Jinv).sum(axis=1).max(axis=1)  # 1-norm, as pose
-    bad = ~(cond <= kin.cond_max)
-    if bad.any() and on_error == "raise":
-        k = int(np.flatnonzero(bad)[0])
-        raise KinematicsError(
-            f"absolute tip at t = {t[rows[k]]:.6g} s: configuration q = {np.round(X[rows[k], :nq], 6).tolist()} is "
-            f"at or near a singularity (closure Jacobian condition number {cond[k]:.3g} > {kin.cond_max:.0e})"
-        )
-    rows, Z, Jinv = rows[~bad], Z[~bad], Jinv[~bad]
-    Zd = np.einsum("kab,bj,kj->ka", Jinv, E, X[rows, nq : 2 * nq])
-    th, thd = Z[:, 3 * i + 2], Zd[:, 3 * i + 2]
-    c, sn = np.cos(th), np.sin(th)
-    out[rows, 0] = Z[:, 3 * i] + station * c + X[rows, 2 * nq]
-    out[rows, 1] = Z[:, 3 * i + 1] + station * sn + X[rows, 2 * nq + 1]
-    out[rows, 2] = Zd[:, 3 * i] - station * sn * thd + X[rows, 2 * nq + 2]
-    out[rows, 3] = Zd[:, 3 * i + 1] + station * c * thd + X[rows, 2 * nq + 3]
+        z = pose.z
+        p, dp = kin.point(pose, link, station)
+        out[k, :2] = p + X[k, 2 * nq : 2 * nq + 2]
+        out[k, 2:] = dp @ X[k, nq : 2 * nq] + X[k, 2 * nq + 2 :]
     return Signals(t, ABSOLUTE_TIP_NAMES, out, ABSOLUTE_TIP_UNITS)
 
 

@@ -96,8 +96,8 @@ def _norm1(A):  # pragma: no cover
 
 
 def _pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station):  # pragma: no cover
-    """What :meth:`~exuflex.erls.kinematics.Kinematics.pose` computes after the closure is solved: the closure
-    Jacobian ``J``, its inverse, the 1-norm condition number, ``S_z = J^-1 E`` and the nodal poses ``r`` and
+    """What :meth:`~exuflex.erls.kinematics.Kinematics.pose` computes after the closure is solved: the inverse
+    of the closure Jacobian ``J``, its 1-norm condition number, ``S_z = J^-1 E`` and the nodal poses ``r`` and
     sensitivities ``S`` (rows x, y, theta per node). A singular ``J`` raises numpy's LinAlgError."""
     J = np.empty(J0.shape)
     _jacobian(z, ea, esa, eb, ebm, esb, J0, J)
@@ -121,7 +121,7 @@ def _pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station
             S[3 * k, j] = Sz[3 * li, j] - (s * sn) * st
             S[3 * k + 1, j] = Sz[3 * li + 1, j] + (s * c) * st
             S[3 * k + 2, j] = st
-    return J, Jinv, cond, Sz, r, S
+    return Jinv, cond, Sz, r, S
 
 
 def _coordinate_rates(z, Sz, Jinv, ea, esa, eb, ebm, esb, node_link, node_station):  # pragma: no cover

@@ -295,29 +295,29 @@ class Kinematics:
         """Solve the closure and return the ERLS pose with S_z and the nodal S."""
         q = np.asarray(q, float)
         z = self.solve(q, z0)
-        if pose_sensitivities is not None and self.compiled:
-            try:
-                J, Jinv, cond, Sz, r, S = pose_sensitivities(
-                    z, self._ea, self._esa, self._eb, self._ebm, self._esb, self._J0, self._E, self.node_link,
-                    self.node_station)
-            except np.linalg.LinAlgError:
-                Jinv, cond = None, np.inf
-        else:
-            J = self.jacobian(z)
-            try:
-                Jinv = np.linalg.inv(J)
-                cond = float(np.linalg.norm(J, 1) * np.linalg.norm(Jinv, 1))
-            except np.linalg.LinAlgError:
-                Jinv, cond = None, np.inf
+        Jinv, cond, Sz, r, S = self._sensitivities(z)
         if not np.isfinite(cond) or cond > self.cond_max:
             raise KinematicsError(
                 f"{self.mech.source or self.mech.name}: configuration q = {np.round(q, 6).tolist()} is at or near a "
                 f"singularity (closure Jacobian condition number {cond:.3g} > {self.cond_max:.0e})"
             )
-        if pose_sensitivities is None or not self.compiled:
-            Sz = Jinv @ self._E
-            r, S = self._nodal(z, Sz)
-        return Pose(q, z, Sz, r, S, float(cond), Jinv)
+        return Pose(q, z, Sz, r, S, cond, Jinv)
+
+    def _sensitivities(self, z: np.ndarray) -> tuple:
+        """``(J^-1, cond, S_z, r, S)`` at the solved poses z: the closure Jacobian's inverse and 1-norm condition
+        number, ``S_z = J^-1 E`` and the nodal poses and sensitivities (compiled where numba is installed,
+        :func:`._closure.pose_sensitivities`). A singular Jacobian gives ``(None, inf, None, None, None)``."""
+        try:
+            if pose_sensitivities is not None and self.compiled:
+                Jinv, cond, Sz, r, S = pose_sensitivities(z, self._ea, self._esa, self._eb, self._ebm, self._esb,
+                                                          self._J0, self._E, self.node_link, self.node_station)
+                return Jinv, float(cond), Sz, r, S
+            J = self.jacobian(z)
+            Jinv = np.linalg.inv(J)
+        except np.linalg.LinAlgError:
+            return None, np.inf, None, None, None
+        Sz = Jinv @ self._E
+        return (Jinv, float(np.linalg.norm(J, 1) * np.linalg.norm(Jinv, 1)), Sz, *self._nodal(z, Sz))
 
     def _nodal(self, z, Sz):
         li, s = self.node_link, self.node_station

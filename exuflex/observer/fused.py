@@ -31,7 +31,7 @@ import numpy as np
 from ._compiled import predict_cov, settle, update
 from .held import HAVE_NUMBA, _jit, held_step_loops, step_jacobian_loops, step_maps_held
 
-__all__ = ["DONE", "FAR", "INDEFINITE", "REFRESH", "RESCUE", "cached_sample", "secant_factor", "warm_up"]
+__all__ = ["DONE", "FAR", "INDEFINITE", "REFRESH", "RESCUE", "cached_sample", "warm_up"]
 
 DONE, RESCUE, FAR, INDEFINITE, REFRESH = 0, 1, 2, 3, 4
 
@@ -122,7 +122,6 @@ def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, 
 
 _secant_factor = _jit(_secant_factor)
 cached_sample = _jit(_cached_sample) if HAVE_NUMBA else None
-secant_factor = _secant_factor
 
 
 def warm_up() -> None:

@@ -216,12 +216,15 @@ class ReducedObserverModel:
         linear system with these matrices."""
         return step_maps(Minv, Kr, Cr, Gr, self.h, self._n_steps(dt))
 
-    def _configuration(self, z: np.ndarray, held: bool = False) -> _Interval:
-        """Evaluate the configuration at the state z (reduced matrices, pose data; with ``held`` the force
-        model and the q-derivatives of the cached step too); no step map yet."""
+    def _configuration(self, z: np.ndarray, held: bool = False, frozen_forces: bool = False) -> _Interval:
+        """Evaluate the configuration at the state z (reduced matrices, pose data); no step map yet. With
+        ``held`` also the force model and the q-derivatives of the cached step; with ``frozen_forces`` the
+        forces at z and their force model without q-derivatives (the frozen step and its Jacobian)."""
         forces = None
         if held:
             mats, forces = self.rm.held(z[: self.r], z[self.r :])
+        elif frozen_forces:
+            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=False)
         else:
             mats = self.rm.matrices(z[: self.r], z[self.r :])
         self.n_evaluations += 1
@@ -230,9 +233,10 @@ class ReducedObserverModel:
         return _Interval(z[: self.nq].copy(), mats, None, None, pose.Sz[2::3].copy(), pose.z[2::3].copy(),
                          self._serial, forces=forces)
 
-    def _interval(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Interval, np.ndarray]:
-        """The frozen step: configuration at the interval's start, its step map, and the state at the end."""
-        iv = self._configuration(z)
+    def _interval(self, z: np.ndarray, u: np.ndarray, dt: float, jacobian: bool = False) -> tuple[_Interval, np.ndarray]:
+        """The frozen step: configuration at the interval's start, its step map, and the state at the end
+        (with ``jacobian`` the force model for :meth:`_jacobian`, from the same evaluation)."""
+        iv = self._configuration(z, frozen_forces=jacobian)
         mats = iv.mats
         iv.Pn, iv.SQM, iv.L = self._step_maps(np.linalg.inv(mats.Mr), mats.Kr, mats.Cr, mats.Gr, dt)
         return iv, iv.Pn @ z + iv.L @ u + iv.SQM @ mats.fr
@@ -379,13 +383,10 @@ class ReducedObserverModel:
         u = self._input(u)
         if self.method == "cached":
             return self._cached_step(np.asarray(x, float), u, dt)
-        iv, z_frozen = self._interval(x, u, dt)
+        x = np.asarray(x, float)
+        iv, z_frozen = self._interval(x, u, dt, jacobian=self.full_jacobian)
         self._last = iv
-        F = iv.Pn
-        if self.full_jacobian:
-            m = iv.mats
-            F = self._jacobian(self.rm.force_model(m, np.asarray(x, float)[: self.r]), np.asarray(x, float),
-                               iv.Pn, iv.SQM)
+        F = self._jacobian(iv.forces, x, iv.Pn, iv.SQM) if self.full_jacobian else iv.Pn
         if self.method == "frozen":
             return z_frozen, F
         z = np.array(x, float)
@@ -434,10 +435,14 @@ class ReducedObserverModel:
         self._channel_cache[key] = out
         return out
 
+    def _measurement_radius(self, iv: _Interval) -> float:
+        """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
+        return 1.5 * max(iv.rad, self.refresh_min)
+
     def _measurement_interval(self, x: np.ndarray) -> _Interval:
         """The held configuration the measurement rows at x are taken about (evaluated at x if none is near)."""
         iv = self._last
-        if iv is None or _max_abs(x[: self.nq] - iv.q0) > 1.5 * max(iv.rad, self.refresh_min):
+        if iv is None or _max_abs(x[: self.nq] - iv.q0) > self._measurement_radius(iv):
             # no held configuration near x (first sample of a run): evaluate one at x
             iv = self._configuration(x)
             self._last = iv
@@ -521,7 +526,7 @@ class ReducedObserverModel:
             iv.Pn, iv.SQM = np.empty((nx, nx)), np.empty((nx, self.r))
             iv.L, iv.Q = np.empty((nx, nu)), np.empty((nx, nx))
         c0, Hm, dH = self._secant_rows(iv, channels)
-        args = (iv.q0, iv.rad, 1.5 * max(iv.rad, self.refresh_min), iv.q0 if iv.old is None else iv.d, iv.dd,
+        args = (iv.q0, iv.rad, self._measurement_radius(iv), iv.q0 if iv.old is None else iv.d, iv.dd,
                 iv.kargs, self.remap_rad, self.torque_var, self._noQ if self.q_extra is None else self.q_extra,
                 iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q, *iv.forces.jacobian_tensors(), c0, Hm,
                 self._noRows if dH is None else dH)

@@ -126,8 +126,9 @@ class CraigBampton:
         self.masters = masters
         self.im = np.array(im, int)
         self.is_ = np.array([k for k in range(model.ne) if k not in set(im)], int)
-        self._TtS_s = None  # slave rows of T^T times the element scatter map (basis_derivative)
-        self._ix_ss = self._ix_sm = None  # slave-slave and slave-master index grids
+        self._ix_ss, self._ix_sm = np.ix_(self.is_, self.is_), np.ix_(self.is_, self.im)  # slave blocks of K_uu
+        # slave rows of T^T times the element scatter map: dK_N/dq w projected on the slaves (basis_derivative)
+        self._TtS_s = np.ascontiguousarray((model.T.T @ model.scatter)[self.is_])
         self.nq = model.nq
         self.n_m = self.nq + len(im)
         self.band_hz = float(spec.band_hz if band_hz is None else band_hz)
@@ -152,7 +153,7 @@ class CraigBampton:
         self.interior_frequencies_hz = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
         self.Phi_all = Phi  # (s, s), M_ss-orthonormal, ascending frequency
         self._theta_star = self.cfg_star.pose.r[2::3].copy()
-        B_star = self._guyan(Kuu)
+        B_star = self._guyan(Kuu)[0]
         # ranking
         from ..erls.modal import modal_analysis
 
@@ -214,17 +215,10 @@ class CraigBampton:
         return self.Phi_all.shape[1]
 
     # ------------------------------------------------------------------ basis
-    def _guyan(self, Kuu: np.ndarray) -> np.ndarray:
-        s_, m_ = self.is_, self.im
-        return -np.linalg.solve(Kuu[np.ix_(s_, s_)], Kuu[np.ix_(s_, m_)])
-
-    def _guyan_inv(self, Kuu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _guyan(self, Kuu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Guyan shapes ``B = -K_ss^-1 K_sm`` and ``K_ss^-1`` (kept for :meth:`basis_derivative`). The slave block
-        is small (22 x 22 on the six-bar) and well conditioned (the slaves are constrained through the masters and
-        the joints): an explicit inverse costs less than an LU factorisation's call overhead and is reused as two
-        matrix products."""
-        if self._ix_ss is None:
-            self._ix_ss, self._ix_sm = np.ix_(self.is_, self.is_), np.ix_(self.is_, self.im)
+        is small (22 x 22 on the six-bar) and well conditioned (condition number 6e5 there): an explicit inverse
+        costs less than an LU factorisation's call overhead and is reused as two matrix products."""
         Kinv = np.linalg.inv(Kuu[self._ix_ss])
         return -(Kinv @ Kuu[self._ix_sm]), Kinv
 
@@ -254,7 +248,7 @@ class CraigBampton:
         nq, ne = self.nq, self.model.ne
         T = self.model.T
         Kuu = T.T @ cfg.K_N @ T
-        B, Kinv = self._guyan_inv(Kuu)
+        B, Kinv = self._guyan(Kuu)
         Psi = self.rotated_modes(cfg)
         H = np.zeros((nq + ne, self.r))
         H[:nq, :nq] = np.eye(nq)
@@ -290,8 +284,6 @@ class CraigBampton:
         C = (ye[:, :, :, None] * S_th[:, None, None, :]).reshape(-1, k * nq)  # (n_el*6, k*nq)
         # slave rows of T^T (dK_N/dq_i w), column kk*nq + i: the element vectors scattered to the nodes and
         # projected on the slave dofs in one product (T_s^T S, built once)
-        if self._TtS_s is None:
-            self._TtS_s = np.ascontiguousarray((T.T @ model.scatter)[self.is_])
         rhs = self._TtS_s @ C
         dB = -(rc.Kss_inv @ rhs).reshape(-1, k, nq)  # (s, k, nq)
         out = np.zeros((k, nq + ne, nq))

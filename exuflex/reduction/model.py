@@ -168,14 +168,16 @@ class ReducedModel:
             fr -= (WJ.T @ cfg.M_N @ cfg.W) @ a_b  # J^T M a_b
         return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr)
 
-    def held(self, p, pd) -> tuple[ReducedMatrices, QuadraticForces]:
-        """Everything the cached observer step holds at a configuration, computed once with shared terms:
-        the reduced matrices (``fr`` left out) and :meth:`force_model` with its q-derivatives."""
+    def held(self, p, pd, *, fr: bool = False, gradients: bool = True) -> tuple[ReducedMatrices, QuadraticForces]:
+        """The reduced matrices and :meth:`force_model` at a configuration, computed once with shared terms
+        (one basis derivative for both). The cached observer step holds them with the q-gradients of ``M_r``
+        and ``K_r`` (``fr`` left out); the frozen step needs ``fr`` and the forces' Jacobian only
+        (``fr=True, gradients=False``)."""
         p = np.asarray(p, float)
         rc = self.cb.at(p[: self.nq])
-        dHdq = self.cb.basis_derivative(rc, np.eye(self.r)) if self.consistent else None
-        mats = self.matrices(p, pd, forces=False, dHdq=dHdq, rc=rc)
-        return mats, self.force_model(mats, p, dHdq=dHdq)
+        dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
+        mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
+        return mats, self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
 
     def reduced_mass(self, p: np.ndarray) -> np.ndarray:
         """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
@@ -198,7 +200,8 @@ class ReducedModel:
         self.cb.at(p[: self.nq])  # leave the closure solver warm-started at p
         return out
 
-    def force_model(self, mats: ReducedMatrices, p: np.ndarray, dHdq: np.ndarray | None = None) -> QuadraticForces:
+    def force_model(self, mats: ReducedMatrices, p: np.ndarray, dHdq: np.ndarray | None = None,
+                    gradients: bool = True) -> QuadraticForces:
         """The state-dependent forces ``fr(p, p')`` at ``mats``' configuration as explicit quadratic forms.
 
         With the configuration (and ``J``) held, every velocity-dependent term is a quadratic form in ``p'``
@@ -206,6 +209,7 @@ class ReducedModel:
         acceleration is bilinear in ``q'`` and ``p'``, and the q-row geometric term of the elastic
         displacements is a quadratic form in ``p``. Evaluating them costs a few tensor contractions instead of
         a kinematic and finite-element evaluation, which is what makes the cached observer step cheap.
+        ``gradients=False`` leaves out the q-derivatives of ``M_r`` and ``K_r`` (``dMr2``, ``dKr2`` None).
         """
         model, cb, nq, r = self.model, self.cb, self.nq, self.r
         rc, J = mats.rc, mats.J
@@ -228,6 +232,8 @@ class ReducedModel:
             dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
         JtM = WJ.T @ cfg.M_N @ cfg.W if self.consistent else None
         fg = WJ.T @ (cfg.M_N @ model.g_N)
+        if not gradients:
+            return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM)
         # d K_r / d q_i with K_r = H_u^T K_uu H_u: stiffness rotated with the elements, basis with the links;
         # per element (T H)_e^T R K_G R^T (T H)_e = A_e^T K_G A_e, so no assembly is needed
         KH = rc.Kuu @ rc.H[nq:]
