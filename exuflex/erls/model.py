@@ -266,10 +266,10 @@ class ErlsModel:
         T[:, :nq, :] -= np.transpose(SE, (2, 0, 1))  # q rows: -d(gT)/dv
         if Sd is None:
             Sd = self.coordinate_derivatives(cfg)
-        MW = WJ.T @ cfg.M_N  # (r, N)
-        for k in range(nq):
-            for j in range(nq):
-                T[k, :, j] += MW @ (Sd[j][:, k] + Sd[k][:, j])
+        # T[k, :, j] += (W J)^T M_N (dS/dq_j e_k + dS/dq_k e_j) for all k, j < nq in one product
+        Sd3 = np.stack(Sd)  # [j, :, k] = dS/dq_j e_k
+        X = (np.transpose(Sd3, (2, 0, 1)) + np.transpose(Sd3, (0, 2, 1))).reshape(nq * nq, -1)  # [k nq + j, :]
+        T[:nq, :, :nq] += ((X @ cfg.M_N) @ WJ).reshape(nq, nq, r).transpose(0, 2, 1)
         return T
 
     def coordinate_derivatives(self, cfg: Configuration) -> list[np.ndarray]:

@@ -49,8 +49,23 @@ def _secant_factor(dl, d, dd, has_old):  # pragma: no cover - compiled; twin of 
     return a / dd
 
 
-def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, q0, rad, meas_rad, d, dd, held,
-                   remap_rad, torque_var, q_extra, q_map, Pn, SQM, L, Q, Ts, Vs, C3, c0, Hm, dH):  # pragma: no cover
+def _vec(pack, lay, i):  # pragma: no cover - compiled
+    o = lay[4 * i]
+    return pack[o : o + lay[4 * i + 1]]
+
+
+def _mat(pack, lay, i):  # pragma: no cover - compiled
+    o, a, b = lay[4 * i], lay[4 * i + 1], lay[4 * i + 2]
+    return pack[o : o + a * b].reshape((a, b))
+
+
+def _ten(pack, lay, i):  # pragma: no cover - compiled
+    o, a, b, c = lay[4 * i], lay[4 * i + 1], lay[4 * i + 2], lay[4 * i + 3]
+    return pack[o : o + a * b * c].reshape((a, b, c))
+
+
+def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, pack, lay, fl, has_old, nq,
+                   n):  # pragma: no cover - compiled
     """Predict over one interval and update with all channels of ``y``.
 
     Parameters
@@ -60,16 +75,15 @@ def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, 
     floor : diagonal floor of the posterior covariance.
     x_out, r, S, P_out : out: posterior mean, innovation and its covariance, posterior covariance (``P_out``
         symmetrised and floored); P_pred, work, HP : scratch.
-    q0, rad, meas_rad, d, dd : held configuration, its refresh radius (``REFRESH`` beyond it) and
-        measurement radius, secant direction and ``d . d``.
-    held : the arguments of :func:`.held.held_step_loops` after ``(z, u, dl, s)`` (``held[0]``: has a secant
-        partner; ``held[1]``: nq).
-    remap_rad, torque_var, q_extra : step-map rebuild distance, torque variances, extra diagonal of ``Q``
-        (length 0 for none).
-    q_map, Pn, SQM, L, Q : configuration of the current step map and the map (rebuilt in place when q moved
-        by ``remap_rad``; a NaN ``q_map`` forces the rebuild).
-    Ts, Vs, C3 : the held forces' Jacobian tensors.
-    c0, Hm, dH : ``y = c0 + (Hm + s dH) x`` (``dH`` with 0 rows: no secant).
+    pack, lay : every array that stays fixed while a configuration is held, in one buffer (one argument to
+        pass instead of 33: numba unboxes each array argument of a call, about 0.1 us each), laid out as
+        :data:`PACKED` says; ``lay[4 i : 4 i + 4]`` = offset and shape of item ``i``. The step map items
+        (``q_map, Pn, SQM, L, Q``) are rebuilt in place when q has moved by ``remap_rad`` (a NaN ``q_map``
+        forces the rebuild).
+    fl : ``(rad, meas_rad, dd, remap_rad, beta, h)``: the held configuration's refresh radius (``REFRESH``
+        beyond it) and measurement radius, ``d . d`` of the secant direction ``d``, the step-map rebuild
+        distance, the stiffness-proportional damping and the RK4 step.
+    has_old, nq, n : a secant partner exists; number of rigid coordinates; RK4 steps per interval.
 
     Returns
     -------
@@ -80,47 +94,100 @@ def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, 
     finite : bool
         The posterior state and covariance are finite.
     """
-    nq = held[1]
+    rad, meas_rad, dd, remap_rad, beta, h = fl[0], fl[1], fl[2], fl[3], fl[4], fl[5]
+    q0, d = _vec(pack, lay, 0), _vec(pack, lay, 1)
     dl = z[:nq] - q0
     for i in range(nq):
         if abs(dl[i]) > rad:
             return REFRESH, math.nan, False, False
-    s = _secant_factor(dl, d, dd, held[0])
-    z_next, Mr, Kr, Cr, Gr = held_step_loops(z, u, dl, s, *held)
+    s = _secant_factor(dl, d, dd, has_old)
+    z_next, Mr, Kr, Cr, Gr = held_step_loops(
+        z, u, dl, s, has_old, nq, beta, h, n, _mat(pack, lay, 2), _mat(pack, lay, 3), _mat(pack, lay, 4),
+        _mat(pack, lay, 5), _mat(pack, lay, 6), _mat(pack, lay, 7), _vec(pack, lay, 8), _mat(pack, lay, 9),
+        _mat(pack, lay, 10), _mat(pack, lay, 11), _mat(pack, lay, 12), _mat(pack, lay, 13), _mat(pack, lay, 14),
+        _mat(pack, lay, 15), _vec(pack, lay, 16), _mat(pack, lay, 17), _mat(pack, lay, 18), _mat(pack, lay, 19))
     if not math.isfinite(z_next[0]) and (s != 0.0 or np.any(dl != 0.0)):
         return RESCUE, math.nan, False, False
+    q_map = _vec(pack, lay, 22)
+    Pn, SQM, L, Q = _mat(pack, lay, 23), _mat(pack, lay, 24), _mat(pack, lay, 25), _mat(pack, lay, 26)
     remapped = False
     for i in range(nq):
         if not abs(z[i] - q_map[i]) <= remap_rad:
             remapped = True
     if remapped:
-        Pn_new, SQM_new, L_new, Q_new = step_maps_held(Mr, Kr, Cr, Gr, held[3], held[4], torque_var)
+        Pn_new, SQM_new, L_new, Q_new = step_maps_held(Mr, Kr, Cr, Gr, h, n, _vec(pack, lay, 20))
         Pn[:] = Pn_new
         SQM[:] = SQM_new
         L[:] = L_new
         Q[:] = Q_new
+        q_extra = _vec(pack, lay, 21)
         for i in range(q_extra.shape[0]):
             Q[i, i] += q_extra[i]
         q_map[:] = z[:nq]
-    F = step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM)
+    F = step_jacobian_loops(z, _ten(pack, lay, 27), _ten(pack, lay, 28), _ten(pack, lay, 29), Pn, SQM)
     dlp = z_next[:nq] - q0
     for i in range(nq):
         if abs(dlp[i]) > meas_rad:
             return FAR, math.nan, remapped, False
     predict_cov(F, P, Q, P_pred, work)
-    H = Hm
+    H = _mat(pack, lay, 31)
+    dH = _mat(pack, lay, 32)
     if dH.shape[0]:
-        sm = _secant_factor(dlp, d, dd, held[0]) * dd
+        sm = _secant_factor(dlp, d, dd, has_old) * dd
         if sm != 0.0:
-            H = Hm + sm * dH
-    y_pred = c0 + H @ z_next
+            H = H + sm * dH
+    y_pred = _vec(pack, lay, 30) + H @ z_next
     nis, ok = update(z_next, P_pred, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
     if not ok:
         return INDEFINITE, math.nan, remapped, False
     return DONE, nis, remapped, settle(x_out, P_out, floor)
 
 
+#: Items of the packed arguments of :func:`cached_sample`, in order (see :func:`pack_arguments`).
+PACKED = ("q0", "d", "Mr0", "Kr0", "Ca0", "Gr0", "dM2", "dK2", "fg", "T2", "V2", "C2", "oM2", "oK2", "oCa",
+          "oGr", "ofg", "oT2", "oV2", "oC2", "torque_var", "q_extra", "q_map", "Pn", "SQM", "L", "Q", "Ts", "Vs",
+          "C3", "c0", "Hm", "dH")
+
+
+_LAYOUTS: dict = {}
+
+
+def _layout(shapes: tuple) -> tuple[np.ndarray, int]:
+    lay = _LAYOUTS.get(shapes)
+    if lay is None:
+        if len(shapes) != len(PACKED):
+            raise ValueError(f"{len(shapes)} arrays to pack, expected {len(PACKED)}")
+        lay = np.zeros(4 * len(shapes), dtype=np.int64)
+        off = 0
+        for i, shape in enumerate(shapes):
+            if len(shape) > 3:
+                raise ValueError(f"{PACKED[i]} has {len(shape)} dimensions, at most 3 can be packed")
+            lay[4 * i] = off
+            lay[4 * i + 1 : 4 * i + 1 + len(shape)] = shape
+            off += math.prod(shape)
+        lay = _LAYOUTS[shapes] = (lay, off)
+    return lay
+
+
+def pack_arguments(arrays, views=()) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """``(pack, lay, views)``: the float64 arrays (in :data:`PACKED` order) copied into one buffer, the int64
+    layout (offset and up to three dimensions per item) and a view of the buffer, of the item's shape, for
+    each item index in ``views`` (writing a view writes the buffer the kernel reads)."""
+    lay, size = _layout(tuple(a.shape for a in arrays))
+    pack = np.concatenate([a.reshape(-1) for a in arrays]) if size else np.empty(0)
+    if pack.dtype != np.float64:
+        raise ValueError(f"packed arrays must be float64, got {pack.dtype}")
+    out = []
+    for i in views:
+        o = lay[4 * i]
+        out.append(pack[o : o + arrays[i].size].reshape(arrays[i].shape))
+    return pack, lay, out
+
+
 _secant_factor = _jit(_secant_factor)
+_vec = _jit(_vec)
+_mat = _jit(_mat)
+_ten = _jit(_ten)
 cached_sample = _jit(_cached_sample) if HAVE_NUMBA else None
 
 
@@ -130,15 +197,15 @@ def warm_up() -> None:
         return
     r, nq, m = 2, 1, 1
     nx = 2 * r
-    z, u, dl = np.zeros(nx), np.zeros(nq), np.zeros(nq)
+    z, u = np.zeros(nx), np.zeros(nq)
     M, g2, f = np.eye(r), np.zeros((nq, r * r)), np.zeros(r)
     T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
     G = np.zeros((r, nq))
-    held = (False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2)
-    P = np.eye(nx)
     sq = np.empty((nx, nx))
-    cached_sample(z, P, u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m), np.empty((m, m)), sq,
-                  sq.copy(), sq.copy(), np.empty((m, nx)), dl, 1.0, 1.0, dl, 1.0, held, 1e-3, np.ones(nq), np.zeros(0),
-                  np.full(nq, np.nan), sq.copy(), np.empty((nx, r)), np.empty((nx, nq)), sq.copy(),
-                  np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.zeros(m), np.zeros((m, nx)),
-                  np.zeros((0, nx)))
+    pack, lay, _ = pack_arguments(
+        (u, u, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, np.ones(nq), np.zeros(0),
+         np.full(nq, np.nan), sq, np.empty((nx, r)), np.empty((nx, nq)), sq, np.zeros((r, r, r)), np.zeros((nq, r, r)),
+         np.zeros((r, nq, r)), np.zeros(m), np.zeros((m, nx)), np.zeros((0, nx))))
+    fl = np.array([1.0, 1.0, 1.0, 1e-3, 0.0, 1e-4])
+    cached_sample(z, np.eye(nx), u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m),
+                  np.empty((m, m)), sq.copy(), sq.copy(), sq.copy(), np.empty((m, nx)), pack, lay, fl, False, nq, 1)

@@ -56,7 +56,7 @@ import numpy as np
 from ..erls.kinematics import KinematicsError
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
-from .fused import DONE, REFRESH, cached_sample
+from .fused import DONE, REFRESH, cached_sample, pack_arguments
 from .fused import warm_up as fused_warm_up
 from .held import (
     HAVE_NUMBA,
@@ -193,6 +193,7 @@ class ReducedObserverModel:
         self._fixed_rows: dict = {}  # configuration-independent sensor rows (encoders), per channel
         self._noRows = np.zeros((0, self.nx))
         self.fused = self.kernel_name == "numba"
+        self._u_shape = (len(self.mech.motors),)
         self.n_declined = 0
         if self.fused and method == "cached":
             fused_warm_up()
@@ -496,17 +497,18 @@ class ReducedObserverModel:
         """
         if not self.fused or self.method != "cached" or self.kernel_name != "numba":
             return None
-        u = self._input(u)
+        if u.__class__ is not np.ndarray or u.shape != self._u_shape or u.dtype != np.float64:
+            u = self._input(u)  # (the filter passes its stored input: a float array, checked once here)
         m = len(channels)
         x_out, r, S = np.empty(self.nx), np.empty(m), np.empty((m, m))
         iv = self._last
         if iv is None or iv.kargs is None or iv.dt != dt:
             iv = self._refresh(x, dt)
         for _ in range(2):
-            held = iv.fused
-            if held is None or held[0] is not channels:
-                held = self._fused_arguments(iv, channels)
-            status, nis, remapped, finite = cached_sample(x, P, u, y, Rd, floor, x_out, r, S, *bufs, *held[1])
+            args = iv.fused
+            if args is None or args[0] is not channels:
+                args = self._fused_arguments(iv, channels)
+            status, nis, remapped, finite = cached_sample(x, P, u, y, Rd, floor, x_out, r, S, *bufs, *args[1])
             if status != REFRESH:
                 break
             iv = self._refresh(x, dt)
@@ -519,18 +521,24 @@ class ReducedObserverModel:
 
     def _fused_arguments(self, iv: _Interval, channels: tuple) -> tuple:
         """The arguments of :func:`.fused.cached_sample` that stay fixed while iv is held (until a step-by-step
-        sample rebuilds its step map into new arrays), kept on iv with the channels they are for."""
-        if iv.q_map is None:  # no step map yet: the kernel builds one into these
-            nx, nu = self.nx, len(self.mech.motors)
-            iv.q_map = np.full(self.nq, np.nan)
-            iv.Pn, iv.SQM = np.empty((nx, nx)), np.empty((nx, self.r))
-            iv.L, iv.Q = np.empty((nx, nu)), np.empty((nx, nx))
+        sample rebuilds its step map into new arrays), packed into one buffer (:func:`.fused.pack_arguments`)
+        and kept on iv with the channels they are for. iv's step map arrays become views of the buffer, so
+        that the kernel's in-place rebuilds are what the step-by-step path reads."""
+        nx, nu = self.nx, len(self.mech.motors)
+        if iv.q_map is None:  # no step map yet: the kernel builds one (a NaN q_map forces it)
+            maps = (np.full(self.nq, np.nan), np.empty((nx, nx)), np.empty((nx, self.r)), np.empty((nx, nu)),
+                    np.empty((nx, nx)))
+        else:
+            maps = (iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q)
         c0, Hm, dH = self._secant_rows(iv, channels)
-        args = (iv.q0, iv.rad, self._measurement_radius(iv), iv.q0 if iv.old is None else iv.d, iv.dd,
-                iv.kargs, self.remap_rad, self.torque_var, self._noQ if self.q_extra is None else self.q_extra,
-                iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q, *iv.forces.jacobian_tensors(), c0, Hm,
-                self._noRows if dH is None else dH)
-        iv.fused = (channels, args)
+        k = iv.kargs  # (has_old, nq, beta, h, n, the 18 held arrays)
+        pack, lay, views = pack_arguments(
+            (iv.q0, iv.q0 if iv.old is None else iv.d, *k[5:], self.torque_var,
+             self._noQ if self.q_extra is None else self.q_extra, *maps, *iv.forces.jacobian_tensors(), c0, Hm,
+             self._noRows if dH is None else dH), views=range(22, 27))
+        iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q = views
+        fl = np.array([iv.rad, self._measurement_radius(iv), iv.dd, self.remap_rad, k[2], k[3]])
+        iv.fused = (channels, (pack, lay, fl, k[0], k[1], k[4]))
         return iv.fused
 
     def _linear(self, iv: _Interval, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
