@@ -169,30 +169,49 @@ def _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compil
             acc += Gr[i, j] * u[j]
         rhs[i, 2 * r] = acc
     X = _cholesky_solve(Mr, rhs)
+    XT = np.ascontiguousarray(X.T)  # (2r+1, r): column j of the operator is the contiguous row XT[j]
+    b = XT[2 * r]
     p = z[:r].copy()
     v = z[r:].copy()
-    XT = np.ascontiguousarray(X.T)  # (2r+1, r): column j of the operator is the contiguous row XT[j]
-    a = np.empty((4, r))  # stage accelerations
-    w = np.empty((4, r))  # stage velocities
-    y = np.empty(2 * r)  # stage state [p; v]
+    a = np.empty(r)  # stage acceleration
+    w = np.empty(r)  # stage velocity
+    yp = np.empty(r)  # stage position
+    asum = np.empty(r)  # weighted sums of the stage rates (1, 2, 2, 1)
+    wsum = np.empty(r)
     for _ in range(n):
         for st in range(4):
-            c = 0.0 if st == 0 else (0.5 * h if st < 3 else h)
-            for i in range(r):
-                # stage st at (p + c w_{st-1}, v + c a_{st-1})
-                y[i] = p[i] if st == 0 else p[i] + c * w[st - 1, i]
-                w[st, i] = v[i] if st == 0 else v[i] + c * a[st - 1, i]
-                y[r + i] = w[st, i]
-            # a = X[:, 2r] - X[:, :2r] y, as axpy sweeps (independent lanes: no serial add chain)
-            for i in range(r):
-                a[st, i] = XT[2 * r, i]
-            for j in range(2 * r):
-                yj = y[j]
+            if st == 0:  # stage st at (p + c w_{st-1}, v + c a_{st-1})
                 for i in range(r):
-                    a[st, i] -= XT[j, i] * yj
+                    yp[i] = p[i]
+                    w[i] = v[i]
+            else:
+                c = 0.5 * h if st < 3 else h
+                for i in range(r):
+                    yp[i] = p[i] + c * w[i]
+                    w[i] = v[i] + c * a[i]
+            # a = b - X_K yp - X_C w, as axpy sweeps over contiguous rows, a position and a velocity column
+            # per sweep (independent lanes: no serial add chain)
+            for i in range(r):
+                a[i] = b[i]
+            for j in range(r):
+                xk = XT[j]
+                xc = XT[r + j]
+                pj = yp[j]
+                vj = w[j]
+                for i in range(r):
+                    a[i] -= xk[i] * pj + xc[i] * vj
+            if st == 0:
+                for i in range(r):
+                    wsum[i] = w[i]
+                    asum[i] = a[i]
+            else:
+                g = 1.0 if st == 3 else 2.0
+                for i in range(r):
+                    wsum[i] += g * w[i]
+                    asum[i] += g * a[i]
         for i in range(r):
-            p[i] += h / 6.0 * (w[0, i] + 2.0 * w[1, i] + 2.0 * w[2, i] + w[3, i])
-            v[i] += h / 6.0 * (a[0, i] + 2.0 * a[1, i] + 2.0 * a[2, i] + a[3, i])
+            p[i] += h / 6.0 * wsum[i]
+            v[i] += h / 6.0 * asum[i]
     out = np.empty(2 * r)
     out[:r] = p
     out[r:] = v
