@@ -7,9 +7,10 @@ the secant, the Joseph update and the end-of-sample symmetrisation. Each part is
 by one from Python it costs about as much in Python glue as in arithmetic (some 130 us per sample, against
 the 100 us that 20x real time allows at 500 Hz). :func:`cached_sample` runs them all in one call, with the
 same compiled functions in the same order, so the results equal the step-by-step path's (bit for bit on the
-six-bar's 3 s log, ``tests/test_fused.py``). Measured on the six-bar: 44 us per call (the held RK4 steps 22 us,
-Jacobian, covariance prediction and update 15 us, argument passing 4 us), 38 us more when the step map is
-rebuilt.
+six-bar's 3 s log, ``tests/test_fused.py``). Measured on the six-bar (fast phases of a machine whose speed
+drifts by 30-50 %): about 35 us per call (the held model and its 20 RK4 steps 14.5 us, of which the RK4 steps
+9 us; Jacobian, covariance prediction and update about 15 us; passing the arguments 1.6 us, since they are one
+packed buffer instead of 46 arrays, 4.7 us), 33-38 us more when the step map is rebuilt.
 
 Python keeps what happens a few dozen times per run: the configuration evaluations, the measurement rows
 per held configuration, and every case the kernel declines (it then returns a nonzero status before it has
