@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mechanism import ElasticDofs, Mechanism, elastic_dofs
+from ._assembly import nodal_matrices
 from .elements import GENERATOR, beam_mass, beam_stiffness, hermite_curvature_row, rotation
 from .kinematics import Kinematics, Pose
 
@@ -124,6 +125,9 @@ class ErlsModel:
         # (N, 6 n_el) 0/1 map scattering stacked element vectors into nodal vectors
         self.scatter = np.zeros((self.N, 6 * self.n_el))
         self.scatter[self._el_flat, np.arange(6 * self.n_el)] = 1.0
+        # configuration(): the rotated, assembled nodal matrices in one compiled call where numba is installed
+        # (_assembly); False: the NumPy expressions (the reference)
+        self.compiled = nodal_matrices is not None
 
     # ------------------------------------------------------------------ helpers
     def _joint_node_dof(self, joint: str, link: str, comp: int) -> int:
@@ -145,6 +149,10 @@ class ErlsModel:
     def configuration(self, q, z0=None) -> Configuration:
         pose = self.kin.pose(q, z0)
         th = pose.link_angles[self.el_link]
+        if self.compiled:
+            R, M_N, K_N = nodal_matrices(np.ascontiguousarray(th, dtype=float), self.Ml, self.Kl, self.el_dofs,
+                                         self.lumped)
+            return Configuration(pose, R, M_N, K_N, np.hstack([pose.S, self.T]))
         R = rotation(th)
         Rt = np.swapaxes(R, 1, 2)
         M_N = self._assemble(R @ self.Ml @ Rt)

@@ -44,6 +44,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..erls.model import Configuration, ErlsModel
+from . import _compiled
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -129,6 +130,11 @@ class CraigBampton:
         self._ix_ss, self._ix_sm = np.ix_(self.is_, self.is_), np.ix_(self.is_, self.im)  # slave blocks of K_uu
         # slave rows of T^T times the element scatter map: dK_N/dq w projected on the slaves (basis_derivative)
         self._TtS_s = np.ascontiguousarray((model.T.T @ model.scatter)[self.is_])
+        # basis_derivative in one compiled call (:mod:`._compiled`) where numba is installed; False: NumPy
+        self.compiled = _compiled.HAVE_NUMBA
+        # R(q, q*): the interior modes turn with their nodes (the paper's modification); False keeps Phi(q*)
+        # fixed in the global frame (to show what the rotation buys)
+        self.rotate = True
         self.nq = model.nq
         self.n_m = self.nq + len(im)
         self.band_hz = float(spec.band_hz if band_hz is None else band_hz)
@@ -222,11 +228,17 @@ class CraigBampton:
         Kinv = np.linalg.inv(Kuu[self._ix_ss])
         return -(Kinv @ Kuu[self._ix_sm]), Kinv
 
+    def _pair_angles(self, cfg: Configuration) -> np.ndarray:
+        """Rotation of each interior-mode node pair from q* (zero with ``rotate`` off)."""
+        if not self.rotate:
+            return np.zeros(len(self._pnode))
+        return cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+
     def rotation(self, cfg: Configuration) -> np.ndarray:
         """R(q, q*) as a (ne, ne) matrix acting on global-frame elastic displacement vectors."""
         ne = self.model.ne
         Rm = np.eye(ne)
-        dth = cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+        dth = self._pair_angles(cfg)
         c, s = np.cos(dth), np.sin(dth)
         px, py = self._px, self._py
         Rm[px, px], Rm[px, py], Rm[py, px], Rm[py, py] = c, -s, s, c
@@ -234,7 +246,7 @@ class CraigBampton:
 
     def rotated_modes(self, cfg: Configuration) -> np.ndarray:
         """Psi(q, q*) = R(q, q*) Phi(q*), slave rows (s, k)."""
-        dth = cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+        dth = self._pair_angles(cfg)
         c, s = np.cos(dth)[:, None], np.sin(dth)[:, None]
         P = self._Phi_u.copy()
         X, Y = self._Phi_u[self._px], self._Phi_u[self._py]
@@ -247,6 +259,11 @@ class CraigBampton:
         cfg = q_or_cfg if isinstance(q_or_cfg, Configuration) else self.model.configuration(q_or_cfg, z0)
         nq, ne = self.nq, self.model.ne
         T = self.model.T
+        if self.compiled:
+            dth = self._pair_angles(cfg)
+            Kuu, B, Kinv, Psi, H = _compiled.basis_at(cfg.K_N, T, nq, self.im, self.is_, self._Phi_u, self._px,
+                                                      self._py, np.cos(dth), np.sin(dth))
+            return ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
         Kuu = T.T @ cfg.K_N @ T
         B, Kinv = self._guyan(Kuu)
         Psi = self.rotated_modes(cfg)
@@ -269,6 +286,14 @@ class CraigBampton:
         cfg = rc.cfg
         nq, ne, me = self.nq, model.ne, len(self.im)
         V = np.atleast_2d(np.asarray(V, float).T).T
+        if self.compiled:
+            dth = self._pair_angles(cfg)
+            Sn = cfg.pose.S[2::3][self._pnode] if self.rotate else np.zeros((len(self._pnode), nq))
+            return _compiled.basis_derivative(
+                np.ascontiguousarray(V), nq, self.im, self.is_, np.ascontiguousarray(rc.B), model.T, model.el_dofs,
+                cfg.R, model.KGl, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]), self._TtS_s,
+                np.ascontiguousarray(rc.Kss_inv), np.cos(dth), np.sin(dth), self._Phi_u, self._px, self._py,
+                np.ascontiguousarray(Sn))
         k = V.shape[1]
         T = model.T
         # Guyan fields w (ne, k)
@@ -289,8 +314,8 @@ class CraigBampton:
         out = np.zeros((k, nq + ne, nq))
         out[:, nq + self.is_, :] = dB.transpose(1, 0, 2)
         # rotated interior modes
-        if self.n_interior:
-            dth = cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+        if self.n_interior and self.rotate:
+            dth = self._pair_angles(cfg)
             c, s_ = np.cos(dth)[:, None], np.sin(dth)[:, None]
             Wu = self._Phi_u @ V[nq + me :]  # (ne, k) unrotated
             X, Y = Wu[self._px], Wu[self._py]

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _compiled
 from .basis import CraigBampton, ReducedConfiguration
 
 __all__ = ["ReducedModel", "ReducedMatrices"]
@@ -52,7 +53,8 @@ class QuadraticForces:
     """
 
     def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
-                 JtM: np.ndarray | None, dMr: np.ndarray | None = None, dKr: np.ndarray | None = None):
+                 JtM: np.ndarray | None, dMr: np.ndarray | None = None, dKr: np.ndarray | None = None,
+                 C2: np.ndarray | None = None):
         r = len(fg)
         self.nq, self.r = nq, r
         self.fg = fg
@@ -61,8 +63,8 @@ class QuadraticForces:
         self._tensors = None
         self.T2 = Tk.reshape(r, r * r)
         self.V2 = V.reshape(nq * r, r)
-        self.C2 = None
-        if dHdq is not None:
+        self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
+        if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
 
@@ -110,14 +112,18 @@ class ReducedModel:
     consistent : exact velocity transformation (default) or the paper's ``x' ~ H p'`` (see module docstring).
     """
 
-    def __init__(self, cb: CraigBampton, consistent: bool = True):
+    def __init__(self, cb: CraigBampton, consistent: bool = True, compiled: bool | None = None):
         self.cb = cb
+        # the force model's arithmetic in one compiled call (:mod:`._compiled`) where numba is installed;
+        # False: the NumPy expressions below (the reference)
+        self.compiled = _compiled.HAVE_NUMBA if compiled is None else bool(compiled and _compiled.HAVE_NUMBA)
         self.model = cb.model
         self.nq = cb.nq
         self.r = cb.r
         self.nx = 2 * cb.r
         self.names = cb.names
         self.consistent = consistent
+        self._element_data = None
 
     # ------------------------------------------------------------------ matrices
     def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
@@ -136,6 +142,11 @@ class ReducedModel:
         if rc is None:
             rc = cb.at(p[:nq])
         cfg, H = rc.cfg, rc.H
+        if self.compiled and not forces and (dHdq is not None or not self.consistent):
+            J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
+                p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
+                rc.Kuu, model.T, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
+            return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
         J = H
         a_b = None
         if self.consistent:
@@ -214,6 +225,10 @@ class ReducedModel:
         model, cb, nq, r = self.model, self.cb, self.nq, self.r
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
+        if dHdq is None:
+            dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
+        if self.compiled:
+            return self._force_model_compiled(mats, dHdq, gradients)
         Sd = model.coordinate_derivatives(cfg)
         WJ = cfg.W @ J
         SE = model.element_rotation_term(cfg, WJ)
@@ -228,8 +243,6 @@ class ReducedModel:
         SEe = (S_th.T @ Ee.reshape(len(Ee), -1)).reshape(nq, r, r)
         # q-row geometric term h_V(p) = S_th^T gV(u): the quadratic form in p of the symmetric part of K_G
         V = 0.25 * (SEe + np.swapaxes(SEe, 1, 2))  # J's q rows are [I 0]
-        if dHdq is None:
-            dHdq = cb.basis_derivative(rc, np.eye(r))  # (r, n, nq)
         JtM = WJ.T @ cfg.M_N @ cfg.W if self.consistent else None
         fg = WJ.T @ (cfg.M_N @ model.g_N)
         if not gradients:
@@ -241,6 +254,30 @@ class ReducedModel:
         dKr = SEe + dHK + np.swapaxes(dHK, 1, 2)
         dMr = self.mass_derivative_analytic(mats, dHdq, Sd, WJ, SE)
         return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr)
+
+    def _force_model_compiled(self, mats: ReducedMatrices, dHdq: np.ndarray, gradients: bool) -> QuadraticForces:
+        """:meth:`force_model` through :func:`._compiled.force_terms` (the same formulas, one call)."""
+        model, nq = self.model, self.nq
+        cfg = mats.rc.cfg
+        R = cfg.R
+        el = self._element_data
+        if el is None:  # configuration-independent element data, contiguous for the kernel
+            el = self._element_data = (np.ascontiguousarray(model.el_dofs), np.ascontiguousarray(model.KGl),
+                                       np.ascontiguousarray(model.Gl), np.ascontiguousarray(model.T),
+                                       np.ascontiguousarray(model.g_N))
+        el_dofs, KGl, Gl, Tmap, g_N = el
+        RGR = R @ Gl @ np.swapaxes(R, 1, 2)
+        S_th = np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link])
+        Sd3 = np.ascontiguousarray(model.kin.coordinate_rates(cfg.pose))
+        fg, Tk, V, JtM, dMr, dKr, C2 = _compiled.force_terms(
+            np.ascontiguousarray(cfg.W), np.ascontiguousarray(mats.J), np.ascontiguousarray(mats.rc.H), cfg.M_N,
+            Tmap, np.ascontiguousarray(mats.rc.Kuu), g_N, np.ascontiguousarray(R), RGR, KGl, el_dofs, S_th, Sd3,
+            np.ascontiguousarray(dHdq), nq, self.consistent)
+        if not self.consistent:
+            JtM, C2 = None, None
+        if not gradients:
+            dMr, dKr = None, None
+        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr, C2=C2)
 
     def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None,
                                  WJ: np.ndarray | None = None, SE: np.ndarray | None = None) -> np.ndarray:

@@ -1,0 +1,282 @@
+"""Compiled (numba) twins of the reduced model's per-configuration arithmetic that the cached observer runs at
+every configuration evaluation (about 30 times per 3 s of the six-bar).
+
+At the six-bar's size (42 nodal dofs, 9 elements, 13 reduced coordinates) the NumPy expressions of
+:meth:`exuflex.reduction.model.ReducedModel.force_model` cost far more in call overhead and temporaries than in
+arithmetic: some 80 NumPy calls on arrays of a few hundred entries. :func:`force_terms` and
+:func:`basis_derivative`, :func:`basis_at` and :func:`reduced_matrices` (the twins of
+:meth:`exuflex.reduction.basis.CraigBampton.basis_derivative` and ``at``, and of
+:meth:`exuflex.reduction.model.ReducedModel.matrices` without the forces) do the same arithmetic in one compiled
+call each. The NumPy methods stay the reference (and what runs without numba);
+``tests/test_reduction.py`` checks that both agree to rounding.
+
+This module imports without numba: ``HAVE_NUMBA`` is then False and nothing here is called.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:
+    import numba
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only on machines without numba
+    numba = None
+    HAVE_NUMBA = False
+
+__all__ = ["HAVE_NUMBA", "basis_at", "basis_derivative", "force_terms", "reduced_matrices"]
+
+
+def _element_form(X, el_dofs, Rm, Km, S_th, nq):  # pragma: no cover - compiled
+    """``sum_e S_th[e, k] X_e^T R_e K_e R_e^T X_e`` (nq, r, r), ``X_e`` the element's rows of ``X`` (N, r);
+    ``Km`` (n_el, 6, 6) is the element's local matrix (the rotation applied here) or, with ``Rm`` of zero
+    length, the element matrix in the global frame already rotated and ``X`` taken as it is."""
+    n_el = el_dofs.shape[0]
+    r = X.shape[1]
+    out = np.zeros((nq, r, r))
+    Xe = np.empty((6, r))
+    for e in range(n_el):
+        for a in range(6):
+            Xe[a] = X[el_dofs[e, a]]
+        if Rm.shape[0]:
+            Ae = np.ascontiguousarray(Rm[e].T) @ Xe  # element frame
+        else:
+            Ae = Xe
+        E = np.ascontiguousarray(Ae.T) @ (Km[e] @ Ae)  # (r, r)
+        for k in range(nq):
+            w = S_th[e, k]
+            if w != 0.0:
+                out[k] += w * E
+    return out
+
+
+def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, RGR, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent):
+    # pragma: no cover - compiled twin of ReducedModel.force_model (gradients=True)
+    """``(fg, Tk, V, JtM, dMr, dKr, C2)`` of :class:`~exuflex.reduction.model.QuadraticForces`, see
+    :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``RGR`` (n_el, 6, 6):
+    ``R_e G R_e^T`` per element (the element mass rotation rate); ``Sd3`` (nq, N, nq): ``dS/dq_j``."""
+    N, n = W.shape
+    r = J.shape[1]
+    ne = n - nq
+    WJ = W @ J  # (N, r)
+    noR = np.zeros((0, 6, 6))
+    SE = _element_form(WJ, el_dofs, noR, RGR, S_th, nq)  # element mass rotation term (nq, r, r)
+    # velocity force tensor T[k] = J^T (dh/dv)(J e_k) J
+    Tk = np.zeros((r, r, r))
+    for k in range(nq):
+        for i in range(r):
+            for j in range(r):
+                Tk[k, i, j] += SE[k, i, j]
+                Tk[j, i, k] += SE[k, i, j]
+                Tk[j, k, i] -= SE[k, i, j]
+    MWJ = M_N @ WJ  # (N, r)
+    for k in range(nq):
+        for j in range(nq):
+            for i in range(r):
+                acc = 0.0
+                for a in range(N):
+                    acc += MWJ[a, i] * (Sd3[j, a, k] + Sd3[k, a, j])
+                Tk[k, i, j] += acc
+    # q-row geometric term and the element part of dK_r/dq
+    TH = Tmap @ np.ascontiguousarray(H[nq:])  # (N, r)
+    SEe = _element_form(TH, el_dofs, R, KGl, S_th, nq)
+    V = np.empty((nq, r, r))
+    for k in range(nq):
+        for i in range(r):
+            for j in range(r):
+                V[k, i, j] = 0.25 * (SEe[k, i, j] + SEe[k, j, i])
+    WJt = np.ascontiguousarray(WJ.T)
+    fg = WJt @ (M_N @ g_N)
+    JtM = WJt @ (M_N @ W) if consistent else np.zeros((0, n))
+    # dK_r/dq_i = SEe + dH_u^T K_uu H_u + its transpose
+    KH = Kuu @ np.ascontiguousarray(H[nq:])  # (ne, r)
+    dKr = np.empty((nq, r, r))
+    dHu = np.empty((r, ne))
+    for i in range(nq):
+        for a in range(r):
+            for u in range(ne):
+                dHu[a, u] = dHdq[a, nq + u, i]
+        dHK = dHu @ KH  # (r, r)
+        for a in range(r):
+            for b in range(r):
+                dKr[i, a, b] = SEe[i, a, b] + dHK[a, b] + dHK[b, a]
+    # dM_r/dq_i = dWJ_i^T M_N WJ + its transpose + SE, with dWJ_i = dS/dq_i J_q + W dH/dq_i
+    Jq = np.ascontiguousarray(J[:nq])
+    dMr = np.empty((nq, r, r))
+    dH = np.empty((n, r))
+    for i in range(nq):
+        for a in range(n):
+            for b in range(r):
+                dH[a, b] = dHdq[b, a, i]
+        dWJ = np.ascontiguousarray(Sd3[i]) @ Jq + W @ dH  # (N, r)
+        A = np.ascontiguousarray(dWJ.T) @ MWJ
+        for a in range(r):
+            for b in range(r):
+                dMr[i, a, b] = A[a, b] + A[b, a] + SE[i, a, b]
+    # bias term: C[k, j, :] = J^T M W dH/dq_j e_k, flattened (r nq, r) and doubled
+    if consistent:
+        C2 = np.empty((r * nq, r))
+        col = np.empty(n)
+        for k in range(r):
+            for j in range(nq):
+                for a in range(n):
+                    col[a] = dHdq[k, a, j]
+                C2[k * nq + j] = 2.0 * (JtM @ col)
+    else:
+        C2 = np.zeros((0, r))
+    return fg, Tk, V, JtM, dMr, dKr, C2
+
+
+if HAVE_NUMBA:
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _element_form = _jit(_element_form)
+    force_terms = _jit(_force_terms)
+else:  # pragma: no cover
+    force_terms = None
+
+
+def _basis_derivative(V, nq, im, is_, B, Tmap, el_dofs, R, KGl, S_th, TtS_s, Kss_inv, c, s, Phi_u, px, py, Sn):
+    # pragma: no cover - compiled twin of CraigBampton.basis_derivative
+    """``d(H v)/dq`` for each column of ``V`` (k, n, nq); see
+    :meth:`~exuflex.reduction.basis.CraigBampton.basis_derivative` for the formulas. ``c, s``: cosine and sine
+    of the interior-mode node pairs' rotation from q*, ``Sn`` (pairs, nq) their angle sensitivities."""
+    N, ne = Tmap.shape
+    k = V.shape[1]
+    me = im.shape[0]
+    ns = is_.shape[0]
+    n_el = el_dofs.shape[0]
+    out = np.zeros((k, nq + ne, nq))
+    # Guyan fields w = [u_m; B u_m] and their nodal displacements
+    Vm = np.ascontiguousarray(V[nq : nq + me])
+    W = np.zeros((ne, k))
+    for a in range(me):
+        W[im[a]] = Vm[a]
+    BV = B @ Vm
+    for a in range(ns):
+        W[is_[a]] = BV[a]
+    d = Tmap @ W  # (N, k)
+    # per element: R K_G R^T applied to the element's displacements, weighted by its angle sensitivities
+    C = np.empty((n_el * 6, k * nq))
+    de = np.empty((6, k))
+    for e in range(n_el):
+        for a in range(6):
+            de[a] = d[el_dofs[e, a]]
+        ye = R[e] @ (KGl[e] @ (np.ascontiguousarray(R[e].T) @ de))  # (6, k)
+        for a in range(6):
+            for kk in range(k):
+                y = ye[a, kk]
+                for i in range(nq):
+                    C[e * 6 + a, kk * nq + i] = y * S_th[e, i]
+    dB = Kss_inv @ (TtS_s @ C)  # (s, k nq), negated below
+    for a in range(ns):
+        row = nq + is_[a]
+        for kk in range(k):
+            for i in range(nq):
+                out[kk, row, i] = -dB[a, kk * nq + i]
+    # rotated interior modes: d(Psi eta)/dq_i = G2 (R Phi eta) dtheta_node/dq_i per node pair
+    if Phi_u.shape[1]:
+        Wu = Phi_u @ np.ascontiguousarray(V[nq + me :])  # (ne, k) unrotated
+        dU = np.zeros((ne, k, nq))
+        for pp in range(px.shape[0]):
+            x, y = px[pp], py[pp]
+            for kk in range(k):
+                X, Y = Wu[x, kk], Wu[y, kk]
+                RX = c[pp] * X - s[pp] * Y
+                RY = s[pp] * X + c[pp] * Y
+                for i in range(nq):
+                    dU[x, kk, i] = -RY * Sn[pp, i]
+                    dU[y, kk, i] = RX * Sn[pp, i]
+        for a in range(ns):
+            u = is_[a]
+            for kk in range(k):
+                for i in range(nq):
+                    out[kk, nq + u, i] += dU[u, kk, i]
+    return out
+
+
+if HAVE_NUMBA:
+    basis_derivative = _jit(_basis_derivative)
+else:  # pragma: no cover
+    basis_derivative = None
+
+
+def _basis_at(K_N, Tmap, nq, im, is_, Phi_u, px, py, c, s):  # pragma: no cover - compiled twin of CraigBampton.at
+    """``(K_uu, B, K_ss^-1, Psi, H)`` of :meth:`~exuflex.reduction.basis.CraigBampton.at` from the assembled
+    nodal stiffness: Guyan shapes ``B = -K_ss^-1 K_sm``, interior modes rotated per node pair (``c, s``: cosine
+    and sine of the pairs' rotation from q*) and the basis ``H`` (nq + ne, r)."""
+    ne = Tmap.shape[1]
+    me = im.shape[0]
+    ns = is_.shape[0]
+    ki = Phi_u.shape[1]
+    Tt = np.ascontiguousarray(Tmap.T)
+    Kuu = Tt @ (K_N @ Tmap)
+    Kss = np.empty((ns, ns))
+    Ksm = np.empty((ns, me))
+    for a in range(ns):
+        for b in range(ns):
+            Kss[a, b] = Kuu[is_[a], is_[b]]
+        for b in range(me):
+            Ksm[a, b] = Kuu[is_[a], im[b]]
+    Kinv = np.linalg.inv(Kss)
+    B = -(Kinv @ Ksm)
+    P = Phi_u.copy()
+    for pp in range(px.shape[0]):
+        x, y = px[pp], py[pp]
+        for j in range(ki):
+            X, Y = Phi_u[x, j], Phi_u[y, j]
+            P[x, j] = c[pp] * X - s[pp] * Y
+            P[y, j] = s[pp] * X + c[pp] * Y
+    Psi = np.empty((ns, ki))
+    for a in range(ns):
+        Psi[a] = P[is_[a]]
+    r = nq + me + ki
+    H = np.zeros((nq + ne, r))
+    for i in range(nq):
+        H[i, i] = 1.0
+    for a in range(me):
+        H[nq + im[a], nq + a] = 1.0
+    for a in range(ns):
+        row = nq + is_[a]
+        for b in range(me):
+            H[row, nq + b] = B[a, b]
+        for j in range(ki):
+            H[row, nq + me + j] = Psi[a, j]
+    return Kuu, B, Kinv, Psi, H
+
+
+def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, Tmap, B_N, alpha, beta, nq, consistent):
+    # pragma: no cover - compiled twin of ReducedModel.matrices (forces=False, dHdq given)
+    """``(J, M_r, K_r, C_r, G_r)`` of :meth:`~exuflex.reduction.model.ReducedModel.matrices` without the
+    forces: ``J = H + [d(H p)/dq, 0]`` (consistent form) and the reduced matrices."""
+    n, r = H.shape
+    J = H.copy()
+    if consistent:
+        for a in range(n):
+            for i in range(nq):
+                acc = 0.0
+                for k in range(r):
+                    acc += p[k] * dHdq[k, a, i]
+                J[a, i] += acc
+    WJ = W @ J
+    MWJ = M_N @ WJ
+    WJt = np.ascontiguousarray(WJ.T)
+    Mr = WJt @ MWJ
+    Hu = np.ascontiguousarray(H[nq:])
+    Ju = np.ascontiguousarray(J[nq:])
+    JtK = np.ascontiguousarray(Ju.T) @ Kuu
+    Kr = JtK @ Hu
+    if alpha != 0.0 or beta != 0.0:
+        TJ = Tmap @ Ju
+        Cr = alpha * (np.ascontiguousarray(TJ.T) @ (M_N @ TJ)) + beta * (JtK @ Ju)
+    else:
+        Cr = np.zeros((r, r))
+    Gr = WJt @ B_N
+    return J, Mr, Kr, Cr, Gr
+
+
+if HAVE_NUMBA:
+    basis_at = _jit(_basis_at)
+    reduced_matrices = _jit(_reduced_matrices)
+else:  # pragma: no cover
+    basis_at = reduced_matrices = None
