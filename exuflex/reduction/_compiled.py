@@ -141,7 +141,7 @@ def _basis_derivative(V, nq, im, is_, B, Tmap, el_dofs, R, KGl, S_th, TtS_s, Kss
     """``d(H v)/dq`` for each column of ``V`` (k, n, nq); see
     :meth:`~exuflex.reduction.basis.CraigBampton.basis_derivative` for the formulas. ``c, s``: cosine and sine
     of the interior-mode node pairs' rotation from q*, ``Sn`` (pairs, nq) their angle sensitivities."""
-    N, ne = Tmap.shape
+    ne = Tmap.shape[1]
     k = V.shape[1]
     me = im.shape[0]
     ns = is_.shape[0]
