@@ -124,6 +124,32 @@ def test_cached_path_agrees_with_reference_path(sixbar, observer, erls_log):
         assert diff[name] < 0.1 * err[name], (name, diff[name], err[name])
 
 
+def test_linear_hold_keeps_the_torque_noise_as_states(sixbar, observer, erls_log):
+    """input_hold="linear": the filter's state carries the newest torque sample's noise (three extra states, the
+    physical estimates from the leading block), and the mean of the two bounding torque samples lowers the
+    errors of the rates (50 runs: by 25-40 % on dq1, dq2, dx25, dy26)."""
+    from exuflex.observer.hold import LinearHoldModel
+
+    t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
+    lin = make_observer(sixbar, ObserverConfig(input_hold="linear"), cb=observer.model.rm.cb)
+    assert isinstance(lin.ekf.model, LinearHoldModel)
+    assert lin.ekf.nx == lin.model.nx + len(sixbar.motors)
+    est = estimate(lin, t, U, Y)
+    assert est.result.x_hat.shape == (len(t), lin.model.nx + 3) and not est.result.diverged
+    ref = estimate(observer, t, U, Y)
+    m = metrics(est.physical, erls_log.truth, start_up=0.3)["rms_error"]
+    m0 = metrics(ref.physical, erls_log.truth, start_up=0.3)["rms_error"]
+    print({n: round(m[n] / m0[n], 3) for n in m})
+    for name in ("dq1", "dq2", "dx25", "dy26"):
+        assert m[name] < 0.9 * m0[name], (name, m[name], m0[name])
+    for name in physical_names(sixbar):
+        assert m[name] < 1.3 * m0[name], (name, m[name], m0[name])
+    # a prior given as a reduced state is extended by zeros for the noise states
+    x0 = lin.model.initial_state(erls_log.truth.data[0, :3])
+    est2 = estimate(lin, t[:20], U[:20], Y[:20], x0=x0)
+    assert np.all(np.isfinite(est2.result.x_hat))
+
+
 def test_fft_of_estimated_tip_matches_the_truths_peaks(sixbar, observer, erls_log):
     """Significant spectral peaks (>= 10 % of the largest, 5-180 Hz) of the true tip elastic displacement are
     found in the estimate's spectrum within 2 % (paper Fig. 10)."""
@@ -224,45 +250,63 @@ def test_autocorrelation_time_of_white_and_correlated_sequences():
     assert chk.time_avg_hi_eff - chk.time_avg_lo_eff == pytest.approx(chk.time_avg_hi - chk.time_avg_lo, rel=0.15)
 
 
-@pytest.mark.slow
-def test_filter_is_consistent_on_its_own_model():
-    """NEES and NIS over 50 seeded runs whose truth is the observer's own reduced model (engine "reduced",
-    stated noise): the run averages stay inside their 95 % bands (measured on q, dq/dt: NEES 90.7 %, NIS 95.3 % of the
-    steps). With the full-order ERLS truth they do not (``benchmarks/observer_accuracy.py``): the reduced
-    model's own error is a bias common to all runs, which no noise model can make consistent."""
-    from dataclasses import replace
+def _physical_covariance(obs, Z, P):
+    """Covariance (n, 10, 10) of q, dq/dt, tip elastic displacement and velocity from the filter's (leading block)."""
+    from exuflex.sensors import tip_point
 
+    som = obs.model
+    nq, r, nx = som.nq, som.r, som.nx
+    tp = tip_point(obs.mech)
+    out = np.empty((len(Z), 2 * nq + 4, 2 * nq + 4))
+    rows, q_last = None, None
+    for k in range(len(Z)):
+        q = Z[k, :nq]
+        if rows is None or np.max(np.abs(q - q_last)) > 1e-3:
+            rows, q_last = som.tip_rows(q, *tp), q.copy()
+        C = np.zeros((2 * nq + 4, nx))
+        C[:nq, :nq] = np.eye(nq)
+        C[nq : 2 * nq, r : r + nq] = np.eye(nq)
+        C[2 * nq : 2 * nq + 2, :r] = rows
+        C[2 * nq + 2 :, r:] = rows
+        out[k] = C @ P[k][:nx, :nx] @ C.T
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("engine", ["reduced", "erls"])
+def test_filter_is_consistent(engine):
+    """NEES (the 10 physical quantities) and NIS over 50 seeded runs, the truth the observer's own reduced model
+    (engine "reduced") or the full-order ERLS model (the paper's setting), default settings (stated noise): the
+    run averages stay inside their 95 % bands. The truncated modes and the cached step map add no measurable
+    inconsistency (``benchmarks/observer_accuracy.py``, seeds 1000-1049: ERLS NEES 98.0 % of the steps, 10.19;
+    NIS 94.7 %, 5.998)."""
     from exuflex.measure import measure
     from exuflex.observer.stats import mc_consistency
     from exuflex.study.runner import plan_drive, simulate_level
 
     sixbar = load_mechanism(MODELS / "sixbar.toml")
     drive = plan_drive(sixbar, 3.0, 1e-4)
-    lt = simulate_level(sixbar, drive, "reduced", 3.0, 1e-4)
-    obs = make_observer(sixbar, replace(ObserverConfig(), q_scale=1.0))
+    lt = simulate_level(sixbar, drive, engine, 3.0, 1e-4)
+    obs = make_observer(sixbar)
     obs.ekf.store_P = "full"
-    nr = obs.model.r
+    names = physical_names(sixbar)
     nees_runs, nis_runs, dof = [], [], []
     for j in range(50):
         S = measure(sixbar, lt.clean, lt.torque_t, lt.torques, seed=2000 + j).signals
         res = obs.ekf.run(S.t, S.select(sixbar.motor_names).data, S.select(obs.channels).data)
         assert not res.diverged
-        # NEES on q and dq/dt (their covariance is a block of the filter's)
-        e = np.column_stack([res.x_hat[:, :3] - np.column_stack([np.interp(S.t, lt.truth.t, lt.truth[n])
-                                                                 for n in ("q1", "q2", "q3")]),
-                             res.x_hat[:, nr:nr + 3] - np.column_stack([np.interp(S.t, lt.truth.t, lt.truth[n])
-                                                                        for n in ("dq1", "dq2", "dq3")])])
-        idx = np.r_[0:3, nr:nr + 3]
-        P = res.P[:, idx][:, :, idx]
+        phys = obs.physical(res.t, res.x_hat)
+        e = np.column_stack([phys[n] - np.interp(phys.t, lt.truth.t, lt.truth[n]) for n in names])
+        P = _physical_covariance(obs, res.x_hat, res.P)
         nees_runs.append(np.einsum("ki,ki->k", e, np.linalg.solve(P, e[:, :, None])[:, :, 0]))
         nis_runs.append(res.nis)
         dof.append(res.nis_dof)
     burn = 150
-    cn = mc_consistency(np.array(nees_runs), 6, burn_in=burn)
+    cn = mc_consistency(np.array(nees_runs), len(names), burn_in=burn)
     ci = mc_consistency(np.array(nis_runs), np.array(dof), burn_in=burn)
-    print(f"NEES inside {cn.fraction_inside:.3f}, mean {cn.time_avg:.3f} band {cn.time_avg_lo_eff:.3f}.."
+    print(f"{engine}: NEES inside {cn.fraction_inside:.3f}, mean {cn.time_avg:.3f} band {cn.time_avg_lo_eff:.3f}.."
           f"{cn.time_avg_hi_eff:.3f}; NIS inside {ci.fraction_inside:.3f}, mean {ci.time_avg:.3f} band "
           f"{ci.time_avg_lo_eff:.3f}..{ci.time_avg_hi_eff:.3f}")
-    assert cn.fraction_inside > 0.88 and ci.fraction_inside > 0.9
+    assert cn.fraction_inside > 0.9 and ci.fraction_inside > 0.9
     assert cn.time_avg_lo_eff <= cn.time_avg <= cn.time_avg_hi_eff
     assert ci.time_avg_lo_eff <= ci.time_avg <= ci.time_avg_hi_eff

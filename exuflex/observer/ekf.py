@@ -260,7 +260,9 @@ class MultirateEKF:
         varying linearly between the two (``"linear"``: the interval is predicted with their mean, which is
         the exact effect of a linear input on the held system to first order). ``"linear"`` adds no latency:
         the interval ending at a sample is predicted when that sample, and its input, arrive. Across missing
-        samples the input is held.
+        samples the input is held. A model with a ``hold_interval(mean, renew)`` method
+        (:class:`.hold.LinearHoldModel`, which keeps the input-sample noise as states) is told before each
+        predicted interval whether it is driven by the mean and whether a new input sample ends it.
     """
 
     def __init__(
@@ -362,6 +364,9 @@ class MultirateEKF:
         # a model that can do a whole sample in one compiled call (the cached reduced observer) is given the
         # chance to, with the numba back-end: see _fused_sample
         self._fused = getattr(model, "fused_sample", None) if self._compiled else None
+        # a model with the input noise as states (:class:`.hold.LinearHoldModel`) is told how each interval
+        # is driven: the mean of its two samples or the older one held, and whether a new sample ends it
+        self._hold_hook = getattr(model, "hold_interval", None) if input_hold == "linear" else None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -633,14 +638,19 @@ class MultirateEKF:
                 )
             if not self.nonfinite:
                 u_step = self._u_prev
+                mean = False
                 if self.input_hold == "linear" and n == 1 and u is not None and u_step is not None:
                     u_new = np.asarray(u, dtype=float)
                     if u_new.shape == u_step.shape and math.isfinite(sum(u_new.tolist())):
                         u_step = 0.5 * (u_step + u_new)  # the mean of the linear input over the interval
+                        mean = True
                 if n == 1 and self._fused is not None and y is not None:
                     fused = self._fused_sample(u_step, y)
                 if not fused:
+                    hook = self._hold_hook
                     for i in range(n):
+                        if hook is not None:  # the model keeps the input noise as states (.hold)
+                            hook(mean and i == 0, i == n - 1 and u is not None)
                         self._predict(u_step if i == 0 else self._u_prev)
                         if i < n - 1:  # a skipped sample: settle P exactly as for an all-NaN sample
                             self._settle_P()

@@ -400,6 +400,11 @@ class ReducedObserverModel:
             z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         return z, F
 
+    def input_jacobian(self) -> np.ndarray:
+        """``d x_next / d u`` (nx, n_motors) of the last :meth:`step`: its response ``L`` to a unit torque held over
+        the interval (the map its process noise is built from; :class:`.hold.LinearHoldModel`)."""
+        return self._last.L
+
     def process_noise(self, x: np.ndarray, u, dt: float) -> np.ndarray:
         iv = self._last
         if self.method == "cached" and iv is not None and iv.Q is not None:
