@@ -66,7 +66,7 @@ def physical_covariance(obs, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
         C[nq : 2 * nq, r : r + nq] = np.eye(nq)
         C[2 * nq : 2 * nq + 2, :r] = rows
         C[2 * nq + 2 :, r:] = rows
-        out[k] = C @ P[k] @ C.T
+        out[k] = C @ P[k][: som.nx, : som.nx] @ C.T  # without the filter's extra (input-noise) states
     return out
 
 

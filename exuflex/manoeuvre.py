@@ -89,8 +89,10 @@ def time_law(
             raise ValueError(f"trapezoid ramp_time must be in (0, duration/2 = {T / 2:g}] s, got {ta}")
         v = 1.0 / (T - ta)
         a = v / ta
+        # at a jump the later phase's value (as documented): the ramps are [0, ta) and [T - ta, T], so a
+        # sample grid through T - ta sees the deceleration start at that sample, as it sees the cruise at ta
         acc = tc < ta
-        dec = tc > T - ta
+        dec = tc >= T - ta
         s = np.where(
             acc,
             0.5 * a * tc**2,

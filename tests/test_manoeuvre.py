@@ -77,6 +77,20 @@ def test_trapezoid_cruise_speed():
     assert sdd[1] == 0
 
 
+def test_trapezoid_jumps_take_the_later_phase():
+    """At both acceleration jumps s'' is the later phase's (as documented): a torque table on a grid through the
+    jump times switches at the grid point of the jump, at the end of the manoeuvre as at its start (the end one
+    was the earlier phase's, so the six-bar's computed torque stepped 0.1 ms after a 500 Hz sample)."""
+    T, ta = 3.0, 0.08
+    a = 1 / (T - ta) / ta
+    _, _, sdd = time_law("trapezoid", np.array([ta, T - ta, T]), T, ta)
+    np.testing.assert_array_equal(sdd, [0.0, -a, -a])
+    t = np.arange(30001) * 1e-4  # the plan's table grid: the jumps fall on its points 800 and 29200
+    _, _, sdd = time_law("trapezoid", t, T, ta)
+    assert sdd[799] == a and sdd[800] == 0.0
+    assert sdd[29199] == 0.0 and sdd[29200] == -a
+
+
 def test_time_law_errors():
     with pytest.raises(ValueError, match="time law must be one of"):
         time_law("linear", 0.0, 1.0)

@@ -124,6 +124,80 @@ def test_cached_path_agrees_with_reference_path(sixbar, observer, erls_log):
         assert diff[name] < 0.1 * err[name], (name, diff[name], err[name])
 
 
+def test_linear_hold_keeps_the_torque_noise_as_states(sixbar, observer, erls_log):
+    """input_hold="linear": the filter's state carries the newest torque sample's noise (three extra states, the
+    physical estimates from the leading block), and the mean of the two bounding torque samples lowers the
+    errors of the rates (50 runs: by 25-40 % on dq1, dq2, dx25, dy26)."""
+    from exuflex.observer.hold import LinearHoldModel
+
+    t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
+    lin = make_observer(sixbar, ObserverConfig(input_hold="linear"), cb=observer.model.rm.cb)
+    assert isinstance(lin.ekf.model, LinearHoldModel)
+    assert lin.ekf.nx == lin.model.nx + len(sixbar.motors)
+    est = estimate(lin, t, U, Y)
+    assert est.result.x_hat.shape == (len(t), lin.model.nx + 3) and not est.result.diverged
+    ref = estimate(observer, t, U, Y)
+    m = metrics(est.physical, erls_log.truth, start_up=0.3)["rms_error"]
+    m0 = metrics(ref.physical, erls_log.truth, start_up=0.3)["rms_error"]
+    print({n: round(m[n] / m0[n], 3) for n in m})
+    for name in ("dq1", "dq2", "dx25", "dy26"):
+        assert m[name] < 0.9 * m0[name], (name, m[name], m0[name])
+    for name in physical_names(sixbar):
+        assert m[name] < 1.3 * m0[name], (name, m[name], m0[name])
+    # a prior given as a reduced state is extended by zeros for the noise states
+    x0 = lin.model.initial_state(erls_log.truth.data[0, :3])
+    est2 = estimate(lin, t[:20], U[:20], Y[:20], x0=x0)
+    assert np.all(np.isfinite(est2.result.x_hat))
+
+
+def test_torque_jump_between_samples_is_flagged_and_modelled(sixbar, observer, erls_log):
+    """The stored log's computed torque jumps twice (the trapezoid's acceleration ends, at 0.08 s at a sample, at
+    2.92 s 0.1 ms after one: the time law before its correction). Both are flagged, no other interval is, and
+    with the jump's effect the innovations after 2.92 s stay consistent (without: NIS ~20 for 6 channels)."""
+    t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
+    res = observer.ekf.run(t, U, Y)
+    assert observer.ekf.n_jumps == 2
+    plain = make_observer(sixbar, ObserverConfig(jump_p=None), cb=observer.model.rm.cb)
+    res0 = plain.ekf.run(t, U, Y)
+    assert plain.ekf.n_jumps == 0
+    after = (t > 2.92) & (t < 2.97)
+    nis, nis0 = np.nanmean(res.nis[after]), np.nanmean(res0.nis[after])
+    print(f"mean NIS 2.92-2.97 s: {nis:.2f} with the jump test, {nis0:.2f} without")
+    assert nis < 9.0 < 2 * nis < nis0
+    # before 2.92 s the two differ only through the start-up's jump (at a sample: the flagged interval takes it
+    # within, the truth at its end): far below the estimation error after the start-up
+    sel = (t >= 0.3) & (t < 2.92)
+    pa, pb = observer.physical(t[sel], res.x_hat[sel]), plain.physical(t[sel], res0.x_hat[sel])
+    diff = metrics(pa, pb, start_up=0.0)["rms_error"]
+    err = metrics(pb, erls_log.truth, start_up=0.0)["rms_error"]
+    print({n: round(diff[n] / err[n], 3) for n in err})
+    for name in physical_names(sixbar):
+        assert diff[name] < 0.2 * err[name], (name, diff[name], err[name])
+
+
+@pytest.mark.parametrize("method", ["cached", "frozen"])
+def test_jump_moments_are_those_of_a_jump_at_a_uniform_sub_step(sixbar, observer, method):
+    """input_jump_moments: the mean and covariance over j = 1..n of the response to the jump held over the last
+    n - j RK4 sub-steps (``step_maps`` over n - j steps; none for j = n), with the matrices of the last step."""
+    from exuflex.observer.held import step_maps
+    from exuflex.observer.reduced import ReducedObserverModel
+
+    som = ReducedObserverModel(observer.model.rm, method=method, jump_p=1e-6)
+    z = som.initial_state(plan(sixbar, dt=1.5, t_end=1.5).q[1])
+    z[som.r : som.r + 3] = [0.3, -0.2, 0.1]
+    som.step(z, np.array([1.0, 2.0, 0.0]), DT)
+    d = np.array([-1.3, -14.0, 0.05])
+    assert som.input_jump(np.zeros(3), d) is not None and som.input_jump(np.zeros(3), 1e-3 * d) is None
+    mean, cov = som.input_jump_moments(d, DT)
+    Mr, Kr, Cr, Gr = som._step_matrices if method == "cached" else (
+        som._last.mats.Mr, som._last.mats.Kr, som._last.mats.Cr, som._last.mats.Gr)
+    n = round(DT / som.h)
+    R = np.array([step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, som.h, n - j)[2] @ d for j in range(1, n)]
+                 + [np.zeros(som.nx)])
+    np.testing.assert_allclose(mean, R.mean(axis=0), rtol=1e-9, atol=1e-12 * np.abs(R).max())
+    np.testing.assert_allclose(cov, np.cov(R.T, bias=True), rtol=1e-8, atol=1e-12 * np.abs(cov).max())
+
+
 def test_fft_of_estimated_tip_matches_the_truths_peaks(sixbar, observer, erls_log):
     """Significant spectral peaks (>= 10 % of the largest, 5-180 Hz) of the true tip elastic displacement are
     found in the estimate's spectrum within 2 % (paper Fig. 10)."""
@@ -224,45 +298,63 @@ def test_autocorrelation_time_of_white_and_correlated_sequences():
     assert chk.time_avg_hi_eff - chk.time_avg_lo_eff == pytest.approx(chk.time_avg_hi - chk.time_avg_lo, rel=0.15)
 
 
-@pytest.mark.slow
-def test_filter_is_consistent_on_its_own_model():
-    """NEES and NIS over 50 seeded runs whose truth is the observer's own reduced model (engine "reduced",
-    stated noise): the run averages stay inside their 95 % bands (measured on q, dq/dt: NEES 90.7 %, NIS 95.3 % of the
-    steps). With the full-order ERLS truth they do not (``benchmarks/observer_accuracy.py``): the reduced
-    model's own error is a bias common to all runs, which no noise model can make consistent."""
-    from dataclasses import replace
+def _physical_covariance(obs, Z, P):
+    """Covariance (n, 10, 10) of q, dq/dt, tip elastic displacement and velocity from the filter's (leading block)."""
+    from exuflex.sensors import tip_point
 
+    som = obs.model
+    nq, r, nx = som.nq, som.r, som.nx
+    tp = tip_point(obs.mech)
+    out = np.empty((len(Z), 2 * nq + 4, 2 * nq + 4))
+    rows, q_last = None, None
+    for k in range(len(Z)):
+        q = Z[k, :nq]
+        if rows is None or np.max(np.abs(q - q_last)) > 1e-3:
+            rows, q_last = som.tip_rows(q, *tp), q.copy()
+        C = np.zeros((2 * nq + 4, nx))
+        C[:nq, :nq] = np.eye(nq)
+        C[nq : 2 * nq, r : r + nq] = np.eye(nq)
+        C[2 * nq : 2 * nq + 2, :r] = rows
+        C[2 * nq + 2 :, r:] = rows
+        out[k] = C @ P[k][:nx, :nx] @ C.T
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("engine", ["reduced", "erls"])
+def test_filter_is_consistent(engine):
+    """NEES (the 10 physical quantities) and NIS over 50 seeded runs, the truth the observer's own reduced model
+    (engine "reduced") or the full-order ERLS model (the paper's setting), default settings (stated noise): the
+    run averages stay inside their 95 % bands. The truncated modes and the cached step map add no measurable
+    inconsistency (``benchmarks/observer_accuracy.py``, seeds 1000-1049: ERLS NEES 97.9 % of the steps, 10.20;
+    NIS 94.7 %, 6.003)."""
     from exuflex.measure import measure
     from exuflex.observer.stats import mc_consistency
     from exuflex.study.runner import plan_drive, simulate_level
 
     sixbar = load_mechanism(MODELS / "sixbar.toml")
     drive = plan_drive(sixbar, 3.0, 1e-4)
-    lt = simulate_level(sixbar, drive, "reduced", 3.0, 1e-4)
-    obs = make_observer(sixbar, replace(ObserverConfig(), q_scale=1.0))
+    lt = simulate_level(sixbar, drive, engine, 3.0, 1e-4)
+    obs = make_observer(sixbar)
     obs.ekf.store_P = "full"
-    nr = obs.model.r
+    names = physical_names(sixbar)
     nees_runs, nis_runs, dof = [], [], []
     for j in range(50):
         S = measure(sixbar, lt.clean, lt.torque_t, lt.torques, seed=2000 + j).signals
         res = obs.ekf.run(S.t, S.select(sixbar.motor_names).data, S.select(obs.channels).data)
         assert not res.diverged
-        # NEES on q and dq/dt (their covariance is a block of the filter's)
-        e = np.column_stack([res.x_hat[:, :3] - np.column_stack([np.interp(S.t, lt.truth.t, lt.truth[n])
-                                                                 for n in ("q1", "q2", "q3")]),
-                             res.x_hat[:, nr:nr + 3] - np.column_stack([np.interp(S.t, lt.truth.t, lt.truth[n])
-                                                                        for n in ("dq1", "dq2", "dq3")])])
-        idx = np.r_[0:3, nr:nr + 3]
-        P = res.P[:, idx][:, :, idx]
+        phys = obs.physical(res.t, res.x_hat)
+        e = np.column_stack([phys[n] - np.interp(phys.t, lt.truth.t, lt.truth[n]) for n in names])
+        P = _physical_covariance(obs, res.x_hat, res.P)
         nees_runs.append(np.einsum("ki,ki->k", e, np.linalg.solve(P, e[:, :, None])[:, :, 0]))
         nis_runs.append(res.nis)
         dof.append(res.nis_dof)
     burn = 150
-    cn = mc_consistency(np.array(nees_runs), 6, burn_in=burn)
+    cn = mc_consistency(np.array(nees_runs), len(names), burn_in=burn)
     ci = mc_consistency(np.array(nis_runs), np.array(dof), burn_in=burn)
-    print(f"NEES inside {cn.fraction_inside:.3f}, mean {cn.time_avg:.3f} band {cn.time_avg_lo_eff:.3f}.."
+    print(f"{engine}: NEES inside {cn.fraction_inside:.3f}, mean {cn.time_avg:.3f} band {cn.time_avg_lo_eff:.3f}.."
           f"{cn.time_avg_hi_eff:.3f}; NIS inside {ci.fraction_inside:.3f}, mean {ci.time_avg:.3f} band "
           f"{ci.time_avg_lo_eff:.3f}..{ci.time_avg_hi_eff:.3f}")
-    assert cn.fraction_inside > 0.88 and ci.fraction_inside > 0.9
+    assert cn.fraction_inside > 0.9 and ci.fraction_inside > 0.9
     assert cn.time_avg_lo_eff <= cn.time_avg <= cn.time_avg_hi_eff
     assert ci.time_avg_lo_eff <= ci.time_avg <= ci.time_avg_hi_eff

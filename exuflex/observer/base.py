@@ -142,6 +142,10 @@ class LinearDiscreteModel:
             xn = xn + self.B @ np.atleast_1d(u)
         return xn, self.A
 
+    def input_jacobian(self):
+        """``d x_next / d u``: ``B`` (for :class:`~exuflex.observer.hold.LinearHoldModel`)."""
+        return self.B
+
     def measure(self, x, channels):
         H = self._C(channels)
         return H @ x, H

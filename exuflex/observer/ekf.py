@@ -259,8 +259,14 @@ class MultirateEKF:
         How the input behaves between two samples: held at the earlier sample's value (``"zoh"``), or
         varying linearly between the two (``"linear"``: the interval is predicted with their mean, which is
         the exact effect of a linear input on the held system to first order). ``"linear"`` adds no latency:
-        the interval ending at a sample is predicted when that sample, and its input, arrive. Across missing
-        samples the input is held.
+        the interval ending at a sample is predicted when that sample, and its input, arrive. With ``"zoh"``, a
+        model with ``input_jump(u_old, u_new)`` (the increment if the two samples differ by more than their
+        noise, else None) and ``input_jump_moments(d, dt)`` (the jump's effect at an unknown instant of the
+        interval: mean and covariance) has that effect added to the interval (step-by-step path; counted in
+        ``n_jumps``). Across missing
+        samples the input is held. A model with a ``hold_interval(mean, renew)`` method
+        (:class:`.hold.LinearHoldModel`, which keeps the input-sample noise as states) is told before each
+        predicted interval whether it is driven by the mean and whether a new input sample ends it.
     """
 
     def __init__(
@@ -362,6 +368,12 @@ class MultirateEKF:
         # a model that can do a whole sample in one compiled call (the cached reduced observer) is given the
         # chance to, with the numba back-end: see _fused_sample
         self._fused = getattr(model, "fused_sample", None) if self._compiled else None
+        # a model with the input noise as states (:class:`.hold.LinearHoldModel`) is told how each interval
+        # is driven: the mean of its two samples or the older one held, and whether a new sample ends it
+        self._hold_hook = getattr(model, "hold_interval", None) if input_hold == "linear" else None
+        # a model that tests two successive input samples for a jump between them (``input_jump``, with
+        # ``input_jump_moments``; the reduced observer model) gets the jump's effect added to that interval
+        self._jumps = getattr(model, "input_jump", None) if input_hold == "zoh" else None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -388,6 +400,7 @@ class MultirateEKF:
         self.n_missing = 0
         self.n_updates = 0
         self.n_fused = 0
+        self.n_jumps = 0
         self.diverged = False
         self.diverged_at: float | None = None
         self.nonfinite = False
@@ -437,11 +450,15 @@ class MultirateEKF:
             self._kf.x, self._kf.P = self._x, P
         return P
 
-    def _predict(self, u) -> None:
+    def _predict(self, u, jump=None) -> None:
         x = self._x
         try:
             x_next, F = self.model.step(x, u, self.dt)
             Q = self.model.process_noise(x, u, self.dt)
+            if jump is not None:  # the input jumped within the interval: its effect's mean and covariance
+                dx, dQ = self.model.input_jump_moments(jump, self.dt)
+                x_next = x_next + dx
+                Q = Q + dQ
         except (ArithmeticError, np.linalg.LinAlgError, KinematicsError) as exc:
             # the model cannot be evaluated at the estimate (e.g. a runaway state where the mechanism's
             # loops no longer close): that is the filter diverging, not a bad model file
@@ -633,15 +650,25 @@ class MultirateEKF:
                 )
             if not self.nonfinite:
                 u_step = self._u_prev
+                mean = False
                 if self.input_hold == "linear" and n == 1 and u is not None and u_step is not None:
                     u_new = np.asarray(u, dtype=float)
                     if u_new.shape == u_step.shape and math.isfinite(sum(u_new.tolist())):
                         u_step = 0.5 * (u_step + u_new)  # the mean of the linear input over the interval
-                if n == 1 and self._fused is not None and y is not None:
+                        mean = True
+                jump = None
+                if self._jumps is not None and n == 1 and u is not None and u_step is not None:
+                    jump = self._jumps(u_step, u)  # a torque jump within the interval (the model's test)
+                    if jump is not None:
+                        self.n_jumps += 1
+                if n == 1 and self._fused is not None and y is not None and jump is None:
                     fused = self._fused_sample(u_step, y)
                 if not fused:
+                    hook = self._hold_hook
                     for i in range(n):
-                        self._predict(u_step if i == 0 else self._u_prev)
+                        if hook is not None:  # the model keeps the input noise as states (.hold)
+                            hook(mean and i == 0, i == n - 1 and u is not None)
+                        self._predict(u_step if i == 0 else self._u_prev, jump)
                         if i < n - 1:  # a skipped sample: settle P exactly as for an all-NaN sample
                             self._settle_P()
             self.n_missing += n - 1
