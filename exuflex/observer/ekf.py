@@ -572,7 +572,7 @@ class MultirateEKF:
         self.last_nis = nis
         self.last_dof = len(idx)
 
-    def _fused_sample(self, u, y) -> bool:
+    def _fused_sample(self, u, y, u_next=None) -> bool:
         """One whole sample (predict one interval, update with every channel, settle) in the model's single
         compiled call, if the model offers one (``fused_sample``, the cached reduced observer) and every
         channel of ``y`` is present. Same arithmetic as the step-by-step path, to rounding; False (nothing
@@ -582,7 +582,8 @@ class MultirateEKF:
             return False
         try:
             out = self._fused(self._x, self._P, u, np.ascontiguousarray(y), self.channels, self._Rdiag,
-                              self._floor, self.dt, (self._Pspare, self._Ppred, self._work, self._HP))
+                              self._floor, self.dt, (self._Pspare, self._Ppred, self._work, self._HP),
+                              None if u_next is None else np.asarray(u_next, dtype=float))
         except (ArithmeticError, np.linalg.LinAlgError, KinematicsError):
             return False  # the step-by-step path meets the same failure and handles it (see _predict)
         if out is None:
@@ -656,14 +657,15 @@ class MultirateEKF:
                     if u_new.shape == u_step.shape and math.isfinite(sum(u_new.tolist())):
                         u_step = 0.5 * (u_step + u_new)  # the mean of the linear input over the interval
                         mean = True
-                jump = None
-                if self._jumps is not None and n == 1 and u is not None and u_step is not None:
-                    jump = self._jumps(u_step, u)  # a torque jump within the interval (the model's test)
-                    if jump is not None:
-                        self.n_jumps += 1
-                if n == 1 and self._fused is not None and y is not None and jump is None:
-                    fused = self._fused_sample(u_step, y)
+                if n == 1 and self._fused is not None and y is not None:
+                    # (the kernel declines a sample whose input jumped: the model's test, done there)
+                    fused = self._fused_sample(u_step, y, u if self._jumps is not None else None)
                 if not fused:
+                    jump = None
+                    if self._jumps is not None and n == 1 and u is not None and u_step is not None:
+                        jump = self._jumps(u_step, u)  # a torque jump within the interval (the model's test)
+                        if jump is not None:
+                            self.n_jumps += 1
                     hook = self._hold_hook
                     for i in range(n):
                         if hook is not None:  # the model keeps the input noise as states (.hold)

@@ -20,7 +20,10 @@ changed the filter's state, and the filter takes its step-by-step path for that 
 - ``FAR``: the predicted q left the held configuration's measurement radius;
 - ``INDEFINITE``: the innovation covariance is not positive definite (the step-by-step path's LU solve);
 - ``REFRESH``: q left the held configuration's radius; the caller evaluates the configuration and calls
-  again.
+  again;
+- ``JUMP``: the torque sample that ends the interval differs from the held one by more than their noise
+  explains (the test of :meth:`~exuflex.observer.reduced.ReducedObserverModel.input_jump`, done here so that
+  an ordinary sample costs no Python for it): the step-by-step path adds the jump's effect.
 """
 
 from __future__ import annotations
@@ -32,9 +35,9 @@ import numpy as np
 from ._compiled import predict_cov, settle, update
 from .held import HAVE_NUMBA, _jit, held_step_loops, step_jacobian_loops, step_maps_held
 
-__all__ = ["DONE", "FAR", "INDEFINITE", "REFRESH", "RESCUE", "cached_sample", "warm_up"]
+__all__ = ["DONE", "FAR", "INDEFINITE", "JUMP", "REFRESH", "RESCUE", "cached_sample", "warm_up"]
 
-DONE, RESCUE, FAR, INDEFINITE, REFRESH = 0, 1, 2, 3, 4
+DONE, RESCUE, FAR, INDEFINITE, REFRESH, JUMP = 0, 1, 2, 3, 4, 5
 
 
 def _secant_factor(dl, d, dd, has_old):  # pragma: no cover - compiled; twin of reduced._secant_factor
@@ -65,14 +68,15 @@ def _ten(pack, lay, i):  # pragma: no cover - compiled
     return pack[o : o + a * b * c].reshape((a, b, c))
 
 
-def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, pack, lay, fl, has_old, nq,
-                   n):  # pragma: no cover - compiled
+def _cached_sample(z, P, u, u_next, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, pack, lay, fl, has_old,
+                   nq, n):  # pragma: no cover - compiled
     """Predict over one interval and update with all channels of ``y``.
 
     Parameters
     ----------
     z, P : prior state and covariance at the previous sample (not written).
-    u : input held over the interval; y, Rd : measurement and its variances (all channels finite).
+    u : input held over the interval; u_next : the input sample that ends it (for the jump test).
+    y, Rd : measurement and its variances (all channels finite).
     floor : diagonal floor of the posterior covariance.
     x_out, r, S, P_out : out: posterior mean, innovation and its covariance, posterior covariance (``P_out``
         symmetrised and floored); P_pred, work, HP : scratch.
@@ -81,9 +85,10 @@ def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, 
         :data:`PACKED` says; ``lay[4 i : 4 i + 4]`` = offset and shape of item ``i``. The step map items
         (``q_map, Pn, SQM, L, Q``) are rebuilt in place when q has moved by ``remap_rad`` (a NaN ``q_map``
         forces the rebuild).
-    fl : ``(rad, meas_rad, dd, remap_rad, beta, h)``: the held configuration's refresh radius (``REFRESH``
-        beyond it) and measurement radius, ``d . d`` of the secant direction ``d``, the step-map rebuild
-        distance, the stiffness-proportional damping and the RK4 step.
+    fl : ``(rad, meas_rad, dd, remap_rad, beta, h, jump_threshold, jump_weights...)``: the held
+        configuration's refresh radius (``REFRESH`` beyond it) and measurement radius, ``d . d`` of the secant
+        direction ``d``, the step-map rebuild distance, the stiffness-proportional damping, the RK4 step, and
+        the torque-jump test (``JUMP`` if ``sum w_i (u_next - u)_i^2 > threshold``; inf: no test).
     has_old, nq, n : a secant partner exists; number of rigid coordinates; RK4 steps per interval.
 
     Returns
@@ -96,6 +101,12 @@ def _cached_sample(z, P, u, y, Rd, floor, x_out, r, S, P_out, P_pred, work, HP, 
         The posterior state and covariance are finite.
     """
     rad, meas_rad, dd, remap_rad, beta, h = fl[0], fl[1], fl[2], fl[3], fl[4], fl[5]
+    jump = 0.0
+    for i in range(u.shape[0]):
+        e = u_next[i] - u[i]
+        jump += e * e * fl[7 + i]
+    if jump > fl[6]:
+        return JUMP, math.nan, False, False
     q0, d = _vec(pack, lay, 0), _vec(pack, lay, 1)
     dl = z[:nq] - q0
     for i in range(nq):
@@ -207,6 +218,6 @@ def warm_up() -> None:
         (u, u, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, np.ones(nq), np.zeros(0),
          np.full(nq, np.nan), sq, np.empty((nx, r)), np.empty((nx, nq)), sq, np.zeros((r, r, r)), np.zeros((nq, r, r)),
          np.zeros((r, nq, r)), np.zeros(m), np.zeros((m, nx)), np.zeros((0, nx))))
-    fl = np.array([1.0, 1.0, 1.0, 1e-3, 0.0, 1e-4])
-    cached_sample(z, np.eye(nx), u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m),
+    fl = np.array([1.0, 1.0, 1.0, 1e-3, 0.0, 1e-4, np.inf, 1.0])
+    cached_sample(z, np.eye(nx), u, u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m),
                   np.empty((m, m)), sq.copy(), sq.copy(), sq.copy(), np.empty((m, nx)), pack, lay, fl, False, nq, 1)

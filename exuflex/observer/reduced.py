@@ -205,6 +205,10 @@ class ReducedObserverModel:
         self.n_declined = 0
         if self.fused and method == "cached":
             fused_warm_up()
+        if method == "cached":  # compile (or load) the evaluation's kernels now, not in a run's first interval
+            z = self.rm.rest_state(np.asarray(self.rm.cb.q_star, float))
+            self.rm.held(z[: self.r], z[self.r :])
+            self.model.kin.reset_warm_start()
 
     def reset(self) -> None:
         """Forget the held interval, the cached measurement rows and the closure solver's warm start (a new run
@@ -416,16 +420,22 @@ class ReducedObserverModel:
         interval); else (and with ``jump_p`` None) None. See :meth:`input_jump_moments`."""
         if self.jump_p is None:
             return None
-        var = self.torque_var
-        key = (id(var), self.jump_p)
-        if self._jump_threshold is None or self._jump_threshold[0] != key:  # (the noise may be rescaled)
-            self._jump_threshold = (key, float(chi2.ppf(1.0 - self.jump_p, len(var))), (0.5 / var).tolist())
-        _, thr, w = self._jump_threshold
+        thr, w = self._jump_test()
         a, b = np.asarray(u1, float).tolist(), np.asarray(u0, float).tolist()
         # once per sample: Python floats for three motors cost a third of the NumPy expression
         if not sum((x - y) * (x - y) * c for x, y, c in zip(a, b, w)) > thr:
             return None
         return np.subtract(a, b)
+
+    def _jump_test(self) -> tuple[float, list]:
+        """Threshold and per-motor weights of :meth:`input_jump`'s chi-square test (inf: no test)."""
+        var = self.torque_var
+        if self.jump_p is None:
+            return math.inf, [0.0] * len(var)
+        key = (id(var), self.jump_p)
+        if self._jump_threshold is None or self._jump_threshold[0] != key:  # (the noise may be rescaled)
+            self._jump_threshold = (key, float(chi2.ppf(1.0 - self.jump_p, len(var))), (0.5 / var).tolist())
+        return self._jump_threshold[1], self._jump_threshold[2]
 
     def input_jump_moments(self, d: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the effect of a torque jump ``d`` at an unknown instant of the last interval.
@@ -541,7 +551,7 @@ class ReducedObserverModel:
 
     # ------------------------------------------------------------------ one compiled sample
     def fused_sample(self, x: np.ndarray, P: np.ndarray, u, y: np.ndarray, channels: tuple, Rd: np.ndarray,
-                     floor: np.ndarray, dt: float, bufs: tuple) -> tuple | None:
+                     floor: np.ndarray, dt: float, bufs: tuple, u_next=None) -> tuple | None:
         """Predict over one interval and update with every channel in one compiled call
         (:func:`.fused.cached_sample`), for :class:`~exuflex.observer.ekf.MultirateEKF`'s ``numba`` back-end.
 
@@ -552,12 +562,17 @@ class ReducedObserverModel:
         path, and nothing of its state has changed. Otherwise ``(x_post, P_post, innovation, S, nis,
         finite)``, with ``P_post`` written into ``bufs[0]``.
 
-        ``bufs``: ``(P_out, P_pred, work, HP)`` scratch of the filter.
+        ``bufs``: ``(P_out, P_pred, work, HP)`` scratch of the filter. ``u_next``: the input sample that ends
+        the interval; the kernel declines the sample if it is a jump from ``u`` (:meth:`input_jump`; None or
+        ``jump_p`` None: no test).
         """
         if not self.fused or self.method != "cached" or self.kernel_name != "numba":
             return None
         if u.__class__ is not np.ndarray or u.shape != self._u_shape or u.dtype != np.float64:
             u = self._input(u)  # (the filter passes its stored input: a float array, checked once here)
+        if u_next is not None and (u_next.__class__ is not np.ndarray or u_next.shape != self._u_shape
+                                   or u_next.dtype != np.float64):
+            u_next = self._input(u_next)  # the kernel reads it without bounds checks
         m = len(channels)
         x_out, r, S = np.empty(self.nx), np.empty(m), np.empty((m, m))
         iv = self._last
@@ -567,7 +582,8 @@ class ReducedObserverModel:
             args = iv.fused
             if args is None or args[0] is not channels:
                 args = self._fused_arguments(iv, channels)
-            status, nis, remapped, finite = cached_sample(x, P, u, y, Rd, floor, x_out, r, S, *bufs, *args[1])
+            status, nis, remapped, finite = cached_sample(x, P, u, u if u_next is None else u_next, y, Rd, floor,
+                                                          x_out, r, S, *bufs, *args[1])
             if status != REFRESH:
                 break
             iv = self._refresh(x, dt)
@@ -596,7 +612,8 @@ class ReducedObserverModel:
              self._noQ if self.q_extra is None else self.q_extra, *maps, *iv.forces.jacobian_tensors(), c0, Hm,
              self._noRows if dH is None else dH), views=range(22, 27))
         iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q = views
-        fl = np.array([iv.rad, self._measurement_radius(iv), iv.dd, self.remap_rad, k[2], k[3]])
+        thr, w = self._jump_test()
+        fl = np.array([iv.rad, self._measurement_radius(iv), iv.dd, self.remap_rad, k[2], k[3], thr, *w])
         iv.fused = (channels, (pack, lay, fl, k[0], k[1], k[4]))
         return iv.fused
 
