@@ -31,29 +31,53 @@ __all__ = ["HAVE_NUMBA", "basis_at", "basis_derivative", "force_terms", "reduced
 def _element_form(X, el_dofs, Rm, Km, S_th, nq):  # pragma: no cover - compiled
     """``sum_e S_th[e, k] X_e^T R_e K_e R_e^T X_e`` (nq, r, r), ``X_e`` the element's rows of ``X`` (N, r);
     ``Km`` (n_el, 6, 6) is the element's local matrix (the rotation applied here) or, with ``Rm`` of zero
-    length, the element matrix in the global frame already rotated and ``X`` taken as it is."""
+    length, the element matrix in the global frame already rotated and ``X`` taken as it is. Loops: 6 x 6
+    blocks are too small for a BLAS call to pay."""
     n_el = el_dofs.shape[0]
     r = X.shape[1]
     out = np.zeros((nq, r, r))
-    Xe = np.empty((6, r))
+    Ae = np.empty((6, r))
+    KA = np.empty((6, r))
+    E = np.empty((r, r))
     for e in range(n_el):
-        for a in range(6):
-            Xe[a] = X[el_dofs[e, a]]
-        if Rm.shape[0]:
-            Ae = np.ascontiguousarray(Rm[e].T) @ Xe  # element frame
+        if Rm.shape[0]:  # element frame: Ae = R_e^T X_e
+            for a in range(6):
+                for j in range(r):
+                    acc = 0.0
+                    for b in range(6):
+                        acc += Rm[e, b, a] * X[el_dofs[e, b], j]
+                    Ae[a, j] = acc
         else:
-            Ae = Xe
-        E = np.ascontiguousarray(Ae.T) @ (Km[e] @ Ae)  # (r, r)
+            for a in range(6):
+                for j in range(r):
+                    Ae[a, j] = X[el_dofs[e, a], j]
+        for a in range(6):
+            for j in range(r):
+                KA[a, j] = 0.0
+            for b in range(6):
+                w = Km[e, a, b]
+                for j in range(r):
+                    KA[a, j] += w * Ae[b, j]
+        for i in range(r):
+            for j in range(r):
+                E[i, j] = 0.0
+            for a in range(6):
+                w = Ae[a, i]
+                for j in range(r):
+                    E[i, j] += w * KA[a, j]
         for k in range(nq):
             w = S_th[e, k]
             if w != 0.0:
-                out[k] += w * E
+                for i in range(r):
+                    for j in range(r):
+                        out[k, i, j] += w * E[i, j]
     return out
 
 
 def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, RGR, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent):
     # pragma: no cover - compiled twin of ReducedModel.force_model (gradients=True)
-    """``(fg, Tk, V, JtM, dMr, dKr, C2)`` of :class:`~exuflex.reduction.model.QuadraticForces`, see
+    """``(fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs)`` of :class:`~exuflex.reduction.model.QuadraticForces` (``Ts, Vs``:
+    its :meth:`~exuflex.reduction.model.QuadraticForces.jacobian_tensors`), see
     :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``RGR`` (n_el, 6, 6):
     ``R_e G R_e^T`` per element (the element mass rotation rate); ``Sd3`` (nq, N, nq): ``dS/dq_j``."""
     N, n = W.shape
@@ -104,28 +128,50 @@ def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, RGR, KGl, el_dofs, S_th, Sd3, 
     # dM_r/dq_i = dWJ_i^T M_N WJ + its transpose + SE, with dWJ_i = dS/dq_i J_q + W dH/dq_i
     Jq = np.ascontiguousarray(J[:nq])
     dMr = np.empty((nq, r, r))
-    dH = np.empty((n, r))
+    dH = np.empty((n, nq * r))  # [a, i r + b] = dH/dq_i e_b, row a: W dH/dq_i for all i in one product
     for i in range(nq):
         for a in range(n):
             for b in range(r):
-                dH[a, b] = dHdq[b, a, i]
-        dWJ = np.ascontiguousarray(Sd3[i]) @ Jq + W @ dH  # (N, r)
+                dH[a, i * r + b] = dHdq[b, a, i]
+    WdH = W @ dH  # (N, nq r)
+    dWJ = np.empty((N, r))
+    for i in range(nq):
+        for a in range(N):
+            for b in range(r):
+                acc = WdH[a, i * r + b]
+                for c in range(nq):
+                    acc += Sd3[i, a, c] * Jq[c, b]
+                dWJ[a, b] = acc
         A = np.ascontiguousarray(dWJ.T) @ MWJ
         for a in range(r):
             for b in range(r):
                 dMr[i, a, b] = A[a, b] + A[b, a] + SE[i, a, b]
     # bias term: C[k, j, :] = J^T M W dH/dq_j e_k, flattened (r nq, r) and doubled
     if consistent:
-        C2 = np.empty((r * nq, r))
-        col = np.empty(n)
+        X = np.empty((n, r * nq))  # [a, k nq + j] = dHdq[k, a, j]
         for k in range(r):
-            for j in range(nq):
-                for a in range(n):
-                    col[a] = dHdq[k, a, j]
-                C2[k * nq + j] = 2.0 * (JtM @ col)
+            for a in range(n):
+                for j in range(nq):
+                    X[a, k * nq + j] = dHdq[k, a, j]
+        JX = JtM @ X  # (r, r nq)
+        C2 = np.empty((r * nq, r))
+        for kj in range(r * nq):
+            for c in range(r):
+                C2[kj, c] = 2.0 * JX[c, kj]
     else:
         C2 = np.zeros((0, r))
-    return fg, Tk, V, JtM, dMr, dKr, C2
+    # the symmetrised forms of QuadraticForces.jacobian_tensors
+    Ts = np.empty((r, r, r))
+    for m in range(r):
+        for i in range(r):
+            for j in range(r):
+                Ts[m, i, j] = Tk[m, i, j] + Tk[j, i, m]
+    Vs = np.empty((nq, r, r))
+    for k in range(nq):
+        for i in range(r):
+            for j in range(r):
+                Vs[k, i, j] = V[k, i, j] + V[k, j, i]
+    return fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs
 
 
 if HAVE_NUMBA:

@@ -269,7 +269,7 @@ class ReducedModel:
         RGR = R @ Gl @ np.swapaxes(R, 1, 2)
         S_th = np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link])
         Sd3 = np.ascontiguousarray(model.kin.coordinate_rates(cfg.pose))
-        fg, Tk, V, JtM, dMr, dKr, C2 = _compiled.force_terms(
+        fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs = _compiled.force_terms(
             np.ascontiguousarray(cfg.W), np.ascontiguousarray(mats.J), np.ascontiguousarray(mats.rc.H), cfg.M_N,
             Tmap, np.ascontiguousarray(mats.rc.Kuu), g_N, np.ascontiguousarray(R), RGR, KGl, el_dofs, S_th, Sd3,
             np.ascontiguousarray(dHdq), nq, self.consistent)
@@ -277,7 +277,10 @@ class ReducedModel:
             JtM, C2 = None, None
         if not gradients:
             dMr, dKr = None, None
-        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr, C2=C2)
+        forces = QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr, C2=C2)
+        r = self.r
+        forces._tensors = (Ts, Vs, np.zeros((0, nq, r)) if C2 is None else C2.reshape(r, nq, r))
+        return forces
 
     def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None,
                                  WJ: np.ndarray | None = None, SE: np.ndarray | None = None) -> np.ndarray:
