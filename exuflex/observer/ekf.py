@@ -577,13 +577,15 @@ class MultirateEKF:
         compiled call, if the model offers one (``fused_sample``, the cached reduced observer) and every
         channel of ``y`` is present. Same arithmetic as the step-by-step path, to rounding; False (nothing
         changed) where it does not apply or the model declines, and the step-by-step path runs instead."""
-        y = np.asarray(y, dtype=float)
+        # a copy: contiguous and writable whatever the log's array was (a read-only row would make numba
+        # compile the kernel once more, 0.1 s in a run's first sample)
+        y = np.array(y, dtype=float)
         if y.shape != (self.m,) or not math.isfinite(sum(y.tolist())):
             return False
         try:
-            out = self._fused(self._x, self._P, u, np.ascontiguousarray(y), self.channels, self._Rdiag,
+            out = self._fused(self._x, self._P, u, y, self.channels, self._Rdiag,
                               self._floor, self.dt, (self._Pspare, self._Ppred, self._work, self._HP),
-                              None if u_next is None else np.asarray(u_next, dtype=float))
+                              None if u_next is None else np.ascontiguousarray(u_next, dtype=float))
         except (ArithmeticError, np.linalg.LinAlgError, KinematicsError):
             return False  # the step-by-step path meets the same failure and handles it (see _predict)
         if out is None:

@@ -500,4 +500,5 @@ def warm_up() -> None:
     step_maps_held(M, M, M, G, 1e-4, 1, np.ones(nq))
     step_jacobian_loops(z, np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r),
                         np.zeros((2 * r, r)))
+    prediction_error_loops(dl, 0.0, False, M, M, g2, g2, g2, g2, M, M)
     _warm = True
