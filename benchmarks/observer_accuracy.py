@@ -27,7 +27,7 @@ from exuflex.measure import measure
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, estimation_bound, make_observer, metrics, physical_names
 from exuflex.observer.stats import fft_peaks, match_peaks, mc_consistency
-from exuflex.sensors import Signals, tip_point
+from exuflex.sensors import Signals
 from exuflex.study.runner import plan_drive, simulate_level
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,26 +48,6 @@ def truth(model: Path, engine: str, cache: Path | None):
         np.savez(f, ct=lt.clean.t, cn=np.array(lt.clean.names), cd=lt.clean.data, tt=lt.truth.t,
                  tn=np.array(lt.truth.names), td=lt.truth.data, torque_t=lt.torque_t, torques=lt.torques)
     return mech, lt.clean, lt.truth, lt.torque_t, lt.torques
-
-
-def physical_covariance(obs, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Covariance (n, 10, 10) of q, dq, tip displacement and velocity from the filter's (n, nx, nx)."""
-    som = obs.model
-    nq, r = som.nq, som.r
-    tp = tip_point(obs.mech)
-    out = np.empty((len(Z), 2 * nq + 4, 2 * nq + 4))
-    rows, q_last = None, None
-    for k in range(len(Z)):
-        q = Z[k, :nq]
-        if rows is None or np.max(np.abs(q - q_last)) > 1e-3:
-            rows, q_last = som.tip_rows(q, *tp), q.copy()
-        C = np.zeros((2 * nq + 4, som.nx))
-        C[:nq, :nq] = np.eye(nq)
-        C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        C[2 * nq : 2 * nq + 2, :r] = rows
-        C[2 * nq + 2 :, r:] = rows
-        out[k] = C @ P[k][: som.nx, : som.nx] @ C.T  # without the filter's extra (input-noise) states
-    return out
 
 
 def main(argv=None) -> int:
@@ -108,7 +88,7 @@ def main(argv=None) -> int:
         m = metrics(phys, tr, start)
         rms.append([m["rms_error"][n] for n in names])
         e = np.column_stack([phys[n] - np.interp(phys.t, tr.t, tr[n]) for n in names])
-        Pp = physical_covariance(obs, res.x_hat, res.P)
+        Pp = obs.physical_covariance(res.x_hat, res.P)
         nees.append(np.einsum("ki,ki->k", e, np.linalg.solve(Pp, e[:, :, None])[:, :, 0]))
         nis.append(res.nis)
         nis_dof.append(res.nis_dof)

@@ -298,28 +298,6 @@ def test_autocorrelation_time_of_white_and_correlated_sequences():
     assert chk.time_avg_hi_eff - chk.time_avg_lo_eff == pytest.approx(chk.time_avg_hi - chk.time_avg_lo, rel=0.15)
 
 
-def _physical_covariance(obs, Z, P):
-    """Covariance (n, 10, 10) of q, dq/dt, tip elastic displacement and velocity from the filter's (leading block)."""
-    from exuflex.sensors import tip_point
-
-    som = obs.model
-    nq, r, nx = som.nq, som.r, som.nx
-    tp = tip_point(obs.mech)
-    out = np.empty((len(Z), 2 * nq + 4, 2 * nq + 4))
-    rows, q_last = None, None
-    for k in range(len(Z)):
-        q = Z[k, :nq]
-        if rows is None or np.max(np.abs(q - q_last)) > 1e-3:
-            rows, q_last = som.tip_rows(q, *tp), q.copy()
-        C = np.zeros((2 * nq + 4, nx))
-        C[:nq, :nq] = np.eye(nq)
-        C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        C[2 * nq : 2 * nq + 2, :r] = rows
-        C[2 * nq + 2 :, r:] = rows
-        out[k] = C @ P[k][:nx, :nx] @ C.T
-    return out
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("engine", ["reduced", "erls"])
 def test_filter_is_consistent(engine):
@@ -345,7 +323,7 @@ def test_filter_is_consistent(engine):
         assert not res.diverged
         phys = obs.physical(res.t, res.x_hat)
         e = np.column_stack([phys[n] - np.interp(phys.t, lt.truth.t, lt.truth[n]) for n in names])
-        P = _physical_covariance(obs, res.x_hat, res.P)
+        P = obs.physical_covariance(res.x_hat, res.P)
         nees_runs.append(np.einsum("ki,ki->k", e, np.linalg.solve(P, e[:, :, None])[:, :, 0]))
         nis_runs.append(res.nis)
         dof.append(res.nis_dof)

@@ -173,6 +173,30 @@ class Observer:
         units = ("rad",) * nq + ("rad/s",) * nq + (("m", "m", "m/s", "m/s") if tp is not None else ())
         return Signals(np.asarray(t, float), names, out, units)
 
+    def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3) -> np.ndarray:
+        """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
+        from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through the
+        same linear maps (the filter's extra states, if any, are left out). For NEES against a truth of the
+        physical quantities. The tip rows are refreshed whenever q moved by more than ``refresh_rad``."""
+        som = self.model
+        nq, r, nx = som.nq, som.r, som.nx
+        tp = tip_point(self.mech)
+        k = 2 * nq + (4 if tp is not None else 0)
+        out = np.empty((len(Z), k, k))
+        C = np.zeros((k, nx))
+        C[:nq, :nq] = np.eye(nq)
+        C[nq : 2 * nq, r : r + nq] = np.eye(nq)
+        rows, q_last = None, None
+        for i in range(len(Z)):
+            if tp is not None:
+                q = Z[i, :nq]
+                if rows is None or np.max(np.abs(q - q_last)) > refresh_rad:
+                    rows, q_last = som.tip_rows(q, *tp), q.copy()
+                    C[2 * nq : 2 * nq + 2, :r] = rows
+                    C[2 * nq + 2 :, r:] = rows
+            out[i] = C @ P[i][:nx, :nx] @ C.T
+        return out
+
 
 def _noise_std(mech: Mechanism, channels: Sequence[str]) -> dict[str, float]:
     sensors = {s.name: s for s in mech.sensors}
