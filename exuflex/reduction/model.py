@@ -110,6 +110,8 @@ class ReducedModel:
     ----------
     cb : CraigBampton
     consistent : exact velocity transformation (default) or the paper's ``x' ~ H p'`` (see module docstring).
+    compiled : the per-configuration arithmetic (:meth:`matrices` without forces, :meth:`force_model`) in compiled
+        calls (:mod:`._compiled`); default: where numba is installed. False: the NumPy expressions, the reference.
     """
 
     def __init__(self, cb: CraigBampton, consistent: bool = True, compiled: bool | None = None):
