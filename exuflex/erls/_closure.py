@@ -1,6 +1,6 @@
 """Newton iteration of the loop-closure equations, compiled with numba when it is installed.
 
-The cached observer evaluates the configuration some 45 times in 3 s, each time solving the closure from the
+The cached observer evaluates the configuration about 30 times in 3 s, each time solving the closure from the
 last solution (two or three Newton steps). In NumPy, each step is a dozen small array operations whose call
 overhead is most of the cost (about 0.4 ms per solve); compiled, the same arithmetic takes a few
 microseconds. :meth:`exuflex.erls.kinematics.Kinematics._newton_numpy` is the reference, and
