@@ -111,3 +111,22 @@ def test_energy_drift_short():
 def test_energy_drift_one_second():
     """The aluminium single link (one element), undamped and unforced, over 1 s: |drift| < 1e-6."""
     assert abs(_drift(_one_element_link(), 1.0, 1e-9)) < 1e-6
+
+
+def test_rk4_substeps_keep_an_overdamped_mode_stable():
+    """The ERLS truth splits its step where RK4 would make a physically decaying mode grow: the four-bar's
+    highest mode is overdamped by the stiffness damping, lambda = -1.45e5 1/s, 14.5 times the 0.1 ms step."""
+    from exuflex.erls.simulate import rk4_substeps, simulate
+
+    lam = -1.45e5
+    A = np.diag([lam, 0.0])
+    A[1, 0] = 1.0  # a rigid coordinate driven by it (lambda = 0: neutral, needs no sub-step)
+    n = rk4_substeps(A, 1e-4)
+    assert n == 6  # |R(z)| <= 1 on the negative real axis up to |z| = 2.785: 14.5 / 6 = 2.42 (5 sub-steps: 2.9)
+    f = lambda t, y, u: A @ y
+    y_end = simulate(f, [1.0, 0.0], 0.01, lambda t: None, h=1e-4 / n).y[-1]
+    assert abs(y_end[0]) < 1e-12
+    with pytest.raises(FloatingPointError), np.errstate(over="ignore", invalid="ignore"):
+        simulate(f, [1.0, 0.0], 0.01, lambda t: None, h=1e-4)
+    oscillating = np.array([[0.0, 1.0], [-(2 * np.pi * 4330.0) ** 2, 0.0]])  # the six-bar's highest mode, undamped
+    assert rk4_substeps(oscillating, 1e-4) == 1
