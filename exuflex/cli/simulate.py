@@ -102,13 +102,7 @@ def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress):
     def inputs(t):
         return tau[min(int(np.floor(t / dt_tab + 1e-6)), len(tau) - 1)]
 
-    cfg = model.configuration(np.asarray(q0, float))
-    Minv = np.linalg.inv(model.mass(cfg))
-    A = np.zeros((2 * n, 2 * n))
-    A[:n, n:] = np.eye(n)
-    A[n:, :n] = -Minv @ model.stiffness(cfg)
-    A[n:, n:] = -Minv @ model.damping(cfg)
-    sub = rk4_substeps(A, h)
+    sub = rk4_substeps(model.state_matrix(model.configuration(np.asarray(q0, float)))[0], h)
     if sub > 1:
         log.info("ERLS truth: %d RK4 sub-steps per %g s step (stability at the start)", sub, h)
     every = max(1, round(output_dt / h)) * sub

@@ -240,6 +240,21 @@ class ErlsModel:
         Jh[:nq] -= S_th.T @ (Yall @ W)
         return Jh
 
+    def state_matrix(self, cfg: Configuration, x: np.ndarray | None = None,
+                     v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 K, -M^-1 (C + dh/dv)]]``
+        (2n x 2n), with the velocity forces' Jacobian at ``(x, v)`` if given (none at rest)."""
+        n = self.n
+        Minv = np.linalg.inv(self.mass(cfg))
+        C = self.damping(cfg)
+        if v is not None:
+            C = C + self.velocity_force_jacobian(cfg, x, v)
+        A = np.zeros((2 * n, 2 * n))
+        A[:n, n:] = np.eye(n)
+        A[n:, :n] = -Minv @ self.stiffness(cfg)
+        A[n:, n:] = -Minv @ C
+        return A, Minv
+
     def element_rotation_term(self, cfg: Configuration, WJ: np.ndarray) -> np.ndarray:
         """``SE[k] = sum_e (dtheta_e/dq_k) (W J)_e^T R_e G R_e^T (W J)_e`` (nq, r, r): the change of ``(W J)^T M_N
         (W J)`` with q through the rotation of the element masses with their links (shared by the velocity

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import solve_ivp
 
-__all__ = ["Trajectory", "rk4_step", "rk4_substeps", "simulate"]
+__all__ = ["Trajectory", "rk4_amplification", "rk4_step", "rk4_substeps", "simulate"]
 
 log = logging.getLogger(__name__)
 
@@ -29,10 +29,15 @@ def rk4_step(f, t, y, h, u):
     return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
+def rk4_amplification(z):
+    """RK4's amplification of a linear mode per step, ``R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24``, ``z = h lambda``."""
+    return 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+
+
 def rk4_substeps(A: np.ndarray, h: float, max_substeps: int = 10000) -> int:
     """The fewest RK4 sub-steps per step ``h`` for which the linear system ``y' = A y`` is stable.
 
-    RK4 multiplies a mode ``lambda`` by ``R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24`` per sub-step, ``z = h lambda``; a
+    RK4 multiplies a mode ``lambda`` by :func:`rk4_amplification` ``R(z)`` per sub-step, ``z = h lambda``; a
     mode that decays physically (``Re lambda <= 0``) must not grow, ``|R(z)| <= 1``. Stiffness-proportional
     damping makes the highest elastic modes of a fine mesh overdamped, with large negative real eigenvalues,
     where RK4 is stable only up to ``|z| = 2.79`` (on the imaginary axis up to 2.83).
@@ -41,7 +46,7 @@ def rk4_substeps(A: np.ndarray, h: float, max_substeps: int = 10000) -> int:
     lam = lam[lam.real <= 0]
     for n in range(1, max_substeps + 1):
         z = (h / n) * lam
-        if np.all(np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24) <= 1.0 + 1e-12):
+        if np.all(np.abs(rk4_amplification(z)) <= 1.0 + 1e-12):
             return n
     raise ValueError(f"RK4 needs more than {max_substeps} sub-steps of h = {h:g} s for max |lambda| = "
                      f"{np.abs(lam).max():.3g} 1/s")

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..erls.model import Configuration, ErlsModel
-from ..erls.simulate import rk4_step
+from ..erls.simulate import rk4_amplification, rk4_step
 from .reduced import power_sum
 from .rows import sensor, sensor_rows
 
@@ -96,11 +96,7 @@ class FullObserverModel:
         cfg = m.configuration(x[:nq], self._z)
         self._z = cfg.pose.z
         self.n_evaluations += 1
-        Minv = np.linalg.inv(m.mass(cfg))
-        A = np.zeros((self.nx, self.nx))
-        A[:n, n:] = np.eye(n)
-        A[n:, :n] = -Minv @ m.stiffness(cfg)
-        A[n:, n:] = -Minv @ (m.damping(cfg) + m.velocity_force_jacobian(cfg, x[:n], x[n:]))
+        A, Minv = m.state_matrix(cfg, x[:n], x[n:])
         hA = self.h * A
         hA2 = hA @ hA
         hA3 = hA2 @ hA
@@ -144,8 +140,7 @@ class FullObserverModel:
         to ``|h lambda| = 2.83``.
         """
         lam = np.linalg.eigvals(self._interval(np.asarray(x, float), 10 * self.h).A)
-        z = self.h * lam[lam.real <= 0]
-        R = 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+        R = rk4_amplification(self.h * lam[lam.real <= 0])
         return float(np.max(np.abs(R))), float(np.max(np.abs(self.h * lam)))
 
     # ------------------------------------------------------------------ measurements

@@ -161,39 +161,24 @@ PACKED = ("q0", "d", "Mr0", "Kr0", "Ca0", "Gr0", "dM2", "dK2", "fg", "T2", "V2",
           "C3", "c0", "Hm", "dH")
 
 
-_LAYOUTS: dict = {}
-
-
-def _layout(shapes: tuple) -> tuple[np.ndarray, int]:
-    lay = _LAYOUTS.get(shapes)
-    if lay is None:
-        if len(shapes) != len(PACKED):
-            raise ValueError(f"{len(shapes)} arrays to pack, expected {len(PACKED)}")
-        lay = np.zeros(4 * len(shapes), dtype=np.int64)
-        off = 0
-        for i, shape in enumerate(shapes):
-            if len(shape) > 3:
-                raise ValueError(f"{PACKED[i]} has {len(shape)} dimensions, at most 3 can be packed")
-            lay[4 * i] = off
-            lay[4 * i + 1 : 4 * i + 1 + len(shape)] = shape
-            off += math.prod(shape)
-        lay = _LAYOUTS[shapes] = (lay, off)
-    return lay
-
-
 def pack_arguments(arrays, views=()) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """``(pack, lay, views)``: the float64 arrays (in :data:`PACKED` order) copied into one buffer, the int64
     layout (offset and up to three dimensions per item) and a view of the buffer, of the item's shape, for
     each item index in ``views`` (writing a view writes the buffer the kernel reads)."""
-    lay, size = _layout(tuple(a.shape for a in arrays))
-    pack = np.concatenate([a.reshape(-1) for a in arrays]) if size else np.empty(0)
+    if len(arrays) != len(PACKED):
+        raise ValueError(f"{len(arrays)} arrays to pack, expected {len(PACKED)}")
+    lay = []
+    off = 0
+    for name, a in zip(PACKED, arrays):
+        if a.ndim > 3:
+            raise ValueError(f"{name} has {a.ndim} dimensions, at most 3 can be packed")
+        lay += [off, *a.shape, *(0,) * (3 - a.ndim)]
+        off += a.size
+    pack = np.concatenate([a.reshape(-1) for a in arrays]) if off else np.empty(0)
     if pack.dtype != np.float64:
         raise ValueError(f"packed arrays must be float64, got {pack.dtype}")
-    out = []
-    for i in views:
-        o = lay[4 * i]
-        out.append(pack[o : o + arrays[i].size].reshape(arrays[i].shape))
-    return pack, lay, out
+    out = [pack[lay[4 * i] : lay[4 * i] + arrays[i].size].reshape(arrays[i].shape) for i in views]
+    return pack, np.array(lay, dtype=np.int64), out
 
 
 _secant_factor = _jit(_secant_factor)

@@ -180,7 +180,8 @@ class ReducedObserverModel:
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
         self.jump_p = jump_p
-        self._jump_threshold = None
+        nu = len(self.mech.motors)
+        self._jump_threshold = math.inf if jump_p is None else float(chi2.ppf(1.0 - jump_p, nu))
         self._step_matrices = None
         self._last: _Interval | None = None
         self._channel_cache: dict = {}
@@ -428,14 +429,9 @@ class ReducedObserverModel:
         return np.subtract(a, b)
 
     def _jump_test(self) -> tuple[float, list]:
-        """Threshold and per-motor weights of :meth:`input_jump`'s chi-square test (inf: no test)."""
-        var = self.torque_var
-        if self.jump_p is None:
-            return math.inf, [0.0] * len(var)
-        key = (id(var), self.jump_p)
-        if self._jump_threshold is None or self._jump_threshold[0] != key:  # (the noise may be rescaled)
-            self._jump_threshold = (key, float(chi2.ppf(1.0 - self.jump_p, len(var))), (0.5 / var).tolist())
-        return self._jump_threshold[1], self._jump_threshold[2]
+        """Threshold and per-motor weights of :meth:`input_jump`'s chi-square test (inf: no test). The weights
+        follow ``torque_var``, which the observer session may rescale after construction."""
+        return self._jump_threshold, (0.5 / self.torque_var).tolist()
 
     def input_jump_moments(self, d: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the effect of a torque jump ``d`` at an unknown instant of the last interval.

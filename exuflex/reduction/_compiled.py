@@ -28,11 +28,10 @@ except ImportError:  # pragma: no cover - exercised only on machines without num
 __all__ = ["HAVE_NUMBA", "basis_at", "basis_derivative", "force_terms", "reduced_matrices"]
 
 
-def _element_form(X, el_dofs, Rm, Km, S_th, nq):  # pragma: no cover - compiled
-    """``sum_e S_th[e, k] X_e^T R_e K_e R_e^T X_e`` (nq, r, r), ``X_e`` the element's rows of ``X`` (N, r);
-    ``Km`` (n_el, 6, 6) is the element's local matrix (the rotation applied here) or, with ``Rm`` of zero
-    length, the element matrix in the global frame already rotated and ``X`` taken as it is. Loops: 6 x 6
-    blocks are too small for a BLAS call to pay."""
+def _element_form(X, el_dofs, R, Km, S_th, nq):  # pragma: no cover - compiled
+    """``sum_e S_th[e, k] X_e^T R_e K_e R_e^T X_e`` (nq, r, r), ``X_e`` the element's rows of ``X`` (N, r) and
+    ``K_e`` (``Km[e]``, 6 x 6) an element matrix in the element's frame. Loops: 6 x 6 blocks are too small for a
+    BLAS call to pay."""
     n_el = el_dofs.shape[0]
     r = X.shape[1]
     out = np.zeros((nq, r, r))
@@ -40,17 +39,12 @@ def _element_form(X, el_dofs, Rm, Km, S_th, nq):  # pragma: no cover - compiled
     KA = np.empty((6, r))
     E = np.empty((r, r))
     for e in range(n_el):
-        if Rm.shape[0]:  # element frame: Ae = R_e^T X_e
-            for a in range(6):
-                for j in range(r):
-                    acc = 0.0
-                    for b in range(6):
-                        acc += Rm[e, b, a] * X[el_dofs[e, b], j]
-                    Ae[a, j] = acc
-        else:
-            for a in range(6):
-                for j in range(r):
-                    Ae[a, j] = X[el_dofs[e, a], j]
+        for a in range(6):  # element frame: Ae = R_e^T X_e
+            for j in range(r):
+                acc = 0.0
+                for b in range(6):
+                    acc += R[e, b, a] * X[el_dofs[e, b], j]
+                Ae[a, j] = acc
         for a in range(6):
             for j in range(r):
                 KA[a, j] = 0.0
@@ -74,45 +68,12 @@ def _element_form(X, el_dofs, Rm, Km, S_th, nq):  # pragma: no cover - compiled
     return out
 
 
-def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, RGR, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent):
-    # pragma: no cover - compiled twin of ReducedModel.force_model (gradients=True)
-    """``(fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs)`` of :class:`~exuflex.reduction.model.QuadraticForces` (``Ts, Vs``:
-    its :meth:`~exuflex.reduction.model.QuadraticForces.jacobian_tensors`), see
-    :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``RGR`` (n_el, 6, 6):
-    ``R_e G R_e^T`` per element (the element mass rotation rate); ``Sd3`` (nq, N, nq): ``dS/dq_j``."""
+def _mass_stiffness_gradients(W, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq):  # pragma: no cover - compiled
+    """``(dM_r/dq, dK_r/dq)`` (nq, r, r) each, from the element terms ``SE`` (mass) and ``SEe`` (stiffness)
+    of :func:`force_terms`, see :meth:`~exuflex.reduction.model.ReducedModel.mass_derivative_analytic`."""
     N, n = W.shape
     r = J.shape[1]
     ne = n - nq
-    WJ = W @ J  # (N, r)
-    noR = np.zeros((0, 6, 6))
-    SE = _element_form(WJ, el_dofs, noR, RGR, S_th, nq)  # element mass rotation term (nq, r, r)
-    # velocity force tensor T[k] = J^T (dh/dv)(J e_k) J
-    Tk = np.zeros((r, r, r))
-    for k in range(nq):
-        for i in range(r):
-            for j in range(r):
-                Tk[k, i, j] += SE[k, i, j]
-                Tk[j, i, k] += SE[k, i, j]
-                Tk[j, k, i] -= SE[k, i, j]
-    MWJ = M_N @ WJ  # (N, r)
-    for k in range(nq):
-        for j in range(nq):
-            for i in range(r):
-                acc = 0.0
-                for a in range(N):
-                    acc += MWJ[a, i] * (Sd3[j, a, k] + Sd3[k, a, j])
-                Tk[k, i, j] += acc
-    # q-row geometric term and the element part of dK_r/dq
-    TH = Tmap @ np.ascontiguousarray(H[nq:])  # (N, r)
-    SEe = _element_form(TH, el_dofs, R, KGl, S_th, nq)
-    V = np.empty((nq, r, r))
-    for k in range(nq):
-        for i in range(r):
-            for j in range(r):
-                V[k, i, j] = 0.25 * (SEe[k, i, j] + SEe[k, j, i])
-    WJt = np.ascontiguousarray(WJ.T)
-    fg = WJt @ (M_N @ g_N)
-    JtM = WJt @ (M_N @ W) if consistent else np.zeros((0, n))
     # dK_r/dq_i = SEe + dH_u^T K_uu H_u + its transpose
     KH = Kuu @ np.ascontiguousarray(H[nq:])  # (ne, r)
     dKr = np.empty((nq, r, r))
@@ -146,6 +107,51 @@ def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, RGR, KGl, el_dofs, S_th, Sd3, 
         for a in range(r):
             for b in range(r):
                 dMr[i, a, b] = A[a, b] + A[b, a] + SE[i, a, b]
+    return dMr, dKr
+
+
+def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients):
+    # pragma: no cover - compiled twin of ReducedModel.force_model
+    """``(fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs)`` of :class:`~exuflex.reduction.model.QuadraticForces` (``Ts, Vs``:
+    its :meth:`~exuflex.reduction.model.QuadraticForces.jacobian_tensors`), see
+    :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``Gl`` (n_el, 6, 6): the element
+    mass rotation rate in the element frame; ``Sd3`` (nq, N, nq): ``dS/dq_j``; without ``gradients`` ``dMr`` and
+    ``dKr`` are empty."""
+    N, n = W.shape
+    r = J.shape[1]
+    WJ = W @ J  # (N, r)
+    SE = _element_form(WJ, el_dofs, R, Gl, S_th, nq)  # element mass rotation term (nq, r, r)
+    # velocity force tensor T[k] = J^T (dh/dv)(J e_k) J
+    Tk = np.zeros((r, r, r))
+    for k in range(nq):
+        for i in range(r):
+            for j in range(r):
+                Tk[k, i, j] += SE[k, i, j]
+                Tk[j, i, k] += SE[k, i, j]
+                Tk[j, k, i] -= SE[k, i, j]
+    MWJ = M_N @ WJ  # (N, r)
+    for k in range(nq):
+        for j in range(nq):
+            for i in range(r):
+                acc = 0.0
+                for a in range(N):
+                    acc += MWJ[a, i] * (Sd3[j, a, k] + Sd3[k, a, j])
+                Tk[k, i, j] += acc
+    # q-row geometric term and the element part of dK_r/dq
+    TH = Tmap @ np.ascontiguousarray(H[nq:])  # (N, r)
+    SEe = _element_form(TH, el_dofs, R, KGl, S_th, nq)
+    V = np.empty((nq, r, r))
+    for k in range(nq):
+        for i in range(r):
+            for j in range(r):
+                V[k, i, j] = 0.25 * (SEe[k, i, j] + SEe[k, j, i])
+    WJt = np.ascontiguousarray(WJ.T)
+    fg = WJt @ (M_N @ g_N)
+    JtM = WJt @ (M_N @ W) if consistent else np.zeros((0, n))
+    if gradients:
+        dMr, dKr = _mass_stiffness_gradients(W, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq)
+    else:
+        dMr = dKr = np.zeros((0, r, r))
     # bias term: C[k, j, :] = J^T M W dH/dq_j e_k, flattened (r nq, r) and doubled
     if consistent:
         X = np.empty((n, r * nq))  # [a, k nq + j] = dHdq[k, a, j]
@@ -177,6 +183,7 @@ def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, RGR, KGl, el_dofs, S_th, Sd3, 
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     _element_form = _jit(_element_form)
+    _mass_stiffness_gradients = _jit(_mass_stiffness_gradients)
     force_terms = _jit(_force_terms)
 else:  # pragma: no cover
     force_terms = None

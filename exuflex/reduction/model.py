@@ -125,7 +125,6 @@ class ReducedModel:
         self.nx = 2 * cb.r
         self.names = cb.names
         self.consistent = consistent
-        self._element_data = None
 
     # ------------------------------------------------------------------ matrices
     def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
@@ -259,28 +258,17 @@ class ReducedModel:
 
     def _force_model_compiled(self, mats: ReducedMatrices, dHdq: np.ndarray, gradients: bool) -> QuadraticForces:
         """:meth:`force_model` through :func:`._compiled.force_terms` (the same formulas, one call)."""
-        model, nq = self.model, self.nq
+        model, nq, r = self.model, self.nq, self.r
         cfg = mats.rc.cfg
-        R = cfg.R
-        el = self._element_data
-        if el is None:  # configuration-independent element data, contiguous for the kernel
-            el = self._element_data = (np.ascontiguousarray(model.el_dofs), np.ascontiguousarray(model.KGl),
-                                       np.ascontiguousarray(model.Gl), np.ascontiguousarray(model.T),
-                                       np.ascontiguousarray(model.g_N))
-        el_dofs, KGl, Gl, Tmap, g_N = el
-        RGR = R @ Gl @ np.swapaxes(R, 1, 2)
-        S_th = np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link])
-        Sd3 = np.ascontiguousarray(model.kin.coordinate_rates(cfg.pose))
         fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs = _compiled.force_terms(
-            np.ascontiguousarray(cfg.W), np.ascontiguousarray(mats.J), np.ascontiguousarray(mats.rc.H), cfg.M_N,
-            Tmap, np.ascontiguousarray(mats.rc.Kuu), g_N, np.ascontiguousarray(R), RGR, KGl, el_dofs, S_th, Sd3,
-            np.ascontiguousarray(dHdq), nq, self.consistent)
+            cfg.W, np.ascontiguousarray(mats.J), mats.rc.H, cfg.M_N, model.T, np.ascontiguousarray(mats.rc.Kuu),
+            model.g_N, cfg.R, model.Gl, model.KGl, model.el_dofs, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
+            model.kin.coordinate_rates(cfg.pose), np.ascontiguousarray(dHdq), nq, self.consistent, gradients)
         if not self.consistent:
             JtM, C2 = None, None
         if not gradients:
             dMr, dKr = None, None
         forces = QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr, C2=C2)
-        r = self.r
         forces._tensors = (Ts, Vs, np.zeros((0, nq, r)) if C2 is None else C2.reshape(r, nq, r))
         return forces
 
