@@ -15,6 +15,7 @@ from pathlib import Path
 
 from exuflex.groundtruth import time_truth
 from exuflex.mechanism import load_mechanism
+from exuflex.runs import package_versions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,11 +43,9 @@ def main() -> None:
         )
         cpus.append(time.process_time() - c0)
         stats.append(st)
-    import exudyn
-
     print(
         f"model {mech.name}: {duration:g} s simulated, h = {args.h:g} s, torques: {'smooth' if args.smooth else 'manoeuvre'}"
-        f", Exudyn {exudyn.__version__} ({getattr(exudyn, '_compiledModuleName', '?')})"
+        f", Exudyn {package_versions()['exudyn']}"
     )
     print(f"wall time  best {min(walls):.2f} s  (all: {', '.join(f'{w:.2f}' for w in walls)})")
 
