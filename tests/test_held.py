@@ -61,6 +61,30 @@ def test_held_step_kernel_equals_numpy_reference(has_old):
         np.testing.assert_allclose(b, a, rtol=1e-11, atol=1e-13 * np.abs(a).max())
 
 
+@pytest.mark.parametrize("has_old", [False, True])
+def test_held_system_kernel_equals_numpy_reference(has_old):
+    """The held model's matrices at a point off the step's configuration (where a step map is built ahead of q)."""
+    r, nq = 13, 3
+    rng, Mr, Kr, Ca, Gr, grad, _ = _system(r, nq)
+    old = _system(r, nq, seed=1)
+    args = (1e-3 * rng.normal(size=nq), 0.4, has_old, 1e-3, Mr, Kr, Ca, Gr, grad(), grad(), grad(), grad(), old[3],
+            old[4])
+    for a, b in zip(held.held_system_numpy(*args), held.held_system_loops(*args)):
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-14 * np.abs(a).max())
+
+
+def test_map_lookahead():
+    """A step map is built ``ahead`` remap radii along the motion, by the fastest coordinate, but no further than
+    the motion over ``horizon`` (a filter at rest keeps its map where q is)."""
+    z = np.zeros(8)
+    z[4:7] = [2.0, -4.0, 1.0]  # q' of the three rigid coordinates (r = 4)
+    np.testing.assert_allclose(held.map_lookahead(z, 3, 2e-3, 1.0, 0.02), [1e-3, -2e-3, 0.5e-3])
+    np.testing.assert_allclose(held.map_lookahead(z, 3, 2e-3, 0.5, 0.02), [0.5e-3, -1e-3, 0.25e-3])
+    z[4:7] *= 1e-3  # slow: the horizon limits the shift to 0.02 s of motion
+    np.testing.assert_allclose(held.map_lookahead(z, 3, 2e-3, 1.0, 0.02), 0.02 * z[4:7])
+    assert not held.map_lookahead(np.zeros(8), 3, 2e-3, 1.0, 0.02).any()
+
+
 def test_held_step_without_velocity_coupling_term():
     """The paper's velocity transformation has no bias term (an empty C2)."""
     r, nq = 13, 3

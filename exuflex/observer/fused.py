@@ -33,7 +33,7 @@ import math
 import numpy as np
 
 from ._compiled import predict_cov, settle, update
-from .held import HAVE_NUMBA, _jit, held_step_loops, step_jacobian_loops, step_maps_held
+from .held import HAVE_NUMBA, _held_system, _jit, held_step_loops, map_lookahead, step_jacobian_loops, step_maps_held
 
 __all__ = ["DONE", "FAR", "INDEFINITE", "JUMP", "REFRESH", "RESCUE", "cached_sample", "warm_up"]
 
@@ -85,10 +85,11 @@ def _cached_sample(z, P, u, u_next, y, Rd, floor, x_out, r, S, P_out, P_pred, wo
         :data:`PACKED` says; ``lay[4 i : 4 i + 4]`` = offset and shape of item ``i``. The step map items
         (``q_map, Pn, SQM, L, Q``) are rebuilt in place when q has moved by ``remap_rad`` (a NaN ``q_map``
         forces the rebuild).
-    fl : ``(rad, meas_rad, dd, remap_rad, beta, h, jump_threshold, jump_weights...)``: the held
-        configuration's refresh radius (``REFRESH`` beyond it) and measurement radius, ``d . d`` of the secant
-        direction ``d``, the step-map rebuild distance, the stiffness-proportional damping, the RK4 step, and
-        the torque-jump test (``JUMP`` if ``sum w_i (u_next - u)_i^2 > threshold``; inf: no test).
+    fl : ``(rad, meas_rad, dd, remap_rad, beta, h, jump_threshold, ahead, horizon, jump_weights...)``: the
+        held configuration's refresh radius (``REFRESH`` beyond it) and measurement radius, ``d . d`` of the
+        secant direction ``d``, the step-map rebuild distance, the stiffness-proportional damping, the RK4
+        step, the torque-jump test (``JUMP`` if ``sum w_i (u_next - u)_i^2 > threshold``; inf: no test) and
+        how far ahead along the motion a step map is built (:func:`.held.map_lookahead`).
     has_old, nq, n : a secant partner exists; number of rigid coordinates; RK4 steps per interval.
 
     Returns
@@ -104,7 +105,7 @@ def _cached_sample(z, P, u, u_next, y, Rd, floor, x_out, r, S, P_out, P_pred, wo
     jump = 0.0
     for i in range(u.shape[0]):
         e = u_next[i] - u[i]
-        jump += e * e * fl[7 + i]
+        jump += e * e * fl[9 + i]
     if jump > fl[6]:
         return JUMP, math.nan, False, False
     q0, d = _vec(pack, lay, 0), _vec(pack, lay, 1)
@@ -127,6 +128,14 @@ def _cached_sample(z, P, u, u_next, y, Rd, floor, x_out, r, S, P_out, P_pred, wo
         if not abs(z[i] - q_map[i]) <= remap_rad:
             remapped = True
     if remapped:
+        dla = dl + map_lookahead(z, nq, remap_rad, fl[7], fl[8])
+        for i in range(nq):  # (not beyond the held model's measurement radius)
+            dla[i] = min(max(dla[i], -meas_rad), meas_rad)
+        sa = _secant_factor(dla, d, dd, has_old)
+        Mr, Kr, Cr, Gr = _held_system(dla, sa, has_old, beta, _mat(pack, lay, 2), _mat(pack, lay, 3),
+                                      _mat(pack, lay, 4), _mat(pack, lay, 5), _mat(pack, lay, 6), _mat(pack, lay, 7),
+                                      _mat(pack, lay, 12), _mat(pack, lay, 13), _mat(pack, lay, 14),
+                                      _mat(pack, lay, 15))
         Pn_new, SQM_new, L_new, Q_new = step_maps_held(Mr, Kr, Cr, Gr, h, n, _vec(pack, lay, 20))
         Pn[:] = Pn_new
         SQM[:] = SQM_new
@@ -135,7 +144,7 @@ def _cached_sample(z, P, u, u_next, y, Rd, floor, x_out, r, S, P_out, P_pred, wo
         q_extra = _vec(pack, lay, 21)
         for i in range(q_extra.shape[0]):
             Q[i, i] += q_extra[i]
-        q_map[:] = z[:nq]
+        q_map[:] = q0 + dla
     F = step_jacobian_loops(z, _ten(pack, lay, 27), _ten(pack, lay, 28), _ten(pack, lay, 29), Pn, SQM)
     dlp = z_next[:nq] - q0
     for i in range(nq):
@@ -203,6 +212,6 @@ def warm_up() -> None:
         (u, u, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, np.ones(nq), np.zeros(0),
          np.full(nq, np.nan), sq, np.empty((nx, r)), np.empty((nx, nq)), sq, np.zeros((r, r, r)), np.zeros((nq, r, r)),
          np.zeros((r, nq, r)), np.zeros(m), np.zeros((m, nx)), np.zeros((0, nx))))
-    fl = np.array([1.0, 1.0, 1.0, 1e-3, 0.0, 1e-4, np.inf, 1.0])
+    fl = np.array([1.0, 1.0, 1.0, 1e-3, 0.0, 1e-4, np.inf, 1.0, 0.02, 1.0])
     cached_sample(z, np.eye(nx), u, u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m),
                   np.empty((m, m)), sq.copy(), sq.copy(), sq.copy(), np.empty((m, nx)), pack, lay, fl, False, nq, 1)

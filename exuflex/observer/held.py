@@ -23,6 +23,9 @@ __all__ = [
     "held_matrices",
     "held_step_loops",
     "held_step_numpy",
+    "held_system_loops",
+    "held_system_numpy",
+    "map_lookahead",
     "power_sum",
     "prediction_error",
     "prediction_error_loops",
@@ -272,24 +275,62 @@ def _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2):  # pragm
     return Mr0 + gM.reshape(r, r), Kr0 + gK.reshape(r, r)
 
 
+@_shared
+def _held_system(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr):  # pragma: no cover
+    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``: the compiled twin of :func:`held_matrices`."""
+    Mr, Kr = _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2)
+    Ca = Ca0.copy()
+    Gr = Gr0.copy()
+    if has_old:
+        Ca += s * (Ca0 - oCa)
+        Gr += s * (Gr0 - oGr)
+    return Mr, Kr, Ca + beta * Kr, Gr
+
+
 def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
                      oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):  # pragma: no cover - compiled
     r = Mr0.shape[0]
     p = z[:r]
     pd = z[r:]
-    Mr, Kr = _held_mass_stiffness(dl[:nq], s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2)
+    Mr, Kr, Cr, Gr = _held_system(dl[:nq], s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr)
     f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
-    Ca = Ca0.copy()
-    Gr = Gr0.copy()
     if has_old:
         fo = _quadratic_forces_loops(p, pd, nq, ofg, oT2, oV2, oC2)
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-        Ca += s * (Ca0 - oCa)
-        Gr += s * (Gr0 - oGr)
-    Cr = Ca + beta * Kr
     z_next = _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n)
     return z_next, Mr, Kr, Cr, Gr
+
+
+def _held_system_loops(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr):  # pragma: no cover
+    return _held_system(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr)
+
+
+def held_system_numpy(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr):
+    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl`` (:func:`held_matrices` with the arguments
+    of :func:`held_system_loops`, its compiled twin)."""
+    return held_matrices(dl, s, Mr0, Kr0, Ca0, Gr0, dM2, dK2, beta, (oM2, oK2, oCa, oGr) if has_old else None)
+
+
+def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
+    """How far ahead of ``q`` along its motion the step map is built: ``tau q'`` with ``tau`` the time the
+    fastest coordinate takes to move ``ahead`` remap radii, at most ``horizon`` seconds (a filter at rest,
+    whose estimated ``q'`` is noise, keeps its map at ``q``).
+
+    A map built at ``q`` serves until ``q`` has moved ``remap_rad`` away; built ``remap_rad`` ahead it serves
+    while ``q`` crosses it, twice the path for the same largest (and mean) distance between the map's and
+    the step's configuration.
+    """
+    r = z.shape[0] // 2
+    vmax = 0.0
+    for i in range(nq):
+        vmax = max(vmax, abs(z[r + i]))
+    shift = np.zeros(nq)
+    if vmax > 0.0 and ahead > 0.0:
+        tau = min(ahead * remap_rad / vmax, horizon)
+        for i in range(nq):
+            shift[i] = tau * z[r + i]
+    return shift
 
 
 def _step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled twin of _jacobian
@@ -477,6 +518,8 @@ _rk4_held_loops = _jit(_rk4_held_loops)
 _quadratic_forces_loops = _jit(_quadratic_forces_loops)
 rk4_held_loops = _rk4_held_loops
 held_step_loops = _jit(_held_step_loops)
+held_system_loops = _jit(_held_system_loops) if HAVE_NUMBA else held_system_numpy
+map_lookahead = _shared(map_lookahead)
 step_jacobian_loops = _jit(_step_jacobian_loops)
 prediction_error_loops = _jit(_prediction_error_loops) if HAVE_NUMBA else prediction_error
 
@@ -498,6 +541,7 @@ def warm_up() -> None:
     held_step_loops(z, u, dl, 0.0, False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2,
                     V2, C2)
     step_maps_held(M, M, M, G, 1e-4, 1, np.ones(nq))
+    held_system_loops(dl, 0.0, False, 0.0, M, M, M, G, g2, g2, g2, g2, M, G)
     step_jacobian_loops(z, np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r),
                         np.zeros((2 * r, r)))
     prediction_error_loops(dl, 0.0, False, M, M, g2, g2, g2, g2, M, M)

@@ -17,7 +17,11 @@ Step map over one interval ``dt`` (``n = dt / h`` RK4 sub-steps, ``h = 0.1 ms`` 
   with the exact ones, and the next radius keeps that error near ``refresh_tol`` (3e-2, relative in the
   mass metric; radius within 2e-3 .. 4e-2 rad). A new configuration is evaluated ``lookahead`` (0.8) radii
   ahead of q along its motion, since the held model serves as well behind its centre as ahead of it. The
-  Jacobian and process noise are rebuilt when q moved by ``remap_rad`` (2e-3 rad). Measured on the
+  Jacobian and process noise are rebuilt when q moved by ``remap_rad`` (2e-3 rad) from where they were
+  built, ``remap_ahead`` (1.0) remap radii ahead of q along its motion (:func:`.held.map_lookahead`): a map
+  then serves twice the path for the same largest and mean distance, 251 rebuilds in 3 s instead of 442,
+  with estimates as close to ``frozen``'s (mean over 10 noise seeds of the worst quantity's RMS difference
+  over the RMS estimation error 0.078, against 0.077 with the maps built at q). Measured on the
   six-bar's 3 s manoeuvre (``tests/test_observer.py``): 29 evaluations instead of 1500 (45 without the
   look-ahead, 39 with a whole radius, where the centre often ends up too far ahead), estimates within 5 %
   of the estimation error of ``frozen``'s (RMS, worst quantity dq3). A fixed radius does not work: the
@@ -65,6 +69,9 @@ from .held import (
     HAVE_NUMBA,
     held_step_loops,
     held_step_numpy,
+    held_system_loops,
+    held_system_numpy,
+    map_lookahead,
     power_sum,
     prediction_error,
     prediction_error_loops,
@@ -137,7 +144,9 @@ class ReducedObserverModel:
         docstring. The observer session uses ``"cached"``.
     refresh_tol, refresh_min, refresh_rad : error target and radius limits (rad) of the cached method's
         configuration evaluations; remap_rad : when its Jacobian and process noise are rebuilt;
-        lookahead : how many radii ahead of q along its motion a new configuration is evaluated (0: at q).
+        lookahead : how many radii ahead of q along its motion a new configuration is evaluated (0: at q);
+        remap_ahead, remap_horizon : how many remap radii ahead of q along its motion, but no further than
+        its motion over ``remap_horizon`` seconds, the Jacobian and process noise are built (0: at q).
     kernel : ``"numba"`` (compiled cached step), ``"numpy"`` (its reference twin) or ``"auto"``.
 
     Attributes
@@ -154,7 +163,7 @@ class ReducedObserverModel:
     def __init__(self, reduced, h: float = 1e-4, method: str = "frozen", torque_std=None, q_extra=None,
                  refresh_rad: float = 4e-2, remap_rad: float = 2e-3, kernel: str = "auto",
                  refresh_tol: float = 3e-2, refresh_min: float = 2e-3, lookahead: float = 0.8,
-                 jump_p: float | None = None):
+                 jump_p: float | None = None, remap_ahead: float = 1.0, remap_horizon: float = 0.02):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -174,6 +183,8 @@ class ReducedObserverModel:
         self.full_jacobian = True
         self.lookahead = float(lookahead)
         self.remap_rad = float(remap_rad)
+        self.remap_ahead = float(remap_ahead)
+        self.remap_horizon = float(remap_horizon)
         self.n_refresh = 0
         self.n_remap = 0
         sig = [m.noise_std for m in self.mech.motors] if torque_std is None else list(torque_std)
@@ -350,11 +361,20 @@ class ReducedObserverModel:
             z_next, Mr, Kr, Cr, Gr = self.kernel(z, u, dl, 0.0, *iv.kargs)
         self._step_matrices = (Mr, Kr, Cr, Gr)
         if iv.q_map is None or not _max_abs(q - iv.q_map) <= self.remap_rad:  # NaN: no map yet
-            maps = step_maps_held if self.kernel_name == "numba" else step_maps_held_numpy
+            # the map is built ahead of q along its motion (map_lookahead), from the held model there
+            # (not beyond the held model's measurement radius)
+            lim = self._measurement_radius(iv)
+            dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon),
+                          -lim, lim)
+            numba_kernel = self.kernel_name == "numba"
+            system = held_system_loops if numba_kernel else held_system_numpy
+            k = iv.kargs
+            Mr, Kr, Cr, Gr = system(dla, _secant_factor(iv, dla), k[0], k[2], *k[5:9], *k[9:11], *k[15:19])
+            maps = step_maps_held if numba_kernel else step_maps_held_numpy
             iv.Pn, iv.SQM, iv.L, iv.Q = maps(Mr, Kr, Cr, Gr, self.h, self._n_steps(dt), self.torque_var)
             if self.q_extra is not None:
                 iv.Q = iv.Q + np.diag(self.q_extra)
-            iv.q_map = q.copy()
+            iv.q_map = iv.q0 + dla
             iv.fused = None  # new map arrays
             self.n_remap += 1
         if not self.full_jacobian:
@@ -574,12 +594,19 @@ class ReducedObserverModel:
         iv = self._last
         if iv is None or iv.kargs is None or iv.dt != dt:
             iv = self._refresh(x, dt)
-        for _ in range(2):
+        for attempt in range(2):
             args = iv.fused
             if args is None or args[0] is not channels:
                 args = self._fused_arguments(iv, channels)
+            fixed = args[1]
+            if attempt:
+                # just evaluated for x: held for this sample wherever its centre lies (its lookahead may place
+                # it beyond its new radius from x), as the step-by-step path does
+                fl = fixed[2].copy()
+                fl[0] = math.inf
+                fixed = (*fixed[:2], fl, *fixed[3:])
             status, nis, remapped, finite = cached_sample(x, P, u, u if u_next is None else u_next, y, Rd, floor,
-                                                          x_out, r, S, *bufs, *args[1])
+                                                          x_out, r, S, *bufs, *fixed)
             if status != REFRESH:
                 break
             iv = self._refresh(x, dt)
@@ -609,7 +636,8 @@ class ReducedObserverModel:
              self._noRows if dH is None else dH), views=range(22, 27))
         iv.q_map, iv.Pn, iv.SQM, iv.L, iv.Q = views
         thr, w = self._jump_test()
-        fl = np.array([iv.rad, self._measurement_radius(iv), iv.dd, self.remap_rad, k[2], k[3], thr, *w])
+        fl = np.array([iv.rad, self._measurement_radius(iv), iv.dd, self.remap_rad, k[2], k[3], thr,
+                       self.remap_ahead, self.remap_horizon, *w])
         iv.fused = (channels, (pack, lay, fl, k[0], k[1], k[4]))
         return iv.fused
 
