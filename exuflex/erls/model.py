@@ -74,6 +74,9 @@ class ErlsModel:
             if k >= 0:
                 T[d, k] = 1.0
         self.T = T
+        # T by rows: the elastic coordinate of every nodal dof (-1: none; at most one per row), for the compiled
+        # products with W = [S, T] that skip T's zeros (:mod:`exuflex.reduction._compiled`)
+        self.t_index = np.asarray(self.dofs.nodal_to_u, dtype=np.int64)
         # elements
         link_index = {lk.name: i for i, lk in enumerate(mech.links)}
         el_link, el_dofs, Kl, Ml, el_len, el_station = [], [], [], [], [], []
