@@ -101,3 +101,27 @@ def test_assembled_matrices(name):
     Kuu = K[model.nq :, model.nq :]
     assert np.linalg.eigvalsh(Kuu).min() > 0
     assert not K[: model.nq].any() and not K[:, : model.nq].any()
+
+
+@pytest.mark.skipif(__import__("exuflex.erls._assembly").erls._assembly.configuration is None,
+                    reason="numba is not installed")
+def test_compiled_configuration_equals_the_kinematics_path():
+    """The configuration in one compiled call (:func:`exuflex.erls._assembly.configuration`: closure, pose
+    sensitivities, nodal matrices, W) equals the reference path (the NumPy kinematics and assembly) along the
+    six-bar's 3 s manoeuvre (true states of ``tests/data/sixbar_erls_3s``, every 50th sample, warm-started from
+    the previous one as in the observer), and leaves the same warm start behind."""
+    from exuflex.runs import read_run
+
+    mech = load_mechanism(MODELS / "sixbar.toml")
+    truth = read_run(Path(__file__).resolve().parent / "data" / "sixbar_erls_3s").truth
+    Q = truth.select(list(mech.coordinate_names)).data[::50]
+    fast, ref = ErlsModel(mech), ErlsModel(mech)
+    ref.compiled = ref.kin.compiled = False
+    for q in Q:
+        a, b = fast.configuration(q), ref.configuration(q)
+        for x, y in [(a.pose.z, b.pose.z), (a.pose.Sz, b.pose.Sz), (a.pose.r, b.pose.r), (a.pose.S, b.pose.S),
+                     (a.pose.Jinv, b.pose.Jinv), (a.R, b.R), (a.M_N, b.M_N), (a.K_N, b.K_N), (a.W, b.W)]:
+            assert x.shape == y.shape
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * np.abs(y).max())
+        assert a.pose.cond == pytest.approx(b.pose.cond, rel=1e-9)
+        np.testing.assert_allclose(fast.kin._last[1], ref.kin._last[1], rtol=0, atol=1e-12)

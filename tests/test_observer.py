@@ -336,3 +336,35 @@ def test_filter_is_consistent(engine):
     assert cn.fraction_inside > 0.9 and ci.fraction_inside > 0.9
     assert cn.time_avg_lo_eff <= cn.time_avg <= cn.time_avg_hi_eff
     assert ci.time_avg_lo_eff <= ci.time_avg <= ci.time_avg_hi_eff
+
+
+def test_measurement_rows_of_all_channels_equal_the_per_channel_rows(sixbar, erls_log):
+    """The reduced observer's measurement rows for a tuple of channels (:class:`exuflex.observer.rows.ChannelRows`,
+    all channels in a few array operations) equal those of :func:`exuflex.observer.rows.sensor_rows` channel by
+    channel (the reference, shared with the full-order observer), at held configurations along the 3 s log's
+    true states, for every kind of sensor the six-bar has (encoders, relative encoder, gauges, tip position)."""
+    from exuflex.observer.rows import sensor_rows
+
+    obs = make_observer(sixbar, ObserverConfig())
+    m = obs.model
+    channels = tuple(s.name for s in sixbar.sensors)
+    truth = erls_log.truth
+    Q = truth.select(list(sixbar.coordinate_names)).data[::100]
+    for q in Q:
+        iv = m._configuration(m.initial_state(q))
+        c0, Hm = m._affine(iv, channels)
+        cfg, Hu = iv.mats.rc.cfg, iv.mats.rc.H[m.nq :]
+        for i, ch in enumerate(channels):
+            kind, rigid, urow = sensor_rows(m.model, cfg, m.sensors[ch], m.link_names)
+            row = np.zeros(m.nx)
+            row[: m.r] = urow @ Hu
+            c = 0.0
+            if kind == "angle":
+                rq = rigid @ iv.Sz_theta
+                c = rigid @ iv.theta0 - rq @ iv.q0
+                row[: m.nq] += rq
+            elif kind == "point":
+                c = rigid[0] - rigid[1] @ iv.q0
+                row[: m.nq] += rigid[1]
+            np.testing.assert_allclose(Hm[i], row, rtol=0, atol=1e-13 * np.abs(row).max())
+            assert c0[i] == pytest.approx(c, rel=1e-13, abs=1e-15)

@@ -5,6 +5,13 @@ scatters them into the nodal matrices. The NumPy form (batched products and a ``
 reference; at the six-bar's size (9 elements, 42 nodal dofs) its call overhead is most of its cost, so the
 cached observer's configuration evaluations use :func:`nodal_matrices`, the same arithmetic in one compiled
 call (``tests/test_elements.py`` checks that the two agree).
+
+:func:`configuration` goes one step further: the closure's Newton iteration, the pose sensitivities
+(:mod:`._closure`), the nodal matrices and ``W = [S, T]`` in one compiled call, what
+:meth:`exuflex.erls.model.ErlsModel.configuration` does through the kinematics' separate calls (the reference;
+``tests/test_elements.py`` checks that the two agree). Inside a filter run, where the configuration is evaluated
+only every few hundred samples and every separate call starts from cold caches, the Python between the calls
+cost as much as their arithmetic.
 """
 
 from __future__ import annotations
@@ -21,7 +28,9 @@ except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "nodal_matrices"]
+from ._closure import closure_newton, pose_sensitivities
+
+__all__ = ["HAVE_NUMBA", "configuration", "nodal_matrices"]
 
 
 def _nodal_matrices(th, Ml, Kl, el_dofs, lumped):  # pragma: no cover - compiled twin of ErlsModel.configuration
@@ -59,3 +68,31 @@ if HAVE_NUMBA:
     nodal_matrices = numba.njit(cache=True, nogil=True, error_model="numpy")(_nodal_matrices)
 else:  # pragma: no cover
     nodal_matrices = None
+
+
+def _configuration(z0, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, J0, E, tol, max_iter, node_link,
+                   node_station, el_link, Ml, Kl, el_dofs, lumped, T):  # pragma: no cover - compiled
+    """``(ok, z, J^-1, cond, S_z, r, S, R, M_N, K_N, W)`` at q from the Newton start ``z0``: the closure
+    (:func:`._closure.closure_newton`, tolerance ``tol`` absolute), the pose sensitivities
+    (:func:`._closure.pose_sensitivities`), the nodal matrices at the element angles (:func:`nodal_matrices`) and
+    ``W = [S, T]``. ``ok`` False (the rest empty): Newton did not converge, the caller takes the reference path."""
+    z, ok = closure_newton(z0, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, J0, tol, max_iter)
+    if not ok:
+        e2, e3 = np.empty((0, 0)), np.empty((0, 0, 0))
+        return False, z, e2, np.inf, e2, np.empty(0), e2, e3, e2, e2, e2
+    Jinv, cond, Sz, r, S = pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station)
+    th = np.empty(el_link.shape[0])
+    for e in range(el_link.shape[0]):
+        th[e] = z[3 * el_link[e] + 2]
+    R, M_N, K_N = nodal_matrices(th, Ml, Kl, el_dofs, lumped)
+    nq = S.shape[1]
+    W = np.empty((S.shape[0], nq + T.shape[1]))
+    W[:, :nq] = S
+    W[:, nq:] = T
+    return True, z, Jinv, cond, Sz, r, S, R, M_N, K_N, W
+
+
+if HAVE_NUMBA and closure_newton is not None:
+    configuration = numba.njit(cache=True, nogil=True, error_model="numpy")(_configuration)
+else:  # pragma: no cover
+    configuration = None

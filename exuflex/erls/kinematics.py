@@ -17,6 +17,7 @@ The nodal rigid coordinates ``r`` (x, y, theta of every FE node) and their sensi
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -222,21 +223,37 @@ class Kinematics:
         of the solution depend on where it started."""
         self._last = None
 
-    def solve(self, q, z0: np.ndarray | None = None, tol: float = 1e-12, max_iter: int = 30) -> np.ndarray:
-        """Solve the closure for the link poses z at q (Newton, warm-started from the last solution)."""
+    def start(self, q, z0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(q, z0)``: q checked as a float array and the Newton start of :meth:`solve` (``z0`` if given, else the
+        last solution if it lies within 0.5 rad, else :meth:`initial_guess`)."""
         q = np.asarray(q, float)
         if q.shape != (self.nq,):
             raise KinematicsError(f"q must have {self.nq} entries ({list(self.mech.coordinate_names)}), got {q.shape}")
         if z0 is None:
-            if self._last is not None and np.max(np.abs(self._last[0] - q)) < 0.5:
-                z0 = self._last[1]
+            last = self._last
+            if last is not None and np.max(np.abs(last[0] - q)) < 0.5:
+                z0 = last[1]
             else:
                 z0 = self.initial_guess(q)
+        return q, z0
+
+    def accept(self, q: np.ndarray, z: np.ndarray) -> None:
+        """Keep the closure's solution z at q as the next :meth:`solve`'s warm start."""
+        self._last = (q.copy(), z.copy())
+
+    @property
+    def newton_scale(self) -> float:
+        """The length scale of the closure residual's tolerance (the longest link)."""
+        return max(lk.length for lk in self.mech.links)
+
+    def solve(self, q, z0: np.ndarray | None = None, tol: float = 1e-12, max_iter: int = 30) -> np.ndarray:
+        """Solve the closure for the link poses z at q (Newton, warm-started from the last solution)."""
+        q, z0 = self.start(q, z0)
         z = self._newton(z0, q, tol, max_iter)
         if z is None:
             # continuation from the guess configuration towards q
             z = self._continuation(q, tol, max_iter)
-        self._last = (q.copy(), z.copy())
+        self.accept(q, z)
         return z
 
     def _newton(self, z, q, tol, max_iter):
@@ -244,7 +261,7 @@ class Kinematics:
         :mod:`._closure`; :meth:`_newton_numpy` is the reference)."""
         if closure_newton is None or not self.compiled:
             return self._newton_numpy(z, q, tol, max_iter)
-        scale = max(lk.length for lk in self.mech.links)
+        scale = self.newton_scale
         try:
             z, ok = closure_newton(np.asarray(z, float), np.asarray(q, float), self._ea, self._esa, self._eb,
                                    self._ebm, self._esb, self._eg, self._ang_a, self._ang_r, self._ang_rm,
@@ -296,12 +313,16 @@ class Kinematics:
         q = np.asarray(q, float)
         z = self.solve(q, z0)
         Jinv, cond, Sz, r, S = self._sensitivities(z)
-        if not np.isfinite(cond) or cond > self.cond_max:
+        self.check_condition(q, cond)
+        return Pose(q, z, Sz, r, S, cond, Jinv)
+
+    def check_condition(self, q: np.ndarray, cond: float) -> None:
+        """Raise :class:`KinematicsError` if the closure Jacobian's condition number at q marks a singularity."""
+        if not math.isfinite(cond) or cond > self.cond_max:
             raise KinematicsError(
                 f"{self.mech.source or self.mech.name}: configuration q = {np.round(q, 6).tolist()} is at or near a "
                 f"singularity (closure Jacobian condition number {cond:.3g} > {self.cond_max:.0e})"
             )
-        return Pose(q, z, Sz, r, S, cond, Jinv)
 
     def _sensitivities(self, z: np.ndarray) -> tuple:
         """``(J^-1, cond, S_z, r, S)`` at the solved poses z: the closure Jacobian's inverse and 1-norm condition

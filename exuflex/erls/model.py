@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mechanism import ElasticDofs, Mechanism, elastic_dofs
+from ._assembly import configuration as compiled_configuration
 from ._assembly import nodal_matrices
 from .elements import GENERATOR, beam_mass, beam_stiffness, hermite_curvature_row, rotation
 from .kinematics import Kinematics, Pose
@@ -74,6 +75,9 @@ class ErlsModel:
             if k >= 0:
                 T[d, k] = 1.0
         self.T = T
+        # T by rows: the elastic coordinate of every nodal dof (-1: none; at most one per row), for the compiled
+        # products with W = [S, T] that skip T's zeros (:mod:`exuflex.reduction._compiled`)
+        self.t_index = np.asarray(self.dofs.nodal_to_u, dtype=np.int64)
         # elements
         link_index = {lk.name: i for i, lk in enumerate(mech.links)}
         el_link, el_dofs, Kl, Ml, el_len, el_station = [], [], [], [], [], []
@@ -147,7 +151,23 @@ class ErlsModel:
 
     # ------------------------------------------------------------------ configuration
     def configuration(self, q, z0=None) -> Configuration:
-        pose = self.kin.pose(q, z0)
+        """Everything that depends on q only (closure warm-started from ``z0`` or the last solution); in one compiled
+        call (:func:`._assembly.configuration`) where numba is installed and Newton converges from the start."""
+        kin = self.kin
+        if self.compiled and kin.compiled and compiled_configuration is not None:
+            q, start = kin.start(q, z0)
+            try:
+                ok, z, Jinv, cond, Sz, r, S, R, M_N, K_N, W = compiled_configuration(
+                    np.asarray(start, float), q, kin._ea, kin._esa, kin._eb, kin._ebm, kin._esb, kin._eg, kin._ang_a,
+                    kin._ang_r, kin._ang_rm, kin._ang_off, kin._J0, kin._E, 1e-12 * kin.newton_scale, 30,
+                    kin.node_link, kin.node_station, self.el_link, self.Ml, self.Kl, self.el_dofs, self.lumped, self.T)
+            except np.linalg.LinAlgError:  # a singular closure Jacobian: the reference path reports it
+                ok = False
+            if ok:
+                kin.accept(q, z)
+                kin.check_condition(q, cond)
+                return Configuration(Pose(q, z, Sz, r, S, cond, Jinv), R, M_N, K_N, W)
+        pose = kin.pose(q, z0)
         th = pose.link_angles[self.el_link]
         if self.compiled:
             R, M_N, K_N = nodal_matrices(np.ascontiguousarray(th, dtype=float), self.Ml, self.Kl, self.el_dofs,

@@ -81,7 +81,7 @@ from .held import (
     step_maps_held_numpy,
 )
 from .held import warm_up as held_warm_up
-from .rows import sensor, sensor_rows
+from .rows import channel_rows, sensor
 
 __all__ = ["METHODS", "ReducedObserverModel", "power_sum"]
 
@@ -210,7 +210,7 @@ class ReducedObserverModel:
             held_warm_up()
         self._noC2 = np.zeros((0, self.r))
         self._noQ = np.zeros(0)
-        self._fixed_rows: dict = {}  # configuration-independent sensor rows (encoders), per channel
+        self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._noRows = np.zeros((0, self.nx))
         self.fused = self.kernel_name == "numba"
         self._u_shape = (len(self.mech.motors),)
@@ -498,29 +498,6 @@ class ReducedObserverModel:
         return Q
 
     # ------------------------------------------------------------------ measurements
-    def _rows(self, iv: _Interval, channel: str):
-        """(rigid link angle combination or point, row in p) for a channel, cached per interval."""
-        key = (iv.serial, channel)
-        hit = self._channel_cache.get(key)
-        if hit is not None:
-            return hit
-        if len(self._channel_cache) > 64:
-            keep = {iv.serial, self._last.serial if self._last is not None else -1}
-            if self._last is not None and self._last.old is not None:
-                keep.add(self._last.old.serial)
-            self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] in keep}
-        s = sensor(self.mech, self.sensors, channel)
-        if s.kind == "encoder":  # link angles and the joint's elastic rotation: rows independent of q
-            fixed = self._fixed_rows.get(channel)
-            if fixed is None:
-                fixed = self._fixed_rows[channel] = sensor_rows(self.model, iv.mats.rc.cfg, s, self.link_names)
-            kind, rigid, urow = fixed
-        else:
-            kind, rigid, urow = sensor_rows(self.model, iv.mats.rc.cfg, s, self.link_names)
-        out = (kind, rigid, urow @ iv.mats.rc.H[self.nq :])
-        self._channel_cache[key] = out
-        return out
-
     def _measurement_radius(self, iv: _Interval) -> float:
         """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
         return 1.5 * max(iv.rad, self.refresh_min)
@@ -642,30 +619,39 @@ class ReducedObserverModel:
         return iv.fused
 
     def _linear(self, iv: _Interval, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        key = (iv.serial, tuple(channels))
+        """:meth:`_affine`, cached per interval (keeping the entries of the held configurations only, once the
+        cache grows beyond 64)."""
+        channels = tuple(channels)
+        key = (iv.serial, channels)
         lin = self._channel_cache.get(key)
         if lin is None:
+            if len(self._channel_cache) > 64:
+                keep = {iv.serial, self._last.serial if self._last is not None else -1}
+                if self._last is not None and self._last.old is not None:
+                    keep.add(self._last.old.serial)
+                self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] in keep}
             lin = self._affine(iv, channels)
             self._channel_cache[key] = lin
         return lin
 
-    def _affine(self, iv: _Interval, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    def _affine(self, iv: _Interval, channels: tuple) -> tuple[np.ndarray, np.ndarray]:
         """``y = c0 + Hm x`` for the channels, about the interval's configuration (rigid parts to first
-        order in q, elastic parts exact in p)."""
+        order in q, elastic parts exact in p): the rows of :func:`.rows.sensor_rows`, for all channels at once
+        (:class:`.rows.ChannelRows`)."""
         nq, r = self.nq, self.r
-        c0 = np.zeros(len(channels))
+        plan = self._channel_rows.get(channels)
+        if plan is None:
+            plan = self._channel_rows[channels] = channel_rows(
+                self.model, [sensor(self.mech, self.sensors, ch) for ch in channels], self.link_names)
+        U, points = plan.at(self.model, iv.mats.rc.cfg)
         Hm = np.zeros((len(channels), self.nx))
-        for i, ch in enumerate(channels):
-            kind, rigid, prow = self._rows(iv, ch)
-            Hm[i, :r] = prow
-            if kind == "angle":
-                row = rigid @ iv.Sz_theta
-                c0[i] = rigid @ iv.theta0 - row @ iv.q0
-                Hm[i, :nq] += row
-            elif kind == "point":
-                p0, Sp = rigid
-                c0[i] = p0 - Sp @ iv.q0
-                Hm[i, :nq] += Sp
+        Hm[:, :r] = U @ iv.mats.rc.H[nq:]
+        rows = plan.angle @ iv.Sz_theta  # the link-angle channels' rigid rows
+        c0 = plan.angle @ iv.theta0 - rows @ iv.q0
+        Hm[:, :nq] += rows
+        for i, p0, Sp in points:
+            c0[i] = p0 - Sp @ iv.q0
+            Hm[i, :nq] += Sp
         return c0, Hm
 
     # ------------------------------------------------------------------ physical states

@@ -8,9 +8,13 @@ station, or the interpolated displacement of a link point.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["sensor", "sensor_rows"]
+from ..erls.elements import hermite_curvature_row
+
+__all__ = ["ChannelRows", "channel_rows", "sensor", "sensor_rows"]
 
 
 def sensor(mech, sensors: dict, channel: str):
@@ -45,3 +49,64 @@ def sensor_rows(model, cfg, s, link_names: list[str]):
         p0, Sp = model.kin.point(cfg.pose, s.link, s.station)
         return "point", (p0[c], Sp[c]), rows[c]
     raise KeyError(f"unsupported sensor kind {s.kind!r}")  # pragma: no cover - the loader admits only these
+
+
+@dataclass(frozen=True)
+class ChannelRows:
+    """The configuration-independent parts of :func:`sensor_rows` for a tuple of channels, so that the rows at a
+    configuration take a few array operations for all channels together (:meth:`at`) instead of a dozen per
+    channel: the reduced observer evaluates them at every held configuration.
+
+    ``angle`` (m, n_links): link-angle weights (encoders; zero rows elsewhere); ``u_fixed`` (m, ne): the
+    q-independent u rows (the encoders' elastic rotations); per curvature station on an element ``(channel,
+    element, Hermite row / number of elements averaged)`` in ``curv_channel``, ``curv_element``, ``curv_row``;
+    ``points``: ``(channel index, sensor)`` of the tip-position channels (rows per configuration as in
+    :func:`sensor_rows`).
+    """
+
+    angle: np.ndarray
+    u_fixed: np.ndarray
+    curv_channel: np.ndarray
+    curv_element: np.ndarray
+    curv_row: np.ndarray
+    points: tuple
+
+    def at(self, model, cfg) -> tuple[np.ndarray, list]:
+        """``(U, points)`` at configuration ``cfg``: the u rows (m, ne) of every channel (those of the point
+        channels included) and ``(channel index, p0, dp0/dq)`` of the point channels' rigid parts."""
+        U = self.u_fixed.copy()
+        if len(self.curv_element):
+            # (c R_e^T) scattered to the element's nodal dofs, then T: the rows of ErlsModel.curvature_row
+            local = np.einsum("lb,lab->la", self.curv_row, cfg.R[self.curv_element])
+            rows = np.zeros((len(U), model.N))
+            np.add.at(rows, (self.curv_channel[:, None], model.el_dofs[self.curv_element]), local)
+            U += rows @ model.T
+        pts = []
+        for i, s in self.points:
+            _, (p0, Sp), urow = sensor_rows(model, cfg, s, [])
+            U[i] = urow
+            pts.append((i, p0, Sp))
+        return U, pts
+
+
+def channel_rows(model, sensors, link_names: list[str]) -> ChannelRows:
+    """:class:`ChannelRows` of a sequence of sensors (in channel order) of ``model``."""
+    m = len(sensors)
+    angle = np.zeros((m, len(link_names)))
+    u_fixed = np.zeros((m, model.ne))
+    cc, ce, cr, points = [], [], [], []
+    for i, s in enumerate(sensors):
+        if s.kind == "encoder":
+            _, angle[i], u_fixed[i] = sensor_rows(model, None, s, link_names)
+        elif s.kind == "curvature":
+            locs = model.locate(s.link, s.station)
+            for e, xi in locs:
+                cc.append(i)
+                ce.append(e)
+                cr.append(hermite_curvature_row(model.el_len[e], xi) / len(locs))
+        elif s.kind in ("tip_x", "tip_y"):
+            points.append((i, s))
+        else:  # pragma: no cover - the loader admits only these
+            raise KeyError(f"unsupported sensor kind {s.kind!r}")
+    return ChannelRows(angle, u_fixed, np.array(cc, dtype=np.int64), np.array(ce, dtype=np.int64),
+                       np.array(cr, dtype=float).reshape(-1, 6), tuple(points))

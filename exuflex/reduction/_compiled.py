@@ -28,6 +28,65 @@ except ImportError:  # pragma: no cover - exercised only on machines without num
 __all__ = ["HAVE_NUMBA", "basis_at", "basis_derivative", "force_terms", "reduced_matrices"]
 
 
+def _w_product(W, t_index, X, nq):  # pragma: no cover - compiled
+    """``W X`` for ``W = [S, T]`` (N, nq + ne): ``S`` dense (the first ``nq`` columns), ``T`` the 0/1 map with at
+    most one 1 per row (in column ``nq + t_index[a]`` of row ``a``; -1: none). A dense product would spend
+    nine tenths of its work on T's zeros."""
+    N = W.shape[0]
+    k = X.shape[1]
+    out = np.empty((N, k))
+    for a in range(N):
+        u = t_index[a]
+        for b in range(k):
+            acc = 0.0
+            for c in range(nq):
+                acc += W[a, c] * X[c, b]
+            if u >= 0:
+                acc += X[nq + u, b]
+            out[a, b] = acc
+    return out
+
+
+def _t_product(t_index, X):  # pragma: no cover - compiled
+    """``T X`` (N, k) for the 0/1 map ``T`` (N, ne) of :func:`_w_product`: rows of ``X`` picked (zero where a
+    nodal dof has no elastic coordinate); exact."""
+    N = t_index.shape[0]
+    k = X.shape[1]
+    out = np.zeros((N, k))
+    for a in range(N):
+        u = t_index[a]
+        if u >= 0:
+            for b in range(k):
+                out[a, b] = X[u, b]
+    return out
+
+
+def _product_t(X, t_index, ne):  # pragma: no cover - compiled
+    """``X T`` (m, ne) for the 0/1 map ``T`` of :func:`_w_product`: columns of ``X`` summed into the elastic
+    coordinate they belong to (at most two per coordinate on the six-bar: the same sums as a dense product)."""
+    m = X.shape[0]
+    out = np.zeros((m, ne))
+    for b in range(t_index.shape[0]):
+        u = t_index[b]
+        if u >= 0:
+            for a in range(m):
+                out[a, u] += X[a, b]
+    return out
+
+
+def _tt_product(t_index, X, ne):  # pragma: no cover - compiled
+    """``T^T X`` (ne, k) for the 0/1 map ``T`` of :func:`_w_product`: rows of ``X`` summed per elastic
+    coordinate."""
+    k = X.shape[1]
+    out = np.zeros((ne, k))
+    for a in range(t_index.shape[0]):
+        u = t_index[a]
+        if u >= 0:
+            for b in range(k):
+                out[u, b] += X[a, b]
+    return out
+
+
 def _element_form(X, el_dofs, R, Km, S_th, nq):  # pragma: no cover - compiled
     """``sum_e S_th[e, k] X_e^T R_e K_e R_e^T X_e`` (nq, r, r), ``X_e`` the element's rows of ``X`` (N, r) and
     ``K_e`` (``Km[e]``, 6 x 6) an element matrix in the element's frame. Loops: 6 x 6 blocks are too small for a
@@ -68,7 +127,7 @@ def _element_form(X, el_dofs, R, Km, S_th, nq):  # pragma: no cover - compiled
     return out
 
 
-def _mass_stiffness_gradients(W, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq):  # pragma: no cover - compiled
+def _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq):  # pragma: no cover - compiled
     """``(dM_r/dq, dK_r/dq)`` (nq, r, r) each, from the element terms ``SE`` (mass) and ``SEe`` (stiffness)
     of :func:`force_terms`, see :meth:`~exuflex.reduction.model.ReducedModel.mass_derivative_analytic`."""
     N, n = W.shape
@@ -94,7 +153,7 @@ def _mass_stiffness_gradients(W, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq):  # pra
         for a in range(n):
             for b in range(r):
                 dH[a, i * r + b] = dHdq[b, a, i]
-    WdH = W @ dH  # (N, nq r)
+    WdH = _w_product(W, t_index, dH, nq)  # (N, nq r)
     dWJ = np.empty((N, r))
     for i in range(nq):
         for a in range(N):
@@ -110,16 +169,16 @@ def _mass_stiffness_gradients(W, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq):  # pra
     return dMr, dKr
 
 
-def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients):
+def _force_terms(W, J, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients):
     # pragma: no cover - compiled twin of ReducedModel.force_model
     """``(fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs)`` of :class:`~exuflex.reduction.model.QuadraticForces` (``Ts, Vs``:
     its :meth:`~exuflex.reduction.model.QuadraticForces.jacobian_tensors`), see
     :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``Gl`` (n_el, 6, 6): the element
-    mass rotation rate in the element frame; ``Sd3`` (nq, N, nq): ``dS/dq_j``; without ``gradients`` ``dMr`` and
-    ``dKr`` are empty."""
+    mass rotation rate in the element frame; ``Sd3`` (nq, N, nq): ``dS/dq_j``; ``t_index``: the 0/1 part of
+    ``W = [S, T]`` (:func:`_w_product`); without ``gradients`` ``dMr`` and ``dKr`` are empty."""
     N, n = W.shape
     r = J.shape[1]
-    WJ = W @ J  # (N, r)
+    WJ = _w_product(W, t_index, J, nq)  # (N, r)
     SE = _element_form(WJ, el_dofs, R, Gl, S_th, nq)  # element mass rotation term (nq, r, r)
     # velocity force tensor T[k] = J^T (dh/dv)(J e_k) J
     Tk = np.zeros((r, r, r))
@@ -138,7 +197,7 @@ def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, d
                     acc += MWJ[a, i] * (Sd3[j, a, k] + Sd3[k, a, j])
                 Tk[k, i, j] += acc
     # q-row geometric term and the element part of dK_r/dq
-    TH = Tmap @ np.ascontiguousarray(H[nq:])  # (N, r)
+    TH = _t_product(t_index, H[nq:])  # (N, r)
     SEe = _element_form(TH, el_dofs, R, KGl, S_th, nq)
     V = np.empty((nq, r, r))
     for k in range(nq):
@@ -147,9 +206,15 @@ def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, d
                 V[k, i, j] = 0.25 * (SEe[k, i, j] + SEe[k, j, i])
     WJt = np.ascontiguousarray(WJ.T)
     fg = WJt @ (M_N @ g_N)
-    JtM = WJt @ (M_N @ W) if consistent else np.zeros((0, n))
+    if consistent:  # J^T M W = (W J)^T [M_N S, M_N T]
+        MW = np.empty((N, n))
+        MW[:, :nq] = M_N @ np.ascontiguousarray(W[:, :nq])
+        MW[:, nq:] = _product_t(M_N, t_index, n - nq)
+        JtM = WJt @ MW
+    else:
+        JtM = np.zeros((0, n))
     if gradients:
-        dMr, dKr = _mass_stiffness_gradients(W, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq)
+        dMr, dKr = _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq)
     else:
         dMr = dKr = np.zeros((0, r, r))
     # bias term: C[k, j, :] = J^T M W dH/dq_j e_k, flattened (r nq, r) and doubled
@@ -182,6 +247,10 @@ def _force_terms(W, J, H, M_N, Tmap, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, d
 
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _w_product = _jit(_w_product)
+    _t_product = _jit(_t_product)
+    _product_t = _jit(_product_t)
+    _tt_product = _jit(_tt_product)
     _element_form = _jit(_element_form)
     _mass_stiffness_gradients = _jit(_mass_stiffness_gradients)
     force_terms = _jit(_force_terms)
@@ -189,12 +258,12 @@ else:  # pragma: no cover
     force_terms = None
 
 
-def _basis_derivative(V, nq, im, is_, B, Tmap, el_dofs, R, KGl, S_th, TtS_s, Kss_inv, c, s, Phi_u, px, py, Sn):
+def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss_inv, c, s, Phi_u, px, py, Sn):
     # pragma: no cover - compiled twin of CraigBampton.basis_derivative
     """``d(H v)/dq`` for each column of ``V`` (k, n, nq); see
     :meth:`~exuflex.reduction.basis.CraigBampton.basis_derivative` for the formulas. ``c, s``: cosine and sine
-    of the interior-mode node pairs' rotation from q*, ``Sn`` (pairs, nq) their angle sensitivities."""
-    ne = Tmap.shape[1]
+    of the interior-mode node pairs' rotation from q*, ``Sn`` (pairs, nq) their angle sensitivities;
+    ``t_index``: the map ``T`` from the elastic coordinates to the nodal dofs (:func:`_w_product`)."""
     k = V.shape[1]
     me = im.shape[0]
     ns = is_.shape[0]
@@ -208,20 +277,39 @@ def _basis_derivative(V, nq, im, is_, B, Tmap, el_dofs, R, KGl, S_th, TtS_s, Kss
     BV = B @ Vm
     for a in range(ns):
         W[is_[a]] = BV[a]
-    d = Tmap @ W  # (N, k)
-    # per element: R K_G R^T applied to the element's displacements, weighted by its angle sensitivities
-    C = np.empty((n_el * 6, k * nq))
-    de = np.empty((6, k))
+    d = _t_product(t_index, W)  # (N, k)
+    # per element: R K_G R^T applied to the element's displacements, weighted by its angle sensitivities, and
+    # summed into the elastic coordinates of its nodes (T^T of the scattered element vectors)
+    Cu = np.zeros((ne, k * nq))
+    dl = np.empty((6, k))
+    kd = np.empty((6, k))
     for e in range(n_el):
-        for a in range(6):
-            de[a] = d[el_dofs[e, a]]
-        ye = R[e] @ (KGl[e] @ (np.ascontiguousarray(R[e].T) @ de))  # (6, k)
+        for a in range(6):  # element frame: R_e^T d_e
+            for kk in range(k):
+                acc = 0.0
+                for b in range(6):
+                    acc += R[e, b, a] * d[el_dofs[e, b], kk]
+                dl[a, kk] = acc
         for a in range(6):
             for kk in range(k):
-                y = ye[a, kk]
+                acc = 0.0
+                for b in range(6):
+                    acc += KGl[e, a, b] * dl[b, kk]
+                kd[a, kk] = acc
+        for a in range(6):
+            u = t_index[el_dofs[e, a]]
+            if u < 0:
+                continue
+            for kk in range(k):
+                acc = 0.0
+                for b in range(6):
+                    acc += R[e, a, b] * kd[b, kk]
                 for i in range(nq):
-                    C[e * 6 + a, kk * nq + i] = y * S_th[e, i]
-    dB = Kss_inv @ (TtS_s @ C)  # (s, k nq), negated below
+                    Cu[u, kk * nq + i] += acc * S_th[e, i]
+    Cs = np.empty((ns, k * nq))
+    for a in range(ns):
+        Cs[a] = Cu[is_[a]]
+    dB = Kss_inv @ Cs  # (s, k nq), negated below
     for a in range(ns):
         row = nq + is_[a]
         for kk in range(k):
@@ -254,16 +342,16 @@ else:  # pragma: no cover
     basis_derivative = None
 
 
-def _basis_at(K_N, Tmap, nq, im, is_, Phi_u, px, py, c, s):  # pragma: no cover - compiled twin of CraigBampton.at
+def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s):
+    # pragma: no cover - compiled twin of CraigBampton.at
     """``(K_uu, B, K_ss^-1, Psi, H)`` of :meth:`~exuflex.reduction.basis.CraigBampton.at` from the assembled
-    nodal stiffness: Guyan shapes ``B = -K_ss^-1 K_sm``, interior modes rotated per node pair (``c, s``: cosine
-    and sine of the pairs' rotation from q*) and the basis ``H`` (nq + ne, r)."""
-    ne = Tmap.shape[1]
+    nodal stiffness: ``K_uu = T^T K_N T`` (``t_index``: the map ``T``, :func:`_w_product`), Guyan shapes
+    ``B = -K_ss^-1 K_sm``, interior modes rotated per node pair (``c, s``: cosine and sine of the pairs' rotation
+    from q*) and the basis ``H`` (nq + ne, r)."""
     me = im.shape[0]
     ns = is_.shape[0]
     ki = Phi_u.shape[1]
-    Tt = np.ascontiguousarray(Tmap.T)
-    Kuu = Tt @ (K_N @ Tmap)
+    Kuu = _tt_product(t_index, _product_t(K_N, t_index, ne), ne)
     Kss = np.empty((ns, ns))
     Ksm = np.empty((ns, me))
     for a in range(ns):
@@ -298,10 +386,11 @@ def _basis_at(K_N, Tmap, nq, im, is_, Phi_u, px, py, c, s):  # pragma: no cover 
     return Kuu, B, Kinv, Psi, H
 
 
-def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, Tmap, B_N, alpha, beta, nq, consistent):
+def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent):
     # pragma: no cover - compiled twin of ReducedModel.matrices (forces=False, dHdq given)
     """``(J, M_r, K_r, C_r, G_r)`` of :meth:`~exuflex.reduction.model.ReducedModel.matrices` without the
-    forces: ``J = H + [d(H p)/dq, 0]`` (consistent form) and the reduced matrices."""
+    forces: ``J = H + [d(H p)/dq, 0]`` (consistent form) and the reduced matrices (``t_index``: the 0/1 part of
+    ``W = [S, T]``, :func:`_w_product`)."""
     n, r = H.shape
     J = H.copy()
     if consistent:
@@ -311,7 +400,7 @@ def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, Tmap, B_N, alpha, beta, nq, c
                 for k in range(r):
                     acc += p[k] * dHdq[k, a, i]
                 J[a, i] += acc
-    WJ = W @ J
+    WJ = _w_product(W, t_index, J, nq)
     MWJ = M_N @ WJ
     WJt = np.ascontiguousarray(WJ.T)
     Mr = WJt @ MWJ
@@ -320,7 +409,7 @@ def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, Tmap, B_N, alpha, beta, nq, c
     JtK = np.ascontiguousarray(Ju.T) @ Kuu
     Kr = JtK @ Hu
     if alpha != 0.0 or beta != 0.0:
-        TJ = Tmap @ Ju
+        TJ = _t_product(t_index, Ju)
         Cr = alpha * (np.ascontiguousarray(TJ.T) @ (M_N @ TJ)) + beta * (JtK @ Ju)
     else:
         Cr = np.zeros((r, r))

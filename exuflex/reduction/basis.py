@@ -261,8 +261,8 @@ class CraigBampton:
         T = self.model.T
         if self.compiled:
             dth = self._pair_angles(cfg)
-            Kuu, B, Kinv, Psi, H = _compiled.basis_at(cfg.K_N, T, nq, self.im, self.is_, self._Phi_u, self._px,
-                                                      self._py, np.cos(dth), np.sin(dth))
+            Kuu, B, Kinv, Psi, H = _compiled.basis_at(cfg.K_N, self.model.t_index, ne, nq, self.im, self.is_,
+                                                      self._Phi_u, self._px, self._py, np.cos(dth), np.sin(dth))
             return ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
         Kuu = T.T @ cfg.K_N @ T
         B, Kinv = self._guyan(Kuu)
@@ -290,8 +290,8 @@ class CraigBampton:
             dth = self._pair_angles(cfg)
             Sn = cfg.pose.S[2::3][self._pnode] if self.rotate else np.zeros((len(self._pnode), nq))
             return _compiled.basis_derivative(
-                np.ascontiguousarray(V), nq, self.im, self.is_, np.ascontiguousarray(rc.B), model.T, model.el_dofs,
-                cfg.R, model.KGl, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]), self._TtS_s,
+                np.ascontiguousarray(V), nq, ne, self.im, self.is_, np.ascontiguousarray(rc.B), model.t_index,
+                model.el_dofs, cfg.R, model.KGl, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
                 np.ascontiguousarray(rc.Kss_inv), np.cos(dth), np.sin(dth), self._Phi_u, self._px, self._py,
                 np.ascontiguousarray(Sn))
         k = V.shape[1]

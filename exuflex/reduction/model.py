@@ -146,7 +146,7 @@ class ReducedModel:
         if self.compiled and not forces and (dHdq is not None or not self.consistent):
             J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
                 p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
-                rc.Kuu, model.T, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
+                rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
             return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
         J = H
         a_b = None
@@ -261,7 +261,7 @@ class ReducedModel:
         model, nq, r = self.model, self.nq, self.r
         cfg = mats.rc.cfg
         fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs = _compiled.force_terms(
-            cfg.W, np.ascontiguousarray(mats.J), mats.rc.H, cfg.M_N, model.T, np.ascontiguousarray(mats.rc.Kuu),
+            cfg.W, np.ascontiguousarray(mats.J), mats.rc.H, cfg.M_N, model.t_index, np.ascontiguousarray(mats.rc.Kuu),
             model.g_N, cfg.R, model.Gl, model.KGl, model.el_dofs, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
             model.kin.coordinate_rates(cfg.pose), np.ascontiguousarray(dHdq), nq, self.consistent, gradients)
         if not self.consistent:
