@@ -374,6 +374,9 @@ class MultirateEKF:
         # a model that tests two successive input samples for a jump between them (``input_jump``, with
         # ``input_jump_moments``; the reduced observer model) gets the jump's effect added to that interval
         self._jumps = getattr(model, "input_jump", None) if input_hold == "zoh" else None
+        # step()'s short path: a fused model with the input held (the linear hold's interval mean and hook
+        # take the general path)
+        self._fast = self._fused is not None and input_hold == "zoh"
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -643,6 +646,19 @@ class MultirateEKF:
             ``t`` not after the previous sample or off the grid.
         """
         t = float(t)
+        if self._fast and y is not None and self._t_prev is not None and not self.nonfinite:
+            # the common case in few lines: the next grid point, every channel in one compiled call
+            k = (t - self._t_prev) / self.dt
+            if abs(k - 1.0) <= self.time_tol * max(1.0, k):
+                if not self._fused_sample(self._u_prev, y, u if self._jumps is not None else None):
+                    return self._step(t, u, y, try_fused=False)  # declined (nothing changed): step by step
+                self._t_prev = t
+                self._u_prev = None if u is None else np.array(u, dtype=float)
+                return self._close(t, self._fused_finite)
+        return self._step(t, u, y)
+
+    def _step(self, t: float, u, y, try_fused: bool = True) -> np.ndarray:
+        """:meth:`step` in general (``try_fused``: offer a one-interval sample to the fused kernel)."""
         fused = False
         if self._t_prev is not None:
             k = (t - self._t_prev) / self.dt
@@ -659,7 +675,7 @@ class MultirateEKF:
                     if u_new.shape == u_step.shape and math.isfinite(sum(u_new.tolist())):
                         u_step = 0.5 * (u_step + u_new)  # the mean of the linear input over the interval
                         mean = True
-                if n == 1 and self._fused is not None and y is not None:
+                if n == 1 and try_fused and self._fused is not None and y is not None:
                     # (the kernel declines a sample whose input jumped: the model's test, done there)
                     fused = self._fused_sample(u_step, y, u if self._jumps is not None else None)
                 if not fused:
@@ -712,6 +728,10 @@ class MultirateEKF:
                 P = self._settle_P()
                 # a NaN or inf anywhere makes a sum non-finite (finite overflow to inf is flagged too)
                 finite = math.isfinite(self._x.sum() + P.sum())
+        return self._close(t, finite)
+
+    def _close(self, t: float, finite: bool) -> np.ndarray:
+        """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""
         if not finite:
             self._flag_divergence(t, "non-finite state or covariance")
             self.nonfinite = True

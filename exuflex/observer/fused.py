@@ -33,7 +33,15 @@ import math
 import numpy as np
 
 from ._compiled import predict_cov, settle, update
-from .held import HAVE_NUMBA, _held_system, _jit, held_step_loops, map_lookahead, step_jacobian_loops, step_maps_held
+from .held import (
+    HAVE_NUMBA,
+    _held_system,
+    _jit,
+    held_step_loops,
+    map_lookahead,
+    step_jacobian_loops,
+    step_maps_held,
+)
 
 __all__ = ["DONE", "FAR", "INDEFINITE", "JUMP", "REFRESH", "RESCUE", "cached_sample", "warm_up"]
 
