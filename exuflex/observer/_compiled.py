@@ -181,9 +181,10 @@ def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
         row = Bt[i]
         for l in range(n):
             h = H[i, l]
-            a = P_out[l]
-            for j in range(n):
-                row[j] += h * a[j]
+            if h != 0.0:  # (H's zeros, e.g. its velocity half, add nothing)
+                a = P_out[l]
+                for j in range(n):
+                    row[j] += h * a[j]
         rd = Rd[i]
         k = sol[i]
         for j in range(n):
@@ -247,9 +248,10 @@ def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
         row[:] = 0.0
         for k in range(n):
             h = H[i, k]
-            p = P[k]
-            for j in range(n):
-                row[j] += h * p[j]
+            if h != 0.0:  # (sensors read positions: H's velocity half is zero)
+                p = P[k]
+                for j in range(n):
+                    row[j] += h * p[j]
     for i in range(m):  # (H P) H' + R
         hp = HP[i]
         for j in range(m):

@@ -349,24 +349,24 @@ def _step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
     p = z[:r]
     pd = z[r:]
     G = np.zeros((r, 2 * r))  # generalised forces per unit state change
-    for m in range(r):  # df/dp'_m of -1/2 p' T p': -1/2 sum_j (T[m,i,j] + T[j,i,m]) p'_j
+    # df/dp'_m of -1/2 p' T p' is -1/2 sum_j (T[m,i,j] + T[j,i,m]) p'_j, all (m, i) in one matrix-vector
+    # product; df_i/dp_m of -p V_i p (q rows) likewise
+    gt = np.ascontiguousarray(Ts).reshape(r * r, r) @ pd
+    for m in range(r):
         for i in range(r):
-            acc = 0.0
-            for j in range(r):
-                acc += Ts[m, i, j] * pd[j]
-            G[i, r + m] = -0.5 * acc
-    for i in range(nq):  # df_i/dp_m of -p V_i p (q rows)
+            G[i, r + m] = -0.5 * gt[m * r + i]
+    gv = np.ascontiguousarray(Vs).reshape(nq * r, r) @ p
+    for i in range(nq):
         for m in range(r):
-            acc = 0.0
-            for b in range(r):
-                acc += Vs[i, m, b] * p[b]
-            G[i, m] = -acc
+            G[i, m] = -gv[i * r + m]
     for k in range(C3.shape[0]):  # d/dp' of -sum p'_k p'_j C[k, j, :] (j < nq)
         for j in range(nq):
             for c in range(r):
                 G[c, r + k] -= C3[k, j, c] * pd[j]
                 G[c, r + j] -= pd[k] * C3[k, j, c]
-    return Pn + SQM @ G
+    F = SQM @ G
+    F += Pn
+    return F
 
 
 def prediction_error(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):
@@ -493,22 +493,35 @@ def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - com
     Ak = Minv @ Kr
     Ac = Minv @ Cr
     I = np.eye(nx)
-    W = I + 0.25 * _times_hA(Ak, Ac, h, I)
+    W = I.copy()  # I + hA/4, written out: hA I = [[0, hI], [-hAk, -hAc]]
+    for i in range(r):
+        W[i, r + i] += 0.25 * (h * 1.0)
+        for j in range(r):
+            W[r + i, j] += 0.25 * (-h * Ak[i, j])
+            W[r + i, r + j] += 0.25 * (-h * Ac[i, j])
     V = I + _times_hA(Ak, Ac, h, W) / 3.0
     U = I + 0.5 * _times_hA(Ak, Ac, h, V)
     P = I + _times_hA(Ak, Ac, h, U)
     B = (h * np.ascontiguousarray(U[:, r:])) @ Minv
     Pa = P.copy()
     SB = B.copy()
+    sq = np.empty((nx, nx))  # product buffers: the doubling allocates nothing
+    th = np.empty((nx, r))
     top = 0
     while (n >> (top + 1)) > 0:
         top += 1
     for bit in range(top - 1, -1, -1):
-        SB = SB + Pa @ SB
-        Pa = Pa @ Pa
+        np.dot(Pa, SB, th)
+        SB += th
+        np.dot(Pa, Pa, sq)
+        Pa, sq = sq, Pa
         if (n >> bit) & 1:
-            SB = B + P @ SB
-            Pa = P @ Pa
+            np.dot(P, SB, th)
+            for i in range(nx):
+                for j in range(r):
+                    SB[i, j] = B[i, j] + th[i, j]
+            np.dot(P, Pa, sq)
+            Pa, sq = sq, Pa
     L = SB @ Gr
     return Pa, SB, L, (L * torque_var) @ L.T
 
