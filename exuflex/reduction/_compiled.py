@@ -7,8 +7,11 @@ arithmetic: some 80 NumPy calls on arrays of a few hundred entries. :func:`force
 :func:`basis_derivative`, :func:`basis_at` and :func:`reduced_matrices` (the twins of
 :meth:`exuflex.reduction.basis.CraigBampton.basis_derivative` and ``at``, and of
 :meth:`exuflex.reduction.model.ReducedModel.matrices` without the forces) do the same arithmetic in one compiled
-call each. The NumPy methods stay the reference (and what runs without numba);
-``tests/test_reduction.py`` checks that both agree to rounding.
+call each; :func:`held_evaluation` does all of :meth:`~exuflex.reduction.model.ReducedModel.held` (the cached
+observer's evaluation) in one call after the configuration's, sharing ``W J`` and ``M_N W J`` (in a filter run,
+where every evaluation starts from cold caches, each separate call and the Python between them cost as much as
+their arithmetic). The NumPy methods stay the reference (and what runs without numba);
+``tests/test_reduction.py`` checks that all three agree to rounding.
 
 This module imports without numba: ``HAVE_NUMBA`` is then False and nothing here is called.
 """
