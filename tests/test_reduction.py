@@ -161,7 +161,8 @@ def test_analytic_mass_derivative_matches_finite_differences(sixbar):
 def test_compiled_configuration_evaluation_equals_numpy(sixbar, consistent, case):
     """The compiled twins of a configuration evaluation (nodal assembly, basis and Guyan shapes, basis
     derivative, reduced matrices, held force model; :mod:`exuflex.reduction._compiled`,
-    :mod:`exuflex.erls._assembly`) agree with the NumPy expressions to rounding (measured: 2e-11 relative on the
+    :mod:`exuflex.erls._assembly`), piecewise and in one call (:func:`~exuflex.reduction._compiled.held_evaluation`),
+    agree with the NumPy expressions to rounding (measured: 2e-11 relative on the
     six-bar, from the slave block's condition number 6e5) at moving, deformed states away from q*; also on the
     four-bar without interior modes."""
     model = sixbar if case == "sixbar" else ErlsModel(load_mechanism(MODELS / "fourbar.toml"))
@@ -173,16 +174,21 @@ def test_compiled_configuration_evaluation_equals_numpy(sixbar, consistent, case
         p = np.concatenate([q, 1e-4 * rng.standard_normal(rm.r - rm.nq)])
         pd = np.concatenate([rng.standard_normal(rm.nq), 1e-2 * rng.standard_normal(rm.r - rm.nq)])
         out = []
-        for compiled in (False, True):
+        # NumPy (the reference), the piecewise compiled calls, held in one compiled call
+        for compiled, one_call in ((False, False), (True, False), (True, True)):
             model.compiled = cb.compiled = rm.compiled = compiled
+            rm.one_call = one_call
             mats, forces = rm.held(p, pd)
-            out.append([mats.rc.cfg.M_N, mats.rc.cfg.K_N, mats.rc.cfg.R, mats.rc.H, mats.rc.B, mats.rc.Kuu, mats.J,
-                        mats.Mr, mats.Kr, mats.Cr, mats.Gr, forces.fg, forces.T2, forces.V2, forces.dMr2,
-                        forces.dKr2, cb.basis_derivative(mats.rc, np.column_stack([p, pd])),
-                        *forces.jacobian_tensors()]
+            out.append([mats.rc.cfg.M_N, mats.rc.cfg.K_N, mats.rc.cfg.R, mats.rc.H, mats.rc.B, mats.rc.Psi,
+                        mats.rc.Kuu, mats.rc.Kss_inv, mats.J, mats.Mr, mats.Kr, mats.Cr, mats.Gr, forces.fg,
+                        forces.T2, forces.V2, forces.dMr2, forces.dKr2,
+                        cb.basis_derivative(mats.rc, np.column_stack([p, pd])), *forces.jacobian_tensors()]
                        + ([forces.C2] if consistent else []))
-        model.compiled = cb.compiled = rm.compiled = True
-        for a, b in zip(*out):
-            assert a.shape == b.shape
+        model.compiled = cb.compiled = rm.compiled = rm.one_call = True
+        for a, b, c in zip(*out):
+            assert a.shape == b.shape == c.shape
             if a.size:
                 np.testing.assert_allclose(b, a, rtol=0, atol=1e-9 * np.abs(a).max())
+                np.testing.assert_allclose(c, a, rtol=0, atol=1e-9 * np.abs(a).max())
+                # the one call and the piecewise calls do the same arithmetic
+                np.testing.assert_allclose(c, b, rtol=0, atol=1e-13 * np.abs(a).max())

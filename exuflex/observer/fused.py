@@ -28,6 +28,7 @@ changed the filter's state, and the filter takes its step-by-step path for that 
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -178,24 +179,35 @@ PACKED = ("q0", "d", "Mr0", "Kr0", "Ca0", "Gr0", "dM2", "dK2", "fg", "T2", "V2",
           "C3", "c0", "Hm", "dH")
 
 
+@functools.lru_cache(maxsize=16)
+def _layout(shapes: tuple) -> tuple[np.ndarray, list[int]]:
+    """The int64 layout of :func:`pack_arguments` for items of these shapes and every item's offset; a few
+    signatures per observer (with and without a secant partner, per channel tuple), hence the small cache."""
+    if len(shapes) != len(PACKED):
+        raise ValueError(f"{len(shapes)} arrays to pack, expected {len(PACKED)}")
+    lay = []
+    offsets = []
+    off = 0
+    for name, shape in zip(PACKED, shapes):
+        if len(shape) > 3:
+            raise ValueError(f"{name} has {len(shape)} dimensions, at most 3 can be packed")
+        lay += [off, *shape, *(0,) * (3 - len(shape))]
+        offsets.append(off)
+        off += math.prod(shape)
+    return np.array(lay, dtype=np.int64), offsets
+
+
 def pack_arguments(arrays, views=()) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """``(pack, lay, views)``: the float64 arrays (in :data:`PACKED` order) copied into one buffer, the int64
-    layout (offset and up to three dimensions per item) and a view of the buffer, of the item's shape, for
-    each item index in ``views`` (writing a view writes the buffer the kernel reads)."""
-    if len(arrays) != len(PACKED):
-        raise ValueError(f"{len(arrays)} arrays to pack, expected {len(PACKED)}")
-    lay = []
-    off = 0
-    for name, a in zip(PACKED, arrays):
-        if a.ndim > 3:
-            raise ValueError(f"{name} has {a.ndim} dimensions, at most 3 can be packed")
-        lay += [off, *a.shape, *(0,) * (3 - a.ndim)]
-        off += a.size
-    pack = np.concatenate([a.reshape(-1) for a in arrays]) if off else np.empty(0)
+    layout (offset and up to three dimensions per item; shared by the packs of arrays of the same shapes, read
+    only) and a view of the buffer, of the item's shape, for each item index in ``views`` (writing a view writes
+    the buffer the kernel reads)."""
+    lay, offsets = _layout(tuple([a.shape for a in arrays]))
+    pack = np.concatenate(arrays, axis=None)
     if pack.dtype != np.float64:
         raise ValueError(f"packed arrays must be float64, got {pack.dtype}")
-    out = [pack[lay[4 * i] : lay[4 * i] + arrays[i].size].reshape(arrays[i].shape) for i in views]
-    return pack, np.array(lay, dtype=np.int64), out
+    out = [pack[offsets[i] : offsets[i] + arrays[i].size].reshape(arrays[i].shape) for i in views]
+    return pack, lay, out
 
 
 _secant_factor = _jit(_secant_factor)

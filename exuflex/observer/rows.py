@@ -58,17 +58,20 @@ class ChannelRows:
     channel: the reduced observer evaluates them at every held configuration.
 
     ``angle`` (m, n_links): link-angle weights (encoders; zero rows elsewhere); ``u_fixed`` (m, ne): the
-    q-independent u rows (the encoders' elastic rotations); per curvature station on an element ``(channel,
-    element, Hermite row / number of elements averaged)`` in ``curv_channel``, ``curv_element``, ``curv_row``;
-    ``points``: ``(channel index, sensor)`` of the tip-position channels (rows per configuration as in
-    :func:`sensor_rows`).
+    q-independent u rows (the encoders' elastic rotations); per curvature station on an element ``(element,
+    Hermite row / number of elements averaged)`` in ``curv_element``, ``curv_row``, and where each of its six
+    element-frame entries lands in the flattened u rows: ``curv_take`` (entries of a nodal dof with an elastic
+    coordinate, flat indices into the (stations, 6) entries) and ``curv_flat`` (their flat indices into the
+    (m, ne) u rows); ``points``: ``(channel index, sensor)`` of the tip-position channels (rows per
+    configuration as in :func:`sensor_rows`).
     """
 
     angle: np.ndarray
     u_fixed: np.ndarray
-    curv_channel: np.ndarray
     curv_element: np.ndarray
     curv_row: np.ndarray
+    curv_take: np.ndarray
+    curv_flat: np.ndarray
     points: tuple
 
     def at(self, model, cfg) -> tuple[np.ndarray, list]:
@@ -76,11 +79,10 @@ class ChannelRows:
         channels included) and ``(channel index, p0, dp0/dq)`` of the point channels' rigid parts."""
         U = self.u_fixed.copy()
         if len(self.curv_element):
-            # (c R_e^T) scattered to the element's nodal dofs, then T: the rows of ErlsModel.curvature_row
+            # c R_e^T per station, summed into the elastic coordinates of the element's nodal dofs: the rows of
+            # ErlsModel.curvature_row
             local = np.einsum("lb,lab->la", self.curv_row, cfg.R[self.curv_element])
-            rows = np.zeros((len(U), model.N))
-            np.add.at(rows, (self.curv_channel[:, None], model.el_dofs[self.curv_element]), local)
-            U += rows @ model.T
+            U += np.bincount(self.curv_flat, local.reshape(-1)[self.curv_take], minlength=U.size).reshape(U.shape)
         pts = []
         for i, s in self.points:
             _, (p0, Sp), urow = sensor_rows(model, cfg, s, [])
@@ -108,5 +110,8 @@ def channel_rows(model, sensors, link_names: list[str]) -> ChannelRows:
             points.append((i, s))
         else:  # pragma: no cover - the loader admits only these
             raise KeyError(f"unsupported sensor kind {s.kind!r}")
-    return ChannelRows(angle, u_fixed, np.array(cc, dtype=np.int64), np.array(ce, dtype=np.int64),
-                       np.array(cr, dtype=float).reshape(-1, 6), tuple(points))
+    ce = np.array(ce, dtype=np.int64)
+    u = model.t_index[model.el_dofs[ce]].reshape(-1)  # (stations * 6,) elastic coordinate of each entry, -1: none
+    take = np.flatnonzero(u >= 0)
+    flat = (np.repeat(np.array(cc, dtype=np.int64), 6) * model.ne + u)[take]
+    return ChannelRows(angle, u_fixed, ce, np.array(cr, dtype=float).reshape(-1, 6), take, flat, tuple(points))

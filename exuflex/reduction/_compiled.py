@@ -7,15 +7,22 @@ arithmetic: some 80 NumPy calls on arrays of a few hundred entries. :func:`force
 :func:`basis_derivative`, :func:`basis_at` and :func:`reduced_matrices` (the twins of
 :meth:`exuflex.reduction.basis.CraigBampton.basis_derivative` and ``at``, and of
 :meth:`exuflex.reduction.model.ReducedModel.matrices` without the forces) do the same arithmetic in one compiled
-call each. The NumPy methods stay the reference (and what runs without numba);
-``tests/test_reduction.py`` checks that both agree to rounding.
+call each; :func:`held_evaluation` does all of :meth:`~exuflex.reduction.model.ReducedModel.held` (the cached
+observer's evaluation) in one call after the configuration's, sharing ``W J`` and ``M_N W J`` (in a filter run,
+where every evaluation starts from cold caches, each separate call and the Python between them cost as much as
+their arithmetic). The NumPy methods stay the reference (and what runs without numba);
+``tests/test_reduction.py`` checks that all three agree to rounding.
 
 This module imports without numba: ``HAVE_NUMBA`` is then False and nothing here is called.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from ..erls._closure import coordinate_rates
 
 try:
     import numba
@@ -25,7 +32,7 @@ except ImportError:  # pragma: no cover - exercised only on machines without num
     numba = None
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "basis_at", "basis_derivative", "force_terms", "reduced_matrices"]
+__all__ = ["HAVE_NUMBA", "basis_at", "basis_derivative", "force_terms", "held_evaluation", "reduced_matrices"]
 
 
 def _w_product(W, t_index, X, nq):  # pragma: no cover - compiled
@@ -176,9 +183,17 @@ def _force_terms(W, J, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3
     :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``Gl`` (n_el, 6, 6): the element
     mass rotation rate in the element frame; ``Sd3`` (nq, N, nq): ``dS/dq_j``; ``t_index``: the 0/1 part of
     ``W = [S, T]`` (:func:`_w_product`); without ``gradients`` ``dMr`` and ``dKr`` are empty."""
+    WJ = _w_product(W, t_index, J, nq)  # (N, r)
+    return _force_terms_shared(W, J, WJ, M_N @ WJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, dHdq,
+                               nq, consistent, gradients)
+
+
+def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, dHdq, nq,
+                        consistent, gradients):  # pragma: no cover - compiled
+    """:func:`_force_terms` with ``W J`` and ``M_N W J`` given (:func:`_held_evaluation` shares them with the
+    reduced matrices)."""
     N, n = W.shape
     r = J.shape[1]
-    WJ = _w_product(W, t_index, J, nq)  # (N, r)
     SE = _element_form(WJ, el_dofs, R, Gl, S_th, nq)  # element mass rotation term (nq, r, r)
     # velocity force tensor T[k] = J^T (dh/dv)(J e_k) J
     Tk = np.zeros((r, r, r))
@@ -188,7 +203,6 @@ def _force_terms(W, J, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3
                 Tk[k, i, j] += SE[k, i, j]
                 Tk[j, i, k] += SE[k, i, j]
                 Tk[j, k, i] -= SE[k, i, j]
-    MWJ = M_N @ WJ  # (N, r)
     for k in range(nq):
         for j in range(nq):
             for i in range(r):
@@ -253,6 +267,7 @@ if HAVE_NUMBA:
     _tt_product = _jit(_tt_product)
     _element_form = _jit(_element_form)
     _mass_stiffness_gradients = _jit(_mass_stiffness_gradients)
+    _force_terms_shared = _jit(_force_terms_shared)
     force_terms = _jit(_force_terms)
 else:  # pragma: no cover
     force_terms = None
@@ -391,6 +406,13 @@ def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq
     """``(J, M_r, K_r, C_r, G_r)`` of :meth:`~exuflex.reduction.model.ReducedModel.matrices` without the
     forces: ``J = H + [d(H p)/dq, 0]`` (consistent form) and the reduced matrices (``t_index``: the 0/1 part of
     ``W = [S, T]``, :func:`_w_product`)."""
+    J, _, _, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
+    return J, Mr, Kr, Cr, Gr
+
+
+def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent):  # pragma: no cover
+    """``(J, W J, M_N W J, M_r, K_r, C_r, G_r)``: :func:`_reduced_matrices` with the two products the force
+    model shares (:func:`_held_evaluation`)."""
     n, r = H.shape
     J = H.copy()
     if consistent:
@@ -414,11 +436,59 @@ def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq
     else:
         Cr = np.zeros((r, r))
     Gr = WJt @ B_N
-    return J, Mr, Kr, Cr, Gr
+    return J, WJ, MWJ, Mr, Kr, Cr, Gr
 
 
 if HAVE_NUMBA:
     basis_at = _jit(_basis_at)
+    _reduced_terms = _jit(_reduced_terms)
     reduced_matrices = _jit(_reduced_matrices)
 else:  # pragma: no cover
     basis_at = reduced_matrices = None
+
+
+def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, ea, esa, eb, ebm, esb, node_link, node_station,
+                     t_index, im, is_, Phi_u, px, py, pnode, theta_star, B_N, g_N, Gl, KGl, el_dofs, el_link, alpha, beta,
+                     nq, rotate, consistent, gradients):  # pragma: no cover - compiled twin of ReducedModel.held
+    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs)``: what
+    :meth:`~exuflex.reduction.model.ReducedModel.held` computes (without ``fr``) from a full configuration, in one
+    call: the basis at q (:func:`basis_at`), its derivative for every reduced coordinate
+    (:func:`basis_derivative`), the reduced matrices (:func:`reduced_matrices`), ``dS/dq``
+    (:func:`exuflex.erls._closure.coordinate_rates`) and the force model (:func:`force_terms`, without ``JtM``),
+    with ``W J`` and ``M_N W J`` computed once for both. ``z, Sz, r_nodes, S, Jinv``: the pose's link poses and
+    sensitivities, nodal poses and sensitivities and closure Jacobian inverse; ``ea .. node_station``: the
+    kinematics' index arrays; ``pnode``, ``theta_star``: the node of every interior-mode pair and the nodal angles
+    at q* (``rotate`` False: the modes do not turn, :attr:`~exuflex.reduction.basis.CraigBampton.rotate`)."""
+    ne = Phi_u.shape[0]
+    n_pairs = pnode.shape[0]
+    c = np.empty(n_pairs)
+    s = np.empty(n_pairs)
+    Sn = np.zeros((n_pairs, nq))  # d theta_node / dq of every pair
+    for pp in range(n_pairs):
+        node = pnode[pp]
+        th = 0.0
+        if rotate:
+            th = r_nodes[3 * node + 2] - theta_star[node]
+            for i in range(nq):
+                Sn[pp, i] = S[3 * node + 2, i]
+        c[pp] = math.cos(th)
+        s[pp] = math.sin(th)
+    S_th = np.empty((el_link.shape[0], nq))  # element angle sensitivities
+    for e in range(el_link.shape[0]):
+        for i in range(nq):
+            S_th[e, i] = Sz[3 * el_link[e] + 2, i]
+    Kuu, B, Kinv, Psi, H = basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s)
+    r = H.shape[1]
+    dHdq = basis_derivative(np.eye(r), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s, Phi_u, px,
+                            py, Sn)
+    J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
+    Sd3 = coordinate_rates(z, Sz, Jinv, ea, esa, eb, ebm, esb, node_link, node_station)
+    fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,
+                                                             el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients)
+    return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs
+
+
+if HAVE_NUMBA:
+    held_evaluation = _jit(_held_evaluation)
+else:  # pragma: no cover
+    held_evaluation = None

@@ -119,6 +119,8 @@ class ReducedModel:
         # the force model's arithmetic in one compiled call (:mod:`._compiled`) where numba is installed;
         # False: the NumPy expressions below (the reference)
         self.compiled = _compiled.HAVE_NUMBA if compiled is None else bool(compiled and _compiled.HAVE_NUMBA)
+        # compiled: :meth:`held` in one call (:meth:`_held_compiled`); False: the piecewise compiled calls
+        self.one_call = self.compiled
         self.model = cb.model
         self.nq = cb.nq
         self.r = cb.r
@@ -184,12 +186,36 @@ class ReducedModel:
         """The reduced matrices and :meth:`force_model` at a configuration, computed once with shared terms
         (one basis derivative for both). The cached observer step holds them with the q-gradients of ``M_r``
         and ``K_r`` (``fr`` left out); the frozen step needs ``fr`` and the forces' Jacobian only
-        (``fr=True, gradients=False``)."""
+        (``fr=True, gradients=False``). Without ``fr``, where the piecewise compiled calls would run, in one compiled
+        call after the configuration's (:meth:`_held_compiled`)."""
         p = np.asarray(p, float)
+        if not fr and self.one_call and self.compiled and self.cb.compiled and self.model.kin.compiled:
+            return self._held_compiled(p, gradients)
         rc = self.cb.at(p[: self.nq])
         dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
         mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
         return mats, self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+
+    def _held_compiled(self, p: np.ndarray, gradients: bool) -> tuple[ReducedMatrices, QuadraticForces]:
+        """:meth:`held` without ``fr`` through :func:`._compiled.held_evaluation`: the basis, its derivative, the
+        reduced matrices and the force model at ``p``'s configuration in one call (the same formulas as the
+        piecewise path, with ``W J`` and ``M_N W J`` shared)."""
+        cb, model, nq, r = self.cb, self.model, self.nq, self.r
+        kin = model.kin
+        cfg = model.configuration(p[:nq])
+        pose = cfg.pose
+        (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs) = _compiled.held_evaluation(
+            p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin._ea, kin._esa, kin._eb,
+            kin._ebm, kin._esb, kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
+            cb._py, cb._pnode, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl, model.el_dofs,
+            model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, self.consistent, gradients)
+        mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
+        if not self.consistent:
+            C2 = None
+        forces = QuadraticForces(nq, fg, Tk, V, None, None, dMr if gradients else None, dKr if gradients else None,
+                                 C2=C2)
+        forces._tensors = (Ts, Vs, np.zeros((0, nq, r)) if C2 is None else C2.reshape(r, nq, r))
+        return mats, forces
 
     def reduced_mass(self, p: np.ndarray) -> np.ndarray:
         """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
