@@ -65,3 +65,49 @@ def test_declined_samples_take_the_step_by_step_path(setup):
     scale = np.abs(ref).max(axis=0)
     assert np.all(np.abs(fast - ref) <= 1e-10 * scale)
     np.testing.assert_allclose(P_fast, P_ref, rtol=1e-9)
+
+
+def test_run_loop_equals_the_step_path(setup):
+    """``MultirateEKF.run`` filters the samples the fused kernel takes in one compiled loop
+    (:func:`exuflex.observer.fused.cached_run`): the same estimates, covariances, innovations, NIS and counters,
+    to the bit, as calling ``step`` per sample, on a log with missing samples, half-rate gauges and a skipped
+    grid point (those samples leave the loop for ``step``)."""
+    mech, run = setup
+    obs = make_observer(mech, ObserverConfig(backend="numba"))
+    ekf = obs.ekf
+    S = run.sensors
+    keep = np.ones(len(S.t), dtype=bool)
+    keep[300] = False  # a skipped grid point: predicted through
+    t, U = S.t[keep], S.select(run.motors).data[keep]
+    Y = S.select(obs.channels).data[keep].copy()
+    Y[100:104] = np.nan
+    Y[150:200:2, 3:] = np.nan
+    looped = []
+    fused_run = obs.model.fused_run
+
+    def counted(k0, *args):
+        out = fused_run(k0, *args)
+        looped.append(0 if out is None else out[0] - k0)
+        return out
+
+    obs.model.fused_run = counted
+    res = ekf.run(t, U, Y)
+    assert sum(looped) > 0.9 * len(t)  # most samples in the compiled loop
+    n_loop = ekf.n_fused
+    n_remap = obs.model.n_remap
+    ekf.reset()
+    X, Pd, innov, nis = [], [], [], []
+    for k in range(len(t)):
+        X.append(ekf.step(t[k], U[k], Y[k]))
+        Pd.append(ekf.P.diagonal())
+        full = ekf.last_idx is not None and len(ekf.last_idx) == ekf.m
+        innov.append(ekf.last_innovation if full else np.full(ekf.m, np.nan))
+        nis.append(ekf.last_nis if ekf.last_idx is not None else np.nan)
+    assert n_loop == ekf.n_fused > 0.95 * len(t)
+    assert obs.model.n_remap == 2 * n_remap
+    assert res.n_updates == ekf.n_updates and res.n_missing == ekf.n_missing
+    np.testing.assert_array_equal(res.x_hat, np.array(X))
+    np.testing.assert_array_equal(res.P, np.array(Pd))
+    np.testing.assert_array_equal(res.nis, np.array(nis))
+    full = np.isfinite(res.innovations).all(axis=1)
+    np.testing.assert_array_equal(res.innovations[full], np.array(innov)[full])

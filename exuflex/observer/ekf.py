@@ -754,6 +754,58 @@ class MultirateEKF:
                     raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
         return self._x.copy()
 
+    def _fused_log(self, t: np.ndarray, U, Y: np.ndarray) -> tuple | None:
+        """``(U, Y, on_grid)`` for the model's compiled sample loop (``fused_run``) over a whole log, or None
+        where it does not apply: no such model, the linear input hold, no inputs, or a NIS test that must
+        raise at its sample (the loop runs ahead of the test)."""
+        if not self._fast or U is None or self.divergence_action != "flag" or not hasattr(self.model, "fused_run"):
+            return None
+        U = np.ascontiguousarray(U, dtype=float)
+        if U.ndim != 2 or len(t) < 2:
+            return None
+        k = np.diff(t) / self.dt
+        on_grid = np.zeros(len(t), dtype=np.bool_)  # one interval after the previous sample, as step() tests
+        on_grid[1:] = np.abs(k - 1.0) <= self.time_tol * np.maximum(1.0, k)
+        return U, np.ascontiguousarray(Y, dtype=float), on_grid
+
+    def _run_fused(self, k0: int, t: np.ndarray, log: tuple, outs: tuple, x_hat: np.ndarray, Pst, dof: np.ndarray) -> int:
+        """Filter samples ``k0, k0 + 1, ...`` in the model's compiled loop (the same arithmetic as
+        :meth:`step`'s fused samples, to the bit), then the end-of-sample tests of each in order. Returns the
+        first sample not done, which :meth:`run` takes through :meth:`step`."""
+        U, Y, on_grid = log
+        m = self.m
+        x = self._x.copy()
+        P_alt = self._Pspare
+        bufs = (np.empty(m), np.empty((m, m)), self._Ppred, self._work, self._HP)
+        res = self.model.fused_run(k0, x, self._P, P_alt, U, Y, on_grid, self.channels, self._Rdiag, self._floor,
+                                   self.dt, bufs, self._jumps is not None, outs)
+        if res is None or res[0] == k0:
+            return k0
+        k, in_alt, finite = res
+        if in_alt:
+            self._P, self._Pspare = P_alt, self._P
+        self._x = x
+        self._t_prev = float(t[k - 1])
+        self._u_prev = U[k - 1].copy()
+        self.n_fused += k - k0
+        dof[k0:k] = m
+        self.last_idx = self._all
+        self.last_dof = m
+        self.last_innovation = outs[3][k - 1].copy()
+        self.last_S = outs[4][k - 1].copy()
+        nis = outs[5][k0:k].tolist()
+        mon = self.monitor
+        for j in range(k0, k - 1 if not finite else k):  # what step() does after each sample (see _close)
+            self.n_updates += 1
+            if mon is not None and mon.push(nis[j - k0], m) and not self.diverged:
+                self._flag_divergence(t[j], f"NIS over {mon.window} updates above its {mon.confidence:.1%} bound")
+        self.last_nis = nis[-1]
+        if not finite:
+            x_hat[k - 1] = self._close(t[k - 1], False)  # non-finite: flagged, or raised
+            if Pst is not None:
+                Pst[k - 1] = np.nan
+        return k
+
     def run(self, t, U, Y, *, reset: bool = True) -> EstimationResult:
         """Filter a whole record offline, through exactly the same code as :meth:`step`.
 
@@ -791,8 +843,19 @@ class MultirateEKF:
         nis = np.full(n, np.nan)
         dof = np.zeros(n, dtype=np.int64)
         step = self.step
+        fused = self._fused_log(t, U, Y)
+        outs = None
+        if fused is not None:
+            P_diag = Pst if self.store_P == "diag" else np.empty((0, nx))
+            P_full = Pst if self.store_P == "full" else np.empty((0, nx, nx))
+            outs = (x_hat, P_diag, P_full, innov, S_all, nis)
         t_start = time.perf_counter()
-        for k in range(n):
+        k = 0
+        while k < n:
+            if fused is not None and self._t_prev is not None and not self.nonfinite:
+                k = self._run_fused(k, t, fused, outs, x_hat, Pst, dof)  # the samples the compiled loop takes
+                if k >= n:
+                    break
             x_hat[k] = step(t[k], None if U is None else U[k], Y[k])
             if Pst is not None:
                 if self.nonfinite:
@@ -811,6 +874,7 @@ class MultirateEKF:
                 else:
                     innov[k, idx] = self.last_innovation
                     S_all[k][np.ix_(idx, idx)] = self.last_S
+            k += 1
         wall = time.perf_counter() - t_start
         res = EstimationResult(
             t=t,

@@ -44,7 +44,8 @@ from .held import (
     step_maps_held,
 )
 
-__all__ = ["DONE", "FAR", "INDEFINITE", "JUMP", "REFRESH", "RESCUE", "cached_sample", "warm_up"]
+__all__ = ["DONE", "FAR", "INDEFINITE", "JUMP", "MISSING", "REFRESH", "RESCUE", "cached_run", "cached_sample",
+           "warm_up"]
 
 DONE, RESCUE, FAR, INDEFINITE, REFRESH, JUMP = 0, 1, 2, 3, 4, 5
 
@@ -216,9 +217,79 @@ _mat = _jit(_mat)
 _ten = _jit(_ten)
 cached_sample = _jit(_cached_sample) if HAVE_NUMBA else None
 
+#: :func:`cached_run` stopped at a sample with a missing or non-finite channel, or off the time grid.
+MISSING = 6
+
+
+def _cached_run(k0, U, Y, on_grid, jumps, x, P, P_alt, Rd, floor, r, S, P_pred, work, HP, pack, lay, fl, has_old,
+                nq, n, X_out, Pd_out, Pf_out, R_out, S_out, nis_out):  # pragma: no cover - compiled
+    """:func:`cached_sample` over the samples ``k0, k0 + 1, ...`` of a log while the kernel accepts them: the
+    filter's sample loop compiled, for the offline run over a whole log (``MultirateEKF.run``).
+
+    Sample ``k`` is predicted over the interval from ``k - 1`` with the input ``U[k - 1]`` held (``U[k]``
+    ends it, for the jump test if ``jumps``) and updated with every channel of ``Y[k]``; its posterior mean,
+    covariance diagonal (``Pd_out``, if it has rows) or whole covariance (``Pf_out``, likewise), innovation,
+    innovation covariance and NIS go to row ``k`` of the outputs. ``x`` (in/out) holds the running mean;
+    the covariance alternates between ``P`` and ``P_alt`` (a kernel never writes the covariance it reads).
+
+    Returns
+    -------
+    k : int
+        The first sample not done (``Y.shape[0]`` if all were).
+    status : int
+        Why the loop stopped at ``k``: ``DONE`` (the end, or the posterior of ``k - 1`` was not finite),
+        a declined sample's status (nothing of sample ``k`` written but the step-map buffers), or
+        ``MISSING`` (a channel without a finite sample, or ``t[k]`` off the grid: ``on_grid[k]`` False).
+    in_alt : bool
+        The latest covariance is in ``P_alt``.
+    remaps : int
+        Step maps rebuilt.
+    finite : bool
+        The last posterior is finite.
+    """
+    m = Y.shape[1]
+    x_out = np.empty(x.shape[0])
+    in_alt = False
+    remaps = 0
+    for k in range(k0, Y.shape[0]):
+        y = Y[k]
+        present = on_grid[k]
+        for i in range(m):
+            if not math.isfinite(y[i]):
+                present = False
+        if not present:
+            return k, MISSING, in_alt, remaps, True
+        u = U[k - 1]
+        status, nis, remapped, finite = cached_sample(
+            x, P_alt if in_alt else P, u, U[k] if jumps else u, y, Rd, floor, x_out, r, S, P if in_alt else P_alt,
+            P_pred, work, HP, pack, lay, fl, has_old, nq, n)
+        if remapped:
+            remaps += 1
+        if status != DONE:
+            return k, status, in_alt, remaps, True
+        in_alt = not in_alt
+        Pk = P_alt if in_alt else P
+        x[:] = x_out
+        X_out[k] = x_out
+        if Pd_out.shape[0]:
+            for i in range(x.shape[0]):
+                Pd_out[k, i] = Pk[i, i]
+        if Pf_out.shape[0]:
+            Pf_out[k] = Pk
+        R_out[k] = r
+        S_out[k] = S
+        nis_out[k] = nis
+        if not finite:
+            return k + 1, DONE, in_alt, remaps, False
+    return Y.shape[0], DONE, in_alt, remaps, True
+
+
+cached_run = _jit(_cached_run) if HAVE_NUMBA else None
+
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) :func:`cached_sample` for the argument types the filter passes."""
+    """Compile (or load from numba's cache) :func:`cached_sample` and :func:`cached_run` for the argument types the
+    filter passes."""
     if not HAVE_NUMBA:
         return
     r, nq, m = 2, 1, 1
@@ -235,3 +306,8 @@ def warm_up() -> None:
     fl = np.array([1.0, 1.0, 1.0, 1e-3, 0.0, 1e-4, np.inf, 1.0, 0.02, 1.0])
     cached_sample(z, np.eye(nx), u, u, np.zeros(m), np.ones(m), np.zeros(nx), np.empty(nx), np.empty(m),
                   np.empty((m, m)), sq.copy(), sq.copy(), sq.copy(), np.empty((m, nx)), pack, lay, fl, False, nq, 1)
+    k = 2  # and the compiled sample loop, over two samples
+    cached_run(1, np.zeros((k, nq)), np.zeros((k, m)), np.ones(k, dtype=np.bool_), True, z.copy(), np.eye(nx),
+               sq.copy(), np.ones(m), np.zeros(nx), np.empty(m), np.empty((m, m)), sq.copy(), sq.copy(),
+               np.empty((m, nx)), pack, lay, fl, False, nq, 1, np.empty((k, nx)), np.empty((k, nx)),
+               np.empty((0, nx, nx)), np.empty((k, m)), np.empty((k, m, m)), np.empty(k))

@@ -63,7 +63,7 @@ from scipy.stats import chi2
 from ..erls.kinematics import KinematicsError
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
-from .fused import DONE, REFRESH, cached_sample, pack_arguments
+from .fused import DONE, REFRESH, cached_run, cached_sample, pack_arguments
 from .fused import warm_up as fused_warm_up
 from .held import (
     HAVE_NUMBA,
@@ -593,6 +593,34 @@ class ReducedObserverModel:
             self.n_declined += 1
             return None
         return x_out, bufs[0], r, S, nis, finite
+
+    def fused_run(self, k0: int, x: np.ndarray, P: np.ndarray, P_alt: np.ndarray, U: np.ndarray, Y: np.ndarray,
+                  on_grid: np.ndarray, channels: tuple, Rd: np.ndarray, floor: np.ndarray, dt: float, bufs: tuple,
+                  jumps: bool, outs: tuple) -> tuple | None:
+        """:meth:`fused_sample` over the samples ``k0, k0 + 1, ...`` of a log in one compiled loop
+        (:func:`.fused.cached_run`), while the held configuration serves and the kernel accepts them.
+
+        ``x`` (updated in place) and ``P`` are the filter's state after sample ``k0 - 1``; ``P_alt`` is a
+        spare of ``P``'s shape; ``U``, ``Y`` the log's inputs and measurements (C-ordered float arrays) and
+        ``on_grid[k]`` whether ``t[k]`` lies one interval after ``t[k - 1]``; ``bufs = (r, S, P_pred, work, HP)``
+        scratch; ``outs`` the filter's per-sample outputs (see :func:`.fused.cached_run`).
+
+        Returns None where the fused path does not apply (nothing done), else ``(k, in_alt, finite)``: the
+        first sample not done (the caller takes it step by step: a configuration to evaluate, a declined or
+        partial sample), whether the latest covariance is in ``P_alt``, and whether it is finite.
+        """
+        if not self.fused or self.method != "cached" or self.kernel_name != "numba" or U.shape[1:] != self._u_shape:
+            return None
+        iv = self._last
+        if iv is None or iv.kargs is None or iv.dt != dt:
+            return None
+        args = iv.fused
+        if args is None or args[0] is not channels:
+            args = self._fused_arguments(iv, channels)
+        k, _status, in_alt, remaps, finite = cached_run(k0, U, Y, on_grid, jumps, x, P, P_alt, Rd, floor, *bufs,
+                                                        *args[1], *outs)
+        self.n_remap += remaps
+        return k, in_alt, finite
 
     def _fused_arguments(self, iv: _Interval, channels: tuple) -> tuple:
         """The arguments of :func:`.fused.cached_sample` that stay fixed while iv is held (until a step-by-step
