@@ -80,21 +80,12 @@ def time_filter(ekf, t, U, Y) -> dict:
         X[k:] = np.nan
         lat = lat[:k]
         n = k
-    wall = time.perf_counter() - t_start
-    cpu = time.thread_time() - c_start
-    span = float(t[n - 1] - t[0]) if n > 1 else 0.0
-    out = {
-        "wall_s": wall,
-        "simulated_s": span,
-        "real_time_factor": span / wall if wall > 0 else float("inf"),
-        "cpu_s": cpu,
-        "real_time_factor_cpu": span / cpu if cpu > 0 else float("inf"),
-        "n_updates": int(n),
+    out = _timing(time.perf_counter() - t_start, time.thread_time() - c_start, t, n, err)
+    out.update({
         "p50_update_ms": float(np.percentile(lat, 50) * 1e3) if len(lat) else float("nan"),
         "p99_update_ms": float(np.percentile(lat, 99) * 1e3) if len(lat) else float("nan"),
         "max_update_ms": float(np.max(lat) * 1e3) if len(lat) else float("nan"),
-        "failed": err,
-    }
+    })
     return {"timing": out, "X": X}
 
 
@@ -111,10 +102,13 @@ def time_run(ekf, t, U, Y) -> dict:
         err = f"{type(exc).__name__}: {exc}"
         log.warning("filter failed: %s", err)
         X = np.full((n, ekf.nx), np.nan)
-    wall = time.perf_counter() - t_start
-    cpu = time.thread_time() - c_start
+    return {"timing": _timing(time.perf_counter() - t_start, time.thread_time() - c_start, t, n, err), "X": X}
+
+
+def _timing(wall: float, cpu: float, t, n: int, err: str | None) -> dict:
+    """Wall and CPU time of a filter over samples ``t[:n]`` with their real-time factors."""
     span = float(t[n - 1] - t[0]) if n > 1 else 0.0
-    out = {
+    return {
         "wall_s": wall,
         "simulated_s": span,
         "real_time_factor": span / wall if wall > 0 else float("inf"),
@@ -123,7 +117,6 @@ def time_run(ekf, t, U, Y) -> dict:
         "n_updates": int(n),
         "failed": err,
     }
-    return {"timing": out, "X": X}
 
 
 def _median_run(runs: list[dict]) -> tuple[dict, dict]:

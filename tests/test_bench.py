@@ -24,7 +24,8 @@ def test_bench_quick_json_has_the_documented_keys():
         assert r["reduced"][key] > 0
     for key in ("wall_s", "real_time_factor", "p99_update_ms"):
         assert r["full"][key] > 0
-    assert r["reduced"]["failed"] is None and r["full"]["failed"] is None
+    assert r["reduced"]["failed"] is None and r["full"]["failed"] is None  # (and run() equals step() per sample)
+    assert r["reduced"]["online"]["real_time_factor"] > 0 and r["reduced"]["online"]["failed"] is None
     assert r["reduced"]["n_updates"] == r["full"]["n_updates"] == 101  # 0.2 s at 500 Hz
     assert r["speedup_reduced_vs_full"] > 1.0
     assert r["basis_s"] > 0 and r["truth_s"] > 0
