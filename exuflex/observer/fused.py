@@ -8,9 +8,11 @@ by one from Python it costs about as much in Python glue as in arithmetic (some 
 the 100 us that 20x real time allows at 500 Hz). :func:`cached_sample` runs them all in one call, with the
 same compiled functions in the same order, so the results equal the step-by-step path's (bit for bit on the
 six-bar's 3 s log, ``tests/test_fused.py``). Measured on the six-bar (fast phases of a machine whose speed
-drifts by 30-50 %): about 35 us per call (the held model and its 20 RK4 steps 14.5 us, of which the RK4 steps
-9 us; Jacobian, covariance prediction and update about 15 us; passing the arguments 1.6 us, since they are one
-packed buffer instead of 46 arrays, 4.7 us), 33-38 us more when the step map is rebuilt.
+drifts by 30-80 %): about 29 us per call inside a compiled loop (the held model and its 20 RK4 steps 13 us, of
+which the RK4 steps 7.7 us; Jacobian 3.5 us, covariance prediction 3.5 us, update 6 us), 2-3 us more from
+Python (the arguments are one packed buffer instead of 46 arrays: 1.3-1.6 us to pass instead of 4.7 us),
+33-46 us more when the step map is rebuilt. :func:`cached_run` loops over the samples of a whole log in
+compiled code (``MultirateEKF.run``), which removes Python's 9 us per sample.
 
 Python keeps what happens a few dozen times per run: the configuration evaluations, the measurement rows
 per held configuration, and every case the kernel declines (it then returns a nonzero status before it has

@@ -479,7 +479,7 @@ def _times_hA(Ak, Ac, h, X):  # pragma: no cover - compiled
 def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - compiled twin of the NumPy path
     """:func:`step_maps` from ``M_r`` (not its inverse), plus the process noise ``L diag(var) L^T``.
 
-    The same maps with about half the arithmetic (it runs some 450 times per 3 s of the six-bar):
+    The same maps with about half the arithmetic (it runs some 250 times per 3 s of the six-bar):
 
     - the RK4 polynomials share one Horner chain, ``U = I + hA/2 (I + hA/3 (I + hA/4))``, ``P = I + hA U``
       and ``Q = h U``, and a product with ``hA`` only has ``A``'s lower block row to compute;
