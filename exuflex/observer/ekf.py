@@ -27,7 +27,9 @@ cost per sample is about a third of the numpy back-end's, for real-time use; nee
 numba back-end, a model that offers ``fused_sample`` (the cached reduced observer, :mod:`.fused`) does a whole
 sample with every channel present (predict, update, settle) in one compiled call, with the same arithmetic as the
 step-by-step path (``tests/test_fused.py``); other samples, and a sample the model declines, take the
-step-by-step path. ``n_fused`` counts the fused samples.
+step-by-step path. ``n_fused`` counts the fused samples. Over a whole log, :meth:`MultirateEKF.run` hands
+the fused samples to the model's compiled sample loop (``fused_run``, with the zero-order hold and a NIS test
+that flags rather than raises), bit-identical to calling :meth:`MultirateEKF.step` per sample.
 
 Timing convention: ``x0``, ``P0`` are the *prior* at the first sample time. ``step(t_k, u_k, y_k)``
 first predicts from the previous sample time to ``t_k`` with the input stored at the previous call
