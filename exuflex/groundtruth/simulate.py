@@ -264,6 +264,9 @@ def simulate_truth(
     neg_D = [-tm.D_alpha if damped else None]
     inv_h = 1.0 / h
     pre_time = [0.0]
+    f = np.zeros(n_c)  # the generalized force, rewritten every step (Exudyn copies it)
+    f_items = memoryview(f)  # its entries as Python floats, without NumPy's per-element cost
+    torques = neg_T.tolist()  # per step, the signed torques as Python floats
 
     def pre_step_timed(mbs_, t):
         c0 = time.perf_counter()
@@ -284,21 +287,21 @@ def simulate_truth(
             if k % upd_every == 0 and k > 0:
                 tm.update_dampers(np.asarray(u) + ref)
                 neg_D[0] = -tm.D_alpha
-            f = neg_D[0] @ cd  # explicit alpha damper -D c' with the rates at t_k
+            np.dot(neg_D[0], cd, out=f)  # explicit alpha damper -D c' with the rates at t_k
         else:
-            f = np.zeros(n_c)
+            f.fill(0.0)
         # the ERLS engine's zero-order hold of tau[k] over [t_k, t_k+1], as generalized-alpha sees it
         # (forces at step ends, linear in between): the mean of the held values either side of t_k+1.
         # Same arithmetic as TruthModel.generalized_forces (T d(atan2(y', x'))/d(x', y') at t_k).
         if fast and ancf:
-            mT = neg_T[k].tolist()
+            mT = torques[k]
             item = u.item
             for i, a, b, ra, rb in rows:
                 rx = item(a) + ra
                 ry = item(b) + rb
                 n2 = rx * rx + ry * ry
-                f[a] += mT[i] * ry / n2
-                f[b] += -mT[i] * rx / n2
+                f_items[a] += mT[i] * ry / n2
+                f_items[b] += -mT[i] * rx / n2
         elif ancf:
             rx = u[ix] + ref[ix]
             ry = u[iy] + ref[iy]
