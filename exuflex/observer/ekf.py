@@ -744,17 +744,20 @@ class MultirateEKF:
                 )
             return np.full(self.nx, np.nan)
 
-        if self.last_idx is not None:
-            self.n_updates += 1
-            if self.monitor is not None and self.monitor.push(self.last_nis, self.last_dof):
-                if not self.diverged:  # the test keeps failing after a divergence: format the reason once
-                    mon = self.monitor
-                    self._flag_divergence(
-                        t, f"NIS over {mon.window} updates above its {mon.confidence:.1%} bound"
-                    )
-                if self.divergence_action == "raise":
-                    raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
+        failed = self.last_idx is not None and self._count_update(t, self.last_nis, self.last_dof)
+        if failed and self.divergence_action == "raise":
+            raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
         return self._x.copy()
+
+    def _count_update(self, t: float, nis: float, dof: int) -> bool:
+        """Count an update and push its NIS to the divergence test; True (and flagged) if the test fails."""
+        self.n_updates += 1
+        mon = self.monitor
+        if mon is None or not mon.push(nis, dof):
+            return False
+        if not self.diverged:  # the test keeps failing after a divergence: format the reason once
+            self._flag_divergence(t, f"NIS over {mon.window} updates above its {mon.confidence:.1%} bound")
+        return True
 
     def _fused_log(self, t: np.ndarray, U, Y: np.ndarray) -> tuple | None:
         """``(U, Y, on_grid)`` for the model's compiled sample loop (``fused_run``) over a whole log, or None
@@ -796,11 +799,8 @@ class MultirateEKF:
         self.last_innovation = outs[3][k - 1].copy()
         self.last_S = outs[4][k - 1].copy()
         nis = outs[5][k0:k].tolist()
-        mon = self.monitor
         for j in range(k0, k - 1 if not finite else k):  # what step() does after each sample (see _close)
-            self.n_updates += 1
-            if mon is not None and mon.push(nis[j - k0], m) and not self.diverged:
-                self._flag_divergence(t[j], f"NIS over {mon.window} updates above its {mon.confidence:.1%} bound")
+            self._count_update(t[j], nis[j - k0], m)  # (flags only: the loop runs with divergence_action "flag")
         self.last_nis = nis[-1]
         if not finite:
             x_hat[k - 1] = self._close(t[k - 1], False)  # non-finite: flagged, or raised

@@ -495,7 +495,7 @@ def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - com
     I = np.eye(nx)
     W = I.copy()  # I + hA/4, written out: hA I = [[0, hI], [-hAk, -hAc]]
     for i in range(r):
-        W[i, r + i] += 0.25 * (h * 1.0)
+        W[i, r + i] += 0.25 * h
         for j in range(r):
             W[r + i, j] += 0.25 * (-h * Ak[i, j])
             W[r + i, r + j] += 0.25 * (-h * Ac[i, j])

@@ -339,6 +339,13 @@ class ReducedObserverModel:
                 m.Mr, m.Kr, iv.Ca, m.Gr, fm.dMr2, fm.dKr2, fm.fg, fm.T2, fm.V2, self._c2(fm),
                 o.dMr2, o.dKr2, oCa, om.Gr, o.fg, o.T2, o.V2, self._c2(o))
 
+    @staticmethod
+    def _system_args(k: tuple) -> tuple:
+        """The arguments of :func:`.held.held_system_loops` after ``(dl, s)``, from :meth:`_held_args`' ``k``:
+        has_old, beta, the held ``M_r, K_r, C_a, G_r`` and q-gradients of ``M_r, K_r``, and the partner's
+        gradients, ``C_a`` and ``G_r``."""
+        return (k[0], k[2], *k[5:11], *k[15:19])
+
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
 
@@ -368,8 +375,7 @@ class ReducedObserverModel:
                           -lim, lim)
             numba_kernel = self.kernel_name == "numba"
             system = held_system_loops if numba_kernel else held_system_numpy
-            k = iv.kargs
-            Mr, Kr, Cr, Gr = system(dla, _secant_factor(iv, dla), k[0], k[2], *k[5:9], *k[9:11], *k[15:19])
+            Mr, Kr, Cr, Gr = system(dla, _secant_factor(iv, dla), *self._system_args(iv.kargs))
             maps = step_maps_held if numba_kernel else step_maps_held_numpy
             iv.Pn, iv.SQM, iv.L, iv.Q = maps(Mr, Kr, Cr, Gr, self.h, self._n_steps(dt), self.torque_var)
             if self.q_extra is not None:
@@ -559,7 +565,7 @@ class ReducedObserverModel:
         the interval; the kernel declines the sample if it is a jump from ``u`` (:meth:`input_jump`; None or
         ``jump_p`` None: no test).
         """
-        if not self.fused or self.method != "cached" or self.kernel_name != "numba":
+        if not self._fusable():
             return None
         if u.__class__ is not np.ndarray or u.shape != self._u_shape or u.dtype != np.float64:
             u = self._input(u)  # (the filter passes its stored input: a float array, checked once here)
@@ -572,10 +578,7 @@ class ReducedObserverModel:
         if iv is None or iv.kargs is None or iv.dt != dt:
             iv = self._refresh(x, dt)
         for attempt in range(2):
-            args = iv.fused
-            if args is None or args[0] is not channels:
-                args = self._fused_arguments(iv, channels)
-            fixed = args[1]
+            fixed = self._fused_fixed(iv, channels)
             if attempt:
                 # just evaluated for x: held for this sample wherever its centre lies (its lookahead may place
                 # it beyond its new radius from x), as the step-by-step path does
@@ -609,18 +612,27 @@ class ReducedObserverModel:
         first sample not done (the caller takes it step by step: a configuration to evaluate, a declined or
         partial sample), whether the latest covariance is in ``P_alt``, and whether it is finite.
         """
-        if not self.fused or self.method != "cached" or self.kernel_name != "numba" or U.shape[1:] != self._u_shape:
+        if not self._fusable() or U.shape[1:] != self._u_shape:
             return None
         iv = self._last
         if iv is None or iv.kargs is None or iv.dt != dt:
             return None
+        k, _status, in_alt, remaps, finite = cached_run(k0, U, Y, on_grid, jumps, x, P, P_alt, Rd, floor, *bufs,
+                                                        *self._fused_fixed(iv, channels), *outs)
+        self.n_remap += remaps
+        return k, in_alt, finite
+
+    def _fusable(self) -> bool:
+        """The compiled whole-sample kernels apply: the cached method with its compiled kernels, fusing on."""
+        return self.fused and self.method == "cached" and self.kernel_name == "numba"
+
+    def _fused_fixed(self, iv: _Interval, channels: tuple) -> tuple:
+        """The fixed arguments of the fused kernels for iv and these channels (:meth:`_fused_arguments`, kept on
+        iv while they serve)."""
         args = iv.fused
         if args is None or args[0] is not channels:
             args = self._fused_arguments(iv, channels)
-        k, _status, in_alt, remaps, finite = cached_run(k0, U, Y, on_grid, jumps, x, P, P_alt, Rd, floor, *bufs,
-                                                        *args[1], *outs)
-        self.n_remap += remaps
-        return k, in_alt, finite
+        return args[1]
 
     def _fused_arguments(self, iv: _Interval, channels: tuple) -> tuple:
         """The arguments of :func:`.fused.cached_sample` that stay fixed while iv is held (until a step-by-step

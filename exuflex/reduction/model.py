@@ -54,13 +54,14 @@ class QuadraticForces:
 
     def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
                  JtM: np.ndarray | None, dMr: np.ndarray | None = None, dKr: np.ndarray | None = None,
-                 C2: np.ndarray | None = None):
+                 C2: np.ndarray | None = None, symmetrised: tuple | None = None):
         r = len(fg)
         self.nq, self.r = nq, r
         self.fg = fg
         self.dMr2 = None if dMr is None else dMr.reshape(nq, r * r)
         self.dKr2 = None if dKr is None else dKr.reshape(nq, r * r)
         self._tensors = None
+        self._symmetrised = symmetrised  # (Ts, Vs) of jacobian_tensors, if computed already (compiled paths)
         self.T2 = Tk.reshape(r, r * r)
         self.V2 = V.reshape(nq * r, r)
         self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
@@ -83,11 +84,15 @@ class QuadraticForces:
         configuration."""
         if self._tensors is None:
             nq, r = self.nq, self.r
-            T3 = self.T2.reshape(r, r, r)  # [k, i, j]
-            V3 = self.V2.reshape(nq, r, r)  # [i, a, b]
             C3 = np.zeros((0, nq, r)) if self.C2 is None else self.C2.reshape(r, nq, r)
-            self._tensors = (np.ascontiguousarray(T3 + np.transpose(T3, (2, 1, 0))),
-                             np.ascontiguousarray(V3 + np.swapaxes(V3, 1, 2)), np.ascontiguousarray(C3))
+            if self._symmetrised is None:
+                T3 = self.T2.reshape(r, r, r)  # [k, i, j]
+                V3 = self.V2.reshape(nq, r, r)  # [i, a, b]
+                Ts = np.ascontiguousarray(T3 + np.transpose(T3, (2, 1, 0)))
+                Vs = np.ascontiguousarray(V3 + np.swapaxes(V3, 1, 2))
+            else:
+                Ts, Vs = self._symmetrised
+            self._tensors = (Ts, Vs, np.ascontiguousarray(C3))
         return self._tensors
 
     def jacobian(self, p: np.ndarray, pd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -200,7 +205,7 @@ class ReducedModel:
         """:meth:`held` without ``fr`` through :func:`._compiled.held_evaluation`: the basis, its derivative, the
         reduced matrices and the force model at ``p``'s configuration in one call (the same formulas as the
         piecewise path, with ``W J`` and ``M_N W J`` shared)."""
-        cb, model, nq, r = self.cb, self.model, self.nq, self.r
+        cb, model, nq = self.cb, self.model, self.nq
         kin = model.kin
         cfg = model.configuration(p[:nq])
         pose = cfg.pose
@@ -210,12 +215,7 @@ class ReducedModel:
             cb._py, cb._pnode, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl, model.el_dofs,
             model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, self.consistent, gradients)
         mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
-        if not self.consistent:
-            C2 = None
-        forces = QuadraticForces(nq, fg, Tk, V, None, None, dMr if gradients else None, dKr if gradients else None,
-                                 C2=C2)
-        forces._tensors = (Ts, Vs, np.zeros((0, nq, r)) if C2 is None else C2.reshape(r, nq, r))
-        return mats, forces
+        return mats, self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
 
     def reduced_mass(self, p: np.ndarray) -> np.ndarray:
         """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
@@ -284,19 +284,20 @@ class ReducedModel:
 
     def _force_model_compiled(self, mats: ReducedMatrices, dHdq: np.ndarray, gradients: bool) -> QuadraticForces:
         """:meth:`force_model` through :func:`._compiled.force_terms` (the same formulas, one call)."""
-        model, nq, r = self.model, self.nq, self.r
+        model, nq = self.model, self.nq
         cfg = mats.rc.cfg
-        fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs = _compiled.force_terms(
+        fg, Tk, V, _JtM, dMr, dKr, C2, Ts, Vs = _compiled.force_terms(
             cfg.W, np.ascontiguousarray(mats.J), mats.rc.H, cfg.M_N, model.t_index, np.ascontiguousarray(mats.rc.Kuu),
             model.g_N, cfg.R, model.Gl, model.KGl, model.el_dofs, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
             model.kin.coordinate_rates(cfg.pose), np.ascontiguousarray(dHdq), nq, self.consistent, gradients)
-        if not self.consistent:
-            JtM, C2 = None, None
-        if not gradients:
-            dMr, dKr = None, None
-        forces = QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr, C2=C2)
-        forces._tensors = (Ts, Vs, np.zeros((0, nq, r)) if C2 is None else C2.reshape(r, nq, r))
-        return forces
+        return self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
+
+    def _compiled_forces(self, fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients: bool) -> QuadraticForces:
+        """The force model from a compiled evaluation's terms, whose bias form ``C2`` and symmetrised forms
+        ``Ts, Vs`` are computed there (``C2`` is used by the consistent form only, ``dMr, dKr`` with
+        ``gradients`` only)."""
+        return QuadraticForces(self.nq, fg, Tk, V, None, None, dMr if gradients else None,
+                               dKr if gradients else None, C2=C2 if self.consistent else None, symmetrised=(Ts, Vs))
 
     def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None,
                                  WJ: np.ndarray | None = None, SE: np.ndarray | None = None) -> np.ndarray:
