@@ -1,0 +1,102 @@
+"""The mechanism gallery (``models/*.toml``): every file loads, its loops close at ``q_ref`` and along its
+manoeuvre, and the manoeuvre's rigid computed torque is consistent with the rigid model's energy.
+
+These checks are cheap (the default suite); the whole chain on each mechanism (Exudyn truth, observer, 3 seeds)
+is the ``slow`` test at the end of this file and ``benchmarks/gallery.py``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.erls.kinematics import Kinematics
+from exuflex.erls.modal import modal_analysis
+from exuflex.erls.model import ErlsModel
+from exuflex.manoeuvre import computed_torque, plan
+from exuflex.mechanism import elastic_dofs, load_mechanism
+from exuflex.validate import check_configurations
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+GALLERY = sorted(p.name for p in MODELS.glob("*.toml"))
+
+
+def test_the_gallery_holds_the_issue_s_mechanisms():
+    assert {"sixbar.toml", "fourbar.toml", "single_link.toml", "serial_arm.toml", "fivebar.toml"} <= set(GALLERY)
+
+
+def _closure_errors(mech, kin: Kinematics, q) -> tuple[float, float]:
+    """Largest distance between the link points a joint joins (and from its ground pin), and largest error of
+    a coordinate's angle, from the pose's link origins and angles (independent of the closure's residual)."""
+    pose = kin.pose(np.asarray(q, float))
+    ang = dict(zip(kin.link_names, pose.link_angles, strict=True))
+    gap = 0.0
+    for j in mech.joints:
+        pts = [kin.point(pose, p.link, p.station)[0] for p in j.points]
+        if j.ground is not None:
+            pts.append(np.asarray(j.ground, float))
+        gap = max(gap, max(float(np.linalg.norm(p - pts[0])) for p in pts))
+    err = 0.0
+    for k, c in enumerate(mech.coordinates):
+        a = ang[c.link] - (ang[c.relative_to] if c.relative_to else 0.0) - c.offset
+        err = max(err, abs(float(np.angle(np.exp(1j * (a - q[k]))))))
+    return gap, err
+
+
+@pytest.mark.parametrize("name", GALLERY)
+def test_gallery_model_assembles_at_q_ref_and_along_its_manoeuvre(name):
+    mech = load_mechanism(MODELS / name)
+    check_configurations(mech)
+    assert mech.manoeuvre is not None and mech.reduction.masters, "a gallery model has a manoeuvre and masters"
+    dofs = elastic_dofs(mech)
+    for m in mech.reduction.masters:
+        dofs.index(m)  # raises on a master that is no elastic dof
+    assert {s.kind for s in mech.sensors} >= {"encoder", "curvature"}
+    kin = Kinematics(mech)
+    gap, err = _closure_errors(mech, kin, mech.q_ref)
+    assert gap < 1e-10 and err < 1e-10
+    d = mech.manoeuvre.duration
+    pl = plan(mech, dt=d / 300)
+    for k in range(0, len(pl.t), 10):
+        gap, err = _closure_errors(mech, kin, pl.q[k])
+        assert gap < 1e-9 and err < 1e-9, (pl.t[k], gap, err)
+    # the planned rates are the derivative of the planned angles: central differences agree within
+    # dt/2 max|q''| (an acceleration jump inside the stencil) and O(dt^2) elsewhere
+    dq = (pl.q[2:] - pl.q[:-2]) / (2 * pl.dt)
+    assert np.max(np.abs(dq - pl.qd[1:-1])) < 0.5 * pl.dt * np.max(np.abs(pl.qdd)) + 1e-3 * np.max(np.abs(pl.qd))
+    np.testing.assert_allclose(pl.qd[[0, -1]], 0, atol=1e-9)  # rest to rest
+    if mech.manoeuvre.kind == "joint":
+        for c, a, b in mech.manoeuvre.rules:
+            i = mech.coordinate_names.index(c)
+            assert pl.q[0, i] == pytest.approx(a, abs=1e-12) and pl.q[-1, i] == pytest.approx(b, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", GALLERY)
+def test_gallery_computed_torque_does_no_net_work_rest_to_rest(name):
+    """The rigid computed torque drives the rigid model from rest to rest in a plane without gravity and
+    without rigid-body damping: the motors' work int tau . q' dt (the torque's generalised force on q is
+    tau through W^T B, the same map the inverse dynamics uses) is the kinetic energy's change, zero; each
+    half of the manoeuvre does work equal to the kinetic energy at mid-time, 1/2 q'^T M_qq q'."""
+    mech = load_mechanism(MODELS / name)
+    if any(g != 0 for g in mech.gravity):
+        pytest.skip("gravity does work")
+    pl = plan(mech, dt=mech.manoeuvre.duration / 1500)
+    tau = computed_torque(mech, pl)
+    model = ErlsModel(mech)
+    nq = len(mech.coordinates)
+    power, energy = np.empty(len(pl.t)), np.empty(len(pl.t))
+    for k in range(len(pl.t)):
+        cfg = model.configuration(pl.q[k])
+        power[k] = (model.input_matrix(cfg)[:nq] @ tau[k]) @ pl.qd[k]
+        energy[k] = 0.5 * pl.qd[k] @ model.mass(cfg)[:nq, :nq] @ pl.qd[k]
+    work = np.concatenate([[0.0], np.cumsum(0.5 * (power[1:] + power[:-1]) * pl.dt)])
+    scale = np.max(energy)
+    assert scale > 0
+    # the trapezoid rule: O(dt^2) on smooth stretches, at most dt/2 |jump| at each of the time law's four
+    # acceleration jumps (the torque jumps there, the rate does not)
+    tol = 4 * pl.dt * np.max(np.abs(power)) + 1e-4 * scale
+    assert np.max(np.abs(work - energy)) < tol
+    assert abs(work[-1]) < tol
