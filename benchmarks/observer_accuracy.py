@@ -28,7 +28,7 @@ from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, estimation_bound, make_observer, metrics, physical_names
 from exuflex.observer.stats import fft_peaks, match_peaks, mc_consistency
 from exuflex.sensors import Signals
-from exuflex.study.runner import plan_drive, simulate_level
+from exuflex.truth import plan_drive, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,7 @@ def truth(model: Path, engine: str, cache: Path | None):
         tr = Signals(z["tt"], tuple(z["tn"]), z["td"])
         return mech, clean, tr, z["torque_t"], z["torques"]
     drive = plan_drive(mech, mech.manoeuvre.duration, 1e-4)
-    lt = simulate_level(mech, drive, engine, mech.manoeuvre.duration, 1e-4)
+    lt = simulate(mech, drive, engine, mech.manoeuvre.duration, 1e-4)
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)
         np.savez(f, ct=lt.clean.t, cn=np.array(lt.clean.names), cd=lt.clean.data, tt=lt.truth.t,

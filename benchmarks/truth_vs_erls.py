@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from exuflex.groundtruth.crossval import manoeuvre_table, truth_vs_erls
+from exuflex.truth.crossval import manoeuvre_table, truth_vs_erls
 from exuflex.mechanism import load_mechanism
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -3,7 +3,7 @@
 One run on one core (the process is pinned to one CPU where the OS allows it; BLAS is single-threaded,
 see :mod:`exuflex`):
 
-1. plan the manoeuvre and its rigid computed torques (:func:`exuflex.groundtruth.crossval.manoeuvre_table`);
+1. plan the manoeuvre and its rigid computed torques (:func:`exuflex.truth.crossval.manoeuvre_table`);
 2. simulate the Exudyn ground truth once (timed: ``truth_s``) and make the noisy 500 Hz log from it
    (:func:`exuflex.measure.measure`, fixed seed);
 3. the reduced observer (:func:`exuflex.observer.session.make_observer` with the default
@@ -168,7 +168,7 @@ def run_bench(
     progress : called with a short message before each stage.
     """
     from .groundtruth import simulate_truth
-    from .groundtruth.crossval import manoeuvre_table
+    from .truth.crossval import manoeuvre_table
     from .measure import measure
     from .mechanism import load_mechanism
     from .observer.ekf import MultirateEKF

@@ -13,7 +13,8 @@ Paper figure → function (file written by :func:`observer_figures`):
 - Figs 8-9, tip elastic displacements/velocities and errors → :func:`tip_displacement_figure`
   (``fig_tip_displacement.png``), :func:`tip_errors_figure` (``fig_tip_errors.png``)
 - Fig. 10, FFT of the tip elastic displacements → :func:`fft_figure` (``fig_fft.png``)
-- Fig. 11, payload sensitivity (eq. 21) → :func:`payload_study_figure`
+- Fig. 11, payload sensitivity (eq. 21) → :func:`payload_study_figure`; a parameter sweep → :func:`sweep_figure`;
+  either from a study's summary → :func:`study_figure`
 - not in the paper: filter consistency → :func:`nis_figure` (``fig_nis.png``); mode shapes at q* →
   :func:`modes_figure`; animation of the manoeuvre → :func:`animate_manoeuvre`.
 
@@ -55,6 +56,8 @@ __all__ = [
     "observer_figures",
     "payload_study_figure",
     "spectrum",
+    "study_figure",
+    "sweep_figure",
     "tip_displacement_figure",
     "tip_errors_figure",
     "tip_path",
@@ -987,3 +990,49 @@ def modes_figure(mech, modal_result, path, n: int = 6, amplitude: float = 0.12) 
     q = ", ".join(f"{v:.4f}" for v in np.asarray(modal_result.q, float))
     fig.suptitle(f"Mode shapes at q = [{q}] rad ({state}; grey: undeformed ERLS)")
     return _save(fig, path)
+
+
+def sweep_figure(summary: Mapping, path, quantities=None) -> Path:
+    """eq. 21 mu (markers) +- sigma (bars) of each quantity per sweep level (levels on the x axis).
+
+    Default quantities: the tip ones, elastic (``x25 y26 dx25 dy26``) beside absolute (``tip_x tip_y dtip_x
+    dtip_y``), else every quantity of the summary.
+    """
+    from .study.runner import ABS_TIP_QUANTITIES, TIP_QUANTITIES, ordered_quantities, quantity_title
+
+    tips = [q for q in TIP_QUANTITIES + ABS_TIP_QUANTITIES if q in summary["quantities"]]
+    qs = ordered_quantities(summary, quantities or tips or summary["quantities"])
+    levels = summary["levels"]
+    numeric = all(isinstance(lv["value"], (int, float)) and not isinstance(lv["value"], bool) for lv in levels)
+    x = np.array([lv["value"] for lv in levels], float) if numeric else np.arange(len(levels), dtype=float)
+    ncols = 2 if len(qs) > 1 else 1
+    nrows = int(np.ceil(len(qs) / ncols))
+    fig, axes = _figure(nrows, ncols, size=(5.0 * ncols, 2.8 * nrows + 0.9))
+    for k, q in enumerate(qs):
+        ax = axes[k // ncols, k % ncols]
+        mu = np.array([lv["eq21"][q]["mu"] for lv in levels])
+        sg = np.array([lv["eq21"][q]["sigma"] for lv in levels])
+        ax.errorbar(x, mu, yerr=sg, fmt="o", capsize=4, ecolor="k")
+        ax.set_title(quantity_title(q, summary), fontsize=10)
+        ax.set_ylabel(f"|{q} error|")
+        ax.grid(True, lw=0.3)
+        ax.set_xticks(x)
+        ax.set_xticklabels([str(lv["value"]) if numeric else lv["label"] for lv in levels],
+                           rotation=0 if numeric else 30, fontsize=7)
+        ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 2))
+    for k in range(len(qs), nrows * ncols):
+        axes[k // ncols, k % ncols].set_visible(False)
+    fields = sorted({o[0] for lv in levels for o in lv["overrides"]})
+    fig.suptitle(f"Truth-model mismatch sweep: {', '.join(fields)} (eq. 21 mu +- sigma)")
+    return _save(fig, path)
+
+
+def study_figure(summary: Mapping, out_dir) -> Path:
+    """The figure of a study's summary in ``out_dir``: Fig. 11 (``fig_payload.png``, :func:`payload_study_figure`)
+    for a payload study, :func:`sweep_figure` (``fig_sweep.png``) for a sweep."""
+    from .study.runner import figure_rows
+
+    out_dir = Path(out_dir)
+    if summary["settings"]["kind"] == "payload":
+        return payload_study_figure(figure_rows(summary), out_dir / "fig_payload.png")
+    return sweep_figure(summary, out_dir / "fig_sweep.png")

@@ -227,14 +227,10 @@ def check_log(
     return rep
 
 
-def check_run(mech: Mechanism, run, channels: Sequence[str] | None = None, *, dt: float | None = None,
+def check_run(mech: Mechanism, run, channels: Sequence[str], *, dt: float | None = None,
               max_gap_s: float = MAX_GAP_S, check_full_scale: bool = True) -> LogCheck:
-    """:func:`check_log` on a run folder read by :func:`exuflex.runs.read_run` (default channels: the
-    observer's default set for the mechanism)."""
-    if channels is None:
-        from .observer.session import default_channels
-
-        channels = default_channels(mech)
+    """:func:`check_log` on a run folder read by :func:`exuflex.runs.read_run`, for the observer's ``channels``
+    (e.g. :func:`exuflex.observer.session.default_channels`)."""
     motors = run.motors or mech.motor_names
     return check_log(mech, run.sensors, channels, motors, dt=dt, source=str(Path(run.path) / "sensors.csv"),
                      max_gap_s=max_gap_s, check_full_scale=check_full_scale)

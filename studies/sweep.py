@@ -23,7 +23,7 @@ def compute(out, config: dict = FULL, *, workers: int = 1, **kw):
 
 
 def plot(summary: dict, path):
-    from exuflex.study.figures import sweep_figure
+    from exuflex.plots import sweep_figure
 
     return sweep_figure(summary, path)
 

@@ -122,12 +122,13 @@ def test_quick_study_has_absolute_tip_quantities(quick_study, capsys):
 
 def test_truth_absolute_tip_is_the_recorded_tip_point(quick_study):
     """On the truth, rigid(q) + elastic gives back the tip point the engine recorded (clean tip sensors)."""
-    from exuflex.study.runner import LevelTruth, _load_truth, with_absolute_tip
+    from exuflex.study.runner import _load_truth, with_absolute_tip
+    from exuflex.truth import TruthRecord
 
     mech = load_mechanism(MODEL)
     for f in sorted((quick_study / "truth").glob("L*/truth.npz")):
         lt = with_absolute_tip(mech, _load_truth(f, {}))
-        assert isinstance(lt, LevelTruth) and all(q in lt.truth for q in ABS)
+        assert isinstance(lt, TruthRecord) and all(q in lt.truth for q in ABS)
         for q in ("tip_x", "tip_y"):
             np.testing.assert_allclose(lt.truth[q], lt.clean[q], rtol=0, atol=1e-9)
         assert with_absolute_tip(mech, lt) is lt  # added once

@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 from exuflex.errors import LogFormatError
 from exuflex.mechanism import Mechanism, ModelFileError, load_mechanism, parse_mechanism
 from exuflex.observer import FilterDivergedError
+from exuflex.observer.session import default_channels
 from exuflex.runs import read_run
 from exuflex.validate import check_configurations, check_run
 
@@ -247,7 +248,7 @@ def _check_log(muts, mech, observer) -> None:
             STATS["log: rejected by read_run"] += 1
             return
         try:
-            check_run(mech, run)
+            check_run(mech, run, default_channels(mech))
         except LogFormatError as exc:
             assert str(d) in str(exc), str(exc)
             STATS["log: rejected by check_run"] += 1

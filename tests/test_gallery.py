@@ -7,6 +7,7 @@ is the ``slow`` test at the end of this file and ``benchmarks/gallery.py``.
 
 from __future__ import annotations
 
+import importlib.util
 import re
 from pathlib import Path
 
@@ -20,7 +21,8 @@ from exuflex.manoeuvre import computed_torque, plan
 from exuflex.mechanism import elastic_dofs, load_mechanism
 from exuflex.validate import check_configurations
 
-MODELS = Path(__file__).resolve().parents[1] / "models"
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
 GALLERY = sorted(p.name for p in MODELS.glob("*.toml"))
 
 
@@ -75,6 +77,18 @@ def test_gallery_model_assembles_at_q_ref_and_along_its_manoeuvre(name):
 
 
 @pytest.mark.parametrize("name", GALLERY)
+def test_gallery_table_of_models_readme_gives_the_modes_at_q_ref(name):
+    """models/README.md lists every gallery file with its modes below 180 Hz at q_ref (motors free)."""
+    rows = [ln for ln in (MODELS / "README.md").read_text().splitlines() if ln.startswith(f"| `{name}` |")]
+    assert len(rows) == 1, f"models/README.md: no table row for {name}"
+    cell = re.sub(r"\(.*?\)", "", rows[0].split("|")[-2]).replace("Hz", "")  # "(analytic: ...)" aside
+    listed = [float(v) for v in cell.split(",")]
+    mech = load_mechanism(MODELS / name)
+    f = modal_analysis(ErlsModel(mech), np.asarray(mech.q_ref, float)).below(180.0)
+    np.testing.assert_allclose(listed, f, atol=0.006)
+
+
+@pytest.mark.parametrize("name", GALLERY)
 def test_gallery_computed_torque_does_no_net_work_rest_to_rest(name):
     """The rigid computed torque drives the rigid model from rest to rest in a plane without gravity and
     without rigid-body damping: the motors' work int tau . q' dt (the torque's generalised force on q is
@@ -100,3 +114,37 @@ def test_gallery_computed_torque_does_no_net_work_rest_to_rest(name):
     tol = 4 * pl.dt * np.max(np.abs(power)) + 1e-4 * scale
     assert np.max(np.abs(work - energy)) < tol
     assert abs(work[-1]) < tol
+
+
+# ------------------------------------------------------------------------------------------ the whole chain
+def _benchmark():
+    spec = importlib.util.spec_from_file_location("benchmarks_gallery", ROOT / "benchmarks" / "gallery.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# Gallery models that do not meet issue 15's acceptance with the observer as it is (measured with
+# ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
+# the filter core and the reduction of issue 15 are done.
+KNOWN_SHORT = {}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.xfail(reason=KNOWN_SHORT[n], strict=False)) if n in KNOWN_SHORT else n
+    for n in (Path(g).stem for g in GALLERY)])
+def test_whole_chain_on_the_gallery_meets_the_acceptance(name):
+    """Exudyn truth, 3 seeds, the observer with default settings: every RMS error after the start-up within 1.5x
+    the observer's own bound, the time-averaged NIS within 10 % of the channel count, no flag, and the default
+    path's RMS errors within 10 % of the exact reference path's."""
+    bench = _benchmark()
+    rows = [bench.run_chain(name, seed) for seed in bench.SEEDS]
+    bad = {r["seed"]: {k: v for k, v in r["acceptance"].items() if not isinstance(v, bool)}
+           for r in rows if not r["acceptance"]["passed"]}
+    assert not bad, bad
+    for r in rows:  # the criteria themselves, from the raw figures
+        assert max(r["ratio_to_bound"].values()) <= 1.5
+        assert abs(r["nis_mean"] / r["nis_expected"] - 1) <= 0.1
+        assert not r["diverged"] and not r["nonfinite"]
+        assert all(abs(v - 1) <= 0.1 for v in r["default_over_reference"].values())

@@ -208,7 +208,7 @@ def test_manoeuvre_truth_agrees_with_erls_full_order(mech):
     the ERLS full-order engine: q within 1e-3 rad (seen 4.5e-5), tip elastic displacement x25, y26 within
     10 % normalised RMS (seen 0.5 %, 0.4 %). About 6 min (the ERLS engine). Figure:
     ``python benchmarks/truth_vs_erls.py --plot out.png``."""
-    from exuflex.groundtruth.crossval import truth_vs_erls
+    from exuflex.truth.crossval import truth_vs_erls
 
     cmp, _, _ = truth_vs_erls(mech, 3.0, h=1e-4)
     assert cmp.q_max < 1e-3, cmp.q_max_abs

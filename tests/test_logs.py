@@ -16,6 +16,7 @@ import pytest
 from exuflex.cli import main
 from exuflex.errors import LogFormatError
 from exuflex.mechanism import load_mechanism
+from exuflex.observer.session import default_channels
 from exuflex.runs import read_csv_log, read_exudyn_sensor, read_run
 from exuflex.sensors import Signals
 from exuflex.validate import check_log, check_run
@@ -117,7 +118,7 @@ def test_byte_order_mark_and_crlf_are_accepted(tmp_path):
 
 # ------------------------------------------------------------------ checked for the observer (validate)
 def test_clean_log_passes(mech):
-    rep = check_run(mech, read_run(SRC))
+    rep = check_run(mech, read_run(SRC), default_channels(mech))
     assert rep.n_samples == 31 and rep.n_gaps == 0 and not rep.warnings
 
 
@@ -145,7 +146,7 @@ def test_check_run_rejects(tmp_path, mech, cls, edit, match):
     d = _copy(tmp_path)
     _write(d, edit(_rows(d)))
     with pytest.raises(LogFormatError, match=match):
-        check_run(mech, read_run(d))
+        check_run(mech, read_run(d), default_channels(mech))
 
 
 def test_channel_missing_for_the_observer(tmp_path, mech):
@@ -159,7 +160,7 @@ def test_channel_missing_for_the_observer(tmp_path, mech):
     (d / "meta.json").write_text(json.dumps(meta))
     run = read_run(d)
     with pytest.raises(LogFormatError, match=r"missing channel\(s\) \['c4'\]"):
-        check_run(mech, run)
+        check_run(mech, run, default_channels(mech))
 
 
 def test_fewer_torque_columns_than_motors(tmp_path, mech):
@@ -172,7 +173,7 @@ def test_fewer_torque_columns_than_motors(tmp_path, mech):
     (d / "meta.json").write_text(json.dumps(meta))
     run = read_run(d)
     with pytest.raises(LogFormatError, match=r"sensors.csv: 1 torque column\(s\) \['T1'\], but the model .* has 3 motors"):
-        check_run(mech, run)
+        check_run(mech, run, default_channels(mech))
 
 
 def test_gaps_empty_rows_and_unsampled_channels_are_counted(tmp_path, mech):
@@ -183,7 +184,7 @@ def test_gaps_empty_rows_and_unsampled_channels_are_counted(tmp_path, mech):
     for r in rows[15:17]:
         r[4:] = [""] * 9  # no sensor sample at all
     _write(d, rows)
-    rep = check_run(mech, read_run(d))
+    rep = check_run(mech, read_run(d), default_channels(mech))
     assert (rep.n_gaps, rep.n_skipped) == (1, 4) and rep.longest_gap_s == pytest.approx(0.01)
     assert rep.never_sampled == ("c4",) and rep.n_empty_rows == 2
     assert len(rep.warnings) == 3

@@ -308,11 +308,11 @@ def test_filter_is_consistent(engine):
     NIS 94.7 %, 6.003)."""
     from exuflex.measure import measure
     from exuflex.observer.stats import mc_consistency
-    from exuflex.study.runner import plan_drive, simulate_level
+    from exuflex.truth import plan_drive, simulate
 
     sixbar = load_mechanism(MODELS / "sixbar.toml")
     drive = plan_drive(sixbar, 3.0, 1e-4)
-    lt = simulate_level(sixbar, drive, engine, 3.0, 1e-4)
+    lt = simulate(sixbar, drive, engine, 3.0, 1e-4)
     obs = make_observer(sixbar)
     obs.ekf.store_P = "full"
     names = physical_names(sixbar)

@@ -44,8 +44,12 @@ def _numbers(rows):
 
 
 def test_study_files_and_eq21(done_study):
+    from exuflex.plots import study_figure
+
     out = done_study.out
-    assert (out / "results.csv").exists() and (out / "summary.json").exists() and (out / "fig_payload.png").exists()
+    assert (out / "results.csv").exists() and (out / "summary.json").exists()
+    assert not (out / "fig_payload.png").exists()  # the library does not plot
+    assert study_figure(done_study.summary, out) == out / "fig_payload.png" and (out / "fig_payload.png").exists()
     rows = list(csv.DictReader((out / "results.csv").open()))
     assert len(rows) == 4
     s = json.loads((out / "summary.json").read_text())

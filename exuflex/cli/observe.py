@@ -102,7 +102,11 @@ def run(args) -> int:
     if args.out:
         from ..observer.output import write_outcome
 
-        write_outcome(args.out, mech, log, out, plots=not args.no_plots)
+        write_outcome(args.out, mech, log, out)
+        if not args.no_plots:
+            from ..plots import observer_figures
+
+            observer_figures(args.out, mech, log, out)
     if args.json:
         print(json.dumps(s, indent=1, default=float))
         return 0

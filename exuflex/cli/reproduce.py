@@ -88,7 +88,7 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     from ..mechanism import load_mechanism
     from ..observer.output import write_outcome
     from ..observer.session import ObserverConfig, observe_run
-    from ..plots import animate_manoeuvre
+    from ..plots import animate_manoeuvre, observer_figures, study_figure
     from ..runs import atomic_write_text, file_sha256, package_versions, read_run
     from ..study import StudySpec, payload_levels, run_study
     from ..study.runner import figure_rows
@@ -126,7 +126,8 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     outcome = observe_run(mech, run_, config)
     walls["observer_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    write_outcome(out / "observer", mech, run_, outcome, plots=True)
+    write_outcome(out / "observer", mech, run_, outcome)
+    observer_figures(out / "observer", mech, run_, outcome)
     walls["observer_figures_s"] = time.perf_counter() - t0
 
     # animation
@@ -144,6 +145,7 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     spec = StudySpec(model=str(model), levels=payload_levels(cfg["study_levels"]),
                      runs=runs or cfg["study_runs"], base_seed=seed, engine=engine, duration=cfg["study_duration"])
     study = run_study(spec, out / "payload_study", workers=workers, scheduler=scheduler, progress=progress)
+    study_figure(study.summary, study.out)
     walls["payload_study_s"] = time.perf_counter() - t0
     walls["total_s"] = time.perf_counter() - t_all
 

@@ -1,30 +1,19 @@
 """``exuflex simulate MODEL --out DIR``: simulate the "real mechanism" along the model's manoeuvre.
 
-Pipeline (the library does the work; this module only wires it):
-
-1. load the model; plan the manoeuvre (exact inverse kinematics, :func:`exuflex.manoeuvre.plan`);
-2. open-loop computed torque from the rigid model with the *nominal* payload
-   (:func:`exuflex.manoeuvre.computed_torque`), as the paper's controller knows only the nominal model;
-3. simulate the truth with the payload scaled by ``--payload-scale``: Exudyn
-   (:func:`exuflex.groundtruth.simulate_truth`) or the full-order ERLS model (RK4, ``--h``);
-4. clean sensor channels and true states from the probe record (:mod:`exuflex.sensors`);
-5. noisy, quantised measurements (:func:`exuflex.measure.measure`, seeded);
-6. write the run folder (:func:`exuflex.runs.write_run`): ``sensors.csv``, ``truth.csv``, ``meta.json``.
+The library does the work (:func:`exuflex.truth.simulate_run`: plan, computed torque of the nominal model, truth
+engine, seeded measurement, run folder ``sensors.csv``, ``truth.csv``, ``meta.json``); this module parses the
+arguments and shows progress.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import time
-from pathlib import Path
 
-import numpy as np
+from ..truth import ENGINES, simulate_run
 
-__all__ = ["ProgressBar", "add_parser", "run", "simulate_run"]
-
-log = logging.getLogger(__name__)
+__all__ = ["ProgressBar", "add_parser", "run"]
 
 
 class ProgressBar:
@@ -63,7 +52,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--out", required=True, help="run folder to write (created if needed)")
     p.add_argument(
-        "--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default: exudyn)"
+        "--engine", choices=ENGINES, default="exudyn",
+        help="truth engine: exudyn (independent, default), erls (full-order ERLS model), reduced (the observer's "
+        "own reduced model)"
     )
     p.add_argument(
         "--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's"
@@ -82,122 +73,22 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress):
-    """Full-order ERLS model under the torque table (zero-order hold), RK4; returns a ProbeRecord.
+class _PhaseBars:
+    """A :class:`ProgressBar` per phase of :func:`exuflex.truth.simulate_run` (called with phase, fraction)."""
 
-    The step ``h`` is split into the fewest RK4 sub-steps that keep the model's linearisation at the start stable
-    (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none at 0.1 ms, a finer mesh with stiffness
-    damping does: its highest modes are overdamped, with large real eigenvalues)."""
-    from ..erls.model import ErlsModel
-    from ..erls.simulate import rk4_substeps, simulate
-    from ..sensors import erls_probe_record
+    def __init__(self, enabled: bool):
+        self.enabled, self.label, self.bar = enabled, None, None
 
-    model = ErlsModel(mech)
-    n = model.n
-    y0 = np.zeros(2 * n)
-    y0[: model.nq] = q0
-    y0[n : n + model.nq] = qd0
-    dt_tab = t_tab[1] - t_tab[0]
+    def __call__(self, label: str, frac: float) -> None:
+        if label != self.label:
+            self.close()
+            self.label, self.bar = label, ProgressBar(label, self.enabled)
+        self.bar(frac)
 
-    def inputs(t):
-        return tau[min(int(np.floor(t / dt_tab + 1e-6)), len(tau) - 1)]
-
-    sub = rk4_substeps(model.state_matrix(model.configuration(np.asarray(q0, float)))[0], h)
-    if sub > 1:
-        log.info("ERLS truth: %d RK4 sub-steps per %g s step (stability at the start)", sub, h)
-    every = max(1, round(output_dt / h)) * sub
-    traj = simulate(model.rhs, y0, duration, inputs, h=h / sub, method="rk4", output_every=every, progress=progress)
-    return erls_probe_record(model, traj.t, traj.y)
-
-
-def simulate_run(
-    model_path: str | Path,
-    out: str | Path,
-    *,
-    engine: str = "exudyn",
-    duration: float | None = None,
-    payload_scale: float = 1.0,
-    seed: int | None = None,
-    h: float = 1e-4,
-    progress: bool = False,
-) -> Path:
-    """Library form of the command: simulate and write a run folder; returns its path."""
-    from ..manoeuvre import computed_torque, plan
-    from ..measure import measure, new_seed
-    from ..mechanism import ModelFileError, load_mechanism
-    from ..runs import file_sha256, write_run
-    from ..sensors import monotonic_record, sensor_channels, true_states
-
-    model_path = Path(model_path)
-    mech = load_mechanism(model_path)
-    from ..validate import check_configurations
-
-    check_configurations(mech)  # loops close, away from singularities
-    if mech.manoeuvre is None:
-        raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
-    duration = float(mech.manoeuvre.duration if duration is None else duration)
-    if not duration > 0 or not h > 0:
-        raise ValueError(f"duration and --h must be positive (got {duration}, {h})")
-    output_dt = 1.0 / mech.sample_rate_hz
-    seed = new_seed() if seed is None else seed
-    timings = {}
-
-    t0 = time.perf_counter()
-    bar = ProgressBar("plan", progress)
-    pl = plan(mech, dt=h, t_end=duration, progress=bar)
-    bar.close()
-    bar = ProgressBar("torque", progress)
-    tau = computed_torque(mech, pl, progress=bar)  # nominal model: the controller's knowledge
-    bar.close()
-    timings["plan_and_torque_s"] = time.perf_counter() - t0
-
-    truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
-    t0 = time.perf_counter()
-    bar = ProgressBar(engine, progress)
-    if engine == "exudyn":
-        from ..groundtruth import simulate_truth  # lazy: Exudyn is heavy and optional for the rest
-
-        record = simulate_truth(
-            truth_mech, pl.t, tau, duration, h=h, output_dt=output_dt, q0=pl.q[0], progress=bar
-        )
-    elif engine == "erls":
-        record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], bar)
-    else:
-        raise ValueError(f"engine must be 'exudyn' or 'erls', got {engine!r}")
-    bar.close()
-    timings["truth_s"] = time.perf_counter() - t0
-
-    record = monotonic_record(record)
-    clean = sensor_channels(mech, record)
-    truth = true_states(mech, record)
-    meas = measure(mech, clean, pl.t, tau, seed=seed, t_end=duration)
-    payload = truth_mech.payload
-    meta = {
-        "engine": engine,
-        "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
-        "mechanism": mech.name,
-        "seed": meas.seed,
-        "settings": {
-            "duration_s": duration,
-            "h_s": h,
-            "integrator": "rk4" if engine == "erls" else "exudyn (see groundtruth)",
-            "torque_table_dt_s": pl.dt,
-            "output_dt_s": output_dt,
-            "payload_scale": payload_scale,
-            "payload_mass_kg": None if payload is None else payload.mass,
-            "computed_torque_model": "rigid ERLS, nominal payload",
-            "manoeuvre": {
-                "kind": mech.manoeuvre.kind,
-                "duration_s": mech.manoeuvre.duration,
-                "time_law": mech.manoeuvre.time_law,
-                "ramp_time_s": mech.manoeuvre.ramp_time,
-            },
-            "measurement": meas.settings,
-            "timings": timings,
-        },
-    }
-    sensors = meas.signals
-    return write_run(out, sensors, truth, meta, motors=mech.motor_names)
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
 
 
 def run(args) -> int:
@@ -209,15 +100,19 @@ def run(args) -> int:
         if value is not None and not value > 0:
             print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
             return 2
-    out = simulate_run(
-        args.model,
-        args.out,
-        engine=args.engine,
-        duration=args.duration,
-        payload_scale=args.payload_scale,
-        seed=args.seed,
-        h=args.h,
-        progress=not args.no_progress and sys.stderr.isatty(),
-    )
+    bars = _PhaseBars(not args.no_progress and sys.stderr.isatty())
+    try:
+        out = simulate_run(
+            args.model,
+            args.out,
+            engine=args.engine,
+            duration=args.duration,
+            payload_scale=args.payload_scale,
+            seed=args.seed,
+            h=args.h,
+            progress=bars,
+        )
+    finally:
+        bars.close()
     print(f"wrote {out}/sensors.csv, truth.csv, meta.json")
     return 0

@@ -115,7 +115,19 @@ def run(args) -> int:
     except (OverrideError, ValueError, RuntimeError) as exc:
         print(f"exuflex study: error: {exc}", file=sys.stderr)
         return 2
+    figure = _figure(res)
     print_summary(res.summary)
     print(f"{res.n_computed} run(s) computed, {res.n_reused} reused, {time.perf_counter() - t0:.1f} s; "
-          f"wrote {res.out}/results.csv, summary.json" + (f", {res.figure.name}" if res.figure else ""))
+          f"wrote {res.out}/results.csv, summary.json" + (f", {figure.name}" if figure else ""))
     return 0
+
+
+def _figure(res):
+    """The study's figure in its folder, or None (with a warning) if drawing fails: the numbers are written."""
+    from ..plots import study_figure
+
+    try:
+        return study_figure(res.summary, res.out)
+    except Exception as exc:  # noqa: BLE001 - a figure failure must not lose the study's numbers
+        print(f"exuflex study: warning: study figure failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return None

@@ -4,22 +4,18 @@ from .overrides import OverrideError, apply_overrides, parse_set, parse_value
 from .runner import (
     FORMAT,
     Level,
-    LevelTruth,
     StudyResult,
     StudySpec,
     figure_rows,
     make_executor,
     payload_levels,
-    plan_drive,
     run_study,
-    simulate_level,
     sweep_levels,
 )
 
 __all__ = [
     "FORMAT",
     "Level",
-    "LevelTruth",
     "OverrideError",
     "StudyResult",
     "StudySpec",
@@ -29,8 +25,6 @@ __all__ = [
     "parse_set",
     "parse_value",
     "payload_levels",
-    "plan_drive",
     "run_study",
-    "simulate_level",
     "sweep_levels",
 ]

@@ -20,7 +20,8 @@ every finished run and every cached truth):
 - ``truth/<level key>/truth.npz`` and ``level.json``: the cached truth of a level;
 - ``runs/<level key>/run_NNNN.json``: one finished run (with the hash of all settings that determine it);
 - ``results.csv`` (one row per run), ``summary.json`` (eq. 21 per level, settings, model and its sha256,
-  seeds, package versions, wall time), and the figure (``fig_payload.png`` / ``fig_sweep.png``).
+  seeds, package versions, wall time). The figure (``fig_payload.png`` / ``fig_sweep.png``) is drawn from the
+  summary by :func:`exuflex.plots.study_figure` (the command line does it; the library does not plot).
 
 Execution goes through a :class:`concurrent.futures.Executor`: in-process (``workers=1``), a
 ``ProcessPoolExecutor`` (``workers > 1``) or a Dask cluster (``scheduler="tcp://..."``). Workers get all their
@@ -53,12 +54,12 @@ from ..mechanism import Mechanism, load_mechanism
 from ..observer.session import ObserverConfig
 from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
 from ..sensors import ABSOLUTE_TIP_NAMES, Signals
+from ..truth import Drive, TruthRecord, plan_drive, simulate
 from .overrides import apply_overrides
 
 __all__ = [
     "FORMAT",
     "Level",
-    "LevelTruth",
     "StudyResult",
     "StudySpec",
     "make_executor",
@@ -162,18 +163,6 @@ class StudySpec:
 
 
 # ------------------------------------------------------------------------------------------ level truth
-@dataclass
-class LevelTruth:
-    """The truth of a level: clean sensor channels and true states, and the torques as the measurement
-    sees them (``torque_t``, ``torques``: the zero-order-hold table)."""
-
-    clean: Signals
-    truth: Signals
-    torque_t: np.ndarray
-    torques: np.ndarray
-    timings: dict = field(default_factory=dict)
-
-
 def _hash(obj: Any, n: int = 12) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:n]
 
@@ -188,7 +177,7 @@ def _sig_from(z, prefix: str) -> Signals:
                    np.asarray(z[f"{prefix}_data"]), tuple(str(x) for x in z[f"{prefix}_units"]))
 
 
-def _save_truth(path: Path, lt: LevelTruth) -> None:
+def _save_truth(path: Path, lt: TruthRecord) -> None:
     _atomic_npz(path, torque_t=lt.torque_t, torques=lt.torques, **_sig_arrays("clean", lt.clean),
                 **_sig_arrays("truth", lt.truth))
 
@@ -199,13 +188,13 @@ def _atomic_npz(path: Path, **arrays) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _load_truth(path: Path, timings: dict) -> LevelTruth:
+def _load_truth(path: Path, timings: dict) -> TruthRecord:
     with np.load(path) as z:
-        return LevelTruth(_sig_from(z, "clean"), _sig_from(z, "truth"), np.asarray(z["torque_t"]),
+        return TruthRecord(_sig_from(z, "clean"), _sig_from(z, "truth"), np.asarray(z["torque_t"]),
                           np.asarray(z["torques"]), timings)
 
 
-def _hold_on_grid(lt: LevelTruth, rate: float, t_end: float) -> LevelTruth:
+def _hold_on_grid(lt: TruthRecord, rate: float, t_end: float) -> TruthRecord:
     """The torque table reduced to the measurement grid (the values :func:`measure` would read): keeps tasks
     small; ``measure`` gives bit-identical results on it."""
     k0 = int(np.ceil(lt.clean.t[0] * rate - 1e-6))
@@ -213,10 +202,10 @@ def _hold_on_grid(lt: LevelTruth, rate: float, t_end: float) -> LevelTruth:
     tt = lt.torque_t
     dt_tab = np.min(np.diff(tt)) if len(tt) > 1 else 1.0
     i = np.clip(np.searchsorted(tt, t + 1e-6 * dt_tab, side="right") - 1, 0, len(tt) - 1)
-    return LevelTruth(lt.clean, lt.truth, t, lt.torques[i], lt.timings)
+    return TruthRecord(lt.clean, lt.truth, t, lt.torques[i], lt.timings)
 
 
-def with_absolute_tip(nominal: Mechanism, lt: LevelTruth) -> LevelTruth:
+def with_absolute_tip(nominal: Mechanism, lt: TruthRecord) -> TruthRecord:
     """The level truth with the absolute tip columns ``tip_x tip_y dtip_x dtip_y`` added to its true states
     (:func:`exuflex.sensors.absolute_tip` with the nominal geometry; computed once per level). Unchanged if the
     mechanism has no tip point, the truth lacks the tip elastic columns or already has the absolute ones."""
@@ -227,29 +216,6 @@ def with_absolute_tip(nominal: Mechanism, lt: LevelTruth) -> LevelTruth:
         return lt
     tip = absolute_tip(nominal, lt.truth)
     return dataclasses.replace(lt, truth=lt.truth.hstack(tip))
-
-
-@dataclass
-class Drive:
-    """The manoeuvre's torque table (computed torque of the *nominal* model) and initial state: the same for
-    every level, computed once per study."""
-
-    t: np.ndarray
-    tau: np.ndarray
-    q0: np.ndarray
-    qd0: np.ndarray
-    seconds: float = 0.0
-
-
-def plan_drive(nominal: Mechanism, duration: float, h: float) -> Drive:
-    """Plan the manoeuvre and its open-loop computed torque on the nominal model (the controller's knowledge)."""
-    from ..manoeuvre import computed_torque, plan
-
-    t0 = time.perf_counter()
-    pl = plan(nominal, dt=h, t_end=duration)
-    tau = computed_torque(nominal, pl)
-    return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
-                 np.asarray(pl.qd[0], float), time.perf_counter() - t0)
 
 
 def _cached_drive(path: Path, nominal: Mechanism, duration: float, h: float) -> Drive:
@@ -264,66 +230,6 @@ def _cached_drive(path: Path, nominal: Mechanism, duration: float, h: float) -> 
     return d
 
 
-def simulate_level(truth_mech: Mechanism, drive: Drive, engine: str, duration: float, h: float) -> LevelTruth:
-    """Simulate ``truth_mech`` under the nominal model's computed torque ``drive``."""
-    from ..sensors import monotonic_record, sensor_channels, true_states
-
-    timings = {"plan_and_torque_s": drive.seconds}
-    output_dt = 1.0 / truth_mech.sample_rate_hz
-    t0 = time.perf_counter()
-    if engine == "exudyn":
-        from ..groundtruth import simulate_truth
-
-        record = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0)
-    elif engine == "erls":
-        from ..cli.simulate import _erls_truth
-
-        record = _erls_truth(truth_mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, None)
-    elif engine == "reduced":
-        lt = reduced_truth(truth_mech, drive, duration, h)
-        lt.timings.update(timings, truth_s=time.perf_counter() - t0)
-        return lt
-    else:
-        raise ValueError(f"engine must be 'exudyn', 'erls' or 'reduced', got {engine!r}")
-    timings["truth_s"] = time.perf_counter() - t0
-    record = monotonic_record(record)
-    return LevelTruth(sensor_channels(truth_mech, record), true_states(truth_mech, record), drive.t, drive.tau,
-                      timings)
-
-
-def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float = 1e-4) -> LevelTruth:
-    """The observer's own model as the truth (engine ``"reduced"``): a test of the filter's consistency.
-
-    The reduced model of ``truth_mech`` (the observer's default reduction) is stepped exactly as the filter
-    assumes: the frozen RK4 step map (``h``) over each sample interval, the torque held at its value at the
-    sample time (so the torque table of the result is the sampled one). Its states are mapped to the full
-    ERLS state (``x = H p``, ``x' = J p'``), so that the sensors and true states come from the same functions
-    as for the other engines. A filter with the same model and the stated noise has no model error on this
-    truth: its NEES and NIS must be consistent (``benchmarks/observer_accuracy.py --engine reduced``).
-    """
-    from ..observer.reduced import ReducedObserverModel
-    from ..observer.session import make_observer
-    from ..sensors import erls_probe_record, sensor_channels, true_states
-
-    rm = make_observer(truth_mech).model.rm
-    som = ReducedObserverModel(rm, h=h, method="frozen")
-    dt = 1.0 / truth_mech.sample_rate_hz
-    n = int(round(duration / dt)) + 1
-    t = np.arange(n) * dt
-    dt_tab = drive.t[1] - drive.t[0]
-    tau = drive.tau[np.minimum(np.round(t / dt_tab).astype(int), len(drive.tau) - 1)]
-    z = som.initial_state(drive.q0, drive.qd0)
-    Y = np.empty((n, 2 * rm.model.n))
-    for k in range(n):
-        x, v = rm.full_state(z)
-        Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
-        if k < n - 1:
-            z, _ = som.step(z, tau[k], dt)
-    rec = erls_probe_record(rm.model, t, Y)
-    return LevelTruth(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
-                      {"plan_and_torque_s": drive.seconds})
-
-
 # ------------------------------------------------------------------------------------------ one run
 @dataclass(frozen=True)
 class RunTask:
@@ -335,7 +241,7 @@ class RunTask:
     observer_key: str
     nominal: Mechanism
     truth_mech: Mechanism
-    level_truth: LevelTruth
+    level_truth: TruthRecord
     config: ObserverConfig
     start_up: float
     duration: float
@@ -558,7 +464,6 @@ class StudyResult:
     out: Path
     rows: list[dict]
     summary: dict
-    figure: Path | None
     n_computed: int
     n_reused: int
 
@@ -583,7 +488,6 @@ def run_study(
     scheduler: str | None = None,
     progress: bool = False,
     on_result: Callable[[dict], None] | None = None,
-    figure: bool = True,
 ) -> StudyResult:
     """Run (or resume) a study into ``out``; returns the per-run rows and the summary.
 
@@ -653,7 +557,7 @@ def run_study(
         in_flight: dict[cf.Future, tuple[str, Any]] = {}
         bar.update(0, "simulating truth" if pending else "")
 
-        def enqueue_runs(i: int, lt: LevelTruth) -> None:
+        def enqueue_runs(i: int, lt: TruthRecord) -> None:
             small = _hold_on_grid(with_absolute_tip(nominal, lt), nominal.sample_rate_hz, duration)
             for j in pending.get(i, []):
                 queue.append(RunTask(i, keys[i], j, spec.base_seed + j, hashes[i], obs_key, nominal, truth_mechs[i],
@@ -675,7 +579,7 @@ def run_study(
             drive = _cached_drive(out / "truth" / f"drive-{drive_key}.npz", nominal, duration, spec.h)
             bar.update(0, "simulating truth")
         for i in truth_jobs:
-            fut = ex.submit(simulate_level, truth_mechs[i], drive, spec.engine, duration, spec.h)
+            fut = ex.submit(simulate, truth_mechs[i], drive, spec.engine, duration, spec.h)
             in_flight[fut] = ("truth", i)
             if isinstance(ex, InlineExecutor):
                 break  # in-process: simulate one level, run it, then the next
@@ -716,7 +620,7 @@ def run_study(
                         on_result(r)
             if waiting_truth and not any(v[0] == "truth" for v in in_flight.values()) and not queue:
                 i = waiting_truth.pop(0)
-                in_flight[ex.submit(simulate_level, truth_mechs[i], drive, spec.engine, duration, spec.h)] = \
+                in_flight[ex.submit(simulate, truth_mechs[i], drive, spec.engine, duration, spec.h)] = \
                     ("truth", i)
             fill()
     bar.close()
@@ -726,10 +630,7 @@ def run_study(
                        time.perf_counter() - t_start, n_new, n_reused, workers, scheduler)
     _write_results_csv(out / "results.csv", spec, rows, nominal.coordinate_names)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
-    fig = None
-    if figure:
-        fig = _figure(out, spec, summary)
-    return StudyResult(out, rows, summary, fig, n_new, n_reused)
+    return StudyResult(out, rows, summary, n_new, n_reused)
 
 
 # ------------------------------------------------------------------------------------------ aggregation
@@ -898,20 +799,6 @@ def figure_rows(summary: dict, quantities: Sequence[str] | None = None) -> list[
     return [{"level": lv["value"], "quantity": q, "mu": lv["eq21"][q]["mu"], "sigma": lv["eq21"][q]["sigma"],
              "title": quantity_title(q, summary)}
             for lv in summary["levels"] for q in qs]
-
-
-def _figure(out: Path, spec: StudySpec, summary: dict) -> Path | None:
-    try:
-        if spec.kind == "payload":
-            from ..plots import payload_study_figure
-
-            return payload_study_figure(figure_rows(summary), out / "fig_payload.png")
-        from .figures import sweep_figure
-
-        return sweep_figure(summary, out / "fig_sweep.png")
-    except Exception as exc:  # noqa: BLE001 - the numbers are written; a figure failure must not lose them
-        log.warning("study figure failed: %s: %s", type(exc).__name__, exc)
-        return None
 
 
 def replace_levels(spec: StudySpec, levels: Sequence[Level]) -> StudySpec:

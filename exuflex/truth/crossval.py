@@ -3,7 +3,8 @@
 Both engines are driven by the same torque table on the integration grid (the rigid computed torques
 of the planned manoeuvre) from the same start, and compared on the true states of
 :func:`exuflex.sensors.true_states` (coordinates q and the tip's elastic displacement). This module
-does not import :mod:`exudyn` itself (only :func:`truth_vs_erls` does, through ``simulate_truth``).
+does not import :mod:`exudyn` itself (only :func:`truth_vs_erls` does, through
+:func:`exuflex.groundtruth.simulate_truth`).
 """
 
 from __future__ import annotations
@@ -11,11 +12,14 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..mechanism import Mechanism
-from ..sensors import Signals
+
+if TYPE_CHECKING:  # the sensors module pulls in the ERLS model: imported where a function needs it
+    from ..sensors import Signals
 
 __all__ = ["TruthComparison", "compare_truths", "manoeuvre_table", "truth_vs_erls"]
 
@@ -108,8 +112,9 @@ def truth_vs_erls(
     comparison (Exudyn vs ERLS), Exudyn true states, ERLS true states; ``comparison.extra`` holds the
     wall times.
     """
+    from ..groundtruth import simulate_truth
     from ..sensors import monotonic_record, true_states
-    from .simulate import simulate_truth
+    from .engines import erls_truth as erls_engine
 
     if mech.manoeuvre is None:
         raise ValueError(f"{mech.name}: the model has no manoeuvre")
@@ -121,10 +126,8 @@ def truth_vs_erls(
     extra = {"exudyn_wall_s": time.perf_counter() - t0}
     exu = true_states(mech, monotonic_record(rec))
     if erls_truth is None:
-        from ..cli.simulate import _erls_truth
-
         t0 = time.perf_counter()
-        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None)
+        rec_e = erls_engine(mech, t, tau, duration, h, output_dt, q0, qd0)
         extra["erls_wall_s"] = time.perf_counter() - t0
         erls_truth = true_states(mech, monotonic_record(rec_e))
     cmp = compare_truths(mech, exu, erls_truth)

@@ -1,0 +1,247 @@
+"""The whole chain on every mechanism of the gallery: truth, measured log, observer, errors against its bound.
+
+    python benchmarks/gallery.py [--models serial_arm,fivebar] [--seeds 1,2,3] [--engine exudyn]
+                                 [--no-reference] [--json docs/gallery.json] [--md docs/gallery.md]
+
+For each model file in ``models/`` and each seed:
+
+1. the run folder of ``exuflex simulate MODEL --seed S`` (its library entry point,
+   :func:`exuflex.truth.simulate_run`; Exudyn truth by default), written to a temporary folder;
+2. the observer with default settings on that log (:func:`exuflex.observer.session.observe_run`, what
+   ``exuflex observe MODEL RUN`` runs): RMS error of every physical estimate after the start-up, divided by the
+   observer's own bound (the steady-state Kalman standard deviation of the linearised reduced model at the middle
+   of the manoeuvre); the time-averaged NIS against the mean number of channels per update (its expectation);
+   the filter's flags (NIS divergence test, non-finite state);
+3. the same log through the exact reference step map (:data:`REFERENCE`: the reduced model integrated by RK4
+   over every interval, no held matrices): the default path's RMS error divided by the reference's, per quantity.
+
+The acceptance of issue 15 (:func:`acceptance`): every RMS error within 1.5x its bound, the NIS within 10 % of
+the channel count, no flag, and the default path within 10 % of the reference. The script prints a table and
+writes the measured figures as JSON and as the markdown page ``docs/gallery.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
+SEEDS = (1, 2, 3)
+
+REFERENCE = {"method": "rk4"}
+"""The exact reference path's observer settings (ObserverConfig fields): the step map by RK4 every interval."""
+
+RATIO_MAX = 1.5  # RMS error after the start-up / the observer's bound
+NIS_TOL = 0.10  # |time-averaged NIS / channels - 1|
+PATH_TOL = 0.10  # |RMS default / RMS reference - 1|
+
+
+def gallery() -> list[str]:
+    """The gallery's model names (the files in ``models/``)."""
+    return sorted(p.stem for p in MODELS.glob("*.toml"))
+
+
+def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool = True,
+              work: Path | None = None) -> dict:
+    """Truth, log and observer (default and, if ``reference``, the exact reference path) for one model and seed;
+    the measured figures as a JSON-ready dict."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import ObserverConfig, observe_run
+    from exuflex.runs import read_run
+    from exuflex.truth import simulate_run
+
+    path = MODELS / f"{model}.toml"
+    mech = load_mechanism(path)
+    with tempfile.TemporaryDirectory(dir=work) as tmp:
+        t0 = time.perf_counter()
+        run = read_run(simulate_run(path, Path(tmp) / "run", engine=engine, seed=seed))
+        truth_s = time.perf_counter() - t0
+        config = ObserverConfig()
+        out = observe_run(mech, run, config)
+        ref = observe_run(mech, run, replace(config, **REFERENCE)) if reference else None
+    s = out.summary
+    res = out.estimate.result
+    row = {
+        "model": model,
+        "seed": seed,
+        "engine": engine,
+        "duration_s": float(run.sensors.t[-1] - run.sensors.t[0]),
+        "channels": list(s["channels"]),
+        "reduced_ndof": s["reduced_ndof"],
+        "metrics_from_s": s["metrics_from_s"],
+        "rms_error": s["rms_error"],
+        "bound_rms": s["bound_rms"],
+        "ratio_to_bound": s["ratio_to_bound"],
+        "nis_mean": s["nis_mean"],
+        "nis_expected": s["nis_expected"],
+        "diverged": bool(s["diverged"]),
+        "diverged_at": s["diverged_at"],
+        "nonfinite": bool(res.nonfinite),
+        "truth_wall_s": truth_s,
+        "observer_wall_s": s["wall_s"],
+        "real_time_factor": s["real_time_factor"],
+    }
+    if ref is not None:
+        rr = ref.summary
+        row["reference"] = {
+            "settings": dict(REFERENCE),
+            "rms_error": rr["rms_error"],
+            "ratio_to_bound": rr["ratio_to_bound"],
+            "nis_mean": rr["nis_mean"],
+            "diverged": bool(rr["diverged"]),
+            "observer_wall_s": rr["wall_s"],
+        }
+        row["default_over_reference"] = {k: _ratio(v, rr["rms_error"].get(k)) for k, v in s["rms_error"].items()}
+    row["acceptance"] = acceptance(row)
+    return row
+
+
+def _ratio(a, b) -> float:
+    return a / b if b and math.isfinite(b) and b > 0 and math.isfinite(a) else float("nan")
+
+
+def acceptance(row: dict) -> dict:
+    """Issue 15's acceptance for one run: which criteria hold, and the worst figure of each."""
+    ratios = row["ratio_to_bound"]
+    worst_q = max(ratios, key=lambda k: ratios[k] if math.isfinite(ratios[k]) else math.inf)
+    nis_rel = row["nis_mean"] / row["nis_expected"] - 1.0
+    out = {
+        "worst_ratio": ratios[worst_q],
+        "worst_quantity": worst_q,
+        "errors_within_bound": all(math.isfinite(v) and v <= RATIO_MAX for v in ratios.values()),
+        "nis_rel": nis_rel,
+        "nis_consistent": math.isfinite(nis_rel) and abs(nis_rel) <= NIS_TOL,
+        "no_flag": not (row["diverged"] or row["nonfinite"]),
+    }
+    d = row.get("default_over_reference")
+    if d is not None:
+        dev = {k: abs(v - 1.0) if math.isfinite(v) else math.inf for k, v in d.items()}
+        wq = max(dev, key=dev.get)
+        out.update(path_worst_quantity=wq, path_worst=d[wq], path_within=dev[wq] <= PATH_TOL)
+    out["passed"] = all(v for k, v in out.items() if k in ("errors_within_bound", "nis_consistent", "no_flag",
+                                                            "path_within"))
+    return out
+
+
+def _fmt(v, nd=2) -> str:
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.{nd}f}"
+
+
+def summary_table(rows: list[dict]) -> list[str]:
+    head = ("| model | seed | worst RMS / bound | NIS / channels | flags | worst default / reference | passes |",
+            "|---|---|---|---|---|---|---|")
+    out = list(head)
+    for r in rows:
+        a = r["acceptance"]
+        flags = ", ".join(f for f, on in (("diverged at %.3g s" % (r["diverged_at"] or 0), r["diverged"]),
+                                          ("non-finite", r["nonfinite"])) if on) or "none"
+        path = (f"{_fmt(a['path_worst'], 3)} ({a['path_worst_quantity']})" if "path_worst" in a else "-")
+        out.append(f"| {r['model']} | {r['seed']} | {_fmt(a['worst_ratio'])} ({a['worst_quantity']}) | "
+                   f"{_fmt(r['nis_mean'])} / {_fmt(r['nis_expected'], 1)} | {flags} | {path} | "
+                   f"{'yes' if a['passed'] else 'no'} |")
+    return out
+
+
+def quantity_tables(rows: list[dict]) -> list[str]:
+    out = []
+    for model in dict.fromkeys(r["model"] for r in rows):
+        rs = [r for r in rows if r["model"] == model]
+        qs = list(rs[0]["ratio_to_bound"])
+        about = (f"{len(rs[0]['channels'])} channels ({', '.join(rs[0]['channels'])}), reduced model "
+                 f"{rs[0]['reduced_ndof']} dofs, errors from {rs[0]['metrics_from_s']:g} s of {rs[0]['duration_s']:g} s.")
+        out += ["", f"### {model}", "", about, "",
+                "| seed | figure | " + " | ".join(qs) + " |", "|---|---|" + "---|" * len(qs)]
+        for r in rs:
+            out.append(f"| {r['seed']} | RMS / bound | " + " | ".join(_fmt(r["ratio_to_bound"][q]) for q in qs) + " |")
+            if "default_over_reference" in r:
+                out.append(f"| {r['seed']} | default / reference | "
+                           + " | ".join(_fmt(r["default_over_reference"][q], 3) for q in qs) + " |")
+        out.append("| | bound | " + " | ".join(f"{rs[0]['bound_rms'][q]:.3g}" for q in qs) + " |")
+    return out
+
+
+def markdown(rows: list[dict], settings: dict) -> str:
+    cmd = "python benchmarks/gallery.py" + settings["command_args"]
+    n_pass = sum(r["acceptance"]["passed"] for r in rows)
+    lines = [
+        "# The mechanism gallery: the whole chain on every model",
+        "",
+        (f"Generated by `{cmd}` (do not edit: rerun the script). Truth engine: {settings['engine']}; seeds "
+         f"{', '.join(map(str, settings['seeds']))}; the observer with default settings; the exact reference path "
+         f"is the observer with {', '.join(f'{k}={v!r}' for k, v in REFERENCE.items())}."),
+        "",
+        (f"Acceptance of issue 15 per run: every RMS error after the start-up within {RATIO_MAX}x the observer's "
+         f"own bound (steady-state Kalman standard deviation at the middle of the manoeuvre), time-averaged NIS "
+         f"within {NIS_TOL:.0%} of the channel count, no flag (NIS divergence test, non-finite state), and the "
+         f"default path's RMS errors within {PATH_TOL:.0%} of the reference's. Runs passing: {n_pass} of "
+         f"{len(rows)}."),
+        "",
+        *summary_table(rows),
+        "",
+        "## Per quantity",
+        *quantity_tables(rows),
+        "",
+        "## Speed (this run, shared 2-core machine)",
+        "",
+        "| model | seed | truth (s) | observer (s) | real-time factor | reference observer (s) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ref = r.get("reference") or {}
+        lines.append(f"| {r['model']} | {r['seed']} | {r['truth_wall_s']:.1f} | {r['observer_wall_s']:.2f} | "
+                     f"{r['real_time_factor']:.1f} | {_fmt(ref.get('observer_wall_s'), 1)} |")
+    lines += ["", f"Versions: {', '.join(f'{k} {v}' for k, v in settings['versions'].items())}.", ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", default=None, help="comma-separated model names (default: every file in models/)")
+    ap.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated noise seeds (default 1,2,3)")
+    ap.add_argument("--engine", default="exudyn", choices=("exudyn", "erls", "reduced"), help="truth engine")
+    ap.add_argument("--no-reference", action="store_true", help="skip the exact reference path")
+    ap.add_argument("--json", default=str(ROOT / "docs" / "gallery.json"), help="JSON output ('' for none)")
+    ap.add_argument("--md", default=str(ROOT / "docs" / "gallery.md"), help="markdown page ('' for none)")
+    a = ap.parse_args(argv)
+    models = a.models.split(",") if a.models else gallery()
+    unknown = sorted(set(models) - set(gallery()))
+    if unknown:
+        ap.error(f"--models: no models/{unknown[0]}.toml; the gallery has {', '.join(gallery())}")
+    seeds = [int(s) for s in a.seeds.split(",") if s]
+    from exuflex.runs import package_versions
+
+    rows = []
+    for m in models:
+        for s in seeds:
+            r = run_chain(m, s, engine=a.engine, reference=not a.no_reference)
+            rows.append(r)
+            ac = r["acceptance"]
+            print(f"{m:12s} seed {s}: worst RMS/bound {ac['worst_ratio']:.2f} ({ac['worst_quantity']}), NIS "
+                  f"{r['nis_mean']:.2f} / {r['nis_expected']:.1f}, diverged {r['diverged']}, "
+                  + (f"default/reference {ac['path_worst']:.3f} ({ac['path_worst_quantity']}), " if "path_worst" in ac
+                     else "") + f"{'PASS' if ac['passed'] else 'FAIL'}", flush=True)
+    args = ((f" --models {a.models}" if a.models else "") + (f" --seeds {a.seeds}" if seeds != list(SEEDS) else "")
+            + (f" --engine {a.engine}" if a.engine != "exudyn" else "") + (" --no-reference" if a.no_reference else ""))
+    settings = {"engine": a.engine, "seeds": seeds, "models": models, "reference": None if a.no_reference else
+                REFERENCE, "acceptance": {"ratio_max": RATIO_MAX, "nis_tol": NIS_TOL, "path_tol": PATH_TOL},
+                "command_args": args, "versions": {**package_versions(), "python": platform.python_version()}}
+    print("\n".join(summary_table(rows)))
+    if a.json:
+        Path(a.json).write_text(json.dumps({"settings": settings, "runs": rows}, indent=1, default=float) + "\n")
+        print(f"wrote {a.json}")
+    if a.md:
+        Path(a.md).write_text(markdown(rows, settings))
+        print(f"wrote {a.md}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

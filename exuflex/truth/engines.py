@@ -1,0 +1,178 @@
+"""The truth engines: what the "real mechanism" does under the manoeuvre's open-loop torque.
+
+One entry point, :func:`simulate`, runs a mechanism (possibly with changed parameters: the truth of a
+model-mismatch study) under a :class:`Drive` (the torque table that the *nominal* model's rigid computed torque
+gives, and the start state) with one of three engines:
+
+- ``"exudyn"``: the independent Exudyn model (planar ANCF beams, :func:`exuflex.groundtruth.simulate_truth`;
+  the only engine outside the ERLS formulation, so the one that tests the observer's model);
+- ``"erls"``: the full-order ERLS model of eq. 2 under the torque table (zero-order hold), RK4
+  (:func:`erls_truth`);
+- ``"reduced"``: the observer's own reduced model stepped exactly as the filter assumes (:func:`reduced_truth`),
+  a truth without model error for consistency tests.
+
+Each returns a :class:`TruthRecord`: the clean sensor channels and the true states of
+:mod:`exuflex.sensors`, and the torque table as the measurement sees it. Exudyn is imported only inside
+:mod:`exuflex.groundtruth`, and only when the ``"exudyn"`` engine runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..mechanism import Mechanism
+
+if TYPE_CHECKING:  # the sensors module pulls in the ERLS model: imported where a function needs it
+    from ..sensors import Signals
+
+__all__ = ["ENGINES", "Drive", "TruthRecord", "erls_truth", "plan_drive", "reduced_truth", "simulate"]
+
+log = logging.getLogger(__name__)
+
+ENGINES = ("exudyn", "erls", "reduced")
+"""The truth engines :func:`simulate` knows."""
+
+
+@dataclass
+class Drive:
+    """The manoeuvre's torque table (``t``, ``tau``: the rigid computed torque of the *nominal* model, the
+    controller's knowledge) and the start state ``q0``, ``qd0``; ``seconds`` is the time planning took."""
+
+    t: np.ndarray
+    tau: np.ndarray
+    q0: np.ndarray
+    qd0: np.ndarray
+    seconds: float = 0.0
+
+
+@dataclass
+class TruthRecord:
+    """A truth: clean sensor channels and true states (:func:`exuflex.sensors.sensor_channels`,
+    :func:`~exuflex.sensors.true_states`), and the torques as the measurement sees them (``torque_t``,
+    ``torques``: the zero-order-hold table); ``timings`` records the wall times (s)."""
+
+    clean: Signals
+    truth: Signals
+    torque_t: np.ndarray
+    torques: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+
+def plan_drive(nominal: Mechanism, duration: float, h: float,
+               progress: Callable[[str, float], None] | None = None) -> Drive:
+    """Plan the manoeuvre on a grid of step ``h`` up to ``duration`` and its open-loop computed torque on the
+    nominal model. ``progress`` is called with the phase (``"plan"``, ``"torque"``) and its fraction done."""
+    from ..manoeuvre import computed_torque, plan
+
+    def phase(name):
+        return None if progress is None else (lambda f: progress(name, f))
+
+    t0 = time.perf_counter()
+    pl = plan(nominal, dt=h, t_end=duration, progress=phase("plan"))
+    tau = computed_torque(nominal, pl, progress=phase("torque"))
+    return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
+                 np.asarray(pl.qd[0], float), time.perf_counter() - t0)
+
+
+def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt: float, q0, qd0,
+               progress: Callable[[float], None] | None = None):
+    """The full-order ERLS model under the torque table (zero-order hold), RK4; returns a
+    :class:`~exuflex.probes.ProbeRecord` sampled every ``output_dt``.
+
+    The step ``h`` is split into the fewest RK4 sub-steps that keep the model's linearisation at the start stable
+    (:func:`~exuflex.erls.simulate.rk4_substeps`: RK4 is stable for ``h |lambda| < 2.83``; a finer mesh with
+    stiffness damping has overdamped high modes with large real eigenvalues)."""
+    from ..erls.model import ErlsModel
+    from ..erls.simulate import rk4_substeps
+    from ..erls.simulate import simulate as integrate
+    from ..sensors import erls_probe_record
+
+    model = ErlsModel(mech)
+    n = model.n
+    y0 = np.zeros(2 * n)
+    y0[: model.nq] = q0
+    y0[n : n + model.nq] = qd0
+    dt_tab = t_tab[1] - t_tab[0]
+
+    def inputs(t):
+        return tau[min(int(np.floor(t / dt_tab + 1e-6)), len(tau) - 1)]
+
+    sub = rk4_substeps(model.state_matrix(model.configuration(np.asarray(q0, float)))[0], h)
+    if sub > 1:
+        log.info("ERLS truth: %d RK4 sub-steps per %g s step (stability at the start)", sub, h)
+    every = max(1, round(output_dt / h)) * sub
+    traj = integrate(model.rhs, y0, duration, inputs, h=h / sub, method="rk4", output_every=every,
+                     progress=progress)
+    return erls_probe_record(model, traj.t, traj.y)
+
+
+def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float = 1e-4) -> TruthRecord:
+    """The observer's own model as the truth (engine ``"reduced"``): a test of the filter's consistency.
+
+    The reduced model of ``truth_mech`` (the observer's default reduction) is stepped exactly as the filter
+    assumes: the frozen RK4 step map (``h``) over each sample interval, the torque held at its value at the
+    sample time (so the torque table of the result is the sampled one). Its states are mapped to the full
+    ERLS state (``x = H p``, ``x' = J p'``), so that the sensors and true states come from the same functions
+    as for the other engines. A filter with the same model and the stated noise has no model error on this
+    truth: its NEES and NIS must be consistent (``benchmarks/observer_accuracy.py --engine reduced``).
+    """
+    from ..observer.reduced import ReducedObserverModel
+    from ..observer.session import make_observer
+    from ..sensors import erls_probe_record, sensor_channels, true_states
+
+    rm = make_observer(truth_mech).model.rm
+    som = ReducedObserverModel(rm, h=h, method="frozen")
+    dt = 1.0 / truth_mech.sample_rate_hz
+    n = int(round(duration / dt)) + 1
+    t = np.arange(n) * dt
+    dt_tab = drive.t[1] - drive.t[0]
+    tau = drive.tau[np.minimum(np.round(t / dt_tab).astype(int), len(drive.tau) - 1)]
+    z = som.initial_state(drive.q0, drive.qd0)
+    Y = np.empty((n, 2 * rm.model.n))
+    for k in range(n):
+        x, v = rm.full_state(z)
+        Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
+        if k < n - 1:
+            z, _ = som.step(z, tau[k], dt)
+    rec = erls_probe_record(rm.model, t, Y)
+    return TruthRecord(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
+                       {"plan_and_torque_s": drive.seconds})
+
+
+def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", duration: float | None = None,
+             h: float = 1e-4, progress: Callable[[float], None] | None = None) -> TruthRecord:
+    """Simulate ``truth_mech`` under ``drive`` for ``duration`` s (default: its manoeuvre's) with the truth
+    ``engine`` (one of :data:`ENGINES`), integration and torque-table step ``h``, output at the model's sample
+    rate; ``progress`` is called with the fraction done."""
+    from ..sensors import monotonic_record, sensor_channels, true_states
+
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if duration is None:
+        if truth_mech.manoeuvre is None:
+            raise ValueError(f"{truth_mech.source or truth_mech.name}: no [manoeuvre]; give a duration")
+        duration = truth_mech.manoeuvre.duration
+    timings = {"plan_and_torque_s": drive.seconds}
+    output_dt = 1.0 / truth_mech.sample_rate_hz
+    t0 = time.perf_counter()
+    if engine == "reduced":
+        rec = reduced_truth(truth_mech, drive, duration, h)
+        rec.timings.update(timings, truth_s=time.perf_counter() - t0)
+        return rec
+    if engine == "exudyn":
+        from ..groundtruth import simulate_truth  # Exudyn is imported only there
+
+        probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
+                                progress=progress)
+    else:
+        probes = erls_truth(truth_mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress)
+    timings["truth_s"] = time.perf_counter() - t0
+    probes = monotonic_record(probes)
+    return TruthRecord(sensor_channels(truth_mech, probes), true_states(truth_mech, probes), drive.t, drive.tau,
+                       timings)
