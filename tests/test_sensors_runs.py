@@ -337,7 +337,7 @@ def test_cli_simulate_rejects_bad_arguments(tmp_path, capsys):
 def test_exudyn_and_erls_engines_give_comparable_truths(tmp_path):
     """Same manoeuvre, two independent formulations: the truths agree (0.04 s of the first ramp)."""
     pytest.importorskip("exudyn")
-    from exuflex.cli.simulate import simulate_run
+    from exuflex.truth import simulate_run
 
     runs = {}
     for engine in ("erls", "exudyn"):

@@ -92,7 +92,8 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     from ..runs import atomic_write_text, file_sha256, package_versions, read_run
     from ..study import StudySpec, payload_levels, run_study
     from ..study.runner import figure_rows
-    from .simulate import simulate_run
+    from ..truth import simulate_run
+    from .simulate import PhaseBars
 
     cfg = QUICK if quick else FULL
     out = Path(out)
@@ -114,7 +115,11 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
 
     # one run: manoeuvre, torques, observer (Figs 3-10)
     t0 = time.perf_counter()
-    simulate_run(model, out / "run", engine=engine, duration=cfg["duration"], seed=seed, progress=progress)
+    bars = PhaseBars(progress)
+    try:
+        simulate_run(model, out / "run", engine=engine, duration=cfg["duration"], seed=seed, progress=bars)
+    finally:
+        bars.close()
     walls["truth_run_s"] = time.perf_counter() - t0
     run_ = read_run(out / "run")
     t0 = time.perf_counter()

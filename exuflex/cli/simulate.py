@@ -13,7 +13,7 @@ import time
 
 from ..truth import ENGINES, simulate_run
 
-__all__ = ["ProgressBar", "add_parser", "run"]
+__all__ = ["PhaseBars", "ProgressBar", "add_parser", "run"]
 
 
 class ProgressBar:
@@ -73,7 +73,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-class _PhaseBars:
+class PhaseBars:
     """A :class:`ProgressBar` per phase of :func:`exuflex.truth.simulate_run` (called with phase, fraction)."""
 
     def __init__(self, enabled: bool):
@@ -100,7 +100,7 @@ def run(args) -> int:
         if value is not None and not value > 0:
             print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
             return 2
-    bars = _PhaseBars(not args.no_progress and sys.stderr.isatty())
+    bars = PhaseBars(not args.no_progress and sys.stderr.isatty())
     try:
         out = simulate_run(
             args.model,
