@@ -2,7 +2,7 @@
 
 from .dofs import COMPONENTS, ElasticDofs, elastic_dofs
 from .loader import ModelFileError, load_mechanism, parse_mechanism
-from .refine import refine_mechanism
+from .refine import refine_mechanism, remesh_mechanism
 from .spec import (
     Coordinate,
     Damping,
@@ -40,4 +40,5 @@ __all__ = [
     "load_mechanism",
     "parse_mechanism",
     "refine_mechanism",
+    "remesh_mechanism",
 ]
