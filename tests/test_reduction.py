@@ -315,3 +315,34 @@ def test_masters_in_two_frames_on_one_translation_are_an_error(fourbar):
         CraigBampton(fourbar, masters=["node9.x", "node9.transverse"])
     with pytest.raises(KeyError, match="node1.transverse.*fixed"):
         CraigBampton(fourbar, masters=["node1.transverse"])
+
+
+def test_automatic_masters_are_the_compliant_transverse_dofs_at_joints_and_tips(fourbar):
+    """A model without masters: the coupler tip's transverse dof, and at each joint off the ground the transverse
+    dof of the link along which the joint deflects most under a unit force, the smallest over the manoeuvre
+    (checked by static solves K_uu u = d, every other elastic dof free); the reduced model meets the thresholds
+    along the manoeuvre."""
+    from exuflex.manoeuvre import plan
+    from exuflex.reduction import accuracy_along
+
+    cb = CraigBampton(fourbar, masters=())
+    assert cb.automatic_masters and len(cb.masters) == 3 and cb.masters[-1] == "node9.transverse"
+    mech = fourbar.mech
+    pos = {n: i for i, n in enumerate(mech.node_ids)}
+    for joint, chosen in zip(("A", "B"), cb.masters):
+        nodes = [mech.node_at(p.link, p.station) for p in mech.joint(joint).points]
+        assert chosen in {f"node{n}.transverse" for n in nodes}
+        ux, uy = fourbar.dofs.locate(chosen).pair
+        least = {}
+        for q in cb.path_q:
+            cfg = fourbar.configuration(q)
+            Kuu = fourbar.stiffness(cfg)[1:, 1:]
+            for n in nodes:
+                phi = cfg.pose.r[3 * pos[n] + 2]
+                f = np.zeros(fourbar.ne)
+                f[[ux, uy]] = -np.sin(phi), np.cos(phi)
+                u = np.linalg.solve(Kuu, f)
+                least[n] = min(least.get(n, np.inf), f @ u)
+        assert chosen == f"node{max(least, key=least.get)}.transverse"
+    qs = plan(mech, dt=mech.manoeuvre.duration / 20).q
+    assert all(a.ok(0.99, 2.0) for a in accuracy_along(cb, qs, warn=False))

@@ -100,8 +100,9 @@ class CraigBampton:
     Parameters
     ----------
     model : ErlsModel
-    masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")``); the ERLS
-        coordinates are always masters. Default: the model file's ``[reduction] masters``.
+    masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")`` or
+        ``("node9.transverse",)``); the ERLS coordinates are always masters. Default: the model file's
+        ``[reduction] masters``, else the transverse dofs at the joints and tips (:mod:`.masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
     n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
         ``freq_error_max_pct`` for every full mode below ``band_hz`` at q* and at every configuration of
@@ -128,9 +129,34 @@ class CraigBampton:
         spec = model.mech.reduction
         self.model = model
         src = model.mech.source or model.mech.name
+        self.nq = model.nq
+        qs = q_star if q_star is not None else (spec.q_star or model.mech.q_ref)
+        self.q_star = np.asarray(qs, float)
+        if self.q_star.shape != (self.nq,):
+            raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
+        # the configurations the interior modes (and automatic masters) are chosen over (.path)
+        from .path import PathSamples, manoeuvre_configurations
+
+        if path is None:
+            path = manoeuvre_configurations(model.mech, path_samples)
+        elif path is False:
+            path = None
+        q_samples = self.q_star[None, :]
+        if path is not None:
+            path = np.atleast_2d(np.asarray(path, float))
+            if path.shape[1:] != (self.nq,):
+                raise ValueError(f"{src}: path configurations must have {self.nq} entries each, got {path.shape}")
+            q_samples = np.vstack([q_samples, path])
         masters = tuple(spec.masters if masters is None else masters)
+        # none named: the transverse dofs at the joints and tips (.masters)
+        self.automatic_masters = not masters
         if not masters:
-            raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters)")
+            from .masters import automatic_masters
+
+            masters = automatic_masters(model, q_samples)
+            if not masters:
+                raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters) "
+                                 "and no joint off the ground or free tip to choose them at")
         try:
             refs = [model.dofs.locate(m) for m in masters]
         except KeyError as e:
@@ -151,7 +177,6 @@ class CraigBampton:
         # R(q, q*): the interior modes turn with their nodes (the paper's modification); False keeps Phi(q*)
         # fixed in the global frame (to show what the rotation buys)
         self.rotate = True
-        self.nq = model.nq
         self.n_m = self.nq + len(im)
         self.band_hz = float(spec.band_hz if band_hz is None else band_hz)
         self.nco_min = float(spec.nco_min if nco_min is None else nco_min)
@@ -159,10 +184,6 @@ class CraigBampton:
         if ranking not in ("imr", "frequency"):
             raise ValueError(f"ranking must be 'imr' or 'frequency', got {ranking!r}")
         self.ranking = ranking
-        qs = q_star if q_star is not None else (spec.q_star or model.mech.q_ref)
-        self.q_star = np.asarray(qs, float)
-        if self.q_star.shape != (self.nq,):
-            raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
         self._pairs_setup(refs)
         # interior modes at q*, in the partition's coordinates w = Q(q*)^T u
         self.cfg_star = model.configuration(self.q_star)
@@ -178,18 +199,6 @@ class CraigBampton:
         self.Phi_all = Phi  # (s, s), M_ss-orthonormal, ascending frequency
         self._theta_star = self.cfg_star.pose.r[2::3].copy()
         # the interior modes' order and count, chosen at q* and along the path (.path)
-        from .path import PathSamples, manoeuvre_configurations
-
-        if path is None:
-            path = manoeuvre_configurations(model.mech, path_samples)
-        elif path is False:
-            path = None
-        q_samples = self.q_star[None, :]
-        if path is not None:
-            path = np.atleast_2d(np.asarray(path, float))
-            if path.shape[1:] != (self.nq,):
-                raise ValueError(f"{src}: path configurations must have {self.nq} entries each, got {path.shape}")
-            q_samples = np.vstack([q_samples, path])
         self.order = np.arange(Phi.shape[1])
         self.set_interior(Phi.shape[1])
         samples = PathSamples(self, q_samples)
