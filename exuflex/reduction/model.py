@@ -218,8 +218,9 @@ class ReducedModel:
         (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs) = _compiled.held_evaluation(
             p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin._ea, kin._esa, kin._eb,
             kin._ebm, kin._esb, kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
-            cb._py, cb._pnode, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl, model.el_dofs,
-            model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, self.consistent, gradients)
+            cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
+            model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
+            self.consistent, gradients)
         mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
         return mats, self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
 
@@ -358,16 +359,20 @@ class ReducedModel:
         rc = cb.at(x[:nq])
         M = self.model.mass(rc.cfg)
         H = rc.H
-        masters = np.r_[0:nq, nq + cb.im]
         nm = cb.n_m
         p = np.linalg.solve(H.T @ M @ H, H.T @ M @ x)
-        p[:nm] = x[masters]
+        p[:nq] = x[:nq]
+        p[nq:nm] = cb.master_values(rc.cfg, x[nq:])
         J = H
         if self.consistent:
             J = H.copy()
             J[:, :nq] += cb.basis_derivative(rc, p)[0]
         pd = np.linalg.solve(J.T @ M @ J, J.T @ M @ v)
-        pd[:nm] = v[masters]
+        # master rates: the rows of J at the masters, v_m = (Q^T (J p')_u)_m, solved for the master block
+        pd[:nq] = v[:nq]
+        Jm = cb.master_values(rc.cfg, J[nq:])  # (me, r)
+        pd[nq:nm] = np.linalg.solve(Jm[:, nq:nm], cb.master_values(rc.cfg, v[nq:]) - Jm[:, :nq] @ pd[:nq]
+                                    - Jm[:, nm:] @ pd[nm:])
         return np.concatenate([p, pd])
 
     def rest_state(self, q) -> np.ndarray:
