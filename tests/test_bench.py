@@ -33,7 +33,7 @@ def test_bench_quick_json_has_the_documented_keys():
     # both filters track the truth (loose: 0.2 s includes the start-up transient)
     assert r["reduced"]["q_rms_error_rad"] < 0.02
     assert r["full"]["q_rms_error_rad"] < 0.02
-    # the fast path against its reference path (frozen step): far below the estimation error
+    # the default path against the exact reference (rk4): far below the estimation error
     ref = r["reference"]
-    assert ref["method"] == "frozen" and set(ref["difference_over_error"]) >= {"q1", "q2", "q3", "x25", "y26"}
+    assert ref["method"] == "rk4" and set(ref["difference_over_error"]) >= {"q1", "q2", "q3", "x25", "y26"}
     assert ref["worst_ratio"] < 0.5, ref
