@@ -293,6 +293,7 @@ class MultirateEKF:
         self._subsets: dict[bytes, tuple] = {}
         # the covariance lives in two buffers that alternate (a kernel never writes the P it reads); scratch
         self._Pspare = np.empty((n, n))
+        self._Ppred = np.empty((n, n))
         self._work = np.empty((n, n))
         self._HP = np.empty((max(self.m, 1), n))
         kalman.warm_up()
@@ -355,8 +356,9 @@ class MultirateEKF:
         return self._t_prev
 
     # ------------------------------------------------------------------ the two steps
-    def _predict(self, dt: float, u_next) -> None:
-        """``x, P`` from the previous sample to this one (eqs. 10-13)."""
+    def _predict(self, dt: float, u_next) -> tuple[np.ndarray, np.ndarray]:
+        """The model's step from the previous sample to this one (eqs. 10-12): the predicted mean becomes the
+        state; ``(F, Q)`` are returned for the covariance (eq. 13), which the update kernel propagates."""
         n = self.nx
         try:
             x, F, Q = self.model.predict(self._x, self._u_prev, dt, u_next)
@@ -370,9 +372,8 @@ class MultirateEKF:
             # the kernels read without bounds checks: never a wrong shape
             raise ValueError(f"model.predict returned x {x.shape}, F {F.shape}, Q {Q.shape}; expected ({n},), "
                              f"({n}, {n}), ({n}, {n})")
-        P = self._Pspare
-        kalman.predict_cov(F, self._P, Q, P, self._work)
-        self._Pspare, self._P, self._x = self._P, P, x
+        self._x = x
+        return F, Q
 
     def _channel_set(self, y: np.ndarray) -> tuple | None:
         """``(idx, channels, R diagonal)`` of the finite entries of ``y`` (None if there are none)."""
@@ -389,16 +390,16 @@ class MultirateEKF:
             s = self._subsets[key] = (idx, tuple(self.channels[i] for i in idx), self._Rdiag[idx])
         return s
 
-    def _update(self, y: np.ndarray, idx: np.ndarray, chans: tuple, Rd: np.ndarray) -> None:
-        """Measurement update with the channels ``chans`` (eqs. 14-15)."""
-        x, P = self._x, self._P
+    def _update(self, y: np.ndarray, idx: np.ndarray, chans: tuple, Rd: np.ndarray, FQ) -> bool:
+        """Covariance prediction with ``FQ = (F, Q)`` (None: none, the first sample) and the measurement update
+        with the channels ``chans`` (eqs. 13-15), then the end-of-sample settling. Returns finiteness."""
+        x = self._x
         m, n = len(idx), self.nx
         try:
             y_pred, H = self.model.measure(x, chans)
         except _MODEL_FAILURES as exc:
             self._model_failure = f"{type(exc).__name__}: {exc}"
-            self._x = np.full(n, np.nan)
-            return
+            return False
         H = np.ascontiguousarray(H, dtype=float)
         y_pred = np.asarray(y_pred, dtype=float)
         if H.shape != (m, n) or y_pred.shape != (m,):
@@ -406,7 +407,13 @@ class MultirateEKF:
                              f"({m},) and ({m}, {n})")
         y = np.ascontiguousarray(y if m == self.m else y[idx])
         r, S, x_new, P_new = np.empty(m), np.empty((m, m)), np.empty(n), self._Pspare
-        nis, ok = kalman.update(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new)
+        if FQ is None:
+            P = self._P
+            nis, ok, finite = kalman.update_settle(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new, self._floor)
+        else:
+            P = self._Ppred
+            nis, ok, finite = kalman.predict_update(FQ[0], self._P, FQ[1], P, self._work, x, y, y_pred, H, Rd,
+                                                    self._HP, r, S, x_new, P_new, self._floor)
         if not ok:  # S not positive definite (rounding, or a wrong model): LU, with a warning
             log.warning("innovation covariance not positive definite at t=%s; using an LU solve", self._t_prev)
             rhs = np.empty((m, n + 1))
@@ -417,9 +424,11 @@ class MultirateEKF:
             except np.linalg.LinAlgError as exc:
                 raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
             nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
-        self._Pspare = P
+            finite = kalman.settle(x_new, P_new, self._floor)
+        self._Pspare = self._P
         self._x, self._P = x_new, P_new
         self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
+        return finite
 
     # ------------------------------------------------------------------ public
     def step(self, t: float, u, y) -> np.ndarray:
@@ -468,8 +477,7 @@ class MultirateEKF:
                     f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
                     f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
             self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
-            if not self.nonfinite:
-                self._predict(dt, u)
+        FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
         self._t_prev = t
         self._u_prev = u
         self.last_idx = None
@@ -479,11 +487,14 @@ class MultirateEKF:
             self.n_missing += 1
             return np.full(self.nx, np.nan)
         chosen = None if y is None else self._channel_set(y)
-        if chosen is None:
+        if chosen is not None:
+            finite = self._update(y, *chosen, FQ)
+        else:  # a prediction only
             self.n_missing += 1
-        else:
-            self._update(y, *chosen)
-        finite = kalman.settle(self._x, self._P, self._floor)
+            if FQ is not None:
+                kalman.predict_cov(FQ[0], self._P, FQ[1], self._Pspare, self._work)
+                self._Pspare, self._P = self._P, self._Pspare
+            finite = kalman.settle(self._x, self._P, self._floor)
         return self._close(t, finite)
 
     def _close(self, t: float, finite: bool) -> np.ndarray:

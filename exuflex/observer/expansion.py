@@ -20,6 +20,7 @@ import numpy as np
 
 __all__ = [
     "HeldSystem",
+    "held_interval",
     "held_step",
     "held_system",
     "map_lookahead",
@@ -270,13 +271,15 @@ def _system(dl, s, hs):  # pragma: no cover - compiled
     return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 
-def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """One interval of the cached step: the model at ``q0 + dl`` (:func:`_system`, the forces along the secant)
     advanced by ``n`` RK4 sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the
     held ``M_r`` is not positive definite there. The held system's arrays are passed one by one (their names are
     :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
     of a tuple of arrays."""
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2)
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     p = z[:r]
@@ -291,9 +294,20 @@ def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2,
     return z_next, Mr, Kr, Cr, Gr
 
 
-def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
+    ``(z_next, F, M_r, K_r, C_r, G_r)``."""
+    z_next, Mr_, Kr_, Cr_, Gr_ = _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
+                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2)
+    return z_next, _step_jacobian(z, Ts, Vs, C3, Pn, SQM), Mr_, Kr_, Cr_, Gr_
+
+
+def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """:func:`_system` (call with ``*system``, see :func:`_held_step`)."""
-    return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
+    return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
+                                     old_Gr, old_fg, old_T2, old_V2, old_C2))
 
 
 def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
@@ -351,13 +365,15 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
     return F
 
 
-def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """How well the held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` against the exact ``Mr``, ``Kr`` there:
     the largest entry of the differences whitened by the exact mass matrix, ``L^-1 (M_pred - M) L^-T``
     (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s relative to the largest entry of
     ``L^-1 K L^-T`` (within a factor ``r`` of the spectral norms, at a tenth of their cost). ``inf`` if ``Mr`` is
     not positive definite. (Call with ``*system``, see :func:`_held_step`.)"""
-    Mp, Kp = _mass_stiffness(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
+    Mp, Kp = _mass_stiffness(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
+                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
     Mr, Kr = Mr_exact, Kr_exact
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
@@ -487,9 +503,12 @@ _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _jit(_rk4_linear)
 _quadratic_forces = _jit(_quadratic_forces)
-held_step = _jit(_held_step)
+_held_step = _jit(_held_step)
+held_step = _held_step
 held_system = _jit(_held_system)
-step_jacobian = _jit(_step_jacobian)
+_step_jacobian = _jit(_step_jacobian)
+step_jacobian = _step_jacobian
+held_interval = _jit(_held_interval)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
 
@@ -520,6 +539,8 @@ def warm_up() -> None:
         held_system(dl, 0.0, *hs)
         prediction_error(dl, 0.0, M, M, *hs)
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
-    step_jacobian(z, np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r),
-                  np.zeros((2 * r, r)))
+    jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
+    step_jacobian(z, *jac)
+    for has_old in (False, True):
+        held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))
     _warm = True

@@ -3,7 +3,8 @@
 - :func:`predict_cov`: ``P = F P F' + Q`` (eq. 13);
 - :func:`update`: innovation, its covariance, one Cholesky solve for the gain and ``S^-1 r``, the posterior mean
   and the Joseph-form covariance (eqs. 14-15);
-- :func:`settle`: symmetrisation, a floor on the variances and the finiteness test that end every sample.
+- :func:`settle`: symmetrisation, a floor on the variances and the finiteness test that end every sample;
+- :func:`predict_update`: the three in one call (what a sample with a measurement does).
 
 At the observer's size (tens of states, a few channels) a NumPy call costs more in dispatch and temporaries
 than in arithmetic, so the update's thin products are loops over contiguous rows (``row_i += a * row_k``, the
@@ -29,7 +30,7 @@ try:
 except ImportError:  # pragma: no cover - numba is a core dependency
     numba = None
 
-__all__ = ["apply_gain", "fix_cov", "predict_cov", "settle", "update", "warm_up"]
+__all__ = ["apply_gain", "fix_cov", "predict_cov", "predict_update", "settle", "update", "update_settle", "warm_up"]
 
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
@@ -305,6 +306,30 @@ def settle(x, P, floor):
     return math.isfinite((s0 + s1) + (s2 + s3))
 
 
+@_jit
+def predict_update(F, P, Q, P_pred, work, x, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
+    """One whole sample: :func:`predict_cov` into ``P_pred``, :func:`update` from it, :func:`settle`.
+
+    ``x`` is the predicted mean (the model's step). Returns ``(nis, ok, finite)``; with ``ok`` False (``S`` not
+    positive definite) nothing after the prediction is written and the caller finishes the update from
+    ``P_pred``."""
+    predict_cov(F, P, Q, P_pred, work)
+    nis, ok = update(x, P_pred, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
+    if not ok:
+        return nis, False, True
+    return nis, True, settle(x_out, P_out, floor)
+
+
+@_jit
+def update_settle(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
+    """:func:`update` then :func:`settle` (a sample without a prediction: the first). Returns ``(nis, ok,
+    finite)`` as :func:`predict_update`."""
+    nis, ok = update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
+    if not ok:
+        return nis, False, True
+    return nis, True, settle(x_out, P_out, floor)
+
+
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the kernels for C-ordered float64 arrays, so that the
     first sample of a filter does not carry the compilation."""
@@ -317,5 +342,9 @@ def warm_up() -> None:
     r = np.empty(m)
     x = np.zeros(n)
     update(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), x, out)
+    predict_update(np.eye(n), P, np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), x, np.ones(m), np.zeros(m), H,
+                   np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out, np.zeros(n))
+    update_settle(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out,
+                  np.zeros(n))
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))

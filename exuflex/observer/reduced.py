@@ -58,7 +58,7 @@ from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
 from .expansion import (
     HeldSystem,
-    held_step,
+    held_interval,
     held_system,
     map_lookahead,
     prediction_error,
@@ -114,8 +114,9 @@ def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
     direction breaks the filter during the start-up transient, where the estimate jitters in every direction."""
     if iv.old is None:
         return 0.0
-    a = float(dl @ iv.d)
-    n2 = float(dl @ dl)
+    v = dl.tolist()
+    a = sum(x * y for x, y in zip(v, iv.d_list))
+    n2 = sum(x * x for x in v)
     if a * a < 0.49 * n2 * iv.dd:
         return 0.0
     return a / iv.dd
@@ -149,6 +150,7 @@ class _Held:
     Ca: np.ndarray | None = None  # C_r - beta K_r at q0
     old: _Held | None = None  # secant partner: the previous held configuration
     d: np.ndarray | None = None  # q0 - old.q0
+    d_list: list | None = None  # the same as floats
     dd: float = 0.0  # d . d
     rad: float = 0.0  # refresh radius
     err: float = float("nan")  # prediction error of the previous held model at q0
@@ -346,7 +348,7 @@ class ReducedObserverModel:
             iv.rad = self._radius(old, dist, iv.err)
             if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
                 d = iv.q0 - old.q0
-                iv.old, iv.d, iv.dd = old, d, float(d @ d)
+                iv.old, iv.d, iv.dd, iv.d_list = old, d, float(d @ d), d.tolist()
             old.old = None  # keep one partner only (no chain of held configurations)
         iv.system = self._held_system(iv)
         self.n_refresh += 1
@@ -389,36 +391,40 @@ class ReducedObserverModel:
 
     def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
-        followed from it to second order and advanced by the interval's sub-steps; the step map rebuilt when q
-        moved ``remap_rad`` from where it was built or the interval's length changed."""
+        followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
+        correction and process noise (:meth:`_step_map`)."""
         q = z[: self.nq]
         iv = self._last
         if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
             iv = self._refresh(z)
-        n = self.substeps(iv, dt)
-        dl = q - iv.q0
-        s = _secant_factor(iv, dl)
-        z_next, Mr, Kr, Cr, Gr = held_step(z, u, dl, s, dt / n, n, *iv.system)
-        if not math.isfinite(z_next[0]) and (s or any(dl)):
-            # the held model broke down before the radius said so (M_r not positive definite): evaluate here
-            self.n_rescue += 1
-            iv = self._refresh(z)
+        for attempt in range(2):
             n = self.substeps(iv, dt)
             dl = q - iv.q0
-            z_next, Mr, Kr, Cr, Gr = held_step(z, u, dl, 0.0, dt / n, n, *iv.system)
+            s = _secant_factor(iv, dl) if not attempt else 0.0
+            sm = self._step_map(iv, z, dl, dt, n)
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *iv.forces.jacobian_tensors(), sm.Pn,
+                                                      sm.S, *iv.system)
+            if attempt or math.isfinite(z_next[0]) or not (s or any(dl)):
+                break
+            # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
+            self.n_rescue += 1
+            iv = self._refresh(z)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
-        sm = iv.map
-        if sm is None or abs(sm.dt - dt) > self.dt_tol * dt or not _max_abs(q - sm.q) <= self.remap_rad:
-            # built ahead of q along its motion (map_lookahead), from the held model there (not beyond the held
-            # model's measurement radius)
-            lim = self._measurement_radius(iv)
-            dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon),
-                          -lim, lim)
-            Ma, Ka, Cra, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
-            sm = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Cra, Ga, dt, n))
-            self.n_remap += 1
-        F = step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S)
         return Prediction(z_next, F, sm.Q)
+
+    def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
+        """The held configuration's step map, rebuilt when q moved ``remap_rad`` from where it was built or the
+        interval's length changed by more than ``dt_tol``: built ahead of q along its motion
+        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius)."""
+        sm = iv.map
+        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and _max_abs(z[: self.nq] - sm.q) <= self.remap_rad:
+            return sm
+        lim = self._measurement_radius(iv)
+        dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
+        Ma, Ka, Ca, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
+        iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        self.n_remap += 1
+        return iv.map
 
     # ------------------------------------------------------------------ the reference step
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
