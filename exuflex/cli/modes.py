@@ -9,7 +9,7 @@ With ``--json`` one JSON object is printed::
     {"model": ..., "q": [...], "locked": false, "fmax_hz": 180.0,
      "full": {"ndof": 30, "n_elastic": 27, "frequencies_hz": [...]},
      "exudyn": {"frequencies_hz": [...]},          # with --exudyn
-     "reduced": {...}}                               # with --reduced
+     "reduced": {..., "along": {...}}}               # with --reduced
 """
 
 from __future__ import annotations
@@ -58,12 +58,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--n-interior", type=_n_interior, default=None,
                    help="interior modes N or 'auto' for --reduced (default: the model's)")
     p.add_argument("--qstar", type=_floats, default=None, help="reduction configuration Q1,Q2,... for --reduced")
+    p.add_argument("--along", type=int, default=41,
+                   help="--reduced: report the worst NCO and frequency error over this many configurations of the "
+                        "model's manoeuvre (default 41; 0: skip)")
     p.set_defaults(func=run)
     return p
 
 
 def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool = False, refine: int = 1,
-                 exudyn: bool = False, reduced: bool = False, masters=None, n_interior=None, q_star=None) -> dict:
+                 exudyn: bool = False, reduced: bool = False, masters=None, n_interior=None, q_star=None,
+                 along: int = 41) -> dict:
     """Library form of the command: the JSON-ready report."""
     from ..erls.modal import modal_analysis
     from ..erls.model import ErlsModel
@@ -99,8 +103,10 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
             from ..reduction import reduced_modes_report
         except ImportError as exc:
             raise RuntimeError(f"--reduced needs exuflex.reduction.reduced_modes_report, not available: {exc}") from None
+        if along < 0:
+            raise ValueError(f"--along: expected a number of configurations >= 0, got {along}")
         out["reduced"] = reduced_modes_report(model, q, masters=masters, n_interior=n_interior, q_star=q_star,
-                                              fmax=fmax)
+                                              fmax=fmax, along=along)
     return out
 
 
@@ -132,6 +138,15 @@ def _table(rep: dict) -> str:
             row += (f" {rf[i]:>12.2f} {nco[i]:>7.4f} {err[i]:>7.3f}" if i < min(len(rf), len(nco), len(err))
                     else f" {'-':>12}")
         lines.append(row)
+    al = red.get("along") if red is not None else None
+    if al:
+        def _q(v):
+            return "[" + ", ".join(f"{x:.3f}" for x in v) + "]"
+        lines.append(
+            f"along the manoeuvre ({al['configurations']} configurations): worst NCO {al['worst_nco']:.4f} at q = "
+            f"{_q(al['worst_nco_q'])} (full mode {al['worst_nco_mode_hz']:.1f} Hz), worst frequency error "
+            f"{al['worst_freq_error_pct']:.3f} % at q = {_q(al['worst_freq_error_q'])} (full mode "
+            f"{al['worst_freq_error_mode_hz']:.1f} Hz){'' if al['ok'] else ', BELOW THE THRESHOLDS'}")
     return "\n".join(lines)
 
 
@@ -139,7 +154,7 @@ def run(args) -> int:
     try:
         rep = modes_report(args.model, q=args.q, fmax=args.fmax, locked=args.locked, refine=args.refine,
                            exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
-                           n_interior=args.n_interior, q_star=args.qstar)
+                           n_interior=args.n_interior, q_star=args.qstar, along=args.along)
     except (ValueError, RuntimeError) as exc:
         from ..errors import EXPECTED_ERRORS
 

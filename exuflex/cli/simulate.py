@@ -146,10 +146,12 @@ def simulate_run(
     bar = ProgressBar("plan", progress)
     pl = plan(mech, dt=h, t_end=duration, progress=bar)
     bar.close()
+    timings["plan_s"] = time.perf_counter() - t0
     bar = ProgressBar("torque", progress)
     tau = computed_torque(mech, pl, progress=bar)  # nominal model: the controller's knowledge
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
+    timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]
 
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     t0 = time.perf_counter()

@@ -1,6 +1,6 @@
 """Mechanism descriptions: frozen data loaded from TOML model files. Imports nothing from exuflex."""
 
-from .dofs import COMPONENTS, ElasticDofs, elastic_dofs
+from .dofs import COMPONENTS, LINK_FRAME, DofRef, ElasticDofs, elastic_dofs
 from .loader import ModelFileError, load_mechanism, parse_mechanism
 from .refine import refine_mechanism
 from .spec import (
@@ -37,6 +37,8 @@ __all__ = [
     "Section",
     "Sensor",
     "elastic_dofs",
+    "DofRef",
+    "LINK_FRAME",
     "load_mechanism",
     "parse_mechanism",
     "refine_mechanism",

@@ -317,8 +317,9 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
     reduction = ReductionSpec()
     if red is not None:
         masters = red.raw("masters", [])
-        if not isinstance(masters, list) or not all(isinstance(m, str) for m in masters):
-            raise red.err("masters", "a list of elastic dof names such as 'x14' or 'node8.x'", masters)
+        if not isinstance(masters, list):
+            raise red.err("masters", MASTERS_EXPECTED, masters)
+        masters = [_master_name(red, i, m, link_by) for i, m in enumerate(masters)]
         n_int = red.raw("n_interior", "auto")
         if n_int != "auto" and (isinstance(n_int, bool) or not isinstance(n_int, int) or n_int < 0):
             raise red.err("n_interior", "a non-negative integer or \"auto\"", n_int)
@@ -432,6 +433,34 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
     return tuple(links)
 
 
+MASTERS_EXPECTED = ("a list of elastic dof names such as 'x14', 'node8.x', 'node8.theta' or 'node8.transverse', "
+                    "or points { link, station, direction } with direction axial, transverse or theta")
+
+
+def _master_name(red: _Reader, i: int, m: Any, link_by) -> str:
+    """A ``[reduction] masters`` entry as a dof name: strings as given, a point ``{ link, station, direction }``
+    as ``node{n}.{direction}`` of the node at that station (axial and transverse in the link's frame)."""
+    if isinstance(m, str) and m:
+        return m
+    if not isinstance(m, dict):
+        raise red.err(f"masters[{i}]", MASTERS_EXPECTED, m)
+    r = _Reader(red.source, m, red._f(f"masters[{i}]"))
+    name = r.raw("link")
+    if not isinstance(name, str) or name not in link_by:
+        raise r.err("link", f"a link name, one of {sorted(link_by)}", name)
+    lk = link_by[name]
+    st = r.num("station", lo=0.0, hi=lk.length, unit="m")
+    try:
+        node = lk.node_ids[lk.station_index(st)]
+    except KeyError:
+        raise r.err("station", f"one of link {lk.name!r}'s stations {list(lk.stations)}", st) from None
+    direction = r.raw("direction")
+    if direction not in ("axial", "transverse", "theta"):
+        raise r.err("direction", "'axial', 'transverse' or 'theta'", direction)
+    r.check_unknown()
+    return f"node{node}.{direction}"
+
+
 def _parse_manoeuvre(root: _Reader, link_by, coord_names, point) -> Manoeuvre | None:
     r = root.sub("manoeuvre")
     if r is None:
@@ -525,9 +554,9 @@ def _check_topology(mech: Mechanism) -> None:
     dofs = elastic_dofs(mech)
     for i, m in enumerate(mech.reduction.masters):
         try:
-            dofs.index(m)
+            dofs.locate(m)
         except KeyError:
             raise ModelFileError(
                 src, f"reduction.masters[{i}]",
-                f"an elastic dof name such as {dofs.names[0]!r} or {dofs.node_names[0]!r} "
-                f"(this mesh has {dofs.n} elastic dofs)", m) from None
+                f"an elastic dof name such as {dofs.names[0]!r}, {dofs.node_names[0]!r} or "
+                f"'node{dofs.nodes[-1]}.transverse' (this mesh has {dofs.n} elastic dofs)", m) from None
