@@ -2,9 +2,12 @@
 
 Pipeline (the library does the work; this module only wires it):
 
-1. load the model; plan the manoeuvre (exact inverse kinematics, :func:`exuflex.manoeuvre.plan`);
+1. load the model and the manoeuvre (the model's, or ``--manoeuvre FILE``: a TOML file with a ``[manoeuvre]``
+   table, or a CSV trajectory or measured-torque table, :func:`exuflex.mechanism.load_manoeuvre`); plan it
+   (exact inverse kinematics, :func:`exuflex.manoeuvre.plan`);
 2. open-loop computed torque from the rigid model with the *nominal* payload
-   (:func:`exuflex.manoeuvre.computed_torque`), as the paper's controller knows only the nominal model;
+   (:func:`exuflex.manoeuvre.computed_torque`), as the paper's controller knows only the nominal model; a
+   measured-torque manoeuvre gives its torques instead (:func:`exuflex.manoeuvre.torque_table`);
 3. simulate the truth with the payload scaled by ``--payload-scale``: Exudyn
    (:func:`exuflex.groundtruth.simulate_truth`) or the full-order ERLS model (RK4, ``--h``);
 4. clean sensor channels and true states from the probe record (:mod:`exuflex.sensors`);
@@ -76,6 +79,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("--h", type=float, default=1e-4, help="integration step (s), also the torque table step")
     p.add_argument(
+        "--manoeuvre", default=None, metavar="FILE",
+        help="manoeuvre instead of the model's: a TOML file with a [manoeuvre] table, or a CSV table "
+        "(t and coordinates or tip_x, tip_y: a trajectory; t and motor names: measured torques)",
+    )
+    p.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
     )
     p.set_defaults(func=run)
@@ -120,11 +128,12 @@ def simulate_run(
     seed: int | None = None,
     h: float = 1e-4,
     progress: bool = False,
+    manoeuvre: str | Path | None = None,
 ) -> Path:
     """Library form of the command: simulate and write a run folder; returns its path."""
-    from ..manoeuvre import computed_torque, plan
+    from ..manoeuvre import computed_torque, plan, torque_table
     from ..measure import measure, new_seed
-    from ..mechanism import ModelFileError, load_mechanism
+    from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
     from ..runs import file_sha256, write_run
     from ..sensors import monotonic_record, sensor_channels, true_states
 
@@ -133,6 +142,8 @@ def simulate_run(
     from ..validate import check_configurations
 
     check_configurations(mech)  # loops close, away from singularities
+    if manoeuvre is not None:
+        mech = mech.replace(manoeuvre=load_manoeuvre(manoeuvre, mech))
     if mech.manoeuvre is None:
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
     duration = float(mech.manoeuvre.duration if duration is None else duration)
@@ -148,7 +159,10 @@ def simulate_run(
     bar.close()
     timings["plan_s"] = time.perf_counter() - t0
     bar = ProgressBar("torque", progress)
-    tau = computed_torque(mech, pl, progress=bar)  # nominal model: the controller's knowledge
+    if mech.manoeuvre.kind == "torque":  # measured torques, open loop
+        tau = torque_table(mech, mech.manoeuvre, pl.t)
+    else:
+        tau = computed_torque(mech, pl, progress=bar)  # nominal model: the controller's knowledge
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
     timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]
@@ -174,6 +188,15 @@ def simulate_run(
     truth = true_states(mech, record)
     meas = measure(mech, clean, pl.t, tau, seed=seed, t_end=duration)
     payload = truth_mech.payload
+    man = mech.manoeuvre
+    man_meta = {"kind": man.kind, "duration_s": man.duration, "source": str(manoeuvre) if manoeuvre else "model"}
+    if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
+        man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
+    if man.kind == "waypoints":
+        man_meta.update(interpolation=man.interpolation, n_waypoints=len(man.times))
+    if man.file:
+        man_meta.update(file=str(Path(man.file).resolve()), file_sha256=file_sha256(man.file),
+                        n_samples=len(man.samples))
     meta = {
         "engine": engine,
         "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
@@ -187,13 +210,9 @@ def simulate_run(
             "output_dt_s": output_dt,
             "payload_scale": payload_scale,
             "payload_mass_kg": None if payload is None else payload.mass,
-            "computed_torque_model": "rigid ERLS, nominal payload",
-            "manoeuvre": {
-                "kind": mech.manoeuvre.kind,
-                "duration_s": mech.manoeuvre.duration,
-                "time_law": mech.manoeuvre.time_law,
-                "ramp_time_s": mech.manoeuvre.ramp_time,
-            },
+            "computed_torque_model": "measured torques (file), open loop" if man.kind == "torque"
+            else "rigid ERLS, nominal payload",
+            "manoeuvre": man_meta,
             "measurement": meas.settings,
             "timings": timings,
         },
@@ -220,6 +239,7 @@ def run(args) -> int:
         seed=args.seed,
         h=args.h,
         progress=not args.no_progress and sys.stderr.isatty(),
+        manoeuvre=args.manoeuvre,
     )
     print(f"wrote {out}/sensors.csv, truth.csv, meta.json")
     return 0

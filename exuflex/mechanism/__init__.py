@@ -1,7 +1,7 @@
 """Mechanism descriptions: frozen data loaded from TOML model files. Imports nothing from exuflex."""
 
 from .dofs import COMPONENTS, LINK_FRAME, DofRef, ElasticDofs, elastic_dofs
-from .loader import ModelFileError, load_mechanism, parse_mechanism
+from .loader import ModelFileError, load_manoeuvre, load_mechanism, parse_mechanism, read_samples
 from .refine import refine_mechanism
 from .spec import (
     Coordinate,
@@ -39,7 +39,9 @@ __all__ = [
     "elastic_dofs",
     "DofRef",
     "LINK_FRAME",
+    "load_manoeuvre",
     "load_mechanism",
     "parse_mechanism",
+    "read_samples",
     "refine_mechanism",
 ]
