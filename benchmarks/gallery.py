@@ -54,7 +54,7 @@ def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool 
     """Truth, log and observer (default and, if ``reference``, the exact reference path) for one model and seed;
     the measured figures as a JSON-ready dict."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, observe_run
+    from exuflex.observer.session import ObserverConfig, physical_names
     from exuflex.runs import read_run
     from exuflex.truth import simulate_run
 
@@ -65,8 +65,18 @@ def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool 
         run = read_run(simulate_run(path, Path(tmp) / "run", engine=engine, seed=seed))
         truth_s = time.perf_counter() - t0
         config = ObserverConfig()
-        out = observe_run(mech, run, config)
-        ref = observe_run(mech, run, replace(config, **REFERENCE)) if reference else None
+        out = _observe(mech, run, config)
+        ref = _observe(mech, run, replace(config, **REFERENCE)) if reference else None
+    if isinstance(out, str):  # the filter raised: a non-finite state
+        names = physical_names(mech)
+        nan = {k: float("nan") for k in names}
+        row = {"model": model, "seed": seed, "engine": engine, "duration_s": float(run.sensors.t[-1] - run.sensors.t[0]),
+               "channels": [], "reduced_ndof": None, "metrics_from_s": config.start_up, "rms_error": nan,
+               "bound_rms": nan, "ratio_to_bound": nan, "nis_mean": float("nan"), "nis_expected": float("nan"),
+               "diverged": True, "diverged_at": None, "nonfinite": True, "error": out, "truth_wall_s": truth_s,
+               "observer_wall_s": float("nan"), "real_time_factor": float("nan")}
+        row["acceptance"] = acceptance(row)
+        return row
     s = out.summary
     res = out.estimate.result
     row = {
@@ -89,7 +99,10 @@ def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool 
         "observer_wall_s": s["wall_s"],
         "real_time_factor": s["real_time_factor"],
     }
-    if ref is not None:
+    if isinstance(ref, str):
+        row["reference"] = {"settings": dict(REFERENCE), "error": ref}
+        row["default_over_reference"] = {k: float("nan") for k in s["rms_error"]}
+    elif ref is not None:
         rr = ref.summary
         row["reference"] = {
             "settings": dict(REFERENCE),
@@ -104,6 +117,18 @@ def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool 
     return row
 
 
+def _observe(mech, run, config):
+    """The observer's outcome on a run, or the message of the :class:`FilterDivergedError` it raised (a non-finite
+    state or covariance)."""
+    from exuflex.observer import FilterDivergedError
+    from exuflex.observer.session import observe_run
+
+    try:
+        return observe_run(mech, run, config)
+    except FilterDivergedError as exc:
+        return str(exc)
+
+
 def _ratio(a, b) -> float:
     return a / b if b and math.isfinite(b) and b > 0 and math.isfinite(a) else float("nan")
 
@@ -112,7 +137,7 @@ def acceptance(row: dict) -> dict:
     """Issue 15's acceptance for one run: which criteria hold, and the worst figure of each."""
     ratios = row["ratio_to_bound"]
     worst_q = max(ratios, key=lambda k: ratios[k] if math.isfinite(ratios[k]) else math.inf)
-    nis_rel = row["nis_mean"] / row["nis_expected"] - 1.0
+    nis_rel = row["nis_mean"] / row["nis_expected"] - 1.0 if row["nis_expected"] else float("nan")
     out = {
         "worst_ratio": ratios[worst_q],
         "worst_quantity": worst_q,
@@ -141,8 +166,9 @@ def summary_table(rows: list[dict]) -> list[str]:
     out = list(head)
     for r in rows:
         a = r["acceptance"]
-        flags = ", ".join(f for f, on in (("diverged at %.3g s" % (r["diverged_at"] or 0), r["diverged"]),
-                                          ("non-finite", r["nonfinite"])) if on) or "none"
+        flags = ", ".join(f for f, on in (("NIS test at %.3g s" % (r["diverged_at"] or 0), r["diverged"]
+                                           and r["diverged_at"] is not None),
+                                          (r.get("error") or "non-finite", r["nonfinite"])) if on) or "none"
         path = (f"{_fmt(a['path_worst'], 3)} ({a['path_worst_quantity']})" if "path_worst" in a else "-")
         out.append(f"| {r['model']} | {r['seed']} | {_fmt(a['worst_ratio'])} ({a['worst_quantity']}) | "
                    f"{_fmt(r['nis_mean'])} / {_fmt(r['nis_expected'], 1)} | {flags} | {path} | "

@@ -55,7 +55,7 @@ def test_gallery_model_assembles_at_q_ref_and_along_its_manoeuvre(name):
     assert mech.manoeuvre is not None and mech.reduction.masters, "a gallery model has a manoeuvre and masters"
     dofs = elastic_dofs(mech)
     for m in mech.reduction.masters:
-        dofs.index(m)  # raises on a master that is no elastic dof
+        dofs.locate(m)  # raises on a master that is no elastic dof (global or link-frame name)
     assert {s.kind for s in mech.sensors} >= {"encoder", "curvature"}
     kin = Kinematics(mech)
     gap, err = _closure_errors(mech, kin, mech.q_ref)

@@ -1,7 +1,8 @@
 """``exuflex simulate MODEL --out DIR``: simulate the "real mechanism" along the model's manoeuvre.
 
-The library does the work (:func:`exuflex.truth.simulate_run`: plan, computed torque of the nominal model, truth
-engine, seeded measurement, run folder ``sensors.csv``, ``truth.csv``, ``meta.json``); this module parses the
+The library does the work (:func:`exuflex.truth.simulate_run`: the model's manoeuvre or ``--manoeuvre FILE``,
+planned, with the computed torque of the nominal model or measured torques; the truth engine with its mesh and
+solver; seeded measurement; the run folder ``sensors.csv``, ``truth.csv``, ``meta.json``); this module parses the
 arguments and shows progress.
 """
 
@@ -11,9 +12,9 @@ import argparse
 import sys
 import time
 
-from ..truth import ENGINES, simulate_run
+from ..truth import BEAMS, ENGINES, EXUDYN_ELEMENTS_PER_LINK, INTEGRATORS, simulate_run
 
-__all__ = ["PhaseBars", "ProgressBar", "add_parser", "run"]
+__all__ = ["PhaseBars", "ProgressBar", "add_parser", "elements_per_link_arg", "run"]
 
 
 class ProgressBar:
@@ -43,6 +44,19 @@ class ProgressBar:
             self.stream.flush()
 
 
+def elements_per_link_arg(text: str):
+    """``--elements-per-link``: a positive integer or ``file`` (the model file's own mesh)."""
+    if text == "file":
+        return "file"
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'file', got {text!r}")
+    return n
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "simulate",
@@ -66,6 +80,32 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "--seed", type=int, default=None, help="measurement noise seed (default: random, recorded)"
     )
     p.add_argument("--h", type=float, default=1e-4, help="integration step (s), also the torque table step")
+    p.add_argument(
+        "--manoeuvre", default=None, metavar="FILE",
+        help="manoeuvre instead of the model's: a TOML file with a [manoeuvre] table, or a CSV table "
+        "(t and coordinates or tip_x, tip_y: a trajectory; t and motor names: measured torques)",
+    )
+    p.add_argument(
+        "--elements-per-link",
+        type=elements_per_link_arg,
+        default=None,
+        metavar="N|file",
+        help="truth mesh: no element longer than 1/N of its link (joints and masses on nodes; the ERLS engine keeps "
+        f"the file's nodes too) or 'file', the model file's mesh (default: {EXUDYN_ELEMENTS_PER_LINK} for Exudyn, "
+        "the file's for ERLS)",
+    )
+    p.add_argument(
+        "--beam",
+        choices=tuple(BEAMS),
+        default="ancf",
+        help="Exudyn beam: ANCF cable (default) or geometrically exact (linear, needs 16-32 elements per link)",
+    )
+    p.add_argument(
+        "--integrator",
+        choices=INTEGRATORS,
+        default="gen-alpha",
+        help="ERLS engine: implicit generalized-alpha (default) or the explicit RK4 reference",
+    )
     p.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
     )
@@ -111,6 +151,10 @@ def run(args) -> int:
             seed=args.seed,
             h=args.h,
             progress=bars,
+            manoeuvre=args.manoeuvre,
+            elements_per_link=args.elements_per_link,
+            beam=args.beam,
+            integrator=args.integrator,
         )
     finally:
         bars.close()

@@ -8,11 +8,25 @@ imported only in :mod:`exuflex.groundtruth`, by the ``"exudyn"`` engine.
 """
 
 from .crossval import TruthComparison, compare_truths, manoeuvre_table, truth_vs_erls
-from .engines import ENGINES, Drive, TruthRecord, erls_truth, plan_drive, reduced_truth, simulate
+from .engines import (
+    BEAMS,
+    ENGINES,
+    EXUDYN_ELEMENTS_PER_LINK,
+    INTEGRATORS,
+    Drive,
+    TruthRecord,
+    erls_truth,
+    plan_drive,
+    reduced_truth,
+    simulate,
+)
 from .run import simulate_run
 
 __all__ = [
+    "BEAMS",
     "ENGINES",
+    "EXUDYN_ELEMENTS_PER_LINK",
+    "INTEGRATORS",
     "Drive",
     "TruthComparison",
     "TruthRecord",

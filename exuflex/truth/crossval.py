@@ -127,7 +127,7 @@ def truth_vs_erls(
     exu = true_states(mech, monotonic_record(rec))
     if erls_truth is None:
         t0 = time.perf_counter()
-        rec_e = erls_engine(mech, t, tau, duration, h, output_dt, q0, qd0)
+        rec_e = erls_engine(mech, t, tau, duration, h, output_dt, q0, qd0, integrator="rk4")
         extra["erls_wall_s"] = time.perf_counter() - t0
         erls_truth = true_states(mech, monotonic_record(rec_e))
     cmp = compare_truths(mech, exu, erls_truth)

@@ -31,73 +31,109 @@ from ..mechanism import Mechanism
 if TYPE_CHECKING:  # the sensors module pulls in the ERLS model: imported where a function needs it
     from ..sensors import Signals
 
-__all__ = ["ENGINES", "Drive", "TruthRecord", "erls_truth", "plan_drive", "reduced_truth", "simulate"]
+__all__ = [
+    "BEAMS",
+    "ENGINES",
+    "EXUDYN_ELEMENTS_PER_LINK",
+    "INTEGRATORS",
+    "Drive",
+    "TruthRecord",
+    "erls_truth",
+    "plan_drive",
+    "reduced_truth",
+    "simulate",
+]
 
 log = logging.getLogger(__name__)
 
 ENGINES = ("exudyn", "erls", "reduced")
 """The truth engines :func:`simulate` knows."""
+BEAMS = {"ancf": "ancf", "ge": "gebeam"}
+"""Exudyn beam choices: ANCF cable or geometrically exact beam (:func:`exuflex.groundtruth.build_truth`)."""
+INTEGRATORS = ("gen-alpha", "rk4")
+"""Integrators of the ERLS engine: implicit generalized-alpha, or the explicit RK4 reference."""
+EXUDYN_ELEMENTS_PER_LINK = 4
+"""The Exudyn truth's default mesh (converged within 0.5 % to ~190 Hz on the six-bar)."""
 
 
 @dataclass
 class Drive:
     """The manoeuvre's torque table (``t``, ``tau``: the rigid computed torque of the *nominal* model, the
-    controller's knowledge) and the start state ``q0``, ``qd0``; ``seconds`` is the time planning took."""
+    controller's knowledge, or a measured-torque manoeuvre's torques) and the start state ``q0``, ``qd0``;
+    ``seconds`` is the time planning and the torques took, ``plan_s`` the planning's part."""
 
     t: np.ndarray
     tau: np.ndarray
     q0: np.ndarray
     qd0: np.ndarray
     seconds: float = 0.0
+    plan_s: float = 0.0
 
 
 @dataclass
 class TruthRecord:
     """A truth: clean sensor channels and true states (:func:`exuflex.sensors.sensor_channels`,
     :func:`~exuflex.sensors.true_states`), and the torques as the measurement sees them (``torque_t``,
-    ``torques``: the zero-order-hold table); ``timings`` records the wall times (s)."""
+    ``torques``: the zero-order-hold table); ``timings`` records the wall times (s), ``settings`` the engine's
+    settings (mesh, beam, integrator, solver statistics)."""
 
     clean: Signals
     truth: Signals
     torque_t: np.ndarray
     torques: np.ndarray
     timings: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
 
 
 def plan_drive(nominal: Mechanism, duration: float, h: float,
                progress: Callable[[str, float], None] | None = None) -> Drive:
     """Plan the manoeuvre on a grid of step ``h`` up to ``duration`` and its open-loop computed torque on the
-    nominal model. ``progress`` is called with the phase (``"plan"``, ``"torque"``) and its fraction done."""
-    from ..manoeuvre import computed_torque, plan
+    nominal model (a measured-torque manoeuvre gives its torques instead). ``progress`` is called with the phase
+    (``"plan"``, ``"torque"``) and its fraction done."""
+    from ..manoeuvre import computed_torque, plan, torque_table
 
     def phase(name):
         return None if progress is None else (lambda f: progress(name, f))
 
     t0 = time.perf_counter()
     pl = plan(nominal, dt=h, t_end=duration, progress=phase("plan"))
-    tau = computed_torque(nominal, pl, progress=phase("torque"))
+    plan_s = time.perf_counter() - t0
+    if nominal.manoeuvre is not None and nominal.manoeuvre.kind == "torque":  # measured torques, open loop
+        tau = torque_table(nominal, nominal.manoeuvre, pl.t)
+    else:
+        tau = computed_torque(nominal, pl, progress=phase("torque"))
     return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
-                 np.asarray(pl.qd[0], float), time.perf_counter() - t0)
+                 np.asarray(pl.qd[0], float), time.perf_counter() - t0, plan_s)
 
 
 def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt: float, q0, qd0,
-               progress: Callable[[float], None] | None = None):
-    """The full-order ERLS model under the torque table (zero-order hold), RK4; returns a
+               progress: Callable[[float], None] | None = None, integrator: str = "gen-alpha",
+               stats: dict | None = None):
+    """The full-order ERLS model under the torque table (zero-order hold); returns a
     :class:`~exuflex.probes.ProbeRecord` sampled every ``output_dt``.
 
-    The step ``h`` is split into the fewest RK4 sub-steps that keep the model's linearisation at the start stable
-    (:func:`~exuflex.erls.simulate.rk4_substeps`: RK4 is stable for ``h |lambda| < 2.83``; a finer mesh with
-    stiffness damping has overdamped high modes with large real eigenvalues)."""
+    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``h`` (stable whatever the mesh's stiffest
+    mode). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
+    model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`: RK4 is stable for
+    ``h |lambda| < 2.83``; a finer mesh with stiffness damping has overdamped high modes with large real
+    eigenvalues). ``stats`` (a dict) receives the solver's statistics."""
+    from ..erls.implicit import erls_implicit
     from ..erls.model import ErlsModel
     from ..erls.simulate import rk4_substeps
     from ..erls.simulate import simulate as integrate
     from ..sensors import erls_probe_record
 
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
     model = ErlsModel(mech)
     n = model.n
     y0 = np.zeros(2 * n)
     y0[: model.nq] = q0
     y0[n : n + model.nq] = qd0
+    every = max(1, round(output_dt / h))
+    if integrator == "gen-alpha":
+        traj = erls_implicit(model, t_tab, tau, y0, duration, h, output_every=every, progress=progress, stats=stats)
+        return erls_probe_record(model, traj.t, traj.y)
     dt_tab = t_tab[1] - t_tab[0]
 
     def inputs(t):
@@ -106,8 +142,9 @@ def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt
     sub = rk4_substeps(model.state_matrix(model.configuration(np.asarray(q0, float)))[0], h)
     if sub > 1:
         log.info("ERLS truth: %d RK4 sub-steps per %g s step (stability at the start)", sub, h)
-    every = max(1, round(output_dt / h)) * sub
-    traj = integrate(model.rhs, y0, duration, inputs, h=h / sub, method="rk4", output_every=every,
+    if stats is not None:
+        stats.update(rk4_substeps=sub)
+    traj = integrate(model.rhs, y0, duration, inputs, h=h / sub, method="rk4", output_every=every * sub,
                      progress=progress)
     return erls_probe_record(model, traj.t, traj.y)
 
@@ -127,7 +164,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     from ..sensors import erls_probe_record, sensor_channels, true_states
 
     rm = make_observer(truth_mech).model.rm
-    som = ReducedObserverModel(rm, h=h, method="frozen")
+    som = ReducedObserverModel(rm, h=h, method="rk4")
     dt = 1.0 / truth_mech.sample_rate_hz
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
@@ -139,40 +176,84 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
         x, v = rm.full_state(z)
         Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
         if k < n - 1:
-            z, _ = som.step(z, tau[k], dt)
+            z = som.frozen_interval(z, tau[k], dt)[0].x
     rec = erls_probe_record(rm.model, t, Y)
     return TruthRecord(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
                        {"plan_and_torque_s": drive.seconds})
 
 
 def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", duration: float | None = None,
-             h: float = 1e-4, progress: Callable[[float], None] | None = None) -> TruthRecord:
+             h: float = 1e-4, progress: Callable[[float], None] | None = None, *,
+             elements_per_link: int | str | None = None, beam: str = "ancf",
+             integrator: str = "gen-alpha") -> TruthRecord:
     """Simulate ``truth_mech`` under ``drive`` for ``duration`` s (default: its manoeuvre's) with the truth
-    ``engine`` (one of :data:`ENGINES`), integration and torque-table step ``h``, output at the model's sample
-    rate; ``progress`` is called with the fraction done."""
+    ``engine`` (one of :data:`ENGINES`), step ``h``, output at the model's sample rate; ``progress`` is called
+    with the fraction done.
+
+    ``elements_per_link``: the truth's mesh, ``None`` (Exudyn: :data:`EXUDYN_ELEMENTS_PER_LINK` per link; ERLS: the
+    model file's), a positive integer (no element longer than 1/N of its link) or ``"file"``; ``beam``: Exudyn's
+    beam, a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of :data:`INTEGRATORS`. The record's
+    ``settings`` state them with the solver's statistics."""
     from ..sensors import monotonic_record, sensor_channels, true_states
 
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if beam not in BEAMS:
+        raise ValueError(f"beam must be one of {tuple(BEAMS)}, got {beam!r}")
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    if not (elements_per_link is None or elements_per_link == "file"
+            or (isinstance(elements_per_link, int) and elements_per_link >= 1)):
+        raise ValueError(f"elements_per_link must be a positive integer or 'file', got {elements_per_link!r}")
     if duration is None:
         if truth_mech.manoeuvre is None:
             raise ValueError(f"{truth_mech.source or truth_mech.name}: no [manoeuvre]; give a duration")
         duration = truth_mech.manoeuvre.duration
     timings = {"plan_and_torque_s": drive.seconds}
     output_dt = 1.0 / truth_mech.sample_rate_hz
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if engine == "reduced":
         rec = reduced_truth(truth_mech, drive, duration, h)
-        rec.timings.update(timings, truth_s=time.perf_counter() - t0)
+        rec.timings.update(timings, truth_s=time.perf_counter() - t0, truth_cpu_s=time.process_time() - c0)
+        rec.settings = {"engine": "reduced", "integrator": "the observer's reduced model, RK4 step map over each "
+                        "sample interval, torque sampled"}
         return rec
+    solver: dict = {}
     if engine == "exudyn":
         from ..groundtruth import simulate_truth  # Exudyn is imported only there
 
+        mesh = EXUDYN_ELEMENTS_PER_LINK if elements_per_link is None else elements_per_link
         probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
-                                progress=progress)
+                                progress=progress, elements_per_link=mesh, formulation=BEAMS[beam], stats=solver)
+        settings = {
+            "engine": "exudyn",
+            "beam": beam,
+            "formulation": BEAMS[beam],
+            "elements_per_link": mesh,
+            "hub_inertia": "rigid body welded to the node" if beam == "ancf" else "node rotation coordinate",
+            "integrator": "generalized-alpha (Exudyn)",
+            "n_coordinates": solver.get("n_coordinates"),
+            "newton_per_step": solver.get("newton_per_step"),
+        }
     else:
-        probes = erls_truth(truth_mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress)
+        from ..erls.implicit import GeneralizedAlpha
+        from ..mechanism import remesh_mechanism
+
+        mech = truth_mech
+        if elements_per_link not in (None, "file"):
+            mech = remesh_mechanism(truth_mech, elements_per_link)
+        probes = erls_truth(mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress,
+                            integrator=integrator, stats=solver)
+        settings = {
+            "engine": "erls",
+            "elements_per_link": "file" if elements_per_link is None else elements_per_link,
+            "n_elements": sum(lk.n_elements for lk in mech.links),
+            "integrator": integrator,
+            **({"rho_inf": GeneralizedAlpha().rho_inf} if integrator == "gen-alpha" else {}),
+            **solver,
+        }
     timings["truth_s"] = time.perf_counter() - t0
+    timings["truth_cpu_s"] = time.process_time() - c0
     probes = monotonic_record(probes)
     return TruthRecord(sensor_channels(truth_mech, probes), true_states(truth_mech, probes), drive.t, drive.tau,
-                       timings)
+                       timings, settings)
