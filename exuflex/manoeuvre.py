@@ -414,6 +414,7 @@ def plan(
     names = mech.coordinate_names
     nq = len(names)
     kin = Kinematics(mech)
+    kin.compiled = False  # its few single solves need no compiled kernels (nor their loading time)
     q = np.zeros((n, nq))
     qd = np.zeros((n, nq))
     qdd = np.zeros((n, nq))
@@ -636,6 +637,25 @@ def _link_forces(kin: Kinematics, z: np.ndarray, f: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rigid_rows(mech: Mechanism, model: ErlsModel, bodies, z, zd, zdd):
+    """``b = S_z^T Q_z`` (n_t, nq) and ``A = S_z^T G^T B`` (n_t, nq, n_motors) of the rigid inverse dynamics
+    (:func:`computed_torque`) at the link motions ``z, z', z''``."""
+    kin = model.kin
+    m, Sx, Sy, J = bodies
+    th, w, al = z[:, 2::3], zd[:, 2::3], zdd[:, 2::3]
+    c, s = np.cos(th), np.sin(th)
+    Sgx, Sgy = c * Sx - s * Sy, s * Sx + c * Sy
+    ax = zdd[:, 0::3] - mech.gravity[0]
+    ay = zdd[:, 1::3] - mech.gravity[1]
+    rhs = np.empty((len(z), 3 * kin.nl, 1 + len(mech.motors)))
+    rhs[:, 0::3, 0] = m * ax - al * Sgy - w**2 * Sgx
+    rhs[:, 1::3, 0] = m * ay + al * Sgx - w**2 * Sgy
+    rhs[:, 2::3, 0] = J * al + Sgx * ay - Sgy * ax
+    rhs[:, :, 1:] = _link_forces(kin, z, model.B_N)
+    Y = kin._E.T @ np.linalg.solve(np.swapaxes(kin.jacobian(z), 1, 2), rhs)  # S_z^T [Q_z, G^T B]
+    return Y[:, :, 0], Y[:, :, 1:]
+
+
 def computed_torque(
     mech: Mechanism,
     plan: Plan,
@@ -683,7 +703,9 @@ def computed_torque(
     ActuationError
         If the motors cannot actuate every coordinate (``rank (W^T B)_q < nq``).
     """
-    model = model if model is not None else ErlsModel(mech)
+    if model is None:
+        model = ErlsModel(mech)
+        model.compiled = model.kin.compiled = False  # one configuration: no compiled kernels (nor their loading)
     kin = model.kin
     nq = model.nq
     nm = len(mech.motors)
@@ -694,26 +716,19 @@ def computed_torque(
         z, zd, zdd = plan.z, plan.zd, plan.zdd
     if progress is not None:
         progress(0.2)
-    m, Sx, Sy, J = _link_bodies(model, plan.q[0], z[0])
-    th, w, al = z[:, 2::3], zd[:, 2::3], zdd[:, 2::3]
-    c, s = np.cos(th), np.sin(th)
-    Sgx, Sgy = c * Sx - s * Sy, s * Sx + c * Sy
-    ax = zdd[:, 0::3] - mech.gravity[0]
-    ay = zdd[:, 1::3] - mech.gravity[1]
-    rhs = np.empty((len(z), 3 * kin.nl, 1 + nm))
-    rhs[:, 0::3, 0] = m * ax - al * Sgy - w**2 * Sgx
-    rhs[:, 1::3, 0] = m * ay + al * Sgx - w**2 * Sgy
-    rhs[:, 2::3, 0] = J * al + Sgx * ay - Sgy * ax
-    rhs[:, :, 1:] = _link_forces(kin, z, model.B_N)
-    Y = kin._E.T @ np.linalg.solve(np.swapaxes(kin.jacobian(z), 1, 2), rhs)  # S_z^T [Q_z, G^T B]
-    b, A = Y[:, :, 0], Y[:, :, 1:]
-    rank = np.linalg.matrix_rank(A[0])
-    if rank < nq:
-        raise ActuationError(
-            f"{mech.source or mech.name}: the motors {list(mech.motor_names)} actuate only {rank} of the "
-            f"{nq} coordinates {list(mech.coordinate_names)}; computed torque needs rank {nq}"
-        )
-    tau = np.linalg.solve(A, b[:, :, None])[:, :, 0] if nm == nq else (np.linalg.pinv(A) @ b[:, :, None])[:, :, 0]
+    bodies = _link_bodies(model, plan.q[0], z[0])
+    tau = np.empty((len(z), nm))
+    for c0 in range(0, len(z), _CHUNK):  # in chunks: the batched arrays stay in cache
+        c = slice(c0, c0 + _CHUNK)
+        b, A = _rigid_rows(mech, model, bodies, z[c], zd[c], zdd[c])
+        if c0 == 0:
+            rank = np.linalg.matrix_rank(A[0])
+            if rank < nq:
+                raise ActuationError(
+                    f"{mech.source or mech.name}: the motors {list(mech.motor_names)} actuate only {rank} of the "
+                    f"{nq} coordinates {list(mech.coordinate_names)}; computed torque needs rank {nq}"
+                )
+        tau[c] = np.linalg.solve(A, b[:, :, None])[:, :, 0] if nm == nq else (np.linalg.pinv(A) @ b[:, :, None])[:, :, 0]
     if progress is not None:
         progress(1.0)
     return tau
