@@ -292,8 +292,9 @@ def _solve_path(ik: _PathIK, t, q, qd, qdd, p, pd, pdd, q0: np.ndarray, progress
     point (each started from the last point's Taylor prediction) on a coarse subset of at most
     :data:`_COARSE_POINTS` grid points, then Newton at every other point at once (batched), started from the
     cubic Hermite interpolation of the coarse solutions and their exact rates. A point whose batched Newton
-    fails, or lands farther from its start than a continuation step could explain (another assembly branch),
-    is solved from its predecessor instead, as a sequential solve would.
+    fails, or which does not continue its predecessor (the trapezoidal rule over the step, violated by a change
+    of assembly branch), is solved from its predecessor instead, as a sequential solve would, and so on until
+    the path rejoins the batch's.
     """
     kin, nz, free = ik.kin, ik.nz, ik.free
     n = len(t)
@@ -350,16 +351,26 @@ def _solve_path(ik: _PathIK, t, q, qd, qdd, p, pd, pdd, q0: np.ndarray, progress
         qg = q[r].copy()
         qg[:, free] = _hermite(t[k0], t[k1], q[k0][:, free], q[k1][:, free], qd[k0][:, free], qd[k1][:, free], tt)
         zs, qs, ok = ik.newton(zg, qg, p[r] if has_p else None)
-        # the interpolation is far closer than the links turn between coarse points; a larger move is a branch change
-        turn = np.max(np.abs(z[k1, 2::3] - z[k0, 2::3]), axis=1)
-        ok &= np.max(np.abs(zs[:, 2::3] - zg[:, 2::3]), axis=1) <= 1e-2 + 0.5 * turn
         qdr, qddr = qd[r], qdd[r]
         z[r], q[r] = zs, qs
         zd[r], zdd[r] = ik.rates(zs, qdr, qddr, pd[r] if has_p else None, pdd[r] if has_p else None)
         qd[r], qdd[r] = qdr, qddr
         solved[r] = ok
-    for k in rest[~solved[rest]]:  # the exceptions, one after the other from their predecessor
+    # every point must continue its predecessor: the trapezoidal rule over a step, z_k - z_k-1 = (z'_k-1 + z'_k) h / 2,
+    # holds to h^2 |z''| / 8 (z'' may jump), a change of assembly branch breaks it; such points and those whose
+    # Newton failed are solved from their predecessor, one after the other, until the path rejoins the batch
+    k = 1
+    while k < n:
+        j = np.arange(k, min(n, k + _CHUNK))
+        h = (t[j] - t[j - 1])[:, None]
+        gap = np.abs(z[j] - z[j - 1] - 0.5 * h * (zd[j] + zd[j - 1]))
+        bad = ~solved[j] | np.any(gap > 0.5 * h**2 * (np.abs(zdd[j]) + np.abs(zdd[j - 1])) + 1e-9, axis=1)
+        if not bad.any():
+            k = j[-1] + 1
+            continue
+        k = j[np.argmax(bad)]
         sequential([k], None, None, k - 1)
+        k += 1
     if progress is not None:
         progress(0.9)
     # the closure must be regular along the path (the coarse points; continuation keeps the branch between)
