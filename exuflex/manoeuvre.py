@@ -415,6 +415,7 @@ def plan(
     src = mech.source or mech.name
     if man is None:
         raise ValueError(f"{src}: the model has no [manoeuvre] and none was given")
+    src = man.source or src
     if not dt > 0:
         raise ValueError(f"plan: dt must be positive, got {dt}")
     if man.kind not in KINDS:
@@ -593,8 +594,7 @@ def write_trajectory(path, plan: Plan, *, rates: bool = True) -> None:
     data = np.hstack(cols)
     with open(path, "w", encoding="utf-8") as fh:
         fh.write(",".join(header) + "\n")
-        for row in data:
-            fh.write(",".join(repr(float(v)) for v in row) + "\n")
+        fh.writelines(",".join(repr(float(v)) for v in row) + "\n" for row in data)
 
 
 # ---------------------------------------------------------------------------------------- inverse dynamics
