@@ -310,7 +310,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     from ..sensors import erls_probe_record, sensor_channels, true_states
 
     rm = make_observer(truth_mech).model.rm
-    som = ReducedObserverModel(rm, h=h, method="frozen")
+    som = ReducedObserverModel(rm, h=h, method="rk4")
     dt = 1.0 / truth_mech.sample_rate_hz
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
@@ -322,7 +322,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
         x, v = rm.full_state(z)
         Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
         if k < n - 1:
-            z, _ = som.step(z, tau[k], dt)
+            z = som.frozen_interval(z, tau[k], dt)[0].x
     rec = erls_probe_record(rm.model, t, Y)
     return LevelTruth(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
                       {"plan_and_torque_s": drive.seconds})
