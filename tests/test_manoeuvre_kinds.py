@@ -254,6 +254,12 @@ def test_five_bar_tip_arc_simulates_and_torque_file_reproduces_it(five, tmp_path
     assert meta_b["settings"]["manoeuvre"]["file"].endswith("torques.csv")
     run_b = read_run(b)
     np.testing.assert_allclose(run_b.truth.data, truth.data, rtol=0, atol=1e-9 * np.abs(truth.data).max())
+    # exuflex observe takes the run's manoeuvre (its start) from the run's record
+    from exuflex.cli.observe import run_manoeuvre
+
+    assert run_manoeuvre(five, run_a) is five
+    observed = run_manoeuvre(five, run_b).manoeuvre
+    assert observed.kind == "torque" and observed.q0 == tuple(q0)
 
 
 def test_simulate_reports_a_bad_manoeuvre_file_in_one_line(tmp_path, capsys):

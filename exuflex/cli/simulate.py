@@ -283,7 +283,8 @@ def simulate_run(
     meas = measure(mech, clean, pl.t, tau, seed=seed, t_end=duration)
     payload = truth_mech.payload
     man = mech.manoeuvre
-    man_meta = {"kind": man.kind, "duration_s": man.duration, "source": str(manoeuvre) if manoeuvre else "model"}
+    man_meta = {"kind": man.kind, "duration_s": man.duration,
+                "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
     if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
         man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
     if man.kind == "waypoints":
