@@ -64,6 +64,7 @@ def simulate(
     progress: Callable[[float], None] | None = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
+    jac: Callable[[float, np.ndarray], np.ndarray] | None = None,
 ) -> Trajectory:
     """Integrate ``y' = f(t, y, inputs(t))`` from 0 to ``t_end``.
 
@@ -74,6 +75,8 @@ def simulate(
         samples the output every ``h * output_every``.
     output_every : store every k-th step.
     progress : called with the fraction done (0..1) from time to time.
+    jac : ``dy'/dy (t, y)`` for the implicit ``solve_ivp`` methods ("Radau", "BDF", "LSODA"); without it they
+        estimate it by finite differences.
     """
     y0 = np.asarray(y0, float)
     n_steps = int(round(t_end / h))
@@ -95,7 +98,8 @@ def simulate(
         return Trajectory(np.array(ts), np.array(ys))
     t_eval = np.arange(0, n_steps + 1, output_every) * h
     sol = solve_ivp(
-        lambda t, y: f(t, y, inputs(t)), (0.0, t_end), y0, method=method, t_eval=t_eval, rtol=rtol, atol=atol
+        lambda t, y: f(t, y, inputs(t)), (0.0, t_end), y0, method=method, t_eval=t_eval, rtol=rtol, atol=atol,
+        **({} if jac is None else {"jac": jac}),
     )
     if not sol.success:
         raise FloatingPointError(f"solve_ivp ({method}) failed: {sol.message}")
