@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["beam_stiffness", "beam_mass", "beam_gyroscopic", "rotation", "hermite_curvature_row", "GENERATOR"]
+__all__ = ["GENERATOR", "beam_gyroscopic", "beam_mass", "beam_stiffness", "hermite_curvature_row", "rotation"]
 
 
 def beam_stiffness(EA: float, EI: float, L: float) -> np.ndarray:

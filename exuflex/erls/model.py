@@ -59,7 +59,7 @@ from ._assembly import nodal_matrices
 from .elements import GENERATOR, beam_gyroscopic, beam_mass, beam_stiffness, hermite_curvature_row, rotation
 from .kinematics import Kinematics, Pose
 
-__all__ = ["FORMS", "ErlsModel", "Configuration"]
+__all__ = ["FORMS", "Configuration", "ErlsModel"]
 
 FORMS = ("lagrange", "eq2")  # the velocity forces and damping of the equations of motion (module docstring)
 

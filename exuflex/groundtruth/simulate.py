@@ -116,8 +116,8 @@ def probe_values(
                 vals.append(w @ ce[:, :, :2])
                 rates.append(w @ cde[:, :, :2])
             elif probe.kind == "slope":
-                vals.append((w @ ce[:, :, 2])[:, None])
-                rates.append((w @ cde[:, :, 2])[:, None])
+                vals.append((ce[:, :, 2] @ w)[:, None])
+                rates.append((cde[:, :, 2] @ w)[:, None])
             else:
                 vals.append(((ce[:, 1, 2] - ce[:, 0, 2]) / L)[:, None])
                 rates.append(((cde[:, 1, 2] - cde[:, 0, 2]) / L)[:, None])
