@@ -87,8 +87,9 @@ class ErlsModel:
     mech : Mechanism
         The mechanism (e.g. from :func:`exuflex.mechanism.load_mechanism`).
     form : "lagrange" or "eq2"
-        The velocity-dependent forces and damping: the energy-consistent Lagrange form or the paper's eq. 2 as
-        written (see the module docstring).
+        The velocity-dependent forces and damping: the energy-consistent Lagrange form (default: on the six-bar's
+        manoeuvre it agrees with the Exudyn truth, eq. 2 as written does not, and on the spin-up benchmark the two
+        are equal; ``docs/validity.md``) or the paper's eq. 2 as written (see the module docstring).
     """
 
     def __init__(self, mech: Mechanism, form: str = "lagrange"):
