@@ -413,28 +413,28 @@ class ErlsModel:
             F = F + cfg.W.T @ f_nodal
         return F
 
-    def _balance(self, x: np.ndarray, v: np.ndarray, tau, cfg: Configuration) -> tuple[np.ndarray, np.ndarray]:
-        """``(M, F - h - C v - K x)``: the mass matrix and the forces that balance ``M v'`` at (x, v)."""
+    def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """Right-hand side of eq. 2, ``W^T (B tau + M_N g) - h(x, v) - C v - K x``, so that ``M v' = net_forces``
+        (``h`` and ``C`` of the model's form)."""
         nq = self.nq
-        M = self.mass(cfg)
         rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
-        Tt = self.T.T
-        Kuu = Tt @ cfg.K_N @ self.T
-        rhs[nq:] -= Kuu @ x[nq:]
+        T, Tt = self.T, self.T.T
+        # K_uu u = T^T K_N T u and C_uu u' = T^T (alpha M_N + beta K_N) T u', as matrix-vector products
+        rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
         if self.alpha or self.beta:
-            if self.form == "eq2":  # W^T C_N T u'
-                Tud = self.T @ v[nq:]
-                rhs -= cfg.W.T @ (self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud))
+            Tud = T @ v[nq:]
+            Cud = self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud)
+            if self.form == "eq2":  # W^T C_N T u': also the q rows
+                rhs -= cfg.W.T @ Cud
             else:
-                rhs[nq:] -= (self.alpha * (Tt @ cfg.M_N @ self.T) + self.beta * Kuu) @ v[nq:]
-        return M, rhs
+                rhs[nq:] -= Tt @ Cud
+        return rhs
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
         """v' from eq. 2 at state (x, v) under motor torques tau."""
         if cfg is None:
             cfg = self.configuration(x[: self.nq])
-        M, rhs = self._balance(x, v, tau, cfg)
-        return np.linalg.solve(M, rhs)
+        return np.linalg.solve(self.mass(cfg), self.net_forces(cfg, x, v, tau))
 
     def prescribed_accelerations(self, x: np.ndarray, v: np.ndarray, qdd: np.ndarray,
                                  cfg: Configuration | None = None) -> np.ndarray:
@@ -444,7 +444,8 @@ class ErlsModel:
         if cfg is None:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
-        M, rhs = self._balance(x, v, np.zeros(len(self.mech.motors)), cfg)
+        M = self.mass(cfg)
+        rhs = self.net_forces(cfg, x, v, np.zeros(len(self.mech.motors)))
         return np.linalg.solve(M[nq:, nq:], rhs[nq:] - M[nq:, :nq] @ np.asarray(qdd, float))
 
     def prescribed_jacobian(self, x: np.ndarray, v: np.ndarray, cfg: Configuration | None = None) -> np.ndarray:

@@ -100,13 +100,16 @@ class CraigBampton:
     Parameters
     ----------
     model : ErlsModel
-    masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")``); the ERLS
-        coordinates are always masters. Default: the model file's ``[reduction] masters``.
+    masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")`` or
+        ``("node9.transverse",)``); the ERLS coordinates are always masters. Default: the model file's
+        ``[reduction] masters``, else the transverse dofs at the joints and tips (:mod:`.masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
-    n_interior : number of interior modes, or ``"auto"`` (the smallest ranked set meeting
-        ``nco_min`` and ``freq_error_max_pct`` for every full mode below ``band_hz`` at q*), or ``None``
-        (the model file's value, else ``"auto"``).
+    n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
+        ``freq_error_max_pct`` for every full mode below ``band_hz`` at q* and at every configuration of
+        ``path``), or ``None`` (the model file's value, else ``"auto"``).
     ranking : ``"imr"`` (interior-mode ranking) or ``"frequency"`` (lowest modes).
+    path : configurations (n, nq) the interior modes are chosen over besides q* (:mod:`.path`); default
+        (``None``): ``path_samples`` configurations of the model's manoeuvre; ``False``: q* only.
     """
 
     def __init__(
@@ -119,14 +122,41 @@ class CraigBampton:
         band_hz: float | None = None,
         nco_min: float | None = None,
         freq_error_max_pct: float | None = None,
+        path=None,
+        path_samples: int = 16,
     ):
         t0 = time.perf_counter()
         spec = model.mech.reduction
         self.model = model
         src = model.mech.source or model.mech.name
+        self.nq = model.nq
+        qs = q_star if q_star is not None else (spec.q_star or model.mech.q_ref)
+        self.q_star = np.asarray(qs, float)
+        if self.q_star.shape != (self.nq,):
+            raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
+        # the configurations the interior modes (and automatic masters) are chosen over (.path)
+        from .path import PathSamples, manoeuvre_configurations
+
+        if path is None:
+            path = manoeuvre_configurations(model.mech, path_samples)
+        elif path is False:
+            path = None
+        q_samples = self.q_star[None, :]
+        if path is not None:
+            path = np.atleast_2d(np.asarray(path, float))
+            if path.shape[1:] != (self.nq,):
+                raise ValueError(f"{src}: path configurations must have {self.nq} entries each, got {path.shape}")
+            q_samples = np.vstack([q_samples, path])
         masters = tuple(spec.masters if masters is None else masters)
+        # none named: the transverse dofs at the joints and tips (.masters)
+        self.automatic_masters = not masters
         if not masters:
-            raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters)")
+            from .masters import automatic_masters
+
+            masters = automatic_masters(model, q_samples)
+            if not masters:
+                raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters) "
+                                 "and no joint off the ground or free tip to choose them at")
         try:
             refs = [model.dofs.locate(m) for m in masters]
         except KeyError as e:
@@ -147,7 +177,6 @@ class CraigBampton:
         # R(q, q*): the interior modes turn with their nodes (the paper's modification); False keeps Phi(q*)
         # fixed in the global frame (to show what the rotation buys)
         self.rotate = True
-        self.nq = model.nq
         self.n_m = self.nq + len(im)
         self.band_hz = float(spec.band_hz if band_hz is None else band_hz)
         self.nco_min = float(spec.nco_min if nco_min is None else nco_min)
@@ -155,10 +184,6 @@ class CraigBampton:
         if ranking not in ("imr", "frequency"):
             raise ValueError(f"ranking must be 'imr' or 'frequency', got {ranking!r}")
         self.ranking = ranking
-        qs = q_star if q_star is not None else (spec.q_star or model.mech.q_ref)
-        self.q_star = np.asarray(qs, float)
-        if self.q_star.shape != (self.nq,):
-            raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
         self._pairs_setup(refs)
         # interior modes at q*, in the partition's coordinates w = Q(q*)^T u
         self.cfg_star = model.configuration(self.q_star)
@@ -173,27 +198,24 @@ class CraigBampton:
         self.interior_frequencies_hz = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
         self.Phi_all = Phi  # (s, s), M_ss-orthonormal, ascending frequency
         self._theta_star = self.cfg_star.pose.r[2::3].copy()
-        B_star = self._guyan(Kuu)[0]
-        # ranking
-        from ..erls.modal import modal_analysis
-
-        full = modal_analysis(model, self.q_star)
-        band = full.frequencies_hz <= self.band_hz
-        shapes = full.shapes[:, band].copy()
-        shapes[nq:] = self._to_frame(shapes[nq:], qc, qs)
-        self.scores = interior_mode_scores(
-            Phi, Muu[np.ix_(s_, s_)], shapes[nq + s_], shapes[nq + self.im], B_star
-        )
-        order = np.argsort(-self.scores, kind="stable") if ranking == "imr" else np.arange(Phi.shape[1])
-        self.order = order
+        # the interior modes' order and count, chosen at q* and along the path (.path)
+        self.order = np.arange(Phi.shape[1])
+        self.set_interior(Phi.shape[1])
+        samples = PathSamples(self, q_samples)
+        self.scores = samples.scores[0]  # IMR scores at q*
+        if n_interior is None:
+            n_interior = spec.n_interior if spec.n_interior is not None else "auto"
+        self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior))
+        self.path_q = q_samples  # q* and the path's configurations the choice was made on
         if n_interior is None:
             n_interior = spec.n_interior if spec.n_interior is not None else "auto"
         if n_interior == "auto":
-            n_interior = self._auto_count(full)
+            n_interior = n_needed
         n_interior = int(n_interior)
         if not 0 <= n_interior <= Phi.shape[1]:
             raise ValueError(f"{src}: n_interior must be in 0..{Phi.shape[1]} (number of slaves), got {n_interior}")
         self.set_interior(n_interior)
+        self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
@@ -277,16 +299,6 @@ class CraigBampton:
         Pu = np.zeros((self.model.ne, k))
         Pu[self.is_] = self.Phi
         self._Phi_u = np.ascontiguousarray(self._to_frame(Pu, *self._frame_cs(self.cfg_star), inverse=True))
-
-    def _auto_count(self, full) -> int:
-        from .accuracy import accuracy_indices
-
-        for k in range(0, self.Phi_all.shape[1] + 1):
-            self.set_interior(k)
-            acc = accuracy_indices(self, self.q_star, full=full)
-            if acc.ok(self.nco_min, self.freq_error_max_pct):
-                return k
-        return self.Phi_all.shape[1]
 
     # ------------------------------------------------------------------ basis
     def _guyan(self, Kuu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
