@@ -102,7 +102,8 @@ class CraigBampton:
     model : ErlsModel
     masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")`` or
         ``("node9.transverse",)``); the ERLS coordinates are always masters. Default: the model file's
-        ``[reduction] masters``, else the transverse dofs at the joints and tips (:mod:`.masters`).
+        ``[reduction] masters``, else (and for ``"auto"``) the transverse dofs at the joints and tips
+        (:mod:`.masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
     n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
         ``freq_error_max_pct`` for every full mode below ``band_hz`` at q* and at every configuration of
@@ -147,8 +148,10 @@ class CraigBampton:
             if path.shape[1:] != (self.nq,):
                 raise ValueError(f"{src}: path configurations must have {self.nq} entries each, got {path.shape}")
             q_samples = np.vstack([q_samples, path])
-        masters = tuple(spec.masters if masters is None else masters)
-        # none named: the transverse dofs at the joints and tips (.masters)
+        masters = tuple(spec.masters if masters is None else ([masters] if isinstance(masters, str) else masters))
+        if masters == ("auto",):
+            masters = ()
+        # none named (or "auto"): the transverse dofs at the joints and tips (.masters)
         self.automatic_masters = not masters
         if not masters:
             from .masters import automatic_masters
@@ -216,6 +219,12 @@ class CraigBampton:
             raise ValueError(f"{src}: n_interior must be in 0..{Phi.shape[1]} (number of slaves), got {n_interior}")
         self.set_interior(n_interior)
         self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
+        missed = [a for a in self.path_accuracy if not a.ok(self.nco_min, self.freq_error_max_pct)]
+        if missed:
+            a = min(missed, key=lambda a: a.worst_nco)
+            log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
+                        "(worst NCO %.4f at q = %s); 'auto' would keep %d", src, n_interior, len(missed),
+                        len(self.path_accuracy), a.worst_nco, np.round(a.q, 4).tolist(), n_needed)
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
