@@ -54,6 +54,8 @@ import scipy.linalg as sla
 
 from ..erls.model import Configuration, ErlsModel
 from . import _compiled
+from .masters import automatic_masters
+from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -74,24 +76,6 @@ class ReducedConfiguration:
     @property
     def q(self) -> np.ndarray:
         return self.cfg.q
-
-
-def interior_mode_scores(Phi_all: np.ndarray, M_ss: np.ndarray, band_shapes_s: np.ndarray, band_shapes_m: np.ndarray,
-                         B: np.ndarray) -> np.ndarray:
-    """IMR score of every interior mode (see module docstring).
-
-    Parameters
-    ----------
-    Phi_all : (s, n_int) all interior modes, M_ss-orthonormal.
-    M_ss : (s, s) slave mass block.
-    band_shapes_s, band_shapes_m : slave and elastic-master rows of the full band modes (s, n_band), (m_e, n_band).
-    B : (s, m_e) Guyan shapes of the elastic masters.
-    """
-    r = band_shapes_s - B @ band_shapes_m
-    c = Phi_all.T @ M_ss @ r  # (n_int, n_band)
-    norms = np.einsum("ij,ik,kj->j", r, M_ss, r)
-    norms = np.where(norms > 0, norms, 1.0)
-    return (c**2 / norms).sum(axis=1)
 
 
 class CraigBampton:
@@ -136,8 +120,6 @@ class CraigBampton:
         if self.q_star.shape != (self.nq,):
             raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
         # the configurations the interior modes (and automatic masters) are chosen over (.path)
-        from .path import PathSamples, manoeuvre_configurations
-
         if path is None:
             path = manoeuvre_configurations(model.mech, path_samples)
         elif path is False:
@@ -154,8 +136,6 @@ class CraigBampton:
         # none named (or "auto"): the transverse dofs at the joints and tips (.masters)
         self.automatic_masters = not masters
         if not masters:
-            from .masters import automatic_masters
-
             masters = automatic_masters(model, q_samples)
             if not masters:
                 raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters) "
