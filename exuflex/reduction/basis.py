@@ -174,8 +174,8 @@ class CraigBampton:
         K = model.stiffness(self.cfg_star)
         nq = self.nq
         qc, qs = self._frame_cs(self.cfg_star)
-        Muu = self._to_frame(self._to_frame(M[nq:, nq:], qc, qs).T, qc, qs)
-        Kuu = self._to_frame(self._to_frame(K[nq:, nq:], qc, qs).T, qc, qs)
+        Muu = self._congruence(M[nq:, nq:], qc, qs)
+        Kuu = self._congruence(K[nq:, nq:], qc, qs)
         s_ = self.is_
         w2, Phi = sla.eigh(Kuu[np.ix_(s_, s_)], Muu[np.ix_(s_, s_)])
         self.interior_frequencies_hz = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
@@ -264,6 +264,12 @@ class CraigBampton:
         X[py] = -s * A + c * Bm
         return X
 
+    def _congruence(self, A: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """``Q^T A Q`` for a symmetric elastic-coordinate matrix ``A`` (``A`` itself without link-frame pairs)."""
+        if not self.has_local:
+            return A
+        return np.ascontiguousarray(self._to_frame(self._to_frame(A, c, s).T, c, s))
+
     def frame_rotation(self, q_or_cfg) -> np.ndarray:
         """Q(q) as a (ne, ne) matrix: ``u = Q w`` from the partition's coordinates ``w`` (link-frame pairs
         along and across their links) to the global elastic coordinates ``u``."""
@@ -341,7 +347,7 @@ class CraigBampton:
                                                       qc, qs, self.has_local)
             return ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
         Kuu = T.T @ cfg.K_N @ T
-        B, Kinv = self._guyan(self._to_frame(self._to_frame(Kuu, qc, qs).T, qc, qs))  # K_w = Q^T K_uu Q
+        B, Kinv = self._guyan(self._congruence(Kuu, qc, qs))  # K_w = Q^T K_uu Q
         Psi = self.rotated_modes(cfg)
         H = np.zeros((nq + ne, self.r))
         H[:nq, :nq] = np.eye(nq)

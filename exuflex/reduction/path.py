@@ -95,7 +95,7 @@ class PathSamples:
             rc = cb.at(q)
             M, K = model.mass(rc.cfg), model.stiffness(rc.cfg)
             qc, qsn = cb._frame_cs(rc.cfg)
-            Mw = cb._to_frame(cb._to_frame(M[nq:, nq:], qc, qsn).T, qc, qsn)
+            Mw = cb._congruence(M[nq:, nq:], qc, qsn)
             band = full.frequencies_hz <= cb.band_hz
             shapes = cb._to_frame(full.shapes[nq:, band], qc, qsn)
             scores.append(interior_mode_scores(rc.Psi, Mw[np.ix_(s_, s_)], shapes[s_], shapes[cb.im], rc.B))
