@@ -5,21 +5,34 @@ torque from the rigid-body model*. This module turns a :class:`~exuflex.mechanis
 
 - a :class:`Plan`: the ERLS coordinates ``q(t)`` and their exact rates ``q'(t)``, ``q''(t)`` on a
   uniform time grid (:func:`plan`);
-- the motor torques of the rigid inverse dynamics along the plan (:func:`computed_torque`).
+- the motor torques of the rigid inverse dynamics along the plan (:func:`computed_torque`), evaluated
+  link by link with the link poses' motion, all time points at once.
 
 Time laws map ``t`` in ``[0, T]`` to the path parameter ``s`` in ``[0, 1]`` (:func:`time_law`);
 before 0 and after ``T`` the law holds ``s`` at 0 or 1 with zero rates.
 
 Path kinds
 ----------
-``tip_arc``
-    The point ``tip`` follows ``p(s) = centre + radius [cos phi, sin phi]`` with
-    ``phi = phi_start + (phi_end - phi_start) s``; the coordinates named in ``rules`` follow
-    ``q = start + (end - start) s``; the remaining coordinates (as many as the tip has components,
+``tip_arc``, ``tip_line``, ``tip_polyline``
+    The point ``tip`` follows the path: ``p(s) = centre + radius [cos phi, sin phi]`` with
+    ``phi = phi_start + (phi_end - phi_start) s``, or the polyline's segments one after the other, each with
+    the time law over its share of the duration (resting at every corner); the coordinates named in ``rules``
+    follow ``q = start + (end - start) s``; the remaining coordinates (as many as the tip has components,
     two) come from inverse kinematics: Newton's method on the ERLS closure ``Phi(z, q) = 0`` together
-    with the tip equations ``p_tip(z) = p(s)``, unknowns the link poses ``z`` and the free ``q``.
+    with the tip equations ``p_tip(z) = p``, unknowns the link poses ``z`` and the free ``q``.
 ``joint``
     Every coordinate follows its rule.
+``waypoints``
+    Every coordinate through its waypoints: quintic segments resting at each, or a C2 cubic spline resting at
+    both ends.
+``trajectory``
+    Samples of every coordinate, or of the tip and the other coordinates (inverse kinematics as for the tip
+    paths): quintic Hermite through values, rates and accelerations where given, else a C2 cubic spline.
+``torque``
+    Measured torques (:func:`torque_table`); the plan is rest at the starting configuration.
+
+The closure is solved along the whole path in batches (:func:`_solve_path`): point by point on a coarse
+subset, then every other point at once from an interpolated start.
 
 Rates are exact (no finite differences): with the tip Jacobian ``J = dp_tip/dq`` (from
 :meth:`Kinematics.point`), ``J q' = p_s s'`` and ``J q'' = p_ss s'^2 + p_s s'' - (dJ/dt) q'``, where
@@ -36,13 +49,16 @@ import numpy as np
 
 from .erls.kinematics import Kinematics, KinematicsError
 from .erls.model import ErlsModel
-from .mechanism import Manoeuvre, Mechanism
+from .mechanism import Manoeuvre, Mechanism, ModelFileError
+from .mechanism.loader import position_columns
 
-__all__ = ["TIME_LAWS", "ActuationError", "Plan", "computed_torque", "plan", "time_law"]
+__all__ = ["KINDS", "TIME_LAWS", "ActuationError", "Plan", "computed_torque", "plan", "time_law", "torque_table",
+           "write_trajectory"]
 
 log = logging.getLogger(__name__)
 
 TIME_LAWS = ("trapezoid", "quintic", "cycloidal")
+KINDS = ("joint", "tip_arc", "tip_line", "tip_polyline", "waypoints", "trajectory", "torque")
 
 
 class ActuationError(ValueError):
@@ -390,45 +406,183 @@ def plan(
         raise ValueError(f"{src}: the model has no [manoeuvre] and none was given")
     if not dt > 0:
         raise ValueError(f"plan: dt must be positive, got {dt}")
+    if man.kind not in KINDS:
+        raise ModelFileError(src, "manoeuvre.kind", f"one of {list(KINDS)}", man.kind)
     t_end = man.duration if t_end is None else float(t_end)
     n = round(t_end / dt) + 1
     t = np.arange(n) * dt
-    s, sd, sdd = time_law(man.time_law, t, man.duration, man.ramp_time)
     names = mech.coordinate_names
     nq = len(names)
-    ruled = {names.index(c): (a, b) for c, a, b in man.rules}
     kin = Kinematics(mech)
-    q = np.empty((n, nq))
-    qd = np.empty((n, nq))
-    qdd = np.empty((n, nq))
-    idx = np.array(sorted(ruled), dtype=int)
-    if len(idx):
-        a = np.array([ruled[k][0] for k in idx])
-        b = np.array([ruled[k][1] for k in idx])
-        q[:, idx] = a + np.outer(s, b - a)
-        qd[:, idx] = np.outer(sd, b - a)
-        qdd[:, idx] = np.outer(sdd, b - a)
-    if man.kind not in ("tip_arc", "joint"):
-        raise ValueError(f"{src}: manoeuvre kind must be 'tip_arc' or 'joint', got {man.kind!r}")
-    free = [k for k in range(nq) if k not in ruled]
-    if man.kind == "joint":
-        if free:
-            raise ValueError(f"{src}: a 'joint' manoeuvre needs one rule per coordinate {list(names)}")
-        tip = p = pd = pdd = None
-    else:
-        if len(free) != 2:
-            raise ValueError(
-                f"{src}: a 'tip_arc' manoeuvre needs exactly 2 coordinates without rules (the tip has 2 components); "
-                f"free: {[names[k] for k in free]}"
-            )
-        p, pd, pdd = (x.T for x in _arc(man, s, sd, sdd))
-        tip = (kin.link_names.index(man.tip.link), man.tip.station)
+    q = np.zeros((n, nq))
+    qd = np.zeros((n, nq))
+    qdd = np.zeros((n, nq))
+    given: set[int] = set()
+    p = pd = pdd = None
     q0 = np.array(q_guess if q_guess is not None else (mech.q_ref or np.zeros(nq)), float)
+    if man.kind in ("waypoints", "trajectory", "torque"):
+        s = np.clip(t / man.duration, 0.0, 1.0)
+    else:
+        s, sd, sdd = time_law(man.time_law, t, man.duration, man.ramp_time)
+    if man.kind == "torque":  # no planned motion: rest at the starting configuration
+        q[:] = np.asarray(man.q0, float) if man.q0 else q0
+        given = set(range(nq))
+    elif man.kind == "waypoints":
+        q[:], qd[:], qdd[:] = _waypoints(man, t)
+        given = set(range(nq))
+    elif man.kind == "trajectory":
+        cols, y, yd, ydd = _trajectory(man, names, t)
+        for j, c in enumerate(cols):
+            if c in names:
+                k = names.index(c)
+                q[:, k], qd[:, k], qdd[:, k] = y[:, j], yd[:, j], ydd[:, j]
+                given.add(k)
+        if "tip_x" in cols:
+            j = [cols.index("tip_x"), cols.index("tip_y")]
+            p, pd, pdd = y[:, j], yd[:, j], ydd[:, j]
+    else:
+        for c, a, b in man.rules:
+            k = names.index(c)
+            q[:, k], qd[:, k], qdd[:, k] = a + (b - a) * s, (b - a) * sd, (b - a) * sdd
+            given.add(k)
+        if man.kind == "tip_arc":
+            p, pd, pdd = (x.T for x in _arc(man, s, sd, sdd))
+        elif man.kind in ("tip_line", "tip_polyline"):
+            p, pd, pdd = _polyline(man, t, src)
+    free = [k for k in range(nq) if k not in given]
+    if p is None and free:
+        raise ModelFileError(src, "manoeuvre.rules", f"one rule per coordinate {list(names)} (a {man.kind!r} "
+                             "manoeuvre)", [names[k] for k in sorted(given)])
+    if p is not None and len(free) != 2:
+        raise ModelFileError(src, "manoeuvre.rules", f"exactly 2 coordinates without rules (the tip has 2 "
+                             f"components; a {man.kind!r} manoeuvre on {list(names)}); free", [names[k] for k in free])
+    tip = None if p is None else (kin.link_names.index(man.tip.link), man.tip.station)
     ik = _PathIK(kin, free, tip)
     z, zd, zdd = _solve_path(ik, t, q, qd, qdd, p, pd, pdd, q0, progress)
     if progress is not None:
         progress(1.0)
     return Plan(t, q, qd, qdd, names, s, z, zd, zdd)
+
+
+# ---------------------------------------------------------------------------------------- paths and samples
+_QUINTIC = np.array([  # quintic Hermite basis on u in [0, 1]: coefficients of u^0..u^5 of the weights of
+    [1, 0, 0, -10, 15, -6],  # y0
+    [0, 1, 0, -6, 8, -3],  # h y0'
+    [0, 0, 0.5, -1.5, 1.5, -0.5],  # h^2 y0''
+    [0, 0, 0, 0.5, -1, 0.5],  # h^2 y1''
+    [0, 0, 0, -4, 7, -3],  # h y1'
+    [0, 0, 0, 10, -15, 6],  # y1
+], float)
+
+
+def _hermite5(ts, Y, dY, ddY, t):
+    """Piecewise quintic Hermite interpolation of samples ``(ts, Y, Y', Y'')`` (rows) at times ``t``: the
+    values, rates and accelerations, exact at the samples and continuous (C2) between them. Beyond the last
+    sample the last value at rest."""
+    ts = np.asarray(ts, float)
+    i = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, len(ts) - 2)
+    h = (ts[i + 1] - ts[i])[:, None]
+    u = np.clip((t - ts[i]) / h[:, 0], 0.0, 1.0)
+    P = np.stack([u**k for k in range(6)], 1)
+    dP = np.stack([k * u ** max(k - 1, 0) if k else np.zeros_like(u) for k in range(6)], 1)
+    ddP = np.stack([k * (k - 1) * u ** max(k - 2, 0) if k > 1 else np.zeros_like(u) for k in range(6)], 1)
+    terms = (Y[i], h * dY[i], h**2 * ddY[i], h**2 * ddY[i + 1], h * dY[i + 1], Y[i + 1])
+    y = sum((P @ c)[:, None] * v for c, v in zip(_QUINTIC, terms, strict=True))
+    yd = sum((dP @ c)[:, None] * v for c, v in zip(_QUINTIC, terms, strict=True)) / h
+    ydd = sum((ddP @ c)[:, None] * v for c, v in zip(_QUINTIC, terms, strict=True)) / h**2
+    after = t > ts[-1]
+    y[after], yd[after], ydd[after] = Y[-1], 0.0, 0.0
+    return y, yd, ydd
+
+
+def _spline(ts, Y, t, bc_type):
+    """C2 cubic spline through the samples (rows of Y) at times t; the last sample at rest beyond it."""
+    from scipy.interpolate import CubicSpline
+
+    sp = CubicSpline(np.asarray(ts, float), Y, axis=0, bc_type=bc_type)
+    tc = np.minimum(t, ts[-1])
+    y, yd, ydd = sp(tc), sp(tc, 1), sp(tc, 2)
+    after = t > ts[-1]
+    yd[after], ydd[after] = 0.0, 0.0
+    return y, yd, ydd
+
+
+def _waypoints(man: Manoeuvre, t):
+    """q, q', q'' through the waypoints: quintic segments resting at every waypoint, or a C2 cubic spline with
+    zero rates at both ends (``clamped``)."""
+    W = np.asarray(man.waypoints, float)
+    if man.interpolation == "spline":
+        return _spline(man.times, W, t, "clamped")
+    zero = np.zeros_like(W)
+    return _hermite5(man.times, W, zero, zero, t)
+
+
+def _trajectory(man: Manoeuvre, names, t):
+    """The position columns of a trajectory's samples and their values, rates and accelerations at t: quintic
+    Hermite through the samples' values, rates (``d<name>``) and accelerations (``dd<name>``) if the file
+    gives them (exact at the samples, so a plan written with its rates reads back equal), else a C2 cubic
+    spline through the values (not-a-knot ends)."""
+    cols = list(man.columns)
+    pos = position_columns(cols, names)
+    S = np.asarray(man.samples, float)
+    ts = S[:, 0]
+    col = {c: j + 1 for j, c in enumerate(cols)}
+    Y = S[:, [col[c] for c in pos]]
+    if all("d" + c in col for c in pos):  # the loader admits rates only with accelerations
+        dY = S[:, [col["d" + c] for c in pos]]
+        ddY = S[:, [col["dd" + c] for c in pos]]
+        y, yd, ydd = _hermite5(ts, Y, dY, ddY, t)
+    else:
+        y, yd, ydd = _spline(ts, Y, t, "not-a-knot")
+    return pos, y, yd, ydd
+
+
+def _polyline(man: Manoeuvre, t, src: str):
+    """Tip target p, p', p'' along the polyline: segment j runs during its share of the duration (in
+    proportion to its length) with the time law, resting at both ends: ``p = P_0 + sum_j (P_j+1 - P_j)
+    s(t - T_j; d_j)``."""
+    P = np.asarray(man.points, float)
+    seg = np.diff(P, axis=0)
+    L = np.hypot(seg[:, 0], seg[:, 1])
+    d = man.duration * L / L.sum()
+    T0 = np.r_[0.0, np.cumsum(d)[:-1]]
+    if man.time_law == "trapezoid" and man.ramp_time > d.min() / 2:
+        raise ModelFileError(src, "manoeuvre.ramp_time", f"at most half the shortest segment's "
+                             f"time {d.min():g} s (segments share the duration in proportion to their lengths)",
+                             man.ramp_time)
+    p = np.tile(P[0], (len(t), 1))
+    pd = np.zeros((len(t), 2))
+    pdd = np.zeros((len(t), 2))
+    for j in range(len(seg)):
+        s, sd, sdd = time_law(man.time_law, t - T0[j], d[j], man.ramp_time)
+        p += np.outer(s, seg[j])
+        pd += np.outer(sd, seg[j])
+        pdd += np.outer(sdd, seg[j])
+    return p, pd, pdd
+
+
+def torque_table(mech: Mechanism, man: Manoeuvre, t) -> np.ndarray:
+    """The measured torques of a ``torque`` manoeuvre at times t: (n_t, n_motors) in ``mech.motor_names`` order,
+    linear between the samples, the last sample held beyond them."""
+    if man.kind != "torque":
+        raise ValueError(f"{mech.source or mech.name}: a torque table needs a 'torque' manoeuvre, got {man.kind!r}")
+    S = np.asarray(man.samples, float)
+    cols = list(man.columns)
+    return np.stack([np.interp(t, S[:, 0], S[:, 1 + cols.index(m)]) for m in mech.motor_names], axis=1)
+
+
+def write_trajectory(path, plan: Plan, *, rates: bool = True) -> None:
+    """Write a plan as a trajectory CSV (``t``, the coordinates, and with ``rates`` their ``d<name>`` and
+    ``dd<name>``), every number in full precision: a ``trajectory`` manoeuvre of this file plans the same q,
+    q', q'' on the same grid."""
+    names = list(plan.names)
+    header = ["t"] + names + ([f"d{c}" for c in names] + [f"dd{c}" for c in names] if rates else [])
+    cols = [plan.t[:, None], plan.q] + ([plan.qd, plan.qdd] if rates else [])
+    data = np.hstack(cols)
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(",".join(header) + "\n")
+        for row in data:
+            fh.write(",".join(repr(float(v)) for v in row) + "\n")
 
 
 # ---------------------------------------------------------------------------------------- inverse dynamics
