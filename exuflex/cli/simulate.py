@@ -219,7 +219,7 @@ def simulate_run(
     seed = new_seed() if seed is None else seed
     timings = {}
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     bar = ProgressBar("plan", progress)
     pl = plan(mech, dt=h, t_end=duration, progress=bar)
     bar.close()
@@ -232,6 +232,7 @@ def simulate_run(
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
     timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]
+    timings["plan_and_torque_cpu_s"] = time.process_time() - c0
 
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     t0 = time.perf_counter()
@@ -284,7 +285,8 @@ def simulate_run(
     meas = measure(mech, clean, pl.t, tau, seed=seed, t_end=duration)
     payload = truth_mech.payload
     man = mech.manoeuvre
-    man_meta = {"kind": man.kind, "duration_s": man.duration, "source": str(manoeuvre) if manoeuvre else "model"}
+    man_meta = {"kind": man.kind, "duration_s": man.duration,
+                "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
     if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
         man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
     if man.kind == "waypoints":
