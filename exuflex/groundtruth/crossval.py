@@ -68,8 +68,7 @@ def manoeuvre_table(mech: Mechanism, duration: float, h: float = 1e-4, plan_dt: 
     """The manoeuvre's rigid computed torques on the integration grid ``k h``.
 
     Planned at ``plan_dt`` (exact inverse kinematics and inverse dynamics) and interpolated linearly
-    onto the grid (planning at ``h`` directly costs about 10x more for a difference of order
-    ``plan_dt^2`` times the torque's curvature).
+    onto the grid (planning at ``h`` directly differs by order ``plan_dt^2`` times the torque's curvature).
 
     Returns
     -------
