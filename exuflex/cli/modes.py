@@ -20,6 +20,8 @@ import sys
 
 import numpy as np
 
+from .args import name_list, positive_float, positive_int
+
 __all__ = ["add_parser", "modes_report", "run"]
 
 
@@ -47,13 +49,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        description=__doc__.split("\n")[0])
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--q", type=_floats, default=None, help="configuration Q1,Q2,... (rad); default: the model's q_ref")
-    p.add_argument("--fmax", type=float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
+    p.add_argument("--fmax", type=positive_float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
     p.add_argument("--locked", action="store_true", help="motors locked (q held) instead of free")
-    p.add_argument("--refine", type=int, default=1, help="split every element into this many (default 1)")
+    p.add_argument("--refine", type=positive_int, default=1, help="split every element into this many (default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--exudyn", action="store_true", help="add the Exudyn model's frequencies")
     p.add_argument("--reduced", action="store_true", help="add the reduced model's frequencies, NCO and errors")
-    p.add_argument("--masters", type=lambda s: [m for m in s.split(",") if m], default=None,
+    p.add_argument("--masters", type=name_list("master dofs"), default=None,
                    help="elastic master dofs a,b,... for --reduced (default: the model's [reduction].masters)")
     p.add_argument("--n-interior", type=_n_interior, default=None,
                    help="interior modes N or 'auto' for --reduced (default: the model's)")
@@ -69,9 +71,15 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     from ..erls.model import ErlsModel
     from ..mechanism import load_mechanism, refine_mechanism
 
-    mech = load_mechanism(model_path)
-    from ..validate import check_configurations
+    from ..errors import UsageError
+    from ..validate import check_configurations, check_positive
 
+    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 1:
+        raise UsageError(f"refine (--refine): expected a positive integer, got {refine!r}")
+    check_positive(fmax, "fmax", "--fmax")
+    if masters is not None:
+        masters = list(masters)
+    mech = load_mechanism(model_path)
     check_configurations(mech)  # loops close, away from singularities
     if refine > 1:
         mech = refine_mechanism(mech, refine)
@@ -136,16 +144,8 @@ def _table(rep: dict) -> str:
 
 
 def run(args) -> int:
-    try:
-        rep = modes_report(args.model, q=args.q, fmax=args.fmax, locked=args.locked, refine=args.refine,
-                           exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
-                           n_interior=args.n_interior, q_star=args.qstar)
-    except (ValueError, RuntimeError) as exc:
-        from ..errors import EXPECTED_ERRORS
-
-        if isinstance(exc, EXPECTED_ERRORS):
-            raise
-        print(f"exuflex modes: error: {exc}", file=sys.stderr)
-        return 2
+    rep = modes_report(args.model, q=args.q, fmax=args.fmax, locked=args.locked, refine=args.refine,
+                       exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
+                       n_interior=args.n_interior, q_star=args.qstar)
     print(json.dumps(rep) if args.json else _table(rep))
     return 0

@@ -22,6 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .args import out_path, positive_float
+from .args import seed as seed_type
+
 __all__ = ["ProgressBar", "add_parser", "run", "simulate_run"]
 
 log = logging.getLogger(__name__)
@@ -61,20 +64,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
         description=__doc__.split("\n")[0],
     )
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
-    p.add_argument("--out", required=True, help="run folder to write (created if needed)")
+    p.add_argument("--out", required=True, type=out_path, help="run folder to write (created if needed)")
     p.add_argument(
         "--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default: exudyn)"
     )
     p.add_argument(
-        "--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's"
+        "--duration", type=positive_float, default=None, help="simulated time (s); default: the manoeuvre's"
     )
     p.add_argument(
-        "--payload-scale", type=float, default=1.0, help="tip payload multiplier of the truth (default 1)"
+        "--payload-scale", type=positive_float, default=1.0, help="tip payload multiplier of the truth (default 1)"
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="measurement noise seed (default: random, recorded)"
+        "--seed", type=seed_type, default=None, help="measurement noise seed (default: random, recorded)"
     )
-    p.add_argument("--h", type=float, default=1e-4, help="integration step (s), also the torque table step")
+    p.add_argument("--h", type=positive_float, default=1e-4,
+                   help="integration step (s), also the torque table step; at most the model's sample interval")
     p.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
     )
@@ -128,16 +132,24 @@ def simulate_run(
     from ..runs import file_sha256, write_run
     from ..sensors import monotonic_record, sensor_channels, true_states
 
+    from ..errors import UsageError
+    from ..validate import check_configurations, check_positive, check_simulation_settings
+
+    if not isinstance(model_path, (str, Path)):
+        raise UsageError(f"model_path: expected the path of a model file (TOML), got {type(model_path).__name__}")
+    if not isinstance(out, (str, Path)) or not str(out).strip():
+        raise UsageError(f"out (--out): expected a folder path, got {out!r}")
+    if engine not in ("exudyn", "erls"):
+        raise UsageError(f"engine (--engine): expected 'exudyn' or 'erls', got {engine!r}")
+    check_positive(payload_scale, "payload_scale", "--payload-scale")
     model_path = Path(model_path)
     mech = load_mechanism(model_path)
-    from ..validate import check_configurations
-
     check_configurations(mech)  # loops close, away from singularities
     if mech.manoeuvre is None:
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
-    duration = float(mech.manoeuvre.duration if duration is None else duration)
-    if not duration > 0 or not h > 0:
-        raise ValueError(f"duration and --h must be positive (got {duration}, {h})")
+    duration = mech.manoeuvre.duration if duration is None else duration
+    check_simulation_settings(mech, duration, h, seed)
+    duration = float(duration)
     output_dt = 1.0 / mech.sample_rate_hz
     seed = new_seed() if seed is None else seed
     timings = {}
@@ -201,14 +213,6 @@ def simulate_run(
 
 
 def run(args) -> int:
-    for flag, value in (
-        ("--duration", args.duration),
-        ("--h", args.h),
-        ("--payload-scale", args.payload_scale),
-    ):
-        if value is not None and not value > 0:
-            print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
-            return 2
     out = simulate_run(
         args.model,
         args.out,

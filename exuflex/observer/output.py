@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..runs import atomic_write_text, package_versions, write_signals_csv
 
-__all__ = ["write_outcome"]
+__all__ = ["summary_table", "write_outcome"]
 
 log = logging.getLogger(__name__)
 
@@ -30,3 +30,39 @@ def write_outcome(out_dir, mech, run, outcome, plots: bool = True) -> Path:
         for f in observer_figures(out, mech, run, outcome):
             log.info("wrote %s", os.fspath(f))
     return out
+
+
+_UNITS = {"rad": "rad", "rad/s": "rad/s", "m": "m", "m/s": "m/s"}
+
+
+def summary_table(mech, outcome, bound: bool = True) -> str:
+    """The result as text: a header (samples, model, channels, NIS), then one row per physical quantity with its
+    unit, RMS and max error against the truth (if any), the bound for this log and their ratio."""
+    s = outcome.summary
+    res = outcome.estimate.result
+    phys = outcome.estimate.physical
+    lines = [f"{mech.name}: {len(res.t)} samples, reduced model {s['reduced_ndof']} dofs, channels "
+             f"{' '.join(s.get('channels_used') or s['channels'])}",
+             f"wall {s['wall_s']:.2f} s, real-time factor {s['real_time_factor']:.2f}, mean NIS {s['nis_mean']:.2f} "
+             f"(expected {s['nis_expected']:.1f})"]
+    if s.get("diverged"):
+        lines.append(f"DIVERGED: the estimates became non-finite at t = {s['diverged_at']} s")
+    elif s.get("nis_inconsistent"):
+        lines.append(f"NIS inconsistent from t = {s['nis_flagged_at']} s (the innovations exceed what the filter's "
+                     "covariance explains: model mismatch or noise settings; the estimates stay finite)")
+    units = dict(zip(phys.names, phys.units or ("",) * len(phys.names), strict=True))
+    met = outcome.metrics
+    bnd = outcome.bound or {}
+    if met:
+        lines.append(f"{'quantity':10s} {'unit':>6s} {'RMS error':>11s} {'max error':>11s} {'bound':>11s} "
+                     f"{'ratio':>6s}")
+        for k, v in met["rms_error"].items():
+            b = bnd.get(k)
+            ratio = f"{v / b:6.2f}" if b else "     -"
+            bs = f"{b:11.3g}" if b else "          -"
+            lines.append(f"{k:10s} {units.get(k, ''):>6s} {v:11.3g} {met['max_error'][k]:11.3g} {bs} {ratio}")
+    elif bound and bnd:
+        lines.append(f"{'quantity':10s} {'unit':>6s} {'bound':>11s}")
+        for k, b in bnd.items():
+            lines.append(f"{k:10s} {units.get(k, ''):>6s} {b:11.3g}")
+    return "\n".join(lines)
