@@ -22,7 +22,10 @@ import numpy as np
 
 from .args import name_list, positive_float, positive_int
 
-__all__ = ["add_parser", "modes_report", "run"]
+__all__ = ["MAX_ELEMENTS", "add_parser", "modes_report", "run"]
+
+MAX_ELEMENTS = 1000
+"""Most elements ``--refine`` may make (the modal analysis is a dense eigenproblem of 3 dofs per element)."""
 
 
 def _floats(text: str) -> list[float]:
@@ -80,6 +83,10 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     if masters is not None:
         masters = list(masters)
     mech = load_mechanism(model_path)
+    n_el = sum(len(lk.stations) - 1 for lk in mech.links)
+    if refine * n_el > MAX_ELEMENTS:
+        raise UsageError(f"refine (--refine): {refine} x {n_el} elements is more than {MAX_ELEMENTS} elements "
+                         "(dense eigenproblems grow with their cube); expected a smaller factor")
     check_configurations(mech)  # loops close, away from singularities
     if refine > 1:
         mech = refine_mechanism(mech, refine)

@@ -106,6 +106,13 @@ def print_summary(summary: dict, stream=None) -> None:
 def run(args) -> int:
     from ..study import OverrideError, run_study
 
+    from ..mechanism import load_mechanism
+    from ..validate import check_simulation_settings
+
+    mech = load_mechanism(args.model)
+    duration = args.duration if args.duration is not None else (QUICK["duration"] if args.quick else None)
+    if mech.manoeuvre is not None:
+        check_simulation_settings(mech, duration if duration is not None else mech.manoeuvre.duration, args.h)
     try:
         spec = build_spec(args)
         t0 = time.perf_counter()
