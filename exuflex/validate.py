@@ -222,11 +222,13 @@ def check_log(
                     f"{_row_line(g + 1)} (t = {f(t[g + 1])!r}); the observer predicts through gaps up to "
                     f"{max_gap_s:g} s: split the log there"
                 )
-            rep.warnings.append(
-                f"{rep.n_gaps} gap(s) in time, {rep.n_skipped} sample(s) missing (prediction only), longest "
-                f"{rep.longest_gap_s:g} s"
-            )
-        rep.interval_s = med / mult * mult
+            if rep.longest_gap_s > 1.5 * med:  # longer than the log's own interval
+                n_own = int(np.sum(jumps > 1.5 * mult))
+                rep.warnings.append(
+                    f"{n_own} gap(s) in time longer than the log's interval (prediction only), longest "
+                    f"{rep.longest_gap_s:g} s"
+                )
+        rep.interval_s = mult * dt  # nominal: the clock's own interval is clock_interval_s
     else:
         rep.sample_index = np.zeros(1, np.int64)
     U = sensors.select(motors).data if motors else np.zeros((n, 0))

@@ -16,7 +16,11 @@ from pathlib import Path
 
 from .args import channel_list, finite_float, name_list, nonneg_float, out_path, positive_float
 
-__all__ = ["add_parser", "run"]
+__all__ = ["FULL_P_BYTES", "add_parser", "run"]
+
+FULL_P_BYTES = 256e6
+"""With ``--out``, the filter keeps its full covariance per sample (for the standard deviations of the tip
+columns) while it takes at most this many bytes; longer logs get the joint angles' and rates' only."""
 
 
 def _n_interior(text: str):
@@ -95,8 +99,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="extra white noise on the elastic rates per interval (std, unmodelled dynamics)")
     t.add_argument("--start-up", type=nonneg_float, default=0.3,
                    help="seconds left out of the error metrics (default 0.3)")
-    p.add_argument("--bound", action="store_true", help="also print the RMS bound without a truth "
-                   "(always in --json)")
+    p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
     return p
@@ -187,6 +190,8 @@ def run(args) -> int:
         q0 = args.q0 if args.q0 is not None else _start_q(mech)
         x0 = obs.model.initial_state(q0, args.qd0)
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
+    if args.out and len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES:
+        obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
     out = observe_run(mech, log, config, observer=obs, report=_say)
     s = out.summary
     if s["diverged"]:
@@ -198,13 +203,13 @@ def run(args) -> int:
         from ..observer.output import write_outcome
 
         _say(f"writing {args.out}")
-        write_outcome(args.out, mech, log, out, plots=not args.no_plots)
+        write_outcome(args.out, mech, log, out, plots=not args.no_plots, observer=obs)
     if args.json:
         print(json.dumps(s, indent=1, default=float))
         return 0
     from ..observer.output import summary_table
 
-    print(summary_table(mech, out, bound=args.bound or out.metrics is not None))
+    print(summary_table(mech, out, bound=True))
     if args.out:
         print(f"wrote {Path(args.out)}")
     return 0
