@@ -25,7 +25,7 @@ import numpy as np
 from .errors import LogFormatError
 from .mechanism import Mechanism, ModelFileError
 
-__all__ = ["LogCheck", "MAX_STEPS", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
+__all__ = ["LogCheck", "MAX_STEPS", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
            "check_positive", "check_run", "check_simulation_settings", "with_noise"]
 
 MAX_GAP_S = 1.0
@@ -383,6 +383,22 @@ def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=N
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
                              or not 0 <= int(seed) < 2**63):
         raise UsageError(f"seed (--seed): expected an integer in 0 .. 2**63 - 1, got {seed!r}")
+
+
+def check_actuation(mech: Mechanism) -> None:
+    """The motors can drive every coordinate at ``model.q_ref`` (rank of the coordinate rows of the input matrix
+    equals the number of coordinates), as computed torque needs; else a :class:`ModelFileError` on ``motors``."""
+    from .erls.model import ErlsModel
+
+    model = ErlsModel(mech)
+    q = np.asarray(mech.q_ref, float)
+    A = model.input_matrix(model.configuration(q))[: model.nq]
+    rank = int(np.linalg.matrix_rank(A))
+    if rank < model.nq:
+        raise ModelFileError(mech.source or mech.name, "motors",
+                             f"motors that actuate all {model.nq} coordinates {list(mech.coordinate_names)} "
+                             f"(computed torque); {list(mech.motor_names)} actuate only {rank}",
+                             has_got=False)
 
 
 MAX_STEPS = 5e7

@@ -142,7 +142,7 @@ def simulate_run(
     from ..sensors import monotonic_record, sensor_channels, true_states
 
     from ..errors import UsageError
-    from ..validate import check_configurations, check_positive, check_simulation_settings
+    from ..validate import check_actuation, check_configurations, check_positive, check_simulation_settings
 
     if not isinstance(model_path, (str, Path)):
         raise UsageError(f"model_path: expected the path of a model file (TOML), got {type(model_path).__name__}")
@@ -158,6 +158,7 @@ def simulate_run(
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
     duration = mech.manoeuvre.duration if duration is None else duration
     check_simulation_settings(mech, duration, h, seed)
+    check_actuation(mech)  # before planning: computed torque needs every coordinate actuated
     duration = float(duration)
     output_dt = 1.0 / mech.sample_rate_hz
     seed = new_seed() if seed is None else seed
