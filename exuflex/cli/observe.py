@@ -76,12 +76,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     r.add_argument("--masters", type=name_list("master dofs"),
                    help="comma-separated elastic master dofs (default: the model file's)")
     r.add_argument("--n-interior", type=_n_interior, default=None, help="interior modes: a number or 'auto'")
-    r.add_argument("--method", choices=("cached", "frozen", "rk4"), default="cached",
-                   help="step map: cached (fast, default), frozen (matrices every interval), rk4 (reference)")
+    r.add_argument("--method", choices=("cached", "rk4"), default="cached",
+                   help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)")
     r.add_argument("--substep", type=positive_float, default=1e-4,
                    help="RK4 sub-step of the filter's prediction (s, default 1e-4)")
-    r.add_argument("--backend", choices=("auto", "numba", "numpy", "filterpy"), default="auto",
-                   help="covariance algebra (auto: numba where installed)")
     t = p.add_argument_group("tuning (docs/tuning.md)")
     t.add_argument("--q0", type=_floats, help="initial joint angles Q1,Q2,... (rad; default: the manoeuvre's "
                    "start, else the model's q_ref); elastic coordinates at rest")
@@ -113,7 +111,6 @@ def _config(args):
         masters=args.masters,
         n_interior=args.n_interior,
         method=args.method,
-        backend=args.backend,
         h=args.substep,
         q0_std=args.q0_std,
         qd0_std=args.qd0_std,
@@ -216,12 +213,10 @@ def run(args) -> int:
 
 
 def _kernels_cached() -> bool:
-    """Whether numba's on-disk cache holds this installation's compiled kernels (then no compile notice)."""
+    """Whether numba's on-disk cache holds compiled kernels of this installation (then no compile notice)."""
     try:
-        from ..observer.held import HAVE_NUMBA
+        import numba  # noqa: F401
     except ImportError:
-        return True
-    if not HAVE_NUMBA:
         return True
     import exuflex
 
