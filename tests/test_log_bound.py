@@ -101,8 +101,6 @@ def test_c4_blank_errors_within_1_5_of_that_logs_bound(obs):
     assert worst[1] < 1.5, out.summary["ratio_to_bound"]
 
 
-@pytest.mark.xfail(reason="the filter steps a 250 Hz log on the 2 ms grid with the torque noise of 2 ms intervals "
-                          "(Q too small by half, NIS 6.95 for 6): needs the variable-interval filter", strict=False)
 def test_250_hz_errors_within_1_5_of_that_logs_bound(obs):
     out = observe_run(MECH, _decimated(2), observer=obs)
     assert max(out.summary["ratio_to_bound"].values()) < 1.5, out.summary["ratio_to_bound"]
