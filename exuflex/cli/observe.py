@@ -158,6 +158,20 @@ def _say(msg: str) -> None:
     print(f"exuflex observe: {msg}", file=sys.stderr, flush=True)
 
 
+def run_manoeuvre(mech, log):
+    """``mech`` with the manoeuvre the run was made with, when ``exuflex simulate --manoeuvre FILE`` replaced the
+    model's (recorded in its meta.json): the observer starts where that manoeuvre starts."""
+    from ..mechanism import load_manoeuvre
+
+    src = ((log.meta or {}).get("settings") or {}).get("manoeuvre", {}).get("source", "model")
+    if src in (None, "model"):
+        return mech
+    if not Path(src).is_file():
+        print(f"exuflex observe: warning: the run's manoeuvre file {src} is gone; using the model's", file=sys.stderr)
+        return mech
+    return mech.replace(manoeuvre=load_manoeuvre(src, mech))
+
+
 def run(args) -> int:
     from ..errors import UsageError
     from ..mechanism import load_mechanism
@@ -178,6 +192,7 @@ def run(args) -> int:
     path = Path(args.run_dir)
     log = _read_log(args, mech) if path.is_file() else read_run(path)
     _say(f"read {path}: {len(log.sensors.t)} rows, {float(log.sensors.t[-1] - log.sensors.t[0]):.4g} s")
+    mech = run_manoeuvre(mech, log)
     _say("building the reduced model" + ("" if _kernels_cached() else
          " (the first run compiles the numerical kernels: a few minutes, once)"))
     obs = make_observer(mech, config)
