@@ -180,10 +180,17 @@ def test_along_the_manoeuvre_config_dependent_basis_keeps_accuracy(sixbar):
     assert max(a.worst_error_pct for a in frozen) > 100.0
 
 
-def test_analytic_mass_derivative_matches_finite_differences(sixbar):
-    rm = ReducedModel(CraigBampton(sixbar))
+@pytest.mark.parametrize("case", ["sixbar", "fourbar_link_frame"])
+def test_analytic_mass_derivative_matches_finite_differences(sixbar, case):
+    if case == "sixbar":
+        rm = ReducedModel(CraigBampton(sixbar))
+        q = [0.9, 2.5, 4.5]
+    else:  # masters in link frames: M_r's derivative through dQ/dq in dH/dq
+        rm = ReducedModel(CraigBampton(ErlsModel(load_mechanism(MODELS / "fourbar.toml")), masters=LINK_FRAME_MASTERS,
+                                       n_interior=3))
+        q = [2.9]
     rng = np.random.default_rng(2)
-    p = np.r_[0.9, 2.5, 4.5, 1e-4 * rng.standard_normal(rm.r - 3)]
+    p = np.r_[q, 1e-4 * rng.standard_normal(rm.r - rm.nq)]
     mats = rm.matrices(p)
     dHdq = rm.cb.basis_derivative(mats.rc, np.eye(rm.r))
     analytic = rm.mass_derivative_analytic(mats, dHdq)
