@@ -117,6 +117,15 @@ def test_a_fixed_count_below_the_path_need_is_logged(fourbar, caplog):
     assert cb.n_interior == 1 and "miss the accuracy thresholds" in caplog.text and "'auto' would keep" in caplog.text
 
 
+def test_a_global_master_turned_axial_is_reported_unreachable(single_link, caplog):
+    """The single link's global ``node5.y`` is the arm's axial direction at q = pi/2: the partition itself fails
+    there and no choice of interior modes meets the thresholds (the log says so and names link-frame masters)."""
+    with caplog.at_level("WARNING", logger="exuflex.reduction.basis"):
+        cb = CraigBampton(single_link, masters=["node5.y", "node5.theta"])
+    assert not cb.path_accuracy[-1].ok(0.99, 2.0) and np.isclose(cb.path_q[-1, 0], np.pi / 2)
+    assert "no choice of interior modes" in caplog.text and "node5.transverse" in caplog.text
+
+
 def test_rotation_is_what_makes_one_qstar_serve_the_manoeuvre(sixbar):
     cb = CraigBampton(sixbar, n_interior=5)
     q = np.array([0.82, 2.68, 5.1])
