@@ -219,7 +219,7 @@ def simulate_run(
     seed = new_seed() if seed is None else seed
     timings = {}
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     bar = ProgressBar("plan", progress)
     pl = plan(mech, dt=h, t_end=duration, progress=bar)
     bar.close()
@@ -232,6 +232,7 @@ def simulate_run(
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
     timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]
+    timings["plan_and_torque_cpu_s"] = time.process_time() - c0
 
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     t0 = time.perf_counter()

@@ -31,7 +31,7 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     cancel because ``d^2 r/dq_j dq_k`` is symmetric). The two q-row terms are second order in the
     elastic motion. ``C = diag(0, alpha M_uu + beta K_uu)``: Rayleigh damping as a dissipation function
     of the elastic rates. Exactly energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q``
-    (``tests/test_energy.py``). ``M_N' S q'`` is not zero under pure rigid motion (it is O(h^2)).
+    (``tests/test_energy.py``). ``M_N' S q'`` is not zero under pure rigid motion.
 ``form="eq2"`` (the paper's eq. 2 as written)
     Virtual work with ``delta p = R N R^T delta b`` and the acceleration
     ``p'' = R N R^T b'' + 2 theta' R (G2 N - N G) R^T u' + (terms in theta'^2 u and theta'' u)``, the
@@ -39,12 +39,13 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     ``M_G = sum_e theta_e' R_e (A_e - m_e G) R_e^T``, ``A_e = int rhoA N^T G2 N ds`` (skew,
     :func:`~exuflex.erls.elements.beam_gyroscopic`), so ``M_G`` is not symmetric and ``M_G S = 0``.
     The damping is ``W^T C_N T u'`` with ``C_N = alpha M_N + beta K_N``: eq. 2's ``S^T C u'`` in the
-    q rows (``K_N S = 0``, so only ``alpha S^T M_N T u'`` remains there). Not energy-consistent.
+    q rows (``K_N S = 0``, so only ``alpha S^T M_N T u'`` remains there). Neither ``M_G`` nor the q rows'
+    damping derives from an energy or a dissipation function, so this form has no power balance identity.
 
 On rigid motion (``u = u' = 0``) the q rows of the two forms coincide (``M_N'`` and the ``dT/dq`` term
 cancel on rigid fields). On a uniformly spinning link the elastic rows of ``"eq2"`` are exactly the
-consistent nodal load of the centrifugal force; ``"lagrange"`` adds ``T^T M_N' S q'``
-(``tests/test_elements.py``).
+consistent nodal load of the centrifugal force; ``"lagrange"`` adds ``T^T M_N' S q'``, whose largest
+entry falls as h^2 (``tests/test_erls_forms.py`` checks these, ``M_G S = 0`` and both forms' ``dh/dv``).
 """
 
 from __future__ import annotations
