@@ -1,7 +1,7 @@
 """The reduced models of every mechanism in models/: accuracy at q* and along the manoeuvre, masters from the
 model file and automatic, interior modes chosen at q* only and over the manoeuvre. Writes docs/reduction.md.
 
-    python benchmarks/reduction_gallery.py [--models sixbar,fourbar] [--along 41] [--out docs/reduction.md]
+    python benchmarks/reduction_gallery.py [--models sixbar,fourbar or path/to/model.toml,...] [--along 41] [--out docs/reduction.md]
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def main(argv=None) -> int:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for name in names:
-        lines += rows_for(ROOT / "models" / f"{name}.toml", a.along)
+        lines += rows_for(Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml", a.along)
     Path(a.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {a.out}")
     return 0
