@@ -11,8 +11,6 @@ import sys
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 from exuflex.erls.model import ErlsModel
 from exuflex.mechanism import load_mechanism
 from exuflex.reduction import CraigBampton, accuracy_along, accuracy_indices, manoeuvre_configurations
@@ -77,8 +75,8 @@ def main(argv=None) -> int:
         f"the band limit at q* and over {a.along} configurations of the manoeuvre, equally spaced in time (not those",
         "the modes were chosen on). Thresholds: the model file's (default NCO >= 0.99, error <= 2 %).",
         "",
-        "| model | masters | interior modes chosen | dofs | interior | NCO at q* | error % at q* | worst NCO along "
-        "| worst error % along |",
+        ("| model | masters | interior modes chosen | dofs | interior | NCO at q* | error % at q* | worst NCO along "
+         "| worst error % along |"),
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for name in names:
