@@ -930,9 +930,17 @@ def figure_rows(summary: dict, quantities: Sequence[str] | None = None) -> list[
 def _figure(out: Path, spec: StudySpec, summary: dict) -> Path | None:
     try:
         if spec.kind == "payload":
-            from ..plots import payload_study_figure
+            from ..plots import PAPER_MODELS, payload_study_figure, paper_payload_quantities
 
-            return payload_study_figure(figure_rows(summary), out / "fig_payload.png")
+            paper = (summary.get("model") or {}).get("name") in PAPER_MODELS
+            rows = figure_rows(summary)
+            four = paper_payload_quantities([r["quantity"] for r in rows])
+            if four:  # the paper's four panels (the tip coordinates' displacements and velocities) first
+                payload_study_figure([r for r in rows if r["quantity"] in four], out / "fig_payload.png",
+                                     paper=paper)
+                payload_study_figure(rows, out / "fig_payload_all.png", paper=paper)
+                return out / "fig_payload.png"
+            return payload_study_figure(rows, out / "fig_payload.png", paper=paper)
         from .figures import sweep_figure
 
         return sweep_figure(summary, out / "fig_sweep.png")
