@@ -3,7 +3,7 @@
     python benchmarks/gallery.py [--models serial_arm,fivebar] [--seeds 1,2,3] [--engine exudyn]
                                  [--no-reference] [--json docs/gallery.json] [--md docs/gallery.md]
 
-For each model file in ``models/`` and each seed:
+For each model file in ``models/`` with a manoeuvre and each seed:
 
 1. the run folder of ``exuflex simulate MODEL --seed S`` (its library entry point,
    :func:`exuflex.truth.simulate_run`; Exudyn truth by default), written to a temporary folder;
@@ -29,6 +29,7 @@ import platform
 import sys
 import tempfile
 import time
+import tomllib
 from dataclasses import replace
 from pathlib import Path
 
@@ -45,8 +46,8 @@ PATH_TOL = 0.10  # |RMS default / RMS reference - 1|
 
 
 def gallery() -> list[str]:
-    """The gallery's model names (the files in ``models/``)."""
-    return sorted(p.stem for p in MODELS.glob("*.toml"))
+    """The gallery's model names: the files in ``models/`` with a manoeuvre."""
+    return sorted(p.stem for p in MODELS.glob("*.toml") if "manoeuvre" in tomllib.loads(p.read_text()))
 
 
 def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool = True,

@@ -13,16 +13,20 @@ import sys
 import time
 
 from ..truth import BEAMS, ENGINES, EXUDYN_ELEMENTS_PER_LINK, INTEGRATORS, simulate_run
+from .args import out_path, positive_float
+from .args import seed as seed_type
 
 __all__ = ["PhaseBars", "ProgressBar", "add_parser", "elements_per_link_arg", "run"]
 
 
 class ProgressBar:
-    """A one-line text progress bar on stderr: ``label [#####.....]  45%``. Silent if disabled."""
+    """Progress on stderr: on a terminal a one-line bar ``label [#####.....]  45%`` redrawn in place; otherwise
+    (a log file, a pipe, a CI job) a plain line every 10 %, ``label  40%  12.3 s``. Silent if disabled."""
 
     def __init__(self, label: str, enabled: bool = True, width: int = 30, stream=None):
         self.label, self.enabled, self.width = label, enabled, width
         self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._last = -1
         self._t0 = time.perf_counter()
 
@@ -30,18 +34,36 @@ class ProgressBar:
         if not self.enabled:
             return
         pct = int(100 * min(max(frac, 0.0), 1.0))
+        if not self.tty:
+            pct = pct // 10 * 10
         if pct == self._last:
             return
         self._last = pct
-        n = self.width * pct // 100
         el = time.perf_counter() - self._t0
+        if not self.tty:
+            self.stream.write(f"{self.label:<12s} {pct:3d}% {el:6.1f} s\n")
+            self.stream.flush()
+            return
+        n = self.width * pct // 100
         self.stream.write(f"\r{self.label:<12s} [{'#' * n}{'.' * (self.width - n)}] {pct:3d}% {el:6.1f} s")
         self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled and self._last >= 0:
+        if self.enabled and self.tty and self._last >= 0:
             self.stream.write("\n")
             self.stream.flush()
+
+
+def _erls_step_arg(text: str):
+    if text == "auto":
+        return "auto"
+    try:
+        v = float(text)
+    except ValueError:
+        v = 0.0
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive step in s or 'auto', got {text!r}")
+    return v
 
 
 def elements_per_link_arg(text: str):
@@ -64,22 +86,23 @@ def add_parser(sub) -> argparse.ArgumentParser:
         description=__doc__.split("\n")[0],
     )
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
-    p.add_argument("--out", required=True, help="run folder to write (created if needed)")
+    p.add_argument("--out", required=True, type=out_path, help="run folder to write (created if needed)")
     p.add_argument(
         "--engine", choices=ENGINES, default="exudyn",
         help="truth engine: exudyn (independent, default), erls (full-order ERLS model), reduced (the observer's "
         "own reduced model)"
     )
     p.add_argument(
-        "--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's"
+        "--duration", type=positive_float, default=None, help="simulated time (s); default: the manoeuvre's"
     )
     p.add_argument(
-        "--payload-scale", type=float, default=1.0, help="tip payload multiplier of the truth (default 1)"
+        "--payload-scale", type=positive_float, default=1.0, help="tip payload multiplier of the truth (default 1)"
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="measurement noise seed (default: random, recorded)"
+        "--seed", type=seed_type, default=None, help="measurement noise seed (default: random, recorded)"
     )
-    p.add_argument("--h", type=float, default=1e-4, help="integration step (s), also the torque table step")
+    p.add_argument("--h", type=positive_float, default=1e-4,
+                   help="integration step (s), also the torque table step; at most the model's sample interval")
     p.add_argument(
         "--manoeuvre", default=None, metavar="FILE",
         help="manoeuvre instead of the model's: a TOML file with a [manoeuvre] table, or a CSV table "
@@ -107,7 +130,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="ERLS engine: implicit generalized-alpha (default) or the explicit RK4 reference",
     )
     p.add_argument(
-        "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
+        "--erls-step", type=_erls_step_arg, default="auto", metavar="S|auto",
+        help="generalized-alpha step of the ERLS engine (s): a multiple of --h that divides the sample interval; "
+        "auto (default): the largest whose frequency error at the model's band_hz is within 0.5 %% (the error "
+        "at a mode f is about (2 pi f S)^2 / 12)",
+    )
+    p.add_argument(
+        "--no-progress", action="store_true",
+        help="no progress (a bar on a terminal, a line every 10 %% otherwise)"
     )
     p.set_defaults(func=run)
     return p
@@ -132,15 +162,7 @@ class PhaseBars:
 
 
 def run(args) -> int:
-    for flag, value in (
-        ("--duration", args.duration),
-        ("--h", args.h),
-        ("--payload-scale", args.payload_scale),
-    ):
-        if value is not None and not value > 0:
-            print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
-            return 2
-    bars = PhaseBars(not args.no_progress and sys.stderr.isatty())
+    bars = PhaseBars(not args.no_progress)
     try:
         out = simulate_run(
             args.model,
@@ -155,6 +177,7 @@ def run(args) -> int:
             elements_per_link=args.elements_per_link,
             beam=args.beam,
             integrator=args.integrator,
+            erls_step=args.erls_step,
         )
     finally:
         bars.close()

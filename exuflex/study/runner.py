@@ -526,10 +526,10 @@ def run_study(
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     drive_mechs = [drive_mech(nominal, lv) for lv in spec.levels]
-    for lv, dm in zip(spec.levels, drive_mechs, strict=True):
-        if dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
-            log.warning("level %s: its manoeuvre lasts %g s, the study simulates %g s", lv.label,
-                        dm.manoeuvre.duration, duration)
+    for lv, dm in zip(spec.levels, drive_mechs, strict=True):  # a longer manoeuvre than the nominal one is cut
+        if spec.duration is None and dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
+            log.warning("level %s: its manoeuvre lasts %g s, the study simulates %g s (the nominal manoeuvre's; "
+                        "--duration to change)", lv.label, dm.manoeuvre.duration, duration)
     settings = spec.settings(duration, start_up)
     # a level's own manoeuvre changes its drive and the observer's start (the controller knows the manoeuvre)
     man_ov = [{"manoeuvre": [list(o) for o in manoeuvre_overrides(lv)]} if manoeuvre_overrides(lv) else {}

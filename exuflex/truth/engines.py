@@ -38,6 +38,7 @@ __all__ = [
     "INTEGRATORS",
     "Drive",
     "TruthRecord",
+    "gen_alpha_step",
     "erls_truth",
     "plan_drive",
     "reduced_truth",
@@ -60,7 +61,8 @@ EXUDYN_ELEMENTS_PER_LINK = 4
 class Drive:
     """The manoeuvre's torque table (``t``, ``tau``: the rigid computed torque of the *nominal* model, the
     controller's knowledge, or a measured-torque manoeuvre's torques) and the start state ``q0``, ``qd0``;
-    ``seconds`` is the time planning and the torques took, ``plan_s`` the planning's part."""
+    ``seconds`` is the time planning and the torques took, ``plan_s`` the planning's part, ``cpu_s`` the process
+    time of both."""
 
     t: np.ndarray
     tau: np.ndarray
@@ -68,6 +70,7 @@ class Drive:
     qd0: np.ndarray
     seconds: float = 0.0
     plan_s: float = 0.0
+    cpu_s: float = 0.0
 
 
 @dataclass
@@ -90,33 +93,50 @@ def plan_drive(nominal: Mechanism, duration: float, h: float,
     """Plan the manoeuvre on a grid of step ``h`` up to ``duration`` and its open-loop computed torque on the
     nominal model (a measured-torque manoeuvre gives its torques instead). ``progress`` is called with the phase
     (``"plan"``, ``"torque"``) and its fraction done."""
-    from ..manoeuvre import computed_torque, plan, torque_table
+    from ..manoeuvre import open_loop_torque, plan
 
     def phase(name):
         return None if progress is None else (lambda f: progress(name, f))
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     pl = plan(nominal, dt=h, t_end=duration, progress=phase("plan"))
     plan_s = time.perf_counter() - t0
-    if nominal.manoeuvre is not None and nominal.manoeuvre.kind == "torque":  # measured torques, open loop
-        tau = torque_table(nominal, nominal.manoeuvre, pl.t)
-    else:
-        tau = computed_torque(nominal, pl, progress=phase("torque"))
+    tau = open_loop_torque(nominal, pl, progress=phase("torque"))  # the nominal model's (the controller's), or measured
     return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
-                 np.asarray(pl.qd[0], float), time.perf_counter() - t0, plan_s)
+                 np.asarray(pl.qd[0], float), time.perf_counter() - t0, plan_s, time.process_time() - c0)
+
+
+def gen_alpha_step(step, h: float, output_dt: float, band_hz: float = 180.0) -> float:
+    """The ERLS engine's generalized-alpha step: a multiple of ``h`` that divides ``output_dt``; ``None``: ``h``;
+    ``"auto"``: :func:`~exuflex.erls.implicit.band_step` for the band ``band_hz`` (the largest whose frequency error
+    there is within its tolerance). Anything else is a :class:`~exuflex.errors.UsageError`."""
+    from ..errors import UsageError
+
+    if step == "auto":
+        from ..erls.implicit import band_step
+
+        return band_step(band_hz, h, output_dt)
+    step = h if step is None else float(step)
+    k = round(step / h)
+    if k < 1 or abs(k * h - step) > 1e-9 * h or round(output_dt / h) % k:
+        raise UsageError(f"--erls-step: expected a multiple of --h = {h:g} s that divides the sample interval "
+                         f"{output_dt:g} s, got {step:g} s")
+    return step
 
 
 def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt: float, q0, qd0,
                progress: Callable[[float], None] | None = None, integrator: str = "gen-alpha",
-               stats: dict | None = None):
+               stats: dict | None = None, form: str = "lagrange", step=None):
     """The full-order ERLS model under the torque table (zero-order hold); returns a
     :class:`~exuflex.probes.ProbeRecord` sampled every ``output_dt``.
 
-    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``h`` (stable whatever the mesh's stiffest
-    mode). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
-    model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`: RK4 is stable for
-    ``h |lambda| < 2.83``; a finer mesh with stiffness damping has overdamped high modes with large real
-    eigenvalues). ``stats`` (a dict) receives the solver's statistics."""
+    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``step`` (:func:`gen_alpha_step`: default
+    ``h``, ``"auto"`` from the model's ``reduction.band_hz``; stable whatever the mesh's stiffest mode). ``rk4``: the
+    explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the model's linearisation
+    at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`: RK4 is stable for ``h |lambda| < 2.83``; a
+    finer mesh with stiffness damping has overdamped high modes with large real eigenvalues). ``form``: the
+    full-order model's velocity forces (:class:`~exuflex.erls.model.ErlsModel`). ``stats`` (a dict) receives the
+    solver's statistics."""
     from ..erls.implicit import erls_implicit
     from ..erls.model import ErlsModel
     from ..erls.simulate import rk4_substeps
@@ -125,14 +145,19 @@ def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt
 
     if integrator not in INTEGRATORS:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
-    model = ErlsModel(mech)
+    model = ErlsModel(mech, form=form)
     n = model.n
     y0 = np.zeros(2 * n)
     y0[: model.nq] = q0
     y0[n : n + model.nq] = qd0
     every = max(1, round(output_dt / h))
     if integrator == "gen-alpha":
-        traj = erls_implicit(model, t_tab, tau, y0, duration, h, output_every=every, progress=progress, stats=stats)
+        step = gen_alpha_step(step, h, output_dt, mech.reduction.band_hz)
+        k = round(step / h)
+        if stats is not None:
+            stats.update(step_s=step)
+        traj = erls_implicit(model, t_tab, tau, y0, duration, step, output_every=every // k, progress=progress,
+                             stats=stats)
         return erls_probe_record(model, traj.t, traj.y)
     dt_tab = t_tab[1] - t_tab[0]
 
@@ -185,15 +210,16 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
 def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", duration: float | None = None,
              h: float = 1e-4, progress: Callable[[float], None] | None = None, *,
              elements_per_link: int | str | None = None, beam: str = "ancf",
-             integrator: str = "gen-alpha") -> TruthRecord:
+             integrator: str = "gen-alpha", erls_step: float | str | None = None) -> TruthRecord:
     """Simulate ``truth_mech`` under ``drive`` for ``duration`` s (default: its manoeuvre's) with the truth
     ``engine`` (one of :data:`ENGINES`), step ``h``, output at the model's sample rate; ``progress`` is called
     with the fraction done.
 
     ``elements_per_link``: the truth's mesh, ``None`` (Exudyn: :data:`EXUDYN_ELEMENTS_PER_LINK` per link; ERLS: the
     model file's), a positive integer (no element longer than 1/N of its link) or ``"file"``; ``beam``: Exudyn's
-    beam, a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of :data:`INTEGRATORS`. The record's
-    ``settings`` state them with the solver's statistics."""
+    beam, a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of :data:`INTEGRATORS`, ``erls_step`` its
+    generalized-alpha step (:func:`gen_alpha_step`). The record's ``settings`` state them with the solver's
+    statistics."""
     from ..sensors import monotonic_record, sensor_channels, true_states
 
     if engine not in ENGINES:
@@ -236,20 +262,23 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
             "newton_per_step": solver.get("newton_per_step"),
         }
     else:
-        from ..erls.implicit import GeneralizedAlpha
+        from ..erls.implicit import GeneralizedAlpha, algorithmic_damping
         from ..mechanism import remesh_mechanism
 
         mech = truth_mech
         if elements_per_link not in (None, "file"):
             mech = remesh_mechanism(truth_mech, elements_per_link)
         probes = erls_truth(mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress,
-                            integrator=integrator, stats=solver)
+                            integrator=integrator, stats=solver, step=erls_step)
         settings = {
             "engine": "erls",
             "elements_per_link": "file" if elements_per_link is None else elements_per_link,
             "n_elements": sum(lk.n_elements for lk in mech.links),
             "integrator": integrator,
-            **({"rho_inf": GeneralizedAlpha().rho_inf} if integrator == "gen-alpha" else {}),
+            **({"rho_inf": GeneralizedAlpha().rho_inf, "band_hz": mech.reduction.band_hz,
+                "freq_error_at_band": float(algorithmic_damping(
+                    2 * np.pi * mech.reduction.band_hz * solver["step_s"], GeneralizedAlpha().rho_inf)[1][0])}
+               if integrator == "gen-alpha" else {}),
             **solver,
         }
     timings["truth_s"] = time.perf_counter() - t0

@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from .engines import ENGINES, plan_drive, simulate
+from .engines import BEAMS, ENGINES, INTEGRATORS, gen_alpha_step, plan_drive, simulate
 
 __all__ = ["simulate_run"]
 
@@ -31,21 +31,32 @@ def simulate_run(
     elements_per_link: int | str | None = None,
     beam: str = "ancf",
     integrator: str = "gen-alpha",
+    erls_step: float | str | None = "auto",
 ) -> Path:
     """Simulate the model's manoeuvre with the truth ``engine`` and write a run folder; returns its path.
 
     ``duration`` defaults to the manoeuvre's; ``seed`` (default: a fresh one, recorded in ``meta.json``) draws
     the measurement noise; ``h`` is the integration step and the torque table's step; ``manoeuvre`` replaces the
     model's (a TOML file with a ``[manoeuvre]`` table, or a CSV trajectory or measured-torque table,
-    :func:`exuflex.mechanism.load_manoeuvre`); ``elements_per_link``, ``beam``, ``integrator``: the truth's mesh
-    and solver (:func:`exuflex.truth.simulate`). ``progress`` is called with the phase (``"plan"``, ``"torque"``,
+    :func:`exuflex.mechanism.load_manoeuvre`); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
+    truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the generalized-alpha step
+    from the model's band, :func:`exuflex.truth.gen_alpha_step`). Bad arguments raise a
+    :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
     the engine's name) and the fraction of it done.
     """
+    from ..errors import UsageError
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
     from ..runs import file_sha256, write_run
-    from ..validate import check_configurations
+    from ..validate import check_actuation, check_configurations, check_positive, check_simulation_settings
 
+    if not isinstance(model_path, (str, Path)):
+        raise UsageError(f"model_path: expected the path of a model file (TOML), got {type(model_path).__name__}")
+    if not isinstance(out, (str, Path)) or not str(out).strip():
+        raise UsageError(f"out (--out): expected a folder path, got {out!r}")
+    if engine not in ENGINES:
+        raise UsageError(f"engine (--engine): expected one of {', '.join(ENGINES)}, got {engine!r}")
+    check_positive(payload_scale, "payload_scale", "--payload-scale")
     model_path = Path(model_path)
     mech = load_mechanism(model_path)
     check_configurations(mech)  # loops close, away from singularities
@@ -53,28 +64,36 @@ def simulate_run(
         mech = mech.replace(manoeuvre=load_manoeuvre(manoeuvre, mech))
     if mech.manoeuvre is None:
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
-    if engine not in ENGINES:
-        raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
-    duration = float(mech.manoeuvre.duration if duration is None else duration)
-    if not duration > 0 or not h > 0 or not payload_scale > 0:
-        raise ValueError(f"duration, h and payload_scale must be positive (got {duration}, {h}, {payload_scale})")
-    if isinstance(elements_per_link, str) and elements_per_link != "file":
+    duration = mech.manoeuvre.duration if duration is None else duration
+    check_simulation_settings(mech, duration, h, seed)
+    if mech.manoeuvre.kind != "torque":
+        check_actuation(mech)  # before planning: computed torque needs every coordinate actuated
+    duration = float(duration)
+    if beam not in BEAMS:
+        raise UsageError(f"beam (--beam): expected one of {tuple(BEAMS)}, got {beam!r}")
+    if integrator not in INTEGRATORS:
+        raise UsageError(f"integrator (--integrator): expected one of {INTEGRATORS}, got {integrator!r}")
+    if elements_per_link is not None and elements_per_link != "file":
         try:
             elements_per_link = int(elements_per_link)
-        except ValueError:
-            raise ValueError(f"elements_per_link must be a positive integer or 'file', got {elements_per_link!r}") \
-                from None
+        except (TypeError, ValueError):
+            elements_per_link = 0
+        if elements_per_link < 1:
+            raise UsageError("elements_per_link (--elements-per-link): expected a positive integer or 'file'")
+    if engine == "erls" and integrator == "gen-alpha":
+        gen_alpha_step(erls_step, h, 1.0 / mech.sample_rate_hz, mech.reduction.band_hz)  # before the planning
     seed = new_seed() if seed is None else seed
 
     drive = plan_drive(mech, duration, h, progress)  # nominal model: the controller's knowledge
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     rec = simulate(truth_mech, drive, engine, duration, h,
                    progress=None if progress is None else (lambda f: progress(engine, f)),
-                   elements_per_link=elements_per_link, beam=beam, integrator=integrator)
+                   elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step)
     meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
     payload = truth_mech.payload
     man = mech.manoeuvre
-    man_meta = {"kind": man.kind, "duration_s": man.duration, "source": str(manoeuvre) if manoeuvre else "model"}
+    man_meta = {"kind": man.kind, "duration_s": man.duration,
+                "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
     if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
         man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
     if man.kind == "waypoints":
@@ -83,7 +102,7 @@ def simulate_run(
         man_meta.update(file=str(Path(man.file).resolve()), file_sha256=file_sha256(man.file),
                         n_samples=len(man.samples))
     timings = {"plan_s": drive.plan_s, "plan_and_torque_s": drive.seconds, "torque_s": drive.seconds - drive.plan_s,
-               **rec.timings}
+               "plan_and_torque_cpu_s": drive.cpu_s, **rec.timings}
     meta = {
         "engine": engine,
         "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
