@@ -108,3 +108,32 @@ def test_erls_truth_matches_the_explicit_reference(name, duration):
     u = np.abs(ref.y[:, nq:n]).max(axis=0).argmax() + nq  # the largest elastic coordinate
     rms = np.sqrt(np.mean(ref.y[:, u] ** 2))
     assert np.sqrt(np.mean((imp.y[:, u] - ref.y[:, u]) ** 2)) < 0.02 * rms
+
+
+def test_cli_erls_engine_integrators(tmp_path, capsys):
+    """exuflex simulate --engine erls: generalized-alpha (default) and the RK4 reference agree on the four-bar's
+    start; the step and integrator are recorded; a step off the sample grid is refused by name."""
+    import json
+
+    from exuflex.cli import main
+    from exuflex.runs import read_run
+
+    model = str(MODELS / "fourbar.toml")
+    runs = {}
+    for name, extra in (("ga", []), ("ga2", ["--erls-step", "2e-4"]), ("rk4", ["--integrator", "rk4"])):
+        out = tmp_path / name
+        assert main(["simulate", model, "--out", str(out), "--engine", "erls", "--duration", "0.03", "--seed", "1",
+                     *extra]) == 0
+        runs[name] = read_run(out)
+    truth = {k: json.loads((tmp_path / k / "meta.json").read_text())["settings"]["truth"] for k in runs}
+    assert truth["ga"]["integrator"] == "gen-alpha" and truth["ga"]["step_s"] == 1e-4
+    assert truth["ga2"]["step_s"] == 2e-4 and truth["rk4"]["integrator"] == "rk4" and truth["rk4"]["rk4_substeps"] > 1
+    ref = runs["rk4"].truth.data
+    for k in ("ga", "ga2"):
+        np.testing.assert_allclose(runs[k].truth.t, runs["rk4"].truth.t, atol=1e-12)
+        np.testing.assert_allclose(runs[k].truth.data[:, 0], ref[:, 0], atol=1e-5)  # q1 (rad)
+        np.testing.assert_allclose(runs[k].truth.data[:, 1], ref[:, 1], atol=0.02 * np.abs(ref[:, 1]).max())  # dq1
+    capsys.readouterr()
+    assert main(["simulate", model, "--out", str(tmp_path / "bad"), "--engine", "erls", "--duration", "0.01",
+                 "--erls-step", "3e-4"]) == 2
+    assert "--erls-step: expected a multiple of --h = 0.0001 s that divides the sample interval" in capsys.readouterr().err

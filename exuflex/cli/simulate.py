@@ -27,7 +27,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BEAMS", "INTEGRATORS", "ProgressBar", "add_parser", "elements_per_link_arg", "run", "simulate_run"]
+__all__ = [
+    "BEAMS",
+    "INTEGRATORS",
+    "ArgumentValueError",
+    "ProgressBar",
+    "add_parser",
+    "elements_per_link_arg",
+    "run",
+    "simulate_run",
+]
 
 BEAMS = {"ancf": "ancf", "ge": "gebeam"}  # --beam: Exudyn's ANCF cable or geometrically exact beam
 INTEGRATORS = ("gen-alpha", "rk4")  # --integrator of the ERLS engine
@@ -61,6 +70,20 @@ class ProgressBar:
         if self.enabled and self._last >= 0:
             self.stream.write("\n")
             self.stream.flush()
+
+
+class ArgumentValueError(ValueError):
+    """A command-line value that is well formed but does not fit the model (printed as a one-line error)."""
+
+
+def _check_erls_step(step, h: float, output_dt: float) -> float:
+    """The ERLS generalized-alpha step: a multiple of ``h`` that divides ``output_dt`` (default ``h``)."""
+    step = h if step is None else float(step)
+    k = round(step / h)
+    if k < 1 or abs(k * h - step) > 1e-9 * h or round(output_dt / h) % k:
+        raise ArgumentValueError(f"--erls-step: expected a multiple of --h = {h:g} s that divides the sample interval "
+                                 f"{output_dt:g} s, got {step:g} s")
+    return step
 
 
 def elements_per_link_arg(text: str):
@@ -124,17 +147,23 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="ERLS engine: implicit generalized-alpha (default) or the explicit RK4 reference",
     )
     p.add_argument(
+        "--erls-step", type=float, default=None, metavar="S",
+        help="generalized-alpha step of the ERLS engine (s): a multiple of --h that divides the sample interval "
+        "(default --h; the frequency error at a mode f is about (2 pi f S)^2 / 12)",
+    )
+    p.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
     )
     p.set_defaults(func=run)
     return p
 
 
-def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, integrator="gen-alpha", stats=None):
+def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, integrator="gen-alpha", stats=None,
+                step=None):
     """Full-order ERLS model under the torque table (zero-order hold); returns a ProbeRecord.
 
-    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``h`` (stable whatever the mesh's stiffest
-    mode). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
+    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``step`` (default ``h``; stable whatever
+    the mesh's stiffest mode; a multiple of ``h`` that divides ``output_dt``). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
     model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none
     at 0.1 ms, a finer mesh with stiffness damping does: its highest modes are overdamped, with large real
     eigenvalues)."""
@@ -150,7 +179,10 @@ def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, int
     y0[n : n + model.nq] = qd0
     every = max(1, round(output_dt / h))
     if integrator == "gen-alpha":
-        traj = erls_implicit(model, t_tab, tau, y0, duration, h, output_every=every, progress=progress, stats=stats)
+        step = _check_erls_step(step, h, output_dt)
+        k = round(step / h)
+        traj = erls_implicit(model, t_tab, tau, y0, duration, step, output_every=every // k, progress=progress,
+                             stats=stats)
         return erls_probe_record(model, traj.t, traj.y)
     if integrator != "rk4":
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
@@ -183,12 +215,13 @@ def simulate_run(
     elements_per_link: int | str | None = None,
     beam: str = "ancf",
     integrator: str = "gen-alpha",
+    erls_step: float | None = None,
 ) -> Path:
     """Library form of the command: simulate and write a run folder; returns its path.
 
     ``elements_per_link``: ``None`` (Exudyn: 4 per link; ERLS: the file's mesh), a positive integer or ``"file"``
     (see ``--elements-per-link``); ``beam``: a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of
-    :data:`INTEGRATORS`.
+    :data:`INTEGRATORS`; ``erls_step``: its generalized-alpha step (default ``h``).
     """
     from ..manoeuvre import computed_torque, plan, torque_table
     from ..measure import measure, new_seed
@@ -215,6 +248,8 @@ def simulate_run(
     if elements_per_link is not None and elements_per_link != "file":
         elements_per_link = elements_per_link_arg(str(elements_per_link))
     output_dt = 1.0 / mech.sample_rate_hz
+    if engine == "erls" and integrator == "gen-alpha":
+        _check_erls_step(erls_step, h, output_dt)  # before the planning
     seed = new_seed() if seed is None else seed
     timings = {}
 
@@ -262,13 +297,14 @@ def simulate_run(
         if elements_per_link not in (None, "file"):
             truth_mech = remesh_mechanism(truth_mech, elements_per_link)
         record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], bar,
-                             integrator=integrator, stats=solver)
+                             integrator=integrator, stats=solver, step=erls_step)
         truth_settings = {
             "engine": "erls",
             "elements_per_link": "file" if elements_per_link is None else elements_per_link,
             "n_elements": sum(lk.n_elements for lk in truth_mech.links),
             "integrator": integrator,
-            **({"rho_inf": GeneralizedAlpha().rho_inf} if integrator == "gen-alpha" else {}),
+            **({"rho_inf": GeneralizedAlpha().rho_inf, "step_s": h if erls_step is None else erls_step}
+               if integrator == "gen-alpha" else {}),
             **solver,
         }
     else:
@@ -325,19 +361,24 @@ def run(args) -> int:
         if value is not None and not value > 0:
             print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
             return 2
-    out = simulate_run(
-        args.model,
-        args.out,
-        engine=args.engine,
-        duration=args.duration,
-        payload_scale=args.payload_scale,
-        seed=args.seed,
-        h=args.h,
-        progress=not args.no_progress and sys.stderr.isatty(),
-        manoeuvre=args.manoeuvre,
-        elements_per_link=args.elements_per_link,
-        beam=args.beam,
-        integrator=args.integrator,
-    )
+    try:
+        out = simulate_run(
+            args.model,
+            args.out,
+            engine=args.engine,
+            duration=args.duration,
+            payload_scale=args.payload_scale,
+            seed=args.seed,
+            h=args.h,
+            progress=not args.no_progress and sys.stderr.isatty(),
+            manoeuvre=args.manoeuvre,
+            elements_per_link=args.elements_per_link,
+            beam=args.beam,
+            integrator=args.integrator,
+            erls_step=args.erls_step,
+        )
+    except ArgumentValueError as exc:
+        print(f"exuflex simulate: error: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {out}/sensors.csv, truth.csv, meta.json")
     return 0
