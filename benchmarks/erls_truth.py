@@ -29,7 +29,7 @@ import exuflex  # noqa: F401
 import numpy as np
 
 from exuflex.cli.simulate import simulate_run
-from exuflex.erls.implicit import GeneralizedAlpha, algorithmic_damping, erls_implicit
+from exuflex.erls.implicit import FREQ_TOL, GeneralizedAlpha, algorithmic_damping, band_step, erls_implicit
 from exuflex.erls.modal import modal_analysis
 from exuflex.erls.model import ErlsModel
 from exuflex.erls.simulate import rk4_substeps, simulate
@@ -88,13 +88,16 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=1.0)
     ap.add_argument("--elements-per-link", type=int, default=8)
     ap.add_argument("--h", type=float, default=1e-4)
-    ap.add_argument("--erls-steps", default="1,2", help="ERLS generalized-alpha steps as multiples of --h (default 1,2)")
+    ap.add_argument("--erls-steps", default="1,auto",
+                    help="ERLS generalized-alpha steps: multiples of --h, or auto (exuflex simulate's default; default 1,auto)")
     ap.add_argument("--no-reference", action="store_true", help="skip the RK4 comparison (slow on fine meshes)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "erls_truth.md"))
     a = ap.parse_args()
     model = Path(a.model)
     mech = load_mechanism(model)
-    steps = [int(k) * a.h for k in a.erls_steps.split(",")]
+    out_dt = 1.0 / mech.sample_rate_hz
+    steps = [band_step(mech.reduction.band_hz, a.h, out_dt) if k == "auto" else int(k) * a.h
+             for k in a.erls_steps.split(",")]
     t = timing(model, a.duration, a.elements_per_link, a.h, steps)
     ex = t["exudyn"]
     cmd = (f"python benchmarks/erls_truth.py --model {model.relative_to(ROOT) if model.is_relative_to(ROOT) else model}"
@@ -116,10 +119,12 @@ def main() -> None:
          f"{ex['truth_s']:.2f} | {ex['truth_cpu_s']:.2f} | 1 | "
          f"{ex['truth'].get('newton_per_step', 0):.2f} Newton iterations per step |"),
     ]
+    auto = f" = auto: {100 * FREQ_TOL:g} % at {mech.reduction.band_hz:g} Hz"
     for step in steps:
         er = t[f"erls {step:g}"]
         lines.append(
-            f"| ERLS (generalized-alpha, step {step:g} s, rho_inf {er['truth'].get('rho_inf')}) | "
+            f"| ERLS (generalized-alpha, step {step:g} s{auto if step == steps[-1] and 'auto' in a.erls_steps else ''}, "
+            f"rho_inf {er['truth'].get('rho_inf')}) | "
             f"{er['truth'].get('n_elements')} elements | {er['truth_s']:.2f} | {er['truth_cpu_s']:.2f} | "
             f"{er['truth_cpu_s'] / ex['truth_cpu_s']:.2f} | {er['truth'].get('residuals_per_step', 0):.2f} residuals "
             f"per step, {er['truth'].get('factorisations')} matrix refreshes |"

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from exuflex.erls.implicit import (
+    FREQ_TOL,
     GeneralizedAlpha,
     HeldTable,
     algorithmic_damping,
+    band_step,
     erls_implicit,
     generalized_alpha,
 )
@@ -75,6 +77,18 @@ def test_stiff_oscillator_is_stable_where_rk4_is_not():
     assert np.all(np.isfinite(tr.y)) and abs(tr.y[-1, 0]) < 1e-6 * 0.9**20
 
 
+def test_band_step_is_the_largest_within_the_frequency_tolerance():
+    for band, h, out in ((180.0, 1e-4, 1e-3), (180.0, 1e-4, 2e-3), (50.0, 1e-4, 1e-3), (2000.0, 1e-4, 1e-3)):
+        step = band_step(band, h, out)
+        k = round(step / h)
+        assert round(out / h) % k == 0
+        err = abs(algorithmic_damping(2 * np.pi * band * step)[1][0])
+        assert err <= FREQ_TOL or k == 1  # never below the table step
+        larger = [j for j in range(k + 1, round(out / h) + 1) if round(out / h) % j == 0]
+        assert all(abs(algorithmic_damping(2 * np.pi * band * j * h)[1][0]) > FREQ_TOL for j in larger)
+    assert band_step(180.0, 1e-4, 1e-3) == pytest.approx(2e-4) and band_step(2000.0, 1e-4, 1e-3) == pytest.approx(1e-4)
+
+
 def test_held_table_mean_is_the_exact_integral():
     t = np.arange(5) * 0.1
     vals = np.array([[1.0], [2.0], [4.0], [8.0], [16.0]])
@@ -120,14 +134,17 @@ def test_cli_erls_engine_integrators(tmp_path, capsys):
 
     model = str(MODELS / "fourbar.toml")
     runs = {}
-    for name, extra in (("ga", []), ("ga2", ["--erls-step", "2e-4"]), ("rk4", ["--integrator", "rk4"])):
+    for name, extra in (("ga", ["--erls-step", "1e-4"]), ("ga2", []), ("rk4", ["--integrator", "rk4"])):
         out = tmp_path / name
         assert main(["simulate", model, "--out", str(out), "--engine", "erls", "--duration", "0.03", "--seed", "1",
                      *extra]) == 0
         runs[name] = read_run(out)
     truth = {k: json.loads((tmp_path / k / "meta.json").read_text())["settings"]["truth"] for k in runs}
     assert truth["ga"]["integrator"] == "gen-alpha" and truth["ga"]["step_s"] == 1e-4
-    assert truth["ga2"]["step_s"] == 2e-4 and truth["rk4"]["integrator"] == "rk4" and truth["rk4"]["rk4_substeps"] > 1
+    # auto: 0.2 ms, the largest step dividing the 1 ms sample interval within 0.5 % frequency error at 180 Hz
+    assert truth["ga2"]["step_s"] == 2e-4 and truth["ga2"]["band_hz"] == 180.0
+    assert -0.005 < truth["ga2"]["freq_error_at_band"] < -0.004
+    assert truth["rk4"]["integrator"] == "rk4" and truth["rk4"]["rk4_substeps"] > 1
     ref = runs["rk4"].truth.data
     for k in ("ga", "ga2"):
         np.testing.assert_allclose(runs[k].truth.t, runs["rk4"].truth.t, atol=1e-12)
