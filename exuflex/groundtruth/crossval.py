@@ -68,17 +68,16 @@ def manoeuvre_table(mech: Mechanism, duration: float, h: float = 1e-4, plan_dt: 
     """The manoeuvre's rigid computed torques on the integration grid ``k h``.
 
     Planned at ``plan_dt`` (exact inverse kinematics and inverse dynamics) and interpolated linearly
-    onto the grid (planning at ``h`` directly costs about 10x more for a difference of order
-    ``plan_dt^2`` times the torque's curvature).
+    onto the grid (planning at ``h`` directly differs by order ``plan_dt^2`` times the torque's curvature).
 
     Returns
     -------
     t (n,), tau (n, n_motors), q0, qd0
     """
-    from ..manoeuvre import computed_torque, plan
+    from ..manoeuvre import open_loop_torque, plan
 
     p = plan(mech, dt=plan_dt, t_end=duration)
-    tau_p = computed_torque(mech, p)
+    tau_p = open_loop_torque(mech, p)
     n = round(duration / h) + 1
     t = np.arange(n) * h
     tau = np.column_stack([np.interp(t, p.t, tau_p[:, j]) for j in range(tau_p.shape[1])])
@@ -92,6 +91,7 @@ def truth_vs_erls(
     plan_dt: float = 1e-3,
     erls_truth: Signals | None = None,
     table=None,
+    form: str = "lagrange",
     **truth_kwargs,
 ) -> tuple[TruthComparison, Signals, Signals]:
     """Simulate the Exudyn truth and (unless ``erls_truth`` is given) the ERLS engine on the manoeuvre.
@@ -101,6 +101,7 @@ def truth_vs_erls(
     duration : default the manoeuvre's.
     erls_truth : true states of an ERLS run under the same table (e.g. ``read_run(dir).truth``).
     table : (t, tau, q0, qd0) as from :func:`manoeuvre_table` (computed if None).
+    form : the ERLS full-order model's form (:class:`exuflex.erls.model.ErlsModel`), if it is simulated here.
     **truth_kwargs : passed to :func:`exuflex.groundtruth.simulate_truth`.
 
     Returns
@@ -124,7 +125,7 @@ def truth_vs_erls(
         from ..cli.simulate import _erls_truth
 
         t0 = time.perf_counter()
-        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None, integrator="rk4")
+        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None, integrator="rk4", form=form)
         extra["erls_wall_s"] = time.perf_counter() - t0
         erls_truth = true_states(mech, monotonic_record(rec_e))
     cmp = compare_truths(mech, exu, erls_truth)
