@@ -20,7 +20,7 @@ from pathlib import Path
 
 import exuflex  # noqa: F401
 
-from exuflex.cli.simulate import simulate_run
+from exuflex.truth import simulate_run
 from exuflex.mechanism import load_mechanism
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -116,7 +116,7 @@ def main(argv=None) -> dict:
     model.write_text(MODEL)
 
     from exuflex.cli.modes import modes_report
-    from exuflex.cli.simulate import simulate_run
+    from exuflex.truth import simulate_run
 
     rep = modes_report(str(model), fmax=200.0)
     print("modes (Hz):", [round(f, 2) for f in rep["full"]["frequencies_hz"]])

@@ -24,15 +24,15 @@ TIME = "Time_ms"
 def lab_log(out: Path, *, jitter_s: float = 0.2e-3, drift_ppm: float = 500.0, duration: float = 3.0,
             seed: int = 1, h: float = 1e-4) -> dict:
     """Write ``lab.csv`` and ``truth.csv`` into ``out``; returns the ``--map`` and settings."""
-    from exuflex.cli.simulate import _erls_truth
     from exuflex.manoeuvre import computed_torque, plan
     from exuflex.mechanism import load_mechanism
     from exuflex.sensors import monotonic_record, sensor_channels, true_states
+    from exuflex.truth import erls_truth
 
     mech = load_mechanism(ROOT / "models" / "sixbar.toml")
     pl = plan(mech, dt=h, t_end=duration)
     tau = computed_torque(mech, pl)
-    rec = monotonic_record(_erls_truth(mech, pl.t, tau, duration, h, h, pl.q[0], pl.qd[0], None))
+    rec = monotonic_record(erls_truth(mech, pl.t, tau, duration, h, h, pl.q[0], pl.qd[0], None))
     clean, truth = sensor_channels(mech, rec), true_states(mech, rec)
     dt = 1.0 / mech.sample_rate_hz
     rng = np.random.Generator(np.random.PCG64(seed))

@@ -134,7 +134,7 @@ def test_python_api_says_a_path_is_not_a_mechanism():
 
 
 def test_simulate_run_checks_its_arguments(tmp_path):
-    from exuflex.cli.simulate import simulate_run
+    from exuflex.truth import simulate_run
 
     with pytest.raises(UsageError, match=r"seed \(--seed\)"):
         simulate_run(SIXBAR, tmp_path / "r", seed=-1)
