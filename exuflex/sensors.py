@@ -45,6 +45,7 @@ __all__ = [
     "SENSOR_UNITS",
     "Signals",
     "absolute_tip",
+    "default_channels",
     "erls_probe_record",
     "monotonic_record",
     "sensor_channels",
@@ -537,3 +538,18 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
             vals[p.key][k] = rig + A @ d
             rates[p.key][k] = rig_d + A @ dd + thd * (A_th @ d)
     return ProbeRecord(t, vals, rates)
+
+
+def default_channels(mech: Mechanism) -> tuple[str, ...]:
+    """The observer's default channels: the sensors with a stated noise, except tip positions (truth-only) and
+    relative encoders duplicating an absolute one on the same link and joint (the six-bar: ``q1 q2 q3 c1 c2 c4``,
+    the paper's set)."""
+    absolute = {(s.link, s.joint) for s in mech.sensors if s.kind == "encoder" and not s.relative_to}
+    out = []
+    for s in mech.sensors:
+        if s.noise_std <= 0 or s.kind in ("tip_x", "tip_y"):
+            continue
+        if s.kind == "encoder" and s.relative_to and (s.link, s.joint) in absolute:
+            continue
+        out.append(s.name)
+    return tuple(out)

@@ -291,7 +291,7 @@ def check_log(
 def check_run(mech: Mechanism, run, channels: Sequence[str], *, dt: float | None = None,
               max_gap_s: float = MAX_GAP_S, check_full_scale: bool = True) -> LogCheck:
     """:func:`check_log` on a run folder read by :func:`exuflex.runs.read_run`, for the observer's ``channels``
-    (e.g. :func:`exuflex.observer.session.default_channels`)."""
+    (e.g. :func:`exuflex.sensors.default_channels`)."""
     motors = run.motors or mech.motor_names
     path = Path(run.path)
     source = str(path) if path.suffix.lower() in (".csv", ".txt") or path.is_file() else str(path / "sensors.csv")
@@ -431,7 +431,7 @@ def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
                              f"{src}; the filter needs a positive standard deviation for every channel it uses "
                              "(set noise_std in the model file or --noise NAME=STD)")
     else:
-        from .observer.session import default_channels
+        from .sensors import default_channels
 
         chans = default_channels(mech)
         if not chans:

@@ -20,7 +20,7 @@ from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
-from ..sensors import Signals, tip_point, truth_names
+from ..sensors import Signals, default_channels, tip_point, truth_names
 from .bound import steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF
 from .reduced import ReducedObserverModel
@@ -84,20 +84,6 @@ class ObserverConfig:
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
-
-
-def default_channels(mech: Mechanism) -> tuple[str, ...]:
-    """Sensors with a stated noise, except tip positions (truth-only) and relative encoders duplicating an
-    absolute one on the same link and joint (the six-bar: ``q1 q2 q3 c1 c2 c4``, the paper's set)."""
-    absolute = {(s.link, s.joint) for s in mech.sensors if s.kind == "encoder" and not s.relative_to}
-    out = []
-    for s in mech.sensors:
-        if s.noise_std <= 0 or s.kind in ("tip_x", "tip_y"):
-            continue
-        if s.kind == "encoder" and s.relative_to and (s.link, s.joint) in absolute:
-            continue
-        out.append(s.name)
-    return tuple(out)
 
 
 def physical_names(mech: Mechanism) -> tuple[str, ...]:
