@@ -288,10 +288,14 @@ def check_log(
     return rep
 
 
-def check_run(mech: Mechanism, run, channels: Sequence[str], *, dt: float | None = None,
+def check_run(mech: Mechanism, run, channels: Sequence[str] | None = None, *, dt: float | None = None,
               max_gap_s: float = MAX_GAP_S, check_full_scale: bool = True) -> LogCheck:
-    """:func:`check_log` on a run folder read by :func:`exuflex.runs.read_run`, for the observer's ``channels``
-    (e.g. :func:`exuflex.sensors.default_channels`)."""
+    """:func:`check_log` on a run folder read by :func:`exuflex.runs.read_run` (default channels: the
+    observer's default set for the mechanism, :func:`exuflex.sensors.default_channels`)."""
+    if channels is None:
+        from .sensors import default_channels
+
+        channels = default_channels(mech)
     motors = run.motors or mech.motor_names
     path = Path(run.path)
     source = str(path) if path.suffix.lower() in (".csv", ".txt") or path.is_file() else str(path / "sensors.csv")
