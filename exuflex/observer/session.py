@@ -62,6 +62,10 @@ class ObserverConfig:
         deviation in the state's unit.
     max_gap : longest interval (s) between two samples the filter predicts over.
     start_up : seconds left out of the error metrics (the filter's transient).
+    gate_p, fault_window, fault_p : per-channel innovation gate and sensor-fault tests (see
+        :mod:`.ekf`, :class:`.ekf.ChannelMonitor`); ``gate_p=None`` and ``fault_window=0`` turn them off.
+    fault_holdoff_s : seconds after a detected torque step during which nothing is gated and the NIS and
+        sensor-fault tests pause (the allowance for planned input steps).
     """
 
     channels: tuple[str, ...] | None = None
@@ -81,6 +85,10 @@ class ObserverConfig:
     q_extra_std: float = 0.0
     max_gap: float = 1.0
     start_up: float = 0.3
+    gate_p: float | None = 1e-6
+    fault_window: int = 100
+    fault_p: float = 1e-6
+    fault_holdoff_s: float = 0.4
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -222,7 +230,9 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
-    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
+                       gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
+                       fault_holdoff=max(0, round(config.fault_holdoff_s / dt)))
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -486,7 +496,6 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
                     config.start_up)
     met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
     res = est.result
-    nis_flag = bool(res.diverged and not res.nonfinite)
     summary = {
         "model": mech.name,
         "model_file": mech.source,
@@ -502,8 +511,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
-        "nis_inconsistent": nis_flag,
-        "nis_flagged_at": res.diverged_at if nis_flag else None,
+        "nis_inconsistent": bool(res.nis_flagged),
+        "nis_flagged_at": res.nis_flagged_at,
+        "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
+        "channel_faults": [dict(f) for f in res.channel_faults],
+        "n_rejected": dict(res.n_rejected),
         "wall_s": est.wall_s,
         "real_time_factor": est.real_time_factor,
         "basis_s": obs.basis_s,
