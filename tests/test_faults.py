@@ -207,3 +207,28 @@ def test_sixbar_dropout_flags_clears_and_reaches_the_json(sixbar, tmp_path):
     assert f["channel"] == "q1" and f["kind"] == "missing"
     assert 0.5 < f["start"] <= 0.75 and f["end"] == pytest.approx(2.5)
     assert s["flagged_intervals"] == [] and s["diverged"] is False
+
+
+# ------------------------------------------------------------------------------ truth alignment
+def test_truth_must_cover_the_scored_interval(caplog):
+    """Scoring holds no truth value past its end: a truth cut at 0.5 s of a 3 s log, or on a clock 100 s off, is
+    an error naming both spans; one ending 0.1 s early is a warning and the covered part is scored."""
+    from exuflex.observer.session import metrics
+    from exuflex.sensors import Signals
+
+    t = np.arange(1501) * 0.002
+    est = Signals(t, ("q1",), np.sin(t)[:, None])
+    truth = Signals(t, ("q1",), (np.sin(t) + 0.1)[:, None])
+    m = metrics(est, truth, 0.3)
+    assert m["rms_error"]["q1"] == pytest.approx(0.1, rel=1e-9) and m["truth_coverage"] == 1.0
+    cut = Signals(t[t <= 0.5], ("q1",), truth.data[t <= 0.5])
+    with pytest.raises(ValueError, match=r"truth covers 7% of the scored interval \(the truth spans 0 to 0.5 s"):
+        metrics(est, cut, 0.3)
+    with pytest.raises(ValueError, match="truth covers 0%"):
+        metrics(est, Signals(t + 100.0, ("q1",), truth.data), 0.3)
+    early = t <= 2.9
+    with caplog.at_level("WARNING"):
+        m = metrics(est, Signals(t[early], ("q1",), truth.data[early]), 0.3)
+    assert "scoring the covered part only" in caplog.text
+    assert m["truth_coverage"] == pytest.approx(1 - 0.1 / 2.7, abs=1e-3)
+    assert m["rms_error"]["q1"] == pytest.approx(0.1, rel=1e-9)  # no held end value scored

@@ -40,6 +40,14 @@ deviation, ``z_i = r_i / sqrt(S_ii)`` (standard normal for a consistent filter a
   scale below its noise. A channel without a sample for ``fault_window`` of its own intervals is "missing".
   Each fault is reported with its channel, kind and the times it was found and cleared (after a whole window
   back in band).
+- *Isolation*: a channel with an open offset or stuck fault is left out of the updates (counted in
+  ``n_rejected``) until its innovations against the estimate from the others are back in band. If the others
+  observe its quantity poorly, that may not happen before the end of the run: the fault then stays open.
+- *Allowance for input steps*: after a step in the input (a model with an ``n_jumps`` counter), nothing is
+  gated and neither test runs for ``fault_holdoff`` updates.
+
+Gating and the fault tests are off by default (``gate_p=None``, ``fault_window=0``: the textbook filter);
+:class:`~exuflex.observer.session.ObserverConfig` turns them on for the observer.
 
 Timing convention: ``x0``, ``P0`` are the *prior* at the first sample time. ``step(t_k, u_k, y_k)`` predicts
 from the previous sample to ``t_k`` with the input stored at the previous call (zero-order hold, ``u_k-1``

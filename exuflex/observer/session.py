@@ -10,6 +10,7 @@ sensors (the steady-state Kalman covariance of the linearised reduced model at a
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -279,8 +280,16 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None) -> Estimate:
     return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
 
 
-def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None) -> dict:
-    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times)."""
+def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None, *,
+            min_coverage: float = 0.9) -> dict:
+    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times).
+
+    The truth must cover the scored interval ``[t_0 + start_up, t_end]`` of the estimate: interpolation holds a
+    truth's end values, so a truth cut short or on another clock would be scored silently against constants.
+    Only the estimate's samples within the truth's span (half a sample's tolerance) are scored; if they are less
+    than ``min_coverage`` of the scored interval it is an error (``ValueError`` naming both spans), else a
+    partial cover is a warning. ``truth_coverage`` in the result is the covered fraction.
+    """
     names = [n for n in (names or est.names) if n in truth]
     sel = est.t >= est.t[0] + start_up
     if not np.any(sel):
@@ -288,14 +297,27 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
             f"the log is {est.t[-1] - est.t[0]:.3g} s long, not longer than the start-up period left out of the "
             f"error metrics ({start_up:g} s); use a longer log or a shorter start_up"
         )
+    ts = est.t[sel]
+    tol = 0.5 * float(np.median(np.diff(est.t))) if len(est.t) > 1 else 0.0
+    t0, t1 = (float(truth.t[0]), float(truth.t[-1])) if len(truth.t) else (math.nan, math.nan)
+    inside = (ts >= t0 - tol) & (ts <= t1 + tol)
+    coverage = float(inside.mean())
+    span = f"the truth spans {t0:.6g} to {t1:.6g} s, the scored estimate {ts[0]:.6g} to {ts[-1]:.6g} s"
+    if coverage < min_coverage:
+        raise ValueError(f"the truth covers {coverage:.0%} of the scored interval ({span}): not the same run or "
+                         f"clock? (at least {min_coverage:.0%} needed)")
+    if coverage < 1.0:
+        log.warning("the truth covers %.1f%% of the scored interval (%s); scoring the covered part only",
+                    100 * coverage, span)
+    ts = ts[inside]
     rms, mx = {}, {}
     for n in names:
-        tr = np.interp(est.t[sel], truth.t, truth[n])
-        e = est[n][sel] - tr
+        tr = np.interp(ts, truth.t, truth[n])
+        e = est[n][sel][inside] - tr
         e = e[np.isfinite(e)]
         rms[n] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
         mx[n] = float(np.max(np.abs(e))) if e.size else float("nan")
-    return {"rms_error": rms, "max_error": mx}
+    return {"rms_error": rms, "max_error": mx, "truth_coverage": coverage}
 
 
 def estimation_bound(obs: Observer, q=None, qd=None, *, log_check=None) -> dict[str, float]:
