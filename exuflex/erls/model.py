@@ -158,9 +158,8 @@ class ErlsModel:
             q, start = kin.start(q, z0)
             try:
                 ok, z, Jinv, cond, Sz, r, S, R, M_N, K_N, W = compiled_configuration(
-                    np.asarray(start, float), q, kin._ea, kin._esa, kin._eb, kin._ebm, kin._esb, kin._eg, kin._ang_a,
-                    kin._ang_r, kin._ang_rm, kin._ang_off, kin._J0, kin._E, 1e-12 * kin.newton_scale, 30,
-                    kin.node_link, kin.node_station, self.el_link, self.Ml, self.Kl, self.el_dofs, self.lumped, self.T)
+                    np.asarray(start, float), q, kin.arrays, 1e-12 * kin.newton_scale, 30, kin.node_link,
+                    kin.node_station, self.el_link, self.Ml, self.Kl, self.el_dofs, self.lumped, self.T)
             except np.linalg.LinAlgError:  # a singular closure Jacobian: the reference path reports it
                 ok = False
             if ok:

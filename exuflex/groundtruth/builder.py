@@ -9,8 +9,16 @@ planar flexible beams, independent of the ERLS mesh:
   ``x, y, phi``): an independent cross-check that needs a fine mesh (16-32 elements per link).
 
 Each link has its own nodes; the links' nodes at a joint coincide and are connected by
-``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). Lumped masses and rotary
-inertias sit on the node at their station (``ObjectGenericODE2``). Motor torques act on the motor
+``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). A prismatic joint's node
+keeps its coordinate normal to the axis (a global x or y direction) at its reference value
+(``ObjectConnectorCoordinate`` to a ground node). A weld keeps the two nodes' tangents at their angle:
+``ObjectConnectorCoordinate`` on the rotations (gebeam, exact) or, for ANCF, the linear constraint
+``r'_b = R(angle) r'_a`` on the slopes (``ObjectConnectorCoordinateVector``), which also equates the
+axial strains of the two links at the weld (one constraint more than a rigid angle; the bending modes
+of a welded frame hardly load it). Lumped masses and rotary inertias sit on the node at their station
+(``ObjectGenericODE2``); a mass at an offset ``(a, b)`` in the link frame sits, on an ANCF node, at
+``p + a r' + b (-y', x')`` (rigid while the slope keeps unit length, i.e. to first order), so its mass
+matrix on ``[x, y, x', y']`` is ``m A^T A`` with ``A = [[1, 0, a, -b], [0, 1, b, a]]``. Motor torques act on the motor
 link's node at the joint and, reversed, on the reaction link's node (nothing on ground), as the
 generalized forces of a torque on that node's tangent angle, ``T d(atan2(y', x'))/dc``
 (``T (-y', x') / |r'|^2`` on the ANCF slopes, ``T`` on a rotation coordinate). They sit, with the
@@ -434,7 +442,7 @@ def _hermite_mass(L: float) -> np.ndarray:
 
 
 def _link_mass_matrix(
-    lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, tuple[float, float]], form: str
+    lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, np.ndarray], form: str
 ):
     """Consistent mass of the link's beams plus its lumped masses, on the link's coordinates."""
     nn = len(lm.stations)
@@ -445,8 +453,8 @@ def _link_mass_matrix(
             L = lm.stations[e + 1] - lm.stations[e]
             Me = np.kron(rhoA * _hermite_mass(L), np.eye(2))  # dofs [x0, y0, x0', y0', x1, y1, x1', y1']
             M[e * nc : e * nc + 8, e * nc : e * nc + 8] += Me
-        for i, (m, J) in lumped.items():
-            M[i * nc : i * nc + 4, i * nc : i * nc + 4] += np.diag([m, m, J, J])
+        for i, Mi in lumped.items():
+            M[i * nc : i * nc + 4, i * nc : i * nc + 4] += Mi
     else:
         nc = 3
         M = np.zeros((nn * nc, nn * nc))
@@ -458,8 +466,8 @@ def _link_mass_matrix(
             for c, r in ((0, rhoA), (1, rhoA), (2, rhoI)):
                 Me[np.ix_([c, 3 + c], [c, 3 + c])] = r * L * lin
             M[np.ix_(idx, idx)] += Me
-        for i, (m, J) in lumped.items():
-            M[i * nc : i * nc + 3, i * nc : i * nc + 3] += np.diag([m, m, J])
+        for i, Mi in lumped.items():
+            M[i * nc : i * nc + 3, i * nc : i * nc + 3] += Mi
     return M
 
 
@@ -595,18 +603,25 @@ def build_truth(
             lm.elements.append(mbs.AddObject(obj))
         links[lk.name] = lm
 
-    # lumped masses and rotary inertias at their stations
-    lumped: dict[str, dict[int, tuple[float, float]]] = {name: {} for name in links}
+    # lumped masses and rotary inertias at their stations (mass matrices on the node's coordinates)
+    lumped: dict[str, dict[int, np.ndarray]] = {name: {} for name in links}
     for m in mech.all_masses():
         name, s = mech.node_location(m.node)
         lm = links[name]
         k = lm.node_at(s, mech.link(name).length)
-        mm, JJ = lumped[name].get(k, (0.0, 0.0))
-        lumped[name][k] = (mm + m.mass, JJ + m.inertia)
+        a, b = m.offset
+        if formulation == "ancf":
+            A = np.array([[1.0, 0.0, a, -b], [0.0, 1.0, b, a]])
+            Mk = m.mass * A.T @ A + np.diag([0.0, 0.0, m.inertia, m.inertia])
+        else:
+            if a or b:
+                raise ValueError(f"{mech.source or mech.name}: a mass at an offset ({m.label or m.node!r}) needs "
+                                 "formulation='ancf' (a gebeam node's mass matrix would depend on its rotation)")
+            Mk = np.diag([m.mass, m.mass, m.inertia])
+        lumped[name][k] = lumped[name].get(k, 0.0) + Mk
     for name, d in lumped.items():
-        for k, (mm, JJ) in d.items():
-            diag = [mm, mm, JJ, JJ] if formulation == "ancf" else [mm, mm, JJ]
-            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[links[name].nodes[k]], massMatrix=np.diag(diag)))
+        for k, Mk in d.items():
+            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[links[name].nodes[k]], massMatrix=Mk))
 
     # joints: revolute between coincident nodes; ground pins
     def node_marker(link: str, station: float) -> int:
@@ -614,9 +629,45 @@ def build_truth(
         k = lm.node_at(station, mech.link(link).length)
         return mbs.AddMarker(it.MarkerNodePosition(nodeNumber=lm.nodes[k]))
 
+    ground_node = None
+
+    def coordinate_marker(link: str, station: float, coordinate: int) -> int:
+        lm = links[link]
+        k = lm.node_at(station, mech.link(link).length)
+        return mbs.AddMarker(it.MarkerNodeCoordinate(nodeNumber=lm.nodes[k], coordinate=coordinate))
+
     for jt in mech.joints:
         markers = [node_marker(p.link, p.station) for p in jt.points]
-        if jt.ground is not None:
+        if jt.kind == "prismatic":
+            # pinned together; the first node's normal coordinate (displacement) stays at zero: on the axis
+            for mk in markers[1:]:
+                mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=[markers[0], mk]))
+            if ground_node is None:
+                ground_node = mbs.AddNode(it.NodePointGround(referenceCoordinates=[0.0, 0.0, 0.0]))
+            gm = mbs.AddMarker(it.MarkerNodeCoordinate(nodeNumber=ground_node, coordinate=0))
+            c = 0 if abs(jt.normal[0]) > 0.5 else 1
+            p0 = jt.points[0]
+            mbs.AddObject(it.ObjectConnectorCoordinate(markerNumbers=[gm, coordinate_marker(p0.link, p0.station, c)]))
+        elif jt.kind == "weld":
+            mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=markers))
+            (pa, pb) = jt.points
+            if formulation == "ancf":
+                mk = []
+                for p in (pa, pb):
+                    lm = links[p.link]
+                    mk.append(mbs.AddMarker(it.MarkerNodeCoordinates(
+                        nodeNumber=lm.nodes[lm.node_at(p.station, mech.link(p.link).length)])))
+                ca, sa = math.cos(jt.angle), math.sin(jt.angle)
+                S0 = np.zeros((2, 4))
+                S0[:, 2:] = -np.array([[ca, -sa], [sa, ca]])  # -R(angle) r'_a
+                S1 = np.zeros((2, 4))
+                S1[:, 2:] = np.eye(2)  # + r'_b
+                mbs.AddObject(it.ObjectConnectorCoordinateVector(markerNumbers=mk, scalingMarker0=S0,
+                                                                 scalingMarker1=S1, offset=[0.0, 0.0]))
+            else:
+                mbs.AddObject(it.ObjectConnectorCoordinate(markerNumbers=[
+                    coordinate_marker(pa.link, pa.station, 2), coordinate_marker(pb.link, pb.station, 2)]))
+        elif jt.ground is not None:
             gm = mbs.AddMarker(
                 it.MarkerBodyPosition(bodyNumber=ground, localPosition=[jt.ground[0], jt.ground[1], 0.0])
             )
