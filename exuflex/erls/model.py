@@ -94,6 +94,29 @@ class ErlsModel:
                 Ml.append(beam_mass(rhoA, L))
                 el_len.append(L)
                 el_station.append(lk.stations[a])
+        # masses at an offset from their node: one-node "elements" that rotate with the node's link, local mass
+        # m [[1, 0, -b], [0, 1, a], [-b, a, a^2 + b^2]] + J e3 e3^T on (u, v, theta) for the offset (a, b) in the
+        # link frame (the mass point's velocity in that frame is (u' - b theta', v' + a theta')), no stiffness,
+        # zero length (no station: sensors never locate them). The element's second node is a neighbour on the
+        # link with a zero block, so that no element lists a nodal dof twice.
+        for lm in mech.all_masses():
+            if lm.offset == (0.0, 0.0):
+                continue
+            a, b = lm.offset
+            k = nodes.index(lm.node)
+            lname = lm.link or mech.node_location(lm.node)[0]
+            ids = mech.link(lname).node_ids
+            i = ids.index(lm.node)
+            k2 = nodes.index(ids[i + 1] if i + 1 < len(ids) else ids[i - 1])
+            Me = np.zeros((6, 6))
+            Me[:3, :3] = lm.mass * np.array([[1.0, 0.0, -b], [0.0, 1.0, a], [-b, a, a * a + b * b]])
+            Me[2, 2] += lm.inertia
+            el_link.append(link_index[lname])
+            el_dofs.append([3 * k, 3 * k + 1, 3 * k + 2, 3 * k2, 3 * k2 + 1, 3 * k2 + 2])
+            Kl.append(np.zeros((6, 6)))
+            Ml.append(Me)
+            el_len.append(0.0)
+            el_station.append(mech.node_location(lm.node)[1])
         self.el_link = np.array(el_link)
         self.el_dofs = np.array(el_dofs)
         self.el_len = np.array(el_len)
@@ -105,8 +128,9 @@ class ErlsModel:
         self.n_el = len(el_link)
         lump = np.zeros(self.N)
         for lm in mech.all_masses():
-            i = nodes.index(lm.node)
-            lump[3 * i : 3 * i + 3] += (lm.mass, lm.mass, lm.inertia)
+            if lm.offset == (0.0, 0.0):
+                i = nodes.index(lm.node)
+                lump[3 * i : 3 * i + 3] += (lm.mass, lm.mass, lm.inertia)
         self.lumped = lump
         self._diag_idx = np.diag_indices(self.N)
         # motors: nodal moment pattern
@@ -367,7 +391,7 @@ class ErlsModel:
 
     def _locate(self, link: str, station: float) -> tuple[tuple[int, float], ...]:
         li = [lk.name for lk in self.mech.links].index(link)
-        els = np.flatnonzero(self.el_link == li)
+        els = np.flatnonzero((self.el_link == li) & (self.el_len > 0))  # beam elements (not offset masses)
         out = []
         for e in els:
             a, L = self.el_station[e], self.el_len[e]

@@ -300,7 +300,8 @@ class TruthModel:
         return r, float((1 - xi) * c[i0[2]] + xi * c[i1[2]]), P, A
 
     def coordinate_values(self, c: np.ndarray | None = None) -> np.ndarray:
-        """The ERLS coordinates q read from the Exudyn state (slope angles at the coordinate joints).
+        """The ERLS coordinates q read from the Exudyn state (slope angles at the coordinate joints, slider
+        positions along their axes).
 
         Angles are put on the branch nearest to the last value (the build ``q`` at first).
         """
@@ -310,6 +311,10 @@ class TruthModel:
         for j, co in enumerate(self.mech.coordinates):
             jt = self.mech.joint(co.joint)
             st = next(p.station for p in jt.points if p.link == co.link)
+            if co.kind == "slide":  # the slider's position along the axis
+                p = self.point_rows(co.link, st, c)[0]
+                out[j] = float(np.asarray(jt.axis) @ (p - np.asarray(jt.ground))) - co.offset
+                continue
             th = self.point_rows(co.link, st, c)[1]
             if co.relative_to is not None:
                 st2 = next(p.station for p in jt.points if p.link == co.relative_to)
@@ -659,9 +664,9 @@ def build_truth(
                         nodeNumber=lm.nodes[lm.node_at(p.station, mech.link(p.link).length)])))
                 ca, sa = math.cos(jt.angle), math.sin(jt.angle)
                 S0 = np.zeros((2, 4))
-                S0[:, 2:] = -np.array([[ca, -sa], [sa, ca]])  # -R(angle) r'_a
+                S0[:, 2:] = np.array([[ca, -sa], [sa, ca]])  # Exudyn's c = X1 q1 - X0 q0: r'_b - R(angle) r'_a
                 S1 = np.zeros((2, 4))
-                S1[:, 2:] = np.eye(2)  # + r'_b
+                S1[:, 2:] = np.eye(2)
                 mbs.AddObject(it.ObjectConnectorCoordinateVector(markerNumbers=mk, scalingMarker0=S0,
                                                                  scalingMarker1=S1, offset=[0.0, 0.0]))
             else:
