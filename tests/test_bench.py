@@ -33,7 +33,9 @@ def test_bench_quick_json_has_the_documented_keys():
     # both filters track the truth (loose: 0.2 s includes the start-up transient)
     assert r["reduced"]["q_rms_error_rad"] < 0.02
     assert r["full"]["q_rms_error_rad"] < 0.02
-    # the fast path against its reference path (frozen step): far below the estimation error
+    # the default path against the exact reference (rk4): far below the estimation error
     ref = r["reference"]
-    assert ref["method"] == "frozen" and set(ref["difference_over_error"]) >= {"q1", "q2", "q3", "x25", "y26"}
-    assert ref["worst_ratio"] < 0.5, ref
+    assert ref["method"] == "rk4" and set(ref["difference_over_error"]) >= {"q1", "q2", "q3", "x25", "y26"}
+    # (0.2 s: the start-up transient, where the held matrices differ most; measured 0.52 for dq3. After the
+    # transient the difference is a tenth of the bound: the slow test_fast_steps_agree_with_the_papers_rk4_reference)
+    assert ref["worst_ratio"] < 0.75, ref

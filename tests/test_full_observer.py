@@ -36,7 +36,7 @@ def test_is_a_discrete_model_and_steps_like_the_erls_engine(fm):
     assert fm.nx == 2 * fm.model.n
     x = _state(fm, np.random.default_rng(0))
     u = np.array([1.0, -2.0, 0.01])
-    xn, F = fm.step(x, u, DT)
+    xn, F, _ = fm.predict(x, u, DT)
     traj = simulate(fm.model.rhs, x, DT, lambda t: u, h=fm.h)
     np.testing.assert_allclose(xn, traj.y[-1], rtol=0, atol=1e-12)
     assert F.shape == (fm.nx, fm.nx)
@@ -51,20 +51,20 @@ def test_step_jacobian_matches_finite_differences_in_the_elastic_block(fm):
     rng = np.random.default_rng(1)
     x = _state(fm, rng)
     u = np.zeros(3)
-    _, F = fm.step(x, u, DT)
+    _, F, _ = fm.predict(x, u, DT)
     n, nq = fm.n, fm.nq
     cols = [nq + 2, nq + 10, n + nq + 3, n + nq + 12, n]  # u, u, u', u', q1'
     for j in cols:
         e = np.zeros(fm.nx)
         e[j] = 1e-7 if j < n else 1e-5
-        fd = (fm.step(x + e, u, DT)[0] - fm.step(x - e, u, DT)[0]) / (2 * e[j])
+        fd = (fm.predict(x + e, u, DT).x - fm.predict(x - e, u, DT).x) / (2 * e[j])
         scale = np.max(np.abs(fd))
         assert np.max(np.abs(F[:, j] - fd)) < 0.05 * scale, j
 
 
 def test_measurement_jacobian_and_values(fm):
     x = _state(fm, np.random.default_rng(2))
-    fm.step(x, np.zeros(3), DT)
+    fm.predict(x, np.zeros(3), DT)
     channels = [s.name for s in fm.mech.sensors]
     y, H = fm.measure(x, channels)
     assert y.shape == (len(channels),) and H.shape == (len(channels), fm.nx)
@@ -76,15 +76,14 @@ def test_measurement_jacobian_and_values(fm):
     np.testing.assert_allclose(H[:, fm.n :], 0.0)
     # encoders at rest on the rigid pose read the coordinates
     x0 = fm.initial_state(fm.mech.q_ref)
-    fm.step(x0, np.zeros(3), DT)
+    fm.predict(x0, np.zeros(3), DT)
     yq, _ = fm.measure(x0, ["q1", "q2", "q3"])
     np.testing.assert_allclose(yq, fm.mech.q_ref, atol=1e-9)
 
 
 def test_process_noise_is_symmetric_psd_and_scales_with_torque_noise(fm):
     x = _state(fm, np.random.default_rng(3))
-    fm.step(x, np.zeros(3), DT)
-    Q = fm.process_noise(x, None, DT)
+    Q = fm.predict(x, None, DT).Q
     np.testing.assert_allclose(Q, Q.T, atol=1e-20)
     assert np.min(np.linalg.eigvalsh(Q)) > -1e-12 * np.max(np.abs(Q))
     assert np.trace(Q) > 0
@@ -101,7 +100,7 @@ def test_ekf_runs_on_the_full_model(fm):
     for k in range(10):
         y, _ = fm.measure(x_true, chans)
         xh = ekf.step(k * DT, u, y)
-        x_true, _ = fm.step(x_true, u, DT)
+        x_true = fm.predict(x_true, u, DT).x
     assert np.all(np.isfinite(xh))
     # xh is the estimate at the last sample time, before the final truth step
     assert ekf.t == pytest.approx(9 * DT)

@@ -286,13 +286,12 @@ def test_welded_arm_modes_agree_with_exudyn(angle):
 
 
 def test_offset_mass_modes_agree_with_exudyn():
-    """A mass at an offset (Exudyn: the point p + a r' + b (-y', x') of the ANCF node, exact while the slope keeps
-    unit length) against the ERLS rigid offset: the first three modes within 0.1 % (higher modes feel the ANCF
-    point's coupling to the axial stretch at the node)."""
+    """A mass at an offset (Exudyn: a rigid body centred at the mass point, welded to the ANCF node's rotation
+    ``atan2(y', x')``) against the ERLS rigid offset: the first six modes within 0.05 %."""
     pytest.importorskip("exudyn")
     from exuflex.groundtruth import exudyn_frequencies
 
     mech = parse_mechanism(_welded_arm(offset=(0.04, -0.03), inertia=1e-4, n=(8, 6)), "l_arm.toml")
-    fe = modal_analysis(ErlsModel(mech), [0.3]).frequencies_hz[:3]
-    fx = exudyn_frequencies(mech, [0.3], elements_per_link=8)[:3]
-    np.testing.assert_allclose(fx, fe, rtol=1e-3)
+    fe = modal_analysis(ErlsModel(mech), [0.3]).frequencies_hz[:6]
+    fx = exudyn_frequencies(mech, [0.3], elements_per_link=8)[:6]
+    np.testing.assert_allclose(fx, fe, rtol=5e-4)

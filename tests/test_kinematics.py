@@ -147,3 +147,25 @@ def test_compiled_pose_equals_numpy_pose(name):
         for x, y in ((a.z, b.z), (a.Sz, b.Sz), (a.r, b.r), (a.S, b.S), (a.Jinv, b.Jinv)):
             np.testing.assert_allclose(x, y, rtol=1e-11, atol=1e-13)
         assert a.cond == pytest.approx(b.cond, rel=1e-10)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_closure_functions_batch_over_leading_axes(name):
+    """residual, jacobian and d(Phi_z)/dt on a stack of poses equal the single-pose values; the product
+    (dPhi_z/dt) z' equals the matrix times z' and the finite difference of Phi_z along z'."""
+    kin = Kinematics(load_mechanism(MODELS / f"{name}.toml"))
+    rng = np.random.default_rng(3)
+    qs = _configs(kin.mech)
+    zs = np.array([kin.solve(q) for q in qs])
+    zds = rng.standard_normal(zs.shape)
+    res = kin.residual(zs, np.array(qs))
+    J = kin.jacobian(zs)
+    Jd = kin._jacobian_rate(zs, zds)
+    prod = kin.jacobian_rate_product(zs, zds)
+    for k, q in enumerate(qs):
+        np.testing.assert_array_equal(res[k], kin.residual(zs[k], q))
+        np.testing.assert_array_equal(J[k], kin.jacobian(zs[k]))
+        np.testing.assert_array_equal(Jd[k], kin._jacobian_rate(zs[k], zds[k]))
+        np.testing.assert_allclose(prod[k], Jd[k] @ zds[k], rtol=0, atol=1e-13 * np.abs(Jd[k]).max())
+        fd = (kin.jacobian(zs[k] + H * zds[k]) - kin.jacobian(zs[k] - H * zds[k])) / (2 * H)
+        assert _rel(fd @ zds[k], prod[k], 1.0) < 1e-8

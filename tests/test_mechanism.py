@@ -27,7 +27,7 @@ def test_models_load(name):
     assert len(mech.q_ref) == len(mech.coordinates)
     dofs = elastic_dofs(mech)
     for m in mech.reduction.masters:
-        dofs.index(m)  # every master is a real elastic dof
+        dofs.locate(m)  # every master is a real elastic dof
     assert mech.sensors and mech.motors and mech.manoeuvre is not None and mech.payload is not None
 
 
@@ -38,6 +38,20 @@ def test_sixbar_numbering_matches_paper():
     assert [dofs.node_name(m) for m in ("x14", "y15", "theta24", "x25", "y26")] == [
         "node8.x", "node8.y", "node12.theta", "node14.x", "node14.y"
     ]
+
+
+def test_link_frame_masters_by_name_and_by_point():
+    """``node5.transverse`` and the point ``{ link, station, direction }`` name the same dof; a joint's second
+    node names the joint's shared translation in its own link's frame."""
+    doc = _doc("single_link")
+    doc["reduction"]["masters"] = [{"link": "arm", "station": 1.0, "direction": "transverse"}, "node5.theta"]
+    mech = parse_mechanism(doc, "point.toml")
+    assert mech.reduction.masters == ("node5.transverse", "node5.theta")
+    d = elastic_dofs(load_mechanism(MODELS / "fourbar.toml"))
+    a, b = d.locate("node3.transverse"), d.locate("node2.transverse")  # joint A: coupler's and crank's node
+    assert a.pair == b.pair == (d.index("node2.x"), d.index("node2.y"))
+    assert (a.frame_node, b.frame_node) == (3, 2) and a.index == b.index == d.index("node2.y")
+    assert d.locate("node2.axial").index == d.index("node2.x") and d.locate("node9.theta").frame_node is None
 
 
 def test_n_elements_equals_explicit_stations():
@@ -96,6 +110,12 @@ CASES = [
     ("sixbar", "damping.alpha", -1.0, "damping.alpha", ">= 0"),
     ("sixbar", "reduction.masters", ["x14", "x99"], "reduction.masters[1]", "elastic dof name"),
     ("sixbar", "reduction.masters", "x14", "reduction.masters", "list of elastic dof names"),
+    ("sixbar", "reduction.masters", ["node14.sideways"], "reduction.masters[0]", "elastic dof name"),
+    ("sixbar", "reduction.masters", ["node1.transverse"], "reduction.masters[0]", "elastic dof name"),
+    ("single_link", "reduction.masters", [{"link": "arm", "station": 1.0, "direction": "y"}],
+     "reduction.masters[0].direction", "'axial', 'transverse' or 'theta'"),
+    ("single_link", "reduction.masters", [{"link": "arm", "station": 0.6, "direction": "axial"}],
+     "reduction.masters[0].station", "stations"),
     ("sixbar", "model.q_ref", [1.0, 2.0], "model.q_ref", "list of 3 numbers"),
     ("sixbar", "manoeuvre.ramp_time", 2.0, "manoeuvre.ramp_time", "ramp time"),
     ("single_link", "links.0.n_elements", 0, "links[0].n_elements", "positive integer"),

@@ -1,7 +1,7 @@
 """The reduced-order EKF on the six-bar: bound, observability, offline = online, convergence, fast path.
 
 The log is the paper's setting: the manoeuvre simulated by the full-order ERLS model with Table 3 noise
-(``exuflex simulate models/sixbar.toml --engine erls --duration 3 --seed 1``, stored in
+(``exuflex simulate models/sixbar.toml --engine erls --integrator rk4 --duration 3 --seed 1``, stored in
 ``tests/data/sixbar_erls_3s``). The Exudyn truth and the 50-run consistency study are in
 ``benchmarks/observer_accuracy.py`` and the slow tests.
 """
@@ -108,46 +108,20 @@ def test_converges_from_wrong_start_within_twice_the_bound(sixbar, observer, erl
     assert not res.diverged
 
 
-def test_cached_path_agrees_with_reference_path(sixbar, observer, erls_log):
-    """The cached step (configuration evaluated 29 times in 3 s) against the frozen one (every interval):
-    differences far below the estimation error (measured on the 3 s log: <= 5 % of it)."""
+def test_cached_path_evaluates_few_configurations_and_tracks(sixbar, observer, erls_log):
+    """The cached step evaluates the configuration a few dozen times in 3 s (against 1500 intervals) and its
+    errors stay within 1.5 times the steady-state bound (its agreement with the exact reference: the slow
+    ``test_fast_steps_agree_with_the_papers_rk4_reference``)."""
     t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
-    cb = observer.model.rm.cb
-    ref = estimate(make_observer(sixbar, ObserverConfig(method="frozen"), cb=cb), t, U, Y)
-    fast_obs = make_observer(sixbar, ObserverConfig(method="cached"), cb=cb)
-    fast = estimate(fast_obs, t, U, Y)
-    err = metrics(ref.physical, erls_log.truth, start_up=0.3)["rms_error"]
-    diff = metrics(fast.physical, ref.physical, start_up=0.3)["rms_error"]
-    print({name: round(diff[name] / err[name], 3) for name in err}, fast_obs.model.n_refresh, "evaluations")
-    assert fast_obs.model.n_refresh < 100
+    before = observer.model.n_refresh
+    fast = estimate(observer, t, U, Y)
+    evaluations = observer.model.n_refresh - before
+    err = metrics(fast.physical, erls_log.truth, start_up=0.3)["rms_error"]
+    bound = estimation_bound(observer)
+    print({name: round(err[name] / bound[name], 3) for name in err}, evaluations, "evaluations")
+    assert evaluations < 100
     for name in physical_names(sixbar):
-        assert diff[name] < 0.1 * err[name], (name, diff[name], err[name])
-
-
-def test_linear_hold_keeps_the_torque_noise_as_states(sixbar, observer, erls_log):
-    """input_hold="linear": the filter's state carries the newest torque sample's noise (three extra states, the
-    physical estimates from the leading block), and the mean of the two bounding torque samples lowers the
-    errors of the rates (50 runs: by 25-40 % on dq1, dq2, dx25, dy26)."""
-    from exuflex.observer.hold import LinearHoldModel
-
-    t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
-    lin = make_observer(sixbar, ObserverConfig(input_hold="linear"), cb=observer.model.rm.cb)
-    assert isinstance(lin.ekf.model, LinearHoldModel)
-    assert lin.ekf.nx == lin.model.nx + len(sixbar.motors)
-    est = estimate(lin, t, U, Y)
-    assert est.result.x_hat.shape == (len(t), lin.model.nx + 3) and not est.result.diverged
-    ref = estimate(observer, t, U, Y)
-    m = metrics(est.physical, erls_log.truth, start_up=0.3)["rms_error"]
-    m0 = metrics(ref.physical, erls_log.truth, start_up=0.3)["rms_error"]
-    print({n: round(m[n] / m0[n], 3) for n in m})
-    for name in ("dq1", "dq2", "dx25", "dy26"):
-        assert m[name] < 0.9 * m0[name], (name, m[name], m0[name])
-    for name in physical_names(sixbar):
-        assert m[name] < 1.3 * m0[name], (name, m[name], m0[name])
-    # a prior given as a reduced state is extended by zeros for the noise states
-    x0 = lin.model.initial_state(erls_log.truth.data[0, :3])
-    est2 = estimate(lin, t[:20], U[:20], Y[:20], x0=x0)
-    assert np.all(np.isfinite(est2.result.x_hat))
+        assert err[name] < 1.6 * bound[name], (name, err[name], bound[name])
 
 
 def test_torque_jump_between_samples_is_flagged_and_modelled(sixbar, observer, erls_log):
@@ -156,10 +130,10 @@ def test_torque_jump_between_samples_is_flagged_and_modelled(sixbar, observer, e
     with the jump's effect the innovations after 2.92 s stay consistent (without: NIS ~20 for 6 channels)."""
     t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
     res = observer.ekf.run(t, U, Y)
-    assert observer.ekf.n_jumps == 2
+    assert observer.model.n_jumps == 2
     plain = make_observer(sixbar, ObserverConfig(jump_p=None), cb=observer.model.rm.cb)
     res0 = plain.ekf.run(t, U, Y)
-    assert plain.ekf.n_jumps == 0
+    assert plain.model.n_jumps == 0
     after = (t > 2.92) & (t < 2.97)
     nis, nis0 = np.nanmean(res.nis[after]), np.nanmean(res0.nis[after])
     print(f"mean NIS 2.92-2.97 s: {nis:.2f} with the jump test, {nis0:.2f} without")
@@ -175,24 +149,26 @@ def test_torque_jump_between_samples_is_flagged_and_modelled(sixbar, observer, e
         assert diff[name] < 0.2 * err[name], (name, diff[name], err[name])
 
 
-@pytest.mark.parametrize("method", ["cached", "frozen"])
+@pytest.mark.parametrize("method", ["cached", "rk4"])
 def test_jump_moments_are_those_of_a_jump_at_a_uniform_sub_step(sixbar, observer, method):
     """input_jump_moments: the mean and covariance over j = 1..n of the response to the jump held over the last
     n - j RK4 sub-steps (``step_maps`` over n - j steps; none for j = n), with the matrices of the last step."""
-    from exuflex.observer.held import step_maps
+    from exuflex.observer.expansion import step_maps
     from exuflex.observer.reduced import ReducedObserverModel
 
     som = ReducedObserverModel(observer.model.rm, method=method, jump_p=1e-6)
     z = som.initial_state(plan(sixbar, dt=1.5, t_end=1.5).q[1])
     z[som.r : som.r + 3] = [0.3, -0.2, 0.1]
-    som.step(z, np.array([1.0, 2.0, 0.0]), DT)
+    som.predict(z, np.array([1.0, 2.0, 0.0]), DT)
     d = np.array([-1.3, -14.0, 0.05])
     assert som.input_jump(np.zeros(3), d) is not None and som.input_jump(np.zeros(3), 1e-3 * d) is None
-    mean, cov = som.input_jump_moments(d, DT)
-    Mr, Kr, Cr, Gr = som._step_matrices if method == "cached" else (
-        som._last.mats.Mr, som._last.mats.Kr, som._last.mats.Cr, som._last.mats.Gr)
-    n = round(DT / som.h)
-    R = np.array([step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, som.h, n - j)[2] @ d for j in range(1, n)]
+    mean, cov = som.input_jump_moments(d)
+    Mr, Kr, Cr, Gr, h, n = som._interval_matrices
+    assert n * h == pytest.approx(DT)
+    if method == "rk4":
+        m = som._last.mats
+        assert np.array_equal(Mr, m.Mr) and np.array_equal(Kr, m.Kr)
+    R = np.array([step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, h, n - j)[2] @ d for j in range(1, n)]
                  + [np.zeros(som.nx)])
     np.testing.assert_allclose(mean, R.mean(axis=0), rtol=1e-9, atol=1e-12 * np.abs(R).max())
     np.testing.assert_allclose(cov, np.cov(R.T, bias=True), rtol=1e-8, atol=1e-12 * np.abs(cov).max())
@@ -251,18 +227,17 @@ def test_cli_observes_a_lab_csv_with_a_channel_map(tmp_path, erls_log, capsys):
 
 @pytest.mark.slow
 def test_fast_steps_agree_with_the_papers_rk4_reference(sixbar, observer, erls_log):
-    """The paper's scheme (every RK4 stage with its own matrices, 30 s for 0.6 s of log) vs the frozen and the
-    cached step maps: after the 0.3 s start-up the estimates differ by a fraction of the bound (measured:
-    frozen <= 0.07, cached <= 0.41 (dq3), everything else <= 0.08)."""
+    """The paper's scheme (every RK4 stage with its own matrices: the exact reference) vs the cached step: after the
+    0.3 s start-up the estimates differ by a fraction of the bound."""
     t, U, Y = _arrays(erls_log, observer.channels, 301)
     cb = observer.model.rm.cb
     ref = estimate(make_observer(sixbar, ObserverConfig(method="rk4"), cb=cb), t, U, Y).physical
     bound = estimation_bound(observer)
-    for method, tol in (("frozen", 0.15), ("cached", 0.5)):
-        est = estimate(make_observer(sixbar, ObserverConfig(method=method), cb=cb), t, U, Y).physical
-        diff = metrics(est, ref, start_up=0.3)["rms_error"]
-        for name in physical_names(sixbar):
-            assert diff[name] < tol * bound[name], (method, name, diff[name], bound[name])
+    est = estimate(make_observer(sixbar, ObserverConfig(method="cached"), cb=cb), t, U, Y).physical
+    diff = metrics(est, ref, start_up=0.3)["rms_error"]
+    print({name: round(diff[name] / bound[name], 3) for name in diff})
+    for name in physical_names(sixbar):
+        assert diff[name] < 0.5 * bound[name], (name, diff[name], bound[name])
 
 
 def test_runaway_estimate_is_a_divergence_not_a_model_error(sixbar):

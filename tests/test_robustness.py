@@ -21,7 +21,7 @@ from exuflex.cli import main  # noqa: E402
 from exuflex.erls.kinematics import KinematicsError  # noqa: E402
 from exuflex.errors import EXPECTED_ERRORS, LogFormatError  # noqa: E402
 from exuflex.mechanism import ModelFileError, load_mechanism, parse_mechanism  # noqa: E402
-from exuflex.observer import FilterDivergedError, LinearDiscreteModel, MultirateEKF  # noqa: E402
+from exuflex.observer import FilterDivergedError, LinearDiscreteModel, MultirateEKF, Prediction  # noqa: E402
 from exuflex.runs import atomic_write_text, read_run, write_run  # noqa: E402
 from exuflex.sensors import Signals  # noqa: E402
 from exuflex.validate import check_configurations  # noqa: E402
@@ -256,10 +256,10 @@ def test_nis_divergence_is_flagged_with_its_time():
 class _BlowUp(LinearDiscreteModel):
     """A linear model whose step map returns NaN from its ``bad_from``-th call on (a numerical failure)."""
 
-    def step(self, x, u, dt):
+    def predict(self, x, u, dt, u_next=None):
         self.calls = getattr(self, "calls", 0) + 1
-        xn, F = super().step(x, u, dt)
-        return (np.full_like(xn, np.nan) if self.calls >= self.bad_from else xn), F
+        xn, F, Q = super().predict(x, u, dt)
+        return Prediction(np.full_like(xn, np.nan) if self.calls >= self.bad_from else xn, F, Q)
 
 
 def _blowup_ekf(**kw):

@@ -28,12 +28,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--n-interior", default=None, help="interior modes: a number or 'auto'")
     p.add_argument(
         "--method",
-        choices=("cached", "frozen", "rk4"),
+        choices=("cached", "rk4"),
         default="cached",
-        help="step map: cached (fast, default), frozen (matrices every interval), rk4 (the paper's, reference)",
+        help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)",
     )
-    p.add_argument("--backend", choices=("auto", "numba", "numpy", "filterpy"), default="auto",
-                   help="covariance algebra (auto: numba where installed)")
     p.add_argument("--bound", action="store_true", help="also print the steady-state RMS bound (always in --json)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
@@ -51,7 +49,6 @@ def _config(args):
         masters=tuple(args.masters.split(",")) if args.masters else None,
         n_interior=ni,
         method=args.method,
-        backend=args.backend,
     )
 
 

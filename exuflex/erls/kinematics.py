@@ -170,52 +170,71 @@ class Kinematics:
                                     self._J0, self._E)
 
     def residual(self, z: np.ndarray, q: np.ndarray) -> np.ndarray:
-        x, y, th = z[0::3], z[1::3], z[2::3]
+        """Phi(z, q) (n_eq,); batched over leading axes of ``z`` (..., 3 n_links) and ``q`` (..., nq)."""
+        x, y, th = z[..., 0::3], z[..., 1::3], z[..., 2::3]
         a, b = self._ea, self._eb
-        out = np.empty(self.n_eq)
+        out = np.empty(np.shape(z)[:-1] + (self.n_eq,))
         m = self._ebm
-        ca, sa_ = np.cos(th[a]), np.sin(th[a])
-        cb, sb_ = np.cos(th[b]), np.sin(th[b])
-        out[self._rx] = x[a] + self._esa * ca - m * (x[b] + self._esb * cb) - self._eg[:, 0]
-        out[self._ry] = y[a] + self._esa * sa_ - m * (y[b] + self._esb * sb_) - self._eg[:, 1]
+        ca, sa_ = np.cos(th[..., a]), np.sin(th[..., a])
+        cb, sb_ = np.cos(th[..., b]), np.sin(th[..., b])
+        out[..., self._rx] = x[..., a] + self._esa * ca - m * (x[..., b] + self._esb * cb) - self._eg[:, 0]
+        out[..., self._ry] = y[..., a] + self._esa * sa_ - m * (y[..., b] + self._esb * sb_) - self._eg[:, 1]
         base = 2 * len(self._pos_eqs)
-        ta = th[self._ca]
-        q_term = np.where(self._cq >= 0, np.asarray(q, float)[np.maximum(self._cq, 0)], 0.0)
-        out[base:] = (self._cn[:, 0] * (x[self._ca] + self._cs * np.cos(ta))
-                      + self._cn[:, 1] * (y[self._ca] + self._cs * np.sin(ta))
-                      + self._cw * ta - self._cwr * th[self._cr] - self._coff - q_term)
+        ta = th[..., self._ca]
+        q = np.asarray(q, float)
+        q_term = np.where(self._cq >= 0, q[..., np.maximum(self._cq, 0)], 0.0)
+        out[..., base:] = (self._cn[:, 0] * (x[..., self._ca] + self._cs * np.cos(ta))
+                           + self._cn[:, 1] * (y[..., self._ca] + self._cs * np.sin(ta))
+                           + self._cw * ta - self._cwr * th[..., self._cr] - self._coff - q_term)
         return out
 
     def jacobian(self, z: np.ndarray) -> np.ndarray:
-        """Phi_z (n_eq, 3 n_links)."""
-        th = z[2::3]
-        J = self._J0.copy()
+        """Phi_z (n_eq, 3 n_links); batched over leading axes of ``z``."""
+        th = z[..., 2::3]
+        J = np.broadcast_to(self._J0, th.shape[:-1] + self._J0.shape).copy()
         a, b = self._ea, self._eb
-        J[self._rx, self._pca] = -self._esa * np.sin(th[a])
-        J[self._ry, self._pca] = self._esa * np.cos(th[a])
+        J[..., self._rx, self._pca] = -self._esa * np.sin(th[..., a])
+        J[..., self._ry, self._pca] = self._esa * np.cos(th[..., a])
         lk = self._link_eq
-        J[self._rx[lk], self._pcb[lk]] = self._esb[lk] * np.sin(th[b[lk]])
-        J[self._ry[lk], self._pcb[lk]] = -self._esb[lk] * np.cos(th[b[lk]])
+        J[..., self._rx[lk], self._pcb[lk]] = self._esb[lk] * np.sin(th[..., b[lk]])
+        J[..., self._ry[lk], self._pcb[lk]] = -self._esb[lk] * np.cos(th[..., b[lk]])
         i = self._sc_pt
-        ta = th[self._ca[i]]
-        J[self._sc_rows, 3 * self._ca[i] + 2] += self._cs[i] * (-self._cn[i, 0] * np.sin(ta) + self._cn[i, 1] * np.cos(ta))
+        ta = th[..., self._ca[i]]
+        J[..., self._sc_rows, 3 * self._ca[i] + 2] += self._cs[i] * (-self._cn[i, 0] * np.sin(ta)
+                                                                     + self._cn[i, 1] * np.cos(ta))
         return J
 
     def _jacobian_rate(self, z: np.ndarray, zd: np.ndarray) -> np.ndarray:
-        """d(Phi_z)/dt along the velocity zd."""
-        th, thd = z[2::3], zd[2::3]
-        J = np.zeros((self.n_eq, 3 * self.nl))
+        """d(Phi_z)/dt along the velocity zd; batched over leading axes of ``z`` and ``zd``."""
+        th, thd = z[..., 2::3], zd[..., 2::3]
+        J = np.zeros(th.shape[:-1] + (self.n_eq, 3 * self.nl))
         a, b = self._ea, self._eb
-        J[self._rx, self._pca] = -self._esa * thd[a] * np.cos(th[a])
-        J[self._ry, self._pca] = -self._esa * thd[a] * np.sin(th[a])
+        J[..., self._rx, self._pca] = -self._esa * thd[..., a] * np.cos(th[..., a])
+        J[..., self._ry, self._pca] = -self._esa * thd[..., a] * np.sin(th[..., a])
         lk = self._link_eq
-        J[self._rx[lk], self._pcb[lk]] = self._esb[lk] * thd[b[lk]] * np.cos(th[b[lk]])
-        J[self._ry[lk], self._pcb[lk]] = self._esb[lk] * thd[b[lk]] * np.sin(th[b[lk]])
+        bl = b[lk]
+        J[..., self._rx[lk], self._pcb[lk]] = self._esb[lk] * thd[..., bl] * np.cos(th[..., bl])
+        J[..., self._ry[lk], self._pcb[lk]] = self._esb[lk] * thd[..., bl] * np.sin(th[..., bl])
         i = self._sc_pt
         ai = self._ca[i]
-        J[self._sc_rows, 3 * ai + 2] = self._cs[i] * thd[ai] * (-self._cn[i, 0] * np.cos(th[ai])
-                                                                - self._cn[i, 1] * np.sin(th[ai]))
+        J[..., self._sc_rows, 3 * ai + 2] = self._cs[i] * thd[..., ai] * (-self._cn[i, 0] * np.cos(th[..., ai])
+                                                                         - self._cn[i, 1] * np.sin(th[..., ai]))
         return J
+
+    def jacobian_rate_product(self, z: np.ndarray, zd: np.ndarray) -> np.ndarray:
+        """``(dPhi_z/dt) z'`` (n_eq,) without forming the matrix; batched over leading axes of ``z`` and ``zd``."""
+        th, thd = z[..., 2::3], zd[..., 2::3]
+        a, b = self._ea, self._eb
+        wa = self._esa * thd[..., a] ** 2
+        wb = self._ebm * self._esb * thd[..., b] ** 2
+        out = np.zeros(np.shape(z)[:-1] + (self.n_eq,))
+        out[..., self._rx] = -wa * np.cos(th[..., a]) + wb * np.cos(th[..., b])
+        out[..., self._ry] = -wa * np.sin(th[..., a]) + wb * np.sin(th[..., b])
+        i = self._sc_pt  # scalar equations on a point: s (-n_x cos - n_y sin) th'^2
+        ai = self._ca[i]
+        out[..., self._sc_rows] = self._cs[i] * thd[..., ai] ** 2 * (-self._cn[i, 0] * np.cos(th[..., ai])
+                                                                    - self._cn[i, 1] * np.sin(th[..., ai]))
+        return out
 
     def initial_guess(self, q: np.ndarray) -> np.ndarray:
         """Link poses from the angle guesses, placed by walking the joints from the ground."""

@@ -15,10 +15,24 @@ keeps its coordinate normal to the axis (a global x or y direction) at its refer
 ``ObjectConnectorCoordinate`` on the rotations (gebeam, exact) or, for ANCF, the linear constraint
 ``r'_b = R(angle) r'_a`` on the slopes (``ObjectConnectorCoordinateVector``), which also equates the
 axial strains of the two links at the weld (one constraint more than a rigid angle; the bending modes
-of a welded frame hardly load it). Lumped masses and rotary inertias sit on the node at their station
-(``ObjectGenericODE2``); a mass at an offset ``(a, b)`` in the link frame sits, on an ANCF node, at
-``p + a r' + b (-y', x')`` (rigid while the slope keeps unit length, i.e. to first order), so its mass
-matrix on ``[x, y, x', y']`` is ``m A^T A`` with ``A = [[1, 0, a, -b], [0, 1, b, a]]``. Motor torques act on the motor
+of a welded frame hardly load it). Lumped masses sit on the node at their station
+(``ObjectGenericODE2``). A rotary inertia ``J`` (a hub, a motor rotor) or a mass at an offset
+``(a, b)`` in the link frame must move with the node's rotation only:
+
+- ``hub="rigid"`` (default): on ANCF such a mass gets a rigid body (``NodeRigidBody2D``,
+  ``ObjectRigidBody2D`` with its mass and ``J``, centred at the mass point) welded to the node by an
+  ``ObjectJointGeneric`` that ties position and rotation (x, y, rotation about z) of a body marker at
+  the node (``MarkerBodyRigid`` at ``-(a, b)``) to the node's ``MarkerNodeRigid``, whose angle is the
+  slope's ``atan2(y', x')``. The kinetic energy is then exactly that of a rigid body carried by the ERLS
+  node, whatever the slope's length.
+- ``hub="slopes"``: a constant mass matrix on the node's ``[x, y, x', y']``: the mass point at
+  ``p + a r' + b (-y', x')``, ``m A^T A`` with ``A = [[1, 0, a, -b], [0, 1, b, a]]``, and J on both
+  slope components. Exact for a unit slope, but it also gives the slope's *stretch* the inertia
+  ``J + m (a^2 + b^2)``, which adds a spurious mode (slope stretch against the axial stiffness of the
+  adjacent elements, ``~ sqrt(EA h / J)``) that falls into the band as the mesh is refined. Kept as the
+  legacy model, for comparison.
+On ``formulation="gebeam"`` J sits on the node's rotation coordinate (both choices are the same; an offset
+mass needs ANCF). Motor torques act on the motor
 link's node at the joint and, reversed, on the reaction link's node (nothing on ground), as the
 generalized forces of a torque on that node's tangent angle, ``T d(atan2(y', x'))/dc``
 (``T (-y', x') / |r'|^2`` on the ANCF slopes, ``T`` on a rotation coordinate). They sit, with the
@@ -58,7 +72,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import itertools
 import logging
 import math
 import os
@@ -70,10 +83,13 @@ import numpy as np
 from ..erls.kinematics import Kinematics
 from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
+from ..mechanism.refine import split_segments
 
 __all__ = [
     "DAMPINGS",
     "FORMULATIONS",
+    "HUBS",
+    "MESH_FILE",
     "LinkMesh",
     "TruthModel",
     "ancf_shape",
@@ -85,6 +101,8 @@ log = logging.getLogger(__name__)
 
 FORMULATIONS = ("ancf", "gebeam")
 DAMPINGS = ("erls", "corotational", "stiffness", None)
+HUBS = ("rigid", "slopes")
+MESH_FILE = "file"  # elements_per_link: the mechanism's own element boundaries
 SHEAR_CORRECTION = 0.9  # circular section (gebeam only)
 POISSON = 0.33  # (gebeam only) shear modulus G = E / (2 (1 + nu))
 
@@ -197,7 +215,9 @@ class TruthModel:
     damping: str | None
     alpha: float
     beta: float
-    forces: int  # ObjectGenericODE2 over all nodes: motor torques and alpha damper (forceVector)
+    forces: int  # ObjectGenericODE2 over all link nodes: motor torques and alpha damper (forceVector)
+    n_link_coordinates: int = 0  # coordinates of the link nodes (first in the ODE2 order; hub bodies after)
+    hub: str = "rigid"
     explicit_damping: bool = True  # alpha damper as explicit force (simulation) or damping matrix (modal)
     D_alpha: np.ndarray | None = None  # current alpha damping matrix on all ODE2 coordinates
     erls: ErlsModel | None = None
@@ -261,7 +281,8 @@ class TruthModel:
         """
         c = self.coordinates()
         cd = self.velocities() if self.explicit_damping and self.D_alpha is not None else None
-        self.mbs.SetObjectParameter(self.forces, "forceVector", self.generalized_forces(tau, c, cd))
+        f = self.generalized_forces(tau, c, cd)
+        self.mbs.SetObjectParameter(self.forces, "forceVector", f[: self.n_link_coordinates])
 
     # ------------------------------------------------------------------ kinematic read-out
     def point_rows(self, link: str, station: float, c: np.ndarray):
@@ -388,17 +409,20 @@ class TruthModel:
     def _set_damping(self, D: np.ndarray) -> None:
         self.D_alpha = D
         if not self.explicit_damping:
-            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D)
+            nl = self.n_link_coordinates  # D has no entries on the hub bodies' coordinates
+            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D[:nl, :nl])
 
 
 def link_mesh_stations(
-    mech: Mechanism, link: str, elements_per_link: int | None = 4, extra: tuple[float, ...] = ()
+    mech: Mechanism, link: str, elements_per_link: int | str | None = 4, extra: tuple[float, ...] = ()
 ) -> np.ndarray:
     """Element boundaries of a link's Exudyn mesh.
 
     The stations of the link's joints and lumped masses (and ``extra``, e.g. gauges) are always
     element boundaries; between them, segments are split evenly so that no element is longer than
-    ``length / elements_per_link`` (``None``: one element per segment).
+    ``length / elements_per_link`` (``None``: one element per segment; ``"file"``: the mechanism's
+    own element boundaries, the ERLS mesh, e.g. as refined by
+    :func:`~exuflex.mechanism.refine_mechanism` or :func:`~exuflex.mechanism.remesh_mechanism`).
     """
     lk = mech.link(link)
     L = lk.length
@@ -415,6 +439,8 @@ def link_mesh_stations(
         if not 0.0 <= s <= L:
             raise ValueError(f"station {s} m is outside link {link!r} (length {L} m)")
         req.add(float(s))
+    if elements_per_link == MESH_FILE:
+        req.update(float(s) for s in lk.stations)
     req = sorted(req)
     # merge stations closer than round-off
     base = [req[0]]
@@ -422,16 +448,11 @@ def link_mesh_stations(
         if s - base[-1] > 1e-9 * max(1.0, L):
             base.append(s)
     base[-1] = L
-    if elements_per_link is None:
+    if elements_per_link is None or elements_per_link == MESH_FILE:
         return np.array(base)
-    if elements_per_link < 1:
-        raise ValueError(f"elements_per_link must be >= 1 or None, got {elements_per_link}")
-    hmax = L / elements_per_link
-    out = [base[0]]
-    for a, b in itertools.pairwise(base):
-        n = max(1, math.ceil((b - a) / hmax - 1e-9))
-        out.extend(a + (b - a) * k / n for k in range(1, n + 1))
-    return np.array(out)
+    if isinstance(elements_per_link, bool) or not isinstance(elements_per_link, int) or elements_per_link < 1:
+        raise ValueError(f"elements_per_link must be an integer >= 1, {MESH_FILE!r} or None, got {elements_per_link!r}")
+    return np.array(split_segments(base, L / elements_per_link))
 
 
 def _hermite_mass(L: float) -> np.ndarray:
@@ -513,6 +534,7 @@ def build_truth(
     damping: str | None = "erls",
     explicit_damping: bool = True,
     reduced_integration: bool = True,
+    hub: str = "rigid",
 ) -> TruthModel:
     """Build the Exudyn model of ``mech`` at rest in the closed rigid configuration at ``q``.
 
@@ -521,9 +543,10 @@ def build_truth(
     mech : Mechanism
     q : array-like, optional
         Independent ERLS coordinates of the initial configuration (default ``mech.q_ref``).
-    elements_per_link : int or None
+    elements_per_link : int, "file" or None
         Target number of elements per link (see :func:`link_mesh_stations`); joints and lumped
-        masses always sit on element boundaries. ``None``: one element between such stations.
+        masses always sit on element boundaries. ``None``: one element between such stations;
+        ``"file"``: the mechanism's own mesh.
     formulation : "ancf" or "gebeam"
     align_stations : (link, station) pairs that must also be element boundaries (e.g. gauges).
     damping : "erls", "corotational", "stiffness" or None
@@ -536,6 +559,9 @@ def build_truth(
         instead of 9 and 5; ``useReducedOrderIntegration=1``). Exact for the linearised element about
         a straight reference; on the paper's 3 s manoeuvre it changed the probes by less than 1e-6
         (relative, curvature 4e-8) and made the solver about 10 % faster.
+    hub : "rigid" or "slopes"
+        How a lumped rotary inertia acts on an ANCF node (see module docstring): a rigid body welded
+        to the node (no spurious mode) or the legacy ``diag(J, J)`` on the slopes.
 
     Returns
     -------
@@ -546,6 +572,8 @@ def build_truth(
         raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
     if damping not in DAMPINGS:
         raise ValueError(f"damping must be one of {DAMPINGS}, got {damping!r}")
+    if hub not in HUBS:
+        raise ValueError(f"hub must be one of {HUBS}, got {hub!r}")
     exu, it = _exu()
     q = np.asarray(mech.q_ref if q is None else q, float)
     pose = Kinematics(mech).pose(q)
@@ -608,12 +636,19 @@ def build_truth(
             lm.elements.append(mbs.AddObject(obj))
         links[lk.name] = lm
 
-    # lumped masses and rotary inertias at their stations (mass matrices on the node's coordinates)
+    # lumped masses and rotary inertias at their stations (mass matrices on the node's coordinates: the legacy
+    # slopes model, also the link mass matrices of the corotational damper)
     lumped: dict[str, dict[int, np.ndarray]] = {name: {} for name in links}
+    bodies: dict[str, dict[int, list]] = {name: {} for name in links}  # masses with J or an offset (hub rigid)
+    point_mass: dict[str, dict[int, float]] = {name: {} for name in links}  # the others' point masses
     for m in mech.all_masses():
         name, s = mech.node_location(m.node)
         lm = links[name]
         k = lm.node_at(s, mech.link(name).length)
+        if m.inertia > 0.0 or m.offset != (0.0, 0.0):
+            bodies[name].setdefault(k, []).append(m)
+        else:
+            point_mass[name][k] = point_mass[name].get(k, 0.0) + m.mass
         a, b = m.offset
         if formulation == "ancf":
             A = np.array([[1.0, 0.0, a, -b], [0.0, 1.0, b, a]])
@@ -626,7 +661,27 @@ def build_truth(
         lumped[name][k] = lumped[name].get(k, 0.0) + Mk
     for name, d in lumped.items():
         for k, Mk in d.items():
-            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[links[name].nodes[k]], massMatrix=Mk))
+            node = links[name].nodes[k]
+            if formulation == "ancf" and hub == "rigid":
+                # the node keeps its point masses; each rotary inertia or offset mass becomes a rigid body welded
+                # to the node: its rotation is the slope angle atan2(y', x'), so J and the offset act on the
+                # rotation only (no inertia on the slope's stretch)
+                ref = mbs.GetNodeParameter(node, "referenceCoordinates")
+                th = math.atan2(ref[3], ref[2])
+                c, s_ = math.cos(th), math.sin(th)
+                for m in bodies[name].get(k, ()):
+                    a, b = m.offset
+                    body_node = mbs.AddNode(it.NodeRigidBody2D(
+                        referenceCoordinates=[ref[0] + c * a - s_ * b, ref[1] + s_ * a + c * b, th]))
+                    body = mbs.AddObject(it.ObjectRigidBody2D(nodeNumber=body_node, mass=m.mass, inertia=m.inertia))
+                    m_body = mbs.AddMarker(it.MarkerBodyRigid(bodyNumber=body, localPosition=[-a, -b, 0.0]))
+                    m_node = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=node))
+                    mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[m_node, m_body],
+                                                        constrainedAxes=[1, 1, 0, 0, 0, 1]))
+                Mk = point_mass[name].get(k, 0.0) * np.diag([1.0, 1.0, 0.0, 0.0])
+                if not Mk.any():
+                    continue
+            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[node], massMatrix=Mk))
 
     # joints: revolute between coincident nodes; ground pins
     def node_marker(link: str, station: float) -> int:
@@ -716,7 +771,7 @@ def build_truth(
     for lm in links.values():
         lm.ode2 = np.array([mbs.GetNodeODE2Index(n) + np.arange(node_size) for n in lm.nodes], dtype=int)
     order = np.concatenate([lm.ode2.ravel() for lm in links.values()])
-    if not np.array_equal(order, np.arange(len(order))):
+    if not np.array_equal(order, np.arange(len(order))) or len(order) != n_c:
         raise RuntimeError(
             "Exudyn numbered the node coordinates out of node order; the force object assumes it"
         )
@@ -734,6 +789,8 @@ def build_truth(
         alpha,
         beta,
         forces,
+        n_link_coordinates=n_c,
+        hub=hub,
         explicit_damping=explicit_damping,
         erls=ErlsModel(mech) if (alpha != 0.0 and damping == "erls") else None,
     )

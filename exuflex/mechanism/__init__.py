@@ -1,8 +1,8 @@
 """Mechanism descriptions: frozen data loaded from TOML model files. Imports nothing from exuflex."""
 
-from .dofs import COMPONENTS, ElasticDofs, elastic_dofs
-from .loader import ModelFileError, load_mechanism, parse_mechanism
-from .refine import refine_mechanism
+from .dofs import COMPONENTS, LINK_FRAME, DofRef, ElasticDofs, elastic_dofs
+from .loader import ModelFileError, load_manoeuvre, load_mechanism, parse_mechanism, read_samples
+from .refine import refine_mechanism, remesh_mechanism
 from .spec import (
     Coordinate,
     Damping,
@@ -37,7 +37,12 @@ __all__ = [
     "Section",
     "Sensor",
     "elastic_dofs",
+    "DofRef",
+    "LINK_FRAME",
+    "load_manoeuvre",
     "load_mechanism",
     "parse_mechanism",
+    "read_samples",
     "refine_mechanism",
+    "remesh_mechanism",
 ]

@@ -17,6 +17,13 @@ The free displacements, taken node by node (ascending id) and component by compo
 elastic dofs ``u``. They are named ``x{k}``, ``y{k}``, ``theta{k}`` with ``k`` the 1-based index
 in ``u`` (the paper's numbering for the six-bar: ``x14``, ``theta24``, ``x25``) and, stably under
 mesh refinement, ``node{n}.x``, ``node{n}.y``, ``node{n}.theta``.
+
+Reduction masters may also be named in a link's own frame: ``node{n}.axial`` and ``node{n}.transverse`` are
+the components of node ``n``'s translation along and across the axis of ``n``'s link at the current
+configuration (``axial = c x + s y``, ``transverse = -s x + c y`` with ``c, s`` the cosine and sine of the
+link's ERLS angle), so they keep their meaning however far the link turns. Rotations are the same in every
+planar frame: ``node{n}.theta`` serves both. Any node of a joint may be named (``node7.transverse`` is the
+shared translation seen from node 7's link). :meth:`ElasticDofs.locate` resolves a name.
 """
 
 from __future__ import annotations
@@ -25,9 +32,26 @@ from dataclasses import dataclass
 
 from .spec import Mechanism
 
-__all__ = ["COMPONENTS", "ElasticDofs", "elastic_dofs"]
+__all__ = ["COMPONENTS", "LINK_FRAME", "DofRef", "ElasticDofs", "elastic_dofs"]
 
 COMPONENTS = ("x", "y", "theta")
+LINK_FRAME = ("axial", "transverse")  # components of a translation in its link's frame
+
+
+@dataclass(frozen=True)
+class DofRef:
+    """A named elastic dof, possibly in a link frame (:meth:`ElasticDofs.locate`).
+
+    ``index``: the position in ``u`` of the dof (global names) or of the first (``axial``) or second
+    (``transverse``) component of its node's translation pair; ``pair``: the ``u`` indices of that pair's
+    ``x`` and ``y`` (``None`` for a rotation); ``frame_node``: the node whose link's frame the name uses
+    (``None``: the global frame).
+    """
+
+    name: str
+    index: int
+    pair: tuple[int, int] | None
+    frame_node: int | None
 
 
 @dataclass(frozen=True)
@@ -53,7 +77,43 @@ class ElasticDofs:
         )
 
     def node_name(self, name: str) -> str:
+        """The ``node{n}.{c}`` form of a dof name (link-frame names are returned unchanged)."""
+        if name.rsplit(".", 1)[-1] in LINK_FRAME:
+            self.locate(name)
+            return name
         return self.node_names[self.index(name)]
+
+    def locate(self, name: str) -> DofRef:
+        """Resolve a master name: ``x14``, ``node8.x`` (global frame), ``node8.theta``, or ``node8.axial`` /
+        ``node8.transverse`` (node 8's link frame). Any node of a joint may be named; the dof resolves to the
+        joint's shared displacement."""
+        node_s, _, comp = name.partition(".")
+        if comp in LINK_FRAME or (comp in COMPONENTS and name not in self.node_names and node_s.startswith("node")):
+            try:
+                node = int(node_s[4:]) if node_s.startswith("node") else None
+            except ValueError:
+                node = None
+            if node is None or node not in self.nodes:
+                raise KeyError(f"no elastic dof named {name!r}: no node {node_s!r}; expected a name such as "
+                               f"{self.node_names[0]!r} or 'node{self.nodes[-1]}.transverse'")
+            base = 3 * self.nodes.index(node)
+            ux, uy = self.nodal_to_u[base], self.nodal_to_u[base + 1]
+            if comp == "theta" or comp in ("x", "y"):
+                k = self.nodal_to_u[base + COMPONENTS.index(comp)]
+                if k < 0:
+                    raise KeyError(f"no elastic dof named {name!r}: node {node}'s {comp} is fixed by a joint or "
+                                   "coordinate")
+                return DofRef(name, k, None if comp == "theta" else (ux, uy), None)
+            if ux < 0 or uy < 0:
+                raise KeyError(f"no elastic dof named {name!r}: node {node}'s translation is fixed (a ground "
+                               "joint)")
+            return DofRef(name, ux if comp == "axial" else uy, (ux, uy), node)
+        k = self.index(name)
+        node, comp = self.free[k]
+        if comp == "theta":
+            return DofRef(name, k, None, None)
+        base = 3 * self.nodes.index(node)
+        return DofRef(name, k, (self.nodal_to_u[base], self.nodal_to_u[base + 1]), None)
 
     def nodal_index(self, node: int, comp: str) -> int:
         return 3 * self.nodes.index(node) + COMPONENTS.index(comp)

@@ -28,11 +28,13 @@ from .spec import (
     Sensor,
 )
 
-__all__ = ["ModelFileError", "load_mechanism", "parse_mechanism"]
+__all__ = ["ModelFileError", "load_manoeuvre", "load_mechanism", "parse_mechanism", "read_samples"]
 
 SENSOR_KINDS = ("encoder", "slider", "curvature", "tip_x", "tip_y")
 TIME_LAWS = ("trapezoid", "quintic", "cycloidal")
-MANOEUVRE_KINDS = ("tip_arc", "joint")
+MANOEUVRE_KINDS = ("joint", "tip_arc", "tip_line", "tip_polyline", "waypoints", "trajectory", "torque")
+TIP_KINDS = ("tip_arc", "tip_line", "tip_polyline")
+INTERPOLATIONS = ("quintic", "spline")
 
 
 class ModelFileError(ValueError):
@@ -184,14 +186,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         return v
 
     def point(r: _Reader, where: str) -> LinkPoint:
-        lk = link_by[link_ref(r, "link")]
-        s = r.num("station", lo=0.0, hi=lk.length, unit="m")
-        if where == "node":
-            try:
-                lk.station_index(s)
-            except KeyError:
-                raise r.err("station", f"one of link {lk.name!r}'s stations {list(lk.stations)}", s) from None
-        return LinkPoint(lk.name, s)
+        return _point(r, link_by, where)
 
     joints: list[Joint] = []
     for r in root.table_list("joints"):
@@ -350,14 +345,16 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         q_ref = model.nums("q_ref", length=nq)
     model.check_unknown()
 
-    manoeuvre = _parse_manoeuvre(root, link_by, [c.name for c in coords], point)
+    manoeuvre = _parse_manoeuvre(root.sub("manoeuvre"), link_by, [c.name for c in coords], [m.name for m in motors],
+                                 _base_dir(source))
 
     red = root.sub("reduction")
     reduction = ReductionSpec()
     if red is not None:
         masters = red.raw("masters", [])
-        if not isinstance(masters, list) or not all(isinstance(m, str) for m in masters):
-            raise red.err("masters", "a list of elastic dof names such as 'x14' or 'node8.x'", masters)
+        if not isinstance(masters, list):
+            raise red.err("masters", MASTERS_EXPECTED, masters)
+        masters = [_master_name(red, i, m, link_by) for i, m in enumerate(masters)]
         n_int = red.raw("n_interior", "auto")
         if n_int != "auto" and (isinstance(n_int, bool) or not isinstance(n_int, int) or n_int < 0):
             raise red.err("n_interior", "a non-negative integer or \"auto\"", n_int)
@@ -392,6 +389,21 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
     )
     _check_topology(mech)
     return mech
+
+
+def _point(r: _Reader, link_by: dict, where: str) -> LinkPoint:
+    """A point ``{link, station}``: on the link (``where = "any"``) or at one of its node stations (``"node"``)."""
+    v = r.raw("link")
+    if not isinstance(v, str) or v not in link_by:
+        raise r.err("link", f"a link name, one of {sorted(link_by)}", v)
+    lk = link_by[v]
+    s = r.num("station", lo=0.0, hi=lk.length, unit="m")
+    if where == "node":
+        try:
+            lk.station_index(s)
+        except KeyError:
+            raise r.err("station", f"one of link {lk.name!r}'s stations {list(lk.stations)}", s) from None
+    return LinkPoint(lk.name, s)
 
 
 def _unique(source: str, field: str, names: list[str]) -> None:
@@ -471,13 +483,202 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
     return tuple(links)
 
 
-def _parse_manoeuvre(root: _Reader, link_by, coord_names, point) -> Manoeuvre | None:
-    r = root.sub("manoeuvre")
+MASTERS_EXPECTED = ("a list of elastic dof names such as 'x14', 'node8.x', 'node8.theta' or 'node8.transverse', "
+                    "or points { link, station, direction } with direction axial, transverse or theta")
+
+
+def _master_name(red: _Reader, i: int, m: Any, link_by) -> str:
+    """A ``[reduction] masters`` entry as a dof name: strings as given, a point ``{ link, station, direction }``
+    as ``node{n}.{direction}`` of the node at that station (axial and transverse in the link's frame)."""
+    if isinstance(m, str) and m:
+        return m
+    if not isinstance(m, dict):
+        raise red.err(f"masters[{i}]", MASTERS_EXPECTED, m)
+    r = _Reader(red.source, m, red._f(f"masters[{i}]"))
+    name = r.raw("link")
+    if not isinstance(name, str) or name not in link_by:
+        raise r.err("link", f"a link name, one of {sorted(link_by)}", name)
+    lk = link_by[name]
+    st = r.num("station", lo=0.0, hi=lk.length, unit="m")
+    try:
+        node = lk.node_ids[lk.station_index(st)]
+    except KeyError:
+        raise r.err("station", f"one of link {lk.name!r}'s stations {list(lk.stations)}", st) from None
+    direction = r.raw("direction")
+    if direction not in ("axial", "transverse", "theta"):
+        raise r.err("direction", "'axial', 'transverse' or 'theta'", direction)
+    r.check_unknown()
+    return f"node{node}.{direction}"
+
+
+def _base_dir(source: str) -> Path:
+    """The folder that relative file names in a model file refer to."""
+    p = Path(source)
+    return p.parent if p.suffix else Path(".")
+
+
+def read_samples(path: str | Path) -> tuple[tuple[str, ...], tuple[tuple[float, ...], ...]]:
+    """Read a CSV table of samples: a header row of column names, the first ``t`` (s), then one row of numbers
+    per time; times start at 0 and increase. Blank lines and lines starting with ``#`` are skipped.
+
+    Returns the column names after ``t`` and the rows ``(t, values...)``. Every mistake raises
+    :class:`ModelFileError` naming the file, the line and column, and what was expected.
+    """
+    src = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ModelFileError(src, "(file)", "an existing CSV file", has_got=False) from None
+    except UnicodeDecodeError:
+        raise ModelFileError(src, "(file)", "a UTF-8 text file", has_got=False) from None
+    header: list[str] | None = None
+    rows: list[tuple[float, ...]] = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        cells = [c.strip() for c in line.split(",")]
+        if header is None:
+            header = cells
+            if header[0] != "t":
+                raise ModelFileError(src, f"line {n}, column 1", "the header 't' (time, s) first", header[0])
+            for i, c in enumerate(header):
+                if not c:
+                    raise ModelFileError(src, f"line {n}, column {i + 1}", "a column name", c)
+                if c in header[:i]:
+                    raise ModelFileError(src, f"line {n}, column {i + 1}", "unique column names", c)
+            continue
+        if len(cells) != len(header):
+            raise ModelFileError(src, f"line {n}", f"{len(header)} values ({', '.join(header)})", len(cells))
+        row = []
+        for c, name in zip(cells, header, strict=True):
+            try:
+                v = float(c)
+            except ValueError:
+                v = math.nan
+            if not math.isfinite(v):
+                raise ModelFileError(src, f"line {n}, column {name}", "a finite number", c)
+            row.append(v)
+        if not rows and row[0] != 0.0:
+            raise ModelFileError(src, f"line {n}, column t", "0 (the samples start at t = 0 s)", row[0])
+        if rows and not row[0] > rows[-1][0]:
+            raise ModelFileError(src, f"line {n}, column t", f"a time after {rows[-1][0]!r} s", row[0])
+        rows.append(tuple(row))
+    if header is None or len(rows) < 2:
+        raise ModelFileError(src, "(file)", "a header row and at least 2 rows of samples", has_got=False)
+    return tuple(header[1:]), tuple(rows)
+
+
+def position_columns(columns, coord_names) -> list[str]:
+    """The position columns of a trajectory table: all but the rates ``d<name>`` and ``dd<name>`` of another
+    column (a coordinate's own name is always a position)."""
+    cols = set(columns)
+
+    def rate(c: str) -> bool:
+        return c not in coord_names and ((c.startswith("dd") and c[2:] in cols) or (c.startswith("d") and c[1:] in cols))
+
+    return [c for c in columns if not rate(c)]
+
+
+def _check_trajectory_columns(src: str, columns: tuple[str, ...], coord_names: list[str], tip: bool) -> None:
+    """Positions: every coordinate, or ``tip_x``, ``tip_y`` and the other coordinates; rates ``d<name>`` for all
+    of them or none, accelerations ``dd<name>`` only with the rates, for all or none."""
+    pos = position_columns(columns, coord_names)
+    if {"tip_x", "tip_y"} & set(pos):
+        want = ["tip_x", "tip_y"]
+    else:
+        want = list(coord_names)
+    for c in pos:
+        if c not in want and c not in coord_names:
+            raise ModelFileError(src, f"column {c}", f"a coordinate name {coord_names}, tip_x/tip_y or a rate "
+                                 "d<name>/dd<name> of a position column", c)
+    if "tip_x" in want:
+        if not tip:
+            raise ModelFileError(src, "column tip_x", "a tip point to follow (the [manoeuvre] table's tip, or the "
+                                 "model's manoeuvre tip or tip_x sensor)", has_got=False)
+        others = [c for c in pos if c not in want]
+        if len(others) != len(coord_names) - 2 or len(pos) != len(set(pos)):
+            raise ModelFileError(src, "(header)", f"t, tip_x, tip_y and {len(coord_names) - 2} of the coordinates "
+                                 f"{coord_names} (the tip fixes the other 2)", list(columns))
+        want = want + others
+    missing = [c for c in want if c not in pos]
+    if missing:
+        raise ModelFileError(src, "(header)", f"a column for every coordinate {coord_names} (or tip_x, tip_y and "
+                             f"{len(coord_names) - 2} of them)", list(columns))
+    rates = [p + c for p in ("d", "dd") for c in want]
+    have = [c for c in rates if c in columns]
+    if have and len(have) != len(rates):
+        miss = [c for c in rates if c not in columns]
+        raise ModelFileError(src, f"column {miss[0]}", f"the rates d<name> and accelerations dd<name> of all of "
+                             f"{want}, or none", has_got=False)
+
+
+def _samples_manoeuvre(src: str, columns, rows, coord_names, motor_names, tip, kind: str | None = None,
+                       q0: tuple[float, ...] = ()) -> Manoeuvre:
+    """A trajectory or torque manoeuvre from a sample table (kind from the columns if not given)."""
+    if kind is None:
+        kind = "torque" if motor_names and set(columns) <= set(motor_names) else "trajectory"
+    if kind == "torque":
+        unknown = [c for c in columns if c not in motor_names]
+        if unknown:
+            raise ModelFileError(src, f"column {unknown[0]}", f"a motor name, one of {list(motor_names)}", unknown[0])
+        missing = [m for m in motor_names if m not in columns]
+        if missing:
+            raise ModelFileError(src, "(header)", f"a column for every motor {list(motor_names)}", list(columns))
+    else:
+        _check_trajectory_columns(src, columns, coord_names, tip is not None)
+    return Manoeuvre(kind, rows[-1][0], time_law="quintic", tip=tip, file=src, columns=tuple(columns),
+                     samples=tuple(rows), q0=tuple(q0))
+
+
+def _parse_manoeuvre(r: _Reader | None, link_by, coord_names, motor_names, base: Path) -> Manoeuvre | None:
     if r is None:
         return None
+    nq = len(coord_names)
     kind = r.str("kind")
     if kind not in MANOEUVRE_KINDS:
         raise r.err("kind", f"one of {list(MANOEUVRE_KINDS)}", kind)
+    tip = None
+    if r.has("tip") or kind in TIP_KINDS:
+        tr = r.sub("tip", required=True)
+        tip = _point(tr, link_by, "any")
+        tr.check_unknown()
+    if kind in ("trajectory", "torque"):
+        f = r.str("file")
+        path = Path(f) if Path(f).is_absolute() else base / f
+        columns, rows = read_samples(path)
+        q0 = ()
+        if kind == "torque":
+            q0 = r.nums("q0", ()) if r.has("q0") else ()
+            if q0 and len(q0) != nq:
+                raise r.err("q0", f"{nq} numbers (rad), one per coordinate {coord_names}", list(q0))
+        man = _samples_manoeuvre(str(path), columns, rows, coord_names, motor_names, tip, kind, q0)
+        if r.has("duration") and r.num("duration", positive=True, unit="s") != man.duration:
+            raise r.err("duration", f"the last sample's time {man.duration!r} s of {path} (or no duration)",
+                        r.table["duration"])
+        r.check_unknown()
+        return man
+    if kind == "waypoints":
+        times = r.nums("times")
+        if len(times) < 2 or times[0] != 0.0 or any(b <= a for a, b in zip(times, times[1:], strict=False)):
+            raise r.err("times", "at least 2 increasing times (s) starting at 0", list(times))
+        wp = r.raw("waypoints")
+        if not isinstance(wp, list) or len(wp) != len(times):
+            raise r.err("waypoints", f"{len(times)} rows (one per time) of {nq} numbers {coord_names}", wp)
+        rows = []
+        for i, row in enumerate(wp):
+            ok = isinstance(row, list) and len(row) == nq and all(
+                not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) for x in row)
+            if not ok:
+                raise r.err(f"waypoints[{i}]", f"{nq} numbers (rad) {coord_names}", row)
+            rows.append(tuple(float(x) for x in row))
+        interp = r.str("interpolation", "quintic")
+        if interp not in INTERPOLATIONS:
+            raise r.err("interpolation", f"one of {list(INTERPOLATIONS)}", interp)
+        if r.has("duration") and r.num("duration", positive=True, unit="s") != times[-1]:
+            raise r.err("duration", f"the last waypoint's time {times[-1]!r} s (or no duration)", r.table["duration"])
+        r.check_unknown()
+        return Manoeuvre(kind, times[-1], time_law="quintic", tip=tip, times=times, waypoints=tuple(rows),
+                         interpolation=interp)
     law = r.str("time_law", "trapezoid")
     if law not in TIME_LAWS:
         raise r.err("time_law", f"one of {list(TIME_LAWS)}", law)
@@ -496,24 +697,73 @@ def _parse_manoeuvre(root: _Reader, link_by, coord_names, point) -> Manoeuvre | 
         c = rr.str("coordinate")
         if c not in coord_names:
             raise rr.err("coordinate", f"an ERLS coordinate name, one of {coord_names}", c)
+        if c in [x[0] for x in rules]:
+            raise rr.err("coordinate", "one rule per coordinate", c)
         rules.append((c, rr.num("start", unit="rad"), rr.num("end", unit="rad")))
         rr.check_unknown()
     torque_noise = ()
-    tip = centre = radius = phi0 = phi1 = None
+    centre = radius = phi0 = phi1 = None
+    points: tuple = ()
     if kind == "tip_arc":
-        tr = r.sub("tip", required=True)
-        tip = point(tr, "any")
-        tr.check_unknown()
         centre = r.nums("centre", length=2)
         radius = r.num("radius", positive=True, unit="m")
         phi0 = r.num("phi_start", unit="rad")
         phi1 = r.num("phi_end", unit="rad")
-        if len(rules) != len(coord_names) - 2:
-            raise r.err("rules", f"{len(coord_names) - 2} coordinate rule(s) besides the 2 tip dofs", len(rules))
-    elif len(rules) != len(coord_names):
-        raise r.err("rules", f"one rule per ERLS coordinate ({len(coord_names)})", len(rules))
+    elif kind in ("tip_line", "tip_polyline"):
+        raw = r.raw("points")
+        n_min = 2
+        ok = isinstance(raw, list) and all(
+            isinstance(p, list) and len(p) == 2
+            and all(not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) for x in p)
+            for p in raw)
+        if not ok or len(raw) < n_min or (kind == "tip_line" and len(raw) != 2):
+            what = "2 points [[x0, y0], [x1, y1]] (m)" if kind == "tip_line" else "at least 2 points [[x, y], ...] (m)"
+            raise r.err("points", what, raw)
+        points = tuple((float(p[0]), float(p[1])) for p in raw)
+        for i in range(len(points) - 1):
+            if points[i] == points[i + 1]:
+                raise r.err(f"points[{i + 1}]", "a point different from the one before it", list(points[i + 1]))
+    if kind in TIP_KINDS:
+        if nq < 2 or len(rules) != nq - 2:
+            raise r.err("rules", f"{nq - 2} coordinate rule(s) besides the 2 coordinates the tip fixes "
+                        f"(a tip path needs at least 2 coordinates; the model has {nq})", len(rules))
+    elif len(rules) != nq:
+        raise r.err("rules", f"one rule per ERLS coordinate ({nq})", len(rules))
     r.check_unknown()
-    return Manoeuvre(kind, duration, law, ramp, tip, centre, radius, phi0, phi1, tuple(rules), torque_noise)
+    return Manoeuvre(kind, duration, law, ramp, tip, centre, radius, phi0, phi1, tuple(rules), torque_noise,
+                     points=points)
+
+
+def load_manoeuvre(path: str | Path, mech: Mechanism) -> Manoeuvre:
+    """A manoeuvre for ``mech`` from a file: a TOML file with a ``[manoeuvre]`` table (the model file's keys; its
+    relative file names refer to its own folder), or a CSV sample table (:func:`read_samples`): motor-name
+    columns make a measured-torque input (from ``q_ref``, or the model's manoeuvre's ``q0``), coordinate or
+    ``tip_x``/``tip_y`` columns a trajectory (the tip: the model's manoeuvre tip, else its ``tip_x`` sensor)."""
+    path = Path(path)
+    src = str(path)
+    link_by = {lk.name: lk for lk in mech.links}
+    coords = list(mech.coordinate_names)
+    motors = list(mech.motor_names)
+    if path.suffix.lower() == ".csv":
+        columns, rows = read_samples(path)
+        tip = mech.manoeuvre.tip if mech.manoeuvre is not None else None
+        if tip is None:
+            tip = next((LinkPoint(s.link, s.station) for s in mech.sensors if s.kind == "tip_x"), None)
+        q0 = mech.manoeuvre.q0 if mech.manoeuvre is not None else ()
+        return _samples_manoeuvre(src, columns, rows, coords, motors, tip, None, q0)
+    if not path.is_file():
+        raise ModelFileError(src, "(file)", "an existing TOML or CSV manoeuvre file", has_got=False)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelFileError(src, "(syntax)", f"valid TOML ({exc})", has_got=False) from None
+    except UnicodeDecodeError:
+        raise ModelFileError(src, "(file)", "a UTF-8 text file", has_got=False) from None
+    root = _Reader(src, data, "")
+    man = _parse_manoeuvre(root.sub("manoeuvre", required=True), link_by, coords, motors, path.parent)
+    root.check_unknown()
+    return man
 
 
 def _check_topology(mech: Mechanism) -> None:
@@ -569,9 +819,9 @@ def _check_topology(mech: Mechanism) -> None:
     dofs = elastic_dofs(mech)
     for i, m in enumerate(mech.reduction.masters):
         try:
-            dofs.index(m)
+            dofs.locate(m)
         except KeyError:
             raise ModelFileError(
                 src, f"reduction.masters[{i}]",
-                f"an elastic dof name such as {dofs.names[0]!r} or {dofs.node_names[0]!r} "
-                f"(this mesh has {dofs.n} elastic dofs)", m) from None
+                f"an elastic dof name such as {dofs.names[0]!r}, {dofs.node_names[0]!r} or "
+                f"'node{dofs.nodes[-1]}.transverse' (this mesh has {dofs.n} elastic dofs)", m) from None

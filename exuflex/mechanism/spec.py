@@ -204,11 +204,20 @@ class Damping:
 
 @dataclass(frozen=True)
 class Manoeuvre:
-    """A planned motion: a path (in task or joint space) and a time law on s in [0, 1].
+    """A planned motion: a path (in task or joint space) and a time law on s in [0, 1], or a torque record.
 
+    kind ``joint``: every coordinate follows a rule ``q = start + (end - start) s``.
     kind ``tip_arc``: the point ``tip`` follows centre + radius [cos phi, sin phi],
-    phi = phi_start + (phi_end - phi_start) s; the coordinates in ``rules`` follow q = start + (end - start) s.
-    kind ``joint``: every coordinate follows a rule.
+    phi = phi_start + (phi_end - phi_start) s; the coordinates in ``rules`` follow their rules.
+    kind ``tip_line`` / ``tip_polyline``: the tip runs through ``points`` segment by segment, resting at every
+    point (each segment its share of ``duration`` in proportion to its length, with the time law); ``rules`` as
+    for ``tip_arc``.
+    kind ``waypoints``: the coordinates pass through ``waypoints`` (one row of nq values each) at ``times``,
+    by ``interpolation`` ``quintic`` (rest at every waypoint) or ``spline`` (C2 cubic, rest at both ends).
+    kind ``trajectory``: samples of ``t`` and ``columns`` (all coordinates, or ``tip_x``, ``tip_y`` and the other
+    coordinates; optionally ``d<name>`` and ``dd<name>`` rates) read from the CSV ``file``.
+    kind ``torque``: measured motor torques (``columns`` the motor names) from ``file``, applied open loop from
+    the configuration ``q0`` at rest.
     """
 
     kind: str
@@ -222,6 +231,14 @@ class Manoeuvre:
     phi_end: float | None = None
     rules: tuple[tuple[str, float, float], ...] = ()  # (coordinate, start, end)
     torque_noise: tuple[tuple[str, float], ...] = ()  # (motor name, std N m)
+    points: tuple[tuple[float, float], ...] = ()  # tip_line, tip_polyline: the tip's corner points (m)
+    times: tuple[float, ...] = ()  # waypoints: their times (s), from 0
+    waypoints: tuple[tuple[float, ...], ...] = ()  # waypoints: q at each time
+    interpolation: str = "quintic"  # waypoints: quintic | spline
+    file: str = ""  # trajectory, torque: the CSV file the samples came from
+    columns: tuple[str, ...] = ()  # trajectory, torque: the sample columns after t
+    samples: tuple[tuple[float, ...], ...] = ()  # trajectory, torque: rows (t, values in columns order)
+    q0: tuple[float, ...] = ()  # torque: the starting configuration (default: the model's q_ref)
 
 
 @dataclass(frozen=True)

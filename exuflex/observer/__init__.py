@@ -1,24 +1,40 @@
-"""Model-agnostic multirate state estimation (paper eqs. 10-15) for any :class:`DiscreteModel`.
+"""State estimation on flexible-multibody models (paper eqs. 8-15).
 
-- :mod:`.base`: the model protocol, a linear reference model, the divergence error.
-- :mod:`.ekf`: :class:`MultirateEKF` (online ``step`` and offline ``run``), :class:`EstimationResult`.
-- :mod:`.bound`: steady-state Kalman covariance (the best achievable error), linearisation.
-- :mod:`.stats`: NEES/NIS, Monte-Carlo chi-square consistency, error metrics, FFT peaks.
-- :mod:`.tuning`: process-noise construction and NIS-based scaling.
+- :mod:`.base`: what a model supplies to the filter (:class:`Prediction`, :class:`Measurement`), a linear model.
+- :mod:`.ekf`: :class:`MultirateEKF`, one driver over the model's predict and measure steps (online ``step``,
+  offline ``run``), :class:`EstimationResult`; the Kalman algebra compiled in :mod:`.kalman`.
+- :mod:`.reduced`: the reduced ERLS model as the filter's model (cached step or the exact RK4 reference), with
+  the second-order expansion about held configurations in :mod:`.expansion`; :mod:`.full`: the full-order model.
+- :mod:`.session`: the observer as users run it (:func:`make_observer`, :func:`estimate`, :func:`metrics`,
+  :func:`estimation_bound`).
+- :mod:`.bound`, :mod:`.observability`, :mod:`.stats`, :mod:`.tuning`: the steady-state bound, observability,
+  NEES/NIS statistics, process-noise construction.
 """
 
-from .base import DiscreteModel, FilterDivergedError, LinearDiscreteModel
+from .base import DiscreteModel, FilterDivergedError, LinearDiscreteModel, Measurement, Prediction
 from .bound import bound_rms, linearise, steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF, NISMonitor
+from .reduced import ReducedObserverModel
+from .session import Observer, ObserverConfig, estimate, estimation_bound, make_observer, metrics, observe_run
 
 __all__ = [
     "DiscreteModel",
     "EstimationResult",
     "FilterDivergedError",
     "LinearDiscreteModel",
+    "Measurement",
     "MultirateEKF",
     "NISMonitor",
+    "Observer",
+    "ObserverConfig",
+    "Prediction",
+    "ReducedObserverModel",
     "bound_rms",
+    "estimate",
+    "estimation_bound",
     "linearise",
+    "make_observer",
+    "metrics",
+    "observe_run",
     "steady_state_covariance",
 ]

@@ -1,91 +1,71 @@
-"""The contract between a discrete-time model and the observer machinery.
+"""The contract between a discrete-time model and the filter.
 
-Any model the observers estimate plugs in through :class:`DiscreteModel`: a one-interval step map with its
-state Jacobian (the paper's ``f_d`` and ``A_k`` of eqs. 10-13), a measurement map with its Jacobian for a
-requested set of channels (``g`` and ``D_k``), and the process-noise covariance for one interval (``Q``).
-The observers never look inside the model; the reduced flexible-multibody model (eqs. 7-9) and the toy models
-of the tests are interchangeable.
+A model plugs into :class:`~exuflex.observer.ekf.MultirateEKF` through :class:`DiscreteModel`: for one interval
+between two samples it supplies a :class:`Prediction` (the state at the interval's end, the step Jacobian and
+the process noise: the paper's ``f_d``, ``A_k`` and ``Q`` of eqs. 10-13), and for a set of channels a
+:class:`Measurement` (``g`` and ``D_k``). The filter owns all the Kalman algebra and never looks inside a
+model: the reduced flexible-multibody model (eqs. 7-9), the full-order ERLS model and the toy models of the
+tests are interchangeable.
 
 Conventions
 -----------
-- One *interval* is one measurement period ``dt`` (2 ms at 500 Hz in the paper). The model integrates over it
-  with its own sub-steps (RK4 at 0.1 ms in the paper) and returns the state at the end of the interval and
-  ``F = d x_next / d x``.
-- The input ``u`` is held constant over the interval (zero-order hold). It may be ``None`` for an autonomous
-  model.
-- Every channel is a *scalar* sensor signal; a multi-component sensor is listed as several channels (e.g.
-  ``"tip_x"``, ``"tip_y"``). ``measure`` returns the channels in the order requested.
+- An *interval* runs from one sample to the next; its length ``dt`` is whatever the two time stamps say (a lab
+  clock's jitter and drift included). The model integrates over it with its own sub-steps.
+- The input ``u`` (measured torques) is held over the interval (zero-order hold, eq. 10); ``u_next`` is the
+  sample that ends it, which a model may use to detect a step within the interval. Either may be ``None`` for
+  an autonomous model.
+- Every channel is a *scalar* signal; a multi-component sensor is several channels (``"tip_x"``, ``"tip_y"``).
+- States are 1-D ``(nx,)``, matrices ``(nx, nx)`` and ``(m, nx)``, float64.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["DiscreteModel", "FilterDivergedError", "LinearDiscreteModel"]
+__all__ = ["DiscreteModel", "FilterDivergedError", "LinearDiscreteModel", "Measurement", "Prediction"]
 
 
 class FilterDivergedError(RuntimeError):
     """The filter produced a non-finite state or covariance, or failed its divergence test in ``raise`` mode."""
 
 
+class Prediction(NamedTuple):
+    """What a model predicts over one interval."""
+
+    x: np.ndarray
+    """(nx,) state at the end of the interval."""
+    F: np.ndarray
+    """(nx, nx) Jacobian ``d x / d x_start`` along the step."""
+    Q: np.ndarray
+    """(nx, nx) process-noise covariance of the interval."""
+
+
+class Measurement(NamedTuple):
+    """Predicted channels and their Jacobian at a state."""
+
+    y: np.ndarray
+    """(m,) predicted value of each requested channel, in the requested order."""
+    H: np.ndarray
+    """(m, nx) Jacobian ``d y / d x``."""
+
+
 @runtime_checkable
 class DiscreteModel(Protocol):
-    """A discrete-time nonlinear state-space model over one measurement interval.
-
-    Attributes
-    ----------
-    nx : int
-        State size.
-    """
+    """A discrete-time nonlinear state-space model: ``nx``, :meth:`predict`, :meth:`measure` (and optionally
+    ``reset()``, called when a filter restarts, for models that cache configuration-dependent data)."""
 
     nx: int
 
-    def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Advance one interval.
-
-        Parameters
-        ----------
-        x : ndarray, shape (nx,)
-            State at the start of the interval.
-        u : ndarray or None
-            Input held over the interval.
-        dt : float
-            Interval length (s); the model sub-steps internally.
-
-        Returns
-        -------
-        x_next : ndarray, shape (nx,)
-            State at the end of the interval.
-        F : ndarray, shape (nx, nx)
-            Jacobian ``d x_next / d x`` evaluated along the step.
-        """
+    def predict(self, x: np.ndarray, u, dt: float, u_next=None) -> Prediction:
+        """Advance the state ``x`` over an interval of ``dt`` seconds with the input ``u`` held."""
         ...
 
-    def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted measurements and their Jacobian.
-
-        Parameters
-        ----------
-        x : ndarray, shape (nx,)
-            State.
-        channels : sequence of str
-            Names of the requested (scalar) channels.
-
-        Returns
-        -------
-        y : ndarray, shape (m,)
-            Predicted measurement, one entry per requested channel, in the requested order.
-        H : ndarray, shape (m, nx)
-            Jacobian ``d y / d x``.
-        """
-        ...
-
-    def process_noise(self, x: np.ndarray, u, dt: float) -> np.ndarray:
-        """Process-noise covariance ``Q`` of one interval, shape (nx, nx); may be constant."""
+    def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
+        """Predicted measurement of the requested channels at ``x`` and its Jacobian."""
         ...
 
 
@@ -106,7 +86,7 @@ class LinearDiscreteModel:
     Q : ndarray, shape (nx, nx)
         Process-noise covariance per interval.
     dt : float or None
-        The interval the matrices were built for; if set, ``step`` checks it.
+        The interval the matrices were built for; if set, ``predict`` checks it.
     """
 
     A: np.ndarray
@@ -134,21 +114,14 @@ class LinearDiscreteModel:
             self._rows[key] = H
         return H
 
-    def step(self, x, u, dt):
+    def predict(self, x, u, dt, u_next=None) -> Prediction:
         if self.dt is not None and abs(dt - self.dt) > 1e-9 * self.dt:
             raise ValueError(f"model discretised for dt={self.dt}, asked for dt={dt}")
         xn = self.A @ x
         if self.B is not None and u is not None:
             xn = xn + self.B @ np.atleast_1d(u)
-        return xn, self.A
+        return Prediction(xn, self.A, self.Q)
 
-    def input_jacobian(self):
-        """``d x_next / d u``: ``B`` (for :class:`~exuflex.observer.hold.LinearHoldModel`)."""
-        return self.B
-
-    def measure(self, x, channels):
+    def measure(self, x, channels) -> Measurement:
         H = self._C(channels)
-        return H @ x, H
-
-    def process_noise(self, x, u, dt):
-        return self.Q
+        return Measurement(H @ x, H)

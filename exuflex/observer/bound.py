@@ -145,7 +145,6 @@ def linearise(
         The model's process noise at the point.
     """
     x = np.asarray(x, float)
-    _, A = model.step(x, u, dt)
+    _, A, Q = model.predict(x, u, dt)
     _, H = model.measure(x, list(channels))
-    Q = model.process_noise(x, u, dt)
     return np.array(A, float), np.array(H, float), np.array(Q, float)

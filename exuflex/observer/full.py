@@ -35,7 +35,8 @@ import numpy as np
 
 from ..erls.model import Configuration, ErlsModel
 from ..erls.simulate import rk4_amplification, rk4_step
-from .reduced import power_sum
+from .base import Measurement, Prediction
+from .expansion import power_sum
 from .rows import sensor, sensor_rows
 
 __all__ = ["FullObserverModel"]
@@ -86,10 +87,8 @@ class FullObserverModel:
 
     # ------------------------------------------------------------------ step
     def _n_sub(self, dt: float) -> int:
-        n = round(dt / self.h)
-        if n < 1 or abs(n * self.h - dt) > 1e-9 * dt:
-            raise ValueError(f"measurement interval {dt:g} s is not a multiple of the RK4 step {self.h:g} s")
-        return n
+        """Sub-steps over ``dt``, each at most ``h`` long (``dt / n`` each)."""
+        return max(1, int(np.ceil(dt / self.h - 1e-9)))
 
     def _interval(self, x: np.ndarray, dt: float) -> _Interval:
         m, n, nq = self.model, self.n, self.nq
@@ -97,12 +96,12 @@ class FullObserverModel:
         self._z = cfg.pose.z
         self.n_evaluations += 1
         A, Minv = m.state_matrix(cfg, x[:n], x[n:])
-        hA = self.h * A
+        hA = (dt / self._n_sub(dt)) * A
         hA2 = hA @ hA
         hA3 = hA2 @ hA
         I = np.eye(self.nx)
         P = I + hA + hA2 / 2 + hA3 / 6 + hA3 @ hA / 24
-        Qh = self.h * (I + hA / 2 + hA2 / 6 + hA3 / 24)
+        Qh = (dt / self._n_sub(dt)) * (I + hA / 2 + hA2 / 6 + hA3 / 24)
         Pn, Sn = power_sum(P, self._n_sub(dt))
         L = (Sn @ Qh)[:, n:] @ (Minv @ m.input_matrix(cfg))
         pose = cfg.pose
@@ -111,25 +110,20 @@ class FullObserverModel:
             x[:nq].copy(), cfg, Pn, L, pose.Sz[2::3].copy(), pose.z[2::3].copy(), A, self._serial
         )
 
-    def step(self, x: np.ndarray, u, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, x: np.ndarray, u, dt: float, u_next=None) -> Prediction:
         x = np.asarray(x, float)
         u = np.zeros(len(self.mech.motors)) if u is None else np.asarray(u, float)
         iv = self._interval(x, dt)
         self._last = iv
         z = x.copy()
-        f, h = self.model.rhs, self.h
-        for k in range(self._n_sub(dt)):
+        n_sub = self._n_sub(dt)
+        f, h = self.model.rhs, dt / n_sub
+        for k in range(n_sub):
             z = rk4_step(f, k * h, z, h, u)
-        return z, iv.Pn
-
-    def process_noise(self, x: np.ndarray, u, dt: float) -> np.ndarray:
-        iv = self._last
-        if iv is None or not np.array_equal(iv.q0, np.asarray(x)[: self.nq]):
-            iv = self._interval(np.asarray(x, float), dt)
         Q = (iv.L * self.torque_var) @ iv.L.T
         if self.q_extra is not None:
             Q = Q + np.diag(self.q_extra)
-        return Q
+        return Prediction(z, iv.Pn, Q)
 
     def rk4_stability(self, x: np.ndarray) -> tuple[float, float]:
         """RK4 stability of the linearisation at ``x``: ``(max |R(h lambda)|, max |h lambda|)``.
@@ -156,7 +150,7 @@ class FullObserverModel:
         self._rows_cache[key] = out
         return out
 
-    def measure(self, x: np.ndarray, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
         x = np.asarray(x, float)
         iv = self._last
         if iv is None:
@@ -177,7 +171,7 @@ class FullObserverModel:
                 p0, Sp = rigid
                 y[i] += p0 + Sp @ dq
                 H[i, :nq] += Sp
-        return y, H
+        return Measurement(y, H)
 
     # ------------------------------------------------------------------ physical states
     def initial_state(self, q, qd=None) -> np.ndarray:

@@ -66,7 +66,7 @@ def observability(som: ReducedObserverModel, mech: Mechanism, channels: Sequence
     u = np.zeros(len(mech.motors))
     for q in qs:
         z = som.initial_state(q)
-        _, A = som.step(z, u, dt)
+        A = som.frozen_interval(z, u, dt)[0].F
         _, H = som.measure(z, channels)
         As = A * d[None, :] / d[:, None]
         Hs = H * d[None, :] / noise[:, None]

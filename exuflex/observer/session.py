@@ -23,8 +23,6 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, tip_point, truth_names
 from .bound import steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF
-from .held import HAVE_NUMBA
-from .hold import LinearHoldModel
 from .reduced import ReducedObserverModel
 
 __all__ = [
@@ -47,46 +45,21 @@ class ObserverConfig:
 
     channels : measured sensor channels used (default :func:`default_channels`).
     masters, n_interior, q_star, ranking : the reduction (default: the model file's).
-    h : RK4 sub-step (s); dt : measurement interval (s, default 1 / the model's sample rate).
-    method : ``"cached"`` (fast, default), ``"frozen"`` or ``"rk4"`` (reference) step map, see :mod:`.reduced`.
-    backend : covariance algebra: ``"numba"`` (compiled), ``"numpy"`` (reference) or ``"filterpy"``;
-        ``"auto"`` (default) is numba where it is installed, else numpy. The cached step's own arithmetic
-        is compiled whenever numba is installed (:mod:`.held`).
-    q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations.
-    q_scale : multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. Measured with the
-        full-order ERLS truth (``benchmarks/observer_accuracy.py --runs 50``, seeds 1000-1049, default settings):
-        the run-averaged NEES (10 physical quantities) inside its 95 % band at 97.9 % of the steps, time average
-        10.20 (band 9.74-10.27 for its autocorrelation time), the NIS at 94.7 %, 6.003 (5.974-6.026), as on the
-        filter's own reduced model: the truncated modes and the step map's held matrices add no measurable
-        inconsistency (the ERLS truth and a truth of the reduced model itself give the same per-quantity bias and
-        spread within 0.01). The earlier default 1.5 compensated an error of the truth instead: the manoeuvre's
-        torque stepped 0.1 ms after a sample at the deceleration start (2.92 s; the time law took the earlier
-        phase there, see :func:`exuflex.manoeuvre.time_law`), a bias common to all runs for ~80 ms that no noise
-        scale makes consistent (see ``jump_p``); on the corrected truth 1.5 leaves the filter pessimistic (NEES
-        8.73, 45 % of the steps inside). The steady-state bound always uses the stated noise.
-    input_hold : how the measured torques are used between samples: ``"zoh"`` (held, the paper's scheme) or
-        ``"linear"`` (the mean of the two samples bounding the interval, no added latency). The linear hold's
-        input noise ``(w_k + w_k+1) / 2`` is correlated between neighbouring intervals; the filter keeps the
-        newest sample's noise as three extra states (:class:`.hold.LinearHoldModel`), which models it exactly:
-        with the ERLS truth, before the torque step at 2.92 s, per-quantity spread over variance 0.97-1.10 (as
-        ``"zoh"``) instead of 0.61-1.71 with white noise of half the variance, and RMS errors of the rates 25-40 %
-        lower (dq1, dq2, dx25, dy26 at 0.60-0.76 of the zero-order-hold bound). A torque *step* is interpolated
-        over the interval before it, though: one step in the manoeuvre (2.92 s) gives the linear hold a bias common
-        to all runs (NEES 11.6 over 50 runs, 94.5 % of the steps inside), so ``"zoh"``, exact for steps at the
-        samples, stays the default. The filter's state is then ``nx + 3``; :meth:`Observer.physical` and the
-        physical covariance use its leading block.
-    jump_p : torque jumps between two samples (``"zoh"``): the false-alarm probability per interval of the test
-        that flags two successive torque samples differing by more than their noise (chi-square, 3 dof); a
-        flagged interval gets the effect of a jump at an unknown instant within it, moment-matched
-        (:meth:`.reduced.ReducedObserverModel.input_jump_moments`). ``None``: no test. With the ERLS truth whose
-        torque stepped 0.1 ms after a sample (the time law before its correction), 50 runs: NEES 97.8 % of the
-        steps, time average 10.20 (band 9.74-10.27), NIS 94.6 %, 6.003 (5.974-6.026), RMS 0.98-1.09 of the bound,
-        against 95.4 %, 12.23, 94.2 %, 6.51 and RMS up to 1.30 without the test. A jump exactly at a sample (the
-        corrected time law) is flagged too, and taken as anywhere within the interval before it: consistency
-        unchanged (97.9 %, 10.20; 94.7 %, 6.003 against 98.0 %, 10.19; 94.7 %, 5.998), RMS of dq2 and dy26 1.06
-        instead of 1.01 of the bound.
+    h : longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
+    dt : nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
+        time stamp.
+    method : ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
+    q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations (rad, rad/s, m or modal units,
+        their rates).
+    q_scale : multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. The
+        steady-state bound always uses the stated noise.
+    jump_p : the false-alarm probability per interval of the test that flags two successive torque samples
+        differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
+        unknown instant within it, moment-matched (:meth:`.reduced.ReducedObserverModel.input_jump_moments`).
+        ``None``: no test.
     q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
+    max_gap : longest interval (s) between two samples the filter predicts over.
     start_up : seconds left out of the error metrics (the filter's transient).
     """
 
@@ -98,15 +71,14 @@ class ObserverConfig:
     h: float = 1e-4
     dt: float | None = None
     method: str = "cached"
-    backend: str = "auto"
     q0_std: float = 0.05
     qd0_std: float = 0.1
     elastic0_std: float = 1e-3
     elastic_rate0_std: float = 0.01
     q_scale: float = 1.0
-    input_hold: str = "zoh"
     jump_p: float | None = 1e-6
     q_extra_std: float = 0.0
+    max_gap: float = 1.0
     start_up: float = 0.3
 
     def as_dict(self) -> dict:
@@ -150,7 +122,7 @@ class Observer:
         The tip rows depend on q; they are refreshed whenever q moved by more than ``refresh_rad``.
         """
         nq, r = self.model.nq, self.model.r
-        Z = np.asarray(Z)[:, : self.model.nx]  # the filter's extra states (input noise, .hold) are not physical
+        Z = np.asarray(Z)[:, : self.model.nx]  # a filter's extra states (augmented estimators) are not physical
         names = physical_names(self.mech)
         out = np.full((len(t), len(names)), np.nan)
         out[:, :nq] = Z[:, :nq]
@@ -229,15 +201,15 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     basis_s = time.perf_counter() - t0
     channels = tuple(config.channels) if config.channels else default_channels(mech)
     dt = config.dt or 1.0 / mech.sample_rate_hz
-    som = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p)
-    som.torque_var_nominal = som.torque_var.copy()
-    if config.q_scale != 1.0:
-        som.torque_var = som.torque_var * config.q_scale
-    r, nq = som.r, som.nq
+    stated = np.array([m.noise_std for m in mech.motors], float)
+    q_extra = None
     if config.q_extra_std > 0:
-        qe = np.zeros(som.nx)
-        qe[r + nq :] = config.q_extra_std**2
-        som.q_extra = qe
+        q_extra = np.zeros(2 * cb.r)
+        q_extra[cb.r + len(mech.coordinate_names) :] = config.q_extra_std**2
+    som = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
+                               torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
+    som.torque_var_nominal = stated**2
+    r, nq = som.r, som.nq
     if x0 is None:
         x0 = som.initial_state(_start_q(mech))
     P0 = np.empty(som.nx)
@@ -245,19 +217,9 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
-    backend = config.backend
-    if backend == "auto":
-        backend = "numba" if HAVE_NUMBA else "numpy"
-    ekf_model = som
-    if config.input_hold == "linear":  # the torque-sample noise as states: the MA(1) input noise exactly (.hold)
-        ekf_model = LinearHoldModel(som, som.torque_var, som.q_extra)
-        x0 = _augmented_mean(ekf_model, x0)
-        P0 = ekf_model.initial_covariance(P0)
-    ekf = MultirateEKF(ekf_model, channels, _noise_std(mech, channels), x0, P0, dt=dt, backend=backend,
-                       input_hold=config.input_hold)
+    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
-            "interior_modes": int(cb.n_interior), "channels": list(channels), "backend": backend,
-            "step_kernel": som.kernel_name}
+            "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
 
 
@@ -289,13 +251,13 @@ class Estimate:
     real_time_factor: float
 
 
-def estimate(obs: Observer, t, U, Y, x0=None) -> Estimate:
-    """Filter a record: times (n,), measured torques (n, n_motors), channels (n, m) in ``obs.channels`` order."""
-    if x0 is not None:
-        obs.ekf.reset(x0=_augmented_mean(obs.ekf.model, x0))
+def estimate(obs: Observer, t, U, Y, x0=None, P0=None) -> Estimate:
+    """Filter a record: times (n,), measured torques (n, n_motors), channels (n, m) in ``obs.channels`` order.
+    ``x0``, ``P0``: a prior for this record (reduced state and its covariance or variances; default the
+    observer's)."""
     t = np.asarray(t, float)
     t0 = time.perf_counter()
-    res = obs.ekf.run(t, U, Y)
+    res = obs.ekf.run(t, U, Y, x0=None if x0 is None else _augmented_mean(obs.ekf.model, x0), P0=P0)
     wall = time.perf_counter() - t0
     phys = obs.physical(res.t, res.x_hat)
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
@@ -326,16 +288,16 @@ def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
     linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise."""
     mech = obs.mech
     # a model of its own, so that the observer's caches are left alone
-    som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="frozen")
+    som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
     if q is None:
         q = _mid_q(mech)
     z = som.initial_state(q, qd)
     u = np.zeros(len(mech.motors))
-    _, A = som.step(z, u, obs.ekf.dt)
+    pred, _, maps = som.frozen_interval(z, u, obs.ekf.dt)
+    A = pred.F
     # the bound is a property of the sensors and the *stated* noise, not of the filter's tuning
     var = getattr(obs.model, "torque_var_nominal", som.torque_var)
-    L = som._last.L
-    Q = (L * var) @ L.T
+    Q = (maps.L * var) @ maps.L.T
     _, H = som.measure(z, obs.channels)
     R = np.array([s**2 for s in obs.ekf.R_std])
     P = _steady_posterior(A, Q, H, R)

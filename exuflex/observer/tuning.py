@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from .base import DiscreteModel
+from .base import DiscreteModel, Prediction
 from .bound import van_loan
 
 __all__ = [
@@ -127,7 +127,7 @@ def input_jacobian(model: DiscreteModel, x, u, dt: float, eps=None) -> np.ndarra
         up, um = u.copy(), u.copy()
         up[i] += h[i]
         um[i] -= h[i]
-        cols.append((model.step(x, up, dt)[0] - model.step(x, um, dt)[0]) / (2 * h[i]))
+        cols.append((model.predict(x, up, dt).x - model.predict(x, um, dt).x) / (2 * h[i]))
     return np.stack(cols, axis=1)
 
 
@@ -142,14 +142,12 @@ class ScaledNoiseModel:
         self.scale = float(scale)
         self.nx = model.nx
 
-    def step(self, x, u, dt):
-        return self.model.step(x, u, dt)
+    def predict(self, x, u, dt, u_next=None):
+        x_next, F, Q = self.model.predict(x, u, dt, u_next)
+        return Prediction(x_next, F, self.scale * Q)
 
     def measure(self, x, channels):
         return self.model.measure(x, channels)
-
-    def process_noise(self, x, u, dt):
-        return self.scale * self.model.process_noise(x, u, dt)
 
     def __getattr__(self, name):
         return getattr(self.model, name)

@@ -273,18 +273,52 @@ else:  # pragma: no cover
     force_terms = None
 
 
-def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss_inv, c, s, Phi_u, px, py, Sn):
+def _rotate_rows(X, px, py, c, s, inverse):  # pragma: no cover - compiled
+    """``Q^T X`` in place (``inverse``: ``Q X``) for the pairs' rotation ``Q`` (cosine ``c``, sine ``s`` per pair)
+    acting on the rows of ``X`` (ne, m)."""
+    m = X.shape[1]
+    for pp in range(px.shape[0]):
+        x, y = px[pp], py[pp]
+        cc = c[pp]
+        ss = -s[pp] if inverse else s[pp]
+        for j in range(m):
+            A, Bv = X[x, j], X[y, j]
+            X[x, j] = cc * A + ss * Bv
+            X[y, j] = -ss * A + cc * Bv
+
+
+def _turn(X, px, py, plocal, Sn, nq):  # pragma: no cover - compiled
+    """``D_i X`` (ne, k nq), column ``kk nq + i``: G2 = [[0, -1], [1, 0]] on each link-frame pair of ``X`` (ne, k)
+    times the pair's angle rate ``Sn[pair, i]`` (the derivative of ``Q`` applied to ``Q^T``)."""
+    ne, k = X.shape
+    out = np.zeros((ne, k * nq))
+    for pp in range(px.shape[0]):
+        if not plocal[pp]:
+            continue
+        x, y = px[pp], py[pp]
+        for kk in range(k):
+            for i in range(nq):
+                out[x, kk * nq + i] = -X[y, kk] * Sn[pp, i]
+                out[y, kk * nq + i] = X[x, kk] * Sn[pp, i]
+    return out
+
+
+def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss_inv, c, s, Phi_u, px, py, Sn,
+                      Kuu, qc, qs, plocal, keep, has_local):
     # pragma: no cover - compiled twin of CraigBampton.basis_derivative
     """``d(H v)/dq`` for each column of ``V`` (k, n, nq); see
     :meth:`~exuflex.reduction.basis.CraigBampton.basis_derivative` for the formulas. ``c, s``: cosine and sine
-    of the interior-mode node pairs' rotation from q*, ``Sn`` (pairs, nq) their angle sensitivities;
-    ``t_index``: the map ``T`` from the elastic coordinates to the nodal dofs (:func:`_w_product`)."""
+    of the interior-mode node pairs' rotation from q*, ``Sn`` (pairs, nq) their angle sensitivities (zero rows for
+    pairs that do not turn); ``t_index``: the map ``T`` from the elastic coordinates to the nodal dofs
+    (:func:`_w_product`). Link-frame masters (``has_local``): ``qc, qs`` the pairs' frame rotation ``Q`` (1, 0
+    for global pairs), ``plocal`` the link-frame pairs, ``keep`` the rows the interior modes' rotation enters
+    (the slaves and the link-frame pairs), ``Kuu`` the elastic stiffness."""
     k = V.shape[1]
     me = im.shape[0]
     ns = is_.shape[0]
     n_el = el_dofs.shape[0]
     out = np.zeros((k, nq + ne, nq))
-    # Guyan fields w = [u_m; B u_m] and their nodal displacements
+    # Guyan fields w = [u_m; B u_m], u = Q w, and their nodal displacements
     Vm = np.ascontiguousarray(V[nq : nq + me])
     W = np.zeros((ne, k))
     for a in range(me):
@@ -292,6 +326,8 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
     BV = B @ Vm
     for a in range(ns):
         W[is_[a]] = BV[a]
+    if has_local:
+        _rotate_rows(W, px, py, qc, qs, True)
     d = _t_product(t_index, W)  # (N, k)
     # per element: R K_G R^T applied to the element's displacements, weighted by its angle sensitivities, and
     # summed into the elastic coordinates of its nodes (T^T of the scattered element vectors)
@@ -321,15 +357,30 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
                     acc += R[e, a, b] * kd[b, kk]
                 for i in range(nq):
                     Cu[u, kk * nq + i] += acc * S_th[e, i]
+    if has_local:  # dK_w/dq_i w_G = Q^T (dK_uu/dq_i u_G + K_uu D_i u_G - D_i K_uu u_G)
+        DW = _turn(W, px, py, plocal, Sn, nq)
+        Cu += Kuu @ DW
+        Cu -= _turn(Kuu @ W, px, py, plocal, Sn, nq)
+        _rotate_rows(Cu, px, py, qc, qs, False)
     Cs = np.empty((ns, k * nq))
     for a in range(ns):
         Cs[a] = Cu[is_[a]]
     dB = Kss_inv @ Cs  # (s, k nq), negated below
-    for a in range(ns):
-        row = nq + is_[a]
-        for kk in range(k):
-            for i in range(nq):
-                out[kk, row, i] = -dB[a, kk * nq + i]
+    if has_local:  # d(Q w_G)/dq_i = D_i u_G + Q (0; dB_w/dq_i w_m)
+        dW = np.zeros((ne, k * nq))
+        for a in range(ns):
+            dW[is_[a]] = -dB[a]
+        _rotate_rows(dW, px, py, qc, qs, True)
+        for u in range(ne):
+            for kk in range(k):
+                for i in range(nq):
+                    out[kk, nq + u, i] = dW[u, kk * nq + i] + DW[u, kk * nq + i]
+    else:
+        for a in range(ns):
+            row = nq + is_[a]
+            for kk in range(k):
+                for i in range(nq):
+                    out[kk, row, i] = -dB[a, kk * nq + i]
     # rotated interior modes: d(Psi eta)/dq_i = G2 (R Phi eta) dtheta_node/dq_i per node pair
     if Phi_u.shape[1]:
         Wu = Phi_u @ np.ascontiguousarray(V[nq + me :])  # (ne, k) unrotated
@@ -343,37 +394,46 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
                 for i in range(nq):
                     dU[x, kk, i] = -RY * Sn[pp, i]
                     dU[y, kk, i] = RX * Sn[pp, i]
-        for a in range(ns):
-            u = is_[a]
-            for kk in range(k):
-                for i in range(nq):
-                    out[kk, nq + u, i] += dU[u, kk, i]
+        for u in range(ne):
+            if keep[u]:
+                for kk in range(k):
+                    for i in range(nq):
+                        out[kk, nq + u, i] += dU[u, kk, i]
     return out
 
 
 if HAVE_NUMBA:
+    _rotate_rows = _jit(_rotate_rows)
+    _turn = _jit(_turn)
     basis_derivative = _jit(_basis_derivative)
 else:  # pragma: no cover
     basis_derivative = None
 
 
-def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s):
+def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_local):
     # pragma: no cover - compiled twin of CraigBampton.at
     """``(K_uu, B, K_ss^-1, Psi, H)`` of :meth:`~exuflex.reduction.basis.CraigBampton.at` from the assembled
     nodal stiffness: ``K_uu = T^T K_N T`` (``t_index``: the map ``T``, :func:`_w_product`), Guyan shapes
-    ``B = -K_ss^-1 K_sm``, interior modes rotated per node pair (``c, s``: cosine and sine of the pairs' rotation
-    from q*) and the basis ``H`` (nq + ne, r)."""
+    ``B = -K_ss^-1 K_sm`` of ``K_w = Q^T K_uu Q``, interior modes rotated per node pair (``c, s``: cosine and sine
+    of the pairs' rotation from q*) and the basis ``H = Q H_w`` (nq + ne, r); ``qc, qs``: the pairs' frame rotation
+    ``Q`` (link-frame masters, ``has_local``; 1, 0 for global pairs)."""
     me = im.shape[0]
     ns = is_.shape[0]
     ki = Phi_u.shape[1]
     Kuu = _tt_product(t_index, _product_t(K_N, t_index, ne), ne)
+    Kw = Kuu
+    if has_local:  # Q^T K_uu Q: rows, then columns (K_uu symmetric)
+        Kw = Kuu.copy()
+        _rotate_rows(Kw, px, py, qc, qs, False)
+        Kw = np.ascontiguousarray(Kw.T)
+        _rotate_rows(Kw, px, py, qc, qs, False)
     Kss = np.empty((ns, ns))
     Ksm = np.empty((ns, me))
     for a in range(ns):
         for b in range(ns):
-            Kss[a, b] = Kuu[is_[a], is_[b]]
+            Kss[a, b] = Kw[is_[a], is_[b]]
         for b in range(me):
-            Ksm[a, b] = Kuu[is_[a], im[b]]
+            Ksm[a, b] = Kw[is_[a], im[b]]
     Kinv = np.linalg.inv(Kss)
     B = -(Kinv @ Ksm)
     P = Phi_u.copy()
@@ -383,6 +443,8 @@ def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s):
             X, Y = Phi_u[x, j], Phi_u[y, j]
             P[x, j] = c[pp] * X - s[pp] * Y
             P[y, j] = s[pp] * X + c[pp] * Y
+    if has_local:
+        _rotate_rows(P, px, py, qc, qs, False)
     Psi = np.empty((ns, ki))
     for a in range(ns):
         Psi[a] = P[is_[a]]
@@ -390,6 +452,18 @@ def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s):
     H = np.zeros((nq + ne, r))
     for i in range(nq):
         H[i, i] = 1.0
+    if has_local:
+        Hw = np.zeros((ne, r - nq))
+        for a in range(me):
+            Hw[im[a], a] = 1.0
+        for a in range(ns):
+            for b in range(me):
+                Hw[is_[a], b] = B[a, b]
+            for j in range(ki):
+                Hw[is_[a], me + j] = Psi[a, j]
+        _rotate_rows(Hw, px, py, qc, qs, True)
+        H[nq:, nq:] = Hw
+        return Kuu, B, Kinv, Psi, H
     for a in range(me):
         H[nq + im[a], nq + a] = 1.0
     for a in range(ns):
@@ -448,8 +522,9 @@ else:  # pragma: no cover
 
 
 def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_link, node_station,
-                     t_index, im, is_, Phi_u, px, py, pnode, theta_star, B_N, g_N, Gl, KGl, el_dofs, el_link, alpha, beta,
-                     nq, rotate, consistent, gradients):  # pragma: no cover - compiled twin of ReducedModel.held
+                     t_index, im, is_, Phi_u, px, py, pnode, plocal, keep, theta_star, B_N, g_N, Gl, KGl, el_dofs,
+                     el_link, alpha, beta, nq, rotate, has_local, consistent, gradients):
+    # pragma: no cover - compiled twin of ReducedModel.held
     """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs)``: what
     :meth:`~exuflex.reduction.model.ReducedModel.held` computes (without ``fr``) from a full configuration, in one
     call: the basis at q (:func:`basis_at`), its derivative for every reduced coordinate
@@ -459,29 +534,36 @@ def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_l
     sensitivities, nodal poses and sensitivities and closure Jacobian inverse; ``closure``
     (:class:`exuflex.erls._closure.ClosureArrays`), ``node_link``, ``node_station``: the kinematics' arrays;
     ``pnode``, ``theta_star``: the node of every interior-mode pair and the nodal angles
-    at q* (``rotate`` False: the modes do not turn, :attr:`~exuflex.reduction.basis.CraigBampton.rotate`)."""
+    at q* (``rotate`` False: the modes do not turn, :attr:`~exuflex.reduction.basis.CraigBampton.rotate`);
+    ``plocal``, ``keep``, ``has_local``: the link-frame pairs (:func:`basis_derivative`), which turn with the
+    angle of their node ``pnode`` always."""
     ne = Phi_u.shape[0]
     n_pairs = pnode.shape[0]
     c = np.empty(n_pairs)
     s = np.empty(n_pairs)
+    qc = np.ones(n_pairs)
+    qs = np.zeros(n_pairs)
     Sn = np.zeros((n_pairs, nq))  # d theta_node / dq of every pair
     for pp in range(n_pairs):
         node = pnode[pp]
         th = 0.0
-        if rotate:
+        if rotate or plocal[pp]:
             th = r_nodes[3 * node + 2] - theta_star[node]
             for i in range(nq):
                 Sn[pp, i] = S[3 * node + 2, i]
+        if plocal[pp]:
+            qc[pp] = math.cos(r_nodes[3 * node + 2])
+            qs[pp] = math.sin(r_nodes[3 * node + 2])
         c[pp] = math.cos(th)
         s[pp] = math.sin(th)
     S_th = np.empty((el_link.shape[0], nq))  # element angle sensitivities
     for e in range(el_link.shape[0]):
         for i in range(nq):
             S_th[e, i] = Sz[3 * el_link[e] + 2, i]
-    Kuu, B, Kinv, Psi, H = basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s)
+    Kuu, B, Kinv, Psi, H = basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_local)
     r = H.shape[1]
     dHdq = basis_derivative(np.eye(r), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s, Phi_u, px,
-                            py, Sn)
+                            py, Sn, Kuu, qc, qs, plocal, keep, has_local)
     J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
     Sd3 = coordinate_rates(z, Sz, Jinv, closure, node_link, node_station)
     fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,

@@ -20,7 +20,7 @@ import scipy.linalg as sla
 
 from ..erls.modal import ModalResult, modal_analysis
 
-__all__ = ["AccuracyResult", "accuracy_indices", "accuracy_along", "reduced_modes"]
+__all__ = ["AccuracyResult", "accuracy_indices", "accuracy_along", "match_modes", "reduced_modes"]
 
 log = logging.getLogger(__name__)
 
@@ -65,15 +65,24 @@ def accuracy_indices(cb, q, full: ModalResult | None = None, band_hz: float | No
     model = cb.model
     if full is None:
         full = modal_analysis(model, q)
-    fr, Vr, rc = reduced_modes(cb, q)
-    M = model.mass(rc.cfg)
+    rc = cb.at(q)
+    return match_modes(q, rc.H, model.mass(rc.cfg), model.stiffness(rc.cfg), full, cb.nq, band_hz)
+
+
+def match_modes(q, H: np.ndarray, M: np.ndarray, K: np.ndarray, full: ModalResult, nq: int,
+                band_hz: float) -> AccuracyResult:
+    """NCO and frequency error of the full modes below ``band_hz`` against the modes of the basis ``H``
+    (n, r) with the full mass and stiffness ``M``, ``K`` at q (the reduced model linearised at rest)."""
+    w2, V = sla.eigh(H.T @ K @ H, H.T @ M @ H)
+    fr = np.sqrt(np.clip(w2[nq:], 0, None)) / (2 * np.pi)
+    Vr = V[:, nq:]
     sel = full.frequencies_hz <= band_hz
     Phi = full.shapes[:, sel]
     ff = full.frequencies_hz[sel]
     if Vr.shape[1] == 0:
         z = np.zeros(len(ff))
         return AccuracyResult(q, ff, np.full(len(ff), np.inf), z, np.full(len(ff), np.inf))
-    HV = rc.H @ Vr
+    HV = H @ Vr
     cross = Phi.T @ M @ HV
     n1 = np.einsum("ij,ik,kj->j", Phi, M, Phi)
     n2 = np.einsum("ij,ik,kj->j", HV, M, HV)

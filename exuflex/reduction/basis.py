@@ -11,12 +11,21 @@ coordinate plus chosen elastic dofs) and slaves ``u_s``. The reduced coordinates
 - ``Phi(q*)``: interior (fixed-master) modes of the slave subsystem at the equilibrium ``q*``
   (``K_ss v = w^2 M_ss v``), mass-normalised; a subset of them is kept, chosen by the interior-mode
   ranking (:func:`interior_mode_scores`) or by frequency.
+- Masters named in a link's frame (``node5.transverse``, ``node5.axial``; :mod:`exuflex.mechanism.dofs`) are
+  components of a node's translation along and across its link at the current q. The partition is then made
+  in the coordinates ``w = Q(q)^T u``, where ``Q(q)`` turns the translation pair of every node carrying such a
+  master by its link's ERLS angle ``phi(q)`` (every other pair: the identity). The Guyan shapes come from the
+  stiffness in those coordinates, ``K_w = Q^T K_uu Q``, the interior modes from ``K_w`` and ``M_w`` at q*, and
+  the basis in the global elastic coordinates is ``H_u = Q(q) H_w(q)``: a transverse master stays transverse
+  however far its link turns (a global ``node5.y`` master becomes the stiff axial direction after a quarter
+  turn). Global names keep ``Q = I`` and the original formulas.
 - ``R(q, q*)``: the elastic dofs are global-frame nodal displacements, so an interior mode computed at
   ``q*`` must follow its links: the (x, y) pair of every node is rotated by the change of its link's
   angle, ``theta_link(q) - theta_link(q*)`` (rotations are frame-independent in the plane). A node
   shared by several links (a joint) follows the link that owns its dofs in the numbering; the
   interior modes barely move joint nodes, so the choice does not matter (checked: 0.918-0.920 %
-  frequency error over all choices on the six-bar).
+  frequency error over all choices on the six-bar). A pair in a link frame turns with that link; it
+  always does (its interior-mode components are constant in ``w``).
 
 Interior-mode ranking (IMR)
 ---------------------------
@@ -56,8 +65,8 @@ class ReducedConfiguration:
     """The full configuration at q plus the reduction basis there."""
 
     cfg: Configuration
-    B: np.ndarray  # (s, n_m_elastic) Guyan shapes of the elastic masters
-    Psi: np.ndarray  # (s, k) rotated interior modes
+    B: np.ndarray  # (s, n_m_elastic) Guyan shapes of the elastic masters (slave rows of w = Q^T u)
+    Psi: np.ndarray  # (s, k) rotated interior modes (slave rows of w)
     H: np.ndarray  # (n, r)
     Kuu: np.ndarray | None = None  # (ne, ne) elastic stiffness at q
     Kss_inv: np.ndarray | None = None  # inverse of the slave stiffness block (s, s)
@@ -91,13 +100,16 @@ class CraigBampton:
     Parameters
     ----------
     model : ErlsModel
-    masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")``); the ERLS
-        coordinates are always masters. Default: the model file's ``[reduction] masters``.
+    masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")`` or
+        ``("node9.transverse",)``); the ERLS coordinates are always masters. Default: the model file's
+        ``[reduction] masters``, else the transverse dofs at the joints and tips (:mod:`.masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
-    n_interior : number of interior modes, or ``"auto"`` (the smallest ranked set meeting
-        ``nco_min`` and ``freq_error_max_pct`` for every full mode below ``band_hz`` at q*), or ``None``
-        (the model file's value, else ``"auto"``).
+    n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
+        ``freq_error_max_pct`` for every full mode below ``band_hz`` at q* and at every configuration of
+        ``path``), or ``None`` (the model file's value, else ``"auto"``).
     ranking : ``"imr"`` (interior-mode ranking) or ``"frequency"`` (lowest modes).
+    path : configurations (n, nq) the interior modes are chosen over besides q* (:mod:`.path`); default
+        (``None``): ``path_samples`` configurations of the model's manoeuvre; ``False``: q* only.
     """
 
     def __init__(
@@ -110,32 +122,61 @@ class CraigBampton:
         band_hz: float | None = None,
         nco_min: float | None = None,
         freq_error_max_pct: float | None = None,
+        path=None,
+        path_samples: int = 16,
     ):
         t0 = time.perf_counter()
         spec = model.mech.reduction
         self.model = model
         src = model.mech.source or model.mech.name
+        self.nq = model.nq
+        qs = q_star if q_star is not None else (spec.q_star or model.mech.q_ref)
+        self.q_star = np.asarray(qs, float)
+        if self.q_star.shape != (self.nq,):
+            raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
+        # the configurations the interior modes (and automatic masters) are chosen over (.path)
+        from .path import PathSamples, manoeuvre_configurations
+
+        if path is None:
+            path = manoeuvre_configurations(model.mech, path_samples)
+        elif path is False:
+            path = None
+        q_samples = self.q_star[None, :]
+        if path is not None:
+            path = np.atleast_2d(np.asarray(path, float))
+            if path.shape[1:] != (self.nq,):
+                raise ValueError(f"{src}: path configurations must have {self.nq} entries each, got {path.shape}")
+            q_samples = np.vstack([q_samples, path])
         masters = tuple(spec.masters if masters is None else masters)
+        # none named: the transverse dofs at the joints and tips (.masters)
+        self.automatic_masters = not masters
         if not masters:
-            raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters)")
+            from .masters import automatic_masters
+
+            masters = automatic_masters(model, q_samples)
+            if not masters:
+                raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters) "
+                                 "and no joint off the ground or free tip to choose them at")
         try:
-            im = [model.dofs.index(m) for m in masters]
+            refs = [model.dofs.locate(m) for m in masters]
         except KeyError as e:
             raise KeyError(f"{src}: reduction master: {e.args[0]}") from None
+        im = [r.index for r in refs]
         if len(set(im)) != len(im):
             raise ValueError(f"{src}: reduction masters repeat a dof: {list(masters)}")
         self.masters = masters
         self.im = np.array(im, int)
         self.is_ = np.array([k for k in range(model.ne) if k not in set(im)], int)
-        self._ix_ss, self._ix_sm = np.ix_(self.is_, self.is_), np.ix_(self.is_, self.im)  # slave blocks of K_uu
+        self._ix_ss, self._ix_sm = np.ix_(self.is_, self.is_), np.ix_(self.is_, self.im)  # slave blocks of K_w
         # slave rows of T^T times the element scatter map: dK_N/dq w projected on the slaves (basis_derivative)
-        self._TtS_s = np.ascontiguousarray((model.T.T @ model.scatter)[self.is_])
+        TtS = model.T.T @ model.scatter
+        self._TtS_s = np.ascontiguousarray(TtS[self.is_])
+        self._TtS = np.ascontiguousarray(TtS)
         # basis_derivative in one compiled call (:mod:`._compiled`) where numba is installed; False: NumPy
         self.compiled = _compiled.HAVE_NUMBA
         # R(q, q*): the interior modes turn with their nodes (the paper's modification); False keeps Phi(q*)
         # fixed in the global frame (to show what the rotation buys)
         self.rotate = True
-        self.nq = model.nq
         self.n_m = self.nq + len(im)
         self.band_hz = float(spec.band_hz if band_hz is None else band_hz)
         self.nco_min = float(spec.nco_min if nco_min is None else nco_min)
@@ -143,61 +184,110 @@ class CraigBampton:
         if ranking not in ("imr", "frequency"):
             raise ValueError(f"ranking must be 'imr' or 'frequency', got {ranking!r}")
         self.ranking = ranking
-        qs = q_star if q_star is not None else (spec.q_star or model.mech.q_ref)
-        self.q_star = np.asarray(qs, float)
-        if self.q_star.shape != (self.nq,):
-            raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
-        self._pairs_setup()
-        # interior modes at q*
+        self._pairs_setup(refs)
+        # interior modes at q*, in the partition's coordinates w = Q(q*)^T u
         self.cfg_star = model.configuration(self.q_star)
         M = model.mass(self.cfg_star)
         K = model.stiffness(self.cfg_star)
         nq = self.nq
-        Muu, Kuu = M[nq:, nq:], K[nq:, nq:]
+        qc, qs = self._frame_cs(self.cfg_star)
+        Muu = self._to_frame(self._to_frame(M[nq:, nq:], qc, qs).T, qc, qs)
+        Kuu = self._to_frame(self._to_frame(K[nq:, nq:], qc, qs).T, qc, qs)
         s_ = self.is_
         w2, Phi = sla.eigh(Kuu[np.ix_(s_, s_)], Muu[np.ix_(s_, s_)])
         self.interior_frequencies_hz = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
         self.Phi_all = Phi  # (s, s), M_ss-orthonormal, ascending frequency
         self._theta_star = self.cfg_star.pose.r[2::3].copy()
-        B_star = self._guyan(Kuu)[0]
-        # ranking
-        from ..erls.modal import modal_analysis
-
-        full = modal_analysis(model, self.q_star)
-        band = full.frequencies_hz <= self.band_hz
-        shapes = full.shapes[:, band]
-        self.scores = interior_mode_scores(
-            Phi, Muu[np.ix_(s_, s_)], shapes[nq + s_], shapes[nq + self.im], B_star
-        )
-        order = np.argsort(-self.scores, kind="stable") if ranking == "imr" else np.arange(Phi.shape[1])
-        self.order = order
+        # the interior modes' order and count, chosen at q* and along the path (.path)
+        self.order = np.arange(Phi.shape[1])
+        self.set_interior(Phi.shape[1])
+        samples = PathSamples(self, q_samples)
+        self.scores = samples.scores[0]  # IMR scores at q*
+        if n_interior is None:
+            n_interior = spec.n_interior if spec.n_interior is not None else "auto"
+        self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior))
+        self.path_q = q_samples  # q* and the path's configurations the choice was made on
         if n_interior is None:
             n_interior = spec.n_interior if spec.n_interior is not None else "auto"
         if n_interior == "auto":
-            n_interior = self._auto_count(full)
+            n_interior = n_needed
         n_interior = int(n_interior)
         if not 0 <= n_interior <= Phi.shape[1]:
             raise ValueError(f"{src}: n_interior must be in 0..{Phi.shape[1]} (number of slaves), got {n_interior}")
         self.set_interior(n_interior)
+        self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
 
     # ------------------------------------------------------------------ setup
-    def _pairs_setup(self):
-        """(x, y) pairs of elastic dofs owned by one node: rotated together by R(q, q*)."""
+    def _pairs_setup(self, refs):
+        """(x, y) pairs of elastic dofs owned by one node: rotated together by R(q, q*), and by Q(q) where a
+        master names the pair in a link frame (the pair then turns with that node's link)."""
         model = self.model
+        src = model.mech.source or model.mech.name
         by_node: dict[int, dict[str, int]] = {}
         for k, (node, comp) in enumerate(model.dofs.free):
             by_node.setdefault(node, {})[comp] = k
         node_pos = {n: i for i, n in enumerate(model.mech.node_ids)}
-        px, py, pn = [], [], []
+        frame: dict[int, tuple[int | None, str]] = {}  # pair x index -> (frame node, the master naming it)
+        for r in refs:
+            if r.pair is None:
+                continue
+            prev = frame.get(r.pair[0])
+            if prev is not None and prev[0] != r.frame_node:
+                raise ValueError(f"{src}: reduction masters {prev[1]!r} and {r.name!r} name the same nodal "
+                                 "translation in different frames; name both in one frame (x/y, or "
+                                 "axial/transverse of one node)")
+            frame[r.pair[0]] = (r.frame_node, r.name)
+        px, py, pn, loc = [], [], [], []
         for node, comps in by_node.items():
             if "x" in comps and "y" in comps:
+                fn = frame.get(comps["x"], (None, ""))[0]
                 px.append(comps["x"])
                 py.append(comps["y"])
-                pn.append(node_pos[node])
+                pn.append(node_pos[node if fn is None else fn])
+                loc.append(fn is not None)
         self._px, self._py, self._pnode = np.array(px, int), np.array(py, int), np.array(pn, int)
+        self._plocal = np.array(loc, bool)
+        self.has_local = bool(self._plocal.any())
+        # rows whose interior-mode rotation enters H: the slaves, and both components of a link-frame pair
+        keep = np.zeros(model.ne, bool)
+        keep[self.is_] = True
+        keep[self._px[self._plocal]] = keep[self._py[self._plocal]] = True
+        self._keep = keep
+
+    def _frame_cs(self, cfg: Configuration) -> tuple[np.ndarray, np.ndarray]:
+        """Cosine and sine of Q(q) per node pair: the link angle of a link-frame pair, 0 for the others."""
+        phi = np.where(self._plocal, cfg.pose.r[2::3][self._pnode], 0.0)
+        return np.where(self._plocal, np.cos(phi), 1.0), np.where(self._plocal, np.sin(phi), 0.0)
+
+    def _to_frame(self, X: np.ndarray, c: np.ndarray, s: np.ndarray, inverse: bool = False) -> np.ndarray:
+        """``Q^T X`` (``inverse``: ``Q X``) for elastic-coordinate rows ``X`` (ne, ...)."""
+        if not self.has_local:
+            return X
+        X = np.array(X, float)
+        px, py = self._px, self._py
+        sh = (-1,) + (1,) * (X.ndim - 1)
+        c, s = c.reshape(sh), (-s if inverse else s).reshape(sh)
+        A, Bm = X[px].copy(), X[py].copy()
+        X[px] = c * A + s * Bm
+        X[py] = -s * A + c * Bm
+        return X
+
+    def frame_rotation(self, q_or_cfg) -> np.ndarray:
+        """Q(q) as a (ne, ne) matrix: ``u = Q w`` from the partition's coordinates ``w`` (link-frame pairs
+        along and across their links) to the global elastic coordinates ``u``."""
+        cfg = q_or_cfg if isinstance(q_or_cfg, Configuration) else self.model.configuration(q_or_cfg)
+        c, s = self._frame_cs(cfg)
+        return self._to_frame(np.eye(self.model.ne), c, s, inverse=True) if self.has_local else np.eye(self.model.ne)
+
+    def master_values(self, q_or_cfg, u: np.ndarray) -> np.ndarray:
+        """The elastic master coordinates of global elastic displacements ``u`` (ne,) at a configuration:
+        ``(Q(q)^T u)[masters]``."""
+        cfg = q_or_cfg if isinstance(q_or_cfg, Configuration) else self.model.configuration(q_or_cfg)
+        c, s = self._frame_cs(cfg)
+        return self._to_frame(np.asarray(u, float), c, s)[self.im]
 
     def set_interior(self, k: int) -> None:
         """Keep the first ``k`` interior modes in ranking order."""
@@ -205,20 +295,10 @@ class CraigBampton:
         self.Phi = self.Phi_all[:, self.kept]
         self.n_interior = k
         self.r = self.n_m + k
-        # Phi expanded to u (zeros at masters), used by the rotation
+        # Phi expanded to u = Q(q*) w (zeros at masters), used by the rotation
         Pu = np.zeros((self.model.ne, k))
         Pu[self.is_] = self.Phi
-        self._Phi_u = Pu
-
-    def _auto_count(self, full) -> int:
-        from .accuracy import accuracy_indices
-
-        for k in range(0, self.Phi_all.shape[1] + 1):
-            self.set_interior(k)
-            acc = accuracy_indices(self, self.q_star, full=full)
-            if acc.ok(self.nco_min, self.freq_error_max_pct):
-                return k
-        return self.Phi_all.shape[1]
+        self._Phi_u = np.ascontiguousarray(self._to_frame(Pu, *self._frame_cs(self.cfg_star), inverse=True))
 
     # ------------------------------------------------------------------ basis
     def _guyan(self, Kuu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -229,10 +309,15 @@ class CraigBampton:
         return -(Kinv @ Kuu[self._ix_sm]), Kinv
 
     def _pair_angles(self, cfg: Configuration) -> np.ndarray:
-        """Rotation of each interior-mode node pair from q* (zero with ``rotate`` off)."""
-        if not self.rotate:
-            return np.zeros(len(self._pnode))
-        return cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+        """Rotation of each interior-mode node pair from q* (zero with ``rotate`` off, except link-frame pairs,
+        which always turn with their link)."""
+        dth = cfg.pose.r[2::3][self._pnode] - self._theta_star[self._pnode]
+        return dth if self.rotate else np.where(self._plocal, dth, 0.0)
+
+    def _pair_rates(self, cfg: Configuration) -> np.ndarray:
+        """``d theta / dq`` (pairs, nq) of the pairs that turn (zero rows for those that do not)."""
+        Sn = cfg.pose.S[2::3][self._pnode]
+        return Sn if self.rotate else np.where(self._plocal[:, None], Sn, 0.0)
 
     def rotation(self, cfg: Configuration) -> np.ndarray:
         """R(q, q*) as a (ne, ne) matrix acting on global-frame elastic displacement vectors."""
@@ -245,27 +330,29 @@ class CraigBampton:
         return Rm
 
     def rotated_modes(self, cfg: Configuration) -> np.ndarray:
-        """Psi(q, q*) = R(q, q*) Phi(q*), slave rows (s, k)."""
+        """Psi(q, q*) = Q(q)^T R(q, q*) Phi(q*), slave rows of w (s, k)."""
         dth = self._pair_angles(cfg)
         c, s = np.cos(dth)[:, None], np.sin(dth)[:, None]
         P = self._Phi_u.copy()
         X, Y = self._Phi_u[self._px], self._Phi_u[self._py]
         P[self._px] = c * X - s * Y
         P[self._py] = s * X + c * Y
-        return P[self.is_]
+        return self._to_frame(P, *self._frame_cs(cfg))[self.is_]
 
     def at(self, q_or_cfg, z0=None) -> ReducedConfiguration:
         """The basis H(q, q*) at a configuration (``q`` array or a full-model Configuration)."""
         cfg = q_or_cfg if isinstance(q_or_cfg, Configuration) else self.model.configuration(q_or_cfg, z0)
         nq, ne = self.nq, self.model.ne
         T = self.model.T
+        qc, qs = self._frame_cs(cfg)
         if self.compiled:
             dth = self._pair_angles(cfg)
             Kuu, B, Kinv, Psi, H = _compiled.basis_at(cfg.K_N, self.model.t_index, ne, nq, self.im, self.is_,
-                                                      self._Phi_u, self._px, self._py, np.cos(dth), np.sin(dth))
+                                                      self._Phi_u, self._px, self._py, np.cos(dth), np.sin(dth),
+                                                      qc, qs, self.has_local)
             return ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
         Kuu = T.T @ cfg.K_N @ T
-        B, Kinv = self._guyan(Kuu)
+        B, Kinv = self._guyan(self._to_frame(self._to_frame(Kuu, qc, qs).T, qc, qs))  # K_w = Q^T K_uu Q
         Psi = self.rotated_modes(cfg)
         H = np.zeros((nq + ne, self.r))
         H[:nq, :nq] = np.eye(nq)
@@ -273,6 +360,7 @@ class CraigBampton:
         H[nq + self.im, nq : nq + me] = np.eye(me)
         H[nq + self.is_, nq : nq + me] = B
         H[nq + self.is_, nq + me :] = Psi
+        H[nq:] = self._to_frame(H[nq:], qc, qs, inverse=True)  # H_u = Q H_w
         return ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
 
     def basis_derivative(self, rc: ReducedConfiguration, V: np.ndarray) -> np.ndarray:
@@ -286,20 +374,22 @@ class CraigBampton:
         cfg = rc.cfg
         nq, ne, me = self.nq, model.ne, len(self.im)
         V = np.atleast_2d(np.asarray(V, float).T).T
+        qc, qs = self._frame_cs(cfg)
         if self.compiled:
             dth = self._pair_angles(cfg)
-            Sn = cfg.pose.S[2::3][self._pnode] if self.rotate else np.zeros((len(self._pnode), nq))
+            Sn = np.ascontiguousarray(self._pair_rates(cfg))
             return _compiled.basis_derivative(
                 np.ascontiguousarray(V), nq, ne, self.im, self.is_, np.ascontiguousarray(rc.B), model.t_index,
                 model.el_dofs, cfg.R, model.KGl, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
                 np.ascontiguousarray(rc.Kss_inv), np.cos(dth), np.sin(dth), self._Phi_u, self._px, self._py,
-                np.ascontiguousarray(Sn))
+                Sn, rc.Kuu, qc, qs, self._plocal, self._keep, self.has_local)
         k = V.shape[1]
         T = model.T
-        # Guyan fields w (ne, k)
+        # Guyan fields, w (ne, k) in the partition's coordinates, then u = Q w
         W = np.zeros((ne, k))
         W[self.im] = V[nq : nq + me]
         W[self.is_] = rc.B @ V[nq : nq + me]
+        W = self._to_frame(W, qc, qs, inverse=True)
         d = T @ W  # nodal (N, k)
         R = cfg.R
         Rt = np.swapaxes(R, 1, 2)
@@ -307,24 +397,45 @@ class CraigBampton:
         ye = R @ (model.KGl @ dl)  # (n_el, 6, k)
         S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
         C = (ye[:, :, :, None] * S_th[:, None, None, :]).reshape(-1, k * nq)  # (n_el*6, k*nq)
-        # slave rows of T^T (dK_N/dq_i w), column kk*nq + i: the element vectors scattered to the nodes and
-        # projected on the slave dofs in one product (T_s^T S, built once)
-        rhs = self._TtS_s @ C
-        dB = -(rc.Kss_inv @ rhs).reshape(-1, k, nq)  # (s, k, nq)
         out = np.zeros((k, nq + ne, nq))
-        out[:, nq + self.is_, :] = dB.transpose(1, 0, 2)
+        if not self.has_local:
+            # slave rows of T^T (dK_N/dq_i w), column kk*nq + i: the element vectors scattered to the nodes and
+            # projected on the slave dofs in one product (T_s^T S, built once)
+            rhs = self._TtS_s @ C
+            dB = -(rc.Kss_inv @ rhs).reshape(-1, k, nq)  # (s, k, nq)
+            out[:, nq + self.is_, :] = dB.transpose(1, 0, 2)
+        else:
+            # d(Q w_G)/dq_i = D_i u_G + Q (0; dB_w/dq_i w_m) with D_i = dQ/dq_i Q^T (G2 on each link-frame pair
+            # times its link's angle rate), and dK_w/dq_i = Q^T (dK_uu/dq_i + K_uu D_i - D_i K_uu) Q
+            Sq = np.where(self._plocal[:, None], cfg.pose.S[2::3][self._pnode], 0.0)  # (pairs, nq)
+            DW = self._turn(W, Sq).reshape(ne, k * nq)  # D_i u_G, column kk*nq + i
+            rhs = self._TtS @ C + rc.Kuu @ DW - self._turn(rc.Kuu @ W, Sq).reshape(ne, k * nq)
+            dB = -(rc.Kss_inv @ self._to_frame(rhs, qc, qs)[self.is_])  # (s, k nq)
+            dW = np.zeros((ne, k * nq))
+            dW[self.is_] = dB
+            dW = self._to_frame(dW, qc, qs, inverse=True) + DW
+            out[:, nq:, :] = dW.reshape(ne, k, nq).transpose(1, 0, 2)
         # rotated interior modes
-        if self.n_interior and self.rotate:
+        if self.n_interior and (self.rotate or self.has_local):
             dth = self._pair_angles(cfg)
             c, s_ = np.cos(dth)[:, None], np.sin(dth)[:, None]
             Wu = self._Phi_u @ V[nq + me :]  # (ne, k) unrotated
             X, Y = Wu[self._px], Wu[self._py]
             RX, RY = c * X - s_ * Y, s_ * X + c * Y  # rotated
-            Sn = cfg.pose.S[2::3][self._pnode]  # (n_pairs, nq) d theta_node / dq
+            Sn = self._pair_rates(cfg)  # (n_pairs, nq) d theta_node / dq
             dU = np.zeros((ne, k, nq))
             dU[self._px] = -RY[:, :, None] * Sn[:, None, :]  # G2 applied: (x, y) -> (-y, x)
             dU[self._py] = RX[:, :, None] * Sn[:, None, :]
-            out[:, nq + self.is_, :] += dU[self.is_].transpose(1, 0, 2)
+            rows = np.flatnonzero(self._keep)  # the slaves (and link-frame pairs)
+            out[:, nq + rows, :] += dU[rows].transpose(1, 0, 2)
+        return out
+
+    def _turn(self, X: np.ndarray, Sq: np.ndarray) -> np.ndarray:
+        """``D_i X`` for every q_i (ne, k, nq): G2 = [[0, -1], [1, 0]] applied to each pair of ``X`` (ne, k), times
+        the pair's angle rate ``Sq`` (pairs, nq)."""
+        out = np.zeros(X.shape + (Sq.shape[1],))
+        out[self._px] = -X[self._py][:, :, None] * Sq[:, None, :]
+        out[self._py] = X[self._px][:, :, None] * Sq[:, None, :]
         return out
 
     @property

@@ -6,15 +6,18 @@ Two forms:
   ``x' = J p'`` with ``J = H + [d(H p)/dq, 0]`` (the slave displacements follow the links as they turn and
   the static shapes change with the configuration), and the reduced equations are those of Lagrange on
   the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C J``, ``K_r p -> J^T K H p`` and
-  ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = 2 d(H p')/dq q'`` (the terms
-  quadratic in ``q'`` times the elastic displacements are left out: three orders of magnitude smaller).
+  ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = 2 d(H p')/dq q'``. The exact
+  ``(dJ/dt) p'`` also holds ``d^2(H p)/dq^2 [q', q']``, quadratic in ``q'`` and linear in the elastic
+  coordinates; it is left out (it vanishes on undeformed states).
 - ``consistent=False``: the paper's eq. 7 as printed, ``x' ~ H p'`` (``J = H``, no bias term).
 
-Why exuflex defaults to the consistent form: on the six-bar's manoeuvre the paper's form lets the rigid
-coordinates drift from the full-order model by 1.8e-4 rad in 0.1 s (the neglected terms are Coriolis
-forces of the elastic rates in the rotating links, about 1 % of the joint accelerations at the start),
-while the consistent form stays within 1e-5 rad; an observer running the paper's form carries that model
-error as a bias (measured: q3 error twice the steady-state bound). ``tests/test_reduction.py`` checks both.
+What the tests show (``tests/test_reduced_derivatives.py``): ``J`` equals the finite-difference derivative of
+``H(q) p`` to 1e-6; ``a_b`` equals the finite-difference rate of ``J p'`` to 1e-6 on undeformed states, and the
+left-out term is 0.6 % of ``a_b`` on the six-bar at elastic coordinates 1e-4, elastic rates 1e-2 and joint
+rates about 1 rad/s. Over the first 0.1 s of the six-bar's manoeuvre (RK4, 0.1 ms, the same computed torques
+and start), the consistent form's coordinates stay within 3e-5 rad of the full-order model's and the paper's
+form drifts by 2.5-3.2e-4 rad (the neglected terms are Coriolis forces of the elastic rates in the rotating
+links); exuflex therefore defaults to the consistent form.
 
 ``h`` holds the full model's velocity-dependent terms
 (:meth:`exuflex.erls.model.ErlsModel.velocity_forces`). State ``z = [p; p']`` with ``p = [q; u_m; eta]``.
@@ -49,7 +52,10 @@ class QuadraticForces:
     """``fr(p, p') = fg - 1/2 sum_k p'_k T_k p' - [p^T V_i p]_i - J^T M a_b(q', p')`` at a held configuration.
 
     Stored flattened so that one evaluation is three small matrix-vector products. ``dMr2``, ``dKr2``: the
-    q-gradients of ``M_r`` and ``K_r`` at the held configuration, flattened (nq, r*r), for the cached step.
+    q-gradients of ``M_r`` and of ``H_u^T K_uu H_u`` (``K_r``'s elastic rows; its q rows' ``d(H p)/dq``
+    part, linear in the elastic coordinates, is not differentiated) at the held configuration, flattened
+    (nq, r*r), for the cached step; both equal central differences to 1e-6 on undeformed states
+    (``tests/test_reduced_derivatives.py``).
     """
 
     def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
@@ -212,8 +218,9 @@ class ReducedModel:
         (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs) = _compiled.held_evaluation(
             p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin.arrays,
             kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
-            cb._py, cb._pnode, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl, model.el_dofs,
-            model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, self.consistent, gradients)
+            cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
+            model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
+            self.consistent, gradients)
         mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
         return mats, self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
 
@@ -304,8 +311,8 @@ class ReducedModel:
         """``d M_r / d q_i`` (nq, r, r) from the element rotations, ``dS/dq_i`` and ``dH/dq_i``.
 
         ``M_r = (W J)^T M_N (W J)``; the second derivatives of the basis in q times the elastic coordinates
-        (``d D0 / dq``) are left out (relative size of the elastic displacements, 1e-4). Checked against
-        :meth:`mass_derivative` (finite differences) in the tests. ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
+        (``d D0 / dq``, consistent form only) are left out: exact on undeformed states, 3e-4 relative on the
+        six-bar at elastic coordinates 1e-4 (``tests/test_reduced_derivatives.py``, central differences). ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
         ``SE`` (:meth:`~exuflex.erls.model.ErlsModel.element_rotation_term`) if already computed.
         """
         model, nq = self.model, self.nq
@@ -352,16 +359,20 @@ class ReducedModel:
         rc = cb.at(x[:nq])
         M = self.model.mass(rc.cfg)
         H = rc.H
-        masters = np.r_[0:nq, nq + cb.im]
         nm = cb.n_m
         p = np.linalg.solve(H.T @ M @ H, H.T @ M @ x)
-        p[:nm] = x[masters]
+        p[:nq] = x[:nq]
+        p[nq:nm] = cb.master_values(rc.cfg, x[nq:])
         J = H
         if self.consistent:
             J = H.copy()
             J[:, :nq] += cb.basis_derivative(rc, p)[0]
         pd = np.linalg.solve(J.T @ M @ J, J.T @ M @ v)
-        pd[:nm] = v[masters]
+        # master rates: the rows of J at the masters, v_m = (Q^T (J p')_u)_m, solved for the master block
+        pd[:nq] = v[:nq]
+        Jm = cb.master_values(rc.cfg, J[nq:])  # (me, r)
+        pd[nq:nm] = np.linalg.solve(Jm[:, nq:nm], cb.master_values(rc.cfg, v[nq:]) - Jm[:, :nq] @ pd[:nq]
+                                    - Jm[:, nm:] @ pd[nm:])
         return np.concatenate([p, pd])
 
     def rest_state(self, q) -> np.ndarray:

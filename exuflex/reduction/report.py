@@ -4,19 +4,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from .accuracy import accuracy_indices
+from .accuracy import accuracy_along, accuracy_indices
 from .basis import CraigBampton
+from .path import manoeuvre_configurations
 
 __all__ = ["reduced_modes_report"]
 
 
 def reduced_modes_report(model, q=None, masters=None, n_interior=None, q_star=None, fmax: float = 180.0,
-                         ranking: str = "imr") -> dict:
+                         ranking: str = "imr", along: int = 41) -> dict:
     """Build the basis and compare the reduced and full modes at ``q`` (default: the model's q_ref).
 
     Returns a JSON-ready dict: ``ndof``, ``masters`` (all master names, q first), ``interior_modes``,
     ``frequencies_hz`` (reduced modes matched to the full modes below ``fmax``), ``nco`` and
-    ``freq_error_pct`` aligned with the full model's modes below ``fmax``, plus the basis' details.
+    ``freq_error_pct`` aligned with the full model's modes below ``fmax``, plus the basis' details, and
+    ``along``: the worst NCO and frequency error over ``along`` configurations of the model's manoeuvre
+    (equally spaced in time; not those the interior modes were chosen on), where they occur and at which full
+    mode (``None`` without a manoeuvre or with ``along=0``).
     """
     if isinstance(n_interior, str) and n_interior != "auto":
         n_interior = int(n_interior)
@@ -37,4 +41,27 @@ def reduced_modes_report(model, q=None, masters=None, n_interior=None, q_star=No
         "thresholds": {"nco_min": cb.nco_min, "freq_error_max_pct": cb.freq_error_max_pct},
         "ok": acc.ok(cb.nco_min, cb.freq_error_max_pct),
         "basis_s": cb.build_seconds,
+        "along": _along(cb, along) if along else None,
+    }
+
+
+def _along(cb: CraigBampton, n: int) -> dict | None:
+    """The worst indices over ``n`` configurations of the manoeuvre (see :func:`reduced_modes_report`)."""
+    qs = manoeuvre_configurations(cb.model.mech, n)
+    if qs is None:
+        return None
+    accs = [a for a in accuracy_along(cb, qs, warn=False) if a.nco.size]  # the basis' band: fmax
+    if not accs:
+        return None
+    a = min(accs, key=lambda a: a.worst_nco)
+    b = max(accs, key=lambda a: a.worst_error_pct)
+    return {
+        "configurations": len(qs),
+        "worst_nco": a.worst_nco,
+        "worst_nco_q": a.q.tolist(),
+        "worst_nco_mode_hz": float(a.full_hz[np.argmin(a.nco)]),
+        "worst_freq_error_pct": b.worst_error_pct,
+        "worst_freq_error_q": b.q.tolist(),
+        "worst_freq_error_mode_hz": float(b.full_hz[np.argmax(b.freq_error_pct)]),
+        "ok": all(x.ok(cb.nco_min, cb.freq_error_max_pct) for x in accs),
     }

@@ -7,7 +7,11 @@ A field path names a model-file field the way the TOML spells it:
   ``reduction.n_interior``;
 - named entries of an array of tables: ``links.L1.diameter``, ``sensors.c1.noise_std``, ``motors.T1.noise_std``,
   ``joints.O.ground``, ``coordinates.q1.offset``; lumped masses by node id: ``masses.12.mass``;
-- materials by name: ``materials.aluminium.E`` (changes every link of that material).
+- materials by name: ``materials.aluminium.E`` (changes every link of that material);
+- the manoeuvre: its scalar fields (``manoeuvre.duration``, ``manoeuvre.ramp_time``, ``manoeuvre.time_law``,
+  ``manoeuvre.radius``, ``manoeuvre.phi_end``, ``manoeuvre.centre``, ``manoeuvre.interpolation``, ...), a rule's
+  ends ``manoeuvre.rules.q3.end``, and ``manoeuvre.file`` (another CSV table, read as the model file's would be).
+  A study plans each level's manoeuvre (and its computed torque) anew.
 
 Link fields as written in a model file: ``length`` (keeps the stations' fractions), ``diameter`` (solid circle:
 A and I recomputed), ``A``, ``I``, ``E``, ``rho`` (this link's material only), ``material`` (a material's name).
@@ -197,6 +201,8 @@ def _override_one(mech: Mechanism, path: str, value: Any) -> Mechanism:
         links = tuple(dataclasses.replace(lk, material=dataclasses.replace(lk.material, **{name: v}))
                       if lk.material.name == key else lk for lk in mech.links)
         return dataclasses.replace(mech, links=links)
+    if head == "manoeuvre":
+        return _override_manoeuvre(mech, path, parts[1:], value)
     if head in _TABLES:
         sub = getattr(mech, head)
         if sub is None:
@@ -214,6 +220,59 @@ def _override_one(mech: Mechanism, path: str, value: Any) -> Mechanism:
         return _set_field(path, mech, head, value)
     top = [f for f in _fields(Mechanism) if f not in ("name", "source", "description")]
     raise OverrideError(f"{path}: unknown field {head!r}; the model has {top + ['materials']}")
+
+
+def _override_manoeuvre(mech: Mechanism, path: str, parts: list[str], value: Any) -> Mechanism:
+    """``manoeuvre.<field>``, ``manoeuvre.rules.<coordinate>.<start|end>`` or ``manoeuvre.file``; the result is
+    checked as the model file's would be (time law, ramp time)."""
+    from ..mechanism.loader import ModelFileError, load_manoeuvre
+
+    man = mech.manoeuvre
+    if man is None:
+        raise OverrideError(f"{path}: the model has no [manoeuvre] table")
+    if parts and parts[0] == "rules":
+        if len(parts) != 3 or parts[2] not in ("start", "end"):
+            raise OverrideError(f"{path}: expected manoeuvre.rules.<coordinate>.<start|end>")
+        names = [r[0] for r in man.rules]
+        if parts[1] not in names:
+            raise OverrideError(f"{path}: no rule for {parts[1]!r}; the manoeuvre has rules for {names}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise OverrideError(f"{path}: expected a number (rad), got {value!r}")
+        i = names.index(parts[1])
+        c, a, b = man.rules[i]
+        rule = (c, float(value), b) if parts[2] == "start" else (c, a, float(value))
+        man = dataclasses.replace(man, rules=man.rules[:i] + (rule,) + man.rules[i + 1 :])
+    elif len(parts) == 1 and parts[0] == "file":
+        if man.kind not in ("trajectory", "torque"):
+            raise OverrideError(f"{path}: a {man.kind!r} manoeuvre has no file (only 'trajectory' and 'torque')")
+        try:
+            new = load_manoeuvre(str(value), mech)
+        except ModelFileError as exc:
+            raise OverrideError(f"{path}: {exc}") from None
+        if new.kind != man.kind:
+            raise OverrideError(f"{path}: {value} is a {new.kind!r} table, the manoeuvre is {man.kind!r}")
+        man = dataclasses.replace(new, tip=man.tip or new.tip, q0=man.q0 or new.q0)
+    elif len(parts) == 1 and parts[0] in ("samples", "columns", "waypoints", "times", "rules", "tip", "points"):
+        raise OverrideError(f"{path}: set in a manoeuvre file (exuflex simulate --manoeuvre), not by a sweep")
+    elif len(parts) == 1:
+        if parts[0] == "duration" and man.kind in ("waypoints", "trajectory", "torque"):
+            raise OverrideError(f"{path}: a {man.kind!r} manoeuvre lasts until its last time")
+        man = _set_field(path, man, parts[0], value)
+    else:
+        raise OverrideError(f"{path}: expected manoeuvre.<field>; [manoeuvre] has {_fields(man)}")
+    from ..manoeuvre import KINDS, TIME_LAWS
+
+    if man.kind not in KINDS:
+        raise OverrideError(f"{path}: expected a manoeuvre kind, one of {list(KINDS)}, got {man.kind!r}")
+    if man.time_law not in TIME_LAWS:
+        raise OverrideError(f"{path}: expected a time law, one of {list(TIME_LAWS)}, got {man.time_law!r}")
+    if not man.duration > 0:
+        raise OverrideError(f"{path}: expected a positive duration (s), got {man.duration!r}")
+    if man.time_law == "trapezoid" and man.kind not in ("waypoints", "trajectory", "torque") \
+            and not 0 < man.ramp_time <= man.duration / 2:
+        raise OverrideError(f"{path}: expected a ramp time in (0, duration/2 = {man.duration / 2:g}] s, "
+                            f"got ramp_time {man.ramp_time!r}")
+    return dataclasses.replace(mech, manoeuvre=man)
 
 
 def apply_overrides(mech: Mechanism, overrides: Mapping[str, Any] | Iterable[tuple[str, Any]]) -> Mechanism:

@@ -242,12 +242,16 @@ class Drive:
 
 
 def plan_drive(nominal: Mechanism, duration: float, h: float) -> Drive:
-    """Plan the manoeuvre and its open-loop computed torque on the nominal model (the controller's knowledge)."""
-    from ..manoeuvre import computed_torque, plan
+    """Plan the manoeuvre and its open-loop computed torque on the nominal model (the controller's knowledge);
+    a measured-torque manoeuvre gives its torques instead."""
+    from ..manoeuvre import computed_torque, plan, torque_table
 
     t0 = time.perf_counter()
     pl = plan(nominal, dt=h, t_end=duration)
-    tau = computed_torque(nominal, pl)
+    if nominal.manoeuvre is not None and nominal.manoeuvre.kind == "torque":
+        tau = torque_table(nominal, nominal.manoeuvre, pl.t)
+    else:
+        tau = computed_torque(nominal, pl)
     return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
                  np.asarray(pl.qd[0], float), time.perf_counter() - t0)
 
@@ -306,7 +310,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     from ..sensors import erls_probe_record, sensor_channels, true_states
 
     rm = make_observer(truth_mech).model.rm
-    som = ReducedObserverModel(rm, h=h, method="frozen")
+    som = ReducedObserverModel(rm, h=h, method="rk4")
     dt = 1.0 / truth_mech.sample_rate_hz
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
@@ -318,7 +322,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
         x, v = rm.full_state(z)
         Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
         if k < n - 1:
-            z, _ = som.step(z, tau[k], dt)
+            z = som.frozen_interval(z, tau[k], dt)[0].x
     rec = erls_probe_record(rm.model, t, Y)
     return LevelTruth(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
                       {"plan_and_torque_s": drive.seconds})
@@ -563,6 +567,18 @@ class StudyResult:
     n_reused: int
 
 
+def manoeuvre_overrides(level: Level) -> tuple[tuple[str, Any], ...]:
+    """The level's overrides of the manoeuvre (``manoeuvre.*``): they change the plan and its computed torque,
+    which the other overrides (the truth's parameters, unknown to the controller) do not."""
+    return tuple((f, v) for f, v in level.overrides if str(f).strip().startswith("manoeuvre."))
+
+
+def drive_mech(nominal: Mechanism, level: Level) -> Mechanism:
+    """The mechanism the level's drive is planned on: the nominal model with the level's manoeuvre."""
+    ov = manoeuvre_overrides(level)
+    return apply_overrides(nominal, ov) if ov else nominal
+
+
 def _level_mech(nominal: Mechanism, level: Level) -> Mechanism:
     m = apply_overrides(nominal, level.overrides) if level.overrides else nominal
     return m.with_payload_scale(level.payload_scale) if level.payload_scale != 1.0 else m
@@ -609,15 +625,23 @@ def run_study(
         raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
+    drive_mechs = [drive_mech(nominal, lv) for lv in spec.levels]
+    for lv, dm in zip(spec.levels, drive_mechs, strict=True):
+        if dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
+            log.warning("level %s: its manoeuvre lasts %g s, the study simulates %g s", lv.label,
+                        dm.manoeuvre.duration, duration)
     settings = spec.settings(duration, start_up)
-    obs_key = _hash({"model": model_sha, "observer": spec.observer.as_dict()})
-    drive_key = _hash({"model": model_sha, "duration": duration, "h": spec.h}, 10)
+    # a level's own manoeuvre changes its drive and the observer's start (the controller knows the manoeuvre)
+    man_ov = [{"manoeuvre": [list(o) for o in manoeuvre_overrides(lv)]} if manoeuvre_overrides(lv) else {}
+              for lv in spec.levels]
+    obs_keys = [_hash({"model": model_sha, "observer": spec.observer.as_dict(), **m}) for m in man_ov]
+    drive_keys = [_hash({"model": model_sha, "duration": duration, "h": spec.h, **m}, 10) for m in man_ov]
     keys, hashes = [], []
     for i, lv in enumerate(spec.levels):
         truth_def = {"model": model_sha, "level": lv.as_dict(), "engine": spec.engine, "duration": duration,
                      "h": spec.h}
         keys.append(f"L{i:02d}-{_hash(truth_def, 10)}")
-        hashes.append(_hash({"truth": truth_def, "observer": obs_key, "start_up": start_up,
+        hashes.append(_hash({"truth": truth_def, "observer": obs_keys[i], "start_up": start_up,
                              "stats": STATS_VERSION}))
     for sub in ("truth", "runs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -656,8 +680,8 @@ def run_study(
         def enqueue_runs(i: int, lt: LevelTruth) -> None:
             small = _hold_on_grid(with_absolute_tip(nominal, lt), nominal.sample_rate_hz, duration)
             for j in pending.get(i, []):
-                queue.append(RunTask(i, keys[i], j, spec.base_seed + j, hashes[i], obs_key, nominal, truth_mechs[i],
-                                     small, spec.observer, start_up, duration))
+                queue.append(RunTask(i, keys[i], j, spec.base_seed + j, hashes[i], obs_keys[i], drive_mechs[i],
+                                     truth_mechs[i], small, spec.observer, start_up, duration))
 
         # truths: cached ones are loaded, the others simulated through the executor (in parallel with runs)
         truth_jobs = []
@@ -669,13 +693,19 @@ def run_study(
                 enqueue_runs(i, _load_truth(f, timings[keys[i]]))
             else:
                 truth_jobs.append(i)
-        drive = None
-        if truth_jobs:
-            bar.update(0, "planning the manoeuvre")
-            drive = _cached_drive(out / "truth" / f"drive-{drive_key}.npz", nominal, duration, spec.h)
-            bar.update(0, "simulating truth")
+        drives: dict[str, Drive] = {}
+
+        def drive(i: int) -> Drive:
+            """The level's drive, planned once per distinct manoeuvre (and cached on disk)."""
+            k = drive_keys[i]
+            if k not in drives:
+                bar.update(None, "planning the manoeuvre")
+                drives[k] = _cached_drive(out / "truth" / f"drive-{k}.npz", drive_mechs[i], duration, spec.h)
+                bar.update(None, "simulating truth")
+            return drives[k]
+
         for i in truth_jobs:
-            fut = ex.submit(simulate_level, truth_mechs[i], drive, spec.engine, duration, spec.h)
+            fut = ex.submit(simulate_level, truth_mechs[i], drive(i), spec.engine, duration, spec.h)
             in_flight[fut] = ("truth", i)
             if isinstance(ex, InlineExecutor):
                 break  # in-process: simulate one level, run it, then the next
@@ -716,7 +746,7 @@ def run_study(
                         on_result(r)
             if waiting_truth and not any(v[0] == "truth" for v in in_flight.values()) and not queue:
                 i = waiting_truth.pop(0)
-                in_flight[ex.submit(simulate_level, truth_mechs[i], drive, spec.engine, duration, spec.h)] = \
+                in_flight[ex.submit(simulate_level, truth_mechs[i], drive(i), spec.engine, duration, spec.h)] = \
                     ("truth", i)
             fill()
     bar.close()

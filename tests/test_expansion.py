@@ -1,11 +1,14 @@
-"""The compiled arithmetic of the cached observer step equals its NumPy reference (:mod:`exuflex.observer.held`)."""
+"""The compiled arithmetic of the cached observer step (:mod:`exuflex.observer.expansion`) against NumPy oracles
+(``tests/_oracles.py``), finite differences and the reduced model's own forces."""
+
+import inspect
 
 import numpy as np
 import pytest
 
-from exuflex.observer import held
-
-pytestmark = pytest.mark.skipif(not held.HAVE_NUMBA, reason="numba is not installed")
+import _oracles as oracle
+from exuflex.observer import expansion as ex
+from exuflex.observer.expansion import HeldSystem
 
 
 @pytest.fixture(scope="module")
@@ -24,6 +27,22 @@ def sixbar_observer_state():
     U = _hold(S.select(mech.motor_names).data)
     obs.ekf.run(S.t[:300], U[:300], S.select(obs.channels).data[:300])
     return obs.model, obs.model._last, obs.ekf.x, U[300].copy()
+
+
+def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
+    rng, Mr, Kr, Ca, Gr, grad, fo = _system(r, nq, seed)
+    old = _system(r, nq, seed=seed + 1)
+    C2 = np.zeros((0, r)) if noC else fo["C2"]
+    oC2 = np.zeros((0, r)) if noC else old[6]["C2"]
+    return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
+                           grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2)
+
+
+def test_kernel_parameters_are_the_held_system_fields():
+    """The kernels take the held arrays one by one, called with ``*system``: their names must be the fields."""
+    for f, lead in ((ex._held_step, 6), (ex._held_system, 2), (ex._prediction_error, 4), (ex._held_interval, 11)):
+        names = list(inspect.signature(getattr(f, "py_func", f)).parameters)[lead:]
+        assert names == list(HeldSystem._fields), f.__name__
 
 
 def _system(r=13, nq=3, seed=0):
@@ -46,30 +65,23 @@ def _system(r=13, nq=3, seed=0):
 
 
 @pytest.mark.parametrize("has_old", [False, True])
-def test_held_step_kernel_equals_numpy_reference(has_old):
+def test_held_step_kernel_equals_numpy_oracle(has_old):
     r, nq = 13, 3
-    rng, Mr, Kr, Ca, Gr, grad, fo = _system(r, nq)
-    z = 0.1 * rng.normal(size=2 * r)
-    u = rng.normal(size=nq)
-    dl = 1e-3 * rng.normal(size=nq)
-    old = _system(r, nq, seed=1)
-    args = (z, u, dl, 0.4, has_old, nq, 1e-3, 1e-4, 20, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"],
-            fo["C2"], grad(), grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], old[6]["C2"])
-    ref = held.held_step_numpy(*args)
-    fast = held.held_step_loops(*args)
+    rng, hs = _held(r, nq, has_old)
+    z, u, dl = 0.1 * rng.normal(size=2 * r), rng.normal(size=nq), 1e-3 * rng.normal(size=nq)
+    ref = oracle.held_step(z, u, dl, 0.4, 1e-4, 20, hs)
+    fast = ex.held_step(z, u, dl, 0.4, 1e-4, 20, *hs)
     for a, b in zip(ref, fast):
         np.testing.assert_allclose(b, a, rtol=1e-11, atol=1e-13 * np.abs(a).max())
 
 
 @pytest.mark.parametrize("has_old", [False, True])
-def test_held_system_kernel_equals_numpy_reference(has_old):
+def test_held_system_kernel_equals_numpy_oracle(has_old):
     """The held model's matrices at a point off the step's configuration (where a step map is built ahead of q)."""
     r, nq = 13, 3
-    rng, Mr, Kr, Ca, Gr, grad, _ = _system(r, nq)
-    old = _system(r, nq, seed=1)
-    args = (1e-3 * rng.normal(size=nq), 0.4, has_old, 1e-3, Mr, Kr, Ca, Gr, grad(), grad(), grad(), grad(), old[3],
-            old[4])
-    for a, b in zip(held.held_system_numpy(*args), held.held_system_loops(*args)):
+    rng, hs = _held(r, nq, has_old)
+    dl = 1e-3 * rng.normal(size=nq)
+    for a, b in zip(oracle.held_matrices(dl, 0.4, hs), ex.held_system(dl, 0.4, *hs)):
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-14 * np.abs(a).max())
 
 
@@ -78,33 +90,30 @@ def test_map_lookahead():
     the motion over ``horizon`` (a filter at rest keeps its map where q is)."""
     z = np.zeros(8)
     z[4:7] = [2.0, -4.0, 1.0]  # q' of the three rigid coordinates (r = 4)
-    np.testing.assert_allclose(held.map_lookahead(z, 3, 2e-3, 1.0, 0.02), [1e-3, -2e-3, 0.5e-3])
-    np.testing.assert_allclose(held.map_lookahead(z, 3, 2e-3, 0.5, 0.02), [0.5e-3, -1e-3, 0.25e-3])
+    np.testing.assert_allclose(ex.map_lookahead(z, 3, 2e-3, 1.0, 0.02), [1e-3, -2e-3, 0.5e-3])
+    np.testing.assert_allclose(ex.map_lookahead(z, 3, 2e-3, 0.5, 0.02), [0.5e-3, -1e-3, 0.25e-3])
     z[4:7] *= 1e-3  # slow: the horizon limits the shift to 0.02 s of motion
-    np.testing.assert_allclose(held.map_lookahead(z, 3, 2e-3, 1.0, 0.02), 0.02 * z[4:7])
-    assert not held.map_lookahead(np.zeros(8), 3, 2e-3, 1.0, 0.02).any()
+    np.testing.assert_allclose(ex.map_lookahead(z, 3, 2e-3, 1.0, 0.02), 0.02 * z[4:7])
+    assert not ex.map_lookahead(np.zeros(8), 3, 2e-3, 1.0, 0.02).any()
 
 
 def test_held_step_without_velocity_coupling_term():
     """The paper's velocity transformation has no bias term (an empty C2)."""
     r, nq = 13, 3
-    rng, Mr, Kr, Ca, Gr, grad, fo = _system(r, nq)
+    rng, hs = _held(r, nq, False, beta=0.0, noC=True)
     z = 0.1 * rng.normal(size=2 * r)
-    noC = np.zeros((0, r))
-    g = grad()
-    args = (z, np.ones(nq), np.zeros(nq), 0.0, False, nq, 0.0, 1e-4, 20, Mr, Kr, Ca, Gr, g, g, fo["fg"], fo["T2"],
-            fo["V2"], noC, g, g, Ca, Gr, fo["fg"], fo["T2"], fo["V2"], noC)
-    np.testing.assert_allclose(held.held_step_loops(*args)[0], held.held_step_numpy(*args)[0], rtol=1e-11)
+    args = (z, np.ones(nq), np.zeros(nq), 0.0, 1e-4, 20)
+    np.testing.assert_allclose(ex.held_step(*args, *hs)[0], oracle.held_step(*args, hs)[0], rtol=1e-11)
 
 
-def test_step_maps_kernel_equals_numpy_reference():
+def test_step_maps_kernel_equals_numpy_oracle():
     r, nq = 13, 3
     _, Mr, Kr, Ca, Gr, _, _ = _system(r, nq)
     Cr = Ca + 1e-3 * Kr
     var = np.array([0.01, 0.04, 1e-4])
     for n in (1, 7, 20):
-        ref = held.step_maps_held_numpy(Mr, Kr, Cr, Gr, 1e-4, n, var)
-        fast = held.step_maps_held(Mr, Kr, Cr, Gr, 1e-4, n, var)
+        ref = oracle.step_maps_noise(Mr, Kr, Cr, Gr, 1e-4, n, var)
+        fast = ex.step_maps_noise(Mr, Kr, Cr, Gr, 1e-4, n, var)
         for a, b in zip(ref, fast):
             np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max())
 
@@ -115,31 +124,32 @@ def test_rk4_kernel_is_n_rk4_steps_of_the_linear_system():
     rng, Mr, Kr, Ca, Gr, _, _ = _system(r, nq)
     Cr = Ca + 1e-3 * Kr
     z, u, f = rng.normal(size=2 * r), rng.normal(size=nq), rng.normal(size=r)
-    Pn, SQM, L = held.step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, 1e-4, 20)
+    Pn, SQM, L = ex.step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, 1e-4, 20)
     expected = Pn @ z + L @ u + SQM @ f
-    np.testing.assert_allclose(held.rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
+    np.testing.assert_allclose(ex._rk4_linear(z, u, Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
                                atol=1e-12 * np.abs(expected).max())
-    np.testing.assert_allclose(held.rk4_held_numpy(z, u, Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
+    np.testing.assert_allclose(oracle.rk4_linear(z, u, Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
                                atol=1e-12 * np.abs(expected).max())
 
 
 def test_a_mass_matrix_that_is_not_positive_definite_gives_nan_not_garbage():
     r = 4
     Mr = -np.eye(r)
-    out = held.rk4_held_loops(np.ones(2 * r), np.zeros(1), Mr, np.eye(r), np.eye(r), np.ones((r, 1)), np.zeros(r),
+    out = ex._rk4_linear(np.ones(2 * r), np.zeros(1), Mr, np.eye(r), np.eye(r), np.ones((r, 1)), np.zeros(r),
                               1e-4, 2)
     assert np.all(np.isnan(out))
 
 
-def test_step_jacobian_kernel_equals_numpy_reference(sixbar_observer_state):
-    """The compiled step Jacobian equals ReducedObserverModel._jacobian."""
+def test_step_jacobian_kernel_equals_the_force_model_jacobian(sixbar_observer_state):
+    """The compiled step Jacobian equals ``Pn + S [df/dp, df/dp']`` with the force model's own derivatives."""
     m, iv, z, u = sixbar_observer_state
     z = z.copy()
     z[m.r + m.nq :] = np.random.default_rng(5).normal(size=m.r - m.nq)  # start-up size elastic rates
-    ref = m._jacobian(iv.forces, z, iv.Pn, iv.SQM)
-    fm = iv.forces
-    fast = held.step_jacobian_loops(z, *fm.jacobian_tensors(), iv.Pn, iv.SQM)
-    assert np.abs(ref - iv.Pn).max() > 1.0  # the correction matters
+    sm = iv.map
+    Gp, Gpd = iv.forces.jacobian(z[: m.r], z[m.r :])
+    ref = sm.Pn + sm.S @ np.hstack([Gp, Gpd])
+    fast = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S)
+    assert np.abs(ref - sm.Pn).max() > 1.0  # the correction matters
     np.testing.assert_allclose(fast, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
 
 
@@ -151,15 +161,15 @@ def test_step_jacobian_matches_finite_differences_of_the_step(sixbar_observer_st
     m, iv, z, u = sixbar_observer_state
     z = z.copy()
     z[m.r + m.nq :] = np.random.default_rng(5).normal(size=m.r - m.nq)  # elastic rates ~ 1 (start-up size)
-    fr = ReducedObserverModel(m.rm, method="frozen")
-    _, F = fr.step(z, u, 0.002)
+    fr = ReducedObserverModel(m.rm, method="rk4")
+    step = fr.frozen_interval
+    pred, _, maps = step(z, u, 0.002)
+    F, F0 = pred.F, maps.Pn
     Fd = np.empty_like(F)
     for j in range(len(z)):
         e = np.zeros(len(z))
         e[j] = 1e-7 if j < m.r else 1e-5
-        Fd[:, j] = (fr.step(z + e, u, 0.002)[0] - fr.step(z - e, u, 0.002)[0]) / (2 * e[j])
-    fr.full_jacobian = False
-    F0 = fr.step(z, u, 0.002)[1]
+        Fd[:, j] = (step(z + e, u, 0.002)[0].x - step(z - e, u, 0.002)[0].x) / (2 * e[j])
     # the error of the Jacobian's entries, each relative to the size of the entries of its block
     r = m.r
     nq = m.nq
@@ -180,17 +190,16 @@ def test_step_jacobian_matches_finite_differences_of_the_step(sixbar_observer_st
 
 
 @pytest.mark.parametrize("has_old", [False, True])
-def test_prediction_error_kernel_equals_numpy_reference(has_old):
+def test_prediction_error_kernel_equals_numpy_oracle(has_old):
     r, nq = 13, 3
-    rng, Mr, Kr, Ca, Gr, grad, _ = _system(r, nq)
+    rng, hs = _held(r, nq, has_old)
     dl = 2e-2 * rng.normal(size=nq)
-    args = (dl, 0.7, has_old, Mr, Kr, grad(), grad(), grad(), grad())
-    Mx = Mr + 0.05 * np.diag(rng.uniform(size=r))
-    Kx = Kr + 10.0 * np.eye(r)
-    ref = held.prediction_error(*args, Mx, Kx)
+    Mx = hs.Mr + 0.05 * np.diag(rng.uniform(size=r))
+    Kx = hs.Kr + 10.0 * np.eye(r)
+    ref = oracle.prediction_error(dl, 0.7, Mx, Kx, hs)
     assert 0 < ref < 1
-    assert held.prediction_error_loops(*args, Mx, Kx) == pytest.approx(ref, rel=1e-10)
-    assert held.prediction_error_loops(*args, -Mx, Kx) == np.inf == held.prediction_error(*args, -Mx, Kx)
+    assert ex.prediction_error(dl, 0.7, Mx, Kx, *hs) == pytest.approx(ref, rel=1e-10)
+    assert ex.prediction_error(dl, 0.7, -Mx, Kx, *hs) == np.inf == oracle.prediction_error(dl, 0.7, -Mx, Kx, hs)
 
 
 def test_held_force_model_reproduces_the_reduced_forces(sixbar_observer_state):

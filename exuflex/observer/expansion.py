@@ -1,49 +1,73 @@
-"""The arithmetic of one cached observer step, compiled with numba when it is installed.
+"""The reduced model expanded about a held configuration, and the RK4 steps of its linear system (compiled).
 
-The cached step (:class:`exuflex.observer.reduced.ReducedObserverModel`, ``method="cached"``) holds the
-reduced model at a configuration ``q0`` and follows the links from there: ``M_r`` and ``K_r`` to second
-order in ``q - q0`` (their analytic gradients at ``q0``, and the change of the gradients since the previous
-held configuration along the line joining the two), the damping, input matrix and velocity-dependent forces
-to first order along that line (a secant). Per measurement interval it then advances the linear system
-``M p'' + C p' + K p = G u + f`` (forces and input held over the interval, as the paper's RK4 does between
-two samples) by ``n`` RK4 steps.
+The cached step (:class:`exuflex.observer.reduced.ReducedObserverModel`) holds the reduced model at a
+configuration ``q0`` and follows the links from there: ``M_r`` and ``K_r`` to second order in ``q - q0`` (their
+analytic gradients at ``q0``, and the change of the gradients since the previous held configuration along the
+line joining the two), the damping, input matrix and velocity-dependent forces to first order along that line
+(a secant). Per interval it then advances the linear system ``M p'' + C p' + K p = G u + f`` (forces and input
+held, as the paper's RK4 does between two samples) by ``n`` RK4 sub-steps. :class:`HeldSystem` names the held
+arrays the kernels read.
 
-Two implementations of the same arithmetic: NumPy expressions (:func:`rk4_held_numpy`, the reference, and
-what runs without numba) and explicit loops compiled by numba (:func:`rk4_held_loops`), which remove the
-per-call overhead of some 200 small NumPy operations per interval. ``tests/test_held.py`` checks that they
-agree to rounding.
+These kernels are the only implementation; ``tests/_oracles.py`` keeps NumPy expressions of the same algebra as
+independent oracles (``tests/test_expansion.py``).
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 __all__ = [
-    "HAVE_NUMBA",
-    "held_matrices",
-    "held_step_loops",
-    "held_step_numpy",
-    "held_system_loops",
-    "held_system_numpy",
+    "HeldSystem",
+    "held_interval",
+    "held_step",
+    "held_system",
     "map_lookahead",
     "power_sum",
     "prediction_error",
-    "prediction_error_loops",
-    "quadratic_forces",
-    "rk4_held_loops",
-    "rk4_held_numpy",
-    "step_jacobian_loops",
+    "step_jacobian",
     "step_maps",
-    "step_maps_held",
-    "step_maps_held_numpy",
+    "step_maps_noise",
     "warm_up",
 ]
 
-try:  # numba is a core dependency, but exuflex must still run (slower) where it cannot be installed
+
+class HeldSystem(NamedTuple):
+    """The held configuration's arrays (``r`` reduced coordinates, ``nq`` rigid ones), and its secant partner's.
+
+    ``M_r``, ``K_r``, ``G_r`` and ``Ca = C_r - beta K_r`` (the damping's mass-proportional part; the stiffness
+    part follows ``K_r``) at ``q0``; ``dM``, ``dK`` (nq, r*r) the q-gradients of ``M_r`` and ``K_r``; ``fg``,
+    ``T2``, ``V2``, ``C2`` the velocity-dependent forces as quadratic forms
+    (:class:`exuflex.reduction.model.QuadraticForces`). ``old_*``: the same of the previous held configuration
+    (the secant partner; the held configuration's own arrays when ``has_old`` is False).
+    """
+
+    has_old: bool
+    beta: float
+    Mr: np.ndarray
+    Kr: np.ndarray
+    Ca: np.ndarray
+    Gr: np.ndarray
+    dM: np.ndarray
+    dK: np.ndarray
+    fg: np.ndarray
+    T2: np.ndarray
+    V2: np.ndarray
+    C2: np.ndarray
+    old_dM: np.ndarray
+    old_dK: np.ndarray
+    old_Ca: np.ndarray
+    old_Gr: np.ndarray
+    old_fg: np.ndarray
+    old_T2: np.ndarray
+    old_V2: np.ndarray
+    old_C2: np.ndarray
+
+
+try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
     import numba
     import numba.extending
-
-    HAVE_NUMBA = True
 
     def _jit(f):
         return numba.njit(cache=True, nogil=True, error_model="numpy")(f)
@@ -52,64 +76,12 @@ try:  # numba is a core dependency, but exuflex must still run (slower) where it
         """Plain NumPy function outside compiled code, compiled inline where a kernel calls it."""
         return numba.extending.register_jitable(f)
 
-except ImportError:  # pragma: no cover - exercised only on machines without numba
-    HAVE_NUMBA = False
+except ImportError:  # pragma: no cover
 
     def _jit(f):
         return f
 
     _shared = _jit
-
-
-def held_matrices(dl, s, Mr0, Kr0, Ca0, Gr0, dM2, dK2, beta, old=None):
-    """``(M_r, K_r, C_r, G_r)`` at ``q = q0 + dl``.
-
-    ``dM2, dK2``: (nq, r*r) gradients at ``q0``; ``Ca0``: the mass-proportional part of ``C_r`` (the
-    stiffness part is ``beta K_r``). ``old = (dM2, dK2, Ca, Gr)`` of the previous held configuration and
-    ``s = (dl . d) / (d . d)`` with ``d = q0 - q_old`` give the second-order term of ``M_r, K_r`` and the
-    secant of ``Ca, G_r``.
-    """
-    r = Mr0.shape[0]
-    gM = dl @ dM2
-    gK = dl @ dK2
-    Ca, Gr = Ca0, Gr0
-    if old is not None:
-        dM_old, dK_old, Ca_old, Gr_old = old
-        gM = gM + 0.5 * s * (gM - dl @ dM_old)
-        gK = gK + 0.5 * s * (gK - dl @ dK_old)
-        Ca = Ca0 + s * (Ca0 - Ca_old)
-        Gr = Gr0 + s * (Gr0 - Gr_old)
-    Kr = Kr0 + gK.reshape(r, r)
-    return Mr0 + gM.reshape(r, r), Kr, Ca + beta * Kr, Gr
-
-
-def quadratic_forces(p, pd, nq, fg, T2, V2, C2):
-    """``f = fg - 1/2 (p' T p') - [p V_i p]_i - C(p' (x) q')`` (see :class:`exuflex.reduction.model.QuadraticForces`)."""
-    r = p.shape[0]
-    f = fg - 0.5 * ((pd @ T2).reshape(r, r) @ pd)
-    f[:nq] -= (V2 @ p).reshape(nq, r) @ p
-    if C2.shape[0]:
-        f -= np.outer(pd, pd[:nq]).ravel() @ C2
-    return f
-
-
-def rk4_held_numpy(z, u, Mr, Kr, Cr, Gr, f, h, n):
-    """``n`` RK4 steps of ``M p'' + C p' + K p = G u + f`` from ``z = [p; p']`` (NumPy reference)."""
-    r = Mr.shape[0]
-    X = np.linalg.solve(Mr, np.column_stack([Kr, Cr, Gr @ u + f]))
-    Ak, Ac, c = X[:, :r], X[:, r : 2 * r], X[:, 2 * r]
-    p, v = z[:r].copy(), z[r:].copy()
-    for _ in range(n):
-        a1 = c - Ak @ p - Ac @ v
-        p2, v2 = p + 0.5 * h * v, v + 0.5 * h * a1
-        a2 = c - Ak @ p2 - Ac @ v2
-        p3, v3 = p + 0.5 * h * v2, v + 0.5 * h * a2
-        a3 = c - Ak @ p3 - Ac @ v3
-        p4, v4 = p + h * v3, v + h * a3
-        a4 = c - Ak @ p4 - Ac @ v4
-        p = p + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
-        v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-    return np.concatenate([p, v])
 
 
 @_shared
@@ -161,7 +133,9 @@ def _cholesky_solve(A, B):  # pragma: no cover - compiled
     return X
 
 
-def _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled; its twin is tested
+def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
+    """``n`` RK4 steps of ``h`` of ``M p'' + C p' + K p = G u + f`` from ``z = [p; p']`` (NaN if ``M`` is not
+    positive definite)."""
     r = Mr.shape[0]
     rhs = np.empty((r, 2 * r + 1))
     rhs[:, :r] = Kr
@@ -229,7 +203,8 @@ def _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compil
     return out
 
 
-def _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
+def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
+    """``f = fg - 1/2 (p' T p') - [p V_i p]_i - C(p' (x) q')`` (:class:`exuflex.reduction.model.QuadraticForces`)."""
     r = p.shape[0]
     f = fg.copy()
     tmp = np.zeros(r * r)  # sum_k p'_k T[k] (flattened rows: contiguous axpy sweeps)
@@ -260,64 +235,79 @@ def _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - co
 
 
 @_shared
-def _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2):  # pragma: no cover - compiled
-    """``M_r``, ``K_r`` of the held model at ``q0 + dl``: the compiled twin of :func:`held_matrices`' first two."""
-    r = Mr0.shape[0]
+def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
+    """``M_r``, ``K_r`` of the held model at ``q0 + dl``: gradients at ``q0`` and, with a secant partner, half the
+    change of the gradients along the secant (``s = (dl . d) / (d . d)``, ``d = q0 - q_old``): second order."""
+    r = hs.Mr.shape[0]
     nq = dl.shape[0]
     gM = np.zeros(r * r)
     gK = np.zeros(r * r)
     for i in range(nq):
         for k in range(r * r):
-            gM[k] += dl[i] * dM2[i, k]
-            gK[k] += dl[i] * dK2[i, k]
-    if has_old:
+            gM[k] += dl[i] * hs.dM[i, k]
+            gK[k] += dl[i] * hs.dK[i, k]
+    if hs.has_old:
         hM = np.zeros(r * r)
         hK = np.zeros(r * r)
         for i in range(nq):
             for k in range(r * r):
-                hM[k] += dl[i] * oM2[i, k]
-                hK[k] += dl[i] * oK2[i, k]
+                hM[k] += dl[i] * hs.old_dM[i, k]
+                hK[k] += dl[i] * hs.old_dK[i, k]
         for k in range(r * r):
             gM[k] += 0.5 * s * (gM[k] - hM[k])
             gK[k] += 0.5 * s * (gK[k] - hK[k])
-    return Mr0 + gM.reshape(r, r), Kr0 + gK.reshape(r, r)
+    return hs.Mr + gM.reshape(r, r), hs.Kr + gK.reshape(r, r)
 
 
 @_shared
-def _held_system(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr):  # pragma: no cover
-    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``: the compiled twin of :func:`held_matrices`."""
-    Mr, Kr = _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2)
-    Ca = Ca0.copy()
-    Gr = Gr0.copy()
-    if has_old:
-        Ca += s * (Ca0 - oCa)
-        Gr += s * (Gr0 - oGr)
-    return Mr, Kr, Ca + beta * Kr, Gr
+def _system(dl, s, hs):  # pragma: no cover - compiled
+    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
+    Mr, Kr = _mass_stiffness(dl, s, hs)
+    Ca = hs.Ca.copy()
+    Gr = hs.Gr.copy()
+    if hs.has_old:
+        Ca += s * (hs.Ca - hs.old_Ca)
+        Gr += s * (hs.Gr - hs.old_Gr)
+    return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 
-def _held_step_loops(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
-                     oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):  # pragma: no cover - compiled
-    r = Mr0.shape[0]
+def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """One interval of the cached step: the model at ``q0 + dl`` (:func:`_system`, the forces along the secant)
+    advanced by ``n`` RK4 sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the
+    held ``M_r`` is not positive definite there. The held system's arrays are passed one by one (their names are
+    :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
+    of a tuple of arrays."""
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    r = hs.Mr.shape[0]
+    nq = dl.shape[0]
     p = z[:r]
     pd = z[r:]
-    Mr, Kr, Cr, Gr = _held_system(dl[:nq], s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr)
-    f = _quadratic_forces_loops(p, pd, nq, fg, T2, V2, C2)
-    if has_old:
-        fo = _quadratic_forces_loops(p, pd, nq, ofg, oT2, oV2, oC2)
+    Mr, Kr, Cr, Gr = _system(dl, s, hs)
+    f = _quadratic_forces(p, pd, nq, hs.fg, hs.T2, hs.V2, hs.C2)
+    if hs.has_old:
+        fo = _quadratic_forces(p, pd, nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2)
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-    z_next = _rk4_held_loops(z, u, Mr, Kr, Cr, Gr, f, h, n)
+    z_next = _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n)
     return z_next, Mr, Kr, Cr, Gr
 
 
-def _held_system_loops(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr):  # pragma: no cover
-    return _held_system(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr)
+def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
+    ``(z_next, F, M_r, K_r, C_r, G_r)``."""
+    z_next, Mr_, Kr_, Cr_, Gr_ = _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
+                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2)
+    return z_next, _step_jacobian(z, Ts, Vs, C3, Pn, SQM), Mr_, Kr_, Cr_, Gr_
 
 
-def held_system_numpy(dl, s, has_old, beta, Mr0, Kr0, Ca0, Gr0, dM2, dK2, oM2, oK2, oCa, oGr):
-    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl`` (:func:`held_matrices` with the arguments
-    of :func:`held_system_loops`, its compiled twin)."""
-    return held_matrices(dl, s, Mr0, Kr0, Ca0, Gr0, dM2, dK2, beta, (oM2, oK2, oCa, oGr) if has_old else None)
+def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """:func:`_system` (call with ``*system``, see :func:`_held_step`)."""
+    return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
+                                     old_Gr, old_fg, old_T2, old_V2, old_C2))
 
 
 def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
@@ -341,9 +331,15 @@ def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compi
     return shift
 
 
-def _step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled twin of _jacobian
-    """``Pn + SQM dF/dz`` with ``dF/dz`` the derivatives of the held quadratic forces (see
-    :meth:`exuflex.observer.reduced.ReducedObserverModel._jacobian`)."""
+def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
+    """The step's Jacobian ``Pn + SQM dF/dz``.
+
+    ``Pn`` is the Jacobian of the interval's RK4 steps with the matrices and forces held; the forces held over
+    the interval depend on the start state (the velocity-dependent forces and the geometric q-row term: exact
+    derivatives of their quadratic forms ``Ts``, ``Vs``, ``C3``, :meth:`QuadraticForces.jacobian_tensors`), and
+    ``SQM`` is the interval's response to a held generalised force. Leaving the second term out lets the filter
+    diverge in start-up transients, where the elastic rates are large. The q-dependence of ``M_r`` and ``K_r`` is
+    left out (``tests/test_expansion.py`` compares ``F`` with finite differences of the step)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
@@ -369,26 +365,16 @@ def _step_jacobian_loops(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
     return F
 
 
-def prediction_error(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):
-    """How well a held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` (:func:`held_matrices`), against the
-    exact ``Mr``, ``Kr`` there: the largest entry of the differences whitened by the exact mass matrix,
-    ``L^-1 (M_pred - M) L^-T`` (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s
-    relative to the largest entry of ``L^-1 K L^-T``. ``inf`` if ``Mr`` is not positive definite. NumPy
-    reference of the compiled kernel."""
-    old = (oM2, oK2, Mr0, Mr0) if has_old else None
-    Mp, Kp, _, _ = held_matrices(dl, s, Mr0, Kr0, Mr0, Mr0, dM2, dK2, 0.0, old)
-    try:
-        Li = np.linalg.inv(np.linalg.cholesky(Mr))
-    except np.linalg.LinAlgError:
-        return float("inf")
-    EM = Li @ (Mp - Mr) @ Li.T
-    EK = Li @ (Kp - Kr) @ Li.T
-    KK = Li @ Kr @ Li.T
-    return float(max(np.abs(EM).max(), np.abs(EK).max() / np.abs(KK).max()))
-
-
-def _prediction_error_loops(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2, Mr, Kr):  # pragma: no cover - compiled
-    Mp, Kp = _held_mass_stiffness(dl, s, has_old, Mr0, Kr0, dM2, dK2, oM2, oK2)
+def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """How well the held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` against the exact ``Mr``, ``Kr`` there:
+    the largest entry of the differences whitened by the exact mass matrix, ``L^-1 (M_pred - M) L^-T``
+    (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s relative to the largest entry of
+    ``L^-1 K L^-T`` (within a factor ``r`` of the spectral norms, at a tenth of their cost). ``inf`` if ``Mr`` is
+    not positive definite. (Call with ``*system``, see :func:`_held_step`.)"""
+    Mp, Kp = _mass_stiffness(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
+                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
+    Mr, Kr = Mr_exact, Kr_exact
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
         return np.inf
@@ -413,19 +399,6 @@ def _inverse_cholesky_factor(A):  # pragma: no cover - compiled
                 acc -= L[i, k] * Li[k, c]
             Li[i, c] = acc / L[i, i]
     return Li
-
-
-def held_step_numpy(z, u, dl, s, has_old, nq, beta, h, n, Mr0, Kr0, Ca0, Gr0, dM2, dK2, fg, T2, V2, C2,
-                    oM2, oK2, oCa, oGr, ofg, oT2, oV2, oC2):
-    """One cached step: the model at ``q0 + dl`` (:func:`held_matrices`, forces with their secant) and the
-    interval's RK4 steps. Returns ``(z_next, M_r, K_r, C_r, G_r)``. NumPy reference of the compiled kernel."""
-    r = Mr0.shape[0]
-    old = (oM2, oK2, oCa, oGr) if has_old else None
-    Mr, Kr, Cr, Gr = held_matrices(dl, s, Mr0, Kr0, Ca0, Gr0, dM2, dK2, beta, old)
-    f = quadratic_forces(z[:r], z[r:], nq, fg, T2, V2, C2)
-    if has_old:
-        f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, ofg, oT2, oV2, oC2))
-    return rk4_held_numpy(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
 @_shared
@@ -476,10 +449,10 @@ def _times_hA(Ak, Ac, h, X):  # pragma: no cover - compiled
     return out
 
 
-def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - compiled twin of the NumPy path
+def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - compiled
     """:func:`step_maps` from ``M_r`` (not its inverse), plus the process noise ``L diag(var) L^T``.
 
-    The same maps with about half the arithmetic (it runs some 250 times per 3 s of the six-bar):
+    The same maps with about half the arithmetic:
 
     - the RK4 polynomials share one Horner chain, ``U = I + hA/2 (I + hA/3 (I + hA/4))``, ``P = I + hA U``
       and ``Q = h U``, and a product with ``hA`` only has ``A``'s lower block row to compute;
@@ -526,44 +499,48 @@ def _step_maps_held(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - com
     return Pa, SB, L, (L * torque_var) @ L.T
 
 
-def step_maps_held_numpy(Mr, Kr, Cr, Gr, h, n, torque_var):
-    """NumPy reference of the compiled :func:`_step_maps_held`."""
-    Pn, SQM, L = step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, h, n)
-    return Pn, SQM, L, (L * torque_var) @ L.T
-
-
 _times_hA = _shared(_times_hA)
-step_maps_held = _jit(_step_maps_held) if HAVE_NUMBA else step_maps_held_numpy
-
-_rk4_held_loops = _jit(_rk4_held_loops)
-_quadratic_forces_loops = _jit(_quadratic_forces_loops)
-rk4_held_loops = _rk4_held_loops
-held_step_loops = _jit(_held_step_loops)
-held_system_loops = _jit(_held_system_loops) if HAVE_NUMBA else held_system_numpy
 map_lookahead = _shared(map_lookahead)
-step_jacobian_loops = _jit(_step_jacobian_loops)
-prediction_error_loops = _jit(_prediction_error_loops) if HAVE_NUMBA else prediction_error
+_rk4_linear = _jit(_rk4_linear)
+_quadratic_forces = _jit(_quadratic_forces)
+_held_step = _jit(_held_step)
+held_step = _held_step
+held_system = _jit(_held_system)
+_step_jacobian = _jit(_step_jacobian)
+step_jacobian = _step_jacobian
+held_interval = _jit(_held_interval)
+prediction_error = _jit(_prediction_error)
+step_maps_noise = _jit(_step_maps_noise)
+
+
+def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSystem:
+    """A small held system (for compiling the kernels, and for tests)."""
+    M, g2, f = np.eye(r), np.zeros((nq, r * r)), np.zeros(r)
+    T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
+    G = np.zeros((r, nq))
+    return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2)
 
 
 _warm = False
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) the kernels once per process, so that the first
-    interval of a filter does not carry it (about 0.1 s from the cache, 10 s the very first time)."""
+    """Compile (or load from numba's on-disk cache) the kernels once per process, so that the first interval of
+    a filter does not carry it."""
     global _warm
-    if _warm or not HAVE_NUMBA:
+    if _warm:
         return
     r, nq = 2, 1
     z, u, dl = np.zeros(2 * r), np.zeros(nq), np.zeros(nq)
-    M, g2, f = np.eye(r), np.zeros((nq, r * r)), np.zeros(r)
-    T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
-    G = np.zeros((r, nq))
-    held_step_loops(z, u, dl, 0.0, False, nq, 0.0, 1e-4, 1, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2,
-                    V2, C2)
-    step_maps_held(M, M, M, G, 1e-4, 1, np.ones(nq))
-    held_system_loops(dl, 0.0, False, 0.0, M, M, M, G, g2, g2, g2, g2, M, G)
-    step_jacobian_loops(z, np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r),
-                        np.zeros((2 * r, r)))
-    prediction_error_loops(dl, 0.0, False, M, M, g2, g2, g2, g2, M, M)
+    M, G = np.eye(r), np.zeros((r, nq))
+    for has_old in (False, True):
+        hs = _example_system(r, nq, has_old)
+        held_step(z, u, dl, 0.0, 1e-4, 1, *hs)
+        held_system(dl, 0.0, *hs)
+        prediction_error(dl, 0.0, M, M, *hs)
+    step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
+    jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
+    step_jacobian(z, *jac)
+    for has_old in (False, True):
+        held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))
     _warm = True

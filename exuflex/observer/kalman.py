@@ -1,20 +1,22 @@
-"""Compiled (numba) kernels of the covariance algebra of :class:`~exuflex.observer.ekf.MultirateEKF`.
+"""The Kalman algebra of :class:`~exuflex.observer.ekf.MultirateEKF`, compiled with numba: the one implementation.
 
-The ``"numba"`` back-end of the EKF does the algebra of its ``"numpy"`` back-end in three compiled calls
-per sample instead of some twenty numpy calls: at the observer's size (26 states, 6 channels) a numpy call
-costs more in dispatch and temporaries than in arithmetic. The covariance prediction keeps BLAS (two
-``dgemm``, as numpy does; at 26 states the register-blocked BLAS kernel is twice as fast as a loop). The
-update's thin products (``m`` of 6 rows) are loops over contiguous rows, ``row_i += a * row_k``, the form
-LLVM vectorises without reassociating a sum; the kernels are compiled without ``fastmath``, so each entry
-is an ordinary evaluation of the same formula and the two back-ends agree to rounding (only the order of
-the terms in each sum differs).
+- :func:`predict_cov`: ``P = F P F' + Q`` (eq. 13);
+- :func:`update`: innovation, its covariance, one Cholesky solve for the gain and ``S^-1 r``, the posterior mean
+  and the Joseph-form covariance (eqs. 14-15);
+- :func:`settle`: symmetrisation, a floor on the variances and the finiteness test that end every sample;
+- :func:`predict_update`: the three in one call (what a sample with a measurement does).
+
+At the observer's size (tens of states, a few channels) a NumPy call costs more in dispatch and temporaries
+than in arithmetic, so the update's thin products are loops over contiguous rows (``row_i += a * row_k``, the
+form LLVM vectorises without reassociating a sum); the covariance prediction keeps BLAS (two ``dgemm``). The
+kernels are compiled without ``fastmath``: each entry is an ordinary evaluation of its formula. The tests
+compare them with NumPy expressions and with filterpy's ``ExtendedKalmanFilter`` (independent oracles).
 
 Calling convention: arrays are float64; results go to caller-owned ``out`` arrays where that saves numba
 the cost of returning a new array (about half a microsecond each). An ``out`` argument is never read
 before it is written and must not alias an input unless its docstring says so.
 
-This module imports without numba: ``HAVE_NUMBA`` is then False, :func:`require` raises, and the kernels
-are plain (slow) Python functions that nothing calls.
+Without numba (a core dependency) the kernels run as plain, slow Python.
 """
 
 from __future__ import annotations
@@ -25,27 +27,18 @@ import numpy as np
 
 try:
     import numba
-except ImportError:  # the numpy back-end works without it
+except ImportError:  # pragma: no cover - numba is a core dependency
     numba = None
 
-__all__ = ["HAVE_NUMBA", "apply_gain", "fix_cov", "predict_cov", "require", "settle", "update", "warm_up"]
+__all__ = ["apply_gain", "fix_cov", "predict_cov", "predict_update", "settle", "update", "update_settle", "warm_up"]
 
-HAVE_NUMBA = numba is not None
-
-if HAVE_NUMBA:
-    # error_model="numpy": a division by zero gives inf/nan as in numpy, with no exception checks in the
-    # loops; no fastmath: the results must round like the numpy back-end's
+if numba is not None:
+    # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-else:
+else:  # pragma: no cover
 
     def _jit(f):
         return f
-
-
-def require() -> None:
-    """Raise a ValueError naming the missing package if numba is not installed."""
-    if not HAVE_NUMBA:
-        raise ValueError("backend='numba' needs the numba package: pip install numba")
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -53,8 +46,7 @@ def require() -> None:
 def _cholesky_solve(S, sol, U):
     """Solve ``S X = sol`` in place through the Cholesky factor ``S = U' U`` of the upper triangle of ``S``.
 
-    The strict lower triangle of ``S`` is not read, as in LAPACK's ``dposv(uplo="U")`` that the numpy
-    back-end calls. Returns False (``sol`` partly overwritten) if a pivot is not positive or is NaN, the
+    The strict lower triangle of ``S`` is not read, as in LAPACK's ``dposv(uplo="U")``. Returns False (``sol`` partly overwritten) if a pivot is not positive or is NaN, the
     test of LAPACK's ``dpotrf``: ``S`` is not positive definite.
     """
     m = S.shape[0]
@@ -98,7 +90,7 @@ def _cholesky_solve(S, sol, U):
 # --------------------------------------------------------------------------------------------- kernels
 @_jit
 def predict_cov(F, P, Q, out, work):
-    """``out = F P F' + Q``, evaluated as the numpy back-end does (two BLAS products, then ``+ Q``).
+    """``out = F P F' + Q`` (two BLAS products, then ``+ Q``).
 
     Parameters
     ----------
@@ -127,9 +119,8 @@ def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
     gain) and returns the NIS ``r' S^-1 r``.
 
     The Joseph form is evaluated transposed, ``A' - K (H A' - R K')`` with ``A' = P - (H P)' K'`` (``P``
-    symmetric, as the numpy back-end also assumes when it takes ``H P`` for ``(P H')'``): every product then
-    runs along contiguous rows. ``P_out`` is the numpy back-end's unsymmetrised result transposed (up to
-    rounding), which the end-of-sample symmetrisation makes the same.
+    symmetric, so ``H P = (P H')'``): every product then runs along contiguous rows. ``P_out`` is the
+    unsymmetrised Joseph form transposed (up to rounding), which the end-of-sample symmetrisation removes.
 
     Parameters
     ----------
@@ -204,7 +195,7 @@ def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
 
 @_jit
 def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
-    """Measurement update with the algebra of the numpy back-end's ``MultirateEKF._update``.
+    """Measurement update (eqs. 14-15), Joseph form.
 
     ``r = y - y_pred``, ``S = H P H' + diag(Rd)``, one Cholesky solve of ``S`` for ``[H P, r]`` (the gain
     ``K' = S^-1 H P`` and ``S^-1 r``), then :func:`apply_gain`.
@@ -274,7 +265,7 @@ def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
 def fix_cov(P, floor):
     """Symmetrise ``P`` in place, ``(P + P') / 2``, and floor its diagonal at ``floor`` (shape (n,)).
 
-    The numpy back-end's ``_fix_P`` entry by entry (a NaN on the diagonal stays NaN).
+    A NaN on the diagonal stays NaN (the finiteness test must see it).
     """
     n = P.shape[0]
     for i in range(n):
@@ -292,8 +283,7 @@ def fix_cov(P, floor):
 def settle(x, P, floor):
     """:func:`fix_cov` on ``P``, then the filter's end-of-sample test: is ``sum(x) + sum(P)`` finite?
 
-    A NaN or inf anywhere makes the sum non-finite (as in the numpy back-end, a finite sum overflowing to
-    inf fails the test too). Four partial sums keep the additions from waiting on each other.
+    A NaN or inf anywhere makes the sum non-finite (a finite sum overflowing to inf fails the test too). Four partial sums keep the additions from waiting on each other.
     """
     fix_cov(P, floor)
     s0 = 0.0
@@ -316,11 +306,33 @@ def settle(x, P, floor):
     return math.isfinite((s0 + s1) + (s2 + s3))
 
 
+@_jit
+def predict_update(F, P, Q, P_pred, work, x, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
+    """One whole sample: :func:`predict_cov` into ``P_pred``, :func:`update` from it, :func:`settle`.
+
+    ``x`` is the predicted mean (the model's step). Returns ``(nis, ok, finite)``; with ``ok`` False (``S`` not
+    positive definite) nothing after the prediction is written and the caller finishes the update from
+    ``P_pred``."""
+    predict_cov(F, P, Q, P_pred, work)
+    nis, ok = update(x, P_pred, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
+    if not ok:
+        return nis, False, True
+    return nis, True, settle(x_out, P_out, floor)
+
+
+@_jit
+def update_settle(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
+    """:func:`update` then :func:`settle` (a sample without a prediction: the first). Returns ``(nis, ok,
+    finite)`` as :func:`predict_update`."""
+    nis, ok = update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
+    if not ok:
+        return nis, False, True
+    return nis, True, settle(x_out, P_out, floor)
+
+
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the kernels for C-ordered float64 arrays, so that the
-    first sample of a filter does not carry the compilation. A no-op without numba."""
-    if not HAVE_NUMBA:
-        return
+    first sample of a filter does not carry the compilation."""
     n, m = 3, 2
     P = np.eye(n)
     out = np.empty((n, n))
@@ -330,5 +342,9 @@ def warm_up() -> None:
     r = np.empty(m)
     x = np.zeros(n)
     update(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), x, out)
+    predict_update(np.eye(n), P, np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), x, np.ones(m), np.zeros(m), H,
+                   np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out, np.zeros(n))
+    update_settle(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out,
+                  np.zeros(n))
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))
