@@ -295,3 +295,14 @@ def test_offset_mass_modes_agree_with_exudyn():
     fe = modal_analysis(ErlsModel(mech), [0.3]).frequencies_hz[:6]
     fx = exudyn_frequencies(mech, [0.3], elements_per_link=8)[:6]
     np.testing.assert_allclose(fx, fe, rtol=5e-4)
+
+
+def test_offset_mass_eq2_coriolis_annihilates_rigid_motion():
+    """Eq. 2's ``M_G`` with a mass at an offset (its gyroscopic matrix ``m N_p^T G2 N_p``) vanishes on the
+    mechanism's rigid velocity fields, ``M_G S = 0``, as for the beam elements."""
+    mech = parse_mechanism(_welded_arm(offset=(0.04, -0.03), inertia=1e-4), "l_arm.toml")
+    m = ErlsModel(mech, form="eq2")
+    cfg = m.configuration([0.7])
+    MG = m.coriolis_matrix(cfg, np.array([1.3]))
+    assert np.abs(MG).max() > 0
+    assert np.abs(MG @ cfg.pose.S).max() < 1e-12 * np.abs(MG).max()

@@ -134,9 +134,10 @@ class ErlsModel:
                 el_station.append(lk.stations[a])
         # masses at an offset from their node: one-node "elements" that rotate with the node's link, local mass
         # m [[1, 0, -b], [0, 1, a], [-b, a, a^2 + b^2]] + J e3 e3^T on (u, v, theta) for the offset (a, b) in the
-        # link frame (the mass point's velocity in that frame is (u' - b theta', v' + a theta')), no stiffness,
-        # zero length (no station: sensors never locate them). The element's second node is a neighbour on the
-        # link with a zero block, so that no element lists a nodal dof twice.
+        # link frame (the mass point's velocity in that frame is (u' - b theta', v' + a theta') = N_p d', so the mass is
+        # m N_p^T N_p + J e3 e3^T and eq. 2's gyroscopic matrix m N_p^T G2 N_p, as beam_gyroscopic for a point), no
+        # stiffness, zero length (no station: sensors never locate them). The element's second node is a neighbour
+        # on the link with a zero block, so that no element lists a nodal dof twice.
         for lm in mech.all_masses():
             if lm.offset == (0.0, 0.0):
                 continue
@@ -146,9 +147,15 @@ class ErlsModel:
             ids = mech.link(lname).node_ids
             i = ids.index(lm.node)
             k2 = nodes.index(ids[i + 1] if i + 1 < len(ids) else ids[i - 1])
-            Me = np.zeros((6, 6))
-            Me[:3, :3] = lm.mass * np.array([[1.0, 0.0, -b], [0.0, 1.0, a], [-b, a, a * a + b * b]])
+            Np = np.zeros((2, 6))
+            Np[:, :3] = [[1.0, 0.0, -b], [0.0, 1.0, a]]
+            Me = lm.mass * Np.T @ Np
             Me[2, 2] += lm.inertia
+            # plus m N_p^T (a, b) e3^T: with it A - M G annihilates the rigid rotation about the node, (0, 0, 1), as
+            # it does translations (a beam's N interpolates rigid fields with N G = G2 N; an offset point does not)
+            e3 = np.zeros(6)
+            e3[2] = 1.0
+            Al.append(lm.mass * (Np.T @ np.array([[0.0, -1.0], [1.0, 0.0]]) @ Np + np.outer(Np.T @ [a, b], e3)))
             el_link.append(link_index[lname])
             el_dofs.append([3 * k, 3 * k + 1, 3 * k + 2, 3 * k2, 3 * k2 + 1, 3 * k2 + 2])
             Kl.append(np.zeros((6, 6)))
