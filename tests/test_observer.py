@@ -343,3 +343,19 @@ def test_measurement_rows_of_all_channels_equal_the_per_channel_rows(sixbar, erl
                 row[: m.nq] += rigid[1]
             np.testing.assert_allclose(Hm[i], row, rtol=0, atol=1e-13 * np.abs(row).max())
             assert c0[i] == pytest.approx(c, rel=1e-13, abs=1e-15)
+
+
+def test_a_blank_channel_and_a_channel_left_out_give_the_same_estimates(sixbar, observer, erls_log):
+    """One path for every sample: the c4 column blank in the log, and c4 left out of the observer's channels,
+    filter the same measurements the same way (relative difference <= 1e-9)."""
+    n = 400
+    t, U, Y = _arrays(erls_log, observer.channels, n)
+    j = observer.channels.index("c4")
+    blank = Y.copy()
+    blank[:, j] = np.nan
+    a = estimate(observer, t, U, blank).result.x_hat
+    fewer = make_observer(sixbar, ObserverConfig(channels=tuple(c for c in observer.channels if c != "c4")),
+                          cb=observer.model.rm.cb)
+    b = estimate(fewer, t, U, np.delete(Y, j, axis=1)).result.x_hat
+    scale = np.abs(a).max(axis=0)
+    assert np.all(np.abs(a - b) <= 1e-9 * scale)
