@@ -108,9 +108,9 @@ def test_exudyn(capsys):
     pytest.importorskip("exudyn")
     rep = _json(capsys, SIXBAR, "--exudyn")
     fe, fx = rep["exudyn"]["frequencies_hz"], rep["full"]["frequencies_hz"]
-    # Exudyn's finer mesh (4 elements per link) pulls link 3's second mode to ~176 Hz (reference sixbar.md):
-    # it may report one mode more; the first six agree within the mesh difference
-    assert len(fe) >= len(fx) and all(abs(a - b) / b < 0.03 for a, b in zip(fe, fx))
+    # the same (paper) mesh in both: cubic bending in both, the same modes (seen within 0.002 %)
+    assert rep["exudyn"]["n_elements"] == 9 and rep["exudyn"]["elements_per_link"] == "file"
+    assert len(fe) == len(fx) and all(abs(a - b) / b < 1e-3 for a, b in zip(fe, fx))
 
 
 def test_subprocess():

@@ -1,7 +1,7 @@
 """The reduced-order EKF on the six-bar: bound, observability, offline = online, convergence, fast path.
 
 The log is the paper's setting: the manoeuvre simulated by the full-order ERLS model with Table 3 noise
-(``exuflex simulate models/sixbar.toml --engine erls --duration 3 --seed 1``, stored in
+(``exuflex simulate models/sixbar.toml --engine erls --integrator rk4 --duration 3 --seed 1``, stored in
 ``tests/data/sixbar_erls_3s``). The Exudyn truth and the 50-run consistency study are in
 ``benchmarks/observer_accuracy.py`` and the slow tests.
 """

@@ -2,13 +2,16 @@
 
 The model is linearised at rest at ``q`` (default: the model's ``q_ref``) with the motors free
 (torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (q held). Optional
-comparisons: ``--exudyn`` (the independent Exudyn model, :func:`exuflex.groundtruth.exudyn_frequencies`)
-and ``--reduced`` (the Craig-Bampton reduced model, :func:`exuflex.reduction.reduced_modes_report`).
+comparisons: ``--exudyn`` (the independent Exudyn model, :func:`exuflex.groundtruth.exudyn_frequencies`, on
+the same mesh as the ERLS model, with the same motors free or locked; ``--beam``) and ``--reduced`` (the
+Craig-Bampton reduced model, :func:`exuflex.reduction.reduced_modes_report`). The mesh is the model file's,
+split by ``--refine`` and then by ``--elements-per-link`` (:func:`exuflex.mechanism.remesh_mechanism`).
 With ``--json`` one JSON object is printed::
 
     {"model": ..., "q": [...], "locked": false, "fmax_hz": 180.0,
      "full": {"ndof": 30, "n_elastic": 27, "frequencies_hz": [...]},
-     "exudyn": {"frequencies_hz": [...]},          # with --exudyn
+     "exudyn": {"frequencies_hz": [...], "beam": "ancf", "locked": false, "elements_per_link": "file",
+                "n_elements": 30},                  # with --exudyn
      "reduced": {..., "along": {...}}}               # with --reduced
 """
 
@@ -19,6 +22,8 @@ import json
 import sys
 
 import numpy as np
+
+from .simulate import BEAMS, elements_per_link_arg
 
 __all__ = ["add_parser", "modes_report", "run"]
 
@@ -50,6 +55,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--fmax", type=float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
     p.add_argument("--locked", action="store_true", help="motors locked (q held) instead of free")
     p.add_argument("--refine", type=int, default=1, help="split every element into this many (default 1)")
+    p.add_argument("--elements-per-link", type=elements_per_link_arg, default="file", metavar="N|file",
+                   help="then split elements so that no element is longer than 1/N of its link (default: file)")
+    p.add_argument("--beam", choices=tuple(BEAMS), default="ancf",
+                   help="Exudyn beam for --exudyn: ANCF cable (default) or geometrically exact (needs a fine mesh)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--exudyn", action="store_true", help="add the Exudyn model's frequencies")
     p.add_argument("--reduced", action="store_true", help="add the reduced model's frequencies, NCO and errors")
@@ -67,11 +76,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool = False, refine: int = 1,
                  exudyn: bool = False, reduced: bool = False, masters=None, n_interior=None, q_star=None,
-                 along: int = 41) -> dict:
+                 along: int = 41, elements_per_link: int | str = "file", beam: str = "ancf") -> dict:
     """Library form of the command: the JSON-ready report."""
     from ..erls.modal import modal_analysis
     from ..erls.model import ErlsModel
-    from ..mechanism import load_mechanism, refine_mechanism
+    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism
 
     mech = load_mechanism(model_path)
     from ..validate import check_configurations
@@ -79,6 +88,10 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     check_configurations(mech)  # loops close, away from singularities
     if refine > 1:
         mech = refine_mechanism(mech, refine)
+    if elements_per_link != "file":
+        mech = remesh_mechanism(mech, elements_per_link_arg(str(elements_per_link)))
+    if beam not in BEAMS:
+        raise ValueError(f"--beam: expected one of {tuple(BEAMS)}, got {beam!r}")
     q = np.asarray(mech.q_ref if q is None else q, float)
     if q.shape != (len(mech.coordinates),):
         raise ValueError(f"--q: expected {len(mech.coordinates)} values ({', '.join(mech.coordinate_names)}), "
@@ -96,8 +109,9 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     if exudyn:
         from ..groundtruth import exudyn_frequencies  # lazy: Exudyn is heavy and optional here
 
-        f = np.asarray(exudyn_frequencies(mech, q))
-        out["exudyn"] = {"frequencies_hz": f[f <= fmax].tolist()}
+        f = np.asarray(exudyn_frequencies(mech, q, elements_per_link="file", formulation=BEAMS[beam], locked=locked))
+        out["exudyn"] = {"frequencies_hz": f[f <= fmax].tolist(), "beam": beam, "locked": locked,
+                         "elements_per_link": elements_per_link, "n_elements": sum(lk.n_elements for lk in mech.links)}
     if reduced:
         try:
             from ..reduction import reduced_modes_report
@@ -120,6 +134,10 @@ def _table(rep: dict) -> str:
         (f"full-order ERLS model: {rep['full']['ndof']} dofs ({rep['full']['n_elastic']} elastic), "
         f"{len(full)} modes <= {rep['fmax_hz']:g} Hz"),
     ]
+    if exu is not None:
+        ex = rep["exudyn"]
+        lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} elements), "
+                     f"motors {'locked' if ex.get('locked') else 'free'}")
     if red is not None:
         lines.append(f"reduced model: {red.get('ndof')} dofs, masters {red.get('masters')}, "
                      f"{red.get('interior_modes')} interior modes")
@@ -154,7 +172,8 @@ def run(args) -> int:
     try:
         rep = modes_report(args.model, q=args.q, fmax=args.fmax, locked=args.locked, refine=args.refine,
                            exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
-                           n_interior=args.n_interior, q_star=args.qstar, along=args.along)
+                           n_interior=args.n_interior, q_star=args.qstar, along=args.along,
+                           elements_per_link=args.elements_per_link, beam=args.beam)
     except (ValueError, RuntimeError) as exc:
         from ..errors import EXPECTED_ERRORS
 

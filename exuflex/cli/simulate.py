@@ -9,7 +9,9 @@ Pipeline (the library does the work; this module only wires it):
    (:func:`exuflex.manoeuvre.computed_torque`), as the paper's controller knows only the nominal model; a
    measured-torque manoeuvre gives its torques instead (:func:`exuflex.manoeuvre.torque_table`);
 3. simulate the truth with the payload scaled by ``--payload-scale``: Exudyn
-   (:func:`exuflex.groundtruth.simulate_truth`) or the full-order ERLS model (RK4, ``--h``);
+   (:func:`exuflex.groundtruth.simulate_truth`; ``--beam``, ``--elements-per-link``) or the full-order ERLS
+   model (``--integrator``: implicit generalized-alpha, :func:`exuflex.erls.implicit.erls_implicit`, or the
+   explicit RK4 reference; the model file's mesh or ``--elements-per-link``);
 4. clean sensor channels and true states from the probe record (:mod:`exuflex.sensors`);
 5. noisy, quantised measurements (:func:`exuflex.measure.measure`, seeded);
 6. write the run folder (:func:`exuflex.runs.write_run`): ``sensors.csv``, ``truth.csv``, ``meta.json``.
@@ -25,7 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ProgressBar", "add_parser", "run", "simulate_run"]
+__all__ = ["BEAMS", "INTEGRATORS", "ProgressBar", "add_parser", "elements_per_link_arg", "run", "simulate_run"]
+
+BEAMS = {"ancf": "ancf", "ge": "gebeam"}  # --beam: Exudyn's ANCF cable or geometrically exact beam
+INTEGRATORS = ("gen-alpha", "rk4")  # --integrator of the ERLS engine
+EXUDYN_ELEMENTS_PER_LINK = 4  # the Exudyn truth's default mesh (converged within 0.5 % to ~190 Hz on the six-bar)
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +63,19 @@ class ProgressBar:
             self.stream.flush()
 
 
+def elements_per_link_arg(text: str):
+    """``--elements-per-link``: a positive integer or ``file`` (the model file's own mesh)."""
+    if text == "file":
+        return "file"
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'file', got {text!r}")
+    return n
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "simulate",
@@ -84,18 +103,42 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "(t and coordinates or tip_x, tip_y: a trajectory; t and motor names: measured torques)",
     )
     p.add_argument(
+        "--elements-per-link",
+        type=elements_per_link_arg,
+        default=None,
+        metavar="N|file",
+        help="truth mesh: no element longer than 1/N of its link (joints and masses on nodes; the ERLS engine keeps "
+        f"the file's nodes too) or 'file', the model file's mesh (default: {EXUDYN_ELEMENTS_PER_LINK} for Exudyn, "
+        "the file's for ERLS)",
+    )
+    p.add_argument(
+        "--beam",
+        choices=tuple(BEAMS),
+        default="ancf",
+        help="Exudyn beam: ANCF cable (default) or geometrically exact (linear, needs 16-32 elements per link)",
+    )
+    p.add_argument(
+        "--integrator",
+        choices=INTEGRATORS,
+        default="gen-alpha",
+        help="ERLS engine: implicit generalized-alpha (default) or the explicit RK4 reference",
+    )
+    p.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
     )
     p.set_defaults(func=run)
     return p
 
 
-def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress):
-    """Full-order ERLS model under the torque table (zero-order hold), RK4; returns a ProbeRecord.
+def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, integrator="gen-alpha", stats=None):
+    """Full-order ERLS model under the torque table (zero-order hold); returns a ProbeRecord.
 
-    The step ``h`` is split into the fewest RK4 sub-steps that keep the model's linearisation at the start stable
-    (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none at 0.1 ms, a finer mesh with stiffness
-    damping does: its highest modes are overdamped, with large real eigenvalues)."""
+    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``h`` (stable whatever the mesh's stiffest
+    mode). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
+    model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none
+    at 0.1 ms, a finer mesh with stiffness damping does: its highest modes are overdamped, with large real
+    eigenvalues)."""
+    from ..erls.implicit import erls_implicit
     from ..erls.model import ErlsModel
     from ..erls.simulate import rk4_substeps, simulate
     from ..sensors import erls_probe_record
@@ -105,6 +148,12 @@ def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress):
     y0 = np.zeros(2 * n)
     y0[: model.nq] = q0
     y0[n : n + model.nq] = qd0
+    every = max(1, round(output_dt / h))
+    if integrator == "gen-alpha":
+        traj = erls_implicit(model, t_tab, tau, y0, duration, h, output_every=every, progress=progress, stats=stats)
+        return erls_probe_record(model, traj.t, traj.y)
+    if integrator != "rk4":
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
     dt_tab = t_tab[1] - t_tab[0]
 
     def inputs(t):
@@ -113,8 +162,10 @@ def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress):
     sub = rk4_substeps(model.state_matrix(model.configuration(np.asarray(q0, float)))[0], h)
     if sub > 1:
         log.info("ERLS truth: %d RK4 sub-steps per %g s step (stability at the start)", sub, h)
-    every = max(1, round(output_dt / h)) * sub
-    traj = simulate(model.rhs, y0, duration, inputs, h=h / sub, method="rk4", output_every=every, progress=progress)
+    if stats is not None:
+        stats.update(rk4_substeps=sub)
+    traj = simulate(model.rhs, y0, duration, inputs, h=h / sub, method="rk4", output_every=every * sub,
+                    progress=progress)
     return erls_probe_record(model, traj.t, traj.y)
 
 
@@ -129,8 +180,16 @@ def simulate_run(
     h: float = 1e-4,
     progress: bool = False,
     manoeuvre: str | Path | None = None,
+    elements_per_link: int | str | None = None,
+    beam: str = "ancf",
+    integrator: str = "gen-alpha",
 ) -> Path:
-    """Library form of the command: simulate and write a run folder; returns its path."""
+    """Library form of the command: simulate and write a run folder; returns its path.
+
+    ``elements_per_link``: ``None`` (Exudyn: 4 per link; ERLS: the file's mesh), a positive integer or ``"file"``
+    (see ``--elements-per-link``); ``beam``: a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of
+    :data:`INTEGRATORS`.
+    """
     from ..manoeuvre import computed_torque, plan, torque_table
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
@@ -149,6 +208,12 @@ def simulate_run(
     duration = float(mech.manoeuvre.duration if duration is None else duration)
     if not duration > 0 or not h > 0:
         raise ValueError(f"duration and --h must be positive (got {duration}, {h})")
+    if beam not in BEAMS:
+        raise ValueError(f"--beam must be one of {tuple(BEAMS)}, got {beam!r}")
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"--integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    if elements_per_link is not None and elements_per_link != "file":
+        elements_per_link = elements_per_link_arg(str(elements_per_link))
     output_dt = 1.0 / mech.sample_rate_hz
     seed = new_seed() if seed is None else seed
     timings = {}
@@ -169,19 +234,48 @@ def simulate_run(
 
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     bar = ProgressBar(engine, progress)
+    solver: dict = {}
     if engine == "exudyn":
         from ..groundtruth import simulate_truth  # lazy: Exudyn is heavy and optional for the rest
 
+        mesh = EXUDYN_ELEMENTS_PER_LINK if elements_per_link is None else elements_per_link
         record = simulate_truth(
-            truth_mech, pl.t, tau, duration, h=h, output_dt=output_dt, q0=pl.q[0], progress=bar
+            truth_mech, pl.t, tau, duration, h=h, output_dt=output_dt, q0=pl.q[0], progress=bar,
+            elements_per_link=mesh, formulation=BEAMS[beam], stats=solver,
         )
+        truth_settings = {
+            "engine": "exudyn",
+            "beam": beam,
+            "formulation": BEAMS[beam],
+            "elements_per_link": mesh,
+            "hub_inertia": "rigid body welded to the node" if beam == "ancf" else "node rotation coordinate",
+            "integrator": "generalized-alpha (Exudyn)",
+            "n_coordinates": solver.get("n_coordinates"),
+            "newton_per_step": solver.get("newton_per_step"),
+        }
     elif engine == "erls":
-        record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], bar)
+        from ..erls.implicit import GeneralizedAlpha
+        from ..mechanism import remesh_mechanism
+
+        if elements_per_link not in (None, "file"):
+            truth_mech = remesh_mechanism(truth_mech, elements_per_link)
+        record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], bar,
+                             integrator=integrator, stats=solver)
+        truth_settings = {
+            "engine": "erls",
+            "elements_per_link": "file" if elements_per_link is None else elements_per_link,
+            "n_elements": sum(lk.n_elements for lk in truth_mech.links),
+            "integrator": integrator,
+            **({"rho_inf": GeneralizedAlpha().rho_inf} if integrator == "gen-alpha" else {}),
+            **solver,
+        }
     else:
         raise ValueError(f"engine must be 'exudyn' or 'erls', got {engine!r}")
     bar.close()
     timings["truth_s"] = time.perf_counter() - t0
+    timings["truth_cpu_s"] = time.process_time() - c0
 
     record = monotonic_record(record)
     clean = sensor_channels(mech, record)
@@ -205,7 +299,8 @@ def simulate_run(
         "settings": {
             "duration_s": duration,
             "h_s": h,
-            "integrator": "rk4" if engine == "erls" else "exudyn (see groundtruth)",
+            "integrator": truth_settings["integrator"],
+            "truth": truth_settings,
             "torque_table_dt_s": pl.dt,
             "output_dt_s": output_dt,
             "payload_scale": payload_scale,
@@ -240,6 +335,9 @@ def run(args) -> int:
         h=args.h,
         progress=not args.no_progress and sys.stderr.isatty(),
         manoeuvre=args.manoeuvre,
+        elements_per_link=args.elements_per_link,
+        beam=args.beam,
+        integrator=args.integrator,
     )
     print(f"wrote {out}/sensors.csv, truth.csv, meta.json")
     return 0

@@ -326,19 +326,23 @@ class ErlsModel:
             F = F + cfg.W.T @ f_nodal
         return F
 
+    def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """Right-hand side of eq. 2, ``W^T (B tau + M_N g) - h(x, v) - C v - K x``, so that ``M v' = net_forces``."""
+        nq = self.nq
+        rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
+        T, Tt = self.T, self.T.T
+        # K_uu u = T^T K_N T u and C_uu u' = T^T (alpha M_N + beta K_N) T u', as matrix-vector products
+        rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
+        if self.alpha or self.beta:
+            Tud = T @ v[nq:]
+            rhs[nq:] -= Tt @ (self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud))
+        return rhs
+
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
         """v' from eq. 2 at state (x, v) under motor torques tau."""
         if cfg is None:
             cfg = self.configuration(x[: self.nq])
-        nq = self.nq
-        M = self.mass(cfg)
-        rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
-        Tt = self.T.T
-        Kuu = Tt @ cfg.K_N @ self.T
-        rhs[nq:] -= Kuu @ x[nq:]
-        if self.alpha or self.beta:
-            rhs[nq:] -= (self.alpha * (Tt @ cfg.M_N @ self.T) + self.beta * Kuu) @ v[nq:]
-        return np.linalg.solve(M, rhs)
+        return np.linalg.solve(self.mass(cfg), self.net_forces(cfg, x, v, tau))
 
     def rhs(self, t: float, y: np.ndarray, tau: np.ndarray) -> np.ndarray:
         """First-order form y = [x; v] -> y'."""

@@ -9,8 +9,20 @@ planar flexible beams, independent of the ERLS mesh:
   ``x, y, phi``): an independent cross-check that needs a fine mesh (16-32 elements per link).
 
 Each link has its own nodes; the links' nodes at a joint coincide and are connected by
-``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). Lumped masses and rotary
-inertias sit on the node at their station (``ObjectGenericODE2``). Motor torques act on the motor
+``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). Lumped masses sit on the
+node at their station (``ObjectGenericODE2``). A rotary inertia ``J`` (a hub, a motor rotor) must
+act on the node's rotation only:
+
+- ``hub="rigid"`` (default): on ANCF a node carrying ``J`` gets a rigid body (``NodeRigidBody2D``,
+  ``ObjectRigidBody2D`` with the node's mass and ``J``) welded to it by an ``ObjectJointGeneric``
+  that ties position and rotation (x, y, rotation about z) to the node's ``MarkerNodeRigid``,
+  whose angle is the slope's ``atan2(y', x')``. The kinetic energy is then exactly
+  ``m |r'|^2 / 2 + J theta'^2 / 2`` of the ERLS node, whatever the slope's length.
+- ``hub="slopes"``: ``diag(m, m, J, J)`` on the node (J on both slope components). Exact for a unit
+  slope, but it also gives the slope's *stretch* the inertia J, which adds a spurious mode (slope
+  stretch against the axial stiffness of the adjacent elements, ``~ sqrt(EA h / J)``) that falls
+  into the band as the mesh is refined. Kept as the legacy model, for comparison.
+On ``formulation="gebeam"`` J sits on the node's rotation coordinate (both choices are the same). Motor torques act on the motor
 link's node at the joint and, reversed, on the reaction link's node (nothing on ground), as the
 generalized forces of a torque on that node's tangent angle, ``T d(atan2(y', x'))/dc``
 (``T (-y', x') / |r'|^2`` on the ANCF slopes, ``T`` on a rotation coordinate). They sit, with the
@@ -50,7 +62,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import itertools
 import logging
 import math
 import os
@@ -62,10 +73,13 @@ import numpy as np
 from ..erls.kinematics import Kinematics
 from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
+from ..mechanism.refine import split_segments
 
 __all__ = [
     "DAMPINGS",
     "FORMULATIONS",
+    "HUBS",
+    "MESH_FILE",
     "LinkMesh",
     "TruthModel",
     "ancf_shape",
@@ -77,6 +91,8 @@ log = logging.getLogger(__name__)
 
 FORMULATIONS = ("ancf", "gebeam")
 DAMPINGS = ("erls", "corotational", "stiffness", None)
+HUBS = ("rigid", "slopes")
+MESH_FILE = "file"  # elements_per_link: the mechanism's own element boundaries
 SHEAR_CORRECTION = 0.9  # circular section (gebeam only)
 POISSON = 0.33  # (gebeam only) shear modulus G = E / (2 (1 + nu))
 
@@ -189,7 +205,9 @@ class TruthModel:
     damping: str | None
     alpha: float
     beta: float
-    forces: int  # ObjectGenericODE2 over all nodes: motor torques and alpha damper (forceVector)
+    forces: int  # ObjectGenericODE2 over all link nodes: motor torques and alpha damper (forceVector)
+    n_link_coordinates: int = 0  # coordinates of the link nodes (first in the ODE2 order; hub bodies after)
+    hub: str = "rigid"
     explicit_damping: bool = True  # alpha damper as explicit force (simulation) or damping matrix (modal)
     D_alpha: np.ndarray | None = None  # current alpha damping matrix on all ODE2 coordinates
     erls: ErlsModel | None = None
@@ -253,7 +271,8 @@ class TruthModel:
         """
         c = self.coordinates()
         cd = self.velocities() if self.explicit_damping and self.D_alpha is not None else None
-        self.mbs.SetObjectParameter(self.forces, "forceVector", self.generalized_forces(tau, c, cd))
+        f = self.generalized_forces(tau, c, cd)
+        self.mbs.SetObjectParameter(self.forces, "forceVector", f[: self.n_link_coordinates])
 
     # ------------------------------------------------------------------ kinematic read-out
     def point_rows(self, link: str, station: float, c: np.ndarray):
@@ -375,17 +394,20 @@ class TruthModel:
     def _set_damping(self, D: np.ndarray) -> None:
         self.D_alpha = D
         if not self.explicit_damping:
-            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D)
+            nl = self.n_link_coordinates  # D has no entries on the hub bodies' coordinates
+            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D[:nl, :nl])
 
 
 def link_mesh_stations(
-    mech: Mechanism, link: str, elements_per_link: int | None = 4, extra: tuple[float, ...] = ()
+    mech: Mechanism, link: str, elements_per_link: int | str | None = 4, extra: tuple[float, ...] = ()
 ) -> np.ndarray:
     """Element boundaries of a link's Exudyn mesh.
 
     The stations of the link's joints and lumped masses (and ``extra``, e.g. gauges) are always
     element boundaries; between them, segments are split evenly so that no element is longer than
-    ``length / elements_per_link`` (``None``: one element per segment).
+    ``length / elements_per_link`` (``None``: one element per segment; ``"file"``: the mechanism's
+    own element boundaries, the ERLS mesh, e.g. as refined by
+    :func:`~exuflex.mechanism.refine_mechanism` or :func:`~exuflex.mechanism.remesh_mechanism`).
     """
     lk = mech.link(link)
     L = lk.length
@@ -402,6 +424,8 @@ def link_mesh_stations(
         if not 0.0 <= s <= L:
             raise ValueError(f"station {s} m is outside link {link!r} (length {L} m)")
         req.add(float(s))
+    if elements_per_link == MESH_FILE:
+        req.update(float(s) for s in lk.stations)
     req = sorted(req)
     # merge stations closer than round-off
     base = [req[0]]
@@ -409,16 +433,11 @@ def link_mesh_stations(
         if s - base[-1] > 1e-9 * max(1.0, L):
             base.append(s)
     base[-1] = L
-    if elements_per_link is None:
+    if elements_per_link is None or elements_per_link == MESH_FILE:
         return np.array(base)
-    if elements_per_link < 1:
-        raise ValueError(f"elements_per_link must be >= 1 or None, got {elements_per_link}")
-    hmax = L / elements_per_link
-    out = [base[0]]
-    for a, b in itertools.pairwise(base):
-        n = max(1, math.ceil((b - a) / hmax - 1e-9))
-        out.extend(a + (b - a) * k / n for k in range(1, n + 1))
-    return np.array(out)
+    if isinstance(elements_per_link, bool) or not isinstance(elements_per_link, int) or elements_per_link < 1:
+        raise ValueError(f"elements_per_link must be an integer >= 1, {MESH_FILE!r} or None, got {elements_per_link!r}")
+    return np.array(split_segments(base, L / elements_per_link))
 
 
 def _hermite_mass(L: float) -> np.ndarray:
@@ -500,6 +519,7 @@ def build_truth(
     damping: str | None = "erls",
     explicit_damping: bool = True,
     reduced_integration: bool = True,
+    hub: str = "rigid",
 ) -> TruthModel:
     """Build the Exudyn model of ``mech`` at rest in the closed rigid configuration at ``q``.
 
@@ -508,9 +528,10 @@ def build_truth(
     mech : Mechanism
     q : array-like, optional
         Independent ERLS coordinates of the initial configuration (default ``mech.q_ref``).
-    elements_per_link : int or None
+    elements_per_link : int, "file" or None
         Target number of elements per link (see :func:`link_mesh_stations`); joints and lumped
-        masses always sit on element boundaries. ``None``: one element between such stations.
+        masses always sit on element boundaries. ``None``: one element between such stations;
+        ``"file"``: the mechanism's own mesh.
     formulation : "ancf" or "gebeam"
     align_stations : (link, station) pairs that must also be element boundaries (e.g. gauges).
     damping : "erls", "corotational", "stiffness" or None
@@ -523,6 +544,9 @@ def build_truth(
         instead of 9 and 5; ``useReducedOrderIntegration=1``). Exact for the linearised element about
         a straight reference; on the paper's 3 s manoeuvre it changed the probes by less than 1e-6
         (relative, curvature 4e-8) and made the solver about 10 % faster.
+    hub : "rigid" or "slopes"
+        How a lumped rotary inertia acts on an ANCF node (see module docstring): a rigid body welded
+        to the node (no spurious mode) or the legacy ``diag(J, J)`` on the slopes.
 
     Returns
     -------
@@ -533,6 +557,8 @@ def build_truth(
         raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
     if damping not in DAMPINGS:
         raise ValueError(f"damping must be one of {DAMPINGS}, got {damping!r}")
+    if hub not in HUBS:
+        raise ValueError(f"hub must be one of {HUBS}, got {hub!r}")
     exu, it = _exu()
     q = np.asarray(mech.q_ref if q is None else q, float)
     pose = Kinematics(mech).pose(q)
@@ -605,8 +631,20 @@ def build_truth(
         lumped[name][k] = (mm + m.mass, JJ + m.inertia)
     for name, d in lumped.items():
         for k, (mm, JJ) in d.items():
+            node = links[name].nodes[k]
+            if formulation == "ancf" and hub == "rigid" and JJ > 0.0:
+                # a rigid body carrying the node's mass and inertia, welded to the node: its rotation is the
+                # slope angle atan2(y', x'), so J acts on the rotation only (no inertia on the slope's stretch)
+                ref = mbs.GetNodeParameter(node, "referenceCoordinates")
+                th = math.atan2(ref[3], ref[2])
+                body_node = mbs.AddNode(it.NodeRigidBody2D(referenceCoordinates=[ref[0], ref[1], th]))
+                mbs.AddObject(it.ObjectRigidBody2D(nodeNumber=body_node, mass=mm, inertia=JJ))
+                m_body = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=body_node))
+                m_node = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=node))
+                mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[m_node, m_body], constrainedAxes=[1, 1, 0, 0, 0, 1]))
+                continue
             diag = [mm, mm, JJ, JJ] if formulation == "ancf" else [mm, mm, JJ]
-            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[links[name].nodes[k]], massMatrix=np.diag(diag)))
+            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[node], massMatrix=np.diag(diag)))
 
     # joints: revolute between coincident nodes; ground pins
     def node_marker(link: str, station: float) -> int:
@@ -660,7 +698,7 @@ def build_truth(
     for lm in links.values():
         lm.ode2 = np.array([mbs.GetNodeODE2Index(n) + np.arange(node_size) for n in lm.nodes], dtype=int)
     order = np.concatenate([lm.ode2.ravel() for lm in links.values()])
-    if not np.array_equal(order, np.arange(len(order))):
+    if not np.array_equal(order, np.arange(len(order))) or len(order) != n_c:
         raise RuntimeError(
             "Exudyn numbered the node coordinates out of node order; the force object assumes it"
         )
@@ -678,6 +716,8 @@ def build_truth(
         alpha,
         beta,
         forces,
+        n_link_coordinates=n_c,
+        hub=hub,
         explicit_damping=explicit_damping,
         erls=ErlsModel(mech) if (alpha != 0.0 and damping == "erls") else None,
     )

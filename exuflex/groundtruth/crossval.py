@@ -124,7 +124,7 @@ def truth_vs_erls(
         from ..cli.simulate import _erls_truth
 
         t0 = time.perf_counter()
-        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None)
+        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None, integrator="rk4")
         extra["erls_wall_s"] = time.perf_counter() - t0
         erls_truth = true_states(mech, monotonic_record(rec_e))
     cmp = compare_truths(mech, exu, erls_truth)

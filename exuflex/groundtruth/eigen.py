@@ -1,4 +1,12 @@
-"""Constrained eigenfrequencies and modal damping of the Exudyn model (motors free, at rest)."""
+"""Constrained eigenfrequencies and modal damping of the Exudyn model at rest (motors free or locked).
+
+Motors locked means the ERLS coordinates q held: every coordinate (a tangent angle at a joint, absolute
+or relative to another link) gets a constraint ``A_j dc = 0``, its linearisation at the build
+configuration (``A_j``: :meth:`~exuflex.groundtruth.TruthModel.point_rows`' angle row; on ANCF
+``d atan2(y', x') = (x' dy' - y' dx') / |r'|^2`` of the node's slope, on geometrically exact beams the
+rotation coordinate), added as an ``ObjectConnectorCoordinateVector`` on the node(s) so that Exudyn's
+own null-space projection removes it with the joints. Exact for the linearised analysis at rest.
+"""
 
 from __future__ import annotations
 
@@ -8,9 +16,9 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..mechanism import Mechanism
-from .builder import build_truth
+from .builder import _exu, build_truth
 
-__all__ = ["exudyn_frequencies", "modal_damping"]
+__all__ = ["exudyn_frequencies", "lock_coordinates", "modal_damping"]
 
 log = logging.getLogger(__name__)
 
@@ -26,29 +34,87 @@ def _drop_rigid(f: np.ndarray, nq: int, what: str) -> np.ndarray:
     return f[nq:]
 
 
-def exudyn_frequencies(
-    mech: Mechanism, q=None, elements_per_link: int | None = 4, formulation: str = "ancf"
-) -> np.ndarray:
-    """Undamped eigenfrequencies (Hz, ascending) of the Exudyn model at rest at ``q``, motors free.
+def lock_coordinates(tm) -> None:
+    """Add the linearised constraints that hold every ERLS coordinate q (motors locked), before ``Assemble``.
 
-    The constraints (joints) are projected out by Exudyn (SVD null space of the constraint Jacobian);
-    the mechanism's ``len(mech.coordinates)`` zero-frequency rigid modes are dropped.
+    Must be called on a model built with ``assemble`` done; it re-assembles. See the module docstring.
+    """
+    _, it = _exu()
+    mech, mbs = tm.mech, tm.mbs
+    c = tm.coordinates()
+    for co in mech.coordinates:
+        jt = mech.joint(co.joint)
+        row = np.zeros(len(c))
+        for link, sign in ((co.link, 1.0), (co.relative_to, -1.0)):
+            if link is None:
+                continue
+            st = next(p.station for p in jt.points if p.link == link)
+            row += sign * tm.point_rows(link, st, c)[3]
+        cols = np.flatnonzero(np.abs(row) > 1e-14 * np.max(np.abs(row)))
+        nodes = sorted({int(i) // tm.node_size for i in cols})
+        if len(nodes) > 2:  # pragma: no cover - an angle reads at most the two nodes at the joint
+            raise RuntimeError(f"coordinate {co.name!r}: its angle depends on {len(nodes)} Exudyn nodes")
+        markers, scalings = [], []
+        for n in nodes:
+            idx = np.arange(n * tm.node_size, (n + 1) * tm.node_size)
+            markers.append(mbs.AddMarker(it.MarkerNodeCoordinates(nodeNumber=_node_number(tm, n))))
+            scalings.append(row[idx][None, :])
+        if len(markers) == 1:  # a connector needs two distinct markers: another node's with a zero row
+            other = 1 if nodes[0] == 0 else 0
+            markers.append(mbs.AddMarker(it.MarkerNodeCoordinates(nodeNumber=_node_number(tm, other))))
+            scalings.append(np.zeros_like(scalings[0]))
+        mbs.AddObject(
+            it.ObjectConnectorCoordinateVector(
+                markerNumbers=markers, scalingMarker0=scalings[0], scalingMarker1=scalings[1], offset=[0.0]
+            )
+        )
+    mbs.Assemble()
+
+
+def _node_number(tm, k: int) -> int:
+    """Exudyn node number of the k-th link node (link nodes come first in the ODE2 order, node by node)."""
+    for lm in tm.links.values():
+        for n, idx in zip(lm.nodes, lm.ode2):
+            if idx[0] == k * tm.node_size:
+                return n
+    raise KeyError(k)  # pragma: no cover
+
+
+def exudyn_frequencies(
+    mech: Mechanism,
+    q=None,
+    elements_per_link: int | str | None = 4,
+    formulation: str = "ancf",
+    locked: bool = False,
+    hub: str = "rigid",
+) -> np.ndarray:
+    """Undamped eigenfrequencies (Hz, ascending) of the Exudyn model at rest at ``q``, motors free or locked.
+
+    The constraints (joints, and with ``locked`` the held coordinates, see the module docstring) are
+    projected out by Exudyn (SVD null space of the constraint Jacobian); motors free, the mechanism's
+    ``len(mech.coordinates)`` zero-frequency rigid modes are dropped.
 
     Parameters
     ----------
     mech : Mechanism
     q : array-like, optional
         Independent ERLS coordinates (default ``mech.q_ref``).
-    elements_per_link, formulation : see :func:`exuflex.groundtruth.build_truth`.
+    elements_per_link, formulation, hub : see :func:`exuflex.groundtruth.build_truth`.
+    locked : hold q (motors locked) instead of leaving it free.
     """
-    tm = build_truth(mech, q, elements_per_link=elements_per_link, formulation=formulation, damping=None)
+    tm = build_truth(
+        mech, q, elements_per_link=elements_per_link, formulation=formulation, damping=None, hub=hub
+    )
+    if locked:
+        lock_coordinates(tm)
     f, _ = tm.mbs.ComputeODE2Eigenvalues(
         convert2Frequencies=True,
         useSparseSolver=False,
         ignoreAlgebraicEquations=False,
         useAbsoluteValues=True,
     )
-    return _drop_rigid(f, len(mech.coordinates), f"Exudyn {formulation} model of {mech.name}")
+    what = f"Exudyn {formulation} model of {mech.name}"
+    return _drop_rigid(f, 0, what) if locked else _drop_rigid(f, len(mech.coordinates), what)
 
 
 def modal_damping(
@@ -57,6 +123,7 @@ def modal_damping(
     elements_per_link: int | None = 4,
     formulation: str = "ancf",
     fmax: float | None = None,
+    hub: str = "rigid",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Damped natural frequencies (Hz) and damping ratios of the Exudyn model with its damping.
 
@@ -74,6 +141,7 @@ def modal_damping(
         formulation=formulation,
         damping="erls",
         explicit_damping=False,
+        hub=hub,
     )
     M, K, D, *_ = tm.mbs.ComputeLinearizedSystem(projectIntoConstraintNullspace=True)
     M, K, D = (np.asarray(a) for a in (M, K, D))

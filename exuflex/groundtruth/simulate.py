@@ -116,8 +116,8 @@ def probe_values(
                 vals.append(w @ ce[:, :, :2])
                 rates.append(w @ cde[:, :, :2])
             elif probe.kind == "slope":
-                vals.append((w @ ce[:, :, 2])[:, None])
-                rates.append((w @ cde[:, :, 2])[:, None])
+                vals.append((ce[:, :, 2] @ w)[:, None])
+                rates.append((cde[:, :, 2] @ w)[:, None])
             else:
                 vals.append(((ce[:, 1, 2] - ce[:, 0, 2]) / L)[:, None])
                 rates.append(((cde[:, 1, 2] - cde[:, 0, 2]) / L)[:, None])
@@ -143,6 +143,7 @@ def simulate_truth(
     solver_settings: dict | None = None,
     stats: dict | None = None,
     reduced_integration: bool = True,
+    hub: str = "rigid",
 ) -> ProbeRecord:
     """Simulate the Exudyn model of ``mech`` from rest at ``q0`` under tabulated motor torques.
 
@@ -156,7 +157,7 @@ def simulate_truth(
     h : time step of the implicit generalized-alpha integrator (s); 1e-4 resolves the 0-200 Hz band.
     output_dt : recording interval (s, a multiple of ``h``); ``None`` records every step.
     q0 : initial ERLS coordinates (default ``mech.q_ref``); the mechanism starts at rest, undeformed.
-    elements_per_link, formulation, damping : see :func:`exuflex.groundtruth.build_truth`.
+    elements_per_link, formulation, damping, hub : see :func:`exuflex.groundtruth.build_truth`.
     probes : default :func:`exuflex.probes.probes_for` ``(mech)``.
     progress : called with the fraction done (0..1) about 100 times.
     damping_update : refresh interval (s) of the configuration-dependent alpha damper.
@@ -217,6 +218,7 @@ def simulate_truth(
         formulation=formulation,
         damping=damping,
         reduced_integration=reduced_integration,
+        hub=hub,
     )
     mbs = tm.mbs
     nm = len(mech.motors)
@@ -265,6 +267,7 @@ def simulate_truth(
     inv_h = 1.0 / h
     pre_time = [0.0]
     f = np.zeros(n_c)  # the generalized force, rewritten every step (Exudyn copies it)
+    f_links = f[: tm.n_link_coordinates]  # the force object's coordinates (hub bodies' come after)
     f_items = memoryview(f)  # its entries as Python floats, without NumPy's per-element cost
     torques = neg_T.tolist()  # per step, the signed torques as Python floats
 
@@ -310,7 +313,7 @@ def simulate_truth(
             np.add.at(f, iy, -neg_T[k] * rx / n2)
         else:
             np.add.at(f, ix, -neg_T[k])
-        mbs_.SetObjectParameter(forces, "forceVector", f)
+        mbs_.SetObjectParameter(forces, "forceVector", f_links)
         if progress is not None and k % rep_every == 0:
             progress(k / n_steps)
         return True

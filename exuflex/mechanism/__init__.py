@@ -2,7 +2,7 @@
 
 from .dofs import COMPONENTS, LINK_FRAME, DofRef, ElasticDofs, elastic_dofs
 from .loader import ModelFileError, load_manoeuvre, load_mechanism, parse_mechanism, read_samples
-from .refine import refine_mechanism
+from .refine import refine_mechanism, remesh_mechanism
 from .spec import (
     Coordinate,
     Damping,
@@ -44,4 +44,5 @@ __all__ = [
     "parse_mechanism",
     "read_samples",
     "refine_mechanism",
+    "remesh_mechanism",
 ]

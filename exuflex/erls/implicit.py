@@ -1,0 +1,350 @@
+"""Implicit generalized-alpha integration of second-order models ``M(x) x'' = Q(t, x, x')`` (stiff-stable truth).
+
+The explicit RK4 of :mod:`exuflex.erls.simulate` is stable only for ``h |lambda| <= 2.8``: a fine mesh's axial
+modes (tens of kHz) and the overdamped modes that stiffness damping makes of them dictate its step. The
+generalized-alpha method (Chung & Hulbert 1993, in the form of Arnold & Bruels 2007, the one Exudyn uses) is
+unconditionally stable on linear problems, second-order accurate, and damps numerically only around and above
+the step's Nyquist frequency: the step is then chosen for accuracy in the band of interest.
+
+Method (``rho_inf``: spectral radius at infinite frequency, 1 = trapezoidal rule, no numerical damping)::
+
+    alpha_m = (2 rho - 1) / (rho + 1),  alpha_f = rho / (rho + 1),
+    gamma = 1/2 + alpha_f - alpha_m,    beta = (gamma + 1/2)^2 / 4
+    M(x1) x1'' = Q(t1, x1, v1)                                  (balance at the step's end t1)
+    (1 - alpha_m) a1 + alpha_m a0 = (1 - alpha_f) x1'' + alpha_f x0''
+    v1 = v0 + h (1 - gamma) a0 + h gamma a1
+    x1 = x0 + h v0 + h^2 (1/2 - beta) a0 + h^2 beta a1
+
+Newton on the residual ``r = M(x1) x1'' - Q``, in the position increment ``dx`` (``dv = gamma' dx``,
+``dx'' = beta' dx`` with ``beta' = (1 - alpha_m) / (h^2 beta (1 - alpha_f))``, ``gamma' = gamma / (h beta)``):
+``S dx = -r`` with the iteration matrix ``S = beta' M + gamma' C_t + K_t`` (``C_t = -dQ/dv``,
+``K_t = d(M x'' - Q)/dx``). ``S`` is factored once and reused over steps (simplified Newton) until the
+contraction rate of the iteration exceeds :data:`REFRESH_RATE`; the iteration stops when the estimated distance
+to the solution, ``eta / (1 - eta) |dx|`` (Hairer & Wanner, IV.8, with ``eta`` the observed contraction rate),
+is below the tolerance. The residual is always exact, so a stale ``S`` costs iterations, not accuracy.
+
+:func:`algorithmic_damping` gives the method's damping ratio and frequency error on an undamped mode of
+frequency ``omega`` for a step ``h`` (from the eigenvalues of its amplification matrix); :func:`erls_truth` is
+the ERLS engine's driver (torque table, record, probes).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+
+from .model import ErlsModel
+from .simulate import Trajectory
+
+__all__ = [
+    "REFRESH_RATE",
+    "GeneralizedAlpha",
+    "HeldTable",
+    "algorithmic_damping",
+    "erls_implicit",
+    "generalized_alpha",
+]
+
+log = logging.getLogger(__name__)
+
+REFRESH_RATE = 0.02  # refactor the iteration matrix when Newton contracts slower than this per iteration
+PROBE_EVERY = 8  # steps accepted after one iteration before one is iterated twice to re-measure the rate
+MAX_ITERATIONS = 8
+
+
+@dataclass(frozen=True)
+class GeneralizedAlpha:
+    """Coefficients of the generalized-alpha method for a spectral radius ``rho_inf`` in [0, 1]."""
+
+    rho_inf: float = 0.9
+
+    def __post_init__(self):
+        if not 0.0 <= self.rho_inf <= 1.0:
+            raise ValueError(f"rho_inf must be in [0, 1], got {self.rho_inf}")
+
+    @property
+    def alpha_m(self) -> float:
+        return (2 * self.rho_inf - 1) / (self.rho_inf + 1)
+
+    @property
+    def alpha_f(self) -> float:
+        return self.rho_inf / (self.rho_inf + 1)
+
+    @property
+    def gamma(self) -> float:
+        return 0.5 + self.alpha_f - self.alpha_m
+
+    @property
+    def beta(self) -> float:
+        return 0.25 * (self.gamma + 0.5) ** 2
+
+    def primes(self, h: float) -> tuple[float, float]:
+        """``(beta', gamma')``: d x''/dx and d v/dx of one step's update (see module docstring)."""
+        beta_p = (1 - self.alpha_m) / (h * h * self.beta * (1 - self.alpha_f))
+        return beta_p, self.gamma / (h * self.beta)
+
+
+def algorithmic_damping(omega_h, rho_inf: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """Numerical damping ratio and relative frequency error of generalized-alpha on ``x'' + omega^2 x = 0``.
+
+    One step maps ``(x, v, a)`` linearly (with ``x'' = -omega^2 x`` at every step end); its principal
+    eigenvalues ``lambda = exp(h s)`` define the discrete mode ``s = -zeta w +- i w sqrt(1 - zeta^2)``:
+    ``w h = |ln lambda|`` and ``zeta = -Re(ln lambda) / |ln lambda|``.
+
+    Returns
+    -------
+    zeta : numerical damping ratio (0 for ``rho_inf = 1``).
+    freq_error : ``w / omega - 1`` (negative: the discrete mode is slower; trapezoidal rule
+        ``2 atan(omega h / 2) / (omega h) - 1``).
+    """
+    ga = GeneralizedAlpha(rho_inf)
+    am, af, g, b = ga.alpha_m, ga.alpha_f, ga.gamma, ga.beta
+    wh = np.atleast_1d(np.asarray(omega_h, float))
+    zeta, err = np.empty_like(wh), np.empty_like(wh)
+    for i, z in enumerate(wh):
+        # unit omega, step z: x1'' = -x1; x1 = x + z v + z^2 ((1/2 - b) a + b a1), a1 = c0 x'' + c1 a + c x1''
+        c = (1 - af) / (1 - am)
+        A = np.zeros((3, 3))
+        for j in range(3):
+            x, v, a = np.eye(3)[j]
+            c_x, c_a = -af / (1 - am), -am / (1 - am)  # a1 = c_x x + c_a a + c x1'' with x'' = -x
+            # x1 = x + z v + z^2 (1/2 - b) a + z^2 b (c_x x + c_a a - c x1)  ->  solve for x1
+            x1 = (x + z * v + z * z * ((0.5 - b) * a + b * (c_x * x + c_a * a))) / (1 + z * z * b * c)
+            a1 = c_x * x + c_a * a - c * x1
+            v1 = v + z * ((1 - g) * a + g * a1)
+            A[:, j] = (x1, v1, a1)
+        lam = np.linalg.eigvals(A).astype(complex)
+        osc = lam[lam.imag > 1e-14]  # the principal (oscillating) pair; the third root is real (spurious)
+        lam = osc[0] if len(osc) else lam[np.argmax(np.abs(lam))]
+        s = np.log(lam)
+        zeta[i] = -s.real / abs(s)
+        err[i] = abs(s) / z - 1
+    return zeta, err
+
+
+class HeldTable:
+    """A zero-order-hold table on a uniform grid ``t_tab``: value ``values[k]`` on ``[t_k, t_k+1)``, the first
+    value before ``t_0`` and the last after the table (as the RK4 engine reads its inputs)."""
+
+    def __init__(self, t_tab, values):
+        self.t = np.asarray(t_tab, float)
+        self.values = np.asarray(values, float).reshape(len(self.t), -1)
+        if len(self.t) < 2 or np.any(np.abs(np.diff(self.t) - (self.t[1] - self.t[0])) > 1e-9 * (self.t[1] - self.t[0])):
+            raise ValueError("torque table: t must be a uniform grid of at least two points")
+        self.dt = self.t[1] - self.t[0]
+        self._cum = np.vstack([np.zeros((1, self.values.shape[1])), np.cumsum(self.values, axis=0) * self.dt])
+
+    def integral(self, t: float) -> np.ndarray:
+        """``int_{t_0}^{t}`` of the hold."""
+        s = (t - self.t[0]) / self.dt
+        if s <= 0:
+            return s * self.dt * self.values[0]
+        n = len(self.t)
+        k = min(math.floor(s + 1e-9), n)
+        return self._cum[k] + (s - k) * self.dt * self.values[min(k, n - 1)]
+
+    def mean(self, a: float, b: float) -> np.ndarray:
+        """Mean of the hold over ``[a, b]``."""
+        return (self.integral(b) - self.integral(a)) / (b - a)
+
+
+def generalized_alpha(
+    residual: Callable[[float, np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    iteration_matrix: Callable[[float, np.ndarray, np.ndarray, np.ndarray, float, float], np.ndarray],
+    x0: np.ndarray,
+    v0: np.ndarray,
+    a0: np.ndarray,
+    t_end: float,
+    h: float,
+    *,
+    rho_inf: float = 0.9,
+    tol: float = 1e-9,
+    output_every: int = 1,
+    progress: Callable[[float], None] | None = None,
+    stats: dict | None = None,
+    refresh_rate: float = REFRESH_RATE,
+    probe_every: int = PROBE_EVERY,
+) -> Trajectory:
+    """Integrate ``r(t, x, v, x'') = 0`` (e.g. ``M(x) x'' - Q(t, x, v)``) by generalized-alpha with step ``h``.
+
+    Parameters
+    ----------
+    residual : ``r(t, x, v, x'')`` (n,).
+    iteration_matrix : ``S(t, x, v, x'', beta', gamma')`` (n, n), an approximation of
+        ``beta' dr/dx'' + gamma' dr/dv + dr/dx`` (exact: quadratic convergence; approximate: more iterations).
+    x0, v0, a0 : initial positions, rates and accelerations (``r(0, x0, v0, a0) = 0``).
+    tol : Newton stops when the estimated error of the positions (max norm, units of x) is below ``tol``.
+    output_every : store every k-th step. progress : called with the fraction done.
+    stats : if a dict, filled with the residual evaluations and matrix factorisations per step.
+
+    Returns
+    -------
+    Trajectory
+        ``y = [x, v]`` (time-first) at ``t = 0, k h, 2 k h, ...``.
+    """
+    ga = GeneralizedAlpha(rho_inf)
+    am, af, g, b = ga.alpha_m, ga.alpha_f, ga.gamma, ga.beta
+    beta_p, gamma_p = ga.primes(h)
+    ca = (1 - af) / (1 - am)  # d a1 / d x1''
+    n_steps = round(t_end / h)
+    x, v, dd = (np.array(z, float) for z in (x0, v0, a0))
+    a = dd.copy()
+    ts, ys = [0.0], [np.concatenate([x, v])]
+    lu = None
+    dd_prev = None
+    eta_est = 1.0  # estimated contraction rate of the current matrix (unknown after a factorisation)
+    since_probe = 0
+    n_res = n_lu = 0
+    report = max(1, n_steps // 100)
+    for k in range(n_steps):
+        t1 = (k + 1) * h
+        for attempt in range(2):
+            if lu is None:
+                lu = sla.lu_factor(iteration_matrix(t1, x, v, dd, beta_p, gamma_p))
+                n_lu += 1
+                eta_est = 1.0
+            # predictor: x1'' extrapolated linearly from the last two steps (constant at the first)
+            dd1 = dd + (dd - dd_prev) if dd_prev is not None else dd.copy()
+            a1 = (af * dd - am * a) / (1 - am) + ca * dd1
+            v1 = v + h * ((1 - g) * a + g * a1)
+            x1 = x + h * v + h * h * ((0.5 - b) * a + b * a1)
+            # at least two iterations every probe_every steps: the rate estimate follows the matrix's ageing
+            probe = since_probe >= probe_every
+            eta, prev, converged, observed = eta_est, None, False, 0.0
+            for it in range(MAX_ITERATIONS):
+                r = residual(t1, x1, v1, dd1)
+                n_res += 1
+                dx = -sla.lu_solve(lu, r, check_finite=False)
+                x1 += dx
+                v1 += gamma_p * dx
+                dd1 += beta_p * dx
+                a1 += ca * beta_p * dx
+                norm = float(np.max(np.abs(dx)))
+                if prev is not None:
+                    eta = norm / prev if prev > 0 else 0.0
+                    observed = max(observed, eta)
+                    if eta >= 1.0:
+                        break  # diverging: refresh the matrix and redo the step
+                if norm == 0.0 or (eta < 1.0 and eta / (1 - eta) * norm <= tol and (prev is not None or not probe)):
+                    converged = True
+                    break
+                prev = norm
+            if converged:
+                break
+            if attempt == 0:
+                lu = None  # the factorised matrix is too stale: refactor at the step's start and retry
+                continue
+            raise FloatingPointError(f"generalized-alpha: Newton did not converge at t = {t1:.6g} s (step {h:g} s)")
+        if prev is not None:
+            eta_est = observed
+            since_probe = 0
+        else:
+            since_probe += 1
+        if eta_est > refresh_rate:
+            lu = None
+        dd_prev = dd
+        x, v, dd, a = x1, v1, dd1, a1
+        if not np.all(np.isfinite(x)):
+            raise FloatingPointError(f"generalized-alpha diverged at t = {t1:.6g} s")
+        if (k + 1) % output_every == 0:
+            ts.append(t1)
+            ys.append(np.concatenate([x, v]))
+        if progress is not None and (k + 1) % report == 0:
+            progress((k + 1) / n_steps)
+    if stats is not None:
+        stats.update(n_steps=n_steps, residuals_per_step=n_res / max(n_steps, 1), factorisations=n_lu)
+    return Trajectory(np.array(ts), np.array(ys))
+
+
+class _ErlsSystem:
+    """Residual and iteration matrix of the ERLS model's eq. 2 under a torque schedule ``tau(t)``."""
+
+    def __init__(self, model: ErlsModel, tau: Callable[[float], np.ndarray], fd_step: float = 1e-7):
+        self.model, self.tau, self.fd_step = model, tau, fd_step
+        self._z = None
+
+    def _cfg(self, x):
+        cfg = self.model.configuration(x[: self.model.nq], self._z)
+        self._z = cfg.pose.z
+        return cfg
+
+    def _r(self, cfg, t, x, v, dd):
+        W = cfg.W
+        return W.T @ (cfg.M_N @ (W @ dd)) - self.model.net_forces(cfg, x, v, self.tau(t))  # M dd - Q
+
+    def residual(self, t, x, v, dd):
+        return self._r(self._cfg(x), t, x, v, dd)
+
+    def iteration_matrix(self, t, x, v, dd, beta_p, gamma_p):
+        """``beta' M + gamma' (C + dh/dv) + K_t``: ``K_t``'s q columns by central differences of the residual,
+        its u columns ``K`` (the q rows' second-order geometric term in u left out: a simplified Newton)."""
+        m = self.model
+        cfg = self._cfg(x)
+        S = beta_p * m.mass(cfg) + gamma_p * (m.damping(cfg) + m.velocity_force_jacobian(cfg, x, v))
+        K = m.stiffness(cfg)
+        for j in range(m.nq):
+            e = np.zeros_like(x)
+            e[j] = self.fd_step
+            rp = self._r(m.configuration(x[: m.nq] + e[: m.nq], cfg.pose.z), t, x + e, v, dd)
+            rm = self._r(m.configuration(x[: m.nq] - e[: m.nq], cfg.pose.z), t, x - e, v, dd)
+            K[:, j] = (rp - rm) / (2 * self.fd_step)
+        m.configuration(x[: m.nq], cfg.pose.z)  # leave the kinematics' warm start at x
+        return S + K
+
+
+def erls_implicit(
+    model: ErlsModel,
+    t_tab: np.ndarray,
+    tau_tab: np.ndarray,
+    y0: np.ndarray,
+    t_end: float,
+    h: float,
+    *,
+    rho_inf: float = 0.9,
+    tol: float = 1e-9,
+    output_every: int = 1,
+    progress: Callable[[float], None] | None = None,
+    stats: dict | None = None,
+    refresh_rate: float = REFRESH_RATE,
+    probe_every: int = PROBE_EVERY,
+) -> Trajectory:
+    """Integrate the ERLS model's eq. 2 under a zero-order-hold torque table by :func:`generalized_alpha`.
+
+    The table (uniform grid ``t_tab``, value ``tau_tab[k]`` held over ``[t_k, t_k+1)``, as the RK4 engine
+    reads it) enters generalized-alpha, which balances forces at step ends and acts as if they were linear
+    in between, as its mean over ``[t1 - h/2, t1 + h/2]`` at each step end ``t1`` (:class:`HeldTable`): the
+    hold's impulse over every step, without lag (for ``h`` equal to the table step, the mean of the values
+    either side of ``t1``, as the Exudyn truth does).
+
+    Returns
+    -------
+    Trajectory
+        ``y = [x; v]`` in :meth:`ErlsModel.rhs`'s layout.
+    """
+    table = HeldTable(t_tab, tau_tab)
+    n = model.n
+    y0 = np.asarray(y0, float)
+    system = _ErlsSystem(model, lambda t: table.mean(t - h / 2, t + h / 2))
+    x0, v0 = y0[:n], y0[n:]
+    a0 = model.accelerations(x0, v0, system.tau(0.0))
+    return generalized_alpha(
+        system.residual,
+        system.iteration_matrix,
+        x0,
+        v0,
+        a0,
+        t_end,
+        h,
+        rho_inf=rho_inf,
+        tol=tol,
+        output_every=output_every,
+        progress=progress,
+        stats=stats,
+        refresh_rate=refresh_rate,
+        probe_every=probe_every,
+    )
