@@ -18,6 +18,7 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
+from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, tip_point, truth_names
@@ -233,8 +234,6 @@ def _augmented_mean(ekf_model, x0) -> np.ndarray:
 
 def _start_q(mech: Mechanism) -> np.ndarray:
     if mech.manoeuvre is not None:
-        from ..manoeuvre import plan
-
         try:
             p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
             return np.asarray(p.q[0], float)
@@ -283,14 +282,36 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
     return {"rms_error": rms, "max_error": mx}
 
 
-def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
-    """Best achievable RMS error per physical quantity: steady-state Kalman covariance of the reduced model
-    linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise."""
+def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9) -> dict[str, float]:
+    """Best achievable RMS error per physical quantity: the steady-state Kalman covariance of the reduced model
+    linearised at a configuration, the stated torque noise as process noise.
+
+    The covariance depends on the configuration (a tip's global x and y swap roles as its link turns; the
+    sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
+    configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
+    and the per-quantity standard deviations are combined as an RMS, the figure an RMS error along the
+    manoeuvre is compared with. With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``, at rest): that
+    one configuration."""
+    mech = obs.mech
+    if q is not None or mech.manoeuvre is None or points < 1:
+        return _bound_at(obs, _mid_q(mech) if q is None else q, qd)
+    try:
+        d = mech.manoeuvre.duration
+        p = plan(mech, dt=d / 200, t_end=d)
+    except Exception as exc:  # noqa: BLE001 - the bound at q_ref instead, with a note
+        log.warning("could not plan the manoeuvre for the bound (%s); using the bound at q_ref", exc)
+        return _bound_at(obs, np.asarray(mech.q_ref, float), None)
+    idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
+    per = [_bound_at(obs, p.q[k], p.qd[k]) for k in idx]
+    return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
+
+
+def _bound_at(obs: Observer, q, qd=None) -> dict[str, float]:
+    """:func:`estimation_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
     mech = obs.mech
     # a model of its own, so that the observer's caches are left alone
     som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
-    if q is None:
-        q = _mid_q(mech)
+    q = np.asarray(q, float)
     z = som.initial_state(q, qd)
     u = np.zeros(len(mech.motors))
     pred, _, maps = som.frozen_interval(z, u, obs.ekf.dt)
@@ -358,8 +379,6 @@ def _steady_posterior(A, Q, H, R, tol: float = 1e-10, max_iter: int = 200_000) -
 
 def _mid_q(mech: Mechanism) -> np.ndarray:
     if mech.manoeuvre is not None:
-        from ..manoeuvre import plan
-
         try:
             d = mech.manoeuvre.duration
             p = plan(mech, dt=d / 2, t_end=d)
