@@ -57,7 +57,9 @@ class ObserverConfig:
     jump_p : the false-alarm probability per interval of the test that flags two successive torque samples
         differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
         unknown instant within it, moment-matched (:meth:`.reduced.ReducedObserverModel.input_jump_moments`).
-        ``None``: no test.
+        ``None`` (default): no test. The test helps where a log's torque steps fall between two samples, and
+        biases the prediction where they fall on a sample (a time law aligned with the samples, as
+        ``exuflex simulate`` makes them): there the held-input step is exact.
     q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
     max_gap : longest interval (s) between two samples the filter predicts over.
@@ -77,7 +79,7 @@ class ObserverConfig:
     elastic0_std: float = 1e-3
     elastic_rate0_std: float = 0.01
     q_scale: float = 1.0
-    jump_p: float | None = 1e-6
+    jump_p: float | None = None
     q_extra_std: float = 0.0
     max_gap: float = 1.0
     start_up: float = 0.3
