@@ -22,7 +22,7 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, tip_point, truth_names
-from .bound import steady_state_covariance
+from .bound import periodic_posterior, steady_state_covariance, unobservable_states
 from .ekf import EstimationResult, MultirateEKF
 from .reduced import ReducedObserverModel
 
@@ -327,8 +327,6 @@ def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_che
 
 def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
     """:func:`estimation_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
-    from .bound import periodic_posterior, unobservable_states
-
     mech = obs.mech
     # a model of its own, so that the observer's caches are left alone
     som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
