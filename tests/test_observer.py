@@ -356,7 +356,7 @@ def test_a_blank_channel_and_a_channel_left_out_give_the_same_estimates(sixbar, 
     j = observer.channels.index("c4")
     blank = Y.copy()
     blank[:, j] = np.nan
-    a = estimate(observer, t, U, blank).result.x_hat
+    a = estimate(make_observer(sixbar, ObserverConfig(), cb=observer.model.rm.cb), t, U, blank).result.x_hat
     fewer = make_observer(sixbar, ObserverConfig(channels=tuple(c for c in observer.channels if c != "c4")),
                           cb=observer.model.rm.cb)
     b = estimate(fewer, t, U, np.delete(Y, j, axis=1)).result.x_hat
