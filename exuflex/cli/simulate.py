@@ -204,7 +204,7 @@ def simulate_run(
     (see ``--elements-per-link``); ``beam``: a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of
     :data:`INTEGRATORS`.
     """
-    from ..manoeuvre import computed_torque, plan, torque_table
+    from ..manoeuvre import open_loop_torque, plan
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
     from ..runs import file_sha256, write_run
@@ -247,10 +247,7 @@ def simulate_run(
     bar.close()
     timings["plan_s"] = time.perf_counter() - t0
     bar = ProgressBar("torque", progress)
-    if mech.manoeuvre.kind == "torque":  # measured torques, open loop
-        tau = torque_table(mech, mech.manoeuvre, pl.t)
-    else:
-        tau = computed_torque(mech, pl, progress=bar)  # nominal model: the controller's knowledge
+    tau = open_loop_torque(mech, pl, progress=bar)  # computed on the nominal model (the controller's), or measured
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
     timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]

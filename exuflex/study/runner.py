@@ -244,14 +244,11 @@ class Drive:
 def plan_drive(nominal: Mechanism, duration: float, h: float) -> Drive:
     """Plan the manoeuvre and its open-loop computed torque on the nominal model (the controller's knowledge);
     a measured-torque manoeuvre gives its torques instead."""
-    from ..manoeuvre import computed_torque, plan, torque_table
+    from ..manoeuvre import open_loop_torque, plan
 
     t0 = time.perf_counter()
     pl = plan(nominal, dt=h, t_end=duration)
-    if nominal.manoeuvre is not None and nominal.manoeuvre.kind == "torque":
-        tau = torque_table(nominal, nominal.manoeuvre, pl.t)
-    else:
-        tau = computed_torque(nominal, pl)
+    tau = open_loop_torque(nominal, pl)
     return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
                  np.asarray(pl.qd[0], float), time.perf_counter() - t0)
 
