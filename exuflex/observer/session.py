@@ -23,9 +23,14 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, tip_point, truth_names
 from .bound import steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF
+from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
 
+#: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
+ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
+
 __all__ = [
+    "ESTIMATORS",
     "ObserverConfig",
     "Observer",
     "default_channels",
@@ -61,6 +66,11 @@ class ObserverConfig:
         deviation in the state's unit.
     max_gap : longest interval (s) between two samples the filter predicts over.
     start_up : seconds left out of the error metrics (the filter's transient).
+    estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
+        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
+    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s), and its prior std (about 1).
+    input_std, input_tau, input0_std : torque-disturbance std (N m; per sqrt(s) for a random walk, stationary for a
+        Gauss-Markov process with correlation time ``input_tau`` s), and its prior std (about 0).
     """
 
     channels: tuple[str, ...] | None = None
@@ -80,6 +90,12 @@ class ObserverConfig:
     q_extra_std: float = 0.0
     max_gap: float = 1.0
     start_up: float = 0.3
+    estimator: str = "ekf"
+    payload_std: float = 0.05
+    payload0_std: float = 0.5
+    input_std: float = 0.05
+    input_tau: float | None = None
+    input0_std: float = 0.05
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -217,18 +233,44 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
-    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+    fmodel, x0, P0 = _filter_model(som, config, x0, P0)
+    ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
 
 
+def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
+    """The filter's model for ``config.estimator`` (the reduced model, or it augmented), with the prior extended
+    to its extra states."""
+    if config.estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}; got {config.estimator!r}")
+    if config.estimator in ("ekf", "ukf"):
+        return som, x0, P0
+    if config.estimator == "ekf-payload":
+        fm = AugmentedModel(som, payload_std=config.payload_std)
+    else:
+        fm = AugmentedModel(som, input_std=config.input_std, input_tau=config.input_tau)
+    P0x = np.empty(fm.nx)
+    P0x[: som.nx] = P0
+    if fm.i_theta is not None:
+        P0x[fm.i_theta] = config.payload0_std**2
+    if fm.i_inputs is not None:
+        P0x[fm.i_inputs] = config.input0_std**2
+    return fm, _augmented_mean(fm, x0), P0x
+
+
 def _augmented_mean(ekf_model, x0) -> np.ndarray:
-    """A reduced-state prior mean extended by zeros for the extra states of the filter's model (if any)."""
+    """A reduced-state prior mean extended for the extra states of the filter's model (if any): the payload scale
+    at 1 (nominal), disturbances at 0."""
     x0 = np.asarray(x0, float).reshape(-1)
     if len(x0) == ekf_model.nx:
         return x0
-    return np.concatenate([x0, np.zeros(ekf_model.nx - len(x0))])
+    out = np.concatenate([x0, np.zeros(ekf_model.nx - len(x0))])
+    i = getattr(ekf_model, "i_theta", None)
+    if i is not None:
+        out[i] = 1.0
+    return out
 
 
 def _start_q(mech: Mechanism) -> np.ndarray:
