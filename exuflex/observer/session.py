@@ -25,6 +25,7 @@ from .bound import steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF
 from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
+from .smoother import SmoothedResult, rts_smooth
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
 ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
@@ -287,23 +288,33 @@ def _start_q(mech: Mechanism) -> np.ndarray:
 
 @dataclass
 class Estimate:
+    """A filtered (and optionally smoothed) record: ``physical`` holds the smoothed estimates where
+    ``smoothed`` is set, the filter's otherwise; ``wall_s`` and ``real_time_factor`` are the filter's."""
+
     result: EstimationResult
     physical: Signals
     wall_s: float
     real_time_factor: float
+    smoothed: SmoothedResult | None = None
+    filtered_physical: Signals | None = None
 
 
-def estimate(obs: Observer, t, U, Y, x0=None, P0=None) -> Estimate:
+def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> Estimate:
     """Filter a record: times (n,), measured torques (n, n_motors), channels (n, m) in ``obs.channels`` order.
     ``x0``, ``P0``: a prior for this record (reduced state and its covariance or variances; default the
-    observer's)."""
+    observer's). ``smooth``: also the RTS smoother (:func:`.smoother.rts_smooth`, which runs the filter's forward
+    pass again, recording its predictions)."""
     t = np.asarray(t, float)
+    x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     t0 = time.perf_counter()
-    res = obs.ekf.run(t, U, Y, x0=None if x0 is None else _augmented_mean(obs.ekf.model, x0), P0=P0)
+    res = obs.ekf.run(t, U, Y, x0=x0, P0=P0)
     wall = time.perf_counter() - t0
     phys = obs.physical(res.t, res.x_hat)
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    if not smooth:
+        return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    sm = rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0)
+    return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
 
 def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None) -> dict:
