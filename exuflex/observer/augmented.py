@@ -70,7 +70,7 @@ class AugmentedModel:
         The nominal reduced model (its step and measurements).
     payload_std : float or None
         Random-walk standard deviation of the payload scale per sqrt(s); None: the payload is not estimated.
-    input_std : float or None
+    input_std : float, array_like (n_motors,) or None
         Torque disturbance per motor (N m): random-walk std per sqrt(s) (``input_tau`` None), or the stationary
         std of a Gauss-Markov process; None: no disturbance states.
     input_tau : float or None
@@ -91,14 +91,14 @@ class AugmentedModel:
         if payload_std is None and input_std is None:
             raise ValueError("an augmented model needs payload_std or input_std (or both)")
         for name, v in (("payload_std", payload_std), ("input_std", input_std), ("input_tau", input_tau)):
-            if v is not None and not (v > 0 and math.isfinite(v)):
-                raise ValueError(f"{name} must be a positive number, got {v}")
+            if v is not None and not np.all((np.asarray(v, float) > 0) & np.isfinite(v)):
+                raise ValueError(f"{name} must be positive, got {v}")
         self.inner = inner
         self.n0 = inner.nx
         self.r = inner.r
         self.nu = len(inner.mech.motors)
         self.payload_std = payload_std
-        self.input_std = input_std
+        self.input_std = None if input_std is None else np.broadcast_to(np.asarray(input_std, float), (self.nu,))
         self.input_tau = input_tau
         n = self.n0
         self.i_theta = None
@@ -170,7 +170,7 @@ class AugmentedModel:
                 q = self.input_std**2 * (1.0 - phi * phi)
             xn[s] = phi * d
             F[s, s] = phi * np.eye(self.nu)
-            Q[s, s] = q * np.eye(self.nu)
+            Q[s, s] = np.diag(q)
         if self.i_theta is not None:
             it = self.i_theta
             th = float(x[it])

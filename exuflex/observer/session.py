@@ -70,8 +70,9 @@ class ObserverConfig:
     estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
     payload_std, payload0_std : random-walk std of the payload scale per sqrt(s), and its prior std (about 1).
-    input_std, input_tau, input0_std : torque-disturbance std (N m; per sqrt(s) for a random walk, stationary for a
-        Gauss-Markov process with correlation time ``input_tau`` s), and its prior std (about 0).
+    input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
+        std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
+        ``input_tau`` s), and its prior std (about 0) as such a multiple.
     """
 
     channels: tuple[str, ...] | None = None
@@ -94,9 +95,9 @@ class ObserverConfig:
     estimator: str = "ekf"
     payload_std: float = 0.05
     payload0_std: float = 0.5
-    input_std: float = 0.05
+    input_scale: float = 1.0
     input_tau: float | None = None
-    input0_std: float = 0.05
+    input0_scale: float = 1.0
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -251,13 +252,14 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if config.estimator == "ekf-payload":
         fm = AugmentedModel(som, payload_std=config.payload_std)
     else:
-        fm = AugmentedModel(som, input_std=config.input_std, input_tau=config.input_tau)
+        fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
+                            input_tau=config.input_tau)
     P0x = np.empty(fm.nx)
     P0x[: som.nx] = P0
     if fm.i_theta is not None:
         P0x[fm.i_theta] = config.payload0_std**2
     if fm.i_inputs is not None:
-        P0x[fm.i_inputs] = config.input0_std**2
+        P0x[fm.i_inputs] = config.input0_scale**2 * som.torque_var_nominal
     return fm, _augmented_mean(fm, x0), P0x
 
 
