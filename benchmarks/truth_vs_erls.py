@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,23 @@ def _table_from_run(mech, run, cache):
     return p.t, tau, p.q[0], p.qd[0]
 
 
+def _write_docs(path: Path, mech, cmp, args, duration: float) -> None:
+    """Rewrite the page's block between ``<!-- truth_vs_erls.py FORM: begin -->`` and its end marker (appended if
+    absent) with this comparison's figures."""
+    begin, end = f"<!-- truth_vs_erls.py {args.form}: begin -->", f"<!-- truth_vs_erls.py {args.form}: end -->"
+    cmd = " ".join(["python benchmarks/truth_vs_erls.py", *sys.argv[1:]])
+    q = ", ".join(f"{n} {v:.2e}" for n, v in cmp.q_max_abs.items())
+    tip = ", ".join(f"{n} {100 * v:.2f} %" for n, v in cmp.tip_nrms.items())
+    block = (f"{begin}\n- ERLS `{args.form}` vs Exudyn, {mech.name}, {duration:g} s manoeuvre (`{cmd}`): max |dq| (rad) "
+             f"{q}; tip elastic displacement NRMS {tip}\n{end}")
+    text = path.read_text() if path.exists() else ""
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text + ("\n" if text and not text.endswith("\n") else "") + block + "\n"
+    path.write_text(text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model", nargs="?", default=str(ROOT / "models" / "sixbar.toml"))
@@ -54,6 +72,9 @@ def main() -> None:
     ap.add_argument("--plan-cache", default=None, help="npz cache of the plan at the run's table step")
     ap.add_argument("--plot", default=None, help="save a figure (PNG)")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--form", default="lagrange", choices=("lagrange", "eq2"),
+                    help="the ERLS full-order model's velocity forces (exuflex.erls.model)")
+    ap.add_argument("--docs", default=None, help="docs page whose 'truth_vs_erls.py FORM' block is rewritten")
     args = ap.parse_args()
     mech = load_mechanism(args.model)
     erls_truth = table = None
@@ -72,11 +93,13 @@ def main() -> None:
         table = _table_from_run(mech, run, args.plan_cache)
     elif duration is not None:
         table = manoeuvre_table(mech, duration, args.h)
-    cmp, exu, erl = truth_vs_erls(mech, duration, h=args.h, erls_truth=erls_truth, table=table)
+    if args.erls_run and args.form != "lagrange":
+        raise SystemExit("--erls-run holds a 'lagrange' ERLS truth; drop it to simulate another form")
+    cmp, exu, erl = truth_vs_erls(mech, duration, h=args.h, erls_truth=erls_truth, table=table, form=args.form)
     if args.json:
         print(json.dumps(cmp.as_dict(), indent=2))
     else:
-        print(f"Exudyn truth vs ERLS full-order, {mech.name}, {exu.t[-1]:g} s manoeuvre, h = {args.h:g} s")
+        print(f"Exudyn truth vs ERLS full-order ({args.form}), {mech.name}, {exu.t[-1]:g} s manoeuvre, h = {args.h:g} s")
         for n, v in cmp.q_max_abs.items():
             print(f"  max |d{n}| = {v:.3e} rad   (end {exu[n][-1] - erl[n][-1]:+.2e})")
         for n, v in cmp.tip_nrms.items():
@@ -85,6 +108,8 @@ def main() -> None:
         ok = cmp.q_max < 1e-3 and cmp.tip_nrms_max < 0.1
         print(f"  acceptance (q < 1e-3 rad, tip NRMS < 10 %): {'PASS' if ok else 'FAIL'}")
         print("  wall: " + ", ".join(f"{k} {v:.1f} s" for k, v in cmp.extra.items()))
+    if args.docs:
+        _write_docs(Path(args.docs), mech, cmp, args, exu.t[-1])
     if args.plot:
         import matplotlib
 

@@ -292,8 +292,9 @@ def _solve_path(ik: _PathIK, t, q, qd, qdd, p, pd, pdd, q0: np.ndarray, progress
     point (each started from the last point's Taylor prediction) on a coarse subset of at most
     :data:`_COARSE_POINTS` grid points, then Newton at every other point at once (batched), started from the
     cubic Hermite interpolation of the coarse solutions and their exact rates. A point whose batched Newton
-    fails, or lands farther from its start than a continuation step could explain (another assembly branch),
-    is solved from its predecessor instead, as a sequential solve would.
+    fails, or which does not continue its predecessor (the trapezoidal rule over the step, violated by a change
+    of assembly branch), is solved from its predecessor instead, as a sequential solve would, and so on until
+    the path rejoins the batch's.
     """
     kin, nz, free = ik.kin, ik.nz, ik.free
     n = len(t)
@@ -350,16 +351,26 @@ def _solve_path(ik: _PathIK, t, q, qd, qdd, p, pd, pdd, q0: np.ndarray, progress
         qg = q[r].copy()
         qg[:, free] = _hermite(t[k0], t[k1], q[k0][:, free], q[k1][:, free], qd[k0][:, free], qd[k1][:, free], tt)
         zs, qs, ok = ik.newton(zg, qg, p[r] if has_p else None)
-        # the interpolation is far closer than the links turn between coarse points; a larger move is a branch change
-        turn = np.max(np.abs(z[k1, 2::3] - z[k0, 2::3]), axis=1)
-        ok &= np.max(np.abs(zs[:, 2::3] - zg[:, 2::3]), axis=1) <= 1e-2 + 0.5 * turn
         qdr, qddr = qd[r], qdd[r]
         z[r], q[r] = zs, qs
         zd[r], zdd[r] = ik.rates(zs, qdr, qddr, pd[r] if has_p else None, pdd[r] if has_p else None)
         qd[r], qdd[r] = qdr, qddr
         solved[r] = ok
-    for k in rest[~solved[rest]]:  # the exceptions, one after the other from their predecessor
+    # every point must continue its predecessor: the trapezoidal rule over a step, z_k - z_k-1 = (z'_k-1 + z'_k) h / 2,
+    # holds to h^2 |z''| / 8 (z'' may jump), a change of assembly branch breaks it; such points and those whose
+    # Newton failed are solved from their predecessor, one after the other, until the path rejoins the batch
+    k = 1
+    while k < n:
+        j = np.arange(k, min(n, k + _CHUNK))
+        h = (t[j] - t[j - 1])[:, None]
+        gap = np.abs(z[j] - z[j - 1] - 0.5 * h * (zd[j] + zd[j - 1]))
+        bad = ~solved[j] | np.any(gap > 0.5 * h**2 * (np.abs(zdd[j]) + np.abs(zdd[j - 1])) + 1e-9, axis=1)
+        if not bad.any():
+            k = j[-1] + 1
+            continue
+        k = j[np.argmax(bad)]
         sequential([k], None, None, k - 1)
+        k += 1
     if progress is not None:
         progress(0.9)
     # the closure must be regular along the path (the coarse points; continuation keeps the branch between)
@@ -404,6 +415,7 @@ def plan(
     src = mech.source or mech.name
     if man is None:
         raise ValueError(f"{src}: the model has no [manoeuvre] and none was given")
+    src = man.source or src
     if not dt > 0:
         raise ValueError(f"plan: dt must be positive, got {dt}")
     if man.kind not in KINDS:
@@ -414,6 +426,7 @@ def plan(
     names = mech.coordinate_names
     nq = len(names)
     kin = Kinematics(mech)
+    kin.compiled = False  # its few single solves need no compiled kernels (nor their loading time)
     q = np.zeros((n, nq))
     qd = np.zeros((n, nq))
     qdd = np.zeros((n, nq))
@@ -581,8 +594,7 @@ def write_trajectory(path, plan: Plan, *, rates: bool = True) -> None:
     data = np.hstack(cols)
     with open(path, "w", encoding="utf-8") as fh:
         fh.write(",".join(header) + "\n")
-        for row in data:
-            fh.write(",".join(repr(float(v)) for v in row) + "\n")
+        fh.writelines(",".join(repr(float(v)) for v in row) + "\n" for row in data)
 
 
 # ---------------------------------------------------------------------------------------- inverse dynamics
@@ -636,6 +648,25 @@ def _link_forces(kin: Kinematics, z: np.ndarray, f: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rigid_rows(mech: Mechanism, model: ErlsModel, bodies, z, zd, zdd):
+    """``b = S_z^T Q_z`` (n_t, nq) and ``A = S_z^T G^T B`` (n_t, nq, n_motors) of the rigid inverse dynamics
+    (:func:`computed_torque`) at the link motions ``z, z', z''``."""
+    kin = model.kin
+    m, Sx, Sy, J = bodies
+    th, w, al = z[:, 2::3], zd[:, 2::3], zdd[:, 2::3]
+    c, s = np.cos(th), np.sin(th)
+    Sgx, Sgy = c * Sx - s * Sy, s * Sx + c * Sy
+    ax = zdd[:, 0::3] - mech.gravity[0]
+    ay = zdd[:, 1::3] - mech.gravity[1]
+    rhs = np.empty((len(z), 3 * kin.nl, 1 + len(mech.motors)))
+    rhs[:, 0::3, 0] = m * ax - al * Sgy - w**2 * Sgx
+    rhs[:, 1::3, 0] = m * ay + al * Sgx - w**2 * Sgy
+    rhs[:, 2::3, 0] = J * al + Sgx * ay - Sgy * ax
+    rhs[:, :, 1:] = _link_forces(kin, z, model.B_N)
+    Y = kin._E.T @ np.linalg.solve(np.swapaxes(kin.jacobian(z), 1, 2), rhs)  # S_z^T [Q_z, G^T B]
+    return Y[:, :, 0], Y[:, :, 1:]
+
+
 def computed_torque(
     mech: Mechanism,
     plan: Plan,
@@ -683,7 +714,9 @@ def computed_torque(
     ActuationError
         If the motors cannot actuate every coordinate (``rank (W^T B)_q < nq``).
     """
-    model = model if model is not None else ErlsModel(mech)
+    if model is None:
+        model = ErlsModel(mech)
+        model.compiled = model.kin.compiled = False  # one configuration: no compiled kernels (nor their loading)
     kin = model.kin
     nq = model.nq
     nm = len(mech.motors)
@@ -694,26 +727,19 @@ def computed_torque(
         z, zd, zdd = plan.z, plan.zd, plan.zdd
     if progress is not None:
         progress(0.2)
-    m, Sx, Sy, J = _link_bodies(model, plan.q[0], z[0])
-    th, w, al = z[:, 2::3], zd[:, 2::3], zdd[:, 2::3]
-    c, s = np.cos(th), np.sin(th)
-    Sgx, Sgy = c * Sx - s * Sy, s * Sx + c * Sy
-    ax = zdd[:, 0::3] - mech.gravity[0]
-    ay = zdd[:, 1::3] - mech.gravity[1]
-    rhs = np.empty((len(z), 3 * kin.nl, 1 + nm))
-    rhs[:, 0::3, 0] = m * ax - al * Sgy - w**2 * Sgx
-    rhs[:, 1::3, 0] = m * ay + al * Sgx - w**2 * Sgy
-    rhs[:, 2::3, 0] = J * al + Sgx * ay - Sgy * ax
-    rhs[:, :, 1:] = _link_forces(kin, z, model.B_N)
-    Y = kin._E.T @ np.linalg.solve(np.swapaxes(kin.jacobian(z), 1, 2), rhs)  # S_z^T [Q_z, G^T B]
-    b, A = Y[:, :, 0], Y[:, :, 1:]
-    rank = np.linalg.matrix_rank(A[0])
-    if rank < nq:
-        raise ActuationError(
-            f"{mech.source or mech.name}: the motors {list(mech.motor_names)} actuate only {rank} of the "
-            f"{nq} coordinates {list(mech.coordinate_names)}; computed torque needs rank {nq}"
-        )
-    tau = np.linalg.solve(A, b[:, :, None])[:, :, 0] if nm == nq else (np.linalg.pinv(A) @ b[:, :, None])[:, :, 0]
+    bodies = _link_bodies(model, plan.q[0], z[0])
+    tau = np.empty((len(z), nm))
+    for c0 in range(0, len(z), _CHUNK):  # in chunks: the batched arrays stay in cache
+        c = slice(c0, c0 + _CHUNK)
+        b, A = _rigid_rows(mech, model, bodies, z[c], zd[c], zdd[c])
+        if c0 == 0:
+            rank = np.linalg.matrix_rank(A[0])
+            if rank < nq:
+                raise ActuationError(
+                    f"{mech.source or mech.name}: the motors {list(mech.motor_names)} actuate only {rank} of the "
+                    f"{nq} coordinates {list(mech.coordinate_names)}; computed torque needs rank {nq}"
+                )
+        tau[c] = np.linalg.solve(A, b[:, :, None])[:, :, 0] if nm == nq else (np.linalg.pinv(A) @ b[:, :, None])[:, :, 0]
     if progress is not None:
         progress(1.0)
     return tau

@@ -311,3 +311,16 @@ def test_batched_torque_with_gravity_equals_the_oracle():
     # a plan without the link motion (built by hand) gives the same torques
     bare = dataclasses.replace(pl, z=None, zd=None, zdd=None)
     assert _relative(computed_torque(fb, bare)[ks], tau) < 1e-12
+
+
+def test_batched_plan_recovers_from_a_wrong_branch(mech, monkeypatch):
+    """With only the two end points solved in sequence, the interpolated starts are poor and the batched Newton
+    lands on other assembly branches: the continuity check finds those points and solves them from their
+    predecessors, so the plan equals the one from close coarse points."""
+    import exuflex.manoeuvre as man_mod
+
+    ref = plan(mech, dt=5e-3)
+    monkeypatch.setattr(man_mod, "_COARSE_POINTS", 2)
+    rough = plan(mech, dt=5e-3)
+    np.testing.assert_allclose(rough.q, ref.q, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(rough.qdd, ref.qdd, rtol=0, atol=1e-9 * np.abs(ref.qdd).max())

@@ -254,6 +254,12 @@ def test_five_bar_tip_arc_simulates_and_torque_file_reproduces_it(five, tmp_path
     assert meta_b["settings"]["manoeuvre"]["file"].endswith("torques.csv")
     run_b = read_run(b)
     np.testing.assert_allclose(run_b.truth.data, truth.data, rtol=0, atol=1e-9 * np.abs(truth.data).max())
+    # exuflex observe takes the run's manoeuvre (its start) from the run's record
+    from exuflex.cli.observe import run_manoeuvre
+
+    assert run_manoeuvre(five, run_a) is five
+    observed = run_manoeuvre(five, run_b).manoeuvre
+    assert observed.kind == "torque" and observed.q0 == tuple(q0)
 
 
 def test_simulate_reports_a_bad_manoeuvre_file_in_one_line(tmp_path, capsys):
@@ -290,7 +296,7 @@ def test_sweep_over_the_manoeuvre_plans_each_level(six):
     from exuflex.study.runner import Level, drive_mech, plan_drive, sweep_levels
 
     levels = sweep_levels([parse_set("manoeuvre.rules.q3.end=4.9,5.2"), parse_set("manoeuvre.duration=2.0")])
-    assert [lv.overrides for lv in levels][0] == (("manoeuvre.rules.q3.end", 4.9), ("manoeuvre.duration", 2.0))
+    assert levels[0].overrides == (("manoeuvre.rules.q3.end", 4.9), ("manoeuvre.duration", 2.0))
     drives = [plan_drive(drive_mech(six, lv), 0.3, 1e-3) for lv in levels]
     assert np.abs(drives[0].tau - drives[1].tau).max() > 1e-3
     for lv, d in zip(levels, drives, strict=True):
@@ -317,3 +323,13 @@ def test_manoeuvre_override_errors(six, field, value, match):
 
     with pytest.raises(OverrideError, match=match):
         apply_overrides(six, {field: value})
+
+
+def test_plan_errors_name_the_manoeuvre_file(tmp_path, five):
+    doc = tmp_path / "corners.toml"
+    doc.write_text('[manoeuvre]\nkind = "tip_polyline"\nduration = 0.4\nramp_time = 0.15\n'
+                   'tip = { link = "dist1", station = 0.675 }\npoints = [[0.2995, 0.6693], [0.33, 0.64], [0.28, 0.62]]\n')
+    man = load_manoeuvre(doc, five)
+    with pytest.raises(ModelFileError, match=r"corners\.toml: manoeuvre\.ramp_time: expected at most half the "
+                       r"shortest segment's time 0\.17\d* s"):
+        plan(five, man, dt=0.01)

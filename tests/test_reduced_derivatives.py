@@ -116,7 +116,7 @@ def test_reduced_trajectory_follows_the_full_model():
     tau = computed_torque(mech, pl)
 
     def torque(t):
-        return tau[min(int(round(t / h)), len(tau) - 1)]
+        return tau[min(round(t / h), len(tau) - 1)]
 
     y0 = np.zeros(2 * model.n)
     y0[: model.nq], y0[model.n : model.n + model.nq] = pl.q[0], pl.qd[0]

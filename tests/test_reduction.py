@@ -111,6 +111,12 @@ def test_interior_modes_chosen_over_the_manoeuvre_hold_along_it(fourbar):
     assert all(a.ok(0.99, 2.0) for a in cb.path_accuracy)
 
 
+def test_a_fixed_count_below_the_path_need_is_logged(fourbar, caplog):
+    with caplog.at_level("WARNING", logger="exuflex.reduction.basis"):
+        cb = CraigBampton(fourbar, masters=["node9.transverse"], n_interior=1)
+    assert cb.n_interior == 1 and "miss the accuracy thresholds" in caplog.text and "'auto' would keep" in caplog.text
+
+
 def test_rotation_is_what_makes_one_qstar_serve_the_manoeuvre(sixbar):
     cb = CraigBampton(sixbar, n_interior=5)
     q = np.array([0.82, 2.68, 5.1])
@@ -327,6 +333,7 @@ def test_automatic_masters_are_the_compliant_transverse_dofs_at_joints_and_tips(
 
     cb = CraigBampton(fourbar, masters=())
     assert cb.automatic_masters and len(cb.masters) == 3 and cb.masters[-1] == "node9.transverse"
+    assert CraigBampton(fourbar, masters="auto", n_interior=0).masters == cb.masters
     mech = fourbar.mech
     pos = {n: i for i, n in enumerate(mech.node_ids)}
     for joint, chosen in zip(("A", "B"), cb.masters):

@@ -63,7 +63,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--exudyn", action="store_true", help="add the Exudyn model's frequencies")
     p.add_argument("--reduced", action="store_true", help="add the reduced model's frequencies, NCO and errors")
     p.add_argument("--masters", type=lambda s: [m for m in s.split(",") if m], default=None,
-                   help="elastic master dofs a,b,... for --reduced (default: the model's [reduction].masters)")
+                   help="elastic master dofs a,b,... for --reduced, e.g. node9.transverse, or 'auto' (default: the "
+                        "model's [reduction].masters)")
     p.add_argument("--n-interior", type=_n_interior, default=None,
                    help="interior modes N or 'auto' for --reduced (default: the model's)")
     p.add_argument("--qstar", type=_floats, default=None, help="reduction configuration Q1,Q2,... for --reduced")

@@ -82,6 +82,20 @@ def _read_log(args, mech):
     return Run(Path(args.run_dir), sig, truth, meta)
 
 
+def run_manoeuvre(mech, log):
+    """``mech`` with the manoeuvre the run was made with, when ``exuflex simulate --manoeuvre FILE`` replaced the
+    model's (recorded in its meta.json): the observer starts where that manoeuvre starts."""
+    from ..mechanism import load_manoeuvre
+
+    src = ((log.meta or {}).get("settings") or {}).get("manoeuvre", {}).get("source", "model")
+    if src in (None, "model"):
+        return mech
+    if not Path(src).is_file():
+        print(f"exuflex observe: warning: the run's manoeuvre file {src} is gone; using the model's", file=sys.stderr)
+        return mech
+    return mech.replace(manoeuvre=load_manoeuvre(src, mech))
+
+
 def run(args) -> int:
     from ..mechanism import load_mechanism
     from ..observer.session import observe_run
@@ -92,6 +106,7 @@ def run(args) -> int:
 
     check_configurations(mech)  # loops close, away from singularities
     log = _read_log(args, mech) if Path(args.run_dir).is_file() else read_run(args.run_dir)
+    mech = run_manoeuvre(mech, log)
     out = observe_run(mech, log, _config(args))
     s = out.summary
     if s["diverged"]:

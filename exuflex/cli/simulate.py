@@ -130,20 +130,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, integrator="gen-alpha", stats=None):
+def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, integrator="gen-alpha", stats=None,
+                form: str = "lagrange"):
     """Full-order ERLS model under the torque table (zero-order hold); returns a ProbeRecord.
 
     ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``h`` (stable whatever the mesh's stiffest
     mode). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
     model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none
     at 0.1 ms, a finer mesh with stiffness damping does: its highest modes are overdamped, with large real
-    eigenvalues)."""
+    eigenvalues). ``form``: the full-order model's velocity forces (:class:`~exuflex.erls.model.ErlsModel`)."""
     from ..erls.implicit import erls_implicit
     from ..erls.model import ErlsModel
     from ..erls.simulate import rk4_substeps, simulate
     from ..sensors import erls_probe_record
 
-    model = ErlsModel(mech)
+    model = ErlsModel(mech, form=form)
     n = model.n
     y0 = np.zeros(2 * n)
     y0[: model.nq] = q0
@@ -218,7 +219,7 @@ def simulate_run(
     seed = new_seed() if seed is None else seed
     timings = {}
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     bar = ProgressBar("plan", progress)
     pl = plan(mech, dt=h, t_end=duration, progress=bar)
     bar.close()
@@ -231,6 +232,7 @@ def simulate_run(
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
     timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]
+    timings["plan_and_torque_cpu_s"] = time.process_time() - c0
 
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     t0 = time.perf_counter()
@@ -283,7 +285,8 @@ def simulate_run(
     meas = measure(mech, clean, pl.t, tau, seed=seed, t_end=duration)
     payload = truth_mech.payload
     man = mech.manoeuvre
-    man_meta = {"kind": man.kind, "duration_s": man.duration, "source": str(manoeuvre) if manoeuvre else "model"}
+    man_meta = {"kind": man.kind, "duration_s": man.duration,
+                "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
     if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
         man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
     if man.kind == "waypoints":

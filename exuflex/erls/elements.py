@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["beam_stiffness", "beam_mass", "rotation", "hermite_curvature_row", "GENERATOR"]
+__all__ = ["GENERATOR", "beam_gyroscopic", "beam_mass", "beam_stiffness", "hermite_curvature_row", "rotation"]
 
 
 def beam_stiffness(EA: float, EI: float, L: float) -> np.ndarray:
@@ -44,6 +44,25 @@ def beam_mass(rhoA: float, L: float) -> np.ndarray:
     )
     m[np.ix_([1, 2, 4, 5], [1, 2, 4, 5])] = mb
     return m
+
+
+def beam_gyroscopic(rhoA: float, L: float) -> np.ndarray:
+    """Local 6x6 skew matrix ``A = int_0^L rhoA N^T G2 N ds`` (``G2 = [[0, -1], [1, 0]]``).
+
+    ``N`` (2 x 6) interpolates the element's local displacement field: linear in the axial ``u``, cubic Hermite
+    in the lateral ``v`` (with the rotations). ``A - m G`` (``m``: :func:`beam_mass`, ``G``: :data:`GENERATOR`)
+    is the element's rotation-rate matrix of eq. 2's ``M_G`` (see :mod:`exuflex.erls.model`); it vanishes on
+    rigid velocity fields, which ``N`` interpolates exactly (for them ``N G = G2 N``). Gauss-Legendre with three
+    points, exact for the quartic integrand.
+    """
+    x, w = np.polynomial.legendre.leggauss(3)
+    A = np.zeros((6, 6))
+    for xi, wi in zip(0.5 * (x + 1.0), 0.5 * w * L):
+        Nx = np.array([1 - xi, 0, 0, xi, 0, 0])
+        Ny = np.array([0, 1 - 3 * xi**2 + 2 * xi**3, L * (xi - 2 * xi**2 + xi**3), 0, 3 * xi**2 - 2 * xi**3,
+                       L * (-(xi**2) + xi**3)])
+        A += wi * rhoA * (np.outer(Ny, Nx) - np.outer(Nx, Ny))  # N^T G2 N = Ny^T Nx - Nx^T Ny
+    return A
 
 
 # d R / d theta = R @ GENERATOR for the 6x6 element rotation

@@ -6,18 +6,46 @@ Coordinates ``x = [q; u]``: the independent ERLS coordinates ``q`` and the elast
 ``r`` the ERLS nodal coordinates and ``T`` the 0/1 map from ``u`` to nodal displacements, so
 ``db/dt = S q' + T u' = W v`` with ``W = [S, T]`` and ``v = [q'; u']``.
 
-Equations of motion (Lagrange, kinetic energy ``b'^T M_N(q) b' / 2``, strain energy
-``u^T T^T K_N(q) T u / 2``; ``M_N``, ``K_N`` assembled from element matrices rotated with the ERLS):
+Equations of motion: ``W^T M_N W v' + h(x, v) + C v + K x = W^T (B tau + f + M_N g)`` with
+``W^T M_N W`` eq. 2's mass matrix, ``K = diag(0, K_uu)``, ``K_uu = T^T K_N T``, ``M_N`` and ``K_N``
+assembled from the element matrices rotated with the ERLS (``R_e``: the element's block rotation by
+its link's angle ``theta_e``).
 
-``W^T M_N W v' + h(x, v) + C v + K x = W^T (B tau + f + M_N g)``
+Element kinematics (both forms start here). A point at station ``s`` of element ``e`` sits at
+``p = R_e N(s) R_e^T b_e``: the element's nodal coordinates taken into its own frame, interpolated
+(``N``, 2 x 6: linear axial, cubic Hermite lateral) and turned back. With ``R_e' = theta_e' R_e G``
+(``G``: :data:`~exuflex.erls.elements.GENERATOR`, ``G2`` its 2 x 2 block)
 
-with ``W^T M_N W`` eq. 2's mass matrix, ``K = diag(0, K_uu)``, ``C = diag(0, alpha M_uu + beta K_uu)``
-and the velocity-dependent forces ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]``,
-where ``M_N' b' = sum_e theta_e' G_e b'`` is eq. 2's ``2 M_G`` term (Coriolis/centrifugal forces of
-the rotating element frames) and the two ``q``-row terms are second order in the elastic motion.
-Keeping them makes the model exactly energy-consistent (``dE/dt = -u'^T C_uu u' + v^T Q``), which
-the paper's compact eq. 2 leaves implicit. Rayleigh damping acts on the elastic rates only (its
-dissipation function), so rigid motion is undamped.
+``p' = R N R^T b' + theta' R (G2 N - N G) R^T u``.
+
+``N`` interpolates rigid velocity fields exactly, for which ``N G = G2 N``, so the second term acts on
+the elastic ``u`` only; it is the difference between rotating the elastic field with the element and
+interpolating it in the global frame, and shrinks as O(h^2) with the element length h. The two forms
+(``form=``) differ in how they treat it and in the damping's rows:
+
+``form="lagrange"`` (energy-consistent)
+    Lagrange's equations for ``T = b'^T M_N(q) b' / 2`` (the first term of ``p'`` only) and
+    ``V = u^T K_uu(q) u / 2``:
+    ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]`` with the symmetric
+    ``M_N' = sum_e theta_e' R_e (G m_e - m_e G) R_e^T`` (``S' = dS/dt``; the terms of ``dW/dq``
+    cancel because ``d^2 r/dq_j dq_k`` is symmetric). The two q-row terms are second order in the
+    elastic motion. ``C = diag(0, alpha M_uu + beta K_uu)``: Rayleigh damping as a dissipation function
+    of the elastic rates. Exactly energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q``
+    (``tests/test_energy.py``). ``M_N' S q'`` is not zero under pure rigid motion.
+``form="eq2"`` (the paper's eq. 2 as written)
+    Virtual work with ``delta p = R N R^T delta b`` and the acceleration
+    ``p'' = R N R^T b'' + 2 theta' R (G2 N - N G) R^T u' + (terms in theta'^2 u and theta'' u)``, the
+    last left out as eq. 2 does: ``h = W^T (M_N S' q' + 2 M_G T u')`` with
+    ``M_G = sum_e theta_e' R_e (A_e - m_e G) R_e^T``, ``A_e = int rhoA N^T G2 N ds`` (skew,
+    :func:`~exuflex.erls.elements.beam_gyroscopic`), so ``M_G`` is not symmetric and ``M_G S = 0``.
+    The damping is ``W^T C_N T u'`` with ``C_N = alpha M_N + beta K_N``: eq. 2's ``S^T C u'`` in the
+    q rows (``K_N S = 0``, so only ``alpha S^T M_N T u'`` remains there). Neither ``M_G`` nor the q rows'
+    damping derives from an energy or a dissipation function, so this form has no power balance identity.
+
+On rigid motion (``u = u' = 0``) the q rows of the two forms coincide (``M_N'`` and the ``dT/dq`` term
+cancel on rigid fields). On a uniformly spinning link the elastic rows of ``"eq2"`` are exactly the
+consistent nodal load of the centrifugal force; ``"lagrange"`` adds ``T^T M_N' S q'``, whose largest
+entry falls as h^2 (``tests/test_erls_forms.py`` checks these, ``M_G S = 0`` and both forms' ``dh/dv``).
 """
 
 from __future__ import annotations
@@ -29,10 +57,12 @@ import numpy as np
 from ..mechanism import ElasticDofs, Mechanism, elastic_dofs
 from ._assembly import configuration as compiled_configuration
 from ._assembly import nodal_matrices
-from .elements import GENERATOR, beam_mass, beam_stiffness, hermite_curvature_row, rotation
+from .elements import GENERATOR, beam_gyroscopic, beam_mass, beam_stiffness, hermite_curvature_row, rotation
 from .kinematics import Kinematics, Pose
 
-__all__ = ["ErlsModel", "Configuration"]
+__all__ = ["FORMS", "Configuration", "ErlsModel"]
+
+FORMS = ("lagrange", "eq2")  # the velocity forces and damping of the equations of motion (module docstring)
 
 
 @dataclass(frozen=True)
@@ -57,9 +87,16 @@ class ErlsModel:
     ----------
     mech : Mechanism
         The mechanism (e.g. from :func:`exuflex.mechanism.load_mechanism`).
+    form : "lagrange" or "eq2"
+        The velocity-dependent forces and damping: the energy-consistent Lagrange form (default: on the six-bar's
+        manoeuvre it agrees with the Exudyn truth, eq. 2 as written does not, and on the spin-up benchmark the two
+        are equal; ``docs/validity.md``) or the paper's eq. 2 as written (see the module docstring).
     """
 
-    def __init__(self, mech: Mechanism):
+    def __init__(self, mech: Mechanism, form: str = "lagrange"):
+        if form not in FORMS:
+            raise ValueError(f"ErlsModel: form must be one of {FORMS}, got {form!r}")
+        self.form = form
         self._locate_cache: dict = {}
         self.mech = mech
         self.kin = Kinematics(mech)
@@ -80,7 +117,7 @@ class ErlsModel:
         self.t_index = np.asarray(self.dofs.nodal_to_u, dtype=np.int64)
         # elements
         link_index = {lk.name: i for i, lk in enumerate(mech.links)}
-        el_link, el_dofs, Kl, Ml, el_len, el_station = [], [], [], [], [], []
+        el_link, el_dofs, Kl, Ml, Al, el_len, el_station = [], [], [], [], [], [], []
         for lk in mech.links:
             EA = lk.material.E * lk.section.A
             EI = lk.material.E * lk.section.I
@@ -92,6 +129,7 @@ class ErlsModel:
                 el_dofs.append([3 * na, 3 * na + 1, 3 * na + 2, 3 * nb, 3 * nb + 1, 3 * nb + 2])
                 Kl.append(beam_stiffness(EA, EI, L))
                 Ml.append(beam_mass(rhoA, L))
+                Al.append(beam_gyroscopic(rhoA, L))
                 el_len.append(L)
                 el_station.append(lk.stations[a])
         self.el_link = np.array(el_link)
@@ -102,6 +140,7 @@ class ErlsModel:
         self.Ml = np.array(Ml)
         self.Gl = GENERATOR @ self.Ml - self.Ml @ GENERATOR  # dM/dtheta in local form
         self.KGl = GENERATOR @ self.Kl - self.Kl @ GENERATOR
+        self.MGl = np.array(Al) - self.Ml @ GENERATOR  # eq. 2's M_G per unit element rate, local form
         self.n_el = len(el_link)
         lump = np.zeros(self.N)
         for lm in mech.all_masses():
@@ -192,8 +231,12 @@ class ErlsModel:
         return K
 
     def damping(self, cfg: Configuration) -> np.ndarray:
-        """Rayleigh damping on the elastic block, alpha M_uu + beta K_uu."""
+        """The damping matrix C (n x n) of the form: ``"lagrange"``: Rayleigh on the elastic block,
+        ``diag(0, alpha M_uu + beta K_uu)``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns."""
         C = np.zeros((self.n, self.n))
+        if self.form == "eq2":
+            C[:, self.nq :] = cfg.W.T @ (self.alpha * (cfg.M_N @ self.T) + self.beta * (cfg.K_N @ self.T))
+            return C
         Tt = self.T.T
         C[self.nq :, self.nq :] = self.alpha * (Tt @ cfg.M_N @ self.T) + self.beta * (Tt @ cfg.K_N @ self.T)
         return C
@@ -207,7 +250,10 @@ class ErlsModel:
         return cfg.W.T @ f_nodal
 
     def velocity_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """h(x, v): velocity-dependent forces plus the q-row geometric term (see module docstring)."""
+        """h(x, v): the velocity-dependent forces of the form (``"lagrange"`` with the q-row geometric
+        term; see the module docstring)."""
+        if self.form == "eq2":
+            return self._velocity_forces_eq2(cfg, v)
         nq = self.nq
         qd, ud = v[:nq], v[nq:]
         _, Sd = self.kin.rates(cfg.pose, qd)
@@ -218,7 +264,7 @@ class ErlsModel:
         Rt = np.swapaxes(R, 1, 2)
         bl = np.einsum("eij,ej->ei", Rt, bd[self.el_dofs])  # element velocities in local frames
         Gb = np.einsum("eij,ej->ei", self.Gl, bl)
-        fe = np.einsum("eij,ej->ei", R, Gb) * th_d[:, None]
+        fe = np.einsum("eij,ej->ei", R, Gb) * th_d[:, None]  # M_N' b'
         f += np.bincount(self._el_flat, fe.reshape(-1), minlength=self.N)
         h = cfg.W.T @ f
         # q rows: -dT/dq (explicit) + dV/dq, both through the element angles
@@ -230,8 +276,29 @@ class ErlsModel:
         h[:nq] += S_th.T @ (gV - gT)
         return h
 
+    def coriolis_matrix(self, cfg: Configuration, qd: np.ndarray) -> np.ndarray:
+        """Eq. 2's ``M_G = sum_e theta_e' R_e (A_e - m_e G) R_e^T`` (N x N, nodal) at the rates ``q'``."""
+        th_d = (cfg.pose.Sz[2::3] @ qd)[self.el_link]
+        R = cfg.R
+        return self._assemble((R @ self.MGl @ np.swapaxes(R, 1, 2)) * th_d[:, None, None])
+
+    def _velocity_forces_eq2(self, cfg: Configuration, v: np.ndarray) -> np.ndarray:
+        """``W^T (M_N S' q' + 2 M_G T u')``: eq. 2's velocity terms without the damping."""
+        nq = self.nq
+        qd = v[:nq]
+        _, Sd = self.kin.rates(cfg.pose, qd)
+        f = cfg.M_N @ (Sd @ qd)
+        th_d = (cfg.pose.Sz[2::3] @ qd)[self.el_link]
+        R = cfg.R
+        ul = np.einsum("eji,ej->ei", R, (self.T @ v[nq:])[self.el_dofs])  # R^T u' per element
+        fe = np.einsum("eij,ej->ei", R, np.einsum("eij,ej->ei", self.MGl, ul)) * (2.0 * th_d[:, None])
+        f += np.bincount(self._el_flat, fe.reshape(-1), minlength=self.N)
+        return cfg.W.T @ f
+
     def velocity_force_jacobian(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """dh/dv (n x n) of :meth:`velocity_forces`, exact (h is a quadratic form in v)."""
+        if self.form == "eq2":
+            return self._velocity_force_jacobian_eq2(cfg, v)
         nq = self.nq
         qd = v[:nq]
         W = cfg.W
@@ -259,6 +326,25 @@ class ErlsModel:
         Yall[np.arange(self.n_el)[:, None], self.el_dofs] = ye
         Jh[:nq] -= S_th.T @ (Yall @ W)
         return Jh
+
+    def _velocity_force_jacobian_eq2(self, cfg: Configuration, v: np.ndarray) -> np.ndarray:
+        nq = self.nq
+        qd = v[:nq]
+        W = cfg.W
+        dfdv = np.zeros((self.N, self.n))
+        dfdv[:, nq:] = 2.0 * self.coriolis_matrix(cfg, qd) @ self.T
+        _, Sd = self.kin.rates(cfg.pose, qd)
+        S_th = cfg.pose.Sz[2::3][self.el_link]  # (n_el, nq)
+        R = cfg.R
+        ul = np.einsum("eji,ej->ei", R, (self.T @ v[nq:])[self.el_dofs])
+        ye = 2.0 * np.einsum("eij,ej->ei", R, np.einsum("eij,ej->ei", self.MGl, ul))  # 2 M_G per unit rate, on u'
+        for j in range(nq):
+            e = np.zeros(nq)
+            e[j] = 1.0
+            _, Sdj = self.kin.rates(cfg.pose, e)
+            dfdv[:, j] = cfg.M_N @ (Sdj @ qd + Sd @ e)
+            dfdv[:, j] += np.bincount(self._el_flat, (ye * S_th[:, j][:, None]).reshape(-1), minlength=self.N)
+        return W.T @ dfdv
 
     def state_matrix(self, cfg: Configuration, x: np.ndarray | None = None,
                      v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -295,8 +381,10 @@ class ErlsModel:
         Since ``h`` is a quadratic form in ``v``, ``J^T h(J w) = 1/2 sum_k w_k T[k] w`` (the position-dependent
         ``dV/dq`` term aside). Batched over all k (a few einsums instead of ``r`` Jacobian evaluations).
         ``Sd``: ``dS/dq_j`` for every coordinate (:meth:`coordinate_derivatives`), ``WJ = W J`` and ``SE``
-        (:meth:`element_rotation_term`), if already computed.
+        (:meth:`element_rotation_term`), if already computed. The ``"lagrange"`` form's ``h`` only.
         """
+        if self.form != "lagrange":
+            raise ValueError(f"velocity_force_tensor: the {self.form!r} form has none (the 'lagrange' form's only)")
         nq = self.nq
         r = J.shape[1]
         if WJ is None:
@@ -327,7 +415,8 @@ class ErlsModel:
         return F
 
     def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """Right-hand side of eq. 2, ``W^T (B tau + M_N g) - h(x, v) - C v - K x``, so that ``M v' = net_forces``."""
+        """Right-hand side of eq. 2, ``W^T (B tau + M_N g) - h(x, v) - C v - K x``, so that ``M v' = net_forces``
+        (``h`` and ``C`` of the model's form)."""
         nq = self.nq
         rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
         T, Tt = self.T, self.T.T
@@ -335,7 +424,11 @@ class ErlsModel:
         rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
         if self.alpha or self.beta:
             Tud = T @ v[nq:]
-            rhs[nq:] -= Tt @ (self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud))
+            Cud = self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud)
+            if self.form == "eq2":  # W^T C_N T u': also the q rows
+                rhs -= cfg.W.T @ Cud
+            else:
+                rhs[nq:] -= Tt @ Cud
         return rhs
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
@@ -343,6 +436,29 @@ class ErlsModel:
         if cfg is None:
             cfg = self.configuration(x[: self.nq])
         return np.linalg.solve(self.mass(cfg), self.net_forces(cfg, x, v, tau))
+
+    def prescribed_accelerations(self, x: np.ndarray, v: np.ndarray, qdd: np.ndarray,
+                                 cfg: Configuration | None = None) -> np.ndarray:
+        """u'' under a prescribed motion of the ERLS coordinates (``q, q'`` in ``x, v``, ``q'' = qdd``): the
+        elastic rows of eq. 2, ``M_uu u'' = F_u - h_u - (C v)_u - K_uu u - M_uq q''`` (no motor torques; the
+        q rows give the torques that the motion needs and are not solved)."""
+        if cfg is None:
+            cfg = self.configuration(x[: self.nq])
+        nq = self.nq
+        M = self.mass(cfg)
+        rhs = self.net_forces(cfg, x, v, np.zeros(len(self.mech.motors)))
+        return np.linalg.solve(M[nq:, nq:], rhs[nq:] - M[nq:, :nq] @ np.asarray(qdd, float))
+
+    def prescribed_jacobian(self, x: np.ndarray, v: np.ndarray, cfg: Configuration | None = None) -> np.ndarray:
+        """``[d u''/d u, d u''/d u']`` (ne x 2 ne) of :meth:`prescribed_accelerations` (exact: under a prescribed
+        motion the elastic rows are linear in ``u`` and ``u'``)."""
+        if cfg is None:
+            cfg = self.configuration(x[: self.nq])
+        nq = self.nq
+        M_uu = self.mass(cfg)[nq:, nq:]
+        D = (self.damping(cfg) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
+        K_uu = self.T.T @ cfg.K_N @ self.T
+        return -np.linalg.solve(M_uu, np.hstack([K_uu, D]))
 
     def rhs(self, t: float, y: np.ndarray, tau: np.ndarray) -> np.ndarray:
         """First-order form y = [x; v] -> y'."""

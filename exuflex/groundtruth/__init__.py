@@ -3,11 +3,13 @@
 This subpackage is the only place in exuflex that imports :mod:`exudyn`. It builds the mechanism from
 planar flexible beams (:func:`build_truth`), computes its eigenfrequencies and modal damping
 (:func:`exudyn_frequencies`, :func:`modal_damping`) and simulates it under motor torques, recording
-the probes of :mod:`exuflex.probes` (:func:`simulate_truth`).
+the probes of :mod:`exuflex.probes` (:func:`simulate_truth`), or under a prescribed motion of its
+coordinates (:func:`simulate_prescribed`).
 """
 
 from .builder import DAMPINGS, FORMULATIONS, LinkMesh, TruthModel, build_truth, link_mesh_stations
 from .eigen import exudyn_frequencies, modal_damping
+from .prescribed import simulate_prescribed
 from .simulate import simulate_truth, smooth_torque_table, time_truth
 
 __all__ = [
@@ -19,6 +21,7 @@ __all__ = [
     "exudyn_frequencies",
     "link_mesh_stations",
     "modal_damping",
+    "simulate_prescribed",
     "simulate_truth",
     "smooth_torque_table",
     "time_truth",

@@ -92,6 +92,7 @@ def truth_vs_erls(
     plan_dt: float = 1e-3,
     erls_truth: Signals | None = None,
     table=None,
+    form: str = "lagrange",
     **truth_kwargs,
 ) -> tuple[TruthComparison, Signals, Signals]:
     """Simulate the Exudyn truth and (unless ``erls_truth`` is given) the ERLS engine on the manoeuvre.
@@ -101,6 +102,7 @@ def truth_vs_erls(
     duration : default the manoeuvre's.
     erls_truth : true states of an ERLS run under the same table (e.g. ``read_run(dir).truth``).
     table : (t, tau, q0, qd0) as from :func:`manoeuvre_table` (computed if None).
+    form : the ERLS full-order model's form (:class:`exuflex.erls.model.ErlsModel`), if it is simulated here.
     **truth_kwargs : passed to :func:`exuflex.groundtruth.simulate_truth`.
 
     Returns
@@ -124,7 +126,7 @@ def truth_vs_erls(
         from ..cli.simulate import _erls_truth
 
         t0 = time.perf_counter()
-        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None, integrator="rk4")
+        rec_e = _erls_truth(mech, t, tau, duration, h, output_dt, q0, qd0, None, integrator="rk4", form=form)
         extra["erls_wall_s"] = time.perf_counter() - t0
         erls_truth = true_states(mech, monotonic_record(rec_e))
     cmp = compare_truths(mech, exu, erls_truth)

@@ -6,6 +6,8 @@ as ``links[2].diameter``) and what was expected.
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
 import tomllib
 from pathlib import Path
@@ -594,6 +596,11 @@ def _samples_manoeuvre(src: str, columns, rows, coord_names, motor_names, tip, k
 def _parse_manoeuvre(r: _Reader | None, link_by, coord_names, motor_names, base: Path) -> Manoeuvre | None:
     if r is None:
         return None
+    man = _parse_manoeuvre_table(r, link_by, coord_names, motor_names, base)
+    return dataclasses.replace(man, source=r.source)
+
+
+def _parse_manoeuvre_table(r: _Reader, link_by, coord_names, motor_names, base: Path) -> Manoeuvre:
     nq = len(coord_names)
     kind = r.str("kind")
     if kind not in MANOEUVRE_KINDS:
@@ -620,7 +627,7 @@ def _parse_manoeuvre(r: _Reader | None, link_by, coord_names, motor_names, base:
         return man
     if kind == "waypoints":
         times = r.nums("times")
-        if len(times) < 2 or times[0] != 0.0 or any(b <= a for a, b in zip(times, times[1:], strict=False)):
+        if len(times) < 2 or times[0] != 0.0 or any(b <= a for a, b in itertools.pairwise(times)):
             raise r.err("times", "at least 2 increasing times (s) starting at 0", list(times))
         wp = r.raw("waypoints")
         if not isinstance(wp, list) or len(wp) != len(times):
@@ -711,7 +718,7 @@ def load_manoeuvre(path: str | Path, mech: Mechanism) -> Manoeuvre:
         if tip is None:
             tip = next((LinkPoint(s.link, s.station) for s in mech.sensors if s.kind == "tip_x"), None)
         q0 = mech.manoeuvre.q0 if mech.manoeuvre is not None else ()
-        return _samples_manoeuvre(src, columns, rows, coords, motors, tip, None, q0)
+        return dataclasses.replace(_samples_manoeuvre(src, columns, rows, coords, motors, tip, None, q0), source=src)
     if not path.is_file():
         raise ModelFileError(src, "(file)", "an existing TOML or CSV manoeuvre file", has_got=False)
     try:

@@ -198,6 +198,7 @@ class Manoeuvre:
     columns: tuple[str, ...] = ()  # trajectory, torque: the sample columns after t
     samples: tuple[tuple[float, ...], ...] = ()  # trajectory, torque: rows (t, values in columns order)
     q0: tuple[float, ...] = ()  # torque: the starting configuration (default: the model's q_ref)
+    source: str = ""  # the file it was read from (the model file, a manoeuvre file), for messages
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,8 @@ import scipy.linalg as sla
 
 from ..erls.model import Configuration, ErlsModel
 from . import _compiled
+from .masters import automatic_masters
+from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -76,24 +78,6 @@ class ReducedConfiguration:
         return self.cfg.q
 
 
-def interior_mode_scores(Phi_all: np.ndarray, M_ss: np.ndarray, band_shapes_s: np.ndarray, band_shapes_m: np.ndarray,
-                         B: np.ndarray) -> np.ndarray:
-    """IMR score of every interior mode (see module docstring).
-
-    Parameters
-    ----------
-    Phi_all : (s, n_int) all interior modes, M_ss-orthonormal.
-    M_ss : (s, s) slave mass block.
-    band_shapes_s, band_shapes_m : slave and elastic-master rows of the full band modes (s, n_band), (m_e, n_band).
-    B : (s, m_e) Guyan shapes of the elastic masters.
-    """
-    r = band_shapes_s - B @ band_shapes_m
-    c = Phi_all.T @ M_ss @ r  # (n_int, n_band)
-    norms = np.einsum("ij,ik,kj->j", r, M_ss, r)
-    norms = np.where(norms > 0, norms, 1.0)
-    return (c**2 / norms).sum(axis=1)
-
-
 class CraigBampton:
     """The modified Craig-Bampton basis ``H(q, q*)`` of an ERLS model.
 
@@ -102,7 +86,8 @@ class CraigBampton:
     model : ErlsModel
     masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")`` or
         ``("node9.transverse",)``); the ERLS coordinates are always masters. Default: the model file's
-        ``[reduction] masters``, else the transverse dofs at the joints and tips (:mod:`.masters`).
+        ``[reduction] masters``, else (and for ``"auto"``) the transverse dofs at the joints and tips
+        (:mod:`.masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
     n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
         ``freq_error_max_pct`` for every full mode below ``band_hz`` at q* and at every configuration of
@@ -135,8 +120,6 @@ class CraigBampton:
         if self.q_star.shape != (self.nq,):
             raise ValueError(f"{src}: q_star must have {self.nq} entries, got {self.q_star.shape}")
         # the configurations the interior modes (and automatic masters) are chosen over (.path)
-        from .path import PathSamples, manoeuvre_configurations
-
         if path is None:
             path = manoeuvre_configurations(model.mech, path_samples)
         elif path is False:
@@ -147,12 +130,12 @@ class CraigBampton:
             if path.shape[1:] != (self.nq,):
                 raise ValueError(f"{src}: path configurations must have {self.nq} entries each, got {path.shape}")
             q_samples = np.vstack([q_samples, path])
-        masters = tuple(spec.masters if masters is None else masters)
-        # none named: the transverse dofs at the joints and tips (.masters)
+        masters = tuple(spec.masters if masters is None else ([masters] if isinstance(masters, str) else masters))
+        if masters == ("auto",):
+            masters = ()
+        # none named (or "auto"): the transverse dofs at the joints and tips (.masters)
         self.automatic_masters = not masters
         if not masters:
-            from .masters import automatic_masters
-
             masters = automatic_masters(model, q_samples)
             if not masters:
                 raise ValueError(f"{src}: no elastic master dofs given (model file [reduction] masters or --masters) "
@@ -191,8 +174,8 @@ class CraigBampton:
         K = model.stiffness(self.cfg_star)
         nq = self.nq
         qc, qs = self._frame_cs(self.cfg_star)
-        Muu = self._to_frame(self._to_frame(M[nq:, nq:], qc, qs).T, qc, qs)
-        Kuu = self._to_frame(self._to_frame(K[nq:, nq:], qc, qs).T, qc, qs)
+        Muu = self._congruence(M[nq:, nq:], qc, qs)
+        Kuu = self._congruence(K[nq:, nq:], qc, qs)
         s_ = self.is_
         w2, Phi = sla.eigh(Kuu[np.ix_(s_, s_)], Muu[np.ix_(s_, s_)])
         self.interior_frequencies_hz = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
@@ -216,6 +199,12 @@ class CraigBampton:
             raise ValueError(f"{src}: n_interior must be in 0..{Phi.shape[1]} (number of slaves), got {n_interior}")
         self.set_interior(n_interior)
         self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
+        missed = [a for a in self.path_accuracy if not a.ok(self.nco_min, self.freq_error_max_pct)]
+        if missed:
+            a = min(missed, key=lambda a: a.worst_nco)
+            log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
+                        "(worst NCO %.4f at q = %s); 'auto' would keep %d", src, n_interior, len(missed),
+                        len(self.path_accuracy), a.worst_nco, np.round(a.q, 4).tolist(), n_needed)
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
@@ -274,6 +263,12 @@ class CraigBampton:
         X[px] = c * A + s * Bm
         X[py] = -s * A + c * Bm
         return X
+
+    def _congruence(self, A: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """``Q^T A Q`` for a symmetric elastic-coordinate matrix ``A`` (``A`` itself without link-frame pairs)."""
+        if not self.has_local:
+            return A
+        return np.ascontiguousarray(self._to_frame(self._to_frame(A, c, s).T, c, s))
 
     def frame_rotation(self, q_or_cfg) -> np.ndarray:
         """Q(q) as a (ne, ne) matrix: ``u = Q w`` from the partition's coordinates ``w`` (link-frame pairs
@@ -352,7 +347,7 @@ class CraigBampton:
                                                       qc, qs, self.has_local)
             return ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
         Kuu = T.T @ cfg.K_N @ T
-        B, Kinv = self._guyan(self._to_frame(self._to_frame(Kuu, qc, qs).T, qc, qs))  # K_w = Q^T K_uu Q
+        B, Kinv = self._guyan(self._congruence(Kuu, qc, qs))  # K_w = Q^T K_uu Q
         Psi = self.rotated_modes(cfg)
         H = np.zeros((nq + ne, self.r))
         H[:nq, :nq] = np.eye(nq)

@@ -20,7 +20,8 @@ form drifts by 2.5-3.2e-4 rad (the neglected terms are Coriolis forces of the el
 links); exuflex therefore defaults to the consistent form.
 
 ``h`` holds the full model's velocity-dependent terms
-(:meth:`exuflex.erls.model.ErlsModel.velocity_forces`). State ``z = [p; p']`` with ``p = [q; u_m; eta]``.
+(:meth:`exuflex.erls.model.ErlsModel.velocity_forces`, its energy-consistent ``"lagrange"`` form, the one the
+compiled force model reduces). State ``z = [p; p']`` with ``p = [q; u_m; eta]``.
 """
 
 from __future__ import annotations
@@ -126,6 +127,9 @@ class ReducedModel:
     """
 
     def __init__(self, cb: CraigBampton, consistent: bool = True, compiled: bool | None = None):
+        if cb.model.form != "lagrange":
+            raise ValueError(f"ReducedModel: the full-order model's form must be 'lagrange' (the reduced forces are "
+                             f"its quadratic forms), got {cb.model.form!r}")
         self.cb = cb
         # the force model's arithmetic in one compiled call (:mod:`._compiled`) where numba is installed;
         # False: the NumPy expressions below (the reference)

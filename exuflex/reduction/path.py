@@ -3,21 +3,23 @@
 The basis ``H(q, q*)`` turns the interior modes of q* with their links and recomputes the Guyan shapes at q
 (:mod:`.basis`), but the band's full modes change along a manoeuvre: a mode that lies above the band at q*
 can enter it elsewhere, and the interior modes that carry a band mode's slave motion at q* need not be
-those that carry it at another configuration (a four-bar built at q* = 1.2 rad: at q1 = 0.6 a 169 Hz mode
-that the q*-ranked modes miss). So the interior modes are chosen on sampled configurations of the planned
+those that carry it at another configuration (the four-bar with its tip's transverse master alone: the
+interior modes ranked at q* miss band modes half a crank turn later, ``tests/test_reduction.py``). So the interior modes are chosen on sampled configurations of the planned
 motion:
 
 1. At every sample ``c`` (q* first, then the manoeuvre's configurations, :func:`manoeuvre_configurations`)
-   the full band modes, the basis with every interior mode (``B(q_c)``, ``Psi(q_c, q*)``) and the IMR
-   scores of the rotated interior modes (:func:`~.basis.interior_mode_scores` with ``M_ss(q_c)``; the turned
-   modes are M-orthonormal up to the change of the mass matrix beyond a rotation, which is small).
-2. Greedy growth: while some sample misses the thresholds (NCO >= ``nco_min`` and frequency error <=
-   ``freq_error_max_pct`` for every full mode below the band limit there), the sample with the smallest
-   margin gets its highest-scored interior mode not yet kept (``ranking="frequency"``: the lowest).
-   The count at which every sample meets the thresholds is the automatic ``n_interior``; the modes not
-   needed follow, by their largest score over the samples.
+   the full band modes and the basis with every interior mode (``B(q_c)``, ``Psi(q_c, q*)``), reduced to
+   ``H^T M H``, ``H^T K H`` and the band modes' ``Phi^T M H``: the NCO and frequency errors of any subset of
+   interior modes then come from their rows and columns, without products with the full matrices.
+2. Forward selection: starting from none, each step keeps the interior mode that makes the smallest margin
+   to the thresholds (NCO >= ``nco_min`` and frequency error <= ``freq_error_max_pct`` for every full mode
+   below the band limit, :func:`margin`) over all samples largest; ties go to the higher IMR score at q*.
+   The count at which every sample meets the thresholds is the automatic ``n_interior``; a fixed count
+   takes that many steps. The modes not selected follow by their largest IMR score over the samples
+   (:func:`interior_mode_scores` with ``M_ss(q_c)``; the turned modes are M-orthonormal there up to the
+   change of the mass matrix beyond a rotation). ``ranking="frequency"``: the lowest modes first.
 
-With a single sample (q*) this is the q*-only choice: the modes in the order of their score there.
+With q* alone (``CraigBampton(..., path=False)``) the same selection is made at q* only.
 """
 
 from __future__ import annotations
@@ -26,10 +28,29 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..erls.modal import modal_analysis
+from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from .accuracy import AccuracyResult
 
-__all__ = ["PathSamples", "manoeuvre_configurations", "margin"]
+__all__ = ["PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
+
+
+def interior_mode_scores(Phi_all: np.ndarray, M_ss: np.ndarray, band_shapes_s: np.ndarray, band_shapes_m: np.ndarray,
+                         B: np.ndarray) -> np.ndarray:
+    """IMR score of every interior mode (interior-mode ranking, :mod:`.basis`).
+
+    Parameters
+    ----------
+    Phi_all : (s, n_int) all interior modes, M_ss-orthonormal.
+    M_ss : (s, s) slave mass block.
+    band_shapes_s, band_shapes_m : slave and elastic-master rows of the full band modes (s, n_band), (m_e, n_band).
+    B : (s, m_e) Guyan shapes of the elastic masters.
+    """
+    r = band_shapes_s - B @ band_shapes_m
+    c = Phi_all.T @ M_ss @ r  # (n_int, n_band)
+    norms = np.einsum("ij,ik,kj->j", r, M_ss, r)
+    norms = np.where(norms > 0, norms, 1.0)
+    return (c**2 / norms).sum(axis=1)
 
 
 def manoeuvre_configurations(mech: Mechanism, n: int = 16) -> np.ndarray | None:
@@ -37,8 +58,6 @@ def manoeuvre_configurations(mech: Mechanism, n: int = 16) -> np.ndarray | None:
     model has no manoeuvre)."""
     if mech.manoeuvre is None:
         return None
-    from ..manoeuvre import plan
-
     return plan(mech, dt=mech.manoeuvre.duration / max(n - 1, 1)).q
 
 
@@ -62,8 +81,6 @@ class PathSamples:
     """
 
     def __init__(self, cb, qs: np.ndarray):
-        from .basis import interior_mode_scores
-
         model, nq = cb.model, cb.nq
         self.cb = cb
         self.qs = np.atleast_2d(np.asarray(qs, float))
@@ -78,7 +95,7 @@ class PathSamples:
             rc = cb.at(q)
             M, K = model.mass(rc.cfg), model.stiffness(rc.cfg)
             qc, qsn = cb._frame_cs(rc.cfg)
-            Mw = cb._to_frame(cb._to_frame(M[nq:, nq:], qc, qsn).T, qc, qsn)
+            Mw = cb._congruence(M[nq:, nq:], qc, qsn)
             band = full.frequencies_hz <= cb.band_hz
             shapes = cb._to_frame(full.shapes[nq:, band], qc, qsn)
             scores.append(interior_mode_scores(rc.Psi, Mw[np.ix_(s_, s_)], shapes[s_], shapes[cb.im], rc.B))
@@ -122,7 +139,6 @@ class PathSamples:
         the samples largest (ties: the higher score at q*), up to ``n_max`` modes (default: until every
         sample meets the thresholds), then the others by their largest score over the samples.
         ``"frequency"``: the lowest modes first."""
-        cb = self.cb
         n_all = self.scores.shape[1]
         if ranking == "frequency":
             order = np.arange(n_all)
