@@ -166,3 +166,40 @@ def test_rts_smoother_equals_filterpy_on_a_linear_model():
     # smoothing never increases the variance, and the last sample is the filter's
     assert np.all(sm.P_diag <= np.diagonal(sm.P_filt, axis1=1, axis2=2) * (1 + 1e-9))
     np.testing.assert_array_equal(sm.x_hat[-1], sm.x_filt[-1])
+
+
+# ------------------------------------------------------------------------------------------ UKF
+def test_ukf_equals_the_kalman_filter_on_a_linear_model():
+    from exuflex.observer.ekf import MultirateEKF
+    from exuflex.observer.ukf import UnscentedKF
+
+    model, R_std, t, Y, dt = _linear_system(seed=5)
+    x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
+    kf = MultirateEKF(model, ("y1", "y2"), R_std, x0, P0, dt=dt, store_P="full").run(t, None, Y)
+    for alpha in (1e-2, 0.5):
+        ukf = UnscentedKF(model, ("y1", "y2"), R_std, x0, P0, dt=dt, alpha=alpha, store_P="full").run(t, None, Y)
+        np.testing.assert_allclose(ukf.x_hat, kf.x_hat, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(ukf.P, kf.P, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(ukf.nis, kf.nis, rtol=1e-6, equal_nan=True)
+
+
+# ------------------------------------------------------------------------------------------ command line
+def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys):
+    """``--estimator ekf-input --smooth --json``: disturbance estimates per motor with their std (on an ERLS log
+    without disturbances: consistent with zero), smoothed errors below the filter's on the joint angles."""
+    import json
+
+    from exuflex.cli import main
+
+    rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--estimator", "ekf-input",
+               "--smooth", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["estimator"] == "ekf-input" and out["smoothed"]
+    assert set(out["inputs"]) == {"T1", "T2", "T3"}
+    for v in out["inputs"].values():
+        assert v["std"] > 0 and abs(v["value"]) < 4 * v["std"]
+    for q in ("q1", "q2", "q3"):
+        assert out["rms_error"][q] < out["filtered_rms_error"][q]
+    rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--estimator", "ukf",
+               "--smooth"])
+    assert rc == 2 and "--smooth needs an EKF estimator" in capsys.readouterr().err

@@ -32,6 +32,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
         default="cached",
         help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)",
     )
+    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default="ekf",
+                   help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
+                        "as states)")
+    p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
     p.add_argument("--bound", action="store_true", help="also print the steady-state RMS bound (always in --json)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
@@ -49,6 +53,7 @@ def _config(args):
         masters=tuple(args.masters.split(",")) if args.masters else None,
         n_interior=ni,
         method=args.method,
+        estimator=args.estimator,
     )
 
 
@@ -107,7 +112,11 @@ def run(args) -> int:
     check_configurations(mech)  # loops close, away from singularities
     log = _read_log(args, mech) if Path(args.run_dir).is_file() else read_run(args.run_dir)
     mech = run_manoeuvre(mech, log)
-    out = observe_run(mech, log, _config(args))
+    if args.smooth and args.estimator == "ukf":
+        print("exuflex observe: error: --smooth needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf",
+              file=sys.stderr)
+        return 2
+    out = observe_run(mech, log, _config(args), smooth=args.smooth)
     s = out.summary
     if s["diverged"]:
         print(f"exuflex observe: warning: the filter diverged at t = {s['diverged_at']} s (NIS test)", file=sys.stderr)
@@ -122,6 +131,11 @@ def run(args) -> int:
           f"channels {' '.join(s['channels'])}")
     print(f"wall {s['wall_s']:.2f} s, real-time factor {s['real_time_factor']:.2f}, mean NIS {s['nis_mean']:.2f} "
           f"(expected {s['nis_expected']:.1f})")
+    if "parameters" in s:
+        print(f"payload scale {s['parameters']['payload_scale']:.4g} +- {s['parameters']['payload_scale_std']:.2g}")
+    if "inputs" in s:
+        print("torque disturbance (N m): " + ", ".join(f"{k} {v['value']:.3g} +- {v['std']:.2g}"
+                                                     for k, v in s["inputs"].items()))
     if out.metrics:
         print(f"{'quantity':10s} {'RMS error':>11s} {'max error':>11s} {'bound':>11s} {'ratio':>6s}")
         for k, v in out.metrics["rms_error"].items():

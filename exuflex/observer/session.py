@@ -26,6 +26,7 @@ from .ekf import EstimationResult, MultirateEKF
 from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
+from .ukf import UnscentedKF
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
 ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
@@ -236,7 +237,10 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
     fmodel, x0, P0 = _filter_model(som, config, x0, P0)
-    ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+    if config.estimator == "ukf":
+        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+    else:
+        ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -437,8 +441,9 @@ class Outcome:
 
 
 def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
-                observer: Observer | None = None) -> Outcome:
-    """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth."""
+                observer: Observer | None = None, smooth: bool = False) -> Outcome:
+    """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
+    (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``)."""
     from ..validate import check_run
 
     config = config or ObserverConfig()
@@ -451,7 +456,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     if np.any(~np.isfinite(U)):
         # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
         U = _hold(U)
-    est = estimate(obs, S.t, U, Y)
+    est = estimate(obs, S.t, U, Y, smooth=smooth)
     span = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
     start_up = config.start_up if span > config.start_up else 0.5 * span
     if start_up != config.start_up:
@@ -479,13 +484,37 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         "log_check": log_check.as_dict(),
         "metrics_from_s": start_up,
     }
+    summary["estimator"] = config.estimator
+    summary["smoothed"] = bool(smooth)
+    summary.update(_extra_states(obs.ekf.model, est))
     if met is not None:
         summary.update(met)
+        if est.filtered_physical is not None:
+            summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
     if bnd is not None:
         summary["bound_rms"] = bnd
         if met is not None:
             summary["ratio_to_bound"] = {k: met["rms_error"][k] / bnd[k] for k in met["rms_error"] if bnd.get(k)}
     return Outcome(est, met, bnd, summary)
+
+
+def _extra_states(fmodel, est: Estimate) -> dict:
+    """The augmented states' estimates at the end of the record (smoothed where smoothing ran):
+    ``{"parameters": {"payload_scale": ..., "payload_scale_std": ...}}`` and ``{"inputs": {motor: {"value",
+    "std"}}}``; empty for a plain model."""
+    out: dict = {}
+    it, ii = getattr(fmodel, "i_theta", None), getattr(fmodel, "i_inputs", None)
+    if it is None and ii is None:
+        return out
+    src = est.smoothed if est.smoothed is not None else est.result
+    x, var = src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else np.full(len(src.x_hat[-1]), np.nan)
+    if it is not None:
+        out["parameters"] = {"payload_scale": float(x[it]), "payload_scale_std": float(np.sqrt(var[it]))}
+    if ii is not None:
+        names = fmodel.inner.mech.motor_names
+        out["inputs"] = {m: {"value": float(v), "std": float(np.sqrt(s))}
+                         for m, v, s in zip(names, x[ii], var[ii], strict=True)}
+    return out
 
 
 def _hold(U: np.ndarray) -> np.ndarray:

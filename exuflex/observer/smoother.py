@@ -82,6 +82,9 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
     FilterDivergedError
         The forward pass went non-finite (a smoother cannot run back through it).
     """
+    if not isinstance(ekf, MultirateEKF):
+        raise TypeError(f"the RTS smoother runs on the EKF's linearisation (MultirateEKF), not on a "
+                         f"{type(ekf).__name__}")
     t = np.asarray(t, dtype=float).reshape(-1)
     Y = np.asarray(Y, dtype=float)
     n, nx = len(t), ekf.nx
