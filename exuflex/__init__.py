@@ -1,11 +1,31 @@
 """exuflex: planar flexible multibody dynamics (ERLS) and reduced-order state estimation.
 
+The public API in one place (each name is imported from its stage when first used, so ``import exuflex``
+stays light)::
+
+    import exuflex as xf
+
+    mech = xf.load_mechanism("models/sixbar.toml")           # a model file -> Mechanism (frozen data)
+    run = xf.read_run("runs/nominal")                         # a run folder; or xf.read_csv_log(...) for a lab CSV
+    obs = xf.make_observer(mech, xf.ObserverConfig())         # reduced model + multirate EKF
+    out = xf.observe_run(mech, run, observer=obs)             # filter, check the log, score, bound for this log
+    print(out.metrics, out.bound)
+
+    # online: one sample at a time
+    obs.ekf.reset()
+    x_hat, P = obs.ekf.step(t, u, y)                          # torques u (n_motors,), channels y (m,) or NaN
+
+Stages: :mod:`exuflex.mechanism` (model files) -> :mod:`exuflex.erls` (full-order model) ->
+:mod:`exuflex.reduction` (Craig-Bampton) -> :mod:`exuflex.observer` (EKF, bound); :mod:`exuflex.runs` (logs),
+:mod:`exuflex.validate` (checks), :mod:`exuflex.groundtruth` (Exudyn), :mod:`exuflex.study`.
+
 exuflex's matrices are small (tens of rows); multithreaded BLAS only adds synchronisation overhead to
 them (measured: a 22x22 LU solve 4 ms with OpenBLAS threads on a busy 2-core machine, 10 us without).
 Unless the user has chosen otherwise, BLAS runs single-threaded: set before NumPy loads its BLAS when
 exuflex is imported first (the CLI), else through threadpoolctl if it is installed.
 """
 
+import importlib as _importlib
 import os as _os
 import sys as _sys
 
@@ -20,3 +40,42 @@ if "numpy" in _sys.modules:  # too late for the environment: limit the loaded BL
         _limits(1, user_api="blas")
     except Exception:  # noqa: BLE001 - optional
         pass
+
+_API = {
+    "Mechanism": "exuflex.mechanism",
+    "load_mechanism": "exuflex.mechanism",
+    "ModelFileError": "exuflex.mechanism",
+    "ErlsModel": "exuflex.erls.model",
+    "CraigBampton": "exuflex.reduction",
+    "ObserverConfig": "exuflex.observer.session",
+    "Observer": "exuflex.observer.session",
+    "make_observer": "exuflex.observer.session",
+    "estimate": "exuflex.observer.session",
+    "observe_run": "exuflex.observer.session",
+    "estimation_bound": "exuflex.observer.session",
+    "metrics": "exuflex.observer.session",
+    "default_channels": "exuflex.observer.session",
+    "MultirateEKF": "exuflex.observer.ekf",
+    "Signals": "exuflex.sensors",
+    "Run": "exuflex.runs",
+    "read_run": "exuflex.runs",
+    "write_run": "exuflex.runs",
+    "read_csv_log": "exuflex.runs",
+    "check_run": "exuflex.validate",
+    "LogFormatError": "exuflex.errors",
+    "UsageError": "exuflex.errors",
+}
+
+__all__ = sorted(_API) + ["__version__"]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        value = getattr(_importlib.import_module(_API[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'exuflex' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))

@@ -52,8 +52,8 @@ from .erls.model import ErlsModel
 from .mechanism import Manoeuvre, Mechanism, ModelFileError
 from .mechanism.loader import position_columns
 
-__all__ = ["KINDS", "TIME_LAWS", "ActuationError", "Plan", "computed_torque", "plan", "time_law", "torque_table",
-           "write_trajectory"]
+__all__ = ["KINDS", "TIME_LAWS", "ActuationError", "Plan", "computed_torque", "open_loop_torque", "plan", "time_law",
+           "torque_table", "write_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -582,6 +582,16 @@ def torque_table(mech: Mechanism, man: Manoeuvre, t) -> np.ndarray:
     S = np.asarray(man.samples, float)
     cols = list(man.columns)
     return np.stack([np.interp(t, S[:, 0], S[:, 1 + cols.index(m)]) for m in mech.motor_names], axis=1)
+
+
+def open_loop_torque(mech: Mechanism, plan: Plan, manoeuvre: Manoeuvre | None = None, **kwargs) -> np.ndarray:
+    """The motor torques that drive the manoeuvre open loop on ``plan.t``: the measured torques of a ``torque``
+    manoeuvre (:func:`torque_table`), else the rigid computed torque along the plan (:func:`computed_torque`,
+    ``kwargs`` passed to it)."""
+    man = manoeuvre if manoeuvre is not None else mech.manoeuvre
+    if man is not None and man.kind == "torque":
+        return torque_table(mech, man, plan.t)
+    return computed_torque(mech, plan, **kwargs)
 
 
 def write_trajectory(path, plan: Plan, *, rates: bool = True) -> None:

@@ -73,6 +73,18 @@ DPI = 110
 
 
 # ------------------------------------------------------------------------------------------ helpers
+PAPER_MODELS = ("sixbar",)
+"""Mechanisms whose figures name the paper's (Palomba et al. 2018's six-bar); others get plain captions."""
+
+
+def _cf(paper, figs: str, extra: str = "") -> str:
+    """`` (cf. paper Fig. N)`` when ``paper`` is true or a mechanism of :data:`PAPER_MODELS`; else only ``extra``."""
+    if paper is not None and not isinstance(paper, bool):
+        paper = getattr(paper, "name", None) in PAPER_MODELS
+    inner = "; ".join(x for x in ((f"cf. paper {figs}" if paper else ""), extra) if x)
+    return f" ({inner})" if inner else ""
+
+
 def _figure(nrows: int = 1, ncols: int = 1, size=(8.0, 5.0), **kw):
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
@@ -231,7 +243,7 @@ def trajectory_figure(mech, truth: Signals | None, estimate: Signals | None, pat
     ax.set_xlabel("x end effector (m)")
     ax.set_ylabel("y end effector (m)")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title("End-effector trajectory (cf. paper Fig. 3)")
+    ax.set_title("End-effector trajectory" + _cf(mech, "Fig. 3"))
     ax.grid(True, lw=0.3)
     ax.legend(fontsize=8)
     if with_err:
@@ -271,7 +283,8 @@ def clean_torques(mech, t: np.ndarray, max_points: int = 400) -> Signals | None:
     return Signals(p.t[sel], mech.motor_names, np.asarray(tau)[sel], ("N m",) * len(mech.motor_names))
 
 
-def torques_figure(measured: Signals, motors: Sequence[str], path, clean: Signals | None = None) -> Path:
+def torques_figure(measured: Signals, motors: Sequence[str], path, clean: Signals | None = None,
+                   paper: bool = False) -> Path:
     """Actuator torques (the paper's Fig. 4): the measured (noisy) inputs and the clean computed torques.
 
     Parameters
@@ -301,32 +314,52 @@ def torques_figure(measured: Signals, motors: Sequence[str], path, clean: Signal
         if j == 0:
             ax.legend(fontsize=8, loc="best")
     axes[-1, 0].set_xlabel("t (s)")
-    fig.suptitle("Actuator torques (cf. paper Fig. 4)")
+    fig.suptitle("Actuator torques" + _cf(paper, "Fig. 4"))
     return _save(fig, path)
 
 
-def measurements_figure(measured: Signals, channels: Sequence[str], path) -> Path:
-    """Measured outputs used by the observer (the paper's Fig. 5): one panel per channel kind (unit)."""
+def measurements_figure(measured: Signals, channels: Sequence[str], path, paper: bool = False) -> Path:
+    """Measured outputs used by the observer (the paper's Fig. 5): one panel per channel, each on its own axis
+    (encoders in rad, gauges in 1/m: a shared axis would hide their noise and motion)."""
     channels = [c for c in channels if c in measured]
-    groups: dict[str, list[str]] = {}
-    for c in channels:
-        groups.setdefault(_unit(measured, c, "") or "-", []).append(c)
-    n = max(len(groups), 1)
-    fig, axes = _figure(n, 1, size=(8.0, 2.6 * n + 0.6), sharex=True)
-    for ax, (unit, names) in zip(axes[:, 0], groups.items(), strict=False):
-        for c in names:
-            y = measured[c]
-            ok = np.isfinite(y)
-            ax.plot(measured.t[ok], y[ok], lw=0.7, label=c)
-        ax.set_ylabel(f"measured ({unit})")
-        ax.legend(fontsize=8, ncol=len(names))
+    n = max(len(channels), 1)
+    ncols = 1 if n <= 3 else 2
+    nrows = -(-n // ncols)
+    fig, axes = _figure(nrows, ncols, size=(8.0 if ncols == 1 else 11.0, 1.9 * nrows + 0.8), sharex=True)
+    for i, c in enumerate(channels):
+        ax = axes[i % nrows, i // nrows]
+        y = measured[c]
+        ok = np.isfinite(y)
+        ax.plot(measured.t[ok], y[ok], lw=0.6, color=MEASURED_COLOUR)
+        ax.set_ylabel(f"{c} ({_unit(measured, c, '') or '-'})")
         ax.grid(True, lw=0.3)
-    axes[-1, 0].set_xlabel("t (s)")
-    fig.suptitle("Measured outputs (cf. paper Fig. 5)")
+    for j in range(len(channels), nrows * ncols):
+        axes[j % nrows, j // nrows].set_visible(False)
+    for col in range(ncols):
+        last = min(nrows, len(channels) - col * nrows) - 1
+        if last >= 0:
+            axes[last, col].set_xlabel("t (s)")
+            axes[last, col].xaxis.set_tick_params(labelbottom=True)
+    fig.suptitle("Measured outputs" + _cf(paper, "Fig. 5"))
     return _save(fig, path)
 
 
 # ------------------------------------------------------------------------------------------ states
+def _limits_after(t, y, t_from: float, other=None, margin: float = 0.08):
+    """y-limits from the samples after ``t_from`` (the start-up spike, often orders of magnitude larger than the
+    motion, would flatten everything else), ``other`` (times, values) included; None if nothing to go by."""
+    parts = [np.asarray(y)[np.asarray(t) >= t_from]]
+    if other is not None:
+        parts.append(np.asarray(other[1])[np.asarray(other[0]) >= t_from])
+    v = np.concatenate(parts)
+    v = v[np.isfinite(v)]
+    if v.size < 2 or t_from <= t[0]:
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    pad = margin * (hi - lo) if hi > lo else max(abs(hi), 1e-12) * margin
+    return lo - pad, hi + pad
+
+
 def _state_grid(names: Sequence[str], truth: Signals | None, estimate: Signals, path, title: str,
                 ncols: int, start_up: float = 0.0, errors: bool = False,
                 bound: Mapping[str, float] | None = None, size=None) -> Path:
@@ -362,6 +395,10 @@ def _state_grid(names: Sequence[str], truth: Signals | None, estimate: Signals, 
                 ax.plot(truth.t, truth[n], color=TRUTH_COLOUR, lw=1.4, label="Simulator")
             ax.plot(t, estimate[n], color=ESTIMATE_COLOUR, lw=0.7, label="Observer")
             ax.set_ylabel(f"{_label(n)} ({unit})")
+            lim = _limits_after(t, estimate[n], t[0] + start_up,
+                                (truth.t, truth[n]) if truth is not None and n in truth else None)
+            if lim is not None:
+                ax.set_ylim(*lim)
         ax.grid(True, lw=0.3)
         if k == 0:
             ax.legend(fontsize=7, loc="lower right")
@@ -377,7 +414,7 @@ def joint_states_figure(mech, truth: Signals | None, estimate: Signals, path, st
     """Estimated vs true joint angles and rates (the paper's Figs 6a, 7a): columns q_j, rows angle/rate."""
     qn = mech.coordinate_names
     names = list(qn) + ["d" + n for n in qn]
-    return _state_grid(names, truth, estimate, path, "Actuated-link angles and rates (cf. paper Figs 6a, 7a)",
+    return _state_grid(names, truth, estimate, path, "Actuated-link angles and rates" + _cf(mech, "Figs 6a, 7a"),
                        ncols=len(qn), start_up=start_up)
 
 
@@ -387,7 +424,7 @@ def joint_errors_figure(mech, truth: Signals, estimate: Signals, path, bound: Ma
     qn = mech.coordinate_names
     names = list(qn) + ["d" + n for n in qn]
     return _state_grid(names, truth, estimate, path,
-                       "Joint estimation errors (cf. paper Figs 6b, 7b; grey: start-up excluded from RMS)",
+                       "Joint estimation errors" + _cf(mech, "Figs 6b, 7b", "grey: start-up excluded from RMS"),
                        ncols=len(qn), start_up=start_up, errors=True, bound=bound)
 
 
@@ -401,7 +438,7 @@ def _tip_names(mech) -> list[str]:
 def tip_displacement_figure(mech, truth: Signals | None, estimate: Signals, path, start_up: float = 0.0) -> Path:
     """True vs estimated tip elastic displacements and velocities (the paper's Figs 8a, 9a)."""
     return _state_grid(_tip_names(mech), truth, estimate, path,
-                       "Tip elastic displacements and velocities (cf. paper Figs 8a, 9a)", ncols=2,
+                       "Tip elastic displacements and velocities" + _cf(mech, "Figs 8a, 9a"), ncols=2,
                        start_up=start_up)
 
 
@@ -409,7 +446,7 @@ def tip_errors_figure(mech, truth: Signals, estimate: Signals, path, bound: Mapp
                       start_up: float = 0.0) -> Path:
     """Estimation errors of the tip elastic displacements and velocities (the paper's Figs 8b, 9b)."""
     return _state_grid(_tip_names(mech), truth, estimate, path,
-                       "Tip elastic estimation errors (cf. paper Figs 8b, 9b)", ncols=2, start_up=start_up,
+                       "Tip elastic estimation errors" + _cf(mech, "Figs 8b, 9b"), ncols=2, start_up=start_up,
                        errors=True, bound=bound)
 
 
@@ -475,34 +512,41 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
             curves.append(("Simulator", TRUTH_COLOUR, 1.6, _on(t, truth, n)))
         if n in estimate:
             curves.append(("Observer", ESTIMATE_COLOUR, 0.9, estimate[n]))
+        labelled: list[float] = []
         for lab, col, lw, x in curves:
             xs, ts = x[sel], t[sel]
             ok = np.isfinite(xs)
             f, a = spectrum(ts[ok], xs[ok])
             if f.size == 0:
                 continue
-            band = f <= fmax
-            ax.plot(f[band], a[band], color=col, lw=lw, label=lab)
             span = float(ts[ok][-1] - ts[ok][0])
             fmin = max(5.0, 4.0 / span) if span > 0 else 5.0  # leave the manoeuvre's own low-frequency content
+            band = (f > 0) & (f <= fmax)  # the 0 Hz bin (the mean) is left out
+            ref = a[(f >= fmin) & band]
+            scale = float(ref.max()) if ref.size and ref.max() > 0 else 1.0  # normalised to the strongest peak
+            ax.plot(f[band], a[band] / scale, color=col, lw=lw, label=f"{lab} (max {scale:.2g} m)")
             try:
                 fp, ap = fft_peaks(np.linspace(ts[ok][0], ts[ok][-1], ok.sum()), xs[ok], fmax=fmax,
                                    n_peaks=n_peaks, fmin=fmin, return_amplitudes=True)
             except ValueError:
                 fp, ap = np.zeros(0), np.zeros(0)
             keep = ap >= peak_floor * (ap.max() if ap.size else 0.0)
-            fp, ap = fp[keep], ap[keep]
+            fp, ap = fp[keep], ap[keep] / scale
             marker = "v" if lab == "Simulator" else "^"
             ax.plot(fp, ap, marker, color=col, ms=6, mfc="none", ls="none")
-            for f0, a0 in zip(fp, ap, strict=True):
-                ax.annotate(f"{f0:.1f}", (f0, a0), textcoords="offset points", xytext=(3, 4 if marker == "v" else -10),
-                            fontsize=6, color=col)
+            for i, (f0, a0) in enumerate(sorted(zip(fp, ap, strict=True))):
+                if any(abs(f0 - g) < 0.03 * fmax for g in labelled):
+                    continue  # the same peak of the other curve is labelled already
+                labelled.append(f0)
+                ax.annotate(f"{f0:.1f} Hz", (f0, a0), textcoords="offset points", xytext=(4, 6 + 9 * (i % 2)),
+                            fontsize=7, color=col)
         ax.set_xlim(0, fmax)
+        ax.set_ylim(0, 1.25)
         ax.set_xlabel("Frequency (Hz)")
-        ax.set_ylabel(f"|{n.upper()}| (m)")
+        ax.set_ylabel(f"|{n.upper()}| normalised")
         ax.grid(True, lw=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"FFT of the tip elastic displacements, 0-{fmax:g} Hz (cf. paper Fig. 10)")
+    fig.suptitle(f"FFT of the tip elastic displacements, 0-{fmax:g} Hz" + _cf(mech, "Fig. 10"))
     return _save(fig, path)
 
 
@@ -598,8 +642,10 @@ def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
         n for n in run.sensor_names if n not in ("tip_x", "tip_y"))
     jobs = [
         ("fig_trajectory.png", lambda p: trajectory_figure(mech, truth, est, p, sensors=run.sensors)),
-        ("fig_torques.png", lambda p: torques_figure(run.sensors, motors, p, clean_torques(mech, run.sensors.t))),
-        ("fig_measurements.png", lambda p: measurements_figure(run.sensors, channels, p)),
+        ("fig_torques.png", lambda p: torques_figure(run.sensors, motors, p, clean_torques(mech, run.sensors.t),
+                                                     paper=mech.name in PAPER_MODELS)),
+        ("fig_measurements.png", lambda p: measurements_figure(run.sensors, channels, p,
+                                                               paper=mech.name in PAPER_MODELS)),
         ("fig_joint_states.png", lambda p: joint_states_figure(mech, truth, est, p, su)),
         ("fig_tip_displacement.png", lambda p: tip_displacement_figure(mech, truth, est, p, su)),
         ("fig_nis.png", lambda p: nis_figure(res, p, start_up=su)),
@@ -622,7 +668,21 @@ def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
 
 
 # ------------------------------------------------------------------------------------------ Fig. 11
-def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str, str] | None = None) -> Path:
+def paper_payload_quantities(quantities: Sequence[str]) -> list[str]:
+    """The four quantities of the paper's Fig. 11 panels among a study's: the tip coordinates' displacements and
+    velocities, absolute (``tip_x tip_y dtip_x dtip_y``) where the study has them, else elastic (the two tip
+    elastic dofs and their rates, e.g. ``x25 y26 dx25 dy26``); empty if neither set is complete."""
+    qs = list(quantities)
+    if all(q in qs for q in ("tip_x", "tip_y", "dtip_x", "dtip_y")):
+        return ["tip_x", "tip_y", "dtip_x", "dtip_y"]
+    elastic = [q for q in qs if not q.startswith("d") and not q.startswith("q") and not q.startswith("tip_")]
+    if len(elastic) >= 2 and all("d" + q in qs for q in elastic[:2]):
+        return [elastic[0], elastic[1], "d" + elastic[0], "d" + elastic[1]]
+    return []
+
+
+def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str, str] | None = None,
+                         paper: bool = False) -> Path:
     """Payload-mismatch sensitivity (the paper's Fig. 11): mean absolute error mu (markers) and its spread
     sigma (error bars) of each estimated quantity vs the payload increase (%), eq. 21.
 
@@ -675,7 +735,7 @@ def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str
             ax.legend(fontsize=7)
     for k in range(len(quantities), nrows * ncols):
         axes[k // ncols, k % ncols].set_visible(False)
-    fig.suptitle("Sensitivity to the tip payload mismatch, eq. 21 (cf. paper Fig. 11)")
+    fig.suptitle("Sensitivity to the tip payload mismatch, eq. 21" + _cf(paper, "Fig. 11"))
     return _save(fig, path)
 
 

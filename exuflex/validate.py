@@ -25,10 +25,20 @@ import numpy as np
 from .errors import LogFormatError
 from .mechanism import Mechanism, ModelFileError
 
-__all__ = ["LogCheck", "check_configurations", "check_log", "check_run"]
+__all__ = ["LogCheck", "MAX_STEPS", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
+           "check_positive", "check_run", "check_simulation_settings", "with_noise"]
 
 MAX_GAP_S = 1.0
 """Default longest gap (s) the observer predicts through; longer ones are rejected (split the log)."""
+
+RATE_TOL = 1e-3
+"""Clock tolerance: a log whose clock (the least-squares line through its time stamps against the sample index)
+runs within 1000 ppm of the model's rate (or of a whole fraction of it) is taken as that rate; a crystal clock
+drifts by 1-100 ppm, a wrong rate setting by far more (500 instead of 499 Hz is already 2000 ppm)."""
+
+JITTER_TOL = 0.25
+"""Jitter tolerance, in sample intervals: every time stamp within a quarter interval of the log's clock line
+(0.5 ms at 500 Hz), so that each sample belongs unambiguously to one instant of the grid."""
 
 
 @dataclass
@@ -43,12 +53,28 @@ class LogCheck:
     n_empty_rows: int = 0  # rows where no used sensor channel is sampled (prediction only)
     never_sampled: tuple[str, ...] = ()  # used channels with no sample at all
     held_torques: int = 0  # empty torque cells (held at the previous value)
+    interval_s: float = 0.0  # the log's nominal interval: a whole multiple of dt (median spacing)
+    clock_interval_s: float = 0.0  # the log clock's interval, least-squares fit of t against the sample index
+    clock_drift_ppm: float = 0.0  # (clock_interval_s / dt - 1) 1e6
+    jitter_rms_s: float = 0.0  # time stamps about that clock
+    jitter_max_s: float = 0.0
+    sample_index: np.ndarray | None = None  # each row's instant in model intervals dt from the first row
+    channel_rate_hz: dict = field(default_factory=dict)  # per used channel: samples / span (0: never sampled)
+    channel_every: dict = field(default_factory=dict)  # per used channel: its usual spacing in log rows
     warnings: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
-        d = dict(self.__dict__)
+        d = {k: v for k, v in self.__dict__.items() if k != "sample_index"}
         d["never_sampled"] = list(self.never_sampled)
         return d
+
+    def grid_times(self, t0: float = 0.0) -> np.ndarray:
+        """The rows' instants on the model's grid ``t0 + k dt`` (jitter and drift removed)."""
+        return t0 + self.sample_index * self.dt
+
+    def availability(self) -> str:
+        """One line per the used channels: rate (Hz) or 'blank'."""
+        return ", ".join(f"{c} {'blank' if not r else f'{r:.4g} Hz'}" for c, r in self.channel_rate_hz.items())
 
 
 def _row_line(k: int) -> str:
@@ -129,35 +155,60 @@ def check_log(
         if 500 <= ratio <= 2000 and abs(ratio / 1000 - round(ratio / 1000)) < 0.2:
             raise LogFormatError(
                 f"{source}: time steps of {med:g} for a {1 / dt:g} Hz model: is the time column in "
-                f"milliseconds? expected seconds (read_csv_log(..., time_scale=1e-3) converts)"
+                f"milliseconds? expected seconds (exuflex observe ... --time-scale 1e-3 converts)"
             )
-        if ratio < 1 - 1e-6 or (ratio > 1 + 1e-6 and abs(ratio - round(ratio)) > 1e-3):
+        mult = max(1, round(ratio))
+        if abs(ratio / mult - 1) > 0.2:  # coarse screen on the median step; the clock line below is exact
             raise LogFormatError(
-                f"{source}: the log is sampled every {med:g} s ({1 / med:g} Hz), expected the model's sample "
-                f"interval {dt:g} s ({1 / dt:g} Hz): resample the log to that grid or set model.sample_rate_hz"
+                f"{source}: the log is sampled every {med:g} s ({1 / med:.6g} Hz), not the model's sample interval "
+                f"{dt:g} s ({1 / dt:g} Hz) or a whole multiple of it (clock tolerance {RATE_TOL * 1e6:g} ppm): "
+                f"resample the log, or set model.sample_rate_hz in {mech.source or mech.name}"
             )
-        if ratio > 1.5:
-            rep.warnings.append(f"the log is sampled every {med:g} s, {round(ratio)} model intervals: the observer "
-                                "predicts through the instants in between")
         k_rel = (t - t[0]) / dt
         if not np.isfinite(k_rel[-1]) or k_rel[-1] > 1e9:
             raise LogFormatError(
                 f"{source}: the time column spans {f(t[-1] - t[0])!r} s, more than 1e9 samples of {dt:g} s; "
-                "expected seconds from the start of the log"
+                "expected seconds from the start of the log (--time-scale converts other units)"
             )
-        kk = np.rint(k_rel)
-        off = np.abs(k_rel - kk) > 1e-6 * np.maximum(1.0, kk)
-        if off.any():
-            k = int(np.flatnonzero(off)[0])
-            if abs(t[0]) * np.finfo(float).eps > 1e-7 * dt:
-                raise LogFormatError(
-                    f"{source}: time stamps start at {f(t[0])!r} s; at that size they cannot resolve the {dt:g} s "
-                    "grid (epoch times?): write the time relative to the start of the log"
-                )
+        if abs(t[0]) * np.finfo(float).eps > 1e-7 * dt:
             raise LogFormatError(
-                f"{source}: {_row_line(k)}: time {f(t[k])!r} is not on the {dt:g} s grid starting at {f(t[0])!r} "
-                f"(expected {f(t[0] + kk[k] * dt)!r}); resample the log to the model's sample rate"
+                f"{source}: time stamps start at {f(t[0])!r} s; at that size they cannot resolve the {dt:g} s "
+                "grid (epoch times?): write the time relative to the start of the log"
             )
+        # sample indices: every step a whole number of intervals of the log's own clock (jitter < dt / 2)
+        kk = np.concatenate([[0.0], np.cumsum(np.maximum(1.0, np.rint(steps / (med / mult))))])
+        A = np.column_stack([np.ones(n), kk])
+        coef = np.linalg.lstsq(A, t, rcond=None)[0]
+        rep.clock_interval_s = float(coef[1])
+        rep.clock_drift_ppm = float((coef[1] / dt - 1) * 1e6)
+        resid = t - A @ coef
+        rep.jitter_rms_s = float(np.sqrt(np.mean(resid**2)))
+        rep.jitter_max_s = float(np.max(np.abs(resid)))
+        if rep.jitter_max_s > JITTER_TOL * dt:
+            k = int(np.argmax(np.abs(resid)))
+            raise LogFormatError(
+                f"{source}: {_row_line(k)}: time {f(t[k])!r} is {resid[k] * 1e3:+.3g} ms off the log's clock "
+                f"(t0 + k x {coef[1]:.6g} s); the jitter tolerance is {JITTER_TOL:g} of the {dt:g} s interval: "
+                "samples cannot be told apart; check the time column"
+            )
+        # the slope's own uncertainty (short jittered logs) widens the tolerance: 3 standard errors
+        se = float(np.sqrt(np.sum(resid**2) / max(n - 2, 1) / max(np.sum((kk - kk.mean()) ** 2), 1e-300)))
+        if abs(coef[1] / dt - 1) > RATE_TOL + 3 * se / dt:
+            raise LogFormatError(
+                f"{source}: the log's clock runs at {1 / coef[1]:.6g} Hz over its {f(t[-1] - t[0]):.4g} s "
+                f"({rep.clock_drift_ppm:+.0f} ppm from the model's {1 / dt:g} Hz; tolerance {RATE_TOL * 1e6:g} ppm): "
+                f"a wrong rate; resample the log or set model.sample_rate_hz in {mech.source or mech.name}"
+            )
+        if rep.jitter_max_s > 1e-6 * dt or abs(rep.clock_drift_ppm) > 1e-3:
+            rep.warnings.append(
+                f"time stamps jitter by up to {rep.jitter_max_s * 1e6:.3g} us (RMS {rep.jitter_rms_s * 1e6:.3g} us) "
+                f"about a clock of {1 / coef[1]:.7g} Hz ({rep.clock_drift_ppm:+.1f} ppm): within the tolerance "
+                f"({JITTER_TOL:g} interval, {RATE_TOL * 1e6:g} ppm)"
+            )
+        if mult > 1:
+            rep.warnings.append(f"the log is sampled every {med:g} s, {mult} model intervals: the observer "
+                                "predicts through the instants in between")
+        rep.sample_index = kk.astype(np.int64)
         jumps = np.diff(kk).astype(np.int64)
         gaps = np.flatnonzero(jumps > 1)
         rep.n_gaps = int(len(gaps))
@@ -171,10 +222,15 @@ def check_log(
                     f"{_row_line(g + 1)} (t = {f(t[g + 1])!r}); the observer predicts through gaps up to "
                     f"{max_gap_s:g} s: split the log there"
                 )
-            rep.warnings.append(
-                f"{rep.n_gaps} gap(s) in time, {rep.n_skipped} sample(s) missing (prediction only), longest "
-                f"{rep.longest_gap_s:g} s"
-            )
+            if rep.longest_gap_s > 1.5 * med:  # longer than the log's own interval
+                n_own = int(np.sum(jumps > 1.5 * mult))
+                rep.warnings.append(
+                    f"{n_own} gap(s) in time longer than the log's interval (prediction only), longest "
+                    f"{rep.longest_gap_s:g} s"
+                )
+        rep.interval_s = mult * dt  # nominal: the clock's own interval is clock_interval_s
+    else:
+        rep.sample_index = np.zeros(1, np.int64)
     U = sensors.select(motors).data if motors else np.zeros((n, 0))
     Y = sensors.select(channels).data if channels else np.zeros((n, 0))
     for j, c in enumerate(motors):
@@ -213,6 +269,11 @@ def check_log(
                     )
     if channels:
         present = np.isfinite(Y)
+        span = float(t[-1] - t[0]) if n > 1 else 0.0
+        for j, c in enumerate(channels):
+            rows = np.flatnonzero(present[:, j])
+            rep.channel_rate_hz[c] = float((len(rows) - 1) / span) if span > 0 and len(rows) > 1 else 0.0
+            rep.channel_every[c] = int(np.median(np.diff(rows))) if len(rows) > 1 else 0
         never = tuple(c for j, c in enumerate(channels) if not present[:, j].any())
         rep.never_sampled = never
         if never:
@@ -236,7 +297,9 @@ def check_run(mech: Mechanism, run, channels: Sequence[str] | None = None, *, dt
 
         channels = default_channels(mech)
     motors = run.motors or mech.motor_names
-    return check_log(mech, run.sensors, channels, motors, dt=dt, source=str(Path(run.path) / "sensors.csv"),
+    path = Path(run.path)
+    source = str(path) if path.suffix.lower() in (".csv", ".txt") or path.is_file() else str(path / "sensors.csv")
+    return check_log(mech, run.sensors, channels, motors, dt=dt, source=source,
                      max_gap_s=max_gap_s, check_full_scale=check_full_scale)
 
 
@@ -261,3 +324,164 @@ def check_configurations(mech: Mechanism, cond_max: float = 1e6) -> None:
             raise ModelFileError(
                 src, fld,
                 f"a configuration where every loop closes, away from singularities; {detail}", list(q)) from None
+
+
+# ------------------------------------------------------------------------------------------ settings
+def _where(param: str, flag: str | None) -> str:
+    return f"{param} ({flag})" if flag else param
+
+
+def check_positive(value, param: str, flag: str | None = None, *, allow_zero: bool = False) -> float:
+    """``value`` as a float if it is a finite positive (or, with ``allow_zero``, non-negative) number, else a
+    :class:`~exuflex.errors.UsageError` naming the parameter (and its command-line flag)."""
+    from .errors import UsageError
+
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    v = float(value) if ok else float("nan")
+    if not (np.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+        kind = "non-negative" if allow_zero else "positive"
+        raise UsageError(f"{_where(param, flag)}: expected a {kind} finite number, got {value!r}")
+    return v
+
+
+def check_mechanism_argument(mech, param: str = "mech") -> None:
+    """A :class:`~exuflex.mechanism.Mechanism` where one is expected (a path is not: load it first)."""
+    from .errors import UsageError
+
+    if not isinstance(mech, Mechanism):
+        hint = (" (a path: load it with exuflex.mechanism.load_mechanism(path) first)"
+                if isinstance(mech, (str, Path)) else "")
+        raise UsageError(f"{param}: expected an exuflex.mechanism.Mechanism, got {type(mech).__name__}{hint}")
+
+
+def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=None) -> None:
+    """Simulation settings a run can be made with: ``duration`` (s) at least one sample interval of the model
+    and at most :data:`MAX_STEPS` integration steps (memory: the plan and the torque table hold every step),
+    ``h`` (s) at most one sample interval (the output grid is built from whole steps), ``seed`` a non-negative
+    integer. Errors are :class:`~exuflex.errors.UsageError` naming the parameter and its flag."""
+    from .errors import UsageError
+
+    dt = 1.0 / mech.sample_rate_hz
+    man = mech.manoeuvre
+    if man is not None:
+        src = mech.source or mech.name
+        if man.duration < dt * (1 - 1e-9):
+            raise ModelFileError(src, "manoeuvre.duration",
+                                 f"a manoeuvre of at least one sample interval ({dt:g} s)", man.duration)
+    duration = check_positive(duration, "duration", "--duration")
+    h = check_positive(h, "h", "--h")
+    if h > dt * (1 + 1e-9):
+        raise UsageError(f"h (--h): the integration step {h:g} s is longer than the model's sample interval "
+                         f"{dt:g} s ({mech.sample_rate_hz:g} Hz); expected h <= {dt:g} s")
+    if duration < dt * (1 - 1e-9):
+        raise UsageError(f"duration (--duration): {duration:g} s is shorter than one sample interval of the model "
+                         f"({dt:g} s); expected at least {dt:g} s")
+    if duration / h > MAX_STEPS:
+        raise UsageError(f"duration (--duration): {duration:g} s at h = {h:g} s is {duration / h:.3g} integration "
+                         f"steps, more than {MAX_STEPS:.0e} (every step is held in memory); split the run or "
+                         "use a coarser --h")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+                             or not 0 <= int(seed) < 2**63):
+        raise UsageError(f"seed (--seed): expected an integer in 0 .. 2**63 - 1, got {seed!r}")
+
+
+def check_actuation(mech: Mechanism) -> None:
+    """The motors can drive every coordinate at ``model.q_ref`` (rank of the coordinate rows of the input matrix
+    equals the number of coordinates), as computed torque needs; else a :class:`ModelFileError` on ``motors``."""
+    from .erls.model import ErlsModel
+
+    model = ErlsModel(mech)
+    q = np.asarray(mech.q_ref, float)
+    A = model.input_matrix(model.configuration(q))[: model.nq]
+    rank = int(np.linalg.matrix_rank(A))
+    if rank < model.nq:
+        raise ModelFileError(mech.source or mech.name, "motors",
+                             f"motors that actuate all {model.nq} coordinates {list(mech.coordinate_names)} "
+                             f"(computed torque); {list(mech.motor_names)} actuate only {rank}",
+                             has_got=False)
+
+
+MAX_STEPS = 5e7
+"""Most integration steps a simulation may take (about 20 bytes per step and table column are held)."""
+
+
+def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
+    """Check an :class:`~exuflex.observer.session.ObserverConfig` against a mechanism before anything is built;
+    returns the channels the observer will use. The channels exist, are not repeated and have a positive
+    ``noise_std`` (the filter's R); the model has at least one such sensor; the reduction's masters are not
+    empty or repeated; ``n_interior`` is a non-negative integer or ``"auto"``; the sub-step ``h`` is at most the
+    sample interval; the prior standard deviations and the process-noise scale are positive. Errors are
+    :class:`~exuflex.errors.UsageError` naming the setting and its command-line flag."""
+    from .errors import UsageError
+
+    src = mech.source or mech.name
+    sensors = {s.name: s for s in mech.sensors}
+    if config.channels is not None:
+        chans = tuple(config.channels)
+        if isinstance(config.channels, str) or not all(isinstance(c, str) for c in chans):
+            raise UsageError(f"channels (--channels): expected a sequence of channel names, got {config.channels!r}")
+        if not chans:
+            raise UsageError("channels (--channels): expected at least one sensor channel, got none")
+        dup = sorted({c for c in chans if chans.count(c) > 1})
+        if dup:
+            raise UsageError(f"channels (--channels): repeated channel(s) {dup}")
+        unknown = [c for c in chans if c not in sensors]
+        if unknown:
+            raise UsageError(f"channels (--channels): {unknown} not sensor channel(s) of {src}; it has "
+                             f"{sorted(sensors)}")
+        quiet = [c for c in chans if not sensors[c].noise_std > 0]
+        if quiet:
+            raise UsageError(f"channels (--channels): {quiet} ha{'s' if len(quiet) == 1 else 've'} no noise_std in "
+                             f"{src}; the filter needs a positive standard deviation for every channel it uses "
+                             "(set noise_std in the model file or --noise NAME=STD)")
+    else:
+        from .observer.session import default_channels
+
+        chans = default_channels(mech)
+        if not chans:
+            raise UsageError(f"{src}: no sensor with a positive noise_std, nothing to observe with; add [[sensors]] "
+                             "with noise_std to the model file")
+    if config.masters is not None:
+        m = tuple(config.masters)
+        if not m or not all(isinstance(x, str) and x.strip() for x in m):
+            raise UsageError(f"masters (--masters): expected one or more elastic dof names, got {config.masters!r}")
+        dup = sorted({x for x in m if m.count(x) > 1})
+        if dup:
+            raise UsageError(f"masters (--masters): repeated dof(s) {dup}")
+    ni = config.n_interior
+    if ni is not None and ni != "auto" and (isinstance(ni, bool) or not isinstance(ni, (int, np.integer))
+                                            or ni < 0):
+        raise UsageError(f"n_interior (--n-interior): expected a non-negative integer or 'auto', got {ni!r}")
+    h = check_positive(config.h, "h", "--substep")
+    dt = check_positive(config.dt, "dt") if config.dt is not None else 1.0 / mech.sample_rate_hz
+    if h > dt * (1 + 1e-9):
+        raise UsageError(f"h (--substep): the RK4 sub-step {h:g} s is longer than the sample interval {dt:g} s")
+    for name, flag in (("q0_std", "--q0-std"), ("qd0_std", "--qd0-std"), ("elastic0_std", "--elastic0-std"),
+                       ("elastic_rate0_std", "--elastic-rate0-std"), ("q_scale", "--q-scale")):
+        check_positive(getattr(config, name), name, flag)
+    check_positive(config.q_extra_std, "q_extra_std", "--q-extra", allow_zero=True)
+    check_positive(config.start_up, "start_up", "--start-up", allow_zero=True)
+    return chans
+
+
+def with_noise(mech: Mechanism, noise: dict[str, float]) -> Mechanism:
+    """``mech`` with the noise standard deviations of some motors or sensors replaced (``{name: std}``, in the
+    channel's unit: N m, rad, 1/m, m). The filter's R and the torque process noise Q follow."""
+    import dataclasses
+
+    from .errors import UsageError
+
+    motors = {m.name for m in mech.motors}
+    sensors = {s.name for s in mech.sensors}
+    for k, v in noise.items():
+        if k not in motors | sensors:
+            raise UsageError(f"noise (--noise): {k!r} is not a motor or sensor of {mech.source or mech.name}; "
+                             f"expected one of {sorted(motors) + sorted(sensors)}")
+        check_positive(v, f"noise[{k!r}]", "--noise")
+    return dataclasses.replace(
+        mech,
+        motors=tuple(dataclasses.replace(m, noise_std=float(noise[m.name])) if m.name in noise else m
+                     for m in mech.motors),
+        sensors=tuple(dataclasses.replace(s, noise_std=float(noise[s.name])) if s.name in noise else s
+                      for s in mech.sensors),
+    )

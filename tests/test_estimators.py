@@ -202,4 +202,4 @@ def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys)
         assert out["rms_error"][q] < out["filtered_rms_error"][q]
     rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--estimator", "ukf",
                "--smooth"])
-    assert rc == 2 and "--smooth needs an EKF estimator" in capsys.readouterr().err
+    assert rc == 2 and "needs an EKF estimator" in capsys.readouterr().err

@@ -117,6 +117,15 @@ def test_a_fixed_count_below_the_path_need_is_logged(fourbar, caplog):
     assert cb.n_interior == 1 and "miss the accuracy thresholds" in caplog.text and "'auto' would keep" in caplog.text
 
 
+def test_a_global_master_turned_axial_is_reported_unreachable(single_link, caplog):
+    """The single link's global ``node5.y`` is the arm's axial direction at q = pi/2: the partition itself fails
+    there and no choice of interior modes meets the thresholds (the log says so and names link-frame masters)."""
+    with caplog.at_level("WARNING", logger="exuflex.reduction.basis"):
+        cb = CraigBampton(single_link, masters=["node5.y", "node5.theta"])
+    assert not cb.path_accuracy[-1].ok(0.99, 2.0) and np.isclose(cb.path_q[-1, 0], np.pi / 2)
+    assert "no choice of interior modes" in caplog.text and "node5.transverse" in caplog.text
+
+
 def test_rotation_is_what_makes_one_qstar_serve_the_manoeuvre(sixbar):
     cb = CraigBampton(sixbar, n_interior=5)
     q = np.array([0.82, 2.68, 5.1])
@@ -180,10 +189,17 @@ def test_along_the_manoeuvre_config_dependent_basis_keeps_accuracy(sixbar):
     assert max(a.worst_error_pct for a in frozen) > 100.0
 
 
-def test_analytic_mass_derivative_matches_finite_differences(sixbar):
-    rm = ReducedModel(CraigBampton(sixbar))
+@pytest.mark.parametrize("case", ["sixbar", "fourbar_link_frame"])
+def test_analytic_mass_derivative_matches_finite_differences(sixbar, case):
+    if case == "sixbar":
+        rm = ReducedModel(CraigBampton(sixbar))
+        q = [0.9, 2.5, 4.5]
+    else:  # masters in link frames: M_r's derivative through dQ/dq in dH/dq
+        rm = ReducedModel(CraigBampton(ErlsModel(load_mechanism(MODELS / "fourbar.toml")), masters=LINK_FRAME_MASTERS,
+                                       n_interior=3))
+        q = [2.9]
     rng = np.random.default_rng(2)
-    p = np.r_[0.9, 2.5, 4.5, 1e-4 * rng.standard_normal(rm.r - 3)]
+    p = np.r_[q, 1e-4 * rng.standard_normal(rm.r - rm.nq)]
     mats = rm.matrices(p)
     dHdq = rm.cb.basis_derivative(mats.rc, np.eye(rm.r))
     analytic = rm.mass_derivative_analytic(mats, dHdq)

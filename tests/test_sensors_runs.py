@@ -329,7 +329,7 @@ def test_cli_simulate_erls(tmp_path):
 def test_cli_simulate_rejects_bad_arguments(tmp_path, capsys):
     rc = main(["simulate", str(MODEL), "--out", str(tmp_path / "x"), "--engine", "erls", "--duration", "-1"])
     assert rc == 2
-    assert "--duration must be positive" in capsys.readouterr().err
+    assert "argument --duration: expected a positive finite number, got '-1'" in capsys.readouterr().err
     rc = main(["simulate", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "x"), "--engine", "erls"])
     assert rc == 2
 

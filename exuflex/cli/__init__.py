@@ -1,6 +1,11 @@
 """Command line: ``exuflex <command> ...``. Each command lives in its own module with
 ``add_parser(subparsers)`` and ``run(args) -> int``; this dispatcher only wires them up and turns
-expected errors (bad model files, bad logs, kinematics failures) into one- or two-line messages."""
+expected errors (bad arguments, bad model files, bad logs, kinematics failures) into one-line messages.
+
+Exit codes: 0 success; 2 an error in the input (arguments, model file, log), one line on stderr; 1 an
+internal error (a bug: one line, ``--debug`` shows the traceback); 130 interrupted. ``--debug`` may stand
+anywhere on the command line.
+"""
 
 from __future__ import annotations
 
@@ -11,13 +16,25 @@ import sys
 
 __all__ = ["main"]
 
-COMMANDS = ("modes", "simulate", "observe", "study", "reproduce", "bench")
+COMMANDS = ("modes", "simulate", "observe", "plot", "study", "reproduce", "bench")
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: ``exuflex CMD: error: ... (exuflex CMD --help)``."""
+
+    def error(self, message: str):  # noqa: D401 - argparse's hook
+        msg = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {msg} (see {self.prog} --help)\n")
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="exuflex", description=__doc__.split("\n")[0])
-    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    sub = p.add_subparsers(dest="command", required=True)
+    from .. import __version__
+
+    p = _Parser(prog="exuflex", description=__doc__.split("\n")[0])
+    p.add_argument("--version", action="version", version=f"exuflex {__version__}")
+    p.add_argument("--debug", action="store_true",
+                   help="show tracebacks and debug logging (may stand anywhere on the command line)")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name in COMMANDS:
         try:
             mod = importlib.import_module(f".{name}", __name__)
@@ -32,33 +49,57 @@ def _build_parser() -> argparse.ArgumentParser:
 def _one_line(exc: BaseException) -> str:
     """The message of an expected error on one line (a long message keeps its first 2000 characters)."""
     msg = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+        msg = " ".join(exc.args[0].split())  # KeyError's str() quotes its message
     return msg if len(msg) <= 2000 else msg[:2000] + " ..."
 
 
+class _NisFlagFilter(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("EKF diverged")
+
+
+def _split_debug(argv: list[str]) -> tuple[list[str], bool]:
+    """``--debug`` anywhere before a ``--`` switches debugging on; it is removed from the arguments."""
+    stop = argv.index("--") if "--" in argv else len(argv)
+    debug = "--debug" in argv[:stop]
+    return [a for i, a in enumerate(argv) if not (i < stop and a == "--debug")], debug
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv, debug = _split_debug(list(sys.argv[1:] if argv is None else argv))
     parser = _build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING, format="%(levelname)s: %(message)s")
-    if args.debug:
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error already printed in one line
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
+    args.debug = debug
+    logging.basicConfig(level=logging.DEBUG if debug else logging.WARNING, format="%(levelname)s: %(message)s")
+    if not debug:  # the filter's NIS window flag is an inconsistency, reported once by the command, not a divergence
+        logging.getLogger("exuflex.observer.ekf").addFilter(_NisFlagFilter())
+    if debug:
         return int(args.func(args) or 0)
     from ..errors import EXPECTED_ERRORS
+    from ..observer.base import FilterDivergedError
 
+    prog = f"exuflex {args.command}"
     try:
         return int(args.func(args) or 0)
-    except EXPECTED_ERRORS as exc:
-        print(f"exuflex {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+    except FilterDivergedError as exc:
+        print(f"{prog}: error: the filter diverged (its estimates became non-finite or unbounded): {_one_line(exc)}; "
+              "check the log's units and channels against the model file (--debug for details)", file=sys.stderr)
         return 2
-    except OSError as exc:  # unreadable or unwritable paths (permissions, a folder given for a file, ...)
-        print(f"exuflex {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+    except (*EXPECTED_ERRORS, ValueError, KeyError, OSError) as exc:
+        # bad input: arguments, model files, logs, unreadable or unwritable paths
+        print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
-    except RuntimeError as exc:
-        from ..observer.base import FilterDivergedError
-
-        if not isinstance(exc, FilterDivergedError):
-            raise
-        print(f"exuflex {args.command}: error: the filter diverged: {_one_line(exc)}\n"
-              "  check the log's units and channels against the model file (--debug for details)", file=sys.stderr)
+    except MemoryError:
+        print(f"{prog}: error: out of memory; use a shorter --duration or a coarser step", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"exuflex {args.command}: interrupted; finished results are kept", file=sys.stderr)
+        print(f"{prog}: interrupted; finished results are kept", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - a bug: one line here, the traceback with --debug
+        print(f"{prog}: internal error: {type(exc).__name__}: {_one_line(exc)} (a bug; rerun with --debug for the "
+              "traceback and report it)", file=sys.stderr)
+        return 1

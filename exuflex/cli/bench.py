@@ -17,6 +17,9 @@ import argparse
 import json
 import sys
 
+from .args import positive_float, positive_int
+from .args import seed as seed_type
+
 __all__ = ["add_parser", "run"]
 
 
@@ -29,12 +32,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("model", nargs="?", default=None, help="model file (default: models/sixbar.toml)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--quick", action="store_true", help="a 0.2 s manoeuvre (seconds instead of minutes)")
-    p.add_argument("--duration", type=float, default=None, help="simulated time (s); overrides --quick")
+    p.add_argument("--duration", type=positive_float, default=None, help="simulated time (s); overrides --quick")
     p.add_argument("--no-full", action="store_true", help="skip the (slow) full-order observer")
     p.add_argument("--no-reference", action="store_true",
                    help="skip the comparison with the reduced observer's reference path (frozen step)")
-    p.add_argument("--seed", type=int, default=1, help="measurement noise seed (default 1)")
-    p.add_argument("--repeat", type=int, default=5,
+    p.add_argument("--seed", type=seed_type, default=1, help="measurement noise seed (default 1)")
+    p.add_argument("--repeat", type=positive_int, default=5,
                    help="times the reduced observer filters the log; the median run is reported (default 5)")
     p.set_defaults(func=run)
     return p
@@ -84,9 +87,6 @@ def _fmt(r: dict) -> str:
 def run(args) -> int:
     from ..bench import DEFAULT_MODEL, run_bench
 
-    if args.duration is not None and not args.duration > 0:
-        print(f"exuflex bench: error: --duration must be positive, got {args.duration}", file=sys.stderr)
-        return 2
     res = run_bench(
         args.model or DEFAULT_MODEL,
         quick=args.quick,

@@ -23,9 +23,14 @@ import sys
 
 import numpy as np
 
+from .args import name_list, nonneg_int, positive_float, positive_int
 from .simulate import BEAMS, elements_per_link_arg
 
-__all__ = ["add_parser", "modes_report", "run"]
+__all__ = ["MAX_ELEMENTS", "add_parser", "modes_report", "run"]
+
+MAX_ELEMENTS = 1000
+"""Most elements ``--refine`` and ``--elements-per-link`` may make (the modal analysis is a dense eigenproblem of
+3 dofs per element)."""
 
 
 def _floats(text: str) -> list[float]:
@@ -52,9 +57,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        description=__doc__.split("\n")[0])
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--q", type=_floats, default=None, help="configuration Q1,Q2,... (rad); default: the model's q_ref")
-    p.add_argument("--fmax", type=float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
+    p.add_argument("--fmax", type=positive_float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
     p.add_argument("--locked", action="store_true", help="motors locked (q held) instead of free")
-    p.add_argument("--refine", type=int, default=1, help="split every element into this many (default 1)")
+    p.add_argument("--refine", type=positive_int, default=1, help="split every element into this many (default 1)")
     p.add_argument("--elements-per-link", type=elements_per_link_arg, default="file", metavar="N|file",
                    help="then split elements so that no element is longer than 1/N of its link (default: file)")
     p.add_argument("--beam", choices=tuple(BEAMS), default="ancf",
@@ -62,13 +67,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--exudyn", action="store_true", help="add the Exudyn model's frequencies")
     p.add_argument("--reduced", action="store_true", help="add the reduced model's frequencies, NCO and errors")
-    p.add_argument("--masters", type=lambda s: [m for m in s.split(",") if m], default=None,
+    p.add_argument("--masters", type=name_list("master dofs"), default=None,
                    help="elastic master dofs a,b,... for --reduced, e.g. node9.transverse, or 'auto' (default: the "
                         "model's [reduction].masters)")
     p.add_argument("--n-interior", type=_n_interior, default=None,
                    help="interior modes N or 'auto' for --reduced (default: the model's)")
     p.add_argument("--qstar", type=_floats, default=None, help="reduction configuration Q1,Q2,... for --reduced")
-    p.add_argument("--along", type=int, default=41,
+    p.add_argument("--along", type=nonneg_int, default=41,
                    help="--reduced: report the worst NCO and frequency error over this many configurations of the "
                         "model's manoeuvre (default 41; 0: skip)")
     p.set_defaults(func=run)
@@ -83,13 +88,28 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     from ..erls.model import ErlsModel
     from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism
 
-    mech = load_mechanism(model_path)
-    from ..validate import check_configurations
+    from ..errors import UsageError
+    from ..validate import check_configurations, check_positive
 
+    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 1:
+        raise UsageError(f"refine (--refine): expected a positive integer, got {refine!r}")
+    check_positive(fmax, "fmax", "--fmax")
+    if masters is not None:
+        masters = list(masters)
+    mech = load_mechanism(model_path)
+    n_el = sum(len(lk.stations) - 1 for lk in mech.links)
+    if refine * n_el > MAX_ELEMENTS:
+        raise UsageError(f"refine (--refine): {refine} x {n_el} elements is more than {MAX_ELEMENTS} elements "
+                         "(dense eigenproblems grow with their cube); expected a smaller factor")
     check_configurations(mech)  # loops close, away from singularities
     if refine > 1:
         mech = refine_mechanism(mech, refine)
     if elements_per_link != "file":
+        n_new = sum(max(len(lk.stations) - 1, int(elements_per_link_arg(str(elements_per_link))))
+                    for lk in mech.links)
+        if n_new > MAX_ELEMENTS:
+            raise UsageError(f"elements_per_link (--elements-per-link): about {n_new} elements, more than "
+                             f"{MAX_ELEMENTS}; expected a smaller number")
         mech = remesh_mechanism(mech, elements_per_link_arg(str(elements_per_link)))
     if beam not in BEAMS:
         raise ValueError(f"--beam: expected one of {tuple(BEAMS)}, got {beam!r}")
@@ -170,17 +190,9 @@ def _table(rep: dict) -> str:
 
 
 def run(args) -> int:
-    try:
-        rep = modes_report(args.model, q=args.q, fmax=args.fmax, locked=args.locked, refine=args.refine,
-                           exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
-                           n_interior=args.n_interior, q_star=args.qstar, along=args.along,
-                           elements_per_link=args.elements_per_link, beam=args.beam)
-    except (ValueError, RuntimeError) as exc:
-        from ..errors import EXPECTED_ERRORS
-
-        if isinstance(exc, EXPECTED_ERRORS):
-            raise
-        print(f"exuflex modes: error: {exc}", file=sys.stderr)
-        return 2
+    rep = modes_report(args.model, q=args.q, fmax=args.fmax, locked=args.locked, refine=args.refine,
+                       exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
+                       n_interior=args.n_interior, q_star=args.qstar, along=args.along,
+                       elements_per_link=args.elements_per_link, beam=args.beam)
     print(json.dumps(rep) if args.json else _table(rep))
     return 0

@@ -1,4 +1,11 @@
-"""``exuflex observe MODEL RUN_DIR``: run the reduced-order EKF on a logged run and score it."""
+"""``exuflex observe MODEL LOG``: run the reduced-order EKF on a logged run (a run folder or a lab CSV log),
+report the log's channels and rates, the estimation bound for that log, and score it against a truth if any.
+
+Stage messages go to stderr (``exuflex observe: ...``); the result table to stdout. Tuning (see
+``docs/tuning.md``): the prior (``--q0``, ``--qd0`` and the ``--*-std`` flags), the noise of any motor or sensor
+(``--noise T1=0.02,c1=5e-5``: the filter's R and the torque process noise Q), a process-noise scale
+(``--q-scale``), unmodelled elastic-rate noise (``--q-extra``) and the RK4 sub-step (``--substep``).
+"""
 
 from __future__ import annotations
 
@@ -7,36 +14,94 @@ import json
 import sys
 from pathlib import Path
 
-__all__ = ["add_parser", "run"]
+from .args import channel_list, finite_float, name_list, nonneg_float, out_path, positive_float
+
+__all__ = ["FULL_P_BYTES", "add_parser", "run"]
+
+FULL_P_BYTES = 256e6
+"""With ``--out``, the filter keeps its full covariance per sample (for the standard deviations of the tip
+columns) while it takes at most this many bytes; longer logs get the joint angles' and rates' only."""
+
+
+def _n_interior(text: str):
+    if text == "auto":
+        return "auto"
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer or 'auto', got {text!r}")
+    return n
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    vals = [v.strip() for v in text.split(",")]
+    if not text.strip() or any(not v for v in vals):
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers such as 1.08,2.64,4.71, got {text!r}")
+    return tuple(finite_float(v) for v in vals)
+
+
+def _noise(text: str) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for pair in text.split(","):
+        if pair.count("=") != 1 or not pair.split("=")[0].strip():
+            raise argparse.ArgumentTypeError(f"expected NAME=STD pairs separated by commas (e.g. T1=0.02,c1=5e-5), "
+                                             f"got {pair!r}")
+        name, v = (x.strip() for x in pair.split("="))
+        if name in out:
+            raise argparse.ArgumentTypeError(f"{name!r} given twice")
+        out[name] = positive_float(v)
+    return out
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("observe", help="estimate the states of a logged run with the reduced-order EKF")
+    p = sub.add_parser("observe", help="estimate the states of a logged run with the reduced-order EKF",
+                       description=__doc__.split("\n")[0])
     p.add_argument("model", help="mechanism model file (TOML)")
     p.add_argument("run_dir", help="run folder (sensors.csv, meta.json, optional truth.csv), or a CSV log file "
                    "(then see --map)")
-    p.add_argument("--map", help="for a CSV log: channel=column pairs, e.g. T1=motor1_Nm,q1=enc1_rad (default: "
-                   "columns named like the model's motors and sensors)")
-    p.add_argument("--time-column", default="time", help="for a CSV log: the time column (default time)")
-    p.add_argument("--time-scale", type=float, default=1.0, help="for a CSV log: multiplies the time column, "
-                   "e.g. 1e-3 for milliseconds")
-    p.add_argument("--truth", help="for a CSV log: a truth CSV (time + columns named like the truth states)")
-    p.add_argument("--out", help="write estimates.csv, result.json and plots here")
+    g = p.add_argument_group("lab CSV logs")
+    g.add_argument("--map", help="channel=column pairs, e.g. T1=motor1_Nm,q1=enc1_rad (default: columns named "
+                   "like the model's motors and sensors)")
+    g.add_argument("--time-column", default="time", help="the time column (default time)")
+    g.add_argument("--time-scale", type=positive_float, default=1.0,
+                   help="multiplies the time column, e.g. 1e-3 for milliseconds")
+    g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
+    p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
-    p.add_argument("--channels", help="comma-separated sensor channels (default: the paper's set for the model)")
-    p.add_argument("--masters", help="comma-separated elastic master dofs (default: the model file's)")
-    p.add_argument("--n-interior", default=None, help="interior modes: a number or 'auto'")
-    p.add_argument(
-        "--method",
-        choices=("cached", "rk4"),
-        default="cached",
-        help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)",
-    )
+    p.add_argument("--channels", type=channel_list,
+                   help="comma-separated sensor channels (default: the paper's set for the model)")
+    r = p.add_argument_group("reduced model")
+    r.add_argument("--masters", type=name_list("master dofs"),
+                   help="comma-separated elastic master dofs (default: the model file's)")
+    r.add_argument("--n-interior", type=_n_interior, default=None, help="interior modes: a number or 'auto'")
+    r.add_argument("--method", choices=("cached", "rk4"), default="cached",
+                   help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)")
+    r.add_argument("--substep", type=positive_float, default=1e-4,
+                   help="RK4 sub-step of the filter's prediction (s, default 1e-4)")
+    t = p.add_argument_group("tuning (docs/tuning.md)")
+    t.add_argument("--q0", type=_floats, help="initial joint angles Q1,Q2,... (rad; default: the manoeuvre's "
+                   "start, else the model's q_ref); elastic coordinates at rest")
+    t.add_argument("--qd0", type=_floats, help="initial joint rates (rad/s, default 0)")
+    t.add_argument("--q0-std", type=positive_float, default=0.05, help="prior std of the joint angles (rad)")
+    t.add_argument("--qd0-std", type=positive_float, default=0.1, help="prior std of the joint rates (rad/s)")
+    t.add_argument("--elastic0-std", type=positive_float, default=1e-3, help="prior std of the elastic "
+                   "coordinates (m or rad)")
+    t.add_argument("--elastic-rate0-std", type=positive_float, default=0.01, help="prior std of the elastic rates")
+    t.add_argument("--noise", type=_noise, default={}, help="noise std overrides NAME=STD,... for motors (N m: "
+                   "process noise) and sensors (their unit: R); default the model file's noise_std")
+    t.add_argument("--q-scale", type=positive_float, default=1.0,
+                   help="multiplies the torque process-noise covariance (default 1: the stated noise)")
+    t.add_argument("--q-extra", type=nonneg_float, default=0.0,
+                   help="extra white noise on the elastic rates per interval (std, unmodelled dynamics)")
+    t.add_argument("--start-up", type=nonneg_float, default=0.3,
+                   help="seconds left out of the error metrics (default 0.3)")
     p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default="ekf",
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
                         "as states)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
-    p.add_argument("--bound", action="store_true", help="also print the steady-state RMS bound (always in --json)")
+    p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
     return p
@@ -45,15 +110,20 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def _config(args):
     from ..observer.session import ObserverConfig
 
-    ni = args.n_interior
-    if ni is not None and ni != "auto":
-        ni = int(ni)
     return ObserverConfig(
-        channels=tuple(args.channels.split(",")) if args.channels else None,
-        masters=tuple(args.masters.split(",")) if args.masters else None,
-        n_interior=ni,
+        channels=args.channels,
+        masters=args.masters,
+        n_interior=args.n_interior,
         method=args.method,
+        h=args.substep,
+        q0_std=args.q0_std,
+        qd0_std=args.qd0_std,
+        elastic0_std=args.elastic0_std,
+        elastic_rate0_std=args.elastic_rate0_std,
+        q_scale=args.q_scale,
+        q_extra_std=args.q_extra,
         estimator=args.estimator,
+        start_up=args.start_up,
     )
 
 
@@ -66,11 +136,13 @@ def _read_log(args, mech):
     if args.map:
         mapping = {}
         for pair in args.map.split(","):
-            if "=" not in pair:
+            if pair.count("=") != 1:
                 raise LogFormatError(f"--map: expected channel=column pairs separated by commas, got {pair!r}")
             ours, theirs = (x.strip() for x in pair.split("=", 1))
             if ours not in names:
                 raise LogFormatError(f"--map: {ours!r} is not a motor or sensor of {mech.name}; expected one of {names}")
+            if ours in mapping:
+                raise LogFormatError(f"--map: channel {ours!r} mapped twice")
             mapping[ours] = theirs
         for m in mech.motor_names:
             mapping.setdefault(m, m)
@@ -82,9 +154,13 @@ def _read_log(args, mech):
         raise LogFormatError(f"{args.run_dir}: the observer needs the measured torques {list(mech.motor_names)}; "
                              f"the log has {list(sig.names)} (use --map)")
     truth = read_csv_log(args.truth, time_column="time") if args.truth else None
-    sensors = [n for n in sig.names if n not in motors]
+    sensors = [n for n in sig.names if n not in motors and n in names]
     meta = {"engine": "csv", "source": str(args.run_dir), "motors": motors, "sensors": sensors}
     return Run(Path(args.run_dir), sig, truth, meta)
+
+
+def _say(msg: str) -> None:
+    print(f"exuflex observe: {msg}", file=sys.stderr, flush=True)
 
 
 def run_manoeuvre(mech, log):
@@ -102,50 +178,74 @@ def run_manoeuvre(mech, log):
 
 
 def run(args) -> int:
+    from ..errors import UsageError
     from ..mechanism import load_mechanism
-    from ..observer.session import observe_run
+    from ..observer.session import make_observer, observe_run
     from ..runs import read_run
+    from ..validate import check_configurations, check_observer_settings, with_noise
 
     mech = load_mechanism(args.model)
-    from ..validate import check_configurations
-
-    check_configurations(mech)  # loops close, away from singularities
-    log = _read_log(args, mech) if Path(args.run_dir).is_file() else read_run(args.run_dir)
-    mech = run_manoeuvre(mech, log)
+    if args.noise:
+        mech = with_noise(mech, args.noise)
+    config = _config(args)
     if args.smooth and args.estimator == "ukf":
-        print("exuflex observe: error: --smooth needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf",
-              file=sys.stderr)
-        return 2
-    out = observe_run(mech, log, _config(args), smooth=args.smooth)
+        raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
+    check_observer_settings(mech, config)  # before anything is built or read
+    for flag, v in (("--q0", args.q0), ("--qd0", args.qd0)):
+        if v is not None and len(v) != len(mech.coordinates):
+            raise UsageError(f"{flag}: expected {len(mech.coordinates)} values ({', '.join(mech.coordinate_names)}), "
+                             f"got {len(v)}")
+    check_configurations(mech)  # loops close, away from singularities
+    path = Path(args.run_dir)
+    log = _read_log(args, mech) if path.is_file() else read_run(path)
+    _say(f"read {path}: {len(log.sensors.t)} rows, {float(log.sensors.t[-1] - log.sensors.t[0]):.4g} s")
+    mech = run_manoeuvre(mech, log)
+    _say("building the reduced model" + ("" if _kernels_cached() else
+         " (the first run compiles the numerical kernels: a few minutes, once)"))
+    obs = make_observer(mech, config)
+    if args.q0 is not None or args.qd0 is not None:
+        from ..observer.session import _start_q
+
+        q0 = args.q0 if args.q0 is not None else _start_q(mech)
+        x0 = obs.model.initial_state(q0, args.qd0)
+        obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
+    if args.out and len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES:
+        obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
+    out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth)
     s = out.summary
     if s["diverged"]:
-        print(f"exuflex observe: warning: the filter diverged at t = {s['diverged_at']} s (NIS test)", file=sys.stderr)
+        _say(f"warning: the filter diverged (estimates non-finite) at t = {s['diverged_at']} s")
+    elif s["nis_inconsistent"]:
+        _say(f"warning: NIS inconsistent from t = {s['nis_flagged_at']:.4g} s (innovations larger than the filter's "
+             "covariance explains: model mismatch, wrong noise settings or units; estimates finite)")
     if args.out:
         from ..observer.output import write_outcome
 
-        write_outcome(args.out, mech, log, out, plots=not args.no_plots)
+        _say(f"writing {args.out}")
+        write_outcome(args.out, mech, log, out, plots=not args.no_plots, observer=obs)
     if args.json:
         print(json.dumps(s, indent=1, default=float))
         return 0
-    print(f"{mech.name}: {len(out.estimate.result.t)} samples, reduced model {s['reduced_ndof']} dofs, "
-          f"channels {' '.join(s['channels'])}")
-    print(f"wall {s['wall_s']:.2f} s, real-time factor {s['real_time_factor']:.2f}, mean NIS {s['nis_mean']:.2f} "
-          f"(expected {s['nis_expected']:.1f})")
+    from ..observer.output import summary_table
+
+    print(summary_table(mech, out, bound=True))
     if "parameters" in s:
         print(f"payload scale {s['parameters']['payload_scale']:.4g} +- {s['parameters']['payload_scale_std']:.2g}")
     if "inputs" in s:
         print("torque disturbance (N m): " + ", ".join(f"{k} {v['value']:.3g} +- {v['std']:.2g}"
                                                      for k, v in s["inputs"].items()))
-    if out.metrics:
-        print(f"{'quantity':10s} {'RMS error':>11s} {'max error':>11s} {'bound':>11s} {'ratio':>6s}")
-        for k, v in out.metrics["rms_error"].items():
-            b = (out.bound or {}).get(k)
-            ratio = f"{v / b:6.2f}" if b else "     -"
-            bs = f"{b:11.3g}" if b else "          -"
-            print(f"{k:10s} {v:11.3g} {out.metrics['max_error'][k]:11.3g} {bs} {ratio}")
-    elif args.bound and out.bound:
-        for k, b in out.bound.items():
-            print(f"{k:10s} bound {b:.3g}")
     if args.out:
         print(f"wrote {Path(args.out)}")
     return 0
+
+
+def _kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds compiled kernels of this installation (then no compile notice)."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return True
+    import exuflex
+
+    root = Path(exuflex.__file__).parent
+    return any(root.rglob("__pycache__/*.nbi"))

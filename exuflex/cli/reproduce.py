@@ -16,6 +16,9 @@ import sys
 import time
 from pathlib import Path
 
+from .args import out_path, positive_int
+from .args import seed as seed_type
+
 __all__ = ["FULL", "QUICK", "add_parser", "reproduce", "run"]
 
 log = logging.getLogger(__name__)
@@ -30,13 +33,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("reproduce", help="regenerate the paper's tables and figures and a report.md",
                        description=__doc__.split("\n")[0])
     p.add_argument("--model", default=None, help="model file (default: the six-bar, models/sixbar.toml)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=out_path, help="output folder")
     p.add_argument("--quick", action="store_true", help="short runs and a tiny payload study (about a minute)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes for the payload study")
+    p.add_argument("--workers", type=positive_int, default=1, help="worker processes for the payload study")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address for the payload study")
     p.add_argument("--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default exudyn)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed of the observer run and base seed of the study")
-    p.add_argument("--runs", type=int, default=None, help="payload-study runs per level (default 100; quick 2)")
+    p.add_argument("--seed", type=seed_type, default=0, help="noise seed of the observer run and base seed of the study")
+    p.add_argument("--runs", type=positive_int, default=None, help="payload-study runs per level (default 100; quick 2)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
     return p

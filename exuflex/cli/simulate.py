@@ -27,6 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .args import out_path, positive_float
+from .args import seed as seed_type
+
 __all__ = ["BEAMS", "INTEGRATORS", "ProgressBar", "add_parser", "elements_per_link_arg", "run", "simulate_run"]
 
 BEAMS = {"ancf": "ancf", "ge": "gebeam"}  # --beam: Exudyn's ANCF cable or geometrically exact beam
@@ -37,11 +40,13 @@ log = logging.getLogger(__name__)
 
 
 class ProgressBar:
-    """A one-line text progress bar on stderr: ``label [#####.....]  45%``. Silent if disabled."""
+    """Progress on stderr: on a terminal a one-line bar ``label [#####.....]  45%`` redrawn in place; otherwise
+    (a log file, a pipe, a CI job) a plain line every 10 %, ``label  40%  12.3 s``. Silent if disabled."""
 
     def __init__(self, label: str, enabled: bool = True, width: int = 30, stream=None):
         self.label, self.enabled, self.width = label, enabled, width
         self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._last = -1
         self._t0 = time.perf_counter()
 
@@ -49,16 +54,22 @@ class ProgressBar:
         if not self.enabled:
             return
         pct = int(100 * min(max(frac, 0.0), 1.0))
+        if not self.tty:
+            pct = pct // 10 * 10
         if pct == self._last:
             return
         self._last = pct
-        n = self.width * pct // 100
         el = time.perf_counter() - self._t0
+        if not self.tty:
+            self.stream.write(f"{self.label:<12s} {pct:3d}% {el:6.1f} s\n")
+            self.stream.flush()
+            return
+        n = self.width * pct // 100
         self.stream.write(f"\r{self.label:<12s} [{'#' * n}{'.' * (self.width - n)}] {pct:3d}% {el:6.1f} s")
         self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled and self._last >= 0:
+        if self.enabled and self.tty and self._last >= 0:
             self.stream.write("\n")
             self.stream.flush()
 
@@ -83,20 +94,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
         description=__doc__.split("\n")[0],
     )
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
-    p.add_argument("--out", required=True, help="run folder to write (created if needed)")
+    p.add_argument("--out", required=True, type=out_path, help="run folder to write (created if needed)")
     p.add_argument(
         "--engine", choices=("exudyn", "erls"), default="exudyn", help="truth engine (default: exudyn)"
     )
     p.add_argument(
-        "--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's"
+        "--duration", type=positive_float, default=None, help="simulated time (s); default: the manoeuvre's"
     )
     p.add_argument(
-        "--payload-scale", type=float, default=1.0, help="tip payload multiplier of the truth (default 1)"
+        "--payload-scale", type=positive_float, default=1.0, help="tip payload multiplier of the truth (default 1)"
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="measurement noise seed (default: random, recorded)"
+        "--seed", type=seed_type, default=None, help="measurement noise seed (default: random, recorded)"
     )
-    p.add_argument("--h", type=float, default=1e-4, help="integration step (s), also the torque table step")
+    p.add_argument("--h", type=positive_float, default=1e-4,
+                   help="integration step (s), also the torque table step; at most the model's sample interval")
     p.add_argument(
         "--manoeuvre", default=None, metavar="FILE",
         help="manoeuvre instead of the model's: a TOML file with a [manoeuvre] table, or a CSV table "
@@ -124,7 +136,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="ERLS engine: implicit generalized-alpha (default) or the explicit RK4 reference",
     )
     p.add_argument(
-        "--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)"
+        "--no-progress", action="store_true",
+        help="no progress (a bar on a terminal, a line every 10 %% otherwise)"
     )
     p.set_defaults(func=run)
     return p
@@ -191,28 +204,37 @@ def simulate_run(
     (see ``--elements-per-link``); ``beam``: a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of
     :data:`INTEGRATORS`.
     """
-    from ..manoeuvre import computed_torque, plan, torque_table
+    from ..manoeuvre import open_loop_torque, plan
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
     from ..runs import file_sha256, write_run
+    from ..errors import UsageError
     from ..sensors import monotonic_record, sensor_channels, true_states
+    from ..validate import check_actuation, check_configurations, check_positive, check_simulation_settings
 
+    if not isinstance(model_path, (str, Path)):
+        raise UsageError(f"model_path: expected the path of a model file (TOML), got {type(model_path).__name__}")
+    if not isinstance(out, (str, Path)) or not str(out).strip():
+        raise UsageError(f"out (--out): expected a folder path, got {out!r}")
+    if engine not in ("exudyn", "erls"):
+        raise UsageError(f"engine (--engine): expected 'exudyn' or 'erls', got {engine!r}")
+    check_positive(payload_scale, "payload_scale", "--payload-scale")
     model_path = Path(model_path)
     mech = load_mechanism(model_path)
-    from ..validate import check_configurations
-
     check_configurations(mech)  # loops close, away from singularities
     if manoeuvre is not None:
         mech = mech.replace(manoeuvre=load_manoeuvre(manoeuvre, mech))
     if mech.manoeuvre is None:
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
-    duration = float(mech.manoeuvre.duration if duration is None else duration)
-    if not duration > 0 or not h > 0:
-        raise ValueError(f"duration and --h must be positive (got {duration}, {h})")
+    duration = mech.manoeuvre.duration if duration is None else duration
+    check_simulation_settings(mech, duration, h, seed)
+    if mech.manoeuvre.kind != "torque":
+        check_actuation(mech)  # before planning: computed torque needs every coordinate actuated
+    duration = float(duration)
     if beam not in BEAMS:
-        raise ValueError(f"--beam must be one of {tuple(BEAMS)}, got {beam!r}")
+        raise UsageError(f"beam (--beam): expected one of {tuple(BEAMS)}, got {beam!r}")
     if integrator not in INTEGRATORS:
-        raise ValueError(f"--integrator must be one of {INTEGRATORS}, got {integrator!r}")
+        raise UsageError(f"integrator (--integrator): expected one of {INTEGRATORS}, got {integrator!r}")
     if elements_per_link is not None and elements_per_link != "file":
         elements_per_link = elements_per_link_arg(str(elements_per_link))
     output_dt = 1.0 / mech.sample_rate_hz
@@ -225,10 +247,7 @@ def simulate_run(
     bar.close()
     timings["plan_s"] = time.perf_counter() - t0
     bar = ProgressBar("torque", progress)
-    if mech.manoeuvre.kind == "torque":  # measured torques, open loop
-        tau = torque_table(mech, mech.manoeuvre, pl.t)
-    else:
-        tau = computed_torque(mech, pl, progress=bar)  # nominal model: the controller's knowledge
+    tau = open_loop_torque(mech, pl, progress=bar)  # computed on the nominal model (the controller's), or measured
     bar.close()
     timings["plan_and_torque_s"] = time.perf_counter() - t0
     timings["torque_s"] = timings["plan_and_torque_s"] - timings["plan_s"]
@@ -320,14 +339,6 @@ def simulate_run(
 
 
 def run(args) -> int:
-    for flag, value in (
-        ("--duration", args.duration),
-        ("--h", args.h),
-        ("--payload-scale", args.payload_scale),
-    ):
-        if value is not None and not value > 0:
-            print(f"exuflex simulate: error: {flag} must be positive, got {value}", file=sys.stderr)
-            return 2
     out = simulate_run(
         args.model,
         args.out,
@@ -336,7 +347,7 @@ def run(args) -> int:
         payload_scale=args.payload_scale,
         seed=args.seed,
         h=args.h,
-        progress=not args.no_progress and sys.stderr.isatty(),
+        progress=not args.no_progress,
         manoeuvre=args.manoeuvre,
         elements_per_link=args.elements_per_link,
         beam=args.beam,

@@ -13,6 +13,9 @@ import argparse
 import sys
 import time
 
+from .args import nonneg_float, out_path, positive_float, positive_int
+from .args import seed as seed_type
+
 __all__ = ["QUICK", "add_parser", "build_spec", "run"]
 
 QUICK = {"duration": 0.4, "runs": 3, "levels": "0,50,100"}
@@ -21,19 +24,19 @@ DEFAULT_LEVELS = "0,25,50,75,100"
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
-    p.add_argument("--out", required=True, help="study folder (created; an existing study there is resumed)")
-    p.add_argument("--runs", type=int, default=None, help="noise realisations per level (default 100)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: in-process)")
+    p.add_argument("--out", required=True, type=out_path, help="study folder (created; an existing study there is resumed)")
+    p.add_argument("--runs", type=positive_int, default=None, help="noise realisations per level (default 100)")
+    p.add_argument("--workers", type=positive_int, default=1, help="local worker processes (default 1: in-process)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786): run there")
     p.add_argument("--quick", action="store_true",
                    help=f"short check: {QUICK['duration']} s, {QUICK['runs']} runs per level")
     p.add_argument("--engine", choices=("exudyn", "erls", "reduced"), default="exudyn",
                    help="truth engine (default exudyn; reduced: the observer's own model, a consistency check)")
-    p.add_argument("--duration", type=float, default=None, help="simulated time (s); default: the manoeuvre's")
-    p.add_argument("--seed", type=int, default=0, help="base seed; run j uses seed + j (default 0)")
-    p.add_argument("--start-up", type=float, default=None,
+    p.add_argument("--duration", type=positive_float, default=None, help="simulated time (s); default: the manoeuvre's")
+    p.add_argument("--seed", type=seed_type, default=0, help="base seed; run j uses seed + j (default 0)")
+    p.add_argument("--start-up", type=nonneg_float, default=None,
                    help="seconds left out of the error statistics (default min(0.3, duration / 4))")
-    p.add_argument("--h", type=float, default=1e-4, help="truth integration step (s)")
+    p.add_argument("--h", type=positive_float, default=1e-4, help="truth integration step (s)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
 
 
@@ -103,10 +106,13 @@ def print_summary(summary: dict, stream=None) -> None:
 def run(args) -> int:
     from ..study import OverrideError, run_study
 
-    for flag, v in (("--runs", args.runs), ("--workers", args.workers), ("--duration", args.duration)):
-        if v is not None and not v > 0:
-            print(f"exuflex study: error: {flag} must be positive, got {v}", file=sys.stderr)
-            return 2
+    from ..mechanism import load_mechanism
+    from ..validate import check_simulation_settings
+
+    mech = load_mechanism(args.model)
+    duration = args.duration if args.duration is not None else (QUICK["duration"] if args.quick else None)
+    if mech.manoeuvre is not None:
+        check_simulation_settings(mech, duration if duration is not None else mech.manoeuvre.duration, args.h)
     try:
         spec = build_spec(args)
         t0 = time.perf_counter()

@@ -68,17 +68,16 @@ def manoeuvre_table(mech: Mechanism, duration: float, h: float = 1e-4, plan_dt: 
     """The manoeuvre's rigid computed torques on the integration grid ``k h``.
 
     Planned at ``plan_dt`` (exact inverse kinematics and inverse dynamics) and interpolated linearly
-    onto the grid (planning at ``h`` directly costs about 10x more for a difference of order
-    ``plan_dt^2`` times the torque's curvature).
+    onto the grid (planning at ``h`` directly differs by order ``plan_dt^2`` times the torque's curvature).
 
     Returns
     -------
     t (n,), tau (n, n_motors), q0, qd0
     """
-    from ..manoeuvre import computed_torque, plan
+    from ..manoeuvre import open_loop_torque, plan
 
     p = plan(mech, dt=plan_dt, t_end=duration)
-    tau_p = computed_torque(mech, p)
+    tau_p = open_loop_torque(mech, p)
     n = round(duration / h) + 1
     t = np.arange(n) * h
     tau = np.column_stack([np.interp(t, p.t, tau_p[:, j]) for j in range(tau_p.shape[1])])

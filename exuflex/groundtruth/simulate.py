@@ -422,10 +422,10 @@ def time_truth(
         if torques not in ("auto", "manoeuvre", "smooth"):
             raise ValueError(f"torques must be 'auto', 'manoeuvre' or 'smooth', got {torques!r}")
         if torques == "manoeuvre" or (torques == "auto" and mech.manoeuvre is not None):
-            from ..manoeuvre import computed_torque, plan
+            from ..manoeuvre import open_loop_torque, plan
 
             p = plan(mech, dt=1e-3, t_end=duration)
-            t_table, torque_table = p.t, computed_torque(mech, p)
+            t_table, torque_table = p.t, open_loop_torque(mech, p)
             q0 = p.q[0] if q0 is None else q0
         else:
             t_table, torque_table = smooth_torque_table(mech, duration)

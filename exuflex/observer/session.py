@@ -40,6 +40,7 @@ __all__ = [
     "estimate",
     "metrics",
     "estimation_bound",
+    "UnobservableError",
     "physical_names",
 ]
 
@@ -211,7 +212,11 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     ``x0`` is the prior mean (reduced state); default: at rest at the manoeuvre's start, else q_ref.
     A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers.
     """
+    from ..validate import check_mechanism_argument, check_observer_settings
+
+    check_mechanism_argument(mech)
     config = config or ObserverConfig()
+    check_observer_settings(mech, config)
     t0 = time.perf_counter()
     model = model or (cb.model if cb is not None else ErlsModel(mech))
     if cb is None:
@@ -342,9 +347,23 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
     return {"rms_error": rms, "max_error": mx}
 
 
-def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
+def estimation_bound(obs: Observer, q=None, qd=None, *, log_check=None) -> dict[str, float]:
     """Best achievable RMS error per physical quantity: steady-state Kalman covariance of the reduced model
-    linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise."""
+    linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise.
+
+    ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the bound for that log: the
+    interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
+    every k-th interval (:func:`.bound.periodic_posterior`, averaged over the period). Without it: every channel
+    of the observer at every interval of the model's rate.
+
+    Raises
+    ------
+    UnobservableError
+        The channels leave states that neither decay nor are measured (e.g. gauges only: the rigid motion); the
+        message names them.
+    """
+    from .bound import periodic_posterior, unobservable_states
+
     mech = obs.mech
     # a model of its own, so that the observer's caches are left alone
     som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
@@ -352,15 +371,45 @@ def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
         q = _mid_q(mech)
     z = som.initial_state(q, qd)
     u = np.zeros(len(mech.motors))
-    pred, _, maps = som.frozen_interval(z, u, obs.ekf.dt)
+    channels = list(obs.channels)
+    R_all = {c: s**2 for c, s in zip(obs.channels, obs.ekf.R_std, strict=True)}
+    dt = obs.ekf.dt
+    every = {c: 1 for c in channels}
+    if log_check is not None:
+        dt = log_check.interval_s or dt
+        mult = max(1, round(dt / obs.ekf.dt))
+        channels = [c for c in channels if log_check.channel_rate_hz.get(c, 1.0) > 0]
+        every = {c: max(1, round(log_check.channel_every.get(c, mult) / mult)) for c in channels}
+    if not channels:
+        raise UnobservableError(f"{mech.source or mech.name}: no channel of {list(obs.channels)} is sampled in the "
+                                "log: nothing to estimate with")
+    pred, _, maps = som.frozen_interval(z, u, dt)
     A = pred.F
     # the bound is a property of the sensors and the *stated* noise, not of the filter's tuning
     var = getattr(obs.model, "torque_var_nominal", som.torque_var)
     Q = (maps.L * var) @ maps.L.T
-    _, H = som.measure(z, obs.channels)
-    R = np.array([s**2 for s in obs.ekf.R_std])
-    P = _steady_posterior(A, Q, H, R)
+    _, H = som.measure(z, channels)
+    R = np.array([R_all[c] for c in channels])
     nq, r = som.nq, som.r
+    state_names = (list(mech.coordinate_names) + [f"p{i + 1}" for i in range(r - nq)]
+                   + [f"d{c}" for c in mech.coordinate_names] + [f"dp{i + 1}" for i in range(r - nq)])
+    d = np.sqrt(np.clip(np.diag(Q), 0, None))
+    d = np.where(d > 0, d, d[d > 0].min() if np.any(d > 0) else 1.0)
+    bad = unobservable_states(A, H, state_names, scale=d)
+    if bad:
+        rigid = [b for b in bad if not b.lstrip("d").startswith("p")]
+        raise UnobservableError(
+            f"the channels {channels} cannot observe {', '.join(bad)}"
+            + (" (the rigid motion: add an encoder)" if rigid else " (add a strain gauge or a tip sensor)")
+            + "; no filter has a bounded error there")
+    period = int(np.lcm.reduce([every[c] for c in channels]))
+    if period == 1:
+        P = _steady_posterior(A, Q, H, R)
+    else:
+        if period > 1000:
+            raise UnobservableError(f"channel spacings {every} give a period of {period} intervals; resample the log")
+        pattern = np.array([[k % every[c] == 0 for c in channels] for k in range(period)])
+        P = periodic_posterior(A, Q, H, R, pattern)
     names = physical_names(mech)
     out = {}
     sd = np.sqrt(np.diag(P))
@@ -378,6 +427,10 @@ def estimation_bound(obs: Observer, q=None, qd=None) -> dict[str, float]:
             Cd[r:] = rows[k]
             out[names[2 * nq + 2 + k]] = float(np.sqrt(Cd @ P @ Cd))
     return out
+
+
+class UnobservableError(ValueError):
+    """A channel set that leaves states unobservable (the bound does not exist); the message names them."""
 
 
 def _steady_posterior(A, Q, H, R, tol: float = 1e-10, max_iter: int = 200_000) -> np.ndarray:
@@ -441,14 +494,34 @@ class Outcome:
 
 
 def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
-                observer: Observer | None = None, smooth: bool = False) -> Outcome:
+                observer: Observer | None = None, report=None, smooth: bool = False) -> Outcome:
     """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
-    (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``)."""
-    from ..validate import check_run
+    (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``).
 
+    The log is checked first (:func:`exuflex.validate.check_run`): its clock, per-channel availability and rates.
+    The filter steps by each sample's own time stamp (jitter and drift within the documented tolerance need no
+    grid). The bound is the one for this log (its rate, its channels' availability and rates,
+    :func:`estimation_bound`), computed before filtering so that an unobservable channel set is reported at once.
+    ``report``: a callable taking one-line stage messages (the CLI prints them on stderr).
+    """
+    from ..validate import check_mechanism_argument, check_run
+
+    check_mechanism_argument(mech)
+    if not hasattr(run, "sensors") or not hasattr(run, "meta"):
+        from ..errors import UsageError
+
+        hint = " (a path: read it with exuflex.runs.read_run(path) first)" if isinstance(run, (str, bytes)) or \
+            hasattr(run, "__fspath__") else ""
+        raise UsageError(f"run: expected an exuflex.runs.Run, got {type(run).__name__}{hint}")
+    say = report or (lambda msg: log.info("%s", msg))
     config = config or ObserverConfig()
     obs = observer or make_observer(mech, config)
     log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
+    say(f"channels: {log_check.availability()}; log interval {log_check.interval_s * 1e3:.4g} ms"
+        + (f", clock {log_check.clock_drift_ppm:+.1f} ppm, jitter up to {log_check.jitter_max_s * 1e6:.3g} us"
+           if log_check.jitter_max_s > 1e-6 * log_check.dt else ""))
+    for w in log_check.warnings:
+        say(f"note: {w}")
     S = run.sensors
     motors = run.motors or mech.motor_names
     U = S.select(motors).data
@@ -456,6 +529,15 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     if np.any(~np.isfinite(U)):
         # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
         U = _hold(U)
+    bnd, unobservable = None, None
+    if with_bound:  # before filtering: an unobservable channel set is reported at once
+        try:
+            bnd = estimation_bound(obs, log_check=log_check)
+            say("bound for this log: " + ", ".join(f"{k} {v:.3g}" for k, v in bnd.items()))
+        except UnobservableError as exc:
+            unobservable = str(exc)
+            say(f"warning: no bound: {exc}")
+    say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
     est = estimate(obs, S.t, U, Y, smooth=smooth)
     span = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
     start_up = config.start_up if span > config.start_up else 0.5 * span
@@ -463,21 +545,25 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         log.warning("log is %.3g s long: error metrics from %.3g s instead of the %.3g s start-up", span, start_up,
                     config.start_up)
     met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
-    bnd = estimation_bound(obs) if with_bound else None
     res = est.result
+    nis_flag = bool(res.diverged and not res.nonfinite)
     summary = {
         "model": mech.name,
         "model_file": mech.source,
         "run": str(run.path),
         "channels": list(obs.channels),
+        "channels_used": [c for c in obs.channels if log_check.channel_rate_hz.get(c, 0) > 0],
         "reduced_ndof": obs.info["reduced_ndof"],
         "config": config.as_dict(),
         "nis_mean": res.mean_nis()[0],
         "nis_expected": res.mean_nis()[1],
         "n_updates": res.n_updates,
         "n_missing": res.n_missing,
-        "diverged": res.diverged,
-        "diverged_at": res.diverged_at,
+        # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
+        "diverged": bool(res.nonfinite),
+        "diverged_at": res.diverged_at if res.nonfinite else None,
+        "nis_inconsistent": nis_flag,
+        "nis_flagged_at": res.diverged_at if nis_flag else None,
         "wall_s": est.wall_s,
         "real_time_factor": est.real_time_factor,
         "basis_s": obs.basis_s,
@@ -491,8 +577,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         summary.update(met)
         if est.filtered_physical is not None:
             summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
+    if unobservable:
+        summary["unobservable"] = unobservable
     if bnd is not None:
         summary["bound_rms"] = bnd
+        summary["bound_for"] = {"interval_s": log_check.interval_s, "channel_rate_hz": log_check.channel_rate_hz}
         if met is not None:
             summary["ratio_to_bound"] = {k: met["rms_error"][k] / bnd[k] for k in met["rms_error"] if bnd.get(k)}
     return Outcome(est, met, bnd, summary)

@@ -202,9 +202,12 @@ class CraigBampton:
         missed = [a for a in self.path_accuracy if not a.ok(self.nco_min, self.freq_error_max_pct)]
         if missed:
             a = min(missed, key=lambda a: a.worst_nco)
+            hint = (f"'auto' would keep {n_needed}" if samples.reachable else
+                    "no choice of interior modes meets them there (global masters such as node5.y turn into a "
+                    "link's axial direction; link-frame masters such as node5.transverse do not)")
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
-                        "(worst NCO %.4f at q = %s); 'auto' would keep %d", src, n_interior, len(missed),
-                        len(self.path_accuracy), a.worst_nco, np.round(a.q, 4).tolist(), n_needed)
+                        "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
+                        a.worst_nco, np.round(a.q, 4).tolist(), hint)
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)

@@ -138,15 +138,19 @@ class PathSamples:
         ``ranking="imr"``: forward selection; each step keeps the mode that makes the smallest margin over
         the samples largest (ties: the higher score at q*), up to ``n_max`` modes (default: until every
         sample meets the thresholds), then the others by their largest score over the samples.
-        ``"frequency"``: the lowest modes first."""
+        ``"frequency"``: the lowest modes first. Where no count meets the thresholds at every sample
+        (:attr:`reachable` False; e.g. a global master that becomes a link's axial direction), the smallest count
+        meeting them wherever some count does."""
         n_all = self.scores.shape[1]
+        self.reachable = True
         if ranking == "frequency":
             order = np.arange(n_all)
             for k in range(n_all + 1):
                 accs = self.evaluate(order[:k])
                 if self.worst_margin(accs) >= 0:
                     return order, k, accs
-            return order, n_all, accs
+            k = self._need(order)
+            return order, k, self.evaluate(order[:k])
         tie = np.argsort(-self.scores[0], kind="stable")  # q*'s IMR order
         seq: list[int] = []
         accs = self.evaluate(seq)
@@ -169,9 +173,18 @@ class PathSamples:
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
         order = np.array(seq + [int(i) for i in rest if i not in set(seq)], int)
         if n_needed is None:  # a fixed count below the need, or every mode: the need by the order's prefixes
-            n_needed = next((k for k in range(len(seq), n_all + 1)
-                             if self.worst_margin(self.evaluate(order[:k])) >= 0), n_all)
+            n_needed = self._need(order)
         return order, n_needed, self.evaluate(order[:n_needed])
+
+    def _need(self, order: np.ndarray) -> int:
+        """The smallest prefix of ``order`` meeting the thresholds at every sample where some prefix does
+        (:attr:`reachable` False if that is not every sample)."""
+        cb = self.cb
+        m = np.array([[margin(a, cb.nco_min, cb.freq_error_max_pct) for a in self.evaluate(order[:k])]
+                      for k in range(len(order) + 1)])  # (prefix, sample)
+        can = (m >= 0).any(axis=0)
+        self.reachable = bool(can.all())
+        return next(k for k in range(len(order) + 1) if np.all(m[k, can] >= 0))
 
     def worst_margin(self, accs: list[AccuracyResult]) -> float:
         """The smallest :func:`margin` over the samples."""

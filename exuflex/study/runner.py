@@ -244,14 +244,11 @@ class Drive:
 def plan_drive(nominal: Mechanism, duration: float, h: float) -> Drive:
     """Plan the manoeuvre and its open-loop computed torque on the nominal model (the controller's knowledge);
     a measured-torque manoeuvre gives its torques instead."""
-    from ..manoeuvre import computed_torque, plan, torque_table
+    from ..manoeuvre import open_loop_torque, plan
 
     t0 = time.perf_counter()
     pl = plan(nominal, dt=h, t_end=duration)
-    if nominal.manoeuvre is not None and nominal.manoeuvre.kind == "torque":
-        tau = torque_table(nominal, nominal.manoeuvre, pl.t)
-    else:
-        tau = computed_torque(nominal, pl)
+    tau = open_loop_torque(nominal, pl)
     return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
                  np.asarray(pl.qd[0], float), time.perf_counter() - t0)
 
@@ -626,10 +623,10 @@ def run_study(
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     drive_mechs = [drive_mech(nominal, lv) for lv in spec.levels]
-    for lv, dm in zip(spec.levels, drive_mechs, strict=True):
-        if dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
-            log.warning("level %s: its manoeuvre lasts %g s, the study simulates %g s", lv.label,
-                        dm.manoeuvre.duration, duration)
+    for lv, dm in zip(spec.levels, drive_mechs, strict=True):  # a longer manoeuvre than the nominal one is cut
+        if spec.duration is None and dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
+            log.warning("level %s: its manoeuvre lasts %g s, the study simulates %g s (the nominal manoeuvre's; "
+                        "--duration to change)", lv.label, dm.manoeuvre.duration, duration)
     settings = spec.settings(duration, start_up)
     # a level's own manoeuvre changes its drive and the observer's start (the controller knows the manoeuvre)
     man_ov = [{"manoeuvre": [list(o) for o in manoeuvre_overrides(lv)]} if manoeuvre_overrides(lv) else {}
@@ -933,9 +930,17 @@ def figure_rows(summary: dict, quantities: Sequence[str] | None = None) -> list[
 def _figure(out: Path, spec: StudySpec, summary: dict) -> Path | None:
     try:
         if spec.kind == "payload":
-            from ..plots import payload_study_figure
+            from ..plots import PAPER_MODELS, payload_study_figure, paper_payload_quantities
 
-            return payload_study_figure(figure_rows(summary), out / "fig_payload.png")
+            paper = (summary.get("model") or {}).get("name") in PAPER_MODELS
+            rows = figure_rows(summary)
+            four = paper_payload_quantities([r["quantity"] for r in rows])
+            if four:  # the paper's four panels (the tip coordinates' displacements and velocities) first
+                payload_study_figure([r for r in rows if r["quantity"] in four], out / "fig_payload.png",
+                                     paper=paper)
+                payload_study_figure(rows, out / "fig_payload_all.png", paper=paper)
+                return out / "fig_payload.png"
+            return payload_study_figure(rows, out / "fig_payload.png", paper=paper)
         from .figures import sweep_figure
 
         return sweep_figure(summary, out / "fig_sweep.png")

@@ -1,0 +1,93 @@
+"""Argument types shared by the commands: each turns a command-line word into a value or rejects it with
+one line naming what was expected (``argparse`` adds the flag's name)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+__all__ = ["channel_list", "finite_float", "name_list", "nonneg_int", "nonneg_float", "out_path",
+           "positive_float", "positive_int", "seed"]
+
+
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def finite_float(text: str) -> float:
+    v = _float(text)
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    v = _float(text)
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return v
+
+
+def nonneg_float(text: str) -> float:
+    v = _float(text)
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a non-negative finite number, got {text!r}")
+    return v
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    v = _int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
+def nonneg_int(text: str) -> int:
+    v = _int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
+    return v
+
+
+def seed(text: str) -> int:
+    """A noise seed: an integer 0 <= seed < 2**63 (NumPy's generators take no negative seed)."""
+    v = _int(text)
+    if not 0 <= v < 2**63:
+        raise argparse.ArgumentTypeError(f"expected an integer seed in 0 .. 2**63 - 1, got {text!r}")
+    return v
+
+
+def name_list(what: str):
+    """Comma-separated names, at least one, none empty, none repeated."""
+
+    def parse(text: str) -> tuple[str, ...]:
+        names = [s.strip() for s in text.split(",")]
+        if not text.strip() or all(not n for n in names):
+            raise argparse.ArgumentTypeError(f"expected one or more {what} separated by commas, got {text!r}")
+        if any(not n for n in names):
+            raise argparse.ArgumentTypeError(f"empty {what[:-1] if what.endswith('s') else what} name in {text!r}")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise argparse.ArgumentTypeError(f"{what} repeated: {', '.join(dup)}")
+        return tuple(names)
+
+    return parse
+
+
+channel_list = name_list("channels")
+
+
+def out_path(text: str) -> str:
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a folder path, got an empty string")
+    return text
