@@ -38,12 +38,16 @@ def main(argv=None) -> int:
     ap.add_argument("--config", action="append", default=[], metavar="FIELD=VALUE",
                     help="an ObserverConfig field (float), e.g. payload0_std=0.3")
     ap.add_argument("--scales", default=None, help="only these payload scales, e.g. 1.0")
+    ap.add_argument("--from-json", default=None, help="comma-separated --json files of earlier runs: tables only")
     ap.add_argument("--doc", default=None, help="write the tables to this markdown page")
     ap.add_argument("--json", default=None, help="write the per-run rows here")
     args = ap.parse_args(argv)
     mech = load_mechanism(args.model)
     rows = []
-    for lvdir in sorted(Path(args.study_dir, "truth").glob("L*")):
+    if args.from_json:  # tables of earlier runs of this script (no filtering)
+        for f in args.from_json.split(","):
+            rows += json.loads(Path(f).read_text())
+    for lvdir in [] if args.from_json else sorted(Path(args.study_dir, "truth").glob("L*")):
         level = json.loads((lvdir / "level.json").read_text())
         scale = float(level.get("level", level).get("payload_scale", 1.0)) if isinstance(level, dict) else 1.0
         if args.scales and scale not in [float(x) for x in args.scales.split(",")]:
