@@ -426,7 +426,16 @@ def _local_rows(model: ErlsModel, e: int, xi: float, kind: str) -> np.ndarray:
 def _elastic_rows(
     model: ErlsModel, cfg, link: str, station: float, kind: str
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(A, A_th): elastic part ``A @ u`` of a probe and ``dA/dtheta`` (theta: the link angle), both (w, ne).
+    """(A, A_th): elastic part ``A @ u`` of a probe and ``dA/dtheta`` (theta: the link angle), both (w, ne):
+    :func:`_nodal_rows` times ``T``."""
+    A, A_th = _nodal_rows(model, cfg, link, station, kind)
+    return A @ model.T, A_th @ model.T
+
+
+def _nodal_rows(
+    model: ErlsModel, cfg, link: str, station: float, kind: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """(A, A_th) on the nodal displacements ``d = T u``, both (w, N) (see :func:`_elastic_rows`).
 
     Element rows map global nodal displacements to the probe through ``R^T`` (global to local); a point
     is rotated back with the 2x2 rotation ``r2``. With ``dR/dtheta = G R``:
@@ -453,7 +462,7 @@ def _elastic_rows(
             a_th = -lRt @ GENERATOR
         A[:, model.el_dofs[e]] += a / len(locs)
         A_th[:, model.el_dofs[e]] += a_th / len(locs)
-    return A @ model.T, A_th @ model.T
+    return A, A_th
 
 
 def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None = None) -> ProbeRecord:
@@ -475,9 +484,9 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
 
         - slope = rigid link angle + elastic rotation (the node's rotation dof at a node, else the
           Hermite slope of the local transverse displacement); rate ``S_th q' + A u' + theta' A_th u``;
-        - point = rigid point (``Kinematics.point``) + ``point_displacement_rows @ u``;
+        - point = rigid point (``Kinematics.point``) + ``A u`` (the rows of ``point_displacement_rows``);
           rate ``J q' + A u' + theta' A_th u``;
-        - curvature = ``curvature_row @ u``; rate ``A u' + theta' A_th u``.
+        - curvature = ``A u`` (the rows of ``curvature_row``); rate ``A u' + theta' A_th u``.
     """
     probes = probes_for(model.mech) if probes is None else probes
     t = np.asarray(t, float)
@@ -490,32 +499,41 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
     node_ids = list(model.mech.node_ids)
     vals = {p.key: np.empty((len(t), p.width)) for p in probes}
     rates = {p.key: np.empty((len(t), p.width)) for p in probes}
+    # per probe, what does not change with the configuration: the link, and for a slope at a node the nodal
+    # row of its rotation dof (exact, also at joints where elements differ)
+    plan = []
+    for p in probes:
+        row = None
+        if p.kind == "slope":
+            try:
+                row = 3 * node_ids.index(model.mech.node_at(p.link, p.station)) + 2
+            except KeyError:
+                row = None
+        plan.append((p, li[p.link], row))
+    T = model.T
     z = None
     for k in range(len(t)):
         q, u, qd, ud = Y[k, :nq], Y[k, nq:n], Y[k, n : n + nq], Y[k, n + nq :]
         cfg = model.configuration(q, z)
         pose = cfg.pose
         z = pose.z
-        for p in probes:
-            i = li[p.link]
+        d, dd = T @ u, T @ ud  # nodal elastic displacements and rates
+        for p, i, row in plan:
             thd = pose.Sz[3 * i + 2] @ qd
             if p.kind == "slope":
-                rig, rig_d = pose.z[3 * i + 2], pose.Sz[3 * i + 2] @ qd
-                try:  # at a node: its rotation dof (exact, also at joints where elements differ)
-                    node = model.mech.node_at(p.link, p.station)
-                    A = model.T[3 * node_ids.index(node) + 2][None, :]
-                    A_th = np.zeros_like(A)
-                except KeyError:
-                    A, A_th = _elastic_rows(model, cfg, p.link, p.station, "slope")
+                rig, rig_d = pose.z[3 * i + 2], thd
+                if row is not None:
+                    vals[p.key][k] = rig + d[row]
+                    rates[p.key][k] = rig_d + dd[row]
+                    continue
+                A, A_th = _nodal_rows(model, cfg, p.link, p.station, "slope")
             elif p.kind == "point":
                 rig, J = kin.point(pose, p.link, p.station)
                 rig_d = J @ qd
-                A = model.point_displacement_rows(cfg, p.link, p.station)
-                _, A_th = _elastic_rows(model, cfg, p.link, p.station, "point")
+                A, A_th = _nodal_rows(model, cfg, p.link, p.station, "point")
             else:
                 rig, rig_d = 0.0, 0.0
-                A = model.curvature_row(cfg, p.link, p.station)[None, :]
-                _, A_th = _elastic_rows(model, cfg, p.link, p.station, "curvature")
-            vals[p.key][k] = rig + A @ u
-            rates[p.key][k] = rig_d + A @ ud + thd * (A_th @ u)
+                A, A_th = _nodal_rows(model, cfg, p.link, p.station, "curvature")
+            vals[p.key][k] = rig + A @ d
+            rates[p.key][k] = rig_d + A @ dd + thd * (A_th @ d)
     return ProbeRecord(t, vals, rates)
