@@ -296,6 +296,8 @@ class MultirateEKF:
         self._Ppred = np.empty((n, n))
         self._work = np.empty((n, n))
         self._HP = np.empty((max(self.m, 1), n))
+        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (what a smoother's backward pass needs)
+        self.record_predictions = False
         kalman.warm_up()
         self.reset()
 
@@ -337,6 +339,7 @@ class MultirateEKF:
         self.last_S = None
         self.last_nis = float("nan")
         self.last_dof = 0
+        self.last_prediction = None
         if self.monitor is not None:
             self.monitor.reset()
 
@@ -373,6 +376,8 @@ class MultirateEKF:
             raise ValueError(f"model.predict returned x {x.shape}, F {F.shape}, Q {Q.shape}; expected ({n},), "
                              f"({n}, {n}), ({n}, {n})")
         self._x = x
+        if self.record_predictions:
+            self.last_prediction = (x, F, Q)
         return F, Q
 
     def _channel_set(self, y: np.ndarray) -> tuple | None:
