@@ -5,10 +5,12 @@ An engine (the ERLS full model, the Exudyn ground truth, a lab rig) records the 
 
 - the *clean sensor channels* of the mechanism's sensors (:func:`sensor_channels`):
   ``encoder`` = slope of the link at the joint (absolute) or slope(link) - slope(relative_to) (relative),
+  ``slider`` = ``axis . (point - ground)`` of the prismatic joint's node,
   ``curvature`` = curvature probe, ``tip_x`` / ``tip_y`` = components of the point probe.
   Motor torques are inputs and are handled separately (:mod:`exuflex.measure`);
 - the *true states* an observer is judged against (:func:`true_states`):
-  ``q_j = slope(link at joint) - slope(relative_to at joint) - offset`` and its rate ``dq_j``;
+  ``q_j = slope(link at joint) - slope(relative_to at joint) - offset`` (a slide coordinate:
+  ``axis . (point - ground) - offset``) and its rate ``dq_j``;
   the tip elastic displacement ``e = p_tip - p_rigid(q)``, the actual tip position minus the ERLS
   (rigid) tip position at the true ``q``, and its rate ``e' = p_tip' - (dp_rigid/dq) q'``;
 - the *absolute tip* position and velocity of true or estimated states (:func:`absolute_tip`):
@@ -57,7 +59,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 TWO_PI = 2.0 * np.pi
-SENSOR_UNITS = {"encoder": "rad", "curvature": "1/m", "tip_x": "m", "tip_y": "m"}
+SENSOR_UNITS = {"encoder": "rad", "slider": "m", "curvature": "1/m", "tip_x": "m", "tip_y": "m"}
 ABSOLUTE_TIP_NAMES = ("tip_x", "tip_y", "dtip_x", "dtip_y")
 ABSOLUTE_TIP_UNITS = ("m", "m", "m/s", "m/s")
 
@@ -131,6 +133,15 @@ def _slope(record, mech, link, joint, rate=False):
     return _probe(record, Probe("slope", link, _joint_station(mech, joint, link)), rate)[:, 0]
 
 
+def _slide(record, mech, joint, rate=False):
+    """``axis . (p - ground)`` of a prismatic joint's first point (its rate: ``axis . p'``)."""
+    jt = mech.joint(joint)
+    p0 = jt.points[0]
+    p = _probe(record, Probe("point", p0.link, p0.station), rate)
+    d = np.asarray(jt.axis, float)
+    return p @ d if rate else (p - np.asarray(jt.ground, float)) @ d
+
+
 def _branch(series: np.ndarray, ref: float | None) -> np.ndarray:
     """Shift a continuous angle series by 2 pi k so its first sample is closest to ``ref``."""
     if ref is None or len(series) == 0:
@@ -150,9 +161,11 @@ def _guess_angle(mech: Mechanism, link: str, relative_to: str | None, offset: fl
 
 
 def _coordinate_ref(mech: Mechanism, j: int) -> float | None:
+    c = mech.coordinates[j]
+    if c.kind == "slide":  # a length: no branch
+        return None
     if mech.q_ref:
         return float(mech.q_ref[j])
-    c = mech.coordinates[j]
     return _guess_angle(mech, c.link, c.relative_to, c.offset)
 
 
@@ -254,6 +267,8 @@ def sensor_channels(mech: Mechanism, record: ProbeRecord) -> Signals:
             else:
                 ref = _guess_angle(mech, s.link, s.relative_to)
             y = _branch(y, ref)
+        elif s.kind == "slider":
+            y = _slide(record, mech, s.joint)
         elif s.kind == "curvature":
             y = _probe(record, Probe("curvature", s.link, s.station))[:, 0]
         elif s.kind in ("tip_x", "tip_y"):
@@ -290,6 +305,10 @@ def true_states(mech: Mechanism, record: ProbeRecord, *, kinematics: Kinematics 
     q = np.empty((nt, nq))
     qd = np.empty((nt, nq))
     for j, c in enumerate(mech.coordinates):
+        if c.kind == "slide":
+            q[:, j] = _slide(record, mech, c.joint) - c.offset
+            qd[:, j] = _slide(record, mech, c.joint, rate=True)
+            continue
         a = _slope(record, mech, c.link, c.joint) - c.offset
         ad = _slope(record, mech, c.link, c.joint, rate=True)
         if c.relative_to:
@@ -298,7 +317,8 @@ def true_states(mech: Mechanism, record: ProbeRecord, *, kinematics: Kinematics 
         q[:, j] = _branch(a, _coordinate_ref(mech, j))
         qd[:, j] = ad
     cols = [q, qd]
-    units = ["rad"] * nq + ["rad/s"] * nq
+    slide = [c.kind == "slide" for c in mech.coordinates]
+    units = ["m" if sl else "rad" for sl in slide] + ["m/s" if sl else "rad/s" for sl in slide]
     tp = tip_point(mech)
     if tp is not None:
         link, station = tp
@@ -426,7 +446,16 @@ def _local_rows(model: ErlsModel, e: int, xi: float, kind: str) -> np.ndarray:
 def _elastic_rows(
     model: ErlsModel, cfg, link: str, station: float, kind: str
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(A, A_th): elastic part ``A @ u`` of a probe and ``dA/dtheta`` (theta: the link angle), both (w, ne).
+    """(A, A_th): elastic part ``A @ u`` of a probe and ``dA/dtheta`` (theta: the link angle), both (w, ne):
+    :func:`_nodal_rows` times ``T``."""
+    A, A_th = _nodal_rows(model, cfg, link, station, kind)
+    return A @ model.T, A_th @ model.T
+
+
+def _nodal_rows(
+    model: ErlsModel, cfg, link: str, station: float, kind: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """(A, A_th) on the nodal displacements ``d = T u``, both (w, N) (see :func:`_elastic_rows`).
 
     Element rows map global nodal displacements to the probe through ``R^T`` (global to local); a point
     is rotated back with the 2x2 rotation ``r2``. With ``dR/dtheta = G R``:
@@ -453,7 +482,7 @@ def _elastic_rows(
             a_th = -lRt @ GENERATOR
         A[:, model.el_dofs[e]] += a / len(locs)
         A_th[:, model.el_dofs[e]] += a_th / len(locs)
-    return A @ model.T, A_th @ model.T
+    return A, A_th
 
 
 def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None = None) -> ProbeRecord:
@@ -475,9 +504,9 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
 
         - slope = rigid link angle + elastic rotation (the node's rotation dof at a node, else the
           Hermite slope of the local transverse displacement); rate ``S_th q' + A u' + theta' A_th u``;
-        - point = rigid point (``Kinematics.point``) + ``point_displacement_rows @ u``;
+        - point = rigid point (``Kinematics.point``) + ``A u`` (the rows of ``point_displacement_rows``);
           rate ``J q' + A u' + theta' A_th u``;
-        - curvature = ``curvature_row @ u``; rate ``A u' + theta' A_th u``.
+        - curvature = ``A u`` (the rows of ``curvature_row``); rate ``A u' + theta' A_th u``.
     """
     probes = probes_for(model.mech) if probes is None else probes
     t = np.asarray(t, float)
@@ -490,32 +519,41 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
     node_ids = list(model.mech.node_ids)
     vals = {p.key: np.empty((len(t), p.width)) for p in probes}
     rates = {p.key: np.empty((len(t), p.width)) for p in probes}
+    # per probe, what does not change with the configuration: the link, and for a slope at a node the nodal
+    # row of its rotation dof (exact, also at joints where elements differ)
+    plan = []
+    for p in probes:
+        row = None
+        if p.kind == "slope":
+            try:
+                row = 3 * node_ids.index(model.mech.node_at(p.link, p.station)) + 2
+            except KeyError:
+                row = None
+        plan.append((p, li[p.link], row))
+    T = model.T
     z = None
     for k in range(len(t)):
         q, u, qd, ud = Y[k, :nq], Y[k, nq:n], Y[k, n : n + nq], Y[k, n + nq :]
         cfg = model.configuration(q, z)
         pose = cfg.pose
         z = pose.z
-        for p in probes:
-            i = li[p.link]
+        d, dd = T @ u, T @ ud  # nodal elastic displacements and rates
+        for p, i, row in plan:
             thd = pose.Sz[3 * i + 2] @ qd
             if p.kind == "slope":
-                rig, rig_d = pose.z[3 * i + 2], pose.Sz[3 * i + 2] @ qd
-                try:  # at a node: its rotation dof (exact, also at joints where elements differ)
-                    node = model.mech.node_at(p.link, p.station)
-                    A = model.T[3 * node_ids.index(node) + 2][None, :]
-                    A_th = np.zeros_like(A)
-                except KeyError:
-                    A, A_th = _elastic_rows(model, cfg, p.link, p.station, "slope")
+                rig, rig_d = pose.z[3 * i + 2], thd
+                if row is not None:
+                    vals[p.key][k] = rig + d[row]
+                    rates[p.key][k] = rig_d + dd[row]
+                    continue
+                A, A_th = _nodal_rows(model, cfg, p.link, p.station, "slope")
             elif p.kind == "point":
                 rig, J = kin.point(pose, p.link, p.station)
                 rig_d = J @ qd
-                A = model.point_displacement_rows(cfg, p.link, p.station)
-                _, A_th = _elastic_rows(model, cfg, p.link, p.station, "point")
+                A, A_th = _nodal_rows(model, cfg, p.link, p.station, "point")
             else:
                 rig, rig_d = 0.0, 0.0
-                A = model.curvature_row(cfg, p.link, p.station)[None, :]
-                _, A_th = _elastic_rows(model, cfg, p.link, p.station, "curvature")
-            vals[p.key][k] = rig + A @ u
-            rates[p.key][k] = rig_d + A @ ud + thd * (A_th @ u)
+                A, A_th = _nodal_rows(model, cfg, p.link, p.station, "curvature")
+            vals[p.key][k] = rig + A @ d
+            rates[p.key][k] = rig_d + A @ dd + thd * (A_th @ d)
     return ProbeRecord(t, vals, rates)

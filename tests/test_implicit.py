@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from exuflex.erls.implicit import (
+    FREQ_TOL,
     GeneralizedAlpha,
     HeldTable,
     algorithmic_damping,
+    band_step,
     erls_implicit,
     generalized_alpha,
 )
@@ -75,6 +77,18 @@ def test_stiff_oscillator_is_stable_where_rk4_is_not():
     assert np.all(np.isfinite(tr.y)) and abs(tr.y[-1, 0]) < 1e-6 * 0.9**20
 
 
+def test_band_step_is_the_largest_within_the_frequency_tolerance():
+    for band, h, out in ((180.0, 1e-4, 1e-3), (180.0, 1e-4, 2e-3), (50.0, 1e-4, 1e-3), (2000.0, 1e-4, 1e-3)):
+        step = band_step(band, h, out)
+        k = round(step / h)
+        assert round(out / h) % k == 0
+        err = abs(algorithmic_damping(2 * np.pi * band * step)[1][0])
+        assert err <= FREQ_TOL or k == 1  # never below the table step
+        larger = [j for j in range(k + 1, round(out / h) + 1) if round(out / h) % j == 0]
+        assert all(abs(algorithmic_damping(2 * np.pi * band * j * h)[1][0]) > FREQ_TOL for j in larger)
+    assert band_step(180.0, 1e-4, 1e-3) == pytest.approx(2e-4) and band_step(2000.0, 1e-4, 1e-3) == pytest.approx(1e-4)
+
+
 def test_held_table_mean_is_the_exact_integral():
     t = np.arange(5) * 0.1
     vals = np.array([[1.0], [2.0], [4.0], [8.0], [16.0]])
@@ -108,3 +122,35 @@ def test_erls_truth_matches_the_explicit_reference(name, duration):
     u = np.abs(ref.y[:, nq:n]).max(axis=0).argmax() + nq  # the largest elastic coordinate
     rms = np.sqrt(np.mean(ref.y[:, u] ** 2))
     assert np.sqrt(np.mean((imp.y[:, u] - ref.y[:, u]) ** 2)) < 0.02 * rms
+
+
+def test_cli_erls_engine_integrators(tmp_path, capsys):
+    """exuflex simulate --engine erls: generalized-alpha (default) and the RK4 reference agree on the four-bar's
+    start; the step and integrator are recorded; a step off the sample grid is refused by name."""
+    import json
+
+    from exuflex.cli import main
+    from exuflex.runs import read_run
+
+    model = str(MODELS / "fourbar.toml")
+    runs = {}
+    for name, extra in (("ga", ["--erls-step", "1e-4"]), ("ga2", []), ("rk4", ["--integrator", "rk4"])):
+        out = tmp_path / name
+        assert main(["simulate", model, "--out", str(out), "--engine", "erls", "--duration", "0.03", "--seed", "1",
+                     *extra]) == 0
+        runs[name] = read_run(out)
+    truth = {k: json.loads((tmp_path / k / "meta.json").read_text())["settings"]["truth"] for k in runs}
+    assert truth["ga"]["integrator"] == "gen-alpha" and truth["ga"]["step_s"] == 1e-4
+    # auto: 0.2 ms, the largest step dividing the 1 ms sample interval within 0.5 % frequency error at 180 Hz
+    assert truth["ga2"]["step_s"] == 2e-4 and truth["ga2"]["band_hz"] == 180.0
+    assert -0.005 < truth["ga2"]["freq_error_at_band"] < -0.004
+    assert truth["rk4"]["integrator"] == "rk4" and truth["rk4"]["rk4_substeps"] > 1
+    ref = runs["rk4"].truth.data
+    for k in ("ga", "ga2"):
+        np.testing.assert_allclose(runs[k].truth.t, runs["rk4"].truth.t, atol=1e-12)
+        np.testing.assert_allclose(runs[k].truth.data[:, 0], ref[:, 0], atol=1e-5)  # q1 (rad)
+        np.testing.assert_allclose(runs[k].truth.data[:, 1], ref[:, 1], atol=0.02 * np.abs(ref[:, 1]).max())  # dq1
+    capsys.readouterr()
+    assert main(["simulate", model, "--out", str(tmp_path / "bad"), "--engine", "erls", "--duration", "0.01",
+                 "--erls-step", "3e-4"]) == 2
+    assert "--erls-step: expected a multiple of --h = 0.0001 s that divides the sample interval" in capsys.readouterr().err

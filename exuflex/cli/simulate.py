@@ -74,6 +74,35 @@ class ProgressBar:
             self.stream.flush()
 
 
+def _erls_step_arg(text: str):
+    if text == "auto":
+        return "auto"
+    try:
+        v = float(text)
+    except ValueError:
+        v = 0.0
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive step in s or 'auto', got {text!r}")
+    return v
+
+
+def _check_erls_step(step, h: float, output_dt: float, band_hz: float = 180.0) -> float:
+    """The ERLS generalized-alpha step: a multiple of ``h`` that divides ``output_dt``; ``None``: ``h``; ``"auto"``:
+    :func:`~exuflex.erls.implicit.band_step` for the band ``band_hz``."""
+    from ..errors import UsageError
+
+    if step == "auto":
+        from ..erls.implicit import band_step
+
+        return band_step(band_hz, h, output_dt)
+    step = h if step is None else float(step)
+    k = round(step / h)
+    if k < 1 or abs(k * h - step) > 1e-9 * h or round(output_dt / h) % k:
+        raise UsageError(f"--erls-step: expected a multiple of --h = {h:g} s that divides the sample interval "
+                         f"{output_dt:g} s, got {step:g} s")
+    return step
+
+
 def elements_per_link_arg(text: str):
     """``--elements-per-link``: a positive integer or ``file`` (the model file's own mesh)."""
     if text == "file":
@@ -115,6 +144,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "(t and coordinates or tip_x, tip_y: a trajectory; t and motor names: measured torques)",
     )
     p.add_argument(
+        "--write-plan", action="store_true",
+        help="also write the planned q, q', q'' as plan.csv (a trajectory file: --manoeuvre plan.csv plans it again)",
+    )
+    p.add_argument(
         "--elements-per-link",
         type=elements_per_link_arg,
         default=None,
@@ -136,6 +169,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="ERLS engine: implicit generalized-alpha (default) or the explicit RK4 reference",
     )
     p.add_argument(
+        "--erls-step", type=_erls_step_arg, default="auto", metavar="S|auto",
+        help="generalized-alpha step of the ERLS engine (s): a multiple of --h that divides the sample interval; "
+        "auto (default): the largest whose frequency error at the model's band_hz is within 0.5 %% (the error "
+        "at a mode f is about (2 pi f S)^2 / 12)",
+    )
+    p.add_argument(
         "--no-progress", action="store_true",
         help="no progress (a bar on a terminal, a line every 10 %% otherwise)"
     )
@@ -144,12 +183,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, integrator="gen-alpha", stats=None,
-                form: str = "lagrange"):
+                form: str = "lagrange", step=None):
     """Full-order ERLS model under the torque table (zero-order hold); returns a ProbeRecord.
 
-    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``h`` (stable whatever the mesh's stiffest
-    mode). ``rk4``: the explicit reference; the step ``h`` is split into the fewest RK4 sub-steps that keep the
-    model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none
+    ``gen-alpha``: :func:`~exuflex.erls.implicit.erls_implicit` with step ``step`` (default ``h``; ``"auto"``:
+    :func:`~exuflex.erls.implicit.band_step` for the model's ``reduction.band_hz``; stable whatever the mesh's
+    stiffest mode; a multiple of ``h`` that divides ``output_dt``). ``rk4``: the explicit reference; the step ``h`` is
+    split into the fewest RK4 sub-steps that keep the model's linearisation at the start stable (:func:`~exuflex.erls.simulate.rk4_substeps`; the six-bar needs none
     at 0.1 ms, a finer mesh with stiffness damping does: its highest modes are overdamped, with large real
     eigenvalues). ``form``: the full-order model's velocity forces (:class:`~exuflex.erls.model.ErlsModel`)."""
     from ..erls.implicit import erls_implicit
@@ -164,7 +204,12 @@ def _erls_truth(mech, t_tab, tau, duration, h, output_dt, q0, qd0, progress, int
     y0[n : n + model.nq] = qd0
     every = max(1, round(output_dt / h))
     if integrator == "gen-alpha":
-        traj = erls_implicit(model, t_tab, tau, y0, duration, h, output_every=every, progress=progress, stats=stats)
+        step = _check_erls_step(step, h, output_dt, mech.reduction.band_hz)
+        k = round(step / h)
+        if stats is not None:
+            stats.update(step_s=step)
+        traj = erls_implicit(model, t_tab, tau, y0, duration, step, output_every=every // k, progress=progress,
+                             stats=stats)
         return erls_probe_record(model, traj.t, traj.y)
     if integrator != "rk4":
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
@@ -194,21 +239,24 @@ def simulate_run(
     h: float = 1e-4,
     progress: bool = False,
     manoeuvre: str | Path | None = None,
+    write_plan: bool = False,
     elements_per_link: int | str | None = None,
     beam: str = "ancf",
     integrator: str = "gen-alpha",
+    erls_step: float | str | None = "auto",
 ) -> Path:
     """Library form of the command: simulate and write a run folder; returns its path.
 
     ``elements_per_link``: ``None`` (Exudyn: 4 per link; ERLS: the file's mesh), a positive integer or ``"file"``
     (see ``--elements-per-link``); ``beam``: a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of
-    :data:`INTEGRATORS`.
+    :data:`INTEGRATORS`; ``erls_step``: its generalized-alpha step (s, ``None``: ``h``, ``"auto"``: from the band,
+    see ``--erls-step``).
     """
+    from ..errors import UsageError
     from ..manoeuvre import open_loop_torque, plan
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
     from ..runs import file_sha256, write_run
-    from ..errors import UsageError
     from ..sensors import monotonic_record, sensor_channels, true_states
     from ..validate import check_actuation, check_configurations, check_positive, check_simulation_settings
 
@@ -238,6 +286,8 @@ def simulate_run(
     if elements_per_link is not None and elements_per_link != "file":
         elements_per_link = elements_per_link_arg(str(elements_per_link))
     output_dt = 1.0 / mech.sample_rate_hz
+    if engine == "erls" and integrator == "gen-alpha":
+        _check_erls_step(erls_step, h, output_dt, mech.reduction.band_hz)  # before the planning
     seed = new_seed() if seed is None else seed
     timings = {}
 
@@ -277,19 +327,22 @@ def simulate_run(
             "newton_per_step": solver.get("newton_per_step"),
         }
     elif engine == "erls":
-        from ..erls.implicit import GeneralizedAlpha
+        from ..erls.implicit import GeneralizedAlpha, algorithmic_damping
         from ..mechanism import remesh_mechanism
 
         if elements_per_link not in (None, "file"):
             truth_mech = remesh_mechanism(truth_mech, elements_per_link)
         record = _erls_truth(truth_mech, pl.t, tau, duration, h, output_dt, pl.q[0], pl.qd[0], bar,
-                             integrator=integrator, stats=solver)
+                             integrator=integrator, stats=solver, step=erls_step)
         truth_settings = {
             "engine": "erls",
             "elements_per_link": "file" if elements_per_link is None else elements_per_link,
             "n_elements": sum(lk.n_elements for lk in truth_mech.links),
             "integrator": integrator,
-            **({"rho_inf": GeneralizedAlpha().rho_inf} if integrator == "gen-alpha" else {}),
+            **({"rho_inf": GeneralizedAlpha().rho_inf, "band_hz": truth_mech.reduction.band_hz,
+                "freq_error_at_band": float(algorithmic_damping(
+                    2 * np.pi * truth_mech.reduction.band_hz * solver["step_s"], GeneralizedAlpha().rho_inf)[1][0])}
+               if integrator == "gen-alpha" else {}),
             **solver,
         }
     else:
@@ -335,6 +388,12 @@ def simulate_run(
         },
     }
     sensors = meas.signals
+    if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
+        from ..manoeuvre import trajectory_csv
+        from ..runs import atomic_write_text
+
+        Path(out).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(out) / "plan.csv", trajectory_csv(pl))
     return write_run(out, sensors, truth, meta, motors=mech.motor_names)
 
 
@@ -349,9 +408,11 @@ def run(args) -> int:
         h=args.h,
         progress=not args.no_progress,
         manoeuvre=args.manoeuvre,
+        write_plan=args.write_plan,
         elements_per_link=args.elements_per_link,
         beam=args.beam,
         integrator=args.integrator,
+        erls_step=args.erls_step,
     )
     print(f"wrote {out}/sensors.csv, truth.csv, meta.json")
     return 0

@@ -117,7 +117,7 @@ def run(args) -> int:
         spec = build_spec(args)
         t0 = time.perf_counter()
         res = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler,
-                        progress=not args.no_progress and sys.stderr.isatty())
+                        progress=not args.no_progress)
     except (OverrideError, ValueError, RuntimeError) as exc:
         print(f"exuflex study: error: {exc}", file=sys.stderr)
         return 2

@@ -3,8 +3,9 @@
 The explicit RK4 of :mod:`exuflex.erls.simulate` is stable only for ``h |lambda| <= 2.8``: a fine mesh's axial
 modes (tens of kHz) and the overdamped modes that stiffness damping makes of them dictate its step. The
 generalized-alpha method (Chung & Hulbert 1993, in the form of Arnold & Bruels 2007, the one Exudyn uses) is
-unconditionally stable on linear problems, second-order accurate, and damps numerically only around and above
-the step's Nyquist frequency: the step is then chosen for accuracy in the band of interest.
+unconditionally stable on linear problems, second-order accurate, and its numerical damping grows as
+``(omega h)^3`` (negligible in the band, an amplification ``rho_inf`` per step at infinite frequency): the step
+is then chosen for accuracy in the band of interest.
 
 Method (``rho_inf``: spectral radius at infinite frequency, 1 = trapezoidal rule, no numerical damping)::
 
@@ -18,14 +19,19 @@ Method (``rho_inf``: spectral radius at infinite frequency, 1 = trapezoidal rule
 Newton on the residual ``r = M(x1) x1'' - Q``, in the position increment ``dx`` (``dv = gamma' dx``,
 ``dx'' = beta' dx`` with ``beta' = (1 - alpha_m) / (h^2 beta (1 - alpha_f))``, ``gamma' = gamma / (h beta)``):
 ``S dx = -r`` with the iteration matrix ``S = beta' M + gamma' C_t + K_t`` (``C_t = -dQ/dv``,
-``K_t = d(M x'' - Q)/dx``). ``S`` is factored once and reused over steps (simplified Newton) until the
+``K_t = d(M x'' - Q)/dx``). ``S`` is inverted once and reused over steps (simplified Newton) until the
 contraction rate of the iteration exceeds :data:`REFRESH_RATE`; the iteration stops when the estimated distance
-to the solution, ``eta / (1 - eta) |dx|`` (Hairer & Wanner, IV.8, with ``eta`` the observed contraction rate),
-is below the tolerance. The residual is always exact, so a stale ``S`` costs iterations, not accuracy.
+to the solution, ``eta / (1 - eta) |dx|`` (Hairer & Wanner, IV.8, with ``eta`` the contraction rate last
+measured), is below the tolerance. One iteration per step suffices while the rate is small; every
+:data:`PROBE_EVERY` steps a second one re-measures it as the matrix ages. The residual is always exact, so a stale
+``S`` costs iterations, not accuracy.
+
+The step: :func:`band_step` picks the largest step whose frequency error at the top of the band of interest is
+within :data:`FREQ_TOL`; the error falls as ``(omega h)^2 / 12`` below it.
 
 :func:`algorithmic_damping` gives the method's damping ratio and frequency error on an undamped mode of
-frequency ``omega`` for a step ``h`` (from the eigenvalues of its amplification matrix); :func:`erls_truth` is
-the ERLS engine's driver (torque table, record, probes).
+frequency ``omega`` for a step ``h`` (from the eigenvalues of its amplification matrix); :func:`erls_implicit`
+integrates the ERLS model under a zero-order-hold torque table.
 """
 
 from __future__ import annotations
@@ -36,22 +42,24 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from .model import ErlsModel
 from .simulate import Trajectory
 
 __all__ = [
+    "FREQ_TOL",
     "REFRESH_RATE",
     "GeneralizedAlpha",
     "HeldTable",
     "algorithmic_damping",
+    "band_step",
     "erls_implicit",
     "generalized_alpha",
 ]
 
 log = logging.getLogger(__name__)
 
+FREQ_TOL = 0.005  # band_step: the largest relative frequency error at the band's upper edge
 REFRESH_RATE = 0.02  # refactor the iteration matrix when Newton contracts slower than this per iteration
 PROBE_EVERY = 8  # steps accepted after one iteration before one is iterated twice to re-measure the rate
 MAX_ITERATIONS = 8
@@ -127,6 +135,21 @@ def algorithmic_damping(omega_h, rho_inf: float = 0.9) -> tuple[np.ndarray, np.n
     return zeta, err
 
 
+def band_step(band_hz: float, h: float, output_dt: float, rho_inf: float = 0.9, freq_tol: float = FREQ_TOL) -> float:
+    """The largest step ``k h`` that divides ``output_dt`` and keeps generalized-alpha's frequency error at
+    ``band_hz`` (the top of the band of interest) within ``freq_tol`` (:func:`algorithmic_damping`); at least ``h``.
+
+    The error falls as ``(omega h)^2 / 12`` below the edge (a quarter of it at half the frequency), and the
+    numerical damping there is far smaller (``zeta ~ (omega h)^3``).
+    """
+    n_out = round(output_dt / h)
+    best = 1
+    for k in range(1, n_out + 1):
+        if n_out % k == 0 and abs(algorithmic_damping(2 * math.pi * band_hz * k * h, rho_inf)[1][0]) <= freq_tol:
+            best = k
+    return best * h
+
+
 class HeldTable:
     """A zero-order-hold table on a uniform grid ``t_tab``: value ``values[k]`` on ``[t_k, t_k+1)``, the first
     value before ``t_0`` and the last after the table (as the RK4 engine reads its inputs)."""
@@ -139,18 +162,18 @@ class HeldTable:
         self.dt = self.t[1] - self.t[0]
         self._cum = np.vstack([np.zeros((1, self.values.shape[1])), np.cumsum(self.values, axis=0) * self.dt])
 
-    def integral(self, t: float) -> np.ndarray:
-        """``int_{t_0}^{t}`` of the hold."""
-        s = (t - self.t[0]) / self.dt
-        if s <= 0:
-            return s * self.dt * self.values[0]
+    def integral(self, t) -> np.ndarray:
+        """``int_{t_0}^{t}`` of the hold, for a time or an array of times (then time-first)."""
+        s = (np.asarray(t, float) - self.t[0]) / self.dt
         n = len(self.t)
-        k = min(math.floor(s + 1e-9), n)
-        return self._cum[k] + (s - k) * self.dt * self.values[min(k, n - 1)]
+        k = np.clip(np.floor(s + 1e-9).astype(int), 0, n)
+        inside = self._cum[k] + ((s - k) * self.dt)[..., None] * self.values[np.minimum(k, n - 1)]
+        before = (s * self.dt)[..., None] * self.values[0]
+        return np.where((s <= 0)[..., None], before, inside)
 
-    def mean(self, a: float, b: float) -> np.ndarray:
-        """Mean of the hold over ``[a, b]``."""
-        return (self.integral(b) - self.integral(a)) / (b - a)
+    def mean(self, a, b) -> np.ndarray:
+        """Mean of the hold over ``[a, b]`` (times or arrays of times)."""
+        return (self.integral(b) - self.integral(a)) / (np.asarray(b, float) - np.asarray(a, float))[..., None]
 
 
 def generalized_alpha(
@@ -180,7 +203,9 @@ def generalized_alpha(
     x0, v0, a0 : initial positions, rates and accelerations (``r(0, x0, v0, a0) = 0``).
     tol : Newton stops when the estimated error of the positions (max norm, units of x) is below ``tol``.
     output_every : store every k-th step. progress : called with the fraction done.
-    stats : if a dict, filled with the residual evaluations and matrix factorisations per step.
+    stats : if a dict, filled with the residual evaluations per step and the number of iteration matrices built.
+    refresh_rate : rebuild the iteration matrix when the measured contraction rate exceeds this.
+    probe_every : steps accepted after one iteration before a second iteration re-measures the rate.
 
     Returns
     -------
@@ -195,8 +220,7 @@ def generalized_alpha(
     x, v, dd = (np.array(z, float) for z in (x0, v0, a0))
     a = dd.copy()
     ts, ys = [0.0], [np.concatenate([x, v])]
-    lu = None
-    dd_prev = None
+    S_inv = None
     eta_est = 1.0  # estimated contraction rate of the current matrix (unknown after a factorisation)
     since_probe = 0
     n_res = n_lu = 0
@@ -204,12 +228,15 @@ def generalized_alpha(
     for k in range(n_steps):
         t1 = (k + 1) * h
         for attempt in range(2):
-            if lu is None:
-                lu = sla.lu_factor(iteration_matrix(t1, x, v, dd, beta_p, gamma_p))
+            if S_inv is None:
+                # the iteration matrix's inverse: one matrix-vector product per iteration (a factorisation's
+                # triangular solves cost more at this size); its round-off only affects the contraction rate
+                S_inv = np.linalg.inv(iteration_matrix(t1, x, v, dd, beta_p, gamma_p))
                 n_lu += 1
                 eta_est = 1.0
-            # predictor: x1'' extrapolated linearly from the last two steps (constant at the first)
-            dd1 = dd + (dd - dd_prev) if dd_prev is not None else dd.copy()
+            # predictor: x1'' = a0, the algorithmic acceleration (on the four-bar with 8 elements per link it needed
+            # fewer iterations and matrix refreshes than x1'' = x0'' or a linear extrapolation of x'')
+            dd1 = a.copy()
             a1 = (af * dd - am * a) / (1 - am) + ca * dd1
             v1 = v + h * ((1 - g) * a + g * a1)
             x1 = x + h * v + h * h * ((0.5 - b) * a + b * a1)
@@ -219,7 +246,8 @@ def generalized_alpha(
             for it in range(MAX_ITERATIONS):
                 r = residual(t1, x1, v1, dd1)
                 n_res += 1
-                dx = -sla.lu_solve(lu, r, check_finite=False)
+                dx = S_inv @ r
+                dx *= -1.0
                 x1 += dx
                 v1 += gamma_p * dx
                 dd1 += beta_p * dx
@@ -237,7 +265,7 @@ def generalized_alpha(
             if converged:
                 break
             if attempt == 0:
-                lu = None  # the factorised matrix is too stale: refactor at the step's start and retry
+                S_inv = None  # the matrix is too stale: rebuild it at the step's start and retry
                 continue
             raise FloatingPointError(f"generalized-alpha: Newton did not converge at t = {t1:.6g} s (step {h:g} s)")
         if prev is not None:
@@ -246,8 +274,7 @@ def generalized_alpha(
         else:
             since_probe += 1
         if eta_est > refresh_rate:
-            lu = None
-        dd_prev = dd
+            S_inv = None
         x, v, dd, a = x1, v1, dd1, a1
         if not np.all(np.isfinite(x)):
             raise FloatingPointError(f"generalized-alpha diverged at t = {t1:.6g} s")
@@ -264,8 +291,8 @@ def generalized_alpha(
 class _ErlsSystem:
     """Residual and iteration matrix of the ERLS model's eq. 2 under a torque schedule ``tau(t)``."""
 
-    def __init__(self, model: ErlsModel, tau: Callable[[float], np.ndarray], fd_step: float = 1e-7):
-        self.model, self.tau, self.fd_step = model, tau, fd_step
+    def __init__(self, model: ErlsModel, tau: Callable[[float], np.ndarray]):
+        self.model, self.tau = model, tau
         self._z = None
 
     def _cfg(self, x):
@@ -281,20 +308,14 @@ class _ErlsSystem:
         return self._r(self._cfg(x), t, x, v, dd)
 
     def iteration_matrix(self, t, x, v, dd, beta_p, gamma_p):
-        """``beta' M + gamma' (C + dh/dv) + K_t``: ``K_t``'s q columns by central differences of the residual,
-        its u columns ``K`` (the q rows' second-order geometric term in u left out: a simplified Newton)."""
+        """``beta' M + gamma' (C + dh/dv) + K`` at ``x``: the model's analytic mass, damping, velocity-force Jacobian
+        and stiffness. Left out: the q columns' ``d(M x'' - Q)/dq`` (the change of the mass and forces with the
+        configuration), which is of order ``h^2`` relative to ``beta' M``; a simplified Newton (on the four-bar
+        with 8 elements per link the iteration counts with and without them by central differences were equal)."""
         m = self.model
         cfg = self._cfg(x)
-        S = beta_p * m.mass(cfg) + gamma_p * (m.damping(cfg) + m.velocity_force_jacobian(cfg, x, v))
-        K = m.stiffness(cfg)
-        for j in range(m.nq):
-            e = np.zeros_like(x)
-            e[j] = self.fd_step
-            rp = self._r(m.configuration(x[: m.nq] + e[: m.nq], cfg.pose.z), t, x + e, v, dd)
-            rm = self._r(m.configuration(x[: m.nq] - e[: m.nq], cfg.pose.z), t, x - e, v, dd)
-            K[:, j] = (rp - rm) / (2 * self.fd_step)
-        m.configuration(x[: m.nq], cfg.pose.z)  # leave the kinematics' warm start at x
-        return S + K
+        return (beta_p * m.mass(cfg) + gamma_p * (m.damping(cfg) + m.velocity_force_jacobian(cfg, x, v))
+                + m.stiffness(cfg))
 
 
 def erls_implicit(
@@ -329,7 +350,10 @@ def erls_implicit(
     table = HeldTable(t_tab, tau_tab)
     n = model.n
     y0 = np.asarray(y0, float)
-    system = _ErlsSystem(model, lambda t: table.mean(t - h / 2, t + h / 2))
+    t_steps = np.arange(round(t_end / h) + 1) * h
+    tau_steps = table.mean(t_steps - h / 2, t_steps + h / 2)  # the force at every step end
+    inv_h = 1.0 / h
+    system = _ErlsSystem(model, lambda t: tau_steps[int(t * inv_h + 0.5)])
     x0, v0 = y0[:n], y0[n:]
     a0 = model.accelerations(x0, v0, system.tau(0.0))
     return generalized_alpha(

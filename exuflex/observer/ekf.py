@@ -432,6 +432,9 @@ class MultirateEKF:
         sensor-fault tests are paused: the allowance for planned torque steps, whose transient the model follows
         with a larger error than its steady state (the end-of-manoeuvre step of a clean log would otherwise set
         the NIS flag).
+    input_step : callable ``(u0, u1) -> bool`` or None
+        Test for a step between two successive input samples that starts the hold-off (besides the model's
+        own ``n_jumps`` counter, if it has one).
     nonfinite : {"raise", "flag"}
         On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run and return NaN
         estimates from then on.
@@ -462,6 +465,7 @@ class MultirateEKF:
         fault_window: int = 0,
         fault_p: float = 1e-6,
         fault_holdoff: int = 200,
+        input_step=None,
     ):
         if store_P not in ("diag", "full", "none"):
             raise ValueError(f"store_P must be 'diag', 'full' or 'none', got {store_P!r}")
@@ -501,6 +505,7 @@ class MultirateEKF:
             raise ValueError(f"gate_p must be None or in (0, 1), got {gate_p}")
         self.gate_p = gate_p
         self.fault_holdoff = int(fault_holdoff)
+        self.input_step = input_step
         self._gate = float(chi2.ppf(1 - gate_p, 1)) if gate_p is not None else math.inf
         self.faults = (
             ChannelMonitor(self.channels, fault_window, fault_p, min(math.sqrt(self._gate), 10.0), dt)
@@ -514,6 +519,8 @@ class MultirateEKF:
         self._Ppred = np.empty((n, n))
         self._work = np.empty((n, n))
         self._HP = np.empty((max(self.m, 1), n))
+        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (what a smoother's backward pass needs)
+        self.record_predictions = False
         kalman.warm_up()
         self.reset()
 
@@ -564,6 +571,7 @@ class MultirateEKF:
         self.last_S = None
         self.last_nis = float("nan")
         self.last_dof = 0
+        self.last_prediction = None
         if self.monitor is not None:
             self.monitor.reset()
 
@@ -600,6 +608,8 @@ class MultirateEKF:
             raise ValueError(f"model.predict returned x {x.shape}, F {F.shape}, Q {Q.shape}; expected ({n},), "
                              f"({n}, {n}), ({n}, {n})")
         self._x = x
+        if self.record_predictions:
+            self.last_prediction = (x, F, Q)
         return F, Q
 
     def _channel_set(self, y: np.ndarray) -> tuple | None:
@@ -742,7 +752,9 @@ class MultirateEKF:
         jumps = getattr(self.model, "n_jumps", 0)
         FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
         self._t_now = t
-        if getattr(self.model, "n_jumps", 0) != jumps:
+        stepped = (self.input_step is not None and u is not None and self._u_prev is not None
+                   and self.input_step(self._u_prev, u))
+        if stepped or getattr(self.model, "n_jumps", 0) != jumps:
             # a step in the input (the model's test): the transient is the model's to follow, not a sensor fault
             self._holdoff = self.fault_holdoff
             self.jump_times.append(t)

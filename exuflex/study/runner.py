@@ -517,7 +517,8 @@ def make_executor(workers: int = 1, scheduler: str | None = None):
 
 # ------------------------------------------------------------------------------------------ progress
 class StudyProgress:
-    """``study [######......]  12/50 runs  elapsed 31 s  ETA 1 m 38 s`` on stderr (disabled: silent)."""
+    """``study [######......]  12/50 runs  elapsed 31 s  ETA 1 m 38 s`` on stderr, redrawn in place on a terminal;
+    elsewhere (a log file, a pipe) a plain line at every tenth of the runs (disabled: silent)."""
 
     def __init__(self, total: int, enabled: bool, stream=None, width: int = 28):
         self.total, self.enabled, self.width = total, enabled, width
@@ -525,6 +526,8 @@ class StudyProgress:
         self.done = 0
         self.t0 = time.perf_counter()
         self.note = ""
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._tenth = -1
 
     @staticmethod
     def _fmt(s: float) -> str:
@@ -544,13 +547,21 @@ class StudyProgress:
         el = time.perf_counter() - self.t0
         frac = self.done / self.total if self.total else 1.0
         eta = el / self.done * (self.total - self.done) if self.done else float("nan")
+        if not self.tty:
+            tenth = int(10 * frac)
+            if tenth != self._tenth:
+                self._tenth = tenth
+                self.stream.write(f"study {self.done}/{self.total} runs  elapsed {self._fmt(el)}  "
+                                  f"ETA {self._fmt(eta)}  {self.note}\n")
+                self.stream.flush()
+            return
         n = int(self.width * frac)
         self.stream.write(f"\rstudy [{'#' * n}{'.' * (self.width - n)}] {self.done}/{self.total} runs  "
                           f"elapsed {self._fmt(el)}  ETA {self._fmt(eta)}  {self.note:<24s}")
         self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled:
+        if self.enabled and self.tty:
             self.stream.write("\n")
             self.stream.flush()
 
