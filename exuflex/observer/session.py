@@ -18,10 +18,11 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
+from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, tip_point, truth_names
-from .bound import steady_state_covariance
+from .bound import periodic_posterior, steady_state_covariance, unobservable_states
 from .ekf import EstimationResult, MultirateEKF
 from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
@@ -64,7 +65,9 @@ class ObserverConfig:
     jump_p : the false-alarm probability per interval of the test that flags two successive torque samples
         differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
         unknown instant within it, moment-matched (:meth:`.reduced.ReducedObserverModel.input_jump_moments`).
-        ``None``: no test.
+        ``None`` (default): no test. The test helps where a log's torque steps fall between two samples, and
+        biases the prediction where they fall on a sample (a time law aligned with the samples, as
+        ``exuflex simulate`` makes them): there the held-input step is exact.
     q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
     max_gap : longest interval (s) between two samples the filter predicts over.
@@ -90,7 +93,7 @@ class ObserverConfig:
     elastic0_std: float = 1e-3
     elastic_rate0_std: float = 0.01
     q_scale: float = 1.0
-    jump_p: float | None = 1e-6
+    jump_p: float | None = None
     q_extra_std: float = 0.0
     max_gap: float = 1.0
     start_up: float = 0.3
@@ -287,8 +290,6 @@ def _augmented_mean(ekf_model, x0) -> np.ndarray:
 
 def _start_q(mech: Mechanism) -> np.ndarray:
     if mech.manoeuvre is not None:
-        from ..manoeuvre import plan
-
         try:
             p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
             return np.asarray(p.q[0], float)
@@ -347,9 +348,16 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
     return {"rms_error": rms, "max_error": mx}
 
 
-def estimation_bound(obs: Observer, q=None, qd=None, *, log_check=None) -> dict[str, float]:
-    """Best achievable RMS error per physical quantity: steady-state Kalman covariance of the reduced model
-    linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise.
+def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None) -> dict[str, float]:
+    """Best achievable RMS error per physical quantity: the steady-state Kalman covariance of the reduced model
+    linearised at a configuration, the stated torque noise as process noise.
+
+    The covariance depends on the configuration (a tip's global x and y swap roles as its link turns; the
+    sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
+    configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
+    and the per-quantity standard deviations are combined as an RMS, the figure an RMS error along the
+    manoeuvre is compared with. With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``, at rest): that
+    one configuration.
 
     ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the bound for that log: the
     interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
@@ -362,13 +370,26 @@ def estimation_bound(obs: Observer, q=None, qd=None, *, log_check=None) -> dict[
         The channels leave states that neither decay nor are measured (e.g. gauges only: the rigid motion); the
         message names them.
     """
-    from .bound import periodic_posterior, unobservable_states
+    mech = obs.mech
+    if q is not None or mech.manoeuvre is None or points < 1:
+        return _bound_at(obs, _mid_q(mech) if q is None else q, qd, log_check)
+    try:
+        d = mech.manoeuvre.duration
+        p = plan(mech, dt=d / 200, t_end=d)
+    except Exception as exc:  # noqa: BLE001 - the bound at q_ref instead, with a note
+        log.warning("could not plan the manoeuvre for the bound (%s); using the bound at q_ref", exc)
+        return _bound_at(obs, np.asarray(mech.q_ref, float), None, log_check)
+    idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
+    per = [_bound_at(obs, p.q[k], p.qd[k], log_check) for k in idx]
+    return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
 
+
+def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
+    """:func:`estimation_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
     mech = obs.mech
     # a model of its own, so that the observer's caches are left alone
     som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
-    if q is None:
-        q = _mid_q(mech)
+    q = np.asarray(q, float)
     z = som.initial_state(q, qd)
     u = np.zeros(len(mech.motors))
     channels = list(obs.channels)
@@ -470,8 +491,6 @@ def _steady_posterior(A, Q, H, R, tol: float = 1e-10, max_iter: int = 200_000) -
 
 def _mid_q(mech: Mechanism) -> np.ndarray:
     if mech.manoeuvre is not None:
-        from ..manoeuvre import plan
-
         try:
             d = mech.manoeuvre.duration
             p = plan(mech, dt=d / 2, t_end=d)
