@@ -144,6 +144,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "(t and coordinates or tip_x, tip_y: a trajectory; t and motor names: measured torques)",
     )
     p.add_argument(
+        "--write-plan", action="store_true",
+        help="also write the planned q, q', q'' as plan.csv (a trajectory file: --manoeuvre plan.csv plans it again)",
+    )
+    p.add_argument(
         "--elements-per-link",
         type=elements_per_link_arg,
         default=None,
@@ -235,6 +239,7 @@ def simulate_run(
     h: float = 1e-4,
     progress: bool = False,
     manoeuvre: str | Path | None = None,
+    write_plan: bool = False,
     elements_per_link: int | str | None = None,
     beam: str = "ancf",
     integrator: str = "gen-alpha",
@@ -383,6 +388,12 @@ def simulate_run(
         },
     }
     sensors = meas.signals
+    if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
+        from ..manoeuvre import trajectory_csv
+        from ..runs import atomic_write_text
+
+        Path(out).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(out) / "plan.csv", trajectory_csv(pl))
     return write_run(out, sensors, truth, meta, motors=mech.motor_names)
 
 
@@ -397,6 +408,7 @@ def run(args) -> int:
         h=args.h,
         progress=not args.no_progress,
         manoeuvre=args.manoeuvre,
+        write_plan=args.write_plan,
         elements_per_link=args.elements_per_link,
         beam=args.beam,
         integrator=args.integrator,
