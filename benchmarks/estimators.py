@@ -23,7 +23,14 @@ from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, estimate, make_observer, metrics
 from exuflex.study.runner import _load_truth
 
-QUANTS = ("q1", "q2", "q3", "dq1", "dq2", "dq3")
+LEGEND = """Columns: mean over the seeds of the per-run RMS error after the start-up (rad, rad/s, m); `rtf`: median
+real-time factor of the filter alone (on a shared machine: compare within a table only). Smoothed / filtered: the
+RTS smoother's RMS error over the filter's on the same log. NIS: the mean normalised innovation squared over all
+runs' updates after the start-up and the two-sided 95 % chi-square band of a consistent filter (updates taken as
+independent). Payload scale: the estimate at the last sample (mean over runs) and its std; "within 10 % after
+settle": the estimate stays within 10 % of the truth at every sample after the settle time; "|err|/std <= 3":
+at the last sample.
+"""
 
 
 def main(argv=None) -> int:
@@ -39,6 +46,8 @@ def main(argv=None) -> int:
                     help="an ObserverConfig field (float), e.g. payload0_std=0.3")
     ap.add_argument("--scales", default=None, help="only these payload scales, e.g. 1.0")
     ap.add_argument("--from-json", default=None, help="comma-separated --json files of earlier runs: tables only")
+    ap.add_argument("--measured-by", action="append", default=[], help="commands that wrote the --from-json files "
+                    "(listed in the --doc page)")
     ap.add_argument("--doc", default=None, help="write the tables to this markdown page")
     ap.add_argument("--json", default=None, help="write the per-run rows here")
     args = ap.parse_args(argv)
@@ -103,7 +112,8 @@ def main(argv=None) -> int:
             "Written by `benchmarks/estimators.py` (RMS errors after the 0.3 s start-up, averaged over the seeds; "
             "the noise of seed `s` is the payload study's run `s`; the truths are Exudyn's, cached by "
             "`exuflex study payload MODEL --levels 0,100 --out DIR`). Regenerate with:\n\n"
-            f"    {cmd}\n\n```\n" + "\n".join(lines) + "\n```\n")
+            + "".join(f"    {c}\n" for c in args.measured_by) + f"    {cmd}\n\n```\n" + "\n".join(lines)
+            + "\n```\n\n" + LEGEND)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
@@ -148,6 +158,8 @@ def _table(rows) -> list[str]:
             out(f"      payload scale: end mean {np.mean([r['theta_end'] for r in rr]):.3f}, std "
                   f"{np.mean([r['theta_std_end'] for r in rr]):.3f}; within 10 % after settle in {within:.0%} of "
                   f"runs; |err|/std <= 3 at the end in {cons:.0%}")
+
+    return lines
 
 
 if __name__ == "__main__":

@@ -203,3 +203,41 @@ def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys)
     rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--estimator", "ukf",
                "--smooth"])
     assert rc == 2 and "needs an EKF estimator" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ sensor design
+def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
+    """The ranking's bounds are :func:`estimation_bound`'s for an observer built on the model with those channels
+    (independently built here); a gauge never raises the bound; the greedy set beats its first station alone."""
+    import dataclasses
+    import math
+
+    from exuflex.observer.design import rank_gauges
+    from exuflex.observer.session import estimation_bound, physical_names
+
+    res = rank_gauges(sixbar, n_candidates=2)
+    assert len(res.single) == 2 * len(sixbar.links)
+    b = [d["tip_bound"] for d in res.single]
+    assert b == sorted(b) and all(x <= res.encoders_bound * (1 + 1e-9) for x in b)
+    assert res.greedy_set_bound <= b[0] and res.greedy_set[0] == res.single[0]["name"]
+    # the file's own set with the common noise, through an observer of its own
+    sensors = tuple(dataclasses.replace(s, noise_std=res.gauge_noise) if s.kind == "curvature" else s
+                    for s in sixbar.sensors)
+    mech = dataclasses.replace(sixbar, sensors=sensors)
+    bnd = estimation_bound(make_observer(mech))
+    nq = len(mech.coordinate_names)
+    x, y = physical_names(mech)[2 * nq : 2 * nq + 2]
+    assert res.model_set_bound == pytest.approx(math.hypot(bnd[x], bnd[y]), rel=1e-6)
+    assert [g["name"] for g in res.model_gauges] == ["c1", "c2", "c4"]
+
+
+def test_cli_design_ranks_the_stations(capsys):
+    import json
+
+    from exuflex.cli import main
+
+    assert main(["design", str(MODELS / "sixbar.toml"), "--candidates", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["single"]) == 5 and {g["name"] for g in out["model_gauges"]} == {"c1", "c2", "c4"}
+    assert all(1 <= g["rank"] <= 6 for g in out["model_gauges"])
+    assert main(["design", str(MODELS / "sixbar.toml"), "--candidates", "0"]) == 2

@@ -46,13 +46,15 @@ class UnscentedKF:
     model, channels, R_std, x0, P0, dt, max_gap, nis_window, nonfinite
         As :class:`~exuflex.observer.ekf.MultirateEKF`.
     alpha, beta, kappa : float
-        Merwe's scaled sigma points: spread ``alpha`` (small: the points stay near the mean, where the reduced
-        model's held configuration is valid), ``beta = 2`` (Gaussian prior), ``kappa`` (default ``3 - n``).
+        Merwe's scaled sigma points: spread ``alpha``, ``beta = 2`` (Gaussian prior), ``kappa = 0``. The points lie
+        ``alpha sqrt(n + kappa)`` standard deviations from the mean, and (``kappa = 0``) the mean's weight is
+        ``1 - 1 / alpha^2``: a very small ``alpha`` (or ``kappa = 3 - n`` with tens of states) gives weights of
+        hundreds with opposite signs, whose cancellation costs the covariance its small (elastic) entries.
     store_P : {"diag", "full", "none"}
     """
 
     def __init__(self, model, channels: Sequence[str], R_std: Mapping[str, float], x0, P0, dt: float,
-                 alpha: float = 0.1, beta: float = 2.0, kappa: float | None = None, max_gap: float = 1.0,
+                 alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0, max_gap: float = 1.0,
                  store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise"):
         self.model = model
         self.nx = int(model.nx)
@@ -68,7 +70,7 @@ class UnscentedKF:
         self.store_P = store_P
         self.nonfinite_action = nonfinite
         n = self.nx
-        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=3.0 - n if kappa is None else kappa,
+        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa,
                                              sqrt_method=lambda A: scipy.linalg.cholesky(A, lower=False))
         self.Wm, self.Wc = self.points.Wm, self.points.Wc
         self.monitor = NISMonitor(nis_window) if nis_window else None
