@@ -53,7 +53,7 @@ from .mechanism import Manoeuvre, Mechanism, ModelFileError
 from .mechanism.loader import position_columns
 
 __all__ = ["KINDS", "TIME_LAWS", "ActuationError", "Plan", "computed_torque", "open_loop_torque", "plan", "time_law",
-           "torque_table", "write_trajectory"]
+           "torque_table", "trajectory_csv", "write_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -594,17 +594,20 @@ def open_loop_torque(mech: Mechanism, plan: Plan, manoeuvre: Manoeuvre | None = 
     return computed_torque(mech, plan, **kwargs)
 
 
-def write_trajectory(path, plan: Plan, *, rates: bool = True) -> None:
-    """Write a plan as a trajectory CSV (``t``, the coordinates, and with ``rates`` their ``d<name>`` and
-    ``dd<name>``), every number in full precision: a ``trajectory`` manoeuvre of this file plans the same q,
-    q', q'' on the same grid."""
+def trajectory_csv(plan: Plan, *, rates: bool = True) -> str:
+    """A plan as the text of a trajectory CSV (``t``, the coordinates, and with ``rates`` their ``d<name>`` and
+    ``dd<name>``), every number in full precision: a ``trajectory`` manoeuvre of it plans the same q, q', q''
+    on the same grid."""
     names = list(plan.names)
     header = ["t"] + names + ([f"d{c}" for c in names] + [f"dd{c}" for c in names] if rates else [])
-    cols = [plan.t[:, None], plan.q] + ([plan.qd, plan.qdd] if rates else [])
-    data = np.hstack(cols)
+    data = np.hstack([plan.t[:, None], plan.q] + ([plan.qd, plan.qdd] if rates else []))
+    return ",".join(header) + "\n" + "".join(",".join(repr(float(v)) for v in row) + "\n" for row in data)
+
+
+def write_trajectory(path, plan: Plan, *, rates: bool = True) -> None:
+    """Write :func:`trajectory_csv` of ``plan`` to ``path``."""
     with open(path, "w", encoding="utf-8") as fh:
-        fh.write(",".join(header) + "\n")
-        fh.writelines(",".join(repr(float(v)) for v in row) + "\n" for row in data)
+        fh.write(trajectory_csv(plan, rates=rates))
 
 
 # ---------------------------------------------------------------------------------------- inverse dynamics

@@ -81,6 +81,9 @@ def probes_for(mech: Mechanism) -> tuple[Probe, ...]:
             out.append(p)
 
     for c in mech.coordinates:
+        if c.kind == "slide":  # the slider's position
+            add(Probe("point", c.link, _station_of_joint(mech, c.joint, c.link)))
+            continue
         add(Probe("slope", c.link, _station_of_joint(mech, c.joint, c.link)))
         if c.relative_to:
             add(Probe("slope", c.relative_to, _station_of_joint(mech, c.joint, c.relative_to)))
@@ -89,6 +92,8 @@ def probes_for(mech: Mechanism) -> tuple[Probe, ...]:
             add(Probe("slope", s.link, _station_of_joint(mech, s.joint, s.link)))
             if s.relative_to:
                 add(Probe("slope", s.relative_to, _station_of_joint(mech, s.joint, s.relative_to)))
+        elif s.kind == "slider":
+            add(Probe("point", s.link, _station_of_joint(mech, s.joint, s.link)))
         elif s.kind == "curvature":
             add(Probe("curvature", s.link, s.station))
         elif s.kind in ("tip_x", "tip_y"):

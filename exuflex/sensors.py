@@ -5,10 +5,12 @@ An engine (the ERLS full model, the Exudyn ground truth, a lab rig) records the 
 
 - the *clean sensor channels* of the mechanism's sensors (:func:`sensor_channels`):
   ``encoder`` = slope of the link at the joint (absolute) or slope(link) - slope(relative_to) (relative),
+  ``slider`` = ``axis . (point - ground)`` of the prismatic joint's node,
   ``curvature`` = curvature probe, ``tip_x`` / ``tip_y`` = components of the point probe.
   Motor torques are inputs and are handled separately (:mod:`exuflex.measure`);
 - the *true states* an observer is judged against (:func:`true_states`):
-  ``q_j = slope(link at joint) - slope(relative_to at joint) - offset`` and its rate ``dq_j``;
+  ``q_j = slope(link at joint) - slope(relative_to at joint) - offset`` (a slide coordinate:
+  ``axis . (point - ground) - offset``) and its rate ``dq_j``;
   the tip elastic displacement ``e = p_tip - p_rigid(q)``, the actual tip position minus the ERLS
   (rigid) tip position at the true ``q``, and its rate ``e' = p_tip' - (dp_rigid/dq) q'``;
 - the *absolute tip* position and velocity of true or estimated states (:func:`absolute_tip`):
@@ -58,7 +60,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 TWO_PI = 2.0 * np.pi
-SENSOR_UNITS = {"encoder": "rad", "curvature": "1/m", "tip_x": "m", "tip_y": "m"}
+SENSOR_UNITS = {"encoder": "rad", "slider": "m", "curvature": "1/m", "tip_x": "m", "tip_y": "m"}
 ABSOLUTE_TIP_NAMES = ("tip_x", "tip_y", "dtip_x", "dtip_y")
 ABSOLUTE_TIP_UNITS = ("m", "m", "m/s", "m/s")
 
@@ -132,6 +134,15 @@ def _slope(record, mech, link, joint, rate=False):
     return _probe(record, Probe("slope", link, _joint_station(mech, joint, link)), rate)[:, 0]
 
 
+def _slide(record, mech, joint, rate=False):
+    """``axis . (p - ground)`` of a prismatic joint's first point (its rate: ``axis . p'``)."""
+    jt = mech.joint(joint)
+    p0 = jt.points[0]
+    p = _probe(record, Probe("point", p0.link, p0.station), rate)
+    d = np.asarray(jt.axis, float)
+    return p @ d if rate else (p - np.asarray(jt.ground, float)) @ d
+
+
 def _branch(series: np.ndarray, ref: float | None) -> np.ndarray:
     """Shift a continuous angle series by 2 pi k so its first sample is closest to ``ref``."""
     if ref is None or len(series) == 0:
@@ -151,9 +162,11 @@ def _guess_angle(mech: Mechanism, link: str, relative_to: str | None, offset: fl
 
 
 def _coordinate_ref(mech: Mechanism, j: int) -> float | None:
+    c = mech.coordinates[j]
+    if c.kind == "slide":  # a length: no branch
+        return None
     if mech.q_ref:
         return float(mech.q_ref[j])
-    c = mech.coordinates[j]
     return _guess_angle(mech, c.link, c.relative_to, c.offset)
 
 
@@ -255,6 +268,8 @@ def sensor_channels(mech: Mechanism, record: ProbeRecord) -> Signals:
             else:
                 ref = _guess_angle(mech, s.link, s.relative_to)
             y = _branch(y, ref)
+        elif s.kind == "slider":
+            y = _slide(record, mech, s.joint)
         elif s.kind == "curvature":
             y = _probe(record, Probe("curvature", s.link, s.station))[:, 0]
         elif s.kind in ("tip_x", "tip_y"):
@@ -291,6 +306,10 @@ def true_states(mech: Mechanism, record: ProbeRecord, *, kinematics: Kinematics 
     q = np.empty((nt, nq))
     qd = np.empty((nt, nq))
     for j, c in enumerate(mech.coordinates):
+        if c.kind == "slide":
+            q[:, j] = _slide(record, mech, c.joint) - c.offset
+            qd[:, j] = _slide(record, mech, c.joint, rate=True)
+            continue
         a = _slope(record, mech, c.link, c.joint) - c.offset
         ad = _slope(record, mech, c.link, c.joint, rate=True)
         if c.relative_to:
@@ -299,7 +318,8 @@ def true_states(mech: Mechanism, record: ProbeRecord, *, kinematics: Kinematics 
         q[:, j] = _branch(a, _coordinate_ref(mech, j))
         qd[:, j] = ad
     cols = [q, qd]
-    units = ["rad"] * nq + ["rad/s"] * nq
+    slide = [c.kind == "slide" for c in mech.coordinates]
+    units = ["m" if sl else "rad" for sl in slide] + ["m/s" if sl else "rad/s" for sl in slide]
     tp = tip_point(mech)
     if tp is not None:
         link, station = tp

@@ -213,3 +213,45 @@ def test_held_force_model_reproduces_the_reduced_forces(sixbar_observer_state):
     scale = np.abs(mats.fr - forces.fg).max()  # the state-dependent part
     assert scale > 0
     assert np.abs(fq - mats.fr).max() <= 1e-9 * scale, (np.abs(fq - mats.fr).max(), scale)
+
+
+def test_rk4_substep_limit_is_the_stability_boundary():
+    """RK4 is stable up to |h lambda| = 2.83 on the imaginary axis and 2.79 on the negative real axis; the limit
+    keeps the margin SUBSTEP_MARGIN below them."""
+    from exuflex.erls.simulate import rk4_amplification
+    from exuflex.observer.reduced import SUBSTEP_MARGIN, rk4_substep_limit
+
+    w = 1e4
+    h = rk4_substep_limit(np.array([1j * w, -1j * w]))
+    assert h * w * SUBSTEP_MARGIN == pytest.approx(2 * np.sqrt(2), rel=1e-3)
+    h = rk4_substep_limit(np.array([-w + 0j]))
+    assert h * w * SUBSTEP_MARGIN == pytest.approx(2.785, rel=2e-3)
+    lam = w * np.exp(1j * np.linspace(np.pi / 2, np.pi, 7))  # the left half-plane's directions
+    h = rk4_substep_limit(lam)
+    assert np.all(np.abs(rk4_amplification(SUBSTEP_MARGIN * h * lam)) <= 1 + 1e-9)
+    assert np.any(np.abs(rk4_amplification(SUBSTEP_MARGIN * 1.01 * h * lam)) > 1)
+    assert rk4_substep_limit(np.array([0j])) == np.inf
+
+
+def test_a_stiff_reduced_model_is_refused_naming_its_mode():
+    """Both components of the four-bar's joint nodes as masters give a stiff Guyan (axial) mode: the sub-steps
+    follow from it, and beyond max_substeps the model is refused with the mode's frequency."""
+    from pathlib import Path
+
+    from exuflex.erls.model import ErlsModel
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.reduced import ReducedObserverModel
+    from exuflex.reduction import CraigBampton
+
+    mech = load_mechanism(Path(__file__).resolve().parents[1] / "models" / "fourbar.toml")
+    cb = CraigBampton(ErlsModel(mech), masters=("node9.x", "node9.y", "node4.y", "node4.x", "node8.x", "node8.y"),
+                      n_interior=2)
+    som = ReducedObserverModel(cb)
+    z = som.initial_state(mech.q_ref)
+    pred, iv, _ = som.frozen_interval(z, None, 1e-3)
+    n = som.substeps(iv, 1e-3)
+    assert n > 10  # the 0.1 ms default is not stable on this model
+    assert np.all(np.isfinite(pred.x))
+    tight = ReducedObserverModel(cb, max_substeps=5)
+    with pytest.raises(ValueError, match=r"stiffest mode .* Hz"):
+        tight.frozen_interval(z, None, 1e-3)

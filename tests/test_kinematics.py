@@ -11,7 +11,7 @@ from exuflex.erls.kinematics import Kinematics
 from exuflex.mechanism import load_mechanism
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
-NAMES = ("sixbar", "single_link", "fourbar")
+NAMES = ("sixbar", "single_link", "fourbar", "slider_crank")
 H = 1e-5  # central-difference step (rad): truncation ~H^2 = 1e-10, round-off ~1e-16 / H = 1e-11
 
 

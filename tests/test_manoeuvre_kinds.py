@@ -262,6 +262,20 @@ def test_five_bar_tip_arc_simulates_and_torque_file_reproduces_it(five, tmp_path
     assert observed.kind == "torque" and observed.q0 == tuple(q0)
 
 
+def test_simulate_writes_a_plan_that_plans_again(five, tmp_path):
+    """``exuflex simulate --write-plan`` writes plan.csv; as ``--manoeuvre`` it plans the same q, q', q''."""
+    from exuflex.cli import main
+
+    run = tmp_path / "run"
+    assert main(["simulate", str(FIVEBAR), "--out", str(run), "--duration", "0.05", "--seed", "1",
+                 "--write-plan"]) == 0
+    written = plan(five, dt=1e-4, t_end=0.05)
+    again = plan(five, load_manoeuvre(run / "plan.csv", five), dt=1e-4)
+    np.testing.assert_array_equal(again.q, written.q)
+    np.testing.assert_allclose(again.qd, written.qd, rtol=0, atol=1e-14 * np.abs(written.qd).max())
+    np.testing.assert_allclose(again.qdd, written.qdd, rtol=0, atol=1e-13 * np.abs(written.qdd).max())
+
+
 def test_simulate_reports_a_bad_manoeuvre_file_in_one_line(tmp_path, capsys):
     from exuflex.cli import main
 

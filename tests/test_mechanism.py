@@ -12,7 +12,7 @@ import pytest
 from exuflex.mechanism import ModelFileError, elastic_dofs, load_mechanism, parse_mechanism, refine_mechanism
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
-NAMES = ("sixbar", "single_link", "fourbar")
+NAMES = ("sixbar", "single_link", "fourbar", "slider_crank")
 
 
 def _doc(name: str) -> dict:

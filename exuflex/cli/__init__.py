@@ -16,7 +16,7 @@ import sys
 
 __all__ = ["main"]
 
-COMMANDS = ("modes", "simulate", "observe", "plot", "study", "reproduce", "bench")
+COMMANDS = ("modes", "simulate", "observe", "plot", "study", "reproduce", "bench", "design")
 
 
 class _Parser(argparse.ArgumentParser):

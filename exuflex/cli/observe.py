@@ -97,6 +97,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="extra white noise on the elastic rates per interval (std, unmodelled dynamics)")
     t.add_argument("--start-up", type=nonneg_float, default=0.3,
                    help="seconds left out of the error metrics (default 0.3)")
+    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default="ekf",
+                   help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
+                        "as states)")
+    p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
     p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
@@ -118,6 +122,7 @@ def _config(args):
         elastic_rate0_std=args.elastic_rate0_std,
         q_scale=args.q_scale,
         q_extra_std=args.q_extra,
+        estimator=args.estimator,
         start_up=args.start_up,
     )
 
@@ -183,6 +188,8 @@ def run(args) -> int:
     if args.noise:
         mech = with_noise(mech, args.noise)
     config = _config(args)
+    if args.smooth and args.estimator == "ukf":
+        raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
     for flag, v in (("--q0", args.q0), ("--qd0", args.qd0)):
         if v is not None and len(v) != len(mech.coordinates):
@@ -204,7 +211,7 @@ def run(args) -> int:
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
     if args.out and len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES:
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
-    out = observe_run(mech, log, config, observer=obs, report=_say)
+    out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth)
     s = out.summary
     if s["diverged"]:
         _say(f"warning: the filter diverged (estimates non-finite) at t = {s['diverged_at']} s")
@@ -226,6 +233,11 @@ def run(args) -> int:
     from ..observer.output import summary_table
 
     print(summary_table(mech, out, bound=True))
+    if "parameters" in s:
+        print(f"payload scale {s['parameters']['payload_scale']:.4g} +- {s['parameters']['payload_scale_std']:.2g}")
+    if "inputs" in s:
+        print("torque disturbance (N m): " + ", ".join(f"{k} {v['value']:.3g} +- {v['std']:.2g}"
+                                                     for k, v in s["inputs"].items()))
     if args.out:
         print(f"wrote {Path(args.out)}")
     return 0

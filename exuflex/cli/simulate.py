@@ -136,6 +136,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "at a mode f is about (2 pi f S)^2 / 12)",
     )
     p.add_argument(
+        "--write-plan", action="store_true",
+        help="also write the planned q, q', q'' as plan.csv (a trajectory file: --manoeuvre plan.csv plans it again)",
+    )
+    p.add_argument(
         "--no-progress", action="store_true",
         help="no progress (a bar on a terminal, a line every 10 %% otherwise)"
     )
@@ -174,6 +178,7 @@ def run(args) -> int:
             h=args.h,
             progress=bars,
             manoeuvre=args.manoeuvre,
+            write_plan=args.write_plan,
             elements_per_link=args.elements_per_link,
             beam=args.beam,
             integrator=args.integrator,

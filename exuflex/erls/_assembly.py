@@ -70,17 +70,18 @@ else:  # pragma: no cover
     nodal_matrices = None
 
 
-def _configuration(z0, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, J0, E, tol, max_iter, node_link,
-                   node_station, el_link, Ml, Kl, el_dofs, lumped, T):  # pragma: no cover - compiled
+def _configuration(z0, q, k, tol, max_iter, node_link, node_station, el_link, Ml, Kl, el_dofs, lumped,
+                   T):  # pragma: no cover - compiled
     """``(ok, z, J^-1, cond, S_z, r, S, R, M_N, K_N, W)`` at q from the Newton start ``z0``: the closure
-    (:func:`._closure.closure_newton`, tolerance ``tol`` absolute), the pose sensitivities
-    (:func:`._closure.pose_sensitivities`), the nodal matrices at the element angles (:func:`nodal_matrices`) and
-    ``W = [S, T]``. ``ok`` False (the rest empty): Newton did not converge, the caller takes the reference path."""
-    z, ok = closure_newton(z0, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, J0, tol, max_iter)
+    (:func:`._closure.closure_newton` with the closure arrays ``k``, tolerance ``tol`` absolute), the pose
+    sensitivities (:func:`._closure.pose_sensitivities`), the nodal matrices at the element angles
+    (:func:`nodal_matrices`) and ``W = [S, T]``. ``ok`` False (the rest empty): Newton did not converge, the
+    caller takes the reference path."""
+    z, ok = closure_newton(z0, q, k, tol, max_iter)
     if not ok:
         e2, e3 = np.empty((0, 0)), np.empty((0, 0, 0))
         return False, z, e2, np.inf, e2, np.empty(0), e2, e3, e2, e2, e2
-    Jinv, cond, Sz, r, S = pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station)
+    Jinv, cond, Sz, r, S = pose_sensitivities(z, k, node_link, node_station)
     th = np.empty(el_link.shape[0])
     for e in range(el_link.shape[0]):
         th[e] = z[3 * el_link[e] + 2]

@@ -6,15 +6,22 @@ overhead is most of the cost (about 0.4 ms per solve); compiled, the same arithm
 microseconds. :meth:`exuflex.erls.kinematics.Kinematics._newton_numpy` is the reference, and
 ``tests/test_kinematics.py`` checks that the two agree.
 
-The equations are those of :class:`~exuflex.erls.kinematics.Kinematics` (its index arrays are passed in):
-position equations ``k`` (rows ``2k, 2k+1``) join point ``esa[k]`` of link ``ea[k]`` to point ``esb[k]`` of link
-``eb[k]`` (or to the ground point ``eg[k]`` where ``ebm[k] = 0``); angle equations ``j`` set
-``th[ang_a[j]] - ang_rm[j] th[ang_r[j]] - ang_off[j]`` to ``q[j]``.
+The equations are those of :class:`~exuflex.erls.kinematics.Kinematics`, described by a
+:class:`ClosureArrays` of index arrays: position equations ``k`` (rows ``2k, 2k+1``) join point ``esa[k]`` of
+link ``ea[k]`` to point ``esb[k]`` of link ``eb[k]`` (or to the ground point ``eg[k]`` where ``ebm[k] = 0``);
+scalar equations ``j`` (rows after them) read
+
+``cn[j] . p(ca[j], cs[j]) + cw[j] th[ca[j]] - cwr[j] th[cr[j]] - coff[j] - q[cq[j]] = 0``
+
+with ``p(a, s)`` the point at station ``s`` of link ``a`` and no ``q`` term where ``cq[j] < 0``: an angle
+coordinate (``cn = 0``, ``cw = 1``), a prismatic joint's line (``cn`` its normal, ``cw = 0``), a slide
+coordinate (``cn`` its axis) or a weld's angle (``cw = cwr = 1``, no ``q``).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -26,32 +33,68 @@ except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "closure_newton", "coordinate_rates", "pose_sensitivities"]
+__all__ = ["HAVE_NUMBA", "ClosureArrays", "closure_newton", "coordinate_rates", "pose_sensitivities"]
 
 
-def _residual(z, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, out):  # pragma: no cover
-    for k in range(ea.shape[0]):
-        a, b, m = ea[k], eb[k], ebm[k]
+class ClosureArrays(NamedTuple):
+    """The closure equations as arrays (see the module docstring); ``J0`` holds the Jacobian's constant entries
+    and ``E = -dPhi/dq``."""
+
+    ea: np.ndarray  # (n_pos,) int
+    esa: np.ndarray  # (n_pos,)
+    eb: np.ndarray  # (n_pos,) int (0 where the second point is the ground)
+    ebm: np.ndarray  # (n_pos,) 1 where the second point is a link
+    esb: np.ndarray  # (n_pos,)
+    eg: np.ndarray  # (n_pos, 2)
+    ca: np.ndarray  # (n_sc,) int
+    cs: np.ndarray  # (n_sc,)
+    cn: np.ndarray  # (n_sc, 2)
+    cw: np.ndarray  # (n_sc,)
+    cr: np.ndarray  # (n_sc,) int
+    cwr: np.ndarray  # (n_sc,)
+    coff: np.ndarray  # (n_sc,)
+    cq: np.ndarray  # (n_sc,) int, -1: no coordinate
+    J0: np.ndarray  # (n_eq, 3 n_links)
+    E: np.ndarray  # (n_eq, nq)
+
+
+def _residual(z, q, k, out):  # pragma: no cover
+    ea, esa, eb, ebm, esb, eg = k.ea, k.esa, k.eb, k.ebm, k.esb, k.eg
+    for i in range(ea.shape[0]):
+        a, b, m = ea[i], eb[i], ebm[i]
         ta, tb = z[3 * a + 2], z[3 * b + 2]
-        out[2 * k] = z[3 * a] + esa[k] * math.cos(ta) - m * (z[3 * b] + esb[k] * math.cos(tb)) - eg[k, 0]
-        out[2 * k + 1] = z[3 * a + 1] + esa[k] * math.sin(ta) - m * (z[3 * b + 1] + esb[k] * math.sin(tb)) - eg[k, 1]
+        out[2 * i] = z[3 * a] + esa[i] * math.cos(ta) - m * (z[3 * b] + esb[i] * math.cos(tb)) - eg[i, 0]
+        out[2 * i + 1] = z[3 * a + 1] + esa[i] * math.sin(ta) - m * (z[3 * b + 1] + esb[i] * math.sin(tb)) - eg[i, 1]
     base = 2 * ea.shape[0]
-    for j in range(ang_a.shape[0]):
-        out[base + j] = z[3 * ang_a[j] + 2] - ang_rm[j] * z[3 * ang_r[j] + 2] - ang_off[j] - q[j]
-
-
-def _jacobian(z, ea, esa, eb, ebm, esb, J0, J):  # pragma: no cover
-    J[:] = J0
-    for k in range(ea.shape[0]):
-        a = ea[k]
+    for j in range(k.ca.shape[0]):
+        a = k.ca[j]
         ta = z[3 * a + 2]
-        J[2 * k, 3 * a + 2] = -esa[k] * math.sin(ta)
-        J[2 * k + 1, 3 * a + 2] = esa[k] * math.cos(ta)
-        if ebm[k] > 0:
-            b = eb[k]
+        v = (k.cn[j, 0] * (z[3 * a] + k.cs[j] * math.cos(ta)) + k.cn[j, 1] * (z[3 * a + 1] + k.cs[j] * math.sin(ta))
+             + k.cw[j] * ta - k.cwr[j] * z[3 * k.cr[j] + 2] - k.coff[j])
+        if k.cq[j] >= 0:
+            v -= q[k.cq[j]]
+        out[base + j] = v
+
+
+def _jacobian(z, k, J):  # pragma: no cover
+    J[:] = k.J0
+    ea, esa, eb, ebm, esb = k.ea, k.esa, k.eb, k.ebm, k.esb
+    for i in range(ea.shape[0]):
+        a = ea[i]
+        ta = z[3 * a + 2]
+        J[2 * i, 3 * a + 2] = -esa[i] * math.sin(ta)
+        J[2 * i + 1, 3 * a + 2] = esa[i] * math.cos(ta)
+        if ebm[i] > 0:
+            b = eb[i]
             tb = z[3 * b + 2]
-            J[2 * k, 3 * b + 2] = esb[k] * math.sin(tb)
-            J[2 * k + 1, 3 * b + 2] = -esb[k] * math.cos(tb)
+            J[2 * i, 3 * b + 2] = esb[i] * math.sin(tb)
+            J[2 * i + 1, 3 * b + 2] = -esb[i] * math.cos(tb)
+    base = 2 * ea.shape[0]
+    for j in range(k.ca.shape[0]):
+        if k.cs[j] != 0.0:
+            a = k.ca[j]
+            ta = z[3 * a + 2]
+            J[base + j, 3 * a + 2] += k.cs[j] * (-k.cn[j, 0] * math.sin(ta) + k.cn[j, 1] * math.cos(ta))
 
 
 def _max_abs(v):  # pragma: no cover
@@ -62,24 +105,24 @@ def _max_abs(v):  # pragma: no cover
     return m
 
 
-def _closure_newton(z0, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, J0, tol, max_iter):  # pragma: no cover
+def _closure_newton(z0, q, k, tol, max_iter):  # pragma: no cover
     """Newton from ``z0``; returns ``(z, ok)``: ``ok`` False where the kinematics' NumPy Newton returns None
     (non-finite iterate or no convergence). Converged: one more step polishes the solution to round-off.
     A singular Jacobian raises numpy's LinAlgError, as in NumPy."""
     z = z0.copy()
     n = z.shape[0]
-    res = np.empty(J0.shape[0])
-    J = np.empty(J0.shape)
+    res = np.empty(k.J0.shape[0])
+    J = np.empty(k.J0.shape)
     for _ in range(max_iter):
-        _residual(z, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, res)
-        _jacobian(z, ea, esa, eb, ebm, esb, J0, J)
+        _residual(z, q, k, res)
+        _jacobian(z, k, J)
         if _max_abs(res) < tol:
             return z - np.linalg.solve(J, res), True
         z += np.linalg.solve(J, -res)
         for i in range(n):
             if not math.isfinite(z[i]):
                 return z, False
-    _residual(z, q, ea, esa, eb, ebm, esb, eg, ang_a, ang_r, ang_rm, ang_off, res)
+    _residual(z, q, k, res)
     return z, _max_abs(res) < 1e3 * tol
 
 
@@ -95,64 +138,74 @@ def _norm1(A):  # pragma: no cover
     return m
 
 
-def _pose_sensitivities(z, ea, esa, eb, ebm, esb, J0, E, node_link, node_station):  # pragma: no cover
+def _pose_sensitivities(z, k, node_link, node_station):  # pragma: no cover
     """What :meth:`~exuflex.erls.kinematics.Kinematics.pose` computes after the closure is solved: the inverse
     of the closure Jacobian ``J``, its 1-norm condition number, ``S_z = J^-1 E`` and the nodal poses ``r`` and
     sensitivities ``S`` (rows x, y, theta per node). A singular ``J`` raises numpy's LinAlgError."""
-    J = np.empty(J0.shape)
-    _jacobian(z, ea, esa, eb, ebm, esb, J0, J)
+    J = np.empty(k.J0.shape)
+    _jacobian(z, k, J)
     Jinv = np.linalg.inv(J)
     cond = _norm1(J) * _norm1(Jinv)
-    Sz = Jinv @ E
+    Sz = Jinv @ k.E
     nn = node_link.shape[0]
-    nq = E.shape[1]
+    nq = k.E.shape[1]
     r = np.empty(3 * nn)
     S = np.empty((3 * nn, nq))
-    for k in range(nn):
-        li = node_link[k]
-        s = node_station[k]
+    for m in range(nn):
+        li = node_link[m]
+        s = node_station[m]
         th = z[3 * li + 2]
         c, sn = math.cos(th), math.sin(th)
-        r[3 * k] = z[3 * li] + s * c
-        r[3 * k + 1] = z[3 * li + 1] + s * sn
-        r[3 * k + 2] = th
+        r[3 * m] = z[3 * li] + s * c
+        r[3 * m + 1] = z[3 * li + 1] + s * sn
+        r[3 * m + 2] = th
         for j in range(nq):
             st = Sz[3 * li + 2, j]
-            S[3 * k, j] = Sz[3 * li, j] - (s * sn) * st
-            S[3 * k + 1, j] = Sz[3 * li + 1, j] + (s * c) * st
-            S[3 * k + 2, j] = st
+            S[3 * m, j] = Sz[3 * li, j] - (s * sn) * st
+            S[3 * m + 1, j] = Sz[3 * li + 1, j] + (s * c) * st
+            S[3 * m + 2, j] = st
     return Jinv, cond, Sz, r, S
 
 
-def _coordinate_rates(z, Sz, Jinv, ea, esa, eb, ebm, esb, node_link, node_station):  # pragma: no cover
+def _coordinate_rates(z, Sz, Jinv, k, node_link, node_station):  # pragma: no cover
     """``dS/dq_j`` for every coordinate j (nq, 3 n_nodes, nq): the formulas of
     :meth:`~exuflex.erls.kinematics.Kinematics.coordinate_rates`, with the sparse ``dPhi_z/dt`` applied
-    directly (only the angle columns of the position equations are nonzero)."""
+    directly (only the angle columns of the position equations and of the scalar equations on a point are
+    nonzero)."""
+    ea, esa, eb, ebm, esb = k.ea, k.esa, k.eb, k.ebm, k.esb
     nq = Sz.shape[1]
     n_eq = Jinv.shape[0]
     nn = node_link.shape[0]
+    base = 2 * ea.shape[0]
     out = np.empty((nq, 3 * nn, nq))
     JdS = np.zeros((n_eq, nq))
     for j in range(nq):
         JdS[:] = 0.0
-        for k in range(ea.shape[0]):
-            a = ea[k]
+        for i in range(ea.shape[0]):
+            a = ea[i]
             ta = z[3 * a + 2]
-            wa = esa[k] * Sz[3 * a + 2, j]  # esa * (link a's angle rate along e_j)
+            wa = esa[i] * Sz[3 * a + 2, j]  # esa * (link a's angle rate along e_j)
             ca, sa = wa * math.cos(ta), wa * math.sin(ta)
             for c in range(nq):
                 st = Sz[3 * a + 2, c]
-                JdS[2 * k, c] -= ca * st
-                JdS[2 * k + 1, c] -= sa * st
-            if ebm[k] > 0:
-                b = eb[k]
+                JdS[2 * i, c] -= ca * st
+                JdS[2 * i + 1, c] -= sa * st
+            if ebm[i] > 0:
+                b = eb[i]
                 tb = z[3 * b + 2]
-                wb = esb[k] * Sz[3 * b + 2, j]
+                wb = esb[i] * Sz[3 * b + 2, j]
                 cb, sb = wb * math.cos(tb), wb * math.sin(tb)
                 for c in range(nq):
                     st = Sz[3 * b + 2, c]
-                    JdS[2 * k, c] += cb * st
-                    JdS[2 * k + 1, c] += sb * st
+                    JdS[2 * i, c] += cb * st
+                    JdS[2 * i + 1, c] += sb * st
+        for i in range(k.ca.shape[0]):
+            if k.cs[i] != 0.0:
+                a = k.ca[i]
+                ta = z[3 * a + 2]
+                w = k.cs[i] * Sz[3 * a + 2, j] * (-k.cn[i, 0] * math.cos(ta) - k.cn[i, 1] * math.sin(ta))
+                for c in range(nq):
+                    JdS[base + i, c] += w * Sz[3 * a + 2, c]
         Szd = -(Jinv @ JdS)
         for m in range(nn):
             li = node_link[m]

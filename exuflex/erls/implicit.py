@@ -3,8 +3,9 @@
 The explicit RK4 of :mod:`exuflex.erls.simulate` is stable only for ``h |lambda| <= 2.8``: a fine mesh's axial
 modes (tens of kHz) and the overdamped modes that stiffness damping makes of them dictate its step. The
 generalized-alpha method (Chung & Hulbert 1993, in the form of Arnold & Bruels 2007, the one Exudyn uses) is
-unconditionally stable on linear problems, second-order accurate, and damps numerically only around and above
-the step's Nyquist frequency: the step is then chosen for accuracy in the band of interest.
+unconditionally stable on linear problems, second-order accurate, and its numerical damping grows as
+``(omega h)^3`` (negligible in the band, an amplification ``rho_inf`` per step at infinite frequency): the step
+is then chosen for accuracy in the band of interest.
 
 Method (``rho_inf``: spectral radius at infinite frequency, 1 = trapezoidal rule, no numerical damping)::
 
@@ -18,14 +19,19 @@ Method (``rho_inf``: spectral radius at infinite frequency, 1 = trapezoidal rule
 Newton on the residual ``r = M(x1) x1'' - Q``, in the position increment ``dx`` (``dv = gamma' dx``,
 ``dx'' = beta' dx`` with ``beta' = (1 - alpha_m) / (h^2 beta (1 - alpha_f))``, ``gamma' = gamma / (h beta)``):
 ``S dx = -r`` with the iteration matrix ``S = beta' M + gamma' C_t + K_t`` (``C_t = -dQ/dv``,
-``K_t = d(M x'' - Q)/dx``). ``S`` is factored once and reused over steps (simplified Newton) until the
+``K_t = d(M x'' - Q)/dx``). ``S`` is inverted once and reused over steps (simplified Newton) until the
 contraction rate of the iteration exceeds :data:`REFRESH_RATE`; the iteration stops when the estimated distance
-to the solution, ``eta / (1 - eta) |dx|`` (Hairer & Wanner, IV.8, with ``eta`` the observed contraction rate),
-is below the tolerance. The residual is always exact, so a stale ``S`` costs iterations, not accuracy.
+to the solution, ``eta / (1 - eta) |dx|`` (Hairer & Wanner, IV.8, with ``eta`` the contraction rate last
+measured), is below the tolerance. One iteration per step suffices while the rate is small; every
+:data:`PROBE_EVERY` steps a second one re-measures it as the matrix ages. The residual is always exact, so a stale
+``S`` costs iterations, not accuracy.
+
+The step: :func:`band_step` picks the largest step whose frequency error at the top of the band of interest is
+within :data:`FREQ_TOL`; the error falls as ``(omega h)^2 / 12`` below it.
 
 :func:`algorithmic_damping` gives the method's damping ratio and frequency error on an undamped mode of
-frequency ``omega`` for a step ``h`` (from the eigenvalues of its amplification matrix); :func:`erls_truth` is
-the ERLS engine's driver (torque table, record, probes).
+frequency ``omega`` for a step ``h`` (from the eigenvalues of its amplification matrix); :func:`erls_implicit`
+integrates the ERLS model under a zero-order-hold torque table.
 """
 
 from __future__ import annotations
@@ -197,7 +203,9 @@ def generalized_alpha(
     x0, v0, a0 : initial positions, rates and accelerations (``r(0, x0, v0, a0) = 0``).
     tol : Newton stops when the estimated error of the positions (max norm, units of x) is below ``tol``.
     output_every : store every k-th step. progress : called with the fraction done.
-    stats : if a dict, filled with the residual evaluations and matrix factorisations per step.
+    stats : if a dict, filled with the residual evaluations per step and the number of iteration matrices built.
+    refresh_rate : rebuild the iteration matrix when the measured contraction rate exceeds this.
+    probe_every : steps accepted after one iteration before a second iteration re-measures the rate.
 
     Returns
     -------

@@ -1,11 +1,14 @@
-"""ERLS kinematics of a planar closed chain of revolute joints.
+"""ERLS kinematics of a planar closed chain of revolute, prismatic and welded joints.
 
 The equivalent rigid-link system (ERLS) places every link rigidly; its pose is
 ``z = [x_1, y_1, th_1, ..., x_L, y_L, th_L]`` (origin and absolute angle of each link), fixed by
 the independent ERLS coordinates ``q`` through the closure equations ``Phi(z, q) = 0``:
 
 - each joint: the link points it joins coincide (or sit at the ground position);
-- each coordinate: ``th_link - th_ref - offset - q_j = 0`` (``th_ref = 0`` for an absolute angle).
+- each prismatic joint: its point lies on its axis, ``n . (p - g) = 0`` (``n`` the axis' normal);
+- each weld: ``th_b - th_a - angle = 0``;
+- each coordinate: ``th_link - th_ref - offset - q_j = 0`` (``th_ref = 0`` for an absolute angle), or for a
+  slide coordinate ``d . (p - g) - offset - q_j = 0`` (``d`` the axis).
 
 Given ``q`` the closure is solved by Newton's method; the sensitivity ``S_z = dz/dq`` and its time
 derivative follow exactly from the closure's Jacobian (no finite differences):
@@ -23,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mechanism import Mechanism
-from ._closure import closure_newton, coordinate_rates, pose_sensitivities
+from ._closure import ClosureArrays, closure_newton, coordinate_rates, pose_sensitivities
 
 __all__ = ["Kinematics", "KinematicsError", "Pose"]
 
@@ -74,26 +77,44 @@ class Kinematics:
         self.nq = len(mech.coordinates)
         # position equations: rows of (link a, station a, link b or -1, station b, ground xy)
         eqs = []
+        # scalar equations: (link a, station a, direction n (2,), weight of th_a, link r, weight of th_r, offset,
+        # coordinate index or -1), read n . p(a, s) + w th_a - wr th_r - offset - q = 0
+        sc = []
         for j in mech.joints:
             pts = [(li[p.link], p.station) for p in j.points]
-            if j.ground is not None:
+            if j.kind == "revolute" and j.ground is not None:
                 for a, sa in pts:
                     eqs.append((a, sa, -1, 0.0, np.asarray(j.ground, float)))
             else:
                 a0, s0 = pts[0]
                 for b, sb in pts[1:]:
                     eqs.append((b, sb, a0, s0, np.zeros(2)))
+            if j.kind == "prismatic":
+                n = np.asarray(j.normal, float)
+                sc.append((a0, s0, n, 0.0, 0, 0.0, float(n @ np.asarray(j.ground, float)), -1))
+            elif j.kind == "weld":
+                sc.append((pts[1][0], 0.0, np.zeros(2), 1.0, a0, 1.0, j.angle, -1))
         self._pos_eqs = eqs
-        self._ang_eqs = [
-            (li[c.link], -1 if c.relative_to is None else li[c.relative_to], c.offset) for c in mech.coordinates
-        ]
-        self.n_eq = 2 * len(eqs) + len(self._ang_eqs)
+        for k, c in enumerate(mech.coordinates):
+            if c.kind == "slide":
+                jt = mech.joint(c.joint)
+                d = np.asarray(jt.axis, float)
+                p0 = jt.points[0]
+                sc.append((li[p0.link], p0.station, d, 0.0, 0, 0.0, float(d @ np.asarray(jt.ground)) + c.offset, k))
+            else:
+                rel = c.relative_to is not None
+                sc.append((li[c.link], 0.0, np.zeros(2), 1.0, li[c.relative_to] if rel else 0, 1.0 if rel else 0.0,
+                           c.offset, k))
+        self._sc_eqs = sc
+        self.n_eq = 2 * len(eqs) + len(sc)
         if self.n_eq != 3 * self.nl:
             raise KinematicsError(
                 f"{mech.source or mech.name}: {self.n_eq} closure equations for {3 * self.nl} link coordinates"
             )
         E = np.zeros((self.n_eq, self.nq))
-        E[2 * len(eqs) + np.arange(self.nq), np.arange(self.nq)] = 1.0
+        for i, e in enumerate(sc):
+            if e[7] >= 0:
+                E[2 * len(eqs) + i, e[7]] = 1.0
         self._E = E
         # nodes: link index and station of every node, in mech.node_ids order
         self.node_ids = mech.node_ids
@@ -116,10 +137,15 @@ class Kinematics:
         self._ebm = np.array([1.0 if e[2] >= 0 else 0.0 for e in eqs])  # 1 where the second point is a link
         self._esb = np.array([e[3] for e in eqs], float) * self._ebm
         self._eg = np.array([e[4] for e in eqs], float).reshape(-1, 2)
-        self._ang_a = np.array([e[0] for e in self._ang_eqs], int)
-        self._ang_r = np.array([max(e[1], 0) for e in self._ang_eqs], int)
-        self._ang_rm = np.array([1.0 if e[1] >= 0 else 0.0 for e in self._ang_eqs])
-        self._ang_off = np.array([e[2] for e in self._ang_eqs], float)
+        sc = self._sc_eqs
+        self._ca = np.array([e[0] for e in sc], int)
+        self._cs = np.array([e[1] for e in sc], float)
+        self._cn = np.array([e[2] for e in sc], float).reshape(-1, 2)
+        self._cw = np.array([e[3] for e in sc], float)
+        self._cr = np.array([e[4] for e in sc], int)
+        self._cwr = np.array([e[5] for e in sc], float)
+        self._coff = np.array([e[6] for e in sc], float)
+        self._cq = np.array([e[7] for e in sc], int)
         npos = len(eqs)
         self._rx = 2 * np.arange(npos)
         self._ry = self._rx + 1
@@ -129,14 +155,19 @@ class Kinematics:
             if b >= 0:
                 J0[2 * k : 2 * k + 2, 3 * b : 3 * b + 2] -= np.eye(2)
         base = 2 * npos
-        for j, (a, r, _) in enumerate(self._ang_eqs):
-            J0[base + j, 3 * a + 2] = 1.0
-            if r >= 0:
-                J0[base + j, 3 * r + 2] = -1.0
+        for j, (a, _, n, w, r, wr, _, _) in enumerate(self._sc_eqs):
+            J0[base + j, 3 * a : 3 * a + 2] += n
+            J0[base + j, 3 * a + 2] += w
+            J0[base + j, 3 * r + 2] -= wr
         self._J0 = J0
-        self._ca = 3 * self._ea + 2
-        self._cb = 3 * self._eb + 2
+        self._pca = 3 * self._ea + 2  # angle columns of the position equations
+        self._pcb = 3 * self._eb + 2
         self._link_eq = self._ebm > 0
+        self._sc_rows = base + np.flatnonzero(self._cs != 0.0)  # scalar equations on a point off the origin
+        self._sc_pt = np.flatnonzero(self._cs != 0.0)
+        self.arrays = ClosureArrays(self._ea, self._esa, self._eb, self._ebm, self._esb, self._eg, self._ca,
+                                    self._cs, self._cn, self._cw, self._cr, self._cwr, self._coff, self._cq,
+                                    self._J0, self._E)
 
     def residual(self, z: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Phi(z, q) (n_eq,); batched over leading axes of ``z`` (..., 3 n_links) and ``q`` (..., nq)."""
@@ -149,7 +180,12 @@ class Kinematics:
         out[..., self._rx] = x[..., a] + self._esa * ca - m * (x[..., b] + self._esb * cb) - self._eg[:, 0]
         out[..., self._ry] = y[..., a] + self._esa * sa_ - m * (y[..., b] + self._esb * sb_) - self._eg[:, 1]
         base = 2 * len(self._pos_eqs)
-        out[..., base:] = th[..., self._ang_a] - self._ang_rm * th[..., self._ang_r] - self._ang_off - q
+        ta = th[..., self._ca]
+        q = np.asarray(q, float)
+        q_term = np.where(self._cq >= 0, q[..., np.maximum(self._cq, 0)], 0.0)
+        out[..., base:] = (self._cn[:, 0] * (x[..., self._ca] + self._cs * np.cos(ta))
+                           + self._cn[:, 1] * (y[..., self._ca] + self._cs * np.sin(ta))
+                           + self._cw * ta - self._cwr * th[..., self._cr] - self._coff - q_term)
         return out
 
     def jacobian(self, z: np.ndarray) -> np.ndarray:
@@ -157,11 +193,15 @@ class Kinematics:
         th = z[..., 2::3]
         J = np.broadcast_to(self._J0, th.shape[:-1] + self._J0.shape).copy()
         a, b = self._ea, self._eb
-        J[..., self._rx, self._ca] = -self._esa * np.sin(th[..., a])
-        J[..., self._ry, self._ca] = self._esa * np.cos(th[..., a])
+        J[..., self._rx, self._pca] = -self._esa * np.sin(th[..., a])
+        J[..., self._ry, self._pca] = self._esa * np.cos(th[..., a])
         lk = self._link_eq
-        J[..., self._rx[lk], self._cb[lk]] = self._esb[lk] * np.sin(th[..., b[lk]])
-        J[..., self._ry[lk], self._cb[lk]] = -self._esb[lk] * np.cos(th[..., b[lk]])
+        J[..., self._rx[lk], self._pcb[lk]] = self._esb[lk] * np.sin(th[..., b[lk]])
+        J[..., self._ry[lk], self._pcb[lk]] = -self._esb[lk] * np.cos(th[..., b[lk]])
+        i = self._sc_pt
+        ta = th[..., self._ca[i]]
+        J[..., self._sc_rows, 3 * self._ca[i] + 2] += self._cs[i] * (-self._cn[i, 0] * np.sin(ta)
+                                                                     + self._cn[i, 1] * np.cos(ta))
         return J
 
     def _jacobian_rate(self, z: np.ndarray, zd: np.ndarray) -> np.ndarray:
@@ -169,12 +209,16 @@ class Kinematics:
         th, thd = z[..., 2::3], zd[..., 2::3]
         J = np.zeros(th.shape[:-1] + (self.n_eq, 3 * self.nl))
         a, b = self._ea, self._eb
-        J[..., self._rx, self._ca] = -self._esa * thd[..., a] * np.cos(th[..., a])
-        J[..., self._ry, self._ca] = -self._esa * thd[..., a] * np.sin(th[..., a])
+        J[..., self._rx, self._pca] = -self._esa * thd[..., a] * np.cos(th[..., a])
+        J[..., self._ry, self._pca] = -self._esa * thd[..., a] * np.sin(th[..., a])
         lk = self._link_eq
         bl = b[lk]
-        J[..., self._rx[lk], self._cb[lk]] = self._esb[lk] * thd[..., bl] * np.cos(th[..., bl])
-        J[..., self._ry[lk], self._cb[lk]] = self._esb[lk] * thd[..., bl] * np.sin(th[..., bl])
+        J[..., self._rx[lk], self._pcb[lk]] = self._esb[lk] * thd[..., bl] * np.cos(th[..., bl])
+        J[..., self._ry[lk], self._pcb[lk]] = self._esb[lk] * thd[..., bl] * np.sin(th[..., bl])
+        i = self._sc_pt
+        ai = self._ca[i]
+        J[..., self._sc_rows, 3 * ai + 2] = self._cs[i] * thd[..., ai] * (-self._cn[i, 0] * np.cos(th[..., ai])
+                                                                         - self._cn[i, 1] * np.sin(th[..., ai]))
         return J
 
     def jacobian_rate_product(self, z: np.ndarray, zd: np.ndarray) -> np.ndarray:
@@ -186,6 +230,10 @@ class Kinematics:
         out = np.zeros(np.shape(z)[:-1] + (self.n_eq,))
         out[..., self._rx] = -wa * np.cos(th[..., a]) + wb * np.cos(th[..., b])
         out[..., self._ry] = -wa * np.sin(th[..., a]) + wb * np.sin(th[..., b])
+        i = self._sc_pt  # scalar equations on a point: s (-n_x cos - n_y sin) th'^2
+        ai = self._ca[i]
+        out[..., self._sc_rows] = self._cs[i] * thd[..., ai] ** 2 * (-self._cn[i, 0] * np.cos(th[..., ai])
+                                                                    - self._cn[i, 1] * np.sin(th[..., ai]))
         return out
 
     def initial_guess(self, q: np.ndarray) -> np.ndarray:
@@ -197,16 +245,27 @@ class Kinematics:
             if lk.angle_guess is not None:
                 th[i] = lk.angle_guess
         for j, c in enumerate(mech.coordinates):
-            if c.relative_to is None:
+            if c.kind == "angle" and c.relative_to is None:
                 th[li[c.link]] = q[j] + c.offset
         for j, c in enumerate(mech.coordinates):
-            if c.relative_to is not None:
+            if c.kind == "angle" and c.relative_to is not None:
                 th[li[c.link]] = th[li[c.relative_to]] + q[j] + c.offset
+        for jt in mech.joints:
+            if jt.kind == "weld" and mech.link(jt.points[1].link).angle_guess is None:
+                th[li[jt.points[1].link]] = th[li[jt.points[0].link]] + jt.angle
         z = np.zeros(3 * self.nl)
         z[2::3] = th
         placed = set()
+        for j, c in enumerate(mech.coordinates):  # a slider at its coordinate
+            if c.kind == "slide":
+                jt = mech.joint(c.joint)
+                pos = np.asarray(jt.ground) + (q[j] + c.offset) * np.asarray(jt.axis)
+                for p in jt.points:
+                    i = li[p.link]
+                    z[3 * i : 3 * i + 2] = pos - p.station * np.array([np.cos(th[i]), np.sin(th[i])])
+                    placed.add(i)
         for jt in mech.joints:
-            if jt.ground is not None:
+            if jt.kind == "revolute" and jt.ground is not None:
                 for p in jt.points:
                     i = li[p.link]
                     z[3 * i : 3 * i + 2] = np.asarray(jt.ground) - p.station * np.array([np.cos(th[i]), np.sin(th[i])])
@@ -276,9 +335,7 @@ class Kinematics:
             return self._newton_numpy(z, q, tol, max_iter)
         scale = self.newton_scale
         try:
-            z, ok = closure_newton(np.asarray(z, float), np.asarray(q, float), self._ea, self._esa, self._eb,
-                                   self._ebm, self._esb, self._eg, self._ang_a, self._ang_r, self._ang_rm,
-                                   self._ang_off, self._J0, tol * scale, max_iter)
+            z, ok = closure_newton(np.asarray(z, float), np.asarray(q, float), self.arrays, tol * scale, max_iter)
         except np.linalg.LinAlgError:  # a singular closure Jacobian on the way
             return None
         return z if ok else None
@@ -343,8 +400,7 @@ class Kinematics:
         :func:`._closure.pose_sensitivities`). A singular Jacobian gives ``(None, inf, None, None, None)``."""
         try:
             if pose_sensitivities is not None and self.compiled:
-                Jinv, cond, Sz, r, S = pose_sensitivities(z, self._ea, self._esa, self._eb, self._ebm, self._esb,
-                                                          self._J0, self._E, self.node_link, self.node_station)
+                Jinv, cond, Sz, r, S = pose_sensitivities(z, self.arrays, self.node_link, self.node_station)
                 return Jinv, float(cond), Sz, r, S
             J = self.jacobian(z)
             Jinv = np.linalg.inv(J)
@@ -394,20 +450,24 @@ class Kinematics:
         """``dS/dq_j`` for every coordinate j at once: array (nq, 3 n_nodes, nq), entry j the nodal ``dS/dt`` of
         :meth:`rates` along ``q' = e_j`` (the same formulas, batched over j)."""
         if coordinate_rates is not None and self.compiled and pose.Jinv is not None:
-            return coordinate_rates(pose.z, np.ascontiguousarray(pose.Sz), pose.Jinv, self._ea, self._esa, self._eb,
-                                    self._ebm, self._esb, self.node_link, self.node_station)
+            return coordinate_rates(pose.z, np.ascontiguousarray(pose.Sz), pose.Jinv, self.arrays, self.node_link,
+                                    self.node_station)
         Sz = pose.Sz
         th = pose.z[2::3]
         thd = Sz[2::3].T  # (nq, n_links): link angle rates along each e_j
         nq = Sz.shape[1]
         a, b = self._ea, self._eb
         Jd = np.zeros((nq, self.n_eq, 3 * self.nl))
-        Jd[:, self._rx, self._ca] = -self._esa * thd[:, a] * np.cos(th[a])
-        Jd[:, self._ry, self._ca] = -self._esa * thd[:, a] * np.sin(th[a])
+        Jd[:, self._rx, self._pca] = -self._esa * thd[:, a] * np.cos(th[a])
+        Jd[:, self._ry, self._pca] = -self._esa * thd[:, a] * np.sin(th[a])
         lk = self._link_eq
         bl = b[lk]
-        Jd[:, self._rx[lk], self._cb[lk]] = self._esb[lk] * thd[:, bl] * np.cos(th[bl])
-        Jd[:, self._ry[lk], self._cb[lk]] = self._esb[lk] * thd[:, bl] * np.sin(th[bl])
+        Jd[:, self._rx[lk], self._pcb[lk]] = self._esb[lk] * thd[:, bl] * np.cos(th[bl])
+        Jd[:, self._ry[lk], self._pcb[lk]] = self._esb[lk] * thd[:, bl] * np.sin(th[bl])
+        i = self._sc_pt
+        ai = self._ca[i]
+        Jd[:, self._sc_rows, 3 * ai + 2] = self._cs[i] * thd[:, ai] * (-self._cn[i, 0] * np.cos(th[ai])
+                                                                      - self._cn[i, 1] * np.sin(th[ai]))
         JdS = Jd @ Sz  # (nq, n_eq, nq)
         if pose.Jinv is not None:
             Szd = -(pose.Jinv @ JdS)

@@ -132,6 +132,36 @@ class ErlsModel:
                 Al.append(beam_gyroscopic(rhoA, L))
                 el_len.append(L)
                 el_station.append(lk.stations[a])
+        # masses at an offset from their node: one-node "elements" that rotate with the node's link, local mass
+        # m [[1, 0, -b], [0, 1, a], [-b, a, a^2 + b^2]] + J e3 e3^T on (u, v, theta) for the offset (a, b) in the
+        # link frame (the mass point's velocity in that frame is (u' - b theta', v' + a theta') = N_p d', so the mass is
+        # m N_p^T N_p + J e3 e3^T and eq. 2's gyroscopic matrix m N_p^T G2 N_p, as beam_gyroscopic for a point), no
+        # stiffness, zero length (no station: sensors never locate them). The element's second node is a neighbour
+        # on the link with a zero block, so that no element lists a nodal dof twice.
+        for lm in mech.all_masses():
+            if lm.offset == (0.0, 0.0):
+                continue
+            a, b = lm.offset
+            k = nodes.index(lm.node)
+            lname = lm.link or mech.node_location(lm.node)[0]
+            ids = mech.link(lname).node_ids
+            i = ids.index(lm.node)
+            k2 = nodes.index(ids[i + 1] if i + 1 < len(ids) else ids[i - 1])
+            Np = np.zeros((2, 6))
+            Np[:, :3] = [[1.0, 0.0, -b], [0.0, 1.0, a]]
+            Me = lm.mass * Np.T @ Np
+            Me[2, 2] += lm.inertia
+            # plus m N_p^T (a, b) e3^T: with it A - M G annihilates the rigid rotation about the node, (0, 0, 1), as
+            # it does translations (a beam's N interpolates rigid fields with N G = G2 N; an offset point does not)
+            e3 = np.zeros(6)
+            e3[2] = 1.0
+            Al.append(lm.mass * (Np.T @ np.array([[0.0, -1.0], [1.0, 0.0]]) @ Np + np.outer(Np.T @ [a, b], e3)))
+            el_link.append(link_index[lname])
+            el_dofs.append([3 * k, 3 * k + 1, 3 * k + 2, 3 * k2, 3 * k2 + 1, 3 * k2 + 2])
+            Kl.append(np.zeros((6, 6)))
+            Ml.append(Me)
+            el_len.append(0.0)
+            el_station.append(mech.node_location(lm.node)[1])
         self.el_link = np.array(el_link)
         self.el_dofs = np.array(el_dofs)
         self.el_len = np.array(el_len)
@@ -144,8 +174,9 @@ class ErlsModel:
         self.n_el = len(el_link)
         lump = np.zeros(self.N)
         for lm in mech.all_masses():
-            i = nodes.index(lm.node)
-            lump[3 * i : 3 * i + 3] += (lm.mass, lm.mass, lm.inertia)
+            if lm.offset == (0.0, 0.0):
+                i = nodes.index(lm.node)
+                lump[3 * i : 3 * i + 3] += (lm.mass, lm.mass, lm.inertia)
         self.lumped = lump
         self._diag_idx = np.diag_indices(self.N)
         # motors: nodal moment pattern
@@ -197,9 +228,8 @@ class ErlsModel:
             q, start = kin.start(q, z0)
             try:
                 ok, z, Jinv, cond, Sz, r, S, R, M_N, K_N, W = compiled_configuration(
-                    np.asarray(start, float), q, kin._ea, kin._esa, kin._eb, kin._ebm, kin._esb, kin._eg, kin._ang_a,
-                    kin._ang_r, kin._ang_rm, kin._ang_off, kin._J0, kin._E, 1e-12 * kin.newton_scale, 30,
-                    kin.node_link, kin.node_station, self.el_link, self.Ml, self.Kl, self.el_dofs, self.lumped, self.T)
+                    np.asarray(start, float), q, kin.arrays, 1e-12 * kin.newton_scale, 30, kin.node_link,
+                    kin.node_station, self.el_link, self.Ml, self.Kl, self.el_dofs, self.lumped, self.T)
             except np.linalg.LinAlgError:  # a singular closure Jacobian: the reference path reports it
                 ok = False
             if ok:
@@ -488,7 +518,7 @@ class ErlsModel:
 
     def _locate(self, link: str, station: float) -> tuple[tuple[int, float], ...]:
         li = [lk.name for lk in self.mech.links].index(link)
-        els = np.flatnonzero(self.el_link == li)
+        els = np.flatnonzero((self.el_link == li) & (self.el_len > 0))  # beam elements (not offset masses)
         out = []
         for e in els:
             a, L = self.el_station[e], self.el_len[e]

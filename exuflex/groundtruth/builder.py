@@ -9,20 +9,30 @@ planar flexible beams, independent of the ERLS mesh:
   ``x, y, phi``): an independent cross-check that needs a fine mesh (16-32 elements per link).
 
 Each link has its own nodes; the links' nodes at a joint coincide and are connected by
-``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). Lumped masses sit on the
-node at their station (``ObjectGenericODE2``). A rotary inertia ``J`` (a hub, a motor rotor) must
-act on the node's rotation only:
+``ObjectJointRevolute2D`` (ground pins to an ``ObjectGround`` marker). A prismatic joint's node
+keeps its coordinate normal to the axis (a global x or y direction) at its reference value
+(``ObjectConnectorCoordinate`` to a ground node). A weld keeps the two nodes' tangents at their angle:
+``ObjectConnectorCoordinate`` on the rotations (gebeam, exact) or, for ANCF, the linear constraint
+``r'_b = R(angle) r'_a`` on the slopes (``ObjectConnectorCoordinateVector``), which also equates the
+axial strains of the two links at the weld (one constraint more than a rigid angle; the bending modes
+of a welded frame hardly load it). Lumped masses sit on the node at their station
+(``ObjectGenericODE2``). A rotary inertia ``J`` (a hub, a motor rotor) or a mass at an offset
+``(a, b)`` in the link frame must move with the node's rotation only:
 
-- ``hub="rigid"`` (default): on ANCF a node carrying ``J`` gets a rigid body (``NodeRigidBody2D``,
-  ``ObjectRigidBody2D`` with the node's mass and ``J``) welded to it by an ``ObjectJointGeneric``
-  that ties position and rotation (x, y, rotation about z) to the node's ``MarkerNodeRigid``,
-  whose angle is the slope's ``atan2(y', x')``. The kinetic energy is then exactly
-  ``m |r'|^2 / 2 + J theta'^2 / 2`` of the ERLS node, whatever the slope's length.
-- ``hub="slopes"``: ``diag(m, m, J, J)`` on the node (J on both slope components). Exact for a unit
-  slope, but it also gives the slope's *stretch* the inertia J, which adds a spurious mode (slope
-  stretch against the axial stiffness of the adjacent elements, ``~ sqrt(EA h / J)``) that falls
-  into the band as the mesh is refined. Kept as the legacy model, for comparison.
-On ``formulation="gebeam"`` J sits on the node's rotation coordinate (both choices are the same). Motor torques act on the motor
+- ``hub="rigid"`` (default): on ANCF such a mass gets a rigid body (``NodeRigidBody2D``,
+  ``ObjectRigidBody2D`` with its mass and ``J``, centred at the mass point) welded to the node by an
+  ``ObjectJointGeneric`` that ties position and rotation (x, y, rotation about z) of a body marker at
+  the node (``MarkerBodyRigid`` at ``-(a, b)``) to the node's ``MarkerNodeRigid``, whose angle is the
+  slope's ``atan2(y', x')``. The kinetic energy is then exactly that of a rigid body carried by the ERLS
+  node, whatever the slope's length.
+- ``hub="slopes"``: a constant mass matrix on the node's ``[x, y, x', y']``: the mass point at
+  ``p + a r' + b (-y', x')``, ``m A^T A`` with ``A = [[1, 0, a, -b], [0, 1, b, a]]``, and J on both
+  slope components. Exact for a unit slope, but it also gives the slope's *stretch* the inertia
+  ``J + m (a^2 + b^2)``, which adds a spurious mode (slope stretch against the axial stiffness of the
+  adjacent elements, ``~ sqrt(EA h / J)``) that falls into the band as the mesh is refined. Kept as the
+  legacy model, for comparison.
+On ``formulation="gebeam"`` J sits on the node's rotation coordinate (both choices are the same; an offset
+mass needs ANCF). Motor torques act on the motor
 link's node at the joint and, reversed, on the reaction link's node (nothing on ground), as the
 generalized forces of a torque on that node's tangent angle, ``T d(atan2(y', x'))/dc``
 (``T (-y', x') / |r'|^2`` on the ANCF slopes, ``T`` on a rotation coordinate). They sit, with the
@@ -311,7 +321,8 @@ class TruthModel:
         return r, float((1 - xi) * c[i0[2]] + xi * c[i1[2]]), P, A
 
     def coordinate_values(self, c: np.ndarray | None = None) -> np.ndarray:
-        """The ERLS coordinates q read from the Exudyn state (slope angles at the coordinate joints).
+        """The ERLS coordinates q read from the Exudyn state (slope angles at the coordinate joints, slider
+        positions along their axes).
 
         Angles are put on the branch nearest to the last value (the build ``q`` at first).
         """
@@ -321,6 +332,10 @@ class TruthModel:
         for j, co in enumerate(self.mech.coordinates):
             jt = self.mech.joint(co.joint)
             st = next(p.station for p in jt.points if p.link == co.link)
+            if co.kind == "slide":  # the slider's position along the axis
+                p = self.point_rows(co.link, st, c)[0]
+                out[j] = float(np.asarray(jt.axis) @ (p - np.asarray(jt.ground))) - co.offset
+                continue
             th = self.point_rows(co.link, st, c)[1]
             if co.relative_to is not None:
                 st2 = next(p.station for p in jt.points if p.link == co.relative_to)
@@ -453,7 +468,7 @@ def _hermite_mass(L: float) -> np.ndarray:
 
 
 def _link_mass_matrix(
-    lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, tuple[float, float]], form: str
+    lm: LinkMesh, rhoA: float, rhoI: float, lumped: dict[int, np.ndarray], form: str
 ):
     """Consistent mass of the link's beams plus its lumped masses, on the link's coordinates."""
     nn = len(lm.stations)
@@ -464,8 +479,8 @@ def _link_mass_matrix(
             L = lm.stations[e + 1] - lm.stations[e]
             Me = np.kron(rhoA * _hermite_mass(L), np.eye(2))  # dofs [x0, y0, x0', y0', x1, y1, x1', y1']
             M[e * nc : e * nc + 8, e * nc : e * nc + 8] += Me
-        for i, (m, J) in lumped.items():
-            M[i * nc : i * nc + 4, i * nc : i * nc + 4] += np.diag([m, m, J, J])
+        for i, Mi in lumped.items():
+            M[i * nc : i * nc + 4, i * nc : i * nc + 4] += Mi
     else:
         nc = 3
         M = np.zeros((nn * nc, nn * nc))
@@ -477,8 +492,8 @@ def _link_mass_matrix(
             for c, r in ((0, rhoA), (1, rhoA), (2, rhoI)):
                 Me[np.ix_([c, 3 + c], [c, 3 + c])] = r * L * lin
             M[np.ix_(idx, idx)] += Me
-        for i, (m, J) in lumped.items():
-            M[i * nc : i * nc + 3, i * nc : i * nc + 3] += np.diag([m, m, J])
+        for i, Mi in lumped.items():
+            M[i * nc : i * nc + 3, i * nc : i * nc + 3] += Mi
     return M
 
 
@@ -621,30 +636,52 @@ def build_truth(
             lm.elements.append(mbs.AddObject(obj))
         links[lk.name] = lm
 
-    # lumped masses and rotary inertias at their stations
-    lumped: dict[str, dict[int, tuple[float, float]]] = {name: {} for name in links}
+    # lumped masses and rotary inertias at their stations (mass matrices on the node's coordinates: the legacy
+    # slopes model, also the link mass matrices of the corotational damper)
+    lumped: dict[str, dict[int, np.ndarray]] = {name: {} for name in links}
+    bodies: dict[str, dict[int, list]] = {name: {} for name in links}  # masses with J or an offset (hub rigid)
+    point_mass: dict[str, dict[int, float]] = {name: {} for name in links}  # the others' point masses
     for m in mech.all_masses():
         name, s = mech.node_location(m.node)
         lm = links[name]
         k = lm.node_at(s, mech.link(name).length)
-        mm, JJ = lumped[name].get(k, (0.0, 0.0))
-        lumped[name][k] = (mm + m.mass, JJ + m.inertia)
+        if m.inertia > 0.0 or m.offset != (0.0, 0.0):
+            bodies[name].setdefault(k, []).append(m)
+        else:
+            point_mass[name][k] = point_mass[name].get(k, 0.0) + m.mass
+        a, b = m.offset
+        if formulation == "ancf":
+            A = np.array([[1.0, 0.0, a, -b], [0.0, 1.0, b, a]])
+            Mk = m.mass * A.T @ A + np.diag([0.0, 0.0, m.inertia, m.inertia])
+        else:
+            if a or b:
+                raise ValueError(f"{mech.source or mech.name}: a mass at an offset ({m.label or m.node!r}) needs "
+                                 "formulation='ancf' (a gebeam node's mass matrix would depend on its rotation)")
+            Mk = np.diag([m.mass, m.mass, m.inertia])
+        lumped[name][k] = lumped[name].get(k, 0.0) + Mk
     for name, d in lumped.items():
-        for k, (mm, JJ) in d.items():
+        for k, Mk in d.items():
             node = links[name].nodes[k]
-            if formulation == "ancf" and hub == "rigid" and JJ > 0.0:
-                # a rigid body carrying the node's mass and inertia, welded to the node: its rotation is the
-                # slope angle atan2(y', x'), so J acts on the rotation only (no inertia on the slope's stretch)
+            if formulation == "ancf" and hub == "rigid":
+                # the node keeps its point masses; each rotary inertia or offset mass becomes a rigid body welded
+                # to the node: its rotation is the slope angle atan2(y', x'), so J and the offset act on the
+                # rotation only (no inertia on the slope's stretch)
                 ref = mbs.GetNodeParameter(node, "referenceCoordinates")
                 th = math.atan2(ref[3], ref[2])
-                body_node = mbs.AddNode(it.NodeRigidBody2D(referenceCoordinates=[ref[0], ref[1], th]))
-                mbs.AddObject(it.ObjectRigidBody2D(nodeNumber=body_node, mass=mm, inertia=JJ))
-                m_body = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=body_node))
-                m_node = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=node))
-                mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[m_node, m_body], constrainedAxes=[1, 1, 0, 0, 0, 1]))
-                continue
-            diag = [mm, mm, JJ, JJ] if formulation == "ancf" else [mm, mm, JJ]
-            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[node], massMatrix=np.diag(diag)))
+                c, s_ = math.cos(th), math.sin(th)
+                for m in bodies[name].get(k, ()):
+                    a, b = m.offset
+                    body_node = mbs.AddNode(it.NodeRigidBody2D(
+                        referenceCoordinates=[ref[0] + c * a - s_ * b, ref[1] + s_ * a + c * b, th]))
+                    body = mbs.AddObject(it.ObjectRigidBody2D(nodeNumber=body_node, mass=m.mass, inertia=m.inertia))
+                    m_body = mbs.AddMarker(it.MarkerBodyRigid(bodyNumber=body, localPosition=[-a, -b, 0.0]))
+                    m_node = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=node))
+                    mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[m_node, m_body],
+                                                        constrainedAxes=[1, 1, 0, 0, 0, 1]))
+                Mk = point_mass[name].get(k, 0.0) * np.diag([1.0, 1.0, 0.0, 0.0])
+                if not Mk.any():
+                    continue
+            mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[node], massMatrix=Mk))
 
     # joints: revolute between coincident nodes; ground pins
     def node_marker(link: str, station: float) -> int:
@@ -652,9 +689,45 @@ def build_truth(
         k = lm.node_at(station, mech.link(link).length)
         return mbs.AddMarker(it.MarkerNodePosition(nodeNumber=lm.nodes[k]))
 
+    ground_node = None
+
+    def coordinate_marker(link: str, station: float, coordinate: int) -> int:
+        lm = links[link]
+        k = lm.node_at(station, mech.link(link).length)
+        return mbs.AddMarker(it.MarkerNodeCoordinate(nodeNumber=lm.nodes[k], coordinate=coordinate))
+
     for jt in mech.joints:
         markers = [node_marker(p.link, p.station) for p in jt.points]
-        if jt.ground is not None:
+        if jt.kind == "prismatic":
+            # pinned together; the first node's normal coordinate (displacement) stays at zero: on the axis
+            for mk in markers[1:]:
+                mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=[markers[0], mk]))
+            if ground_node is None:
+                ground_node = mbs.AddNode(it.NodePointGround(referenceCoordinates=[0.0, 0.0, 0.0]))
+            gm = mbs.AddMarker(it.MarkerNodeCoordinate(nodeNumber=ground_node, coordinate=0))
+            c = 0 if abs(jt.normal[0]) > 0.5 else 1
+            p0 = jt.points[0]
+            mbs.AddObject(it.ObjectConnectorCoordinate(markerNumbers=[gm, coordinate_marker(p0.link, p0.station, c)]))
+        elif jt.kind == "weld":
+            mbs.AddObject(it.ObjectJointRevolute2D(markerNumbers=markers))
+            (pa, pb) = jt.points
+            if formulation == "ancf":
+                mk = []
+                for p in (pa, pb):
+                    lm = links[p.link]
+                    mk.append(mbs.AddMarker(it.MarkerNodeCoordinates(
+                        nodeNumber=lm.nodes[lm.node_at(p.station, mech.link(p.link).length)])))
+                ca, sa = math.cos(jt.angle), math.sin(jt.angle)
+                S0 = np.zeros((2, 4))
+                S0[:, 2:] = np.array([[ca, -sa], [sa, ca]])  # Exudyn's c = X1 q1 - X0 q0: r'_b - R(angle) r'_a
+                S1 = np.zeros((2, 4))
+                S1[:, 2:] = np.eye(2)
+                mbs.AddObject(it.ObjectConnectorCoordinateVector(markerNumbers=mk, scalingMarker0=S0,
+                                                                 scalingMarker1=S1, offset=[0.0, 0.0]))
+            else:
+                mbs.AddObject(it.ObjectConnectorCoordinate(markerNumbers=[
+                    coordinate_marker(pa.link, pa.station, 2), coordinate_marker(pb.link, pb.station, 2)]))
+        elif jt.ground is not None:
             gm = mbs.AddMarker(
                 it.MarkerBodyPosition(bodyNumber=ground, localPosition=[jt.ground[0], jt.ground[1], 0.0])
             )

@@ -3,10 +3,15 @@
 Each node carries three nodal displacements in the global frame, ``x``, ``y`` and ``theta``.
 The ERLS-defining constraints (derived from the joints and the coordinates, never per mechanism):
 
-- a grounded joint fixes the translations of its nodes;
-- the nodes of a joint share their translations; the lowest node id owns them;
+- a grounded (pinned) joint fixes the translations of its nodes;
+- a prismatic joint fixes their translation normal to its axis (the axis is a global x or y
+  direction, so this is one nodal component);
+- the nodes of a joint share their translations; the lowest node id owns them; the two nodes of a
+  weld share their rotation too;
 - an absolute ERLS coordinate of link L at joint J fixes the rotation of L's node at J (so that
-  ``q`` is the angle an encoder there reads); a relative one ties it to the other link's node.
+  ``q`` is the angle an encoder there reads); a relative one ties it to the other link's node; a
+  slide coordinate fixes the slider node's translation along the axis (so that ``q`` is what a linear
+  encoder on the slider reads).
 
 The free displacements, taken node by node (ascending id) and component by component, are the
 elastic dofs ``u``. They are named ``x{k}``, ``y{k}``, ``theta{k}`` with ``k`` the 1-based index
@@ -136,15 +141,22 @@ def elastic_dofs(mech: Mechanism) -> ElasticDofs:
 
     for j in mech.joints:
         ids = [mech.node_at(p.link, p.station) for p in j.points]
-        for c in (0, 1):
+        for c in (0, 1, 2) if j.kind == "weld" else (0, 1):
             dofs = [3 * pos[n] + c for n in ids]
             for d in dofs[1:]:
                 tie(dofs[0], d)
-            if j.ground is not None:
+            if j.kind == "prismatic":
+                if abs(j.normal[c]) > 0.5:  # the normal component
+                    fixed.update(dofs)
+            elif j.ground is not None:
                 fixed.update(dofs)
     for co in mech.coordinates:
         j = mech.joint(co.joint)
         st = next(p.station for p in j.points if p.link == co.link)
+        if co.kind == "slide":
+            c = 0 if abs(j.axis[0]) > 0.5 else 1
+            fixed.add(3 * pos[mech.node_at(co.link, st)] + c)
+            continue
         d = 3 * pos[mech.node_at(co.link, st)] + 2
         if co.relative_to is None:
             fixed.add(d)

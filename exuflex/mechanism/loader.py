@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from .spec import (
+    JOINT_KINDS,
     Coordinate,
     Damping,
     Joint,
@@ -31,7 +32,7 @@ from .spec import (
 
 __all__ = ["ModelFileError", "load_manoeuvre", "load_mechanism", "parse_mechanism", "read_samples"]
 
-SENSOR_KINDS = ("encoder", "curvature", "tip_x", "tip_y")
+SENSOR_KINDS = ("encoder", "slider", "curvature", "tip_x", "tip_y")
 TIME_LAWS = ("trapezoid", "quintic", "cycloidal")
 MANOEUVRE_KINDS = ("joint", "tip_arc", "tip_line", "tip_polyline", "waypoints", "trajectory", "torque")
 TIP_KINDS = ("tip_arc", "tip_line", "tip_polyline")
@@ -201,13 +202,35 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             pr = _Reader(source, p, f"{r.path}.points[{i}]")
             pts.append(point(pr, "node"))
             pr.check_unknown()
-        ground = r.nums("ground", None, length=2)
         jname = r.str("name")
+        kind = r.str("kind", "revolute")
+        if kind not in JOINT_KINDS:
+            raise r.err("kind", f"one of {list(JOINT_KINDS)}", kind)
+        axis, angle = None, 0.0
+        if kind == "prismatic":
+            ground = r.nums("ground", length=2)
+            axis = r.nums("axis", length=2)
+            na = math.hypot(*axis)
+            axis = (axis[0] / na, axis[1] / na) if na > 0 else axis
+            if min(abs(axis[0]), abs(axis[1])) > 1e-12:
+                # the elastic dofs are global x, y displacements (0/1 map T): the line's normal must be one of them
+                raise r.err("axis", "a direction along the global x or y axis ([1, 0], [0, 1], [-1, 0] or [0, -1]):"
+                            " elastic displacements are global x, y components", list(axis))
+            axis = (float(round(axis[0])), float(round(axis[1])))
+        elif kind == "weld":
+            ground = None
+            if r.has("ground"):
+                raise r.err("ground", "no ground position on a weld (it joins two links)", r.table["ground"])
+            angle = r.num("angle", unit="rad")
+            if len(pts) != 2:
+                raise r.err("points", "exactly two link points (a weld joins two links)", len(pts))
+        else:
+            ground = r.nums("ground", None, length=2)
         if len(pts) < (1 if ground is not None else 2):
             raise r.err("points", "at least two link points (or one with a ground position)", len(pts))
         if any(j.name == jname for j in joints):
             raise r.err("name", "a unique joint name", jname)
-        joints.append(Joint(jname, tuple(pts), ground))
+        joints.append(Joint(jname, tuple(pts), ground, kind, axis, angle))
         r.check_unknown()
     joint_by = {j.name: j for j in joints}
 
@@ -221,10 +244,16 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
 
     coords = []
     for r in root.table_list("coordinates"):
-        lk = link_ref(r, "link")
-        c = Coordinate(
-            r.str("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
-        )
+        v = r.table.get("joint")
+        if not r.has("link") and isinstance(v, str) and v in joint_by and joint_by[v].kind == "prismatic":
+            # the slider position along its axis
+            c = Coordinate(r.str("name"), joint_by[v].points[0].link, joint_ref(r, "joint"), None,
+                           r.num("offset", 0.0, unit="m"), "slide")
+        else:
+            lk = link_ref(r, "link")
+            c = Coordinate(
+                r.str("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
+            )
         if c.relative_to is not None and c.relative_to not in [p.link for p in joint_by[c.joint].points]:
             raise r.err("relative_to", f"a link at joint {c.joint!r}", c.relative_to)
         coords.append(c)
@@ -246,8 +275,8 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         )
         if m.reaction is not None and m.reaction not in [p.link for p in joint_by[m.joint].points]:
             raise r.err("reaction", f"a link at joint {m.joint!r}", m.reaction)
-        if m.reaction is None and joint_by[m.joint].ground is None:
-            raise r.err("reaction", f"a reaction link (joint {m.joint!r} is not grounded)", None)
+        if m.reaction is None and (joint_by[m.joint].ground is None or joint_by[m.joint].kind == "prismatic"):
+            raise r.err("reaction", f"a reaction link (joint {m.joint!r} is not a ground pin)", None)
         motors.append(m)
         r.check_unknown()
     _unique(source, "motors", [m.name for m in motors])
@@ -259,11 +288,13 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             node = r.int("node", positive=True)
             if node not in all_nodes:
                 raise r.err("node", f"an existing node id (1..{max(all_nodes)})", node)
+            lname = next(lk.name for lk in links if node in lk.node_ids)
         else:
             p = point(r, "node")
             node = link_by[p.link].node_ids[link_by[p.link].station_index(p.station)]
+            lname = p.link
         lm = LumpedMass(node, r.num("mass", nonneg=True, unit="kg"), r.num("inertia", 0.0, nonneg=True, unit="kg m^2"),
-                        r.str("label", ""))
+                        r.str("label", ""), r.nums("offset", (0.0, 0.0), length=2), lname)
         r.check_unknown()
         return lm
 
@@ -282,14 +313,22 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         kind = r.str("kind")
         if kind not in SENSOR_KINDS:
             raise r.err("kind", f"one of {list(SENSOR_KINDS)}", kind)
-        lk = link_ref(r, "link")
         joint = station = rel = None
+        if kind == "slider":
+            v = r.table.get("joint")
+            if not (isinstance(v, str) and v in joint_by and joint_by[v].kind == "prismatic"):
+                raise r.err("joint", "a prismatic joint name, one of "
+                            f"{sorted(j.name for j in joints if j.kind == 'prismatic')}", v)
+            lk = link_ref(r, "link", joint_by[v].points[0].link)
+            joint = joint_ref(r, "joint", lk)
+        else:
+            lk = link_ref(r, "link")
         if kind == "encoder":
             joint = joint_ref(r, "joint", lk)
             rel = link_ref(r, "relative_to", None)
             if rel is not None and rel not in [p.link for p in joint_by[joint].points]:
                 raise r.err("relative_to", f"a link at joint {joint!r}", rel)
-        else:
+        elif kind != "slider":
             station = point(r, "any").station
         sensors.append(
             Sensor(
@@ -438,7 +477,8 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             if other.name == name:
                 raise r.err("name", "a unique link name", name)
             if set(other.node_ids) & set(ids):
-                raise r.err("nodes", f"node ids not used by link {other.name!r}", list(ids))
+                raise r.err("nodes", f"node ids not used by link {other.name!r} (links joined rigidly: a [[joints]] "
+                            "table with kind = \"weld\")", list(ids))
         if len(set(ids)) != len(ids):
             raise r.err("nodes", "distinct node ids", list(ids))
         links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None)))
@@ -737,7 +777,7 @@ def load_manoeuvre(path: str | Path, mech: Mechanism) -> Manoeuvre:
 def _check_topology(mech: Mechanism) -> None:
     """Joints connect every link to the ground; the coordinates match the mobility."""
     src = mech.source
-    if not any(j.ground is not None for j in mech.joints):
+    if not any(j.grounded for j in mech.joints):
         raise ModelFileError(src, "joints", "at least one joint with a ground position", has_got=False)
     adj: dict[str, set[str]] = {lk.name: set() for lk in mech.links}
     grounded: set[str] = set()
@@ -750,7 +790,12 @@ def _check_topology(mech: Mechanism) -> None:
             adj[a].update(n for n in names if n != a)
         if j.ground is not None:
             grounded.update(names)
-        n_eq += 2 * (len(names) - (0 if j.ground is not None else 1))
+        if j.kind == "prismatic":  # pinned together, one equation for the line
+            n_eq += 2 * (len(names) - 1) + 1
+        elif j.kind == "weld":  # coincident, one equation for the angle
+            n_eq += 3
+        else:
+            n_eq += 2 * (len(names) - (0 if j.ground is not None else 1))
     seen, todo = set(grounded), list(grounded)
     while todo:
         for n in adj[todo.pop()]:
@@ -772,7 +817,7 @@ def _check_topology(mech: Mechanism) -> None:
     # each coordinate's link node at its joint must be distinct (one ERLS constraint per node rotation)
     seen_c = set()
     for c in mech.coordinates:
-        key = (c.link, c.joint)
+        key = (c.link, c.joint, c.kind)
         if key in seen_c:
             raise ModelFileError(src, f"coordinates.{c.name}", "a link/joint pair not used by another coordinate",
                                  key)

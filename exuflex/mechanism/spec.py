@@ -10,8 +10,11 @@ Conventions
 - SI units throughout (m, kg, s, rad, N, N m, Pa).
 - A link is a straight beam; its *stations* are distances from the link's start along its axis.
   Every station carries one finite-element node; nodes have global 1-based ids.
-- Joints are revolute; each joins two or more link stations, optionally to ground.
-- ERLS coordinates ``q`` are absolute link angles (or relative angles at a joint).
+- Joints are revolute (link stations pinned together, optionally to the ground), prismatic (pinned
+  together and sliding on a fixed line of the frame) or welded (two link stations at one place with a
+  fixed angle between the links).
+- ERLS coordinates ``q`` are absolute link angles, relative angles at a joint, or the position of a
+  prismatic joint along its axis.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from dataclasses import dataclass, field
 __all__ = [
     "Coordinate",
     "Damping",
+    "JOINT_KINDS",
     "Joint",
     "Link",
     "LinkPoint",
@@ -86,29 +90,56 @@ class LinkPoint:
     station: float
 
 
+JOINT_KINDS = ("revolute", "prismatic", "weld")
+
+
 @dataclass(frozen=True)
 class Joint:
-    """Revolute joint joining link points (all at one place); ``ground`` pins them to the frame."""
+    """A joint joining link points that sit at one place.
+
+    kind ``revolute``: the points are pinned together; ``ground`` pins them to the frame.
+    kind ``prismatic``: the points are pinned together and slide on the fixed line through ``ground``
+    with unit direction ``axis``; the slider position is ``s = axis . (p - ground)``.
+    kind ``weld``: two points; the links keep the angle ``angle = th(points[1].link) - th(points[0].link)``
+    (their nodes share translations and rotation).
+    """
 
     name: str
     points: tuple[LinkPoint, ...]
-    ground: tuple[float, float] | None = None  # ground pin position (m) if pinned to the frame
+    ground: tuple[float, float] | None = None  # ground pin position, or a point of a prismatic axis (m)
+    kind: str = "revolute"
+    axis: tuple[float, float] | None = None  # prismatic: unit direction of the sliding line
+    angle: float = 0.0  # weld: th(points[1].link) - th(points[0].link) (rad)
+
+    @property
+    def grounded(self) -> bool:
+        """True if the joint ties its points to the frame (a ground pin or a prismatic axis)."""
+        return self.ground is not None
+
+    @property
+    def normal(self) -> tuple[float, float] | None:
+        """Prismatic: the unit normal of the axis (the axis turned by +90 degrees)."""
+        return None if self.axis is None else (-self.axis[1], self.axis[0])
 
 
 @dataclass(frozen=True)
 class Coordinate:
-    """An ERLS coordinate: the absolute angle of ``link`` (or relative to ``relative_to``) at ``joint``.
+    """An ERLS coordinate: the absolute angle of ``link`` (or relative to ``relative_to``) at ``joint``,
+    or (kind ``slide``) the position of the prismatic ``joint`` along its axis.
 
     Its ERLS-defining constraint sets the elastic rotation of ``link``'s node at ``joint`` to zero
     (absolute) or equal to that of ``relative_to``'s node there (relative), so that ``q`` is the
-    angle an encoder at that joint reads.
+    angle an encoder at that joint reads; for a slide coordinate it sets the elastic displacement of
+    the slider's node along the axis to zero (``link``: the link of the joint's first point), so that
+    ``q = axis . (p - ground) - offset`` is what a linear encoder on the slider reads.
     """
 
     name: str
     link: str
     joint: str
     relative_to: str | None = None
-    offset: float = 0.0  # q = angle(link) - angle(relative_to) - offset
+    offset: float = 0.0  # q = angle(link) - angle(relative_to) - offset (slide: axis . (p - ground) - offset)
+    kind: str = "angle"  # angle | slide
 
 
 @dataclass(frozen=True)
@@ -125,10 +156,18 @@ class Motor:
 
 @dataclass(frozen=True)
 class LumpedMass:
+    """A point mass and a rotary inertia (about the mass point) carried rigidly by ``node``.
+
+    ``offset`` is the mass point's position relative to the node in the frame of the node's link
+    ``link`` (along the axis, normal to it; m); ``(0, 0)``: at the node (``link`` may then be empty).
+    """
+
     node: int
     mass: float
     inertia: float = 0.0
     label: str = ""
+    offset: tuple[float, float] = (0.0, 0.0)
+    link: str = ""
 
 
 @dataclass(frozen=True)
@@ -136,6 +175,8 @@ class Sensor:
     """A measured channel.
 
     kind: ``encoder`` (absolute angle of ``link`` at ``joint``, or relative to ``relative_to``),
+    ``slider`` (position of the prismatic ``joint`` along its axis, ``axis . (p - ground)``, m;
+    ``link`` is the link of the joint's first point),
     ``curvature`` (bending curvature of ``link`` at ``station``, 1/m),
     ``tip_x`` / ``tip_y`` (position of ``link`` at ``station``, m).
     ``noise_std`` is the white-noise standard deviation in the channel's unit;

@@ -9,15 +9,25 @@
   :func:`estimation_bound`).
 - :mod:`.bound`, :mod:`.observability`, :mod:`.stats`, :mod:`.tuning`: the steady-state bound, observability,
   NEES/NIS statistics, process-noise construction.
+- Beyond the paper: :mod:`.augmented` (:class:`AugmentedModel`: the payload scale and motor torque disturbances as
+  states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.design` (gauge
+  stations ranked by the bound).
 """
 
+from .augmented import AugmentedModel
 from .base import DiscreteModel, FilterDivergedError, LinearDiscreteModel, Measurement, Prediction
 from .bound import bound_rms, linearise, steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF, NISMonitor
 from .reduced import ReducedObserverModel
+from .smoother import SmoothedResult, rts_smooth
+from .ukf import UnscentedKF
 from .session import Observer, ObserverConfig, estimate, estimation_bound, make_observer, metrics, observe_run
 
 __all__ = [
+    "AugmentedModel",
+    "SmoothedResult",
+    "UnscentedKF",
+    "rts_smooth",
     "DiscreteModel",
     "EstimationResult",
     "FilterDivergedError",

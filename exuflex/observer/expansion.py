@@ -146,8 +146,8 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
             acc += Gr[i, j] * u[j]
         rhs[i, 2 * r] = acc
     X = _cholesky_solve(Mr, rhs)
-    # the vectors padded with zeros to a whole number of SIMD lanes (16 for the six-bar's 13): the sweeps then
-    # have no scalar remainder (measured: 20 RK4 steps 10.2 -> 7.7 us); the padding stays zero
+    # the vectors padded with zeros to a whole number of SIMD lanes: the sweeps then have no scalar remainder;
+    # the padding stays zero
     rp = (r + 3) // 4 * 4
     XT = np.zeros((2 * r + 1, rp))  # column j of the operator is the contiguous row XT[j]
     for i in range(r):

@@ -189,6 +189,8 @@ class ReducedObserverModel:
     n_refresh, n_remap, n_rescue, n_evaluations : configuration evaluations of the cached step, step-map
         rebuilds, evaluations forced by a held mass matrix that lost positive definiteness, all evaluations.
     n_jumps : intervals with a torque jump since the last :meth:`reset`.
+    last_step : ``(held configuration, step map)`` of the last :meth:`predict`: the reduced matrices the interval
+        was held at (``.mats``) and its maps ``Pn, S, L, Q`` (what augmented models differentiate through).
     torque_var : variances of the measured torques (the process noise's), per motor.
     """
 
@@ -410,6 +412,7 @@ class ReducedObserverModel:
             self.n_rescue += 1
             iv = self._refresh(z)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
+        self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
 
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
@@ -430,8 +433,9 @@ class ReducedObserverModel:
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """Every RK4 stage of the nonlinear reduced equations at its own state; ``F`` and ``Q`` those of the
         configuration at the interval's start (:meth:`frozen_interval`)."""
-        pred, iv, _ = self.frozen_interval(z, u, dt)
+        pred, iv, sm = self.frozen_interval(z, u, dt)
         self._last = iv
+        self.last_step = (iv, sm)
         n = self.substeps(iv, dt)
         h = dt / n
         f = self.rm.rhs

@@ -48,6 +48,13 @@ def sensor_rows(model, cfg, s, link_names: list[str]):
         rows = model.point_displacement_rows(cfg, s.link, s.station)
         p0, Sp = model.kin.point(cfg.pose, s.link, s.station)
         return "point", (p0[c], Sp[c]), rows[c]
+    if s.kind == "slider":  # axis . (p - ground) of the prismatic joint's node
+        jt = model.mech.joint(s.joint)
+        st = next(p.station for p in jt.points if p.link == s.link)
+        d = np.asarray(jt.axis, float)
+        rows = model.point_displacement_rows(cfg, s.link, st)
+        p0, Sp = model.kin.point(cfg.pose, s.link, st)
+        return "point", (d @ (p0 - np.asarray(jt.ground, float)), d @ Sp), d @ rows
     raise KeyError(f"unsupported sensor kind {s.kind!r}")  # pragma: no cover - the loader admits only these
 
 
@@ -106,7 +113,7 @@ def channel_rows(model, sensors, link_names: list[str]) -> ChannelRows:
                 cc.append(i)
                 ce.append(e)
                 cr.append(hermite_curvature_row(model.el_len[e], xi) / len(locs))
-        elif s.kind in ("tip_x", "tip_y"):
+        elif s.kind in ("tip_x", "tip_y", "slider"):
             points.append((i, s))
         else:  # pragma: no cover - the loader admits only these
             raise KeyError(f"unsupported sensor kind {s.kind!r}")

@@ -10,6 +10,7 @@ sensors (the steady-state Kalman covariance of the linearised reduced model at a
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,14 +19,22 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
+from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
-from .bound import steady_state_covariance
+from .bound import periodic_posterior, steady_state_covariance, unobservable_states
 from .ekf import EstimationResult, MultirateEKF
+from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
+from .smoother import SmoothedResult, rts_smooth
+from .ukf import UnscentedKF
+
+#: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
+ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
 
 __all__ = [
+    "ESTIMATORS",
     "ObserverConfig",
     "Observer",
     "default_channels",
@@ -57,11 +66,23 @@ class ObserverConfig:
     jump_p : the false-alarm probability per interval of the test that flags two successive torque samples
         differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
         unknown instant within it, moment-matched (:meth:`.reduced.ReducedObserverModel.input_jump_moments`).
-        ``None``: no test.
+        ``None`` (default): no test. The test helps where a log's torque steps fall between two samples, and
+        biases the prediction where they fall on a sample (a time law aligned with the samples, as
+        ``exuflex simulate`` makes them): there the held-input step is exact.
     q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
     max_gap : longest interval (s) between two samples the filter predicts over.
     start_up : seconds left out of the error metrics (the filter's transient).
+    gate_p, fault_window, fault_p : per-channel innovation gate and sensor-fault tests (see
+        :mod:`.ekf`, :class:`.ekf.ChannelMonitor`); ``gate_p=None`` and ``fault_window=0`` turn them off.
+    fault_holdoff_s : seconds after a detected torque step during which nothing is gated and the NIS and
+        sensor-fault tests pause (the allowance for planned input steps).
+    estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
+        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
+    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s), and its prior std (about 1).
+    input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
+        std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
+        ``input_tau`` s), and its prior std (about 0) as such a multiple.
     """
 
     channels: tuple[str, ...] | None = None
@@ -77,10 +98,20 @@ class ObserverConfig:
     elastic0_std: float = 1e-3
     elastic_rate0_std: float = 0.01
     q_scale: float = 1.0
-    jump_p: float | None = 1e-6
+    jump_p: float | None = None
     q_extra_std: float = 0.0
     max_gap: float = 1.0
     start_up: float = 0.3
+    gate_p: float | None = 1e-6
+    fault_window: int = 100
+    fault_p: float = 1e-6
+    fault_holdoff_s: float = 0.4
+    estimator: str = "ekf"
+    payload_std: float = 0.05
+    payload0_std: float = 0.5
+    input_scale: float = 1.0
+    input_tau: float | None = None
+    input0_scale: float = 1.0
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -208,24 +239,70 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
-    ekf = MultirateEKF(som, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+    fmodel, x0, P0 = _filter_model(som, config, x0, P0)
+    if config.estimator == "ukf":
+        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+    else:
+        ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
+                           gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
+                           fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
+                           input_step=_torque_step_test(som.torque_var, config.fault_p))
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
 
 
+def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
+    """The filter's model for ``config.estimator`` (the reduced model, or it augmented), with the prior extended
+    to its extra states."""
+    if config.estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}; got {config.estimator!r}")
+    if config.estimator in ("ekf", "ukf"):
+        return som, x0, P0
+    if config.estimator == "ekf-payload":
+        fm = AugmentedModel(som, payload_std=config.payload_std)
+    else:
+        fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
+                            input_tau=config.input_tau)
+    P0x = np.empty(fm.nx)
+    P0x[: som.nx] = P0
+    if fm.i_theta is not None:
+        P0x[fm.i_theta] = config.payload0_std**2
+    if fm.i_inputs is not None:
+        P0x[fm.i_inputs] = config.input0_scale**2 * som.torque_var_nominal
+    return fm, _augmented_mean(fm, x0), P0x
+
+
+def _torque_step_test(torque_var, p: float):
+    """``test(u0, u1)``: two successive torque samples differ by more than their noise explains (chi-square with
+    one degree of freedom per motor on ``(u1 - u0)**2 / (2 var)``, false-alarm probability ``p``)."""
+    from scipy.stats import chi2
+
+    w = 0.5 / np.asarray(torque_var, float).reshape(-1)
+    thr = float(chi2.ppf(1.0 - p, len(w)))
+
+    def test(u0, u1) -> bool:
+        d = np.asarray(u1, float) - np.asarray(u0, float)
+        return bool((d * d) @ w > thr)
+
+    return test
+
+
 def _augmented_mean(ekf_model, x0) -> np.ndarray:
-    """A reduced-state prior mean extended by zeros for the extra states of the filter's model (if any)."""
+    """A reduced-state prior mean extended for the extra states of the filter's model (if any): the payload scale
+    at 1 (nominal), disturbances at 0."""
     x0 = np.asarray(x0, float).reshape(-1)
     if len(x0) == ekf_model.nx:
         return x0
-    return np.concatenate([x0, np.zeros(ekf_model.nx - len(x0))])
+    out = np.concatenate([x0, np.zeros(ekf_model.nx - len(x0))])
+    i = getattr(ekf_model, "i_theta", None)
+    if i is not None:
+        out[i] = 1.0
+    return out
 
 
 def _start_q(mech: Mechanism) -> np.ndarray:
     if mech.manoeuvre is not None:
-        from ..manoeuvre import plan
-
         try:
             p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
             return np.asarray(p.q[0], float)
@@ -236,27 +313,45 @@ def _start_q(mech: Mechanism) -> np.ndarray:
 
 @dataclass
 class Estimate:
+    """A filtered (and optionally smoothed) record: ``physical`` holds the smoothed estimates where
+    ``smoothed`` is set, the filter's otherwise; ``wall_s`` and ``real_time_factor`` are the filter's."""
+
     result: EstimationResult
     physical: Signals
     wall_s: float
     real_time_factor: float
+    smoothed: SmoothedResult | None = None
+    filtered_physical: Signals | None = None
 
 
-def estimate(obs: Observer, t, U, Y, x0=None, P0=None) -> Estimate:
+def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> Estimate:
     """Filter a record: times (n,), measured torques (n, n_motors), channels (n, m) in ``obs.channels`` order.
     ``x0``, ``P0``: a prior for this record (reduced state and its covariance or variances; default the
-    observer's)."""
+    observer's). ``smooth``: also the RTS smoother (:func:`.smoother.rts_smooth`, which runs the filter's forward
+    pass again, recording its predictions)."""
     t = np.asarray(t, float)
+    x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     t0 = time.perf_counter()
-    res = obs.ekf.run(t, U, Y, x0=None if x0 is None else _augmented_mean(obs.ekf.model, x0), P0=P0)
+    res = obs.ekf.run(t, U, Y, x0=x0, P0=P0)
     wall = time.perf_counter() - t0
     phys = obs.physical(res.t, res.x_hat)
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    if not smooth:
+        return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    sm = rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0)
+    return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
 
-def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None) -> dict:
-    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times)."""
+def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None, *,
+            min_coverage: float = 0.9) -> dict:
+    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times).
+
+    The truth must cover the scored interval ``[t_0 + start_up, t_end]`` of the estimate: interpolation holds a
+    truth's end values, so a truth cut short or on another clock would be scored silently against constants.
+    Only the estimate's samples within the truth's span (half a sample's tolerance) are scored; if they are less
+    than ``min_coverage`` of the scored interval it is an error (``ValueError`` naming both spans), else a
+    partial cover is a warning. ``truth_coverage`` in the result is the covered fraction.
+    """
     names = [n for n in (names or est.names) if n in truth]
     sel = est.t >= est.t[0] + start_up
     if not np.any(sel):
@@ -264,19 +359,39 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
             f"the log is {est.t[-1] - est.t[0]:.3g} s long, not longer than the start-up period left out of the "
             f"error metrics ({start_up:g} s); use a longer log or a shorter start_up"
         )
+    ts = est.t[sel]
+    tol = 0.5 * float(np.median(np.diff(est.t))) if len(est.t) > 1 else 0.0
+    t0, t1 = (float(truth.t[0]), float(truth.t[-1])) if len(truth.t) else (math.nan, math.nan)
+    inside = (ts >= t0 - tol) & (ts <= t1 + tol)
+    coverage = float(inside.mean())
+    span = f"the truth spans {t0:.6g} to {t1:.6g} s, the scored estimate {ts[0]:.6g} to {ts[-1]:.6g} s"
+    if coverage < min_coverage:
+        raise ValueError(f"the truth covers {coverage:.0%} of the scored interval ({span}): not the same run or "
+                         f"clock? (at least {min_coverage:.0%} needed)")
+    if coverage < 1.0:
+        log.warning("the truth covers %.1f%% of the scored interval (%s); scoring the covered part only",
+                    100 * coverage, span)
+    ts = ts[inside]
     rms, mx = {}, {}
     for n in names:
-        tr = np.interp(est.t[sel], truth.t, truth[n])
-        e = est[n][sel] - tr
+        tr = np.interp(ts, truth.t, truth[n])
+        e = est[n][sel][inside] - tr
         e = e[np.isfinite(e)]
         rms[n] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
         mx[n] = float(np.max(np.abs(e))) if e.size else float("nan")
-    return {"rms_error": rms, "max_error": mx}
+    return {"rms_error": rms, "max_error": mx, "truth_coverage": coverage}
 
 
-def estimation_bound(obs: Observer, q=None, qd=None, *, log_check=None) -> dict[str, float]:
-    """Best achievable RMS error per physical quantity: steady-state Kalman covariance of the reduced model
-    linearised at ``q`` (default: the middle of the manoeuvre, else q_ref), torque noise as process noise.
+def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None) -> dict[str, float]:
+    """Best achievable RMS error per physical quantity: the steady-state Kalman covariance of the reduced model
+    linearised at a configuration, the stated torque noise as process noise.
+
+    The covariance depends on the configuration (a tip's global x and y swap roles as its link turns; the
+    sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
+    configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
+    and the per-quantity standard deviations are combined as an RMS, the figure an RMS error along the
+    manoeuvre is compared with. With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``, at rest): that
+    one configuration.
 
     ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the bound for that log: the
     interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
@@ -289,13 +404,26 @@ def estimation_bound(obs: Observer, q=None, qd=None, *, log_check=None) -> dict[
         The channels leave states that neither decay nor are measured (e.g. gauges only: the rigid motion); the
         message names them.
     """
-    from .bound import periodic_posterior, unobservable_states
+    mech = obs.mech
+    if q is not None or mech.manoeuvre is None or points < 1:
+        return _bound_at(obs, _mid_q(mech) if q is None else q, qd, log_check)
+    try:
+        d = mech.manoeuvre.duration
+        p = plan(mech, dt=d / 200, t_end=d)
+    except Exception as exc:  # noqa: BLE001 - the bound at q_ref instead, with a note
+        log.warning("could not plan the manoeuvre for the bound (%s); using the bound at q_ref", exc)
+        return _bound_at(obs, np.asarray(mech.q_ref, float), None, log_check)
+    idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
+    per = [_bound_at(obs, p.q[k], p.qd[k], log_check) for k in idx]
+    return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
 
+
+def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
+    """:func:`estimation_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
     mech = obs.mech
     # a model of its own, so that the observer's caches are left alone
     som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
-    if q is None:
-        q = _mid_q(mech)
+    q = np.asarray(q, float)
     z = som.initial_state(q, qd)
     u = np.zeros(len(mech.motors))
     channels = list(obs.channels)
@@ -397,8 +525,6 @@ def _steady_posterior(A, Q, H, R, tol: float = 1e-10, max_iter: int = 200_000) -
 
 def _mid_q(mech: Mechanism) -> np.ndarray:
     if mech.manoeuvre is not None:
-        from ..manoeuvre import plan
-
         try:
             d = mech.manoeuvre.duration
             p = plan(mech, dt=d / 2, t_end=d)
@@ -421,8 +547,9 @@ class Outcome:
 
 
 def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
-                observer: Observer | None = None, report=None) -> Outcome:
-    """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth.
+                observer: Observer | None = None, report=None, smooth: bool = False) -> Outcome:
+    """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
+    (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``).
 
     The log is checked first (:func:`exuflex.validate.check_run`): its clock, per-channel availability and rates.
     The filter steps by each sample's own time stamp (jitter and drift within the documented tolerance need no
@@ -463,8 +590,8 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         except UnobservableError as exc:
             unobservable = str(exc)
             say(f"warning: no bound: {exc}")
-    say(f"filtering {len(S.t)} samples")
-    est = estimate(obs, S.t, U, Y)
+    say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
+    est = estimate(obs, S.t, U, Y, smooth=smooth)
     span = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
     start_up = config.start_up if span > config.start_up else 0.5 * span
     if start_up != config.start_up:
@@ -472,7 +599,6 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
                     config.start_up)
     met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
     res = est.result
-    nis_flag = bool(res.diverged and not res.nonfinite)
     summary = {
         "model": mech.name,
         "model_file": mech.source,
@@ -488,16 +614,24 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
-        "nis_inconsistent": nis_flag,
-        "nis_flagged_at": res.diverged_at if nis_flag else None,
+        "nis_inconsistent": bool(res.nis_flagged),
+        "nis_flagged_at": res.nis_flagged_at,
+        "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
+        "channel_faults": [dict(f) for f in res.channel_faults],
+        "n_rejected": dict(res.n_rejected),
         "wall_s": est.wall_s,
         "real_time_factor": est.real_time_factor,
         "basis_s": obs.basis_s,
         "log_check": log_check.as_dict(),
         "metrics_from_s": start_up,
     }
+    summary["estimator"] = config.estimator
+    summary["smoothed"] = bool(smooth)
+    summary.update(_extra_states(obs.ekf.model, est))
     if met is not None:
         summary.update(met)
+        if est.filtered_physical is not None:
+            summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
     if unobservable:
         summary["unobservable"] = unobservable
     if bnd is not None:
@@ -506,6 +640,25 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         if met is not None:
             summary["ratio_to_bound"] = {k: met["rms_error"][k] / bnd[k] for k in met["rms_error"] if bnd.get(k)}
     return Outcome(est, met, bnd, summary)
+
+
+def _extra_states(fmodel, est: Estimate) -> dict:
+    """The augmented states' estimates at the end of the record (smoothed where smoothing ran):
+    ``{"parameters": {"payload_scale": ..., "payload_scale_std": ...}}`` and ``{"inputs": {motor: {"value",
+    "std"}}}``; empty for a plain model."""
+    out: dict = {}
+    it, ii = getattr(fmodel, "i_theta", None), getattr(fmodel, "i_inputs", None)
+    if it is None and ii is None:
+        return out
+    src = est.smoothed if est.smoothed is not None else est.result
+    x, var = src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else np.full(len(src.x_hat[-1]), np.nan)
+    if it is not None:
+        out["parameters"] = {"payload_scale": float(x[it]), "payload_scale_std": float(np.sqrt(var[it]))}
+    if ii is not None:
+        names = fmodel.inner.mech.motor_names
+        out["inputs"] = {m: {"value": float(v), "std": float(np.sqrt(s))}
+                         for m, v, s in zip(names, x[ii], var[ii], strict=True)}
+    return out
 
 
 def _hold(U: np.ndarray) -> np.ndarray:

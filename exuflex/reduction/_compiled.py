@@ -521,7 +521,7 @@ else:  # pragma: no cover
     basis_at = reduced_matrices = None
 
 
-def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, ea, esa, eb, ebm, esb, node_link, node_station,
+def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_link, node_station,
                      t_index, im, is_, Phi_u, px, py, pnode, plocal, keep, theta_star, B_N, g_N, Gl, KGl, el_dofs,
                      el_link, alpha, beta, nq, rotate, has_local, consistent, gradients):
     # pragma: no cover - compiled twin of ReducedModel.held
@@ -531,8 +531,9 @@ def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, ea, esa, eb, eb
     (:func:`basis_derivative`), the reduced matrices (:func:`reduced_matrices`), ``dS/dq``
     (:func:`exuflex.erls._closure.coordinate_rates`) and the force model (:func:`force_terms`, without ``JtM``),
     with ``W J`` and ``M_N W J`` computed once for both. ``z, Sz, r_nodes, S, Jinv``: the pose's link poses and
-    sensitivities, nodal poses and sensitivities and closure Jacobian inverse; ``ea .. node_station``: the
-    kinematics' index arrays; ``pnode``, ``theta_star``: the node of every interior-mode pair and the nodal angles
+    sensitivities, nodal poses and sensitivities and closure Jacobian inverse; ``closure``
+    (:class:`exuflex.erls._closure.ClosureArrays`), ``node_link``, ``node_station``: the kinematics' arrays;
+    ``pnode``, ``theta_star``: the node of every interior-mode pair and the nodal angles
     at q* (``rotate`` False: the modes do not turn, :attr:`~exuflex.reduction.basis.CraigBampton.rotate`);
     ``plocal``, ``keep``, ``has_local``: the link-frame pairs (:func:`basis_derivative`), which turn with the
     angle of their node ``pnode`` always."""
@@ -564,7 +565,7 @@ def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, ea, esa, eb, eb
     dHdq = basis_derivative(np.eye(r), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s, Phi_u, px,
                             py, Sn, Kuu, qc, qs, plocal, keep, has_local)
     J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
-    Sd3 = coordinate_rates(z, Sz, Jinv, ea, esa, eb, ebm, esb, node_link, node_station)
+    Sd3 = coordinate_rates(z, Sz, Jinv, closure, node_link, node_station)
     fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,
                                                              el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients)
     return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs

@@ -220,8 +220,8 @@ class ReducedModel:
         cfg = model.configuration(p[:nq])
         pose = cfg.pose
         (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs) = _compiled.held_evaluation(
-            p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin._ea, kin._esa, kin._eb,
-            kin._ebm, kin._esb, kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
+            p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin.arrays,
+            kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
             cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
             model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
             self.consistent, gradients)

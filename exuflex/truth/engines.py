@@ -62,7 +62,7 @@ class Drive:
     """The manoeuvre's torque table (``t``, ``tau``: the rigid computed torque of the *nominal* model, the
     controller's knowledge, or a measured-torque manoeuvre's torques) and the start state ``q0``, ``qd0``;
     ``seconds`` is the time planning and the torques took, ``plan_s`` the planning's part, ``cpu_s`` the process
-    time of both."""
+    time of both; ``plan`` the :class:`~exuflex.manoeuvre.Plan` itself (None for a drive read from a cache)."""
 
     t: np.ndarray
     tau: np.ndarray
@@ -71,6 +71,7 @@ class Drive:
     seconds: float = 0.0
     plan_s: float = 0.0
     cpu_s: float = 0.0
+    plan: object = None
 
 
 @dataclass
@@ -103,7 +104,7 @@ def plan_drive(nominal: Mechanism, duration: float, h: float,
     plan_s = time.perf_counter() - t0
     tau = open_loop_torque(nominal, pl, progress=phase("torque"))  # the nominal model's (the controller's), or measured
     return Drive(np.asarray(pl.t, float), np.asarray(tau, float), np.asarray(pl.q[0], float),
-                 np.asarray(pl.qd[0], float), time.perf_counter() - t0, plan_s, time.process_time() - c0)
+                 np.asarray(pl.qd[0], float), time.perf_counter() - t0, plan_s, time.process_time() - c0, pl)
 
 
 def gen_alpha_step(step, h: float, output_dt: float, band_hz: float = 180.0) -> float:

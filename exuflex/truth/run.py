@@ -28,6 +28,7 @@ def simulate_run(
     h: float = 1e-4,
     progress: Callable[[str, float], None] | None = None,
     manoeuvre: str | Path | None = None,
+    write_plan: bool = False,
     elements_per_link: int | str | None = None,
     beam: str = "ancf",
     integrator: str = "gen-alpha",
@@ -38,7 +39,8 @@ def simulate_run(
     ``duration`` defaults to the manoeuvre's; ``seed`` (default: a fresh one, recorded in ``meta.json``) draws
     the measurement noise; ``h`` is the integration step and the torque table's step; ``manoeuvre`` replaces the
     model's (a TOML file with a ``[manoeuvre]`` table, or a CSV trajectory or measured-torque table,
-    :func:`exuflex.mechanism.load_manoeuvre`); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
+    :func:`exuflex.mechanism.load_manoeuvre`); ``write_plan``: also write the planned q, q', q'' as ``plan.csv`` (a
+    trajectory file that plans the same motion again); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
     truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the generalized-alpha step
     from the model's band, :func:`exuflex.truth.gen_alpha_step`). Bad arguments raise a
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
@@ -124,4 +126,10 @@ def simulate_run(
             "timings": timings,
         },
     }
+    if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
+        from ..manoeuvre import trajectory_csv
+        from ..runs import atomic_write_text
+
+        Path(out).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(out) / "plan.csv", trajectory_csv(drive.plan))
     return write_run(out, meas.signals, rec.truth, meta, motors=mech.motor_names)

@@ -1,0 +1,243 @@
+"""Estimators beyond the paper's EKF: the payload- and input-augmented models (exact derivatives, the payload's
+mass matrix from an independent assembly), the RTS smoother (filterpy's on a linear model) and the UKF (the
+Kalman filter on a linear model). The accuracy studies on the Exudyn truth are in ``benchmarks/estimators.py``."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.erls.model import ErlsModel
+from exuflex.mechanism import load_mechanism
+from exuflex.observer.augmented import AugmentedModel, payload_rows
+from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.runs import read_run
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+DATA = Path(__file__).resolve().parent / "data"
+
+
+@pytest.fixture(scope="module")
+def sixbar():
+    return load_mechanism(MODELS / "sixbar.toml")
+
+
+@pytest.fixture(scope="module")
+def mid_run(sixbar):
+    """An observer, a filtered state after 0.4 s of the stored ERLS log, and the torque there."""
+    run = read_run(DATA / "sixbar_erls_3s")
+    obs = make_observer(sixbar)
+    S = run.sensors
+    n = 200
+    U = S.select(run.motors).data
+    res = obs.ekf.run(S.t[:n], U[:n], S.select(obs.channels).data[:n])
+    return obs, res.x_hat[-1].copy(), U[n - 1].copy()
+
+
+def _fd(f, x, j, eps):
+    xp, xm = x.copy(), x.copy()
+    xp[j] += eps
+    xm[j] -= eps
+    return (f(xp) - f(xm)) / (2 * eps)
+
+
+@pytest.mark.parametrize("theta", [1.0, 2.0])
+def test_augmented_jacobian_equals_finite_differences(mid_run, theta):
+    obs, z, u = mid_run
+    aug = AugmentedModel(obs.model, payload_std=0.05, input_std=0.1)
+    dt = obs.ekf.dt
+    x = np.concatenate([z, [theta], 0.01 * np.ones(aug.nu)])
+    F = aug.predict(x, u, dt).F
+
+    def step(xx):
+        return aug.predict(xx, u, dt).x
+
+    # the extra states' columns: the payload correction is exact in theta, the disturbances enter through L
+    for j in [aug.i_theta, *range(aug.i_inputs.start, aug.i_inputs.stop)]:
+        fd = _fd(step, x, j, 1e-4)
+        assert np.max(np.abs(fd - F[:, j])) <= 2e-4 * np.max(np.abs(fd))
+    # the state block: as close to finite differences as the nominal model's own Jacobian is
+    n0 = aug.n0
+    cols = [0, 2, obs.model.r, obs.model.r + 2, n0 - 1]
+    F0 = obs.model.predict(z, u + x[aug.i_inputs], dt).F
+    for j in cols:
+        eps = 1e-6 * max(1.0, abs(z[j]))
+        fd_aug = _fd(step, x, j, eps)
+        fd_in = _fd(lambda zz: obs.model.predict(zz, u + x[aug.i_inputs], dt).x, z, j, eps)
+        scale = np.max(np.abs(fd_aug))
+        err_in = np.max(np.abs(fd_in - F0[:, j]))
+        assert np.max(np.abs(fd_aug - F[:, j])) <= 2 * err_in + 1e-6 * scale
+
+
+def test_nominal_payload_scale_leaves_the_prediction_unchanged(mid_run):
+    obs, z, u = mid_run
+    aug = AugmentedModel(obs.model, payload_std=0.05)
+    dt = obs.ekf.dt
+    p = aug.predict(np.concatenate([z, [1.0]]), u, dt)
+    p0 = obs.model.predict(z, u, dt)
+    np.testing.assert_allclose(p.x[:-1], p0.x, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(p.F[:-1, :-1], p0.F, rtol=0, atol=1e-14)
+    assert p.x[-1] == 1.0 and p.Q[-1, -1] == pytest.approx(0.05**2 * dt)
+
+
+def test_payload_mass_matrix_is_the_scaled_models_difference(sixbar, mid_run):
+    """M_r(theta) - M_r(1) = (theta - 1) M_p: the nodal mass matrices of the nominal and the scaled model, assembled
+    independently, differ by the payload alone; through the same basis rows W J this is the payload term."""
+    obs, z, u = mid_run
+    aug = AugmentedModel(obs.model, payload_std=0.05)
+    aug.predict(np.concatenate([z, [1.0]]), u, obs.ekf.dt)
+    iv, _ = obs.model.last_step
+    Mp, Gp = aug.payload_terms(iv.mats)
+    q = iv.q0
+    theta = 1.7
+    M1 = ErlsModel(sixbar).configuration(q).M_N
+    M2 = ErlsModel(sixbar.with_payload_scale(theta)).configuration(q).M_N
+    WJ = iv.mats.rc.cfg.W @ iv.mats.J
+    dMr = WJ.T @ (M2 - M1) @ WJ
+    np.testing.assert_allclose(dMr, (theta - 1) * Mp, rtol=1e-9, atol=1e-12 * np.abs(Mp).max())
+    assert np.allclose(Mp, Mp.T) and np.linalg.eigvalsh(Mp).min() > -1e-12 * np.abs(Mp).max()
+    assert np.linalg.matrix_rank(Mp, tol=1e-9 * np.abs(Mp).max()) <= 3
+    np.testing.assert_array_equal(Gp, 0.0)  # the six-bar moves in a horizontal plane
+    A, m = payload_rows(obs.model, iv.mats)
+    assert A.shape == (3, obs.model.r) and m[0] == sixbar.payload.mass
+
+
+def test_gauss_markov_disturbance_decays_with_its_stationary_variance(mid_run):
+    obs, z, u = mid_run
+    tau, sd, dt = 0.1, 0.2, obs.ekf.dt
+    aug = AugmentedModel(obs.model, input_std=sd, input_tau=tau)
+    d = np.array([0.3, -0.1, 0.05])
+    p = aug.predict(np.concatenate([z, d]), u, dt)
+    phi = np.exp(-dt / tau)
+    np.testing.assert_allclose(p.x[aug.i_inputs], phi * d)
+    # stationary: phi^2 sd^2 + q = sd^2
+    np.testing.assert_allclose(np.diag(p.Q[aug.i_inputs, aug.i_inputs]), sd**2 * (1 - phi**2))
+
+
+def test_estimator_choice_errors(sixbar):
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        make_observer(sixbar, ObserverConfig(estimator="kf"))
+    with pytest.raises(ValueError, match="payload_std or input_std"):
+        AugmentedModel(make_observer(sixbar).model)
+
+
+# ------------------------------------------------------------------------------------------ RTS smoother
+def _linear_system(seed=3, n=200):
+    """A damped oscillator pair observed through one position, with its simulated record."""
+    from exuflex.observer.base import LinearDiscreteModel
+
+    rng = np.random.default_rng(seed)
+    dt = 0.01
+    A = np.eye(4)
+    A[0, 2] = A[1, 3] = dt
+    A[2, 0], A[3, 1], A[2, 2], A[3, 3] = -40 * dt, -90 * dt, 1 - 0.2 * dt, 1 - 0.1 * dt
+    A[2, 1] = 5 * dt
+    Q = np.diag([1e-8, 1e-8, 1e-4, 2e-4])
+    C = {"y1": np.array([1.0, 0, 0, 0]), "y2": np.array([0.5, 1.0, 0, 0])}
+    R_std = {"y1": 0.01, "y2": 0.02}
+    x = np.array([0.1, -0.05, 0.0, 0.3])
+    Y = np.empty((n, 2))
+    for k in range(n):
+        if k:
+            x = A @ x + rng.multivariate_normal(np.zeros(4), Q)
+        Y[k] = [C["y1"] @ x + 0.01 * rng.standard_normal(), C["y2"] @ x + 0.02 * rng.standard_normal()]
+    Y[50:60, 1] = np.nan  # a blank channel: partial updates
+    return LinearDiscreteModel(A, None, C, Q), R_std, np.arange(n) * dt, Y, dt
+
+
+def test_rts_smoother_equals_filterpy_on_a_linear_model():
+    from filterpy.kalman import KalmanFilter
+
+    from exuflex.observer.ekf import MultirateEKF
+    from exuflex.observer.smoother import rts_smooth
+
+    model, R_std, t, Y, dt = _linear_system()
+    x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
+    ekf = MultirateEKF(model, ("y1", "y2"), R_std, x0, P0, dt=dt)
+    sm = rts_smooth(ekf, t, None, Y)
+    # the forward pass is the filter's own run
+    res = ekf.run(t, None, Y, reset=True)
+    np.testing.assert_allclose(sm.x_filt, res.x_hat, rtol=0, atol=1e-14)
+    # filterpy's backward pass on the same forward estimates
+    kf = KalmanFilter(dim_x=4, dim_z=2)
+    xs, Ps, _, _ = kf.rts_smoother(sm.x_filt.copy(), sm.P_filt.copy(), Fs=[model.A] * len(t), Qs=[model.Q] * len(t))
+    np.testing.assert_allclose(sm.x_hat, xs, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(sm.P, Ps, rtol=1e-7, atol=1e-14)
+    # smoothing never increases the variance, and the last sample is the filter's
+    assert np.all(sm.P_diag <= np.diagonal(sm.P_filt, axis1=1, axis2=2) * (1 + 1e-9))
+    np.testing.assert_array_equal(sm.x_hat[-1], sm.x_filt[-1])
+
+
+# ------------------------------------------------------------------------------------------ UKF
+def test_ukf_equals_the_kalman_filter_on_a_linear_model():
+    from exuflex.observer.ekf import MultirateEKF
+    from exuflex.observer.ukf import UnscentedKF
+
+    model, R_std, t, Y, dt = _linear_system(seed=5)
+    x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
+    kf = MultirateEKF(model, ("y1", "y2"), R_std, x0, P0, dt=dt, store_P="full").run(t, None, Y)
+    for alpha in (1e-2, 0.5):
+        ukf = UnscentedKF(model, ("y1", "y2"), R_std, x0, P0, dt=dt, alpha=alpha, store_P="full").run(t, None, Y)
+        np.testing.assert_allclose(ukf.x_hat, kf.x_hat, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(ukf.P, kf.P, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(ukf.nis, kf.nis, rtol=1e-6, equal_nan=True)
+
+
+# ------------------------------------------------------------------------------------------ command line
+def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys):
+    """``--estimator ekf-input --smooth --json``: disturbance estimates per motor with their std (on an ERLS log
+    without disturbances: consistent with zero), smoothed errors below the filter's on the joint angles."""
+    import json
+
+    from exuflex.cli import main
+
+    rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--estimator", "ekf-input",
+               "--smooth", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["estimator"] == "ekf-input" and out["smoothed"]
+    assert set(out["inputs"]) == {"T1", "T2", "T3"}
+    for v in out["inputs"].values():
+        assert v["std"] > 0 and abs(v["value"]) < 4 * v["std"]
+    for q in ("q1", "q2", "q3"):
+        assert out["rms_error"][q] < out["filtered_rms_error"][q]
+    rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--estimator", "ukf",
+               "--smooth"])
+    assert rc == 2 and "needs an EKF estimator" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ sensor design
+def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
+    """The ranking's bounds are :func:`estimation_bound`'s for an observer built on the model with those channels
+    (independently built here); a gauge never raises the bound; the greedy set beats its first station alone."""
+    import dataclasses
+    import math
+
+    from exuflex.observer.design import rank_gauges
+    from exuflex.observer.session import estimation_bound, physical_names
+
+    res = rank_gauges(sixbar, n_candidates=2)
+    assert len(res.single) == 2 * len(sixbar.links)
+    b = [d["tip_bound"] for d in res.single]
+    assert b == sorted(b) and all(x <= res.encoders_bound * (1 + 1e-9) for x in b)
+    assert res.greedy_set_bound <= b[0] and res.greedy_set[0] == res.single[0]["name"]
+    # the file's own set with the common noise, through an observer of its own
+    sensors = tuple(dataclasses.replace(s, noise_std=res.gauge_noise) if s.kind == "curvature" else s
+                    for s in sixbar.sensors)
+    mech = dataclasses.replace(sixbar, sensors=sensors)
+    bnd = estimation_bound(make_observer(mech))
+    nq = len(mech.coordinate_names)
+    x, y = physical_names(mech)[2 * nq : 2 * nq + 2]
+    assert res.model_set_bound == pytest.approx(math.hypot(bnd[x], bnd[y]), rel=1e-6)
+    assert [g["name"] for g in res.model_gauges] == ["c1", "c2", "c4"]
+
+
+def test_cli_design_ranks_the_stations(capsys):
+    import json
+
+    from exuflex.cli import main
+
+    assert main(["design", str(MODELS / "sixbar.toml"), "--candidates", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["single"]) == 5 and {g["name"] for g in out["model_gauges"]} == {"c1", "c2", "c4"}
+    assert all(1 <= g["rank"] <= 6 for g in out["model_gauges"])
+    assert main(["design", str(MODELS / "sixbar.toml"), "--candidates", "0"]) == 2
