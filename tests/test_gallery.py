@@ -33,18 +33,33 @@ def test_the_gallery_holds_the_issue_s_mechanisms():
 
 
 def _closure_errors(mech, kin: Kinematics, q) -> tuple[float, float]:
-    """Largest distance between the link points a joint joins (and from its ground pin), and largest error of
-    a coordinate's angle, from the pose's link origins and angles (independent of the closure's residual)."""
+    """Largest violation of a joint (distance between the link points it joins; from its ground pin, or from its
+    sliding line for a prismatic joint; a weld's angle error in m at its first link's length) and largest error of
+    a coordinate (angle or slide), from the pose's link origins and angles (independent of the closure's
+    residual)."""
     pose = kin.pose(np.asarray(q, float))
     ang = dict(zip(kin.link_names, pose.link_angles, strict=True))
+    length = {lk.name: lk.length for lk in mech.links}
     gap = 0.0
     for j in mech.joints:
         pts = [kin.point(pose, p.link, p.station)[0] for p in j.points]
-        if j.ground is not None:
-            pts.append(np.asarray(j.ground, float))
         gap = max(gap, max(float(np.linalg.norm(p - pts[0])) for p in pts))
+        kind = getattr(j, "kind", "revolute")
+        if j.ground is not None and kind == "revolute":
+            gap = max(gap, float(np.linalg.norm(pts[0] - np.asarray(j.ground, float))))
+        elif kind == "prismatic":
+            d, ax = pts[0] - np.asarray(j.ground, float), np.asarray(j.axis, float)
+            gap = max(gap, abs(float(ax[0] * d[1] - ax[1] * d[0])))  # distance from the sliding line
+        elif kind == "weld":
+            a, b = j.points[0].link, j.points[1].link
+            gap = max(gap, length[a] * abs(float(np.angle(np.exp(1j * (ang[b] - ang[a] - j.angle))))))
     err = 0.0
     for k, c in enumerate(mech.coordinates):
+        if getattr(c, "kind", "angle") == "slide":
+            j = next(jt for jt in mech.joints if jt.name == c.joint)
+            p = kin.point(pose, j.points[0].link, j.points[0].station)[0]
+            err = max(err, abs(float(np.dot(j.axis, p - np.asarray(j.ground, float))) - c.offset - q[k]))
+            continue
         a = ang[c.link] - (ang[c.relative_to] if c.relative_to else 0.0) - c.offset
         err = max(err, abs(float(np.angle(np.exp(1j * (a - q[k]))))))
     return gap, err
