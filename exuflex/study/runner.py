@@ -567,11 +567,10 @@ def run_study(
     """
     out = Path(out)
     with study_lock(out):
-        return _run_study(spec, out, workers=workers, scheduler=scheduler, progress=progress, on_result=on_result,
-                          figure=figure)
+        return _run_study(spec, out, workers=workers, scheduler=scheduler, progress=progress, on_result=on_result)
 
 
-def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result, figure) -> StudyResult:
+def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> StudyResult:
     t_start = time.perf_counter()
     model_path = Path(spec.model)
     nominal = load_mechanism(model_path)
