@@ -628,8 +628,10 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
-        "nis_inconsistent": bool(res.nis_flagged),
-        "nis_flagged_at": res.nis_flagged_at,
+        # (an estimator that reports its NIS test through ``diverged`` without non-finite values: the UKF)
+        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)),
+        "nis_flagged_at": res.nis_flagged_at if res.nis_flagged else (
+            res.diverged_at if res.diverged and not res.nonfinite else None),
         "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
         "channel_faults": [dict(f) for f in res.channel_faults],
         "n_rejected": dict(res.n_rejected),
