@@ -43,6 +43,8 @@ deviation, ``z_i = r_i / sqrt(S_ii)`` (standard normal for a consistent filter a
 - *Isolation*: a channel with an open offset or stuck fault is left out of the updates (counted in
   ``n_rejected``) until its innovations against the estimate from the others are back in band. If the others
   observe its quantity poorly, that may not happen before the end of the run: the fault then stays open.
+  Within the hold-off after an input step nothing is gated (the step's innovations are real and large): spikes
+  there reach the estimate, and a channel they drag may then be isolated for the rest of the run.
 - *Allowance for input steps*: after a step in the input (a model with an ``n_jumps`` counter), nothing is
   gated and neither test runs for ``fault_holdoff`` updates.
 
