@@ -92,7 +92,7 @@ class UnscentedKF:
         self._P = self._P0.copy()
         self._t_prev = None
         self._u_prev = None
-        self.n_missing = self.n_updates = 0
+        self.n_missing = self.n_updates = self.n_model_resets = 0
         self.diverged = False
         self.diverged_at = None
         self.nonfinite = False
@@ -117,12 +117,27 @@ class UnscentedKF:
         D = X - mean
         return mean, (D.T * self.Wc) @ D, D
 
+    def _predict(self, x, dt, u_next):
+        """The model's step from ``x``. A model that caches configuration-dependent data (the reduced model's held
+        configuration and its expansion) is built for a trajectory, not for points visited in turn around it:
+        where its step from a sigma point is not finite, the step is taken again after ``model.reset()`` (the
+        configuration evaluated at that point)."""
+        p = self.model.predict(x, self._u_prev, dt, u_next)
+        if not np.all(np.isfinite(p.x)) and hasattr(self.model, "reset"):
+            self.model.reset()
+            self.n_model_resets += 1
+            p = self.model.predict(x, self._u_prev, dt, u_next)
+        return p
+
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y``."""
         t = float(t)
         if u is not None:
             u = np.array(u, dtype=float).reshape(-1)
         y = None if y is None else np.asarray(y, float)
+        if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
+            self._t_prev = t
+            return np.full(self.nx, np.nan)
         if self._t_prev is not None:
             dt = t - self._t_prev
             if not dt > 0:
@@ -132,13 +147,15 @@ class UnscentedKF:
                                  f"max_gap={self.max_gap:g} s")
             self.n_missing += max(round(dt / self.dt) - 1, 0)
             X = self._sigmas(self._x, self._P)
-            m0 = self.model.predict(X[0], self._u_prev, dt, u)  # the mean's interval: its process noise
+            m0 = self._predict(X[0], dt, u)  # the mean's interval: its process noise
             Xf = np.empty_like(X)
             Xf[0] = m0.x
             for i in range(1, len(X)):
-                Xf[i] = self.model.predict(X[i], self._u_prev, dt, u).x
+                Xf[i] = self._predict(X[i], dt, u).x
             self._x, P, _ = self._moments(Xf)
             self._P = P + m0.Q
+            if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
+                return self._nonfinite(t)
         self._t_prev, self._u_prev = t, u
         self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
         mask = None if y is None else np.isfinite(y)
@@ -166,12 +183,17 @@ class UnscentedKF:
         else:
             self.n_missing += 1
         if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
-            if not self.diverged:
-                self.diverged, self.diverged_at = True, t
-            self.nonfinite = True
-            if self.nonfinite_action == "raise":
-                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+            return self._nonfinite(t)
         return self._x.copy()
+
+    def _nonfinite(self, t: float) -> np.ndarray:
+        """A non-finite state or covariance: raise, or flag the run and return NaN (``nonfinite="flag"``)."""
+        if not self.diverged:
+            self.diverged, self.diverged_at = True, t
+        self.nonfinite = True
+        if self.nonfinite_action == "raise":
+            raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+        return np.full(self.nx, np.nan)
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None) -> EstimationResult:
         """:meth:`step` over a record (as :meth:`MultirateEKF.run`)."""
