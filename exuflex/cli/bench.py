@@ -35,7 +35,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--duration", type=positive_float, default=None, help="simulated time (s); overrides --quick")
     p.add_argument("--no-full", action="store_true", help="skip the (slow) full-order observer")
     p.add_argument("--no-reference", action="store_true",
-                   help="skip the comparison with the reduced observer's reference path (frozen step)")
+                   help="skip the comparison with the reduced observer's exact reference (method rk4)")
     p.add_argument("--seed", type=seed_type, default=1, help="measurement noise seed (default 1)")
     p.add_argument("--repeat", type=positive_int, default=5,
                    help="times the reduced observer filters the log; the median run is reported (default 5)")
