@@ -46,15 +46,17 @@ class UnscentedKF:
     model, channels, R_std, x0, P0, dt, max_gap, nis_window, nonfinite
         As :class:`~exuflex.observer.ekf.MultirateEKF`.
     alpha, beta, kappa : float
-        Merwe's scaled sigma points: spread ``alpha``, ``beta = 2`` (Gaussian prior), ``kappa = 0``. The points lie
-        ``alpha sqrt(n + kappa)`` standard deviations from the mean, and (``kappa = 0``) the mean's weight is
-        ``1 - 1 / alpha^2``: a very small ``alpha`` (or ``kappa = 3 - n`` with tens of states) gives weights of
-        hundreds with opposite signs, whose cancellation costs the covariance its small (elastic) entries.
+        Merwe's scaled sigma points: spread ``alpha = 1``, ``beta = 2`` (Gaussian prior), ``kappa = 0``. The points
+        lie ``alpha sqrt(n + kappa)`` standard deviations from the mean, and (``kappa = 0``) the mean's weights are
+        ``Wm0 = 1 - 1 / alpha^2`` and ``Wc0 = Wm0 + 1 - alpha^2 + beta``. ``alpha = 1`` makes every weight
+        non-negative, so the predicted covariance is a sum of positive semi-definite terms; a small ``alpha`` (or
+        ``kappa = 3 - n`` with tens of states) gives weights of hundreds with opposite signs, whose cancellation
+        costs the covariance its small (elastic) entries and can make it indefinite.
     store_P : {"diag", "full", "none"}
     """
 
     def __init__(self, model, channels: Sequence[str], R_std: Mapping[str, float], x0, P0, dt: float,
-                 alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0, max_gap: float = 1.0,
+                 alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, max_gap: float = 1.0,
                  store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise"):
         self.model = model
         self.nx = int(model.nx)
