@@ -923,8 +923,7 @@ def animate_manoeuvre(mech, truth: Signals, estimate: Signals | None, path, magn
     if arc is not None:
         ax.plot(arc[:, 0], arc[:, 1], "k:", lw=0.7, label="planned tip path")
     for j in mech.joints:
-        if j.ground is not None:
-            ax.plot(*j.ground, "k^", ms=8)
+        _draw_ground(ax, j, lo, hi, pad, 8)
     n_links = len(mech.links)
     tr_lines = [ax.plot([], [], "-o", color=TRUTH_COLOUR, lw=2.2, ms=2.5,
                         label="truth" if i == 0 else None)[0] for i in range(n_links)]
@@ -965,6 +964,19 @@ def animate_manoeuvre(mech, truth: Signals, estimate: Signals | None, path, magn
             ax.draw_artist(a)
         frames.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
     return _write_movie(frames, path, fps)
+
+
+def _draw_ground(ax, j, lo, hi, pad: float, ms: float) -> None:
+    """A ground pin as a triangle; a prismatic joint's axis as a dash-dotted line across the view."""
+    if j.ground is None:
+        return
+    if j.kind != "prismatic":
+        ax.plot(*j.ground, "k^", ms=ms)
+        return
+    g, d = np.asarray(j.ground, float), np.asarray(j.axis, float)
+    span = float(np.hypot(*(np.asarray(hi) - np.asarray(lo)))) + 2 * pad
+    s = np.array([-span, span]) + float(d @ (0.5 * (np.asarray(lo) + np.asarray(hi)) - g))
+    ax.plot(g[0] + s * d[0], g[1] + s * d[1], "k-.", lw=0.8)
 
 
 def _write_movie(frames: list[np.ndarray], path: Path, fps: int) -> Path:
@@ -1036,8 +1048,7 @@ def modes_figure(mech, modal_result, path, n: int = 6, amplitude: float = 0.12) 
         xy = pose.r.reshape(-1, 3)[:, :2] + scale * d.reshape(-1, 3)[:, :2]
         ax.plot(xy[:, 0], xy[:, 1], "o", color=ESTIMATE_COLOUR, ms=2.5)
         for j in mech.joints:
-            if j.ground is not None:
-                ax.plot(*j.ground, "k^", ms=7)
+            _draw_ground(ax, j, lo, hi, pad, 7)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect("equal")

@@ -321,9 +321,19 @@ def read_signals_csv(
     return Signals(data[:, 0], names, data[:, 1:], u)
 
 
+def _path_argument(value, param: str) -> Path:
+    """``value`` as a Path if it is a path (str or os.PathLike), else a UsageError naming the parameter."""
+    from .errors import UsageError
+
+    if isinstance(value, (str, os.PathLike)) and str(value).strip():
+        return Path(value)
+    raise UsageError(f"{param}: expected a path (str or pathlib.Path), got {type(value).__name__}"
+                     + (" (already read: pass it on directly)" if isinstance(value, (Run, Signals)) else ""))
+
+
 def read_run(run_dir: str | os.PathLike) -> Run:
     """Read a run folder written by :func:`write_run` (or by hand following ``docs/run_format.md``)."""
-    d = Path(run_dir)
+    d = _path_argument(run_dir, "run_dir")
     if not d.is_dir():
         raise FileNotFoundError(f"{d}: run folder does not exist")
     mp = d / META_FILE
@@ -402,7 +412,7 @@ def read_csv_log(
     allow_empty : bool
         Empty cells read as NaN (not sampled) instead of an error.
     """
-    path = Path(path)
+    path = _path_argument(path, "path")
     if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)) or not (
         math.isfinite(time_scale) and time_scale > 0
     ):

@@ -164,7 +164,8 @@ def check_log(
                 f"{dt:g} s ({1 / dt:g} Hz) or a whole multiple of it (clock tolerance {RATE_TOL * 1e6:g} ppm): "
                 f"resample the log, or set model.sample_rate_hz in {mech.source or mech.name}"
             )
-        k_rel = (t - t[0]) / dt
+        with np.errstate(over="ignore", invalid="ignore"):  # absurd time columns are reported just below
+            k_rel = (t - t[0]) / dt
         if not np.isfinite(k_rel[-1]) or k_rel[-1] > 1e9:
             raise LogFormatError(
                 f"{source}: the time column spans {f(t[-1] - t[0])!r} s, more than 1e9 samples of {dt:g} s; "

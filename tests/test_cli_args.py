@@ -142,3 +142,13 @@ def test_simulate_run_checks_its_arguments(tmp_path):
         simulate_run(SIXBAR, "")
     with pytest.raises(UsageError, match=r"payload_scale"):
         simulate_run(SIXBAR, tmp_path / "r", payload_scale=float("nan"))
+
+
+def test_readers_say_what_they_expected():
+    from exuflex.runs import read_csv_log, read_run
+
+    run = read_run(RUN)
+    with pytest.raises(UsageError, match=r"run_dir: expected a path .*got Run \(already read"):
+        read_run(run)
+    with pytest.raises(UsageError, match=r"path: expected a path .*got int"):
+        read_csv_log(3)

@@ -465,10 +465,11 @@ def test_divergence_flag():
     rng = np.random.default_rng(11)
     t, U, X, Y = simulate_linear(truth, CH2, R2, X0_2, P0_2, 2000, rng, rates={"v2": 5})
     ok = MultirateEKF(truth, CH2, R2, X0_2, P0_2, DT).run(t, U, Y)
-    assert not ok.diverged and ok.diverged_at is None
+    assert not ok.nis_flagged and ok.nis_flagged_at is None and not ok.diverged
     wrong = two_mass(k_scale=10.0, q_scale=1e-6)
     bad = MultirateEKF(wrong, CH2, R2, X0_2, P0_2, DT).run(t, U, Y)
-    assert bad.diverged and 0 < bad.diverged_at < t[-1]
+    assert bad.nis_flagged and 0 < bad.nis_flagged_at < t[-1] and not bad.diverged
+    assert bad.flagged_intervals[0][0] == bad.nis_flagged_at
     with pytest.raises(FilterDivergedError):
         MultirateEKF(wrong, CH2, R2, X0_2, P0_2, DT, divergence_action="raise").run(t, U, Y)
 

@@ -237,7 +237,13 @@ def _errors():
         d["joints"][1]["angle"] = 0.0
         d["joints"][1]["ground"] = [0.0, 0.1]
 
+    def shared_node(d):
+        d["links"][0]["nodes"] = [1, 2, 3]
+        d["links"][1]["nodes"] = [3] + list(range(20, 28))
+
     return [
+        (edit(shared_node), r"links\[1\]\.nodes: expected node ids not used by link 'crank' \(links joined rigidly: "
+                            r"a \[\[joints\]\] table with kind = \"weld\"\)"),
         (edit(tilt), r"joints\[2\]\.axis: expected a direction along the global x or y axis"),
         (edit(weld3), r"joints\[1\]\.points: expected exactly two link points"),
         (edit(slider_on_pin), r"sensors\[1\]\.joint: expected a prismatic joint name, one of \['B'\]"),
@@ -248,7 +254,7 @@ def _errors():
     ]
 
 
-@pytest.mark.parametrize("case", range(7))
+@pytest.mark.parametrize("case", range(8))
 def test_model_file_errors(case):
     doc, match = _errors()[case]
     with pytest.raises(ModelFileError, match=r"^sc\.toml: " + match):
@@ -306,3 +312,58 @@ def test_offset_mass_eq2_coriolis_annihilates_rigid_motion():
     MG = m.coriolis_matrix(cfg, np.array([1.3]))
     assert np.abs(MG).max() > 0
     assert np.abs(MG @ cfg.pose.S).max() < 1e-12 * np.abs(MG).max()
+
+
+def test_slide_coordinate_reads_back_from_probes_and_from_exudyn():
+    """q = x_B (a slide coordinate) read back as the truth's coordinate from the ERLS probes of deformed states (the
+    slider node has no elastic translation: q exactly) and from an Exudyn model built at q; the slider sensor reads
+    the same."""
+    from exuflex.sensors import erls_probe_record, sensor_channels, true_states
+
+    doc = _doc_slide_driven()
+    doc["sensors"].append({"name": "xs", "kind": "slider", "joint": "B"})
+    mech = parse_mechanism(doc, "slide.toml")
+    model = ErlsModel(mech)
+    rng = np.random.default_rng(5)
+    Y = np.zeros((3, 2 * model.n))
+    Y[:, 0] = [0.38, 0.41, 0.44]
+    Y[:, 1 : model.n] = 1e-4 * rng.standard_normal((3, model.ne))
+    Y[:, model.n] = [0.2, -0.1, 0.3]
+    Y[:, model.n + 1 :] = 1e-2 * rng.standard_normal((3, model.ne))
+    rec = erls_probe_record(model, np.arange(3) * 1e-3, Y)
+    truth = true_states(mech, rec)
+    np.testing.assert_allclose(truth["s"], Y[:, 0], atol=1e-14)
+    np.testing.assert_allclose(truth["ds"], Y[:, model.n], atol=1e-13)
+    np.testing.assert_allclose(sensor_channels(mech, rec)["xs"], Y[:, 0], atol=1e-14)
+    assert truth.unit("s") == "m" and truth.unit("ds") == "m/s"
+    pytest.importorskip("exudyn")
+    from exuflex.groundtruth import build_truth
+
+    tm = build_truth(mech, [0.42], elements_per_link=2, damping=None)
+    np.testing.assert_allclose(tm.coordinate_values(), [0.42], atol=1e-12)
+
+
+def _two_link_arm():
+    """The L-arm with a revolute elbow instead of the weld and a relative elbow coordinate q2."""
+    d = _welded_arm(n=(6, 4))
+    d["joints"][1] = {"name": "E", "points": [{"link": "a", "station": 0.5}, {"link": "b", "station": 0.0}]}
+    d["links"][1]["angle_guess"] = 1.5
+    d["model"]["q_ref"] = [0.3, 1.2]
+    d["coordinates"].append({"name": "q2", "link": "b", "joint": "E", "relative_to": "a"})
+    return parse_mechanism(d, "arm.toml")
+
+
+@pytest.mark.parametrize("case", ["relative", "slide"])
+def test_locked_modes_agree_with_exudyn(case):
+    """Motors locked (q held) in Exudyn against the ERLS: a relative coordinate (its constraint spans the two nodes
+    at the joint) and a slide coordinate (the slider's position held); the first three modes within 0.01 %."""
+    pytest.importorskip("exudyn")
+    from exuflex.groundtruth import exudyn_frequencies
+
+    if case == "relative":
+        mech, q, epl = _two_link_arm(), [0.3, 1.2], 6
+    else:
+        mech, q, epl = parse_mechanism(_doc_slide_driven(), "slide.toml"), [0.4], 8
+    fe = modal_analysis(ErlsModel(mech), q, locked=True).frequencies_hz[:3]
+    fx = exudyn_frequencies(mech, q, elements_per_link=epl, locked=True)[:3]
+    np.testing.assert_allclose(fx, fe, rtol=1e-4)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from exuflex.errors import UsageError
 from exuflex.mechanism import load_mechanism
 from exuflex.study import OverrideError, StudySpec, apply_overrides, parse_set, payload_levels, run_study
 from exuflex.study import runner as study_runner
@@ -106,8 +107,24 @@ def test_changed_settings_are_not_reused(done_study, tmp_path):
     spec = _tiny()
     from dataclasses import replace
 
-    res = run_study(replace(spec, start_up=0.02), out)
+    with pytest.raises(UsageError, match=r"other settings \(differing: settings.start_up_s\); use another folder"):
+        run_study(replace(spec, start_up=0.02), out)
+    assert json.loads((out / "study.json").read_text())["settings"]["start_up_s"] != 0.02  # left as it was
+    res = run_study(replace(spec, start_up=0.02), tmp_path / "other")
     assert res.n_computed == 4 and res.n_reused == 0
+
+
+def test_a_running_study_locks_its_folder(done_study, tmp_path):
+    """While one study holds the folder (its lock), a second one into it is refused before any work; once the
+    lock is released the same settings resume."""
+    from exuflex.study.runner import study_lock
+
+    out = tmp_path / "s"
+    shutil.copytree(done_study.out, out)
+    with study_lock(out):
+        with pytest.raises(UsageError, match="another study is running in this folder"):
+            run_study(_tiny(), out)
+    assert run_study(_tiny(), out).n_computed == 0
 
 
 def test_process_pool_gives_the_same_numbers(done_study, tmp_path):

@@ -477,7 +477,8 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             if other.name == name:
                 raise r.err("name", "a unique link name", name)
             if set(other.node_ids) & set(ids):
-                raise r.err("nodes", f"node ids not used by link {other.name!r}", list(ids))
+                raise r.err("nodes", f"node ids not used by link {other.name!r} (links joined rigidly: a [[joints]] "
+                            "table with kind = \"weld\")", list(ids))
         if len(set(ids)) != len(ids):
             raise r.err("nodes", "distinct node ids", list(ids))
         links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None)))

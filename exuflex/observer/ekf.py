@@ -21,8 +21,33 @@ refused: the model would integrate an unbounded time without a measurement.
 
 Filter consistency is monitored with the normalised innovation squared (NIS): over a moving window of the
 last ``nis_window`` updates, the summed NIS is chi-square with the summed number of channels for a
-consistent filter. The run is flagged when that sum exceeds the ``divergence_confidence`` (99.9 %) quantile in
-``divergence_confirm`` consecutive *disjoint* windows (default 2: a single outlier cannot trigger it).
+consistent filter. The flag is *set* when that sum exceeds the ``divergence_confidence`` (99.9 %) quantile in
+``divergence_confirm`` consecutive *disjoint* windows (default 2: a single outlier cannot set it) and *cleared*
+when the window sum has stayed within the bound for a whole window of updates (hysteresis: the flag means "the
+innovations are out of their band now", not "once"). Each set-to-clear stretch is one flagged interval.
+"Diverged" is reserved for a non-finite state or covariance.
+
+Sensor faults (:class:`ChannelMonitor`): each channel's innovation is normalised by its own innovation standard
+deviation, ``z_i = r_i / sqrt(S_ii)`` (standard normal for a consistent filter and a healthy sensor).
+
+- *Gating*: a channel with ``z_i**2`` above the chi-square(1) quantile ``1 - gate_p`` is left out of the update
+  (counted per channel in ``n_rejected``), as long as fewer than half the channels of the sample exceed it (when
+  most do, the filter, not a sensor, is off: nothing is gated and the NIS test sees it).
+- *Offset / scale*: over the last ``fault_window`` samples of a channel, with ``z`` clipped at the gate (one
+  spike moves the sums by at most one gate), ``|sum z| / sqrt(W)`` is tested against the two-sided normal
+  quantile and ``sum z**2`` against both chi-square(W) tails at false-alarm probability ``fault_p``: an offset
+  or gain error shows as a mean, spikes or a noisier sensor as a large scale, a stuck (frozen) sensor as a
+  scale below its noise. A channel without a sample for ``fault_window`` of its own intervals is "missing".
+  Each fault is reported with its channel, kind and the times it was found and cleared (after a whole window
+  back in band).
+- *Isolation*: a channel with an open offset or stuck fault is left out of the updates (counted in
+  ``n_rejected``) until its innovations against the estimate from the others are back in band. If the others
+  observe its quantity poorly, that may not happen before the end of the run: the fault then stays open.
+- *Allowance for input steps*: after a step in the input (a model with an ``n_jumps`` counter), nothing is
+  gated and neither test runs for ``fault_holdoff`` updates.
+
+Gating and the fault tests are off by default (``gate_p=None``, ``fault_window=0``: the textbook filter);
+:class:`~exuflex.observer.session.ObserverConfig` turns them on for the observer.
 
 Timing convention: ``x0``, ``P0`` are the *prior* at the first sample time. ``step(t_k, u_k, y_k)`` predicts
 from the previous sample to ``t_k`` with the input stored at the previous call (zero-order hold, ``u_k-1``
@@ -35,16 +60,16 @@ import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 from ..erls.kinematics import KinematicsError
 from . import kalman
 from .base import DiscreteModel, FilterDivergedError
 
-__all__ = ["EstimationResult", "MultirateEKF", "NISMonitor"]
+__all__ = ["ChannelMonitor", "EstimationResult", "MultirateEKF", "NISMonitor"]
 
 log = logging.getLogger(__name__)
 
@@ -79,11 +104,22 @@ class EstimationResult:
     n_updates : int
         Samples with at least one finite channel.
     diverged : bool
-        NIS divergence test failed, or the filter went non-finite (in ``nonfinite="flag"`` mode).
+        The filter went non-finite (in ``nonfinite="flag"`` mode; estimates from then on are NaN).
     diverged_at : float or None
-        Time of the first divergence detection.
+        Time the estimate became non-finite.
     nonfinite : bool
-        The filter produced a non-finite value (estimates from then on are NaN).
+        Same as ``diverged`` (kept for readers of older results).
+    nis_flagged : bool
+        The NIS test was set at least once.
+    nis_flagged_at : float or None
+        Time the NIS test was first set.
+    flagged_intervals : list of (float, float)
+        Each ``(set, cleared)`` time of the NIS flag; a flag still set at the end closes at the last sample.
+    channel_faults : list of dict
+        Sensor faults found (:class:`ChannelMonitor`): ``channel``, ``kind`` ("offset", "scale", "stuck",
+        "missing"), ``start`` and ``end`` (s), ``mean_z`` (window mean of the normalised innovation when found).
+    n_rejected : dict str -> int
+        Samples of each channel left out of the update by the gate.
     wall_s : float
         Wall-clock time of the run (s).
     channels : tuple of str
@@ -104,6 +140,11 @@ class EstimationResult:
     nonfinite: bool
     wall_s: float
     channels: tuple[str, ...] = ()
+    nis_flagged: bool = False
+    nis_flagged_at: float | None = None
+    flagged_intervals: list = field(default_factory=list)
+    channel_faults: list = field(default_factory=list)
+    n_rejected: dict = field(default_factory=dict)
 
     @property
     def P_diag(self) -> np.ndarray | None:
@@ -134,13 +175,22 @@ class EstimationResult:
             "diverged": self.diverged,
             "diverged_at": self.diverged_at,
             "nonfinite": self.nonfinite,
+            "nis_flagged": self.nis_flagged,
+            "nis_flagged_at": self.nis_flagged_at,
+            "flagged_intervals": [list(iv) for iv in self.flagged_intervals],
+            "channel_faults": [dict(f) for f in self.channel_faults],
+            "n_rejected": dict(self.n_rejected),
             "wall_s": self.wall_s,
             "us_per_sample": 1e6 * self.wall_s / max(n, 1),
         }
 
 
 class NISMonitor:
-    """Moving-window chi-square test on the NIS sequence.
+    """Moving-window chi-square test on the NIS sequence, with hysteresis.
+
+    The flag is set when the window sum exceeds its bound in ``confirm`` consecutive disjoint windows, and
+    cleared when the window sum has been within the bound at ``window`` consecutive updates (a whole window of
+    innovations back in their band).
 
     Parameters
     ----------
@@ -168,6 +218,8 @@ class NISMonitor:
         self._sdof = 0
         self._n = 0
         self._hist = [False] * ((self.confirm - 1) * self.window + 1)
+        self.flag = False
+        self._in_band = 0
 
     def bound(self, dof: int) -> float:
         """Chi-square ``confidence`` quantile for ``dof`` degrees of freedom (cached)."""
@@ -177,8 +229,8 @@ class NISMonitor:
             self._bounds[dof] = b
         return b
 
-    def push(self, nis: float, dof: int) -> bool:
-        """Add one update's NIS; return True if the divergence test fails at this update."""
+    def push(self, nis: float, dof: int) -> int:
+        """Add one update's NIS; return +1 if the flag is set at this update, -1 if it is cleared, else 0."""
         i = self._n % self.window
         self._sdof += dof - self._dof[i]
         self._sum += nis - self._nis[i]
@@ -188,19 +240,157 @@ class NISMonitor:
         if i == self.window - 1:  # once per window: exact sum (no drift or cancellation after outliers)
             self._sum = math.fsum(self._nis)
         if self._n < self.window:
-            return False
+            return 0
         exceed = self._sum > self.bound(self._sdof)
         h = self._hist
         j = (self._n - 1) % len(h)
         h[j] = exceed
-        if not exceed:
-            return False
-        if self._n < self.confirm * self.window:
-            return False
+        if self.flag:
+            self._in_band = 0 if exceed else self._in_band + 1
+            if self._in_band >= self.window:
+                self.flag = False
+                return -1
+            return 0
+        if not exceed or self._n < self.confirm * self.window:
+            return 0
         for c in range(1, self.confirm):
             if not h[(j - c * self.window) % len(h)]:
-                return False
-        return True
+                return 0
+        self.flag = True
+        self._in_band = 0
+        return 1
+
+
+class ChannelMonitor:
+    """Per-channel sensor-fault tests on the normalised innovations ``z_i = r_i / sqrt(S_ii)``.
+
+    For a consistent filter and a healthy sensor ``z_i`` is standard normal and white. Over the last ``window``
+    samples of a channel, with ``z`` clipped at ``+-clip`` (the gate: a single spike moves the sums by at most
+    ``clip``), it tests
+
+    - the mean: ``|sum z| / sqrt(W) > Phi^-1(1 - p/2)`` (an offset, or a gain error on a moving joint),
+    - the scale: ``sum z**2 > chi2_W^-1(1 - p)`` (spikes, a noisier sensor) or ``< chi2_W^-1(p)`` (a frozen
+      sensor: it varies less than its own noise),
+
+    and calls a channel "missing" when it has had no sample for ``window`` of its own last sample intervals. A
+    fault is set at the first failed test and cleared after ``window`` consecutive passed tests (or, for
+    "missing", at the channel's next sample); ``faults`` lists them with their times.
+    """
+
+    def __init__(self, channels: Sequence[str], window: int = 100, p: float = 1e-6, clip: float = 5.0,
+                 dt: float = 1e-3):
+        if window < 2 or not 0 < p < 0.5 or not clip > 0:
+            raise ValueError("need window >= 2, 0 < p < 0.5 and clip > 0")
+        self.channels = tuple(channels)
+        self.window = W = int(window)
+        self.p = float(p)
+        self.clip = float(clip)
+        self.dt = float(dt)
+        self._k_mean = float(norm.ppf(1 - p / 2)) * math.sqrt(W)
+        self._hi = float(chi2.ppf(1 - p, W))
+        self._lo = float(chi2.ppf(p, W))
+        self.reset()
+
+    def reset(self) -> None:
+        m, W = len(self.channels), self.window
+        self._z = np.zeros((W, m))
+        self._n = np.zeros(m, dtype=np.int64)
+        self._sum = np.zeros(m)
+        self._sq = np.zeros(m)
+        self._ok = np.zeros(m, dtype=np.int64)
+        self._last_t = np.full(m, np.nan)
+        self._interval = np.full(m, self.dt)
+        self._open: dict[int, dict] = {}
+        self._t0: float | None = None
+        self.faults: list[dict] = []
+
+    def _set(self, i: int, kind: str, t: float, mean_z: float) -> None:
+        f = {"channel": self.channels[i], "kind": kind, "start": float(t), "end": None, "mean_z": float(mean_z)}
+        self._open[i] = f
+        self.faults.append(f)
+        log.info("channel %s: %s fault found at t=%.6g s (window mean of z %.3g)", self.channels[i], kind, t, mean_z)
+
+    def _clear(self, i: int, t: float) -> None:
+        f = self._open.pop(i)
+        f["end"] = float(t)
+
+    def seen(self, t: float, idx: np.ndarray) -> None:
+        """Channels ``idx`` were sampled at ``t`` (their innovations not tested): the "missing" test only."""
+        if self._t0 is None:
+            self._t0 = t
+        W = self.window
+        # missing channels: no sample for a window of their own intervals
+        seen = np.zeros(len(self.channels), dtype=bool)
+        seen[idx] = True
+        for i in np.flatnonzero(~seen):
+            last = self._last_t[i] if math.isfinite(self._last_t[i]) else self._t0
+            if i not in self._open and t - last > W * self._interval[i]:
+                self._set(i, "missing", t, math.nan)
+        if self._open:
+            for i in idx:
+                f = self._open.get(int(i))
+                if f is not None and f["kind"] == "missing":
+                    self._clear(int(i), t)
+                    self._n[i] = 0
+                    self._sum[i] = self._sq[i] = 0.0
+                    self._z[:, i] = 0.0
+        last = self._last_t[idx]
+        fin = np.isfinite(last)
+        self._interval[idx[fin]] = t - last[fin]
+        self._last_t[idx] = t
+
+    def push(self, t: float, idx: np.ndarray, z: np.ndarray) -> None:
+        """The normalised innovations ``z`` of the channels ``idx`` sampled at ``t``."""
+        self.seen(t, idx)
+        W = self.window
+        zc = np.clip(z, -self.clip, self.clip)
+        pos = self._n[idx] % W
+        old = self._z[pos, idx]
+        self._z[pos, idx] = zc
+        self._sum[idx] += zc - old
+        self._sq[idx] += zc * zc - old * old
+        self._n[idx] += 1
+        ends = idx[pos == W - 1]
+        if len(ends):  # once per window: exact sums (no drift)
+            self._sum[ends] = self._z[:, ends].sum(axis=0)
+            self._sq[ends] = (self._z[:, ends] ** 2).sum(axis=0)
+        full = idx[self._n[idx] >= W]
+        if not len(full):
+            return
+        sm, sq = self._sum[full], self._sq[full]
+        off = np.abs(sm) > self._k_mean
+        hi = sq > self._hi
+        lo = sq < self._lo
+        bad = off | hi | lo
+        if not (self._open or bad.any()):
+            return
+        for j, i in enumerate(full.tolist()):
+            if bad[j]:
+                self._ok[i] = 0
+                f = self._open.get(i)
+                if f is None:
+                    kind = "offset" if off[j] else ("scale" if hi[j] else "stuck")
+                    self._set(i, kind, t, sm[j] / W)
+                elif off[j] and f["kind"] == "scale":  # the window filled: a mean, not only a spread
+                    f["kind"], f["mean_z"] = "offset", float(sm[j] / W)
+            elif i in self._open:
+                self._ok[i] += 1
+                if self._ok[i] >= W:
+                    self._clear(i, t)
+
+    def suspect(self) -> np.ndarray:
+        """Mask of the channels with an open offset or stuck fault (left out of updates until it clears)."""
+        mask = np.zeros(len(self.channels), dtype=bool)
+        for i, f in self._open.items():
+            if f["kind"] in ("offset", "stuck"):  # spikes and extra noise: the gate handles them sample by sample
+                mask[i] = True
+        return mask
+
+    def close(self, t: float) -> list[dict]:
+        """Close the faults still open at ``t`` (the end of a run) and return all."""
+        for i in list(self._open):
+            self._clear(i, t)
+        return [dict(f) for f in self.faults]
 
 
 class MultirateEKF:
@@ -226,7 +416,25 @@ class MultirateEKF:
     nis_window, divergence_confidence, divergence_confirm
         NIS test, see :class:`NISMonitor`. ``nis_window=0`` disables it.
     divergence_action : {"flag", "raise"}
-        On a failed NIS test: record it and go on, or raise :class:`FilterDivergedError`.
+        When the NIS test is set: record it and go on, or raise :class:`FilterDivergedError`.
+    gate_p : float or None
+        Per-channel gate: a channel whose squared normalised innovation exceeds the chi-square(1) quantile
+        ``1 - gate_p`` is left out of the update (see the module notes). None (default): no gating, the
+        textbook filter.
+    fault_window : int
+        Samples per channel in the sensor-fault tests (:class:`ChannelMonitor`); 0 (default) disables them. A
+        channel with an open offset or stuck fault is left out of the updates until the fault clears.
+    fault_p : float
+        False-alarm probability of each sensor-fault test.
+    fault_holdoff : int
+        Updates after a step in the input (a model with an ``n_jumps`` counter, see
+        :meth:`.reduced.ReducedObserverModel.input_jump`) during which nothing is gated and the NIS and
+        sensor-fault tests are paused: the allowance for planned torque steps, whose transient the model follows
+        with a larger error than its steady state (the end-of-manoeuvre step of a clean log would otherwise set
+        the NIS flag).
+    input_step : callable ``(u0, u1) -> bool`` or None
+        Test for a step between two successive input samples that starts the hold-off (besides the model's
+        own ``n_jumps`` counter, if it has one).
     nonfinite : {"raise", "flag"}
         On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run and return NaN
         estimates from then on.
@@ -253,6 +461,11 @@ class MultirateEKF:
         nonfinite: str = "raise",
         p_floor=1e-18,
         max_gap: float = 1.0,
+        gate_p: float | None = None,
+        fault_window: int = 0,
+        fault_p: float = 1e-6,
+        fault_holdoff: int = 200,
+        input_step=None,
     ):
         if store_P not in ("diag", "full", "none"):
             raise ValueError(f"store_P must be 'diag', 'full' or 'none', got {store_P!r}")
@@ -287,6 +500,16 @@ class MultirateEKF:
         self._floor = np.ascontiguousarray(np.broadcast_to(np.asarray(p_floor, float).reshape(-1), (n,)))
         self.monitor = (
             NISMonitor(nis_window, divergence_confidence, divergence_confirm) if nis_window > 0 else None
+        )
+        if gate_p is not None and not 0 < gate_p < 1:
+            raise ValueError(f"gate_p must be None or in (0, 1), got {gate_p}")
+        self.gate_p = gate_p
+        self.fault_holdoff = int(fault_holdoff)
+        self.input_step = input_step
+        self._gate = float(chi2.ppf(1 - gate_p, 1)) if gate_p is not None else math.inf
+        self.faults = (
+            ChannelMonitor(self.channels, fault_window, fault_p, min(math.sqrt(self._gate), 10.0), dt)
+            if fault_window > 0 else None
         )
         self._x0, self._P0 = self._prior(x0, P0)
         self._all = np.arange(self.m)
@@ -333,6 +556,15 @@ class MultirateEKF:
         self.diverged = False
         self.diverged_at: float | None = None
         self.nonfinite = False
+        self.nis_flagged = False
+        self.nis_flagged_at: float | None = None
+        self.flagged_intervals: list[list] = []
+        self.n_rejected = np.zeros(self.m, dtype=np.int64)
+        self._holdoff = 0
+        self._held = False
+        self.jump_times: list[float] = []
+        if self.faults is not None:
+            self.faults.reset()
         self._model_failure = None
         self.last_idx = None
         self.last_innovation = None
@@ -430,6 +662,41 @@ class MultirateEKF:
                 raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
             nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
             finite = kalman.settle(x_new, P_new, self._floor)
+        z = r / np.sqrt(np.abs(S.diagonal()))
+        self._held = self._holdoff > 0
+        if self._held:
+            self._holdoff -= 1
+            rej = np.zeros(m, dtype=bool)
+            if self.faults is not None:
+                self.faults.seen(self._t_now, idx)
+        else:
+            if self.faults is not None:
+                self.faults.push(self._t_now, idx, z)
+            rej = z * z > self._gate
+        if self.faults is not None and self.faults._open:
+            # isolation: a channel with an open sensor fault stays out until its innovations are back in band
+            rej |= self.faults.suspect()[idx]
+        if rej.any():
+            n_rej = int(np.count_nonzero(rej))
+            if 2 * n_rej < m:  # a minority of the channels is off: those sensors, not the filter
+                keep = ~rej
+                self.n_rejected[idx[rej]] += 1
+                idx, chans, Rd = idx[keep], tuple(c for c, k in zip(chans, keep, strict=True) if k), Rd[keep]
+                m = len(idx)
+                y, y_pred, H = y[keep], y_pred[keep], np.ascontiguousarray(H[keep])
+                r, S = np.empty(m), np.empty((m, m))
+                nis, ok, finite = kalman.update_settle(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new,
+                                                       self._floor)
+                if not ok:
+                    rhs = np.empty((m, n + 1))
+                    rhs[:, :n] = self._HP[:m]
+                    rhs[:, n] = r
+                    try:
+                        sol = np.ascontiguousarray(np.linalg.solve(S, rhs))
+                    except np.linalg.LinAlgError as exc:
+                        raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
+                    nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
+                    finite = kalman.settle(x_new, P_new, self._floor)
         self._Pspare = self._P
         self._x, self._P = x_new, P_new
         self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
@@ -482,7 +749,15 @@ class MultirateEKF:
                     f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
                     f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
             self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
+        jumps = getattr(self.model, "n_jumps", 0)
         FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
+        self._t_now = t
+        stepped = (self.input_step is not None and u is not None and self._u_prev is not None
+                   and self.input_step(self._u_prev, u))
+        if stepped or getattr(self.model, "n_jumps", 0) != jumps:
+            # a step in the input (the model's test): the transient is the model's to follow, not a sensor fault
+            self._holdoff = self.fault_holdoff
+            self.jump_times.append(t)
         self._t_prev = t
         self._u_prev = u
         self.last_idx = None
@@ -515,10 +790,21 @@ class MultirateEKF:
         if self.last_idx is not None:
             self.n_updates += 1
             mon = self.monitor
-            if mon is not None and mon.push(self.last_nis, self.last_dof):
-                self._flag(t, f"NIS over {mon.window} updates above its {mon.confidence:.1%} bound")
+            # within the hold-off after an input step the NIS is not tested either (the allowance for planned steps)
+            ev = mon.push(self.last_nis, self.last_dof) if mon is not None and not self._held else 0
+            if ev > 0:
+                self.flagged_intervals.append([float(t), None])
+                if not self.nis_flagged:
+                    self.nis_flagged, self.nis_flagged_at = True, float(t)
+                log.info("NIS flag set at t=%.6g s: NIS over %d updates above its %.1f%% bound", t, mon.window,
+                         100 * mon.confidence)
                 if self.divergence_action == "raise":
                     raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
+            elif ev < 0:
+                self.flagged_intervals[-1][1] = float(t)
+                log.info("NIS flag cleared at t=%.6g s", t)
+        elif self.faults is not None and self._t_prev is not None:
+            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
         return self._x.copy()
 
     def _flag(self, t: float, why: str) -> None:
@@ -526,6 +812,15 @@ class MultirateEKF:
             self.diverged = True
             self.diverged_at = float(t)
             log.info("filter flagged at t=%.6g s: %s", t, why)
+
+    def fault_report(self) -> tuple[list, list]:
+        """``(flagged_intervals, channel_faults)`` so far, with intervals and faults still open closed at the
+        current time (see :class:`EstimationResult`)."""
+        t = self._t_prev
+        iv = [(a, b if b is not None else t) for a, b in self.flagged_intervals]
+        faults = [] if self.faults is None else [dict(f, end=f["end"] if f["end"] is not None else t)
+                                                  for f in self.faults.faults]
+        return iv, faults
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None) -> EstimationResult:
         """Filter a whole record: :meth:`step` for every sample.
@@ -584,9 +879,13 @@ class MultirateEKF:
                     innov[k, idx] = self.last_innovation
                     S_all[k][np.ix_(idx, idx)] = self.last_S
         wall = time.perf_counter() - t_start
+        intervals, faults = self.fault_report()
         res = EstimationResult(t=t, x_hat=x_hat, P=Pst, innovations=innov, S=S_all, nis=nis, nis_dof=dof,
                                n_missing=self.n_missing, n_updates=self.n_updates, diverged=self.diverged,
                                diverged_at=self.diverged_at, nonfinite=self.nonfinite, wall_s=wall,
-                               channels=self.channels)
+                               channels=self.channels, nis_flagged=self.nis_flagged,
+                               nis_flagged_at=self.nis_flagged_at, flagged_intervals=intervals,
+                               channel_faults=faults,
+                               n_rejected={c: int(k) for c, k in zip(self.channels, self.n_rejected, strict=True)})
         log.info("EKF run: %s", res.summary())
         return res

@@ -10,6 +10,7 @@ sensors (the steady-state Kalman covariance of the linearised reduced model at a
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -72,6 +73,10 @@ class ObserverConfig:
         deviation in the state's unit.
     max_gap : longest interval (s) between two samples the filter predicts over.
     start_up : seconds left out of the error metrics (the filter's transient).
+    gate_p, fault_window, fault_p : per-channel innovation gate and sensor-fault tests (see
+        :mod:`.ekf`, :class:`.ekf.ChannelMonitor`); ``gate_p=None`` and ``fault_window=0`` turn them off.
+    fault_holdoff_s : seconds after a detected torque step during which nothing is gated and the NIS and
+        sensor-fault tests pause (the allowance for planned input steps).
     estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
     payload_std, payload0_std : random-walk std of the payload scale per sqrt(s), and its prior std (about 1).
@@ -97,6 +102,10 @@ class ObserverConfig:
     q_extra_std: float = 0.0
     max_gap: float = 1.0
     start_up: float = 0.3
+    gate_p: float | None = 1e-6
+    fault_window: int = 100
+    fault_p: float = 1e-6
+    fault_holdoff_s: float = 0.4
     estimator: str = "ekf"
     payload_std: float = 0.05
     payload0_std: float = 0.5
@@ -248,7 +257,10 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.estimator == "ukf":
         ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
     else:
-        ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+        ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
+                           gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
+                           fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
+                           input_step=_torque_step_test(som.torque_var, config.fault_p))
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -273,6 +285,21 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if fm.i_inputs is not None:
         P0x[fm.i_inputs] = config.input0_scale**2 * som.torque_var_nominal
     return fm, _augmented_mean(fm, x0), P0x
+
+
+def _torque_step_test(torque_var, p: float):
+    """``test(u0, u1)``: two successive torque samples differ by more than their noise explains (chi-square with
+    one degree of freedom per motor on ``(u1 - u0)**2 / (2 var)``, false-alarm probability ``p``)."""
+    from scipy.stats import chi2
+
+    w = 0.5 / np.asarray(torque_var, float).reshape(-1)
+    thr = float(chi2.ppf(1.0 - p, len(w)))
+
+    def test(u0, u1) -> bool:
+        d = np.asarray(u1, float) - np.asarray(u0, float)
+        return bool((d * d) @ w > thr)
+
+    return test
 
 
 def _augmented_mean(ekf_model, x0) -> np.ndarray:
@@ -329,8 +356,16 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
 
-def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None) -> dict:
-    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times)."""
+def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None, *,
+            min_coverage: float = 0.9) -> dict:
+    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times).
+
+    The truth must cover the scored interval ``[t_0 + start_up, t_end]`` of the estimate: interpolation holds a
+    truth's end values, so a truth cut short or on another clock would be scored silently against constants.
+    Only the estimate's samples within the truth's span (half a sample's tolerance) are scored; if they are less
+    than ``min_coverage`` of the scored interval it is an error (``ValueError`` naming both spans), else a
+    partial cover is a warning. ``truth_coverage`` in the result is the covered fraction.
+    """
     names = [n for n in (names or est.names) if n in truth]
     sel = est.t >= est.t[0] + start_up
     if not np.any(sel):
@@ -338,14 +373,27 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
             f"the log is {est.t[-1] - est.t[0]:.3g} s long, not longer than the start-up period left out of the "
             f"error metrics ({start_up:g} s); use a longer log or a shorter start_up"
         )
+    ts = est.t[sel]
+    tol = 0.5 * float(np.median(np.diff(est.t))) if len(est.t) > 1 else 0.0
+    t0, t1 = (float(truth.t[0]), float(truth.t[-1])) if len(truth.t) else (math.nan, math.nan)
+    inside = (ts >= t0 - tol) & (ts <= t1 + tol)
+    coverage = float(inside.mean())
+    span = f"the truth spans {t0:.6g} to {t1:.6g} s, the scored estimate {ts[0]:.6g} to {ts[-1]:.6g} s"
+    if coverage < min_coverage:
+        raise ValueError(f"the truth covers {coverage:.0%} of the scored interval ({span}): not the same run or "
+                         f"clock? (at least {min_coverage:.0%} needed)")
+    if coverage < 1.0:
+        log.warning("the truth covers %.1f%% of the scored interval (%s); scoring the covered part only",
+                    100 * coverage, span)
+    ts = ts[inside]
     rms, mx = {}, {}
     for n in names:
-        tr = np.interp(est.t[sel], truth.t, truth[n])
-        e = est[n][sel] - tr
+        tr = np.interp(ts, truth.t, truth[n])
+        e = est[n][sel][inside] - tr
         e = e[np.isfinite(e)]
         rms[n] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
         mx[n] = float(np.max(np.abs(e))) if e.size else float("nan")
-    return {"rms_error": rms, "max_error": mx}
+    return {"rms_error": rms, "max_error": mx, "truth_coverage": coverage}
 
 
 def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None) -> dict[str, float]:
@@ -565,7 +613,6 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
                     config.start_up)
     met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
     res = est.result
-    nis_flag = bool(res.diverged and not res.nonfinite)
     summary = {
         "model": mech.name,
         "model_file": mech.source,
@@ -581,8 +628,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
-        "nis_inconsistent": nis_flag,
-        "nis_flagged_at": res.diverged_at if nis_flag else None,
+        "nis_inconsistent": bool(res.nis_flagged),
+        "nis_flagged_at": res.nis_flagged_at,
+        "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
+        "channel_faults": [dict(f) for f in res.channel_faults],
+        "n_rejected": dict(res.n_rejected),
         "wall_s": est.wall_s,
         "real_time_factor": est.real_time_factor,
         "basis_s": obs.basis_s,

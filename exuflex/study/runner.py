@@ -33,6 +33,7 @@ import concurrent.futures as cf
 import contextlib
 import dataclasses
 import datetime as _dt
+import fcntl
 import hashlib
 import io
 import json
@@ -49,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import UsageError
 from ..mechanism import Mechanism, load_mechanism
 from ..observer.session import ObserverConfig
 from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
@@ -460,8 +462,8 @@ def run_one(task: RunTask) -> dict:
         "run": task.run,
         "seed": task.seed,
         "run_hash": task.run_hash,
-        "nis_flagged": bool(res.diverged),
-        "nis_flagged_at": res.diverged_at,
+        "nis_flagged": bool(res.nis_flagged),
+        "nis_flagged_at": res.nis_flagged_at,
         "nonfinite": bool(getattr(res, "nonfinite", False)),
         "nis_mean": float(nis_mean),
         "nis_expected": float(nis_exp),
@@ -599,6 +601,50 @@ def _read_json(path: Path) -> dict | None:
         return None
 
 
+LOCK_NAME = ".study.lock"
+
+
+@contextlib.contextmanager
+def study_lock(out: Path):
+    """Exclusive lock on a study folder for the life of the block (``flock`` on ``out/.study.lock``, released
+    by the kernel if the process dies): two studies writing one folder would mix their files."""
+    out.mkdir(parents=True, exist_ok=True)
+    fh = open(out / LOCK_NAME, "a+")  # noqa: SIM115 (held open for the block)
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            who = fh.read().strip()
+            raise UsageError(f"{out}: another study is running in this folder ({who or 'lock held'}); wait for it "
+                             "or use another folder") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()}\n")
+        fh.flush()
+        yield
+    finally:
+        fh.close()
+
+
+def _check_same_study(out: Path, record: dict) -> None:
+    """Refuse a folder that holds a study with other settings (more runs per level extend it: allowed)."""
+    old = _read_json(out / "study.json")
+    if old is None:
+        return
+    new = json.loads(json.dumps(record, default=str))
+    free = ("runs_per_level", "seeds")
+    diff = []
+    for k in ("model_sha256", "levels"):
+        if old.get(k) != new.get(k):
+            diff.append(k)
+    so, sn = old.get("settings") or {}, new["settings"]
+    diff += [f"settings.{k}" for k in sorted(set(so) | set(sn)) if k not in free and so.get(k) != sn.get(k)]
+    if diff:
+        raise UsageError(f"{out}: this folder holds a study with other settings (differing: {', '.join(diff)}); "
+                         "use another folder, or delete this one to start over")
+
+
 def run_study(
     spec: StudySpec,
     out: str | os.PathLike,
@@ -611,11 +657,19 @@ def run_study(
 ) -> StudyResult:
     """Run (or resume) a study into ``out``; returns the per-run rows and the summary.
 
+    The folder is locked for the run (:func:`study_lock`: a second study into it is refused while this one
+    runs), and a folder holding a study with other settings is refused (only ``runs`` may grow).
     ``on_result`` is called in this process after each finished run has been written (tests use it to
     interrupt a study).
     """
-    t_start = time.perf_counter()
     out = Path(out)
+    with study_lock(out):
+        return _run_study(spec, out, workers=workers, scheduler=scheduler, progress=progress, on_result=on_result,
+                          figure=figure)
+
+
+def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result, figure) -> StudyResult:
+    t_start = time.perf_counter()
     model_path = Path(spec.model)
     nominal = load_mechanism(model_path)
     from ..validate import check_configurations
@@ -651,12 +705,12 @@ def run_study(
         keys.append(f"L{i:02d}-{_hash(truth_def, 10)}")
         hashes.append(_hash({"truth": truth_def, "observer": obs_keys[i], "start_up": start_up,
                              "stats": STATS_VERSION}))
+    record = {"format": FORMAT, "model": str(model_path.resolve()), "model_sha256": model_sha, "settings": settings,
+              "levels": [dict(lv.as_dict(), key=k) for lv, k in zip(spec.levels, keys, strict=True)]}
+    _check_same_study(out, record)
     for sub in ("truth", "runs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "study.json", json.dumps(
-        {"format": FORMAT, "model": str(model_path.resolve()), "model_sha256": model_sha, "settings": settings,
-         "levels": [dict(lv.as_dict(), key=k) for lv, k in zip(spec.levels, keys, strict=True)]},
-        indent=1, default=str) + "\n")
+    atomic_write_text(out / "study.json", json.dumps(record, indent=1, default=str) + "\n")
 
     # what is done already
     done: dict[tuple[int, int], dict] = {}
