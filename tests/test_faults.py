@@ -232,3 +232,39 @@ def test_truth_must_cover_the_scored_interval(caplog):
     assert "scoring the covered part only" in caplog.text
     assert m["truth_coverage"] == pytest.approx(1 - 0.1 / 2.7, abs=1e-3)
     assert m["rms_error"]["q1"] == pytest.approx(0.1, rel=1e-9)  # no held end value scored
+
+
+
+def test_observe_refuses_a_truth_cut_short_before_filtering(sixbar, tmp_path):
+    from exuflex.errors import LogFormatError
+    from exuflex.observer.session import observe_run
+    from exuflex.runs import read_run, write_run
+    from exuflex.sensors import Signals
+
+    mech, obs, src, _ = sixbar
+    T = src.truth
+    keep = T.t <= 0.5
+    run = read_run(write_run(tmp_path / "run", src.sensors, Signals(T.t[keep], T.names, T.data[keep], T.units),
+                             dict(src.meta), motors=src.motors))
+    obs.ekf.n_updates = -1  # a run would reset it
+    with pytest.raises(LogFormatError, match=r"truth\.csv: the truth covers 7% of the scored interval"):
+        observe_run(mech, run, observer=obs, with_bound=False)
+    assert obs.ekf.n_updates == -1  # refused before any filtering
+
+
+@pytest.mark.slow
+def test_clean_exudyn_log_past_the_manoeuvre_has_no_flag(tmp_path):
+    """The issue's case: a seed-3 Exudyn log of the six-bar running 10 s past its 3 s manoeuvre (the torque steps
+    at its end used to set a latching flag at 3.164 s): no NIS flag, no sensor fault, nothing gated."""
+    from exuflex.cli import main
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import observe_run
+    from exuflex.runs import read_run
+
+    out = tmp_path / "run10"
+    assert main(["simulate", str(ROOT / "models" / "sixbar.toml"), "--duration", "10", "--seed", "3",
+                 "--no-progress", "--out", str(out)]) == 0
+    mech = load_mechanism(ROOT / "models" / "sixbar.toml")
+    s = observe_run(mech, read_run(out), with_bound=False).summary
+    assert s["flagged_intervals"] == [] and not s["nis_inconsistent"] and s["channel_faults"] == []
+    assert sum(s["n_rejected"].values()) == 0 and not s["diverged"]

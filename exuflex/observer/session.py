@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -604,13 +605,20 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         except UnobservableError as exc:
             unobservable = str(exc)
             say(f"warning: no bound: {exc}")
-    say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
-    est = estimate(obs, S.t, U, Y, smooth=smooth)
     span = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
     start_up = config.start_up if span > config.start_up else 0.5 * span
     if start_up != config.start_up:
         log.warning("log is %.3g s long: error metrics from %.3g s instead of the %.3g s start-up", span, start_up,
                     config.start_up)
+    if run.truth is not None:  # before filtering: a truth of another run or clock is refused at once
+        try:
+            metrics(Signals(S.t, (), np.empty((len(S.t), 0))), run.truth, start_up)
+        except ValueError as exc:
+            from ..errors import LogFormatError
+
+            raise LogFormatError(f"{Path(run.path) / 'truth.csv'}: {exc}") from None
+    say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
+    est = estimate(obs, S.t, U, Y, smooth=smooth)
     met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
     res = est.result
     summary = {
@@ -628,8 +636,10 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
-        "nis_inconsistent": bool(res.nis_flagged),
-        "nis_flagged_at": res.nis_flagged_at,
+        # (an estimator that reports its NIS test through ``diverged`` without non-finite values: the UKF)
+        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)),
+        "nis_flagged_at": res.nis_flagged_at if res.nis_flagged else (
+            res.diverged_at if res.diverged and not res.nonfinite else None),
         "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
         "channel_faults": [dict(f) for f in res.channel_faults],
         "n_rejected": dict(res.n_rejected),
