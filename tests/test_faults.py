@@ -268,3 +268,28 @@ def test_clean_exudyn_log_past_the_manoeuvre_has_no_flag(tmp_path):
     s = observe_run(mech, read_run(out), with_bound=False).summary
     assert s["flagged_intervals"] == [] and not s["nis_inconsistent"] and s["channel_faults"] == []
     assert sum(s["n_rejected"].values()) == 0 and not s["diverged"]
+
+
+# ------------------------------------------------------------------------------ the whole path checked
+def test_manoeuvre_through_a_toggle_position_is_refused_naming_the_time():
+    """The four-bar with its rocker shortened to 0.25 m: q_ref (crank vertical) is regular, but the half turn
+    of its manoeuvre passes q1 = pi at t = 0.75 s, where coupler and rocker are stretched in line (closure
+    condition number ~2e7 there, against 10-25 along the gallery's paths). Refused before any integration."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_robustness import _doc, _short_rocker
+
+    from exuflex.erls.kinematics import KinematicsError
+    from exuflex.manoeuvre import plan
+    from exuflex.mechanism import load_mechanism, parse_mechanism
+    from exuflex.validate import check_configurations
+
+    doc = _short_rocker(_doc("fourbar"), 0.25)
+    mech = parse_mechanism(doc, "toggle.toml")
+    check_configurations(mech)  # its reference configuration alone is fine
+    with pytest.raises(KinematicsError, match=r"^toggle\.toml: the manoeuvre's path reaches a singular "
+                                              r"configuration at t = 0\.75 s, q = \[3\.141593\]"):
+        plan(mech, dt=1e-3)
+    for name in ("fourbar", "sixbar", "slider_crank"):
+        plan(load_mechanism(ROOT / "models" / f"{name}.toml"), dt=1e-3)
