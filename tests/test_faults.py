@@ -33,7 +33,7 @@ def _record(n: int, seed: int = 0):
     return t, np.zeros((n, 1)), 0.01 * rng.standard_normal((n, 3))
 
 
-FAULTS = {"gate_p": 1e-6, "fault_window": 100, "fault_p": 1e-6}
+FAULTS = {"isolate": True, "gate_p": 1e-6, "fault_window": 100, "fault_p": 1e-6}
 
 
 def test_clean_record_has_no_flag_and_no_fault():
@@ -120,11 +120,11 @@ def test_a_jump_in_time_is_refused_before_any_prediction():
 @pytest.fixture(scope="module")
 def sixbar():
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import estimation_bound, make_observer
+    from exuflex.observer.session import ObserverConfig, estimation_bound, make_observer
     from exuflex.runs import read_run
 
     mech = load_mechanism(ROOT / "models" / "sixbar.toml")
-    obs = make_observer(mech)
+    obs = make_observer(mech, ObserverConfig(fault_isolation=True))  # isolation is opt-in
     run = read_run(DATA / "sixbar_erls_3s")
     return mech, obs, run, estimation_bound(obs)
 

@@ -76,6 +76,8 @@ class ObserverConfig:
     start_up : seconds left out of the error metrics (the filter's transient).
     gate_p, fault_window, fault_p : per-channel innovation gate and sensor-fault tests (see
         :mod:`.ekf`, :class:`.ekf.ChannelMonitor`); ``gate_p=None`` and ``fault_window=0`` turn them off.
+    fault_isolation : leave a channel with an open offset or stuck fault out of the updates (off by default: a
+        model error, such as a wrong payload, looks like a sensor offset to the tests; they report it).
     fault_holdoff_s : seconds after a detected torque step during which nothing is gated and the NIS and
         sensor-fault tests pause (the allowance for planned input steps).
     estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
@@ -107,6 +109,7 @@ class ObserverConfig:
     fault_window: int = 100
     fault_p: float = 1e-6
     fault_holdoff_s: float = 0.4
+    fault_isolation: bool = False
     estimator: str = "ekf"
     payload_std: float = 0.05
     payload0_std: float = 0.5
@@ -261,7 +264,8 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                            gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
                            fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
-                           input_step=_torque_step_test(som.torque_var, config.fault_p))
+                           input_step=_torque_step_test(som.torque_var, config.fault_p),
+                           isolate=config.fault_isolation)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
