@@ -29,7 +29,7 @@ RTS smoother's RMS error over the filter's on the same log. NIS: the mean normal
 runs' updates after the start-up and the two-sided 95 % chi-square band of a consistent filter (updates taken as
 independent). Payload scale: the estimate at the last sample (mean over runs) and its std; "within 10 % after
 settle": the estimate stays within 10 % of the truth at every sample after the settle time; "|err|/std <= 3":
-at the last sample.
+at the last sample. `n`: runs in the means; `div`: runs whose estimate went non-finite (left out).
 """
 
 
@@ -128,11 +128,14 @@ def _table(rows) -> list[str]:
 
     keys = sorted({(r["scale"], r["estimator"]) for r in rows})
     cols = [c for c in ("q1", "q2", "q3", "dq1", "dq2", "dq3", "x25", "y26") if c in rows[0]]
-    out(f"{'scale':>5s} {'estimator':>12s} {'n':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
+    out(f"{'scale':>5s} {'estimator':>12s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
     for sc, en in keys:
-        rr = [r for r in rows if r["scale"] == sc and r["estimator"] == en]
+        every = [r for r in rows if r["scale"] == sc and r["estimator"] == en]
+        # a run whose estimate went non-finite is counted (div) and left out of the means
+        rr = [r for r in every if all(np.isfinite(r[c]) for c in cols)]
         cells = " ".join(f"{np.mean([r[c] for r in rr]):9.3g}" for c in cols)
-        out(f"{sc:5.2f} {en:>12s} {len(rr):3d} {cells}  {np.median([r['rtf'] for r in rr]):5.1f}")
+        out(f"{sc:5.2f} {en:>12s} {len(rr):3d} {len(every) - len(rr):3d} {cells}  "
+            f"{np.median([r['rtf'] for r in rr]):5.1f}")
         if "smoothed_q1" in rr[0]:
             cs = [c for c in ("q1", "q2", "q3", "x25", "y26", "dq1", "dq2", "dq3") if c in rr[0]]
             out("      smoothed / filtered RMS (mean of per-run ratios; worst run): " + ", ".join(

@@ -137,7 +137,7 @@ def main() -> None:
             "## Observer (`exuflex simulate` Exudyn truth, seed 1; `exuflex observe --bound`)",
             "",
             f"Channels {', '.join(obs['channels'])}; reduced model {obs['reduced_ndof']} dofs; mean NIS "
-            f"{obs['nis_mean']:.2f} (expected {obs['nis_expected']:g}); diverged: {obs['diverged']}; metrics from "
+            f"{obs['nis_mean']:.2f} (expected {obs['nis_expected']:.2f}); diverged: {obs['diverged']}; metrics from "
             f"{obs['metrics_from_s']:g} s.",
             "",
             "| state | RMS error | bound (RMS) | ratio |",

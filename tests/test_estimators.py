@@ -241,3 +241,39 @@ def test_cli_design_ranks_the_stations(capsys):
     assert len(out["single"]) == 5 and {g["name"] for g in out["model_gauges"]} == {"c1", "c2", "c4"}
     assert all(1 <= g["rank"] <= 6 for g in out["model_gauges"])
     assert main(["design", str(MODELS / "sixbar.toml"), "--candidates", "0"]) == 2
+
+
+def test_ukf_retakes_a_failed_sigma_point_step_after_a_model_reset():
+    """A caching model whose step fails away from its cache (NaN) is reset and stepped again: the run equals the
+    one on the model that never fails."""
+    from exuflex.observer.ukf import UnscentedKF
+
+    model, R_std, t, Y, dt = _linear_system(seed=7, n=60)
+
+    class Fragile:
+        nx = model.nx
+
+        def __init__(self):
+            self.calls = 0
+            self.fresh = True
+
+        def reset(self):
+            self.fresh = True
+
+        def predict(self, x, u, dt, u_next=None):
+            self.calls += 1
+            p = model.predict(x, u, dt, u_next)
+            if self.calls % 7 == 0 and not self.fresh:  # a stale cache: no finite step
+                return p._replace(x=np.full(self.nx, np.nan))
+            self.fresh = False
+            return p
+
+        def measure(self, x, channels):
+            return model.measure(x, channels)
+
+    x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
+    ref = UnscentedKF(model, ("y1", "y2"), R_std, x0, P0, dt=dt).run(t, None, Y)
+    ukf = UnscentedKF(Fragile(), ("y1", "y2"), R_std, x0, P0, dt=dt)
+    res = ukf.run(t, None, Y)
+    assert ukf.n_model_resets > 0 and not res.nonfinite
+    np.testing.assert_allclose(res.x_hat, ref.x_hat, rtol=1e-12, atol=1e-15)

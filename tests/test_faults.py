@@ -33,7 +33,7 @@ def _record(n: int, seed: int = 0):
     return t, np.zeros((n, 1)), 0.01 * rng.standard_normal((n, 3))
 
 
-FAULTS = {"gate_p": 1e-6, "fault_window": 100, "fault_p": 1e-6}
+FAULTS = {"isolate": True, "gate_p": 1e-6, "fault_window": 100, "fault_p": 1e-6}
 
 
 def test_clean_record_has_no_flag_and_no_fault():
@@ -120,11 +120,11 @@ def test_a_jump_in_time_is_refused_before_any_prediction():
 @pytest.fixture(scope="module")
 def sixbar():
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import estimation_bound, make_observer
+    from exuflex.observer.session import ObserverConfig, estimation_bound, make_observer
     from exuflex.runs import read_run
 
     mech = load_mechanism(ROOT / "models" / "sixbar.toml")
-    obs = make_observer(mech)
+    obs = make_observer(mech, ObserverConfig(fault_isolation=True))  # isolation is opt-in
     run = read_run(DATA / "sixbar_erls_3s")
     return mech, obs, run, estimation_bound(obs)
 
@@ -232,3 +232,64 @@ def test_truth_must_cover_the_scored_interval(caplog):
     assert "scoring the covered part only" in caplog.text
     assert m["truth_coverage"] == pytest.approx(1 - 0.1 / 2.7, abs=1e-3)
     assert m["rms_error"]["q1"] == pytest.approx(0.1, rel=1e-9)  # no held end value scored
+
+
+
+def test_observe_refuses_a_truth_cut_short_before_filtering(sixbar, tmp_path):
+    from exuflex.errors import LogFormatError
+    from exuflex.observer.session import observe_run
+    from exuflex.runs import read_run, write_run
+    from exuflex.sensors import Signals
+
+    mech, obs, src, _ = sixbar
+    T = src.truth
+    keep = T.t <= 0.5
+    run = read_run(write_run(tmp_path / "run", src.sensors, Signals(T.t[keep], T.names, T.data[keep], T.units),
+                             dict(src.meta), motors=src.motors))
+    obs.ekf.n_updates = -1  # a run would reset it
+    with pytest.raises(LogFormatError, match=r"truth\.csv: the truth covers 7% of the scored interval"):
+        observe_run(mech, run, observer=obs, with_bound=False)
+    assert obs.ekf.n_updates == -1  # refused before any filtering
+
+
+@pytest.mark.slow
+def test_clean_exudyn_log_past_the_manoeuvre_has_no_flag(tmp_path):
+    """The issue's case: a seed-3 Exudyn log of the six-bar running 10 s past its 3 s manoeuvre (the torque steps
+    at its end used to set a latching flag at 3.164 s): no NIS flag, no sensor fault, nothing gated."""
+    from exuflex.cli import main
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import observe_run
+    from exuflex.runs import read_run
+
+    out = tmp_path / "run10"
+    assert main(["simulate", str(ROOT / "models" / "sixbar.toml"), "--duration", "10", "--seed", "3",
+                 "--no-progress", "--out", str(out)]) == 0
+    mech = load_mechanism(ROOT / "models" / "sixbar.toml")
+    s = observe_run(mech, read_run(out), with_bound=False).summary
+    assert s["flagged_intervals"] == [] and not s["nis_inconsistent"] and s["channel_faults"] == []
+    assert sum(s["n_rejected"].values()) == 0 and not s["diverged"]
+
+
+# ------------------------------------------------------------------------------ the whole path checked
+def test_manoeuvre_through_a_toggle_position_is_refused_naming_the_time():
+    """The four-bar with its rocker shortened to 0.25 m: q_ref (crank vertical) is regular, but the half turn
+    of its manoeuvre passes q1 = pi at t = 0.75 s, where coupler and rocker are stretched in line (closure
+    condition number ~2e7 there, against 10-25 along the gallery's paths). Refused before any integration."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_robustness import _doc, _short_rocker
+
+    from exuflex.erls.kinematics import KinematicsError
+    from exuflex.manoeuvre import plan
+    from exuflex.mechanism import load_mechanism, parse_mechanism
+    from exuflex.validate import check_configurations
+
+    doc = _short_rocker(_doc("fourbar"), 0.25)
+    mech = parse_mechanism(doc, "toggle.toml")
+    check_configurations(mech)  # its reference configuration alone is fine
+    with pytest.raises(KinematicsError, match=r"^toggle\.toml: the manoeuvre's path reaches a singular "
+                                              r"configuration at t = 0\.75 s, q = \[3\.141593\]"):
+        plan(mech, dt=1e-3)
+    for name in ("fourbar", "sixbar", "slider_crank"):
+        plan(load_mechanism(ROOT / "models" / f"{name}.toml"), dt=1e-3)

@@ -341,3 +341,29 @@ def test_slide_coordinate_reads_back_from_probes_and_from_exudyn():
 
     tm = build_truth(mech, [0.42], elements_per_link=2, damping=None)
     np.testing.assert_allclose(tm.coordinate_values(), [0.42], atol=1e-12)
+
+
+def _two_link_arm():
+    """The L-arm with a revolute elbow instead of the weld and a relative elbow coordinate q2."""
+    d = _welded_arm(n=(6, 4))
+    d["joints"][1] = {"name": "E", "points": [{"link": "a", "station": 0.5}, {"link": "b", "station": 0.0}]}
+    d["links"][1]["angle_guess"] = 1.5
+    d["model"]["q_ref"] = [0.3, 1.2]
+    d["coordinates"].append({"name": "q2", "link": "b", "joint": "E", "relative_to": "a"})
+    return parse_mechanism(d, "arm.toml")
+
+
+@pytest.mark.parametrize("case", ["relative", "slide"])
+def test_locked_modes_agree_with_exudyn(case):
+    """Motors locked (q held) in Exudyn against the ERLS: a relative coordinate (its constraint spans the two nodes
+    at the joint) and a slide coordinate (the slider's position held); the first three modes within 0.01 %."""
+    pytest.importorskip("exudyn")
+    from exuflex.groundtruth import exudyn_frequencies
+
+    if case == "relative":
+        mech, q, epl = _two_link_arm(), [0.3, 1.2], 6
+    else:
+        mech, q, epl = parse_mechanism(_doc_slide_driven(), "slide.toml"), [0.4], 8
+    fe = modal_analysis(ErlsModel(mech), q, locked=True).frequencies_hz[:3]
+    fx = exudyn_frequencies(mech, q, elements_per_link=epl, locked=True)[:3]
+    np.testing.assert_allclose(fx, fe, rtol=1e-4)

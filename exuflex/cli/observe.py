@@ -101,6 +101,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
                         "as states)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
+    p.add_argument("--isolate-faults", action="store_true",
+                   help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
+                        "(off by default: a model error looks like a sensor offset; faults are always reported)")
     p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
@@ -121,6 +124,7 @@ def _config(args):
         elastic0_std=args.elastic0_std,
         elastic_rate0_std=args.elastic_rate0_std,
         q_scale=args.q_scale,
+        fault_isolation=args.isolate_faults,
         q_extra_std=args.q_extra,
         estimator=args.estimator,
         start_up=args.start_up,

@@ -1,10 +1,10 @@
 """Constrained eigenfrequencies and modal damping of the Exudyn model at rest (motors free or locked).
 
 Motors locked means the ERLS coordinates q held: every coordinate (a tangent angle at a joint, absolute
-or relative to another link) gets a constraint ``A_j dc = 0``, its linearisation at the build
-configuration (``A_j``: :meth:`~exuflex.groundtruth.TruthModel.point_rows`' angle row; on ANCF
+or relative to another link, or a slider's position) gets a constraint ``A_j dc = 0``, its linearisation at
+the build configuration (``A_j``: :meth:`~exuflex.groundtruth.TruthModel.point_rows`' angle row; on ANCF
 ``d atan2(y', x') = (x' dy' - y' dx') / |r'|^2`` of the node's slope, on geometrically exact beams the
-rotation coordinate), added as an ``ObjectConnectorCoordinateVector`` on the node(s) so that Exudyn's
+rotation coordinate; a slider: its axis times the position rows), added as an ``ObjectConnectorCoordinateVector`` on the node(s) so that Exudyn's
 own null-space projection removes it with the joints. Exact for the linearised analysis at rest.
 """
 
@@ -45,7 +45,10 @@ def lock_coordinates(tm) -> None:
     for co in mech.coordinates:
         jt = mech.joint(co.joint)
         row = np.zeros(len(c))
-        for link, sign in ((co.link, 1.0), (co.relative_to, -1.0)):
+        if co.kind == "slide":  # the slider's position along its axis: axis . (position rows)
+            st = next(p.station for p in jt.points if p.link == co.link)
+            row = np.asarray(jt.axis, float) @ tm.point_rows(co.link, st, c)[2]
+        for link, sign in ((co.link, 1.0), (co.relative_to, -1.0)) if co.kind != "slide" else ():
             if link is None:
                 continue
             st = next(p.station for p in jt.points if p.link == link)
@@ -63,9 +66,9 @@ def lock_coordinates(tm) -> None:
             other = 1 if nodes[0] == 0 else 0
             markers.append(mbs.AddMarker(it.MarkerNodeCoordinates(nodeNumber=_node_number(tm, other))))
             scalings.append(np.zeros_like(scalings[0]))
-        mbs.AddObject(
+        mbs.AddObject(  # Exudyn's constraint is X1 q1 - X0 q0: the first node's row enters with a minus
             it.ObjectConnectorCoordinateVector(
-                markerNumbers=markers, scalingMarker0=scalings[0], scalingMarker1=scalings[1], offset=[0.0]
+                markerNumbers=markers, scalingMarker0=-scalings[0], scalingMarker1=scalings[1], offset=[0.0]
             )
         )
     mbs.Assemble()

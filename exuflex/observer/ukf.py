@@ -46,15 +46,17 @@ class UnscentedKF:
     model, channels, R_std, x0, P0, dt, max_gap, nis_window, nonfinite
         As :class:`~exuflex.observer.ekf.MultirateEKF`.
     alpha, beta, kappa : float
-        Merwe's scaled sigma points: spread ``alpha``, ``beta = 2`` (Gaussian prior), ``kappa = 0``. The points lie
-        ``alpha sqrt(n + kappa)`` standard deviations from the mean, and (``kappa = 0``) the mean's weight is
-        ``1 - 1 / alpha^2``: a very small ``alpha`` (or ``kappa = 3 - n`` with tens of states) gives weights of
-        hundreds with opposite signs, whose cancellation costs the covariance its small (elastic) entries.
+        Merwe's scaled sigma points: spread ``alpha = 1``, ``beta = 2`` (Gaussian prior), ``kappa = 0``. The points
+        lie ``alpha sqrt(n + kappa)`` standard deviations from the mean, and (``kappa = 0``) the mean's weights are
+        ``Wm0 = 1 - 1 / alpha^2`` and ``Wc0 = Wm0 + 1 - alpha^2 + beta``. ``alpha = 1`` makes every weight
+        non-negative, so the predicted covariance is a sum of positive semi-definite terms; a small ``alpha`` (or
+        ``kappa = 3 - n`` with tens of states) gives weights of hundreds with opposite signs, whose cancellation
+        costs the covariance its small (elastic) entries and can make it indefinite.
     store_P : {"diag", "full", "none"}
     """
 
     def __init__(self, model, channels: Sequence[str], R_std: Mapping[str, float], x0, P0, dt: float,
-                 alpha: float = 0.5, beta: float = 2.0, kappa: float = 0.0, max_gap: float = 1.0,
+                 alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, max_gap: float = 1.0,
                  store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise"):
         self.model = model
         self.nx = int(model.nx)
@@ -92,7 +94,7 @@ class UnscentedKF:
         self._P = self._P0.copy()
         self._t_prev = None
         self._u_prev = None
-        self.n_missing = self.n_updates = 0
+        self.n_missing = self.n_updates = self.n_model_resets = 0
         self.diverged = False
         self.diverged_at = None
         self.nonfinite = False
@@ -117,12 +119,27 @@ class UnscentedKF:
         D = X - mean
         return mean, (D.T * self.Wc) @ D, D
 
+    def _predict(self, x, dt, u_next):
+        """The model's step from ``x``. A model that caches configuration-dependent data (the reduced model's held
+        configuration and its expansion) is built for a trajectory, not for points visited in turn around it:
+        where its step from a sigma point is not finite, the step is taken again after ``model.reset()`` (the
+        configuration evaluated at that point)."""
+        p = self.model.predict(x, self._u_prev, dt, u_next)
+        if not np.all(np.isfinite(p.x)) and hasattr(self.model, "reset"):
+            self.model.reset()
+            self.n_model_resets += 1
+            p = self.model.predict(x, self._u_prev, dt, u_next)
+        return p
+
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y``."""
         t = float(t)
         if u is not None:
             u = np.array(u, dtype=float).reshape(-1)
         y = None if y is None else np.asarray(y, float)
+        if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
+            self._t_prev = t
+            return np.full(self.nx, np.nan)
         if self._t_prev is not None:
             dt = t - self._t_prev
             if not dt > 0:
@@ -132,13 +149,15 @@ class UnscentedKF:
                                  f"max_gap={self.max_gap:g} s")
             self.n_missing += max(round(dt / self.dt) - 1, 0)
             X = self._sigmas(self._x, self._P)
-            m0 = self.model.predict(X[0], self._u_prev, dt, u)  # the mean's interval: its process noise
+            m0 = self._predict(X[0], dt, u)  # the mean's interval: its process noise
             Xf = np.empty_like(X)
             Xf[0] = m0.x
             for i in range(1, len(X)):
-                Xf[i] = self.model.predict(X[i], self._u_prev, dt, u).x
+                Xf[i] = self._predict(X[i], dt, u).x
             self._x, P, _ = self._moments(Xf)
             self._P = P + m0.Q
+            if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
+                return self._nonfinite(t)
         self._t_prev, self._u_prev = t, u
         self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
         mask = None if y is None else np.isfinite(y)
@@ -166,12 +185,17 @@ class UnscentedKF:
         else:
             self.n_missing += 1
         if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
-            if not self.diverged:
-                self.diverged, self.diverged_at = True, t
-            self.nonfinite = True
-            if self.nonfinite_action == "raise":
-                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+            return self._nonfinite(t)
         return self._x.copy()
+
+    def _nonfinite(self, t: float) -> np.ndarray:
+        """A non-finite state or covariance: raise, or flag the run and return NaN (``nonfinite="flag"``)."""
+        if not self.diverged:
+            self.diverged, self.diverged_at = True, t
+        self.nonfinite = True
+        if self.nonfinite_action == "raise":
+            raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+        return np.full(self.nx, np.nan)
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None) -> EstimationResult:
         """:meth:`step` over a record (as :meth:`MultirateEKF.run`)."""
