@@ -659,17 +659,8 @@ class MultirateEKF:
             P = self._Ppred
             nis, ok, finite = kalman.predict_update(FQ[0], self._P, FQ[1], P, self._work, x, y, y_pred, H, Rd,
                                                     self._HP, r, S, x_new, P_new, self._floor)
-        if not ok:  # S not positive definite (rounding, or a wrong model): LU, with a warning
-            log.warning("innovation covariance not positive definite at t=%s; using an LU solve", self._t_prev)
-            rhs = np.empty((m, n + 1))
-            rhs[:, :n] = self._HP[:m]
-            rhs[:, n] = r
-            try:
-                sol = np.ascontiguousarray(np.linalg.solve(S, rhs))
-            except np.linalg.LinAlgError as exc:
-                raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
-            nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
-            finite = kalman.settle(x_new, P_new, self._floor)
+        if not ok:
+            nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
         z = r / np.sqrt(np.abs(S.diagonal()))
         self._held = self._holdoff > 0
         if self._held:
@@ -696,19 +687,26 @@ class MultirateEKF:
                 nis, ok, finite = kalman.update_settle(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new,
                                                        self._floor)
                 if not ok:
-                    rhs = np.empty((m, n + 1))
-                    rhs[:, :n] = self._HP[:m]
-                    rhs[:, n] = r
-                    try:
-                        sol = np.ascontiguousarray(np.linalg.solve(S, rhs))
-                    except np.linalg.LinAlgError as exc:
-                        raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
-                    nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
-                    finite = kalman.settle(x_new, P_new, self._floor)
+                    nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
         self._Pspare = self._P
         self._x, self._P = x_new, P_new
         self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
         return finite
+
+    def _lu_update(self, x, P, H, Rd, r, S, x_new, P_new) -> tuple[float, bool]:
+        """The update finished by an LU solve where ``S`` is not positive definite (rounding, or a wrong model),
+        with a warning: ``(nis, finite)``. ``H P`` is in the first rows of the filter's scratch (the kernel left it)."""
+        log.warning("innovation covariance not positive definite at t=%s; using an LU solve", self._t_prev)
+        m, n = H.shape
+        rhs = np.empty((m, n + 1))
+        rhs[:, :n] = self._HP[:m]
+        rhs[:, n] = r
+        try:
+            sol = np.ascontiguousarray(np.linalg.solve(S, rhs))
+        except np.linalg.LinAlgError as exc:
+            raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
+        nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
+        return nis, kalman.settle(x_new, P_new, self._floor)
 
     # ------------------------------------------------------------------ public
     def step(self, t: float, u, y) -> np.ndarray:
