@@ -9,11 +9,12 @@ stays light)::
     run = xf.read_run("runs/nominal")                         # a run folder; or xf.read_csv_log(...) for a lab CSV
     obs = xf.make_observer(mech, xf.ObserverConfig())         # reduced model + multirate EKF
     out = xf.observe_run(mech, run, observer=obs)             # filter, check the log, score, bound for this log
-    print(out.metrics, out.bound)
+    out.metrics, out.bound                                    # RMS errors per quantity, the bound for this log
 
     # online: one sample at a time
     obs.ekf.reset()
-    x_hat, P = obs.ekf.step(t, u, y)                          # torques u (n_motors,), channels y (m,) or NaN
+    x_hat = obs.ekf.step(t, u, y)                             # torques u (n_motors,), channels y (m,) or NaN
+    P = obs.ekf.P                                             # its covariance
 
 Stages: :mod:`exuflex.mechanism` (model files) -> :mod:`exuflex.erls` (full-order model) ->
 :mod:`exuflex.reduction` (Craig-Bampton) -> :mod:`exuflex.observer` (EKF, bound); :mod:`exuflex.runs` (logs),

@@ -323,6 +323,15 @@ class ChannelMonitor:
         """Channels ``idx`` were sampled at ``t`` (their innovations not tested): the "missing" test only."""
         if self._t0 is None:
             self._t0 = t
+        if len(idx) < len(self.channels) or self._open:
+            self._missing(t, idx)
+        last = self._last_t[idx]
+        fin = np.isfinite(last)
+        self._interval[idx[fin]] = t - last[fin]
+        self._last_t[idx] = t
+
+    def _missing(self, t: float, idx: np.ndarray) -> None:
+        """The "missing" test of the channels not in ``idx``, and the end of the missing faults of those in it."""
         W = self.window
         # missing channels: no sample for a window of their own intervals
         seen = np.zeros(len(self.channels), dtype=bool)
@@ -339,10 +348,6 @@ class ChannelMonitor:
                     self._n[i] = 0
                     self._sum[i] = self._sq[i] = 0.0
                     self._z[:, i] = 0.0
-        last = self._last_t[idx]
-        fin = np.isfinite(last)
-        self._interval[idx[fin]] = t - last[fin]
-        self._last_t[idx] = t
 
     def push(self, t: float, idx: np.ndarray, z: np.ndarray) -> None:
         """The normalised innovations ``z`` of the channels ``idx`` sampled at ``t``."""
@@ -396,6 +401,66 @@ class ChannelMonitor:
         for i in list(self._open):
             self._clear(i, t)
         return [dict(f) for f in self.faults]
+
+
+def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """A record's arrays as floats, with shape errors naming what was expected: times (n,), inputs (n, nu) or
+    None, measurements (n, m)."""
+    t = np.asarray(t, dtype=float).reshape(-1)
+    Y = np.asarray(Y, dtype=float)
+    n = len(t)
+    if Y.shape != (n, m):
+        raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {m})")
+    if U is not None:
+        U = np.asarray(U, dtype=float)
+        if len(U) != n:
+            raise ValueError(f"U has {len(U)} rows, expected {n}")
+    return t, U, Y
+
+
+class RunRecord:
+    """The per-sample outputs of a filter run over a record (estimates, stored covariance, innovations, NIS), shared
+    by the filters: :meth:`put` after each sample reads what the filter's ``step`` left (``_P``, ``last_idx``,
+    ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``)."""
+
+    def __init__(self, t: np.ndarray, nx: int, m: int, store_P: str):
+        n = len(t)
+        self.t, self.m, self.store_P = t, m, store_P
+        self.x_hat = np.empty((n, nx))
+        self.P = {"diag": np.empty((n, nx)), "full": np.empty((n, nx, nx)), "none": None}[store_P]
+        self.innovations = np.full((n, m), np.nan)
+        self.S = np.full((n, m, m), np.nan)
+        self.nis = np.full(n, np.nan)
+        self.dof = np.zeros(n, dtype=np.int64)
+
+    def put(self, k: int, f, x: np.ndarray) -> None:
+        """Sample ``k``'s estimate ``x`` and what the filter ``f`` recorded of it."""
+        self.x_hat[k] = x
+        if self.P is not None:
+            self.P[k] = np.nan if f.nonfinite else (f._P.diagonal() if self.store_P == "diag" else f._P)
+        idx = f.last_idx
+        if idx is not None:
+            self.nis[k] = f.last_nis
+            self.dof[k] = f.last_dof
+            if len(idx) == self.m:
+                self.innovations[k] = f.last_innovation
+                self.S[k] = f.last_S
+            else:
+                self.innovations[k, idx] = f.last_innovation
+                self.S[k][np.ix_(idx, idx)] = f.last_S
+
+    def fail_from(self, k: int) -> None:
+        """No estimate from sample ``k`` on (the filter failed there)."""
+        self.x_hat[k:] = np.nan
+        if self.P is not None:
+            self.P[k:] = np.nan
+
+    def result(self, f, wall_s: float, **extra) -> EstimationResult:
+        """The :class:`EstimationResult` of the run, with the filter's counters."""
+        return EstimationResult(t=self.t, x_hat=self.x_hat, P=self.P, innovations=self.innovations, S=self.S,
+                                nis=self.nis, nis_dof=self.dof, n_missing=f.n_missing, n_updates=f.n_updates,
+                                diverged=f.diverged, diverged_at=f.diverged_at, nonfinite=f.nonfinite, wall_s=wall_s,
+                                channels=f.channels, **extra)
 
 
 class MultirateEKF:
@@ -848,50 +913,16 @@ class MultirateEKF:
         -------
         EstimationResult
         """
-        t = np.asarray(t, dtype=float).reshape(-1)
-        Y = np.asarray(Y, dtype=float)
-        n = len(t)
-        if Y.shape != (n, self.m):
-            raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {self.m})")
-        if U is not None:
-            U = np.asarray(U, dtype=float)
-            if len(U) != n:
-                raise ValueError(f"U has {len(U)} rows, expected {n}")
+        t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        nx, m = self.nx, self.m
-        x_hat = np.empty((n, nx))
-        Pst = {"diag": np.empty((n, nx)), "full": np.empty((n, nx, nx)), "none": None}[self.store_P]
-        innov = np.full((n, m), np.nan)
-        S_all = np.full((n, m, m), np.nan)
-        nis = np.full(n, np.nan)
-        dof = np.zeros(n, dtype=np.int64)
+        rec = RunRecord(t, self.nx, self.m, self.store_P)
         t_start = time.perf_counter()
-        for k in range(n):
-            x_hat[k] = self.step(t[k], None if U is None else U[k], Y[k])
-            if Pst is not None:
-                if self.nonfinite:
-                    Pst[k] = np.nan
-                else:
-                    Pst[k] = self._P.diagonal() if self.store_P == "diag" else self._P
-            idx = self.last_idx
-            if idx is not None:
-                nis[k] = self.last_nis
-                dof[k] = self.last_dof
-                if len(idx) == m:
-                    innov[k] = self.last_innovation
-                    S_all[k] = self.last_S
-                else:
-                    innov[k, idx] = self.last_innovation
-                    S_all[k][np.ix_(idx, idx)] = self.last_S
-        wall = time.perf_counter() - t_start
+        for k in range(len(t)):
+            rec.put(k, self, self.step(t[k], None if U is None else U[k], Y[k]))
         intervals, faults = self.fault_report()
-        res = EstimationResult(t=t, x_hat=x_hat, P=Pst, innovations=innov, S=S_all, nis=nis, nis_dof=dof,
-                               n_missing=self.n_missing, n_updates=self.n_updates, diverged=self.diverged,
-                               diverged_at=self.diverged_at, nonfinite=self.nonfinite, wall_s=wall,
-                               channels=self.channels, nis_flagged=self.nis_flagged,
-                               nis_flagged_at=self.nis_flagged_at, flagged_intervals=intervals,
-                               channel_faults=faults,
-                               n_rejected={c: int(k) for c, k in zip(self.channels, self.n_rejected, strict=True)})
+        res = rec.result(self, time.perf_counter() - t_start, nis_flagged=self.nis_flagged,
+                         nis_flagged_at=self.nis_flagged_at, flagged_intervals=intervals, channel_faults=faults,
+                         n_rejected={c: int(k) for c, k in zip(self.channels, self.n_rejected, strict=True)})
         log.info("EKF run: %s", res.summary())
         return res

@@ -31,7 +31,7 @@ import scipy.linalg
 from filterpy.kalman import MerweScaledSigmaPoints
 
 from .base import FilterDivergedError
-from .ekf import EstimationResult, NISMonitor
+from .ekf import EstimationResult, NISMonitor, RunRecord, check_log
 
 __all__ = ["UnscentedKF"]
 
@@ -199,42 +199,20 @@ class UnscentedKF:
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None) -> EstimationResult:
         """:meth:`step` over a record (as :meth:`MultirateEKF.run`)."""
-        t = np.asarray(t, float).reshape(-1)
-        Y = np.asarray(Y, float)
-        n = len(t)
-        if Y.shape != (n, self.m):
-            raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {self.m})")
+        t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        nx, m = self.nx, self.m
-        x_hat = np.empty((n, nx))
-        Pst = {"diag": np.empty((n, nx)), "full": np.empty((n, nx, nx)), "none": None}[self.store_P]
-        innov = np.full((n, m), np.nan)
-        S_all = np.full((n, m, m), np.nan)
-        nis = np.full(n, np.nan)
-        dof = np.zeros(n, dtype=np.int64)
+        rec = RunRecord(t, self.nx, self.m, self.store_P)
         w0 = time.perf_counter()
-        for k in range(n):
+        for k in range(len(t)):
             try:
-                x_hat[k] = self.step(t[k], None if U is None else U[k], Y[k])
+                x = self.step(t[k], None if U is None else U[k], Y[k])
             except (np.linalg.LinAlgError, ArithmeticError) as exc:  # a covariance lost definiteness
                 if self.nonfinite_action == "raise":
                     raise FilterDivergedError(f"UKF failed at t={t[k]:.6g} s: {exc}") from exc
                 self.nonfinite, self.diverged = True, True
                 self.diverged_at = self.diverged_at or float(t[k])
-                x_hat[k:] = np.nan
-                if Pst is not None:
-                    Pst[k:] = np.nan
+                rec.fail_from(k)
                 break
-            if Pst is not None:
-                Pst[k] = self._P.diagonal() if self.store_P == "diag" else self._P
-            if self.last_idx is not None:
-                idx = self.last_idx
-                nis[k], dof[k] = self.last_nis, self.last_dof
-                innov[k, idx] = self.last_innovation
-                S_all[k][np.ix_(idx, idx)] = self.last_S
-        wall = time.perf_counter() - w0
-        return EstimationResult(t=t, x_hat=x_hat, P=Pst, innovations=innov, S=S_all, nis=nis, nis_dof=dof,
-                                n_missing=self.n_missing, n_updates=self.n_updates, diverged=self.diverged,
-                                diverged_at=self.diverged_at, nonfinite=self.nonfinite, wall_s=wall,
-                                channels=self.channels)
+            rec.put(k, self, x)
+        return rec.result(self, time.perf_counter() - w0)
