@@ -102,7 +102,7 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     if refine * n_el > MAX_ELEMENTS:
         raise UsageError(f"refine (--refine): {refine} x {n_el} elements is more than {MAX_ELEMENTS} elements "
                          "(dense eigenproblems grow with their cube); expected a smaller factor")
-    check_configurations(mech)  # loops close, away from singularities
+    asm = check_configurations(mech)  # loops close, away from singularities; the branch against the guesses
     if refine > 1:
         mech = refine_mechanism(mech, refine)
     if elements_per_link != "file":
@@ -128,6 +128,8 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
         "fmax_hz": fmax,
         "full": {"ndof": model.n, "n_elastic": model.ne, "frequencies_hz": res.below(fmax).tolist()},
     }
+    if asm is not None:
+        out["assembly"] = asm.as_dict()
     if exudyn:
         from ..groundtruth import exudyn_frequencies  # lazy: Exudyn is heavy and optional here
 
@@ -156,6 +158,8 @@ def _table(rep: dict) -> str:
         (f"full-order ERLS model: {rep['full']['ndof']} dofs ({rep['full']['n_elastic']} elastic), "
         f"{len(full)} modes <= {rep['fmax_hz']:g} Hz"),
     ]
+    if "assembly" in rep:
+        lines.insert(1, rep["assembly"]["summary"])
     if exu is not None:
         ex = rep["exudyn"]
         lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} elements), "
