@@ -13,6 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from .limits import element_count_error, limit_errors
 from .spec import (
     JOINT_KINDS,
     Coordinate,
@@ -390,6 +391,8 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         description=description,
     )
     _check_topology(mech)
+    for fld, expected, got in limit_errors(mech):  # size and conditioning (exuflex.mechanism.limits)
+        raise ModelFileError(source, fld, expected, got)
     return mech
 
 
@@ -429,6 +432,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             if isinstance(v, list):
                 explicit_ids.update(x for x in v if isinstance(x, int))
     next_auto = max(explicit_ids, default=0) + 1
+    n_total = 0  # elements so far
     for r in readers:
         name = r.str("name")
         length = r.num("length", positive=True, unit="m")
@@ -462,7 +466,11 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             st = (0.0,) + tuple(st[1:-1]) + (length,)
         else:
             ne = r.int("n_elements", 1, positive=True)
+            why = element_count_error(n_total + ne)
+            if why is not None:  # before the stations are built
+                raise r.err("n_elements", why + " with the links before it", ne)
             st = tuple(length * i / ne for i in range(ne + 1))
+        n_total += len(st) - 1
         if r.has("nodes"):
             ids = r.raw("nodes")
             if not isinstance(ids, list) or len(ids) != len(st) or not all(
