@@ -6,12 +6,17 @@ noise exactly as the study does (:func:`exuflex.measure.measure`, ``seed``), run
 RMS errors after the start-up, the payload estimate after ``--settle`` s and its normalised error.
 
     python benchmarks/estimators.py models/sixbar.toml DIR --seeds 20 --estimators ekf,ekf-payload
+    python benchmarks/estimators.py models/sixbar.toml DIR --speed 5 --estimators ekf,ekf-payload,ekf-input,ukf
+
+``DIR`` may also be the folder of ``exuflex study payload MODEL --estimators ...`` (its shared ``truth``). With
+``--speed N`` the estimators are timed in turn on one log instead (ratios within one run).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -64,7 +69,7 @@ def main(argv=None) -> int:
         return 0
     if args.from_json:  # tables of earlier runs of this script (no filtering)
         for f in args.from_json.split(","):
-            rows += json.loads(Path(f).read_text())
+            rows += [dict({"model": mech.name}, **r) for r in json.loads(Path(f).read_text())]
     for lvdir in [] if args.from_json else sorted(Path(args.study_dir, "truth").glob("L*")):
         level = json.loads((lvdir / "level.json").read_text())
         scale = float(level.get("level", level).get("payload_scale", 1.0)) if isinstance(level, dict) else 1.0
@@ -96,7 +101,8 @@ def main(argv=None) -> int:
                     m["smoother_backward_s"] = e.smoothed.backward_s
                     m["smoother_wall_s"] = e.smoothed.wall_s
                 mean_nis, exp_nis = e.result.mean_nis(burn_in=int(0.3 * 500))
-                row = {"scale": scale, "estimator": est_name, "seed": seed, "rtf": e.real_time_factor,
+                row = {"model": mech.name, "scale": scale, "estimator": est_name, "seed": seed,
+                       "rtf": e.real_time_factor,
                        "wall_s": wall, "diverged": bool(e.result.diverged), "nis_mean": mean_nis,
                        "nis_expected": exp_nis, "n_nis": int(np.isfinite(e.result.nis[150:]).sum()),
                        **{k: m[k] for k in m}}
@@ -113,8 +119,8 @@ def main(argv=None) -> int:
                     row["theta_nerr_end"] = float(abs(th[-1] - scale) / sd[-1])
                 rows.append(row)
                 print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()
-                                  if k in ("scale", "estimator", "seed", "q3", "dq3", "x25", "theta_end",
-                                                                                      "theta_std_end", "theta_nerr_end", "rtf", "nis_mean")}), flush=True)
+                                  if k in ("scale", "estimator", "seed", "q1", "q3", "dq1", "dq3", "theta_end",
+                                           "theta_std_end", "theta_nerr_end", "rtf", "nis_mean")}), flush=True)
     lines = _table(rows)
     speed = _speed_table(rows)
     if args.doc:
@@ -190,8 +196,21 @@ def _table(rows) -> list[str]:
         lines.append(text)
 
     rows = [r for r in rows if "scale" in r]
+    models = list(dict.fromkeys(r.get("model", "") for r in rows))
+    for model in models:
+        if len(models) > 1:
+            out(f"{model}:")
+        _model_table([r for r in rows if r.get("model", "") == model], out)
+    return lines
+
+
+def _model_table(rows, out) -> None:
     keys = sorted({(r["scale"], r["estimator"]) for r in rows})
-    cols = [c for c in ("q1", "q2", "q3", "dq1", "dq2", "dq3", "x25", "y26") if c in rows[0]]
+    # the joint angles and rates, and the tip's elastic displacements (named by their master dofs)
+    names = [c for c in rows[0] if re.fullmatch(r"(d?q|x|y)\d+", c)]
+    cols = [c for c in names if c.startswith("q")] + [c for c in names if c.startswith("dq")] + \
+        [c for c in names if c[0] in "xy"]
+    late = [c for c in cols if "late_" + c in rows[0]]
     out(f"{'scale':>5s} {'estimator':>12s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
     for sc, en in keys:
         every = [r for r in rows if r["scale"] == sc and r["estimator"] == en]
@@ -200,11 +219,11 @@ def _table(rows) -> list[str]:
         cells = " ".join(f"{np.mean([r[c] for r in rr]):9.3g}" for c in cols)
         out(f"{sc:5.2f} {en:>12s} {len(rr):3d} {len(every) - len(rr):3d} {cells}  "
             f"{np.median([r['rtf'] for r in rr]):5.1f}")
-        if "late_q1" in rr[0]:
+        if late:
             out("      after the settle time: " + ", ".join(
-                f"{c} {np.mean([r['late_' + c] for r in rr]):.3g}" for c in ("q1", "q2", "q3", "dq3", "x25")))
+                f"{c} {np.mean([r['late_' + c] for r in rr]):.3g}" for c in late))
         if "smoothed_q1" in rr[0]:
-            cs = [c for c in ("q1", "q2", "q3", "x25", "y26", "dq1", "dq2", "dq3") if c in rr[0]]
+            cs = [c for c in cols if "smoothed_" + c in rr[0]]
             out("      smoothed / filtered RMS (mean of per-run ratios; worst run): " + ", ".join(
                 f"{c} {np.mean([r['smoothed_' + c] / r[c] for r in rr]):.2f} "
                 f"({np.max([r['smoothed_' + c] / r[c] for r in rr]):.2f})" for c in cs))
@@ -229,7 +248,6 @@ def _table(rows) -> list[str]:
                   f"{np.mean([r['theta_std_end'] for r in rr]):.3f}; within 10 % after settle in {within:.0%} of "
                   f"runs; |err|/std <= 3 at the end in {cons:.0%}")
 
-    return lines
 
 
 if __name__ == "__main__":

@@ -197,6 +197,8 @@ def test_cli_errors(tmp_path, capsys):
     assert main(["study", "sweep", str(MODEL), "--out", str(tmp_path), "--set", "links.L1.diam=0.03"]) == 2
     assert "links.L1.diam" in capsys.readouterr().err
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path), "--runs", "0"]) == 2
+    assert main(["study", "payload", str(MODEL), "--out", str(tmp_path / "e"), "--estimators", "ekf,kalman"]) == 2
+    assert "estimators must be among ekf, ukf, ekf-payload, ekf-input; got kalman" in capsys.readouterr().err
 
 
 def test_studies_script_quick(done_study, tmp_path):
