@@ -40,6 +40,9 @@ else:  # pragma: no cover
     def _jit(f):
         return f
 
+#: the decorator of the filter's compiled code (also :class:`.ekf.ChannelMonitor`'s window arithmetic)
+jit = _jit
+
 
 # --------------------------------------------------------------------------------------------- helpers
 @_jit

@@ -56,7 +56,8 @@ class ObserverConfig:
 
     channels : measured sensor channels used (default :func:`default_channels`).
     masters, n_interior, q_star, ranking : the reduction (default: the model file's).
-    h : longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
+    h : longest RK4 sub-step (s); None (default): from the reduced model's spectrum
+        (:meth:`.reduced.ReducedObserverModel.substeps`).
     dt : nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
         time stamp.
     method : ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
@@ -93,7 +94,7 @@ class ObserverConfig:
     n_interior: int | str | None = None
     q_star: tuple[float, ...] | None = None
     ranking: str = "imr"
-    h: float = 1e-4
+    h: float | None = None
     dt: float | None = None
     method: str = "cached"
     q0_std: float = 0.05
