@@ -762,21 +762,24 @@ class MultirateEKF:
                                                     self._HP, r, S, x_new, P_new, self._floor)
         if not ok:
             nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
-        z = r / np.sqrt(np.abs(S.diagonal()))
+        z = np.empty(m)
+        n_over = kalman.normalise(r, S, self._gate, z)
         self._held = self._holdoff > 0
         if self._held:
             self._holdoff -= 1
-            rej = np.zeros(m, dtype=bool)
+            n_over = 0
             if self.faults is not None:
                 self.faults.seen(self._t_now, idx)
-        else:
-            if self.faults is not None:
-                self.faults.push(self._t_now, idx, z)
+        elif self.faults is not None:
+            self.faults.push(self._t_now, idx, z)
+        rej = None
+        if n_over:
             rej = z * z > self._gate
         if self.isolate and self.faults is not None and self.faults._open:
             # isolation: a channel with an open sensor fault stays out until its innovations are back in band
-            rej |= self.faults.suspect()[idx]
-        if rej.any():
+            sus = self.faults.suspect()[idx]
+            rej = sus if rej is None else rej | sus
+        if rej is not None and rej.any():
             n_rej = int(np.count_nonzero(rej))
             if 2 * n_rej < m:  # a minority of the channels is off: those sensors, not the filter
                 keep = ~rej

@@ -49,6 +49,7 @@ the measured elastic quantity per radian, far below the sensor noise).
 from __future__ import annotations
 
 import math
+from operator import mul
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -66,6 +67,7 @@ from .expansion import (
     held_system,
     map_lookahead,
     prediction_error,
+    secant_rows,
     step_jacobian,
     step_maps,
     step_maps_noise,
@@ -134,8 +136,8 @@ def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
     if iv.old is None:
         return 0.0
     v = dl.tolist()
-    a = sum(x * y for x, y in zip(v, iv.d_list))
-    n2 = sum(x * x for x in v)
+    a = sum(map(mul, v, iv.d_list))
+    n2 = sum(map(mul, v, v))
     if a * a < 0.49 * n2 * iv.dd:
         return 0.0
     return a / iv.dd
@@ -566,11 +568,11 @@ class ReducedObserverModel:
         x = np.asarray(x, float)
         iv = self._measurement_interval(x)
         c0, Hm, dH = self._secant_rows(iv, tuple(channels))
-        if dH is not None:
-            s = _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
-            if s:
-                Hm = Hm + s * dH
-        return Measurement(c0 + Hm @ x, Hm)
+        s = 0.0 if dH is None else _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
+        H = np.empty_like(Hm)
+        y = np.empty(len(c0))
+        secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
+        return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_affine`, cached per interval (keeping the entries of the held configurations only, once the
