@@ -453,9 +453,9 @@ def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
     if ni is not None and ni != "auto" and (isinstance(ni, bool) or not isinstance(ni, (int, np.integer))
                                             or ni < 0):
         raise UsageError(f"n_interior (--n-interior): expected a non-negative integer or 'auto', got {ni!r}")
-    h = None if config.h is None else check_positive(config.h, "h", "--substep")
+    h = check_positive(config.h, "h", "--substep")
     dt = check_positive(config.dt, "dt") if config.dt is not None else 1.0 / mech.sample_rate_hz
-    if h is not None and h > dt * (1 + 1e-9):
+    if h > dt * (1 + 1e-9):
         raise UsageError(f"h (--substep): the RK4 sub-step {h:g} s is longer than the sample interval {dt:g} s")
     for name, flag in (("q0_std", "--q0-std"), ("qd0_std", "--qd0-std"), ("elastic0_std", "--elastic0-std"),
                        ("elastic_rate0_std", "--elastic-rate0-std"), ("q_scale", "--q-scale")):

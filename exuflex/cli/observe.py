@@ -78,9 +78,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     r.add_argument("--n-interior", type=_n_interior, default=None, help="interior modes: a number or 'auto'")
     r.add_argument("--method", choices=("cached", "rk4"), default="cached",
                    help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)")
-    r.add_argument("--substep", type=positive_float, default=None,
-                   help="longest RK4 sub-step of the filter's prediction (s; default: from the reduced model's "
-                   "spectrum, stable on every mode and accurate on the modes of its band)")
+    r.add_argument("--substep", type=positive_float, default=1e-4,
+                   help="RK4 sub-step of the filter's prediction (s, default 1e-4)")
     t = p.add_argument_group("tuning (docs/tuning.md)")
     t.add_argument("--q0", type=_floats, help="initial joint angles Q1,Q2,... (rad; default: the manoeuvre's "
                    "start, else the model's q_ref); elastic coordinates at rest")

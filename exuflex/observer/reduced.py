@@ -18,12 +18,9 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
 - ``"rk4"`` (the exact reference): the configuration evaluated at every interval and every RK4 stage at its own
   state; the Jacobian and process noise of the interval's start.
 
-Sub-steps: ``n`` is the smallest count whose sub-steps are stable, with a margin, on every eigenvalue of the held
-linear system (``|R(1.25 h lambda)| <= 1``, :func:`rk4_substep_limit`) and accurate on the modes the reduction
-keeps for their accuracy, those within its band (``h |lambda| <= 0.5``: RK4's relative error per sub-step,
-about ``(h |lambda|)^5 / 120``, at most 2.6e-4), and no longer than ``h`` if one is given
-(:func:`rk4_substep`); the spectrum is recomputed at every configuration evaluation. Modes beyond the band
-are integrated stably but not accurately: the reduction does not claim them either. A model whose stiffest mode needs sub-steps shorter
+Sub-steps: ``n`` is the smallest count with sub-steps no longer than ``h`` for which RK4 is stable, with a
+margin, on every eigenvalue of the held linear system (``|R(1.25 h lambda)| <= 1``, :func:`rk4_substep_limit`);
+the spectrum is recomputed at every configuration evaluation. A model whose stiffest mode needs sub-steps shorter
 than ``min_substep`` is refused with the mode's frequency (a master set with a stiff Guyan mode); a long interval
 (a gap in the log) just takes more sub-steps.
 
@@ -49,9 +46,9 @@ the measured elastic quantity per radian, far below the sensor noise).
 from __future__ import annotations
 
 import math
-from operator import mul
 from collections.abc import Sequence
 from dataclasses import dataclass
+from operator import mul
 
 import numpy as np
 from scipy.stats import chi2
@@ -112,21 +109,6 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
-#: largest ``h |lambda|`` of an RK4 sub-step on a mode within the reduction's band (accuracy, not stability)
-BAND_ACCURACY = 0.5
-
-
-def rk4_substep(lam: np.ndarray, band_rad: float, h_max: float | None = None) -> float:
-    """Longest RK4 sub-step for the spectrum ``lam``: stable on every mode (:func:`rk4_substep_limit`), with
-    ``h |lambda| <= BAND_ACCURACY`` on the modes with ``|lambda| <= band_rad`` (rad/s), at most ``h_max``."""
-    h = rk4_substep_limit(lam)
-    w = np.abs(lam)
-    w = w[w <= band_rad]
-    if w.size and w.max() > 0.0:
-        h = min(h, BAND_ACCURACY / float(w.max()))
-    return h if h_max is None else min(h, h_max)
-
-
 def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
     """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved.
 
@@ -167,7 +149,7 @@ class _Held:
     theta0: np.ndarray  # link angles at q0
     serial: int  # identifies the configuration in the measurement-row cache
     forces: object = None  # QuadraticForces at q0
-    h_stable: float | None = None  # longest RK4 sub-step at q0 (:func:`rk4_substep`)
+    h_stable: float | None = None  # longest stable RK4 sub-step at q0 (:func:`rk4_substep_limit`)
     Ca: np.ndarray | None = None  # C_r - beta K_r at q0
     old: _Held | None = None  # secant partner: the previous held configuration
     d: np.ndarray | None = None  # q0 - old.q0
@@ -185,8 +167,8 @@ class ReducedObserverModel:
     Parameters
     ----------
     reduced : ReducedModel or CraigBampton
-    h : float or None
-        Longest RK4 sub-step (s); None (default): from the spectrum alone (see :meth:`substeps`).
+    h : float
+        Longest RK4 sub-step (s), default 1e-4 (the paper's); shorter where stability needs it.
     method : {"cached", "rk4"}
         The default cached step or the exact reference (see the module docstring).
     torque_std : sequence of float, optional
@@ -215,7 +197,7 @@ class ReducedObserverModel:
     torque_var : variances of the measured torques (the process noise's), per motor.
     """
 
-    def __init__(self, reduced, h: float | None = None, method: str = "cached", torque_std=None, q_extra=None,
+    def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
                  jump_p: float | None = None, min_substep: float = 2e-6, refresh_tol: float = 3e-2,
                  refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_rad: float = 2e-3,
                  dt_tol: float = 1e-3):
@@ -223,16 +205,15 @@ class ReducedObserverModel:
             reduced = ReducedModel(reduced)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        if h is not None and not (h > 0 and math.isfinite(h)):
-            raise ValueError(f"h must be a positive number of seconds or None, got {h}")
+        if not (h > 0 and math.isfinite(h)):
+            raise ValueError(f"h must be a positive number of seconds, got {h}")
         self.rm = reduced
         self.model = reduced.model
         self.mech = self.model.mech
         self.nq = reduced.nq
         self.r = reduced.r
         self.nx = 2 * reduced.r
-        self.h = None if h is None else float(h)
-        self.band_rad = 2 * math.pi * float(reduced.cb.band_hz)
+        self.h = float(h)
         self.method = method
         self.min_substep = float(min_substep)
         self.refresh_tol = float(refresh_tol)
@@ -304,9 +285,9 @@ class ReducedObserverModel:
         return np.linalg.eigvals(A)
 
     def substeps(self, iv: _Held, dt: float) -> int:
-        """RK4 sub-steps over an interval of ``dt`` at the configuration ``iv``: stable on the configuration's
-        spectrum, accurate on its in-band modes, at most ``h`` (:func:`rk4_substep`); an error naming the
-        stiffest mode if stability needs sub-steps shorter than ``min_substep``."""
+        """RK4 sub-steps over an interval of ``dt`` at the configuration ``iv``: each at most ``h`` long and
+        stable on the configuration's spectrum (:func:`rk4_substep_limit`); an error naming the stiffest mode if
+        stability needs sub-steps shorter than ``min_substep``."""
         if iv.h_stable is None:
             lam = self._spectrum(iv.mats)
             h_stable = rk4_substep_limit(lam)
@@ -316,8 +297,8 @@ class ReducedObserverModel:
                     f"the reduced model's stiffest mode (|lambda| = {w:.4g} 1/s, {w / (2 * np.pi):.4g} Hz) needs RK4 "
                     f"sub-steps of at most {h_stable:.3g} s, shorter than min_substep={self.min_substep:g} s. A "
                     "master dof with a stiff Guyan mode (e.g. an axial one) causes this: choose other masters")
-            iv.h_stable = rk4_substep(lam, self.band_rad, self.h)
-        return max(1, math.ceil(dt / iv.h_stable - 1e-9))
+            iv.h_stable = h_stable
+        return max(1, math.ceil(dt / min(self.h, iv.h_stable) - 1e-9))
 
     def frozen_interval(self, z: np.ndarray, u, dt: float) -> tuple[Prediction, _Held, _StepMap]:
         """The configuration evaluated at ``z`` and held over the interval: the linear system with the forces at

@@ -56,8 +56,7 @@ class ObserverConfig:
 
     channels : measured sensor channels used (default :func:`default_channels`).
     masters, n_interior, q_star, ranking : the reduction (default: the model file's).
-    h : longest RK4 sub-step (s); None (default): from the reduced model's spectrum
-        (:meth:`.reduced.ReducedObserverModel.substeps`).
+    h : longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
     dt : nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
         time stamp.
     method : ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
@@ -94,7 +93,7 @@ class ObserverConfig:
     n_interior: int | str | None = None
     q_star: tuple[float, ...] | None = None
     ranking: str = "imr"
-    h: float | None = None
+    h: float = 1e-4
     dt: float | None = None
     method: str = "cached"
     q0_std: float = 0.05
@@ -288,7 +287,8 @@ def _torque_step_test(torque_var, p: float):
     thr = float(chi2.ppf(1.0 - p, len(w)))
 
     def test(u0, u1) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
-        return sum((b - a) ** 2 * wi for a, b, wi in zip(np.asarray(u0, float).tolist(), np.asarray(u1, float).tolist(), w, strict=True)) > thr
+        d = zip(np.asarray(u0, float).tolist(), np.asarray(u1, float).tolist(), w, strict=True)
+        return sum((b - a) ** 2 * wi for a, b, wi in d) > thr
 
     return test
 
