@@ -45,7 +45,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -145,7 +145,7 @@ class StudySpec:
     duration: float | None = None  # None: the manoeuvre's
     h: float = 1e-4
     start_up: float | None = None  # None: min(observer.start_up, duration / 4)
-    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    observer: ObserverConfig | None = None  # None: ObserverConfig.for_model(the nominal model)
     kind: str = "payload"
 
     def settings(self, duration: float, start_up: float) -> dict:
@@ -158,7 +158,7 @@ class StudySpec:
             "duration_s": duration,
             "h_s": self.h,
             "start_up_s": start_up,
-            "observer": self.observer.as_dict(),
+            "observer": None if self.observer is None else self.observer.as_dict(),
             "computed_torque_model": "rigid ERLS, nominal model (the controller's knowledge)",
             "observer_model": "nominal model",
         }
@@ -577,6 +577,8 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     from ..validate import check_configurations
 
     check_configurations(nominal)  # loops close, away from singularities
+    if spec.observer is None:  # the model file's [observer] table over the defaults
+        spec = dataclasses.replace(spec, observer=ObserverConfig.for_model(nominal))
     if spec.runs < 1:
         raise ValueError(f"runs must be at least 1, got {spec.runs}")
     if not spec.levels:
