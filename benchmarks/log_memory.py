@@ -7,7 +7,9 @@ until ``sensors.csv`` reaches ``--mb`` megabytes; no truth. Each measurement run
 - ``read``: :func:`exuflex.runs.read_run` alone, peak traced allocations (``tracemalloc``) and the process's peak
   resident set (``ru_maxrss``) against its resident set before reading;
 - ``observe``: ``exuflex observe models/sixbar.toml RUN --json`` under ``/usr/bin/time -v`` (maximum resident set
-  size, wall time), with ``--observe``.
+  size, wall time), with ``--observe``;
+- what the observer holds per log row (the filter's per-sample record and the physical estimates), counted from
+  the arrays of a run on the 3 s log.
 
 Usage: ``python benchmarks/log_memory.py [--mb 200] [--observe] [--keep DIR]``.
 """
@@ -108,6 +110,29 @@ def measure_observe(run_dir: Path) -> dict:
             "stderr_tail": tail}
 
 
+def record_bytes_per_sample() -> dict:
+    """Bytes per log row of what ``observe`` holds besides the log, counted from the arrays of a run of the
+    observer on the 3 s log (they grow linearly with the rows): the filter's per-sample record
+    (:class:`exuflex.observer.ekf.EstimationResult`) and the physical estimates."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import ObserverConfig, observe_run
+    from exuflex.runs import read_run
+
+    mech = load_mechanism(MODEL)
+    run = read_run(SOURCE_RUN)
+    out = observe_run(mech, run, ObserverConfig())
+    res = out.estimate.result
+    n = len(res.t)
+    parts = {"log (sensors.csv as float64)": run.sensors.data.nbytes + run.sensors.t.nbytes}
+    for name in ("x_hat", "P", "innovations", "S", "nis", "nis_dof"):
+        a = getattr(res, name, None)
+        if a is not None:
+            parts[f"filter record: {name} {tuple(a.shape[1:])}"] = a.nbytes
+    phys = out.estimate.physical
+    parts[f"physical estimates ({len(phys.names)} columns)"] = phys.data.nbytes
+    return {k: v / n for k, v in parts.items()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mb", type=float, default=200.0, help="size of sensors.csv (MB, default 200)")
@@ -120,6 +145,7 @@ def main(argv=None) -> int:
         made = make_log(tmp, args.mb)
         rd = measure_read(tmp)
         obs = measure_observe(tmp) if args.observe else None
+        per_row = record_bytes_per_sample()
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -147,6 +173,14 @@ def main(argv=None) -> int:
         lines.append(f"| `exuflex observe ... --json`: maximum resident set size, wall time (exit {obs['exit']}) | "
                      f"{obs['maxrss_kb'] / 1e3:.0f} MB ({obs['maxrss_kb'] * 1e3 / made['bytes']:.2f} x the file), "
                      f"{obs['wall_s']:.0f} s |")
+    row_bytes = made["bytes"] / made["rows"]
+    lines += ["", f"What `observe` holds per log row besides the process itself (the text is {row_bytes:.0f} bytes a "
+              "row), counted from the arrays of a run on the 3 s log:", "", "| array | bytes per row | x the text |",
+              "|---|---|---|"]
+    for k, v in per_row.items():
+        lines.append(f"| {k} | {v:.0f} | {v / row_bytes:.2f} |")
+    tot = sum(per_row.values())
+    lines.append(f"| total | {tot:.0f} | {tot / row_bytes:.2f} |")
     lines += ["", "Figures of one run on a shared machine; memory figures do not depend on its load.", ""]
     Path(args.doc).write_text("\n".join(lines))
     print("\n".join(lines))
