@@ -149,3 +149,14 @@ def test_cli_dialect_errors_are_one_line(tmp_path, capsys, argv, phrase):
     assert main(["observe", SIXBAR, str(log), *argv]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and phrase in err
+
+
+def test_plot_reads_a_european_lab_csv(tmp_path, capsys):
+    """The same log as the run folder's, written with ';' between cells and ',' as decimal mark."""
+    euro = tmp_path / "euro.csv"
+    lines = (RUN / "sensors.csv").read_text().splitlines()
+    euro.write_text("\n".join(ln.replace(",", ";").replace(".", ",") for ln in lines) + "\n")
+    assert main(["plot", SIXBAR, str(euro), "--delimiter", "semicolon", "--decimal", ","]) == 0
+    assert (tmp_path / "euro_figures" / "fig_measurements.png").exists()
+    assert main(["plot", SIXBAR, str(euro)]) == 2
+    assert "the header has no ',' but ';'" in capsys.readouterr().err

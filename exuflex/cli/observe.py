@@ -63,6 +63,15 @@ def _delimiter(text: str) -> str:
     return DELIMITER_NAMES.get(text.lower() if len(text) > 1 else text, text)
 
 
+def add_dialect_arguments(g) -> None:
+    """``--delimiter`` and ``--decimal`` of a lab CSV log (and its ``--truth``), for ``observe`` and ``plot``."""
+    g.add_argument("--delimiter", type=_delimiter, default=",",
+                   help="field separator of a CSV log and --truth: one character, or tab, semicolon, pipe, "
+                        "space (default ,)")
+    g.add_argument("--decimal", default=".", help="decimal mark of a CSV log and --truth: . (default) or , "
+                   "(with another --delimiter, e.g. ';')")
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("observe", help="estimate the states of a logged run with the reduced-order EKF",
                        description=__doc__.split("\n")[0])
@@ -75,11 +84,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--time-column", default="time", help="the time column (default time)")
     g.add_argument("--time-scale", type=positive_float, default=1.0,
                    help="multiplies the time column, e.g. 1e-3 for milliseconds")
-    g.add_argument("--delimiter", type=_delimiter, default=",",
-                   help="field separator of the CSV log and --truth: one character, or tab, semicolon, pipe, "
-                        "space (default ,)")
-    g.add_argument("--decimal", default=".", help="decimal mark of the CSV log and --truth: . (default) or , "
-                   "(with another --delimiter, e.g. ';')")
+    add_dialect_arguments(g)
     g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
     p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
