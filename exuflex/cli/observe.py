@@ -55,6 +55,23 @@ def _noise(text: str) -> dict[str, float]:
     return out
 
 
+def _delimiter(text: str) -> str:
+    """A delimiter flag: one character, or a name such as ``tab`` (:data:`exuflex.runs.DELIMITER_NAMES`);
+    checked with the decimal mark by :func:`exuflex.runs.check_csv_dialect`."""
+    from ..runs import DELIMITER_NAMES
+
+    return DELIMITER_NAMES.get(text.lower() if len(text) > 1 else text, text)
+
+
+def add_dialect_arguments(g) -> None:
+    """``--delimiter`` and ``--decimal`` of a lab CSV log (and its ``--truth``), for ``observe`` and ``plot``."""
+    g.add_argument("--delimiter", type=_delimiter, default=",",
+                   help="field separator of a CSV log and --truth: one character, or tab, semicolon, pipe, "
+                        "space (default ,)")
+    g.add_argument("--decimal", default=".", help="decimal mark of a CSV log and --truth: . (default) or , "
+                   "(with another --delimiter, e.g. ';')")
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("observe", help="estimate the states of a logged run with the reduced-order EKF",
                        description=__doc__.split("\n")[0])
@@ -67,6 +84,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--time-column", default="time", help="the time column (default time)")
     g.add_argument("--time-scale", type=positive_float, default=1.0,
                    help="multiplies the time column, e.g. 1e-3 for milliseconds")
+    add_dialect_arguments(g)
     g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
     p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
@@ -154,12 +172,14 @@ def _read_log(args, mech):
             mapping.setdefault(m, m)
     else:
         mapping = None
-    sig = read_csv_log(args.run_dir, mapping, time_column=args.time_column, time_scale=args.time_scale)
+    sig = read_csv_log(args.run_dir, mapping, time_column=args.time_column, time_scale=args.time_scale,
+                       delimiter=args.delimiter, decimal=args.decimal)
     motors = [m for m in mech.motor_names if m in sig]
     if len(motors) != len(mech.motor_names):
         raise LogFormatError(f"{args.run_dir}: the observer needs the measured torques {list(mech.motor_names)}; "
                              f"the log has {list(sig.names)} (use --map)")
-    truth = read_csv_log(args.truth, time_column="time") if args.truth else None
+    truth = read_csv_log(args.truth, time_column="time", delimiter=args.delimiter,
+                         decimal=args.decimal) if args.truth else None
     sensors = [n for n in sig.names if n not in motors and n in names]
     meta = {"engine": "csv", "source": str(args.run_dir), "motors": motors, "sensors": sensors}
     return Run(Path(args.run_dir), sig, truth, meta)
@@ -187,7 +207,7 @@ def run(args) -> int:
     from ..errors import UsageError
     from ..mechanism import load_mechanism
     from ..observer.session import make_observer, observe_run
-    from ..runs import read_run
+    from ..runs import check_csv_dialect, read_run
     from ..validate import check_configurations, check_observer_settings, with_noise
 
     mech = load_mechanism(args.model)
@@ -197,6 +217,7 @@ def run(args) -> int:
     if args.smooth and config.estimator == "ukf":
         raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
+    check_csv_dialect(args.delimiter, args.decimal)
     for flag, v in (("--q0", args.q0), ("--qd0", args.qd0)):
         if v is not None and len(v) != len(mech.coordinates):
             raise UsageError(f"{flag}: expected {len(mech.coordinates)} values ({', '.join(mech.coordinate_names)}), "
