@@ -13,7 +13,9 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from .limits import element_count_error, limit_errors
 from .spec import (
+    ESTIMATOR_NAMES,
     JOINT_KINDS,
     Coordinate,
     Damping,
@@ -25,12 +27,13 @@ from .spec import (
     Material,
     Mechanism,
     Motor,
+    ObserverSpec,
     ReductionSpec,
     Section,
     Sensor,
 )
 
-__all__ = ["ModelFileError", "load_manoeuvre", "load_mechanism", "parse_mechanism", "read_samples"]
+__all__ = ["RESERVED_COLUMNS", "ModelFileError", "column_name_problem", "load_manoeuvre", "load_mechanism", "parse_mechanism", "read_samples"]
 
 SENSOR_KINDS = ("encoder", "slider", "curvature", "tip_x", "tip_y")
 TIME_LAWS = ("trapezoid", "quintic", "cycloidal")
@@ -80,6 +83,15 @@ class _Reader:
             return v
         if not isinstance(v, str) or not v:
             raise self.err(key, "a non-empty string", v)
+        return v
+
+    def column(self, key: str) -> str:
+        """A name that becomes a CSV column header of the run files (sensor, motor, coordinate):
+        see :func:`column_name_problem`."""
+        v = self.str(key)
+        why = column_name_problem(v)
+        if why is not None:
+            raise self.err(key, f"a name usable as a CSV column header ({why})", v)
         return v
 
     def num(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None, unit="") -> float:
@@ -133,12 +145,43 @@ class _Reader:
             raise self.err(key, "a table", v)
         return _Reader(self.source, v, self._f(key))
 
+    def check_unknown_of(self, known) -> None:
+        """Like :meth:`check_unknown`, with ``known`` the keys the table may have (some of them optional)."""
+        extra = sorted(set(self.table) - set(known))
+        if extra:
+            raise ModelFileError(self.source, self._f(extra[0]), f"one of the known keys {sorted(known)}", extra[0])
+
     def check_unknown(self) -> None:
         extra = sorted(set(self.table) - self.used)
         if extra:
             raise ModelFileError(
                 self.source, self._f(extra[0]), f"one of the known keys {sorted(self.used)}", extra[0]
             )
+
+
+RESERVED_COLUMNS = ("time",)
+"""Names the run files use themselves (the time column of ``sensors.csv`` and ``truth.csv``)."""
+
+
+def column_name_problem(name: str) -> str | None:
+    """None if ``name`` can be a column of the run files' CSV header (``time,q1,...``, read back by splitting
+    at commas and stripping each cell), else what is wrong: a comma or a double quote (CSV syntax), a control
+    character such as a newline or a tab (the header is one line), a name that is blank or has leading or
+    trailing spaces (stripped on reading, it would not match), or a reserved name (:data:`RESERVED_COLUMNS`)."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return "valid Unicode text (the run files are UTF-8)"
+    if not name.strip():
+        return "not blank"
+    if name != name.strip():
+        return "no leading or trailing spaces"
+    bad = sorted({c for c in name if c in ',"' or ord(c) < 32 or ord(c) == 127})
+    if bad:
+        return f"no comma, double quote or control character such as a newline; it has {bad}"
+    if name in RESERVED_COLUMNS:
+        return f"not {name!r}, the run files' time column"
+    return None
 
 
 def load_mechanism(path: str | Path) -> Mechanism:
@@ -247,12 +290,12 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         v = r.table.get("joint")
         if not r.has("link") and isinstance(v, str) and v in joint_by and joint_by[v].kind == "prismatic":
             # the slider position along its axis
-            c = Coordinate(r.str("name"), joint_by[v].points[0].link, joint_ref(r, "joint"), None,
+            c = Coordinate(r.column("name"), joint_by[v].points[0].link, joint_ref(r, "joint"), None,
                            r.num("offset", 0.0, unit="m"), "slide")
         else:
             lk = link_ref(r, "link")
             c = Coordinate(
-                r.str("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
+                r.column("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
             )
         if c.relative_to is not None and c.relative_to not in [p.link for p in joint_by[c.joint].points]:
             raise r.err("relative_to", f"a link at joint {c.joint!r}", c.relative_to)
@@ -266,7 +309,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
     for r in root.table_list("motors", required=False):
         lk = link_ref(r, "link")
         m = Motor(
-            r.str("name"),
+            r.column("name"),
             joint_ref(r, "joint", lk),
             lk,
             link_ref(r, "reaction", None),
@@ -332,14 +375,14 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             station = point(r, "any").station
         sensors.append(
             Sensor(
-                r.str("name"), kind, lk, joint, station, rel,
+                r.column("name"), kind, lk, joint, station, rel,
                 r.num("noise_std", 0.0, nonneg=True),
                 r.num("full_scale", None, positive=True),
                 r.num("rate_hz", None, positive=True, unit="Hz"),
             )
         )
         r.check_unknown()
-    _unique(source, "sensors", [s.name for s in sensors] + [m.name for m in motors])
+    _unique(source, "sensors", [s.name for s in sensors], {m.name: f"motors[{i}]" for i, m in enumerate(motors)})
 
     nq = len(coords)
     q_ref: tuple[float, ...] = ()
@@ -369,6 +412,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             red.num("freq_error_max_pct", 2.0, positive=True, unit="%"),
         )
         red.check_unknown()
+    observer = _parse_observer(root.sub("observer"), [s.name for s in sensors])
     root.check_unknown()
 
     mech = Mechanism(
@@ -385,11 +429,14 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         q_ref=q_ref,
         manoeuvre=manoeuvre,
         reduction=reduction,
+        observer=observer,
         sample_rate_hz=sample_rate,
         gravity=tuple(gravity),
         description=description,
     )
     _check_topology(mech)
+    for fld, expected, got in limit_errors(mech):  # size and conditioning (exuflex.mechanism.limits)
+        raise ModelFileError(source, fld, expected, got)
     return mech
 
 
@@ -408,12 +455,17 @@ def _point(r: _Reader, link_by: dict, where: str) -> LinkPoint:
     return LinkPoint(lk.name, s)
 
 
-def _unique(source: str, field: str, names: list[str]) -> None:
-    seen = set()
-    for n in names:
+def _unique(source: str, field: str, names: list[str], others: dict[str, str] | None = None) -> None:
+    """Each of ``field``'s entry names used once, and not one of ``others`` (name -> its field): names that
+    share a CSV header (sensors and motors in ``sensors.csv``)."""
+    seen = dict(others or {})
+    for i, n in enumerate(names):
         if n in seen:
-            raise ModelFileError(source, field, "unique names (sensor, motor and coordinate names may not repeat)", n)
-        seen.add(n)
+            raise ModelFileError(source, f"{field}[{i}].name",
+                                 f"a name not used by {seen[n]} (sensor and motor names are the columns of "
+                                 "sensors.csv and may not repeat)" if field != "coordinates"
+                                 else f"a name not used by {seen[n]}", n)
+        seen[n] = f"{field}[{i}]"
 
 
 def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, ...]:
@@ -429,6 +481,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             if isinstance(v, list):
                 explicit_ids.update(x for x in v if isinstance(x, int))
     next_auto = max(explicit_ids, default=0) + 1
+    n_total = 0  # elements so far
     for r in readers:
         name = r.str("name")
         length = r.num("length", positive=True, unit="m")
@@ -462,7 +515,11 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             st = (0.0,) + tuple(st[1:-1]) + (length,)
         else:
             ne = r.int("n_elements", 1, positive=True)
+            why = element_count_error(n_total + ne)
+            if why is not None:  # before the stations are built
+                raise r.err("n_elements", why + " with the links before it", ne)
             st = tuple(length * i / ne for i in range(ne + 1))
+        n_total += len(st) - 1
         if r.has("nodes"):
             ids = r.raw("nodes")
             if not isinstance(ids, list) or len(ids) != len(st) or not all(
@@ -488,6 +545,57 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
 
 MASTERS_EXPECTED = ("a list of elastic dof names such as 'x14', 'node8.x', 'node8.theta' or 'node8.transverse', "
                     "or points { link, station, direction } with direction axial, transverse or theta")
+
+
+def _parse_observer(obs: _Reader | None, sensor_names: list[str]) -> ObserverSpec:
+    """The ``[observer]`` table (:class:`ObserverSpec`): each key type- and range-checked here, so that a bad
+    value is an error naming the file and ``observer.<key>`` before anything runs."""
+    if obs is None:
+        return ObserverSpec()
+    kw: dict[str, Any] = {}
+    if obs.has("channels"):
+        ch = obs.raw("channels")
+        if not isinstance(ch, list) or not ch or not all(isinstance(c, str) for c in ch):
+            raise obs.err("channels", "a non-empty list of sensor names", ch)
+        for i, c in enumerate(ch):
+            if c not in sensor_names:
+                raise obs.err(f"channels[{i}]", f"one of the model's sensors {sensor_names}", c)
+            if c in ch[:i]:
+                raise obs.err(f"channels[{i}]", "a sensor not listed before", c)
+        kw["channels"] = tuple(ch)
+    if obs.has("method"):
+        kw["method"] = obs.str("method")
+        if kw["method"] not in ("cached", "rk4"):
+            raise obs.err("method", '"cached" or "rk4"', kw["method"])
+    if obs.has("estimator"):
+        kw["estimator"] = obs.str("estimator")
+        if kw["estimator"] not in ESTIMATOR_NAMES:
+            raise obs.err("estimator", f"one of {list(ESTIMATOR_NAMES)}", kw["estimator"])
+    for key, unit in (("h", "s"), ("q0_std", "rad"), ("qd0_std", "rad/s"), ("elastic0_std", ""),
+                      ("elastic_rate0_std", ""), ("q_scale", ""), ("max_gap", "s")):
+        if obs.has(key):
+            kw[key] = obs.num(key, positive=True, unit=unit)
+    for key, unit in (("q_extra_std", ""), ("start_up", "s"), ("fault_holdoff_s", "s")):
+        if obs.has(key):
+            kw[key] = obs.num(key, nonneg=True, unit=unit)
+    for key in ("gate_p", "fault_p"):
+        if obs.has(key):
+            v = obs.num(key)
+            if not 0.0 < v < 0.5:
+                raise obs.err(key, "a false-alarm probability in (0, 0.5)", v)
+            kw[key] = v
+    if obs.has("fault_window"):
+        w = obs.int("fault_window")
+        if w != 0 and w < 2:
+            raise obs.err("fault_window", "0 (no sensor-fault tests) or an integer >= 2 (samples)", w)
+        kw["fault_window"] = w
+    if obs.has("fault_isolation"):
+        v = obs.raw("fault_isolation")
+        if not isinstance(v, bool):
+            raise obs.err("fault_isolation", "true or false", v)
+        kw["fault_isolation"] = v
+    obs.check_unknown_of(ObserverSpec.__dataclass_fields__)
+    return ObserverSpec(**kw)
 
 
 def _master_name(red: _Reader, i: int, m: Any, link_by) -> str:

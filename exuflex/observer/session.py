@@ -125,6 +125,12 @@ class ObserverConfig:
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
 
+    @classmethod
+    def for_model(cls, mech: Mechanism, **overrides) -> ObserverConfig:
+        """The settings for ``mech``: the defaults, then its model file's ``[observer]`` table
+        (:class:`exuflex.mechanism.ObserverSpec`), then ``overrides`` (e.g. command-line options)."""
+        return cls(**{**mech.observer.settings(), **overrides})
+
 
 def physical_names(mech: Mechanism) -> tuple[str, ...]:
     """Names of the physical estimates: exactly the truth columns (:func:`exuflex.sensors.truth_names`)."""
@@ -217,12 +223,13 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     """Build the reduced model and the EKF for ``mech``.
 
     ``x0`` is the prior mean (reduced state); default: at rest at the manoeuvre's start, else q_ref.
-    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers.
+    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers. Without ``config``:
+    :meth:`ObserverConfig.for_model` (the model file's ``[observer]`` table over the defaults).
     """
     from ..validate import check_mechanism_argument, check_observer_settings
 
     check_mechanism_argument(mech)
-    config = config or ObserverConfig()
+    config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
     t0 = time.perf_counter()
     model = model or (cb.model if cb is not None else ErlsModel(mech))
@@ -288,12 +295,12 @@ def _torque_step_test(torque_var, p: float):
     one degree of freedom per motor on ``(u1 - u0)**2 / (2 var)``, false-alarm probability ``p``)."""
     from scipy.stats import chi2
 
-    w = 0.5 / np.asarray(torque_var, float).reshape(-1)
+    w = (0.5 / np.asarray(torque_var, float).reshape(-1)).tolist()
     thr = float(chi2.ppf(1.0 - p, len(w)))
 
-    def test(u0, u1) -> bool:
-        d = np.asarray(u1, float) - np.asarray(u0, float)
-        return bool((d * d) @ w > thr)
+    def test(u0, u1) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
+        d = zip(np.asarray(u0, float).tolist(), np.asarray(u1, float).tolist(), w, strict=True)
+        return sum((b - a) ** 2 * wi for a, b, wi in d) > thr
 
     return test
 
@@ -577,7 +584,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             hasattr(run, "__fspath__") else ""
         raise UsageError(f"run: expected an exuflex.runs.Run, got {type(run).__name__}{hint}")
     say = report or (lambda msg: log.info("%s", msg))
-    config = config or ObserverConfig()
+    config = config or ObserverConfig.for_model(mech)
     obs = observer or make_observer(mech, config)
     log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
     say(f"channels: {log_check.availability()}; log interval {log_check.interval_s * 1e3:.4g} ms"

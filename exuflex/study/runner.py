@@ -45,19 +45,19 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import UsageError
-from ..mechanism import Mechanism, load_mechanism
+from ..mechanism import Mechanism, ModelFileError, load_mechanism
 from ..observer.session import ObserverConfig
 from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
 from ..sensors import ABSOLUTE_TIP_NAMES, Signals
 from ..truth import Drive, TruthRecord, plan_drive, simulate
-from .overrides import apply_overrides
+from .overrides import OverrideError, apply_overrides
 
 __all__ = [
     "FORMAT",
@@ -147,7 +147,7 @@ class StudySpec:
     duration: float | None = None  # None: the manoeuvre's
     h: float = 1e-4
     start_up: float | None = None  # None: min(observer.start_up, duration / 4)
-    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    observer: ObserverConfig | None = None  # None: ObserverConfig.for_model(the nominal model)
     kind: str = "payload"
 
     def settings(self, duration: float, start_up: float) -> dict:
@@ -160,7 +160,7 @@ class StudySpec:
             "duration_s": duration,
             "h_s": self.h,
             "start_up_s": start_up,
-            "observer": self.observer.as_dict(),
+            "observer": None if self.observer is None else self.observer.as_dict(),
             "computed_torque_model": "rigid ERLS, nominal model (the controller's knowledge)",
             "observer_model": "nominal model",
         }
@@ -583,6 +583,8 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     from ..validate import check_configurations
 
     check_configurations(nominal)  # loops close, away from singularities
+    if spec.observer is None:  # the model file's [observer] table over the defaults
+        spec = dataclasses.replace(spec, observer=ObserverConfig.for_model(nominal))
     if spec.runs < 1:
         raise ValueError(f"runs must be at least 1, got {spec.runs}")
     if not spec.levels:
@@ -595,6 +597,13 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
         raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
+    for lv, m in zip(spec.levels, truth_mechs, strict=True):  # the model file's configuration check, per level
+        if lv.overrides:
+            try:
+                check_configurations(m)
+            except ModelFileError as exc:
+                raise OverrideError(f"level {lv.label}: the model file's check refuses it: "
+                                    f"{str(exc).removeprefix(f'{exc.source}: ')}") from None
     drive_mechs = [drive_mech(nominal, lv) for lv in spec.levels]
     for lv, dm in zip(spec.levels, drive_mechs, strict=True):  # a longer manoeuvre than the nominal one is cut
         if spec.duration is None and dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
