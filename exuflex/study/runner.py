@@ -760,7 +760,8 @@ def run_estimator_studies(spec: StudySpec, out, estimators: Sequence[str], **kw)
         link = sub / "truth"
         if not link.exists():
             link.symlink_to(Path("..") / "truth", target_is_directory=True)
-        est_spec = dataclasses.replace(spec, observer=dataclasses.replace(spec.observer, estimator=e))
+        base = spec.observer if spec.observer is not None else ObserverConfig.for_model(load_mechanism(spec.model))
+        est_spec = dataclasses.replace(spec, observer=dataclasses.replace(base, estimator=e))
         results[e] = run_study(est_spec, sub, **kw)
     return results
 
