@@ -83,6 +83,7 @@ except ImportError:  # pragma: no cover
         return f
 
     _shared = _jit
+    numba = None
 
 
 @_shared
@@ -139,9 +140,10 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
     positive definite)."""
     r = Mr.shape[0]
     rhs = np.empty((r, 2 * r + 1))
-    rhs[:, :r] = Kr
-    rhs[:, r : 2 * r] = Cr
-    for i in range(r):
+    for i in range(r):  # element copies, not slice assignments (whose shape check links numba's message code)
+        for j in range(r):
+            rhs[i, j] = Kr[i, j]
+            rhs[i, r + j] = Cr[i, j]
         acc = f[i]
         for j in range(u.shape[0]):
             acc += Gr[i, j] * u[j]
@@ -157,8 +159,9 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
     b = XT[2 * r]
     p = np.zeros(rp)
     v = np.zeros(rp)
-    p[:r] = z[:r]
-    v[:r] = z[r:]
+    for i in range(r):
+        p[i] = z[i]
+        v[i] = z[r + i]
     a = np.empty(rp)  # stage acceleration
     w = np.empty(rp)  # stage velocity
     yp = np.empty(rp)  # stage position
@@ -199,8 +202,9 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
             p[i] += h / 6.0 * wsum[i]
             v[i] += h / 6.0 * asum[i]
     out = np.empty(2 * r)
-    out[:r] = p[:r]
-    out[r:] = v[:r]
+    for i in range(r):
+        out[i] = p[i]
+        out[r + i] = v[i]
     return out
 
 
@@ -257,19 +261,32 @@ def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
         for k in range(r * r):
             gM[k] += 0.5 * s * (gM[k] - hM[k])
             gK[k] += 0.5 * s * (gK[k] - hK[k])
-    return hs.Mr + gM.reshape(r, r), hs.Kr + gK.reshape(r, r)
+    Mr = np.empty((r, r))
+    Kr = np.empty((r, r))
+    for i in range(r):  # loops, not array expressions: the same sums in a fraction of the compiled code
+        for j in range(r):
+            Mr[i, j] = hs.Mr[i, j] + gM[i * r + j]
+            Kr[i, j] = hs.Kr[i, j] + gK[i * r + j]
+    return Mr, Kr
 
 
 @_shared
 def _system(dl, s, hs):  # pragma: no cover - compiled
     """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
     Mr, Kr = _mass_stiffness(dl, s, hs)
-    Ca = hs.Ca.copy()
+    r = Mr.shape[0]
+    Cr = np.empty((r, r))
     Gr = hs.Gr.copy()
-    if hs.has_old:
-        Ca += s * (hs.Ca - hs.old_Ca)
-        Gr += s * (hs.Gr - hs.old_Gr)
-    return Mr, Kr, Ca + hs.beta * Kr, Gr
+    for i in range(r):  # C_a (along the secant) + beta K_r; loops, not array expressions (see _mass_stiffness)
+        for j in range(r):
+            ca = hs.Ca[i, j]
+            if hs.has_old:
+                ca += s * (hs.Ca[i, j] - hs.old_Ca[i, j])
+            Cr[i, j] = ca + hs.beta * Kr[i, j]
+        if hs.has_old:
+            for j in range(Gr.shape[1]):
+                Gr[i, j] += s * (hs.Gr[i, j] - hs.old_Gr[i, j])
+    return Mr, Kr, Cr, Gr
 
 
 def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
@@ -458,8 +475,11 @@ def _times_hA(Ak, Ac, h, X):  # pragma: no cover - compiled
     """``h A X`` for ``A = [[0, I], [-Ak, -Ac]]``: the top half is ``h X_v``, only the bottom needs products."""
     r = Ak.shape[0]
     out = np.empty(X.shape)
-    out[:r] = h * X[r:]
-    out[r:] = -h * (Ak @ np.ascontiguousarray(X[:r]) + Ac @ np.ascontiguousarray(X[r:]))
+    bottom = -h * (Ak @ np.ascontiguousarray(X[:r]) + Ac @ np.ascontiguousarray(X[r:]))
+    for i in range(r):  # element copies, not slice assignments (see _rk4_linear)
+        for j in range(X.shape[1]):
+            out[i, j] = h * X[r + i, j]
+            out[r + i, j] = bottom[i, j]
     return out
 
 
@@ -517,8 +537,9 @@ _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _jit(_rk4_linear)
 _quadratic_forces = _jit(_quadratic_forces)
-_held_step = _jit(_held_step)
-held_step = _held_step
+held_step = _jit(_held_step)
+if numba is not None:  # held_interval's copy: compiled into held_interval's own code, not as a function it calls
+    _held_step = numba.njit(inline="always", nogil=True, error_model="numpy")(_held_step)
 held_system = _jit(_held_system)
 _step_jacobian = _jit(_step_jacobian)
 step_jacobian = _step_jacobian
