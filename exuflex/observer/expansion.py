@@ -409,10 +409,31 @@ def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, 
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
         return np.inf
-    em = np.abs(Li @ (Mp - Mr) @ Li.T).max()
-    ek = np.abs(Li @ (Kp - Kr) @ Li.T).max()
-    kk = np.abs(Li @ Kr @ Li.T).max()
+    r = Mr.shape[0]
+    dMp = np.empty((r, r))
+    dKp = np.empty((r, r))
+    for i in range(r):
+        for j in range(r):
+            dMp[i, j] = Mp[i, j] - Mr[i, j]
+            dKp[i, j] = Kp[i, j] - Kr[i, j]
+    em = _abs_max(Li @ dMp @ Li.T)
+    ek = _abs_max(Li @ dKp @ Li.T)
+    kk = _abs_max(Li @ Kr @ Li.T)
     return max(em, ek / kk)
+
+
+@_shared
+def _abs_max(A):  # pragma: no cover - compiled
+    """``np.abs(A).max()`` (NaN if ``A`` holds one) as a loop: the same value in a fraction of the compiled code."""
+    m = 0.0
+    for i in range(A.shape[0]):
+        for j in range(A.shape[1]):
+            a = abs(A[i, j])
+            if a > m or a != a:
+                m = a
+                if a != a:
+                    return a
+    return m
 
 
 @_shared
@@ -475,11 +496,12 @@ def _times_hA(Ak, Ac, h, X):  # pragma: no cover - compiled
     """``h A X`` for ``A = [[0, I], [-Ak, -Ac]]``: the top half is ``h X_v``, only the bottom needs products."""
     r = Ak.shape[0]
     out = np.empty(X.shape)
-    bottom = -h * (Ak @ np.ascontiguousarray(X[:r]) + Ac @ np.ascontiguousarray(X[r:]))
-    for i in range(r):  # element copies, not slice assignments (see _rk4_linear)
+    KX = Ak @ np.ascontiguousarray(X[:r])
+    CX = Ac @ np.ascontiguousarray(X[r:])
+    for i in range(r):  # loops, not slice assignments and array expressions (see _rk4_linear)
         for j in range(X.shape[1]):
             out[i, j] = h * X[r + i, j]
-            out[r + i, j] = bottom[i, j]
+            out[r + i, j] = -h * (KX[i, j] + CX[i, j])
     return out
 
 
@@ -506,10 +528,26 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
         for j in range(r):
             W[r + i, j] += 0.25 * (-h * Ak[i, j])
             W[r + i, r + j] += 0.25 * (-h * Ac[i, j])
-    V = I + _times_hA(Ak, Ac, h, W) / 3.0
-    U = I + 0.5 * _times_hA(Ak, Ac, h, V)
-    P = I + _times_hA(Ak, Ac, h, U)
-    B = (h * np.ascontiguousarray(U[:, r:])) @ Minv
+    # the sums as loops, not array expressions: the same arithmetic in a fraction of the compiled code
+    T = _times_hA(Ak, Ac, h, W)
+    V = np.empty((nx, nx))
+    for i in range(nx):
+        for j in range(nx):
+            V[i, j] = I[i, j] + T[i, j] / 3.0
+    T = _times_hA(Ak, Ac, h, V)
+    U = np.empty((nx, nx))
+    for i in range(nx):
+        for j in range(nx):
+            U[i, j] = I[i, j] + 0.5 * T[i, j]
+    T = _times_hA(Ak, Ac, h, U)
+    P = np.empty((nx, nx))
+    hU = np.empty((nx, r))
+    for i in range(nx):
+        for j in range(nx):
+            P[i, j] = I[i, j] + T[i, j]
+        for j in range(r):
+            hU[i, j] = h * U[i, r + j]
+    B = hU @ Minv
     Pa = P.copy()
     SB = B.copy()
     sq = np.empty((nx, nx))  # product buffers: the doubling allocates nothing
@@ -519,7 +557,9 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
         top += 1
     for bit in range(top - 1, -1, -1):
         np.dot(Pa, SB, th)
-        SB += th
+        for i in range(nx):
+            for j in range(r):
+                SB[i, j] += th[i, j]
         np.dot(Pa, Pa, sq)
         Pa, sq = sq, Pa
         if (n >> bit) & 1:
@@ -530,7 +570,11 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
             np.dot(P, Pa, sq)
             Pa, sq = sq, Pa
     L = SB @ Gr
-    return Pa, SB, L, (L * torque_var) @ L.T
+    Lv = np.empty(L.shape)
+    for i in range(nx):
+        for j in range(L.shape[1]):
+            Lv[i, j] = L[i, j] * torque_var[j]
+    return Pa, SB, L, Lv @ L.T
 
 
 _times_hA = _shared(_times_hA)
