@@ -94,32 +94,32 @@ def add_parser(sub) -> argparse.ArgumentParser:
     r.add_argument("--masters", type=name_list("master dofs"),
                    help="comma-separated elastic master dofs (default: the model file's)")
     r.add_argument("--n-interior", type=_n_interior, default=None, help="interior modes: a number or 'auto'")
-    r.add_argument("--method", choices=("cached", "rk4"), default="cached",
+    r.add_argument("--method", choices=("cached", "rk4"), default=None,
                    help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)")
-    r.add_argument("--substep", type=positive_float, default=1e-4,
+    r.add_argument("--substep", type=positive_float, default=None,
                    help="RK4 sub-step of the filter's prediction (s, default 1e-4)")
     t = p.add_argument_group("tuning (docs/tuning.md)")
     t.add_argument("--q0", type=_floats, help="initial joint angles Q1,Q2,... (rad; default: the manoeuvre's "
                    "start, else the model's q_ref); elastic coordinates at rest")
     t.add_argument("--qd0", type=_floats, help="initial joint rates (rad/s, default 0)")
-    t.add_argument("--q0-std", type=positive_float, default=0.05, help="prior std of the joint angles (rad)")
-    t.add_argument("--qd0-std", type=positive_float, default=0.1, help="prior std of the joint rates (rad/s)")
-    t.add_argument("--elastic0-std", type=positive_float, default=1e-3, help="prior std of the elastic "
-                   "coordinates (m or rad)")
-    t.add_argument("--elastic-rate0-std", type=positive_float, default=0.01, help="prior std of the elastic rates")
+    t.add_argument("--q0-std", type=positive_float, help="prior std of the joint angles (rad, default 0.05)")
+    t.add_argument("--qd0-std", type=positive_float, help="prior std of the joint rates (rad/s, default 0.1)")
+    t.add_argument("--elastic0-std", type=positive_float, help="prior std of the elastic coordinates (m or rad, "
+                   "default 1e-3)")
+    t.add_argument("--elastic-rate0-std", type=positive_float, help="prior std of the elastic rates (default 0.01)")
     t.add_argument("--noise", type=_noise, default={}, help="noise std overrides NAME=STD,... for motors (N m: "
                    "process noise) and sensors (their unit: R); default the model file's noise_std")
-    t.add_argument("--q-scale", type=positive_float, default=1.0,
+    t.add_argument("--q-scale", type=positive_float,
                    help="multiplies the torque process-noise covariance (default 1: the stated noise)")
-    t.add_argument("--q-extra", type=nonneg_float, default=0.0,
-                   help="extra white noise on the elastic rates per interval (std, unmodelled dynamics)")
-    t.add_argument("--start-up", type=nonneg_float, default=0.3,
+    t.add_argument("--q-extra", type=nonneg_float,
+                   help="extra white noise on the elastic rates per interval (std, unmodelled dynamics; default 0)")
+    t.add_argument("--start-up", type=nonneg_float,
                    help="seconds left out of the error metrics (default 0.3)")
-    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default="ekf",
+    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default=None,
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
                         "as states)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
-    p.add_argument("--isolate-faults", action="store_true",
+    p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
                         "(off by default: a model error looks like a sensor offset; faults are always reported)")
     p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
@@ -128,25 +128,27 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _config(args):
+def _config(args, mech):
+    """The observer's settings: the defaults, the model file's ``[observer]`` table, then the options given."""
     from ..observer.session import ObserverConfig
 
-    return ObserverConfig(
-        channels=args.channels,
-        masters=args.masters,
-        n_interior=args.n_interior,
-        method=args.method,
-        h=args.substep,
-        q0_std=args.q0_std,
-        qd0_std=args.qd0_std,
-        elastic0_std=args.elastic0_std,
-        elastic_rate0_std=args.elastic_rate0_std,
-        q_scale=args.q_scale,
-        fault_isolation=args.isolate_faults,
-        q_extra_std=args.q_extra,
-        estimator=args.estimator,
-        start_up=args.start_up,
-    )
+    given = {
+        "channels": args.channels,
+        "masters": args.masters,
+        "n_interior": args.n_interior,
+        "method": args.method,
+        "h": args.substep,
+        "q0_std": args.q0_std,
+        "qd0_std": args.qd0_std,
+        "elastic0_std": args.elastic0_std,
+        "elastic_rate0_std": args.elastic_rate0_std,
+        "q_scale": args.q_scale,
+        "fault_isolation": args.isolate_faults,
+        "q_extra_std": args.q_extra,
+        "estimator": args.estimator,
+        "start_up": args.start_up,
+    }
+    return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
 
 
 def _read_log(args, mech):
@@ -211,8 +213,8 @@ def run(args) -> int:
     mech = load_mechanism(args.model)
     if args.noise:
         mech = with_noise(mech, args.noise)
-    config = _config(args)
-    if args.smooth and args.estimator == "ukf":
+    config = _config(args, mech)
+    if args.smooth and config.estimator == "ukf":
         raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
     check_csv_dialect(args.delimiter, args.decimal)
