@@ -82,7 +82,11 @@ class ObserverConfig:
         sensor-fault tests pause (the allowance for planned input steps).
     estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
-    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s), and its prior std (about 1).
+    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
+        run: a small walk keeps the filter from locking on it), and its prior std (about 1).
+    payload_hold_s : seconds from the filter's start during which the payload scale is held (not learned): the
+        start-up transient, where the state estimate is still far outside its own covariance and the joint
+        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
@@ -111,8 +115,9 @@ class ObserverConfig:
     fault_holdoff_s: float = 0.4
     fault_isolation: bool = False
     estimator: str = "ekf"
-    payload_std: float = 0.05
+    payload_std: float = 0.01
     payload0_std: float = 0.5
+    payload_hold_s: float = 0.15
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -272,7 +277,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
     if config.estimator == "ekf-payload":
-        fm = AugmentedModel(som, payload_std=config.payload_std)
+        fm = AugmentedModel(som, payload_std=config.payload_std, hold_s=config.payload_hold_s)
     else:
         fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
                             input_tau=config.input_tau)

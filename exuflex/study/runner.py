@@ -64,8 +64,10 @@ __all__ = [
     "Level",
     "StudyResult",
     "StudySpec",
+    "estimator_figure_rows",
     "make_executor",
     "payload_levels",
+    "run_estimator_studies",
     "run_study",
     "sweep_levels",
 ]
@@ -361,7 +363,11 @@ def run_one(task: RunTask) -> dict:
     if tip_stats is not None:
         for k in stats:
             stats[k].update(tip_stats[k])
+    from ..observer.session import _extra_states
+
+    extra = _extra_states(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
     return {
+        **extra,
         "level_index": task.level_index,
         "level_key": task.level_key,
         "run": task.run,
@@ -730,6 +736,39 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     _write_results_csv(out / "results.csv", spec, rows, nominal.coordinate_names)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
     return StudyResult(out, rows, summary, n_new, n_reused)
+
+
+def run_estimator_studies(spec: StudySpec, out, estimators: Sequence[str], **kw) -> dict[str, StudyResult]:
+    """The same study once per estimator (:data:`exuflex.observer.session.ESTIMATORS`): ``out/<estimator>`` is the
+    study with the observer's ``estimator`` set (every other setting as ``spec``), and all of them run on the same
+    level truths, simulated once: ``out/truth`` holds them, and each study's ``truth`` folder is a link to it (a
+    level's truth does not depend on the observer). ``kw``: as :func:`run_study`."""
+    from ..observer.session import ESTIMATORS
+
+    estimators = [e.strip() for e in estimators]
+    bad = [e for e in estimators if e not in ESTIMATORS]
+    if bad or not estimators:
+        raise ValueError(f"estimators must be among {', '.join(ESTIMATORS)}; got {', '.join(bad) or 'none'}")
+    if len(set(estimators)) != len(estimators):
+        raise ValueError(f"estimators {', '.join(estimators)}: each at most once")
+    out = Path(out)
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    results = {}
+    for e in estimators:
+        sub = out / e
+        sub.mkdir(parents=True, exist_ok=True)
+        link = sub / "truth"
+        if not link.exists():
+            link.symlink_to(Path("..") / "truth", target_is_directory=True)
+        base = spec.observer if spec.observer is not None else ObserverConfig.for_model(load_mechanism(spec.model))
+        est_spec = dataclasses.replace(spec, observer=dataclasses.replace(base, estimator=e))
+        results[e] = run_study(est_spec, sub, **kw)
+    return results
+
+
+def estimator_figure_rows(summaries: dict[str, dict], quantities: Sequence[str] | None = None) -> list[dict]:
+    """:func:`figure_rows` of each estimator's study summary, with the estimator as the rows' ``series``."""
+    return [dict(r, series=e) for e, sm in summaries.items() for r in figure_rows(sm, quantities)]
 
 
 # ------------------------------------------------------------------------------------------ aggregation
