@@ -66,7 +66,7 @@ def main(argv=None) -> int:
 
     mech = load_mechanism(args.model)
     run = read_run(args.run)
-    obs = make_observer(mech, ObserverConfig())
+    obs = make_observer(mech, ObserverConfig.for_model(mech))
     S = run.sensors
     U = _hold(S.select(mech.motor_names).data)
     Y = S.select(obs.channels).data
