@@ -653,6 +653,8 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     }
     summary["estimator"] = config.estimator
     summary["smoothed"] = bool(smooth)
+    if obs.ekf.model is obs.model and obs.model.method == "cached":
+        summary["held_model_error"] = obs.model.held_error_summary()
     summary.update(_extra_states(obs.ekf.model, est))
     if met is not None:
         summary.update(met)
