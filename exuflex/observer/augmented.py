@@ -109,10 +109,11 @@ def _scaled_steps(z, u, dl, s, h, n, c, dc, has_old, beta, Mr, Kr, Ca, Gr, dM, d
                   old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
                   iold_fg, iold_T2):  # pragma: no cover - compiled
     """The held step (:func:`.expansion.held_step`) of the system ``S + c dS`` and of ``S + (c + dc) dS``: the
-    states at the interval's end for the payload scale ``1 + c`` and ``1 + c + dc``. The held arrays come one by
-    one (``*system, *increment``), as the expansion's kernels take them."""
-    out = np.empty((2, z.shape[0]))
-    for k in range(2):
+    states at the interval's end for the payload scale ``1 + c`` and ``1 + c + dc`` (``dc = 0``: the first only,
+    the second row zero). The held arrays come one by one (``*system, *increment``), as the expansion's kernels
+    take them."""
+    out = np.zeros((2, z.shape[0]))
+    for k in range(2 if dc != 0.0 else 1):  # dc = 0: the step alone (no derivative asked for)
         a = c if k == 0 else c + dc
         out[k] = held_step(z, u, dl, s, h, n, has_old, beta, Mr + a * iMr, Kr, Ca + a * iCa, Gr, dM + a * idM, dK,
                            fg + a * ifg, T2 + a * iT2, V2, C2, old_dM + a * iold_dM, old_dK, old_Ca + a * iold_Ca,
@@ -257,17 +258,19 @@ class AugmentedModel:
         self._shares[iv.serial] = share
         return inc
 
-    def _scaled_cached(self, z, u, dt, c, fresh):
-        """The cached step at the payload scale ``1 + c`` and ``1 + c + DTHETA`` (module docstring)."""
+    def _scaled_cached(self, z, u, dt, c, fresh, derivative=True):
+        """The cached step at the payload scale ``1 + c`` and its forward difference to ``1 + c + DTHETA`` (module
+        docstring); without ``derivative`` the step alone (the derivative returned as zeros)."""
         inner = self.inner
         iv, _ = inner.last_step
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, c, DTHETA, *iv.system, *inc)
+        dc = DTHETA if derivative else 0.0
+        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, c, dc, *iv.system, *inc)
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
-            out = scaled_steps(z, u, dl, 0.0, dt / n, n, c, DTHETA, *iv.system, *inc)
-        return out[0], (out[1] - out[0]) / DTHETA
+            out = scaled_steps(z, u, dl, 0.0, dt / n, n, c, dc, *iv.system, *inc)
+        return out[0], ((out[1] - out[0]) / DTHETA if derivative else out[1])
 
     def _scaled_map(self, z, c, pred):
         """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's where the payload's
@@ -346,8 +349,11 @@ class AugmentedModel:
             it = self.i_theta
             th = float(x[it])
             c = max(th, 0.0) - 1.0
-            if inner.method == "cached":
-                xs, dxs = self._scaled_cached(z, u, dt, c, inner.n_refresh != n_refresh)
+            held = self._elapsed < self.hold_s  # the scale held: its Jacobian column stays zero
+            if held and c == 0.0:  # the nominal step is the scaled one
+                xs, dxs = pred.x, None
+            elif inner.method == "cached":
+                xs, dxs = self._scaled_cached(z, u, dt, c, inner.n_refresh != n_refresh, derivative=not held)
             else:
                 xs, dxs = self._scaled_rk4(z, u, dt, c)
             if c != 0.0:
@@ -355,7 +361,7 @@ class AugmentedModel:
                 Fz, Qz, L_in = self._scaled_map(z, c, pred)
                 F[:n0, :n0] = Fz
                 Q[:n0, :n0] = Qz
-            if self._elapsed >= self.hold_s:
+            if not held:
                 F[:n0, it] = dxs
             xn[it] = th
             F[it, it] = 1.0
