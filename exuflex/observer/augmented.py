@@ -24,10 +24,15 @@ linearly (``dM_r/dtheta = A^T diag(m_p, m_p, I_p) A``, :func:`payload_rows`; the
 Per interval the step is the cached step's RK4 sub-steps of that held system (:func:`scaled_steps`), the
 stiffness, input matrix and geometric terms unchanged. Its derivative in ``theta`` is the forward difference
 of the same compiled step at ``theta + dtheta`` (``dtheta = 1e-4``: the step is smooth in ``theta``, its
-truncation error ``dtheta / 2 d^2x/dtheta^2`` is far below the filter's uncertainty); its derivative in the
-state is the nominal step's (the held map's Jacobian; the payload changes it by the payload's share of the
-modal masses). ``theta`` below 0 is taken as 0 in the step (a negative mass has no meaning and can make
-``M_r`` indefinite); the derivative there is kept, so that the measurements pull the estimate back.
+truncation error ``dtheta / 2 d^2x/dtheta^2`` is far below the filter's uncertainty). Its derivative in the
+state and the process noise are the nominal step map's where the payload's change of the modal masses,
+``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
+matrices to (``refresh_tol``); beyond it, the held linear system's maps with ``M_r + (theta - 1) dM_r`` (and the
+damping's increment), rebuilt with the nominal step map or when ``theta`` moved by that tolerance, and the
+force Jacobian with the payload's velocity forms (:meth:`AugmentedModel._scaled_map`). ``theta`` below 0 is taken
+as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite); the derivative there is kept,
+so that the measurements pull the estimate back. For ``hold_s`` seconds from the start the scale is held (its
+Jacobian column zero: see :class:`AugmentedModel`).
 
 With ``method="rk4"`` (the exact reference) the step is RK4 of the nonlinear reduced equations at every stage
 with the matrices and forces of the two models combined the same way.
