@@ -195,7 +195,8 @@ class AugmentedModel:
             n += self.nu
         self.nx = n
         self.hold_s = float(hold_s)
-        self._elapsed = 0.0
+        self._elapsed = self._start = 0.0  # time at the end and at the start of the current interval
+        self._last_interval = None
         self._increments: dict = {}
         self._shares: dict = {}
         self._map = None
@@ -206,7 +207,8 @@ class AugmentedModel:
 
     def reset(self) -> None:
         self.inner.reset()
-        self._elapsed = 0.0
+        self._elapsed = self._start = 0.0
+        self._last_interval = None
         self._increments = {}
         self._shares = {}
         self._map = None
@@ -336,6 +338,12 @@ class AugmentedModel:
         inner = self.inner
         z = x[:n0]
         u = inner._input(u)
+        # the hold's clock advances once per interval: the sigma points of an unscented filter step the model
+        # several times over the same interval (the same inputs and length)
+        key = (dt, u.tobytes())
+        if key != self._last_interval:
+            self._start, self._elapsed = self._elapsed, self._elapsed + dt
+            self._last_interval = key
         if self.i_inputs is not None:
             d = x[self.i_inputs]
             u = u + d
@@ -354,7 +362,7 @@ class AugmentedModel:
             it = self.i_theta
             th = float(x[it])
             c = max(th, 0.0) - 1.0
-            held = self._elapsed < self.hold_s  # the scale held: its Jacobian column stays zero
+            held = self._start < self.hold_s  # the scale held: its Jacobian column stays zero
             if held and c == 0.0:  # the nominal step is the scaled one
                 xs, dxs = pred.x, None
             elif inner.method == "cached":
@@ -389,7 +397,6 @@ class AugmentedModel:
             xn[s] = phi * d
             F[s, s] = phi * np.eye(self.nu)
             Q[s, s] = np.diag(q)
-        self._elapsed += dt
         return Prediction(xn, F, Q)
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
