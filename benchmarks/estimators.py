@@ -124,7 +124,11 @@ def main(argv=None) -> int:
     lines = _table(rows)
     speed = _speed_table(rows)
     if args.doc:
-        cmd = "python benchmarks/estimators.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        if args.from_json:  # the tables' command: the files by name, the commands that wrote them listed above
+            files = ",".join(Path(f).name for f in args.from_json.split(","))
+            cmd = f"python benchmarks/estimators.py {args.model} DIR --from-json {files} --doc {args.doc}"
+        else:
+            cmd = "python benchmarks/estimators.py " + " ".join(argv if argv is not None else sys.argv[1:])
         Path(args.doc).write_text(
             "# Estimators beyond the paper: measured on the payload-mismatch truths\n\n"
             "Written by `benchmarks/estimators.py` (RMS errors after the 0.3 s start-up, averaged over the seeds; "
