@@ -86,7 +86,9 @@ class ObserverConfig:
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
     payload_hold_s : seconds from the filter's start during which the payload scale is held (not learned): the
         start-up transient, where the state estimate is still far outside its own covariance and the joint
-        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``).
+        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``). The six-bar's manoeuvre
+        starts with a torque pulse of about 0.08 s that the filter follows with errors of many standard
+        deviations; a longer hold loses the four-bar's most informative samples (docs/estimators.md).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
