@@ -224,6 +224,8 @@ def run(args) -> int:
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
     if args.out and len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES:
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
+    elif not args.out and not args.smooth and obs.ekf.model is obs.model:
+        obs.ekf.store_P = "none"  # nothing printed reads the per-sample covariance (8 nx bytes a sample)
     out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth)
     s = out.summary
     if s["diverged"]:
