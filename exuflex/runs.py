@@ -574,7 +574,8 @@ def read_csv_log(
             raise LogFormatError(f"{path}: line {first[0]}: the header has no {_shown(delimiter)} but "
                                  f"{_shown(other[0])}; expected the delimiter {_shown(delimiter)} (--delimiter)")
     if time_column not in header:
-        raise LogFormatError(f"{path}: no time column {time_column!r}; the header has {header}")
+        raise LogFormatError(f"{path}: no time column {time_column!r}; the header has {header} (name yours with "
+                             "time_column=..., exuflex observe ... --time-column NAME)")
     mapping = dict(channels) if channels is not None else {h: h for h in header if h != time_column}
     missing = {ours: theirs for ours, theirs in mapping.items() if theirs not in header}
     if missing:
@@ -591,6 +592,50 @@ def read_csv_log(
     _check_time(path, t, linenos, time_column)
     cols = [header.index(c) for c in mapping.values()]
     return Signals(t, tuple(mapping), data[:, cols], ("",) * len(mapping))
+
+
+def read_lab_run(
+    path: str | os.PathLike,
+    mech,
+    columns: Mapping[str, str] | None = None,
+    *,
+    time_column: str = "time",
+    time_scale: float = 1.0,
+    delimiter: str = ",",
+    decimal: str = ".",
+    truth: str | os.PathLike | None = None,
+    columns_name: str = "columns",
+) -> Run:
+    """A lab's CSV log as a :class:`Run` of the mechanism ``mech``: what ``exuflex observe MODEL LOG.csv`` reads.
+
+    ``columns`` maps the model's motor and sensor names to the log's column names (e.g. ``{"T1": "motor1_Nm",
+    "q1": "enc1_rad"}``; a motor not listed is looked up under its own name; None: every channel under its own
+    name); the other arguments as :func:`read_csv_log`. The log must have every motor's torque (the observer's
+    input); its sensor columns are the channels it offers. ``truth``: an optional truth CSV (time column
+    ``time``, columns named like the truth states) for the error metrics. ``columns_name`` names the argument
+    in error messages (the command line's ``--map``)."""
+    motors = list(mech.motor_names)
+    names = motors + [s.name for s in mech.sensors]
+    mapping = None
+    if columns is not None:
+        mapping = {}
+        for ours, theirs in dict(columns).items():
+            if ours not in names:
+                raise LogFormatError(f"{columns_name}: {ours!r} is not a motor or sensor of {mech.name}; expected "
+                                     f"one of {names}")
+            mapping[ours] = theirs
+        for m in motors:
+            mapping.setdefault(m, m)
+    sig = read_csv_log(path, mapping, time_column=time_column, time_scale=time_scale, delimiter=delimiter,
+                       decimal=decimal)
+    have = [m for m in motors if m in sig]
+    if len(have) != len(motors):
+        raise LogFormatError(f"{path}: the observer needs the measured torques {motors}; the log has "
+                             f"{list(sig.names)} (map your columns with {columns_name})")
+    tr = read_csv_log(truth, time_column="time", delimiter=delimiter, decimal=decimal) if truth else None
+    sensors = [n for n in sig.names if n not in motors and n in names]
+    meta = {"engine": "csv", "source": str(path), "motors": motors, "sensors": sensors}
+    return Run(Path(path), sig, tr, meta)
 
 
 def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = None) -> Signals:

@@ -365,3 +365,25 @@ def test_a_blank_channel_and_a_channel_left_out_give_the_same_estimates(sixbar, 
     b = estimate(fewer, t, U, np.delete(Y, j, axis=1)).result.x_hat
     scale = np.abs(a).max(axis=0)
     assert np.all(np.abs(a - b) <= 1e-9 * scale)
+
+
+def test_the_held_models_error_is_measured_against_the_filters_uncertainty():
+    """At each evaluation the cached step records the state error over one interval that the previous held
+    model causes (against the exact configuration), relative to the filter's standard deviations: zero where
+    the held configuration is the exact one, finite and recorded along a run."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.runs import read_run
+
+    mech = load_mechanism(MODELS / "sixbar.toml")
+    run = read_run(DATA / "sixbar_short")
+    obs = make_observer(mech, ObserverConfig())
+    S = run.sensors
+    estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+    som = obs.model
+    summ = som.held_error_summary()
+    assert summ["n"] == len(som.held_errors) > 0 and np.isfinite(summ["vs_std_max"])
+    iv = som._last
+    z = obs.ekf.x
+    same = som._held_error(iv, iv, z, _hold(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)
+    assert same[0] == 0.0

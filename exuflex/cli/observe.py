@@ -152,37 +152,23 @@ def _config(args, mech):
 
 
 def _read_log(args, mech):
-    """A CSV log (a lab's, or Exudyn's sensor output converted to CSV) as a run: channels mapped by name."""
+    """A CSV log (a lab's, or Exudyn's sensor output converted to CSV) as a run: channels mapped by name
+    (:func:`exuflex.runs.read_lab_run`)."""
     from ..errors import LogFormatError
-    from ..runs import Run, read_csv_log
+    from ..runs import read_lab_run
 
-    names = list(mech.motor_names) + [s.name for s in mech.sensors]
+    mapping = None
     if args.map:
         mapping = {}
         for pair in args.map.split(","):
             if pair.count("=") != 1:
                 raise LogFormatError(f"--map: expected channel=column pairs separated by commas, got {pair!r}")
             ours, theirs = (x.strip() for x in pair.split("=", 1))
-            if ours not in names:
-                raise LogFormatError(f"--map: {ours!r} is not a motor or sensor of {mech.name}; expected one of {names}")
             if ours in mapping:
                 raise LogFormatError(f"--map: channel {ours!r} mapped twice")
             mapping[ours] = theirs
-        for m in mech.motor_names:
-            mapping.setdefault(m, m)
-    else:
-        mapping = None
-    sig = read_csv_log(args.run_dir, mapping, time_column=args.time_column, time_scale=args.time_scale,
-                       delimiter=args.delimiter, decimal=args.decimal)
-    motors = [m for m in mech.motor_names if m in sig]
-    if len(motors) != len(mech.motor_names):
-        raise LogFormatError(f"{args.run_dir}: the observer needs the measured torques {list(mech.motor_names)}; "
-                             f"the log has {list(sig.names)} (use --map)")
-    truth = read_csv_log(args.truth, time_column="time", delimiter=args.delimiter,
-                         decimal=args.decimal) if args.truth else None
-    sensors = [n for n in sig.names if n not in motors and n in names]
-    meta = {"engine": "csv", "source": str(args.run_dir), "motors": motors, "sensors": sensors}
-    return Run(Path(args.run_dir), sig, truth, meta)
+    return read_lab_run(args.run_dir, mech, mapping, time_column=args.time_column, time_scale=args.time_scale,
+                        delimiter=args.delimiter, decimal=args.decimal, truth=args.truth, columns_name="--map")
 
 
 def _say(msg: str) -> None:
@@ -238,6 +224,8 @@ def run(args) -> int:
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
     if args.out and len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES:
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
+    elif not args.out and not args.smooth and obs.ekf.model is obs.model:
+        obs.ekf.store_P = "none"  # nothing printed reads the per-sample covariance (8 nx bytes a sample)
     out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth)
     s = out.summary
     if s["diverged"]:
@@ -270,13 +258,29 @@ def run(args) -> int:
     return 0
 
 
+#: the observer's largest kernels: while their cache files are missing, building the observer compiles
+_OBSERVER_KERNELS = ("reduction/__pycache__/_compiled._held_evaluation-*.nbi",
+                     "observer/__pycache__/expansion._held_interval-*.nbi",
+                     "observer/__pycache__/kalman.predict_update-*.nbi")
+
+
 def _kernels_cached() -> bool:
-    """Whether numba's on-disk cache holds compiled kernels of this installation (then no compile notice)."""
+    """Whether numba's on-disk cache holds the observer's compiled kernels (then no compile notice): in the
+    package's ``__pycache__`` folders, or under ``NUMBA_CACHE_DIR`` (which mirrors the package's path)."""
     try:
         import numba  # noqa: F401
     except ImportError:
         return True
+    import os
+
     import exuflex
 
     root = Path(exuflex.__file__).parent
-    return any(root.rglob("__pycache__/*.nbi"))
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    for pattern in _OBSERVER_KERNELS:
+        if any(root.glob(pattern)):
+            continue
+        if cache and any(Path(cache).rglob(pattern.rsplit("/", 1)[1])):
+            continue
+        return False
+    return True
