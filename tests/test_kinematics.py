@@ -131,6 +131,35 @@ def test_compiled_newton_equals_numpy_newton(name):
                 np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
+def test_compiled_solve_is_lapack_solve():
+    """The closure Newton's compiled solve (LAPACK's dgesv called directly) gives exactly numba's compiled
+    ``np.linalg.solve`` (the same routine on the same copies), NumPy's to rounding, and raises LinAlgError where
+    they do: a singular or non-finite matrix, a non-finite right-hand side."""
+    from exuflex.erls._closure import HAVE_NUMBA, _solve
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    import numba
+
+    lapack_solve = numba.njit(lambda A, b: np.linalg.solve(A, b))
+    rng = np.random.default_rng(5)
+    for n in (1, 3, 12):
+        A = rng.standard_normal((n, n)) + n * np.eye(n)
+        b = rng.standard_normal(n)
+        x = _solve(A, b)
+        np.testing.assert_array_equal(x, lapack_solve(A, b))
+        np.testing.assert_allclose(x, np.linalg.solve(A, b), rtol=1e-12)
+    A = np.ones((3, 3))
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        _solve(A, np.ones(3))
+    B = np.eye(3)
+    B[1, 2] = np.nan
+    with pytest.raises(np.linalg.LinAlgError, match="infs or NaNs"):
+        _solve(B, np.ones(3))
+    with pytest.raises(np.linalg.LinAlgError, match="infs or NaNs"):
+        _solve(np.eye(3), np.array([1.0, np.inf, 0.0]))
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_compiled_pose_equals_numpy_pose(name):
     """The compiled pose sensitivities (closure Jacobian, its inverse, condition, S_z, nodal r and S) against

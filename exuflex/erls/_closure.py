@@ -27,8 +27,16 @@ import numpy as np
 
 try:
     import numba
+    from numba import types as _nbt
+    from numba.np.linalg import F_INT_nbtype, F_INT_nptype as _F_INT
 
     HAVE_NUMBA = True
+    _KIND_D = ord("d")  # float64
+    # int numba_xgesv(char kind, intp n, intp nrhs, double *a, intp lda, F_INT *ipiv, double *b, intp ldb)
+    _xgesv = _nbt.ExternalFunction("numba_xgesv", _nbt.intc(_nbt.char, _nbt.intp, _nbt.intp,
+                                                             _nbt.CPointer(_nbt.float64), _nbt.intp,
+                                                             _nbt.CPointer(F_INT_nbtype),
+                                                             _nbt.CPointer(_nbt.float64), _nbt.intp))
 except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
@@ -108,6 +116,29 @@ def _max_abs(v):  # pragma: no cover
     return m
 
 
+def _solve(J, b):  # pragma: no cover - compiled
+    """``J^-1 b`` by LAPACK's ``dgesv`` called as compiled ``np.linalg.solve`` calls it (numba's helper
+    ``numba_xgesv``, the same copies in Fortran order: the same numbers), with its errors: LinAlgError for a
+    non-finite or singular ``J``. ``np.linalg.solve`` itself copies ``b`` in by a slice assignment, whose
+    compiled shape check brings numba's string-formatting code into every kernel that solves."""
+    n = J.shape[0]
+    a = np.empty((n, n)).T  # Fortran order: dgesv's column-major input, overwritten by the LU factors
+    x = np.empty(n)
+    for i in range(n):
+        if not math.isfinite(b[i]):
+            raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+        x[i] = b[i]
+        for j in range(n):
+            if not math.isfinite(J[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+            a[i, j] = J[i, j]
+    ipiv = np.empty(n, dtype=_F_INT)
+    info = _xgesv(_KIND_D, n, 1, a.ctypes, n, ipiv.ctypes, x.ctypes, n)
+    if info != 0 or a.shape[0] != n or ipiv.shape[0] != n:  # (a and ipiv used after the call: kept alive)
+        raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+    return x
+
+
 def _closure_newton(z0, q, k, tol, max_iter):  # pragma: no cover
     """Newton from ``z0``; returns ``(z, ok)``: ``ok`` False where the kinematics' NumPy Newton returns None
     (non-finite iterate or no convergence). Converged: one more step polishes the solution to round-off.
@@ -120,8 +151,8 @@ def _closure_newton(z0, q, k, tol, max_iter):  # pragma: no cover
         _residual(z, q, k, res)
         _jacobian(z, k, J)
         if _max_abs(res) < tol:
-            return z - np.linalg.solve(J, res), True
-        z += np.linalg.solve(J, -res)
+            return z - _solve(J, res), True
+        z += _solve(J, -res)
         for i in range(n):
             if not math.isfinite(z[i]):
                 return z, False
@@ -231,6 +262,7 @@ if HAVE_NUMBA:
     _residual = _inline(_residual)
     _jacobian = _inline(_jacobian)
     _max_abs = _inline(_max_abs)
+    _solve = _inline(_solve)
     _norm1 = _inline(_norm1)
     closure_newton = _jit(_closure_newton)
     pose_sensitivities = _jit(_pose_sensitivities)
