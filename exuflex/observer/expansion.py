@@ -83,7 +83,6 @@ except ImportError:  # pragma: no cover
         return f
 
     _shared = _jit
-    numba = None
 
 
 @_shared
@@ -581,9 +580,8 @@ _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _jit(_rk4_linear)
 _quadratic_forces = _jit(_quadratic_forces)
-held_step = _jit(_held_step)
-if numba is not None:  # held_interval's copy: compiled into held_interval's own code, not as a function it calls
-    _held_step = numba.njit(inline="always", nogil=True, error_model="numpy")(_held_step)
+_held_step = _jit(_held_step)
+held_step = _held_step
 held_system = _jit(_held_system)
 _step_jacobian = _jit(_step_jacobian)
 step_jacobian = _step_jacobian
