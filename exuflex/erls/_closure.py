@@ -16,6 +16,10 @@ scalar equations ``j`` (rows after them) read
 with ``p(a, s)`` the point at station ``s`` of link ``a`` and no ``q`` term where ``cq[j] < 0``: an angle
 coordinate (``cn = 0``, ``cw = 1``), a prismatic joint's line (``cn`` its normal, ``cw = 0``), a slide
 coordinate (``cn`` its axis) or a weld's angle (``cw = cwr = 1``, no ``q``).
+
+The helpers are compiled into the kernels that call them (``_inline``; the ``*_inline`` twins of the public
+kernels are what :mod:`._assembly` and :mod:`exuflex.reduction._compiled` call): see
+:mod:`exuflex.reduction._compiled` for why.
 """
 
 from __future__ import annotations

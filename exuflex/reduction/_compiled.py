@@ -13,6 +13,13 @@ where every evaluation starts from cold caches, each separate call and the Pytho
 their arithmetic). The NumPy methods stay the reference (and what runs without numba);
 ``tests/test_reduction.py`` checks that all three agree to rounding.
 
+Compilation: a helper called from one kernel, or a small one, is compiled into its caller (numba's
+``inline="always"``, the ``_inline`` decorator), because a separately compiled function is linked into every
+kernel that calls it and optimised by LLVM again there; the large helpers that several kernels share stay
+separate functions (inlined, numba would type their bodies once per call site). Arrays are copied element by
+element rather than by slice assignment, whose compiled shape check links numba's error-message formatting into
+the kernel.
+
 This module imports without numba: ``HAVE_NUMBA`` is then False and nothing here is called.
 """
 
@@ -22,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..erls._closure import coordinate_rates
+from ..erls._closure import coordinate_rates_inline
 
 try:
     import numba
@@ -272,7 +279,7 @@ if HAVE_NUMBA:
     _product_t = _inline(_product_t)
     _tt_product = _inline(_tt_product)
     _element_form = _jit(_element_form)
-    _mass_stiffness_gradients = _jit(_mass_stiffness_gradients)
+    _mass_stiffness_gradients = _inline(_mass_stiffness_gradients)
     _force_terms_shared = _jit(_force_terms_shared)
     force_terms = _jit(_force_terms)
 else:  # pragma: no cover
@@ -536,7 +543,7 @@ def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consi
 if HAVE_NUMBA:
     basis_at = _jit(_basis_at)
     _basis_at_inline = _inline(_basis_at)
-    _reduced_terms = _jit(_reduced_terms)
+    _reduced_terms = _inline(_reduced_terms)
     reduced_matrices = _jit(_reduced_matrices)
 else:  # pragma: no cover
     basis_at = reduced_matrices = None
@@ -586,7 +593,7 @@ def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_l
     dHdq = basis_derivative(np.eye(r), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s, Phi_u, px,
                             py, Sn, Kuu, qc, qs, plocal, keep, has_local)
     J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
-    Sd3 = coordinate_rates(z, Sz, Jinv, closure, node_link, node_station)
+    Sd3 = coordinate_rates_inline(z, Sz, Jinv, closure, node_link, node_station)
     fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,
                                                              el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients)
     return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs
