@@ -145,8 +145,9 @@ class Observer:
         and its rate, what the truth's ``p_tip' - J q'`` is, ``e' = A(q) p' + sum_i (dA/dq_i p) q'_i``: the rows
         turn with the links, so a deflection across a turning link has a global rate even when it is constant in
         the link's frame. ``A`` and ``dA/dq`` are evaluated where q moved by more than ``refresh_rad`` from the
-        last evaluation and followed to first order in between (error of order ``refresh_rad^2 / 2`` of the
-        deflection).
+        last evaluation; in between ``A`` follows q to first order (error of order ``refresh_rad^2 / 2`` of the
+        deflection) and ``dA/dq`` is held (error of order ``refresh_rad`` of the rate's turning term, itself the
+        deflection times q').
         """
         nq, r = self.model.nq, self.model.r
         Z = np.asarray(Z)[:, : self.model.nx]  # a filter's extra states (augmented estimators) are not physical
@@ -193,7 +194,8 @@ class Observer:
     def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3) -> np.ndarray:
         """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
         from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through
-        their maps linearised at each state (the filter's extra states, if any, are left out). For NEES against a
+        their maps linearised at each state (the filter's extra states, if any, are left out; the rate's turning
+        term is linearised in p and q', not in q). For NEES against a
         truth of the physical quantities. The tip rows are evaluated as in :meth:`physical`."""
         som = self.model
         nq, r, nx = som.nq, som.r, som.nx
@@ -219,6 +221,9 @@ class Observer:
                 C[2 * nq + 2 :, r:] = A
                 C[2 * nq + 2 :, :r] = np.tensordot(z[r : r + nq], dA, axes=1)
                 C[2 * nq + 2 :, r : r + nq] += dAp
+                # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
+                # left out: of the order of q' times the deflection per radian, times q's small uncertainty
+                C[2 * nq + 2 :, :nq] += np.einsum("iaj,j->ai", dA, z[r:])
             out[i] = C @ P[i][:nx, :nx] @ C.T
         return out
 
@@ -254,7 +259,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     model = model or (cb.model if cb is not None else ErlsModel(mech))
     if cb is None:
         cb = CraigBampton(model, masters=config.masters, q_star=config.q_star, n_interior=config.n_interior,
-                          ranking=config.ranking)
+                          ranking=config.ranking, channels=config.channels)
     basis_s = time.perf_counter() - t0
     channels = tuple(config.channels) if config.channels else default_channels(mech)
     dt = config.dt or 1.0 / mech.sample_rate_hz
