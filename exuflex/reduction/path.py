@@ -48,6 +48,7 @@ would grow with them (the six-bar at 500 Hz would take its 487 and 558 Hz modes)
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -63,6 +64,8 @@ from ..sensors import default_channels
 from .accuracy import AccuracyResult
 
 __all__ = ["VISIBILITY", "Excitation", "PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
+
+log = logging.getLogger(__name__)
 
 #: a full mode whose response in a channel reaches this multiple of the channel's noise std is part of the band
 #: (module docstring: a ringing below it raises the channel's innovation variance by at most 10 %)
@@ -97,7 +100,12 @@ class Excitation:
         if not channels:
             return None
         dt = 0.5 / mech.sample_rate_hz
-        tau = open_loop_torque(mech, plan(mech, dt=dt, t_end=mech.manoeuvre.duration))
+        try:
+            tau = open_loop_torque(mech, plan(mech, dt=dt, t_end=mech.manoeuvre.duration))
+        except Exception as exc:  # noqa: BLE001 - no torques (e.g. a coordinate without a motor): the band alone
+            log.info("%s: no open-loop torques for the modes the channels see (%s); the band limit alone",
+                     mech.source or mech.name, exc)
+            return None
         zero = np.zeros((1, tau.shape[1]))
         du = np.diff(np.vstack([zero, tau, zero]), axis=0)
         return cls(du, dt, channels, np.array([sensors[c].noise_std for c in channels]), 0.5 * mech.sample_rate_hz)
