@@ -8,7 +8,9 @@
   ``max_gap_s``, empty cells, channels never sampled) is counted in the returned :class:`LogCheck`.
 - :func:`check_configurations`: the loops close, away from singularities, at every configuration the model
   file names (``model.q_ref``, ``reduction.q_star``); a failure is a
-  :class:`~exuflex.mechanism.ModelFileError` naming that field.
+  :class:`~exuflex.mechanism.ModelFileError` naming that field. The branch the closure assembled at the
+  reference configuration is compared with the links' ``angle_guess`` (:func:`assembly`); a link solved more
+  than :data:`ANGLE_GUESS_TOL` away from its guess is warned about, naming the link.
 
 Nothing here changes data; the observer session (``exuflex.observer.session.observe_run``) is meant to call
 :func:`check_run` before filtering.
@@ -17,6 +19,8 @@ Nothing here changes data; the observer session (``exuflex.observer.session.obse
 from __future__ import annotations
 
 from collections.abc import Sequence
+import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,8 +29,10 @@ import numpy as np
 from .errors import LogFormatError
 from .mechanism import Mechanism, ModelFileError
 
-__all__ = ["LogCheck", "MAX_STEPS", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
+__all__ = ["ANGLE_GUESS_TOL", "Assembly", "LogCheck", "MAX_STEPS", "assembly", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
            "check_positive", "check_run", "check_simulation_settings", "with_noise"]
+
+log = logging.getLogger(__name__)
 
 MAX_GAP_S = 1.0
 """Default longest gap (s) the observer predicts through; longer ones are rejected (split the log)."""
@@ -304,10 +310,107 @@ def check_run(mech: Mechanism, run, channels: Sequence[str] | None = None, *, dt
                      max_gap_s=max_gap_s, check_full_scale=check_full_scale)
 
 
-def check_configurations(mech: Mechanism, cond_max: float = 1e6) -> None:
+ANGLE_GUESS_TOL = math.radians(15.0)
+"""Largest difference (rad) between a link's ``angle_guess`` and the angle the closure solves at the reference
+configuration before :func:`assembly` warns. Newton's method started from the guesses converges to the
+assembly branch nearest to them; the other branch of a loop lies a finite angle away (the six-bar's crossed
+parallelogram: links L3 and L4 about 1 rad from the open one), so a guess off by more than 15 degrees either
+was not meant as the reference configuration or describes another branch. The guesses also set the 2 pi
+branch of the encoder readings (:mod:`exuflex.sensors`), which only needs them within pi."""
+
+
+@dataclass(frozen=True)
+class Assembly:
+    """The branch the closure assembled at ``q`` from the links' angle guesses (:func:`assembly`).
+
+    ``angles[i]`` is link i's solved absolute angle (rad), shifted by a whole number of turns to lie within pi
+    of its guess (or in (-pi, pi] without one); ``guesses[i]`` is its ``angle_guess`` or None;
+    ``mismatched`` names the links solved more than ``tol`` from their guess."""
+
+    q: tuple[float, ...]
+    field: str  # the model-file field q comes from (model.q_ref or reduction.q_star)
+    links: tuple[str, ...]
+    angles: tuple[float, ...]
+    guesses: tuple[float | None, ...]
+    tol: float
+    mismatched: tuple[str, ...]
+    set_by: tuple[str | None, ...] = ()  # the absolute-angle coordinate that sets each link's angle, or None
+
+    def deviation(self, link: str) -> float | None:
+        """Solved minus guessed angle of ``link`` (rad), wrapped to [-pi, pi); None without a guess."""
+        i = self.links.index(link)
+        g = self.guesses[i]
+        return None if g is None else self.angles[i] - g
+
+    def warnings(self, source: str = "") -> list[str]:
+        """One line per mismatched link, naming the file, the link's ``angle_guess`` field and both angles."""
+        pre = f"{source}: " if source else ""
+        out = []
+        for name in self.mismatched:
+            i = self.links.index(name)
+            why = (f"the angle is set by coordinate {self.set_by[i]} there, so the guess is wrong"
+                   if self.set_by[i] else "the closure assembled another branch than the guesses describe")
+            out.append(f"{pre}links[{i}].angle_guess: link {name} assembled at {self.angles[i]:.4f} rad at "
+                       f"{self.field} = {[round(v, 6) for v in self.q]}, {abs(self.deviation(name)):.3f} rad from "
+                       f"its guess {self.guesses[i]:.4f} (tolerance {self.tol:.3f} rad): {why}; check the angle "
+                       "guesses")
+        return out
+
+    def summary(self) -> str:
+        """One line: the solved link angles and whether they match the guesses."""
+        ang = ", ".join(f"{n} {a:.4f}" for n, a in zip(self.links, self.angles))
+        if not self.mismatched:
+            return f"assembled at {self.field}: {ang} rad (every guessed link within {self.tol:.3f} rad of its guess)"
+        return (f"assembled at {self.field}: {ang} rad; {', '.join(self.mismatched)} more than {self.tol:.3f} rad "
+                "from the angle guess (see the warnings)")
+
+    def as_dict(self) -> dict:
+        return {"q": list(self.q), "field": self.field, "tol_rad": self.tol, "mismatched": list(self.mismatched),
+                "summary": self.summary(),
+                "links": [{"name": n, "angle_rad": a, "angle_guess": g} for n, a, g in
+                          zip(self.links, self.angles, self.guesses)]}
+
+
+def assembly(mech: Mechanism, q=None, *, tol: float = ANGLE_GUESS_TOL) -> Assembly:
+    """Solve the closure at ``q`` (default ``model.q_ref``, else ``reduction.q_star``) from the angle guesses
+    alone (no warm start) and compare every link's solved angle with its ``angle_guess``:
+    ``d_i = wrap(theta_i - guess_i)`` in [-pi, pi); a link with ``|d_i| > tol`` is listed in
+    ``mismatched``. Raises :class:`~exuflex.erls.kinematics.KinematicsError` if the loop does not close."""
+    from .erls.kinematics import Kinematics
+
+    fld = "q"
+    if q is None:
+        if mech.q_ref:
+            q, fld = mech.q_ref, "model.q_ref"
+        elif mech.reduction.q_star:
+            q, fld = mech.reduction.q_star, "reduction.q_star"
+        else:
+            raise ModelFileError(mech.source or mech.name, "model.q_ref",
+                                 "a reference configuration to assemble the mechanism at", has_got=False)
+    q = np.asarray(q, float)
+    th = Kinematics(mech).solve(q)[2::3]
+    angles, guesses, bad = [], [], []
+    for lk, t in zip(mech.links, th):
+        g = lk.angle_guess
+        if g is None:
+            angles.append(float(t - 2 * np.pi * np.round(t / (2 * np.pi))))
+        else:
+            d = float((t - g + np.pi) % (2 * np.pi) - np.pi)
+            angles.append(float(g + d))
+            if abs(d) > tol:
+                bad.append(lk.name)
+        guesses.append(None if g is None else float(g))
+    by = {c.link: c.name for c in mech.coordinates if c.kind == "angle" and c.relative_to is None}
+    return Assembly(tuple(float(v) for v in q), fld, tuple(lk.name for lk in mech.links), tuple(angles),
+                    tuple(guesses), float(tol), tuple(bad), tuple(by.get(lk.name) for lk in mech.links))
+
+
+def check_configurations(mech: Mechanism, cond_max: float = 1e6) -> Assembly | None:
     """Solve the closure at ``model.q_ref`` and ``reduction.q_star``; a loop that cannot close, or a
     configuration at or near a singularity (closure Jacobian condition number above ``cond_max``), is a
-    :class:`ModelFileError` naming the field."""
+    :class:`ModelFileError` naming the field. Returns the :func:`assembly` at the first of them (None if the
+    file names neither), after logging a warning for each link solved more than :data:`ANGLE_GUESS_TOL` from
+    its ``angle_guess``."""
     from .erls.kinematics import Kinematics, KinematicsError
 
     src = mech.source or mech.name
@@ -325,6 +428,12 @@ def check_configurations(mech: Mechanism, cond_max: float = 1e6) -> None:
             raise ModelFileError(
                 src, fld,
                 f"a configuration where every loop closes, away from singularities; {detail}", list(q)) from None
+    if not todo:
+        return None
+    asm = assembly(mech)  # at todo[0]: q_ref, else q_star
+    for msg in asm.warnings(src):
+        log.warning("%s", msg)
+    return asm
 
 
 # ------------------------------------------------------------------------------------------ settings

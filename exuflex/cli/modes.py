@@ -23,15 +23,13 @@ import sys
 
 import numpy as np
 
+from ..mechanism import MAX_ELEMENTS  # the loader's limit (exuflex.mechanism.limits), also for --refine
 from ..truth import BEAMS
 from .args import name_list, nonneg_int, positive_float, positive_int
 from .simulate import elements_per_link_arg
 
 __all__ = ["MAX_ELEMENTS", "add_parser", "modes_report", "run"]
 
-MAX_ELEMENTS = 1000
-"""Most elements ``--refine`` and ``--elements-per-link`` may make (the modal analysis is a dense eigenproblem of
-3 dofs per element)."""
 
 
 def _floats(text: str) -> list[float]:
@@ -87,7 +85,7 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     """Library form of the command: the JSON-ready report."""
     from ..erls.modal import modal_analysis
     from ..erls.model import ErlsModel
-    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism
+    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
 
     from ..errors import UsageError
     from ..validate import check_configurations, check_positive
@@ -102,12 +100,11 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     if refine * n_el > MAX_ELEMENTS:
         raise UsageError(f"refine (--refine): {refine} x {n_el} elements is more than {MAX_ELEMENTS} elements "
                          "(dense eigenproblems grow with their cube); expected a smaller factor")
-    check_configurations(mech)  # loops close, away from singularities
+    asm = check_configurations(mech)  # loops close, away from singularities; the branch against the guesses
     if refine > 1:
         mech = refine_mechanism(mech, refine)
     if elements_per_link != "file":
-        n_new = sum(max(len(lk.stations) - 1, int(elements_per_link_arg(str(elements_per_link))))
-                    for lk in mech.links)
+        n_new = remeshed_element_count(mech, int(elements_per_link_arg(str(elements_per_link))))
         if n_new > MAX_ELEMENTS:
             raise UsageError(f"elements_per_link (--elements-per-link): about {n_new} elements, more than "
                              f"{MAX_ELEMENTS}; expected a smaller number")
@@ -128,6 +125,8 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
         "fmax_hz": fmax,
         "full": {"ndof": model.n, "n_elastic": model.ne, "frequencies_hz": res.below(fmax).tolist()},
     }
+    if asm is not None:
+        out["assembly"] = asm.as_dict()
     if exudyn:
         from ..groundtruth import exudyn_frequencies  # lazy: Exudyn is heavy and optional here
 
@@ -156,6 +155,8 @@ def _table(rep: dict) -> str:
         (f"full-order ERLS model: {rep['full']['ndof']} dofs ({rep['full']['n_elastic']} elastic), "
         f"{len(full)} modes <= {rep['fmax_hz']:g} Hz"),
     ]
+    if "assembly" in rep:
+        lines.insert(1, rep["assembly"]["summary"])
     if exu is not None:
         ex = rep["exudyn"]
         lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} elements), "

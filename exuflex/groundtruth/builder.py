@@ -53,9 +53,13 @@ Damping (the model file's Rayleigh ``C = alpha M_uu + beta K_uu`` on the ERLS el
   ``W = [S, T]``, exact on motions that satisfy the joints). The damper ``D = alpha U^T M_uu U``
   therefore does the same virtual work as the ERLS term ``alpha M_uu u'`` and no work on any rigid
   motion of the mechanism. ``U`` and ``M_uu`` depend on the configuration and are refreshed during
-  a simulation (every ``damping_update`` s in :func:`exuflex.groundtruth.simulate_truth`); between
-  refreshes a rigid motion leaks a force of relative size ``alpha dq`` (dq = change of q since the
-  refresh). In a simulation the damper force ``-D c'`` is applied explicitly, with the rates at
+  a simulation (:func:`exuflex.groundtruth.simulate_truth`). Between refreshes the damper is stale: a
+  link turned by ``delta`` since the damper's configuration sees its rigid rotation partly as elastic
+  (axial) rates, ``U c' ~ q' delta r``, and the damper brakes the rotation with the power
+  ``-alpha delta^2 J q'^2``: a relative deceleration ``alpha delta^2`` (1/s), quadratic in ``delta``. The
+  simulation therefore evaluates the damper at the configuration expected halfway through the coming
+  interval (the mean of ``delta^2`` over it is then ``(omega dt)^2 / 12``) and sets the interval from the
+  links' rotation rate ``omega`` so that this mean stays below a tolerance. In a simulation the damper force ``-D c'`` is applied explicitly, with the rates at
   the start of each step (``alpha h`` and ``zeta omega h`` are below 0.01 for the damped modes, so
   this is stable and its lag negligible; a dense implicit damping matrix would make the sparse
   solver 50 % slower); for modal analysis ``D`` is the object's damping matrix.
@@ -343,6 +347,11 @@ class TruthModel:
             v = th - co.offset
             out[j] = ref[j] + (v - ref[j] + np.pi) % (2 * np.pi) - np.pi
         return out
+
+    def rotation_rate(self, c: np.ndarray, cd: np.ndarray) -> float:
+        """The links' fastest rotation rate (rad/s): the largest tangent-angle rate at a link's first node (rigid
+        rotation plus that node's elastic rotation rate)."""
+        return max(abs(float(self.point_rows(name, 0.0, c)[3] @ cd)) for name in self.links)
 
     # ------------------------------------------------------------------ damping
     def update_dampers(self, c: np.ndarray | None = None) -> None:

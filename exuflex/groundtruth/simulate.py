@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 
@@ -138,7 +139,7 @@ def simulate_truth(
     progress: Callable[[float], None] | None = None,
     damping: str | None = "erls",
     damping_update: float = 0.02,
-    damping_dq: float | None = 0.02,
+    damping_tol: float | None = 1e-5,
     newton_tol: float = 1e-4,
     spectral_radius: float = 0.9,
     solver_settings: dict | None = None,
@@ -162,12 +163,15 @@ def simulate_truth(
     probes : default :func:`exuflex.probes.probes_for` ``(mech)``.
     progress : called with the fraction done (0..1) about 100 times.
     damping_update : longest refresh interval (s) of the configuration-dependent alpha damper.
-    damping_dq : the damper is refreshed before the ERLS coordinates move by about this much (rad, or m
-        for a slider) since the last refresh: the next interval is ``damping_dq`` over the fastest coordinate
-        rate of the last one, at most ``damping_update``. Between refreshes the damper leaks a force
-        ``~ alpha M dq q'`` onto the rigid motion (see :mod:`.builder`), so a fast manoeuvre needs short
-        intervals (a slider-crank turning at 8.4 rad/s with ``alpha = 6.6 1/s``: every 0.02 s let the crank
-        lag 0.08 rad behind the ERLS engine in 1 s, every 2 ms 8e-4 rad). ``None``: every ``damping_update`` s.
+    damping_tol : tolerance (1/s) on the stale damper's braking of the rigid motion. Between refreshes a link
+        turned by ``delta`` from the damper's configuration is braked at the relative rate ``alpha delta^2``
+        (see :mod:`.builder`). The damper is evaluated at the configuration extrapolated to the middle of
+        the coming interval ``dt`` (``c + c' dt / 2``), so ``delta`` runs over ``omega dt [-1/2, 1/2]`` with
+        ``omega`` the links' fastest rotation rate at the refresh, and ``dt`` is the longest interval (at most
+        ``damping_update``) with the mean braking rate ``alpha (omega dt)^2 / 12 <= damping_tol``. The rigid
+        velocities then lose at most the fraction ``damping_tol`` per second, and a coordinate travelling
+        ``Q`` rad in ``T`` s drifts by at most about ``damping_tol T Q``. ``None``: every ``damping_update`` s,
+        at the refresh's configuration.
     newton_tol : absolute Newton tolerance (residual in N); Exudyn's default 1e-10 stalls on round-off.
     spectral_radius : generalized-alpha numerical damping at infinite frequency.
     solver_settings : further Exudyn ``SimulationSettings`` by dotted path, e.g.
@@ -244,7 +248,11 @@ def simulate_truth(
     sd = mbs.systemData
     cur = exu.ConfigurationType.Current
     upd_every = max(1, round(damping_update / h))
-    upd = {"next": upd_every, "k": 0, "q": None}  # next refresh step, last refresh step and its coordinates
+    upd = {"next": 0}  # next refresh step of the alpha damper
+    if damping_tol is not None and not damping_tol > 0:
+        raise ValueError(f"damping_tol must be positive or None, got {damping_tol}")
+    # longest rotation omega dt (rad) of a link over one refresh interval (see damping_tol)
+    omega_dt_max = math.sqrt(12.0 * damping_tol / tm.alpha) if damping_tol is not None and tm.alpha > 0 else math.inf
     rep_every = max(1, n_steps // 100)
     state = {"i": 0}
 
@@ -296,17 +304,18 @@ def simulate_truth(
             record(k * h, u, cd)
         if damped:
             if k >= upd["next"]:
-                tm.update_dampers(np.asarray(u) + ref)
-                neg_D[0] = -tm.D_alpha
+                c_now = np.asarray(u) + ref
                 steps = upd_every
-                q_now = tm._q_last
-                if damping_dq is not None and q_now is not None:
-                    q_old = tm.q if upd["q"] is None else upd["q"]
-                    rate = float(np.max(np.abs(q_now - q_old))) / ((k - upd["k"]) * h)
-                    if rate * upd_every * h > damping_dq:
-                        steps = max(1, int(damping_dq / (rate * h)))
-                    upd["q"] = q_now.copy()
-                upd["k"], upd["next"] = k, k + steps
+                if damping_tol is not None:
+                    # the mean braking alpha (omega dt)^2 / 12 of a damper centred on the interval <= damping_tol
+                    cd_now = np.asarray(cd)
+                    omega_h = tm.rotation_rate(c_now, cd_now) * h  # rotation per step
+                    if omega_h * upd_every > omega_dt_max:
+                        steps = max(1, int(omega_dt_max / omega_h))
+                    c_now = c_now + (0.5 * steps * h) * cd_now
+                tm.update_dampers(c_now)
+                neg_D[0] = -tm.D_alpha
+                upd["next"] = k + steps
             np.dot(neg_D[0], cd, out=f)  # explicit alpha damper -D c' with the rates at t_k
         else:
             f.fill(0.0)

@@ -13,6 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from .limits import element_count_error, limit_errors
 from .spec import (
     JOINT_KINDS,
     Coordinate,
@@ -30,7 +31,7 @@ from .spec import (
     Sensor,
 )
 
-__all__ = ["ModelFileError", "load_manoeuvre", "load_mechanism", "parse_mechanism", "read_samples"]
+__all__ = ["RESERVED_COLUMNS", "ModelFileError", "column_name_problem", "load_manoeuvre", "load_mechanism", "parse_mechanism", "read_samples"]
 
 SENSOR_KINDS = ("encoder", "slider", "curvature", "tip_x", "tip_y")
 TIME_LAWS = ("trapezoid", "quintic", "cycloidal")
@@ -80,6 +81,15 @@ class _Reader:
             return v
         if not isinstance(v, str) or not v:
             raise self.err(key, "a non-empty string", v)
+        return v
+
+    def column(self, key: str) -> str:
+        """A name that becomes a CSV column header of the run files (sensor, motor, coordinate):
+        see :func:`column_name_problem`."""
+        v = self.str(key)
+        why = column_name_problem(v)
+        if why is not None:
+            raise self.err(key, f"a name usable as a CSV column header ({why})", v)
         return v
 
     def num(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None, unit="") -> float:
@@ -139,6 +149,31 @@ class _Reader:
             raise ModelFileError(
                 self.source, self._f(extra[0]), f"one of the known keys {sorted(self.used)}", extra[0]
             )
+
+
+RESERVED_COLUMNS = ("time",)
+"""Names the run files use themselves (the time column of ``sensors.csv`` and ``truth.csv``)."""
+
+
+def column_name_problem(name: str) -> str | None:
+    """None if ``name`` can be a column of the run files' CSV header (``time,q1,...``, read back by splitting
+    at commas and stripping each cell), else what is wrong: a comma or a double quote (CSV syntax), a control
+    character such as a newline or a tab (the header is one line), a name that is blank or has leading or
+    trailing spaces (stripped on reading, it would not match), or a reserved name (:data:`RESERVED_COLUMNS`)."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return "valid Unicode text (the run files are UTF-8)"
+    if not name.strip():
+        return "not blank"
+    if name != name.strip():
+        return "no leading or trailing spaces"
+    bad = sorted({c for c in name if c in ',"' or ord(c) < 32 or ord(c) == 127})
+    if bad:
+        return f"no comma, double quote or control character such as a newline; it has {bad}"
+    if name in RESERVED_COLUMNS:
+        return f"not {name!r}, the run files' time column"
+    return None
 
 
 def load_mechanism(path: str | Path) -> Mechanism:
@@ -247,12 +282,12 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         v = r.table.get("joint")
         if not r.has("link") and isinstance(v, str) and v in joint_by and joint_by[v].kind == "prismatic":
             # the slider position along its axis
-            c = Coordinate(r.str("name"), joint_by[v].points[0].link, joint_ref(r, "joint"), None,
+            c = Coordinate(r.column("name"), joint_by[v].points[0].link, joint_ref(r, "joint"), None,
                            r.num("offset", 0.0, unit="m"), "slide")
         else:
             lk = link_ref(r, "link")
             c = Coordinate(
-                r.str("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
+                r.column("name"), lk, joint_ref(r, "joint", lk), link_ref(r, "relative_to", None), r.num("offset", 0.0)
             )
         if c.relative_to is not None and c.relative_to not in [p.link for p in joint_by[c.joint].points]:
             raise r.err("relative_to", f"a link at joint {c.joint!r}", c.relative_to)
@@ -266,7 +301,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
     for r in root.table_list("motors", required=False):
         lk = link_ref(r, "link")
         m = Motor(
-            r.str("name"),
+            r.column("name"),
             joint_ref(r, "joint", lk),
             lk,
             link_ref(r, "reaction", None),
@@ -332,14 +367,14 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             station = point(r, "any").station
         sensors.append(
             Sensor(
-                r.str("name"), kind, lk, joint, station, rel,
+                r.column("name"), kind, lk, joint, station, rel,
                 r.num("noise_std", 0.0, nonneg=True),
                 r.num("full_scale", None, positive=True),
                 r.num("rate_hz", None, positive=True, unit="Hz"),
             )
         )
         r.check_unknown()
-    _unique(source, "sensors", [s.name for s in sensors] + [m.name for m in motors])
+    _unique(source, "sensors", [s.name for s in sensors], {m.name: f"motors[{i}]" for i, m in enumerate(motors)})
 
     nq = len(coords)
     q_ref: tuple[float, ...] = ()
@@ -390,6 +425,8 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         description=description,
     )
     _check_topology(mech)
+    for fld, expected, got in limit_errors(mech):  # size and conditioning (exuflex.mechanism.limits)
+        raise ModelFileError(source, fld, expected, got)
     return mech
 
 
@@ -408,12 +445,17 @@ def _point(r: _Reader, link_by: dict, where: str) -> LinkPoint:
     return LinkPoint(lk.name, s)
 
 
-def _unique(source: str, field: str, names: list[str]) -> None:
-    seen = set()
-    for n in names:
+def _unique(source: str, field: str, names: list[str], others: dict[str, str] | None = None) -> None:
+    """Each of ``field``'s entry names used once, and not one of ``others`` (name -> its field): names that
+    share a CSV header (sensors and motors in ``sensors.csv``)."""
+    seen = dict(others or {})
+    for i, n in enumerate(names):
         if n in seen:
-            raise ModelFileError(source, field, "unique names (sensor, motor and coordinate names may not repeat)", n)
-        seen.add(n)
+            raise ModelFileError(source, f"{field}[{i}].name",
+                                 f"a name not used by {seen[n]} (sensor and motor names are the columns of "
+                                 "sensors.csv and may not repeat)" if field != "coordinates"
+                                 else f"a name not used by {seen[n]}", n)
+        seen[n] = f"{field}[{i}]"
 
 
 def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, ...]:
@@ -429,6 +471,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             if isinstance(v, list):
                 explicit_ids.update(x for x in v if isinstance(x, int))
     next_auto = max(explicit_ids, default=0) + 1
+    n_total = 0  # elements so far
     for r in readers:
         name = r.str("name")
         length = r.num("length", positive=True, unit="m")
@@ -462,7 +505,11 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
             st = (0.0,) + tuple(st[1:-1]) + (length,)
         else:
             ne = r.int("n_elements", 1, positive=True)
+            why = element_count_error(n_total + ne)
+            if why is not None:  # before the stations are built
+                raise r.err("n_elements", why + " with the links before it", ne)
             st = tuple(length * i / ne for i in range(ne + 1))
+        n_total += len(st) - 1
         if r.has("nodes"):
             ids = r.raw("nodes")
             if not isinstance(ids, list) or len(ids) != len(st) or not all(

@@ -4,6 +4,8 @@
 - :func:`remesh_mechanism`: split every element into the fewest equal parts such that no element is
   longer than ``length / elements_per_link`` of its link (at least that many elements per link).
 
+Both refuse meshes of more than :data:`~exuflex.mechanism.limits.MAX_ELEMENTS` elements (``ValueError``).
+
 Both keep the original nodes and their ids (so masses, gauges and node-based dof names such as
 ``node14.x`` keep their meaning); new nodes get ids above the largest existing one.
 """
@@ -15,6 +17,7 @@ import itertools
 import math
 
 from .dofs import elastic_dofs
+from .limits import element_count_error, remeshed_element_count
 from .spec import Mechanism
 
 __all__ = ["refine_mechanism", "remesh_mechanism", "split_segments"]
@@ -58,6 +61,9 @@ def refine_mechanism(mech: Mechanism, factor: int) -> Mechanism:
         raise ValueError(f"refinement factor must be >= 1, got {factor}")
     if factor == 1:
         return mech
+    why = element_count_error(factor * sum(lk.n_elements for lk in mech.links))
+    if why is not None:
+        raise ValueError(f"refinement factor {factor}: expected {why}")
     return _resplit(mech, lambda lk, a: factor)
 
 
@@ -69,6 +75,10 @@ def remesh_mechanism(mech: Mechanism, elements_per_link: int) -> Mechanism:
     """
     if isinstance(elements_per_link, bool) or not isinstance(elements_per_link, int) or elements_per_link < 1:
         raise ValueError(f"elements per link must be an integer >= 1, got {elements_per_link!r}")
+
+    why = element_count_error(remeshed_element_count(mech, elements_per_link))
+    if why is not None:
+        raise ValueError(f"{elements_per_link} elements per link: expected {why}")
 
     def parts(lk, a):
         h_max = lk.length / elements_per_link

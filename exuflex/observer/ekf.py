@@ -266,6 +266,53 @@ class NISMonitor:
         return 1
 
 
+#: the window tests' verdicts (:func:`_window_push`), 1-3
+_WINDOW_FAULTS = {1: "offset", 2: "scale", 3: "stuck"}
+
+
+@kalman.jit
+def _window_push(Z, n, sm, sq, last_t, interval, t, idx, z, clip, k_mean, hi, lo, status):  # pragma: no cover
+    """:meth:`ChannelMonitor.push`'s arithmetic, compiled: the clipped ``z`` of channels ``idx`` into their
+    moving windows ``Z`` (sums ``sm``, ``sq`` kept incrementally and recomputed exactly once per window), the
+    channels' last sample times and intervals, and per entry of ``idx`` the verdict in ``status``: -1 window not
+    full, 0 in band, 1 mean (offset), 2 scale above, 3 scale below (stuck). Returns the number of verdicts > 0."""
+    W = Z.shape[0]
+    n_bad = 0
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        if math.isfinite(last_t[i]):
+            interval[i] = t - last_t[i]
+        last_t[i] = t
+        zc = min(max(z[j], -clip), clip)
+        pos = n[i] % W
+        old = Z[pos, i]
+        Z[pos, i] = zc
+        sm[i] += zc - old
+        sq[i] += zc * zc - old * old
+        n[i] += 1
+        if pos == W - 1:  # once per window: exact sums (no drift)
+            a = 0.0
+            b = 0.0
+            for k in range(W):
+                a += Z[k, i]
+                b += Z[k, i] * Z[k, i]
+            sm[i] = a
+            sq[i] = b
+        if n[i] < W:
+            status[j] = -1
+        elif abs(sm[i]) > k_mean:
+            status[j] = 1
+        elif sq[i] > hi:
+            status[j] = 2
+        elif sq[i] < lo:
+            status[j] = 3
+        else:
+            status[j] = 0
+        if status[j] > 0:
+            n_bad += 1
+    return n_bad
+
+
 class ChannelMonitor:
     """Per-channel sensor-fault tests on the normalised innovations ``z_i = r_i / sqrt(S_ii)``.
 
@@ -305,6 +352,7 @@ class ChannelMonitor:
         self._ok = np.zeros(m, dtype=np.int64)
         self._last_t = np.full(m, np.nan)
         self._interval = np.full(m, self.dt)
+        self._status = np.zeros(m, dtype=np.int64)
         self._open: dict[int, dict] = {}
         self._t0: float | None = None
         self.faults: list[dict] = []
@@ -351,39 +399,27 @@ class ChannelMonitor:
 
     def push(self, t: float, idx: np.ndarray, z: np.ndarray) -> None:
         """The normalised innovations ``z`` of the channels ``idx`` sampled at ``t``."""
-        self.seen(t, idx)
+        if self._t0 is None:
+            self._t0 = t
+        if len(idx) < len(self.channels) or self._open:
+            self._missing(t, idx)
+        status = self._status[: len(idx)]
+        n_bad = _window_push(self._z, self._n, self._sum, self._sq, self._last_t, self._interval, t, idx, z,
+                             self.clip, self._k_mean, self._hi, self._lo, status)
+        if not (n_bad or self._open):
+            return
         W = self.window
-        zc = np.clip(z, -self.clip, self.clip)
-        pos = self._n[idx] % W
-        old = self._z[pos, idx]
-        self._z[pos, idx] = zc
-        self._sum[idx] += zc - old
-        self._sq[idx] += zc * zc - old * old
-        self._n[idx] += 1
-        ends = idx[pos == W - 1]
-        if len(ends):  # once per window: exact sums (no drift)
-            self._sum[ends] = self._z[:, ends].sum(axis=0)
-            self._sq[ends] = (self._z[:, ends] ** 2).sum(axis=0)
-        full = idx[self._n[idx] >= W]
-        if not len(full):
-            return
-        sm, sq = self._sum[full], self._sq[full]
-        off = np.abs(sm) > self._k_mean
-        hi = sq > self._hi
-        lo = sq < self._lo
-        bad = off | hi | lo
-        if not (self._open or bad.any()):
-            return
-        for j, i in enumerate(full.tolist()):
-            if bad[j]:
+        for j, i in enumerate(idx.tolist()):
+            st = status[j]
+            if st > 0:
                 self._ok[i] = 0
                 f = self._open.get(i)
+                mean_z = self._sum[i] / W
                 if f is None:
-                    kind = "offset" if off[j] else ("scale" if hi[j] else "stuck")
-                    self._set(i, kind, t, sm[j] / W)
-                elif off[j] and f["kind"] == "scale":  # the window filled: a mean, not only a spread
-                    f["kind"], f["mean_z"] = "offset", float(sm[j] / W)
-            elif i in self._open:
+                    self._set(i, _WINDOW_FAULTS[st], t, mean_z)
+                elif st == 1 and f["kind"] == "scale":  # the window filled: a mean, not only a spread
+                    f["kind"], f["mean_z"] = "offset", float(mean_z)
+            elif st == 0 and i in self._open:
                 self._ok[i] += 1
                 if self._ok[i] >= W:
                     self._clear(i, t)
@@ -726,21 +762,24 @@ class MultirateEKF:
                                                     self._HP, r, S, x_new, P_new, self._floor)
         if not ok:
             nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
-        z = r / np.sqrt(np.abs(S.diagonal()))
+        z = np.empty(m)
+        n_over = kalman.normalise(r, S, self._gate, z)
         self._held = self._holdoff > 0
         if self._held:
             self._holdoff -= 1
-            rej = np.zeros(m, dtype=bool)
+            n_over = 0
             if self.faults is not None:
                 self.faults.seen(self._t_now, idx)
-        else:
-            if self.faults is not None:
-                self.faults.push(self._t_now, idx, z)
+        elif self.faults is not None:
+            self.faults.push(self._t_now, idx, z)
+        rej = None
+        if n_over:
             rej = z * z > self._gate
         if self.isolate and self.faults is not None and self.faults._open:
             # isolation: a channel with an open sensor fault stays out until its innovations are back in band
-            rej |= self.faults.suspect()[idx]
-        if rej.any():
+            sus = self.faults.suspect()[idx]
+            rej = sus if rej is None else rej | sus
+        if rej is not None and rej.any():
             n_rej = int(np.count_nonzero(rej))
             if 2 * n_rej < m:  # a minority of the channels is off: those sensors, not the filter
                 keep = ~rej

@@ -26,6 +26,7 @@ __all__ = [
     "map_lookahead",
     "power_sum",
     "prediction_error",
+    "secant_rows",
     "step_jacobian",
     "step_maps",
     "step_maps_noise",
@@ -310,6 +311,19 @@ def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                      old_Gr, old_fg, old_T2, old_V2, old_C2))
 
 
+def _secant_rows(c0, Hm, dH, s, x, y, H):  # pragma: no cover - compiled
+    """The measurement along the secant: ``H = Hm + s dH`` and ``y = c0 + H x`` into ``y``, ``H``
+    (:meth:`.reduced.ReducedObserverModel.measure`)."""
+    m, n = Hm.shape
+    for i in range(m):
+        acc = c0[i]
+        for j in range(n):
+            h = Hm[i, j] + s * dH[i, j]
+            H[i, j] = h
+            acc += h * x[j]
+        y[i] = acc
+
+
 def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
     """How far ahead of ``q`` along its motion the step map is built: ``tau q'`` with ``tau`` the time the
     fastest coordinate takes to move ``ahead`` remap radii, at most ``horizon`` seconds (a filter at rest,
@@ -509,6 +523,7 @@ held_system = _jit(_held_system)
 _step_jacobian = _jit(_step_jacobian)
 step_jacobian = _step_jacobian
 held_interval = _jit(_held_interval)
+secant_rows = _jit(_secant_rows)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
 
@@ -535,12 +550,12 @@ def warm_up() -> None:
     M, G = np.eye(r), np.zeros((r, nq))
     for has_old in (False, True):
         hs = _example_system(r, nq, has_old)
-        held_step(z, u, dl, 0.0, 1e-4, 1, *hs)
         held_system(dl, 0.0, *hs)
         prediction_error(dl, 0.0, M, M, *hs)
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     step_jacobian(z, *jac)
+    secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), 0.0, z, np.empty(1), np.empty((1, 2 * r)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))
     _warm = True

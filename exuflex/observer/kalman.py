@@ -30,7 +30,7 @@ try:
 except ImportError:  # pragma: no cover - numba is a core dependency
     numba = None
 
-__all__ = ["apply_gain", "fix_cov", "predict_cov", "predict_update", "settle", "update", "update_settle", "warm_up"]
+__all__ = ["apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update", "settle", "update", "update_settle", "warm_up"]
 
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
@@ -39,6 +39,9 @@ else:  # pragma: no cover
 
     def _jit(f):
         return f
+
+#: the decorator of the filter's compiled code (also :class:`.ekf.ChannelMonitor`'s window arithmetic)
+jit = _jit
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -307,6 +310,18 @@ def settle(x, P, floor):
 
 
 @_jit
+def normalise(r, S, gate, z):
+    """The normalised innovations ``z_i = r_i / sqrt(S_ii)`` (standard normal for a consistent filter) into
+    ``z``; returns how many exceed the gate, ``z_i**2 > gate``."""
+    n_over = 0
+    for i in range(r.shape[0]):
+        z[i] = r[i] / math.sqrt(abs(S[i, i]))
+        if z[i] * z[i] > gate:
+            n_over += 1
+    return n_over
+
+
+@_jit
 def predict_update(F, P, Q, P_pred, work, x, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
     """One whole sample: :func:`predict_cov` into ``P_pred``, :func:`update` from it, :func:`settle`.
 
@@ -348,3 +363,4 @@ def warm_up() -> None:
                   np.zeros(n))
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))
+    normalise(r, np.eye(m), 1.0, np.empty(m))

@@ -48,6 +48,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from operator import mul
 
 import numpy as np
 from scipy.stats import chi2
@@ -63,6 +64,7 @@ from .expansion import (
     held_system,
     map_lookahead,
     prediction_error,
+    secant_rows,
     step_jacobian,
     step_maps,
     step_maps_noise,
@@ -116,8 +118,8 @@ def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
     if iv.old is None:
         return 0.0
     v = dl.tolist()
-    a = sum(x * y for x, y in zip(v, iv.d_list))
-    n2 = sum(x * x for x in v)
+    a = sum(map(mul, v, iv.d_list))
+    n2 = sum(map(mul, v, v))
     if a * a < 0.49 * n2 * iv.dd:
         return 0.0
     return a / iv.dd
@@ -287,13 +289,15 @@ class ReducedObserverModel:
         stable on the configuration's spectrum (:func:`rk4_substep_limit`); an error naming the stiffest mode if
         stability needs sub-steps shorter than ``min_substep``."""
         if iv.h_stable is None:
-            iv.h_stable = rk4_substep_limit(self._spectrum(iv.mats))
-            if iv.h_stable < self.min_substep:
-                w = float(np.abs(self._spectrum(iv.mats)).max())
+            lam = self._spectrum(iv.mats)
+            h_stable = rk4_substep_limit(lam)
+            if h_stable < self.min_substep:
+                w = float(np.abs(lam).max())
                 raise ValueError(
                     f"the reduced model's stiffest mode (|lambda| = {w:.4g} 1/s, {w / (2 * np.pi):.4g} Hz) needs RK4 "
-                    f"sub-steps of at most {iv.h_stable:.3g} s, shorter than min_substep={self.min_substep:g} s. A "
+                    f"sub-steps of at most {h_stable:.3g} s, shorter than min_substep={self.min_substep:g} s. A "
                     "master dof with a stiff Guyan mode (e.g. an axial one) causes this: choose other masters")
+            iv.h_stable = h_stable
         return max(1, math.ceil(dt / min(self.h, iv.h_stable) - 1e-9))
 
     def frozen_interval(self, z: np.ndarray, u, dt: float) -> tuple[Prediction, _Held, _StepMap]:
@@ -545,11 +549,11 @@ class ReducedObserverModel:
         x = np.asarray(x, float)
         iv = self._measurement_interval(x)
         c0, Hm, dH = self._secant_rows(iv, tuple(channels))
-        if dH is not None:
-            s = _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
-            if s:
-                Hm = Hm + s * dH
-        return Measurement(c0 + Hm @ x, Hm)
+        s = 0.0 if dH is None else _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
+        H = np.empty_like(Hm)
+        y = np.empty(len(c0))
+        secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
+        return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_affine`, cached per interval (keeping the entries of the held configurations only, once the

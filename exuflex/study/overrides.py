@@ -13,10 +13,13 @@ A field path names a model-file field the way the TOML spells it:
   ends ``manoeuvre.rules.q3.end``, and ``manoeuvre.file`` (another CSV table, read as the model file's would be).
   A study plans each level's manoeuvre (and its computed torque) anew.
 
-Link fields as written in a model file: ``length`` (keeps the stations' fractions), ``diameter`` (solid circle:
+Link fields as written in a model file: ``length`` (keeps the fractions of its stations and of the joints,
+sensors and manoeuvre tip on it), ``diameter`` (solid circle:
 A and I recomputed), ``A``, ``I``, ``E``, ``rho`` (this link's material only), ``material`` (a material's name).
 Values keep the field's type (numbers, tuples for lists). Every error names the field path, what exists, and
-what was expected.
+what was expected. After each override the mechanism passes through the model file loader's checks
+(:func:`exuflex.mechanism.writer.revalidate`: units and ranges, limits, topology), so a value the loader would
+refuse in the file (a diameter in mm, a modulus in GPa) is refused here, naming the override.
 """
 
 from __future__ import annotations
@@ -162,6 +165,22 @@ def _set_link(path: str, link, name: str, value: Any, mech: Mechanism):
     return _set_field(path, link, name, value)
 
 
+def _scale_points(mech: Mechanism, link: str, f: float) -> Mechanism:
+    """Every point given by a station on ``link`` (joints, sensors, the manoeuvre's tip) moved to the same fraction
+    of the link after its length was multiplied by ``f``, as its nodes were."""
+
+    def pt(p):
+        return dataclasses.replace(p, station=p.station * f) if p.link == link else p
+
+    joints = tuple(dataclasses.replace(j, points=tuple(pt(p) for p in j.points)) for j in mech.joints)
+    sensors = tuple(dataclasses.replace(s, station=s.station * f)
+                    if s.link == link and s.station is not None else s for s in mech.sensors)
+    man = mech.manoeuvre
+    if man is not None and man.tip is not None:
+        man = dataclasses.replace(man, tip=pt(man.tip))
+    return dataclasses.replace(mech, joints=joints, sensors=sensors, manoeuvre=man)
+
+
 def _override_one(mech: Mechanism, path: str, value: Any) -> Mechanism:
     parts = path.split(".")
     if any(not p for p in parts):
@@ -183,6 +202,9 @@ def _override_one(mech: Mechanism, path: str, value: Any) -> Mechanism:
         old = entries[i]
         if head == "links":
             entries[i] = _set_link(path, old, name, value, mech)
+            if name == "length":
+                return _scale_points(dataclasses.replace(mech, links=tuple(entries)), old.name,
+                                     entries[i].length / old.length)
         else:
             if name == attr:
                 raise OverrideError(f"{path}: {name!r} identifies the entry and cannot be overridden")
@@ -283,7 +305,17 @@ def apply_overrides(mech: Mechanism, overrides: Mapping[str, Any] | Iterable[tup
     OverrideError
         Naming the field path, what the model has there and what was expected.
     """
+    from ..mechanism import ModelFileError
+    from ..mechanism.writer import revalidate
+
     items = overrides.items() if isinstance(overrides, Mapping) else overrides
     for path, value in items:
-        mech = _override_one(mech, str(path).strip(), value)
+        path = str(path).strip()
+        mech = _override_one(mech, path, value)
+        try:  # the model file's own checks (units, ranges, limits, topology), one override at a time
+            mech = revalidate(mech)
+        except ModelFileError as exc:
+            shown = value if not isinstance(value, tuple) else list(value)
+            raise OverrideError(f"override {path}={shown!r}: the model file's check refuses it: "
+                                f"{str(exc).removeprefix(f'{exc.source}: ')}") from None
     return mech

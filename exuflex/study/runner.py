@@ -52,12 +52,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import UsageError
-from ..mechanism import Mechanism, load_mechanism
+from ..mechanism import Mechanism, ModelFileError, load_mechanism
 from ..observer.session import ObserverConfig
 from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
 from ..sensors import ABSOLUTE_TIP_NAMES, Signals
 from ..truth import Drive, TruthRecord, plan_drive, simulate
-from .overrides import apply_overrides
+from .overrides import OverrideError, apply_overrides
 
 __all__ = [
     "FORMAT",
@@ -589,6 +589,13 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
         raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
+    for lv, m in zip(spec.levels, truth_mechs, strict=True):  # the model file's configuration check, per level
+        if lv.overrides:
+            try:
+                check_configurations(m)
+            except ModelFileError as exc:
+                raise OverrideError(f"level {lv.label}: the model file's check refuses it: "
+                                    f"{str(exc).removeprefix(f'{exc.source}: ')}") from None
     drive_mechs = [drive_mech(nominal, lv) for lv in spec.levels]
     for lv, dm in zip(spec.levels, drive_mechs, strict=True):  # a longer manoeuvre than the nominal one is cut
         if spec.duration is None and dm.manoeuvre is not None and dm.manoeuvre.duration > duration:

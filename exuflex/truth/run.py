@@ -82,6 +82,12 @@ def simulate_run(
             elements_per_link = 0
         if elements_per_link < 1:
             raise UsageError("elements_per_link (--elements-per-link): expected a positive integer or 'file'")
+        from ..mechanism import remeshed_element_count
+        from ..mechanism.limits import element_count_error
+
+        why = element_count_error(remeshed_element_count(mech, elements_per_link))
+        if why is not None:
+            raise UsageError(f"elements_per_link (--elements-per-link): {elements_per_link} per link: expected {why}")
     if engine == "erls" and integrator == "gen-alpha":
         gen_alpha_step(erls_step, h, 1.0 / mech.sample_rate_hz, mech.reduction.band_hz)  # before the planning
     seed = new_seed() if seed is None else seed
