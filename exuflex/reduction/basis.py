@@ -95,9 +95,10 @@ class CraigBampton:
     ranking : ``"imr"`` (interior-mode ranking) or ``"frequency"`` (lowest modes).
     path : configurations (n, nq) the interior modes are chosen over besides q* (:mod:`.path`); default
         (``None``): ``path_samples`` configurations of the model's manoeuvre; ``False``: q* only.
-    channels : the observer's sensor channels (default: :func:`exuflex.sensors.default_channels`); the full modes
-        the manoeuvre makes visible in them (below the sample rate's Nyquist frequency) join the band of the
-        accuracy thresholds (:class:`.path.Excitation`).
+    channels : the observer's sensor channels (default: :func:`exuflex.sensors.default_channels`); with the
+        automatic count, the full modes the manoeuvre makes visible in them (below the sample rate's Nyquist
+        frequency) join the band of the accuracy thresholds (:class:`.path.Excitation`); a fixed count is kept
+        as given, with the band's thresholds alone.
     visibility : a mode is visible when its peak response reaches this multiple of a channel's noise std
         (default :data:`.path.VISIBILITY`; 0: the band limit alone).
     """
@@ -191,14 +192,16 @@ class CraigBampton:
         # the interior modes' order and count, chosen at q* and along the path (.path)
         self.order = np.arange(Phi.shape[1])
         self.set_interior(Phi.shape[1])
+        if n_interior is None:
+            n_interior = spec.n_interior if spec.n_interior is not None else "auto"
+        # the modes the channels see join the band of the automatic count (.path); a fixed count is the user's
         self.visibility = VISIBILITY if visibility is None else float(visibility)
-        excitation = Excitation.of(model.mech, channels) if self.visibility > 0 else None
+        excitation = (Excitation.of(model.mech, channels) if self.visibility > 0 and n_interior == "auto"
+                      else None)
         samples = PathSamples(self, q_samples, excitation, self.visibility)
         # full modes above the band limit that the channels see, at any sample (Hz, rounded for the report)
         self.visible_hz = np.unique(np.round(np.concatenate([np.zeros(0), *samples.visible_hz]), 1))
         self.scores = samples.scores[0]  # IMR scores at q*
-        if n_interior is None:
-            n_interior = spec.n_interior if spec.n_interior is not None else "auto"
         self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior))
         self.path_q = q_samples  # q* and the path's configurations the choice was made on
         if n_interior is None:
@@ -219,11 +222,6 @@ class CraigBampton:
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
                         "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
                         a.worst_nco, np.round(a.q, 4).tolist(), hint)
-        elif len(self.visible_hz) and n_interior < n_needed:
-            log.warning("%s: %d interior modes do not follow the full modes the channels see above the band "
-                        "(%.0f-%.0f Hz along the manoeuvre, response above %.2g of a channel's noise std); 'auto' "
-                        "would keep %d", src, n_interior, self.visible_hz.min(), self.visible_hz.max(),
-                        self.visibility, n_needed)
         elif len(self.visible_hz) and not samples.visible_met:
             log.info("%s: %d interior modes, the most the automatic count adds for the full modes the channels see "
                      "above the band (%.0f-%.0f Hz along the manoeuvre); some of them are followed only in part",
