@@ -195,8 +195,8 @@ class Observer:
         """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
         from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through
         their maps linearised at each state (the filter's extra states, if any, are left out; the rate's turning
-        term is linearised in p and q', not in q). For NEES against a
-        truth of the physical quantities. The tip rows are evaluated as in :meth:`physical`."""
+        term is linearised in p and q', not in q). For NEES against a truth of the physical quantities. The tip
+        rows are evaluated as in :meth:`physical`."""
         som = self.model
         nq, r, nx = som.nq, som.r, som.nx
         tp = tip_point(self.mech)
