@@ -6,12 +6,17 @@ noise exactly as the study does (:func:`exuflex.measure.measure`, ``seed``), run
 RMS errors after the start-up, the payload estimate after ``--settle`` s and its normalised error.
 
     python benchmarks/estimators.py models/sixbar.toml DIR --seeds 20 --estimators ekf,ekf-payload
+    python benchmarks/estimators.py models/sixbar.toml DIR --speed 5 --estimators ekf,ekf-payload,ekf-input,ukf
+
+``DIR`` may also be the folder of ``exuflex study payload MODEL --estimators ...`` (its shared ``truth``). With
+``--speed N`` the estimators are timed in turn on one log instead (ratios within one run).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -25,7 +30,8 @@ from exuflex.study.runner import _load_truth
 
 LEGEND = """Columns: mean over the seeds of the per-run RMS error after the start-up (rad, rad/s, m); `rtf`: median
 real-time factor of the filter alone (on a shared machine: compare within a table only). Smoothed / filtered: the
-RTS smoother's RMS error over the filter's on the same log. NIS: the mean normalised innovation squared over all
+RTS smoother's RMS error over the filter's on the same log. "After the settle time": mean RMS errors over the
+samples after `--settle` s only (the payload estimate learned). NIS: the mean normalised innovation squared over all
 runs' updates after the start-up and the two-sided 95 % chi-square band of a consistent filter (updates taken as
 independent). Payload scale: the estimate at the last sample (mean over runs) and its std; "within 10 % after
 settle": the estimate stays within 10 % of the truth at every sample after the settle time; "|err|/std <= 3":
@@ -50,12 +56,20 @@ def main(argv=None) -> int:
                     "(listed in the --doc page)")
     ap.add_argument("--doc", default=None, help="write the tables to this markdown page")
     ap.add_argument("--json", default=None, help="write the per-run rows here")
+    ap.add_argument("--speed", type=int, default=0, metavar="N",
+                    help="instead: time each estimator N times on the nominal level's seed-0 log, in rotation "
+                         "(ratios within one run), and the RTS smoother's passes")
     args = ap.parse_args(argv)
     mech = load_mechanism(args.model)
     rows = []
+    if args.speed:
+        rows = _speed(mech, args)
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+        return 0
     if args.from_json:  # tables of earlier runs of this script (no filtering)
         for f in args.from_json.split(","):
-            rows += json.loads(Path(f).read_text())
+            rows += [dict({"model": mech.name}, **r) for r in json.loads(Path(f).read_text())]
     for lvdir in [] if args.from_json else sorted(Path(args.study_dir, "truth").glob("L*")):
         level = json.loads((lvdir / "level.json").read_text())
         scale = float(level.get("level", level).get("payload_scale", 1.0)) if isinstance(level, dict) else 1.0
@@ -79,13 +93,16 @@ def main(argv=None) -> int:
                 e = estimate(obs, S.t, U, Y, smooth=smooth)
                 wall = time.perf_counter() - t0
                 m = metrics(e.filtered_physical if smooth else e.physical, lt.truth, 0.3)["rms_error"]
+                late = metrics(e.filtered_physical if smooth else e.physical, lt.truth, args.settle)["rms_error"]
+                m.update({f"late_{k}": v for k, v in late.items()})
                 if smooth:
                     ms = metrics(e.physical, lt.truth, 0.3)["rms_error"]
                     m.update({f"smoothed_{k}": v for k, v in ms.items()})
                     m["smoother_backward_s"] = e.smoothed.backward_s
                     m["smoother_wall_s"] = e.smoothed.wall_s
                 mean_nis, exp_nis = e.result.mean_nis(burn_in=int(0.3 * 500))
-                row = {"scale": scale, "estimator": est_name, "seed": seed, "rtf": e.real_time_factor,
+                row = {"model": mech.name, "scale": scale, "estimator": est_name, "seed": seed,
+                       "rtf": e.real_time_factor,
                        "wall_s": wall, "diverged": bool(e.result.diverged), "nis_mean": mean_nis,
                        "nis_expected": exp_nis, "n_nis": int(np.isfinite(e.result.nis[150:]).sum()),
                        **{k: m[k] for k in m}}
@@ -102,21 +119,77 @@ def main(argv=None) -> int:
                     row["theta_nerr_end"] = float(abs(th[-1] - scale) / sd[-1])
                 rows.append(row)
                 print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()
-                                  if k in ("scale", "estimator", "seed", "q3", "dq3", "x25", "theta_end",
-                                                                                      "theta_std_end", "theta_nerr_end", "rtf", "nis_mean")}), flush=True)
+                                  if k in ("scale", "estimator", "seed", "q1", "q3", "dq1", "dq3", "theta_end",
+                                           "theta_std_end", "theta_nerr_end", "rtf", "nis_mean")}), flush=True)
     lines = _table(rows)
+    speed = _speed_table(rows)
     if args.doc:
-        cmd = "python benchmarks/estimators.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        if args.from_json:  # the tables' command: the files by name, the commands that wrote them listed above
+            files = ",".join(Path(f).name for f in args.from_json.split(","))
+            cmd = f"python benchmarks/estimators.py {args.model} DIR --from-json {files} --doc {args.doc}"
+        else:
+            cmd = "python benchmarks/estimators.py " + " ".join(argv if argv is not None else sys.argv[1:])
         Path(args.doc).write_text(
             "# Estimators beyond the paper: measured on the payload-mismatch truths\n\n"
             "Written by `benchmarks/estimators.py` (RMS errors after the 0.3 s start-up, averaged over the seeds; "
             "the noise of seed `s` is the payload study's run `s`; the truths are Exudyn's, cached by "
             "`exuflex study payload MODEL --levels 0,100 --out DIR`). Regenerate with:\n\n"
             + "".join(f"    {c}\n" for c in args.measured_by) + f"    {cmd}\n\n```\n" + "\n".join(lines)
-            + "\n```\n\n" + LEGEND)
+            + "\n```\n\n" + LEGEND
+            + ("\n## Speed\n\nMedian wall time of each estimator over the nominal level's seed-0 log, the estimators "
+               "timed in turn within one run (`--speed N`); `wall / ekf` is the ratio to the plain EKF's median "
+               "in that run (the machine is shared: the ratios, not the absolute times, carry over).\n\n```\n"
+               + "\n".join(speed) + "\n```\n" if speed else ""))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
+
+
+def _speed(mech, args) -> list[dict]:
+    """Wall time of each estimator over the same log, the estimators timed in turn ``args.speed`` times (the UKF
+    once per three turns: it is two orders slower); the RTS smoother's forward and backward passes with the EKF.
+    Medians and the ratio of each median to the EKF's, all from this one run."""
+    lvdir = next(d for d in sorted(Path(args.study_dir, "truth").glob("L*"))
+                 if float(json.loads((d / "level.json").read_text())["level"].get("payload_scale", 1.0)) == 1.0)
+    lt = _load_truth(lvdir / "truth.npz", {})
+    meas = measure(mech, lt.clean, lt.torque_t, lt.torques, seed=0, t_end=float(lt.clean.t[-1]))
+    S = meas.signals
+    span = float(S.t[-1] - S.t[0])
+    names = [e for e in args.estimators.split(",")]
+    obs = {e: make_observer(mech, ObserverConfig(estimator=e)) for e in names}
+    walls: dict[str, list[float]] = {e: [] for e in names}
+    walls["smoother (ekf forward + backward)"] = []
+    for e in names:  # a first run of each, untimed: kernels loaded, solvers warm
+        estimate(obs[e], S.t, S.select(mech.motor_names).data, S.select(obs[e].channels).data)
+    for k in range(args.speed):
+        for e in names:
+            if e == "ukf" and k % 3:
+                continue
+            U = S.select(mech.motor_names).data
+            Y = S.select(obs[e].channels).data
+            t0 = time.perf_counter()
+            estimate(obs[e], S.t, U, Y)
+            walls[e].append(time.perf_counter() - t0)
+            if e == "ekf":
+                walls["smoother (ekf forward + backward)"].append(estimate(obs[e], S.t, U, Y, smooth=True).smoothed.wall_s)
+    ref = float(np.median(walls["ekf"])) if walls.get("ekf") else float("nan")
+    rows = [{"speed": e, "repeats": len(w), "median_wall_s": float(np.median(w)), "real_time_factor":
+             span / float(np.median(w)), "wall_over_ekf": float(np.median(w)) / ref, "log_s": span}
+            for e, w in walls.items() if w]
+    for r in rows:
+        print(json.dumps(r), flush=True)
+    return rows
+
+
+def _speed_table(rows) -> list[str]:
+    rows = [r for r in rows if "speed" in r]
+    if not rows:
+        return []
+    out = [f"{'estimator':>34s} {'repeats':>7s} {'wall (s)':>9s} {'x real time':>11s} {'wall / ekf':>10s}"]
+    for r in rows:
+        out.append(f"{r['speed']:>34s} {r['repeats']:7d} {r['median_wall_s']:9.3f} {r['real_time_factor']:11.1f} "
+                   f"{r['wall_over_ekf']:10.2f}")
+    return out
 
 
 def _table(rows) -> list[str]:
@@ -126,8 +199,22 @@ def _table(rows) -> list[str]:
         print(text)
         lines.append(text)
 
+    rows = [r for r in rows if "scale" in r]
+    models = list(dict.fromkeys(r.get("model", "") for r in rows))
+    for model in models:
+        if len(models) > 1:
+            out(f"{model}:")
+        _model_table([r for r in rows if r.get("model", "") == model], out)
+    return lines
+
+
+def _model_table(rows, out) -> None:
     keys = sorted({(r["scale"], r["estimator"]) for r in rows})
-    cols = [c for c in ("q1", "q2", "q3", "dq1", "dq2", "dq3", "x25", "y26") if c in rows[0]]
+    # the joint angles and rates, and the tip's elastic displacements (named by their master dofs)
+    names = [c for c in rows[0] if re.fullmatch(r"(d?q|x|y)\d+", c)]
+    cols = [c for c in names if c.startswith("q")] + [c for c in names if c.startswith("dq")] + \
+        [c for c in names if c[0] in "xy"]
+    late = [c for c in cols if "late_" + c in rows[0]]
     out(f"{'scale':>5s} {'estimator':>12s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
     for sc, en in keys:
         every = [r for r in rows if r["scale"] == sc and r["estimator"] == en]
@@ -136,8 +223,11 @@ def _table(rows) -> list[str]:
         cells = " ".join(f"{np.mean([r[c] for r in rr]):9.3g}" for c in cols)
         out(f"{sc:5.2f} {en:>12s} {len(rr):3d} {len(every) - len(rr):3d} {cells}  "
             f"{np.median([r['rtf'] for r in rr]):5.1f}")
+        if late:
+            out("      after the settle time: " + ", ".join(
+                f"{c} {np.mean([r['late_' + c] for r in rr]):.3g}" for c in late))
         if "smoothed_q1" in rr[0]:
-            cs = [c for c in ("q1", "q2", "q3", "x25", "y26", "dq1", "dq2", "dq3") if c in rr[0]]
+            cs = [c for c in cols if "smoothed_" + c in rr[0]]
             out("      smoothed / filtered RMS (mean of per-run ratios; worst run): " + ", ".join(
                 f"{c} {np.mean([r['smoothed_' + c] / r[c] for r in rr]):.2f} "
                 f"({np.max([r['smoothed_' + c] / r[c] for r in rr]):.2f})" for c in cs))
@@ -162,7 +252,6 @@ def _table(rows) -> list[str]:
                   f"{np.mean([r['theta_std_end'] for r in rr]):.3f}; within 10 % after settle in {within:.0%} of "
                   f"runs; |err|/std <= 3 at the end in {cons:.0%}")
 
-    return lines
 
 
 if __name__ == "__main__":

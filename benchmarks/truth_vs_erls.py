@@ -47,9 +47,10 @@ def _table_from_run(mech, run, cache):
 
 
 def _write_docs(path: Path, mech, cmp, args, duration: float) -> None:
-    """Rewrite the page's block between ``<!-- truth_vs_erls.py FORM: begin -->`` and its end marker (appended if
-    absent) with this comparison's figures."""
-    begin, end = f"<!-- truth_vs_erls.py {args.form}: begin -->", f"<!-- truth_vs_erls.py {args.form}: end -->"
+    """Rewrite the page's block between ``<!-- truth_vs_erls.py MODEL FORM: begin -->`` and its end marker (appended
+    if absent) with this comparison's figures."""
+    key = f"truth_vs_erls.py {mech.name} {args.form}"
+    begin, end = f"<!-- {key}: begin -->", f"<!-- {key}: end -->"
     cmd = " ".join(["python benchmarks/truth_vs_erls.py", *sys.argv[1:]])
     q = ", ".join(f"{n} {v:.2e}" for n, v in cmp.q_max_abs.items())
     tip = ", ".join(f"{n} {100 * v:.2f} %" for n, v in cmp.tip_nrms.items())

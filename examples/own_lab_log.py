@@ -25,9 +25,11 @@ MAP = {"T1": "motor1_Nm", "T2": "motor2_Nm", "T3": "motor3_Nm", "q1": "enc1_rad"
        "q3": "enc3_rad", "c1": "gauge1", "c2": "gauge2", "c4": "gauge4"}
 
 
-def example_log(path: Path) -> Path:
-    """A lab-style CSV from the shipped test run: renamed columns, time in milliseconds, a comment line."""
-    run = xf.read_run(ROOT / "tests" / "data" / "sixbar_erls_3s")
+def example_log(path: Path, run_dir: Path = ROOT / "tests" / "data" / "sixbar_erls_3s") -> Path:
+    """A lab-style CSV from a six-bar run folder (default: the shipped test run; ``--from-run`` for one of
+    yours, e.g. ``exuflex simulate models/sixbar.toml --out runs/mine``): renamed columns, time in
+    milliseconds, a comment line."""
+    run = xf.read_run(run_dir)
     S = run.sensors
     path.parent.mkdir(parents=True, exist_ok=True)
     cols = list(MAP)
@@ -41,16 +43,21 @@ def example_log(path: Path) -> Path:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("log", nargs="?", help="your CSV log (default: an example made from the test run)")
+    ap.add_argument("log", nargs="?", help="your CSV log (default: an example made from a run folder)")
+    ap.add_argument("--from-run", type=Path, default=None, help="the run folder the example log is made from "
+                    "(default: the test run shipped with the repository)")
     ap.add_argument("--model", default=str(ROOT / "models" / "sixbar.toml"))
     ap.add_argument("--out", default=None, help="write estimates.csv, result.json and figures here")
     a = ap.parse_args(argv)
-    log_path = Path(a.log) if a.log else example_log(HERE / "data" / "lab_sixbar.csv")
+    if a.log:
+        log_path = Path(a.log)
+    elif a.from_run:
+        log_path = example_log(HERE / "data" / "lab_sixbar.csv", a.from_run)
+    else:
+        log_path = example_log(HERE / "data" / "lab_sixbar.csv")
 
     mech = xf.load_mechanism(a.model)
-    sig = xf.read_csv_log(log_path, MAP, time_column="Time_ms", time_scale=1e-3)  # ms -> s
-    motors = list(mech.motor_names)
-    run = xf.Run(log_path, sig, None, {"motors": motors, "sensors": [c for c in sig.names if c not in motors]})
+    run = xf.read_lab_run(log_path, mech, MAP, time_column="Time_ms", time_scale=1e-3)  # ms -> s
     out = xf.observe_run(mech, run, report=print)  # checks the log, prints its channels, rates and the bound
     if a.out:
         from exuflex.observer.output import write_outcome

@@ -6,7 +6,9 @@ stays light)::
     import exuflex as xf
 
     mech = xf.load_mechanism("models/sixbar.toml")           # a model file -> Mechanism (frozen data)
-    run = xf.read_run("runs/nominal")                         # a run folder; or xf.read_csv_log(...) for a lab CSV
+    run = xf.read_run("runs/nominal")                         # a run folder, or a lab's CSV log:
+    run = xf.read_lab_run("lab.csv", mech, {"T1": "motor1_Nm", "q1": "enc1_rad"}, time_column="Time_ms",
+                          time_scale=1e-3)                    # your column names, time in ms
     obs = xf.make_observer(mech, xf.ObserverConfig())         # reduced model + multirate EKF
     out = xf.observe_run(mech, run, observer=obs)             # filter, check the log, score, bound for this log
     out.metrics, out.bound                                    # RMS errors per quantity, the bound for this log
@@ -62,6 +64,7 @@ _API = {
     "read_run": "exuflex.runs",
     "write_run": "exuflex.runs",
     "read_csv_log": "exuflex.runs",
+    "read_lab_run": "exuflex.runs",
     "check_run": "exuflex.validate",
     "LogFormatError": "exuflex.errors",
     "UsageError": "exuflex.errors",

@@ -203,7 +203,7 @@ def run_bench(
         start_up = min(0.3, duration / 4)
 
         say("reduced observer")
-        config = ObserverConfig()
+        config = ObserverConfig.for_model(mech)
         t0 = time.perf_counter()
         obs = make_observer(mech, config)
         build_s = time.perf_counter() - t0

@@ -698,7 +698,8 @@ def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str
     table_rows : sequence of dict
         ``{"level": float (%), "quantity": str, "mu": float, "sigma": float}``, optionally ``"title"``: the
         panel's title (default the quantity's name; :func:`exuflex.study.figure_rows` names the tip panels
-        "tip elastic displacement" or "tip position (rigid + elastic)"). Panels follow the rows' order of
+        "tip elastic displacement" or "tip position (rigid + elastic)"), and ``"series"``: the estimator
+        (several series are drawn side by side in each panel, with a legend). Panels follow the rows' order of
         quantities, two per row of the figure.
     path : path-like
     units : dict, optional
@@ -726,15 +727,22 @@ def payload_study_figure(table_rows: Sequence[Mapping], path, units: Mapping[str
         mu = np.array([float(r["mu"]) for r in rows])
         sg = np.array([float(r["sigma"]) for r in rows])
         unit = (units or {}).get(qname) or _guess_unit(qname)
-        ax.errorbar(lv, mu, yerr=sg, fmt="o", color=ESTIMATE_COLOUR, ecolor="k", elinewidth=1.0, capsize=4,
-                    label="mean μ ± std σ of |error|")
+        series = list(dict.fromkeys(r.get("series") for r in rows))
+        step = np.min(np.diff(np.unique(lv))) if np.unique(lv).size > 1 else 10.0
+        for j, name in enumerate(series):
+            sel = np.array([r.get("series") == name for r in rows])
+            dx = (j - (len(series) - 1) / 2) * 0.05 * step if len(series) > 1 else 0.0
+            ax.errorbar(lv[sel] + dx, mu[sel], yerr=sg[sel], fmt="o",
+                        color=ESTIMATE_COLOUR if name is None else f"C{j}", ecolor="k", elinewidth=1.0, capsize=4,
+                        label="mean μ ± std σ of |error|" if name is None else f"{name}: μ ± σ")
         ax.set_xlabel("payload increase (%)")
         ax.set_ylabel(f"|{_label(qname)} error| ({unit})")
         ax.set_title(titles.get(qname, _label(qname)), fontsize=10)
         ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 2))
         if lv.size:
             span = max(lv.max() - lv.min(), 1.0)
-            ax.set_xlim(lv.min() - 0.08 * span, lv.max() + 0.08 * span)
+            pad = 0.08 * span + 0.05 * step * (len(series) - 1) / 2
+            ax.set_xlim(lv.min() - pad, lv.max() + pad)
             ax.set_xticks(np.unique(lv))
         ax.set_ylim(bottom=min(0.0, float(np.nanmin(mu - sg)) if mu.size else 0.0))
         ax.grid(True, lw=0.3)

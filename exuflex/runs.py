@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import os
+import re
 import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -41,6 +42,8 @@ __all__ = [
     "Run",
     "atomic_write_bytes",
     "atomic_write_text",
+    "DELIMITER_NAMES",
+    "check_csv_dialect",
     "file_sha256",
     "package_versions",
     "read_csv_log",
@@ -221,6 +224,42 @@ def _json_default(o):
 
 
 # ------------------------------------------------------------------------------------------ reading
+CHUNK_ROWS = 8192
+"""Rows parsed at a time: the text held at once while reading a log (a few MB)."""
+
+
+def _iter_lines(path: Path):
+    """``(line number, text without its line end)`` of a UTF-8 text file, read lazily (one buffer at a time)."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.is_dir():
+        raise LogFormatError(f"{path}: is a folder, expected a text file")
+
+    def gen():
+        try:
+            with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel) is not part of 'time'
+                for i, ln in enumerate(f):
+                    yield i + 1, ln.rstrip("\r\n")
+        except UnicodeDecodeError as exc:
+            raise LogFormatError(
+                f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the log as UTF-8 CSV"
+            ) from None
+        except OSError as exc:
+            raise LogFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+
+    return gen()
+
+
+def _content_lines(path: Path, comment: str = "#"):
+    """The lines of :func:`_iter_lines` that are neither blank nor comments, lazily."""
+    return ((n, s) for n, s in _iter_lines(path) if s.strip() and not s.lstrip().startswith(comment))
+
+
+def _read_lines(path: Path) -> list[tuple[int, str]]:
+    """Every line of a (small) text file at once."""
+    return list(_iter_lines(path))
+
+
 def _parse_table(
     path: Path,
     lines: Sequence[tuple[int, str]],
@@ -228,8 +267,10 @@ def _parse_table(
     *,
     allow_empty: bool,
     delimiter: str = ",",
+    decimal: str = ".",
 ) -> np.ndarray:
-    """Parse data lines (line number, text) into an (n, n_cols) float array with clear errors."""
+    """Parse data lines (line number, text) into an (n, n_cols) float array with clear errors: the reference
+    parser, cell by cell (Python's ``float`` on each stripped cell; an empty cell is NaN where allowed)."""
     n_col = len(header)
     data = np.empty((len(lines), n_col))
     for r, (lineno, text) in enumerate(lines):
@@ -247,10 +288,13 @@ def _parse_table(
                     f"{path}: line {lineno}, column {header[c]!r}: empty cell, expected a number"
                 )
             try:
-                v = float(cell)
+                if decimal != "." and "." in cell:
+                    raise ValueError(cell)  # a decimal point where the decimal mark is another
+                v = float(cell.replace(decimal, ".") if decimal != "." else cell)
             except ValueError:
                 raise LogFormatError(
                     f"{path}: line {lineno}, column {header[c]!r}: {cell!r} is not a number"
+                    + (f" (decimal mark {decimal!r})" if decimal != "." else "")
                 ) from None
             if not math.isfinite(v):
                 raise LogFormatError(
@@ -261,32 +305,100 @@ def _parse_table(
     return data
 
 
-def _check_time(path: Path, t: np.ndarray, lines: Sequence[tuple[int, str]], column: str = TIME) -> None:
+_EMPTY_CELL = {d: re.compile(rf"(^|{re.escape(d)})[ \t]*(?={re.escape(d)}|$)", re.M) for d in (",", ";", "\t", "|")}
+
+
+def _parse_chunk(path: Path, lines: Sequence[tuple[int, str]], header: Sequence[str], *, allow_empty: bool,
+                 delimiter: str, decimal: str) -> np.ndarray:
+    """:func:`_parse_table` on a chunk of lines, through NumPy's compiled reader (``np.loadtxt``) when it gives
+    the same numbers: it is stricter than ``float`` (it refuses what ``float`` also refuses, and a few forms
+    ``float`` takes, such as ``1_0``), so any chunk it refuses, or in which it finds a non-finite value or an
+    empty time, is parsed again by :func:`_parse_table`, which gives the value or the error message."""
+    texts = [t for _, t in lines]
+    n_col = len(header)
+    joined = "\n".join(texts)
+    literal_non_finite = any(ch in joined for ch in "nNiI")  # nan, inf: only the reference parser names them
+    if not literal_non_finite and (decimal == "." or "." not in joined) and (
+            delimiter in _EMPTY_CELL or not allow_empty):
+        if decimal != ".":
+            joined = joined.replace(decimal, ".")
+        d = delimiter
+        if allow_empty and (d + d in joined or d + "\n" in joined or joined.endswith(d) or d + " " in joined
+                            or d + "\t" in joined):  # an empty cell somewhere: NaN, as the reference parser
+            joined = _EMPTY_CELL[d].sub(r"\1nan", joined)
+        try:
+            block = np.loadtxt(joined.splitlines(), delimiter=delimiter, dtype=float, ndmin=2, comments=None,
+                               quotechar=None)
+        except ValueError:
+            block = None
+        if block is not None and block.shape == (len(texts), n_col) and not np.isnan(block[:, 0]).any() \
+                and not np.isinf(block).any() and (allow_empty or not np.isnan(block).any()):
+            return block
+    return _parse_table(path, lines, header, allow_empty=allow_empty, delimiter=delimiter, decimal=decimal)
+
+
+def _parse_stream(path: Path, lines, header: Sequence[str], *, allow_empty: bool, delimiter: str = ",",
+                  decimal: str = ".", size_bytes: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The data lines of an iterator ``(line number, text)`` as an ``(n, n_cols)`` float array and the line
+    number of each row, read :data:`CHUNK_ROWS` lines at a time.
+
+    Memory: the array is allocated once for the number of rows the file's size suggests (its size over the
+    mean length of the first chunk's lines, plus 2 %) and grown by a quarter if the guess falls short, so the
+    reader holds the array (8 bytes per cell, plus the row numbers), one chunk of text and, while growing, a
+    second array; never the whole text.
+    """
+    n_col = len(header)
+    data = np.empty((0, n_col))
+    linenos = np.empty(0, np.int64)
+    n = 0
+    chunk: list[tuple[int, str]] = []
+
+    def flush():
+        nonlocal data, linenos, n
+        block = _parse_chunk(path, chunk, header, allow_empty=allow_empty, delimiter=delimiter, decimal=decimal)
+        m = len(block)
+        if n + m > len(data):
+            if n == 0 and size_bytes:
+                per_line = max(1.0, sum(len(t) + 1 for _, t in chunk) / len(chunk))
+                cap = max(n + m, int(size_bytes / per_line * 1.02) + 16)
+            else:
+                cap = max(n + m, int(len(data) * 1.25) + 16)
+            grown = np.empty((cap, n_col))
+            grown[:n] = data[:n]
+            grown_ln = np.empty(cap, np.int64)
+            grown_ln[:n] = linenos[:n]
+            data, linenos = grown, grown_ln
+        data[n : n + m] = block
+        linenos[n : n + m] = [ln for ln, _ in chunk]
+        n += m
+        chunk.clear()
+
+    for item in lines:
+        chunk.append(item)
+        if len(chunk) >= CHUNK_ROWS:
+            flush()
+    if chunk:
+        flush()
+    return data[:n], linenos[:n]
+
+
+def _check_time(path: Path, t: np.ndarray, linenos: Sequence[int], column: str = TIME) -> None:
     if len(t) == 0:
         raise LogFormatError(f"{path}: no data rows (expected a header line and at least one row)")
     bad = np.flatnonzero(np.diff(t) <= 0)
     if len(bad):
         i = int(bad[0]) + 1
         raise LogFormatError(
-            f"{path}: column {column!r} is not strictly increasing at line {lines[i][0]} "
+            f"{path}: column {column!r} is not strictly increasing at line {int(linenos[i])} "
             f"({float(t[i - 1])!r} then {float(t[i])!r})"
         )
 
 
-def _read_lines(path: Path) -> list[tuple[int, str]]:
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file")
-    if path.is_dir():
-        raise LogFormatError(f"{path}: is a folder, expected a text file")
+def _size(path: Path) -> int:
     try:
-        with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel) is not part of 'time'
-            return [(i + 1, ln.rstrip("\r\n")) for i, ln in enumerate(f)]
-    except UnicodeDecodeError as exc:
-        raise LogFormatError(
-            f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the log as UTF-8 CSV"
-        ) from None
-    except OSError as exc:
-        raise LogFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 def read_signals_csv(
@@ -298,13 +410,15 @@ def read_signals_csv(
 ) -> Signals:
     """Read a ``time,...`` CSV written by :func:`write_signals_csv`.
 
-    Lines starting with ``#`` and blank lines are skipped. Errors name the file, the column and the line.
+    Lines starting with ``#`` and blank lines are skipped. Errors name the file, the column and the line. The
+    file is read in chunks (:func:`_parse_stream`): the reader holds the returned array and one chunk of text.
     """
     path = Path(path)
-    lines = [(n, s) for n, s in _read_lines(path) if s.strip() and not s.lstrip().startswith("#")]
-    if not lines:
+    lines = _content_lines(path)
+    first = next(lines, None)
+    if first is None:
         raise LogFormatError(f"{path}: empty file (expected a header line 'time,...' and data rows)")
-    header = [h.strip() for h in lines[0][1].split(",")]
+    header = [h.strip() for h in first[1].split(",")]
     if header[0] != TIME:
         raise LogFormatError(f"{path}: first column is {header[0]!r}, expected {TIME!r}")
     dup = sorted({h for h in header if header.count(h) > 1})
@@ -313,9 +427,8 @@ def read_signals_csv(
     missing = [c for c in required if c not in header]
     if missing:
         raise LogFormatError(f"{path}: missing column(s) {missing}; the header has {header}")
-    body = lines[1:]
-    data = _parse_table(path, body, header, allow_empty=allow_empty)
-    _check_time(path, data[:, 0], body)
+    data, linenos = _parse_stream(path, lines, header, allow_empty=allow_empty, size_bytes=_size(path))
+    _check_time(path, data[:, 0], linenos)
     names = tuple(header[1:])
     u = tuple((units or {}).get(n, "") for n in names)
     return Signals(data[:, 0], names, data[:, 1:], u)
@@ -385,6 +498,32 @@ def read_run(run_dir: str | os.PathLike) -> Run:
     return Run(d, sensors, truth, meta)
 
 
+DELIMITER_NAMES = {"tab": "\t", "\\t": "\t", "comma": ",", "semicolon": ";", "space": " ", "pipe": "|"}
+"""Names accepted for a delimiter that is awkward to type on a command line."""
+
+
+def _shown(ch: str) -> str:
+    return {"\t": "tab", " ": "space"}.get(ch, repr(ch))
+
+
+def check_csv_dialect(delimiter: str, decimal: str = ".") -> None:
+    """A CSV dialect :func:`read_csv_log` can read: the delimiter one character that cannot be part of a number
+    (not a digit, sign, decimal point, exponent letter, quote, line end or ``#``), the decimal mark ``.`` or
+    ``,``, and the two different. Else a :class:`~exuflex.errors.UsageError` naming ``--delimiter`` /
+    ``--decimal``."""
+    from .errors import UsageError
+
+    if not isinstance(delimiter, str) or len(delimiter) != 1 or delimiter in "0123456789+-.eE\"'#\r\n" \
+            or delimiter.isalnum():
+        raise UsageError(f"delimiter (--delimiter): expected one character that is not part of a number, such as "
+                         f"',', ';', '|' or tab, got {delimiter!r}")
+    if decimal not in (".", ","):
+        raise UsageError(f"decimal (--decimal): expected '.' or ',', got {decimal!r}")
+    if decimal == delimiter:
+        raise UsageError(f"decimal (--decimal): the decimal mark {decimal!r} is also the delimiter; expected "
+                         "another delimiter (e.g. --delimiter ';' with --decimal ',')")
+
+
 def read_csv_log(
     path: str | os.PathLike,
     channels: Mapping[str, str] | None = None,
@@ -392,6 +531,7 @@ def read_csv_log(
     time_column: str = "time",
     time_scale: float = 1.0,
     delimiter: str = ",",
+    decimal: str = ".",
     comment: str = "#",
     allow_empty: bool = True,
 ) -> Signals:
@@ -407,22 +547,35 @@ def read_csv_log(
         Name of the time column.
     time_scale : float
         Multiplies the time column (e.g. 1e-3 for milliseconds).
-    delimiter, comment : str
-        Field separator; lines starting with ``comment`` are skipped.
+    delimiter, decimal, comment : str
+        Field separator (one character, e.g. ``;`` or a tab), decimal mark (``.`` or ``,``, e.g. a European
+        ``1,5;2,25``; not the delimiter), and the start of comment lines, which are skipped
+        (:func:`check_csv_dialect`).
     allow_empty : bool
         Empty cells read as NaN (not sampled) instead of an error.
+
+    The file is read in chunks (:func:`_parse_stream`): the reader holds the parsed array, the mapped columns
+    and one chunk of text, never the whole text.
     """
     path = _path_argument(path, "path")
+    check_csv_dialect(delimiter, decimal)
     if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)) or not (
         math.isfinite(time_scale) and time_scale > 0
     ):
         raise ValueError(f"read_csv_log: time_scale must be a positive number, got {time_scale!r}")
-    lines = [(n, s) for n, s in _read_lines(path) if s.strip() and not s.lstrip().startswith(comment)]
-    if not lines:
+    lines = _content_lines(path, comment)
+    first = next(lines, None)
+    if first is None:
         raise LogFormatError(f"{path}: empty file (expected a header row and data rows)")
-    header = [h.strip() for h in lines[0][1].split(delimiter)]
+    header = [h.strip() for h in first[1].split(delimiter)]
+    if len(header) == 1 and delimiter not in first[1]:
+        other = [d for d in (",", ";", "\t", "|") if d != delimiter and d in first[1]]
+        if other:
+            raise LogFormatError(f"{path}: line {first[0]}: the header has no {_shown(delimiter)} but "
+                                 f"{_shown(other[0])}; expected the delimiter {_shown(delimiter)} (--delimiter)")
     if time_column not in header:
-        raise LogFormatError(f"{path}: no time column {time_column!r}; the header has {header}")
+        raise LogFormatError(f"{path}: no time column {time_column!r}; the header has {header} (name yours with "
+                             "time_column=..., exuflex observe ... --time-column NAME)")
     mapping = dict(channels) if channels is not None else {h: h for h in header if h != time_column}
     missing = {ours: theirs for ours, theirs in mapping.items() if theirs not in header}
     if missing:
@@ -430,15 +583,59 @@ def read_csv_log(
             f"{path}: missing column(s) {list(missing.values())} (for channel(s) {list(missing)}); "
             f"the header has {header}"
         )
-    body = lines[1:]
-    data = _parse_table(path, body, header, allow_empty=allow_empty, delimiter=delimiter)
+    data, linenos = _parse_stream(path, lines, header, allow_empty=allow_empty, delimiter=delimiter,
+                                  decimal=decimal, size_bytes=_size(path))
     ti = header.index(time_column)
     if np.isnan(data[:, ti]).any():
         raise LogFormatError(f"{path}: empty cell in the time column {time_column!r}")
     t = data[:, ti] * time_scale
-    _check_time(path, t, body, time_column)
+    _check_time(path, t, linenos, time_column)
     cols = [header.index(c) for c in mapping.values()]
     return Signals(t, tuple(mapping), data[:, cols], ("",) * len(mapping))
+
+
+def read_lab_run(
+    path: str | os.PathLike,
+    mech,
+    columns: Mapping[str, str] | None = None,
+    *,
+    time_column: str = "time",
+    time_scale: float = 1.0,
+    delimiter: str = ",",
+    decimal: str = ".",
+    truth: str | os.PathLike | None = None,
+    columns_name: str = "columns",
+) -> Run:
+    """A lab's CSV log as a :class:`Run` of the mechanism ``mech``: what ``exuflex observe MODEL LOG.csv`` reads.
+
+    ``columns`` maps the model's motor and sensor names to the log's column names (e.g. ``{"T1": "motor1_Nm",
+    "q1": "enc1_rad"}``; a motor not listed is looked up under its own name; None: every channel under its own
+    name); the other arguments as :func:`read_csv_log`. The log must have every motor's torque (the observer's
+    input); its sensor columns are the channels it offers. ``truth``: an optional truth CSV (time column
+    ``time``, columns named like the truth states) for the error metrics. ``columns_name`` names the argument
+    in error messages (the command line's ``--map``)."""
+    motors = list(mech.motor_names)
+    names = motors + [s.name for s in mech.sensors]
+    mapping = None
+    if columns is not None:
+        mapping = {}
+        for ours, theirs in dict(columns).items():
+            if ours not in names:
+                raise LogFormatError(f"{columns_name}: {ours!r} is not a motor or sensor of {mech.name}; expected "
+                                     f"one of {names}")
+            mapping[ours] = theirs
+        for m in motors:
+            mapping.setdefault(m, m)
+    sig = read_csv_log(path, mapping, time_column=time_column, time_scale=time_scale, delimiter=delimiter,
+                       decimal=decimal)
+    have = [m for m in motors if m in sig]
+    if len(have) != len(motors):
+        raise LogFormatError(f"{path}: the observer needs the measured torques {motors}; the log has "
+                             f"{list(sig.names)} (map your columns with {columns_name})")
+    tr = read_csv_log(truth, time_column="time", delimiter=delimiter, decimal=decimal) if truth else None
+    sensors = [n for n in sig.names if n not in motors and n in names]
+    meta = {"engine": "csv", "source": str(path), "motors": motors, "sensors": sensors}
+    return Run(Path(path), sig, tr, meta)
 
 
 def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = None) -> Signals:
@@ -456,7 +653,7 @@ def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = No
     one. Binary sensor files (``sensorsWriteFileBinary``) are not supported.
     """
     path = Path(path)
-    raw = _read_lines(path)
+    raw = _read_lines(path)  # Exudyn sensor files are short (one per sensor and run)
     if raw and "\x00" in raw[0][1]:
         raise LogFormatError(f"{path}: looks binary; write Exudyn sensor files as text")
     lines = [(n, s) for n, s in raw if s.strip() and not s.lstrip().startswith("#")]
@@ -477,5 +674,5 @@ def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = No
         log.debug("%s: dropped %d rows with a repeated time", path, int((~keep).sum()))
     data = data[keep]
     lines = [ln for ln, k in zip(lines, keep, strict=True) if k]
-    _check_time(path, data[:, 0], lines)
+    _check_time(path, data[:, 0], [n for n, _ in lines])
     return Signals(data[:, 0], names, data[:, 1:], ("",) * len(names))

@@ -145,7 +145,6 @@ def _benchmark():
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
 # the filter core and the reduction of issue 15 are done.
 KNOWN_SHORT = {
-    "serial_arm": "q2 RMS error 1.72x and 1.58x its bound on seeds 1 and 2 (default and rk4 paths alike)",
     "slider_crank": "seed 3: the default path's q1 RMS error 0.85x the rk4 reference's (outside 10 %)",
 }
 

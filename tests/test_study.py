@@ -197,6 +197,8 @@ def test_cli_errors(tmp_path, capsys):
     assert main(["study", "sweep", str(MODEL), "--out", str(tmp_path), "--set", "links.L1.diam=0.03"]) == 2
     assert "links.L1.diam" in capsys.readouterr().err
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path), "--runs", "0"]) == 2
+    assert main(["study", "payload", str(MODEL), "--out", str(tmp_path / "e"), "--estimators", "ekf,kalman"]) == 2
+    assert "estimators must be among ekf, ukf, ekf-payload, ekf-input; got kalman" in capsys.readouterr().err
 
 
 def test_studies_script_quick(done_study, tmp_path):
@@ -233,3 +235,29 @@ def test_dask_local_cluster(done_study, tmp_path):
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True) as cluster:
         res = run_study(_tiny(), out, scheduler=cluster.scheduler_address)
     assert _numbers(res.rows) == _numbers(done_study.rows)
+
+
+def test_estimator_studies_share_the_truths(done_study, tmp_path):
+    """``--estimators``: one study per estimator on the level truths simulated once; the plain EKF's study is the
+    ordinary one, the payload EKF's runs report the payload scale; the figure draws them side by side."""
+    from exuflex.plots import payload_study_figure
+    from exuflex.study import estimator_figure_rows, run_estimator_studies
+
+    out = tmp_path / "est"
+    shutil.copytree(done_study.out / "truth", out / "truth")
+    n_truth = len(list((out / "truth").glob("L*/truth.npz")))
+    res = run_estimator_studies(_tiny(runs=1), out, ["ekf", "ekf-payload"])
+    assert list(res) == ["ekf", "ekf-payload"]
+    assert len(list((out / "truth").glob("L*/truth.npz"))) == n_truth  # no truth simulated again
+    assert (out / "ekf-payload" / "truth").resolve() == (out / "truth").resolve()
+    first = [n for n in _numbers(done_study.rows) if n[1] == 0]
+    assert _numbers(res["ekf"].rows) == first  # the same seeds on the same truths: the same numbers
+    for r in res["ekf-payload"].rows:
+        assert r["parameters"]["payload_scale_std"] > 0 and np.isfinite(r["parameters"]["payload_scale"])
+    rows = estimator_figure_rows({e: r.summary for e, r in res.items()})
+    assert {r["series"] for r in rows} == {"ekf", "ekf-payload"}
+    assert payload_study_figure(rows, out / "fig.png").exists()
+    with pytest.raises(ValueError, match="estimators must be among"):
+        run_estimator_studies(_tiny(runs=1), out, ["ekf", "kalman"])
+    with pytest.raises(ValueError, match="each at most once"):
+        run_estimator_studies(_tiny(runs=1), out, ["ekf", "ekf"])

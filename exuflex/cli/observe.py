@@ -55,6 +55,23 @@ def _noise(text: str) -> dict[str, float]:
     return out
 
 
+def _delimiter(text: str) -> str:
+    """A delimiter flag: one character, or a name such as ``tab`` (:data:`exuflex.runs.DELIMITER_NAMES`);
+    checked with the decimal mark by :func:`exuflex.runs.check_csv_dialect`."""
+    from ..runs import DELIMITER_NAMES
+
+    return DELIMITER_NAMES.get(text.lower() if len(text) > 1 else text, text)
+
+
+def add_dialect_arguments(g) -> None:
+    """``--delimiter`` and ``--decimal`` of a lab CSV log (and its ``--truth``), for ``observe`` and ``plot``."""
+    g.add_argument("--delimiter", type=_delimiter, default=",",
+                   help="field separator of a CSV log and --truth: one character, or tab, semicolon, pipe, "
+                        "space (default ,)")
+    g.add_argument("--decimal", default=".", help="decimal mark of a CSV log and --truth: . (default) or , "
+                   "(with another --delimiter, e.g. ';')")
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("observe", help="estimate the states of a logged run with the reduced-order EKF",
                        description=__doc__.split("\n")[0])
@@ -67,6 +84,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--time-column", default="time", help="the time column (default time)")
     g.add_argument("--time-scale", type=positive_float, default=1.0,
                    help="multiplies the time column, e.g. 1e-3 for milliseconds")
+    add_dialect_arguments(g)
     g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
     p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
@@ -76,32 +94,32 @@ def add_parser(sub) -> argparse.ArgumentParser:
     r.add_argument("--masters", type=name_list("master dofs"),
                    help="comma-separated elastic master dofs (default: the model file's)")
     r.add_argument("--n-interior", type=_n_interior, default=None, help="interior modes: a number or 'auto'")
-    r.add_argument("--method", choices=("cached", "rk4"), default="cached",
+    r.add_argument("--method", choices=("cached", "rk4"), default=None,
                    help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)")
-    r.add_argument("--substep", type=positive_float, default=1e-4,
+    r.add_argument("--substep", type=positive_float, default=None,
                    help="RK4 sub-step of the filter's prediction (s, default 1e-4)")
     t = p.add_argument_group("tuning (docs/tuning.md)")
     t.add_argument("--q0", type=_floats, help="initial joint angles Q1,Q2,... (rad; default: the manoeuvre's "
                    "start, else the model's q_ref); elastic coordinates at rest")
     t.add_argument("--qd0", type=_floats, help="initial joint rates (rad/s, default 0)")
-    t.add_argument("--q0-std", type=positive_float, default=0.05, help="prior std of the joint angles (rad)")
-    t.add_argument("--qd0-std", type=positive_float, default=0.1, help="prior std of the joint rates (rad/s)")
-    t.add_argument("--elastic0-std", type=positive_float, default=1e-3, help="prior std of the elastic "
-                   "coordinates (m or rad)")
-    t.add_argument("--elastic-rate0-std", type=positive_float, default=0.01, help="prior std of the elastic rates")
+    t.add_argument("--q0-std", type=positive_float, help="prior std of the joint angles (rad, default 0.05)")
+    t.add_argument("--qd0-std", type=positive_float, help="prior std of the joint rates (rad/s, default 0.1)")
+    t.add_argument("--elastic0-std", type=positive_float, help="prior std of the elastic coordinates (m or rad, "
+                   "default 1e-3)")
+    t.add_argument("--elastic-rate0-std", type=positive_float, help="prior std of the elastic rates (default 0.01)")
     t.add_argument("--noise", type=_noise, default={}, help="noise std overrides NAME=STD,... for motors (N m: "
                    "process noise) and sensors (their unit: R); default the model file's noise_std")
-    t.add_argument("--q-scale", type=positive_float, default=1.0,
+    t.add_argument("--q-scale", type=positive_float,
                    help="multiplies the torque process-noise covariance (default 1: the stated noise)")
-    t.add_argument("--q-extra", type=nonneg_float, default=0.0,
-                   help="extra white noise on the elastic rates per interval (std, unmodelled dynamics)")
-    t.add_argument("--start-up", type=nonneg_float, default=0.3,
+    t.add_argument("--q-extra", type=nonneg_float,
+                   help="extra white noise on the elastic rates per interval (std, unmodelled dynamics; default 0)")
+    t.add_argument("--start-up", type=nonneg_float,
                    help="seconds left out of the error metrics (default 0.3)")
-    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default="ekf",
+    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default=None,
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
                         "as states)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
-    p.add_argument("--isolate-faults", action="store_true",
+    p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
                         "(off by default: a model error looks like a sensor offset; faults are always reported)")
     p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
@@ -110,57 +128,47 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _config(args):
+def _config(args, mech):
+    """The observer's settings: the defaults, the model file's ``[observer]`` table, then the options given."""
     from ..observer.session import ObserverConfig
 
-    return ObserverConfig(
-        channels=args.channels,
-        masters=args.masters,
-        n_interior=args.n_interior,
-        method=args.method,
-        h=args.substep,
-        q0_std=args.q0_std,
-        qd0_std=args.qd0_std,
-        elastic0_std=args.elastic0_std,
-        elastic_rate0_std=args.elastic_rate0_std,
-        q_scale=args.q_scale,
-        fault_isolation=args.isolate_faults,
-        q_extra_std=args.q_extra,
-        estimator=args.estimator,
-        start_up=args.start_up,
-    )
+    given = {
+        "channels": args.channels,
+        "masters": args.masters,
+        "n_interior": args.n_interior,
+        "method": args.method,
+        "h": args.substep,
+        "q0_std": args.q0_std,
+        "qd0_std": args.qd0_std,
+        "elastic0_std": args.elastic0_std,
+        "elastic_rate0_std": args.elastic_rate0_std,
+        "q_scale": args.q_scale,
+        "fault_isolation": args.isolate_faults,
+        "q_extra_std": args.q_extra,
+        "estimator": args.estimator,
+        "start_up": args.start_up,
+    }
+    return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
 
 
 def _read_log(args, mech):
-    """A CSV log (a lab's, or Exudyn's sensor output converted to CSV) as a run: channels mapped by name."""
+    """A CSV log (a lab's, or Exudyn's sensor output converted to CSV) as a run: channels mapped by name
+    (:func:`exuflex.runs.read_lab_run`)."""
     from ..errors import LogFormatError
-    from ..runs import Run, read_csv_log
+    from ..runs import read_lab_run
 
-    names = list(mech.motor_names) + [s.name for s in mech.sensors]
+    mapping = None
     if args.map:
         mapping = {}
         for pair in args.map.split(","):
             if pair.count("=") != 1:
                 raise LogFormatError(f"--map: expected channel=column pairs separated by commas, got {pair!r}")
             ours, theirs = (x.strip() for x in pair.split("=", 1))
-            if ours not in names:
-                raise LogFormatError(f"--map: {ours!r} is not a motor or sensor of {mech.name}; expected one of {names}")
             if ours in mapping:
                 raise LogFormatError(f"--map: channel {ours!r} mapped twice")
             mapping[ours] = theirs
-        for m in mech.motor_names:
-            mapping.setdefault(m, m)
-    else:
-        mapping = None
-    sig = read_csv_log(args.run_dir, mapping, time_column=args.time_column, time_scale=args.time_scale)
-    motors = [m for m in mech.motor_names if m in sig]
-    if len(motors) != len(mech.motor_names):
-        raise LogFormatError(f"{args.run_dir}: the observer needs the measured torques {list(mech.motor_names)}; "
-                             f"the log has {list(sig.names)} (use --map)")
-    truth = read_csv_log(args.truth, time_column="time") if args.truth else None
-    sensors = [n for n in sig.names if n not in motors and n in names]
-    meta = {"engine": "csv", "source": str(args.run_dir), "motors": motors, "sensors": sensors}
-    return Run(Path(args.run_dir), sig, truth, meta)
+    return read_lab_run(args.run_dir, mech, mapping, time_column=args.time_column, time_scale=args.time_scale,
+                        delimiter=args.delimiter, decimal=args.decimal, truth=args.truth, columns_name="--map")
 
 
 def _say(msg: str) -> None:
@@ -185,16 +193,17 @@ def run(args) -> int:
     from ..errors import UsageError
     from ..mechanism import load_mechanism
     from ..observer.session import make_observer, observe_run
-    from ..runs import read_run
+    from ..runs import check_csv_dialect, read_run
     from ..validate import check_configurations, check_observer_settings, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
         mech = with_noise(mech, args.noise)
-    config = _config(args)
-    if args.smooth and args.estimator == "ukf":
+    config = _config(args, mech)
+    if args.smooth and config.estimator == "ukf":
         raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
+    check_csv_dialect(args.delimiter, args.decimal)
     for flag, v in (("--q0", args.q0), ("--qd0", args.qd0)):
         if v is not None and len(v) != len(mech.coordinates):
             raise UsageError(f"{flag}: expected {len(mech.coordinates)} values ({', '.join(mech.coordinate_names)}), "
@@ -247,13 +256,29 @@ def run(args) -> int:
     return 0
 
 
+#: the observer's largest kernels: while their cache files are missing, building the observer compiles
+_OBSERVER_KERNELS = ("reduction/__pycache__/_compiled._held_evaluation-*.nbi",
+                     "observer/__pycache__/expansion._held_interval-*.nbi",
+                     "observer/__pycache__/kalman.predict_update-*.nbi")
+
+
 def _kernels_cached() -> bool:
-    """Whether numba's on-disk cache holds compiled kernels of this installation (then no compile notice)."""
+    """Whether numba's on-disk cache holds the observer's compiled kernels (then no compile notice): in the
+    package's ``__pycache__`` folders, or under ``NUMBA_CACHE_DIR`` (which mirrors the package's path)."""
     try:
         import numba  # noqa: F401
     except ImportError:
         return True
+    import os
+
     import exuflex
 
     root = Path(exuflex.__file__).parent
-    return any(root.rglob("__pycache__/*.nbi"))
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    for pattern in _OBSERVER_KERNELS:
+        if any(root.glob(pattern)):
+            continue
+        if cache and any(Path(cache).rglob(pattern.rsplit("/", 1)[1])):
+            continue
+        return False
+    return True

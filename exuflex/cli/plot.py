@@ -1,7 +1,7 @@
 """``exuflex plot MODEL LOG --out DIR``: figures of a log without running the observer.
 
 ``LOG`` is a run folder (``sensors.csv``, ``meta.json``, optional ``truth.csv``) or a lab CSV log (read as
-``exuflex observe`` reads it: ``--map``, ``--time-column``, ``--time-scale``). Written: ``fig_torques.png``
+``exuflex observe`` reads it: ``--map``, ``--time-column``, ``--time-scale``, ``--delimiter``, ``--decimal``). Written: ``fig_torques.png``
 (the measured torques), ``fig_measurements.png`` (one panel per sensor channel), and with a truth
 ``fig_trajectory.png`` and ``fig_joint_states.png`` (the true states); with ``--estimates`` (an
 ``estimates.csv`` that ``exuflex observe --out`` wrote) the estimate beside the truth in those and the tip
@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from .args import out_path, positive_float
+from .observe import add_dialect_arguments
 
 __all__ = ["add_parser", "run"]
 
@@ -32,6 +33,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--time-scale", type=positive_float, default=1.0, help="for a CSV log: multiplies the time "
                    "column, e.g. 1e-3 for milliseconds")
     p.add_argument("--truth", help="for a CSV log: a truth CSV")
+    add_dialect_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -39,10 +41,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args) -> int:
     from .. import plots
     from ..mechanism import load_mechanism
-    from ..runs import read_run, read_signals_csv
+    from ..runs import check_csv_dialect, read_run, read_signals_csv
     from .observe import _read_log
 
     mech = load_mechanism(args.model)
+    check_csv_dialect(args.delimiter, args.decimal)
     path = Path(args.run_dir)
     log = _read_log(args, mech) if path.is_file() else read_run(path)
     out = Path(args.out) if args.out else (path.parent / f"{path.stem}_figures" if path.is_file() else path)

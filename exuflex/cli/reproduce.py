@@ -133,7 +133,7 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     walls["truth_run_s"] = time.perf_counter() - t0
     run_ = read_run(out / "run")
     t0 = time.perf_counter()
-    config = ObserverConfig()
+    config = ObserverConfig.for_model(mech)
     if cfg["duration"] is not None:
         from dataclasses import replace
 

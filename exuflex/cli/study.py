@@ -1,6 +1,8 @@
 """``exuflex study payload|sweep MODEL --out DIR``: model-mismatch studies (truth changed, observer nominal).
 
-``payload``: the paper's Fig. 11 study, the truth's tip payload raised by each of ``--levels`` percent.
+``payload``: the paper's Fig. 11 study, the truth's tip payload raised by each of ``--levels`` percent;
+``--estimators ekf,ekf-payload,ukf`` runs it once per estimator (``OUT/<estimator>``, on the same truths) and
+draws them side by side.
 ``sweep``: any model-file field(s) of the truth, ``--set links.L1.diameter=0.030,0.031`` (several ``--set``
 form a grid). Each writes ``results.csv`` (one row per run), ``summary.json`` (eq. 21 mu and sigma per level
 and quantity, settings, model and sha256, seeds, versions, wall time) and a figure. A study restarted with
@@ -47,6 +49,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     pp = ss.add_parser("payload", help="truth payload raised by --levels percent (the paper's Fig. 11)")
     _common(pp)
     pp.add_argument("--levels", default=None, help=f"payload increases in %% (default {DEFAULT_LEVELS})")
+    pp.add_argument("--estimators", default=None, metavar="E1,E2,...",
+                    help="run the study once per estimator (ekf, ukf, ekf-payload, ekf-input) into OUT/<estimator> "
+                         "on the same truths and draw Fig. 11 with them side by side (OUT/fig_payload_estimators.png)"
+                         "; default: the paper's EKF alone in OUT")
     sp = ss.add_parser("sweep", help="truth parameter sweep: --set FIELD=V1,V2,...")
     _common(sp)
     sp.add_argument("--set", dest="sets", action="append", required=True, metavar="FIELD=V1,V2,...",
@@ -116,6 +122,8 @@ def run(args) -> int:
     try:
         spec = build_spec(args)
         t0 = time.perf_counter()
+        if getattr(args, "estimators", None) is not None:
+            return _run_estimators(spec, args, t0)
         res = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler,
                         progress=not args.no_progress)
     except (OverrideError, ValueError, RuntimeError) as exc:
@@ -126,6 +134,43 @@ def run(args) -> int:
     print(f"{res.n_computed} run(s) computed, {res.n_reused} reused, {time.perf_counter() - t0:.1f} s; "
           f"wrote {res.out}/results.csv, summary.json" + (f", {figure.name}" if figure else ""))
     return 0
+
+
+def _run_estimators(spec, args, t0: float) -> int:
+    """``--estimators``: one study per estimator on shared truths, each summary printed, one figure of them all."""
+    from ..study import estimator_figure_rows, run_estimator_studies
+
+    names = [e.strip() for e in args.estimators.split(",") if e.strip()]
+    results = run_estimator_studies(spec, args.out, names, workers=args.workers, scheduler=args.scheduler,
+                                    progress=not args.no_progress)
+    for e, res in results.items():
+        print(f"estimator {e} ({res.out}):")
+        print_summary(res.summary)
+    figure = _estimators_figure({e: r.summary for e, r in results.items()}, args.out)
+    n_new = sum(r.n_computed for r in results.values())
+    n_old = sum(r.n_reused for r in results.values())
+    print(f"{n_new} run(s) computed, {n_old} reused, {time.perf_counter() - t0:.1f} s; wrote "
+          + ", ".join(f"{r.out}/summary.json" for r in results.values()) + (f", {figure}" if figure else ""))
+    return 0
+
+
+def _estimators_figure(summaries: dict, out):
+    """Fig. 11 with the estimators side by side (the paper's four tip panels where the study has them, else every
+    quantity), or None with a warning if drawing fails."""
+    from pathlib import Path
+
+    from ..plots import payload_study_figure, paper_payload_quantities
+    from ..study import estimator_figure_rows
+
+    try:
+        rows = estimator_figure_rows(summaries)
+        four = paper_payload_quantities([r["quantity"] for r in rows])
+        if four:
+            rows = [r for r in rows if r["quantity"] in four]
+        return payload_study_figure(rows, Path(out) / "fig_payload_estimators.png")
+    except Exception as exc:  # noqa: BLE001 - a figure failure must not lose the studies' numbers
+        print(f"exuflex study: warning: estimators figure failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return None
 
 
 def _figure(res):

@@ -15,6 +15,7 @@ from typing import Any
 
 from .limits import element_count_error, limit_errors
 from .spec import (
+    ESTIMATOR_NAMES,
     JOINT_KINDS,
     Coordinate,
     Damping,
@@ -26,6 +27,7 @@ from .spec import (
     Material,
     Mechanism,
     Motor,
+    ObserverSpec,
     ReductionSpec,
     Section,
     Sensor,
@@ -142,6 +144,12 @@ class _Reader:
         if not isinstance(v, dict):
             raise self.err(key, "a table", v)
         return _Reader(self.source, v, self._f(key))
+
+    def check_unknown_of(self, known) -> None:
+        """Like :meth:`check_unknown`, with ``known`` the keys the table may have (some of them optional)."""
+        extra = sorted(set(self.table) - set(known))
+        if extra:
+            raise ModelFileError(self.source, self._f(extra[0]), f"one of the known keys {sorted(known)}", extra[0])
 
     def check_unknown(self) -> None:
         extra = sorted(set(self.table) - self.used)
@@ -404,6 +412,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             red.num("freq_error_max_pct", 2.0, positive=True, unit="%"),
         )
         red.check_unknown()
+    observer = _parse_observer(root.sub("observer"), [s.name for s in sensors])
     root.check_unknown()
 
     mech = Mechanism(
@@ -420,6 +429,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         q_ref=q_ref,
         manoeuvre=manoeuvre,
         reduction=reduction,
+        observer=observer,
         sample_rate_hz=sample_rate,
         gravity=tuple(gravity),
         description=description,
@@ -535,6 +545,57 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
 
 MASTERS_EXPECTED = ("a list of elastic dof names such as 'x14', 'node8.x', 'node8.theta' or 'node8.transverse', "
                     "or points { link, station, direction } with direction axial, transverse or theta")
+
+
+def _parse_observer(obs: _Reader | None, sensor_names: list[str]) -> ObserverSpec:
+    """The ``[observer]`` table (:class:`ObserverSpec`): each key type- and range-checked here, so that a bad
+    value is an error naming the file and ``observer.<key>`` before anything runs."""
+    if obs is None:
+        return ObserverSpec()
+    kw: dict[str, Any] = {}
+    if obs.has("channels"):
+        ch = obs.raw("channels")
+        if not isinstance(ch, list) or not ch or not all(isinstance(c, str) for c in ch):
+            raise obs.err("channels", "a non-empty list of sensor names", ch)
+        for i, c in enumerate(ch):
+            if c not in sensor_names:
+                raise obs.err(f"channels[{i}]", f"one of the model's sensors {sensor_names}", c)
+            if c in ch[:i]:
+                raise obs.err(f"channels[{i}]", "a sensor not listed before", c)
+        kw["channels"] = tuple(ch)
+    if obs.has("method"):
+        kw["method"] = obs.str("method")
+        if kw["method"] not in ("cached", "rk4"):
+            raise obs.err("method", '"cached" or "rk4"', kw["method"])
+    if obs.has("estimator"):
+        kw["estimator"] = obs.str("estimator")
+        if kw["estimator"] not in ESTIMATOR_NAMES:
+            raise obs.err("estimator", f"one of {list(ESTIMATOR_NAMES)}", kw["estimator"])
+    for key, unit in (("h", "s"), ("q0_std", "rad"), ("qd0_std", "rad/s"), ("elastic0_std", ""),
+                      ("elastic_rate0_std", ""), ("q_scale", ""), ("max_gap", "s")):
+        if obs.has(key):
+            kw[key] = obs.num(key, positive=True, unit=unit)
+    for key, unit in (("q_extra_std", ""), ("start_up", "s"), ("fault_holdoff_s", "s")):
+        if obs.has(key):
+            kw[key] = obs.num(key, nonneg=True, unit=unit)
+    for key in ("gate_p", "fault_p"):
+        if obs.has(key):
+            v = obs.num(key)
+            if not 0.0 < v < 0.5:
+                raise obs.err(key, "a false-alarm probability in (0, 0.5)", v)
+            kw[key] = v
+    if obs.has("fault_window"):
+        w = obs.int("fault_window")
+        if w != 0 and w < 2:
+            raise obs.err("fault_window", "0 (no sensor-fault tests) or an integer >= 2 (samples)", w)
+        kw["fault_window"] = w
+    if obs.has("fault_isolation"):
+        v = obs.raw("fault_isolation")
+        if not isinstance(v, bool):
+            raise obs.err("fault_isolation", "true or false", v)
+        kw["fault_isolation"] = v
+    obs.check_unknown_of(ObserverSpec.__dataclass_fields__)
+    return ObserverSpec(**kw)
 
 
 def _master_name(red: _Reader, i: int, m: Any, link_by) -> str:

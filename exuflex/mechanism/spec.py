@@ -252,6 +252,39 @@ class ReductionSpec:
     freq_error_max_pct: float = 2.0
 
 
+ESTIMATOR_NAMES = ("ekf", "ukf", "ekf-payload", "ekf-input")
+"""The observer's estimators a model file's ``[observer] estimator`` may name (``exuflex.observer.ESTIMATORS``)."""
+
+
+@dataclass(frozen=True)
+class ObserverSpec:
+    """The model file's ``[observer]`` table: how this mechanism's observer is tuned (the fields of
+    ``exuflex.observer.ObserverConfig`` of the same names; None: the observer's default). Command-line options
+    and an explicit ``ObserverConfig`` take precedence."""
+
+    channels: tuple[str, ...] | None = None
+    method: str | None = None
+    h: float | None = None
+    q0_std: float | None = None
+    qd0_std: float | None = None
+    elastic0_std: float | None = None
+    elastic_rate0_std: float | None = None
+    q_scale: float | None = None
+    q_extra_std: float | None = None
+    max_gap: float | None = None
+    start_up: float | None = None
+    gate_p: float | None = None
+    fault_window: int | None = None
+    fault_p: float | None = None
+    fault_holdoff_s: float | None = None
+    fault_isolation: bool | None = None
+    estimator: str | None = None
+
+    def settings(self) -> dict:
+        """The fields the file sets, as ``ObserverConfig`` keyword arguments."""
+        return {k: v for k, v in self.__dict__.items() if v is not None}
+
+
 @dataclass(frozen=True)
 class Mechanism:
     """A planar flexible-link mechanism (see module docstring for conventions)."""
@@ -269,6 +302,7 @@ class Mechanism:
     q_ref: tuple[float, ...] = ()
     manoeuvre: Manoeuvre | None = None
     reduction: ReductionSpec = field(default_factory=ReductionSpec)
+    observer: ObserverSpec = field(default_factory=ObserverSpec)
     sample_rate_hz: float = 500.0
     gravity: tuple[float, float] = (0.0, 0.0)
     description: str = ""

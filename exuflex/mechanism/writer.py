@@ -97,6 +97,9 @@ def mechanism_document(mech: Mechanism) -> dict[str, Any]:
                                  "n_interior": "auto" if red.n_interior is None else red.n_interior,
                                  "nco_min": red.nco_min, "freq_error_max_pct": red.freq_error_max_pct}),
     }
+    obs = mech.observer.settings()
+    if obs:
+        doc["observer"] = {k: list(v) if isinstance(v, tuple) else v for k, v in obs.items()}
     if motors:
         doc["motors"] = motors
     if sensors:

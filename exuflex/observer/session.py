@@ -82,7 +82,11 @@ class ObserverConfig:
         sensor-fault tests pause (the allowance for planned input steps).
     estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
-    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s), and its prior std (about 1).
+    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
+        run: a small walk keeps the filter from locking on it), and its prior std (about 1).
+    payload_hold_s : seconds from the filter's start during which the payload scale is held (not learned): the
+        start-up transient, where the state estimate is still far outside its own covariance and the joint
+        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
@@ -111,14 +115,21 @@ class ObserverConfig:
     fault_holdoff_s: float = 0.4
     fault_isolation: bool = False
     estimator: str = "ekf"
-    payload_std: float = 0.05
+    payload_std: float = 0.01
     payload0_std: float = 0.5
+    payload_hold_s: float = 0.15
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
+
+    @classmethod
+    def for_model(cls, mech: Mechanism, **overrides) -> ObserverConfig:
+        """The settings for ``mech``: the defaults, then its model file's ``[observer]`` table
+        (:class:`exuflex.mechanism.ObserverSpec`), then ``overrides`` (e.g. command-line options)."""
+        return cls(**{**mech.observer.settings(), **overrides})
 
 
 def physical_names(mech: Mechanism) -> tuple[str, ...]:
@@ -248,12 +259,13 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     """Build the reduced model and the EKF for ``mech``.
 
     ``x0`` is the prior mean (reduced state); default: at rest at the manoeuvre's start, else q_ref.
-    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers.
+    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers. Without ``config``:
+    :meth:`ObserverConfig.for_model` (the model file's ``[observer]`` table over the defaults).
     """
     from ..validate import check_mechanism_argument, check_observer_settings
 
     check_mechanism_argument(mech)
-    config = config or ObserverConfig()
+    config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
     t0 = time.perf_counter()
     model = model or (cb.model if cb is not None else ErlsModel(mech))
@@ -301,7 +313,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
     if config.estimator == "ekf-payload":
-        fm = AugmentedModel(som, payload_std=config.payload_std)
+        fm = AugmentedModel(som, payload_std=config.payload_std, hold_s=config.payload_hold_s)
     else:
         fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
                             input_tau=config.input_tau)
@@ -623,7 +635,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             hasattr(run, "__fspath__") else ""
         raise UsageError(f"run: expected an exuflex.runs.Run, got {type(run).__name__}{hint}")
     say = report or (lambda msg: log.info("%s", msg))
-    config = config or ObserverConfig()
+    config = config or ObserverConfig.for_model(mech)
     obs = observer or make_observer(mech, config)
     log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
     say(f"channels: {log_check.availability()}; log interval {log_check.interval_s * 1e3:.4g} ms"

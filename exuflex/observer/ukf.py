@@ -1,20 +1,37 @@
-"""Unscented Kalman filter on a :class:`~exuflex.observer.base.DiscreteModel`'s step map.
+"""Unscented Kalman filter on a :class:`~exuflex.observer.base.DiscreteModel`'s step map, in square-root form.
 
 The same model as the EKF's (:class:`~exuflex.observer.reduced.ReducedObserverModel` or an augmented one): its
 :meth:`~DiscreteModel.predict` is used for its mean only (``Prediction.x``; ``F`` is not needed) and for the process
-noise of the interval, :meth:`~DiscreteModel.measure` for the predicted channels only. Per sample::
+noise of the interval, :meth:`~DiscreteModel.measure` for the predicted channels only. The filter carries the
+mean and a lower Cholesky factor ``L`` of the covariance (``P = L L'``). Per sample::
 
-    sigma points  X_i = x +- columns of chol((n + lambda) P), weights Wm, Wc   (Merwe's scaled set,
-                                                                              filterpy's MerweScaledSigmaPoints)
-    predict       X_i <- f(X_i, u, dt);  x = sum Wm X_i;  P = sum Wc (X_i - x)(X_i - x)' + Q
-    update        sigma points of (x, P) anew (so that Q reaches the measurement), Z_i = g(X_i)
-                  z = sum Wm Z_i,  S = sum Wc (Z_i - z)(Z_i - z)' + R,  C = sum Wc (X_i - x)(Z_i - z)'
-                  K = C S^-1,  x += K (y - z),  P -= K S K'
+    sigma points  X_0 = x,  X_i = x +- c L[:, i]  (c = alpha sqrt(n + kappa); Merwe's scaled set and weights
+                  Wm, Wc, filterpy's MerweScaledSigmaPoints)
+    predict       X_i <- f(X_i, u, dt);  x = sum Wm X_i
+                  L = R' with R from the QR factorisation of [sqrt(Wc_i) (X_i - x)' ; sqrt(Q)']
+                  (P = sum Wc (X_i - x)(X_i - x)' + Q)
+    update        sigma points of (x, L) anew (so that Q reaches the measurement), Z_i = g(X_i)
+                  z = sum Wm Z_i,  S = sum Wc (Z_i - z)(Z_i - z)' + R (its factor by QR likewise),
+                  C = sum Wc (X_i - x)(Z_i - z)',  K = C S^-1,  x += K (y - z)
+                  P+ = (I - K H) P (I - K H)' + K R K' with H = C' P^-1 (the measurement's statistical
+                  linearisation), its factor by QR of [(I - K H) L, K sqrt(R)]'
 
-The process noise ``Q`` is the one the model returns for the mean's interval (additive noise). On a linear model
-the UKF is the Kalman filter exactly (the sigma points reproduce the mean and covariance through a linear map);
-the tests check that. Channels and gaps are handled as by the EKF: NaN channels are left out of the update,
-an all-NaN sample is a prediction only, intervals longer than ``max_gap`` are refused.
+Why the square-root form: the reduced flexible model's covariance spans many decades (joint angles against elastic
+coordinates of micrometres) with strong correlations, and the covariance form's sums and its downdate
+``P - K S K'`` lose positive definiteness to rounding there (a Cholesky failure at the next sigma points). Factors
+from QR are triangular by construction, and the Joseph-form update is a sum of two positive semi-definite terms.
+With a linear measurement ``H`` is its matrix and the update is the Kalman filter's (the tests check the UKF
+against the Kalman filter on a linear model). A negative centre weight ``Wc_0`` (``alpha`` well below 1) enters
+by a rank-one downdate of the factor, which fails (a ``LinAlgError``, the run flagged) where the covariance it
+describes is not positive definite.
+
+A sigma point's step can break down where the model is not built to be evaluated (the reduced model's held
+expansion far from its centre): such a step is retaken after a model reset, and carried by the mean's
+linearisation if it breaks down again (:meth:`UnscentedKF._predict`).
+
+The process noise ``Q`` is the one the model returns for the mean's interval (additive noise). Channels and gaps
+are handled as by the EKF: NaN channels are left out of the update, an all-NaN sample is a prediction only,
+intervals longer than ``max_gap`` are refused.
 
 Cost: ``2 n + 1`` model steps and measurements per sample instead of one step and its Jacobian.
 """
@@ -30,12 +47,16 @@ import numpy as np
 import scipy.linalg
 from filterpy.kalman import MerweScaledSigmaPoints
 
-from .base import FilterDivergedError
+from .base import FilterDivergedError, Prediction
 from .ekf import EstimationResult, NISMonitor, RunRecord, check_log
 
 __all__ = ["UnscentedKF"]
 
 log = logging.getLogger(__name__)
+
+#: a sigma point's step that departs from the mean's linearisation by more than this many times the linear
+#: response itself is a breakdown of the model there, not its nonlinearity (see :meth:`UnscentedKF._predict`)
+BREAKDOWN = 10.0
 
 
 class UnscentedKF:
@@ -72,9 +93,9 @@ class UnscentedKF:
         self.store_P = store_P
         self.nonfinite_action = nonfinite
         n = self.nx
-        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa,
-                                             sqrt_method=lambda A: scipy.linalg.cholesky(A, lower=False))
+        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)  # the weights
         self.Wm, self.Wc = self.points.Wm, self.points.Wc
+        self._spread = alpha * math.sqrt(n + kappa)  # sqrt(n + lambda), lambda = alpha^2 (n + kappa) - n
         self.monitor = NISMonitor(nis_window) if nis_window else None
         x0 = np.asarray(x0, float).reshape(-1)
         P0 = np.asarray(P0, float)
@@ -92,9 +113,10 @@ class UnscentedKF:
             self.model.reset()
         self._x = self._x0.copy()
         self._P = self._P0.copy()
+        self._L = np.linalg.cholesky(0.5 * (self._P0 + self._P0.T))
         self._t_prev = None
         self._u_prev = None
-        self.n_missing = self.n_updates = self.n_model_resets = 0
+        self.n_missing = self.n_updates = self.n_model_resets = self.n_linearised = 0
         self.diverged = False
         self.diverged_at = None
         self.nonfinite = False
@@ -111,25 +133,53 @@ class UnscentedKF:
     def P(self) -> np.ndarray:
         return self._P.copy()
 
-    def _sigmas(self, x, P) -> np.ndarray:
-        return self.points.sigma_points(x, 0.5 * (P + P.T))
+    def _sigmas(self, x, L) -> np.ndarray:
+        """Merwe's sigma points of the mean ``x`` and the covariance factor ``L``: ``x`` and ``x +- c L[:, i]``
+        (filterpy's order: the ``+`` points, then the ``-`` points)."""
+        D = self._spread * L.T
+        return np.vstack([x, x + D, x - D])
 
-    def _moments(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        mean = self.Wm @ X
-        D = X - mean
-        return mean, (D.T * self.Wc) @ D, D
+    def _factor(self, D: np.ndarray, extra: np.ndarray) -> np.ndarray:
+        """Lower factor of ``sum_i Wc_i D_i' D_i + extra' extra`` (``D`` the deviations of the sigma points, one
+        per row; ``extra`` rows of a square root of the added covariance): QR of the weighted rows, with the
+        centre's weight by a rank-one update (or downdate, for a negative weight)."""
+        w0 = self.Wc[0]
+        rows = [np.sqrt(self.Wc[1:])[:, None] * D[1:], extra]
+        if w0 >= 0:
+            rows.append(math.sqrt(w0) * D[:1])
+        L = _lower_from_qr(np.vstack(rows))
+        if w0 < 0:
+            L = _cholupdate(L, math.sqrt(-w0) * D[0], -1.0)
+        return L
 
-    def _predict(self, x, dt, u_next):
+    def _predict(self, x, dt, u_next, ref=None):
         """The model's step from ``x``. A model that caches configuration-dependent data (the reduced model's held
         configuration and its expansion) is built for a trajectory, not for points visited in turn around it:
-        where its step from a sigma point is not finite, the step is taken again after ``model.reset()`` (the
-        configuration evaluated at that point)."""
+        where its step from a sigma point breaks down (not finite, or, given the mean's point and prediction
+        ``ref``, departing from the mean's linearisation by more than ``BREAKDOWN`` times the linear response
+        itself: a held expansion used far from its centre, whose sub-steps are then unstable), the step is taken
+        again after ``model.reset()`` (the configuration evaluated at that point). If it breaks down again, the
+        point is carried by the mean's linearisation (counted in ``n_linearised``)."""
         p = self.model.predict(x, self._u_prev, dt, u_next)
-        if not np.all(np.isfinite(p.x)) and hasattr(self.model, "reset"):
+        if self._broken(p.x, x, ref) and hasattr(self.model, "reset"):
             self.model.reset()
             self.n_model_resets += 1
             p = self.model.predict(x, self._u_prev, dt, u_next)
+        if ref is not None and self._broken(p.x, x, ref):
+            x0, m0 = ref
+            self.n_linearised += 1
+            return Prediction(m0.x + m0.F @ (x - x0), m0.F, m0.Q)
         return p
+
+    @staticmethod
+    def _broken(xn, x, ref) -> bool:
+        if not np.all(np.isfinite(xn)):
+            return True
+        if ref is None:
+            return False
+        x0, m0 = ref
+        lin = m0.F @ (x - x0)
+        return float(np.max(np.abs(xn - m0.x - lin))) > BREAKDOWN * float(np.max(np.abs(lin)))
 
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y``."""
@@ -148,34 +198,39 @@ class UnscentedKF:
                 raise ValueError(f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than "
                                  f"max_gap={self.max_gap:g} s")
             self.n_missing += max(round(dt / self.dt) - 1, 0)
-            X = self._sigmas(self._x, self._P)
+            X = self._sigmas(self._x, self._L)
             m0 = self._predict(X[0], dt, u)  # the mean's interval: its process noise
             Xf = np.empty_like(X)
             Xf[0] = m0.x
+            ref = (X[0], m0) if np.all(np.isfinite(m0.x)) else None
             for i in range(1, len(X)):
-                Xf[i] = self._predict(X[i], dt, u).x
-            self._x, P, _ = self._moments(Xf)
-            self._P = P + m0.Q
-            if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
+                Xf[i] = self._predict(X[i], dt, u, ref).x
+            if not np.all(np.isfinite(Xf)):
                 return self._nonfinite(t)
+            self._x = self.Wm @ Xf
+            self._L = self._factor(Xf - self._x, _psd_sqrt(m0.Q))
         self._t_prev, self._u_prev = t, u
         self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
         mask = None if y is None else np.isfinite(y)
         if mask is not None and mask.any():
             idx = np.flatnonzero(mask)
             chans = tuple(self.channels[i] for i in idx)
-            X = self._sigmas(self._x, self._P)
+            X = self._sigmas(self._x, self._L)
             Z = np.array([self.model.measure(xi, chans).y for xi in X])
-            zm, Pzz, Dz = self._moments(Z)
-            Dx = X - self.Wm @ X
-            S = Pzz + np.diag(self._Rdiag[idx])
+            zm = self.Wm @ Z
+            Dz = Z - zm
+            Dx = X - self._x  # (the sigma points' weighted mean is x)
+            sR = np.sqrt(self._Rdiag[idx])
+            Ls = self._factor(Dz, np.diag(sR))  # S = Ls Ls'
+            S = Ls @ Ls.T
             C = (Dx.T * self.Wc) @ Dz
             r = y[idx] - zm
-            cf = scipy.linalg.cho_factor(S)
+            cf = (Ls, True)
             K = scipy.linalg.cho_solve(cf, C.T).T
             self._x = self._x + K @ r
-            P = self._P - K @ S @ K.T
-            self._P = 0.5 * (P + P.T)
+            # Joseph form with the statistical linearisation H = C' P^-1: (I - K H) L = L - K (L^-1 C)'
+            H_L = scipy.linalg.solve_triangular(self._L, C, lower=True).T  # H L
+            self._L = _lower_from_qr(np.vstack([(self._L - K @ H_L).T, (K * sR).T]))
             nis = float(r @ scipy.linalg.cho_solve(cf, r))
             self.last_idx, self.last_nis, self.last_dof = idx, nis, len(idx)
             self.last_innovation, self.last_S = r, S
@@ -184,6 +239,7 @@ class UnscentedKF:
                 self.diverged, self.diverged_at = True, t
         else:
             self.n_missing += 1
+        self._P = self._L @ self._L.T
         if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
             return self._nonfinite(t)
         return self._x.copy()
@@ -216,3 +272,37 @@ class UnscentedKF:
                 break
             rec.put(k, self, x)
         return rec.result(self, time.perf_counter() - w0)
+
+
+def _lower_from_qr(A: np.ndarray) -> np.ndarray:
+    """Lower triangular ``L`` with ``L L' = A' A`` (from the QR factorisation of ``A``, rows at least its columns),
+    its diagonal made non-negative."""
+    R = np.linalg.qr(A, mode="r")
+    sgn = np.where(np.diagonal(R) < 0, -1.0, 1.0)
+    return (R * sgn[:, None]).T
+
+
+def _psd_sqrt(Q: np.ndarray) -> np.ndarray:
+    """Rows ``E`` with ``E' E = Q`` for a symmetric positive semi-definite ``Q`` (the process noise is often of
+    low rank: the motors' torque noise through the step map), from its eigen-decomposition."""
+    w, V = np.linalg.eigh(0.5 * (Q + Q.T))
+    keep = w > 0
+    return (V[:, keep] * np.sqrt(w[keep])).T
+
+
+def _cholupdate(L: np.ndarray, v: np.ndarray, sign: float) -> np.ndarray:
+    """Lower factor of ``L L' + sign v v'`` (a rank-one update, or downdate for ``sign = -1``, column by column);
+    ``LinAlgError`` if a downdate leaves the matrix not positive definite."""
+    L = L.copy()
+    v = np.array(v, float)
+    for k in range(len(v)):
+        lkk = L[k, k]
+        r2 = lkk * lkk + sign * v[k] * v[k]
+        if not r2 > 0 or lkk == 0:
+            raise np.linalg.LinAlgError("the covariance lost positive definiteness in a rank-one downdate")
+        rk = math.sqrt(r2)
+        c, s = rk / lkk, v[k] / lkk
+        L[k, k] = rk
+        L[k + 1 :, k] = (L[k + 1 :, k] + sign * s * v[k + 1 :]) / c
+        v[k + 1 :] = c * v[k + 1 :] - s * L[k + 1 :, k]
+    return L

@@ -45,7 +45,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -64,8 +64,10 @@ __all__ = [
     "Level",
     "StudyResult",
     "StudySpec",
+    "estimator_figure_rows",
     "make_executor",
     "payload_levels",
+    "run_estimator_studies",
     "run_study",
     "sweep_levels",
 ]
@@ -145,7 +147,7 @@ class StudySpec:
     duration: float | None = None  # None: the manoeuvre's
     h: float = 1e-4
     start_up: float | None = None  # None: min(observer.start_up, duration / 4)
-    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    observer: ObserverConfig | None = None  # None: ObserverConfig.for_model(the nominal model)
     kind: str = "payload"
 
     def settings(self, duration: float, start_up: float) -> dict:
@@ -158,7 +160,7 @@ class StudySpec:
             "duration_s": duration,
             "h_s": self.h,
             "start_up_s": start_up,
-            "observer": self.observer.as_dict(),
+            "observer": None if self.observer is None else self.observer.as_dict(),
             "computed_torque_model": "rigid ERLS, nominal model (the controller's knowledge)",
             "observer_model": "nominal model",
         }
@@ -361,7 +363,11 @@ def run_one(task: RunTask) -> dict:
     if tip_stats is not None:
         for k in stats:
             stats[k].update(tip_stats[k])
+    from ..observer.session import _extra_states
+
+    extra = _extra_states(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
     return {
+        **extra,
         "level_index": task.level_index,
         "level_key": task.level_key,
         "run": task.run,
@@ -577,6 +583,8 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     from ..validate import check_configurations
 
     check_configurations(nominal)  # loops close, away from singularities
+    if spec.observer is None:  # the model file's [observer] table over the defaults
+        spec = dataclasses.replace(spec, observer=ObserverConfig.for_model(nominal))
     if spec.runs < 1:
         raise ValueError(f"runs must be at least 1, got {spec.runs}")
     if not spec.levels:
@@ -728,6 +736,39 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     _write_results_csv(out / "results.csv", spec, rows, nominal.coordinate_names)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
     return StudyResult(out, rows, summary, n_new, n_reused)
+
+
+def run_estimator_studies(spec: StudySpec, out, estimators: Sequence[str], **kw) -> dict[str, StudyResult]:
+    """The same study once per estimator (:data:`exuflex.observer.session.ESTIMATORS`): ``out/<estimator>`` is the
+    study with the observer's ``estimator`` set (every other setting as ``spec``), and all of them run on the same
+    level truths, simulated once: ``out/truth`` holds them, and each study's ``truth`` folder is a link to it (a
+    level's truth does not depend on the observer). ``kw``: as :func:`run_study`."""
+    from ..observer.session import ESTIMATORS
+
+    estimators = [e.strip() for e in estimators]
+    bad = [e for e in estimators if e not in ESTIMATORS]
+    if bad or not estimators:
+        raise ValueError(f"estimators must be among {', '.join(ESTIMATORS)}; got {', '.join(bad) or 'none'}")
+    if len(set(estimators)) != len(estimators):
+        raise ValueError(f"estimators {', '.join(estimators)}: each at most once")
+    out = Path(out)
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    results = {}
+    for e in estimators:
+        sub = out / e
+        sub.mkdir(parents=True, exist_ok=True)
+        link = sub / "truth"
+        if not link.exists():
+            link.symlink_to(Path("..") / "truth", target_is_directory=True)
+        base = spec.observer if spec.observer is not None else ObserverConfig.for_model(load_mechanism(spec.model))
+        est_spec = dataclasses.replace(spec, observer=dataclasses.replace(base, estimator=e))
+        results[e] = run_study(est_spec, sub, **kw)
+    return results
+
+
+def estimator_figure_rows(summaries: dict[str, dict], quantities: Sequence[str] | None = None) -> list[dict]:
+    """:func:`figure_rows` of each estimator's study summary, with the estimator as the rows' ``series``."""
+    return [dict(r, series=e) for e, sm in summaries.items() for r in figure_rows(sm, quantities)]
 
 
 # ------------------------------------------------------------------------------------------ aggregation

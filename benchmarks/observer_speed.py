@@ -1,0 +1,113 @@
+"""Where the observer's time goes: the real-time factor and its split per sample, measured in one run.
+
+    python benchmarks/observer_speed.py [--model models/sixbar.toml] [--run tests/data/sixbar_erls_3s] [--repeats 7]
+
+Filters the run's log with default settings ``--repeats`` times and reports the median real-time factor, then
+filters it once more with timers around the parts of a sample (each timer costs a fraction of a microsecond):
+
+- the model's interval: the compiled held step and step Jacobian (``expansion.held_interval``);
+- the Kalman algebra: the compiled covariance prediction, update and settling (``kalman.predict_update``);
+- the measurement rows along the secant (compiled, ``expansion.secant_rows``);
+- configuration evaluations (the held model's refreshes) and step-map rebuilds;
+- the rest: the filter's and the model's Python between those calls (argument checks, bookkeeping, the NIS
+  and sensor-fault monitors, recording).
+
+The split says what a faster sample would have to remove: the real-time factor with the rest taken away is
+printed as the ceiling of the present arithmetic. Figures are ratios and fractions of one run (the machine's
+speed drifts); the absolute factor holds for this machine at this moment only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Timer:
+    """Wraps ``owner.name`` (a function or method) and accumulates its wall time and calls."""
+
+    def __init__(self, owner, name: str):
+        self.owner, self.name, self.f = owner, name, getattr(owner, name)
+        self.total, self.calls = 0.0, 0
+        f, me = self.f, self
+
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                me.total += time.perf_counter() - t0
+                me.calls += 1
+
+        setattr(owner, name, timed)
+
+    def restore(self) -> None:
+        setattr(self.owner, self.name, self.f)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", default=str(ROOT / "models" / "sixbar.toml"))
+    ap.add_argument("--run", default=str(ROOT / "tests" / "data" / "sixbar_erls_3s"), help="a run folder")
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer import reduced
+    from exuflex.observer import ekf as ekf_mod
+    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.runs import read_run
+
+    mech = load_mechanism(args.model)
+    run = read_run(args.run)
+    obs = make_observer(mech, ObserverConfig.for_model(mech))
+    S = run.sensors
+    U = _hold(S.select(mech.motor_names).data)
+    Y = S.select(obs.channels).data
+    estimate(obs, S.t, U, Y)  # compile and warm
+    rtf = [estimate(obs, S.t, U, Y).real_time_factor for _ in range(args.repeats)]
+    n = len(S.t)
+    span = float(S.t[-1] - S.t[0])
+
+    timers = {
+        "model interval (compiled)": _Timer(reduced, "held_interval"),
+        "Kalman algebra (compiled)": _Timer(ekf_mod.kalman, "predict_update"),
+        "measurement rows (compiled)": _Timer(reduced, "secant_rows"),
+        "configuration evaluations": _Timer(reduced.ReducedObserverModel, "_refresh"),
+        "step-map rebuilds": _Timer(reduced.ReducedObserverModel, "_maps"),
+    }
+    t0 = time.perf_counter()
+    obs.ekf.run(S.t, U, Y)
+    wall = time.perf_counter() - t0
+    for t in timers.values():
+        t.restore()
+    parts = {k: t.total for k, t in timers.items()}
+    parts["the rest (Python between the calls)"] = wall - sum(parts.values())
+    us = {k: 1e6 * v / n for k, v in parts.items()}
+    ceiling = span / (wall - parts["the rest (Python between the calls)"])
+    out = {"model": mech.name, "samples": n, "span_s": span, "median_real_time_factor": statistics.median(rtf),
+           "real_time_factors": rtf, "timed_run_us_per_sample": 1e6 * wall / n, "us_per_sample": us,
+           "fraction": {k: v / wall for k, v in parts.items()},
+           "calls": {k: t.calls for k, t in timers.items()},
+           "real_time_factor_without_the_rest": ceiling}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    print(f"{mech.name}: {n} samples over {span:.3g} s; median real-time factor {out['median_real_time_factor']:.1f} "
+          f"({args.repeats} runs: {', '.join(f'{r:.1f}' for r in rtf)})")
+    print(f"timed run: {out['timed_run_us_per_sample']:.1f} us per sample")
+    for k, v in us.items():
+        c = out["calls"].get(k)
+        print(f"  {k:40s} {v:7.1f} us  {100 * out['fraction'][k]:5.1f} %" + (f"  ({c} calls)" if c is not None else ""))
+    print(f"real-time factor with the rest removed: {ceiling:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
