@@ -101,7 +101,8 @@ def main(argv=None) -> int:
                     m["smoother_backward_s"] = e.smoothed.backward_s
                     m["smoother_wall_s"] = e.smoothed.wall_s
                 mean_nis, exp_nis = e.result.mean_nis(burn_in=int(0.3 * 500))
-                row = {"model": mech.name, "scale": scale, "estimator": est_name, "seed": seed,
+                label = est_name + (f" ({', '.join(args.config)})" if args.config else "")
+                row = {"model": mech.name, "scale": scale, "estimator": label, "seed": seed,
                        "rtf": e.real_time_factor,
                        "wall_s": wall, "diverged": bool(e.result.diverged), "nis_mean": mean_nis,
                        "nis_expected": exp_nis, "n_nis": int(np.isfinite(e.result.nis[150:]).sum()),
@@ -215,13 +216,14 @@ def _model_table(rows, out) -> None:
     cols = [c for c in names if c.startswith("q")] + [c for c in names if c.startswith("dq")] + \
         [c for c in names if c[0] in "xy"]
     late = [c for c in cols if "late_" + c in rows[0]]
-    out(f"{'scale':>5s} {'estimator':>12s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
+    w = max(12, *(len(r["estimator"]) for r in rows))
+    out(f"{'scale':>5s} {'estimator':>{w}s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
     for sc, en in keys:
         every = [r for r in rows if r["scale"] == sc and r["estimator"] == en]
         # a run whose estimate went non-finite is counted (div) and left out of the means
         rr = [r for r in every if all(np.isfinite(r[c]) for c in cols)]
         cells = " ".join(f"{np.mean([r[c] for r in rr]):9.3g}" for c in cols)
-        out(f"{sc:5.2f} {en:>12s} {len(rr):3d} {len(every) - len(rr):3d} {cells}  "
+        out(f"{sc:5.2f} {en:>{w}s} {len(rr):3d} {len(every) - len(rr):3d} {cells}  "
             f"{np.median([r['rtf'] for r in rr]):5.1f}")
         if late:
             out("      after the settle time: " + ", ".join(

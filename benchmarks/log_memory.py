@@ -127,7 +127,8 @@ def record_bytes_per_sample() -> dict:
     for name in ("x_hat", "P", "innovations", "S", "nis", "nis_dof"):
         a = getattr(res, name, None)
         if a is not None:
-            parts[f"filter record: {name} {tuple(a.shape[1:])}"] = a.nbytes
+            note = " (observe keeps it only with --out or --smooth)" if name == "P" else ""
+            parts[f"filter record: {name} {tuple(a.shape[1:])}{note}"] = a.nbytes
     phys = out.estimate.physical
     parts[f"physical estimates ({len(phys.names)} columns)"] = phys.data.nbytes
     return {k: v / n for k, v in parts.items()}

@@ -132,6 +132,24 @@ def test_scaled_cached_step_follows_the_scaled_reference(sixbar, mid_run):
     assert effect > 20 * gap_nominal
 
 
+def test_payload_hold_counts_intervals(mid_run):
+    """The scale is held (zero Jacobian column) for hold_s seconds of intervals; steps over the same interval (an
+    unscented filter's sigma points: the same inputs and length) advance the hold's clock once."""
+    obs, z, u = mid_run
+    dt = obs.ekf.dt
+    aug = AugmentedModel(obs.model, payload_std=0.01, hold_s=2.5 * dt)
+    x = np.concatenate([z, [1.3]])
+    cols = []
+    for k in range(4):
+        uk = u + 1e-3 * k
+        for _ in range(3):  # three "sigma points" of one interval
+            p = aug.predict(x, uk, dt)
+        cols.append(np.abs(p.F[: aug.n0, aug.i_theta]).max())
+    assert cols[0] == cols[1] == cols[2] == 0.0 and cols[3] > 0.0
+    aug.reset()
+    assert np.abs(aug.predict(x, u, dt).F[: aug.n0, aug.i_theta]).max() == 0.0
+
+
 def test_gauss_markov_disturbance_decays_with_its_stationary_variance(mid_run):
     obs, z, u = mid_run
     tau, sd, dt = 0.1, 0.2, obs.ekf.dt

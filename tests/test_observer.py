@@ -449,3 +449,25 @@ def test_bound_over_a_span_averages_the_configurations_scored_there(arm):
     per = [_bound_at(observer, p.q[k], p.qd[k]) for k in np.searchsorted(p.t, [0.25 * d, 0.75 * d])]
     for name in at_rest:
         assert over[name] == pytest.approx(np.sqrt(np.mean([b[name] ** 2 for b in per])), rel=1e-6), name
+
+
+def test_the_held_models_error_is_measured_against_the_filters_uncertainty():
+    """At each evaluation the cached step records the state error over one interval that the previous held
+    model causes (against the exact configuration), relative to the filter's standard deviations: zero where
+    the held configuration is the exact one, finite and recorded along a run."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.runs import read_run
+
+    mech = load_mechanism(MODELS / "sixbar.toml")
+    run = read_run(DATA / "sixbar_short")
+    obs = make_observer(mech, ObserverConfig())
+    S = run.sensors
+    estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+    som = obs.model
+    summ = som.held_error_summary()
+    assert summ["n"] == len(som.held_errors) > 0 and np.isfinite(summ["vs_std_max"])
+    iv = som._last
+    z = obs.ekf.x
+    same = som._held_error(iv, iv, z, _hold(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)
+    assert same[0] == 0.0

@@ -29,6 +29,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
     HAVE_NUMBA = False
 
 from ._closure import closure_newton, pose_sensitivities
+from ._closure import closure_newton_inline, pose_sensitivities_inline
 
 __all__ = ["HAVE_NUMBA", "configuration", "nodal_matrices"]
 
@@ -66,6 +67,7 @@ def _nodal_matrices(th, Ml, Kl, el_dofs, lumped):  # pragma: no cover - compiled
 
 if HAVE_NUMBA:
     nodal_matrices = numba.njit(cache=True, nogil=True, error_model="numpy")(_nodal_matrices)
+    _nodal_matrices_inline = numba.njit(inline="always", nogil=True, error_model="numpy")(_nodal_matrices)
 else:  # pragma: no cover
     nodal_matrices = None
 
@@ -77,19 +79,22 @@ def _configuration(z0, q, k, tol, max_iter, node_link, node_station, el_link, Ml
     sensitivities (:func:`._closure.pose_sensitivities`), the nodal matrices at the element angles
     (:func:`nodal_matrices`) and ``W = [S, T]``. ``ok`` False (the rest empty): Newton did not converge, the
     caller takes the reference path."""
-    z, ok = closure_newton(z0, q, k, tol, max_iter)
+    z, ok = closure_newton_inline(z0, q, k, tol, max_iter)
     if not ok:
         e2, e3 = np.empty((0, 0)), np.empty((0, 0, 0))
         return False, z, e2, np.inf, e2, np.empty(0), e2, e3, e2, e2, e2
-    Jinv, cond, Sz, r, S = pose_sensitivities(z, k, node_link, node_station)
+    Jinv, cond, Sz, r, S = pose_sensitivities_inline(z, k, node_link, node_station)
     th = np.empty(el_link.shape[0])
     for e in range(el_link.shape[0]):
         th[e] = z[3 * el_link[e] + 2]
-    R, M_N, K_N = nodal_matrices(th, Ml, Kl, el_dofs, lumped)
+    R, M_N, K_N = _nodal_matrices_inline(th, Ml, Kl, el_dofs, lumped)
     nq = S.shape[1]
     W = np.empty((S.shape[0], nq + T.shape[1]))
-    W[:, :nq] = S
-    W[:, nq:] = T
+    for a in range(S.shape[0]):
+        for j in range(nq):
+            W[a, j] = S[a, j]
+        for j in range(T.shape[1]):
+            W[a, nq + j] = T[a, j]
     return True, z, Jinv, cond, Sz, r, S, R, M_N, K_N, W
 
 

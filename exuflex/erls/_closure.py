@@ -77,7 +77,10 @@ def _residual(z, q, k, out):  # pragma: no cover
 
 
 def _jacobian(z, k, J):  # pragma: no cover
-    J[:] = k.J0
+    J0 = k.J0
+    for i in range(J0.shape[0]):
+        for c in range(J0.shape[1]):
+            J[i, c] = J0[i, c]
     ea, esa, eb, ebm, esb = k.ea, k.esa, k.eb, k.ebm, k.esb
     for i in range(ea.shape[0]):
         a = ea[i]
@@ -224,13 +227,17 @@ def _coordinate_rates(z, Sz, Jinv, k, node_link, node_station):  # pragma: no co
 
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-    _residual = _jit(_residual)
-    _jacobian = _jit(_jacobian)
-    _max_abs = _jit(_max_abs)
-    _norm1 = _jit(_norm1)
+    _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
+    _residual = _inline(_residual)
+    _jacobian = _inline(_jacobian)
+    _max_abs = _inline(_max_abs)
+    _norm1 = _inline(_norm1)
     closure_newton = _jit(_closure_newton)
     pose_sensitivities = _jit(_pose_sensitivities)
     coordinate_rates = _jit(_coordinate_rates)
+    closure_newton_inline = _inline(_closure_newton)
+    pose_sensitivities_inline = _inline(_pose_sensitivities)
+    coordinate_rates_inline = _inline(_coordinate_rates)
 else:  # pragma: no cover
     closure_newton = None
     coordinate_rates = None

@@ -169,8 +169,9 @@ def simulate_truth(
         the coming interval ``dt`` (``c + c' dt / 2``), so ``delta`` runs over ``omega dt [-1/2, 1/2]`` with
         ``omega`` the links' fastest rotation rate at the refresh, and ``dt`` is the longest interval (at most
         ``damping_update``) with the mean braking rate ``alpha (omega dt)^2 / 12 <= damping_tol``. The rigid
-        velocities then lose at most the fraction ``damping_tol`` per second, and a coordinate travelling
-        ``Q`` rad in ``T`` s drifts by at most about ``damping_tol T Q``. ``None``: every ``damping_update`` s,
+        velocities then lose about the fraction ``damping_tol`` per second, and the coordinates drift by about
+        ``damping_tol T Q`` in ``T`` s, ``Q`` the angle the links travel (``tests/test_groundtruth.py`` checks it
+        against a damper refreshed at every step). ``None``: every ``damping_update`` s,
         at the refresh's configuration.
     newton_tol : absolute Newton tolerance (residual in N); Exudyn's default 1e-10 stalls on round-off.
     spectral_radius : generalized-alpha numerical damping at infinite frequency.

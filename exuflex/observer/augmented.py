@@ -24,10 +24,15 @@ linearly (``dM_r/dtheta = A^T diag(m_p, m_p, I_p) A``, :func:`payload_rows`; the
 Per interval the step is the cached step's RK4 sub-steps of that held system (:func:`scaled_steps`), the
 stiffness, input matrix and geometric terms unchanged. Its derivative in ``theta`` is the forward difference
 of the same compiled step at ``theta + dtheta`` (``dtheta = 1e-4``: the step is smooth in ``theta``, its
-truncation error ``dtheta / 2 d^2x/dtheta^2`` is far below the filter's uncertainty); its derivative in the
-state is the nominal step's (the held map's Jacobian; the payload changes it by the payload's share of the
-modal masses). ``theta`` below 0 is taken as 0 in the step (a negative mass has no meaning and can make
-``M_r`` indefinite); the derivative there is kept, so that the measurements pull the estimate back.
+truncation error ``dtheta / 2 d^2x/dtheta^2`` is far below the filter's uncertainty). Its derivative in the
+state and the process noise are the nominal step map's where the payload's change of the modal masses,
+``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
+matrices to (``refresh_tol``); beyond it, the held linear system's maps with ``M_r + (theta - 1) dM_r`` (and the
+damping's increment), rebuilt with the nominal step map or when ``theta`` moved by that tolerance, and the
+force Jacobian with the payload's velocity forms (:meth:`AugmentedModel._scaled_map`). ``theta`` below 0 is taken
+as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite); the derivative there is kept,
+so that the measurements pull the estimate back. For ``hold_s`` seconds from the start the scale is held (its
+Jacobian column zero: see :class:`AugmentedModel`).
 
 With ``method="rk4"`` (the exact reference) the step is RK4 of the nonlinear reduced equations at every stage
 with the matrices and forces of the two models combined the same way.
@@ -109,10 +114,11 @@ def _scaled_steps(z, u, dl, s, h, n, c, dc, has_old, beta, Mr, Kr, Ca, Gr, dM, d
                   old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
                   iold_fg, iold_T2):  # pragma: no cover - compiled
     """The held step (:func:`.expansion.held_step`) of the system ``S + c dS`` and of ``S + (c + dc) dS``: the
-    states at the interval's end for the payload scale ``1 + c`` and ``1 + c + dc``. The held arrays come one by
-    one (``*system, *increment``), as the expansion's kernels take them."""
-    out = np.empty((2, z.shape[0]))
-    for k in range(2):
+    states at the interval's end for the payload scale ``1 + c`` and ``1 + c + dc`` (``dc = 0``: the first only,
+    the second row zero). The held arrays come one by one (``*system, *increment``), as the expansion's kernels
+    take them."""
+    out = np.zeros((2, z.shape[0]))
+    for k in range(2 if dc != 0.0 else 1):  # dc = 0: the step alone (no derivative asked for)
         a = c if k == 0 else c + dc
         out[k] = held_step(z, u, dl, s, h, n, has_old, beta, Mr + a * iMr, Kr, Ca + a * iCa, Gr, dM + a * idM, dK,
                            fg + a * ifg, T2 + a * iT2, V2, C2, old_dM + a * iold_dM, old_dK, old_Ca + a * iold_Ca,
@@ -189,7 +195,8 @@ class AugmentedModel:
             n += self.nu
         self.nx = n
         self.hold_s = float(hold_s)
-        self._elapsed = 0.0
+        self._elapsed = self._start = 0.0  # time at the end and at the start of the current interval
+        self._last_interval = None
         self._increments: dict = {}
         self._shares: dict = {}
         self._map = None
@@ -200,7 +207,8 @@ class AugmentedModel:
 
     def reset(self) -> None:
         self.inner.reset()
-        self._elapsed = 0.0
+        self._elapsed = self._start = 0.0
+        self._last_interval = None
         self._increments = {}
         self._shares = {}
         self._map = None
@@ -257,17 +265,19 @@ class AugmentedModel:
         self._shares[iv.serial] = share
         return inc
 
-    def _scaled_cached(self, z, u, dt, c, fresh):
-        """The cached step at the payload scale ``1 + c`` and ``1 + c + DTHETA`` (module docstring)."""
+    def _scaled_cached(self, z, u, dt, c, fresh, derivative=True):
+        """The cached step at the payload scale ``1 + c`` and its forward difference to ``1 + c + DTHETA`` (module
+        docstring); without ``derivative`` the step alone (the derivative returned as zeros)."""
         inner = self.inner
         iv, _ = inner.last_step
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, c, DTHETA, *iv.system, *inc)
+        dc = DTHETA if derivative else 0.0
+        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, c, dc, *iv.system, *inc)
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
-            out = scaled_steps(z, u, dl, 0.0, dt / n, n, c, DTHETA, *iv.system, *inc)
-        return out[0], (out[1] - out[0]) / DTHETA
+            out = scaled_steps(z, u, dl, 0.0, dt / n, n, c, dc, *iv.system, *inc)
+        return out[0], ((out[1] - out[0]) / DTHETA if derivative else out[1])
 
     def _scaled_map(self, z, c, pred):
         """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's where the payload's
@@ -328,6 +338,12 @@ class AugmentedModel:
         inner = self.inner
         z = x[:n0]
         u = inner._input(u)
+        # the hold's clock advances once per interval: the sigma points of an unscented filter step the model
+        # several times over the same interval (the same inputs and length)
+        key = (dt, u.tobytes())
+        if key != self._last_interval:
+            self._start, self._elapsed = self._elapsed, self._elapsed + dt
+            self._last_interval = key
         if self.i_inputs is not None:
             d = x[self.i_inputs]
             u = u + d
@@ -346,8 +362,11 @@ class AugmentedModel:
             it = self.i_theta
             th = float(x[it])
             c = max(th, 0.0) - 1.0
-            if inner.method == "cached":
-                xs, dxs = self._scaled_cached(z, u, dt, c, inner.n_refresh != n_refresh)
+            held = self._start < self.hold_s  # the scale held: its Jacobian column stays zero
+            if held and c == 0.0:  # the nominal step is the scaled one
+                xs, dxs = pred.x, None
+            elif inner.method == "cached":
+                xs, dxs = self._scaled_cached(z, u, dt, c, inner.n_refresh != n_refresh, derivative=not held)
             else:
                 xs, dxs = self._scaled_rk4(z, u, dt, c)
             if c != 0.0:
@@ -355,7 +374,7 @@ class AugmentedModel:
                 Fz, Qz, L_in = self._scaled_map(z, c, pred)
                 F[:n0, :n0] = Fz
                 Q[:n0, :n0] = Qz
-            if self._elapsed >= self.hold_s:
+            if not held:
                 F[:n0, it] = dxs
             xn[it] = th
             F[it, it] = 1.0
@@ -378,7 +397,6 @@ class AugmentedModel:
             xn[s] = phi * d
             F[s, s] = phi * np.eye(self.nu)
             Q[s, s] = np.diag(q)
-        self._elapsed += dt
         return Prediction(xn, F, Q)
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:

@@ -463,7 +463,8 @@ class RunRecord:
         n = len(t)
         self.t, self.m, self.store_P = t, m, store_P
         self.x_hat = np.empty((n, nx))
-        self.P = {"diag": np.empty((n, nx)), "full": np.empty((n, nx, nx)), "none": None}[store_P]
+        # only the kind asked for: a full (n, nx, nx) array of a long log is gigabytes
+        self.P = np.empty((n, nx)) if store_P == "diag" else np.empty((n, nx, nx)) if store_P == "full" else None
         self.innovations = np.full((n, m), np.nan)
         self.S = np.full((n, m, m), np.nan)
         self.nis = np.full(n, np.nan)
@@ -587,6 +588,9 @@ class MultirateEKF:
             raise ValueError(f"max_gap must be a finite number of seconds >= dt={dt}, got {max_gap}")
         self.model = model
         self.nx = n = int(model.nx)
+        watch = getattr(model, "watch_covariance", None)
+        if watch is not None:  # the model measures its approximations against the filter's uncertainty
+            watch(lambda: self._P)
         self.channels = tuple(channels)
         if len(set(self.channels)) != len(self.channels):
             raise ValueError(f"duplicate channel names in {self.channels}")

@@ -83,6 +83,7 @@ except ImportError:  # pragma: no cover
         return f
 
     _shared = _jit
+    numba = None
 
 
 @_shared
@@ -139,9 +140,10 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
     positive definite)."""
     r = Mr.shape[0]
     rhs = np.empty((r, 2 * r + 1))
-    rhs[:, :r] = Kr
-    rhs[:, r : 2 * r] = Cr
-    for i in range(r):
+    for i in range(r):  # element copies, not slice assignments (whose shape check links numba's message code)
+        for j in range(r):
+            rhs[i, j] = Kr[i, j]
+            rhs[i, r + j] = Cr[i, j]
         acc = f[i]
         for j in range(u.shape[0]):
             acc += Gr[i, j] * u[j]
@@ -157,8 +159,9 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
     b = XT[2 * r]
     p = np.zeros(rp)
     v = np.zeros(rp)
-    p[:r] = z[:r]
-    v[:r] = z[r:]
+    for i in range(r):
+        p[i] = z[i]
+        v[i] = z[r + i]
     a = np.empty(rp)  # stage acceleration
     w = np.empty(rp)  # stage velocity
     yp = np.empty(rp)  # stage position
@@ -199,8 +202,9 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
             p[i] += h / 6.0 * wsum[i]
             v[i] += h / 6.0 * asum[i]
     out = np.empty(2 * r)
-    out[:r] = p[:r]
-    out[r:] = v[:r]
+    for i in range(r):
+        out[i] = p[i]
+        out[r + i] = v[i]
     return out
 
 
@@ -257,19 +261,32 @@ def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
         for k in range(r * r):
             gM[k] += 0.5 * s * (gM[k] - hM[k])
             gK[k] += 0.5 * s * (gK[k] - hK[k])
-    return hs.Mr + gM.reshape(r, r), hs.Kr + gK.reshape(r, r)
+    Mr = np.empty((r, r))
+    Kr = np.empty((r, r))
+    for i in range(r):  # loops, not array expressions: the same sums in a fraction of the compiled code
+        for j in range(r):
+            Mr[i, j] = hs.Mr[i, j] + gM[i * r + j]
+            Kr[i, j] = hs.Kr[i, j] + gK[i * r + j]
+    return Mr, Kr
 
 
 @_shared
 def _system(dl, s, hs):  # pragma: no cover - compiled
     """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
     Mr, Kr = _mass_stiffness(dl, s, hs)
-    Ca = hs.Ca.copy()
+    r = Mr.shape[0]
+    Cr = np.empty((r, r))
     Gr = hs.Gr.copy()
-    if hs.has_old:
-        Ca += s * (hs.Ca - hs.old_Ca)
-        Gr += s * (hs.Gr - hs.old_Gr)
-    return Mr, Kr, Ca + hs.beta * Kr, Gr
+    for i in range(r):  # C_a (along the secant) + beta K_r; loops, not array expressions (see _mass_stiffness)
+        for j in range(r):
+            ca = hs.Ca[i, j]
+            if hs.has_old:
+                ca += s * (hs.Ca[i, j] - hs.old_Ca[i, j])
+            Cr[i, j] = ca + hs.beta * Kr[i, j]
+        if hs.has_old:
+            for j in range(Gr.shape[1]):
+                Gr[i, j] += s * (hs.Gr[i, j] - hs.old_Gr[i, j])
+    return Mr, Kr, Cr, Gr
 
 
 def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
@@ -392,10 +409,31 @@ def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, 
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
         return np.inf
-    em = np.abs(Li @ (Mp - Mr) @ Li.T).max()
-    ek = np.abs(Li @ (Kp - Kr) @ Li.T).max()
-    kk = np.abs(Li @ Kr @ Li.T).max()
+    r = Mr.shape[0]
+    dMp = np.empty((r, r))
+    dKp = np.empty((r, r))
+    for i in range(r):
+        for j in range(r):
+            dMp[i, j] = Mp[i, j] - Mr[i, j]
+            dKp[i, j] = Kp[i, j] - Kr[i, j]
+    em = _abs_max(Li @ dMp @ Li.T)
+    ek = _abs_max(Li @ dKp @ Li.T)
+    kk = _abs_max(Li @ Kr @ Li.T)
     return max(em, ek / kk)
+
+
+@_shared
+def _abs_max(A):  # pragma: no cover - compiled
+    """``np.abs(A).max()`` (NaN if ``A`` holds one) as a loop: the same value in a fraction of the compiled code."""
+    m = 0.0
+    for i in range(A.shape[0]):
+        for j in range(A.shape[1]):
+            a = abs(A[i, j])
+            if a > m or a != a:
+                m = a
+                if a != a:
+                    return a
+    return m
 
 
 @_shared
@@ -458,8 +496,12 @@ def _times_hA(Ak, Ac, h, X):  # pragma: no cover - compiled
     """``h A X`` for ``A = [[0, I], [-Ak, -Ac]]``: the top half is ``h X_v``, only the bottom needs products."""
     r = Ak.shape[0]
     out = np.empty(X.shape)
-    out[:r] = h * X[r:]
-    out[r:] = -h * (Ak @ np.ascontiguousarray(X[:r]) + Ac @ np.ascontiguousarray(X[r:]))
+    KX = Ak @ np.ascontiguousarray(X[:r])
+    CX = Ac @ np.ascontiguousarray(X[r:])
+    for i in range(r):  # loops, not slice assignments and array expressions (see _rk4_linear)
+        for j in range(X.shape[1]):
+            out[i, j] = h * X[r + i, j]
+            out[r + i, j] = -h * (KX[i, j] + CX[i, j])
     return out
 
 
@@ -486,10 +528,26 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
         for j in range(r):
             W[r + i, j] += 0.25 * (-h * Ak[i, j])
             W[r + i, r + j] += 0.25 * (-h * Ac[i, j])
-    V = I + _times_hA(Ak, Ac, h, W) / 3.0
-    U = I + 0.5 * _times_hA(Ak, Ac, h, V)
-    P = I + _times_hA(Ak, Ac, h, U)
-    B = (h * np.ascontiguousarray(U[:, r:])) @ Minv
+    # the sums as loops, not array expressions: the same arithmetic in a fraction of the compiled code
+    T = _times_hA(Ak, Ac, h, W)
+    V = np.empty((nx, nx))
+    for i in range(nx):
+        for j in range(nx):
+            V[i, j] = I[i, j] + T[i, j] / 3.0
+    T = _times_hA(Ak, Ac, h, V)
+    U = np.empty((nx, nx))
+    for i in range(nx):
+        for j in range(nx):
+            U[i, j] = I[i, j] + 0.5 * T[i, j]
+    T = _times_hA(Ak, Ac, h, U)
+    P = np.empty((nx, nx))
+    hU = np.empty((nx, r))
+    for i in range(nx):
+        for j in range(nx):
+            P[i, j] = I[i, j] + T[i, j]
+        for j in range(r):
+            hU[i, j] = h * U[i, r + j]
+    B = hU @ Minv
     Pa = P.copy()
     SB = B.copy()
     sq = np.empty((nx, nx))  # product buffers: the doubling allocates nothing
@@ -499,7 +557,9 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
         top += 1
     for bit in range(top - 1, -1, -1):
         np.dot(Pa, SB, th)
-        SB += th
+        for i in range(nx):
+            for j in range(r):
+                SB[i, j] += th[i, j]
         np.dot(Pa, Pa, sq)
         Pa, sq = sq, Pa
         if (n >> bit) & 1:
@@ -510,15 +570,20 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
             np.dot(P, Pa, sq)
             Pa, sq = sq, Pa
     L = SB @ Gr
-    return Pa, SB, L, (L * torque_var) @ L.T
+    Lv = np.empty(L.shape)
+    for i in range(nx):
+        for j in range(L.shape[1]):
+            Lv[i, j] = L[i, j] * torque_var[j]
+    return Pa, SB, L, Lv @ L.T
 
 
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _jit(_rk4_linear)
 _quadratic_forces = _jit(_quadratic_forces)
-_held_step = _jit(_held_step)
-held_step = _held_step
+held_step = _jit(_held_step)
+if numba is not None:  # held_interval's copy: compiled into held_interval's own code, not as a function it calls
+    _held_step = numba.njit(inline="always", nogil=True, error_model="numpy")(_held_step)
 held_system = _jit(_held_system)
 _step_jacobian = _jit(_step_jacobian)
 step_jacobian = _step_jacobian

@@ -256,8 +256,9 @@ def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
             S[i, j] = s
         S[i, i] += Rd[i]
     sol = np.empty((m, n + 1))
-    for i in range(m):
-        sol[i, :n] = HP[i]
+    for i in range(m):  # element copies, not a slice assignment (whose shape check links numba's message code)
+        for j in range(n):
+            sol[i, j] = HP[i, j]
         sol[i, n] = r[i]
     if not _cholesky_solve(S, sol, np.empty((m, m))):
         return math.nan, False

@@ -13,7 +13,10 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   (:mod:`.expansion`), and each interval's sub-steps use the matrices at the interval's start. The radius adapts
   like an ODE step size: at each evaluation the previous held model's prediction of ``M_r`` and ``K_r`` is
   compared with the exact ones (:func:`.expansion.prediction_error`), and the next radius keeps that error near
-  ``refresh_tol`` (relative, in the mass metric). The step Jacobian and process noise (the *step map*) are
+  ``refresh_tol`` (relative, in the mass metric). Each evaluation also measures what the replaced held model
+  cost: the state error over one interval against the exact configuration, relative to the filter's standard
+  deviations and to the interval's process noise (:meth:`ReducedObserverModel._held_error`; reported as
+  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian and process noise (the *step map*) are
   rebuilt when q moved ``remap_rad`` from where they were built, or when the interval's length changes.
 - ``"rk4"`` (the exact reference): the configuration evaluated at every interval and every RK4 stage at its own
   state; the Jacobian and process noise of the interval's start.
@@ -61,6 +64,7 @@ from .base import Measurement, Prediction
 from .expansion import (
     HeldSystem,
     held_interval,
+    held_step,
     held_system,
     map_lookahead,
     prediction_error,
@@ -239,6 +243,7 @@ class ReducedObserverModel:
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._noC2 = np.zeros((0, self.r))
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = 0
+        self.state_cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._serial = 0
         self.reset()
         warm_up()
@@ -247,6 +252,11 @@ class ReducedObserverModel:
             self.rm.held(z[: self.r], z[self.r :])
             self.model.kin.reset_warm_start()
 
+    def watch_covariance(self, get_P) -> None:
+        """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
+        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`)."""
+        self.state_cov = get_P
+
     def reset(self) -> None:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
@@ -254,6 +264,7 @@ class ReducedObserverModel:
         self._channel_cache: dict = {}
         self._interval_matrices = None
         self.n_jumps = 0
+        self.held_errors: list[tuple[float, float]] = []
         self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ configurations
@@ -324,10 +335,11 @@ class ReducedObserverModel:
         return Pn, S, L, Q
 
     # ------------------------------------------------------------------ the cached step
-    def _refresh(self, z: np.ndarray) -> _Held:
+    def _refresh(self, z: np.ndarray, u=None, dt: float | None = None) -> _Held:
         """Evaluate and hold the configuration at z (ahead of q along its motion). The previous held one becomes
         its secant partner if it lies far enough away to give a usable direction, and how well it predicted this
-        configuration sets the next refresh radius (:meth:`_radius`)."""
+        configuration sets the next refresh radius (:meth:`_radius`). With the interval's ``u`` and ``dt``, the
+        state error the previous held model causes there is recorded (:meth:`_held_error`)."""
         old = self._last
         iv = None
         if old is not None and old.forces is not None:
@@ -348,6 +360,8 @@ class ReducedObserverModel:
         iv.rad = self.refresh_min
         if old is not None and old.forces is not None:
             iv.err = self._prediction_error(old, iv)
+            if u is not None and dt is not None and self.state_cov is not None:
+                self.held_errors.append(self._held_error(old, iv, z, u, dt))
             dist = _max_abs(iv.q0 - old.q0)
             iv.rad = self._radius(old, dist, iv.err)
             if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
@@ -358,6 +372,37 @@ class ReducedObserverModel:
         self.n_refresh += 1
         self._last = iv
         return iv
+
+    def _held_error(self, old: _Held, iv: _Held, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[float, float]:
+        """The state error over one interval that the held model ``old`` causes where it is replaced by the
+        configuration ``iv`` evaluated exactly, against the filter's uncertainty: ``(max_i |dz_i| / sigma_i,
+        max_i |dz_i| / sqrt(Q_ii))`` with ``dz`` the difference of the two interval steps from the filter's state
+        (its configuration moved to ``iv``'s), ``sigma`` the filter's standard deviations before the interval and
+        ``Q`` the interval's process noise. Every held quantity enters (``M_r``, ``K_r``, damping, input matrix,
+        velocity forces, all along the secant): the first ratio well below 1 means the approximation is lost in
+        the filter's uncertainty, the second below 1 that it is smaller than the noise the filter adds per
+        interval (consistent with its own model)."""
+        zq = z.copy()
+        zq[: self.nq] = iv.q0
+        n = max(1, math.ceil(dt / min(self.h, old.h_stable or self.h) - 1e-9))
+        dl = iv.q0 - old.q0
+        held = held_step(zq, u, dl, _secant_factor(old, dl), dt / n, n, *old.system)[0]
+        exact = held_step(zq, u, np.zeros(self.nq), 0.0, dt / n, n, *self._held_system(iv))[0]
+        dz = np.abs(held - exact)
+        P = self.state_cov()
+        sig = np.sqrt(np.maximum(np.diagonal(P)[: self.nx], 1e-300))
+        q = old.map.Q.diagonal() if old.map is not None else None
+        e_q = float(np.max(dz / np.sqrt(np.maximum(q, 1e-300)))) if q is not None else math.nan
+        return float(np.max(dz / sig)), e_q
+
+    def held_error_summary(self) -> dict:
+        """The recorded :meth:`_held_error` ratios since the last :meth:`reset`: count, median and largest."""
+        if not self.held_errors:
+            return {"n": 0}
+        a = np.asarray(self.held_errors)
+        return {"n": len(a), "vs_std_median": float(np.median(a[:, 0])), "vs_std_max": float(a[:, 0].max()),
+                "vs_process_noise_median": float(np.nanmedian(a[:, 1])),
+                "vs_process_noise_max": float(np.nanmax(a[:, 1]))}
 
     def _radius(self, old: _Held, dist: float, err: float) -> float:
         """Next refresh radius from the prediction error ``err`` of the last held model after ``dist`` rad: the
@@ -400,7 +445,7 @@ class ReducedObserverModel:
         q = z[: self.nq]
         iv = self._last
         if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
-            iv = self._refresh(z)
+            iv = self._refresh(z, u, dt)
         for attempt in range(2):
             n = self.substeps(iv, dt)
             dl = q - iv.q0
@@ -412,7 +457,7 @@ class ReducedObserverModel:
                 break
             # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
             self.n_rescue += 1
-            iv = self._refresh(z)
+            iv = self._refresh(z, u, dt)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)

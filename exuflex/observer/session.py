@@ -86,7 +86,9 @@ class ObserverConfig:
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
     payload_hold_s : seconds from the filter's start during which the payload scale is held (not learned): the
         start-up transient, where the state estimate is still far outside its own covariance and the joint
-        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``).
+        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``). The six-bar's manoeuvre
+        starts with a torque pulse of about 0.08 s that the filter follows with errors of many standard
+        deviations; a longer hold loses the four-bar's most informative samples (docs/estimators.md).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
@@ -706,6 +708,8 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     }
     summary["estimator"] = config.estimator
     summary["smoothed"] = bool(smooth)
+    if obs.ekf.model is obs.model and obs.model.method == "cached":
+        summary["held_model_error"] = obs.model.held_error_summary()
     summary.update(_extra_states(obs.ekf.model, est))
     if met is not None:
         summary.update(met)

@@ -222,8 +222,13 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
     fg = WJt @ (M_N @ g_N)
     if consistent:  # J^T M W = (W J)^T [M_N S, M_N T]
         MW = np.empty((N, n))
-        MW[:, :nq] = M_N @ np.ascontiguousarray(W[:, :nq])
-        MW[:, nq:] = _product_t(M_N, t_index, n - nq)
+        MS = M_N @ np.ascontiguousarray(W[:, :nq])
+        MT = _product_t(M_N, t_index, n - nq)
+        for a in range(N):
+            for b in range(nq):
+                MW[a, b] = MS[a, b]
+            for b in range(n - nq):
+                MW[a, nq + b] = MT[a, b]
         JtM = WJt @ MW
     else:
         JtM = np.zeros((0, n))
@@ -261,10 +266,11 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
 
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-    _w_product = _jit(_w_product)
-    _t_product = _jit(_t_product)
-    _product_t = _jit(_product_t)
-    _tt_product = _jit(_tt_product)
+    _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
+    _w_product = _inline(_w_product)
+    _t_product = _inline(_t_product)
+    _product_t = _inline(_product_t)
+    _tt_product = _inline(_tt_product)
     _element_form = _jit(_element_form)
     _mass_stiffness_gradients = _jit(_mass_stiffness_gradients)
     _force_terms_shared = _jit(_force_terms_shared)
@@ -322,10 +328,12 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
     Vm = np.ascontiguousarray(V[nq : nq + me])
     W = np.zeros((ne, k))
     for a in range(me):
-        W[im[a]] = Vm[a]
+        for kk in range(k):
+            W[im[a], kk] = Vm[a, kk]
     BV = B @ Vm
     for a in range(ns):
-        W[is_[a]] = BV[a]
+        for kk in range(k):
+            W[is_[a], kk] = BV[a, kk]
     if has_local:
         _rotate_rows(W, px, py, qc, qs, True)
     d = _t_product(t_index, W)  # (N, k)
@@ -359,17 +367,25 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
                     Cu[u, kk * nq + i] += acc * S_th[e, i]
     if has_local:  # dK_w/dq_i w_G = Q^T (dK_uu/dq_i u_G + K_uu D_i u_G - D_i K_uu u_G)
         DW = _turn(W, px, py, plocal, Sn, nq)
-        Cu += Kuu @ DW
-        Cu -= _turn(Kuu @ W, px, py, plocal, Sn, nq)
+        KDW = Kuu @ DW
+        DKW = _turn(Kuu @ W, px, py, plocal, Sn, nq)
+        for u in range(ne):
+            for j in range(k * nq):
+                Cu[u, j] += KDW[u, j]
+        for u in range(ne):
+            for j in range(k * nq):
+                Cu[u, j] -= DKW[u, j]
         _rotate_rows(Cu, px, py, qc, qs, False)
     Cs = np.empty((ns, k * nq))
     for a in range(ns):
-        Cs[a] = Cu[is_[a]]
+        for j in range(k * nq):
+            Cs[a, j] = Cu[is_[a], j]
     dB = Kss_inv @ Cs  # (s, k nq), negated below
     if has_local:  # d(Q w_G)/dq_i = D_i u_G + Q (0; dB_w/dq_i w_m)
         dW = np.zeros((ne, k * nq))
         for a in range(ns):
-            dW[is_[a]] = -dB[a]
+            for j in range(k * nq):
+                dW[is_[a], j] = -dB[a, j]
         _rotate_rows(dW, px, py, qc, qs, True)
         for u in range(ne):
             for kk in range(k):
@@ -403,9 +419,10 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
 
 
 if HAVE_NUMBA:
-    _rotate_rows = _jit(_rotate_rows)
-    _turn = _jit(_turn)
+    _rotate_rows = _inline(_rotate_rows)
+    _turn = _inline(_turn)
     basis_derivative = _jit(_basis_derivative)
+    _basis_derivative_inline = _inline(_basis_derivative)
 else:  # pragma: no cover
     basis_derivative = None
 
@@ -447,7 +464,8 @@ def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_lo
         _rotate_rows(P, px, py, qc, qs, False)
     Psi = np.empty((ns, ki))
     for a in range(ns):
-        Psi[a] = P[is_[a]]
+        for j in range(ki):
+            Psi[a, j] = P[is_[a], j]
     r = nq + me + ki
     H = np.zeros((nq + ne, r))
     for i in range(nq):
@@ -462,7 +480,9 @@ def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_lo
             for j in range(ki):
                 Hw[is_[a], me + j] = Psi[a, j]
         _rotate_rows(Hw, px, py, qc, qs, True)
-        H[nq:, nq:] = Hw
+        for a in range(ne):
+            for b in range(r - nq):
+                H[nq + a, nq + b] = Hw[a, b]
         return Kuu, B, Kinv, Psi, H
     for a in range(me):
         H[nq + im[a], nq + a] = 1.0
@@ -515,6 +535,7 @@ def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consi
 
 if HAVE_NUMBA:
     basis_at = _jit(_basis_at)
+    _basis_at_inline = _inline(_basis_at)
     _reduced_terms = _jit(_reduced_terms)
     reduced_matrices = _jit(_reduced_matrices)
 else:  # pragma: no cover

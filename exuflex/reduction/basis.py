@@ -397,7 +397,7 @@ class CraigBampton:
             return _compiled.basis_derivative(
                 np.ascontiguousarray(V), nq, ne, self.im, self.is_, np.ascontiguousarray(rc.B), model.t_index,
                 model.el_dofs, cfg.R, model.KGl, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
-                np.ascontiguousarray(rc.Kss_inv), np.cos(dth), np.sin(dth), self._Phi_u, self._px, self._py,
+                np.asfortranarray(rc.Kss_inv), np.cos(dth), np.sin(dth), self._Phi_u, self._px, self._py,
                 Sn, rc.Kuu, qc, qs, self._plocal, self._keep, self.has_local)
         k = V.shape[1]
         T = model.T
