@@ -41,7 +41,10 @@ def rows_for(path: Path, n_along: int) -> list[str]:
             cb = CraigBampton(model, masters=masters, path=p, n_interior=count)
             at = accuracy_indices(cb, cb.q_star)
             n_int = f"{cb.n_interior}" + (" (auto)" if count == "auto" or mech.reduction.n_interior is None else "")
-            cells = [mech.name, f"{label}: {', '.join(cb.masters)}", choice, str(cb.r), n_int,
+            vis = cb.visible_hz
+            seen = "-" if not len(vis) else (f"{vis.min():.0f}" if vis.max() - vis.min() < 1 else
+                                             f"{vis.min():.0f}-{vis.max():.0f}")
+            cells = [mech.name, f"{label}: {', '.join(cb.masters)}", choice, str(cb.r), n_int, seen,
                      f"{at.worst_nco:.4f}", f"{at.worst_error_pct:.3f}"]
             if qs is None:
                 cells += ["-", "-"]
@@ -73,11 +76,15 @@ def main(argv=None) -> int:
         "over q* and 16 configurations of the manoeuvre (the default, `exuflex/reduction/path.py`), count from the",
         "model file or automatic. NCO (worst, eq. 16) and frequency error (worst, %, eq. 17) of the full modes below",
         f"the band limit at q* and over {a.along} configurations of the manoeuvre, equally spaced in time (not those",
-        "the modes were chosen on). Thresholds: the model file's (default NCO >= 0.99, error <= 2 %).",
+        "the modes were chosen on). Thresholds: the model file's (default NCO >= 0.99, error <= 2 %). The automatic",
+        "count also follows the full modes above the band that the manoeuvre's torques make visible in the",
+        "observer's default channels (peak response >= 0.45 of a channel's noise std, below the sample rate's",
+        "Nyquist frequency; `exuflex/reduction/path.py`): their frequencies along the manoeuvre are in the column",
+        "'visible above the band'; the NCO and error columns are those of the band's modes.",
         "",
-        ("| model | masters | interior modes chosen | dofs | interior | NCO at q* | error % at q* | worst NCO along "
-         "| worst error % along |"),
-        "|---|---|---|---|---|---|---|---|---|",
+        ("| model | masters | interior modes chosen | dofs | interior | visible above the band (Hz) | NCO at q* | "
+         "error % at q* | worst NCO along | worst error % along |"),
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in names:
         lines += rows_for(Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml", a.along)

@@ -145,8 +145,8 @@ def _benchmark():
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
 # the filter core and the reduction of issue 15 are done.
 KNOWN_SHORT = {
-    "single_link": "tip elastic errors 1.52-1.93x their bound on every seed (y11, dx10)",
-    "slider_crank": "seeds 2 and 3: the default path's q1 RMS error 0.89x and 0.86x the rk4 reference's (outside 10 %)",
+    "slider_crank": "seeds 2 and 3: the default path's q1 RMS error 0.89x and 0.86x the rk4 reference's (outside "
+                    "10 %)",
 }
 
 

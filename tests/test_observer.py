@@ -367,6 +367,90 @@ def test_a_blank_channel_and_a_channel_left_out_give_the_same_estimates(sixbar, 
     assert np.all(np.abs(a - b) <= 1e-9 * scale)
 
 
+@pytest.fixture(scope="module")
+def arm():
+    """The single link (its tip master across the arm, in the link's frame: the tip rows turn with q)."""
+    mech = load_mechanism(MODELS / "single_link.toml")
+    return mech, make_observer(mech)
+
+
+def _turning_states(observer, mech, n=201, dt=1e-3):
+    """States along a line in q at constant rates, with a constant elastic deflection (zero elastic rates): the
+    tip's deflection turns with its link."""
+    som = observer.model
+    nq, r = som.nq, som.r
+    rng = np.random.default_rng(3)
+    qd = np.linspace(0.9, 1.2, nq)
+    t = np.arange(n) * dt
+    Z = np.zeros((n, som.nx))
+    Z[:, :nq] = np.asarray(mech.q_ref, float) + 0.3 + np.outer(t, qd)
+    Z[:, nq:r] = 1e-3 * rng.standard_normal(r - nq)
+    Z[:, r : r + nq] = qd
+    return t, Z
+
+
+def test_tip_rate_is_the_time_derivative_of_the_tip_deflection(arm):
+    """The truth's tip rate is d/dt of the global elastic displacement (``p_tip' - J q'``), which turns with the
+    link: along states whose elastic coordinates are constant while q turns, the estimated rate equals the central
+    difference in time of the estimated displacement (not zero, which the rows times p' alone would give)."""
+    mech, observer = arm
+    t, Z = _turning_states(observer, mech)
+    names = physical_names(mech)
+    exact = observer.physical(t, Z, refresh_rad=0.0)  # the rows and their q-derivatives at every sample
+    e = np.column_stack([exact[n] for n in names[2:4]])
+    fd = (e[2:] - e[:-2]) / (t[2:] - t[:-2])[:, None]
+    scale = np.max(np.abs(fd))
+    assert scale > 1e-4  # a deflection of about a mm turning at about 1 rad/s
+    # exact rows; the default's held derivatives between refreshes 1e-2 rad apart (first order in the rows, zeroth
+    # in the turning term of the rate: about 1e-2 of it)
+    for phys, tol in ((exact, 1e-3), (observer.physical(t, Z), 2e-2)):
+        ed = np.column_stack([phys[n] for n in names[4:6]])
+        assert np.max(np.abs(ed[1:-1] - fd)) < tol * scale
+        disp = np.column_stack([phys[n] for n in names[2:4]])
+        assert np.max(np.abs(disp - e)) < 1e-4 * np.max(np.abs(e))  # (1e-2 rad)^2 / 2 of the deflection
+
+
+def test_physical_covariance_is_the_physical_map_s_jacobian_squared(arm):
+    """``physical_covariance`` with P = I is J J^T, J the Jacobian of :meth:`Observer.physical` at the state
+    (central differences of the map, rows re-evaluated at every perturbed state); at rest in q (q' = 0, elastic
+    rates not zero), where the map's linearisation leaves nothing out."""
+    mech, observer = arm
+    _, Z = _turning_states(observer, mech, n=1)
+    nq, r, nx = observer.model.nq, observer.model.r, observer.model.nx
+    z = Z[0]
+    z[r : r + nq] = 0.0
+    z[r + nq :] = np.linspace(-0.02, 0.03, nx - r - nq)
+    k = len(physical_names(mech))
+    J = np.empty((k, nx))
+    for j in range(nx):
+        h = 1e-7
+        dz = np.zeros(nx)
+        dz[j] = h
+        J[:, j] = (observer.physical([0.0], [z + dz]).data[0] - observer.physical([0.0], [z - dz]).data[0]) / (2 * h)
+    C = observer.physical_covariance(z[None], np.eye(nx)[None])[0]
+    np.testing.assert_allclose(C, J @ J.T, rtol=1e-4, atol=1e-7 * np.abs(J @ J.T).max())
+
+
+def test_bound_over_a_span_averages_the_configurations_scored_there(arm):
+    """``estimation_bound(span=...)`` is the RMS of the steady-state bounds at the midpoints of the span's parts:
+    past the manoeuvre's end the mechanism rests at its final pose, so a span there gives the bound at that pose
+    at rest; a span over the whole turn gives the RMS of the bounds at its midpoints' planned states."""
+    from exuflex.observer.session import _bound_at
+
+    mech, observer = arm
+    d = mech.manoeuvre.duration
+    final = plan(mech, dt=d / 100).q[-1]
+    after = estimation_bound(observer, span=(d + 0.1, d + 0.5), points=2)
+    at_rest = _bound_at(observer, final)
+    for name, v in at_rest.items():
+        assert after[name] == pytest.approx(v, rel=1e-9, abs=1e-15), name
+    over = estimation_bound(observer, span=(0.0, d), points=2)
+    p = plan(mech, dt=d / 800, t_end=d)
+    per = [_bound_at(observer, p.q[k], p.qd[k]) for k in np.searchsorted(p.t, [0.25 * d, 0.75 * d])]
+    for name in at_rest:
+        assert over[name] == pytest.approx(np.sqrt(np.mean([b[name] ** 2 for b in per])), rel=1e-6), name
+
+
 def test_the_held_models_error_is_measured_against_the_filters_uncertainty():
     """At each evaluation the cached step records the state error over one interval that the previous held
     model causes (against the exact configuration), relative to the filter's standard deviations: zero where

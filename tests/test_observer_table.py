@@ -50,9 +50,9 @@ def test_the_command_lines_options_override_the_file_and_the_rest_comes_from_it(
     p = argparse.ArgumentParser()
     observe.add_parser(p.add_subparsers())
     mech = parse_mechanism(_with(TABLE), "six.toml")
-    args = p.parse_args(["observe", "m.toml", "run", "--q-scale", "5", "--method", "cached"])
+    args = p.parse_args(["observe", "m.toml", "run", "--q-scale", "5", "--method", "cached", "--jump-p", "1e-4"])
     cfg = observe._config(args, mech)
-    assert cfg.q_scale == 5.0 and cfg.method == "cached"  # given on the command line
+    assert cfg.q_scale == 5.0 and cfg.method == "cached" and cfg.jump_p == 1e-4  # given on the command line
     assert cfg.channels == ("q1", "q2", "c1") and cfg.estimator == "ekf-payload"  # from the file
 
 
@@ -66,6 +66,7 @@ def test_the_command_lines_options_override_the_file_and_the_rest_comes_from_it(
     ({"q_scale": -1.0}, "observer.q_scale"),
     ({"h": 0}, "observer.h"),
     ({"gate_p": 0.7}, "observer.gate_p"),
+    ({"jump_p": 0.0}, "observer.jump_p"),
     ({"fault_window": 1}, "observer.fault_window"),
     ({"fault_isolation": "yes"}, "observer.fault_isolation"),
     ({"start_up": "0.3"}, "observer.start_up"),

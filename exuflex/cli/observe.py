@@ -113,6 +113,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="multiplies the torque process-noise covariance (default 1: the stated noise)")
     t.add_argument("--q-extra", type=nonneg_float,
                    help="extra white noise on the elastic rates per interval (std, unmodelled dynamics; default 0)")
+    t.add_argument("--jump-p", type=_probability, help="false-alarm probability per interval of the torque-jump "
+                   "test (a torque step between two samples gets its effect at an unknown instant of the interval; "
+                   "default: no test; helps logs whose torque steps fall between samples, e.g. a drifting clock)")
     t.add_argument("--start-up", type=nonneg_float,
                    help="seconds left out of the error metrics (default 0.3)")
     p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default=None,
@@ -126,6 +129,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
     return p
+
+
+def _probability(text: str) -> float:
+    """A false-alarm probability in (0, 0.5) (argparse type)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a probability in (0, 0.5), got {text!r}") from None
+    if not 0.0 < v < 0.5:
+        raise argparse.ArgumentTypeError(f"expected a probability in (0, 0.5), got {text!r}")
+    return v
 
 
 def _config(args, mech):
@@ -147,6 +161,7 @@ def _config(args, mech):
         "q_extra_std": args.q_extra,
         "estimator": args.estimator,
         "start_up": args.start_up,
+        "jump_p": args.jump_p,
     }
     return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
 

@@ -578,7 +578,7 @@ def _parse_observer(obs: _Reader | None, sensor_names: list[str]) -> ObserverSpe
     for key, unit in (("q_extra_std", ""), ("start_up", "s"), ("fault_holdoff_s", "s")):
         if obs.has(key):
             kw[key] = obs.num(key, nonneg=True, unit=unit)
-    for key in ("gate_p", "fault_p"):
+    for key in ("gate_p", "fault_p", "jump_p"):
         if obs.has(key):
             v = obs.num(key)
             if not 0.0 < v < 0.5:

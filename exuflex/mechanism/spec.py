@@ -271,6 +271,7 @@ class ObserverSpec:
     elastic_rate0_std: float | None = None
     q_scale: float | None = None
     q_extra_std: float | None = None
+    jump_p: float | None = None
     max_gap: float | None = None
     start_up: float | None = None
     gate_p: float | None = None

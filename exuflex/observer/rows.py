@@ -13,49 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..erls.elements import hermite_curvature_row
+from ..erls.sensing import sensor, sensor_rows
 
-__all__ = ["ChannelRows", "channel_rows", "sensor", "sensor_rows"]
-
-
-def sensor(mech, sensors: dict, channel: str):
-    """The model file's sensor named ``channel``, with an error naming the model and the channels it has."""
-    s = sensors.get(channel)
-    if s is None:
-        raise KeyError(
-            f"{mech.source or mech.name}: no sensor channel {channel!r}; the model has {sorted(sensors)}"
-        )
-    return s
-
-
-def sensor_rows(model, cfg, s, link_names: list[str]):
-    """``(kind, rigid, u_row)`` of sensor ``s`` at configuration ``cfg``.
-
-    kind ``"angle"``: ``rigid`` weights the link angles; ``"point"``: ``rigid = (p0, dp0/dq)`` of one
-    coordinate of the rigid point; ``"linear"``: no rigid part. ``u_row`` acts on the elastic displacements.
-    """
-    if s.kind == "encoder":
-        a = np.zeros(len(link_names))
-        a[link_names.index(s.link)] = 1.0
-        row = model.rotation_row(s.link, s.joint)
-        if s.relative_to:
-            a[link_names.index(s.relative_to)] -= 1.0
-            row = row - model.rotation_row(s.relative_to, s.joint)
-        return "angle", a, row
-    if s.kind == "curvature":
-        return "linear", None, model.curvature_row(cfg, s.link, s.station)
-    if s.kind in ("tip_x", "tip_y"):
-        c = 0 if s.kind == "tip_x" else 1
-        rows = model.point_displacement_rows(cfg, s.link, s.station)
-        p0, Sp = model.kin.point(cfg.pose, s.link, s.station)
-        return "point", (p0[c], Sp[c]), rows[c]
-    if s.kind == "slider":  # axis . (p - ground) of the prismatic joint's node
-        jt = model.mech.joint(s.joint)
-        st = next(p.station for p in jt.points if p.link == s.link)
-        d = np.asarray(jt.axis, float)
-        rows = model.point_displacement_rows(cfg, s.link, st)
-        p0, Sp = model.kin.point(cfg.pose, s.link, st)
-        return "point", (d @ (p0 - np.asarray(jt.ground, float)), d @ Sp), d @ rows
-    raise KeyError(f"unsupported sensor kind {s.kind!r}")  # pragma: no cover - the loader admits only these
+__all__ = ["ChannelRows", "channel_rows", "sensor", "sensor_rows"]  # sensor, sensor_rows: from erls.sensing
 
 
 @dataclass(frozen=True)

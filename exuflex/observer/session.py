@@ -152,9 +152,15 @@ class Observer:
     info: dict = field(default_factory=dict)
 
     def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-2) -> Signals:
-        """Physical estimates (q, dq, tip elastic displacement and rate) from reduced states (n, nx).
+        """Physical estimates (q, dq/dt, tip elastic displacement and rate) from reduced states (n, nx).
 
-        The tip rows depend on q; they are refreshed whenever q moved by more than ``refresh_rad``.
+        The tip's elastic displacement is ``e = A(q) p`` with ``A`` the tip rows (:meth:`tip_rows`, global frame)
+        and its rate, what the truth's ``p_tip' - J q'`` is, ``e' = A(q) p' + sum_i (dA/dq_i p) q'_i``: the rows
+        turn with the links, so a deflection across a turning link has a global rate even when it is constant in
+        the link's frame. ``A`` and ``dA/dq`` are evaluated where q moved by more than ``refresh_rad`` from the
+        last evaluation; in between ``A`` follows q to first order (error of order ``refresh_rad^2 / 2`` of the
+        deflection) and ``dA/dq`` is held (error of order ``refresh_rad`` of the rate's turning term, itself the
+        deflection times q').
         """
         nq, r = self.model.nq, self.model.r
         Z = np.asarray(Z)[:, : self.model.nx]  # a filter's extra states (augmented estimators) are not physical
@@ -164,27 +170,46 @@ class Observer:
         out[:, nq : 2 * nq] = Z[:, r : r + nq]
         tp = tip_point(self.mech)
         if tp is not None:
-            rows, q_last = None, None
+            rows = None
             for k in range(len(t)):
                 q = Z[k, :nq]
                 if not np.all(np.isfinite(Z[k])):
                     continue
-                if rows is None or np.max(np.abs(q - q_last)) > refresh_rad:
-                    try:
-                        rows, q_last = self.model.tip_rows(q, *tp), q.copy()
-                    except KinematicsError:  # a runaway estimate where the loops cannot close: no tip value
-                        rows = None
+                if rows is None or np.max(np.abs(q - rows[2])) > refresh_rad:
+                    rows = self._tip_rows_and_rates(q, tp)
+                    if rows is None:  # a runaway estimate where the loops cannot close: no tip value
                         continue
-                out[k, 2 * nq : 2 * nq + 2] = rows @ Z[k, :r]
-                out[k, 2 * nq + 2 : 2 * nq + 4] = rows @ Z[k, r:]
+                A0, dA, q0 = rows
+                dq = q - q0
+                A = A0 + np.tensordot(dq, dA, axes=1)
+                out[k, 2 * nq : 2 * nq + 2] = A @ Z[k, :r]
+                out[k, 2 * nq + 2 : 2 * nq + 4] = A @ Z[k, r:] + np.tensordot(Z[k, r : r + nq], dA, axes=1) @ Z[k, :r]
         units = ("rad",) * nq + ("rad/s",) * nq + (("m", "m", "m/s", "m/s") if tp is not None else ())
         return Signals(np.asarray(t, float), names, out, units)
 
+    def _tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
+        """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by central differences
+        of step ``eps`` rad (the rows are smooth in q: rotations and Guyan shapes); None where the loops do not
+        close."""
+        som = self.model
+        q = np.array(q, float)
+        try:
+            A = som.tip_rows(q, *tp)
+            dA = np.empty((som.nq, *A.shape))
+            for i in range(som.nq):
+                e = np.zeros(som.nq)
+                e[i] = eps
+                dA[i] = (som.tip_rows(q + e, *tp) - som.tip_rows(q - e, *tp)) / (2 * eps)
+        except KinematicsError:
+            return None
+        return A, dA, q
+
     def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3) -> np.ndarray:
         """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
-        from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through the
-        same linear maps (the filter's extra states, if any, are left out). For NEES against a truth of the
-        physical quantities. The tip rows are refreshed whenever q moved by more than ``refresh_rad``."""
+        from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through
+        their maps linearised at each state (the filter's extra states, if any, are left out; the rate's turning
+        term is linearised in p and q', not in q). For NEES against a truth of the physical quantities. The tip
+        rows are evaluated as in :meth:`physical`."""
         som = self.model
         nq, r, nx = som.nq, som.r, som.nx
         tp = tip_point(self.mech)
@@ -193,14 +218,25 @@ class Observer:
         C = np.zeros((k, nx))
         C[:nq, :nq] = np.eye(nq)
         C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        rows, q_last = None, None
+        rows = None
         for i in range(len(Z)):
             if tp is not None:
-                q = Z[i, :nq]
-                if rows is None or np.max(np.abs(q - q_last)) > refresh_rad:
-                    rows, q_last = som.tip_rows(q, *tp), q.copy()
-                    C[2 * nq : 2 * nq + 2, :r] = rows
-                    C[2 * nq + 2 :, r:] = rows
+                z = Z[i, :nx]
+                q = z[:nq]
+                if rows is None or np.max(np.abs(q - rows[2])) > refresh_rad:
+                    rows = self._tip_rows_and_rates(q, tp)
+                A0, dA, q0 = rows
+                A = A0 + np.tensordot(q - q0, dA, axes=1)
+                dAp = np.einsum("iaj,j->ai", dA, z[:r])  # d(A p)/dq (2, nq)
+                C[2 * nq :, :] = 0.0
+                C[2 * nq : 2 * nq + 2, :r] = A
+                C[2 * nq : 2 * nq + 2, :nq] += dAp
+                C[2 * nq + 2 :, r:] = A
+                C[2 * nq + 2 :, :r] = np.tensordot(z[r : r + nq], dA, axes=1)
+                C[2 * nq + 2 :, r : r + nq] += dAp
+                # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
+                # left out: of the order of q' times the deflection per radian, times q's small uncertainty
+                C[2 * nq + 2 :, :nq] += np.einsum("iaj,j->ai", dA, z[r:])
             out[i] = C @ P[i][:nx, :nx] @ C.T
         return out
 
@@ -237,7 +273,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     model = model or (cb.model if cb is not None else ErlsModel(mech))
     if cb is None:
         cb = CraigBampton(model, masters=config.masters, q_star=config.q_star, n_interior=config.n_interior,
-                          ranking=config.ranking)
+                          ranking=config.ranking, channels=config.channels)
     basis_s = time.perf_counter() - t0
     channels = tuple(config.channels) if config.channels else default_channels(mech)
     dt = config.dt or 1.0 / mech.sample_rate_hz
@@ -401,7 +437,8 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
     return {"rms_error": rms, "max_error": mx, "truth_coverage": coverage}
 
 
-def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None) -> dict[str, float]:
+def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
+                     span: tuple[float, float] | None = None) -> dict[str, float]:
     """Best achievable RMS error per physical quantity: the steady-state Kalman covariance of the reduced model
     linearised at a configuration, the stated torque noise as process noise.
 
@@ -409,8 +446,11 @@ def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_che
     sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
     configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
     and the per-quantity standard deviations are combined as an RMS, the figure an RMS error along the
-    manoeuvre is compared with. With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``, at rest): that
-    one configuration.
+    manoeuvre is compared with. ``span = (t0, t1)`` (s from the manoeuvre's start): the configurations at the
+    midpoints of ``points`` equal parts of that interval instead (past the manoeuvre's end: its final pose at
+    rest), so that the bound is the time average over the interval an RMS error is scored on (what
+    :func:`observe_run` passes: from the start-up to the log's end). With ``q`` (and ``qd``) given, or without a
+    manoeuvre (``q_ref``, at rest): that one configuration.
 
     ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the bound for that log: the
     interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
@@ -426,13 +466,19 @@ def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_che
     mech = obs.mech
     if q is not None or mech.manoeuvre is None or points < 1:
         return _bound_at(obs, _mid_q(mech) if q is None else q, qd, log_check)
+    d = mech.manoeuvre.duration
+    t_end = d if span is None else max(float(span[1]), float(span[0]))
     try:
-        d = mech.manoeuvre.duration
-        p = plan(mech, dt=d / 200, t_end=d)
+        p = plan(mech, dt=t_end / 400 if t_end > 0 else d / 200, t_end=t_end if t_end > 0 else d)
     except Exception as exc:  # noqa: BLE001 - the bound at q_ref instead, with a note
         log.warning("could not plan the manoeuvre for the bound (%s); using the bound at q_ref", exc)
         return _bound_at(obs, np.asarray(mech.q_ref, float), None, log_check)
-    idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
+    if span is None:
+        idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
+    else:
+        t0, t1 = float(span[0]), t_end
+        ts = t0 + (np.arange(points) + 0.5) * (t1 - t0) / points
+        idx = np.unique(np.clip(np.searchsorted(p.t, ts), 0, len(p.t) - 1))
     per = [_bound_at(obs, p.q[k], p.qd[k], log_check) for k in idx]
     return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
 
@@ -492,13 +538,18 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
         out[names[nq + i]] = float(sd[r + i])
     tp = tip_point(mech)
     if tp is not None:
-        rows = som.tip_rows(q, *tp)
+        # the maps of Observer.physical linearised at z: e = A(q) p, e' = A(q) p' + sum_i (dA/dq_i p) q'_i
+        A, dA, _ = obs._tip_rows_and_rates(q, tp)
+        dAp = np.einsum("iaj,j->ai", dA, z[:r])
         for k in range(2):
             C = np.zeros(som.nx)
-            C[:r] = rows[k]
+            C[:r] = A[k]
+            C[:nq] += dAp[k]
             out[names[2 * nq + k]] = float(np.sqrt(C @ P @ C))
             Cd = np.zeros(som.nx)
-            Cd[r:] = rows[k]
+            Cd[r:] = A[k]
+            Cd[:r] += np.tensordot(z[r : r + nq], dA, axes=1)[k]
+            Cd[r : r + nq] += dAp[k]
             out[names[2 * nq + 2 + k]] = float(np.sqrt(Cd @ P @ Cd))
     return out
 
@@ -604,7 +655,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     bnd, unobservable = None, None
     if with_bound:  # before filtering: an unobservable channel set is reported at once
         try:
-            bnd = estimation_bound(obs, log_check=log_check)
+            span_s = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
+            scored = (config.start_up if span_s > config.start_up else 0.5 * span_s, span_s)
+            bnd = estimation_bound(obs, log_check=log_check, span=scored)
             say("bound for this log: " + ", ".join(f"{k} {v:.3g}" for k, v in bnd.items()))
         except UnobservableError as exc:
             unobservable = str(exc)

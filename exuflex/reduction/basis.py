@@ -55,7 +55,7 @@ import scipy.linalg as sla
 from ..erls.model import Configuration, ErlsModel
 from . import _compiled
 from .masters import automatic_masters
-from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
+from .path import VISIBILITY, Excitation, PathSamples, interior_mode_scores, manoeuvre_configurations
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -95,6 +95,12 @@ class CraigBampton:
     ranking : ``"imr"`` (interior-mode ranking) or ``"frequency"`` (lowest modes).
     path : configurations (n, nq) the interior modes are chosen over besides q* (:mod:`.path`); default
         (``None``): ``path_samples`` configurations of the model's manoeuvre; ``False``: q* only.
+    channels : the observer's sensor channels (default: :func:`exuflex.sensors.default_channels`); with the
+        automatic count, the full modes the manoeuvre makes visible in them (below the sample rate's Nyquist
+        frequency) join the band of the accuracy thresholds (:class:`.path.Excitation`); a fixed count is kept
+        as given, with the band's thresholds alone.
+    visibility : a mode is visible when its peak response reaches this multiple of a channel's noise std
+        (default :data:`.path.VISIBILITY`; 0: the band limit alone).
     """
 
     def __init__(
@@ -109,6 +115,8 @@ class CraigBampton:
         freq_error_max_pct: float | None = None,
         path=None,
         path_samples: int = 16,
+        channels=None,
+        visibility: float | None = None,
     ):
         t0 = time.perf_counter()
         spec = model.mech.reduction
@@ -184,10 +192,16 @@ class CraigBampton:
         # the interior modes' order and count, chosen at q* and along the path (.path)
         self.order = np.arange(Phi.shape[1])
         self.set_interior(Phi.shape[1])
-        samples = PathSamples(self, q_samples)
-        self.scores = samples.scores[0]  # IMR scores at q*
         if n_interior is None:
             n_interior = spec.n_interior if spec.n_interior is not None else "auto"
+        # the modes the channels see join the band of the automatic count (.path); a fixed count is the user's
+        self.visibility = VISIBILITY if visibility is None else float(visibility)
+        excitation = (Excitation.of(model.mech, channels) if self.visibility > 0 and n_interior == "auto"
+                      else None)
+        samples = PathSamples(self, q_samples, excitation, self.visibility)
+        # full modes above the band limit that the channels see, at any sample (Hz, rounded for the report)
+        self.visible_hz = np.unique(np.round(np.concatenate([np.zeros(0), *samples.visible_hz]), 1))
+        self.scores = samples.scores[0]  # IMR scores at q*
         self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior))
         self.path_q = q_samples  # q* and the path's configurations the choice was made on
         if n_interior is None:
@@ -208,6 +222,10 @@ class CraigBampton:
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
                         "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
                         a.worst_nco, np.round(a.q, 4).tolist(), hint)
+        elif len(self.visible_hz) and not samples.visible_met:
+            log.info("%s: %d interior modes, the most the automatic count adds for the full modes the channels see "
+                     "above the band (%.0f-%.0f Hz along the manoeuvre); some of them are followed only in part",
+                     src, n_interior, self.visible_hz.min(), self.visible_hz.max())
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
