@@ -391,7 +391,9 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
                 G[c, r + k] -= C3[k, j, c] * pd[j]
                 G[c, r + j] -= pd[k] * C3[k, j, c]
     F = SQM @ G
-    F += Pn
+    for i in range(F.shape[0]):  # + Pn, as a loop (an in-place array expression compiles to far more code)
+        for j in range(F.shape[1]):
+            F[i, j] += Pn[i, j]
     return F
 
 
