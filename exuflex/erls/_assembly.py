@@ -28,8 +28,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
 
-from ._closure import closure_newton, pose_sensitivities
-from ._closure import closure_newton_inline, pose_sensitivities_inline
+from ._closure import closure_newton, closure_newton_inline, pose_sensitivities_inline
 
 __all__ = ["HAVE_NUMBA", "configuration", "nodal_matrices"]
 

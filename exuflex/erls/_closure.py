@@ -31,19 +31,27 @@ import numpy as np
 
 try:
     import numba
-    from numba import types as _nbt
-    from numba.np.linalg import F_INT_nbtype, F_INT_nptype as _F_INT
 
     HAVE_NUMBA = True
-    _KIND_D = ord("d")  # float64
-    # int numba_xgesv(char kind, intp n, intp nrhs, double *a, intp lda, F_INT *ipiv, double *b, intp ldb)
-    _xgesv = _nbt.ExternalFunction("numba_xgesv", _nbt.intc(_nbt.char, _nbt.intp, _nbt.intp,
-                                                             _nbt.CPointer(_nbt.float64), _nbt.intp,
-                                                             _nbt.CPointer(F_INT_nbtype),
-                                                             _nbt.CPointer(_nbt.float64), _nbt.intp))
 except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
+
+_xgesv = None  # numba's LAPACK helper, see _solve_lapack
+if HAVE_NUMBA:
+    try:
+        from numba import types as _nbt
+        from numba.np.linalg import F_INT_nbtype
+        from numba.np.linalg import F_INT_nptype as _F_INT
+
+        _KIND_D = ord("d")  # float64
+        # int numba_xgesv(char kind, intp n, intp nrhs, double *a, intp lda, F_INT *ipiv, double *b, intp ldb)
+        _xgesv = _nbt.ExternalFunction("numba_xgesv", _nbt.intc(_nbt.char, _nbt.intp, _nbt.intp,
+                                                                 _nbt.CPointer(_nbt.float64), _nbt.intp,
+                                                                 _nbt.CPointer(F_INT_nbtype),
+                                                                 _nbt.CPointer(_nbt.float64), _nbt.intp))
+    except ImportError:  # pragma: no cover - a numba without these names: _solve is np.linalg.solve
+        _xgesv = None
 
 __all__ = ["HAVE_NUMBA", "ClosureArrays", "closure_newton", "coordinate_rates", "pose_sensitivities"]
 
@@ -120,7 +128,7 @@ def _max_abs(v):  # pragma: no cover
     return m
 
 
-def _solve(J, b):  # pragma: no cover - compiled
+def _solve_lapack(J, b):  # pragma: no cover - compiled
     """``J^-1 b`` by LAPACK's ``dgesv`` called as compiled ``np.linalg.solve`` calls it (numba's helper
     ``numba_xgesv``, the same copies in Fortran order: the same numbers), with its errors: LinAlgError for a
     non-finite or singular ``J``. ``np.linalg.solve`` itself copies ``b`` in by a slice assignment, whose
@@ -141,6 +149,10 @@ def _solve(J, b):  # pragma: no cover - compiled
     if info != 0 or a.shape[0] != n or ipiv.shape[0] != n:  # (a and ipiv used after the call: kept alive)
         raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
     return x
+
+
+def _solve_numpy(J, b):  # pragma: no cover - compiled where numba lacks the names _solve_lapack uses
+    return np.linalg.solve(J, b)
 
 
 def _closure_newton(z0, q, k, tol, max_iter):  # pragma: no cover
@@ -266,7 +278,7 @@ if HAVE_NUMBA:
     _residual = _inline(_residual)
     _jacobian = _inline(_jacobian)
     _max_abs = _inline(_max_abs)
-    _solve = _inline(_solve)
+    _solve = _inline(_solve_lapack if _xgesv is not None else _solve_numpy)
     _norm1 = _inline(_norm1)
     closure_newton = _jit(_closure_newton)
     pose_sensitivities = _jit(_pose_sensitivities)

@@ -430,10 +430,9 @@ def _abs_max(A):  # pragma: no cover - compiled
     for i in range(A.shape[0]):
         for j in range(A.shape[1]):
             a = abs(A[i, j])
-            if a > m or a != a:
-                m = a
-                if a != a:
-                    return a
+            if np.isnan(a):
+                return a
+            m = max(m, a)
     return m
 
 
