@@ -238,7 +238,7 @@ def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
     return f
 
 
-@_shared
+@_jit
 def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     """``M_r``, ``K_r`` of the held model at ``q0 + dl``: gradients at ``q0`` and, with a secant partner, half the
     change of the gradients along the secant (``s = (dl . d) / (d . d)``, ``d = q0 - q_old``): second order."""
@@ -269,7 +269,7 @@ def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     return Mr, Kr
 
 
-@_shared
+@_jit
 def _system(dl, s, hs):  # pragma: no cover - compiled
     """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
     Mr, Kr = _mass_stiffness(dl, s, hs)
