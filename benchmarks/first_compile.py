@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     if args.json:
         print(json.dumps({"median": med, "runs": runs}, indent=1))
         return 0
-    print("CPU seconds with an empty numba cache (median of %d): " % len(runs)
+    print(f"CPU seconds with an empty numba cache (median of {len(runs)}): "
           + ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in med.items()))
     return 0
 
