@@ -469,5 +469,5 @@ def test_the_held_models_error_is_measured_against_the_filters_uncertainty():
     assert summ["n"] == len(som.held_errors) > 0 and np.isfinite(summ["vs_std_max"])
     iv = som._last
     z = obs.ekf.x
-    same = som._held_error(iv, iv, z, _hold(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)
+    same = som._held_error(iv, 0.0, iv, z, _hold(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)
     assert same[0] == 0.0

@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["channel_list", "finite_float", "name_list", "nonneg_int", "nonneg_float", "out_path",
-           "positive_float", "positive_int", "seed"]
+__all__ = ["channel_list", "finite_float", "n_interior", "name_list", "nonneg_int", "nonneg_float", "out_path",
+           "positive_float", "positive_int", "probability", "seed"]
 
 
 def _float(text: str) -> float:
@@ -38,6 +38,14 @@ def nonneg_float(text: str) -> float:
     return v
 
 
+def probability(text: str) -> float:
+    """A false-alarm probability in (0, 0.5)."""
+    v = _float(text)
+    if not 0.0 < v < 0.5:
+        raise argparse.ArgumentTypeError(f"expected a probability in (0, 0.5), got {text!r}")
+    return v
+
+
 def _int(text: str) -> int:
     try:
         return int(text)
@@ -57,6 +65,19 @@ def nonneg_int(text: str) -> int:
     if v < 0:
         raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
     return v
+
+
+def n_interior(text: str):
+    """The number of interior modes: a non-negative integer or ``auto``."""
+    if text == "auto":
+        return "auto"
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer or 'auto', got {text!r}")
+    return n
 
 
 def seed(text: str) -> int:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..mechanism import MAX_ELEMENTS  # the loader's limit (exuflex.mechanism.limits), also for --refine
 from ..truth import BEAMS
-from .args import name_list, nonneg_int, positive_float, positive_int
+from .args import n_interior, name_list, nonneg_int, positive_float, positive_int
 from .simulate import elements_per_link_arg
 
 __all__ = ["MAX_ELEMENTS", "add_parser", "modes_report", "run"]
@@ -37,18 +37,6 @@ def _floats(text: str) -> list[float]:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers such as 1.08,2.64,4.71, got {text!r}")
-
-
-def _n_interior(text: str):
-    if text == "auto":
-        return "auto"
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer or 'auto', got {text!r}")
-    return n
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -69,7 +57,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--masters", type=name_list("master dofs"), default=None,
                    help="elastic master dofs a,b,... for --reduced, e.g. node9.transverse, or 'auto' (default: the "
                         "model's [reduction].masters)")
-    p.add_argument("--n-interior", type=_n_interior, default=None,
+    p.add_argument("--n-interior", type=n_interior, default=None,
                    help="interior modes N or 'auto' for --reduced (default: the model's)")
     p.add_argument("--qstar", type=_floats, default=None, help="reduction configuration Q1,Q2,... for --reduced")
     p.add_argument("--along", type=nonneg_int, default=41,

@@ -14,25 +14,22 @@ import json
 import sys
 from pathlib import Path
 
-from .args import channel_list, finite_float, name_list, nonneg_float, out_path, positive_float
+from .args import (
+    channel_list,
+    finite_float,
+    n_interior,
+    name_list,
+    nonneg_float,
+    out_path,
+    positive_float,
+    probability,
+)
 
 __all__ = ["FULL_P_BYTES", "add_parser", "run"]
 
 FULL_P_BYTES = 256e6
 """With ``--out``, the filter keeps its full covariance per sample (for the standard deviations of the tip
 columns) while it takes at most this many bytes; longer logs get the joint angles' and rates' only."""
-
-
-def _n_interior(text: str):
-    if text == "auto":
-        return "auto"
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer or 'auto', got {text!r}")
-    return n
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -93,7 +90,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     r = p.add_argument_group("reduced model")
     r.add_argument("--masters", type=name_list("master dofs"),
                    help="comma-separated elastic master dofs (default: the model file's)")
-    r.add_argument("--n-interior", type=_n_interior, default=None, help="interior modes: a number or 'auto'")
+    r.add_argument("--n-interior", type=n_interior, default=None, help="interior modes: a number or 'auto'")
     r.add_argument("--method", choices=("cached", "rk4"), default=None,
                    help="step map: cached (default), rk4 (the configuration at every RK4 stage: the exact reference)")
     r.add_argument("--substep", type=positive_float, default=None,
@@ -113,7 +110,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="multiplies the torque process-noise covariance (default 1: the stated noise)")
     t.add_argument("--q-extra", type=nonneg_float,
                    help="extra white noise on the elastic rates per interval (std, unmodelled dynamics; default 0)")
-    t.add_argument("--jump-p", type=_probability, help="false-alarm probability per interval of the torque-jump "
+    t.add_argument("--jump-p", type=probability, help="false-alarm probability per interval of the torque-jump "
                    "test (a torque step between two samples gets its effect at an unknown instant of the interval; "
                    "default: no test; helps logs whose torque steps fall between samples, e.g. a drifting clock)")
     t.add_argument("--start-up", type=nonneg_float,
@@ -129,17 +126,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.set_defaults(func=run)
     return p
-
-
-def _probability(text: str) -> float:
-    """A false-alarm probability in (0, 0.5) (argparse type)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a probability in (0, 0.5), got {text!r}") from None
-    if not 0.0 < v < 0.5:
-        raise argparse.ArgumentTypeError(f"expected a probability in (0, 0.5), got {text!r}")
-    return v
 
 
 def _config(args, mech):

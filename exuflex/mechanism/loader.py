@@ -145,12 +145,6 @@ class _Reader:
             raise self.err(key, "a table", v)
         return _Reader(self.source, v, self._f(key))
 
-    def check_unknown_of(self, known) -> None:
-        """Like :meth:`check_unknown`, with ``known`` the keys the table may have (some of them optional)."""
-        extra = sorted(set(self.table) - set(known))
-        if extra:
-            raise ModelFileError(self.source, self._f(extra[0]), f"one of the known keys {sorted(known)}", extra[0])
-
     def check_unknown(self) -> None:
         extra = sorted(set(self.table) - self.used)
         if extra:
@@ -594,7 +588,8 @@ def _parse_observer(obs: _Reader | None, sensor_names: list[str]) -> ObserverSpe
         if not isinstance(v, bool):
             raise obs.err("fault_isolation", "true or false", v)
         kw["fault_isolation"] = v
-    obs.check_unknown_of(ObserverSpec.__dataclass_fields__)
+    obs.used.update(ObserverSpec.__dataclass_fields__)  # every key the table may have (the error lists them)
+    obs.check_unknown()
     return ObserverSpec(**kw)
 
 

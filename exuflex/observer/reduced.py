@@ -358,10 +358,10 @@ class ReducedObserverModel:
             iv = self._configuration(z, held=True)
         iv.Ca = iv.mats.Cr - self.model.beta * iv.mats.Kr
         iv.rad = self.refresh_min
+        s_old = 0.0  # where the old held model stood on its secant at iv (before its partner is dropped)
         if old is not None and old.forces is not None:
+            s_old = _secant_factor(old, iv.q0 - old.q0)
             iv.err = self._prediction_error(old, iv)
-            if u is not None and dt is not None and self.state_cov is not None:
-                self.held_errors.append(self._held_error(old, iv, z, u, dt))
             dist = _max_abs(iv.q0 - old.q0)
             iv.rad = self._radius(old, dist, iv.err)
             if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
@@ -369,12 +369,17 @@ class ReducedObserverModel:
                 iv.old, iv.d, iv.dd, iv.d_list = old, d, float(d @ d), d.tolist()
             old.old = None  # keep one partner only (no chain of held configurations)
         iv.system = self._held_system(iv)
+        if old is not None and old.forces is not None and u is not None and dt is not None \
+                and self.state_cov is not None:
+            self.held_errors.append(self._held_error(old, s_old, iv, z, u, dt))
         self.n_refresh += 1
         self._last = iv
         return iv
 
-    def _held_error(self, old: _Held, iv: _Held, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[float, float]:
-        """The state error over one interval that the held model ``old`` causes where it is replaced by the
+    def _held_error(self, old: _Held, s_old: float, iv: _Held, z: np.ndarray, u: np.ndarray,
+                    dt: float) -> tuple[float, float]:
+        """The state error over one interval that the held model ``old`` (at secant factor ``s_old``) causes where it
+        is replaced by the
         configuration ``iv`` evaluated exactly, against the filter's uncertainty: ``(max_i |dz_i| / sigma_i,
         max_i |dz_i| / sqrt(Q_ii))`` with ``dz`` the difference of the two interval steps from the filter's state
         (its configuration moved to ``iv``'s), ``sigma`` the filter's standard deviations before the interval and
@@ -384,10 +389,11 @@ class ReducedObserverModel:
         interval (consistent with its own model)."""
         zq = z.copy()
         zq[: self.nq] = iv.q0
-        n = max(1, math.ceil(dt / min(self.h, old.h_stable or self.h) - 1e-9))
+        n = self.substeps(old, dt)
         dl = iv.q0 - old.q0
-        held = held_step(zq, u, dl, _secant_factor(old, dl), dt / n, n, *old.system)[0]
-        exact = held_step(zq, u, np.zeros(self.nq), 0.0, dt / n, n, *self._held_system(iv))[0]
+        held = held_step(zq, u, dl, s_old, dt / n, n, *old.system)[0]
+        # iv's own held system at its centre (no offset, no secant step): the exact configuration
+        exact = held_step(zq, u, np.zeros(self.nq), 0.0, dt / n, n, *iv.system)[0]
         dz = np.abs(held - exact)
         P = self.state_cov()
         sig = np.sqrt(np.maximum(np.diagonal(P)[: self.nx], 1e-300))
