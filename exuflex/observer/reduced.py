@@ -51,7 +51,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from operator import mul
+from operator import mul, sub
 
 import numpy as np
 from scipy.stats import chi2
@@ -113,15 +113,17 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
-def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
-    """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved.
+def _secant_factor(iv: _Held, dl: np.ndarray, v: list | None = None) -> float:
+    """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved
+    (``v``: ``dl`` as a list of floats, if the caller has it).
 
     Zero (first order only) without a partner or when q moves away from the secant's line (cosine below 0.7):
     the secant's differences then say nothing about the change, and extrapolating them along a different
     direction breaks the filter during the start-up transient, where the estimate jitters in every direction."""
     if iv.old is None:
         return 0.0
-    v = dl.tolist()
+    if v is None:
+        v = dl.tolist()
     a = sum(map(mul, v, iv.d_list))
     n2 = sum(map(mul, v, v))
     if a * a < 0.49 * n2 * iv.dd:
@@ -140,6 +142,8 @@ class _StepMap:
     S: np.ndarray  # (nx, r) response to a unit generalised force held over the interval
     L: np.ndarray  # (nx, n_motors) response to a unit torque held over the interval
     Q: np.ndarray  # (nx, nx) process noise
+    q_list: list = None  # q as floats
+    tail: tuple = ()  # the compiled interval's arguments fixed while this map and its configuration are held
 
 
 @dataclass
@@ -163,6 +167,11 @@ class _Held:
     err: float = float("nan")  # prediction error of the previous held model at q0
     system: HeldSystem | None = None  # the held arrays of the compiled step
     map: _StepMap | None = None
+    rows: dict = None  # measurement rows about q0 per channel tuple: (c0, Hm) and the secant's (c0, Hm, dH)
+    secant_rows: dict = None
+
+    def __post_init__(self):
+        self.rows, self.secant_rows = {}, {}
 
 
 class ReducedObserverModel:
@@ -261,7 +270,6 @@ class ReducedObserverModel:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
-        self._channel_cache: dict = {}
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors: list[tuple[float, float]] = []
@@ -450,20 +458,29 @@ class ReducedObserverModel:
         correction and process noise (:meth:`_step_map`)."""
         q = z[: self.nq]
         iv = self._last
-        if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
+        if iv is not None and iv.system is not None:
+            dl = q - iv.q0
+            v = dl.tolist()
+            if max(map(abs, v)) > iv.rad:
+                iv = None
+        else:
+            iv = None
+        if iv is None:
             iv = self._refresh(z, u, dt)
+            dl = q - iv.q0
+            v = dl.tolist()
         for attempt in range(2):
             n = self.substeps(iv, dt)
-            dl = q - iv.q0
-            s = _secant_factor(iv, dl) if not attempt else 0.0
+            s = _secant_factor(iv, dl, v) if not attempt else 0.0
             sm = self._step_map(iv, z, dl, dt, n)
-            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *iv.forces.jacobian_tensors(), sm.Pn,
-                                                      sm.S, *iv.system)
-            if attempt or math.isfinite(z_next[0]) or not (s or any(dl)):
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
+            if attempt or math.isfinite(z_next[0]) or not (s or any(v)):
                 break
             # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
             self.n_rescue += 1
             iv = self._refresh(z, u, dt)
+            dl = q - iv.q0
+            v = dl.tolist()
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
@@ -473,14 +490,17 @@ class ReducedObserverModel:
         interval's length changed by more than ``dt_tol``: built ahead of q along its motion
         (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius)."""
         sm = iv.map
-        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and _max_abs(z[: self.nq] - sm.q) <= self.remap_rad:
+        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and \
+                max(map(abs, map(sub, z[: self.nq].tolist(), sm.q_list))) <= self.remap_rad:
             return sm
         lim = self._measurement_radius(iv)
         dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
         Ma, Ka, Ca, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
-        iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        sm = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        sm.q_list = sm.q.tolist()
+        sm.tail = (*iv.forces.jacobian_tensors(), sm.Pn, sm.S, *iv.system)
         self.n_remap += 1
-        return iv.map
+        return sm
 
     # ------------------------------------------------------------------ the reference step
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
@@ -564,20 +584,25 @@ class ReducedObserverModel:
         """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
         return 1.5 * max(iv.rad, self.refresh_min)
 
-    def _measurement_interval(self, x: np.ndarray) -> _Held:
-        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near)."""
+    def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray, list]:
+        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near), with
+        ``dl = q - q0`` as an array and as floats."""
+        q = x[: self.nq]
         iv = self._last
-        if iv is None or _max_abs(x[: self.nq] - iv.q0) > self._measurement_radius(iv):
-            # no held configuration near x (first sample of a run): evaluate one at x
-            iv = self._configuration(x)
-            self._last = iv
-        return iv
+        if iv is not None:
+            dl = q - iv.q0
+            v = dl.tolist()
+            if max(map(abs, v)) <= self._measurement_radius(iv):
+                return iv, dl, v
+        # no held configuration near x (first sample of a run): evaluate one at x
+        iv = self._last = self._configuration(x)
+        dl = q - iv.q0
+        return iv, dl, dl.tolist()
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
         """``(c0, Hm, dH)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x
-        (``dH`` None without a secant partner); cached per held configuration."""
-        key = (iv.serial, "secant", channels)
-        lin = self._channel_cache.get(key)
+        (``dH`` None without a secant partner); kept with the held configuration."""
+        lin = iv.secant_rows.get(channels)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
@@ -591,35 +616,27 @@ class ReducedObserverModel:
                 dH = np.zeros_like(Hm)
                 dH[:, self.nq : self.r] = (Hm[:, self.nq : self.r] - H1[:, self.nq : self.r]) / iv.dd
                 lin = (c0, Hm, dH)
-            self._channel_cache[key] = lin
+            iv.secant_rows[channels] = lin
         return lin
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
         """The channels at ``x`` about the held configuration: ``y = c0 + H x`` with the elastic rows along the
         secant to the previous held configuration (:meth:`_secant_rows`)."""
         x = np.asarray(x, float)
-        iv = self._measurement_interval(x)
+        iv, dl, v = self._measurement_interval(x)
         c0, Hm, dH = self._secant_rows(iv, tuple(channels))
-        s = 0.0 if dH is None else _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
+        s = 0.0 if dH is None else _secant_factor(iv, dl, v) * iv.dd
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
         secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
         return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_affine`, cached per interval (keeping the entries of the held configurations only, once the
-        cache grows beyond 64)."""
+        """:meth:`_affine`, kept with the held configuration."""
         channels = tuple(channels)
-        key = (iv.serial, channels)
-        lin = self._channel_cache.get(key)
+        lin = iv.rows.get(channels)
         if lin is None:
-            if len(self._channel_cache) > 64:
-                keep = {iv.serial, self._last.serial if self._last is not None else -1}
-                if self._last is not None and self._last.old is not None:
-                    keep.add(self._last.old.serial)
-                self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] in keep}
-            lin = self._affine(iv, channels)
-            self._channel_cache[key] = lin
+            lin = iv.rows[channels] = self._affine(iv, channels)
         return lin
 
     def _affine(self, iv: _Held, channels: tuple) -> tuple[np.ndarray, np.ndarray]:
