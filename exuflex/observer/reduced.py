@@ -16,8 +16,15 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   ``refresh_tol`` (relative, in the mass metric). Each evaluation also measures what the replaced held model
   cost: the state error over one interval against the exact configuration, relative to the filter's standard
   deviations and to the interval's process noise (:meth:`ReducedObserverModel._held_error`; reported as
-  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian and process noise (the *step map*) are
-  rebuilt when q moved ``remap_rad`` from where they were built, or when the interval's length changes.
+  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian
+  and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
+  the interval's length changes. The map radius is controlled by the map's effect on the filter's own
+  uncertainty: at each rebuild the replaced map's covariance prediction is compared with the new one's on the
+  filter's present covariance (:meth:`ReducedObserverModel._map_error`, a relative error of the predicted
+  standard deviations), and the next radius keeps that error near ``remap_tol`` (the error grows linearly with
+  the distance; the maps' centres are two radii apart, so the largest error while a map is in use is about half
+  of it). How strongly the maps depend on q differs by orders of magnitude between mechanisms (a single link
+  turning: not at all; a slider-crank near its dead centres: strongly), which no fixed radius serves.
 - ``"rk4"`` (the exact reference): the configuration evaluated at every interval and every RK4 stage at its own
   state; the Jacobian and process noise of the interval's start.
 
@@ -195,8 +202,11 @@ class ReducedObserverModel:
     refresh_tol, refresh_min, refresh_max : float
         Error target of the cached step's held matrices (relative, mass metric) and the limits (rad) of the
         refresh radius that keeps it.
-    remap_rad : float
-        Distance (rad) q moves before the step map is rebuilt (cached step).
+    remap_tol : float
+        Error target of the step map: the relative error of the predicted standard deviations it causes
+        (:meth:`_map_error`), measured at each rebuild and kept near this by the map radius.
+    remap_rad, remap_min, remap_max : float
+        The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
     dt_tol : float
         Relative change of the interval's length before the step map is rebuilt.
 
@@ -212,8 +222,8 @@ class ReducedObserverModel:
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
                  jump_p: float | None = None, min_substep: float = 2e-6, refresh_tol: float = 3e-2,
-                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_rad: float = 2e-3,
-                 dt_tol: float = 1e-3):
+                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
+                 remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -232,7 +242,12 @@ class ReducedObserverModel:
         self.refresh_tol = float(refresh_tol)
         self.refresh_min = float(refresh_min)
         self.refresh_max = float(refresh_max)
+        self.remap_tol = float(remap_tol)
         self.remap_rad = float(remap_rad)
+        self.remap_min = float(remap_min)
+        self.remap_max = float(remap_max)
+        if not 0 < self.remap_min <= self.remap_rad <= self.remap_max:
+            raise ValueError(f"need 0 < remap_min <= remap_rad <= remap_max, got {remap_min}, {remap_rad}, {remap_max}")
         self.dt_tol = float(dt_tol)
         self.lookahead = 0.8  # radii ahead of q along its motion where a configuration is evaluated
         self.remap_ahead = 1.0  # remap radii ahead of q along its motion where a step map is built ...
@@ -270,6 +285,8 @@ class ReducedObserverModel:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
+        self.map_rad = self.remap_rad  # the present map radius (:meth:`_map_radius`)
+        self.map_errors: list[float] = []  # the replaced maps' errors (:meth:`_map_error`)
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors: list[tuple[float, float]] = []
@@ -486,21 +503,53 @@ class ReducedObserverModel:
         return Prediction(z_next, F, sm.Q)
 
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
-        """The held configuration's step map, rebuilt when q moved ``remap_rad`` from where it was built or the
+        """The held configuration's step map, rebuilt when q moved the map radius from where it was built or the
         interval's length changed by more than ``dt_tol``: built ahead of q along its motion
-        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius)."""
+        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius). A
+        rebuild at the same interval length measures the replaced map's error and sets the next radius
+        (:meth:`_map_radius`)."""
         sm = iv.map
         if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and \
-                max(map(abs, map(sub, z[: self.nq].tolist(), sm.q_list))) <= self.remap_rad:
+                max(map(abs, map(sub, z[: self.nq].tolist(), sm.q_list))) <= self.map_rad:
             return sm
         lim = self._measurement_radius(iv)
-        dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
+        dla = np.clip(dl + map_lookahead(z, self.nq, self.map_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
         Ma, Ka, Ca, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
-        sm = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
-        sm.q_list = sm.q.tolist()
-        sm.tail = (*iv.forces.jacobian_tensors(), sm.Pn, sm.S, *iv.system)
+        new = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        new.q_list = new.q.tolist()
+        new.tail = (*iv.forces.jacobian_tensors(), new.Pn, new.S, *iv.system)
         self.n_remap += 1
-        return sm
+        if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
+            self._map_radius(sm, new, self._map_error(iv, z, sm, new))
+        return new
+
+    def _map_error(self, iv: _Held, z: np.ndarray, old: _StepMap, new: _StepMap) -> float:
+        """The error of the replaced step map ``old`` where ``new`` is built, in the filter's covariance
+        prediction: with ``E = F_old - F_new`` (the two maps' step Jacobians at ``z``) and the filter's present
+        covariance ``P``, ``max_i (sqrt((E P E')_ii) + |dQ_ii| / (2 sigma_i)) / sigma_i`` where ``sigma_i^2`` is
+        the new map's predicted variance ``(F P F' + Q)_ii``: to first order a bound on the relative change of
+        every predicted standard deviation (the first term of the Jacobian's error, the second of the process
+        noise's)."""
+        Ts, Vs, C3 = iv.forces.jacobian_tensors()
+        F = step_jacobian(z, Ts, Vs, C3, new.Pn, new.S)
+        E = step_jacobian(z, Ts, Vs, C3, old.Pn, old.S) - F
+        P = self.state_cov()[: self.nx, : self.nx]
+        var = ((F @ P) * F).sum(axis=1) + new.Q.diagonal()
+        e2 = ((E @ P) * E).sum(axis=1)
+        sig = np.sqrt(np.maximum(var, 1e-300))
+        err = float(np.max((np.sqrt(np.maximum(e2, 0.0)) + 0.5 * np.abs(new.Q.diagonal() - old.Q.diagonal()) / sig)
+                           / sig))
+        self.map_errors.append(err)
+        return err
+
+    def _map_radius(self, old: _StepMap, new: _StepMap, err: float) -> None:
+        """The next map radius from the replaced map's error ``err`` over the distance between the two maps'
+        centres: the error grows linearly with the distance, and a map serves up to one radius from its centre,
+        so the radius ``remap_tol * dist / (2 err)`` keeps its largest error in use near ``remap_tol / 2``;
+        at most twice the last radius, within ``[remap_min, remap_max]``."""
+        dist = max(map(abs, map(sub, new.q_list, old.q_list)))
+        rad = 2.0 * self.map_rad if not err > 0 else self.remap_tol * dist / (2.0 * err)
+        self.map_rad = float(min(max(rad, self.remap_min), 2.0 * self.map_rad, self.remap_max))
 
     # ------------------------------------------------------------------ the reference step
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
