@@ -278,7 +278,8 @@ class ReducedObserverModel:
 
     def watch_covariance(self, get_P) -> None:
         """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
-        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`)."""
+        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`), and the step map's
+        radius is controlled by its effect on it (:meth:`_map_error`). Without it the map radius stays ``remap_rad``."""
         self.state_cov = get_P
 
     def reset(self) -> None:
