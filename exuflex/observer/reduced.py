@@ -56,6 +56,7 @@ the measured elastic quantity per radian, far below the sensor noise).
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
 from operator import mul, sub
@@ -287,7 +288,7 @@ class ReducedObserverModel:
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
         self.map_rad = self.remap_rad  # the present map radius (:meth:`_map_radius`)
-        self.map_errors: list[float] = []  # the replaced maps' errors (:meth:`_map_error`)
+        self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors: list[tuple[float, float]] = []
@@ -428,13 +429,19 @@ class ReducedObserverModel:
         return float(np.max(dz / sig)), e_q
 
     def held_error_summary(self) -> dict:
-        """The recorded :meth:`_held_error` ratios since the last :meth:`reset`: count, median and largest."""
-        if not self.held_errors:
-            return {"n": 0}
-        a = np.asarray(self.held_errors)
-        return {"n": len(a), "vs_std_median": float(np.median(a[:, 0])), "vs_std_max": float(a[:, 0].max()),
-                "vs_process_noise_median": float(np.nanmedian(a[:, 1])),
-                "vs_process_noise_max": float(np.nanmax(a[:, 1]))}
+        """The recorded :meth:`_held_error` ratios since the last :meth:`reset` (count, median and largest), and
+        the replaced step maps' errors (:meth:`_map_error`: count, median, largest, the last map radius)."""
+        out = {"n": len(self.held_errors)}
+        if self.held_errors:
+            a = np.asarray(self.held_errors)
+            out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
+                       vs_process_noise_median=float(np.nanmedian(a[:, 1])),
+                       vs_process_noise_max=float(np.nanmax(a[:, 1])))
+        out["map_n"] = len(self.map_errors)
+        if self.map_errors:
+            e = np.asarray(self.map_errors)
+            out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=self.map_rad)
+        return out
 
     def _radius(self, old: _Held, dist: float, err: float) -> float:
         """Next refresh radius from the prediction error ``err`` of the last held model after ``dist`` rad: the
