@@ -132,22 +132,37 @@ def test_scaled_cached_step_follows_the_scaled_reference(sixbar, mid_run):
     assert effect > 20 * gap_nominal
 
 
-def test_payload_hold_counts_intervals(mid_run):
-    """The scale is held (zero Jacobian column) for hold_s seconds of intervals; steps over the same interval (an
-    unscented filter's sigma points: the same inputs and length) advance the hold's clock once."""
+@pytest.mark.parametrize("theta", [1.0, 1.6])
+def test_payload_column_is_the_divided_difference_over_its_deviation(mid_run, theta):
+    """With the filter's covariance watched, the scale's column is (x(theta + s) - x(theta - s)) / 2s with s its
+    standard deviation, and the linearity test's left-hand side is max |(x(theta + s) + x(theta - s)) / 2 - x(theta)|
+    / sqrt(Q_ii): both against steps of a model outside a filter at the three scales. Beyond linearity_tol the
+    column is zero (the interval is not learned from)."""
     obs, z, u = mid_run
     dt = obs.ekf.dt
-    aug = AugmentedModel(obs.model, payload_std=0.01, hold_s=2.5 * dt)
-    x = np.concatenate([z, [1.3]])
-    cols = []
-    for k in range(4):
-        uk = u + 1e-3 * k
-        for _ in range(3):  # three "sigma points" of one interval
-            p = aug.predict(x, uk, dt)
-        cols.append(np.abs(p.F[: aug.n0, aug.i_theta]).max())
-    assert cols[0] == cols[1] == cols[2] == 0.0 and cols[3] > 0.0
-    aug.reset()
-    assert np.abs(aug.predict(x, u, dt).F[: aug.n0, aug.i_theta]).max() == 0.0
+    s = 0.3
+    P = np.eye(len(z) + 1)
+    P[-1, -1] = s**2
+    x = np.concatenate([z, [theta]])
+    plain = AugmentedModel(obs.model, payload_std=0.01)
+    xs = {d: plain.predict(x + np.r_[np.zeros(len(z)), d], u, dt).x[:-1] for d in (-s, 0.0, s)}
+    e2 = 0.5 * (xs[s] + xs[-s]) - xs[0.0]
+    for tol, learned in ((1e9, True), (1e-9, False)):
+        aug = AugmentedModel(obs.model, payload_std=0.01, linearity_tol=tol)
+        aug.watch_covariance(lambda: P)
+        p = aug.predict(x, u, dt)
+        col = p.F[: aug.n0, aug.i_theta]
+        q = np.sqrt(np.diagonal(p.Q)[: aug.n0])
+        assert aug.last_linearity == pytest.approx(np.max(np.abs(e2) / q), rel=1e-6)
+        np.testing.assert_allclose(p.x[:-1], xs[0.0], rtol=0, atol=1e-12 * np.abs(xs[0.0]).max())
+        if learned:
+            ref = (xs[s] - xs[-s]) / (2 * s)
+            np.testing.assert_allclose(col, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+            assert aug.n_learned == 1
+        else:
+            assert not np.any(col) and aug.n_learned == 0
+    # the scale's second-order term is not zero: the step is not linear in the payload (M_r^-1)
+    assert np.abs(e2).max() > 1e-6 * np.abs((xs[s] - xs[-s]) / 2).max()
 
 
 def test_gauss_markov_disturbance_decays_with_its_stationary_variance(mid_run):
@@ -167,6 +182,8 @@ def test_estimator_choice_errors(sixbar):
         make_observer(sixbar, ObserverConfig(estimator="kf"))
     with pytest.raises(ValueError, match="payload_std or input_std"):
         AugmentedModel(make_observer(sixbar).model)
+    with pytest.raises(ValueError, match="linearity_tol must be positive"):
+        AugmentedModel(make_observer(sixbar).model, payload_std=0.01, linearity_tol=0.0)
 
 
 # ------------------------------------------------------------------------------------------ RTS smoother

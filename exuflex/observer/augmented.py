@@ -300,8 +300,8 @@ class AugmentedModel:
             out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)
         return out
 
-    def _scaled_map(self, z, c, pred):
-        """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's where the payload's
+    def _scaled_map(self, z, c, F0, Q0):
+        """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's (``F0``, ``Q0``) where the payload's
         change of the modal masses, ``|c| rho`` (``rho = max eig(dM_r, M_r)``), is within the error the cached step
         holds its matrices to (``inner.refresh_tol``, relative in the mass metric); else the held linear system's
         maps with ``M_r + c dM_r`` and ``C_r + c dC_r`` (rebuilt when the step map is, or when ``c`` moved by
@@ -309,11 +309,11 @@ class AugmentedModel:
         inner = self.inner
         iv, sm = inner.last_step
         if inner.method != "cached":
-            return pred.F, pred.Q, sm.L
+            return F0, Q0, sm.L
         rho, dTs = self._shares[iv.serial]
         tol = inner.refresh_tol
         if abs(c) * rho <= tol:
-            return pred.F, pred.Q, sm.L
+            return F0, Q0, sm.L
         mp = self._map
         if mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol:
             inc = self._increments[iv.serial]
@@ -364,20 +364,28 @@ class AugmentedModel:
             d = x[self.i_inputs]
             u = u + d
         # the nominal step: the held configuration, its step map (Jacobian, process noise); a torque jump within
-        # the interval is added below, to whichever step is taken
+        # the interval is added below, to whichever step is taken. With the payload scaled (cached step), the
+        # nominal sub-steps would be discarded: the configuration and the maps only
         n_refresh = inner.n_refresh
-        pred = inner.predict(z, u, dt)
-        L_in = inner.last_step[1].L
-        xn = np.empty(N)
-        xn[:n0] = pred.x
-        F = np.zeros((N, N))
-        F[:n0, :n0] = pred.F
-        Q = np.zeros((N, N))
-        Q[:n0, :n0] = pred.Q
+        c = 0.0
         if self.i_theta is not None:
             it = self.i_theta
             th = float(x[it])
             c = max(th, 0.0) - 1.0
+        if c != 0.0 and inner.method == "cached":
+            x0 = None
+            F0, Q0 = inner.prepare(z, u, dt)
+        else:
+            x0, F0, Q0 = inner.predict(z, u, dt)
+        L_in = inner.last_step[1].L
+        xn = np.empty(N)
+        F = np.zeros((N, N))
+        F[:n0, :n0] = F0
+        Q = np.zeros((N, N))
+        Q[:n0, :n0] = Q0
+        if x0 is not None:
+            xn[:n0] = x0
+        if self.i_theta is not None:
             # the divided differences over the scale's standard deviation (module docstring); without a filter's
             # covariance over DTHETA (the derivative)
             sig = DTHETA
@@ -389,10 +397,10 @@ class AugmentedModel:
                 rows = self._scaled_cached(z, u, dt, a, inner.n_refresh != n_refresh)
             else:
                 rows = self._scaled_rk4(z, u, dt, a)
-            xc = pred.x if c == 0.0 else rows[2]
+            xc = x0 if c == 0.0 else rows[2]
             if c != 0.0:
                 xn[:n0] = xc
-                Fz, Qz, L_in = self._scaled_map(z, c, pred)
+                Fz, Qz, L_in = self._scaled_map(z, c, F0, Q0)
                 F[:n0, :n0] = Fz
                 Q[:n0, :n0] = Qz
             # the first-order model in theta over +-sigma: its second-order term against the interval's noise
