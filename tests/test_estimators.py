@@ -133,36 +133,48 @@ def test_scaled_cached_step_follows_the_scaled_reference(sixbar, mid_run):
 
 
 @pytest.mark.parametrize("theta", [1.0, 1.6])
-def test_payload_column_is_the_divided_difference_over_its_deviation(mid_run, theta):
-    """With the filter's covariance watched, the scale's column is (x(theta + s) - x(theta - s)) / 2s with s its
-    standard deviation, and the linearity test's left-hand side is max |(x(theta + s) + x(theta - s)) / 2 - x(theta)|
-    / sqrt(Q_ii): both against steps of a model outside a filter at the three scales. Beyond linearity_tol the
-    column is zero (the interval is not learned from)."""
+def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_run, theta):
+    """With the filter's covariance watched the scale is held until the test passes: its left-hand side is
+    max |(x(theta + s) + x(theta - s)) / 2 - x(theta)| / sqrt(Q_ii) with s the scale's standard deviation, the
+    releasing interval's column (x(theta + s) - x(theta - s)) / 2s, with x the interval's steps at the three scales
+    (the payload increment held: the same configuration's); held, the column is zero; released, it is the
+    derivative of a model outside a filter."""
     obs, z, u = mid_run
     dt = obs.ekf.dt
     s = 0.3
     P = np.eye(len(z) + 1)
     P[-1, -1] = s**2
     x = np.concatenate([z, [theta]])
-    plain = AugmentedModel(obs.model, payload_std=0.01)
-    xs = {d: plain.predict(x + np.r_[np.zeros(len(z)), d], u, dt).x[:-1] for d in (-s, 0.0, s)}
-    e2 = 0.5 * (xs[s] + xs[-s]) - xs[0.0]
-    for tol, learned in ((1e9, True), (1e-9, False)):
+    c = theta - 1.0
+    deriv = AugmentedModel(obs.model, payload_std=0.01).predict(x, u, dt).F[: len(z), -1]
+    for tol, released in ((1e9, True), (1e-9, False)):
         aug = AugmentedModel(obs.model, payload_std=0.01, linearity_tol=tol)
         aug.watch_covariance(lambda: P)
         p = aug.predict(x, u, dt)
+        xp, xm, x0 = aug._scaled_cached(z, u, dt, np.array([c + s, c - s, c]), False)
+        e2 = 0.5 * (xp + xm) - x0
         col = p.F[: aug.n0, aug.i_theta]
         q = np.sqrt(np.diagonal(p.Q)[: aug.n0])
-        assert aug.last_linearity == pytest.approx(np.max(np.abs(e2) / q), rel=1e-6)
-        np.testing.assert_allclose(p.x[:-1], xs[0.0], rtol=0, atol=1e-12 * np.abs(xs[0.0]).max())
-        if learned:
-            ref = (xs[s] - xs[-s]) / (2 * s)
-            np.testing.assert_allclose(col, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
-            assert aug.n_learned == 1
+        assert aug.last_linearity == pytest.approx(np.max(np.abs(e2) / q), rel=1e-9)
+        np.testing.assert_allclose(p.x[:-1], x0, rtol=0, atol=1e-12 * np.abs(x0).max())
+        assert aug.released == released and aug.n_held == (0 if released else 1)
+        if released:
+            ref = (xp - xm) / (2 * s)
+            np.testing.assert_allclose(col, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+            # the next interval: the derivative, whatever the test would say
+            aug.linearity_tol = 1e-9
+            np.testing.assert_allclose(aug.predict(x, u, dt).F[: aug.n0, aug.i_theta], deriv, rtol=0,
+                                       atol=1e-6 * np.abs(deriv).max())
+            aug.reset()
+            assert not aug.released and aug.n_held == 0
         else:
-            assert not np.any(col) and aug.n_learned == 0
-    # the scale's second-order term is not zero: the step is not linear in the payload (M_r^-1)
-    assert np.abs(e2).max() > 1e-6 * np.abs((xs[s] - xs[-s]) / 2).max()
+            assert not np.any(col)
+        # the second-order term is not zero (the step is not linear in the payload: M_r^-1), and it is the
+        # curvature: it scales as s^2 (the halved deviation's term a quarter, up to the next order)
+        hp, hm = aug._scaled_cached(z, u, dt, np.array([c + s / 2, c - s / 2]), False)
+        e2h = 0.5 * (hp + hm) - x0
+        assert np.abs(e2).max() > 1e-6 * np.abs(xp - xm).max()
+        assert np.max(np.abs(4 * e2h - e2)) <= 0.1 * np.abs(e2).max()
 
 
 def test_gauss_markov_disturbance_decays_with_its_stationary_variance(mid_run):

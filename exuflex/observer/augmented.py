@@ -28,25 +28,35 @@ state and the process noise are the nominal step map's where the payload's chang
 matrices to (``refresh_tol``); beyond it, the held linear system's maps with ``M_r + (theta - 1) dM_r`` (and the
 damping's increment), rebuilt with the nominal step map or when ``theta`` moved by that tolerance, and the
 force Jacobian with the payload's velocity forms (:meth:`AugmentedModel._scaled_map`). ``theta`` below 0 is taken
-as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite).
+as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite). The basis is the nominal
+payload's: the interior modes are those of the nominal masses, so where the payload is a large share of a mode's
+mass the reduced model of another payload carries the basis's truncation error on top (the single link with its
+payload doubled is inconsistent where an EKF on the doubled payload's own reduced model is not:
+``docs/estimators.md``).
 
-The step in ``theta``: divided differences over the scale's standard deviation ``s`` (the filter's, see
-:meth:`AugmentedModel.watch_covariance`; at most the distance to a zero payload, at least ``DTHETA = 1e-4``; a
-model outside a filter uses ``DTHETA``: the derivative). With ``x(a)`` the step at the scale ``1 + a``:
+The step's derivative in ``theta`` is the forward difference of the same compiled step at ``theta + DTHETA``
+(``DTHETA = 1e-4``: the step is smooth in ``theta``, the truncation error ``DTHETA / 2 d^2x/dtheta^2`` is far
+below the filter's uncertainty).
 
-``F[:, theta] = (x(c + s) - x(c - s)) / (2 s)``,   ``e2 = (x(c + s) + x(c - s)) / 2 - x(c)``
+When the scale starts being learned. The EKF's joint update is consistent while the step's response to the scale
+is close to linear over the scale's uncertainty. With ``x(a)`` the step at the scale ``1 + a``, ``c = theta - 1``
+and ``s`` the scale's standard deviation (the filter's, :meth:`AugmentedModel.watch_covariance`; at most the
+distance to a zero payload),
 
-(``c = theta - 1``): the first-order term's slope over the scale's uncertainty (the divided-difference filter's
-Jacobian, Norgaard, Poulsen and Ravn, Automatica 36 (2000)) and the second-order term the EKF leaves out,
-``s^2 / 2 d^2x/dtheta^2``. The EKF's covariance holds while that term is small against the noise it adds per
-interval; where it is not, the joint update attributes the step's curvature in ``theta`` to the scale with a
-confidence it does not have. A start-up that accelerates the links hard while the scale is still at its prior
-(the six-bar's torque pulse: the term is a hundred to a thousand times the process noise there, with the scale
-doubled the estimate stays near its prior at a few standard deviations from the truth) is such a case. So an
-interval is learned from only where ``max_i |e2_i| / sqrt(Q_ii) <= linearity_tol`` (default 1: the left-out
-term is within one process-noise standard deviation in every state component); elsewhere the scale's column is
-zero: the step still uses the current scale, no measurement moves it through that interval and no correlation
-with the states is built. The term falls as ``s^2``, so the test passes more often as the scale is learned.
+``e2 = (x(c + s) + x(c - s)) / 2 - x(c)``   (``= s^2 / 2 d^2x/dtheta^2`` to leading order)
+
+is the second-order term the first-order model leaves out. A start that accelerates the links hard while the
+scale is at its prior makes it a hundred to a thousand times the interval's process noise (the six-bar's torque
+pulse), and an EKF learning there attributes the step's curvature to the scale with a confidence it does not
+have: with the payload doubled its estimate stays near the prior at several standard deviations from the truth,
+and keeps part of that bias to the end. So the scale is held (its column of the step Jacobian zero: no
+measurement moves it, no correlation with the states is built; the step uses its current value) from the start
+until the first interval with ``max_i |e2_i| / sqrt(Q_ii) <= linearity_tol`` (default 1: the left-out term within
+one process-noise standard deviation in every state component); from then on it is learned in every interval
+(that interval's column is ``(x(c + s) - x(c - s)) / 2 s``). The test is not applied to every interval: where a
+payload dominates a link's inertia the second-order term grows with the first-order one, so the intervals that
+fail it are the informative ones, and a per-interval hold keeps the scale from being learned at all (the single
+link). A model outside a filter (no covariance watched) is never held.
 
 With ``method="rk4"`` (the exact reference) the step is RK4 of the nonlinear reduced equations at every stage
 with the matrices and forces of the two models combined the same way.
@@ -72,7 +82,7 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import HeldSystem, _jit, held_step, step_jacobian
+from .expansion import _jit, held_step, step_jacobian
 from .reduced import _secant_factor
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
@@ -157,10 +167,10 @@ class AugmentedModel:
     input_tau : float or None
         Correlation time (s) of the Gauss-Markov disturbance; None: random walk.
     linearity_tol : float
-        An interval is learned from (the scale's column of the step Jacobian set) only where the step's
-        second-order term in the scale over its standard deviation is within this many process-noise standard
-        deviations of the interval, in every state component (module docstring); 1 by default: the term the
-        first-order model leaves out is no larger than the noise the filter adds per interval.
+        The scale is held from the start (or :meth:`reset`) until the first interval whose second-order term in
+        the scale over its standard deviation is within this many process-noise standard deviations in every
+        state component (module docstring); 1 by default: the term the first-order model leaves out is no
+        larger than the noise the filter adds per interval.
 
     Attributes
     ----------
@@ -172,10 +182,12 @@ class AugmentedModel:
         Indices of the disturbances in the state.
     twin : ReducedModel or None
         The doubled-payload model on the nominal basis (:func:`payload_twin`).
-    n_learned : int
-        Intervals since the last :meth:`reset` whose payload column was set (the linearity test passed).
+    released : bool
+        The scale is learned (the linearity test has passed since the last :meth:`reset`).
+    n_held : int
+        Intervals the scale was held since the last :meth:`reset`.
     last_linearity : float
-        The last interval's second-order term over the process noise (the test's left-hand side).
+        The last held interval's second-order term over the process noise (the test's left-hand side).
     """
 
     def __init__(self, inner, payload_std: float | None = None, input_std: float | None = None,
@@ -211,7 +223,8 @@ class AugmentedModel:
         self.nx = n
         self.linearity_tol = float(linearity_tol)
         self._cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
-        self.n_learned = 0
+        self.released = False
+        self.n_held = 0
         self.last_linearity = math.nan
         self._increments: dict = {}
         self._shares: dict = {}
@@ -223,7 +236,8 @@ class AugmentedModel:
 
     def reset(self) -> None:
         self.inner.reset()
-        self.n_learned = 0
+        self.released = False
+        self.n_held = 0
         self.last_linearity = math.nan
         self._increments = {}
         self._shares = {}
@@ -334,7 +348,7 @@ class AugmentedModel:
         r = self.r
         out = np.empty((len(a), self.n0))
         for k, c in enumerate(a):
-            def f(x):
+            def f(x, c=c):
                 m1 = inner.rm.matrices(x[:r], x[r:])
                 m2 = self.twin.matrices(x[:r], x[r:])
                 M = m1.Mr + c * (m2.Mr - m1.Mr)
@@ -386,30 +400,38 @@ class AugmentedModel:
         if x0 is not None:
             xn[:n0] = x0
         if self.i_theta is not None:
-            # the divided differences over the scale's standard deviation (module docstring); without a filter's
-            # covariance over DTHETA (the derivative)
-            sig = DTHETA
-            if self._cov is not None:
-                P = self._cov()
-                sig = max(min(math.sqrt(max(P[it, it], 0.0)), 1.0 + c), DTHETA)
-            a = np.array([c + sig, c - sig] if c == 0.0 else [c + sig, c - sig, c])
+            # while held (a filter's covariance watched): the step at c +- sigma for the linearity test; once
+            # released: at c + DTHETA for the derivative; and at c itself where the nominal step is not that
+            held = not self.released and self._cov is not None
+            if held:
+                sig = max(min(math.sqrt(max(self._cov()[it, it], 0.0)), 1.0 + c), DTHETA)
+                a = [c + sig, c - sig]
+            else:
+                a = [c + DTHETA]
+            if c != 0.0:
+                a.append(c)
             if inner.method == "cached":
-                rows = self._scaled_cached(z, u, dt, a, inner.n_refresh != n_refresh)
+                rows = self._scaled_cached(z, u, dt, np.array(a), inner.n_refresh != n_refresh)
             else:
                 rows = self._scaled_rk4(z, u, dt, a)
-            xc = x0 if c == 0.0 else rows[2]
+            xc = x0 if c == 0.0 else rows[-1]
             if c != 0.0:
                 xn[:n0] = xc
                 Fz, Qz, L_in = self._scaled_map(z, c, F0, Q0)
                 F[:n0, :n0] = Fz
                 Q[:n0, :n0] = Qz
-            # the first-order model in theta over +-sigma: its second-order term against the interval's noise
-            e2 = 0.5 * (rows[0] + rows[1]) - xc
-            q = np.diagonal(Q)[:n0]
-            self.last_linearity = float(np.max(np.abs(e2) / np.sqrt(np.maximum(q, 1e-300))))
-            if self.last_linearity <= self.linearity_tol:
-                F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
-                self.n_learned += 1
+            if held:
+                # the first-order model over +-sigma: its second-order term against the interval's process noise
+                e2 = 0.5 * (rows[0] + rows[1]) - xc
+                q = np.diagonal(Q)[:n0]
+                self.last_linearity = float(np.max(np.abs(e2) / np.sqrt(np.maximum(q, 1e-300))))
+                if self.last_linearity <= self.linearity_tol:
+                    self.released = True
+                    F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
+                else:
+                    self.n_held += 1
+            else:
+                F[:n0, it] = (rows[0] - xc) / DTHETA
             xn[it] = th
             F[it, it] = 1.0
             Q[it, it] = self.payload_std**2 * dt

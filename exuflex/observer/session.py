@@ -84,9 +84,9 @@ class ObserverConfig:
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
     payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
-    payload_linearity : the test that lets an interval teach the payload scale: the step's second-order term in the
-        scale over its standard deviation, in process-noise standard deviations (:class:`.augmented.AugmentedModel`,
-        ``linearity_tol``).
+    payload_linearity : the payload scale is held at its prior from the start until the first interval whose
+        second-order term in the scale over its standard deviation is within this many process-noise standard
+        deviations (:class:`.augmented.AugmentedModel`, ``linearity_tol``).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
