@@ -28,11 +28,7 @@ state and the process noise are the nominal step map's where the payload's chang
 matrices to (``refresh_tol``); beyond it, the held linear system's maps with ``M_r + (theta - 1) dM_r`` (and the
 damping's increment), rebuilt with the nominal step map or when ``theta`` moved by that tolerance, and the
 force Jacobian with the payload's velocity forms (:meth:`AugmentedModel._scaled_map`). ``theta`` below 0 is taken
-as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite). The basis is the nominal
-payload's: the interior modes are those of the nominal masses, so where the payload is a large share of a mode's
-mass the reduced model of another payload carries the basis's truncation error on top (the single link with its
-payload doubled is inconsistent where an EKF on the doubled payload's own reduced model is not:
-``docs/estimators.md``).
+as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite).
 
 The step's derivative in ``theta`` is the forward difference of the same compiled step at ``theta + DTHETA``
 (``DTHETA = 1e-4``: the step is smooth in ``theta``, the truncation error ``DTHETA / 2 d^2x/dtheta^2`` is far
@@ -56,7 +52,10 @@ one process-noise standard deviation in every state component); from then on it 
 (that interval's column is ``(x(c + s) - x(c - s)) / 2 s``). The test is not applied to every interval: where a
 payload dominates a link's inertia the second-order term grows with the first-order one, so the intervals that
 fail it are the informative ones, and a per-interval hold keeps the scale from being learned at all (the single
-link). A model outside a filter (no covariance watched) is never held.
+link). A model outside a filter (no covariance watched) is never held. The hold has its price where the nominal
+model is far off: while the scale is held the states drift outside their covariance, and the scale's first
+updates after a long hold can overshoot (the single link with its payload doubled, whose hold lasts through the
+hard start: ``docs/estimators.md``, where the EKF on the doubled payload's model is consistent).
 
 With ``method="rk4"`` (the exact reference) the step is RK4 of the nonlinear reduced equations at every stage
 with the matrices and forces of the two models combined the same way.
