@@ -510,6 +510,24 @@ class ReducedObserverModel:
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
 
+    def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the held configuration
+        (evaluated anew where q left its radius), the step map, the interval's held matrices (for
+        :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``, the
+        step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
+        scale: :mod:`.augmented`) and would discard the nominal sub-steps."""
+        q = z[: self.nq]
+        iv = self._last
+        if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
+            iv = self._refresh(z, u, dt)
+        n = self.substeps(iv, dt)
+        dl = q - iv.q0
+        sm = self._step_map(iv, z, dl, dt, n)
+        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl), *iv.system)
+        self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
+        self.last_step = (iv, sm)
+        return step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S), sm.Q
+
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
         """The held configuration's step map, rebuilt when q moved the map radius from where it was built or the
         interval's length changed by more than ``dt_tol``: built ahead of q along its motion
