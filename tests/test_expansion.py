@@ -312,3 +312,21 @@ def test_map_radius_keeps_the_map_error_at_its_tolerance(sixbar_observer_state):
         assert som.map_rad == som.remap_max
     finally:
         som.map_rad = saved
+
+
+def test_refresh_radius_keeps_the_held_models_error_at_its_tolerance(sixbar_observer_state):
+    """The refresh radius law: an error growing as ``dist^p`` is kept at ``tol`` by ``0.9 dist (tol/err)^(1/p)``,
+    at most twice the last radius, within ``[refresh_min, refresh_max]``; at a refresh the smaller of the radii of
+    the two targets (held matrices, held model's state error against the filter's deviations) is held."""
+    som, iv, z, u = sixbar_observer_state
+    old = iv
+    saved = old.rad
+    try:
+        old.rad = 1e-2
+        assert som._radius(old, 8e-3, 8 * 0.3, 0.3, 3.0) == pytest.approx(0.9 * 8e-3 / 2)
+        assert som._radius(old, 8e-3, 4 * 0.3, 0.3, 2.0) == pytest.approx(0.9 * 8e-3 / 2)
+        assert som._radius(old, 8e-3, 1e-12, 0.3, 3.0) == pytest.approx(2e-2)  # at most doubling
+        assert som._radius(old, 8e-3, 0.0, 0.3, 3.0) == pytest.approx(2e-2)
+        assert som._radius(old, 8e-3, 1e9, 0.3, 3.0) == som.refresh_min
+    finally:
+        old.rad = saved

@@ -11,12 +11,18 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   quadratic forms and the q-gradients of ``M_r``, ``K_r``: :meth:`ReducedModel.held`) is evaluated only when q
   leaves a refresh radius around the held one; in between the model follows the links to second order in q
   (:mod:`.expansion`), and each interval's sub-steps use the matrices at the interval's start. The radius adapts
-  like an ODE step size: at each evaluation the previous held model's prediction of ``M_r`` and ``K_r`` is
-  compared with the exact ones (:func:`.expansion.prediction_error`), and the next radius keeps that error near
-  ``refresh_tol`` (relative, in the mass metric). Each evaluation also measures what the replaced held model
-  cost: the state error over one interval against the exact configuration, relative to the filter's standard
-  deviations and to the interval's process noise (:meth:`ReducedObserverModel._held_error`; reported as
-  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian
+  like an ODE step size under two error targets, the smaller radius winning. (1) The held matrices' validity:
+  the previous held model's relative error of ``M_r`` and ``K_r`` (mass metric,
+  :func:`.expansion.prediction_error`) near ``refresh_tol``. (2) What the held model costs the filter: the
+  replaced held model's state error over one interval against the exact configuration, relative to the filter's
+  standard deviations (:meth:`ReducedObserverModel._held_error`, every held quantity included: ``M_r``, ``K_r``,
+  damping, input matrix, velocity forces; reported as ``held_model_error`` by ``observe``, with the error
+  relative to the interval's process noise), near ``refresh_std_tol``: a deterministic prediction error of
+  ``a`` standard deviations adds about ``a^2`` to a channel's expected NIS, so 0.3 keeps the filter's
+  consistency within 10 %. The second alone is not enough: during the start-up the filter's standard deviations
+  are large, the radius grows until the held mass matrix is no longer valid, and the filter fails (the
+  six-bar's Exudyn log, seed 2). Without a filter's covariance (the model used alone) only the first applies.
+  The step Jacobian
   and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
   the interval's length changes. The map radius is controlled by the map's effect on the filter's own
   uncertainty: at each rebuild the replaced map's covariance prediction is compared with the new one's on the
@@ -200,9 +206,12 @@ class ReducedObserverModel:
         False-alarm probability per interval of the torque-jump test (:meth:`input_jump`); None: no test.
     min_substep : float
         Shortest RK4 sub-step (s) the model may need for stability before it is refused (see :meth:`substeps`).
+    refresh_std_tol : float
+        Error target of the cached step's held model: its state error over one interval relative to the filter's
+        standard deviations (:meth:`_held_error`), kept by the refresh radius.
     refresh_tol, refresh_min, refresh_max : float
-        Error target of the cached step's held matrices (relative, mass metric) and the limits (rad) of the
-        refresh radius that keeps it.
+        Error target of the held matrices (relative, mass metric), also kept by the refresh radius, and the
+        radius's limits (rad).
     remap_tol : float
         Error target of the step map: the relative error of the predicted standard deviations it causes
         (:meth:`_map_error`), measured at each rebuild and kept near this by the map radius.
@@ -222,7 +231,8 @@ class ReducedObserverModel:
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
-                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_tol: float = 3e-2,
+                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_std_tol: float = 0.3,
+                 refresh_tol: float = 3e-2,
                  refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
                  remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3):
         if isinstance(reduced, CraigBampton):
@@ -240,6 +250,7 @@ class ReducedObserverModel:
         self.h = float(h)
         self.method = method
         self.min_substep = float(min_substep)
+        self.refresh_std_tol = float(refresh_std_tol)
         self.refresh_tol = float(refresh_tol)
         self.refresh_min = float(refresh_min)
         self.refresh_max = float(refresh_max)
@@ -390,7 +401,8 @@ class ReducedObserverModel:
             s_old = _secant_factor(old, iv.q0 - old.q0)
             iv.err = self._prediction_error(old, iv)
             dist = _max_abs(iv.q0 - old.q0)
-            iv.rad = self._radius(old, dist, iv.err)
+            order = 3.0 if old.old is not None else 2.0  # the old held model's order (before its partner goes)
+            iv.rad = self._radius(old, dist, iv.err, self.refresh_tol, order)
             if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
                 d = iv.q0 - old.q0
                 iv.old, iv.d, iv.dd, iv.d_list = old, d, float(d @ d), d.tolist()
@@ -398,7 +410,9 @@ class ReducedObserverModel:
         iv.system = self._held_system(iv)
         if old is not None and old.forces is not None and u is not None and dt is not None \
                 and self.state_cov is not None:
-            self.held_errors.append(self._held_error(old, s_old, iv, z, u, dt))
+            err = self._held_error(old, s_old, iv, z, u, dt)
+            self.held_errors.append(err)
+            iv.rad = min(iv.rad, self._radius(old, dist, err[0], self.refresh_std_tol, order))
         self.n_refresh += 1
         self._last = iv
         return iv
@@ -443,16 +457,15 @@ class ReducedObserverModel:
             out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=self.map_rad)
         return out
 
-    def _radius(self, old: _Held, dist: float, err: float) -> float:
-        """Next refresh radius from the prediction error ``err`` of the last held model after ``dist`` rad: the
-        error grows as ``dist^3`` (second order, with a secant partner) or ``dist^2``, so the radius that keeps
-        it at ``refresh_tol`` is ``dist (tol / err)^(1/p)`` (with a 0.9 margin, at most twice the last radius,
-        within ``[refresh_min, refresh_max]``). The model's curvature in q varies along a path, and a fixed
-        radius would be either wasteful or unsafe."""
+    def _radius(self, old: _Held, dist: float, err: float, tol: float, p: float) -> float:
+        """Next refresh radius from the error ``err`` of the last held model after ``dist`` rad: the error grows
+        as ``dist^p`` (3: second order, with a secant partner; 2: first order), so the radius that keeps it at
+        ``tol`` is ``dist (tol / err)^(1/p)`` (with a 0.9 margin, at most twice the last radius, within
+        ``[refresh_min, refresh_max]``). The model's curvature in q varies along a path, and a fixed radius would
+        be either wasteful or unsafe."""
         if not err > 0:
             return min(2.0 * old.rad, self.refresh_max)
-        p = 3.0 if old.old is not None else 2.0
-        rad = 0.9 * dist * (self.refresh_tol / err) ** (1.0 / p)
+        rad = 0.9 * dist * (tol / err) ** (1.0 / p)
         return float(min(max(rad, self.refresh_min), 2.0 * old.rad, self.refresh_max))
 
     def _prediction_error(self, old: _Held, iv: _Held) -> float:
