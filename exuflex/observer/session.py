@@ -859,8 +859,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
     if keep == "all" or smooth:
         est = estimate(obs, S.t, U[:], Y[:], smooth=smooth)
-        src = est.smoothed if est.smoothed is not None else est.result
-        last = (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None)
+        last = _last_state(est)
         if sink is not None:
             sink(EstimateChunk(0, est.result, est.physical, est.wall_s))
     else:
@@ -939,6 +938,13 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
     est = Estimate(res, None if phys is None else Signals(t, names, phys, physical_units(obs.mech)), wall,
                    span / wall if wall > 0 else float("inf"))
     return est, (last.x_hat[-1], last.P_diag[-1] if last.P is not None else None)
+
+
+def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None]:
+    """The last sample's state and variances (None without a stored covariance) of a whole record, smoothed
+    where smoothing ran."""
+    src = est.smoothed if est.smoothed is not None else est.result
+    return src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None
 
 
 def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None) -> dict:
