@@ -49,6 +49,7 @@ the measured elastic quantity per radian, far below the sensor noise).
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
 from operator import mul
@@ -165,6 +166,24 @@ class _Held:
     map: _StepMap | None = None
 
 
+class _Pairs:
+    """Float pairs appended one at a time and kept as doubles, 16 bytes a pair (a list of tuples of floats takes
+    about 120): a record that grows with a long log's refreshes."""
+
+    def __init__(self):
+        self._a = array("d")
+
+    def append(self, pair: tuple[float, float]) -> None:
+        self._a.extend(pair)
+
+    def __len__(self) -> int:
+        return len(self._a) // 2
+
+    def asarray(self) -> np.ndarray:
+        """A copy, shape (n, 2)."""
+        return np.array(self._a, dtype=float).reshape(-1, 2)
+
+
 class ReducedObserverModel:
     """:class:`~exuflex.observer.base.DiscreteModel` of a reduced ERLS model.
 
@@ -264,7 +283,7 @@ class ReducedObserverModel:
         self._channel_cache: dict = {}
         self._interval_matrices = None
         self.n_jumps = 0
-        self.held_errors: list[tuple[float, float]] = []
+        self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
         self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ configurations
@@ -405,7 +424,7 @@ class ReducedObserverModel:
         """The recorded :meth:`_held_error` ratios since the last :meth:`reset`: count, median and largest."""
         if not self.held_errors:
             return {"n": 0}
-        a = np.asarray(self.held_errors)
+        a = self.held_errors.asarray()
         return {"n": len(a), "vs_std_median": float(np.median(a[:, 0])), "vs_std_max": float(a[:, 0].max()),
                 "vs_process_noise_median": float(np.nanmedian(a[:, 1])),
                 "vs_process_noise_max": float(np.nanmax(a[:, 1]))}

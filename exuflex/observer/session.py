@@ -522,9 +522,9 @@ class LogColumns:
         return out
 
 
-def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int = CHUNK_ROWS,
+def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | None = None,
                     innovations: bool = True) -> Iterator[EstimateChunk]:
-    """Filter a record ``rows`` samples at a time (:meth:`MultirateEKF.run` on each block, continuing from the
+    """Filter a record ``rows`` (default :data:`CHUNK_ROWS`) samples at a time (:meth:`MultirateEKF.run` on each block, continuing from the
     previous one) and yield each block's record and physical estimates as it is done.
 
     The numbers are those of :func:`estimate` on the whole record (the filter's steps do not depend on where the
@@ -535,8 +535,9 @@ def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int = CHU
     t = np.asarray(t, float)
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     n = len(t)
+    rows = max(int(rows or CHUNK_ROWS), 1)
     carry: dict = {}
-    for a in range(0, max(n, 1), max(int(rows), 1)):
+    for a in range(0, max(n, 1), rows):
         b = min(a + rows, n)
         first = a == 0
         w0 = time.perf_counter()
