@@ -197,7 +197,8 @@ def run(args) -> int:
     from ..mechanism import load_mechanism
     from ..observer.session import make_observer, observe_run
     from ..runs import check_csv_dialect, read_run
-    from ..validate import check_configurations, check_observer_settings, with_noise
+    from ..sensors import default_channels
+    from ..validate import check_configurations, check_observer_settings, check_run, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
@@ -216,6 +217,10 @@ def run(args) -> int:
     log = _read_log(args, mech) if path.is_file() else read_run(path)
     _say(f"read {path}: {len(log.sensors.t)} rows, {float(log.sensors.t[-1] - log.sensors.t[0]):.4g} s")
     mech = run_manoeuvre(mech, log)
+    # the log checked before the model is built: a bad log fails at once, and the check's working arrays (a
+    # few floats a row, all rows at once) are freed before the observer's own memory is taken
+    log_check = check_run(mech, log, tuple(config.channels) if config.channels else default_channels(mech),
+                          dt=config.dt or 1.0 / mech.sample_rate_hz)
     _say("building the reduced model" + ("" if _kernels_cached() else
          " (the first run compiles the numerical kernels: a few minutes, once)"))
     obs = make_observer(mech, config)
@@ -237,9 +242,10 @@ def run(args) -> int:
 
         with EstimatesWriter(args.out, mech, observer=obs) as writer:
             out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
-                              sink=writer)
+                              sink=writer, log_check=log_check)
     else:
-        out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep)
+        out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
+                          log_check=log_check)
     s = out.summary
     if s["diverged"]:
         _say(f"warning: the filter diverged (estimates non-finite) at t = {s['diverged_at']} s")

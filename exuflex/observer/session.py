@@ -788,7 +788,7 @@ KEEP = ("all", "physical", "summary")
 
 def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
                 observer: Observer | None = None, report=None, smooth: bool = False, keep: str = "all",
-                sink=None) -> Outcome:
+                sink=None, log_check=None) -> Outcome:
     """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
     (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``).
 
@@ -796,7 +796,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     The filter steps by each sample's own time stamp (jitter and drift within the documented tolerance need no
     grid). The bound is the one for this log (its rate, its channels' availability and rates,
     :func:`estimation_bound`), computed before filtering so that an unobservable channel set is reported at once.
-    ``report``: a callable taking one-line stage messages (the CLI prints them on stderr).
+    ``report``: a callable taking one-line stage messages (the CLI prints them on stderr). ``log_check``: the
+    log's check if the caller made it already (:func:`exuflex.validate.check_run` with the observer's channels and
+    sample interval; the command line checks a log before it builds the model).
 
     Memory: besides the log, ``keep`` says what the outcome holds of the filtered record, per sample:
 
@@ -824,7 +826,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     say = report or (lambda msg: log.info("%s", msg))
     config = config or ObserverConfig.for_model(mech)
     obs = observer or make_observer(mech, config)
-    log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
+    if log_check is None:
+        log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
+    elif set(log_check.channel_rate_hz) != set(obs.channels) or log_check.dt != obs.ekf.dt:
+        raise ValueError(f"log_check: made for channels {sorted(log_check.channel_rate_hz)} at {log_check.dt} s, "
+                         f"the observer has {sorted(obs.channels)} at {obs.ekf.dt} s")
     say(f"channels: {log_check.availability()}; log interval {log_check.interval_s * 1e3:.4g} ms"
         + (f", clock {log_check.clock_drift_ppm:+.1f} ppm, jitter up to {log_check.jitter_max_s * 1e6:.3g} us"
            if log_check.jitter_max_s > 1e-6 * log_check.dt else ""))
