@@ -431,9 +431,9 @@ class Estimate:
 
 
 #: rows of a record filtered and post-processed at a time by :func:`estimate_chunks` where the caller keeps only
-#: what it needs of each chunk: the chunk's record with the full covariance (8 nx**2 bytes a row, 11 MB for the
-#: six-bar's 26 states) and its derived tables stay a few times that
-CHUNK_ROWS = 2048
+#: what it needs of each chunk: the chunk's record with the full covariance (8 nx**2 bytes a row, 2.8 MB for the
+#: six-bar's 26 states) and its derived tables stay a few megabytes
+CHUNK_ROWS = 512
 
 
 @dataclass
@@ -545,6 +545,7 @@ def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | Non
                           P0=P0 if first else None, innovations=innovations)
         wall = time.perf_counter() - w0
         yield EstimateChunk(a, res, obs.physical(res.t, res.x_hat, carry=carry), wall)
+        del res  # one chunk's record alive at a time
 
 
 def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> Estimate:
@@ -930,21 +931,27 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
     names = physical_names(obs.mech)
     phys = np.empty((n, len(names))) if keep_physical else None
     wall = 0.0
+    final = (np.full(obs.ekf.nx, np.nan), None)
     for ch in estimate_chunks(obs, t, U, Y, innovations=False):
-        a, b = ch.start, ch.start + len(ch.result.t)
-        nis[a:b] = ch.result.nis
-        dof[a:b] = ch.result.nis_dof
+        r = ch.result
+        a, b = ch.start, ch.start + len(r.t)
+        nis[a:b] = r.nis
+        dof[a:b] = r.nis_dof
         if phys is not None:
             phys[a:b] = ch.physical.data
         wall += ch.wall_s
         if sink is not None:
             sink(ch)
-        last = ch.result
-    res = replace(last, t=t, x_hat=None, P=None, innovations=None, S=None, nis=nis, nis_dof=dof, wall_s=wall)
+        if b > a:
+            final = (r.x_hat[-1].copy(), None if r.P is None else r.P_diag[-1].copy())
+        # the run-level counters, flags and faults so far, without the chunk's arrays (one chunk alive at a time)
+        last = replace(r, x_hat=None, P=None, innovations=None, S=None)
+        del ch, r
+    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall)
     span = float(t[-1] - t[0]) if n > 1 else 0.0
     est = Estimate(res, None if phys is None else Signals(t, names, phys, physical_units(obs.mech)), wall,
                    span / wall if wall > 0 else float("inf"))
-    return est, (last.x_hat[-1], last.P_diag[-1] if last.P is not None else None)
+    return est, final
 
 
 def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None]:
