@@ -495,23 +495,25 @@ class ReducedObserverModel:
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
 
-    def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
-        """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
-        followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
-        correction and process noise (:meth:`_step_map`)."""
+    def _held_at(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, list]:
+        """The held configuration for an interval from ``z`` (evaluated anew when q left its radius) and
+        ``dl = q - q0`` as an array and as floats."""
         q = z[: self.nq]
         iv = self._last
         if iv is not None and iv.system is not None:
             dl = q - iv.q0
             v = dl.tolist()
-            if max(map(abs, v)) > iv.rad:
-                iv = None
-        else:
-            iv = None
-        if iv is None:
-            iv = self._refresh(z, u, dt)
-            dl = q - iv.q0
-            v = dl.tolist()
+            if max(map(abs, v)) <= iv.rad:
+                return iv, dl, v
+        iv = self._refresh(z, u, dt)
+        dl = q - iv.q0
+        return iv, dl, dl.tolist()
+
+    def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
+        """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
+        followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
+        correction and process noise (:meth:`_step_map`)."""
+        iv, dl, v = self._held_at(z, u, dt)
         for attempt in range(2):
             n = self.substeps(iv, dt)
             s = _secant_factor(iv, dl, v) if not attempt else 0.0
@@ -522,26 +524,22 @@ class ReducedObserverModel:
             # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
             self.n_rescue += 1
             iv = self._refresh(z, u, dt)
-            dl = q - iv.q0
+            dl = z[: self.nq] - iv.q0
             v = dl.tolist()
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
 
     def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the held configuration
-        (evaluated anew where q left its radius), the step map, the interval's held matrices (for
-        :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``, the
-        step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
+        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the
+        held configuration (evaluated anew where q left its radius), the step map, the interval's held matrices
+        (for :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``,
+        the step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
         scale: :mod:`.augmented`) and would discard the nominal sub-steps."""
-        q = z[: self.nq]
-        iv = self._last
-        if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
-            iv = self._refresh(z, u, dt)
+        iv, dl, v = self._held_at(z, u, dt)
         n = self.substeps(iv, dt)
-        dl = q - iv.q0
         sm = self._step_map(iv, z, dl, dt, n)
-        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl), *iv.system)
+        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl, v), *iv.system)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S), sm.Q
