@@ -82,7 +82,6 @@ from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
 from .expansion import _jit, held_step, step_jacobian
-from .reduced import _secant_factor
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
 
@@ -308,7 +307,7 @@ class AugmentedModel:
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)
+        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
             out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)
         return out
@@ -330,8 +329,8 @@ class AugmentedModel:
         mp = self._map
         if mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol:
             inc = self._increments[iv.serial]
-            Mr, Kr, Cr, Gr, h, n = inner._interval_matrices
-            Pn, S, L, Q = inner._maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
+            Mr, Kr, Cr, Gr, h, n = inner.interval_system
+            Pn, S, L, Q = inner.linear_maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
             mp = self._map = (sm, c, Pn, S, L, Q)
         Ts, Vs, C3 = iv.forces.jacobian_tensors()
         F = step_jacobian(z, Ts + c * dTs, Vs, C3, mp[2], mp[3])
@@ -372,7 +371,7 @@ class AugmentedModel:
         n0, N = self.n0, self.nx
         inner = self.inner
         z = x[:n0]
-        u = inner._input(u)
+        u = inner.torques(u)
         if self.i_inputs is not None:
             d = x[self.i_inputs]
             u = u + d
