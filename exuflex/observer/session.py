@@ -334,9 +334,11 @@ def _torque_step_test(torque_var, p: float):
     w = (0.5 / np.asarray(torque_var, float).reshape(-1)).tolist()
     thr = float(chi2.ppf(1.0 - p, len(w)))
 
-    def test(u0, u1) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
-        d = zip(np.asarray(u0, float).tolist(), np.asarray(u1, float).tolist(), w, strict=True)
-        return sum((b - a) ** 2 * wi for a, b, wi in d) > thr
+    def test(u0: np.ndarray, u1: np.ndarray) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
+        s = 0.0
+        for a, b, wi in zip(u0.tolist(), u1.tolist(), w, strict=True):
+            s += (b - a) * (b - a) * wi
+        return s > thr
 
     return test
 
