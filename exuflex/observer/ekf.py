@@ -541,8 +541,8 @@ class MultirateEKF:
         with a larger error than its steady state (the end-of-manoeuvre step of a clean log would otherwise set
         the NIS flag).
     input_step : callable ``(u0, u1) -> bool`` or None
-        Test for a step between two successive input samples that starts the hold-off (besides the model's
-        own ``n_jumps`` counter, if it has one).
+        Test for a step between two successive input samples (1-D float arrays) that starts the hold-off
+        (besides the model's own ``n_jumps`` counter, if it has one).
     nonfinite : {"raise", "flag"}
         On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run and return NaN
         estimates from then on.

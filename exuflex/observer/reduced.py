@@ -16,8 +16,15 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   ``refresh_tol`` (relative, in the mass metric). Each evaluation also measures what the replaced held model
   cost: the state error over one interval against the exact configuration, relative to the filter's standard
   deviations and to the interval's process noise (:meth:`ReducedObserverModel._held_error`; reported as
-  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian and process noise (the *step map*) are
-  rebuilt when q moved ``remap_rad`` from where they were built, or when the interval's length changes.
+  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian
+  and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
+  the interval's length changes. The map radius is controlled by the map's effect on the filter's own
+  uncertainty: at each rebuild the replaced map's covariance prediction is compared with the new one's on the
+  filter's present covariance (:meth:`ReducedObserverModel._map_error`, a relative error of the predicted
+  standard deviations), and the next radius keeps that error near ``remap_tol`` (the error grows linearly with
+  the distance; the maps' centres are two radii apart, so the largest error while a map is in use is about half
+  of it). How strongly the maps depend on q differs by orders of magnitude between mechanisms (a single link
+  turning: not at all; a slider-crank near its dead centres: strongly), which no fixed radius serves.
 - ``"rk4"`` (the exact reference): the configuration evaluated at every interval and every RK4 stage at its own
   state; the Jacobian and process noise of the interval's start.
 
@@ -52,9 +59,10 @@ below the sensor noise).
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
-from operator import mul
+from operator import mul, sub
 
 import numpy as np
 from scipy.stats import chi2
@@ -116,15 +124,17 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
-def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
-    """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved.
+def _secant_factor(iv: _Held, dl: np.ndarray, v: list | None = None) -> float:
+    """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved
+    (``v``: ``dl`` as a list of floats, if the caller has it).
 
     Zero (first order only) without a partner or when q moves away from the secant's line (cosine below 0.7):
     the secant's differences then say nothing about the change, and extrapolating them along a different
     direction breaks the filter during the start-up transient, where the estimate jitters in every direction."""
     if iv.old is None:
         return 0.0
-    v = dl.tolist()
+    if v is None:
+        v = dl.tolist()
     a = sum(map(mul, v, iv.d_list))
     n2 = sum(map(mul, v, v))
     if a * a < 0.49 * n2 * iv.dd:
@@ -143,6 +153,8 @@ class _StepMap:
     S: np.ndarray  # (nx, r) response to a unit generalised force held over the interval
     L: np.ndarray  # (nx, n_motors) response to a unit torque held over the interval
     Q: np.ndarray  # (nx, nx) process noise
+    q_list: list = None  # q as floats
+    tail: tuple = ()  # the compiled interval's arguments fixed while this map and its configuration are held
 
 
 @dataclass
@@ -166,6 +178,11 @@ class _Held:
     err: float = float("nan")  # prediction error of the previous held model at q0
     system: HeldSystem | None = None  # the held arrays of the compiled step
     map: _StepMap | None = None
+    rows: dict = None  # measurement rows about q0 per channel tuple: (c0, Hm) and the secant's (c0, Hm, dH)
+    secant_rows: dict = None
+
+    def __post_init__(self):
+        self.rows, self.secant_rows = {}, {}
 
 
 class ReducedObserverModel:
@@ -189,8 +206,11 @@ class ReducedObserverModel:
     refresh_tol, refresh_min, refresh_max : float
         Error target of the cached step's held matrices (relative, mass metric) and the limits (rad) of the
         refresh radius that keeps it.
-    remap_rad : float
-        Distance (rad) q moves before the step map is rebuilt (cached step).
+    remap_tol : float
+        Error target of the step map: the relative error of the predicted standard deviations it causes
+        (:meth:`_map_error`), measured at each rebuild and kept near this by the map radius.
+    remap_rad, remap_min, remap_max : float
+        The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
     dt_tol : float
         Relative change of the interval's length before the step map is rebuilt.
 
@@ -206,8 +226,8 @@ class ReducedObserverModel:
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
                  jump_p: float | None = None, min_substep: float = 2e-6, refresh_tol: float = 3e-2,
-                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_rad: float = 2e-3,
-                 dt_tol: float = 1e-3):
+                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
+                 remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -226,7 +246,12 @@ class ReducedObserverModel:
         self.refresh_tol = float(refresh_tol)
         self.refresh_min = float(refresh_min)
         self.refresh_max = float(refresh_max)
+        self.remap_tol = float(remap_tol)
         self.remap_rad = float(remap_rad)
+        self.remap_min = float(remap_min)
+        self.remap_max = float(remap_max)
+        if not 0 < self.remap_min <= self.remap_rad <= self.remap_max:
+            raise ValueError(f"need 0 < remap_min <= remap_rad <= remap_max, got {remap_min}, {remap_rad}, {remap_max}")
         self.dt_tol = float(dt_tol)
         self.lookahead = 0.8  # radii ahead of q along its motion where a configuration is evaluated
         self.remap_ahead = 1.0  # remap radii ahead of q along its motion where a step map is built ...
@@ -257,14 +282,16 @@ class ReducedObserverModel:
 
     def watch_covariance(self, get_P) -> None:
         """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
-        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`)."""
+        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`), and the step map's
+        radius is controlled by its effect on it (:meth:`_map_error`). Without it the map radius stays ``remap_rad``."""
         self.state_cov = get_P
 
     def reset(self) -> None:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
-        self._channel_cache: dict = {}
+        self.map_rad = self.remap_rad  # the present map radius (:meth:`_map_radius`)
+        self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors: list[tuple[float, float]] = []
@@ -405,13 +432,19 @@ class ReducedObserverModel:
         return float(np.max(dz / sig)), e_q
 
     def held_error_summary(self) -> dict:
-        """The recorded :meth:`_held_error` ratios since the last :meth:`reset`: count, median and largest."""
-        if not self.held_errors:
-            return {"n": 0}
-        a = np.asarray(self.held_errors)
-        return {"n": len(a), "vs_std_median": float(np.median(a[:, 0])), "vs_std_max": float(a[:, 0].max()),
-                "vs_process_noise_median": float(np.nanmedian(a[:, 1])),
-                "vs_process_noise_max": float(np.nanmax(a[:, 1]))}
+        """The recorded :meth:`_held_error` ratios since the last :meth:`reset` (count, median and largest), and
+        the replaced step maps' errors (:meth:`_map_error`: count, median, largest, the last map radius)."""
+        out = {"n": len(self.held_errors)}
+        if self.held_errors:
+            a = np.asarray(self.held_errors)
+            out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
+                       vs_process_noise_median=float(np.nanmedian(a[:, 1])),
+                       vs_process_noise_max=float(np.nanmax(a[:, 1])))
+        out["map_n"] = len(self.map_errors)
+        if self.map_errors:
+            e = np.asarray(self.map_errors)
+            out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=self.map_rad)
+        return out
 
     def _radius(self, old: _Held, dist: float, err: float) -> float:
         """Next refresh radius from the prediction error ``err`` of the last held model after ``dist`` rad: the
@@ -447,43 +480,103 @@ class ReducedObserverModel:
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
 
+    def _held_at(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, list]:
+        """The held configuration for an interval from ``z`` (evaluated anew when q left its radius) and
+        ``dl = q - q0`` as an array and as floats."""
+        q = z[: self.nq]
+        iv = self._last
+        if iv is not None and iv.system is not None:
+            dl = q - iv.q0
+            v = dl.tolist()
+            if max(map(abs, v)) <= iv.rad:
+                return iv, dl, v
+        iv = self._refresh(z, u, dt)
+        dl = q - iv.q0
+        return iv, dl, dl.tolist()
+
     def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
         followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
         correction and process noise (:meth:`_step_map`)."""
-        q = z[: self.nq]
-        iv = self._last
-        if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
-            iv = self._refresh(z, u, dt)
+        iv, dl, v = self._held_at(z, u, dt)
         for attempt in range(2):
             n = self.substeps(iv, dt)
-            dl = q - iv.q0
-            s = _secant_factor(iv, dl) if not attempt else 0.0
+            s = _secant_factor(iv, dl, v) if not attempt else 0.0
             sm = self._step_map(iv, z, dl, dt, n)
-            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *iv.forces.jacobian_tensors(), sm.Pn,
-                                                      sm.S, *iv.system)
-            if attempt or math.isfinite(z_next[0]) or not (s or any(dl)):
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
+            if attempt or math.isfinite(z_next[0]) or not (s or any(v)):
                 break
             # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
             self.n_rescue += 1
             iv = self._refresh(z, u, dt)
+            dl = z[: self.nq] - iv.q0
+            v = dl.tolist()
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
 
+    def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the
+        held configuration (evaluated anew where q left its radius), the step map, the interval's held matrices
+        (for :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``,
+        the step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
+        scale: :mod:`.augmented`) and would discard the nominal sub-steps."""
+        iv, dl, v = self._held_at(z, u, dt)
+        n = self.substeps(iv, dt)
+        sm = self._step_map(iv, z, dl, dt, n)
+        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl, v), *iv.system)
+        self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
+        self.last_step = (iv, sm)
+        return step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S), sm.Q
+
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
-        """The held configuration's step map, rebuilt when q moved ``remap_rad`` from where it was built or the
+        """The held configuration's step map, rebuilt when q moved the map radius from where it was built or the
         interval's length changed by more than ``dt_tol``: built ahead of q along its motion
-        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius)."""
+        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius). A
+        rebuild at the same interval length measures the replaced map's error and sets the next radius
+        (:meth:`_map_radius`)."""
         sm = iv.map
-        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and _max_abs(z[: self.nq] - sm.q) <= self.remap_rad:
+        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and \
+                max(map(abs, map(sub, z[: self.nq].tolist(), sm.q_list))) <= self.map_rad:
             return sm
         lim = self._measurement_radius(iv)
-        dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
+        dla = np.clip(dl + map_lookahead(z, self.nq, self.map_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
         Ma, Ka, Ca, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
-        iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        new = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        new.q_list = new.q.tolist()
+        new.tail = (*iv.forces.jacobian_tensors(), new.Pn, new.S, *iv.system)
         self.n_remap += 1
-        return iv.map
+        if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
+            self._map_radius(sm, new, self._map_error(iv, z, sm, new))
+        return new
+
+    def _map_error(self, iv: _Held, z: np.ndarray, old: _StepMap, new: _StepMap) -> float:
+        """The error of the replaced step map ``old`` where ``new`` is built, in the filter's covariance
+        prediction: with ``E = F_old - F_new`` (the two maps' step Jacobians at ``z``) and the filter's present
+        covariance ``P``, ``max_i (sqrt((E P E')_ii) + |dQ_ii| / (2 sigma_i)) / sigma_i`` where ``sigma_i^2`` is
+        the new map's predicted variance ``(F P F' + Q)_ii``: to first order a bound on the relative change of
+        every predicted standard deviation (the first term of the Jacobian's error, the second of the process
+        noise's)."""
+        Ts, Vs, C3 = iv.forces.jacobian_tensors()
+        F = step_jacobian(z, Ts, Vs, C3, new.Pn, new.S)
+        E = step_jacobian(z, Ts, Vs, C3, old.Pn, old.S) - F
+        P = self.state_cov()[: self.nx, : self.nx]
+        var = ((F @ P) * F).sum(axis=1) + new.Q.diagonal()
+        e2 = ((E @ P) * E).sum(axis=1)
+        sig = np.sqrt(np.maximum(var, 1e-300))
+        err = float(np.max((np.sqrt(np.maximum(e2, 0.0)) + 0.5 * np.abs(new.Q.diagonal() - old.Q.diagonal()) / sig)
+                           / sig))
+        self.map_errors.append(err)
+        return err
+
+    def _map_radius(self, old: _StepMap, new: _StepMap, err: float) -> None:
+        """The next map radius from the replaced map's error ``err`` over the distance between the two maps'
+        centres: the error grows linearly with the distance, and a map serves up to one radius from its centre,
+        so the radius ``remap_tol * dist / (2 err)`` keeps its largest error in use near ``remap_tol / 2``;
+        at most twice the last radius, within ``[remap_min, remap_max]``."""
+        dist = max(map(abs, map(sub, new.q_list, old.q_list)))
+        rad = 2.0 * self.map_rad if not err > 0 else self.remap_tol * dist / (2.0 * err)
+        self.map_rad = float(min(max(rad, self.remap_min), 2.0 * self.map_rad, self.remap_max))
 
     # ------------------------------------------------------------------ the reference step
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
@@ -567,21 +660,26 @@ class ReducedObserverModel:
         """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
         return 1.5 * max(iv.rad, self.refresh_min)
 
-    def _measurement_interval(self, x: np.ndarray) -> _Held:
-        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near)."""
+    def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray, list]:
+        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near), with
+        ``dl = q - q0`` as an array and as floats."""
+        q = x[: self.nq]
         iv = self._last
-        if iv is None or _max_abs(x[: self.nq] - iv.q0) > self._measurement_radius(iv):
-            # no held configuration near x (first sample of a run): evaluate one at x
-            iv = self._configuration(x)
-            self._last = iv
-        return iv
+        if iv is not None:
+            dl = q - iv.q0
+            v = dl.tolist()
+            if max(map(abs, v)) <= self._measurement_radius(iv):
+                return iv, dl, v
+        # no held configuration near x (first sample of a run): evaluate one at x
+        iv = self._last = self._configuration(x)
+        dl = q - iv.q0
+        return iv, dl, dl.tolist()
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
         """``(c0, Hm, dH, G)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x, plus the
         second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` None without a secant partner, ``G``
-        None where the q-columns do not change); cached per held configuration."""
-        key = (iv.serial, "secant", channels)
-        lin = self._channel_cache.get(key)
+        None where the q-columns do not change); kept with the held configuration."""
+        lin = iv.secant_rows.get(channels)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
@@ -598,7 +696,7 @@ class ReducedObserverModel:
                 dH[:, nq:r] = (Hm[:, nq:r] - H1[:, nq:r]) / iv.dd
                 G = (Hm[:, :nq] - H1[:, :nq]) / iv.dd
                 lin = (c0, Hm, dH, G if np.any(G) else None)
-            self._channel_cache[key] = lin
+            iv.secant_rows[channels] = lin
         return lin
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
@@ -614,34 +712,24 @@ class ReducedObserverModel:
         ``1/2 ((Delta dl) d^T / (d . d) + a Delta)``. Where ``dl`` leaves the secant's line
         (:func:`_secant_factor` zero), the rows stay first order."""
         x = np.asarray(x, float)
-        iv = self._measurement_interval(x)
+        iv, dl, v = self._measurement_interval(x)
         c0, Hm, dH, G = self._secant_rows(iv, tuple(channels))
-        nq = self.nq
-        dl = x[:nq] - iv.q0
-        s = 0.0 if dH is None else _secant_factor(iv, dl) * iv.dd
+        s = 0.0 if dH is None else _secant_factor(iv, dl, v) * iv.dd
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
         secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
         if s and G is not None:
             g = G @ dl  # Delta dl / (d . d)
             y += (0.5 * s) * g
-            H[:, :nq] += 0.5 * (np.outer(g, iv.d) + s * G)
+            H[:, : self.nq] += 0.5 * (np.outer(g, iv.d) + s * G)
         return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_affine`, cached per interval (keeping the entries of the held configurations only, once the
-        cache grows beyond 64)."""
+        """:meth:`_affine`, kept with the held configuration."""
         channels = tuple(channels)
-        key = (iv.serial, channels)
-        lin = self._channel_cache.get(key)
+        lin = iv.rows.get(channels)
         if lin is None:
-            if len(self._channel_cache) > 64:
-                keep = {iv.serial, self._last.serial if self._last is not None else -1}
-                if self._last is not None and self._last.old is not None:
-                    keep.add(self._last.old.serial)
-                self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] in keep}
-            lin = self._affine(iv, channels)
-            self._channel_cache[key] = lin
+            lin = iv.rows[channels] = self._affine(iv, channels)
         return lin
 
     def _affine(self, iv: _Held, channels: tuple) -> tuple[np.ndarray, np.ndarray]:

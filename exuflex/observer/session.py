@@ -84,11 +84,9 @@ class ObserverConfig:
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
     payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
-    payload_hold_s : seconds from the filter's start during which the payload scale is held (not learned): the
-        start-up transient, where the state estimate is still far outside its own covariance and the joint
-        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``). The six-bar's manoeuvre
-        starts with a torque pulse of about 0.08 s that the filter follows with errors of many standard
-        deviations; a longer hold loses the four-bar's most informative samples (docs/estimators.md).
+    payload_linearity : the payload scale is held at its prior from the start until the first interval whose
+        second-order term in the scale over its standard deviation is within this many process-noise standard
+        deviations (:class:`.augmented.AugmentedModel`, ``linearity_tol``).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
@@ -119,7 +117,7 @@ class ObserverConfig:
     estimator: str = "ekf"
     payload_std: float = 0.01
     payload0_std: float = 0.5
-    payload_hold_s: float = 0.15
+    payload_linearity: float = 1.0
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -315,7 +313,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
     if config.estimator == "ekf-payload":
-        fm = AugmentedModel(som, payload_std=config.payload_std, hold_s=config.payload_hold_s)
+        fm = AugmentedModel(som, payload_std=config.payload_std, linearity_tol=config.payload_linearity)
     else:
         fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
                             input_tau=config.input_tau)
@@ -336,9 +334,11 @@ def _torque_step_test(torque_var, p: float):
     w = (0.5 / np.asarray(torque_var, float).reshape(-1)).tolist()
     thr = float(chi2.ppf(1.0 - p, len(w)))
 
-    def test(u0, u1) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
-        d = zip(np.asarray(u0, float).tolist(), np.asarray(u1, float).tolist(), w, strict=True)
-        return sum((b - a) ** 2 * wi for a, b, wi in d) > thr
+    def test(u0: np.ndarray, u1: np.ndarray) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
+        s = 0.0
+        for a, b, wi in zip(u0.tolist(), u1.tolist(), w, strict=True):
+            s += (b - a) * (b - a) * wi
+        return s > thr
 
     return test
 

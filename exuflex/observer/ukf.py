@@ -81,6 +81,9 @@ class UnscentedKF:
                  store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise"):
         self.model = model
         self.nx = int(model.nx)
+        watch = getattr(model, "watch_covariance", None)
+        if watch is not None:  # the model measures its approximations against the filter's uncertainty
+            watch(lambda: self._P)
         self.channels = tuple(channels)
         self.m = len(self.channels)
         missing = [c for c in self.channels if c not in R_std]
