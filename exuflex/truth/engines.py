@@ -65,9 +65,9 @@ def exudyn_mesh(mech: Mechanism) -> int:
 
     A truth coarser than the model it checks measures its own discretisation error: a cubic element's curvature
     is linear, and a gauge's curvature converges more slowly than the modes (the slider-crank's rod, 8 elements
-    in its model file: 4 ANCF elements per link put its gauges' curvature several percent off the 8- and
-    12-element values, a bias of a third of the gauge noise that the observer turns into a crank-angle error;
-    ``docs/truth_mesh.md``)."""
+    in its model file: with 4 ANCF elements per link its gauges' curvature is off the finer meshes' values by a
+    bias of the order of the gauge noise, which the observer turns into a crank-angle error; measured by
+    ``benchmarks/truth_mesh.py`` in ``docs/truth_mesh.md``)."""
     return max(EXUDYN_ELEMENTS_PER_LINK, max(len(lk.stations) - 1 for lk in mech.links))
 
 
