@@ -515,6 +515,28 @@ class ReducedObserverModel:
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
 
+    # ------------------------------------------------------------------ for models built on this one (augmented)
+    def torques(self, u) -> np.ndarray:
+        """The motor torques ``u`` as an array of the model's motor count (zeros for None); a clear error else."""
+        return self._input(u)
+
+    @property
+    def interval_system(self) -> tuple:
+        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval (:meth:`predict` or :meth:`prepare`): the held
+        matrices at its start and its ``n`` sub-steps of ``h``."""
+        return self._interval_matrices
+
+    def linear_maps(self, Mr, Kr, Cr, Gr, dt: float, n: int) -> tuple:
+        """``(P^n, S, L, Q)`` of ``n`` RK4 sub-steps over ``dt`` of the linear system with these matrices, the
+        process noise with this model's torque noise (and ``q_extra``)."""
+        return self._maps(Mr, Kr, Cr, Gr, dt, n)
+
+    @staticmethod
+    def secant_factor(iv: _Held, dl: np.ndarray) -> float:
+        """How far along the secant to its previous configuration q has moved from the held ``iv`` (0 without a
+        usable secant): the factor the cached step uses."""
+        return _secant_factor(iv, dl)
+
     def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the
         held configuration (evaluated anew where q left its radius), the step map, the interval's held matrices
