@@ -137,8 +137,9 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
     """With the filter's covariance watched the scale is held until the test passes: its left-hand side is
     max |(x(theta + s) + x(theta - s)) / 2 - x(theta)| / sqrt(Q_ii) with s the scale's standard deviation, the
     releasing interval's column (x(theta + s) - x(theta - s)) / 2s, with x the interval's steps at the three scales
-    (the payload increment held: the same configuration's); held, the column is zero; released, it is the
-    derivative of a model outside a filter."""
+    (the payload increment held: the same configuration's); held, the column is zero and the process noise has
+    e1 e1' more, e1 = (x(theta + s) - x(theta - s)) / 2 (the held scale's uncertainty); released, the column is
+    the derivative of a model outside a filter."""
     obs, z, u = mid_run
     dt = obs.ekf.dt
     s = 0.3
@@ -147,6 +148,7 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
     x = np.concatenate([z, [theta]])
     c = theta - 1.0
     deriv = AugmentedModel(obs.model, payload_std=0.01).predict(x, u, dt).F[: len(z), -1]
+    Qs = {}
     for tol, released in ((1e9, True), (1e-9, False)):
         aug = AugmentedModel(obs.model, payload_std=0.01, linearity_tol=tol)
         aug.watch_covariance(lambda: P)
@@ -154,7 +156,9 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
         xp, xm, x0 = aug._scaled_cached(z, u, dt, np.array([c + s, c - s, c]), False)
         e2 = 0.5 * (xp + xm) - x0
         col = p.F[: aug.n0, aug.i_theta]
-        q = np.sqrt(np.diagonal(p.Q)[: aug.n0])
+        Qs[released] = p.Q[: aug.n0, : aug.n0]
+        e1 = 0.5 * (xp - xm)
+        q = np.sqrt(np.diagonal(p.Q)[: aug.n0] - (0.0 if released else e1**2))
         assert aug.last_linearity == pytest.approx(np.max(np.abs(e2) / q), rel=1e-9)
         np.testing.assert_allclose(p.x[:-1], x0, rtol=0, atol=1e-12 * np.abs(x0).max())
         assert aug.released == released and aug.n_held == (0 if released else 1)
@@ -165,16 +169,19 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
             aug.linearity_tol = 1e-9
             np.testing.assert_allclose(aug.predict(x, u, dt).F[: aug.n0, aug.i_theta], deriv, rtol=0,
                                        atol=1e-6 * np.abs(deriv).max())
-            aug.reset()
-            assert not aug.released and aug.n_held == 0
+            released_model = aug
         else:
             assert not np.any(col)
+            np.testing.assert_allclose(Qs[False] - Qs[True], np.outer(e1, e1), rtol=0,
+                                       atol=1e-9 * np.abs(e1).max() ** 2)
         # the second-order term is not zero (the step is not linear in the payload: M_r^-1), and it is the
         # curvature: it scales as s^2 (the halved deviation's term a quarter, up to the next order)
         hp, hm = aug._scaled_cached(z, u, dt, np.array([c + s / 2, c - s / 2]), False)
         e2h = 0.5 * (hp + hm) - x0
         assert np.abs(e2).max() > 1e-6 * np.abs(xp - xm).max()
         assert np.max(np.abs(4 * e2h - e2)) <= 0.1 * np.abs(e2).max()
+    released_model.reset()
+    assert not released_model.released and released_model.n_held == 0
 
 
 def test_gauss_markov_disturbance_decays_with_its_stationary_variance(mid_run):

@@ -52,10 +52,14 @@ one process-noise standard deviation in every state component); from then on it 
 (that interval's column is ``(x(c + s) - x(c - s)) / 2 s``). The test is not applied to every interval: where a
 payload dominates a link's inertia the second-order term grows with the first-order one, so the intervals that
 fail it are the informative ones, and a per-interval hold keeps the scale from being learned at all (the single
-link). A model outside a filter (no covariance watched) is never held. The hold has its price where the nominal
-model is far off: while the scale is held the states drift outside their covariance, and the scale's first
-updates after a long hold can overshoot (the single link with its payload doubled, whose hold lasts through the
-hard start: ``docs/estimators.md``, where the EKF on the doubled payload's model is consistent).
+link). A model outside a filter (no covariance watched) is never held.
+
+While held, the scale's uncertainty still enters the states' prediction: the first-order spread of the step over
+``+-s``, ``e1 = (x(c + s) - x(c - s)) / 2``, adds ``e1 e1^T`` to the interval's process noise. This is the
+covariance a parameter of variance ``s^2`` that is considered but not estimated adds to the prediction (the
+Schmidt-Kalman filter's consider parameter, its effect taken as independent between intervals). Without it a
+wrong scale held through a hard start drives the states far outside their covariance, and the scale's first
+updates after the hold overshoot (the single link and the four-bar with their payloads doubled).
 
 With ``method="rk4"`` (the exact reference) the step is RK4 of the nonlinear reduced equations at every stage
 with the matrices and forces of the two models combined the same way.
@@ -82,7 +86,6 @@ from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
 from .expansion import _jit, held_step, step_jacobian
-from .reduced import _secant_factor
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
 
@@ -308,7 +311,7 @@ class AugmentedModel:
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)
+        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
             out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)
         return out
@@ -330,8 +333,8 @@ class AugmentedModel:
         mp = self._map
         if mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol:
             inc = self._increments[iv.serial]
-            Mr, Kr, Cr, Gr, h, n = inner._interval_matrices
-            Pn, S, L, Q = inner._maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
+            Mr, Kr, Cr, Gr, h, n = inner.interval_system
+            Pn, S, L, Q = inner.linear_maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
             mp = self._map = (sm, c, Pn, S, L, Q)
         Ts, Vs, C3 = iv.forces.jacobian_tensors()
         F = step_jacobian(z, Ts + c * dTs, Vs, C3, mp[2], mp[3])
@@ -372,7 +375,7 @@ class AugmentedModel:
         n0, N = self.n0, self.nx
         inner = self.inner
         z = x[:n0]
-        u = inner._input(u)
+        u = inner.torques(u)
         if self.i_inputs is not None:
             d = x[self.i_inputs]
             u = u + d
@@ -428,7 +431,10 @@ class AugmentedModel:
                     self.released = True
                     F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
                 else:
+                    # held: the scale's uncertainty enters the prediction as the noise it causes (module docstring)
                     self.n_held += 1
+                    e1 = 0.5 * (rows[0] - rows[1])
+                    Q[:n0, :n0] += np.outer(e1, e1)
             else:
                 F[:n0, it] = (rows[0] - xc) / DTHETA
             xn[it] = th

@@ -54,9 +54,12 @@ plus an optional diagonal for unmodelled dynamics. A torque jump between two sam
 differing by more than their noise, :meth:`input_jump`) adds the mean and covariance of its effect at an
 unknown instant of the interval (:meth:`input_jump_moments`).
 
-Measurement Jacobians: exact in ``p`` for every channel and in ``q`` for the rigid part (link angles, rigid tip
-position); the dependence of the curvature and elastic-displacement rows on ``q`` is left out (of the order of
-the measured elastic quantity per radian, far below the sensor noise).
+Measurements: the rows about a held configuration, with their dependence on ``q`` to second order along the
+secant to the previous one (a rigid channel such as a slider's position is quadratic in ``q`` over the
+measurement radius, :meth:`ReducedObserverModel.measure`). Measurement Jacobians: exact in ``p`` for every
+channel and in ``q`` for the rigid part (link angles, rigid tip position); the dependence of the curvature and
+elastic-displacement rows on ``q`` is left out (of the order of the measured elastic quantity per radian, far
+below the sensor noise).
 """
 
 from __future__ import annotations
@@ -188,6 +191,24 @@ class _Held:
         self.rows, self.secant_rows = {}, {}
 
 
+class _Pairs:
+    """Float pairs appended one at a time and kept as doubles, 16 bytes a pair (a list of tuples of floats takes
+    about 120): a record that grows with a long log's refreshes."""
+
+    def __init__(self):
+        self._a = array("d")
+
+    def append(self, pair: tuple[float, float]) -> None:
+        self._a.extend(pair)
+
+    def __len__(self) -> int:
+        return len(self._a) // 2
+
+    def asarray(self) -> np.ndarray:
+        """A copy, shape (n, 2)."""
+        return np.array(self._a, dtype=float).reshape(-1, 2)
+
+
 class ReducedObserverModel:
     """:class:`~exuflex.observer.base.DiscreteModel` of a reduced ERLS model.
 
@@ -302,7 +323,7 @@ class ReducedObserverModel:
         self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
         self._interval_matrices = None
         self.n_jumps = 0
-        self.held_errors: list[tuple[float, float]] = []
+        self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
         self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ configurations
@@ -447,7 +468,7 @@ class ReducedObserverModel:
         the replaced step maps' errors (:meth:`_map_error`: count, median, largest, the last map radius)."""
         out = {"n": len(self.held_errors)}
         if self.held_errors:
-            a = np.asarray(self.held_errors)
+            a = self.held_errors.asarray()
             out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
                        vs_process_noise_median=float(np.nanmedian(a[:, 1])),
                        vs_process_noise_max=float(np.nanmax(a[:, 1])))
@@ -524,6 +545,28 @@ class ReducedObserverModel:
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
+
+    # ------------------------------------------------------------------ for models built on this one (augmented)
+    def torques(self, u) -> np.ndarray:
+        """The motor torques ``u`` as an array of the model's motor count (zeros for None); a clear error else."""
+        return self._input(u)
+
+    @property
+    def interval_system(self) -> tuple:
+        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval (:meth:`predict` or :meth:`prepare`): the held
+        matrices at its start and its ``n`` sub-steps of ``h``."""
+        return self._interval_matrices
+
+    def linear_maps(self, Mr, Kr, Cr, Gr, dt: float, n: int) -> tuple:
+        """``(P^n, S, L, Q)`` of ``n`` RK4 sub-steps over ``dt`` of the linear system with these matrices, the
+        process noise with this model's torque noise (and ``q_extra``)."""
+        return self._maps(Mr, Kr, Cr, Gr, dt, n)
+
+    @staticmethod
+    def secant_factor(iv: _Held, dl: np.ndarray) -> float:
+        """How far along the secant to its previous configuration q has moved from the held ``iv`` (0 without a
+        usable secant): the factor the cached step uses."""
+        return _secant_factor(iv, dl)
 
     def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the
@@ -686,35 +729,52 @@ class ReducedObserverModel:
         return iv, dl, dl.tolist()
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
-        """``(c0, Hm, dH)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x
-        (``dH`` None without a secant partner); kept with the held configuration."""
+        """``(c0, Hm, dH, G)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x, plus the
+        second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` None without a secant partner, ``G``
+        None where the q-columns do not change); kept with the held configuration."""
         lin = iv.secant_rows.get(channels)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
-                lin = (c0, Hm, None)
+                lin = (c0, Hm, None, None)
             else:
                 # the elastic rows follow the configuration along the secant (the gauges' rows change with
-                # H(q)); the rigid parts stay the exact first-order expansion about q0: a secant of their
-                # intercepts would make y depend on q through s, which the Jacobian below leaves out, and
-                # that inconsistency breaks the filter during the start-up transient
+                # H(q)); the q-columns change along it too (:meth:`measure`'s second-order term). A secant of
+                # the rigid intercepts alone would make y depend on q through s without the Jacobian saying so,
+                # an inconsistency that breaks the filter during the start-up transient: the second-order term
+                # comes with its exact derivative instead
+                nq, r = self.nq, self.r
                 H1 = self._linear(iv.old, channels)[1]
                 dH = np.zeros_like(Hm)
-                dH[:, self.nq : self.r] = (Hm[:, self.nq : self.r] - H1[:, self.nq : self.r]) / iv.dd
-                lin = (c0, Hm, dH)
+                dH[:, nq:r] = (Hm[:, nq:r] - H1[:, nq:r]) / iv.dd
+                G = (Hm[:, :nq] - H1[:, :nq]) / iv.dd
+                lin = (c0, Hm, dH, G if np.any(G) else None)
             iv.secant_rows[channels] = lin
         return lin
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
         """The channels at ``x`` about the held configuration: ``y = c0 + H x`` with the elastic rows along the
-        secant to the previous held configuration (:meth:`_secant_rows`)."""
+        secant to the previous held configuration (:meth:`_secant_rows`), and the q-dependence to second order.
+
+        A rigid channel is a nonlinear function of q (a slider's position ``r cos q + sqrt(l^2 - r^2 sin^2 q)``,
+        a dependent link's angle), and x lies up to the measurement radius from the held ``q0``: to first order
+        its error is ``1/2 y''(q0) dl^2``. Along the secant ``d = q0 - q_old`` the change ``Delta`` of the
+        q-columns of the rows from the partner gives the second derivative, ``y''(q0) dl ~ Delta dl / |d|``
+        for ``dl`` along ``d``, so ``y`` gains ``1/2 a Delta dl`` with ``a = (dl . d) / (d . d)`` (the error is
+        then of third order in dl) and the q-columns of ``H`` its exact derivative
+        ``1/2 ((Delta dl) d^T / (d . d) + a Delta)``. Where ``dl`` leaves the secant's line
+        (:func:`_secant_factor` zero), the rows stay first order."""
         x = np.asarray(x, float)
         iv, dl, v = self._measurement_interval(x)
-        c0, Hm, dH = self._secant_rows(iv, tuple(channels))
+        c0, Hm, dH, G = self._secant_rows(iv, tuple(channels))
         s = 0.0 if dH is None else _secant_factor(iv, dl, v) * iv.dd
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
         secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
+        if s and G is not None:
+            g = G @ dl  # Delta dl / (d . d)
+            y += (0.5 * s) * g
+            H[:, : self.nq] += 0.5 * (np.outer(g, iv.d) + s * G)
         return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
