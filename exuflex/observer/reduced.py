@@ -48,9 +48,12 @@ plus an optional diagonal for unmodelled dynamics. A torque jump between two sam
 differing by more than their noise, :meth:`input_jump`) adds the mean and covariance of its effect at an
 unknown instant of the interval (:meth:`input_jump_moments`).
 
-Measurement Jacobians: exact in ``p`` for every channel and in ``q`` for the rigid part (link angles, rigid tip
-position); the dependence of the curvature and elastic-displacement rows on ``q`` is left out (of the order of
-the measured elastic quantity per radian, far below the sensor noise).
+Measurements: the rows about a held configuration, with their dependence on ``q`` to second order along the
+secant to the previous one (a rigid channel such as a slider's position is quadratic in ``q`` over the
+measurement radius, :meth:`ReducedObserverModel.measure`). Measurement Jacobians: exact in ``p`` for every
+channel and in ``q`` for the rigid part (link angles, rigid tip position); the dependence of the curvature and
+elastic-displacement rows on ``q`` is left out (of the order of the measured elastic quantity per radian, far
+below the sensor noise).
 """
 
 from __future__ import annotations
@@ -695,35 +698,52 @@ class ReducedObserverModel:
         return iv, dl, dl.tolist()
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
-        """``(c0, Hm, dH)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x
-        (``dH`` None without a secant partner); kept with the held configuration."""
+        """``(c0, Hm, dH, G)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x, plus the
+        second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` None without a secant partner, ``G``
+        None where the q-columns do not change); kept with the held configuration."""
         lin = iv.secant_rows.get(channels)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
-                lin = (c0, Hm, None)
+                lin = (c0, Hm, None, None)
             else:
                 # the elastic rows follow the configuration along the secant (the gauges' rows change with
-                # H(q)); the rigid parts stay the exact first-order expansion about q0: a secant of their
-                # intercepts would make y depend on q through s, which the Jacobian below leaves out, and
-                # that inconsistency breaks the filter during the start-up transient
+                # H(q)); the q-columns change along it too (:meth:`measure`'s second-order term). A secant of
+                # the rigid intercepts alone would make y depend on q through s without the Jacobian saying so,
+                # an inconsistency that breaks the filter during the start-up transient: the second-order term
+                # comes with its exact derivative instead
+                nq, r = self.nq, self.r
                 H1 = self._linear(iv.old, channels)[1]
                 dH = np.zeros_like(Hm)
-                dH[:, self.nq : self.r] = (Hm[:, self.nq : self.r] - H1[:, self.nq : self.r]) / iv.dd
-                lin = (c0, Hm, dH)
+                dH[:, nq:r] = (Hm[:, nq:r] - H1[:, nq:r]) / iv.dd
+                G = (Hm[:, :nq] - H1[:, :nq]) / iv.dd
+                lin = (c0, Hm, dH, G if np.any(G) else None)
             iv.secant_rows[channels] = lin
         return lin
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
         """The channels at ``x`` about the held configuration: ``y = c0 + H x`` with the elastic rows along the
-        secant to the previous held configuration (:meth:`_secant_rows`)."""
+        secant to the previous held configuration (:meth:`_secant_rows`), and the q-dependence to second order.
+
+        A rigid channel is a nonlinear function of q (a slider's position ``r cos q + sqrt(l^2 - r^2 sin^2 q)``,
+        a dependent link's angle), and x lies up to the measurement radius from the held ``q0``: to first order
+        its error is ``1/2 y''(q0) dl^2``. Along the secant ``d = q0 - q_old`` the change ``Delta`` of the
+        q-columns of the rows from the partner gives the second derivative, ``y''(q0) dl ~ Delta dl / |d|``
+        for ``dl`` along ``d``, so ``y`` gains ``1/2 a Delta dl`` with ``a = (dl . d) / (d . d)`` (the error is
+        then of third order in dl) and the q-columns of ``H`` its exact derivative
+        ``1/2 ((Delta dl) d^T / (d . d) + a Delta)``. Where ``dl`` leaves the secant's line
+        (:func:`_secant_factor` zero), the rows stay first order."""
         x = np.asarray(x, float)
         iv, dl, v = self._measurement_interval(x)
-        c0, Hm, dH = self._secant_rows(iv, tuple(channels))
+        c0, Hm, dH, G = self._secant_rows(iv, tuple(channels))
         s = 0.0 if dH is None else _secant_factor(iv, dl, v) * iv.dd
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
         secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
+        if s and G is not None:
+            g = G @ dl  # Delta dl / (d . d)
+            y += (0.5 * s) * g
+            H[:, : self.nq] += 0.5 * (np.outer(g, iv.d) + s * G)
         return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
