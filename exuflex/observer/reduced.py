@@ -185,6 +185,24 @@ class _Held:
         self.rows, self.secant_rows = {}, {}
 
 
+class _Pairs:
+    """Float pairs appended one at a time and kept as doubles, 16 bytes a pair (a list of tuples of floats takes
+    about 120): a record that grows with a long log's refreshes."""
+
+    def __init__(self):
+        self._a = array("d")
+
+    def append(self, pair: tuple[float, float]) -> None:
+        self._a.extend(pair)
+
+    def __len__(self) -> int:
+        return len(self._a) // 2
+
+    def asarray(self) -> np.ndarray:
+        """A copy, shape (n, 2)."""
+        return np.array(self._a, dtype=float).reshape(-1, 2)
+
+
 class ReducedObserverModel:
     """:class:`~exuflex.observer.base.DiscreteModel` of a reduced ERLS model.
 
@@ -294,7 +312,7 @@ class ReducedObserverModel:
         self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
         self._interval_matrices = None
         self.n_jumps = 0
-        self.held_errors: list[tuple[float, float]] = []
+        self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
         self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ configurations
@@ -436,7 +454,7 @@ class ReducedObserverModel:
         the replaced step maps' errors (:meth:`_map_error`: count, median, largest, the last map radius)."""
         out = {"n": len(self.held_errors)}
         if self.held_errors:
-            a = np.asarray(self.held_errors)
+            a = self.held_errors.asarray()
             out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
                        vs_process_noise_median=float(np.nanmedian(a[:, 1])),
                        vs_process_noise_max=float(np.nanmax(a[:, 1])))
