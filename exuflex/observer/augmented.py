@@ -172,7 +172,8 @@ class AugmentedModel:
         The scale is held from the start (or :meth:`reset`) until the first interval whose second-order term in
         the scale over its standard deviation is within this many process-noise standard deviations in every
         state component (module docstring); 1 by default: the term the first-order model leaves out is no
-        larger than the noise the filter adds per interval.
+        larger than the noise the filter adds per interval. While held, the scale's uncertainty enters the
+        interval's process noise (a consider parameter).
 
     Attributes
     ----------
