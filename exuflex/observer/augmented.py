@@ -58,7 +58,7 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import HeldSystem, _jit, held_step, step_jacobian
+from .expansion import HeldSystem, _held_step, _jit, step_jacobian
 from .reduced import _secant_factor
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
@@ -120,9 +120,9 @@ def _scaled_steps(z, u, dl, s, h, n, c, dc, has_old, beta, Mr, Kr, Ca, Gr, dM, d
     out = np.zeros((2, z.shape[0]))
     for k in range(2 if dc != 0.0 else 1):  # dc = 0: the step alone (no derivative asked for)
         a = c if k == 0 else c + dc
-        out[k] = held_step(z, u, dl, s, h, n, has_old, beta, Mr + a * iMr, Kr, Ca + a * iCa, Gr, dM + a * idM, dK,
-                           fg + a * ifg, T2 + a * iT2, V2, C2, old_dM + a * iold_dM, old_dK, old_Ca + a * iold_Ca,
-                           old_Gr, old_fg + a * iold_fg, old_T2 + a * iold_T2, old_V2, old_C2)[0]
+        out[k] = _held_step(z, u, dl, s, h, n, has_old, beta, Mr + a * iMr, Kr, Ca + a * iCa, Gr, dM + a * idM, dK,
+                            fg + a * ifg, T2 + a * iT2, V2, C2, old_dM + a * iold_dM, old_dK, old_Ca + a * iold_Ca,
+                            old_Gr, old_fg + a * iold_fg, old_T2 + a * iold_T2, old_V2, old_C2)[0]
     return out
 
 

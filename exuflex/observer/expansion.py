@@ -71,18 +71,23 @@ try:  # numba is a core dependency; without it the kernels run as plain (slow) P
     import numba.extending
 
     def _jit(f):
-        return numba.njit(cache=True, nogil=True, error_model="numpy")(f)
+        return numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(f)
 
     def _shared(f):
         """Plain NumPy function outside compiled code, compiled inline where a kernel calls it."""
         return numba.extending.register_jitable(f)
+
+    def _inline(f):
+        """A helper compiled into each kernel that calls it (numba's ``inline="always"``), not as a kernel of its
+        own: a separately compiled kernel is compiled once on its own and optimised again inside every caller."""
+        return numba.njit(inline="always", nogil=True, error_model="numpy", no_cfunc_wrapper=True)(f)
 
 except ImportError:  # pragma: no cover
 
     def _jit(f):
         return f
 
-    _shared = _jit
+    _shared = _inline = _jit
 
 
 @_shared
@@ -238,7 +243,7 @@ def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
     return f
 
 
-@_jit
+@_inline
 def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     """``M_r``, ``K_r`` of the held model at ``q0 + dl``: gradients at ``q0`` and, with a secant partner, half the
     change of the gradients along the secant (``s = (dl . d) / (d . d)``, ``d = q0 - q_old``): second order."""
@@ -269,7 +274,7 @@ def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     return Mr, Kr
 
 
-@_jit
+@_inline
 def _system(dl, s, hs):  # pragma: no cover - compiled
     """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
     Mr, Kr = _mass_stiffness(dl, s, hs)
@@ -314,17 +319,35 @@ def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2,
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                                            old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
-    ``(z_next, F, M_r, K_r, C_r, G_r)``."""
+    ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
+    then serves :func:`held_step` and :func:`held_system` too (see :func:`_inline` for why one)."""
     z_next, Mr_, Kr_, Cr_, Gr_ = _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
                                             C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2)
-    return z_next, _step_jacobian(z, Ts, Vs, C3, Pn, SQM), Mr_, Kr_, Cr_, Gr_
+    F = np.empty((0, 0))
+    if Pn.shape[0]:
+        F = _step_jacobian(z, Ts, Vs, C3, Pn, SQM)
+    return z_next, F, Mr_, Kr_, Cr_, Gr_
 
 
-def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
-    """:func:`_system` (call with ``*system``, see :func:`_held_step`)."""
-    return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
-                                     old_Gr, old_fg, old_T2, old_V2, old_C2))
+def held_step(z, u, dl, s, h, n, *system):
+    """One interval of the cached step (:func:`_held_step`): ``(z_next, M_r, K_r, C_r, G_r)``. Called with
+    ``*system`` (:class:`HeldSystem`); through :func:`held_interval` without the Jacobian."""
+    z_next, _, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, h, n, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR, _NO_MATRIX,
+                                              _NO_MATRIX, *system)
+    return z_next, Mr, Kr, Cr, Gr
+
+
+def held_system(dl, s, *system):
+    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl`` (:func:`_system`; call with ``*system``): through
+    :func:`held_interval` with no sub-step and no Jacobian."""
+    hs = HeldSystem(*system)
+    r, nu = hs.Gr.shape
+    return held_interval(np.zeros(2 * r), np.zeros(nu), dl, s, 0.0, 0, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR,
+                         _NO_MATRIX, _NO_MATRIX, *system)[2:]
+
+
+_NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
+_NO_MATRIX = np.empty((0, 0))
 
 
 def _secant_rows(c0, Hm, dH, s, x, y, H):  # pragma: no cover - compiled
@@ -579,13 +602,11 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
 
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
-_rk4_linear = _jit(_rk4_linear)
-_quadratic_forces = _jit(_quadratic_forces)
-_held_step = _jit(_held_step)
-held_step = _held_step
-held_system = _jit(_held_system)
-_step_jacobian = _jit(_step_jacobian)
-step_jacobian = _step_jacobian
+_rk4_linear = _inline(_rk4_linear)
+_quadratic_forces = _inline(_quadratic_forces)
+_held_step = _inline(_held_step)
+step_jacobian = _jit(_step_jacobian)
+_step_jacobian = _inline(_step_jacobian)
 held_interval = _jit(_held_interval)
 secant_rows = _jit(_secant_rows)
 prediction_error = _jit(_prediction_error)
@@ -618,7 +639,6 @@ def warm_up() -> None:
         prediction_error(dl, 0.0, M, M, *hs)
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
-    step_jacobian(z, *jac)
     secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), 0.0, z, np.empty(1), np.empty((1, 2 * r)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))

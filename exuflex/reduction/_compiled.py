@@ -272,7 +272,7 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
 
 
 if HAVE_NUMBA:
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
     _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
     _w_product = _inline(_w_product)
     _t_product = _inline(_t_product)
