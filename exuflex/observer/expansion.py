@@ -293,15 +293,9 @@ def _system(dl, s, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr
 
 
-def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
-    """One interval of the cached step: the model at ``q0 + dl`` (:func:`_system`, the forces along the secant)
-    advanced by ``n`` RK4 sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the
-    held ``M_r`` is not positive definite there. The held system's arrays are passed one by one (their names are
-    :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
-    of a tuple of arrays."""
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2)
+def _held_model(z, dl, s, hs):  # pragma: no cover - compiled
+    """The held model at ``q0 + dl`` (:func:`_system`) and the forces at ``z`` along the secant:
+    ``(M_r, K_r, C_r, G_r, f)``."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     p = z[:r]
@@ -312,17 +306,33 @@ def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2,
         fo = _quadratic_forces(p, pd, nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2)
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-    z_next = _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n)
-    return z_next, Mr, Kr, Cr, Gr
+    return Mr, Kr, Cr, Gr, f
+
+
+def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """One interval of the cached step: the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
+    sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the held ``M_r`` is not
+    positive definite there. The held system's arrays are passed one by one (their names are
+    :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
+    of a tuple of arrays."""
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    Mr, Kr, Cr, Gr, f = _held_model(z, dl, s, hs)
+    return _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                                            old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
-    then serves :func:`held_step` and :func:`held_system` too (see :func:`_inline` for why one)."""
-    z_next, Mr_, Kr_, Cr_, Gr_ = _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
-                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2)
+    then serves :func:`held_step` and :func:`held_system` too (see :func:`_inline` for why one). The helpers are
+    called here directly rather than through :func:`_held_step`: numba copies an inlined helper's whole code once
+    per block, so one large helper costs far more to inline than its parts."""
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, hs)
+    z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:
         F = _step_jacobian(z, Ts, Vs, C3, Pn, SQM)
@@ -604,6 +614,7 @@ _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _inline(_rk4_linear)
 _quadratic_forces = _inline(_quadratic_forces)
+_held_model = _inline(_held_model)
 _held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
 _step_jacobian = _inline(_step_jacobian)

@@ -35,22 +35,17 @@ __all__ = ["apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update"
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
-    # a helper compiled into each kernel that calls it rather than as a kernel of its own, which numba would
-    # compile once on its own and optimise again inside every caller
-    _inline = numba.njit(inline="always", nogil=True, error_model="numpy", no_cfunc_wrapper=True)
 else:  # pragma: no cover
 
     def _jit(f):
         return f
-
-    _inline = _jit
 
 #: the decorator of the filter's compiled code (also :class:`.ekf.ChannelMonitor`'s window arithmetic)
 jit = _jit
 
 
 # --------------------------------------------------------------------------------------------- helpers
-@_inline
+@_jit
 def _cholesky_solve(S, sol, U):
     """Solve ``S X = sol`` in place through the Cholesky factor ``S = U' U`` of the upper triangle of ``S``.
 
@@ -201,7 +196,7 @@ def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
     return nis
 
 
-@_inline
+@_jit
 def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
     """Measurement update (eqs. 14-15), Joseph form.
 
@@ -270,7 +265,7 @@ def update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out):
     return apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out), True
 
 
-@_inline
+@_jit
 def fix_cov(P, floor):
     """Symmetrise ``P`` in place, ``(P + P') / 2``, and floor its diagonal at ``floor`` (shape (n,)).
 
@@ -362,6 +357,7 @@ def warm_up() -> None:
     HP = np.empty((m, n))
     r = np.empty(m)
     x = np.zeros(n)
+    update(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), x, out)
     predict_update(np.eye(n), P, np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), x, np.ones(m), np.zeros(m), H,
                    np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out, np.zeros(n))
     update_settle(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out,
