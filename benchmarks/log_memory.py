@@ -6,10 +6,12 @@ until ``sensors.csv`` reaches ``--mb`` megabytes; no truth. Each measurement run
 
 - ``read``: :func:`exuflex.runs.read_run` alone, peak traced allocations (``tracemalloc``) and the process's peak
   resident set (``ru_maxrss``) against its resident set before reading;
-- ``observe``: ``exuflex observe models/sixbar.toml RUN --json`` under ``/usr/bin/time -v`` (maximum resident set
-  size, wall time), with ``--observe``;
-- what the observer holds per log row (the filter's per-sample record and the physical estimates), counted from
-  the arrays of a run on the 3 s log.
+- ``observe``: ``exuflex observe models/sixbar.toml RUN --json`` and ``... --out DIR --no-plots --json`` (the
+  estimates streamed to ``estimates.csv``) under ``/usr/bin/time -v`` (maximum resident set size, wall time),
+  with ``--observe``; the same on the 3 s log, the process's size without a long log;
+- what ``observe`` holds per log row (the log, what :func:`exuflex.observer.session.observe_run` keeps of the
+  filtered record) and per chunk of :data:`~exuflex.observer.session.CHUNK_ROWS` rows, counted from the arrays
+  of a run on the 3 s log, beside the filter's whole record (``keep="all"``, the library's default).
 
 Usage: ``python benchmarks/log_memory.py [--mb 200] [--observe] [--keep DIR]``.
 """
@@ -98,9 +100,11 @@ def measure_read(run_dir: Path) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def measure_observe(run_dir: Path) -> dict:
+def measure_observe(run_dir: Path, out: Path | None = None) -> dict:
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "exuflex", "observe", str(MODEL), str(run_dir), "--json"]
+    if out is not None:
+        cmd += ["--out", str(out), "--no-plots"]
     p = subprocess.run(cmd, capture_output=True, text=True, env=env)
     rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", p.stderr)
     wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([0-9:.]+)", p.stderr)
@@ -110,28 +114,38 @@ def measure_observe(run_dir: Path) -> dict:
             "stderr_tail": tail}
 
 
-def record_bytes_per_sample() -> dict:
-    """Bytes per log row of what ``observe`` holds besides the log, counted from the arrays of a run of the
-    observer on the 3 s log (they grow linearly with the rows): the filter's per-sample record
-    (:class:`exuflex.observer.ekf.EstimationResult`) and the physical estimates."""
+def record_bytes_per_sample() -> tuple[dict, dict]:
+    """Bytes per log row of what ``observe`` holds besides the process itself, counted from the arrays of runs of
+    the observer on the 3 s log (they grow linearly with the rows): the log, what the command line keeps of the
+    filtered record, and the filter's whole record (``keep="all"``); and the bytes of one chunk of the streamed
+    path (a constant)."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, observe_run
+    from exuflex.observer.output import EstimatesTable
+    from exuflex.observer.session import CHUNK_ROWS, ObserverConfig, estimate_chunks, make_observer, observe_run
     from exuflex.runs import read_run
 
     mech = load_mechanism(MODEL)
     run = read_run(SOURCE_RUN)
-    out = observe_run(mech, run, ObserverConfig())
-    res = out.estimate.result
-    n = len(res.t)
-    parts = {"log (sensors.csv as float64)": run.sensors.data.nbytes + run.sensors.t.nbytes}
-    for name in ("x_hat", "P", "innovations", "S", "nis", "nis_dof"):
-        a = getattr(res, name, None)
-        if a is not None:
-            note = " (observe keeps it only with --out or --smooth)" if name == "P" else ""
-            parts[f"filter record: {name} {tuple(a.shape[1:])}{note}"] = a.nbytes
-    phys = out.estimate.physical
-    parts[f"physical estimates ({len(phys.names)} columns)"] = phys.data.nbytes
-    return {k: v / n for k, v in parts.items()}
+    n = len(run.sensors.t)
+    obs = make_observer(mech, ObserverConfig())
+    obs.ekf.store_P = "none"
+    lean = observe_run(mech, run, ObserverConfig(), observer=obs, keep="summary", with_bound=False).estimate
+    parts = {"log (sensors.csv as float64)": run.sensors.data.nbytes + run.sensors.t.nbytes,
+             "kept: NIS and its degrees of freedom": lean.result.nis.nbytes + lean.result.nis_dof.nbytes}
+    phys = lean.physical  # the 3 s log has a truth: kept for its errors
+    parts[f"kept with a truth or figures: physical estimates ({len(phys.names)} columns)"] = phys.data.nbytes
+    obs.ekf.store_P = "diag"
+    full = observe_run(mech, run, ObserverConfig(), observer=obs, keep="all", with_bound=False).estimate.result
+    whole = sum(getattr(full, a).nbytes for a in ("x_hat", "P", "innovations", "S", "nis", "nis_dof"))
+    parts["not kept: the filter's whole record, keep='all' (estimates, P diagonal, innovations, S, NIS)"] = whole
+    per_row = {k: v / n for k, v in parts.items()}
+    obs.ekf.store_P = "full"  # --out: the full covariance of a chunk, for the tip's standard deviations
+    S = run.sensors
+    ch = next(estimate_chunks(obs, S.t, S.select(run.motors).data, S.select(obs.channels).data, innovations=False))
+    table = EstimatesTable(mech, obs).rows(ch.physical, ch.result.x_hat, ch.result.P)
+    rec = ch.result
+    one = sum(a.nbytes for a in (rec.x_hat, rec.P, rec.nis, rec.nis_dof, ch.physical.data, table.data)) / len(rec.t)
+    return per_row, {"rows": CHUNK_ROWS, "bytes_per_row": one, "bytes": one * CHUNK_ROWS}
 
 
 def main(argv=None) -> int:
@@ -145,8 +159,12 @@ def main(argv=None) -> int:
     try:
         made = make_log(tmp, args.mb)
         rd = measure_read(tmp)
-        obs = measure_observe(tmp) if args.observe else None
-        per_row = record_bytes_per_sample()
+        obs = small = None
+        if args.observe:
+            small = {"json": measure_observe(SOURCE_RUN),
+                     "out": measure_observe(SOURCE_RUN, Path(tempfile.mkdtemp(prefix="exuflex_est_")) / "o")}
+            obs = {"json": measure_observe(tmp), "out": measure_observe(tmp, tmp / "estimates_out")}
+        per_row, chunk = record_bytes_per_sample()
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -171,22 +189,28 @@ def main(argv=None) -> int:
         f"{(rd['maxrss_after_kb'] - rd['maxrss_before_kb']) * 1e3 / made['bytes']:.2f} x the file) |",
     ]
     if obs is not None:
-        lines.append(f"| `exuflex observe ... --json`: maximum resident set size, wall time (exit {obs['exit']}) | "
-                     f"{obs['maxrss_kb'] / 1e3:.0f} MB ({obs['maxrss_kb'] * 1e3 / made['bytes']:.2f} x the file), "
-                     f"{obs['wall_s']:.0f} s |")
+        for key, what in (("json", "`exuflex observe MODEL RUN --json`"),
+                          ("out", "`exuflex observe MODEL RUN --json --out DIR --no-plots` (estimates.csv streamed)")):
+            o, s0 = obs[key], small[key]
+            lines.append(f"| {what}: maximum resident set size, wall time (exit {o['exit']}) | "
+                         f"{o['maxrss_kb'] / 1e3:.0f} MB (**{o['maxrss_kb'] * 1e3 / made['bytes']:.2f} x the file**), "
+                         f"{o['wall_s']:.0f} s; on the 3 s log {s0['maxrss_kb'] / 1e3:.0f} MB |")
     row_bytes = made["bytes"] / made["rows"]
     lines += ["", f"What `observe` holds per log row besides the process itself (the text is {row_bytes:.0f} bytes a "
-              "row), counted from the arrays of a run on the 3 s log:", "", "| array | bytes per row | x the text |",
-              "|---|---|---|"]
+              "row), counted from the arrays of runs on the 3 s log; the log is filtered "
+              f"{chunk['rows']} rows at a time and only the rows marked kept grow with it:", "",
+              "| array | bytes per row | x the text |", "|---|---|---|"]
     for k, v in per_row.items():
         lines.append(f"| {k} | {v:.0f} | {v / row_bytes:.2f} |")
-    tot = sum(per_row.values())
-    lines.append(f"| total | {tot:.0f} | {tot / row_bytes:.2f} |")
-    lines += ["", "Figures of one run on a shared machine; memory figures do not depend on its load.", ""]
+    lines += ["", f"One chunk of {chunk['rows']} rows with `--out` (its record with the full covariance, physical "
+              f"estimates and table): {chunk['bytes_per_row']:.0f} bytes a row, {chunk['bytes'] / 1e6:.1f} MB, "
+              "whatever the log's length.",
+              "", "Figures of one run on a shared machine; memory figures do not depend on its load.", ""]
     Path(args.doc).write_text("\n".join(lines))
     print("\n".join(lines))
-    if obs is not None and obs["exit"] != 0:
-        print("observe stderr:", *obs["stderr_tail"], sep="\n")
+    for o in (obs or {}).values():
+        if o["exit"] != 0:
+            print("observe stderr:", *o["stderr_tail"], sep="\n")
     return 0
 
 

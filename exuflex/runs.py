@@ -40,6 +40,7 @@ from .sensors import Signals
 __all__ = [
     "FORMAT",
     "Run",
+    "SignalsCsvWriter",
     "atomic_write_bytes",
     "atomic_write_text",
     "DELIMITER_NAMES",
@@ -127,12 +128,66 @@ def _fmt(x: float) -> str:
     return "" if math.isnan(x) else repr(float(x))
 
 
+class SignalsCsvWriter:
+    """A CSV of ``time`` plus the channels ``names`` written a block of rows at a time (:meth:`write`), as
+    :func:`write_signals_csv` writes a whole table (full precision, NaN as an empty cell, the same bytes),
+    atomically: the rows go to a temporary file beside ``path`` that :meth:`close` flushes to disk and renames
+    over it; :meth:`abort` (or leaving the ``with`` block by an exception) removes it and leaves ``path`` as it
+    was. Only the block being written is held in memory."""
+
+    def __init__(self, path: str | os.PathLike, names: Sequence[str]):
+        self.path = Path(path)
+        self.names = tuple(names)
+        fd, self._tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+        try:
+            os.fchmod(fd, _FILE_MODE)  # mkstemp's 0600 would make results unreadable to others
+            self._f = os.fdopen(fd, "w", encoding="utf-8", newline="\n")
+        except BaseException:
+            os.close(fd)
+            os.unlink(self._tmp)
+            raise
+        self._f.write(",".join((TIME,) + self.names) + "\n")
+
+    def write(self, sig: Signals) -> None:
+        """Append the rows of ``sig`` (its channels must be ``names``, in order)."""
+        if sig.names != self.names:
+            raise ValueError(f"{self.path}: rows with channels {sig.names}, the file has {self.names}")
+        for a in range(0, len(sig.t), 4096):  # the text of a few thousand rows at a time
+            self._f.write("".join(",".join([repr(float(sig.t[k]))] + [_fmt(v) for v in sig.data[k]]) + "\n"
+                                  for k in range(a, min(a + 4096, len(sig.t)))))
+
+    def close(self) -> None:
+        """Flush the file to disk and rename it over ``path``."""
+        try:
+            self._f.flush()
+            os.fsync(self._f.fileno())
+            self._f.close()
+            os.replace(self._tmp, self.path)
+        except BaseException:
+            self.abort()
+            raise
+
+    def abort(self) -> None:
+        """Remove the temporary file (``path`` is left as it was)."""
+        self._f.close()
+        if os.path.exists(self._tmp):
+            os.unlink(self._tmp)
+
+    def __enter__(self) -> SignalsCsvWriter:
+        return self
+
+    def __exit__(self, kind, exc, tb) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+
 def write_signals_csv(path: str | os.PathLike, sig: Signals) -> None:
-    """Write ``time`` plus the channels of ``sig`` as CSV (full precision; NaN as an empty cell)."""
-    lines = [",".join((TIME,) + sig.names)]
-    for k in range(len(sig.t)):
-        lines.append(",".join([repr(float(sig.t[k]))] + [_fmt(v) for v in sig.data[k]]))
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    """Write ``time`` plus the channels of ``sig`` as CSV (full precision; NaN as an empty cell), atomically
+    (:class:`SignalsCsvWriter`)."""
+    with SignalsCsvWriter(path, sig.names) as w:
+        w.write(sig)
 
 
 def package_versions() -> dict[str, str | None]:

@@ -342,7 +342,8 @@ def true_states(mech: Mechanism, record: ProbeRecord, *, kinematics: Kinematics 
 
 
 def absolute_tip(
-    mech: Mechanism, signals: Signals, *, kinematics: Kinematics | None = None, on_error: str = "raise"
+    mech: Mechanism, signals: Signals, *, kinematics: Kinematics | None = None, on_error: str = "raise",
+    carry: dict | None = None,
 ) -> Signals:
     """Absolute tip position and velocity (rigid + elastic) of true or estimated states.
 
@@ -368,6 +369,10 @@ def absolute_tip(
         A sample whose closure cannot be solved, or whose closure Jacobian is singular or near it (condition
         number above ``kinematics.cond_max``, as :meth:`Kinematics.pose`), raises
         :class:`~exuflex.erls.kinematics.KinematicsError` (``"raise"``) or is NaN (``"nan"``).
+    carry : dict, optional
+        For successive blocks of rows of one record: a dict passed to every call (empty at the first) that
+        carries the solver and its warm start from one block to the next, so that the blocks give the numbers
+        of one call on the whole record.
 
     Returns
     -------
@@ -398,10 +403,13 @@ def absolute_tip(
     ex, ey = tip_dof_names(mech)
     X = signals.select(qn + tuple("d" + n for n in qn) + (ex, ey, "d" + ex, "d" + ey)).data
     t = np.asarray(signals.t, float)
-    kin = kinematics if kinematics is not None else Kinematics(mech)
     out = np.full((len(t), 4), np.nan)
-    kin.reset_warm_start()  # the first sample from the initial guess: the result must not depend on kin's history
-    z = None
+    if carry is not None and "kin" in carry:  # a later block of the record: go on where the last one ended
+        kin, z = carry["kin"], carry["z"]
+    else:
+        kin = kinematics if kinematics is not None else Kinematics(mech)
+        kin.reset_warm_start()  # the first sample from the initial guess: the result must not depend on kin's history
+        z = None
     for k in np.flatnonzero(np.all(np.isfinite(X), axis=1)):
         try:
             pose = kin.pose(X[k, :nq], z)
@@ -414,6 +422,8 @@ def absolute_tip(
         p, dp = kin.point(pose, link, station)
         out[k, :2] = p + X[k, 2 * nq : 2 * nq + 2]
         out[k, 2:] = dp @ X[k, nq : 2 * nq] + X[k, 2 * nq + 2 :]
+    if carry is not None:
+        carry["kin"], carry["z"] = kin, z
     return Signals(t, ABSOLUTE_TIP_NAMES, out, ABSOLUTE_TIP_UNITS)
 
 

@@ -171,8 +171,8 @@ def check_log(
                 f"resample the log, or set model.sample_rate_hz in {mech.source or mech.name}"
             )
         with np.errstate(over="ignore", invalid="ignore"):  # absurd time columns are reported just below
-            k_rel = (t - t[0]) / dt
-        if not np.isfinite(k_rel[-1]) or k_rel[-1] > 1e9:
+            k_last = (t[-1] - t[0]) / dt
+        if not np.isfinite(k_last) or k_last > 1e9:
             raise LogFormatError(
                 f"{source}: the time column spans {f(t[-1] - t[0])!r} s, more than 1e9 samples of {dt:g} s; "
                 "expected seconds from the start of the log (--time-scale converts other units)"
@@ -182,13 +182,22 @@ def check_log(
                 f"{source}: time stamps start at {f(t[0])!r} s; at that size they cannot resolve the {dt:g} s "
                 "grid (epoch times?): write the time relative to the start of the log"
             )
-        # sample indices: every step a whole number of intervals of the log's own clock (jitter < dt / 2)
-        kk = np.concatenate([[0.0], np.cumsum(np.maximum(1.0, np.rint(steps / (med / mult))))])
+        # sample indices: every step a whole number of intervals of the log's own clock (jitter < dt / 2); in
+        # place, one array of the log's length at a time beside the clock fit's (a long log's memory)
+        np.divide(steps, med / mult, out=steps)
+        np.rint(steps, out=steps)
+        np.maximum(steps, 1.0, out=steps)
+        kk = np.empty(n)
+        kk[0] = 0.0
+        np.cumsum(steps, out=kk[1:])
+        del steps
         A = np.column_stack([np.ones(n), kk])
         coef = np.linalg.lstsq(A, t, rcond=None)[0]
         rep.clock_interval_s = float(coef[1])
         rep.clock_drift_ppm = float((coef[1] / dt - 1) * 1e6)
-        resid = t - A @ coef
+        resid = A @ coef
+        del A
+        np.subtract(t, resid, out=resid)
         rep.jitter_rms_s = float(np.sqrt(np.mean(resid**2)))
         rep.jitter_max_s = float(np.max(np.abs(resid)))
         if rep.jitter_max_s > JITTER_TOL * dt:
@@ -238,20 +247,19 @@ def check_log(
         rep.interval_s = mult * dt  # nominal: the clock's own interval is clock_interval_s
     else:
         rep.sample_index = np.zeros(1, np.int64)
-    U = sensors.select(motors).data if motors else np.zeros((n, 0))
-    Y = sensors.select(channels).data if channels else np.zeros((n, 0))
-    for j, c in enumerate(motors):
-        col = U[:, j]
+    # the columns as views of the log, one at a time (a long log's memory: never a copy of a whole selection)
+    U = [sensors[c] for c in motors]
+    Y = [sensors[c] for c in channels]
+    for c, col in zip(motors, U, strict=True):
         if np.isinf(col).any():
             k = int(np.flatnonzero(np.isinf(col))[0])
             raise LogFormatError(f"{source}: {_row_line(k)}, torque {c!r}: {f(col[k])!r} is not a finite number")
         if np.isnan(col).all():
             raise LogFormatError(f"{source}: torque column {c!r} has no sample (the observer's input)")
-    rep.held_torques = int(np.isnan(U).sum())
+    rep.held_torques = int(sum(np.count_nonzero(np.isnan(col)) for col in U))
     if rep.held_torques:
         rep.warnings.append(f"{rep.held_torques} empty torque cell(s), held at the previous value")
-    for j, c in enumerate(channels):
-        col = Y[:, j]
+    for c, col in zip(channels, Y, strict=True):
         if np.isinf(col).any():
             k = int(np.flatnonzero(np.isinf(col))[0])
             raise LogFormatError(
@@ -262,11 +270,10 @@ def check_log(
         fs = {s.name: s.full_scale for s in mech.sensors}
         fs.update({m.name: m.full_scale for m in mech.motors})
         for names_, block in ((motors, U), (channels, Y)):
-            for j, c in enumerate(names_):
+            for c, col in zip(names_, block, strict=True):
                 lim = fs.get(c)
                 if not lim:
                     continue
-                col = block[:, j]
                 over = np.flatnonzero(np.abs(np.nan_to_num(col)) > lim * (1 + 1e-9))
                 if len(over):
                     k = int(over[0])
@@ -275,13 +282,19 @@ def check_log(
                         f"+-{lim:g} (model file: full_scale); a glitch, or wrong units (degrees? mm?)"
                     )
     if channels:
-        present = np.isfinite(Y)
+        any_present = np.zeros(n, dtype=bool)
         span = float(t[-1] - t[0]) if n > 1 else 0.0
-        for j, c in enumerate(channels):
-            rows = np.flatnonzero(present[:, j])
+        never_: list[str] = []
+        for c, col in zip(channels, Y, strict=True):
+            present = np.isfinite(col)
+            any_present |= present
+            rows = np.flatnonzero(present)
+            del present
             rep.channel_rate_hz[c] = float((len(rows) - 1) / span) if span > 0 and len(rows) > 1 else 0.0
             rep.channel_every[c] = int(np.median(np.diff(rows))) if len(rows) > 1 else 0
-        never = tuple(c for j, c in enumerate(channels) if not present[:, j].any())
+            if not len(rows):
+                never_.append(c)
+        never = tuple(never_)
         rep.never_sampled = never
         if never:
             if len(never) == len(channels):
@@ -289,7 +302,7 @@ def check_log(
                     f"{source}: none of the observer's channels {list(channels)} has a sample"
                 )
             rep.warnings.append(f"channel(s) {list(never)} never sampled (the observer runs without them)")
-        rep.n_empty_rows = int((~present.any(axis=1)).sum())
+        rep.n_empty_rows = int(n - np.count_nonzero(any_present))
         if rep.n_empty_rows:
             rep.warnings.append(f"{rep.n_empty_rows} row(s) without any sensor sample (prediction only)")
     return rep

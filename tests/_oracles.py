@@ -21,6 +21,10 @@ def numpy_filter(model, channels, R_std, x0, P0, t, U, Y, p_floor=1e-18):
     X, Ps, N = np.empty((len(t), nx)), np.empty((len(t), nx, nx)), np.full(len(t), np.nan)
     if hasattr(model, "reset"):
         model.reset()
+    watched = getattr(model, "state_cov", None)
+    cov = [P]
+    if hasattr(model, "watch_covariance"):  # the model measures its approximations against this filter's P
+        model.watch_covariance(lambda: cov[0])
     for k in range(len(t)):
         if k:
             x, F, Q = model.predict(x, None if U is None else U[k - 1], t[k] - t[k - 1],
@@ -40,6 +44,9 @@ def numpy_filter(model, channels, R_std, x0, P0, t, U, Y, p_floor=1e-18):
         P = 0.5 * (P + P.T)
         np.fill_diagonal(P, np.maximum(np.diag(P), p_floor))
         X[k], Ps[k] = x, P
+        cov[0] = P
+    if hasattr(model, "watch_covariance"):
+        model.watch_covariance(watched)
     return X, Ps, N
 
 

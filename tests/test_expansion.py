@@ -257,3 +257,76 @@ def test_a_stiff_reduced_model_is_refused_naming_its_mode():
     tight = ReducedObserverModel(cb, min_substep=1e-4)
     with pytest.raises(ValueError, match=r"stiffest mode .* Hz"):
         tight.frozen_interval(z, None, 1e-3)
+
+
+def _map_copy(sm, **change):
+    """A copy of a step map with some of its arrays replaced."""
+    from dataclasses import replace
+
+    out = replace(sm, **change)
+    out.q_list = out.q.tolist()
+    return out
+
+
+def test_map_error_is_the_relative_change_of_the_predicted_standard_deviations(sixbar_observer_state):
+    """The step map's error (:meth:`ReducedObserverModel._map_error`) against its definition: zero for the same
+    map, linear in a small change of the state map, and for a process-noise change alone half the largest relative
+    change of a predicted variance (the first-order change of a standard deviation)."""
+    som, iv, z, _ = sixbar_observer_state
+    sm = iv.map
+    assert sm is not None and som.state_cov is not None
+    assert som._map_error(iv, z, sm, sm) == 0.0
+    rng = np.random.default_rng(3)
+    D = rng.standard_normal(sm.Pn.shape) * 1e-6
+    e1 = som._map_error(iv, z, _map_copy(sm, Pn=sm.Pn + D), sm)
+    e2 = som._map_error(iv, z, _map_copy(sm, Pn=sm.Pn + 2 * D), sm)
+    assert e1 > 0 and e2 == pytest.approx(2 * e1, rel=1e-9)  # sqrt((E P E')_ii) is homogeneous in E
+    dq = np.zeros(som.nx)
+    dq[5] = 0.1 * sm.Q[5, 5]
+    old = _map_copy(sm, Q=sm.Q + np.diag(dq))
+    P = som.state_cov()
+    F = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S)
+    var = np.diag(F @ P @ F.T + sm.Q)
+    assert som._map_error(iv, z, old, sm) == pytest.approx(0.5 * dq[5] / var[5], rel=1e-12)
+
+
+def test_map_radius_keeps_the_map_error_at_its_tolerance(sixbar_observer_state):
+    """The next map radius is ``remap_tol dist / (2 err)`` (the error linear in the distance, the largest error in
+    use at one radius from the centre, half of it at two), at most doubling, within ``[remap_min, remap_max]``."""
+    som, iv, _, _ = sixbar_observer_state
+    sm = iv.map
+    saved = som.map_rad
+    try:
+        far = _map_copy(sm, q=sm.q + np.array([4e-3, -1e-3, 0.0][: som.nq]))
+        som.map_rad = 2e-3
+        som._map_radius(sm, far, 2 * som.remap_tol)  # twice the tolerance over 4 mrad: a 1 mrad radius
+        assert som.map_rad == pytest.approx(1e-3)
+        som._map_radius(sm, far, 1e-3 * som.remap_tol)  # a tiny error: at most doubling
+        assert som.map_rad == pytest.approx(2e-3)
+        som._map_radius(sm, far, 0.0)
+        assert som.map_rad == pytest.approx(4e-3)
+        som._map_radius(sm, far, 1e6)
+        assert som.map_rad == som.remap_min
+        som.map_rad = som.remap_max
+        som._map_radius(sm, far, 0.0)
+        assert som.map_rad == som.remap_max
+    finally:
+        som.map_rad = saved
+
+
+def test_refresh_radius_keeps_the_held_models_error_at_its_tolerance(sixbar_observer_state):
+    """The refresh radius law: an error growing as ``dist^p`` is kept at ``tol`` by ``0.9 dist (tol/err)^(1/p)``,
+    at most twice the last radius, within ``[refresh_min, refresh_max]``; at a refresh the smaller of the radii of
+    the two targets (held matrices, held model's state error against the filter's deviations) is held."""
+    som, iv, z, u = sixbar_observer_state
+    old = iv
+    saved = old.rad
+    try:
+        old.rad = 1e-2
+        assert som._radius(old, 8e-3, 8 * 0.3, 0.3, 3.0) == pytest.approx(0.9 * 8e-3 / 2)
+        assert som._radius(old, 8e-3, 4 * 0.3, 0.3, 2.0) == pytest.approx(0.9 * 8e-3 / 2)
+        assert som._radius(old, 8e-3, 1e-12, 0.3, 3.0) == pytest.approx(2e-2)  # at most doubling
+        assert som._radius(old, 8e-3, 0.0, 0.3, 3.0) == pytest.approx(2e-2)
+        assert som._radius(old, 8e-3, 1e9, 0.3, 3.0) == som.refresh_min
+    finally:
+        old.rad = saved

@@ -143,11 +143,8 @@ def _benchmark():
 
 # Gallery models that do not meet issue 15's acceptance with the observer as it is (measured with
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
-# the filter core and the reduction of issue 15 are done.
-KNOWN_SHORT = {
-    "slider_crank": "seeds 2 and 3: the default path's q1 RMS error 0.89x and 0.86x the rk4 reference's (outside "
-                    "10 %)",
-}
+# the filter core and the reduction of issue 15 are done. None at present.
+KNOWN_SHORT: dict[str, str] = {}
 
 
 @pytest.mark.slow

@@ -467,6 +467,8 @@ def test_the_held_models_error_is_measured_against_the_filters_uncertainty():
     som = obs.model
     summ = som.held_error_summary()
     assert summ["n"] == len(som.held_errors) > 0 and np.isfinite(summ["vs_std_max"])
+    assert summ["map_n"] == len(som.map_errors) > 0 and summ["map_error_max"] >= summ["map_error_median"] > 0
+    assert som.remap_min <= summ["map_radius"] <= som.remap_max
     iv = som._last
     z = obs.ekf.x
     same = som._held_error(iv, 0.0, iv, z, _hold(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)

@@ -119,3 +119,22 @@ def test_cli_simulate_records_truth_options(tmp_path):
 def test_cli_rejects_bad_mesh_argument(capsys):
     assert main(["simulate", str(MODELS / "fourbar.toml"), "--out", "x", "--elements-per-link", "0"]) == 2
     assert "expected a positive integer or 'file', got '0'" in capsys.readouterr().err
+
+
+def test_default_exudyn_mesh_is_never_coarser_than_the_model_file(tmp_path):
+    """The default Exudyn mesh (:func:`exuflex.truth.exudyn_mesh`) gives every link at least 4 elements and at
+    least as many as the model file's most refined link (the slider-crank's rod: 8); a default run records it."""
+    from exuflex.groundtruth import link_mesh_stations
+    from exuflex.truth import EXUDYN_ELEMENTS_PER_LINK, exudyn_mesh
+
+    for path in sorted(MODELS.glob("*.toml")):
+        mech = load_mechanism(path)
+        n = exudyn_mesh(mech)
+        finest = max(len(lk.stations) - 1 for lk in mech.links)
+        assert n == max(EXUDYN_ELEMENTS_PER_LINK, finest), path.name
+        for lk in mech.links:
+            assert len(link_mesh_stations(mech, lk.name, n)) - 1 >= max(n, len(lk.stations) - 1), (path.name, lk.name)
+    out = tmp_path / "slider"
+    assert main(["simulate", str(MODELS / "slider_crank.toml"), "--out", str(out), "--duration", "0.01", "--seed",
+                 "1"]) == 0
+    assert json.loads((out / "meta.json").read_text())["settings"]["truth"]["elements_per_link"] == 8

@@ -28,8 +28,10 @@ from .args import (
 __all__ = ["FULL_P_BYTES", "add_parser", "run"]
 
 FULL_P_BYTES = 256e6
-"""With ``--out``, the filter keeps its full covariance per sample (for the standard deviations of the tip
-columns) while it takes at most this many bytes; longer logs get the joint angles' and rates' only."""
+"""With ``--out --smooth`` (the whole record in memory), the filter keeps its full covariance per sample (for the
+standard deviations of the tip columns) while it takes at most this many bytes; longer logs get the joint angles'
+and rates' only. Without ``--smooth`` the log is filtered in chunks and ``estimates.csv`` written as it runs: the
+full covariance of one chunk at a time, for any length."""
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -195,7 +197,8 @@ def run(args) -> int:
     from ..mechanism import load_mechanism
     from ..observer.session import make_observer, observe_run
     from ..runs import check_csv_dialect, read_run
-    from ..validate import check_configurations, check_observer_settings, with_noise
+    from ..sensors import default_channels
+    from ..validate import check_configurations, check_observer_settings, check_run, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
@@ -214,6 +217,10 @@ def run(args) -> int:
     log = _read_log(args, mech) if path.is_file() else read_run(path)
     _say(f"read {path}: {len(log.sensors.t)} rows, {float(log.sensors.t[-1] - log.sensors.t[0]):.4g} s")
     mech = run_manoeuvre(mech, log)
+    # the log checked before the model is built: a bad log fails at once, and the check's working arrays (a
+    # few floats a row, all rows at once) are freed before the observer's own memory is taken
+    log_check = check_run(mech, log, tuple(config.channels) if config.channels else default_channels(mech),
+                          dt=config.dt or 1.0 / mech.sample_rate_hz)
     _say("building the reduced model" + ("" if _kernels_cached() else
          " (the first run compiles the numerical kernels: a few minutes, once)"))
     obs = make_observer(mech, config)
@@ -223,11 +230,22 @@ def run(args) -> int:
         q0 = args.q0 if args.q0 is not None else _start_q(mech)
         x0 = obs.model.initial_state(q0, args.qd0)
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
-    if args.out and len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES:
+    if args.out and (not args.smooth or len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES):
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
     elif not args.out and not args.smooth and obs.ekf.model is obs.model:
         obs.ekf.store_P = "none"  # nothing printed reads the per-sample covariance (8 nx bytes a sample)
-    out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth)
+    # what is kept of the filtered record: the physical estimates for the figures (and a truth's errors), else
+    # only what the summary needs; estimates.csv is written as the filter runs (observe_run's memory notes)
+    keep = "all" if args.smooth else "physical" if args.out and not args.no_plots else "summary"
+    if args.out:
+        from ..observer.output import EstimatesWriter
+
+        with EstimatesWriter(args.out, mech, observer=obs) as writer:
+            out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
+                              sink=writer, log_check=log_check)
+    else:
+        out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
+                          log_check=log_check)
     s = out.summary
     if s["diverged"]:
         _say(f"warning: the filter diverged (estimates non-finite) at t = {s['diverged_at']} s")
@@ -238,7 +256,7 @@ def run(args) -> int:
         from ..observer.output import write_outcome
 
         _say(f"writing {args.out}")
-        write_outcome(args.out, mech, log, out, observer=obs)
+        write_outcome(args.out, mech, log, out, observer=obs, estimates=False)
         if not args.no_plots:
             from ..plots import observer_figures
 

@@ -295,6 +295,17 @@ class Kinematics:
         of the solution depend on where it started."""
         self._last = None
 
+    @property
+    def warm_start(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The last solution ``(q, z)`` that :meth:`solve` starts from (None: the initial guess). Saved and set
+        back by a computation that shares this solver with another but must neither disturb nor depend on the
+        other's history (the observer's post-processing of a record between two chunks of its filter run)."""
+        return self._last
+
+    @warm_start.setter
+    def warm_start(self, value: tuple[np.ndarray, np.ndarray] | None) -> None:
+        self._last = value
+
     def start(self, q, z0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(q, z0)``: q checked as a float array and the Newton start of :meth:`solve` (``z0`` if given, else the
         last solution if it lies within 0.5 rad, else :meth:`initial_guess`)."""

@@ -22,17 +22,44 @@ the same evaluation of a twin model whose payload is doubled (:func:`payload_twi
 doubled payload's full-order model). ``dS`` is the analytic derivative ``dS/dtheta``: the payload enters
 linearly (``dM_r/dtheta = A^T diag(m_p, m_p, I_p) A``, :func:`payload_rows`; the tests compare the two).
 Per interval the step is the cached step's RK4 sub-steps of that held system (:func:`scaled_steps`), the
-stiffness, input matrix and geometric terms unchanged. Its derivative in ``theta`` is the forward difference
-of the same compiled step at ``theta + dtheta`` (``dtheta = 1e-4``: the step is smooth in ``theta``, its
-truncation error ``dtheta / 2 d^2x/dtheta^2`` is far below the filter's uncertainty). Its derivative in the
+stiffness, input matrix and geometric terms unchanged. Its derivative in the
 state and the process noise are the nominal step map's where the payload's change of the modal masses,
 ``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
 matrices to (``refresh_tol``); beyond it, the held linear system's maps with ``M_r + (theta - 1) dM_r`` (and the
 damping's increment), rebuilt with the nominal step map or when ``theta`` moved by that tolerance, and the
 force Jacobian with the payload's velocity forms (:meth:`AugmentedModel._scaled_map`). ``theta`` below 0 is taken
-as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite); the derivative there is kept,
-so that the measurements pull the estimate back. For ``hold_s`` seconds from the start the scale is held (its
-Jacobian column zero: see :class:`AugmentedModel`).
+as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite).
+
+The step's derivative in ``theta`` is the forward difference of the same compiled step at ``theta + DTHETA``
+(``DTHETA = 1e-4``: the step is smooth in ``theta``, the truncation error ``DTHETA / 2 d^2x/dtheta^2`` is far
+below the filter's uncertainty).
+
+When the scale starts being learned. The EKF's joint update is consistent while the step's response to the scale
+is close to linear over the scale's uncertainty. With ``x(a)`` the step at the scale ``1 + a``, ``c = theta - 1``
+and ``s`` the scale's standard deviation (the filter's, :meth:`AugmentedModel.watch_covariance`; at most the
+distance to a zero payload),
+
+``e2 = (x(c + s) + x(c - s)) / 2 - x(c)``   (``= s^2 / 2 d^2x/dtheta^2`` to leading order)
+
+is the second-order term the first-order model leaves out. A start that accelerates the links hard while the
+scale is at its prior makes it a hundred to a thousand times the interval's process noise (the six-bar's torque
+pulse), and an EKF learning there attributes the step's curvature to the scale with a confidence it does not
+have: with the payload doubled its estimate stays near the prior at several standard deviations from the truth,
+and keeps part of that bias to the end. So the scale is held (its column of the step Jacobian zero: no
+measurement moves it, no correlation with the states is built; the step uses its current value) from the start
+until the first interval with ``max_i |e2_i| / sqrt(Q_ii) <= linearity_tol`` (default 1: the left-out term within
+one process-noise standard deviation in every state component); from then on it is learned in every interval
+(that interval's column is ``(x(c + s) - x(c - s)) / 2 s``). The test is not applied to every interval: where a
+payload dominates a link's inertia the second-order term grows with the first-order one, so the intervals that
+fail it are the informative ones, and a per-interval hold keeps the scale from being learned at all (the single
+link). A model outside a filter (no covariance watched) is never held.
+
+While held, the scale's uncertainty still enters the states' prediction: the first-order spread of the step over
+``+-s``, ``e1 = (x(c + s) - x(c - s)) / 2``, adds ``e1 e1^T`` to the interval's process noise. This is the
+covariance a parameter of variance ``s^2`` that is considered but not estimated adds to the prediction (the
+Schmidt-Kalman filter's consider parameter, its effect taken as independent between intervals). Without it a
+wrong scale held through a hard start drives the states far outside their covariance, and the scale's first
+updates after the hold overshoot (the single link and the four-bar with their payloads doubled).
 
 With ``method="rk4"`` (the exact reference) the step is RK4 of the nonlinear reduced equations at every stage
 with the matrices and forces of the two models combined the same way.
@@ -58,8 +85,7 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import HeldSystem, _held_step, _jit, step_jacobian
-from .reduced import _secant_factor
+from .expansion import _held_step, _jit, step_jacobian
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
 
@@ -110,19 +136,18 @@ class PayloadIncrement(NamedTuple):
     old_T2: np.ndarray
 
 
-def _scaled_steps(z, u, dl, s, h, n, c, dc, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
+def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
                   old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
                   iold_fg, iold_T2):  # pragma: no cover - compiled
-    """The held step (:func:`.expansion.held_step`) of the system ``S + c dS`` and of ``S + (c + dc) dS``: the
-    states at the interval's end for the payload scale ``1 + c`` and ``1 + c + dc`` (``dc = 0``: the first only,
-    the second row zero). The held arrays come one by one (``*system, *increment``), as the expansion's kernels
-    take them."""
-    out = np.zeros((2, z.shape[0]))
-    for k in range(2 if dc != 0.0 else 1):  # dc = 0: the step alone (no derivative asked for)
-        a = c if k == 0 else c + dc
-        out[k] = _held_step(z, u, dl, s, h, n, has_old, beta, Mr + a * iMr, Kr, Ca + a * iCa, Gr, dM + a * idM, dK,
-                            fg + a * ifg, T2 + a * iT2, V2, C2, old_dM + a * iold_dM, old_dK, old_Ca + a * iold_Ca,
-                            old_Gr, old_fg + a * iold_fg, old_T2 + a * iold_T2, old_V2, old_C2)[0]
+    """The held step (:func:`.expansion.held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
+    row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. The held arrays come one by
+    one (``*system, *increment``), as the expansion's kernels take them."""
+    out = np.empty((a.shape[0], z.shape[0]))
+    for k in range(a.shape[0]):
+        c = a[k]
+        out[k] = _held_step(z, u, dl, s, h, n, has_old, beta, Mr + c * iMr, Kr, Ca + c * iCa, Gr, dM + c * idM, dK,
+                            fg + c * ifg, T2 + c * iT2, V2, C2, old_dM + c * iold_dM, old_dK, old_Ca + c * iold_Ca,
+                            old_Gr, old_fg + c * iold_fg, old_T2 + c * iold_T2, old_V2, old_C2)[0]
     return out
 
 
@@ -143,13 +168,12 @@ class AugmentedModel:
         std of a Gauss-Markov process; None: no disturbance states.
     input_tau : float or None
         Correlation time (s) of the Gauss-Markov disturbance; None: random walk.
-    hold_s : float
-        Seconds of intervals from the start (or :meth:`reset`) during which the payload scale is held: its column
-        of the step Jacobian is zero, so the states and the scale stay uncorrelated and no measurement moves the
-        scale (the step still uses its current value). An EKF's joint state-parameter update during the
-        filter's start-up transient, where the states' errors far exceed their covariance, attributes part of
-        those errors to the parameter with a confidence it does not have; the scale is learned from the
-        consistent part of the record instead.
+    linearity_tol : float
+        The scale is held from the start (or :meth:`reset`) until the first interval whose second-order term in
+        the scale over its standard deviation is within this many process-noise standard deviations in every
+        state component (module docstring); 1 by default: the term the first-order model leaves out is no
+        larger than the noise the filter adds per interval. While held, the scale's uncertainty enters the
+        interval's process noise (a consider parameter).
 
     Attributes
     ----------
@@ -161,17 +185,23 @@ class AugmentedModel:
         Indices of the disturbances in the state.
     twin : ReducedModel or None
         The doubled-payload model on the nominal basis (:func:`payload_twin`).
+    released : bool
+        The scale is learned (the linearity test has passed since the last :meth:`reset`).
+    n_held : int
+        Intervals the scale was held since the last :meth:`reset`.
+    last_linearity : float
+        The last held interval's second-order term over the process noise (the test's left-hand side).
     """
 
     def __init__(self, inner, payload_std: float | None = None, input_std: float | None = None,
-                 input_tau: float | None = None, hold_s: float = 0.0):
+                 input_tau: float | None = None, linearity_tol: float = 1.0):
         if payload_std is None and input_std is None:
             raise ValueError("an augmented model needs payload_std or input_std (or both)")
         for name, v in (("payload_std", payload_std), ("input_std", input_std), ("input_tau", input_tau)):
             if v is not None and not np.all((np.asarray(v, float) > 0) & np.isfinite(v)):
                 raise ValueError(f"{name} must be positive, got {v}")
-        if not (hold_s >= 0 and math.isfinite(hold_s)):
-            raise ValueError(f"hold_s must be a non-negative number of seconds, got {hold_s}")
+        if not linearity_tol > 0:
+            raise ValueError(f"linearity_tol must be positive, got {linearity_tol}")
         self.inner = inner
         self.n0 = inner.nx
         self.r = inner.r
@@ -194,9 +224,11 @@ class AugmentedModel:
             self.i_inputs = slice(n, n + self.nu)
             n += self.nu
         self.nx = n
-        self.hold_s = float(hold_s)
-        self._elapsed = self._start = 0.0  # time at the end and at the start of the current interval
-        self._last_interval = None
+        self.linearity_tol = float(linearity_tol)
+        self._cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
+        self.released = False
+        self.n_held = 0
+        self.last_linearity = math.nan
         self._increments: dict = {}
         self._shares: dict = {}
         self._map = None
@@ -207,14 +239,22 @@ class AugmentedModel:
 
     def reset(self) -> None:
         self.inner.reset()
-        self._elapsed = self._start = 0.0
-        self._last_interval = None
+        self.released = False
+        self.n_held = 0
+        self.last_linearity = math.nan
         self._increments = {}
         self._shares = {}
         self._map = None
         for m in (self.twin, self._plain):
             if m is not None:
                 m.model.kin.reset_warm_start()
+
+    def watch_covariance(self, get_P) -> None:
+        """Give the model the filter's covariance (``get_P()`` returns it, the augmented state's): the payload
+        scale's standard deviation sets the divided differences of the step in the scale, and the inner model
+        measures its held approximations against it (:meth:`.reduced.ReducedObserverModel.watch_covariance`)."""
+        self._cov = get_P
+        self.inner.watch_covariance(get_P)
 
     # ------------------------------------------------------------------ payload terms
     def payload_terms(self, mats) -> tuple[np.ndarray, np.ndarray]:
@@ -265,22 +305,20 @@ class AugmentedModel:
         self._shares[iv.serial] = share
         return inc
 
-    def _scaled_cached(self, z, u, dt, c, fresh, derivative=True):
-        """The cached step at the payload scale ``1 + c`` and its forward difference to ``1 + c + DTHETA`` (module
-        docstring); without ``derivative`` the step alone (the derivative returned as zeros)."""
+    def _scaled_cached(self, z, u, dt, a, fresh):
+        """The cached step at the payload scales ``1 + a_k`` (one row each, :func:`scaled_steps`)."""
         inner = self.inner
         iv, _ = inner.last_step
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        dc = DTHETA if derivative else 0.0
-        out = scaled_steps(z, u, dl, _secant_factor(iv, dl), dt / n, n, c, dc, *iv.system, *inc)
+        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
-            out = scaled_steps(z, u, dl, 0.0, dt / n, n, c, dc, *iv.system, *inc)
-        return out[0], ((out[1] - out[0]) / DTHETA if derivative else out[1])
+            out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)
+        return out
 
-    def _scaled_map(self, z, c, pred):
-        """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's where the payload's
+    def _scaled_map(self, z, c, F0, Q0):
+        """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's (``F0``, ``Q0``) where the payload's
         change of the modal masses, ``|c| rho`` (``rho = max eig(dM_r, M_r)``), is within the error the cached step
         holds its matrices to (``inner.refresh_tol``, relative in the mass metric); else the held linear system's
         maps with ``M_r + c dM_r`` and ``C_r + c dC_r`` (rebuilt when the step map is, or when ``c`` moved by
@@ -288,36 +326,37 @@ class AugmentedModel:
         inner = self.inner
         iv, sm = inner.last_step
         if inner.method != "cached":
-            return pred.F, pred.Q, sm.L
+            return F0, Q0, sm.L
         rho, dTs = self._shares[iv.serial]
         tol = inner.refresh_tol
         if abs(c) * rho <= tol:
-            return pred.F, pred.Q, sm.L
+            return F0, Q0, sm.L
         mp = self._map
         if mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol:
             inc = self._increments[iv.serial]
-            Mr, Kr, Cr, Gr, h, n = inner._interval_matrices
-            Pn, S, L, Q = inner._maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
+            Mr, Kr, Cr, Gr, h, n = inner.interval_system
+            Pn, S, L, Q = inner.linear_maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
             mp = self._map = (sm, c, Pn, S, L, Q)
         Ts, Vs, C3 = iv.forces.jacobian_tensors()
         F = step_jacobian(z, Ts + c * dTs, Vs, C3, mp[2], mp[3])
         return F, mp[5], mp[4]
 
-    def _scaled_rk4(self, z, u, dt, c):
-        """The reference step: RK4 of the nonlinear reduced equations of ``S(1) + c dS`` at every stage."""
+    def _scaled_rk4(self, z, u, dt, a):
+        """The reference step at the payload scales ``1 + a_k``: RK4 of the nonlinear reduced equations of
+        ``S(1) + a_k dS`` at every stage."""
         inner = self.inner
         iv, _ = inner.last_step
         n = inner.substeps(iv, dt)
         h = dt / n
         r = self.r
-        out = np.empty((2, self.n0))
-        for k, a in enumerate((c, c + DTHETA)):
-            def f(x):
+        out = np.empty((len(a), self.n0))
+        for k, c in enumerate(a):
+            def f(x, c=c):
                 m1 = inner.rm.matrices(x[:r], x[r:])
                 m2 = self.twin.matrices(x[:r], x[r:])
-                M = m1.Mr + a * (m2.Mr - m1.Mr)
-                C = m1.Cr + a * (m2.Cr - m1.Cr)
-                rhs = m1.Gr @ u + m1.fr + a * (m2.fr - m1.fr) - C @ x[r:] - m1.Kr @ x[:r]
+                M = m1.Mr + c * (m2.Mr - m1.Mr)
+                C = m1.Cr + c * (m2.Cr - m1.Cr)
+                rhs = m1.Gr @ u + m1.fr + c * (m2.fr - m1.fr) - C @ x[r:] - m1.Kr @ x[:r]
                 return np.concatenate([x[r:], np.linalg.solve(M, rhs)])
 
             x = np.array(z, float)
@@ -328,7 +367,7 @@ class AugmentedModel:
                 k4 = f(x + h * k3)
                 x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             out[k] = x
-        return out[0], (out[1] - out[0]) / DTHETA
+        return out
 
     # ------------------------------------------------------------------ the model's interface
     def predict(self, x: np.ndarray, u, dt: float, u_next=None) -> Prediction:
@@ -337,45 +376,68 @@ class AugmentedModel:
         n0, N = self.n0, self.nx
         inner = self.inner
         z = x[:n0]
-        u = inner._input(u)
-        # the hold's clock advances once per interval: the sigma points of an unscented filter step the model
-        # several times over the same interval (the same inputs and length)
-        key = (dt, u.tobytes())
-        if key != self._last_interval:
-            self._start, self._elapsed = self._elapsed, self._elapsed + dt
-            self._last_interval = key
+        u = inner.torques(u)
         if self.i_inputs is not None:
             d = x[self.i_inputs]
             u = u + d
         # the nominal step: the held configuration, its step map (Jacobian, process noise); a torque jump within
-        # the interval is added below, to whichever step is taken
+        # the interval is added below, to whichever step is taken. With the payload scaled (cached step), the
+        # nominal sub-steps would be discarded: the configuration and the maps only
         n_refresh = inner.n_refresh
-        pred = inner.predict(z, u, dt)
-        L_in = inner.last_step[1].L
-        xn = np.empty(N)
-        xn[:n0] = pred.x
-        F = np.zeros((N, N))
-        F[:n0, :n0] = pred.F
-        Q = np.zeros((N, N))
-        Q[:n0, :n0] = pred.Q
+        c = 0.0
         if self.i_theta is not None:
             it = self.i_theta
             th = float(x[it])
             c = max(th, 0.0) - 1.0
-            held = self._start < self.hold_s  # the scale held: its Jacobian column stays zero
-            if held and c == 0.0:  # the nominal step is the scaled one
-                xs, dxs = pred.x, None
-            elif inner.method == "cached":
-                xs, dxs = self._scaled_cached(z, u, dt, c, inner.n_refresh != n_refresh, derivative=not held)
+        if c != 0.0 and inner.method == "cached":
+            x0 = None
+            F0, Q0 = inner.prepare(z, u, dt)
+        else:
+            x0, F0, Q0 = inner.predict(z, u, dt)
+        L_in = inner.last_step[1].L
+        xn = np.empty(N)
+        F = np.zeros((N, N))
+        F[:n0, :n0] = F0
+        Q = np.zeros((N, N))
+        Q[:n0, :n0] = Q0
+        if x0 is not None:
+            xn[:n0] = x0
+        if self.i_theta is not None:
+            # while held (a filter's covariance watched): the step at c +- sigma for the linearity test; once
+            # released: at c + DTHETA for the derivative; and at c itself where the nominal step is not that
+            held = not self.released and self._cov is not None
+            if held:
+                sig = max(min(math.sqrt(max(self._cov()[it, it], 0.0)), 1.0 + c), DTHETA)
+                a = [c + sig, c - sig]
             else:
-                xs, dxs = self._scaled_rk4(z, u, dt, c)
+                a = [c + DTHETA]
             if c != 0.0:
-                xn[:n0] = xs
-                Fz, Qz, L_in = self._scaled_map(z, c, pred)
+                a.append(c)
+            if inner.method == "cached":
+                rows = self._scaled_cached(z, u, dt, np.array(a), inner.n_refresh != n_refresh)
+            else:
+                rows = self._scaled_rk4(z, u, dt, a)
+            xc = x0 if c == 0.0 else rows[-1]
+            if c != 0.0:
+                xn[:n0] = xc
+                Fz, Qz, L_in = self._scaled_map(z, c, F0, Q0)
                 F[:n0, :n0] = Fz
                 Q[:n0, :n0] = Qz
-            if not held:
-                F[:n0, it] = dxs
+            if held:
+                # the first-order model over +-sigma: its second-order term against the interval's process noise
+                e2 = 0.5 * (rows[0] + rows[1]) - xc
+                q = np.diagonal(Q)[:n0]
+                self.last_linearity = float(np.max(np.abs(e2) / np.sqrt(np.maximum(q, 1e-300))))
+                if self.last_linearity <= self.linearity_tol:
+                    self.released = True
+                    F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
+                else:
+                    # held: the scale's uncertainty enters the prediction as the noise it causes (module docstring)
+                    self.n_held += 1
+                    e1 = 0.5 * (rows[0] - rows[1])
+                    Q[:n0, :n0] += np.outer(e1, e1)
+            else:
+                F[:n0, it] = (rows[0] - xc) / DTHETA
             xn[it] = th
             F[it, it] = 1.0
             Q[it, it] = self.payload_std**2 * dt

@@ -96,10 +96,11 @@ class EstimationResult:
     P : ndarray or None
         Posterior covariance: diagonal, shape (n, nx) (``store_P="diag"``), full, shape (n, nx, nx)
         (``"full"``), or None (``"none"``).
-    innovations : ndarray, shape (n, m)
-        Innovation ``y - g(x_prior)`` per channel; NaN for channels not used at that sample.
-    S : ndarray, shape (n, m, m)
-        Innovation covariance; NaN rows/columns for channels not used.
+    innovations : ndarray, shape (n, m), or None
+        Innovation ``y - g(x_prior)`` per channel; NaN for channels not used at that sample (None: not recorded,
+        ``run(..., innovations=False)``).
+    S : ndarray, shape (n, m, m), or None
+        Innovation covariance; NaN rows/columns for channels not used (None: not recorded).
     nis : ndarray, shape (n,)
         Normalised innovation squared ``r' S^-1 r``; NaN at samples without an update.
     nis_dof : ndarray of int, shape (n,)
@@ -134,8 +135,8 @@ class EstimationResult:
     t: np.ndarray
     x_hat: np.ndarray
     P: np.ndarray | None
-    innovations: np.ndarray
-    S: np.ndarray
+    innovations: np.ndarray | None
+    S: np.ndarray | None
     nis: np.ndarray
     nis_dof: np.ndarray
     n_missing: int
@@ -457,16 +458,22 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
 class RunRecord:
     """The per-sample outputs of a filter run over a record (estimates, stored covariance, innovations, NIS), shared
     by the filters: :meth:`put` after each sample reads what the filter's ``step`` left (``_P``, ``last_idx``,
-    ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``)."""
+    ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``).
 
-    def __init__(self, t: np.ndarray, nx: int, m: int, store_P: str):
+    Bytes a sample: ``8 nx`` (estimates), ``8 nx`` or ``8 nx**2`` (covariance, ``store_P`` "diag" or "full"),
+    ``8 m + 8 m**2`` (innovations and their covariance, only with ``innovations``) and 16 (NIS and its degrees of
+    freedom); the six-bar's 26 states and 6 channels: 432 bytes with the diagonal and without innovations, 768
+    with them. A caller that needs less of a long log (the command line's ``observe``) runs it in chunks of rows
+    and keeps what it needs of each (:func:`exuflex.observer.session.estimate_chunks`)."""
+
+    def __init__(self, t: np.ndarray, nx: int, m: int, store_P: str, innovations: bool = True):
         n = len(t)
         self.t, self.m, self.store_P = t, m, store_P
         self.x_hat = np.empty((n, nx))
         # only the kind asked for: a full (n, nx, nx) array of a long log is gigabytes
         self.P = np.empty((n, nx)) if store_P == "diag" else np.empty((n, nx, nx)) if store_P == "full" else None
-        self.innovations = np.full((n, m), np.nan)
-        self.S = np.full((n, m, m), np.nan)
+        self.innovations = np.full((n, m), np.nan) if innovations else None
+        self.S = np.full((n, m, m), np.nan) if innovations else None
         self.nis = np.full(n, np.nan)
         self.dof = np.zeros(n, dtype=np.int64)
 
@@ -479,6 +486,8 @@ class RunRecord:
         if idx is not None:
             self.nis[k] = f.last_nis
             self.dof[k] = f.last_dof
+            if self.S is None:
+                return
             if len(idx) == self.m:
                 self.innovations[k] = f.last_innovation
                 self.S[k] = f.last_S
@@ -541,8 +550,8 @@ class MultirateEKF:
         with a larger error than its steady state (the end-of-manoeuvre step of a clean log would otherwise set
         the NIS flag).
     input_step : callable ``(u0, u1) -> bool`` or None
-        Test for a step between two successive input samples that starts the hold-off (besides the model's
-        own ``n_jumps`` counter, if it has one).
+        Test for a step between two successive input samples (1-D float arrays) that starts the hold-off
+        (besides the model's own ``n_jumps`` counter, if it has one).
     nonfinite : {"raise", "flag"}
         On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run and return NaN
         estimates from then on.
@@ -936,7 +945,7 @@ class MultirateEKF:
                                                   for f in self.faults.faults]
         return iv, faults
 
-    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None) -> EstimationResult:
+    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
         """Filter a whole record: :meth:`step` for every sample.
 
         Parameters
@@ -951,6 +960,10 @@ class MultirateEKF:
             Restart from the prior first (default). With False the run continues from the current state.
         x0, P0 : array_like, optional
             A prior for this run (implies ``reset``).
+        innovations : bool
+            Record the innovations and their covariance (``8 m + 8 m**2`` bytes a sample; without them the
+            result's ``innovations`` and ``S`` are None). A record run in chunks of rows (``reset=False`` after
+            the first) gives the same numbers as one run of the whole record.
 
         Returns
         -------
@@ -959,7 +972,7 @@ class MultirateEKF:
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P)
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
         t_start = time.perf_counter()
         for k in range(len(t)):
             rec.put(k, self, self.step(t[k], None if U is None else U[k], Y[k]))

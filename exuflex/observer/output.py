@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runs import atomic_write_text, package_versions, write_signals_csv
+from ..runs import SignalsCsvWriter, atomic_write_text, package_versions, write_signals_csv
 from ..sensors import Signals
 
-__all__ = ["estimates_table", "summary_table", "write_outcome"]
+__all__ = ["EstimatesTable", "EstimatesWriter", "estimates_table", "summary_table", "write_outcome"]
 
 
 def estimates_table(mech, outcome, observer=None) -> Signals:
@@ -24,67 +24,133 @@ def estimates_table(mech, outcome, observer=None) -> Signals:
     (``store_P="full"``, :meth:`.session.Observer.physical_covariance`) also the tip elastic columns and the
     absolute tip position, ``J_q P_qq J_q' + J_q P_qe + P_eq J_q' + P_ee`` with ``J_q`` the rigid tip point's
     sensitivity to q. The absolute tip velocity's standard deviation would need the second derivative of the
-    kinematics and is not given."""
-    from ..sensors import ABSOLUTE_TIP_NAMES, absolute_tip, tip_point
-
-    phys = outcome.estimate.physical
+    kinematics and is not given. An outcome that kept no per-sample record (:func:`.session.observe_run` with
+    ``keep="summary"``) has no table: write it as the filter runs (:class:`EstimatesWriter`)."""
     res = outcome.estimate.result
-    names, cols, units = list(phys.names), [phys.data], list(phys.units or ("",) * len(phys.names))
-    tp = tip_point(mech)
-    if tp is not None:
-        tip = absolute_tip(mech, phys, on_error="nan")
-        names += list(ABSOLUTE_TIP_NAMES)
-        cols.append(tip.data)
-        units += list(tip.units or ("m", "m", "m/s", "m/s"))
-    nq = len(mech.coordinates)
-    P = res.P
-    std_names, std_cols = [], []
-    if P is not None and P.ndim == 3 and observer is not None:
-        C = observer.physical_covariance(res.x_hat, P)
-        sd = np.sqrt(np.clip(np.diagonal(C, axis1=1, axis2=2), 0, None))
-        std_names += [f"std_{n}" for n in phys.names[: sd.shape[1]]]
-        std_cols.append(sd)
+    if outcome.estimate.physical is None or res.x_hat is None:
+        raise ValueError("estimates_table: the outcome kept no per-sample estimates (observe_run(keep='all') "
+                         "keeps them; EstimatesWriter writes them as the filter runs)")
+    return EstimatesTable(mech, observer).rows(outcome.estimate.physical, res.x_hat, res.P)
+
+
+class EstimatesTable:
+    """:func:`estimates_table` a block of rows at a time: :meth:`rows` on successive blocks of one record gives
+    the rows of the table of the whole record (the solvers' warm starts and held evaluations are carried from
+    one block to the next)."""
+
+    def __init__(self, mech, observer=None):
+        from ..erls.kinematics import Kinematics
+        from ..sensors import tip_point
+
+        self.mech, self.observer = mech, observer
+        self.tp = tip_point(mech)
+        self._tip: dict = {}  # absolute_tip's solver and warm start
+        self._cov: dict = {}  # physical_covariance's held rows and warm start
+        self._kin = Kinematics(mech) if self.tp is not None else None  # the tip position's sensitivity
+        self._z = None
+
+    def rows(self, phys: Signals, x_hat: np.ndarray, P: np.ndarray | None) -> Signals:
+        """The table's rows for the physical estimates ``phys`` of a block, the filter's states ``x_hat`` and
+        covariances ``P`` (diagonal (n, nx), full (n, nx, nx), or None) of the same rows."""
+        from ..sensors import ABSOLUTE_TIP_NAMES, absolute_tip
+
+        mech, observer, tp = self.mech, self.observer, self.tp
+        names, cols, units = list(phys.names), [phys.data], list(phys.units or ("",) * len(phys.names))
         if tp is not None:
-            from ..erls.kinematics import Kinematics, KinematicsError
+            tip = absolute_tip(mech, phys, on_error="nan", carry=self._tip)
+            names += list(ABSOLUTE_TIP_NAMES)
+            cols.append(tip.data)
+            units += list(tip.units or ("m", "m", "m/s", "m/s"))
+        nq = len(mech.coordinates)
+        n = len(phys.t)
+        std_names, std_cols = [], []
+        if P is not None and P.ndim == 3 and observer is not None:
+            C = observer.physical_covariance(x_hat, P, carry=self._cov)
+            sd = np.sqrt(np.clip(np.diagonal(C, axis1=1, axis2=2), 0, None))
+            std_names += [f"std_{n}" for n in phys.names[: sd.shape[1]]]
+            std_cols.append(sd)
+            if tp is not None:
+                from ..erls.kinematics import KinematicsError
 
-            kin = Kinematics(mech)
-            sdt = np.full((len(res.t), 2), np.nan)
-            q = phys.data[:, :nq]
-            z = None
-            for k in range(len(res.t)):
-                if not np.all(np.isfinite(q[k])):
-                    continue
-                try:
-                    pose = kin.pose(q[k], z)
-                except KinematicsError:
-                    continue
-                z = pose.z
-                _, J = kin.point(pose, *tp)
-                G = np.zeros((2, C.shape[1]))
-                G[:, :nq] = J
-                G[:, 2 * nq : 2 * nq + 2] = np.eye(2)
-                sdt[k] = np.sqrt(np.clip(np.diag(G @ C[k] @ G.T), 0, None))
-            std_names += ["std_tip_x", "std_tip_y"]
-            std_cols.append(sdt)
-    elif P is not None and observer is not None:
-        Pd = res.P_diag
-        r = observer.model.r
-        std_names += [f"std_{n}" for n in phys.names[: 2 * nq]]
-        std_cols.append(np.sqrt(np.clip(np.hstack([Pd[:, :nq], Pd[:, r : r + nq]]), 0, None)))
-    if std_cols:
-        names += std_names
-        cols += std_cols
-        units += [units[names.index(n[4:])] for n in std_names]
-    return Signals(phys.t, tuple(names), np.hstack(cols), tuple(units))
+                kin = self._kin
+                sdt = np.full((n, 2), np.nan)
+                q = phys.data[:, :nq]
+                z = self._z
+                for k in range(n):
+                    if not np.all(np.isfinite(q[k])):
+                        continue
+                    try:
+                        pose = kin.pose(q[k], z)
+                    except KinematicsError:
+                        continue
+                    z = pose.z
+                    _, J = kin.point(pose, *tp)
+                    G = np.zeros((2, C.shape[1]))
+                    G[:, :nq] = J
+                    G[:, 2 * nq : 2 * nq + 2] = np.eye(2)
+                    sdt[k] = np.sqrt(np.clip(np.diag(G @ C[k] @ G.T), 0, None))
+                self._z = z
+                std_names += ["std_tip_x", "std_tip_y"]
+                std_cols.append(sdt)
+        elif P is not None and observer is not None:
+            Pd = P if P.ndim == 2 else np.diagonal(P, axis1=1, axis2=2)
+            r = observer.model.r
+            std_names += [f"std_{n}" for n in phys.names[: 2 * nq]]
+            std_cols.append(np.sqrt(np.clip(np.hstack([Pd[:, :nq], Pd[:, r : r + nq]]), 0, None)))
+        if std_cols:
+            names += std_names
+            cols += std_cols
+            units += [units[names.index(n[4:])] for n in std_names]
+        return Signals(phys.t, tuple(names), np.hstack(cols), tuple(units))
 
 
-def write_outcome(out_dir, mech, run, outcome, observer=None) -> Path:
+class EstimatesWriter:
+    """``estimates.csv`` in ``out_dir`` written as the filter runs: a ``sink`` for :func:`.session.observe_run`
+    that turns each :class:`~.session.EstimateChunk` into rows of :func:`estimates_table` (:class:`EstimatesTable`)
+    and appends them (:class:`exuflex.runs.SignalsCsvWriter`: the bytes :func:`write_outcome` writes for the
+    whole table, atomically, readable by everyone). Use as a context manager: leaving it normally renames the
+    file into place; by an exception it removes the partial file (and the folder, if it made it and it is still
+    empty)."""
+
+    def __init__(self, out_dir, mech, observer=None):
+        self.dir = Path(out_dir)
+        self._made = not self.dir.exists()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.dir / "estimates.csv"
+        self._table = EstimatesTable(mech, observer)
+        self._csv = None
+        self.rows_written = 0
+
+    def __call__(self, chunk) -> None:
+        res = chunk.result
+        sig = self._table.rows(chunk.physical, res.x_hat, res.P)
+        if self._csv is None:
+            self._csv = SignalsCsvWriter(self.path, sig.names)
+        self._csv.write(sig)
+        self.rows_written += len(sig.t)
+
+    def __enter__(self) -> EstimatesWriter:
+        return self
+
+    def __exit__(self, kind, exc, tb) -> None:
+        if kind is None and self._csv is not None:
+            self._csv.close()
+            return
+        if self._csv is not None:
+            self._csv.abort()
+        if self._made and self.dir.is_dir() and not any(self.dir.iterdir()):
+            self.dir.rmdir()
+
+
+def write_outcome(out_dir, mech, run, outcome, observer=None, *, estimates: bool = True) -> Path:
     """Write ``estimates.csv`` (physical estimates, absolute tip, standard deviations: :func:`estimates_table`) and
     ``result.json`` (metrics, settings, versions) into ``out_dir``; every file is written atomically, readable by
-    everyone (0644)."""
+    everyone (0644). ``estimates=False``: ``result.json`` only (``estimates.csv`` was written as the filter ran,
+    :class:`EstimatesWriter`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_signals_csv(out / "estimates.csv", estimates_table(mech, outcome, observer))
+    if estimates:
+        write_signals_csv(out / "estimates.csv", estimates_table(mech, outcome, observer))
     summary = dict(outcome.summary)
     summary["versions"] = package_versions()
     summary["run_meta"] = {k: run.meta.get(k) for k in ("engine", "seed", "model", "settings") if k in run.meta}
@@ -99,8 +165,9 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
     """The result as text: a header (samples, model, channels, NIS), then one row per physical quantity with its
     unit, RMS and max error against the truth (if any), the bound for this log and their ratio."""
     s = outcome.summary
+    from .session import physical_names, physical_units
+
     res = outcome.estimate.result
-    phys = outcome.estimate.physical
     lines = [f"{mech.name}: {len(res.t)} samples, reduced model {s['reduced_ndof']} dofs, channels "
              f"{' '.join(s.get('channels_used') or s['channels'])}",
              f"wall {s['wall_s']:.2f} s, real-time factor {s['real_time_factor']:.2f}, mean NIS {s['nis_mean']:.2f} "
@@ -110,7 +177,7 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
     elif s.get("nis_inconsistent"):
         lines.append(f"NIS inconsistent from t = {s['nis_flagged_at']} s (the innovations exceed what the filter's "
                      "covariance explains: model mismatch or noise settings; the estimates stay finite)")
-    units = dict(zip(phys.names, phys.units or ("",) * len(phys.names), strict=True))
+    units = dict(zip(physical_names(mech), physical_units(mech), strict=True))
     met = outcome.metrics
     bnd = outcome.bound or {}
     if met:

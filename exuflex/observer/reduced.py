@@ -11,13 +11,26 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   quadratic forms and the q-gradients of ``M_r``, ``K_r``: :meth:`ReducedModel.held`) is evaluated only when q
   leaves a refresh radius around the held one; in between the model follows the links to second order in q
   (:mod:`.expansion`), and each interval's sub-steps use the matrices at the interval's start. The radius adapts
-  like an ODE step size: at each evaluation the previous held model's prediction of ``M_r`` and ``K_r`` is
-  compared with the exact ones (:func:`.expansion.prediction_error`), and the next radius keeps that error near
-  ``refresh_tol`` (relative, in the mass metric). Each evaluation also measures what the replaced held model
-  cost: the state error over one interval against the exact configuration, relative to the filter's standard
-  deviations and to the interval's process noise (:meth:`ReducedObserverModel._held_error`; reported as
-  ``held_model_error`` by ``observe``). It is measured, not yet what the radius is chosen by. The step Jacobian and process noise (the *step map*) are
-  rebuilt when q moved ``remap_rad`` from where they were built, or when the interval's length changes.
+  like an ODE step size under two error targets, the smaller radius winning. (1) The held matrices' validity:
+  the previous held model's relative error of ``M_r`` and ``K_r`` (mass metric,
+  :func:`.expansion.prediction_error`) near ``refresh_tol``. (2) What the held model costs the filter: the
+  replaced held model's state error over one interval against the exact configuration, relative to the filter's
+  standard deviations (:meth:`ReducedObserverModel._held_error`, every held quantity included: ``M_r``, ``K_r``,
+  damping, input matrix, velocity forces; reported as ``held_model_error`` by ``observe``, with the error
+  relative to the interval's process noise), near ``refresh_std_tol``: a deterministic prediction error of
+  ``a`` standard deviations adds about ``a^2`` to a channel's expected NIS, so 0.3 keeps the filter's
+  consistency within 10 %. The second alone is not enough: during the start-up the filter's standard deviations
+  are large, the radius grows until the held mass matrix is no longer valid, and the filter fails (the
+  six-bar's Exudyn log, seed 2). Without a filter's covariance (the model used alone) only the first applies.
+  The step Jacobian
+  and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
+  the interval's length changes. The map radius is controlled by the map's effect on the filter's own
+  uncertainty: at each rebuild the replaced map's covariance prediction is compared with the new one's on the
+  filter's present covariance (:meth:`ReducedObserverModel._map_error`, a relative error of the predicted
+  standard deviations), and the next radius keeps that error near ``remap_tol`` (the error grows linearly with
+  the distance; the maps' centres are two radii apart, so the largest error while a map is in use is about half
+  of it). How strongly the maps depend on q differs by orders of magnitude between mechanisms (a single link
+  turning: not at all; a slider-crank near its dead centres: strongly), which no fixed radius serves.
 - ``"rk4"`` (the exact reference): the configuration evaluated at every interval and every RK4 stage at its own
   state; the Jacobian and process noise of the interval's start.
 
@@ -41,17 +54,21 @@ plus an optional diagonal for unmodelled dynamics. A torque jump between two sam
 differing by more than their noise, :meth:`input_jump`) adds the mean and covariance of its effect at an
 unknown instant of the interval (:meth:`input_jump_moments`).
 
-Measurement Jacobians: exact in ``p`` for every channel and in ``q`` for the rigid part (link angles, rigid tip
-position); the dependence of the curvature and elastic-displacement rows on ``q`` is left out (of the order of
-the measured elastic quantity per radian, far below the sensor noise).
+Measurements: the rows about a held configuration, with their dependence on ``q`` to second order along the
+secant to the previous one (a rigid channel such as a slider's position is quadratic in ``q`` over the
+measurement radius, :meth:`ReducedObserverModel.measure`). Measurement Jacobians: exact in ``p`` for every
+channel and in ``q`` for the rigid part (link angles, rigid tip position); the dependence of the curvature and
+elastic-displacement rows on ``q`` is left out (of the order of the measured elastic quantity per radian, far
+below the sensor noise).
 """
 
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
-from operator import mul
+from operator import mul, sub
 
 import numpy as np
 from scipy.stats import chi2
@@ -113,15 +130,17 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
-def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
-    """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved.
+def _secant_factor(iv: _Held, dl: np.ndarray, v: list | None = None) -> float:
+    """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved
+    (``v``: ``dl`` as a list of floats, if the caller has it).
 
     Zero (first order only) without a partner or when q moves away from the secant's line (cosine below 0.7):
     the secant's differences then say nothing about the change, and extrapolating them along a different
     direction breaks the filter during the start-up transient, where the estimate jitters in every direction."""
     if iv.old is None:
         return 0.0
-    v = dl.tolist()
+    if v is None:
+        v = dl.tolist()
     a = sum(map(mul, v, iv.d_list))
     n2 = sum(map(mul, v, v))
     if a * a < 0.49 * n2 * iv.dd:
@@ -140,6 +159,8 @@ class _StepMap:
     S: np.ndarray  # (nx, r) response to a unit generalised force held over the interval
     L: np.ndarray  # (nx, n_motors) response to a unit torque held over the interval
     Q: np.ndarray  # (nx, nx) process noise
+    q_list: list = None  # q as floats
+    tail: tuple = ()  # the compiled interval's arguments fixed while this map and its configuration are held
 
 
 @dataclass
@@ -163,6 +184,29 @@ class _Held:
     err: float = float("nan")  # prediction error of the previous held model at q0
     system: HeldSystem | None = None  # the held arrays of the compiled step
     map: _StepMap | None = None
+    rows: dict = None  # measurement rows about q0 per channel tuple: (c0, Hm) and the secant's (c0, Hm, dH)
+    secant_rows: dict = None
+
+    def __post_init__(self):
+        self.rows, self.secant_rows = {}, {}
+
+
+class _Pairs:
+    """Float pairs appended one at a time and kept as doubles, 16 bytes a pair (a list of tuples of floats takes
+    about 120): a record that grows with a long log's refreshes."""
+
+    def __init__(self):
+        self._a = array("d")
+
+    def append(self, pair: tuple[float, float]) -> None:
+        self._a.extend(pair)
+
+    def __len__(self) -> int:
+        return len(self._a) // 2
+
+    def asarray(self) -> np.ndarray:
+        """A copy, shape (n, 2)."""
+        return np.array(self._a, dtype=float).reshape(-1, 2)
 
 
 class ReducedObserverModel:
@@ -183,11 +227,17 @@ class ReducedObserverModel:
         False-alarm probability per interval of the torque-jump test (:meth:`input_jump`); None: no test.
     min_substep : float
         Shortest RK4 sub-step (s) the model may need for stability before it is refused (see :meth:`substeps`).
+    refresh_std_tol : float
+        Error target of the cached step's held model: its state error over one interval relative to the filter's
+        standard deviations (:meth:`_held_error`), kept by the refresh radius.
     refresh_tol, refresh_min, refresh_max : float
-        Error target of the cached step's held matrices (relative, mass metric) and the limits (rad) of the
-        refresh radius that keeps it.
-    remap_rad : float
-        Distance (rad) q moves before the step map is rebuilt (cached step).
+        Error target of the held matrices (relative, mass metric), also kept by the refresh radius, and the
+        radius's limits (rad).
+    remap_tol : float
+        Error target of the step map: the relative error of the predicted standard deviations it causes
+        (:meth:`_map_error`), measured at each rebuild and kept near this by the map radius.
+    remap_rad, remap_min, remap_max : float
+        The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
     dt_tol : float
         Relative change of the interval's length before the step map is rebuilt.
 
@@ -202,9 +252,10 @@ class ReducedObserverModel:
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
-                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_tol: float = 3e-2,
-                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_rad: float = 2e-3,
-                 dt_tol: float = 1e-3):
+                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_std_tol: float = 0.3,
+                 refresh_tol: float = 3e-2,
+                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
+                 remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -220,10 +271,16 @@ class ReducedObserverModel:
         self.h = float(h)
         self.method = method
         self.min_substep = float(min_substep)
+        self.refresh_std_tol = float(refresh_std_tol)
         self.refresh_tol = float(refresh_tol)
         self.refresh_min = float(refresh_min)
         self.refresh_max = float(refresh_max)
+        self.remap_tol = float(remap_tol)
         self.remap_rad = float(remap_rad)
+        self.remap_min = float(remap_min)
+        self.remap_max = float(remap_max)
+        if not 0 < self.remap_min <= self.remap_rad <= self.remap_max:
+            raise ValueError(f"need 0 < remap_min <= remap_rad <= remap_max, got {remap_min}, {remap_rad}, {remap_max}")
         self.dt_tol = float(dt_tol)
         self.lookahead = 0.8  # radii ahead of q along its motion where a configuration is evaluated
         self.remap_ahead = 1.0  # remap radii ahead of q along its motion where a step map is built ...
@@ -254,17 +311,19 @@ class ReducedObserverModel:
 
     def watch_covariance(self, get_P) -> None:
         """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
-        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`)."""
+        measured against the filter's uncertainty at every evaluation (:meth:`_held_error`), and the step map's
+        radius is controlled by its effect on it (:meth:`_map_error`). Without it the map radius stays ``remap_rad``."""
         self.state_cov = get_P
 
     def reset(self) -> None:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
-        self._channel_cache: dict = {}
+        self.map_rad = self.remap_rad  # the present map radius (:meth:`_map_radius`)
+        self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
         self._interval_matrices = None
         self.n_jumps = 0
-        self.held_errors: list[tuple[float, float]] = []
+        self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
         self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ configurations
@@ -363,7 +422,8 @@ class ReducedObserverModel:
             s_old = _secant_factor(old, iv.q0 - old.q0)
             iv.err = self._prediction_error(old, iv)
             dist = _max_abs(iv.q0 - old.q0)
-            iv.rad = self._radius(old, dist, iv.err)
+            order = 3.0 if old.old is not None else 2.0  # the old held model's order (before its partner goes)
+            iv.rad = self._radius(old, dist, iv.err, self.refresh_tol, order)
             if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
                 d = iv.q0 - old.q0
                 iv.old, iv.d, iv.dd, iv.d_list = old, d, float(d @ d), d.tolist()
@@ -371,7 +431,9 @@ class ReducedObserverModel:
         iv.system = self._held_system(iv)
         if old is not None and old.forces is not None and u is not None and dt is not None \
                 and self.state_cov is not None:
-            self.held_errors.append(self._held_error(old, s_old, iv, z, u, dt))
+            err = self._held_error(old, s_old, iv, z, u, dt)
+            self.held_errors.append(err)
+            iv.rad = min(iv.rad, self._radius(old, dist, err[0], self.refresh_std_tol, order))
         self.n_refresh += 1
         self._last = iv
         return iv
@@ -402,24 +464,29 @@ class ReducedObserverModel:
         return float(np.max(dz / sig)), e_q
 
     def held_error_summary(self) -> dict:
-        """The recorded :meth:`_held_error` ratios since the last :meth:`reset`: count, median and largest."""
-        if not self.held_errors:
-            return {"n": 0}
-        a = np.asarray(self.held_errors)
-        return {"n": len(a), "vs_std_median": float(np.median(a[:, 0])), "vs_std_max": float(a[:, 0].max()),
-                "vs_process_noise_median": float(np.nanmedian(a[:, 1])),
-                "vs_process_noise_max": float(np.nanmax(a[:, 1]))}
+        """The recorded :meth:`_held_error` ratios since the last :meth:`reset` (count, median and largest), and
+        the replaced step maps' errors (:meth:`_map_error`: count, median, largest, the last map radius)."""
+        out = {"n": len(self.held_errors)}
+        if self.held_errors:
+            a = self.held_errors.asarray()
+            out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
+                       vs_process_noise_median=float(np.nanmedian(a[:, 1])),
+                       vs_process_noise_max=float(np.nanmax(a[:, 1])))
+        out["map_n"] = len(self.map_errors)
+        if self.map_errors:
+            e = np.asarray(self.map_errors)
+            out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=self.map_rad)
+        return out
 
-    def _radius(self, old: _Held, dist: float, err: float) -> float:
-        """Next refresh radius from the prediction error ``err`` of the last held model after ``dist`` rad: the
-        error grows as ``dist^3`` (second order, with a secant partner) or ``dist^2``, so the radius that keeps
-        it at ``refresh_tol`` is ``dist (tol / err)^(1/p)`` (with a 0.9 margin, at most twice the last radius,
-        within ``[refresh_min, refresh_max]``). The model's curvature in q varies along a path, and a fixed
-        radius would be either wasteful or unsafe."""
+    def _radius(self, old: _Held, dist: float, err: float, tol: float, p: float) -> float:
+        """Next refresh radius from the error ``err`` of the last held model after ``dist`` rad: the error grows
+        as ``dist^p`` (3: second order, with a secant partner; 2: first order), so the radius that keeps it at
+        ``tol`` is ``dist (tol / err)^(1/p)`` (with a 0.9 margin, at most twice the last radius, within
+        ``[refresh_min, refresh_max]``). The model's curvature in q varies along a path, and a fixed radius would
+        be either wasteful or unsafe."""
         if not err > 0:
             return min(2.0 * old.rad, self.refresh_max)
-        p = 3.0 if old.old is not None else 2.0
-        rad = 0.9 * dist * (self.refresh_tol / err) ** (1.0 / p)
+        rad = 0.9 * dist * (tol / err) ** (1.0 / p)
         return float(min(max(rad, self.refresh_min), 2.0 * old.rad, self.refresh_max))
 
     def _prediction_error(self, old: _Held, iv: _Held) -> float:
@@ -444,43 +511,125 @@ class ReducedObserverModel:
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
 
+    def _held_at(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, list]:
+        """The held configuration for an interval from ``z`` (evaluated anew when q left its radius) and
+        ``dl = q - q0`` as an array and as floats."""
+        q = z[: self.nq]
+        iv = self._last
+        if iv is not None and iv.system is not None:
+            dl = q - iv.q0
+            v = dl.tolist()
+            if max(map(abs, v)) <= iv.rad:
+                return iv, dl, v
+        iv = self._refresh(z, u, dt)
+        dl = q - iv.q0
+        return iv, dl, dl.tolist()
+
     def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
         followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
         correction and process noise (:meth:`_step_map`)."""
-        q = z[: self.nq]
-        iv = self._last
-        if iv is None or iv.system is None or _max_abs(q - iv.q0) > iv.rad:
-            iv = self._refresh(z, u, dt)
+        iv, dl, v = self._held_at(z, u, dt)
         for attempt in range(2):
             n = self.substeps(iv, dt)
-            dl = q - iv.q0
-            s = _secant_factor(iv, dl) if not attempt else 0.0
+            s = _secant_factor(iv, dl, v) if not attempt else 0.0
             sm = self._step_map(iv, z, dl, dt, n)
-            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *iv.forces.jacobian_tensors(), sm.Pn,
-                                                      sm.S, *iv.system)
-            if attempt or math.isfinite(z_next[0]) or not (s or any(dl)):
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
+            if attempt or math.isfinite(z_next[0]) or not (s or any(v)):
                 break
             # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
             self.n_rescue += 1
             iv = self._refresh(z, u, dt)
+            dl = z[: self.nq] - iv.q0
+            v = dl.tolist()
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
 
+    # ------------------------------------------------------------------ for models built on this one (augmented)
+    def torques(self, u) -> np.ndarray:
+        """The motor torques ``u`` as an array of the model's motor count (zeros for None); a clear error else."""
+        return self._input(u)
+
+    @property
+    def interval_system(self) -> tuple:
+        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval (:meth:`predict` or :meth:`prepare`): the held
+        matrices at its start and its ``n`` sub-steps of ``h``."""
+        return self._interval_matrices
+
+    def linear_maps(self, Mr, Kr, Cr, Gr, dt: float, n: int) -> tuple:
+        """``(P^n, S, L, Q)`` of ``n`` RK4 sub-steps over ``dt`` of the linear system with these matrices, the
+        process noise with this model's torque noise (and ``q_extra``)."""
+        return self._maps(Mr, Kr, Cr, Gr, dt, n)
+
+    @staticmethod
+    def secant_factor(iv: _Held, dl: np.ndarray) -> float:
+        """How far along the secant to its previous configuration q has moved from the held ``iv`` (0 without a
+        usable secant): the factor the cached step uses."""
+        return _secant_factor(iv, dl)
+
+    def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the
+        held configuration (evaluated anew where q left its radius), the step map, the interval's held matrices
+        (for :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``,
+        the step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
+        scale: :mod:`.augmented`) and would discard the nominal sub-steps."""
+        iv, dl, v = self._held_at(z, u, dt)
+        n = self.substeps(iv, dt)
+        sm = self._step_map(iv, z, dl, dt, n)
+        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl, v), *iv.system)
+        self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
+        self.last_step = (iv, sm)
+        return step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S), sm.Q
+
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
-        """The held configuration's step map, rebuilt when q moved ``remap_rad`` from where it was built or the
+        """The held configuration's step map, rebuilt when q moved the map radius from where it was built or the
         interval's length changed by more than ``dt_tol``: built ahead of q along its motion
-        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius)."""
+        (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius). A
+        rebuild at the same interval length measures the replaced map's error and sets the next radius
+        (:meth:`_map_radius`)."""
         sm = iv.map
-        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and _max_abs(z[: self.nq] - sm.q) <= self.remap_rad:
+        if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and \
+                max(map(abs, map(sub, z[: self.nq].tolist(), sm.q_list))) <= self.map_rad:
             return sm
         lim = self._measurement_radius(iv)
-        dla = np.clip(dl + map_lookahead(z, self.nq, self.remap_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
+        dla = np.clip(dl + map_lookahead(z, self.nq, self.map_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
         Ma, Ka, Ca, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
-        iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        new = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
+        new.q_list = new.q.tolist()
+        new.tail = (*iv.forces.jacobian_tensors(), new.Pn, new.S, *iv.system)
         self.n_remap += 1
-        return iv.map
+        if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
+            self._map_radius(sm, new, self._map_error(iv, z, sm, new))
+        return new
+
+    def _map_error(self, iv: _Held, z: np.ndarray, old: _StepMap, new: _StepMap) -> float:
+        """The error of the replaced step map ``old`` where ``new`` is built, in the filter's covariance
+        prediction: with ``E = F_old - F_new`` (the two maps' step Jacobians at ``z``) and the filter's present
+        covariance ``P``, ``max_i (sqrt((E P E')_ii) + |dQ_ii| / (2 sigma_i)) / sigma_i`` where ``sigma_i^2`` is
+        the new map's predicted variance ``(F P F' + Q)_ii``: to first order a bound on the relative change of
+        every predicted standard deviation (the first term of the Jacobian's error, the second of the process
+        noise's)."""
+        Ts, Vs, C3 = iv.forces.jacobian_tensors()
+        F = step_jacobian(z, Ts, Vs, C3, new.Pn, new.S)
+        E = step_jacobian(z, Ts, Vs, C3, old.Pn, old.S) - F
+        P = self.state_cov()[: self.nx, : self.nx]
+        var = ((F @ P) * F).sum(axis=1) + new.Q.diagonal()
+        e2 = ((E @ P) * E).sum(axis=1)
+        sig = np.sqrt(np.maximum(var, 1e-300))
+        err = float(np.max((np.sqrt(np.maximum(e2, 0.0)) + 0.5 * np.abs(new.Q.diagonal() - old.Q.diagonal()) / sig)
+                           / sig))
+        self.map_errors.append(err)
+        return err
+
+    def _map_radius(self, old: _StepMap, new: _StepMap, err: float) -> None:
+        """The next map radius from the replaced map's error ``err`` over the distance between the two maps'
+        centres: the error grows linearly with the distance, and a map serves up to one radius from its centre,
+        so the radius ``remap_tol * dist / (2 err)`` keeps its largest error in use near ``remap_tol / 2``;
+        at most twice the last radius, within ``[remap_min, remap_max]``."""
+        dist = max(map(abs, map(sub, new.q_list, old.q_list)))
+        rad = 2.0 * self.map_rad if not err > 0 else self.remap_tol * dist / (2.0 * err)
+        self.map_rad = float(min(max(rad, self.remap_min), 2.0 * self.map_rad, self.remap_max))
 
     # ------------------------------------------------------------------ the reference step
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
@@ -564,62 +713,76 @@ class ReducedObserverModel:
         """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
         return 1.5 * max(iv.rad, self.refresh_min)
 
-    def _measurement_interval(self, x: np.ndarray) -> _Held:
-        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near)."""
+    def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray, list]:
+        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near), with
+        ``dl = q - q0`` as an array and as floats."""
+        q = x[: self.nq]
         iv = self._last
-        if iv is None or _max_abs(x[: self.nq] - iv.q0) > self._measurement_radius(iv):
-            # no held configuration near x (first sample of a run): evaluate one at x
-            iv = self._configuration(x)
-            self._last = iv
-        return iv
+        if iv is not None:
+            dl = q - iv.q0
+            v = dl.tolist()
+            if max(map(abs, v)) <= self._measurement_radius(iv):
+                return iv, dl, v
+        # no held configuration near x (first sample of a run): evaluate one at x
+        iv = self._last = self._configuration(x)
+        dl = q - iv.q0
+        return iv, dl, dl.tolist()
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
-        """``(c0, Hm, dH)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x
-        (``dH`` None without a secant partner); cached per held configuration."""
-        key = (iv.serial, "secant", channels)
-        lin = self._channel_cache.get(key)
+        """``(c0, Hm, dH, G)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x, plus the
+        second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` None without a secant partner, ``G``
+        None where the q-columns do not change); kept with the held configuration."""
+        lin = iv.secant_rows.get(channels)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
-                lin = (c0, Hm, None)
+                lin = (c0, Hm, None, None)
             else:
                 # the elastic rows follow the configuration along the secant (the gauges' rows change with
-                # H(q)); the rigid parts stay the exact first-order expansion about q0: a secant of their
-                # intercepts would make y depend on q through s, which the Jacobian below leaves out, and
-                # that inconsistency breaks the filter during the start-up transient
+                # H(q)); the q-columns change along it too (:meth:`measure`'s second-order term). A secant of
+                # the rigid intercepts alone would make y depend on q through s without the Jacobian saying so,
+                # an inconsistency that breaks the filter during the start-up transient: the second-order term
+                # comes with its exact derivative instead
+                nq, r = self.nq, self.r
                 H1 = self._linear(iv.old, channels)[1]
                 dH = np.zeros_like(Hm)
-                dH[:, self.nq : self.r] = (Hm[:, self.nq : self.r] - H1[:, self.nq : self.r]) / iv.dd
-                lin = (c0, Hm, dH)
-            self._channel_cache[key] = lin
+                dH[:, nq:r] = (Hm[:, nq:r] - H1[:, nq:r]) / iv.dd
+                G = (Hm[:, :nq] - H1[:, :nq]) / iv.dd
+                lin = (c0, Hm, dH, G if np.any(G) else None)
+            iv.secant_rows[channels] = lin
         return lin
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
         """The channels at ``x`` about the held configuration: ``y = c0 + H x`` with the elastic rows along the
-        secant to the previous held configuration (:meth:`_secant_rows`)."""
+        secant to the previous held configuration (:meth:`_secant_rows`), and the q-dependence to second order.
+
+        A rigid channel is a nonlinear function of q (a slider's position ``r cos q + sqrt(l^2 - r^2 sin^2 q)``,
+        a dependent link's angle), and x lies up to the measurement radius from the held ``q0``: to first order
+        its error is ``1/2 y''(q0) dl^2``. Along the secant ``d = q0 - q_old`` the change ``Delta`` of the
+        q-columns of the rows from the partner gives the second derivative, ``y''(q0) dl ~ Delta dl / |d|``
+        for ``dl`` along ``d``, so ``y`` gains ``1/2 a Delta dl`` with ``a = (dl . d) / (d . d)`` (the error is
+        then of third order in dl) and the q-columns of ``H`` its exact derivative
+        ``1/2 ((Delta dl) d^T / (d . d) + a Delta)``. Where ``dl`` leaves the secant's line
+        (:func:`_secant_factor` zero), the rows stay first order."""
         x = np.asarray(x, float)
-        iv = self._measurement_interval(x)
-        c0, Hm, dH = self._secant_rows(iv, tuple(channels))
-        s = 0.0 if dH is None else _secant_factor(iv, x[: self.nq] - iv.q0) * iv.dd
+        iv, dl, v = self._measurement_interval(x)
+        c0, Hm, dH, G = self._secant_rows(iv, tuple(channels))
+        s = 0.0 if dH is None else _secant_factor(iv, dl, v) * iv.dd
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
         secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
+        if s and G is not None:
+            g = G @ dl  # Delta dl / (d . d)
+            y += (0.5 * s) * g
+            H[:, : self.nq] += 0.5 * (np.outer(g, iv.d) + s * G)
         return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_affine`, cached per interval (keeping the entries of the held configurations only, once the
-        cache grows beyond 64)."""
+        """:meth:`_affine`, kept with the held configuration."""
         channels = tuple(channels)
-        key = (iv.serial, channels)
-        lin = self._channel_cache.get(key)
+        lin = iv.rows.get(channels)
         if lin is None:
-            if len(self._channel_cache) > 64:
-                keep = {iv.serial, self._last.serial if self._last is not None else -1}
-                if self._last is not None and self._last.old is not None:
-                    keep.add(self._last.old.serial)
-                self._channel_cache = {k: v for k, v in self._channel_cache.items() if k[0] in keep}
-            lin = self._affine(iv, channels)
-            self._channel_cache[key] = lin
+            lin = iv.rows[channels] = self._affine(iv, channels)
         return lin
 
     def _affine(self, iv: _Held, channels: tuple) -> tuple[np.ndarray, np.ndarray]:

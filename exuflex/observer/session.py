@@ -12,8 +12,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,10 +42,15 @@ __all__ = [
     "default_channels",
     "make_observer",
     "estimate",
+    "estimate_chunks",
+    "EstimateChunk",
+    "LogColumns",
+    "CHUNK_ROWS",
     "metrics",
     "estimation_bound",
     "UnobservableError",
     "physical_names",
+    "physical_units",
 ]
 
 log = logging.getLogger(__name__)
@@ -84,11 +90,9 @@ class ObserverConfig:
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
     payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
-    payload_hold_s : seconds from the filter's start during which the payload scale is held (not learned): the
-        start-up transient, where the state estimate is still far outside its own covariance and the joint
-        update would bias the scale (:class:`.augmented.AugmentedModel`, ``hold_s``). The six-bar's manoeuvre
-        starts with a torque pulse of about 0.08 s that the filter follows with errors of many standard
-        deviations; a longer hold loses the four-bar's most informative samples (docs/estimators.md).
+    payload_linearity : the payload scale is held at its prior from the start until the first interval whose
+        second-order term in the scale over its standard deviation is within this many process-noise standard
+        deviations (:class:`.augmented.AugmentedModel`, ``linearity_tol``).
     input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
@@ -119,7 +123,7 @@ class ObserverConfig:
     estimator: str = "ekf"
     payload_std: float = 0.01
     payload0_std: float = 0.5
-    payload_hold_s: float = 0.15
+    payload_linearity: float = 1.0
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -139,6 +143,12 @@ def physical_names(mech: Mechanism) -> tuple[str, ...]:
     return truth_names(mech)
 
 
+def physical_units(mech: Mechanism) -> tuple[str, ...]:
+    """Units of the :func:`physical_names` columns."""
+    nq = len(mech.coordinate_names)
+    return ("rad",) * nq + ("rad/s",) * nq + (("m", "m", "m/s", "m/s") if tip_point(mech) is not None else ())
+
+
 @dataclass
 class Observer:
     """A ready-to-run observer: reduced model, EKF, and the map to physical states."""
@@ -151,7 +161,8 @@ class Observer:
     basis_s: float
     info: dict = field(default_factory=dict)
 
-    def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-2) -> Signals:
+    def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-2, *, carry: dict | None = None
+                 ) -> Signals:
         """Physical estimates (q, dq/dt, tip elastic displacement and rate) from reduced states (n, nx).
 
         The tip's elastic displacement is ``e = A(q) p`` with ``A`` the tip rows (:meth:`tip_rows`, global frame)
@@ -161,6 +172,12 @@ class Observer:
         last evaluation; in between ``A`` follows q to first order (error of order ``refresh_rad^2 / 2`` of the
         deflection) and ``dA/dq`` is held (error of order ``refresh_rad`` of the rate's turning term, itself the
         deflection times q').
+
+        The rows are solved by the filter's model with its closure solver, from this computation's own warm start
+        (the first from the initial guess), and the filter's is set back after: the estimates depend on neither
+        what the filter evaluated before nor what comes after. ``carry``: a dict passed to the calls on successive
+        blocks of rows of one record (empty at the first); it carries the evaluation and the warm start from one
+        block to the next, so that the blocks give the numbers of one call on the whole record.
         """
         nq, r = self.model.nq, self.model.r
         Z = np.asarray(Z)[:, : self.model.nx]  # a filter's extra states (augmented estimators) are not physical
@@ -169,23 +186,44 @@ class Observer:
         out[:, :nq] = Z[:, :nq]
         out[:, nq : 2 * nq] = Z[:, r : r + nq]
         tp = tip_point(self.mech)
+        carry = {} if carry is None else carry
         if tp is not None:
-            rows = None
-            for k in range(len(t)):
-                q = Z[k, :nq]
-                if not np.all(np.isfinite(Z[k])):
+            with self._own_warm_start(carry):
+                self._tip_columns(Z, out, tp, refresh_rad, carry)
+        return Signals(np.asarray(t, float), names, out, physical_units(self.mech))
+
+    @contextmanager
+    def _own_warm_start(self, carry: dict):
+        """The closure solver (shared with the filter's model) with ``carry["warm"]`` as its warm start (None: the
+        initial guess) inside the block; on exit the warm start reached goes back into ``carry`` and the
+        solver's previous one is restored."""
+        kin = self.model.model.kin
+        saved = kin.warm_start
+        kin.warm_start = carry.get("warm")
+        try:
+            yield
+        finally:
+            carry["warm"] = kin.warm_start
+            kin.warm_start = saved
+
+    def _tip_columns(self, Z: np.ndarray, out: np.ndarray, tp, refresh_rad: float, carry: dict) -> None:
+        """The tip elastic displacement and rate columns of :meth:`physical` into ``out``."""
+        nq, r = self.model.nq, self.model.r
+        rows = carry.get("rows")
+        for k in range(len(Z)):
+            q = Z[k, :nq]
+            if not np.all(np.isfinite(Z[k])):
+                continue
+            if rows is None or np.max(np.abs(q - rows[2])) > refresh_rad:
+                rows = self._tip_rows_and_rates(q, tp)
+                if rows is None:  # a runaway estimate where the loops cannot close: no tip value
                     continue
-                if rows is None or np.max(np.abs(q - rows[2])) > refresh_rad:
-                    rows = self._tip_rows_and_rates(q, tp)
-                    if rows is None:  # a runaway estimate where the loops cannot close: no tip value
-                        continue
-                A0, dA, q0 = rows
-                dq = q - q0
-                A = A0 + np.tensordot(dq, dA, axes=1)
-                out[k, 2 * nq : 2 * nq + 2] = A @ Z[k, :r]
-                out[k, 2 * nq + 2 : 2 * nq + 4] = A @ Z[k, r:] + np.tensordot(Z[k, r : r + nq], dA, axes=1) @ Z[k, :r]
-        units = ("rad",) * nq + ("rad/s",) * nq + (("m", "m", "m/s", "m/s") if tp is not None else ())
-        return Signals(np.asarray(t, float), names, out, units)
+            A0, dA, q0 = rows
+            dq = q - q0
+            A = A0 + np.tensordot(dq, dA, axes=1)
+            out[k, 2 * nq : 2 * nq + 2] = A @ Z[k, :r]
+            out[k, 2 * nq + 2 : 2 * nq + 4] = A @ Z[k, r:] + np.tensordot(Z[k, r : r + nq], dA, axes=1) @ Z[k, :r]
+        carry["rows"] = rows
 
     def _tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
         """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by central differences
@@ -204,12 +242,18 @@ class Observer:
             return None
         return A, dA, q
 
-    def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3) -> np.ndarray:
+    def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3, *,
+                            carry: dict | None = None) -> np.ndarray:
         """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
         from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through
         their maps linearised at each state (the filter's extra states, if any, are left out; the rate's turning
         term is linearised in p and q', not in q). For NEES against a truth of the physical quantities. The tip
-        rows are evaluated as in :meth:`physical`."""
+        rows are evaluated as in :meth:`physical` (its own warm start; ``carry`` as there)."""
+        carry = {} if carry is None else carry
+        with self._own_warm_start(carry):
+            return self._physical_covariance(Z, P, refresh_rad, carry)
+
+    def _physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float, carry: dict) -> np.ndarray:
         som = self.model
         nq, r, nx = som.nq, som.r, som.nx
         tp = tip_point(self.mech)
@@ -218,7 +262,7 @@ class Observer:
         C = np.zeros((k, nx))
         C[:nq, :nq] = np.eye(nq)
         C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        rows = None
+        rows = carry.get("rows")
         for i in range(len(Z)):
             if tp is not None:
                 z = Z[i, :nx]
@@ -238,6 +282,7 @@ class Observer:
                 # left out: of the order of q' times the deflection per radian, times q's small uncertainty
                 C[2 * nq + 2 :, :nq] += np.einsum("iaj,j->ai", dA, z[r:])
             out[i] = C @ P[i][:nx, :nx] @ C.T
+        carry["rows"] = rows
         return out
 
 
@@ -315,7 +360,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
     if config.estimator == "ekf-payload":
-        fm = AugmentedModel(som, payload_std=config.payload_std, hold_s=config.payload_hold_s)
+        fm = AugmentedModel(som, payload_std=config.payload_std, linearity_tol=config.payload_linearity)
     else:
         fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
                             input_tau=config.input_tau)
@@ -336,9 +381,11 @@ def _torque_step_test(torque_var, p: float):
     w = (0.5 / np.asarray(torque_var, float).reshape(-1)).tolist()
     thr = float(chi2.ppf(1.0 - p, len(w)))
 
-    def test(u0, u1) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
-        d = zip(np.asarray(u0, float).tolist(), np.asarray(u1, float).tolist(), w, strict=True)
-        return sum((b - a) ** 2 * wi for a, b, wi in d) > thr
+    def test(u0: np.ndarray, u1: np.ndarray) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
+        s = 0.0
+        for a, b, wi in zip(u0.tolist(), u1.tolist(), w, strict=True):
+            s += (b - a) * (b - a) * wi
+        return s > thr
 
     return test
 
@@ -369,14 +416,136 @@ def _start_q(mech: Mechanism) -> np.ndarray:
 @dataclass
 class Estimate:
     """A filtered (and optionally smoothed) record: ``physical`` holds the smoothed estimates where
-    ``smoothed`` is set, the filter's otherwise; ``wall_s`` and ``real_time_factor`` are the filter's."""
+    ``smoothed`` is set, the filter's otherwise; ``wall_s`` and ``real_time_factor`` are the filter's.
+
+    A record filtered for its summary only (:func:`observe_run` with ``keep`` other than ``"all"``) has a
+    ``result`` without per-sample estimates, covariances and innovations (None; its NIS sequence and the run's
+    counters, flags and faults are there) and ``physical`` None unless kept."""
 
     result: EstimationResult
-    physical: Signals
+    physical: Signals | None
     wall_s: float
     real_time_factor: float
     smoothed: SmoothedResult | None = None
     filtered_physical: Signals | None = None
+
+
+#: rows of a record filtered and post-processed at a time by :func:`estimate_chunks` where the caller keeps only
+#: what it needs of each chunk: the chunk's record with the full covariance (8 nx**2 bytes a row, 2.8 MB for the
+#: six-bar's 26 states) and its derived tables stay a few megabytes
+CHUNK_ROWS = 512
+
+
+@dataclass
+class EstimateChunk:
+    """Rows ``start`` to ``start + len(result.t)`` of a record filtered by :func:`estimate_chunks`.
+
+    ``result``: the filter's record of these rows (:meth:`MultirateEKF.run`), its run-level counters, flags and
+    faults those of the record so far; ``physical``: the physical estimates of these rows; ``wall_s``: the
+    filter's wall-clock time for them."""
+
+    start: int
+    result: EstimationResult
+    physical: Signals
+    wall_s: float
+
+
+class LogColumns:
+    """Columns of a log's table, a block of rows at a time: ``cols[a:b]`` is the ``(b - a, k)`` array of the
+    columns ``cols`` of ``data`` (n, c) in rows ``a`` to ``b``, a copy of those rows only (the whole selection is
+    never copied). :meth:`of` selects a :class:`Signals`' columns by name.
+
+    ``hold``: a non-finite value is replaced by the column's last finite value before it, and by its first one
+    before that (a torque not sampled at a time is held, ``docs/run_format.md``); a column without a finite value
+    is an error naming it."""
+
+    def __init__(self, data: np.ndarray, cols: Sequence[int], names: Sequence[str] | None = None,
+                 hold: bool = False):
+        self._data = data
+        self.cols = [int(c) for c in cols]
+        self.names = tuple(names) if names is not None else tuple(str(c) for c in self.cols)
+        self.hold = bool(hold)
+        self._prev: tuple[int, np.ndarray] | None = None
+        if self.hold:
+            first = np.empty(len(self.cols))
+            for j, c in enumerate(self.cols):
+                ok = np.flatnonzero(np.isfinite(data[:, c]))
+                if not len(ok):
+                    raise ValueError(f"torque column {self.names[j]} has no finite sample")
+                first[j] = data[ok[0], c]
+            self._first = first
+
+    @classmethod
+    def of(cls, signals: Signals, names: Sequence[str], hold: bool = False) -> LogColumns:
+        """The columns ``names`` of ``signals`` (KeyError naming the missing ones, as :meth:`Signals.select`)."""
+        names = tuple(names)
+        cols = [signals.names.index(n) if n in signals.names else None for n in names]
+        missing = [n for n, c in zip(names, cols, strict=True) if c is None]
+        if missing:
+            raise KeyError(f"no channel(s) {missing}; channels are {list(signals.names)}")
+        return cls(signals.data, cols, names, hold)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (len(self._data), len(self.cols))
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        a, b, step = rows.indices(len(self._data))
+        if step != 1:
+            raise IndexError("LogColumns: contiguous rows only")
+        block = self._data[a:b, self.cols]
+        if not self.hold:
+            return block
+        prev = self._prev[1] if self._prev is not None and self._prev[0] == a else self._before(a)
+        bad = ~np.isfinite(block)
+        if bad.any():
+            for j in np.flatnonzero(bad.any(axis=0)):
+                col = block[:, j]
+                ok = np.isfinite(col)
+                idx = np.where(ok, np.arange(len(col)), -1)
+                np.maximum.accumulate(idx, out=idx)
+                col[:] = np.where(idx >= 0, col[np.maximum(idx, 0)], prev[j])
+        if b > a:
+            self._prev = (b, block[-1].copy())
+        return block
+
+    def _before(self, a: int) -> np.ndarray:
+        """Per column, the held value entering row ``a``: the last finite value before it, else the first."""
+        out = self._first.copy()
+        for j, c in enumerate(self.cols):
+            ok = np.flatnonzero(np.isfinite(self._data[:a, c]))
+            if len(ok):
+                out[j] = self._data[ok[-1], c]
+        return out
+
+
+def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | None = None,
+                    innovations: bool = True) -> Iterator[EstimateChunk]:
+    """Filter a record ``rows`` (default :data:`CHUNK_ROWS`) samples at a time (:meth:`MultirateEKF.run` on each block, continuing from the
+    previous one) and yield each block's record and physical estimates as it is done.
+
+    The numbers are those of :func:`estimate` on the whole record (the filter's steps do not depend on where the
+    record is cut, and :meth:`Observer.physical` carries its evaluation across blocks); what the caller keeps of
+    each block is all the memory the record takes beyond the log. ``t`` (n,); ``U``, ``Y``: arrays (n, k) or
+    anything that gives the rows ``a:b`` as an array (:class:`LogColumns`); ``innovations``: record the
+    innovations and their covariance in each block."""
+    t = np.asarray(t, float)
+    x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
+    n = len(t)
+    rows = max(int(rows or CHUNK_ROWS), 1)
+    carry: dict = {}
+    for a in range(0, max(n, 1), rows):
+        b = min(a + rows, n)
+        first = a == 0
+        w0 = time.perf_counter()
+        res = obs.ekf.run(t[a:b], None if U is None else U[a:b], Y[a:b], reset=first, x0=x0 if first else None,
+                          P0=P0 if first else None, innovations=innovations)
+        wall = time.perf_counter() - w0
+        yield EstimateChunk(a, res, obs.physical(res.t, res.x_hat, carry=carry), wall)
+        del res  # one chunk's record alive at a time
 
 
 def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> Estimate:
@@ -385,14 +554,12 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     observer's). ``smooth``: also the RTS smoother (:func:`.smoother.rts_smooth`, which runs the filter's forward
     pass again, recording its predictions)."""
     t = np.asarray(t, float)
-    x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
-    t0 = time.perf_counter()
-    res = obs.ekf.run(t, U, Y, x0=x0, P0=P0)
-    wall = time.perf_counter() - t0
-    phys = obs.physical(res.t, res.x_hat)
+    (chunk,) = estimate_chunks(obs, t, U, Y, x0, P0, rows=max(len(t), 1))
+    res, phys, wall = chunk.result, chunk.physical, chunk.wall_s
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     if not smooth:
         return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     sm = rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0)
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
@@ -616,8 +783,13 @@ class Outcome:
     summary: dict
 
 
+#: what :func:`observe_run` keeps of the filtered record (``keep``)
+KEEP = ("all", "physical", "summary")
+
+
 def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
-                observer: Observer | None = None, report=None, smooth: bool = False) -> Outcome:
+                observer: Observer | None = None, report=None, smooth: bool = False, keep: str = "all",
+                sink=None, log_check=None) -> Outcome:
     """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
     (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``).
 
@@ -625,10 +797,26 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     The filter steps by each sample's own time stamp (jitter and drift within the documented tolerance need no
     grid). The bound is the one for this log (its rate, its channels' availability and rates,
     :func:`estimation_bound`), computed before filtering so that an unobservable channel set is reported at once.
-    ``report``: a callable taking one-line stage messages (the CLI prints them on stderr).
+    ``report``: a callable taking one-line stage messages (the CLI prints them on stderr). ``log_check``: the
+    log's check if the caller made it already (:func:`exuflex.validate.check_run` with the observer's channels and
+    sample interval; the command line checks a log before it builds the model).
+
+    Memory: besides the log, ``keep`` says what the outcome holds of the filtered record, per sample:
+
+    - ``"all"`` (default): the filter's whole record (:class:`~.ekf.EstimationResult`: estimates, covariances as
+      the filter's ``store_P`` says, innovations, NIS) and the physical estimates;
+    - ``"physical"``: the physical estimates (8 bytes a column) and the NIS sequence (10 bytes);
+    - ``"summary"``: the NIS sequence, and the physical estimates only where a truth is scored.
+
+    Except with ``"all"`` or ``smooth`` (the smoother needs the whole record) the log is filtered
+    :data:`CHUNK_ROWS` rows at a time (:func:`estimate_chunks`, the same numbers) and nothing else grows with it.
+    ``sink``: called with each :class:`EstimateChunk` as it is filtered (the smoothed run: once, with the smoothed
+    physical estimates), e.g. :class:`.output.EstimatesWriter` streaming ``estimates.csv``.
     """
     from ..validate import check_mechanism_argument, check_run
 
+    if keep not in KEEP:
+        raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
     check_mechanism_argument(mech)
     if not hasattr(run, "sensors") or not hasattr(run, "meta"):
         from ..errors import UsageError
@@ -639,7 +827,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     say = report or (lambda msg: log.info("%s", msg))
     config = config or ObserverConfig.for_model(mech)
     obs = observer or make_observer(mech, config)
-    log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
+    if log_check is None:
+        log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
+    elif set(log_check.channel_rate_hz) != set(obs.channels) or log_check.dt != obs.ekf.dt:
+        raise ValueError(f"log_check: made for channels {sorted(log_check.channel_rate_hz)} at {log_check.dt} s, "
+                         f"the observer has {sorted(obs.channels)} at {obs.ekf.dt} s")
     say(f"channels: {log_check.availability()}; log interval {log_check.interval_s * 1e3:.4g} ms"
         + (f", clock {log_check.clock_drift_ppm:+.1f} ppm, jitter up to {log_check.jitter_max_s * 1e6:.3g} us"
            if log_check.jitter_max_s > 1e-6 * log_check.dt else ""))
@@ -647,11 +839,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         say(f"note: {w}")
     S = run.sensors
     motors = run.motors or mech.motor_names
-    U = S.select(motors).data
-    Y = S.select(obs.channels).data
-    if np.any(~np.isfinite(U)):
-        # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
-        U = _hold(U)
+    # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
+    U = LogColumns.of(S, motors, hold=True)
+    Y = LogColumns.of(S, obs.channels)
     bnd, unobservable = None, None
     if with_bound:  # before filtering: an unobservable channel set is reported at once
         try:
@@ -675,7 +865,13 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
 
             raise LogFormatError(f"{Path(run.path) / 'truth.csv'}: {exc}") from None
     say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
-    est = estimate(obs, S.t, U, Y, smooth=smooth)
+    if keep == "all" or smooth:
+        est = estimate(obs, S.t, U[:], Y[:], smooth=smooth)
+        last = _last_state(est)
+        if sink is not None:
+            sink(EstimateChunk(0, est.result, est.physical, est.wall_s))
+    else:
+        est, last = _estimate_kept(obs, S.t, U, Y, keep == "physical" or run.truth is not None, sink)
     met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
     res = est.result
     summary = {
@@ -710,7 +906,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     summary["smoothed"] = bool(smooth)
     if obs.ekf.model is obs.model and obs.model.method == "cached":
         summary["held_model_error"] = obs.model.held_error_summary()
-    summary.update(_extra_states(obs.ekf.model, est))
+    summary.update(_extra_states(obs.ekf.model, *last))
     if met is not None:
         summary.update(met)
         if est.filtered_physical is not None:
@@ -725,16 +921,55 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     return Outcome(est, met, bnd, summary)
 
 
-def _extra_states(fmodel, est: Estimate) -> dict:
-    """The augmented states' estimates at the end of the record (smoothed where smoothing ran):
-    ``{"parameters": {"payload_scale": ..., "payload_scale_std": ...}}`` and ``{"inputs": {motor: {"value",
-    "std"}}}``; empty for a plain model."""
+def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink) -> tuple[Estimate, tuple]:
+    """The record filtered in chunks (:func:`estimate_chunks`), of which only the NIS sequence (and with
+    ``keep_physical`` the physical estimates) is kept; each chunk goes to ``sink``. Returns the estimate and the
+    last sample's state and variances (None if the filter stores no covariance)."""
+    n = len(t)
+    nis = np.empty(n)
+    dof = np.empty(n, dtype=np.int16)  # a count of channels
+    names = physical_names(obs.mech)
+    phys = np.empty((n, len(names))) if keep_physical else None
+    wall = 0.0
+    final = (np.full(obs.ekf.nx, np.nan), None)
+    for ch in estimate_chunks(obs, t, U, Y, innovations=False):
+        r = ch.result
+        a, b = ch.start, ch.start + len(r.t)
+        nis[a:b] = r.nis
+        dof[a:b] = r.nis_dof
+        if phys is not None:
+            phys[a:b] = ch.physical.data
+        wall += ch.wall_s
+        if sink is not None:
+            sink(ch)
+        if b > a:
+            final = (r.x_hat[-1].copy(), None if r.P is None else r.P_diag[-1].copy())
+        # the run-level counters, flags and faults so far, without the chunk's arrays (one chunk alive at a time)
+        last = replace(r, x_hat=None, P=None, innovations=None, S=None)
+        del ch, r
+    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall)
+    span = float(t[-1] - t[0]) if n > 1 else 0.0
+    est = Estimate(res, None if phys is None else Signals(t, names, phys, physical_units(obs.mech)), wall,
+                   span / wall if wall > 0 else float("inf"))
+    return est, final
+
+
+def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None]:
+    """The last sample's state and variances (None without a stored covariance) of a whole record, smoothed
+    where smoothing ran."""
+    src = est.smoothed if est.smoothed is not None else est.result
+    return src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None
+
+
+def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None) -> dict:
+    """The augmented states' estimates ``x`` and variances ``var`` at the end of the record (smoothed where
+    smoothing ran; NaN standard deviations without ``var``): ``{"parameters": {"payload_scale": ...,
+    "payload_scale_std": ...}}`` and ``{"inputs": {motor: {"value", "std"}}}``; empty for a plain model."""
     out: dict = {}
     it, ii = getattr(fmodel, "i_theta", None), getattr(fmodel, "i_inputs", None)
     if it is None and ii is None:
         return out
-    src = est.smoothed if est.smoothed is not None else est.result
-    x, var = src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else np.full(len(src.x_hat[-1]), np.nan)
+    var = np.full(len(x), np.nan) if var is None else var
     if it is not None:
         out["parameters"] = {"payload_scale": float(x[it]), "payload_scale_std": float(np.sqrt(var[it]))}
     if ii is not None:
@@ -745,14 +980,6 @@ def _extra_states(fmodel, est: Estimate) -> dict:
 
 
 def _hold(U: np.ndarray) -> np.ndarray:
-    U = U.copy()
-    for j in range(U.shape[1]):
-        col = U[:, j]
-        ok = np.isfinite(col)
-        if not ok.any():
-            raise ValueError(f"torque column {j} has no finite sample")
-        idx = np.where(ok, np.arange(len(col)), 0)
-        np.maximum.accumulate(idx, out=idx)
-        col[:] = col[idx]
-        col[: np.argmax(ok)] = col[np.argmax(ok)]
-    return U
+    """A torque table (n, k) with its non-finite values held (:class:`LogColumns` with ``hold``), a copy."""
+    U = np.asarray(U, float)
+    return LogColumns(U, range(U.shape[1]), hold=True)[0 : len(U)]

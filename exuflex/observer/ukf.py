@@ -81,6 +81,9 @@ class UnscentedKF:
                  store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise"):
         self.model = model
         self.nx = int(model.nx)
+        watch = getattr(model, "watch_covariance", None)
+        if watch is not None:  # the model measures its approximations against the filter's uncertainty
+            watch(lambda: self._P)
         self.channels = tuple(channels)
         self.m = len(self.channels)
         missing = [c for c in self.channels if c not in R_std]
@@ -253,12 +256,12 @@ class UnscentedKF:
             raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
         return np.full(self.nx, np.nan)
 
-    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None) -> EstimationResult:
+    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
         """:meth:`step` over a record (as :meth:`MultirateEKF.run`)."""
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P)
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
         w0 = time.perf_counter()
         for k in range(len(t)):
             try:

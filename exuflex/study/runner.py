@@ -279,17 +279,9 @@ def _kinematics(key: str, mech: Mechanism):
 
 
 def _reset_observer(obs) -> None:
-    """Restart the filter from its prior. Also drops the reduced model's per-interval cache: it outlives
-    ``ekf.reset()`` and would linearise the first update at the previous run's last configuration."""
+    """Restart the filter from its prior (which resets its model's caches too: the held configuration and its
+    measurement rows would otherwise linearise the first update at the previous run's last configuration)."""
     obs.ekf.reset()
-    model = obs.model
-    if callable(getattr(model, "reset", None)):
-        model.reset()
-    elif hasattr(model, "_last"):
-        model._last = None
-    cache = getattr(model, "_channel_cache", None)
-    if isinstance(cache, dict):
-        cache.clear()
 
 
 def _abs_error_stats(est: Signals, truth: Signals, start_up: float) -> dict:
@@ -363,9 +355,9 @@ def run_one(task: RunTask) -> dict:
     if tip_stats is not None:
         for k in stats:
             stats[k].update(tip_stats[k])
-    from ..observer.session import _extra_states
+    from ..observer.session import _extra_states, _last_state
 
-    extra = _extra_states(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
+    extra = _extra_states(obs.ekf.model, *_last_state(est))  # the payload scale (or disturbances) an augmented filter estimates
     return {
         **extra,
         "level_index": task.level_index,

@@ -39,6 +39,7 @@ __all__ = [
     "Drive",
     "TruthRecord",
     "erls_truth",
+    "exudyn_mesh",
     "gen_alpha_step",
     "plan_drive",
     "reduced_truth",
@@ -54,7 +55,20 @@ BEAMS = {"ancf": "ancf", "ge": "gebeam"}
 INTEGRATORS = ("gen-alpha", "rk4")
 """Integrators of the ERLS engine: implicit generalized-alpha, or the explicit RK4 reference."""
 EXUDYN_ELEMENTS_PER_LINK = 4
-"""The Exudyn truth's default mesh (converged within 0.5 % to ~190 Hz on the six-bar)."""
+"""The Exudyn truth's coarsest default mesh (converged within 0.5 % to ~190 Hz on the six-bar); a model file
+with a more refined link raises it (:func:`exudyn_mesh`)."""
+
+
+def exudyn_mesh(mech: Mechanism) -> int:
+    """The Exudyn truth's default elements per link: :data:`EXUDYN_ELEMENTS_PER_LINK`, or the element count of
+    the model file's most refined link if larger.
+
+    A truth coarser than the model it checks measures its own discretisation error: a cubic element's curvature
+    is linear, and a gauge's curvature converges more slowly than the modes (the slider-crank's rod, 8 elements
+    in its model file: with 4 ANCF elements per link its gauges' curvature is off the finer meshes' values by a
+    bias of the order of the gauge noise, which the observer turns into a crank-angle error; measured by
+    ``benchmarks/truth_mesh.py`` in ``docs/truth_mesh.md``)."""
+    return max(EXUDYN_ELEMENTS_PER_LINK, max(len(lk.stations) - 1 for lk in mech.links))
 
 
 @dataclass
@@ -216,7 +230,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
     ``engine`` (one of :data:`ENGINES`), step ``h``, output at the model's sample rate; ``progress`` is called
     with the fraction done.
 
-    ``elements_per_link``: the truth's mesh, ``None`` (Exudyn: :data:`EXUDYN_ELEMENTS_PER_LINK` per link; ERLS: the
+    ``elements_per_link``: the truth's mesh, ``None`` (Exudyn: :func:`exudyn_mesh` elements per link; ERLS: the
     model file's), a positive integer (no element longer than 1/N of its link) or ``"file"``; ``beam``: Exudyn's
     beam, a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of :data:`INTEGRATORS`, ``erls_step`` its
     generalized-alpha step (:func:`gen_alpha_step`). The record's ``settings`` state them with the solver's
@@ -249,7 +263,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
     if engine == "exudyn":
         from ..groundtruth import simulate_truth  # Exudyn is imported only there
 
-        mesh = EXUDYN_ELEMENTS_PER_LINK if elements_per_link is None else elements_per_link
+        mesh = exudyn_mesh(truth_mech) if elements_per_link is None else elements_per_link
         probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
                                 progress=progress, elements_per_link=mesh, formulation=BEAMS[beam], stats=solver)
         settings = {
