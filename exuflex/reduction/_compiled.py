@@ -8,17 +8,18 @@ arithmetic: some 80 NumPy calls on arrays of a few hundred entries. :func:`force
 :meth:`exuflex.reduction.basis.CraigBampton.basis_derivative` and ``at``, and of
 :meth:`exuflex.reduction.model.ReducedModel.matrices` without the forces) do the same arithmetic in one compiled
 call each; :func:`held_evaluation` does all of :meth:`~exuflex.reduction.model.ReducedModel.held` (the cached
-observer's evaluation) in one call after the configuration's, sharing ``W J`` and ``M_N W J`` (in a filter run,
-where every evaluation starts from cold caches, each separate call and the Python between them cost as much as
-their arithmetic). The NumPy methods stay the reference (and what runs without numba);
-``tests/test_reduction.py`` checks that all three agree to rounding.
+observer's evaluation) in five such calls, sharing ``W J`` and ``M_N W J`` between the reduced matrices and the
+force model. The NumPy methods stay the reference (and what runs without numba); ``tests/test_reduction.py``
+checks that all three agree to rounding.
 
-Compilation: a helper called from one kernel, or a small one, is compiled into its caller (numba's
-``inline="always"``, the ``_inline`` decorator), because a separately compiled function is linked into every
-kernel that calls it and optimised by LLVM again there; the large helpers that several kernels share stay
-separate functions (inlined, numba would type their bodies once per call site). Arrays are copied element by
-element rather than by slice assignment, whose compiled shape check links numba's error-message formatting into
-the kernel.
+Compilation: numba compiles a kernel that another kernel calls once on its own and then again, with everything
+it calls, inside each caller (its code is linked into the caller's and optimised and translated to machine code
+there anew). So the large kernels are called from Python only (:func:`held_evaluation` chains them), and a small
+helper, or one called from one kernel, is compiled into its caller (numba's ``inline="always"``, the ``_inline``
+decorator; numba copies an inlined helper's code once per block, which makes large inlined helpers costly too).
+Every kernel is compiled with the same options (no C-callable wrapper, which nothing here uses): numba compiles
+the NumPy functions a kernel uses once per set of options. Arrays are copied element by element rather than by
+slice assignment, whose compiled shape check links numba's error-message formatting into the kernel.
 
 This module imports without numba: ``HAVE_NUMBA`` is then False and nothing here is called.
 """
