@@ -1,6 +1,7 @@
 """Where the observer's time goes: the real-time factor and its split per sample, measured in one run.
 
     python benchmarks/observer_speed.py [--model models/sixbar.toml] [--run tests/data/sixbar_erls_3s] [--repeats 7]
+                                        [--json] [--md docs/observer_speed.md]
 
 Filters the run's log with default settings ``--repeats`` times and reports the median real-time factor, then
 filters it once more with timers around the parts of a sample (each timer costs a fraction of a microsecond):
@@ -8,20 +9,25 @@ filters it once more with timers around the parts of a sample (each timer costs 
 - the model's interval: the compiled held step and step Jacobian (``expansion.held_interval``);
 - the Kalman algebra: the compiled covariance prediction, update and settling (``kalman.predict_update``);
 - the measurement rows along the secant (compiled, ``expansion.secant_rows``);
-- configuration evaluations (the held model's refreshes) and step-map rebuilds;
+- configuration evaluations (the held model's refreshes, with their spectrum and error estimates) and step-map
+  rebuilds;
 - the rest: the filter's and the model's Python between those calls (argument checks, bookkeeping, the NIS
   and sensor-fault monitors, recording).
 
 The split says what a faster sample would have to remove: the real-time factor with the rest taken away is
 printed as the ceiling of the present arithmetic. Figures are ratios and fractions of one run (the machine's
-speed drifts); the absolute factor holds for this machine at this moment only.
+speed drifts); the absolute factor holds for this machine at this moment only. The figures go to the markdown page
+``--md`` with the machine's load average at the end of the run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -56,6 +62,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run", default=str(ROOT / "tests" / "data" / "sixbar_erls_3s"), help="a run folder")
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--md", default=str(ROOT / "docs" / "observer_speed.md"), help="markdown page ('' for none)")
     args = ap.parse_args(argv)
 
     from exuflex.mechanism import load_mechanism
@@ -96,6 +103,9 @@ def main(argv=None) -> int:
            "fraction": {k: v / wall for k, v in parts.items()},
            "calls": {k: t.calls for k, t in timers.items()},
            "real_time_factor_without_the_rest": ceiling}
+    out["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    if args.md:
+        Path(args.md).write_text(_page(out, argv if argv is not None else sys.argv[1:], args.repeats))
     if args.json:
         print(json.dumps(out, indent=1))
         return 0
@@ -107,6 +117,32 @@ def main(argv=None) -> int:
         print(f"  {k:40s} {v:7.1f} us  {100 * out['fraction'][k]:5.1f} %" + (f"  ({c} calls)" if c is not None else ""))
     print(f"real-time factor with the rest removed: {ceiling:.1f}")
     return 0
+
+
+def _page(out: dict, argv: list, repeats: int) -> str:
+    """The measured figures as a markdown page (the machine's load at the end of the run included: the absolute
+    factor holds for that machine at that moment only; the split into parts is what carries over)."""
+    from exuflex.runs import package_versions
+
+    rows = "\n".join(f"| {k} | {v:.1f} | {100 * out['fraction'][k]:.1f} % | {out['calls'].get(k, '')} |"
+                      for k, v in out["us_per_sample"].items())
+    load = out["load_average_1min"]
+    versions = ", ".join(f"{k} {v}" for k, v in {**package_versions(), "python": platform.python_version()}.items())
+    return (
+        "# Where the observer's time goes\n\n"
+        f"Written by `{' '.join(['python benchmarks/observer_speed.py', *argv])}` (see its docstring).\n\n"
+        f"Model {out['model']}, {out['samples']} samples over {out['span_s']:.3g} s, default settings: median real-time "
+        f"factor **{out['median_real_time_factor']:.1f}** over {repeats} runs "
+        f"({', '.join(f'{r:.1f}' for r in out['real_time_factors'])}); the configuration evaluated "
+        f"{out['calls']['configuration evaluations']} times and the step map rebuilt "
+        f"{out['calls']['step-map rebuilds']} times per run. "
+        + (f"Load average over the last minute at the end: {load:.2f} (2 cores).\n\n" if load is not None else "\n\n")
+        + f"One more run with timers around the parts of a sample: {out['timed_run_us_per_sample']:.1f} us per sample.\n\n"
+        "| part | us per sample | share | calls |\n|---|---|---|---|\n" + rows + "\n\n"
+        f"Real-time factor with the rest taken away (the ceiling of the present arithmetic): "
+        f"{out['real_time_factor_without_the_rest']:.1f}.\n\n"
+        f"Versions: {versions}.\n"
+    )
 
 
 if __name__ == "__main__":

@@ -356,19 +356,23 @@ class ReducedObserverModel:
 
     def substeps(self, iv: _Held, dt: float) -> int:
         """RK4 sub-steps over an interval of ``dt`` at the configuration ``iv``: each at most ``h`` long and
-        stable on the configuration's spectrum (:func:`rk4_substep_limit`); an error naming the stiffest mode if
-        stability needs sub-steps shorter than ``min_substep``."""
+        stable on the configuration's spectrum (:meth:`_stable_substep`)."""
         if iv.h_stable is None:
-            lam = self._spectrum(iv.mats)
-            h_stable = rk4_substep_limit(lam)
-            if h_stable < self.min_substep:
-                w = float(np.abs(lam).max())
-                raise ValueError(
-                    f"the reduced model's stiffest mode (|lambda| = {w:.4g} 1/s, {w / (2 * np.pi):.4g} Hz) needs RK4 "
-                    f"sub-steps of at most {h_stable:.3g} s, shorter than min_substep={self.min_substep:g} s. A "
-                    "master dof with a stiff Guyan mode (e.g. an axial one) causes this: choose other masters")
-            iv.h_stable = h_stable
+            iv.h_stable = self._stable_substep(iv.mats)
         return max(1, math.ceil(dt / min(self.h, iv.h_stable) - 1e-9))
+
+    def _stable_substep(self, mats: ReducedMatrices) -> float:
+        """The longest RK4 sub-step stable on a configuration's spectrum (:func:`rk4_substep_limit`); an error
+        naming the stiffest mode if stability needs sub-steps shorter than ``min_substep``."""
+        lam = self._spectrum(mats)
+        h_stable = rk4_substep_limit(lam)
+        if h_stable < self.min_substep:
+            w = float(np.abs(lam).max())
+            raise ValueError(
+                f"the reduced model's stiffest mode (|lambda| = {w:.4g} 1/s, {w / (2 * np.pi):.4g} Hz) needs RK4 "
+                f"sub-steps of at most {h_stable:.3g} s, shorter than min_substep={self.min_substep:g} s. A "
+                "master dof with a stiff Guyan mode (e.g. an axial one) causes this: choose other masters")
+        return h_stable
 
     def frozen_interval(self, z: np.ndarray, u, dt: float) -> tuple[Prediction, _Held, _StepMap]:
         """The configuration evaluated at ``z`` and held over the interval: the linear system with the forces at
@@ -429,6 +433,7 @@ class ReducedObserverModel:
                 iv.old, iv.d, iv.dd, iv.d_list = old, d, float(d @ d), d.tolist()
             old.old = None  # keep one partner only (no chain of held configurations)
         iv.system = self._held_system(iv)
+        iv.h_stable = self._stable_substep(iv.mats)  # the sub-step rechecked at every evaluation
         if old is not None and old.forces is not None and u is not None and dt is not None \
                 and self.state_cov is not None:
             err = self._held_error(old, s_old, iv, z, u, dt)
