@@ -334,8 +334,8 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr
     Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, hs)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
-    if Pn.shape[0]:
-        F = _step_jacobian(z, Ts, Vs, C3, Pn, SQM)
+    if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
+        F = step_jacobian(z, Ts, Vs, C3, Pn, SQM)
     return z_next, F, Mr_, Kr_, Cr_, Gr_
 
 
@@ -617,7 +617,6 @@ _quadratic_forces = _inline(_quadratic_forces)
 _held_model = _inline(_held_model)
 _held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
-_step_jacobian = _inline(_step_jacobian)
 held_interval = _jit(_held_interval)
 secant_rows = _jit(_secant_rows)
 prediction_error = _jit(_prediction_error)
