@@ -40,7 +40,7 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
 
 def test_kernel_parameters_are_the_held_system_fields():
     """The kernels take the held arrays one by one, called with ``*system``: their names must be the fields."""
-    for f, lead in ((ex._held_step, 6), (ex._prediction_error, 4), (ex._held_interval, 11)):
+    for f, lead in ((ex._held_step, 6), (ex._held_system, 2), (ex._prediction_error, 4), (ex._held_interval, 11)):
         names = list(inspect.signature(getattr(f, "py_func", f)).parameters)[lead:]
         assert names == list(HeldSystem._fields), f.__name__
 

@@ -326,7 +326,7 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr
                                                            old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
-    then serves :func:`held_step` and :func:`held_system` too (see :func:`_inline` for why one). The helpers are
+    then serves :func:`held_step` too (see :func:`_inline` for why one). The helpers are
     called here directly rather than through :func:`_held_step`: numba copies an inlined helper's whole code once
     per block, so one large helper costs far more to inline than its parts."""
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
@@ -347,13 +347,12 @@ def held_step(z, u, dl, s, h, n, *system):
     return z_next, Mr, Kr, Cr, Gr
 
 
-def held_system(dl, s, *system):
-    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl`` (:func:`_system`; call with ``*system``): through
-    :func:`held_interval` with no sub-step and no Jacobian."""
-    hs = HeldSystem(*system)
-    r, nu = hs.Gr.shape
-    return held_interval(np.zeros(2 * r), np.zeros(nu), dl, s, 0.0, 0, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR,
-                         _NO_MATRIX, _NO_MATRIX, *system)[2:]
+def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """:func:`_system` (call with ``*system``, see :func:`_held_step`); its own kernel, as the filter calls it at
+    every step-map rebuild."""
+    return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
+                                     old_Gr, old_fg, old_T2, old_V2, old_C2))
 
 
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
@@ -617,6 +616,7 @@ _quadratic_forces = _inline(_quadratic_forces)
 _held_model = _inline(_held_model)
 _held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
+held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
 secant_rows = _jit(_secant_rows)
 prediction_error = _jit(_prediction_error)
