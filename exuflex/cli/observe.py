@@ -278,7 +278,7 @@ def run(args) -> int:
 
 
 #: the observer's largest kernels: while their cache files are missing, building the observer compiles
-_OBSERVER_KERNELS = ("reduction/__pycache__/_compiled._held_evaluation-*.nbi",
+_OBSERVER_KERNELS = ("reduction/__pycache__/_compiled._held_matrices-*.nbi",
                      "observer/__pycache__/expansion._held_interval-*.nbi",
                      "observer/__pycache__/kalman.predict_update-*.nbi")
 

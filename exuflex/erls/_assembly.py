@@ -65,7 +65,7 @@ def _nodal_matrices(th, Ml, Kl, el_dofs, lumped):  # pragma: no cover - compiled
 
 
 if HAVE_NUMBA:
-    nodal_matrices = numba.njit(cache=True, nogil=True, error_model="numpy")(_nodal_matrices)
+    nodal_matrices = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_nodal_matrices)
     _nodal_matrices_inline = numba.njit(inline="always", nogil=True, error_model="numpy")(_nodal_matrices)
 else:  # pragma: no cover
     nodal_matrices = None
@@ -98,6 +98,6 @@ def _configuration(z0, q, k, tol, max_iter, node_link, node_station, el_link, Ml
 
 
 if HAVE_NUMBA and closure_newton is not None:
-    configuration = numba.njit(cache=True, nogil=True, error_model="numpy")(_configuration)
+    configuration = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_configuration)
 else:  # pragma: no cover
     configuration = None

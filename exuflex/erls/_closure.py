@@ -273,7 +273,7 @@ def _coordinate_rates(z, Sz, Jinv, k, node_link, node_station):  # pragma: no co
 
 
 if HAVE_NUMBA:
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
     _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
     _residual = _inline(_residual)
     _jacobian = _inline(_jacobian)

@@ -85,7 +85,7 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import _jit, held_step, step_jacobian
+from .expansion import _held_step, _jit, step_jacobian
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
 
@@ -145,9 +145,9 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     out = np.empty((a.shape[0], z.shape[0]))
     for k in range(a.shape[0]):
         c = a[k]
-        out[k] = held_step(z, u, dl, s, h, n, has_old, beta, Mr + c * iMr, Kr, Ca + c * iCa, Gr, dM + c * idM, dK,
-                           fg + c * ifg, T2 + c * iT2, V2, C2, old_dM + c * iold_dM, old_dK, old_Ca + c * iold_Ca,
-                           old_Gr, old_fg + c * iold_fg, old_T2 + c * iold_T2, old_V2, old_C2)[0]
+        out[k] = _held_step(z, u, dl, s, h, n, has_old, beta, Mr + c * iMr, Kr, Ca + c * iCa, Gr, dM + c * idM, dK,
+                            fg + c * ifg, T2 + c * iT2, V2, C2, old_dM + c * iold_dM, old_dK, old_Ca + c * iold_Ca,
+                            old_Gr, old_fg + c * iold_fg, old_T2 + c * iold_T2, old_V2, old_C2)[0]
     return out
 
 

@@ -71,18 +71,23 @@ try:  # numba is a core dependency; without it the kernels run as plain (slow) P
     import numba.extending
 
     def _jit(f):
-        return numba.njit(cache=True, nogil=True, error_model="numpy")(f)
+        return numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(f)
 
     def _shared(f):
         """Plain NumPy function outside compiled code, compiled inline where a kernel calls it."""
         return numba.extending.register_jitable(f)
+
+    def _inline(f):
+        """A helper compiled into each kernel that calls it (numba's ``inline="always"``), not as a kernel of its
+        own: a separately compiled kernel is compiled once on its own and optimised again inside every caller."""
+        return numba.njit(inline="always", nogil=True, error_model="numpy", no_cfunc_wrapper=True)(f)
 
 except ImportError:  # pragma: no cover
 
     def _jit(f):
         return f
 
-    _shared = _jit
+    _shared = _inline = _jit
 
 
 @_shared
@@ -238,7 +243,7 @@ def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
     return f
 
 
-@_jit
+@_inline
 def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     """``M_r``, ``K_r`` of the held model at ``q0 + dl``: gradients at ``q0`` and, with a secant partner, half the
     change of the gradients along the secant (``s = (dl . d) / (d . d)``, ``d = q0 - q_old``): second order."""
@@ -269,7 +274,7 @@ def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     return Mr, Kr
 
 
-@_jit
+@_inline
 def _system(dl, s, hs):  # pragma: no cover - compiled
     """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
     Mr, Kr = _mass_stiffness(dl, s, hs)
@@ -288,15 +293,9 @@ def _system(dl, s, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr
 
 
-def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
-    """One interval of the cached step: the model at ``q0 + dl`` (:func:`_system`, the forces along the secant)
-    advanced by ``n`` RK4 sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the
-    held ``M_r`` is not positive definite there. The held system's arrays are passed one by one (their names are
-    :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
-    of a tuple of arrays."""
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2)
+def _held_model(z, dl, s, hs):  # pragma: no cover - compiled
+    """The held model at ``q0 + dl`` (:func:`_system`) and the forces at ``z`` along the secant:
+    ``(M_r, K_r, C_r, G_r, f)``."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     p = z[:r]
@@ -307,24 +306,57 @@ def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2,
         fo = _quadratic_forces(p, pd, nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2)
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-    z_next = _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n)
-    return z_next, Mr, Kr, Cr, Gr
+    return Mr, Kr, Cr, Gr, f
+
+
+def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """One interval of the cached step: the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
+    sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the held ``M_r`` is not
+    positive definite there. The held system's arrays are passed one by one (their names are
+    :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
+    of a tuple of arrays."""
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    Mr, Kr, Cr, Gr, f = _held_model(z, dl, s, hs)
+    return _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                                            old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
-    ``(z_next, F, M_r, K_r, C_r, G_r)``."""
-    z_next, Mr_, Kr_, Cr_, Gr_ = _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
-                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2)
-    return z_next, _step_jacobian(z, Ts, Vs, C3, Pn, SQM), Mr_, Kr_, Cr_, Gr_
+    ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
+    then serves :func:`held_step` too (see :func:`_inline` for why one). The helpers are
+    called here directly rather than through :func:`_held_step`: numba copies an inlined helper's whole code once
+    per block, so one large helper costs far more to inline than its parts."""
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, hs)
+    z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
+    F = np.empty((0, 0))
+    if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
+        F = step_jacobian(z, Ts, Vs, C3, Pn, SQM)
+    return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def held_step(z, u, dl, s, h, n, *system):
+    """One interval of the cached step (:func:`_held_step`): ``(z_next, M_r, K_r, C_r, G_r)``. Called with
+    ``*system`` (:class:`HeldSystem`); through :func:`held_interval` without the Jacobian."""
+    z_next, _, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, h, n, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR, _NO_MATRIX,
+                                              _NO_MATRIX, *system)
+    return z_next, Mr, Kr, Cr, Gr
 
 
 def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                         old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
-    """:func:`_system` (call with ``*system``, see :func:`_held_step`)."""
+    """:func:`_system` (call with ``*system``, see :func:`_held_step`); its own kernel, as the filter calls it at
+    every step-map rebuild."""
     return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
                                      old_Gr, old_fg, old_T2, old_V2, old_C2))
+
+
+_NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
+_NO_MATRIX = np.empty((0, 0))
 
 
 def _secant_rows(c0, Hm, dH, s, x, y, H):  # pragma: no cover - compiled
@@ -579,13 +611,12 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
 
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
-_rk4_linear = _jit(_rk4_linear)
-_quadratic_forces = _jit(_quadratic_forces)
-_held_step = _jit(_held_step)
-held_step = _held_step
+_rk4_linear = _inline(_rk4_linear)
+_quadratic_forces = _inline(_quadratic_forces)
+_held_model = _inline(_held_model)
+_held_step = _inline(_held_step)
+step_jacobian = _jit(_step_jacobian)
 held_system = _jit(_held_system)
-_step_jacobian = _jit(_step_jacobian)
-step_jacobian = _step_jacobian
 held_interval = _jit(_held_interval)
 secant_rows = _jit(_secant_rows)
 prediction_error = _jit(_prediction_error)
@@ -618,7 +649,6 @@ def warm_up() -> None:
         prediction_error(dl, 0.0, M, M, *hs)
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
-    step_jacobian(z, *jac)
     secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), 0.0, z, np.empty(1), np.empty((1, 2 * r)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))

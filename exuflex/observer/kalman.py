@@ -34,7 +34,7 @@ __all__ = ["apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update"
 
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
 else:  # pragma: no cover
 
     def _jit(f):

@@ -605,25 +605,27 @@ class ReducedObserverModel:
         new.tail = (*iv.forces.jacobian_tensors(), new.Pn, new.S, *iv.system)
         self.n_remap += 1
         if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
-            self._map_radius(sm, new, self._map_error(iv, z, sm, new))
+            self._map_radius(sm, new, self._map_error(sm, new))
         return new
 
-    def _map_error(self, iv: _Held, z: np.ndarray, old: _StepMap, new: _StepMap) -> float:
+    def _map_error(self, old: _StepMap, new: _StepMap) -> float:
         """The error of the replaced step map ``old`` where ``new`` is built, in the filter's covariance
-        prediction: with ``E = F_old - F_new`` (the two maps' step Jacobians at ``z``) and the filter's present
-        covariance ``P``, ``max_i (sqrt((E P E')_ii) + |dQ_ii| / (2 sigma_i)) / sigma_i`` where ``sigma_i^2`` is
-        the new map's predicted variance ``(F P F' + Q)_ii``: to first order a bound on the relative change of
-        every predicted standard deviation (the first term of the Jacobian's error, the second of the process
-        noise's)."""
-        Ts, Vs, C3 = iv.forces.jacobian_tensors()
-        F = step_jacobian(z, Ts, Vs, C3, new.Pn, new.S)
-        E = step_jacobian(z, Ts, Vs, C3, old.Pn, old.S) - F
-        P = self.state_cov()[: self.nx, : self.nx]
-        var = ((F @ P) * F).sum(axis=1) + new.Q.diagonal()
-        e2 = ((E @ P) * E).sum(axis=1)
-        sig = np.sqrt(np.maximum(var, 1e-300))
-        err = float(np.max((np.sqrt(np.maximum(e2, 0.0)) + 0.5 * np.abs(new.Q.diagonal() - old.Q.diagonal()) / sig)
-                           / sig))
+        prediction: with ``E = P^n_old - P^n_new`` (the two maps' state maps) and the filter's present covariance
+        ``P``, ``max_i (sqrt((E P E')_ii) + |dQ_ii| / (2 sigma_i)) / sigma_i`` where ``sigma_i^2`` is the new
+        map's predicted variance ``(P^n P P^n' + Q)_ii``: to first order a bound on the relative change of every
+        predicted standard deviation (the first term of the map's error, the second of the process noise's). The
+        step Jacobian's velocity-force correction ``S dF/dz`` is left out of both (the maps' ``S`` change along
+        with ``P^n``, and the correction is small against ``P^n``); with it the measure costs more than the
+        rebuild it decides on."""
+        P = self.state_cov()
+        if P.shape[0] != self.nx:
+            P = P[: self.nx, : self.nx]
+        A = np.vstack((old.Pn - new.Pn, new.Pn))
+        d = np.einsum("ij,ij->i", A @ P, A)
+        qn = new.Q.diagonal()
+        var = np.maximum(d[self.nx :] + qn, 1e-300)
+        sig = np.sqrt(var)
+        err = float(np.max((np.sqrt(np.maximum(d[: self.nx], 0.0)) + 0.5 * np.abs(qn - old.Q.diagonal()) / sig) / sig))
         self.map_errors.append(err)
         return err
 

@@ -8,17 +8,18 @@ arithmetic: some 80 NumPy calls on arrays of a few hundred entries. :func:`force
 :meth:`exuflex.reduction.basis.CraigBampton.basis_derivative` and ``at``, and of
 :meth:`exuflex.reduction.model.ReducedModel.matrices` without the forces) do the same arithmetic in one compiled
 call each; :func:`held_evaluation` does all of :meth:`~exuflex.reduction.model.ReducedModel.held` (the cached
-observer's evaluation) in one call after the configuration's, sharing ``W J`` and ``M_N W J`` (in a filter run,
-where every evaluation starts from cold caches, each separate call and the Python between them cost as much as
-their arithmetic). The NumPy methods stay the reference (and what runs without numba);
-``tests/test_reduction.py`` checks that all three agree to rounding.
+observer's evaluation) in five such calls, sharing ``W J`` and ``M_N W J`` between the reduced matrices and the
+force model. The NumPy methods stay the reference (and what runs without numba); ``tests/test_reduction.py``
+checks that all three agree to rounding.
 
-Compilation: a helper called from one kernel, or a small one, is compiled into its caller (numba's
-``inline="always"``, the ``_inline`` decorator), because a separately compiled function is linked into every
-kernel that calls it and optimised by LLVM again there; the large helpers that several kernels share stay
-separate functions (inlined, numba would type their bodies once per call site). Arrays are copied element by
-element rather than by slice assignment, whose compiled shape check links numba's error-message formatting into
-the kernel.
+Compilation: numba compiles a kernel that another kernel calls once on its own and then again, with everything
+it calls, inside each caller (its code is linked into the caller's and optimised and translated to machine code
+there anew). So the large kernels are called from Python only (:func:`held_evaluation` chains them), and a small
+helper, or one called from one kernel, is compiled into its caller (numba's ``inline="always"``, the ``_inline``
+decorator; numba copies an inlined helper's code once per block, which makes large inlined helpers costly too).
+Every kernel is compiled with the same options (no C-callable wrapper, which nothing here uses): numba compiles
+the NumPy functions a kernel uses once per set of options. Arrays are copied element by element rather than by
+slice assignment, whose compiled shape check links numba's error-message formatting into the kernel.
 
 This module imports without numba: ``HAVE_NUMBA`` is then False and nothing here is called.
 """
@@ -272,7 +273,7 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
 
 
 if HAVE_NUMBA:
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
     _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
     _w_product = _inline(_w_product)
     _t_product = _inline(_t_product)
@@ -549,23 +550,13 @@ else:  # pragma: no cover
     basis_at = reduced_matrices = None
 
 
-def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_link, node_station,
-                     t_index, im, is_, Phi_u, px, py, pnode, plocal, keep, theta_star, B_N, g_N, Gl, KGl, el_dofs,
-                     el_link, alpha, beta, nq, rotate, has_local, consistent, gradients):
-    # pragma: no cover - compiled twin of ReducedModel.held
-    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs)``: what
-    :meth:`~exuflex.reduction.model.ReducedModel.held` computes (without ``fr``) from a full configuration, in one
-    call: the basis at q (:func:`basis_at`), its derivative for every reduced coordinate
-    (:func:`basis_derivative`), the reduced matrices (:func:`reduced_matrices`), ``dS/dq``
-    (:func:`exuflex.erls._closure.coordinate_rates`) and the force model (:func:`force_terms`, without ``JtM``),
-    with ``W J`` and ``M_N W J`` computed once for both. ``z, Sz, r_nodes, S, Jinv``: the pose's link poses and
-    sensitivities, nodal poses and sensitivities and closure Jacobian inverse; ``closure``
-    (:class:`exuflex.erls._closure.ClosureArrays`), ``node_link``, ``node_station``: the kinematics' arrays;
-    ``pnode``, ``theta_star``: the node of every interior-mode pair and the nodal angles
-    at q* (``rotate`` False: the modes do not turn, :attr:`~exuflex.reduction.basis.CraigBampton.rotate`);
-    ``plocal``, ``keep``, ``has_local``: the link-frame pairs (:func:`basis_derivative`), which turn with the
-    angle of their node ``pnode`` always."""
-    ne = Phi_u.shape[0]
+def _pair_rotations(r_nodes, S, Sz, pnode, plocal, theta_star, el_link, nq, rotate):  # pragma: no cover - compiled
+    """``(c, s, qc, qs, Sn, S_th)`` at a pose: cosine and sine of every interior-mode node pair's rotation from
+    q* (zero where the modes do not turn: ``rotate`` False and the pair in the global frame), its frame rotation
+    ``Q`` (link-frame pairs ``plocal``: the angle of their node ``pnode``; 1, 0 for global pairs), the angle
+    sensitivities ``d theta_node / dq`` of the pairs that turn, and the element angle sensitivities (``r_nodes``,
+    ``S``: nodal poses and sensitivities; ``Sz``: the link poses' sensitivities; ``theta_star``: the nodal angles
+    at q*)."""
     n_pairs = pnode.shape[0]
     c = np.empty(n_pairs)
     s = np.empty(n_pairs)
@@ -588,18 +579,55 @@ def _held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_l
     for e in range(el_link.shape[0]):
         for i in range(nq):
             S_th[e, i] = Sz[3 * el_link[e] + 2, i]
-    Kuu, B, Kinv, Psi, H = basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_local)
-    r = H.shape[1]
-    dHdq = basis_derivative(np.eye(r), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s, Phi_u, px,
-                            py, Sn, Kuu, qc, qs, plocal, keep, has_local)
+    return c, s, qc, qs, Sn, S_th
+
+
+def _held_matrices(p, H, dHdq, Kuu, M_N, W, z, Sz, Jinv, closure, node_link, node_station, t_index, B_N, alpha,
+                   beta, nq, consistent):  # pragma: no cover - compiled
+    """``(J, W J, M_N W J, M_r, K_r, C_r, G_r, dS/dq)`` from the basis ``H`` and its derivative ``dHdq`` at a
+    pose: the reduced matrices (:func:`reduced_matrices`) with the two products the force model shares, and
+    ``dS/dq`` (:func:`exuflex.erls._closure.coordinate_rates`; arguments: see :func:`held_evaluation`)."""
     J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
     Sd3 = coordinate_rates_inline(z, Sz, Jinv, closure, node_link, node_station)
+    return J, WJ, MWJ, Mr, Kr, Cr, Gr, Sd3
+
+
+if HAVE_NUMBA:
+    pair_rotations = _jit(_pair_rotations)
+    held_matrices = _jit(_held_matrices)
+else:  # pragma: no cover
+    pair_rotations = held_matrices = None
+
+
+def held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_link, node_station,
+                    t_index, im, is_, Phi_u, px, py, pnode, plocal, keep, theta_star, B_N, g_N, Gl, KGl, el_dofs,
+                    el_link, alpha, beta, nq, rotate, has_local, consistent, gradients):
+    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs)``: what
+    :meth:`~exuflex.reduction.model.ReducedModel.held` computes (without ``fr``) from a full configuration: the
+    pairs' rotations (:func:`pair_rotations`), the basis at q (:func:`basis_at`), its derivative for every reduced
+    coordinate (:func:`basis_derivative`), the reduced matrices (:func:`held_matrices`) and the force model
+    (:func:`force_terms` without ``JtM``, with ``W J`` and ``M_N W J`` shared).
+    ``z, Sz, r_nodes, S, Jinv``: the pose's link poses and sensitivities, nodal poses and sensitivities and
+    closure Jacobian inverse; ``closure`` (:class:`exuflex.erls._closure.ClosureArrays`), ``node_link``,
+    ``node_station``: the kinematics' arrays; ``pnode``, ``theta_star``: the node of every interior-mode pair and
+    the nodal angles at q* (``rotate`` False: the modes do not turn,
+    :attr:`~exuflex.reduction.basis.CraigBampton.rotate`); ``plocal``, ``keep``, ``has_local``: the link-frame
+    pairs (:func:`basis_derivative`), which turn with the angle of their node ``pnode`` always.
+
+    Five compiled calls from Python rather than one kernel calling the others: numba compiles a kernel that
+    another kernel calls once on its own and again inside its caller (and :func:`basis_at` and
+    :func:`basis_derivative` are called from Python as well)."""
+    ne = Phi_u.shape[0]
+    c, s, qc, qs, Sn, S_th = pair_rotations(r_nodes, S, Sz, pnode, plocal, theta_star, el_link, nq, rotate)
+    Kuu, B, Kinv, Psi, H = basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_local)
+    dHdq = basis_derivative(np.eye(H.shape[1]), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s,
+                            Phi_u, px, py, Sn, Kuu, qc, qs, plocal, keep, has_local)
+    J, WJ, MWJ, Mr, Kr, Cr, Gr, Sd3 = held_matrices(p, H, dHdq, Kuu, M_N, W, z, Sz, Jinv, closure, node_link,
+                                                     node_station, t_index, B_N, alpha, beta, nq, consistent)
     fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,
                                                              el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients)
     return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs
 
 
-if HAVE_NUMBA:
-    held_evaluation = _jit(_held_evaluation)
-else:  # pragma: no cover
+if not HAVE_NUMBA:  # pragma: no cover
     held_evaluation = None
