@@ -226,25 +226,24 @@ class AugmentedModel:
         self.nx = n
         self.linearity_tol = float(linearity_tol)
         self._cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
+        self._plain = None  # the nominal model's own evaluation, where an increment is asked for later
+        self._forget()
+        self.state_labels = tuple(f"z{i}" for i in range(self.n0)) + (
+            ("payload_scale",) if self.i_theta is not None else ()) + (
+            tuple(f"d_{m}" for m in inner.mech.motor_names) if self.i_inputs is not None else ())
+
+    def _forget(self) -> None:
+        """The per-run state: the scale's hold, the cached increments and shares, the last map."""
         self.released = False
         self.n_held = 0
         self.last_linearity = math.nan
         self._increments: dict = {}
         self._shares: dict = {}
         self._map = None
-        self._plain = None  # the nominal model's own evaluation, where an increment is asked for later
-        self.state_labels = tuple(f"z{i}" for i in range(self.n0)) + (
-            ("payload_scale",) if self.i_theta is not None else ()) + (
-            tuple(f"d_{m}" for m in inner.mech.motor_names) if self.i_inputs is not None else ())
 
     def reset(self) -> None:
         self.inner.reset()
-        self.released = False
-        self.n_held = 0
-        self.last_linearity = math.nan
-        self._increments = {}
-        self._shares = {}
-        self._map = None
+        self._forget()
         for m in (self.twin, self._plain):
             if m is not None:
                 m.model.kin.reset_warm_start()

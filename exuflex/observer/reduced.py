@@ -519,16 +519,20 @@ class ReducedObserverModel:
     def _held_at(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, list]:
         """The held configuration for an interval from ``z`` (evaluated anew when q left its radius) and
         ``dl = q - q0`` as an array and as floats."""
-        q = z[: self.nq]
         iv = self._last
-        if iv is not None and iv.system is not None:
-            dl = q - iv.q0
-            v = dl.tolist()
-            if max(map(abs, v)) <= iv.rad:
-                return iv, dl, v
+        near = self._offset(iv, z, iv.rad) if iv is not None and iv.system is not None else None
+        if near is not None:
+            return iv, *near
         iv = self._refresh(z, u, dt)
-        dl = q - iv.q0
+        dl = z[: self.nq] - iv.q0
         return iv, dl, dl.tolist()
+
+    def _offset(self, iv: _Held, x: np.ndarray, radius: float) -> tuple[np.ndarray, list] | None:
+        """``dl = q - q0`` of the state ``x`` from the held ``iv``, as an array and as floats, if within ``radius``
+        (max norm); else None."""
+        dl = x[: self.nq] - iv.q0
+        v = dl.tolist()
+        return (dl, v) if max(map(abs, v)) <= radius else None
 
     def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
@@ -585,7 +589,7 @@ class ReducedObserverModel:
         Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl, v), *iv.system)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
-        return step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S), sm.Q
+        return step_jacobian(z, *sm.tail[:5]), sm.Q  # (Ts, Vs, C3, P^n, S): the map's fixed arguments
 
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
         """The held configuration's step map, rebuilt when q moved the map radius from where it was built or the
@@ -723,16 +727,13 @@ class ReducedObserverModel:
     def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray, list]:
         """The held configuration the measurement rows at x are taken about (evaluated at x if none is near), with
         ``dl = q - q0`` as an array and as floats."""
-        q = x[: self.nq]
         iv = self._last
-        if iv is not None:
-            dl = q - iv.q0
-            v = dl.tolist()
-            if max(map(abs, v)) <= self._measurement_radius(iv):
-                return iv, dl, v
+        near = self._offset(iv, x, self._measurement_radius(iv)) if iv is not None else None
+        if near is not None:
+            return iv, *near
         # no held configuration near x (first sample of a run): evaluate one at x
         iv = self._last = self._configuration(x)
-        dl = q - iv.q0
+        dl = x[: self.nq] - iv.q0
         return iv, dl, dl.tolist()
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
