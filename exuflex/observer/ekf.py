@@ -929,6 +929,9 @@ class MultirateEKF:
         ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
         ok[0] = False
         ok &= np.isfinite(t)
+        # the grid samples each interval skipped (step()'s count of missing samples), summed from the start
+        skipped = np.maximum(np.rint(dt / self.dt) - 1.0, 0.0)
+        self._skipped = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(skipped), skipped, 0.0))))
         bad = np.flatnonzero(~ok)
         # the first not-ok sample at or after k
         pos = np.searchsorted(bad, np.arange(n))
@@ -982,8 +985,7 @@ class MultirateEKF:
         """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
         test, the record's degrees of freedom) and of the last (times, input, innovations, the model's interval)."""
         m = self.m
-        gap = np.rint(np.diff(t[k0 - 1 : k1]) / self.dt) - 1.0
-        self.n_missing += int(gap[gap > 0].sum())
+        self.n_missing += int(self._skipped[k1 - 1] - self._skipped[k0 - 1])
         rec.dof[k0:k1] = m
         for j in range(k0, k1):
             self._count_update(t[j], float(rec.nis[j]), m, hold0 - (j - k0) > 0)

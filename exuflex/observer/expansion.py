@@ -27,6 +27,7 @@ __all__ = [
     "held_interval",
     "held_step",
     "held_system",
+    "map_error",
     "map_lookahead",
     "power_sum",
     "prediction_error",
@@ -749,6 +750,35 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     return k, LOOP_DONE, holdoff, swapped
 
 
+def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
+    """The error of the step map ``Pn_old`` where ``Pn_new`` is built, in the covariance prediction from ``P``
+    (:meth:`.reduced.ReducedObserverModel._map_error`): with ``E = Pn_old - Pn_new`` and ``sigma_i^2 =
+    (Pn_new P Pn_new' + Q_new)_ii``, ``max_i (sqrt((E P E')_ii) + |Q_new,ii - Q_old,ii| / (2 sigma_i)) / sigma_i``.
+    ``P`` may be larger than the maps (an augmented state): its leading block is used."""
+    nx = Pn_new.shape[0]
+    e = np.empty(nx)
+    w = np.empty(nx)
+    err = 0.0
+    for i in range(nx):
+        for j in range(nx):
+            e[j] = Pn_old[i, j] - Pn_new[i, j]
+        de = 0.0
+        dn = 0.0
+        for a in range(nx):  # (e P e', p P p') with p the row of Pn_new
+            sa = 0.0
+            sn = 0.0
+            for b in range(nx):
+                sa += P[a, b] * e[b]
+                sn += P[a, b] * Pn_new[i, b]
+            de += e[a] * sa
+            dn += Pn_new[i, a] * sn
+        var = max(dn + Q_new[i, i], 1e-300)
+        sig = math.sqrt(var)
+        w[i] = (math.sqrt(max(de, 0.0)) + 0.5 * abs(Q_new[i, i] - Q_old[i, i]) / sig) / sig
+        err = max(err, w[i])
+    return err
+
+
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _inline(_rk4_linear)
@@ -764,6 +794,7 @@ prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
 _within = _inline(_within)
 cached_samples = _jit(_cached_samples)
+map_error = _jit(_map_error)
 
 
 def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSystem:
@@ -791,6 +822,7 @@ def warm_up() -> None:
         held_system(dl, 0.0, *hs)
         prediction_error(dl, 0.0, M, M, *hs)
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
+    map_error(np.eye(2 * r), np.eye(2 * r), M, M, np.eye(2 * r))
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), np.zeros((1, nq)), dl, 0.0, z, dl, np.empty(1),
                 np.empty((1, 2 * r)))

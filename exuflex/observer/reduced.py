@@ -79,6 +79,7 @@ from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
 from .kalman import InputStepTest
 from .expansion import (
+    map_error,
     cached_samples,
     HeldSystem,
     held_interval,
@@ -654,15 +655,7 @@ class ReducedObserverModel:
         step Jacobian's velocity-force correction ``S dF/dz`` is left out of both (the maps' ``S`` change along
         with ``P^n``, and the correction is small against ``P^n``); with it the measure costs more than the
         rebuild it decides on."""
-        P = self.state_cov()
-        if P.shape[0] != self.nx:
-            P = P[: self.nx, : self.nx]
-        A = np.vstack((old.Pn - new.Pn, new.Pn))
-        d = np.einsum("ij,ij->i", A @ P, A)
-        qn = new.Q.diagonal()
-        var = np.maximum(d[self.nx :] + qn, 1e-300)
-        sig = np.sqrt(var)
-        err = float(np.max((np.sqrt(np.maximum(d[: self.nx], 0.0)) + 0.5 * np.abs(qn - old.Q.diagonal()) / sig) / sig))
+        err = map_error(old.Pn, new.Pn, old.Q, new.Q, self.state_cov())
         self.map_errors.append(err)
         return err
 
