@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -121,12 +120,12 @@ def main(argv=None) -> int:
 def _page(out: dict, argv: list, repeats: int) -> str:
     """The measured figures as a markdown page (the machine's load at the end of the run included: the absolute
     factor holds for that machine at that moment only; the split into parts is what carries over)."""
-    from exuflex.runs import package_versions
+    from exuflex.runs import versions_text
 
     rows = "\n".join(f"| {k} | {v:.1f} | {100 * out['fraction'][k]:.1f} % | {out['calls'].get(k, '')} |"
                       for k, v in out["us_per_sample"].items())
     load = out["load_average_1min"]
-    versions = ", ".join(f"{k} {v}" for k, v in {**package_versions(), "python": platform.python_version()}.items())
+    versions = versions_text()
     return (
         "# Where the observer's time goes\n\n"
         f"Written by `{' '.join(['python benchmarks/observer_speed.py', *argv])}` (see its docstring).\n\n"

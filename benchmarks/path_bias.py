@@ -16,7 +16,6 @@ parts combine with the truth's own error.
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from dataclasses import replace
@@ -99,10 +98,10 @@ def main(argv=None) -> int:
     args = [f"--model {a.model}"] if a.model != "slider_crank" else []
     if a.truths != "exudyn,exudyn:4,erls":
         args.append(f"--truths {a.truths}")
-    from exuflex.runs import package_versions
+    from exuflex.runs import versions_text
 
     page = markdown(res, " ".join(["python benchmarks/path_bias.py", *args]))
-    page += f"Versions: {', '.join(f'{k} {v}' for k, v in {**package_versions(), 'python': platform.python_version()}.items())}.\n"
+    page += f"Versions: {versions_text()}.\n"
     print(page)
     if a.out:
         Path(a.out).write_text(page)

@@ -12,7 +12,6 @@ is marked. The page is ``docs/truth_mesh.md``.
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
@@ -94,10 +93,10 @@ def main(argv=None) -> int:
         args.append(f"--model {a.model}")
     if meshes != [4, 8, 12]:
         args.append(f"--meshes {a.meshes}")
-    from exuflex.runs import package_versions
+    from exuflex.runs import versions_text
 
     page = markdown(res, " ".join(["python benchmarks/truth_mesh.py", *args]))
-    page += f"Versions: {', '.join(f'{k} {v}' for k, v in {**package_versions(), 'python': platform.python_version()}.items())}.\n"
+    page += f"Versions: {versions_text()}.\n"
     print(page)
     if a.out:
         Path(a.out).write_text(page)

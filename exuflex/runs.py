@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import os
+import platform
 import re
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -38,12 +39,12 @@ from .errors import LogFormatError
 from .sensors import Signals
 
 __all__ = [
+    "DELIMITER_NAMES",
     "FORMAT",
     "Run",
     "SignalsCsvWriter",
     "atomic_write_bytes",
     "atomic_write_text",
-    "DELIMITER_NAMES",
     "check_csv_dialect",
     "file_sha256",
     "package_versions",
@@ -51,6 +52,7 @@ __all__ = [
     "read_exudyn_sensor",
     "read_run",
     "read_signals_csv",
+    "versions_text",
     "write_run",
     "write_signals_csv",
 ]
@@ -199,6 +201,12 @@ def package_versions() -> dict[str, str | None]:
         except metadata.PackageNotFoundError:
             out[name] = None
     return out
+
+
+def versions_text() -> str:
+    """``"numpy 2.1.3, scipy 1.14.1, ..., python 3.11.7"``: :func:`package_versions` and Python's, for a page a
+    benchmark writes."""
+    return ", ".join(f"{k} {v}" for k, v in {**package_versions(), "python": platform.python_version()}.items())
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -3,10 +3,10 @@
 
 import inspect
 
+import _oracles as oracle
 import numpy as np
 import pytest
 
-import _oracles as oracle
 from exuflex.observer import expansion as ex
 from exuflex.observer.expansion import HeldSystem
 

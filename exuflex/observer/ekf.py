@@ -11,8 +11,13 @@ One call of :meth:`MultirateEKF.step` processes one sample at time ``t``::
 then symmetrises ``P``, floors its diagonal and tests that the state and covariance are finite. The Joseph form
 keeps ``P`` symmetric positive semi-definite for any gain, where ``(I - K H) P`` loses it to rounding; the gain
 and ``S^-1 r`` come from one Cholesky solve of ``S`` (an LU solve with a warning if ``S`` is not positive
-definite). The algebra is compiled (:mod:`.kalman`); :meth:`MultirateEKF.run` is :meth:`~MultirateEKF.step`
-over a whole log, so the online and offline estimates are the same numbers.
+definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gives the numbers of
+:meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
+compiled sample loop (the cached reduced model, :func:`.expansion.cached_samples`), ``run`` hands it the samples it
+can take (every channel sampled, a valid interval and input), which it processes with the same compiled kernels in
+the same order as ``step`` until one needs more (a new held configuration, an input step, a gated channel, ...):
+the model renews its arrays and the loop resumes, or ``step`` takes that sample. ``tests/test_sample_loop.py``
+holds the two bit-identical.
 
 Each interval is as long as its two time stamps say: jitter, drift and irregular sampling need no grid. A
 sample whose channels are partly NaN updates with the finite ones (``R`` restricted to them: multirate
@@ -1012,7 +1017,8 @@ class MultirateEKF:
         return iv, faults
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
-        """Filter a whole record: :meth:`step` for every sample.
+        """Filter a whole record: the numbers of :meth:`step` for every sample (the samples the model's compiled
+        loop can take go to it, see the module notes).
 
         Parameters
         ----------

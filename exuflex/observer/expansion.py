@@ -19,11 +19,22 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kalman import GENERAL, LOOP_DONE, MONITOR, REFRESH, REMAP, normalise, predict_update, step_statistic, window_push, window_seen
+from .kalman import (
+    GENERAL,
+    LOOP_DONE,
+    MONITOR,
+    REFRESH,
+    REMAP,
+    normalise,
+    predict_update,
+    step_statistic,
+    window_push,
+    window_seen,
+)
 
 __all__ = [
-    "cached_samples",
     "HeldSystem",
+    "cached_samples",
     "held_interval",
     "held_step",
     "held_system",

@@ -68,7 +68,7 @@ import math
 from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
-from operator import mul, sub
+from operator import sub
 
 import numpy as np
 
@@ -77,18 +77,16 @@ from ..erls.simulate import rk4_amplification
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
-from .kalman import InputStepTest
 from .expansion import (
-    next_map_radius,
-    rebuild_map,
-    map_error,
-    cached_samples,
     HeldSystem,
+    cached_samples,
     held_interval,
     held_step,
     held_system,
-    map_lookahead,
+    map_error,
+    next_map_radius,
     prediction_error,
+    rebuild_map,
     secant_factor,
     secant_rows,
     step_jacobian,
@@ -96,6 +94,7 @@ from .expansion import (
     step_maps_noise,
     warm_up,
 )
+from .kalman import InputStepTest
 from .rows import channel_rows, sensor
 
 __all__ = ["METHODS", "ReducedObserverModel", "rk4_substep_limit"]

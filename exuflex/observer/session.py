@@ -25,10 +25,10 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
+from .augmented import AugmentedModel
 from .bound import periodic_posterior, steady_state_covariance, unobservable_states
 from .ekf import EstimationResult, MultirateEKF
 from .kalman import InputStepTest
-from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
@@ -37,19 +37,19 @@ from .ukf import UnscentedKF
 ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
 
 __all__ = [
+    "CHUNK_ROWS",
     "ESTIMATORS",
-    "ObserverConfig",
-    "Observer",
-    "default_channels",
-    "make_observer",
-    "estimate",
-    "estimate_chunks",
     "EstimateChunk",
     "LogColumns",
-    "CHUNK_ROWS",
-    "metrics",
-    "estimation_bound",
+    "Observer",
+    "ObserverConfig",
     "UnobservableError",
+    "default_channels",
+    "estimate",
+    "estimate_chunks",
+    "estimation_bound",
+    "make_observer",
+    "metrics",
     "physical_names",
     "physical_units",
 ]
