@@ -179,13 +179,15 @@ def _page(out: dict, argv: list) -> str:
         "Each run: a fresh process with an empty `NUMBA_CACHE_DIR` imports exuflex, compiles the kernels "
         "(`exuflex._compile.prepare`, in the number of processes given by `EXUFLEX_COMPILE_JOBS`), builds the "
         "six-bar's observer and filters a short log. Wall: what the user waits; CPU: the process and the "
-        "compiling subprocesses it started.\n\n"
+        "compiling subprocesses it started. The same work takes the same CPU seconds on a steady machine: a run "
+        "with markedly more ran while the machine was slowed (other jobs, clock drift), and its wall time with "
+        "it.\n\n"
         "| processes | median wall s | median CPU s |\n|---|---|---|\n" + med + "\n\n"
         "| run | processes | wall s | CPU s | of which main | of which subprocesses | compile wall s | "
         "make_observer wall s | first run wall s |\n|---|---|---|---|---|---|---|---|---|\n" + rows + "\n\n"
         f"The same with the cache left warm (kernels loaded, none compiled): wall {w['process_wall_s']:.1f} s, "
-        f"CPU {w['process_cpu_s']:.1f} s, of which the cache check and loading in `prepare` {w['wall']['compile']:.3f} s "
-        "wall.\n\n"
+        f"CPU {w['process_cpu_s']:.1f} s, of which `prepare` (the cache check; no process started) "
+        f"{w['wall']['compile']:.3f} s wall.\n\n"
     )
     if "groups" in out:
         g = out["groups"]

@@ -29,6 +29,7 @@ import logging
 import os
 import subprocess
 import sys
+import sysconfig
 import tempfile
 import time
 from collections.abc import Callable
@@ -78,12 +79,12 @@ def groups() -> tuple[KernelGroup, ...]:
     return (
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
-                    _compiled._force_terms_shared), cost=18.0),
+                    _compiled._force_terms_shared), cost=19.4),
         KernelGroup("expansion", expansion.warm_up, (expansion.held_system, expansion.held_interval,
-                    expansion.prediction_error, expansion.step_maps_noise, expansion.secant_rows), cost=12.5),
+                    expansion.prediction_error, expansion.step_maps_noise, expansion.secant_rows), cost=14.1),
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
-                    kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise), cost=5.0),
-        KernelGroup("fault_window", fault_window, (ekf._window_push,), cost=0.6),
+                    kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise), cost=5.1),
+        KernelGroup("fault_window", fault_window, (ekf._window_push,), cost=0.8),
     )
 
 
@@ -160,7 +161,9 @@ def _worker_env() -> dict[str, str]:
 
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[1])
-    env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    installed = {str(Path(sysconfig.get_path(k)).resolve()) for k in ("purelib", "platlib")}
+    if root not in installed:  # a source tree (an installed package is found by the subprocess as it is)
+        env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     if numba.config.CACHE_DIR:
         env["NUMBA_CACHE_DIR"] = str(numba.config.CACHE_DIR)
     env[JOBS_ENV] = "1"
