@@ -32,7 +32,7 @@ def _hold_with_partner(m, q0: float, h: float):
     old = m._configuration(m.initial_state([q0 - h]), held=True)
     iv = m._configuration(m.initial_state([q0]), held=True)
     d = iv.q0 - old.q0
-    iv.old, iv.d, iv.dd, iv.d_list, iv.rad = old, d, float(d @ d), d.tolist(), 0.05
+    iv.old, iv.d, iv.dd, iv.rad = old, d, float(d @ d), 0.05
     m._last = iv
     return iv
 

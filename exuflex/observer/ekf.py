@@ -267,51 +267,8 @@ class NISMonitor:
         return 1
 
 
-#: the window tests' verdicts (:func:`_window_push`), 1-3
+#: the window tests' verdicts (:func:`.kalman.window_push`), 1-3
 _WINDOW_FAULTS = {1: "offset", 2: "scale", 3: "stuck"}
-
-
-@kalman.jit
-def _window_push(Z, n, sm, sq, last_t, interval, t, idx, z, clip, k_mean, hi, lo, status):  # pragma: no cover
-    """:meth:`ChannelMonitor.push`'s arithmetic, compiled: the clipped ``z`` of channels ``idx`` into their
-    moving windows ``Z`` (sums ``sm``, ``sq`` kept incrementally and recomputed exactly once per window), the
-    channels' last sample times and intervals, and per entry of ``idx`` the verdict in ``status``: -1 window not
-    full, 0 in band, 1 mean (offset), 2 scale above, 3 scale below (stuck). Returns the number of verdicts > 0."""
-    W = Z.shape[0]
-    n_bad = 0
-    for j in range(idx.shape[0]):
-        i = idx[j]
-        if math.isfinite(last_t[i]):
-            interval[i] = t - last_t[i]
-        last_t[i] = t
-        zc = min(max(z[j], -clip), clip)
-        pos = n[i] % W
-        old = Z[pos, i]
-        Z[pos, i] = zc
-        sm[i] += zc - old
-        sq[i] += zc * zc - old * old
-        n[i] += 1
-        if pos == W - 1:  # once per window: exact sums (no drift)
-            a = 0.0
-            b = 0.0
-            for k in range(W):
-                a += Z[k, i]
-                b += Z[k, i] * Z[k, i]
-            sm[i] = a
-            sq[i] = b
-        if n[i] < W:
-            status[j] = -1
-        elif abs(sm[i]) > k_mean:
-            status[j] = 1
-        elif sq[i] > hi:
-            status[j] = 2
-        elif sq[i] < lo:
-            status[j] = 3
-        else:
-            status[j] = 0
-        if status[j] > 0:
-            n_bad += 1
-    return n_bad
 
 
 class ChannelMonitor:
@@ -374,10 +331,7 @@ class ChannelMonitor:
             self._t0 = t
         if len(idx) < len(self.channels) or self._open:
             self._missing(t, idx)
-        last = self._last_t[idx]
-        fin = np.isfinite(last)
-        self._interval[idx[fin]] = t - last[fin]
-        self._last_t[idx] = t
+        kalman.window_seen(self._last_t, self._interval, t, idx)
 
     def _missing(self, t: float, idx: np.ndarray) -> None:
         """The "missing" test of the channels not in ``idx``, and the end of the missing faults of those in it."""
@@ -405,10 +359,24 @@ class ChannelMonitor:
         if len(idx) < len(self.channels) or self._open:
             self._missing(t, idx)
         status = self._status[: len(idx)]
-        n_bad = _window_push(self._z, self._n, self._sum, self._sq, self._last_t, self._interval, t, idx, z,
-                             self.clip, self._k_mean, self._hi, self._lo, status)
-        if not (n_bad or self._open):
-            return
+        n_bad = kalman.window_push(*self.window_arrays, t, idx, z, *self.window_tests, status)
+        if n_bad or self._open:
+            self.verdicts(t, idx, status)
+
+    @property
+    def window_arrays(self) -> tuple:
+        """The moving windows and their sums, the channels' last sample times and intervals (what
+        :func:`.kalman.window_push` updates)."""
+        return self._z, self._n, self._sum, self._sq, self._last_t, self._interval
+
+    @property
+    def window_tests(self) -> tuple:
+        """``(clip, k_mean, hi, lo)``: the clip of ``z`` and the thresholds of the window tests."""
+        return self.clip, self._k_mean, self._hi, self._lo
+
+    def verdicts(self, t: float, idx: np.ndarray, status: np.ndarray) -> None:
+        """Open and clear faults from the window tests' ``status`` of the channels ``idx`` at ``t``
+        (:func:`.kalman.window_push`)."""
         W = self.window
         for j, i in enumerate(idx.tolist()):
             st = status[j]
@@ -507,6 +475,12 @@ class RunRecord:
                                 nis=self.nis, nis_dof=self.dof, n_missing=f.n_missing, n_updates=f.n_updates,
                                 diverged=f.diverged, diverged_at=f.diverged_at, nonfinite=f.nonfinite, wall_s=wall_s,
                                 channels=f.channels, **extra)
+
+
+
+def _empty_rows(width: int) -> np.ndarray:
+    """A record of no rows (what the compiled loop writes nothing to)."""
+    return np.zeros((0, width))
 
 
 class MultirateEKF:
@@ -643,6 +617,14 @@ class MultirateEKF:
         self._HP = np.empty((max(self.m, 1), n))
         # keep (x_pred, F, Q) of each sample's prediction in last_prediction (what a smoother's backward pass needs)
         self.record_predictions = False
+        # the model's compiled sample loop (run() hands it the samples it can take) and its buffers
+        # (the model's own: not one a wrapping model passes on from the model it wraps)
+        self._loop = model.sample_loop if hasattr(type(model), "sample_loop") else None
+        if self._loop is not None:
+            self._loop_mats = model.loop_buffers()
+            self._loop_status = np.zeros(self.m, dtype=np.int64)
+            self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
+                                np.zeros(4))
         kalman.warm_up()
         self.reset()
 
@@ -911,24 +893,108 @@ class MultirateEKF:
                     f"non-finite state or covariance at t={t:.6g} s" + (f" (model step failed: {why})" if why else ""))
             return np.full(self.nx, np.nan)
         if self.last_idx is not None:
-            self.n_updates += 1
-            mon = self.monitor
-            # within the hold-off after an input step the NIS is not tested either (the allowance for planned steps)
-            ev = mon.push(self.last_nis, self.last_dof) if mon is not None and not self._held else 0
-            if ev > 0:
-                self.flagged_intervals.append([float(t), None])
-                if not self.nis_flagged:
-                    self.nis_flagged, self.nis_flagged_at = True, float(t)
-                log.info("NIS flag set at t=%.6g s: NIS over %d updates above its %.1f%% bound", t, mon.window,
-                         100 * mon.confidence)
-                if self.divergence_action == "raise":
-                    raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
-            elif ev < 0:
-                self.flagged_intervals[-1][1] = float(t)
-                log.info("NIS flag cleared at t=%.6g s", t)
+            self._count_update(t, self.last_nis, self.last_dof, self._held)
         elif self.faults is not None and self._t_prev is not None:
             self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
         return self._x.copy()
+
+    def _count_update(self, t: float, nis: float, dof: int, held: bool) -> None:
+        """An update done at ``t``: counted, and its NIS into the divergence test (not within the hold-off after
+        an input step: the allowance for planned steps)."""
+        self.n_updates += 1
+        mon = self.monitor
+        ev = mon.push(nis, dof) if mon is not None and not held else 0
+        if ev > 0:
+            self.flagged_intervals.append([float(t), None])
+            if not self.nis_flagged:
+                self.nis_flagged, self.nis_flagged_at = True, float(t)
+            log.info("NIS flag set at t=%.6g s: NIS over %d updates above its %.1f%% bound", t, mon.window,
+                     100 * mon.confidence)
+            if self.divergence_action == "raise":
+                raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
+        elif ev < 0:
+            self.flagged_intervals[-1][1] = float(t)
+            log.info("NIS flag cleared at t=%.6g s", t)
+
+    # ------------------------------------------------------------------ the compiled sample loop
+    def _loop_ends(self, t, U, Y) -> np.ndarray:
+        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: every channel
+        finite, the interval valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
+        n = len(t)
+        if self._loop is None or U is None or n < 2:
+            return np.zeros(n, dtype=np.int64)
+        ok = np.isfinite(Y).all(axis=1)
+        ok &= np.isfinite(U.reshape(n, -1)).all(axis=1)
+        dt = np.diff(t)
+        ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
+        ok[0] = False
+        ok &= np.isfinite(t)
+        # the grid samples each interval skipped (step()'s count of missing samples), summed from the start
+        skipped = np.maximum(np.rint(dt / self.dt) - 1.0, 0.0)
+        self._skipped = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(skipped), skipped, 0.0))))
+        bad = np.flatnonzero(~ok)
+        # the first not-ok sample at or after k
+        pos = np.searchsorted(bad, np.arange(n))
+        return np.where(pos < len(bad), bad[np.minimum(pos, len(bad) - 1)], n).astype(np.int64)
+
+    def _loop_ready(self, U) -> bool:
+        """Can samples go to the model's compiled loop now? (It has one; a run with inputs, after a first sample;
+        no sensor fault open; nothing recorded per prediction; the input-step test one the loop computes.)"""
+        return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
+                and not self.record_predictions and (self.faults is None or not self.faults._open)
+                and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
+
+    def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> int:
+        """Samples ``k .. k_end - 1`` (every channel sampled, valid times and inputs) through the model's compiled
+        loop (:func:`.expansion.cached_samples`: each sample as :meth:`step` does it) until one needs
+        :meth:`step`; the model renews its held arrays where the loop asks. Returns the first sample not done."""
+        model, m, n = self.model, self.m, self.nx
+        step = self.input_step
+        step_w, step_thr = (step.weights, step.threshold) if step is not None else (np.zeros(U.shape[1]), math.inf)
+        f = self.faults
+        win = (*f.window_arrays, np.array(f.window_tests)) if f is not None else self._no_windows
+        P_rec = _empty_rows(n) if rec.P is None else rec.P.reshape(len(rec.t), -1)
+        P_kind = -1 if rec.P is None else 0 if rec.store_P == "diag" else 1
+        inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None
+                      else (_empty_rows(m), _empty_rows(m * m)))
+        r, S, zn = np.empty(m), np.empty((m, m)), np.empty(m)
+        mats = self._loop_mats
+        while k < k_end:
+            x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
+            try:
+                arrays = model.loop_arrays(x, U[k - 1], t[k] - t[k - 1], self.channels)
+            except _MODEL_FAILURES:  # the model cannot step from here: step() says why
+                break
+            hold0 = self._holdoff
+            k_next, status, self._holdoff, swapped = self._loop(
+                t, U, Y, k, k_end, x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn, self._Rdiag,
+                self._floor, self._gate, hold0, *win, self._loop_status, step_w, step_thr, rec.x_hat, P_rec, P_kind,
+                inn, S_rec, rec.nis, mats, *arrays)
+            if swapped:
+                self._x, self._P, self._Pspare = x_alt, P_alt, P
+            if k_next > k:
+                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats)
+                if status == kalman.MONITOR:
+                    f.verdicts(float(t[k_next - 1]), self._all, self._loop_status)
+            k = k_next
+            if status not in (kalman.REFRESH, kalman.REMAP):
+                break
+        return k
+
+    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats) -> None:
+        """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
+        test, the record's degrees of freedom) and of the last (times, input, innovations, the model's interval)."""
+        m = self.m
+        self.n_missing += int(self._skipped[k1 - 1] - self._skipped[k0 - 1])
+        rec.dof[k0:k1] = m
+        for j in range(k0, k1):
+            self._count_update(t[j], float(rec.nis[j]), m, hold0 - (j - k0) > 0)
+        self._held = hold0 - (k1 - 1 - k0) > 0
+        self._t_prev = self._t_now = float(t[k1 - 1])
+        self._u_prev = U[k1 - 1]
+        self.last_idx, self.last_innovation, self.last_S = self._all, r.copy(), S.copy()
+        self.last_nis, self.last_dof = float(rec.nis[k1 - 1]), m
+        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]))
 
     def _flag(self, t: float, why: str) -> None:
         if not self.diverged:
@@ -974,8 +1040,20 @@ class MultirateEKF:
             self.reset(x0, P0)
         rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
         t_start = time.perf_counter()
-        for k in range(len(t)):
+        n = len(t)
+        loop_end = self._loop_ends(t, U, Y)
+        if loop_end.any():  # the compiled loop's arrays: contiguous, the inputs one column per motor
+            t, U, Y = np.ascontiguousarray(t), np.ascontiguousarray(U.reshape(n, -1)), np.ascontiguousarray(Y)
+        k = 0
+        while k < n:
+            if self._loop_ready(U):
+                k_end = int(loop_end[k])
+                if k_end > k:
+                    k = self._loop_samples(t, U, Y, k, k_end, rec)
+                    if k >= n:
+                        break
             rec.put(k, self, self.step(t[k], None if U is None else U[k], Y[k]))
+            k += 1
         intervals, faults = self.fault_report()
         res = rec.result(self, time.perf_counter() - t_start, nis_flagged=self.nis_flagged,
                          nis_flagged_at=self.nis_flagged_at, flagged_intervals=intervals, channel_faults=faults,

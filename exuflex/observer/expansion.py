@@ -14,18 +14,24 @@ independent oracles (``tests/test_expansion.py``).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
 
+from .kalman import GENERAL, LOOP_DONE, MONITOR, REFRESH, REMAP, normalise, predict_update, step_statistic, window_push, window_seen
+
 __all__ = [
+    "cached_samples",
     "HeldSystem",
     "held_interval",
     "held_step",
     "held_system",
+    "map_error",
     "map_lookahead",
     "power_sum",
     "prediction_error",
+    "secant_factor",
     "secant_rows",
     "step_jacobian",
     "step_maps",
@@ -359,17 +365,46 @@ _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it com
 _NO_MATRIX = np.empty((0, 0))
 
 
-def _secant_rows(c0, Hm, dH, s, x, y, H):  # pragma: no cover - compiled
-    """The measurement along the secant: ``H = Hm + s dH`` and ``y = c0 + H x`` into ``y``, ``H``
-    (:meth:`.reduced.ReducedObserverModel.measure`)."""
+def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
+    """``(dl . d) / (d . d)``: how far along the secant ``d`` (to the previous held configuration) ``q`` has moved
+    from the held one, ``dl = q - q0``; zero without a secant (``d`` empty) or when ``dl`` leaves the secant's
+    line (cosine below 0.7). See :func:`.reduced._secant_factor`."""
+    if d.shape[0] == 0:
+        return 0.0
+    a = 0.0
+    n2 = 0.0
+    for i in range(dl.shape[0]):
+        a += dl[i] * d[i]
+        n2 += dl[i] * dl[i]
+    if a * a < 0.49 * n2 * dd:
+        return 0.0
+    return a / dd
+
+
+def _secant_rows(c0, Hm, dH, G, d, s, x, dl, y, H):  # pragma: no cover - compiled
+    """The measurement along the secant into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.measure`):
+    ``H = Hm + s dH`` (``Hm`` where ``s`` is zero or ``dH`` empty) and ``y = c0 + H x``; with ``G`` (not empty)
+    and ``s`` nonzero the second-order q term, ``g = G dl``: ``y += s g / 2`` and the q-columns of ``H``
+    ``+= (g d' + s G) / 2`` (its exact derivative)."""
     m, n = Hm.shape
+    along = s != 0.0 and dH.shape[0] > 0
     for i in range(m):
         acc = c0[i]
         for j in range(n):
-            h = Hm[i, j] + s * dH[i, j]
+            h = Hm[i, j] + s * dH[i, j] if along else Hm[i, j]
             H[i, j] = h
             acc += h * x[j]
         y[i] = acc
+    if s == 0.0 or G.shape[0] == 0:
+        return
+    nq = dl.shape[0]
+    for i in range(m):
+        g = 0.0
+        for j in range(nq):
+            g += G[i, j] * dl[j]
+        y[i] += (0.5 * s) * g
+        for j in range(nq):
+            H[i, j] += 0.5 * (g * d[j] + s * G[i, j])
 
 
 def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
@@ -609,6 +644,141 @@ def _step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):  # pragma: no cover - co
     return Pa, SB, L, Lv @ L.T
 
 
+def _within(x, c, radius):  # pragma: no cover - compiled
+    """``max_i |x_i - c_i| <= radius`` over the entries of ``c`` (False if one is NaN)."""
+    for i in range(c.shape[0]):
+        if not abs(x[i] - c[i]) <= radius:
+            return False
+    return True
+
+
+def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S, zn, Rd, floor, gate,
+                    holdoff, win_Z, win_n, win_sum, win_sq, win_last, win_int, win_tests, win_status, step_w,
+                    step_thr, x_rec, P_rec, P_kind, inn_rec, S_rec, nis_rec, mats_out, jump_w, jump_thr, q0, rad,
+                    meas_rad, h_min, map_q, map_rad, map_dt, dt_tol, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, Q,
+                    has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+    """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
+    :meth:`.ekf.MultirateEKF.step` does it with :meth:`.reduced.ReducedObserverModel.predict` and ``measure``
+    (every channel sampled, the held configuration and step map unchanged), until one needs more.
+
+    Per sample ``k`` (interval from ``t[k-1]``, input ``U[k-1]`` held, measurement ``Y[k]``): the input-step tests
+    (the filter's ``step_w, step_thr`` and the model's torque-jump test ``jump_w, jump_thr``,
+    :func:`.kalman.step_statistic`), the held configuration's and the step map's radii (not at the first sample:
+    the model's arrays are renewed for it, :meth:`.reduced.ReducedObserverModel.loop_arrays`), the interval (:func:`held_interval`), the
+    measurement radius and rows (:func:`secant_rows`), :func:`.kalman.predict_update`, the gate and, while the
+    hold-off after an input step lasts, :func:`.kalman.window_seen`, else the sensor-fault windows
+    (:func:`.kalman.window_push`; ``win_Z`` empty: none).
+
+    The filter's state lives in two buffer pairs that alternate (``x, P`` current, ``x_alt, P_alt`` written):
+    a sample that needs more is left undone, with nothing of it written but scratch. Each sample done is
+    recorded: ``x_rec[k]``, ``P_rec[k]`` (``P_kind`` 0 its diagonal, 1 all of it flattened, -1 nothing),
+    ``inn_rec[k]``, ``S_rec[k]`` (flattened; empty: none), ``nis_rec[k]``; ``mats_out`` gets the last interval's
+    ``(M_r, K_r, C_r, G_r)``. The model's arrays follow ``jump_w``: the torque-jump test, the held
+    configuration ``q0`` with its refresh and measurement radii, the shortest sub-step, the step map (centre,
+    radius, interval length and its tolerance), the measurement rows ``c0, Hm, dH, G`` with the secant ``d``,
+    ``dd``, the step Jacobian's arrays, ``Q``, and the held system (:class:`HeldSystem`'s fields).
+
+    Returns ``(k, status, holdoff, swapped)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ... :data:`.kalman.MONITOR`),
+    the hold-off left, and whether the current state is in the ``_alt`` buffers.
+    """
+    nq = q0.shape[0]
+    m = Y.shape[1]
+    n_x = x.shape[0]
+    idx = np.arange(m)
+    y_pred = np.empty(m)
+    H = np.empty((m, n_x))
+    swapped = False
+    k = k0
+    while k < k1:
+        dt = t[k] - t[k - 1]
+        u = U[k - 1]
+        u1 = U[k]
+        if step_statistic(u, u1, step_w) > step_thr or step_statistic(u, u1, jump_w) > jump_thr:
+            return k, GENERAL, holdoff, swapped
+        if k > k0:  # (the model's arrays are renewed for the first sample)
+            if not _within(x, q0, rad):
+                return k, REFRESH, holdoff, swapped
+            if not (abs(map_dt - dt) <= dt_tol * dt and _within(x, map_q, map_rad)):
+                return k, REMAP, holdoff, swapped
+        n = max(1, math.ceil(dt / h_min - 1e-9))
+        dl = x[:nq] - q0
+        s = secant_factor(dl, d, dd)
+        z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca,
+                                             Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                                             old_T2, old_V2, old_C2)
+        if not math.isfinite(z[0]) or not _within(z, q0, meas_rad):
+            return k, GENERAL, holdoff, swapped
+        dlp = z[:nq] - q0
+        sm = secant_factor(dlp, d, dd) * dd if dH.shape[0] else 0.0
+        secant_rows(c0, Hm, dH, G, d, sm, z, dlp, y_pred, H)
+        nis, ok, finite = predict_update(F, P, Q, P_pred, work, z, Y[k], y_pred, H, Rd, HP, r, S, x_alt, P_alt, floor)
+        if not (ok and finite):
+            return k, GENERAL, holdoff, swapped
+        n_over = normalise(r, S, gate, zn)
+        n_bad = 0
+        if holdoff > 0:
+            holdoff -= 1
+            if win_Z.shape[0]:
+                window_seen(win_last, win_int, t[k], idx)
+        else:
+            if n_over:
+                return k, GENERAL, holdoff, swapped
+            if win_Z.shape[0]:
+                n_bad = window_push(win_Z, win_n, win_sum, win_sq, win_last, win_int, t[k], idx, zn, win_tests[0],
+                                    win_tests[1], win_tests[2], win_tests[3], win_status)
+        x, x_alt = x_alt, x
+        P, P_alt = P_alt, P
+        swapped = not swapped
+        x_rec[k] = x
+        if P_kind == 0:
+            for i in range(n_x):
+                P_rec[k, i] = P[i, i]
+        elif P_kind == 1:
+            P_rec[k] = P.ravel()
+        if inn_rec.shape[0]:
+            inn_rec[k] = r
+            S_rec[k] = S.ravel()
+        nis_rec[k] = nis
+        mats_out[0][:] = Mo
+        mats_out[1][:] = Ko
+        mats_out[2][:] = Co
+        mats_out[3][:] = Go
+        k += 1
+        if n_bad:
+            return k, MONITOR, holdoff, swapped
+    return k, LOOP_DONE, holdoff, swapped
+
+
+def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
+    """The error of the step map ``Pn_old`` where ``Pn_new`` is built, in the covariance prediction from ``P``
+    (:meth:`.reduced.ReducedObserverModel._map_error`): with ``E = Pn_old - Pn_new`` and ``sigma_i^2 =
+    (Pn_new P Pn_new' + Q_new)_ii``, ``max_i (sqrt((E P E')_ii) + |Q_new,ii - Q_old,ii| / (2 sigma_i)) / sigma_i``.
+    ``P`` may be larger than the maps (an augmented state): its leading block is used."""
+    nx = Pn_new.shape[0]
+    e = np.empty(nx)
+    w = np.empty(nx)
+    err = 0.0
+    for i in range(nx):
+        for j in range(nx):
+            e[j] = Pn_old[i, j] - Pn_new[i, j]
+        de = 0.0
+        dn = 0.0
+        for a in range(nx):  # (e P e', p P p') with p the row of Pn_new
+            sa = 0.0
+            sn = 0.0
+            for b in range(nx):
+                sa += P[a, b] * e[b]
+                sn += P[a, b] * Pn_new[i, b]
+            de += e[a] * sa
+            dn += Pn_new[i, a] * sn
+        var = max(dn + Q_new[i, i], 1e-300)
+        sig = math.sqrt(var)
+        w[i] = (math.sqrt(max(de, 0.0)) + 0.5 * abs(Q_new[i, i] - Q_old[i, i]) / sig) / sig
+        err = max(err, w[i])
+    return err
+
+
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _inline(_rk4_linear)
@@ -619,8 +789,12 @@ step_jacobian = _jit(_step_jacobian)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
 secant_rows = _jit(_secant_rows)
+secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
+_within = _inline(_within)
+cached_samples = _jit(_cached_samples)
+map_error = _jit(_map_error)
 
 
 def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSystem:
@@ -648,8 +822,11 @@ def warm_up() -> None:
         held_system(dl, 0.0, *hs)
         prediction_error(dl, 0.0, M, M, *hs)
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
+    map_error(np.eye(2 * r), np.eye(2 * r), M, M, np.eye(2 * r))
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
-    secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), 0.0, z, np.empty(1), np.empty((1, 2 * r)))
+    secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), np.zeros((1, nq)), dl, 0.0, z, dl, np.empty(1),
+                np.empty((1, 2 * r)))
+    secant_factor(dl, dl, 1.0)
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))
     _warm = True

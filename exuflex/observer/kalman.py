@@ -24,13 +24,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.stats import chi2
 
 try:
     import numba
 except ImportError:  # pragma: no cover - numba is a core dependency
     numba = None
 
-__all__ = ["apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update", "settle", "update", "update_settle", "warm_up"]
+__all__ = ["InputStepTest", "apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update", "settle", "step_statistic", "update",
+           "update_settle", "warm_up", "window_push", "window_seen"]
 
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
@@ -39,6 +41,13 @@ else:  # pragma: no cover
 
     def _jit(f):
         return f
+
+#: Why a model's compiled sample loop (:meth:`.ekf.MultirateEKF.run`, e.g. :func:`.expansion.cached_samples`)
+#: stopped: the samples asked for are done; the held configuration's or the step map's radius was left (the model
+#: renews its arrays and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step`
+#: must take (an input step, a gated channel, an indefinite or non-finite update, the model's own reasons); a
+#: sensor-fault window test failed at the last sample done (the monitor reports it, the loop resumes).
+LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
 
 #: the decorator of the filter's compiled code (also :class:`.ekf.ChannelMonitor`'s window arithmetic)
 jit = _jit
@@ -346,6 +355,88 @@ def update_settle(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
     return nis, True, settle(x_out, P_out, floor)
 
 
+@_jit
+def window_push(Z, n, sm, sq, last_t, interval, t, idx, z, clip, k_mean, hi, lo, status):  # pragma: no cover
+    """:meth:`.ekf.ChannelMonitor.push`'s arithmetic, compiled: the clipped ``z`` of channels ``idx`` into their
+    moving windows ``Z`` (sums ``sm``, ``sq`` kept incrementally and recomputed exactly once per window), the
+    channels' last sample times and intervals, and per entry of ``idx`` the verdict in ``status``: -1 window not
+    full, 0 in band, 1 mean (offset), 2 scale above, 3 scale below (stuck). Returns the number of verdicts > 0."""
+    W = Z.shape[0]
+    n_bad = 0
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        if math.isfinite(last_t[i]):
+            interval[i] = t - last_t[i]
+        last_t[i] = t
+        zc = min(max(z[j], -clip), clip)
+        pos = n[i] % W
+        old = Z[pos, i]
+        Z[pos, i] = zc
+        sm[i] += zc - old
+        sq[i] += zc * zc - old * old
+        n[i] += 1
+        if pos == W - 1:  # once per window: exact sums (no drift)
+            a = 0.0
+            b = 0.0
+            for k in range(W):
+                a += Z[k, i]
+                b += Z[k, i] * Z[k, i]
+            sm[i] = a
+            sq[i] = b
+        if n[i] < W:
+            status[j] = -1
+        elif abs(sm[i]) > k_mean:
+            status[j] = 1
+        elif sq[i] > hi:
+            status[j] = 2
+        elif sq[i] < lo:
+            status[j] = 3
+        else:
+            status[j] = 0
+        if status[j] > 0:
+            n_bad += 1
+    return n_bad
+
+
+@_jit
+def window_seen(last_t, interval, t, idx):  # pragma: no cover
+    """:meth:`.ekf.ChannelMonitor.seen`'s arithmetic: channels ``idx`` sampled at ``t`` (their innovations not
+    tested): their last sample times and intervals."""
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        if math.isfinite(last_t[i]):
+            interval[i] = t - last_t[i]
+        last_t[i] = t
+
+
+@_jit
+def step_statistic(u0, u1, w):
+    """``sum_i w_i (u1_i - u0_i)^2``: the test statistic of a step between two input samples (``w`` the inverse
+    of twice each input's noise variance: chi-square with one degree of freedom per input for noise alone)."""
+    s = 0.0
+    for i in range(u0.shape[0]):
+        e = u1[i] - u0[i]
+        s += e * e * w[i]
+    return s
+
+
+class InputStepTest:
+    """Is there a step between two successive input samples beyond what their noise explains?
+
+    ``sum_i w_i (u1_i - u0_i)^2 > threshold`` (:func:`step_statistic`) with ``w_i = 1 / (2 var_i)`` (the
+    difference of two samples has twice each sample's noise variance): for noise alone the sum is chi-square with
+    one degree of freedom per input, and ``threshold`` is its ``1 - p`` quantile (false-alarm probability ``p``
+    per interval; ``p`` None: never a step). The filter's hold-off after a planned torque step and the reduced
+    model's torque-jump correction use it; the compiled sample loop reads ``weights`` and ``threshold``."""
+
+    def __init__(self, var, p: float | None):
+        self.weights = np.ascontiguousarray(0.5 / np.asarray(var, dtype=float).reshape(-1))
+        self.threshold = math.inf if p is None else float(chi2.ppf(1.0 - p, len(self.weights)))
+
+    def __call__(self, u0: np.ndarray, u1: np.ndarray) -> bool:
+        return step_statistic(u0, u1, self.weights) > self.threshold
+
+
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the kernels for C-ordered float64 arrays, so that the
     first sample of a filter does not carry the compilation."""
@@ -365,3 +456,7 @@ def warm_up() -> None:
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))
     normalise(r, np.eye(m), 1.0, np.empty(m))
+    step_statistic(np.zeros(1), np.ones(1), np.ones(1))
+    window_seen(np.zeros(m), np.zeros(m), 0.0, np.arange(m))
+    window_push(np.zeros((2, m)), np.zeros(m, dtype=np.int64), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), 0.0,
+                np.arange(m), np.zeros(m), 1.0, 1.0, 1.0, 0.0, np.zeros(m, dtype=np.int64))

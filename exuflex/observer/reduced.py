@@ -71,20 +71,23 @@ from dataclasses import dataclass
 from operator import mul, sub
 
 import numpy as np
-from scipy.stats import chi2
 
 from ..erls.kinematics import KinematicsError
 from ..erls.simulate import rk4_amplification
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
+from .kalman import InputStepTest
 from .expansion import (
+    map_error,
+    cached_samples,
     HeldSystem,
     held_interval,
     held_step,
     held_system,
     map_lookahead,
     prediction_error,
+    secant_factor,
     secant_rows,
     step_jacobian,
     step_maps,
@@ -96,6 +99,9 @@ from .rows import channel_rows, sensor
 __all__ = ["METHODS", "ReducedObserverModel", "rk4_substep_limit"]
 
 METHODS = ("cached", "rk4")
+
+_NO_ROWS = np.empty((0, 0))  # rows of a term that is absent
+_NONE = np.empty(0)
 
 #: margin on the eigenvalues in the sub-step choice: the held system changes between two evaluations
 SUBSTEP_MARGIN = 1.25
@@ -130,22 +136,14 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
-def _secant_factor(iv: _Held, dl: np.ndarray, v: list | None = None) -> float:
+def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
     """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved
-    (``v``: ``dl`` as a list of floats, if the caller has it).
+    (:func:`.expansion.secant_factor`).
 
     Zero (first order only) without a partner or when q moves away from the secant's line (cosine below 0.7):
     the secant's differences then say nothing about the change, and extrapolating them along a different
     direction breaks the filter during the start-up transient, where the estimate jitters in every direction."""
-    if iv.old is None:
-        return 0.0
-    if v is None:
-        v = dl.tolist()
-    a = sum(map(mul, v, iv.d_list))
-    n2 = sum(map(mul, v, v))
-    if a * a < 0.49 * n2 * iv.dd:
-        return 0.0
-    return a / iv.dd
+    return secant_factor(dl, iv.d, iv.dd) if iv.old is not None else 0.0
 
 
 @dataclass
@@ -178,7 +176,6 @@ class _Held:
     Ca: np.ndarray | None = None  # C_r - beta K_r at q0
     old: _Held | None = None  # secant partner: the previous held configuration
     d: np.ndarray | None = None  # q0 - old.q0
-    d_list: list | None = None  # the same as floats
     dd: float = 0.0  # d . d
     rad: float = 0.0  # refresh radius
     err: float = float("nan")  # prediction error of the previous held model at q0
@@ -292,8 +289,7 @@ class ReducedObserverModel:
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
         self.jump_p = jump_p
-        self._jump_threshold = math.inf if jump_p is None else float(chi2.ppf(1.0 - jump_p, nu))
-        self._jump_weights = 0.5 / self.torque_var
+        self.jump_test = InputStepTest(self.torque_var, jump_p)
         self._u_shape = (nu,)
         self.link_names = [lk.name for lk in self.mech.links]
         self.sensors = {s.name: s for s in self.mech.sensors}
@@ -319,6 +315,7 @@ class ReducedObserverModel:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
+        self._last_hold = None  # (z, dt, what _hold returned for them)
         self.map_rad = self.remap_rad  # the present map radius (:meth:`_map_radius`)
         self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
         self._interval_matrices = None
@@ -430,7 +427,7 @@ class ReducedObserverModel:
             iv.rad = self._radius(old, dist, iv.err, self.refresh_tol, order)
             if dist >= 0.5 * iv.rad:  # extrapolate at most about twice the partner's distance
                 d = iv.q0 - old.q0
-                iv.old, iv.d, iv.dd, iv.d_list = old, d, float(d @ d), d.tolist()
+                iv.old, iv.d, iv.dd = old, d, float(d @ d)
             old.old = None  # keep one partner only (no chain of held configurations)
         iv.system = self._held_system(iv)
         iv.h_stable = self._stable_substep(iv.mats)  # the sub-step rechecked at every evaluation
@@ -441,6 +438,7 @@ class ReducedObserverModel:
             iv.rad = min(iv.rad, self._radius(old, dist, err[0], self.refresh_std_tol, order))
         self.n_refresh += 1
         self._last = iv
+        self._last_hold = None
         return iv
 
     def _held_error(self, old: _Held, s_old: float, iv: _Held, z: np.ndarray, u: np.ndarray,
@@ -516,44 +514,82 @@ class ReducedObserverModel:
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
 
-    def _held_at(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, list]:
+    def _held_at(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray]:
         """The held configuration for an interval from ``z`` (evaluated anew when q left its radius) and
-        ``dl = q - q0`` as an array and as floats."""
+        ``dl = q - q0``."""
         iv = self._last
-        near = self._offset(iv, z, iv.rad) if iv is not None and iv.system is not None else None
-        if near is not None:
-            return iv, *near
+        dl = self._offset(iv, z, iv.rad) if iv is not None and iv.system is not None else None
+        if dl is not None:
+            return iv, dl
         iv = self._refresh(z, u, dt)
-        dl = z[: self.nq] - iv.q0
-        return iv, dl, dl.tolist()
+        return iv, z[: self.nq] - iv.q0
 
-    def _offset(self, iv: _Held, x: np.ndarray, radius: float) -> tuple[np.ndarray, list] | None:
-        """``dl = q - q0`` of the state ``x`` from the held ``iv``, as an array and as floats, if within ``radius``
-        (max norm); else None."""
+    def _offset(self, iv: _Held, x: np.ndarray, radius: float) -> np.ndarray | None:
+        """``dl = q - q0`` of the state ``x`` from the held ``iv`` if within ``radius`` (max norm); else None."""
         dl = x[: self.nq] - iv.q0
-        v = dl.tolist()
-        return (dl, v) if max(map(abs, v)) <= radius else None
+        return dl if max(map(abs, dl.tolist())) <= radius else None
+
+    def _hold(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, int, _StepMap]:
+        """The held configuration and its step map for an interval of ``dt`` from ``z``, each renewed where q
+        left its radius (:meth:`_held_at`, :meth:`_step_map`), with ``dl = q - q0`` and the sub-steps ``n``."""
+        last = self._last_hold
+        if last is not None and last[1] == dt and np.array_equal(last[0], z):
+            return last[2]  # renewed for this interval already (the compiled loop asked first)
+        iv, dl = self._held_at(z, u, dt)
+        n = self.substeps(iv, dt)
+        held = iv, dl, n, self._step_map(iv, z, dl, dt, n)
+        self._last_hold = (z.copy(), dt, held)
+        return held
 
     def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
         followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
         correction and process noise (:meth:`_step_map`)."""
-        iv, dl, v = self._held_at(z, u, dt)
-        for attempt in range(2):
-            n = self.substeps(iv, dt)
-            s = _secant_factor(iv, dl, v) if not attempt else 0.0
-            sm = self._step_map(iv, z, dl, dt, n)
-            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
-            if attempt or math.isfinite(z_next[0]) or not (s or any(v)):
-                break
+        iv, dl, n, sm = self._hold(z, u, dt)
+        s = _secant_factor(iv, dl)
+        z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
+        if not math.isfinite(z_next[0]) and (s or np.any(dl)):
             # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
             self.n_rescue += 1
             iv = self._refresh(z, u, dt)
             dl = z[: self.nq] - iv.q0
-            v = dl.tolist()
+            n = self.substeps(iv, dt)
+            sm = self._step_map(iv, z, dl, dt, n)
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, 0.0, dt / n, n, *sm.tail)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
+
+    # ------------------------------------------------------------------ the filter's compiled sample loop
+    @property
+    def sample_loop(self):
+        """The compiled sample loop of this model's step (:func:`.expansion.cached_samples`) for
+        :meth:`.ekf.MultirateEKF.run`, or None (the exact reference step runs sample by sample)."""
+        return cached_samples if self.method == "cached" else None
+
+    def loop_arrays(self, z: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> tuple:
+        """The model's arguments of :func:`.expansion.cached_samples` for samples from the state ``z`` with the
+        torques ``u`` over ``dt``: the held configuration and its step map renewed for that interval where q left
+        their radii (as :meth:`predict` would), the measurement rows of ``channels`` about it."""
+        iv, _, _, sm = self._hold(z, self._input(u), dt)
+        self._loop_step = (iv, sm)
+        c0, Hm, dH, G = self._secant_rows(iv, channels)
+        d = iv.d if iv.old is not None else _NONE
+        return (self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
+                min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, self.dt_tol, c0, Hm, dH, G, d, iv.dd,
+                *sm.tail[:5], sm.Q, *sm.tail[5:])  # (Ts, Vs, C3, P^n, S), Q, the held system
+
+    def loop_buffers(self) -> tuple:
+        """Where :func:`.expansion.cached_samples` leaves the last interval's held matrices ``(M_r, K_r, C_r, G_r)``."""
+        r = self.r
+        return np.empty((r, r)), np.empty((r, r)), np.empty((r, r)), np.empty((r, self._u_shape[0]))
+
+    def loop_done(self, mats: tuple, dt: float) -> None:
+        """After samples of the compiled loop: ``last_step`` and :attr:`interval_system` of its last interval
+        (matrices ``mats`` over ``dt``), as :meth:`predict` leaves them."""
+        iv, sm = self.last_step = self._loop_step
+        n = self.substeps(iv, dt)
+        self._interval_matrices = (*(a.copy() for a in mats), dt / n, n)
 
     # ------------------------------------------------------------------ for models built on this one (augmented)
     def torques(self, u) -> np.ndarray:
@@ -583,10 +619,8 @@ class ReducedObserverModel:
         (for :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``,
         the step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
         scale: :mod:`.augmented`) and would discard the nominal sub-steps."""
-        iv, dl, v = self._held_at(z, u, dt)
-        n = self.substeps(iv, dt)
-        sm = self._step_map(iv, z, dl, dt, n)
-        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl, v), *iv.system)
+        iv, dl, n, sm = self._hold(z, u, dt)
+        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl), *iv.system)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
         return step_jacobian(z, *sm.tail[:5]), sm.Q  # (Ts, Vs, C3, P^n, S): the map's fixed arguments
@@ -621,15 +655,7 @@ class ReducedObserverModel:
         step Jacobian's velocity-force correction ``S dF/dz`` is left out of both (the maps' ``S`` change along
         with ``P^n``, and the correction is small against ``P^n``); with it the measure costs more than the
         rebuild it decides on."""
-        P = self.state_cov()
-        if P.shape[0] != self.nx:
-            P = P[: self.nx, : self.nx]
-        A = np.vstack((old.Pn - new.Pn, new.Pn))
-        d = np.einsum("ij,ij->i", A @ P, A)
-        qn = new.Q.diagonal()
-        var = np.maximum(d[self.nx :] + qn, 1e-300)
-        sig = np.sqrt(var)
-        err = float(np.max((np.sqrt(np.maximum(d[: self.nx], 0.0)) + 0.5 * np.abs(qn - old.Q.diagonal()) / sig) / sig))
+        err = map_error(old.Pn, new.Pn, old.Q, new.Q, self.state_cov())
         self.map_errors.append(err)
         return err
 
@@ -690,12 +716,9 @@ class ReducedObserverModel:
         """The increment ``u1 - u0`` of two successive torque samples if it is a jump: beyond what the sample
         noise explains (chi-square test against twice the noise variance, false-alarm probability ``jump_p`` per
         interval); else (and with ``jump_p`` None) None. See :meth:`input_jump_moments`."""
-        if self.jump_p is None:
+        if self.jump_p is None or not self.jump_test(u0, u1):
             return None
-        d = np.subtract(u1, u0)
-        if not (d * d) @ self._jump_weights > self._jump_threshold:
-            return None
-        return d
+        return np.subtract(u1, u0)
 
     def input_jump_moments(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the effect of a torque jump ``d`` at an unknown instant of the last interval.
@@ -724,27 +747,26 @@ class ReducedObserverModel:
         """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
         return 1.5 * max(iv.rad, self.refresh_min)
 
-    def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray, list]:
+    def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray]:
         """The held configuration the measurement rows at x are taken about (evaluated at x if none is near), with
-        ``dl = q - q0`` as an array and as floats."""
+        ``dl = q - q0``."""
         iv = self._last
-        near = self._offset(iv, x, self._measurement_radius(iv)) if iv is not None else None
-        if near is not None:
-            return iv, *near
+        dl = self._offset(iv, x, self._measurement_radius(iv)) if iv is not None else None
+        if dl is not None:
+            return iv, dl
         # no held configuration near x (first sample of a run): evaluate one at x
         iv = self._last = self._configuration(x)
-        dl = x[: self.nq] - iv.q0
-        return iv, dl, dl.tolist()
+        return iv, x[: self.nq] - iv.q0
 
     def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
         """``(c0, Hm, dH, G)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x, plus the
-        second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` None without a secant partner, ``G``
-        None where the q-columns do not change); kept with the held configuration."""
+        second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` empty without a secant partner, ``G``
+        empty where the q-columns do not change); kept with the held configuration."""
         lin = iv.secant_rows.get(channels)
         if lin is None:
             c0, Hm = self._linear(iv, channels)
             if iv.old is None:
-                lin = (c0, Hm, None, None)
+                lin = (c0, Hm, _NO_ROWS, _NO_ROWS)
             else:
                 # the elastic rows follow the configuration along the secant (the gauges' rows change with
                 # H(q)); the q-columns change along it too (:meth:`measure`'s second-order term). A secant of
@@ -756,7 +778,7 @@ class ReducedObserverModel:
                 dH = np.zeros_like(Hm)
                 dH[:, nq:r] = (Hm[:, nq:r] - H1[:, nq:r]) / iv.dd
                 G = (Hm[:, :nq] - H1[:, :nq]) / iv.dd
-                lin = (c0, Hm, dH, G if np.any(G) else None)
+                lin = (c0, Hm, dH, G if np.any(G) else _NO_ROWS)
             iv.secant_rows[channels] = lin
         return lin
 
@@ -773,16 +795,12 @@ class ReducedObserverModel:
         ``1/2 ((Delta dl) d^T / (d . d) + a Delta)``. Where ``dl`` leaves the secant's line
         (:func:`_secant_factor` zero), the rows stay first order."""
         x = np.asarray(x, float)
-        iv, dl, v = self._measurement_interval(x)
+        iv, dl = self._measurement_interval(x)
         c0, Hm, dH, G = self._secant_rows(iv, tuple(channels))
-        s = 0.0 if dH is None else _secant_factor(iv, dl, v) * iv.dd
+        s = _secant_factor(iv, dl) * iv.dd if dH.shape[0] else 0.0
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
-        secant_rows(c0, Hm, dH if s else Hm, s, x, y, H)
-        if s and G is not None:
-            g = G @ dl  # Delta dl / (d . d)
-            y += (0.5 * s) * g
-            H[:, : self.nq] += 0.5 * (np.outer(g, iv.d) + s * G)
+        secant_rows(c0, Hm, dH, G, iv.d if G.shape[0] else _NONE, s, x, dl, y, H)
         return Measurement(y, H)
 
     def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:

@@ -28,6 +28,7 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .bound import periodic_posterior, steady_state_covariance, unobservable_states
 from .ekf import EstimationResult, MultirateEKF
+from .kalman import InputStepTest
 from .augmented import AugmentedModel
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
@@ -375,21 +376,10 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     return fm, _augmented_mean(fm, x0), P0x
 
 
-def _torque_step_test(torque_var, p: float):
-    """``test(u0, u1)``: two successive torque samples differ by more than their noise explains (chi-square with
-    one degree of freedom per motor on ``(u1 - u0)**2 / (2 var)``, false-alarm probability ``p``)."""
-    from scipy.stats import chi2
-
-    w = (0.5 / np.asarray(torque_var, float).reshape(-1)).tolist()
-    thr = float(chi2.ppf(1.0 - p, len(w)))
-
-    def test(u0: np.ndarray, u1: np.ndarray) -> bool:  # a few motors: Python floats cost less than NumPy's dispatch
-        s = 0.0
-        for a, b, wi in zip(u0.tolist(), u1.tolist(), w, strict=True):
-            s += (b - a) * (b - a) * wi
-        return s > thr
-
-    return test
+def _torque_step_test(torque_var, p: float) -> InputStepTest:
+    """Two successive torque samples differ by more than their noise explains (:class:`.kalman.InputStepTest`,
+    false-alarm probability ``p``)."""
+    return InputStepTest(torque_var, p)
 
 
 def _augmented_mean(ekf_model, x0) -> np.ndarray:

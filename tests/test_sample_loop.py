@@ -1,0 +1,88 @@
+"""The compiled sample loop (:func:`exuflex.observer.expansion.cached_samples`) against :meth:`MultirateEKF.step`.
+
+:meth:`MultirateEKF.run` hands the samples it can to the model's compiled loop and the others to ``step``; both
+must give the same numbers, bit for bit, on a log that makes the run go back and forth between them: the six-bar's
+3 s log with a torque step (the hold-off), a spike (the gate), a blank sample, a late sample and a longer interval
+(the step map rebuilt for another length), in every recording mode.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exuflex.mechanism import load_mechanism
+from exuflex.observer.session import ObserverConfig, _hold, make_observer
+from exuflex.runs import read_run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def sixbar_log():
+    mech = load_mechanism(ROOT / "models" / "sixbar.toml")
+    run = read_run(ROOT / "tests" / "data" / "sixbar_erls_3s")
+    obs = make_observer(mech, ObserverConfig.for_model(mech))
+    S = run.sensors
+    return mech, obs, S.t.copy(), _hold(S.select(mech.motor_names).data), S.select(obs.channels).data.copy()
+
+
+def _step_by_step(ekf, t, U, Y, **kw):
+    loop, ekf._loop = ekf._loop, None
+    try:
+        return ekf.run(t, U, Y, **kw)
+    finally:
+        ekf._loop = loop
+
+
+def _same(a, b):
+    for name in ("x_hat", "P", "nis", "nis_dof", "innovations", "S"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            assert np.array_equal(x, y, equal_nan=True), name
+    for name in ("n_updates", "n_missing", "nis_flagged", "nis_flagged_at", "flagged_intervals", "channel_faults",
+                 "n_rejected", "diverged", "nonfinite"):
+        assert getattr(a, name) == getattr(b, name), name
+
+
+def test_loop_is_step_on_the_sixbar_log(sixbar_log):
+    _, obs, t, U, Y = sixbar_log
+    ekf, model = obs.ekf, obs.model
+    assert ekf._loop is not None
+    counts = (model.n_refresh, model.n_remap)
+    looped = ekf.run(t, U, Y)
+    evaluations = (model.n_refresh - counts[0], model.n_remap - counts[1])
+    _same(looped, _step_by_step(ekf, t, U, Y))
+    # the same renewals in both
+    assert (model.n_refresh - counts[0], model.n_remap - counts[1]) == tuple(2 * e for e in evaluations)
+    np.testing.assert_array_equal(ekf.x, looped.x_hat[-1])
+
+
+@pytest.mark.parametrize("store_P, innovations", [("full", True), ("none", False)])
+def test_loop_is_step_where_the_log_sends_samples_back(sixbar_log, store_P, innovations):
+    mech, obs, t, U, Y = sixbar_log
+    n = 700
+    t, U, Y = t[:n].copy(), U[:n].copy(), Y[:n].copy()
+    U[300:, 0] += 0.5  # a torque step: the hold-off (gate and fault tests paused)
+    Y[450, 1] += 50 * obs.ekf.R_std[1]  # a spike: gated
+    Y[500, :] = np.nan  # a blank sample: a prediction only
+    Y[520, 2] = np.nan  # one channel blank
+    t[600:] += 0.3 * (t[1] - t[0])  # a late sample, then the grid shifted: two intervals of other lengths
+    ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
+    ekf.store_P = store_P
+    looped = ekf.run(t, U, Y, innovations=innovations)
+    assert looped.n_rejected[obs.channels[1]] >= 1 and ekf.jump_times
+    _same(looped, _step_by_step(ekf, t, U, Y, innovations=innovations))
+
+
+def test_loop_is_step_in_chunks(sixbar_log):
+    """A log run in chunks (``reset=False``) gives the numbers of one run, through the loop as through step."""
+    _, obs, t, U, Y = sixbar_log
+    ekf = obs.ekf
+    whole = ekf.run(t[:400], U[:400], Y[:400])
+    first = ekf.run(t[:150], U[:150], Y[:150])
+    second = ekf.run(t[150:400], U[150:400], Y[150:400], reset=False)
+    np.testing.assert_array_equal(np.vstack([first.x_hat, second.x_hat]), whole.x_hat)
