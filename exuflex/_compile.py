@@ -25,6 +25,7 @@ compiles (their cache entries are what :func:`prepare` checks) and its cost.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import subprocess
@@ -35,8 +36,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 __all__ = ["JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "prepare", "split"]
 
@@ -70,21 +69,23 @@ def groups() -> tuple[KernelGroup, ...]:
     """The observer's kernel groups. A new kernel joins a group by being called in its warm-up and listed in its
     ``kernels``; a new group is one line here."""
     from .erls import _assembly
-    from .observer import ekf, expansion, kalman
+    from .observer import expansion, kalman
     from .reduction import _compiled, model
 
-    def fault_window() -> None:  # the fault monitor's window arithmetic, at its first sample
-        ekf.ChannelMonitor(("a", "b"), window=2).push(0.0, np.arange(2), np.zeros(2))
+    def sample_loop() -> None:  # the loop compiles the Kalman kernels it calls: one process for both
+        kalman.warm_up()
+        expansion.warm_up_loop()
 
     return (
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
                     _compiled._force_terms_shared), cost=19.4),
-        KernelGroup("expansion", expansion.warm_up, (expansion.held_system, expansion.held_interval,
-                    expansion.prediction_error, expansion.step_maps_noise, expansion.secant_rows), cost=14.1),
-        KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
-                    kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise), cost=5.1),
-        KernelGroup("fault_window", fault_window, (ekf._window_push,), cost=0.8),
+        KernelGroup("step_map", expansion.warm_up_maps, (expansion.held_system, expansion.prediction_error,
+                    expansion.step_maps_noise, expansion.map_error), cost=8.8),
+        KernelGroup("sample_loop", sample_loop, (kalman.predict_cov, kalman.update, kalman.predict_update,
+                    kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
+                    kalman.window_seen, kalman.window_push, expansion.held_interval, expansion.step_jacobian,
+                    expansion.secant_rows, expansion.secant_factor, expansion.cached_samples), cost=24.0),
     )
 
 
@@ -142,15 +143,28 @@ def jobs(requested: int | None = None) -> int:
 
 
 def split(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
-    """``todo`` in at most ``n`` shares of nearly equal cost (largest group first into the share with the least
-    cost so far); share 0, for the calling process, starts at 0, the others at :data:`START_COST`. Empty shares
-    are left out (share 0 is never empty when ``todo`` is not)."""
-    shares: list[list[KernelGroup]] = [[] for _ in range(max(1, n))]
-    load = [0.0] + [START_COST] * (len(shares) - 1)
-    for g in sorted(todo, key=lambda g: -g.cost):
-        k = min(range(len(shares)), key=load.__getitem__)
+    """``todo`` in at most ``n`` shares whose largest cost is least: share 0, for the calling process, costs its
+    groups' costs, each other share :data:`START_COST` more (every assignment tried while there are at most
+    ``10**5``, else the largest group first into the cheapest share). Empty shares are left out, share 0 first."""
+    n = max(1, min(n, len(todo)))
+
+    def loads(assign) -> list[float]:
+        out = [0.0] * n
+        for g, k in zip(todo, assign, strict=True):
+            out[k] += g.cost + (START_COST if k and out[k] == 0.0 else 0.0)
+        return out
+
+    if n ** len(todo) <= 10**5:
+        assign = min(itertools.product(range(n), repeat=len(todo)), key=lambda a: (max(loads(a)), len(set(a))))
+    else:
+        load = [0.0] + [START_COST] * (n - 1)
+        assign = [0] * len(todo)
+        for i in sorted(range(len(todo)), key=lambda i: -todo[i].cost):
+            assign[i] = k = min(range(n), key=load.__getitem__)
+            load[k] += todo[i].cost
+    shares: list[list[KernelGroup]] = [[] for _ in range(n)]
+    for g, k in zip(todo, assign, strict=True):
         shares[k].append(g)
-        load[k] += g.cost
     return [shares[0]] + [s for s in shares[1:] if s]
 
 

@@ -107,16 +107,19 @@ def _group(name, cost, calls):
     return KernelGroup(name, lambda: calls.append(name), (f"{name}_kernel",), cost)
 
 
-def test_split_balances_the_groups_by_cost():
+def test_split_balances_the_groups_by_cost(monkeypatch):
+    monkeypatch.setattr(_compile, "START_COST", 1.5)
     calls = []
     g = [_group(n, c, calls) for n, c in (("a", 1.0), ("b", 18.0), ("c", 12.5), ("d", 5.0))]
-    shares = _compile.split(g, 2)
-    assert [[x.name for x in s] for s in shares] == [["b", "a"], ["c", "d"]]  # 19 here, 1.5 + 17.5 in a subprocess
-    assert [x.name for x in _compile.split(g, 1)[0]] == ["b", "c", "d", "a"]
-    shares = _compile.split(g[:2], 8)  # no empty shares: two groups, two processes
-    assert [[x.name for x in s] for s in shares] == [["b"], ["a"]]
-    costs = [sum(x.cost for x in s) for s in _compile.split(g, 3)]
-    assert sorted(costs) == [6.0, 12.5, 18.0]
+    names = lambda shares: [[x.name for x in s] for s in shares]
+    assert names(_compile.split(g, 2)) == [["a", "b"], ["c", "d"]]  # 19 here, 1.5 + 17.5 in a subprocess
+    assert names(_compile.split(g, 1)) == [["a", "b", "c", "d"]]
+    assert names(_compile.split(g[:2], 8)) == [["b"], ["a"]]  # no empty shares: two groups, two processes
+    assert names(_compile.split(g, 3)) == [["b"], ["a", "c"], ["d"]]  # 18, 15, 6.5
+    # the exhaustive split beats the largest-first one: 3 + 3 against 4 + 2 + 2 (costs 4, 3, 3, 2, 2 in two shares)
+    monkeypatch.setattr(_compile, "START_COST", 0.0)
+    g = [_group(n, c, calls) for n, c in (("p", 3.0), ("q", 3.0), ("r", 2.0), ("s", 2.0), ("t", 4.0))]
+    assert sorted(sum(x.cost for x in s) for s in _compile.split(g, 2)) == [7.0, 7.0]
 
 
 def test_the_number_of_processes(monkeypatch):
