@@ -259,16 +259,20 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m exuflex._compile [GROUP ...]``: compile (or load) the named groups in this process (all
-    without names), writing numba's cache."""
+    """``python -m exuflex._compile GROUP ...``: compile (or load) the named groups in this process, writing
+    numba's cache (what :func:`prepare`'s subprocesses run). Without names: :func:`prepare` (every missing group,
+    in :func:`jobs` processes; e.g. ahead of the first use when building a container image)."""
     names = sys.argv[1:] if argv is None else argv
+    if not names:
+        prepare(progress=lambda msg: print(f"exuflex._compile: {msg}", file=sys.stderr, flush=True))
+        return 0
     known = {g.name: g for g in groups()}
     unknown = [n for n in names if n not in known]
     if unknown:
         print(f"exuflex._compile: unknown kernel group(s) {unknown}; expected some of {sorted(known)}",
               file=sys.stderr)
         return 2
-    for name in names or list(known):
+    for name in names:
         known[name].warm_up()
     return 0
 
