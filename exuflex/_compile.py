@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 #: the environment variable that sets the number of compiling processes
 JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
 #: CPU seconds a compiling subprocess spends before its first compilation (Python, NumPy, numba, the package)
-START_COST = 1.5
+START_COST = 1.4
 #: seconds to wait for a compiling subprocess before compiling its share here
 TIMEOUT_S = 900.0
 
@@ -79,13 +79,13 @@ def groups() -> tuple[KernelGroup, ...]:
     return (
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
-                    _compiled._force_terms_shared), cost=19.4),
+                    _compiled._force_terms_shared), cost=17.9),
         KernelGroup("step_map", expansion.warm_up_maps, (expansion.held_system, expansion.prediction_error,
-                    expansion.step_maps_noise, expansion.map_error), cost=8.8),
+                    expansion.step_maps_noise, expansion.map_error), cost=7.4),
         KernelGroup("sample_loop", sample_loop, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
                     kalman.window_seen, kalman.window_push, expansion.held_interval, expansion.step_jacobian,
-                    expansion.secant_rows, expansion.secant_factor, expansion.cached_samples), cost=24.0),
+                    expansion.secant_rows, expansion.secant_factor, expansion.cached_samples), cost=22.4),
     )
 
 
