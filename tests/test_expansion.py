@@ -269,48 +269,53 @@ def _map_copy(sm, **change):
 
 
 def test_map_error_is_the_relative_change_of_the_predicted_standard_deviations(sixbar_observer_state):
-    """The step map's error (:meth:`ReducedObserverModel._map_error`) against its definition: zero for the same
-    map, linear in a small change of the state map, and for a process-noise change alone half the largest relative
-    change of a predicted variance (the first-order change of a standard deviation)."""
+    """The step map's error (:func:`expansion.map_error`) against its definition: zero for the same map, linear in
+    a small change of the state map, and for a process-noise change alone half the largest relative change of a
+    predicted variance (the first-order change of a standard deviation)."""
     som, iv, z, _ = sixbar_observer_state
     sm = iv.map
     assert sm is not None and som.state_cov is not None
-    assert som._map_error(sm, sm) == 0.0
+    P = som.state_cov()
+
+    def err(old, new):
+        return ex.map_error(old.Pn, new.Pn, old.Q, new.Q, P)
+
+    assert err(sm, sm) == 0.0
     rng = np.random.default_rng(3)
     D = rng.standard_normal(sm.Pn.shape) * 1e-6
-    e1 = som._map_error(_map_copy(sm, Pn=sm.Pn + D), sm)
-    e2 = som._map_error(_map_copy(sm, Pn=sm.Pn + 2 * D), sm)
+    e1 = err(_map_copy(sm, Pn=sm.Pn + D), sm)
+    e2 = err(_map_copy(sm, Pn=sm.Pn + 2 * D), sm)
     assert e1 > 0 and e2 == pytest.approx(2 * e1, rel=1e-9)  # sqrt((E P E')_ii) is homogeneous in E
     dq = np.zeros(som.nx)
     dq[5] = 0.1 * sm.Q[5, 5]
     old = _map_copy(sm, Q=sm.Q + np.diag(dq))
-    P = som.state_cov()
     var = np.diag(sm.Pn @ P @ sm.Pn.T + sm.Q)
-    assert som._map_error(old, sm) == pytest.approx(0.5 * dq[5] / var[5], rel=1e-12)
+    assert err(old, sm) == pytest.approx(0.5 * dq[5] / var[5], rel=1e-12)
+    # the NumPy expression of the definition, on a random change
+    old = _map_copy(sm, Pn=sm.Pn + D, Q=sm.Q + np.diag(dq))
+    E = old.Pn - sm.Pn
+    sig = np.sqrt(var)
+    ref = np.max((np.sqrt(np.einsum("ij,jk,ik->i", E, P[: som.nx, : som.nx], E)) + 0.5 * dq / sig) / sig)
+    assert err(old, sm) == pytest.approx(ref, rel=1e-10)
 
 
 def test_map_radius_keeps_the_map_error_at_its_tolerance(sixbar_observer_state):
-    """The next map radius is ``remap_tol dist / (2 err)`` (the error linear in the distance, the largest error in
-    use at one radius from the centre, half of it at two), at most doubling, within ``[remap_min, remap_max]``."""
+    """The next map radius (:func:`expansion.next_map_radius`) is ``remap_tol dist / (2 err)`` (the error linear in
+    the distance, the largest error in use at one radius from the centre, half of it at two), at most doubling,
+    within ``[remap_min, remap_max]``."""
     som, iv, _, _ = sixbar_observer_state
-    sm = iv.map
-    saved = som.map_rad
-    try:
-        far = _map_copy(sm, q=sm.q + np.array([4e-3, -1e-3, 0.0][: som.nq]))
-        som.map_rad = 2e-3
-        som._map_radius(sm, far, 2 * som.remap_tol)  # twice the tolerance over 4 mrad: a 1 mrad radius
-        assert som.map_rad == pytest.approx(1e-3)
-        som._map_radius(sm, far, 1e-3 * som.remap_tol)  # a tiny error: at most doubling
-        assert som.map_rad == pytest.approx(2e-3)
-        som._map_radius(sm, far, 0.0)
-        assert som.map_rad == pytest.approx(4e-3)
-        som._map_radius(sm, far, 1e6)
-        assert som.map_rad == som.remap_min
-        som.map_rad = som.remap_max
-        som._map_radius(sm, far, 0.0)
-        assert som.map_rad == som.remap_max
-    finally:
-        som.map_rad = saved
+    q = iv.map.q
+    far = q + np.array([4e-3, -1e-3, 0.0][: som.nq])
+    tol, lo, hi = som.remap_tol, som.remap_min, som.remap_max
+
+    def radius(err, rad=2e-3):
+        return ex.next_map_radius(far, q, err, rad, tol, lo, hi)
+
+    assert radius(2 * tol) == pytest.approx(1e-3)  # twice the tolerance over 4 mrad: a 1 mrad radius
+    assert radius(1e-3 * tol) == pytest.approx(4e-3)  # a tiny error: at most doubling
+    assert radius(0.0) == pytest.approx(4e-3)
+    assert radius(1e6) == lo
+    assert radius(0.0, hi) == hi
 
 
 def test_refresh_radius_keeps_the_held_models_error_at_its_tolerance(sixbar_observer_state):

@@ -86,3 +86,14 @@ def test_loop_is_step_in_chunks(sixbar_log):
     first = ekf.run(t[:150], U[:150], Y[:150])
     second = ekf.run(t[150:400], U[150:400], Y[150:400], reset=False)
     np.testing.assert_array_equal(np.vstack([first.x_hat, second.x_hat]), whole.x_hat)
+
+
+def test_loop_is_step_with_a_map_rebuilt_where_step_takes_over(sixbar_log):
+    """Five channels (c4 left out): in the start-up the loop rebuilds the step map for a sample it then hands to
+    step() (the measurement radius left); step() must keep that map for the sample, not rebuild it again."""
+    mech, obs, t, U, Y = sixbar_log
+    channels = tuple(c for c in obs.channels if c != "c4")
+    ekf = make_observer(mech, ObserverConfig(channels=channels), cb=obs.model.rm.cb).ekf
+    keep = [obs.channels.index(c) for c in channels]
+    n = 400
+    _same(ekf.run(t[:n], U[:n], Y[:n, keep]), _step_by_step(ekf, t[:n], U[:n], Y[:n, keep]))

@@ -966,14 +966,14 @@ class MultirateEKF:
             except _MODEL_FAILURES:  # the model cannot step from here: step() says why
                 break
             hold0 = self._holdoff
-            k_next, status, self._holdoff, swapped = self._loop(
+            k_next, status, self._holdoff, swapped, model_out = self._loop(
                 t, U, Y, k, k_end, x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn, self._Rdiag,
                 self._floor, self._gate, hold0, *win, self._loop_status, step_w, step_thr, rec.x_hat, P_rec, P_kind,
                 inn, S_rec, rec.nis, mats, *arrays)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
-                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats)
+                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats, model_out)
                 if status == kalman.MONITOR:
                     f.verdicts(float(t[k_next - 1]), self._all, self._loop_status)
             k = k_next
@@ -981,7 +981,7 @@ class MultirateEKF:
                 break
         return k
 
-    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats) -> None:
+    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats, model_out) -> None:
         """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
         test, the record's degrees of freedom) and of the last (times, input, innovations, the model's interval)."""
         m = self.m
@@ -994,7 +994,7 @@ class MultirateEKF:
         self._u_prev = U[k1 - 1]
         self.last_idx, self.last_innovation, self.last_S = self._all, r.copy(), S.copy()
         self.last_nis, self.last_dof = float(rec.nis[k1 - 1]), m
-        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]))
+        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), model_out, self._x, k1)
 
     def _flag(self, t: float, why: str) -> None:
         if not self.diverged:

@@ -29,8 +29,10 @@ __all__ = [
     "held_system",
     "map_error",
     "map_lookahead",
+    "next_map_radius",
     "power_sum",
     "prediction_error",
+    "rebuild_map",
     "secant_factor",
     "secant_rows",
     "step_jacobian",
@@ -657,7 +659,8 @@ def _within(x, c, radius):  # pragma: no cover - compiled
 def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S, zn, Rd, floor, gate,
                     holdoff, win_Z, win_n, win_sum, win_sq, win_last, win_int, win_tests, win_status, step_w,
                     step_thr, x_rec, P_rec, P_kind, inn_rec, S_rec, nis_rec, mats_out, jump_w, jump_thr, q0, rad,
-                    meas_rad, h_min, map_q, map_rad, map_dt, dt_tol, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, Q,
+                    meas_rad, h_min, map_q, map_rad, map_dt, map_n, dt_tol, ahead, horizon, torque_var, q_extra,
+                    rad_tol, rad_min, rad_max, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, L, Q,
                     has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                     old_T2, old_V2, old_C2):  # pragma: no cover - compiled
     """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
@@ -681,8 +684,14 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     radius, interval length and its tolerance), the measurement rows ``c0, Hm, dH, G`` with the secant ``d``,
     ``dd``, the step Jacobian's arrays, ``Q``, and the held system (:class:`HeldSystem`'s fields).
 
-    Returns ``(k, status, holdoff, swapped)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ... :data:`.kalman.MONITOR`),
-    the hold-off left, and whether the current state is in the ``_alt`` buffers.
+    Where q leaves the step map's radius (the interval's length and sub-steps unchanged) the loop rebuilds the
+    map itself, as the model's ``_step_map`` does (:func:`rebuild_map`, :func:`map_error`,
+    :func:`next_map_radius`).
+
+    Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
+    :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
+    ``(n, map_rad, q_map, dt, P^n, S, L, Q, errors, k_map)``: the maps rebuilt, the last one, the replaced ones'
+    errors (in the first ``n`` entries) and the sample the last was built for (-1: none).
     """
     nq = q0.shape[0]
     m = Y.shape[1]
@@ -691,32 +700,48 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     y_pred = np.empty(m)
     H = np.empty((m, n_x))
     swapped = False
+    errs = np.empty(k1 - k0)
+    n_maps = 0
+    maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, -1)
     k = k0
     while k < k1:
         dt = t[k] - t[k - 1]
         u = U[k - 1]
         u1 = U[k]
         if step_statistic(u, u1, step_w) > step_thr or step_statistic(u, u1, jump_w) > jump_thr:
-            return k, GENERAL, holdoff, swapped
+            return k, GENERAL, holdoff, swapped, maps
+        n = max(1, math.ceil(dt / h_min - 1e-9))
         if k > k0:  # (the model's arrays are renewed for the first sample)
             if not _within(x, q0, rad):
-                return k, REFRESH, holdoff, swapped
-            if not (abs(map_dt - dt) <= dt_tol * dt and _within(x, map_q, map_rad)):
-                return k, REMAP, holdoff, swapped
-        n = max(1, math.ceil(dt / h_min - 1e-9))
+                return k, REFRESH, holdoff, swapped, maps
+            same_length = abs(map_dt - dt) <= dt_tol * dt
+            if not (same_length and _within(x, map_q, map_rad)):
+                if not (same_length and n == map_n):
+                    return k, REMAP, holdoff, swapped, maps
+                # the step map rebuilt ahead of q, its radius from the replaced map's error
+                q_new, Pn_new, SQM, L, Q_new = rebuild_map(x, q0, meas_rad, map_rad, ahead, horizon, d, dd, dt, n,
+                                                           torque_var, q_extra, has_old, beta, Mr, Kr, Ca, Gr, dM, dK,
+                                                           fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                                                           old_T2, old_V2, old_C2)
+                err = map_error(Pn, Pn_new, Q, Q_new, P)
+                map_rad = next_map_radius(q_new, map_q, err, map_rad, rad_tol, rad_min, rad_max)
+                errs[n_maps] = err
+                n_maps += 1
+                map_q, map_dt, Pn, Q = q_new, dt, Pn_new, Q_new
+                maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, k)
         dl = x[:nq] - q0
         s = secant_factor(dl, d, dd)
         z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca,
                                              Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                                              old_T2, old_V2, old_C2)
         if not math.isfinite(z[0]) or not _within(z, q0, meas_rad):
-            return k, GENERAL, holdoff, swapped
+            return k, GENERAL, holdoff, swapped, maps
         dlp = z[:nq] - q0
         sm = secant_factor(dlp, d, dd) * dd if dH.shape[0] else 0.0
         secant_rows(c0, Hm, dH, G, d, sm, z, dlp, y_pred, H)
         nis, ok, finite = predict_update(F, P, Q, P_pred, work, z, Y[k], y_pred, H, Rd, HP, r, S, x_alt, P_alt, floor)
         if not (ok and finite):
-            return k, GENERAL, holdoff, swapped
+            return k, GENERAL, holdoff, swapped, maps
         n_over = normalise(r, S, gate, zn)
         n_bad = 0
         if holdoff > 0:
@@ -725,7 +750,7 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 window_seen(win_last, win_int, t[k], idx)
         else:
             if n_over:
-                return k, GENERAL, holdoff, swapped
+                return k, GENERAL, holdoff, swapped, maps
             if win_Z.shape[0]:
                 n_bad = window_push(win_Z, win_n, win_sum, win_sq, win_last, win_int, t[k], idx, zn, win_tests[0],
                                     win_tests[1], win_tests[2], win_tests[3], win_status)
@@ -748,15 +773,20 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         mats_out[3][:] = Go
         k += 1
         if n_bad:
-            return k, MONITOR, holdoff, swapped
-    return k, LOOP_DONE, holdoff, swapped
+            return k, MONITOR, holdoff, swapped, maps
+    return k, LOOP_DONE, holdoff, swapped, maps
 
 
 def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
     """The error of the step map ``Pn_old`` where ``Pn_new`` is built, in the covariance prediction from ``P``
-    (:meth:`.reduced.ReducedObserverModel._map_error`): with ``E = Pn_old - Pn_new`` and ``sigma_i^2 =
+    (:meth:`.reduced.ReducedObserverModel._step_map`): with ``E = Pn_old - Pn_new`` and ``sigma_i^2 =
     (Pn_new P Pn_new' + Q_new)_ii``, ``max_i (sqrt((E P E')_ii) + |Q_new,ii - Q_old,ii| / (2 sigma_i)) / sigma_i``.
-    ``P`` may be larger than the maps (an augmented state): its leading block is used."""
+    ``P`` may be larger than the maps (an augmented state): its leading block is used.
+
+    To first order this bounds the relative change of every predicted standard deviation (the first term from
+    the state map, the second from the process noise). The step Jacobian's velocity-force correction ``S dF/dz``
+    is left out of both (the maps' ``S`` change along with ``P^n``, and the correction is small against ``P^n``);
+    with it the measure costs more than the rebuild it decides on."""
     nx = Pn_new.shape[0]
     e = np.empty(nx)
     w = np.empty(nx)
@@ -781,6 +811,42 @@ def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
     return err
 
 
+def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, q_extra, has_old, beta, Mr, Kr, Ca,
+                 Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2,
+                 old_C2):  # pragma: no cover - compiled
+    """A step map of the held configuration ``q0`` for an interval of ``dt`` in ``n`` sub-steps, built ahead of
+    ``q`` along its motion (:func:`map_lookahead`, not beyond ``lim`` from ``q0``): the held model there
+    (:func:`_system`, along the secant ``d``) and its maps :func:`step_maps_noise`, ``q_extra`` (may be empty)
+    added to the noise's diagonal. Returns ``(q_map, P^n, S, L, Q)`` (:meth:`.reduced.ReducedObserverModel._step_map`)."""
+    nq = q0.shape[0]
+    shift = map_lookahead(z, nq, map_rad, ahead, horizon)
+    dla = np.empty(nq)
+    for i in range(nq):
+        dla[i] = min(max((z[i] - q0[i]) + shift[i], -lim), lim)
+    s = secant_factor(dla, d, dd)
+    Ma, Ka, Ca_, Ga = _system(dla, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
+                                                 old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
+    Pn, S, L, Q = step_maps_noise(Ma, Ka, Ca_, Ga, dt / n, n, torque_var)
+    for i in range(q_extra.shape[0]):
+        Q[i, i] += q_extra[i]
+    q = np.empty(nq)
+    for i in range(nq):
+        q[i] = q0[i] + dla[i]
+    return q, Pn, S, L, Q
+
+
+def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no cover - compiled
+    """The map radius after a rebuild at ``q_new`` where the map of ``q_old`` had the error ``err``
+    (:func:`map_error`): the error grows linearly with the distance between the maps' centres, and a map serves up
+    to one radius from its centre, so the radius ``tol * dist / (2 err)`` keeps its largest error in use near
+    ``tol / 2``; at most twice the last radius, within ``[rmin, rmax]``."""
+    dist = 0.0
+    for i in range(q_new.shape[0]):
+        dist = max(dist, abs(q_new[i] - q_old[i]))
+    rad = 2.0 * map_rad if not err > 0 else tol * dist / (2.0 * err)
+    return min(max(rad, rmin), 2.0 * map_rad, rmax)
+
+
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _inline(_rk4_linear)
@@ -797,6 +863,8 @@ step_maps_noise = _jit(_step_maps_noise)
 _within = _inline(_within)
 cached_samples = _jit(_cached_samples)
 map_error = _jit(_map_error)
+rebuild_map = _jit(_rebuild_map)
+next_map_radius = _jit(_next_map_radius)
 
 
 def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSystem:

@@ -26,7 +26,7 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
   the interval's length changes. The map radius is controlled by the map's effect on the filter's own
   uncertainty: at each rebuild the replaced map's covariance prediction is compared with the new one's on the
-  filter's present covariance (:meth:`ReducedObserverModel._map_error`, a relative error of the predicted
+  filter's present covariance (:func:`.expansion.map_error`, a relative error of the predicted
   standard deviations), and the next radius keeps that error near ``remap_tol`` (the error grows linearly with
   the distance; the maps' centres are two radii apart, so the largest error while a map is in use is about half
   of it). How strongly the maps depend on q differs by orders of magnitude between mechanisms (a single link
@@ -79,6 +79,8 @@ from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
 from .kalman import InputStepTest
 from .expansion import (
+    next_map_radius,
+    rebuild_map,
     map_error,
     cached_samples,
     HeldSystem,
@@ -232,7 +234,7 @@ class ReducedObserverModel:
         radius's limits (rad).
     remap_tol : float
         Error target of the step map: the relative error of the predicted standard deviations it causes
-        (:meth:`_map_error`), measured at each rebuild and kept near this by the map radius.
+        (:func:`.expansion.map_error`), measured at each rebuild and kept near this by the map radius.
     remap_rad, remap_min, remap_max : float
         The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
     dt_tol : float
@@ -288,6 +290,7 @@ class ReducedObserverModel:
             raise ValueError(f"torque_std has {len(sig)} entries, expected one per motor ({nu})")
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
+        self._q_extra = _NONE if q_extra is None else np.ascontiguousarray(self.q_extra)
         self.jump_p = jump_p
         self.jump_test = InputStepTest(self.torque_var, jump_p)
         self._u_shape = (nu,)
@@ -308,7 +311,7 @@ class ReducedObserverModel:
     def watch_covariance(self, get_P) -> None:
         """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
         measured against the filter's uncertainty at every evaluation (:meth:`_held_error`), and the step map's
-        radius is controlled by its effect on it (:meth:`_map_error`). Without it the map radius stays ``remap_rad``."""
+        radius is controlled by its effect on it (:func:`.expansion.map_error`). Without it the map radius stays ``remap_rad``."""
         self.state_cov = get_P
 
     def reset(self) -> None:
@@ -316,8 +319,8 @@ class ReducedObserverModel:
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
         self._last_hold = None  # (z, dt, what _hold returned for them)
-        self.map_rad = self.remap_rad  # the present map radius (:meth:`_map_radius`)
-        self.map_errors = array("d")  # the replaced maps' errors (:meth:`_map_error`), 8 bytes each
+        self.map_rad = self.remap_rad  # the present map radius (:func:`.expansion.next_map_radius`)
+        self.map_errors = array("d")  # the replaced maps' errors (:func:`.expansion.map_error`), 8 bytes each
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
@@ -468,7 +471,7 @@ class ReducedObserverModel:
 
     def held_error_summary(self) -> dict:
         """The recorded :meth:`_held_error` ratios since the last :meth:`reset` (count, median and largest), and
-        the replaced step maps' errors (:meth:`_map_error`: count, median, largest, the last map radius)."""
+        the replaced step maps' errors (:func:`.expansion.map_error`: count, median, largest, the last map radius)."""
         out = {"n": len(self.held_errors)}
         if self.held_errors:
             a = self.held_errors.asarray()
@@ -576,18 +579,29 @@ class ReducedObserverModel:
         c0, Hm, dH, G = self._secant_rows(iv, channels)
         d = iv.d if iv.old is not None else _NONE
         return (self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
-                min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, self.dt_tol, c0, Hm, dH, G, d, iv.dd,
-                *sm.tail[:5], sm.Q, *sm.tail[5:])  # (Ts, Vs, C3, P^n, S), Q, the held system
+                min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, sm.n, self.dt_tol, self.remap_ahead,
+                self.remap_horizon, self.torque_var, self._q_extra, *self._map_radius_law[1:], c0, Hm, dH, G, d,
+                iv.dd, *sm.tail[:5], sm.L, sm.Q, *sm.tail[5:])  # (Ts, Vs, C3, P^n, S), L, Q, the held system
 
     def loop_buffers(self) -> tuple:
         """Where :func:`.expansion.cached_samples` leaves the last interval's held matrices ``(M_r, K_r, C_r, G_r)``."""
         r = self.r
         return np.empty((r, r)), np.empty((r, r)), np.empty((r, r)), np.empty((r, self._u_shape[0]))
 
-    def loop_done(self, mats: tuple, dt: float) -> None:
-        """After samples of the compiled loop: ``last_step`` and :attr:`interval_system` of its last interval
-        (matrices ``mats`` over ``dt``), as :meth:`predict` leaves them."""
-        iv, sm = self.last_step = self._loop_step
+    def loop_done(self, mats: tuple, dt: float, maps: tuple, z: np.ndarray, k: int) -> None:
+        """After samples of the compiled loop up to ``k`` (not done), the filter's state now ``z``: the step maps
+        it rebuilt (``maps``, see :func:`.expansion.cached_samples`), and ``last_step`` and
+        :attr:`interval_system` of its last interval (matrices ``mats`` over ``dt``), as :meth:`predict` leaves
+        them. A map built for sample ``k`` stays the map of that interval when :meth:`predict` takes it."""
+        iv, sm = self._loop_step
+        n_maps, self.map_rad, q, dt_map, Pn, S, L, Q, errs, k_map = maps
+        if n_maps:
+            sm = self._new_map(iv, dt_map, sm.n, q, Pn, S, L, Q)
+            self.n_remap += n_maps
+            self.map_errors.extend(errs[:n_maps].tolist())
+            if k_map == k:
+                self._last_hold = (z.copy(), dt_map, (iv, z[: self.nq] - iv.q0, sm.n, sm))
+        self.last_step = (iv, sm)
         n = self.substeps(iv, dt)
         self._interval_matrices = (*(a.copy() for a in mats), dt / n, n)
 
@@ -630,43 +644,37 @@ class ReducedObserverModel:
         interval's length changed by more than ``dt_tol``: built ahead of q along its motion
         (:func:`.expansion.map_lookahead`), from the held model there (not beyond the measurement radius). A
         rebuild at the same interval length measures the replaced map's error and sets the next radius
-        (:meth:`_map_radius`)."""
+        (:func:`.expansion.next_map_radius`)."""
         sm = iv.map
         if sm is not None and abs(sm.dt - dt) <= self.dt_tol * dt and \
                 max(map(abs, map(sub, z[: self.nq].tolist(), sm.q_list))) <= self.map_rad:
             return sm
-        lim = self._measurement_radius(iv)
-        dla = np.clip(dl + map_lookahead(z, self.nq, self.map_rad, self.remap_ahead, self.remap_horizon), -lim, lim)
-        Ma, Ka, Ca, Ga = held_system(dla, _secant_factor(iv, dla), *iv.system)
-        new = iv.map = _StepMap(iv.q0 + dla, dt, n, *self._maps(Ma, Ka, Ca, Ga, dt, n))
-        new.q_list = new.q.tolist()
-        new.tail = (*iv.forces.jacobian_tensors(), new.Pn, new.S, *iv.system)
+        new = self._new_map(iv, dt, n, *rebuild_map(z, iv.q0, self._measurement_radius(iv), self.map_rad,
+                                                    self.remap_ahead, self.remap_horizon, *self._secant(iv), dt, n,
+                                                    self.torque_var, self._q_extra, *iv.system))
         self.n_remap += 1
         if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
-            self._map_radius(sm, new, self._map_error(sm, new))
+            err = map_error(sm.Pn, new.Pn, sm.Q, new.Q, self.state_cov())
+            self.map_errors.append(err)
+            self.map_rad = next_map_radius(new.q, sm.q, err, *self._map_radius_law)
         return new
 
-    def _map_error(self, old: _StepMap, new: _StepMap) -> float:
-        """The error of the replaced step map ``old`` where ``new`` is built, in the filter's covariance
-        prediction: with ``E = P^n_old - P^n_new`` (the two maps' state maps) and the filter's present covariance
-        ``P``, ``max_i (sqrt((E P E')_ii) + |dQ_ii| / (2 sigma_i)) / sigma_i`` where ``sigma_i^2`` is the new
-        map's predicted variance ``(P^n P P^n' + Q)_ii``: to first order a bound on the relative change of every
-        predicted standard deviation (the first term of the map's error, the second of the process noise's). The
-        step Jacobian's velocity-force correction ``S dF/dz`` is left out of both (the maps' ``S`` change along
-        with ``P^n``, and the correction is small against ``P^n``); with it the measure costs more than the
-        rebuild it decides on."""
-        err = map_error(old.Pn, new.Pn, old.Q, new.Q, self.state_cov())
-        self.map_errors.append(err)
-        return err
+    def _new_map(self, iv: _Held, dt: float, n: int, q, Pn, S, L, Q) -> _StepMap:
+        """``iv``'s step map, now ``(q, P^n, S, L, Q)`` (:func:`.expansion.rebuild_map`)."""
+        new = iv.map = _StepMap(q, dt, n, Pn, S, L, Q)
+        new.q_list = q.tolist()
+        new.tail = (*iv.forces.jacobian_tensors(), Pn, S, *iv.system)
+        return new
 
-    def _map_radius(self, old: _StepMap, new: _StepMap, err: float) -> None:
-        """The next map radius from the replaced map's error ``err`` over the distance between the two maps'
-        centres: the error grows linearly with the distance, and a map serves up to one radius from its centre,
-        so the radius ``remap_tol * dist / (2 err)`` keeps its largest error in use near ``remap_tol / 2``;
-        at most twice the last radius, within ``[remap_min, remap_max]``."""
-        dist = max(map(abs, map(sub, new.q_list, old.q_list)))
-        rad = 2.0 * self.map_rad if not err > 0 else self.remap_tol * dist / (2.0 * err)
-        self.map_rad = float(min(max(rad, self.remap_min), 2.0 * self.map_rad, self.remap_max))
+    @property
+    def _map_radius_law(self) -> tuple:
+        """The present map radius and the arguments of :func:`.expansion.next_map_radius` after it."""
+        return self.map_rad, self.remap_tol, self.remap_min, self.remap_max
+
+    @staticmethod
+    def _secant(iv: _Held) -> tuple:
+        """``(d, d . d)`` of iv's secant (``d`` empty without a partner)."""
+        return (iv.d, iv.dd) if iv.old is not None else (_NONE, 0.0)
 
     # ------------------------------------------------------------------ the reference step
     def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
