@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -37,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "prepare", "split"]
+__all__ = ["JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "plan", "prepare"]
 
 log = logging.getLogger(__name__)
 
@@ -52,12 +53,16 @@ TIMEOUT_S = 900.0
 @dataclass(frozen=True)
 class KernelGroup:
     """Kernels compiled together: ``warm_up()`` compiles (or loads) them, ``kernels`` are the numba dispatchers
-    it compiles, ``cost`` the CPU seconds of compiling them in a fresh process (the split's weights)."""
+    it compiles, ``cost`` the CPU seconds of compiling them in a process that has the kernels they call (the
+    split's weights), ``needs`` the groups whose kernels they call: numba compiles a called kernel with its caller
+    unless it is compiled or cached already, so a group waits for the cache of the groups it needs that another
+    process compiles (:func:`plan`)."""
 
     name: str
     warm_up: Callable[[], None]
     kernels: tuple
     cost: float
+    needs: tuple[str, ...] = ()
 
     def cached(self) -> bool:
         """Whether numba's cache holds every kernel of the group for its current source (one compiled version
@@ -72,20 +77,21 @@ def groups() -> tuple[KernelGroup, ...]:
     from .observer import expansion, kalman
     from .reduction import _compiled, model
 
-    def sample_loop() -> None:  # the loop compiles the Kalman kernels it calls: one process for both
-        kalman.warm_up()
-        expansion.warm_up_loop()
-
     return (
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
-                    _compiled._force_terms_shared), cost=17.9),
-        KernelGroup("step_map", expansion.warm_up_maps, (expansion.held_system, expansion.prediction_error,
-                    expansion.step_maps_noise, expansion.map_error), cost=7.4),
-        KernelGroup("sample_loop", sample_loop, (kalman.predict_cov, kalman.update, kalman.predict_update,
+                    _compiled._force_terms_shared), cost=19.8),
+        KernelGroup("held", expansion.warm_up_held, (expansion.held_system, expansion.prediction_error), cost=5.0),
+        KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
+                    cost=8.3),
+        KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,
+                    expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.secant_rows),
+                    cost=5.0),
+        KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
-                    kalman.window_seen, kalman.window_push, expansion.held_interval, expansion.step_jacobian,
-                    expansion.secant_rows, expansion.secant_factor, expansion.cached_samples), cost=22.4),
+                    kalman.window_seen, kalman.window_push), cost=5.0),
+        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=11.2,
+                    needs=("interval", "step_map", "kalman")),
     )
 
 
@@ -142,30 +148,64 @@ def jobs(requested: int | None = None) -> int:
     return min(2, cores)
 
 
-def split(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
-    """``todo`` in at most ``n`` shares whose largest cost is least: share 0, for the calling process, costs its
-    groups' costs, each other share :data:`START_COST` more (every assignment tried while there are at most
-    ``10**5``, else the largest group first into the cheapest share). Empty shares are left out, share 0 first."""
+def _finish(shares: list[list[KernelGroup]]) -> float:
+    """When the last share is done if each runs its groups in order from 0 (share 0) or :data:`START_COST` (the
+    others), a group starting once the groups it needs from other shares are done (inf: they wait on each
+    other)."""
+    where = {g.name: k for k, share in enumerate(shares) for g in share}
+    clock = [0.0] + [START_COST] * (len(shares) - 1)
+    done: dict[str, float] = {}
+    nxt = [0] * len(shares)
+    while any(nxt[k] < len(share) for k, share in enumerate(shares)):
+        moved = False
+        for k, share in enumerate(shares):
+            while nxt[k] < len(share):
+                g = share[nxt[k]]
+                other = [n for n in g.needs if where.get(n, k) != k]
+                if any(n not in done for n in other):
+                    break
+                clock[k] = max([clock[k], *(done[n] for n in other)]) + g.cost
+                done[g.name] = clock[k]
+                nxt[k] += 1
+                moved = True
+        if not moved:
+            return math.inf
+    return max(clock)
+
+
+def plan(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
+    """``todo`` in at most ``n`` ordered shares that finish soonest (:func:`_finish`; share 0 for the calling
+    process): every assignment of groups to shares is tried while there are at most ``10**5`` (else all in share
+    0); in a share, the groups another share needs come first (cheapest first), those that need others last.
+    Empty shares are left out, share 0 first (possibly empty)."""
     n = max(1, min(n, len(todo)))
 
-    def loads(assign) -> list[float]:
-        out = [0.0] * n
+    def shares_of(assign) -> list[list[KernelGroup]]:
+        shares: list[list[KernelGroup]] = [[] for _ in range(n)]
         for g, k in zip(todo, assign, strict=True):
-            out[k] += g.cost + (START_COST if k and out[k] == 0.0 else 0.0)
-        return out
+            shares[k].append(g)
+        wanted = {nd for k, share in enumerate(shares) for g in share for nd in g.needs
+                  if not any(x.name == nd for x in share)}
+        shares = [sorted(share, key=lambda g: (g.name not in wanted, bool(g.needs), g.cost)) for share in shares]
+        return [shares[0]] + [share for share in shares[1:] if share]
 
-    if n ** len(todo) <= 10**5:
-        assign = min(itertools.product(range(n), repeat=len(todo)), key=lambda a: (max(loads(a)), len(set(a))))
-    else:
-        load = [0.0] + [START_COST] * (n - 1)
-        assign = [0] * len(todo)
-        for i in sorted(range(len(todo)), key=lambda i: -todo[i].cost):
-            assign[i] = k = min(range(n), key=load.__getitem__)
-            load[k] += todo[i].cost
-    shares: list[list[KernelGroup]] = [[] for _ in range(n)]
-    for g, k in zip(todo, assign, strict=True):
-        shares[k].append(g)
-    return [shares[0]] + [s for s in shares[1:] if s]
+    if n ** len(todo) > 10**5:
+        return shares_of([0] * len(todo))
+    best = min(itertools.product(range(n), repeat=len(todo)),
+               key=lambda a: (_finish(shares_of(a)), len(set(a))))
+    return shares_of(best)
+
+
+def _await_needs(group: KernelGroup, local: set[str], known: dict[str, KernelGroup],
+                 alive: Callable[[], bool] = lambda: True) -> None:
+    """Wait until numba's cache holds the groups ``group`` needs that another process compiles (not in
+    ``local``), at most about twice their cost (then numba compiles them here, with ``group``'s kernels)."""
+    others = [known[n] for n in group.needs if n not in local and n in known]
+    if not others:
+        return
+    deadline = time.monotonic() + 10.0 + 2.0 * sum(g.cost for g in others)
+    while not all(g.cached() for g in others) and time.monotonic() < deadline and alive():
+        time.sleep(0.1)
 
 
 def _worker_env() -> dict[str, str]:
@@ -212,7 +252,8 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
     if n > 1 and not all(_writable(k) for g in todo for k in g.kernels):
         log.info("numba's cache folder is not writable: compiling in this process")
         n = 1
-    shares = split(todo, n)
+    shares = plan(todo, n)
+    known = {g.name: g for g in groups()}
     t0 = time.perf_counter()
     say(f"compiling numba kernels (first run, {len(shares)} process{'es' if len(shares) > 1 else ''}) ...")
     workers = []
@@ -230,7 +271,9 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
                     err.close()
                     continue
                 workers.append((proc, err, share))
+        local = {g.name for g in shares[0]}
         for g in shares[0]:
+            _await_needs(g, local, known, alive=lambda: all(p.poll() in (None, 0) for p, _, _ in workers))
             _warm(g)
         for proc, err, share in workers:
             try:
@@ -273,6 +316,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     for name in names:
+        _await_needs(known[name], set(names), known)
         known[name].warm_up()
     return 0
 

@@ -1,5 +1,5 @@
 """The kernel registry and the parallel first compilation (:mod:`exuflex._compile`): the groups cover every kernel
-the observer compiles, the split is balanced, a failed or impossible parallel compilation falls back to this
+the observer compiles, the plan is balanced and waits for what a group needs, a failed or impossible parallel compilation falls back to this
 process, and the estimates do not depend on which process compiled the kernels."""
 
 import json
@@ -103,23 +103,63 @@ def test_parallel_first_compile_from_an_empty_cache(tmp_path):
     assert any(tmp_path.rglob("*.nbi"))
 
 
-def _group(name, cost, calls):
-    return KernelGroup(name, lambda: calls.append(name), (f"{name}_kernel",), cost)
+def _group(name, cost, calls, needs=()):
+    return KernelGroup(name, lambda: calls.append(name), (f"{name}_kernel",), cost, needs)
 
 
-def test_split_balances_the_groups_by_cost(monkeypatch):
+def _names(shares):
+    return [[x.name for x in s] for s in shares]
+
+
+def test_the_plan_balances_the_groups_by_cost(monkeypatch):
     monkeypatch.setattr(_compile, "START_COST", 1.5)
     calls = []
     g = [_group(n, c, calls) for n, c in (("a", 1.0), ("b", 18.0), ("c", 12.5), ("d", 5.0))]
-    names = lambda shares: [[x.name for x in s] for s in shares]
-    assert names(_compile.split(g, 2)) == [["a", "b"], ["c", "d"]]  # 19 here, 1.5 + 17.5 in a subprocess
-    assert names(_compile.split(g, 1)) == [["a", "b", "c", "d"]]
-    assert names(_compile.split(g[:2], 8)) == [["b"], ["a"]]  # no empty shares: two groups, two processes
-    assert names(_compile.split(g, 3)) == [["b"], ["a", "c"], ["d"]]  # 18, 15, 6.5
-    # the exhaustive split beats the largest-first one: 3 + 3 against 4 + 2 + 2 (costs 4, 3, 3, 2, 2 in two shares)
+    assert _names(_compile.plan(g, 2)) == [["a", "b"], ["d", "c"]]  # 19 here, 1.5 + 17.5 in a subprocess
+    assert _compile._finish(_compile.plan(g, 2)) == 19.0
+    assert _names(_compile.plan(g, 1)) == [["a", "d", "c", "b"]]
+    assert _names(_compile.plan(g[:2], 8)) == [["b"], ["a"]]  # no empty shares: two groups, two processes
+    assert _compile._finish(_compile.plan(g, 3)) == 18.0
+    # every assignment is tried: 3 + 4 against 4 + 2 + 2 (costs 4, 3, 3, 2, 2 in two shares)
     monkeypatch.setattr(_compile, "START_COST", 0.0)
     g = [_group(n, c, calls) for n, c in (("p", 3.0), ("q", 3.0), ("r", 2.0), ("s", 2.0), ("t", 4.0))]
-    assert sorted(sum(x.cost for x in s) for s in _compile.split(g, 2)) == [7.0, 7.0]
+    assert sorted(sum(x.cost for x in s) for s in _compile.plan(g, 2)) == [7.0, 7.0]
+
+
+def test_a_group_waits_for_the_groups_it_needs(monkeypatch):
+    """The sample loop's case: ``loop`` calls the kernels of ``x``, ``m`` and ``k``. Best: ``x`` first in this
+    process, then ``red`` (8 + 20 = 28); in the other, ``h``, ``m``, ``k`` from 1.5 to 16.5, then ``loop``, whose
+    ``x`` is cached since 8, to 27.5."""
+    monkeypatch.setattr(_compile, "START_COST", 1.5)
+    calls = []
+    g = [_group("red", 20.0, calls), _group("h", 5.0, calls), _group("x", 8.0, calls), _group("m", 5.0, calls),
+         _group("k", 5.0, calls), _group("loop", 11.0, calls, needs=("x", "m", "k"))]
+    shares = _compile.plan(g, 2)
+    assert _names(shares) == [["x", "red"], ["h", "m", "k", "loop"]]
+    assert _compile._finish(shares) == 28.0
+    late = [[g[0], g[2]], [g[1], g[3], g[4], g[5]]]  # x after red: the loop waits until 28, ends at 39
+    assert _compile._finish(late) == 39.0
+    wait = [_group("w1", 1.0, calls, needs=("w2",))], [_group("w2", 1.0, calls, needs=("w1",))]
+    assert _compile._finish(list(wait)) == float("inf")  # two groups waiting on each other
+
+
+def test_waiting_for_a_needed_group_ends_when_it_is_cached_or_its_process_ended():
+    class Compiling:  # another process's group, in numba's cache from the third look on
+        name, cost, looks = "x", 0.0, 0
+
+        def cached(self):
+            self.looks += 1
+            return self.looks >= 3
+
+    loop = _group("loop", 1.0, [], needs=("x",))
+    other = Compiling()
+    _compile._await_needs(loop, set(), {"x": other})
+    assert other.looks == 3
+    _compile._await_needs(loop, {"x"}, {"x": other})  # compiled in this process: no look
+    assert other.looks == 3
+    other.looks = -10**6
+    _compile._await_needs(loop, set(), {"x": other}, alive=lambda: False)  # its process ended: no wait
+    assert other.looks == -10**6 + 1
 
 
 def test_the_number_of_processes(monkeypatch):
