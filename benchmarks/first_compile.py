@@ -1,11 +1,25 @@
-"""CPU time of the first use with an empty numba cache: import, building the six-bar's observer, a short log.
+"""Wall and CPU time of the first use with an empty numba cache: import, the kernels' compilation, building the
+six-bar's observer, a short log.
 
-    python benchmarks/first_compile.py [--repeats 2] [--model models/sixbar.toml] [--run tests/data/sixbar_short]
+    python benchmarks/first_compile.py [--repeats 3] [--jobs 1,2] [--groups] [--md docs/first_compile.md]
+                                       [--model models/sixbar.toml] [--run tests/data/sixbar_short] [--json]
 
 Each repeat runs a fresh Python process with ``NUMBA_CACHE_DIR`` set to an empty temporary folder (so every kernel
-the observer uses is compiled, none loaded) and reports the process's CPU seconds per stage (``time.process_time``:
-on a shared machine wall time measures the other jobs). The median over the repeats is printed; the same code
-scatters by several seconds between runs, so compare versions in alternating runs.
+the observer uses is compiled, none loaded) and ``EXUFLEX_COMPILE_JOBS`` set to one of ``--jobs``; the process
+calls :func:`exuflex._compile.prepare` (the kernels compiled in that many processes) before ``make_observer``.
+Reported per repeat: the wall seconds (what the user waits) and the CPU seconds of the process and of the
+compiling subprocesses it started (``resource.getrusage(RUSAGE_CHILDREN)``), per stage where they are the
+process's own. The job counts alternate within each repeat (1, 2, 1, 2, ...), so that a change in the machine's
+load hits both alike; the load average is recorded before and after. A last process with the cache left warm
+measures what the first use costs once compiled (``warm``).
+
+``--groups``: each kernel group of :mod:`exuflex._compile` compiled alone in a fresh process with an empty cache
+(``python -m exuflex._compile GROUP``; a group that calls other groups' kernels with those cached first), and a
+process that imports them and sets numba's compiler up (a trivial kernel): the CPU seconds that
+:attr:`exuflex._compile.KernelGroup.cost`
+and :data:`exuflex._compile.START_COST` hold (the plan's weights).
+
+``--md``: the figures as a markdown page ('' for none).
 """
 
 from __future__ import annotations
@@ -13,53 +27,184 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
+import resource
 import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
-import json, sys, time
-t0 = time.process_time()
+import json, resource, sys, time
+w0, t0 = time.perf_counter(), time.process_time()
+from exuflex import _compile
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
 from exuflex.runs import read_run
-t1 = time.process_time()
+w1, t1 = time.perf_counter(), time.process_time()
+_compile.prepare()
+w2, t2 = time.perf_counter(), time.process_time()
 mech = load_mechanism(sys.argv[1]); run = read_run(sys.argv[2])
 obs = make_observer(mech, ObserverConfig.for_model(mech))
-t2 = time.process_time()
+w3, t3 = time.perf_counter(), time.process_time()
 S = run.sensors
 estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
-t3 = time.process_time()
-print(json.dumps({"import_s": t1 - t0, "make_observer_s": t2 - t1, "first_run_s": t3 - t2, "total_s": t3 - t0}))
+w4, t4 = time.perf_counter(), time.process_time()
+ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(json.dumps({"wall": {"import": w1 - w0, "compile": w2 - w1, "make_observer": w3 - w2, "first_run": w4 - w3,
+                           "total": w4 - w0},
+                  "cpu": {"import": t1 - t0, "compile": t2 - t1, "make_observer": t3 - t2, "first_run": t4 - t3,
+                          "total": t4 - t0},
+                  "cpu_subprocesses": ch.ru_utime + ch.ru_stime}))
 """
+
+# the groups imported and numba's compiler set up (a trivial kernel compiled): what every compiling process pays once
+IMPORT_ONLY = "import numba; from exuflex import _compile; _compile.groups(); numba.njit(lambda x: x + 1)(1)"
+
+
+def _children_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def _run(cmd: list[str], env: dict) -> tuple[float, float, str]:
+    """Wall seconds, CPU seconds (the process and everything it waited for) and stdout of ``cmd``."""
+    c0, w0 = _children_cpu(), time.perf_counter()
+    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+    return time.perf_counter() - w0, _children_cpu() - c0, out.stdout
+
+
+def _first_use(args, jobs: int, cache: str) -> dict:
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache, EXUFLEX_COMPILE_JOBS=str(jobs), PYTHONPATH=str(ROOT))
+    wall, cpu, out = _run([sys.executable, "-c", CHILD, args.model, args.run], env)
+    rec = json.loads(out.strip().splitlines()[-1])
+    rec.update(jobs=jobs, process_wall_s=wall, process_cpu_s=cpu)
+    return rec
+
+
+def _groups(repeats: int) -> dict:
+    """CPU seconds per group alone (median over ``repeats``), and of a process that compiles nothing."""
+    from exuflex import _compile
+
+    needs = {g.name: list(g.needs) for g in _compile.groups()}
+    cpu = {n: [] for n in ["(start, nothing compiled)", *needs]}
+    for _ in range(repeats):
+        for name, runs in cpu.items():
+            with tempfile.TemporaryDirectory() as cache:
+                env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
+                if needs.get(name):  # the kernels it calls cached first (its cost is what it adds to them)
+                    _run([sys.executable, "-m", "exuflex._compile", *needs[name]], env)
+                cmd = ([sys.executable, "-c", IMPORT_ONLY] if name.startswith("(") else
+                       [sys.executable, "-m", "exuflex._compile", name])
+                runs.append(_run(cmd, env)[1])
+    start = statistics.median(cpu.pop("(start, nothing compiled)"))
+    return {"start_cpu_s": start, "group_cpu_s": {n: statistics.median(v) - start for n, v in cpu.items()},
+            "runs": cpu}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--jobs", default="1,2", help="compiling processes to compare, alternating (e.g. 1,2)")
+    ap.add_argument("--groups", action="store_true", help="also the CPU cost of each kernel group alone")
+    ap.add_argument("--group-repeats", type=int, default=None, help="repeats of --groups (default: --repeats)")
     ap.add_argument("--model", default=str(ROOT / "models" / "sixbar.toml"))
     ap.add_argument("--run", default=str(ROOT / "tests" / "data" / "sixbar_short"))
+    ap.add_argument("--md", default=str(ROOT / "docs" / "first_compile.md"), help="markdown page ('' for none)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    runs = []
+    try:
+        jobs = [int(j) for j in args.jobs.split(",")]
+        assert jobs and min(jobs) >= 1
+    except (ValueError, AssertionError):
+        ap.error(f"--jobs: expected process counts >= 1 separated by commas (e.g. 1,2), got {args.jobs!r}")
+    out: dict = {"load_before": os.getloadavg(), "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                 "runs": []}
     for i in range(args.repeats):
-        with tempfile.TemporaryDirectory() as cache:
-            env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-            print(f"repeat {i + 1}/{args.repeats}: compiling with an empty cache ...", file=sys.stderr, flush=True)
-            out = subprocess.run([sys.executable, "-c", CHILD, args.model, args.run], env=env, check=True,
-                                 capture_output=True, text=True)
-            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
-    med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+        for j in jobs:
+            print(f"repeat {i + 1}/{args.repeats}, {j} process(es): compiling with an empty cache ...",
+                  file=sys.stderr, flush=True)
+            with tempfile.TemporaryDirectory() as cache:
+                out["runs"].append(_first_use(args, j, cache))
+                if i == args.repeats - 1 and j == jobs[-1]:
+                    out["warm"] = _first_use(args, j, cache)
+    if args.groups:
+        print("kernel groups alone ...", file=sys.stderr, flush=True)
+        out["groups"] = _groups(args.group_repeats or args.repeats)
+    out["load_after"] = os.getloadavg()
+    out["median"] = {j: {"wall_s": statistics.median(r["process_wall_s"] for r in out["runs"] if r["jobs"] == j),
+                         "cpu_s": statistics.median(r["process_cpu_s"] for r in out["runs"] if r["jobs"] == j)}
+                     for j in jobs}
+    if args.md:
+        Path(args.md).write_text(_page(out, argv if argv is not None else sys.argv[1:]))
     if args.json:
-        print(json.dumps({"median": med, "runs": runs}, indent=1))
+        print(json.dumps(out, indent=1))
         return 0
-    print(f"CPU seconds with an empty numba cache (median of {len(runs)}): "
-          + ", ".join(f"{k.removesuffix('_s')} {v:.1f}" for k, v in med.items()))
+    for j, m in out["median"].items():
+        print(f"{j} process(es): wall {m['wall_s']:.1f} s, CPU {m['cpu_s']:.1f} s (median of {args.repeats}, "
+              "empty numba cache)")
+    print(f"warm cache: wall {out['warm']['process_wall_s']:.1f} s, CPU {out['warm']['process_cpu_s']:.1f} s")
+    if "groups" in out:
+        g = out["groups"]
+        print(f"start without compiling: {g['start_cpu_s']:.1f} s CPU; groups alone: "
+              + ", ".join(f"{k} {v:.1f}" for k, v in g["group_cpu_s"].items()))
+    print(f"load average (1, 5, 15 min) before {_load(out['load_before'])}, after {_load(out['load_after'])}")
     return 0
+
+
+def _load(la) -> str:
+    return " ".join(f"{x:.2f}" for x in la)
+
+
+def _page(out: dict, argv: list) -> str:
+    """The figures as a markdown page (the machine's load before and after included: the absolute seconds hold
+    for that machine at that moment; the ratio between job counts measured in alternation is what carries over)."""
+    import numba
+
+    from exuflex.runs import package_versions
+
+    rows = "\n".join(
+        f"| {k + 1} | {r['jobs']} | {r['process_wall_s']:.1f} | {r['process_cpu_s']:.1f} | {r['cpu']['total']:.1f} | "
+        f"{r['cpu_subprocesses']:.1f} | {r['wall']['compile']:.1f} | {r['wall']['make_observer']:.1f} | "
+        f"{r['wall']['first_run']:.1f} |"
+        for k, r in enumerate(out["runs"]))
+    med = "\n".join(f"| {j} | {m['wall_s']:.1f} | {m['cpu_s']:.1f} |" for j, m in out["median"].items())
+    w = out["warm"]
+    versions = ", ".join(f"{k} {v}" for k, v in {**package_versions(), "numba": numba.__version__,
+                                                  "python": platform.python_version()}.items())
+    page = (
+        "# The first use with an empty compile cache\n\n"
+        f"Written by `{' '.join(['python benchmarks/first_compile.py', *argv])}` (see its docstring), started "
+        f"{out['started']} on a machine with {os.cpu_count()} cores. Load average (1, 5, 15 min) before: "
+        f"{_load(out['load_before'])}, after: {_load(out['load_after'])} (other jobs share the cores: a load above "
+        "the benchmark's own processes slows the parallel runs more).\n\n"
+        "Each run: a fresh process with an empty `NUMBA_CACHE_DIR` imports exuflex, compiles the kernels "
+        "(`exuflex._compile.prepare`, in the number of processes given by `EXUFLEX_COMPILE_JOBS`), builds the "
+        "six-bar's observer and filters a short log. Wall: what the user waits; CPU: the process and the "
+        "compiling subprocesses it started. The same work takes the same CPU seconds on a steady machine: a run "
+        "with markedly more ran while the machine was slowed (other jobs, clock drift), and its wall time with "
+        "it.\n\n"
+        "| processes | median wall s | median CPU s |\n|---|---|---|\n" + med + "\n\n"
+        "| run | processes | wall s | CPU s | of which main | of which subprocesses | compile wall s | "
+        "make_observer wall s | first run wall s |\n|---|---|---|---|---|---|---|---|---|\n" + rows + "\n\n"
+        f"The same with the cache left warm (kernels loaded, none compiled): wall {w['process_wall_s']:.1f} s, "
+        f"CPU {w['process_cpu_s']:.1f} s, of which `prepare` (the cache check; no process started) "
+        f"{w['wall']['compile']:.3f} s wall.\n\n"
+    )
+    if "groups" in out:
+        g = out["groups"]
+        page += (
+            "Kernel groups compiled alone (`python -m exuflex._compile GROUP`, empty cache but for the groups it "
+            "calls), CPU seconds beyond a process that imports them and compiles a trivial kernel "
+            f"({g['start_cpu_s']:.1f} s; `START_COST`): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in g["group_cpu_s"].items())
+            + " (the weights `exuflex._compile.plan` shares the groups out by).\n\n"
+        )
+    return page + f"Versions: {versions}.\n"
 
 
 if __name__ == "__main__":

@@ -121,7 +121,7 @@ LAYERS = (
     ("exuflex.erls", "exuflex.probes"),
     ("exuflex.errors", "exuflex.manoeuvre", "exuflex.reduction", "exuflex.sensors", "exuflex.validate"),
     ("exuflex.groundtruth", "exuflex.measure", "exuflex.runs"),
-    ("exuflex.observer",),
+    ("exuflex.observer", "exuflex._compile"),
     ("exuflex.truth",),
     ("exuflex.bench", "exuflex.study"),
     ("exuflex.plots",),

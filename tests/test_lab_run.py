@@ -46,12 +46,3 @@ def test_errors_name_the_argument_and_what_was_expected(tmp_path):
         read_lab_run(p, MECH, MAP)
 
 
-def test_the_compile_notice_looks_for_the_observers_kernels(tmp_path, monkeypatch):
-    from exuflex.cli import observe
-
-    monkeypatch.setattr(observe, "_OBSERVER_KERNELS", ("observer/__pycache__/no_such_kernel-*.nbi",))
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    assert not observe._kernels_cached()
-    (tmp_path / "x" / "observer").mkdir(parents=True)
-    (tmp_path / "x" / "observer" / "no_such_kernel-12.py311.nbi").write_text("")
-    assert observe._kernels_cached()

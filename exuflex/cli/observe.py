@@ -193,6 +193,7 @@ def run_manoeuvre(mech, log):
 
 
 def run(args) -> int:
+    from .. import _compile
     from ..errors import UsageError
     from ..mechanism import load_mechanism
     from ..observer.session import make_observer, observe_run
@@ -221,8 +222,8 @@ def run(args) -> int:
     # few floats a row, all rows at once) are freed before the observer's own memory is taken
     log_check = check_run(mech, log, tuple(config.channels) if config.channels else default_channels(mech),
                           dt=config.dt or 1.0 / mech.sample_rate_hz)
-    _say("building the reduced model" + ("" if _kernels_cached() else
-         " (the first run compiles the numerical kernels: a few minutes, once)"))
+    _compile.prepare(progress=_say)  # the first run: the kernels compiled in parallel, with a line before and after
+    _say("building the reduced model")
     obs = make_observer(mech, config)
     if args.q0 is not None or args.qd0 is not None:
         from ..observer.session import _start_q
@@ -275,31 +276,3 @@ def run(args) -> int:
     if args.out:
         print(f"wrote {Path(args.out)}")
     return 0
-
-
-#: the observer's largest kernels: while their cache files are missing, building the observer compiles
-_OBSERVER_KERNELS = ("reduction/__pycache__/_compiled._held_matrices-*.nbi",
-                     "observer/__pycache__/expansion._held_interval-*.nbi",
-                     "observer/__pycache__/kalman.predict_update-*.nbi")
-
-
-def _kernels_cached() -> bool:
-    """Whether numba's on-disk cache holds the observer's compiled kernels (then no compile notice): in the
-    package's ``__pycache__`` folders, or under ``NUMBA_CACHE_DIR`` (which mirrors the package's path)."""
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return True
-    import os
-
-    import exuflex
-
-    root = Path(exuflex.__file__).parent
-    cache = os.environ.get("NUMBA_CACHE_DIR")
-    for pattern in _OBSERVER_KERNELS:
-        if any(root.glob(pattern)):
-            continue
-        if cache and any(Path(cache).rglob(pattern.rsplit("/", 1)[1])):
-            continue
-        return False
-    return True

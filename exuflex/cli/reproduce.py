@@ -88,6 +88,7 @@ def _fmt(x, spec=".4g") -> str:
 def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int = 1, scheduler=None,
               engine: str = "exudyn", seed: int = 0, runs: int | None = None, progress: bool = False) -> Path:
     """Library form of the command; returns the path of ``report.md``."""
+    from .. import _compile
     from ..data import paper_reference
     from ..mechanism import load_mechanism
     from ..observer.output import write_outcome
@@ -138,7 +139,8 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
         from dataclasses import replace
 
         config = replace(config, start_up=min(config.start_up, cfg["duration"] / 4))
-    say("observer on the run (the first run compiles the numerical kernels: a few minutes, once)")
+    _compile.prepare(progress=say)  # the first run: the kernels compiled in parallel, with a line before and after
+    say("observer on the run")
     outcome = observe_run(mech, run_, config)
     walls["observer_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()

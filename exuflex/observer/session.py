@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import _compile
 from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
 from ..manoeuvre import plan
@@ -315,6 +316,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     check_mechanism_argument(mech)
     config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
+    _compile.prepare()  # the first run with an empty kernel cache: compiled in parallel processes (._compile)
     t0 = time.perf_counter()
     model = model or (cb.model if cb is not None else ErlsModel(mech))
     if cb is None:

@@ -30,10 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..erls.model import ErlsModel
+from ..mechanism import parse_mechanism
 from . import _compiled
 from .basis import CraigBampton, ReducedConfiguration
 
-__all__ = ["ReducedModel", "ReducedMatrices"]
+__all__ = ["ReducedMatrices", "ReducedModel", "warm_up"]
 
 
 @dataclass(frozen=True)
@@ -391,3 +393,26 @@ class ReducedModel:
         mats = self.matrices(p, pd)
         Hu = mats.rc.H[self.nq :]
         return 0.5 * pd @ mats.Mr @ pd + 0.5 * p @ (Hu.T @ mats.rc.Kuu @ Hu) @ p
+
+
+#: a clamped steel rod of two elements, one master: the smallest model whose reduction runs every kernel of the
+#: held evaluation (:func:`warm_up`)
+_WARM_UP_MODEL = {
+    "model": {"name": "warm_up_rod", "q_ref": [0.0]},
+    "materials": [{"name": "steel", "E": 2.0e11, "rho": 7800.0}],
+    "links": [{"name": "rod", "length": 1.0, "material": "steel", "diameter": 0.02, "n_elements": 2}],
+    "joints": [{"name": "hub", "points": [{"link": "rod", "station": 0.0}], "ground": [0.0, 0.0]}],
+    "coordinates": [{"name": "q1", "link": "rod", "joint": "hub"}],
+    "reduction": {"masters": ["node3.transverse"], "q_star": [0.0], "n_interior": 1},
+}
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the kernels that building a reduced model and its held
+    evaluation run (the full-order configuration, :mod:`._compiled`), by building the reduction of a two-element
+    rod and evaluating it once: the kernels see arguments of the very types a mechanism's model passes (the
+    closure arrays, the Fortran-ordered inverses that compiled code returns)."""
+    if not _compiled.HAVE_NUMBA:
+        return
+    rm = ReducedModel(CraigBampton(ErlsModel(parse_mechanism(_WARM_UP_MODEL, "warm_up"))))
+    rm.held(np.zeros(rm.r), np.zeros(rm.r))

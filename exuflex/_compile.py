@@ -1,0 +1,326 @@
+"""The compiled kernels in named groups, and their first compilation split over processes.
+
+numba compiles a kernel (``cache=True``) at its first call in a process, or loads it from its on-disk cache
+(``__pycache__`` beside the source, or ``NUMBA_CACHE_DIR``) where an earlier process compiled the same source.
+The first use with an empty cache therefore compiles every kernel the observer runs, one after the other on one
+core. The kernels fall into groups that share no compiled code (no kernel of one group calls a kernel of another),
+so their compilations are independent: :func:`prepare` compiles the groups whose cache is missing in ``jobs``
+processes at once, one share in the calling process and each other share in a subprocess
+(``python -m exuflex._compile GROUP ...``) that writes numba's cache; the calling process then loads those from
+the cache. Shares are balanced by each group's :attr:`KernelGroup.cost`, the CPU seconds of compiling the group
+alone in a fresh process (``python benchmarks/first_compile.py --groups`` measures them; a subprocess also pays
+:data:`START_COST` for starting Python and importing the package).
+
+With a warm cache :func:`prepare` reads one small index file per kernel and starts nothing. It never fails the
+caller: a subprocess that fails or does not finish, or a cache folder that cannot be written, leaves the missing
+kernels to be compiled in the calling process (at their first call, as without :func:`prepare`).
+
+``EXUFLEX_COMPILE_JOBS`` sets the number of processes (default: 2, or 1 on a one-core machine; 1 compiles in the
+calling process only). ``NUMBA_DISABLE_JIT=1``: nothing to compile, :func:`prepare` does nothing.
+
+A group is one :class:`KernelGroup` line in :func:`groups`: its name, its warm-up (a function that compiles or
+loads its kernels by calling them on small arguments of the types the observer passes), the kernels that warm-up
+compiles (their cache entries are what :func:`prepare` checks) and its cost.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import os
+import subprocess
+import sys
+import sysconfig
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "plan", "prepare"]
+
+log = logging.getLogger(__name__)
+
+#: the environment variable that sets the number of compiling processes
+JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
+#: CPU seconds a compiling subprocess spends before its first compilation (Python, NumPy, numba, the package,
+#: numba's compiler set up)
+START_COST = 1.6
+#: seconds to wait for a compiling subprocess before compiling its share here
+TIMEOUT_S = 900.0
+
+
+@dataclass(frozen=True)
+class KernelGroup:
+    """Kernels compiled together: ``warm_up()`` compiles (or loads) them, ``kernels`` are the numba dispatchers
+    it compiles, ``cost`` the CPU seconds of compiling them in a process that has the kernels they call (the
+    split's weights), ``needs`` the groups whose kernels they call: numba compiles a called kernel with its caller
+    unless it is compiled or cached already, so a group waits for the cache of the groups it needs that another
+    process compiles (:func:`plan`)."""
+
+    name: str
+    warm_up: Callable[[], None]
+    kernels: tuple
+    cost: float
+    needs: tuple[str, ...] = ()
+
+    def cached(self) -> bool:
+        """Whether numba's cache holds every kernel of the group for its current source (one compiled version
+        at least: the warm-up's)."""
+        return all(_cached(k) for k in self.kernels)
+
+
+def groups() -> tuple[KernelGroup, ...]:
+    """The observer's kernel groups. A new kernel joins a group by being called in its warm-up and listed in its
+    ``kernels``; a new group is one line here."""
+    from .erls import _assembly
+    from .observer import expansion, kalman
+    from .reduction import _compiled, model
+
+    return (
+        KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
+                    _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
+                    _compiled._force_terms_shared), cost=18.6),
+        KernelGroup("held", expansion.warm_up_held, (expansion.held_system, expansion.prediction_error), cost=3.9),
+        KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
+                    cost=7.4),
+        KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,
+                    expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.secant_rows),
+                    cost=7.5),
+        KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
+                    kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
+                    kalman.window_seen, kalman.window_push), cost=5.1),
+        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=11.4,
+                    needs=("interval", "step_map", "kalman")),
+    )
+
+
+def _cached(kernel) -> bool:
+    """Whether numba's cache index of ``kernel`` holds an entry for this machine and its current code (numba's
+    own key: signature, target, bytecode hash; the index is void when the source file changed). Not a caching
+    dispatcher (e.g. under ``NUMBA_DISABLE_JIT``), or a numba whose cache internals differ: True (nothing for
+    :func:`prepare` to do, the kernel compiles at its first call as without it)."""
+    cache = getattr(kernel, "_cache", None)
+    index = getattr(cache, "_cache_file", None)
+    if index is None:
+        return True
+    try:
+        codegen = kernel.targetctx.codegen()
+        return any(cache._index_key(key[0], codegen) == key for key in index._load_index())
+    except Exception as exc:  # noqa: BLE001 - numba's private cache API: unknown means "as without prepare"
+        log.debug("numba cache index of %s unreadable (%s)", getattr(kernel, "__name__", kernel), exc)
+        return True
+
+
+def _writable(kernel) -> bool:
+    """Whether the folder numba caches ``kernel`` in can be written (else a subprocess's work would be lost)."""
+    path = getattr(getattr(kernel, "_cache", None), "cache_path", None)
+    return path is not None and os.path.isdir(path) and os.access(path, os.W_OK | os.X_OK)
+
+
+def missing(selected: tuple[KernelGroup, ...] | None = None) -> list[KernelGroup]:
+    """The groups whose kernels numba's cache does not hold (all of them on a first run; none under
+    ``NUMBA_DISABLE_JIT`` or without numba)."""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a core dependency
+        return []
+    if numba.config.DISABLE_JIT:
+        return []
+    return [g for g in (groups() if selected is None else selected) if not g.cached()]
+
+
+def jobs(requested: int | None = None) -> int:
+    """The number of compiling processes: ``requested``, else ``EXUFLEX_COMPILE_JOBS``, else 2 (1 where this
+    process may use one core only)."""
+    if requested is None:
+        raw = os.environ.get(JOBS_ENV, "").strip()
+        if raw:
+            try:
+                requested = int(raw)
+            except ValueError:
+                raise ValueError(f"{JOBS_ENV}: expected a whole number of processes >= 1, got {raw!r}") from None
+    if requested is not None:
+        if requested < 1:
+            raise ValueError(f"{JOBS_ENV} (jobs): expected a whole number of processes >= 1, got {requested}")
+        return int(requested)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return min(2, cores)
+
+
+def _finish(shares: list[list[KernelGroup]]) -> float:
+    """When the last share is done if each runs its groups in order from 0 (share 0) or :data:`START_COST` (the
+    others), a group starting once the groups it needs from other shares are done (inf: they wait on each
+    other)."""
+    where = {g.name: k for k, share in enumerate(shares) for g in share}
+    clock = [0.0] + [START_COST] * (len(shares) - 1)
+    done: dict[str, float] = {}
+    nxt = [0] * len(shares)
+    while any(nxt[k] < len(share) for k, share in enumerate(shares)):
+        moved = False
+        for k, share in enumerate(shares):
+            while nxt[k] < len(share):
+                g = share[nxt[k]]
+                other = [n for n in g.needs if where.get(n, k) != k]
+                if any(n not in done for n in other):
+                    break
+                clock[k] = max([clock[k], *(done[n] for n in other)]) + g.cost
+                done[g.name] = clock[k]
+                nxt[k] += 1
+                moved = True
+        if not moved:
+            return math.inf
+    return max(clock)
+
+
+def plan(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
+    """``todo`` in at most ``n`` ordered shares that finish soonest (:func:`_finish`; share 0 for the calling
+    process): every assignment of groups to shares is tried while there are at most ``10**5`` (else all in share
+    0); in a share, the groups another share needs come first (cheapest first), those that need others last.
+    Empty shares are left out, share 0 first (possibly empty)."""
+    n = max(1, min(n, len(todo)))
+
+    def shares_of(assign) -> list[list[KernelGroup]]:
+        shares: list[list[KernelGroup]] = [[] for _ in range(n)]
+        for g, k in zip(todo, assign, strict=True):
+            shares[k].append(g)
+        wanted = {nd for k, share in enumerate(shares) for g in share for nd in g.needs
+                  if not any(x.name == nd for x in share)}
+        shares = [sorted(share, key=lambda g: (g.name not in wanted, bool(g.needs), g.cost)) for share in shares]
+        return [shares[0]] + [share for share in shares[1:] if share]
+
+    if n ** len(todo) > 10**5:
+        return shares_of([0] * len(todo))
+    best = min(itertools.product(range(n), repeat=len(todo)),
+               key=lambda a: (_finish(shares_of(a)), len(set(a))))
+    return shares_of(best)
+
+
+def _await_needs(group: KernelGroup, local: set[str], known: dict[str, KernelGroup],
+                 alive: Callable[[], bool] = lambda: True) -> None:
+    """Wait until numba's cache holds the groups ``group`` needs that another process compiles (not in
+    ``local``), at most about twice their cost (then numba compiles them here, with ``group``'s kernels)."""
+    others = [known[n] for n in group.needs if n not in local and n in known]
+    if not others:
+        return
+    deadline = time.monotonic() + 10.0 + 2.0 * sum(g.cost for g in others)
+    while not all(g.cached() for g in others) and time.monotonic() < deadline and alive():
+        time.sleep(0.1)
+
+
+def _worker_env() -> dict[str, str]:
+    """The environment of a compiling subprocess: this one's, with this process's copy of exuflex first on the
+    path, numba's cache folder as this process's numba uses it, and no further subprocesses."""
+    import numba
+
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])
+    installed = {str(Path(sysconfig.get_path(k)).resolve()) for k in ("purelib", "platlib")}
+    if root not in installed:  # a source tree (an installed package is found by the subprocess as it is)
+        env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    if numba.config.CACHE_DIR:
+        env["NUMBA_CACHE_DIR"] = str(numba.config.CACHE_DIR)
+    env[JOBS_ENV] = "1"
+    return env
+
+
+def _warm(group: KernelGroup) -> None:
+    """``group.warm_up()`` in this process; an error is reported and left to the kernels' first call."""
+    try:
+        group.warm_up()
+    except Exception as exc:  # noqa: BLE001 - the kernels then compile at their first call, as without prepare
+        log.warning("compiling the %s kernels ahead failed (%s: %s); they compile at their first use",
+                    group.name, type(exc).__name__, exc)
+
+
+_prepared = False
+
+
+def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = None) -> float:
+    """Compile the kernel groups that numba's cache lacks, in ``n_jobs`` processes (:func:`jobs`), so that this
+    process then loads them from the cache. Once per process; returns the wall seconds it compiled for (0 with a
+    warm cache). ``progress``: one line when compiling starts and one when done (default: the log, INFO)."""
+    global _prepared
+    if _prepared:
+        return 0.0
+    n = jobs(n_jobs)
+    _prepared = True
+    todo = missing()
+    if not todo:
+        return 0.0
+    say = progress or (lambda msg: log.info("%s", msg))
+    if n > 1 and not all(_writable(k) for g in todo for k in g.kernels):
+        log.info("numba's cache folder is not writable: compiling in this process")
+        n = 1
+    shares = plan(todo, n)
+    known = {g.name: g for g in groups()}
+    t0 = time.perf_counter()
+    say(f"compiling numba kernels (first run, {len(shares)} process{'es' if len(shares) > 1 else ''}) ...")
+    workers = []
+    try:
+        if len(shares) > 1:
+            env = _worker_env()
+            for share in shares[1:]:
+                err = tempfile.TemporaryFile()  # noqa: SIM115 - closed in the finally below
+                cmd = [sys.executable, "-m", "exuflex._compile", *(g.name for g in share)]
+                try:
+                    proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                            stderr=err)
+                except OSError as exc:
+                    log.info("could not start a compiling process (%s): compiling its kernels here", exc)
+                    err.close()
+                    continue
+                workers.append((proc, err, share))
+        local = {g.name for g in shares[0]}
+        for g in shares[0]:
+            _await_needs(g, local, known, alive=lambda: all(p.poll() in (None, 0) for p, _, _ in workers))
+            _warm(g)
+        for proc, err, share in workers:
+            try:
+                rc = proc.wait(timeout=max(1.0, TIMEOUT_S - (time.perf_counter() - t0)))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+                rc = "timeout"
+            if rc != 0:
+                err.seek(0)
+                tail = err.read().decode(errors="replace").strip().splitlines()[-1:] or [""]
+                log.info("the process compiling %s ended with %s (%s): compiling them here",
+                         ", ".join(g.name for g in share), rc, tail[0])
+    finally:
+        for proc, err, _ in workers:
+            if proc.poll() is None:  # interrupted: stop the subprocesses this call started
+                proc.kill()
+                proc.wait()
+            err.close()
+    for share in shares[1:]:  # loaded from the cache the subprocesses wrote (or compiled here if they did not)
+        for g in share:
+            _warm(g)
+    wall = time.perf_counter() - t0
+    say(f"numba kernels compiled in {wall:.0f} s (cached on disk for later runs)")
+    return wall
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m exuflex._compile GROUP ...``: compile (or load) the named groups in this process, writing
+    numba's cache (what :func:`prepare`'s subprocesses run). Without names: :func:`prepare` (every missing group,
+    in :func:`jobs` processes; e.g. ahead of the first use when building a container image)."""
+    names = sys.argv[1:] if argv is None else argv
+    if not names:
+        prepare(progress=lambda msg: print(f"exuflex._compile: {msg}", file=sys.stderr, flush=True))
+        return 0
+    known = {g.name: g for g in groups()}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        print(f"exuflex._compile: unknown kernel group(s) {unknown}; expected some of {sorted(known)}",
+              file=sys.stderr)
+        return 2
+    for name in names:
+        _await_needs(known[name], set(names), known)
+        known[name].warm_up()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
