@@ -3,13 +3,14 @@
 numba compiles a kernel (``cache=True``) at its first call in a process, or loads it from its on-disk cache
 (``__pycache__`` beside the source, or ``NUMBA_CACHE_DIR``) where an earlier process compiled the same source.
 The first use with an empty cache therefore compiles every kernel the observer runs, one after the other on one
-core. The kernels fall into groups that share no compiled code (no kernel of one group calls a kernel of another),
-so their compilations are independent: :func:`prepare` compiles the groups whose cache is missing in ``jobs``
-processes at once, one share in the calling process and each other share in a subprocess
-(``python -m exuflex._compile GROUP ...``) that writes numba's cache; the calling process then loads those from
-the cache. Shares are balanced by each group's :attr:`KernelGroup.cost`, the CPU seconds of compiling the group
-alone in a fresh process (``python benchmarks/first_compile.py --groups`` measures them; a subprocess also pays
-:data:`START_COST` for starting Python and importing the package).
+core. :func:`prepare` compiles the groups whose cache is missing in ``jobs`` processes at once: one share in the
+calling process, each other share in a subprocess (``python -m exuflex._compile GROUP ...``) that writes numba's
+cache, which the calling process then loads from. A kernel that calls another group's kernels (the sample loop
+calls the interval's, the step map's and the Kalman kernels) would compile them again with itself unless they
+are cached: its group ``needs`` theirs and waits for their cache when another process compiles them. The shares
+and their order are those that finish soonest (:func:`plan`) by each group's :attr:`KernelGroup.cost`, the CPU
+seconds of compiling it (``python benchmarks/first_compile.py --groups`` measures them; a subprocess also pays
+:data:`START_COST` for starting Python, importing the package and setting numba's compiler up).
 
 With a warm cache :func:`prepare` reads one small index file per kernel and starts nothing. It never fails the
 caller: a subprocess that fails or does not finish, or a cache folder that cannot be written, leaves the missing
@@ -20,7 +21,7 @@ calling process only). ``NUMBA_DISABLE_JIT=1``: nothing to compile, :func:`prepa
 
 A group is one :class:`KernelGroup` line in :func:`groups`: its name, its warm-up (a function that compiles or
 loads its kernels by calling them on small arguments of the types the observer passes), the kernels that warm-up
-compiles (their cache entries are what :func:`prepare` checks) and its cost.
+compiles (their cache entries are what :func:`prepare` checks), its cost and the groups it needs.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ class KernelGroup:
 
 def groups() -> tuple[KernelGroup, ...]:
     """The observer's kernel groups. A new kernel joins a group by being called in its warm-up and listed in its
-    ``kernels``; a new group is one line here."""
+    ``kernels``; a new group is one line here (``needs``: the groups whose kernels its kernels call)."""
     from .erls import _assembly
     from .observer import expansion, kalman
     from .reduction import _compiled, model
@@ -197,6 +198,18 @@ def plan(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
     return shares_of(best)
 
 
+def _needs_first(share: list[KernelGroup]) -> list[KernelGroup]:
+    """``share`` with every group after the groups of ``share`` it needs (otherwise in its order)."""
+    names = {g.name for g in share}
+    out: list[KernelGroup] = []
+    rest = list(share)
+    while rest:
+        ready = next((g for g in rest if all(n not in names or n in {x.name for x in out} for n in g.needs)), rest[0])
+        out.append(ready)
+        rest.remove(ready)
+    return out
+
+
 def _await_needs(group: KernelGroup, local: set[str], known: dict[str, KernelGroup],
                  alive: Callable[[], bool] = lambda: True) -> None:
     """Wait until numba's cache holds the groups ``group`` needs that another process compiles (not in
@@ -258,6 +271,7 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
     t0 = time.perf_counter()
     say(f"compiling numba kernels (first run, {len(shares)} process{'es' if len(shares) > 1 else ''}) ...")
     workers = []
+    here = list(shares[0])
     try:
         if len(shares) > 1:
             env = _worker_env()
@@ -270,10 +284,12 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
                 except OSError as exc:
                     log.info("could not start a compiling process (%s): compiling its kernels here", exc)
                     err.close()
+                    here += share
                     continue
                 workers.append((proc, err, share))
-        local = {g.name for g in shares[0]}
-        for g in shares[0]:
+        here = _needs_first(here)
+        local = {g.name for g in here}
+        for g in here:
             _await_needs(g, local, known, alive=lambda: all(p.poll() in (None, 0) for p, _, _ in workers))
             _warm(g)
         for proc, err, share in workers:
@@ -294,7 +310,7 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
                 proc.kill()
                 proc.wait()
             err.close()
-    for share in shares[1:]:  # loaded from the cache the subprocesses wrote (or compiled here if they did not)
+    for _, _, share in workers:  # loaded from the cache the subprocesses wrote (or compiled here if they did not)
         for g in share:
             _warm(g)
     wall = time.perf_counter() - t0

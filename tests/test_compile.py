@@ -208,6 +208,25 @@ def test_no_subprocess_without_a_writable_cache_or_with_one_job(monkeypatch):
         assert lines[0] == "compiling numba kernels (first run, 1 process) ..."
 
 
+def test_a_process_that_cannot_start_leaves_its_groups_to_this_one_in_order(monkeypatch):
+    def cannot_start(*a, **k):
+        raise OSError("no more processes")
+
+    monkeypatch.setattr(_compile.subprocess, "Popen", cannot_start)
+    monkeypatch.setattr(_compile, "START_COST", 0.0)
+    calls = []
+    _fake(monkeypatch, [_group("a", 10.0, calls), _group("loop", 5.0, calls, needs=("b",)), _group("b", 5.0, calls)])
+    assert _names(_compile.plan(_compile.missing(), 2)) == [["a"], ["b", "loop"]]
+    _compile.prepare(2, progress=lambda msg: None)
+    assert calls == ["a", "b", "loop"]
+
+
+def test_every_needed_group_is_registered():
+    names = [g.name for g in _compile.groups()]
+    assert len(set(names)) == len(names)
+    assert all(n in names for g in _compile.groups() for n in g.needs)
+
+
 def test_a_failed_warm_up_is_reported_and_left_to_the_first_call(monkeypatch, caplog):
     def broken():
         raise RuntimeError("no such signature")

@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import _compile
 from ..errors import UsageError
 from ..mechanism import Mechanism, ModelFileError, load_mechanism
 from ..observer.session import ObserverConfig
@@ -412,6 +413,7 @@ def make_executor(workers: int = 1, scheduler: str | None = None):
         finally:
             client.close()
     elif workers > 1:
+        _compile.prepare()  # the kernels compiled once here (in parallel): the pool's processes load them
         with cf.ProcessPoolExecutor(max_workers=workers) as ex:
             yield ex, 2 * workers
     else:
