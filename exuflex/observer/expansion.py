@@ -773,20 +773,25 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         x, x_alt = x_alt, x
         P, P_alt = P_alt, P
         swapped = not swapped
-        x_rec[k] = x
-        if P_kind == 0:
-            for i in range(n_x):
+        # the record, element by element (a row or slice assignment compiles numba's shape checks and their
+        # messages into the loop: a third of its compile time)
+        for i in range(n_x):
+            x_rec[k, i] = x[i]
+            if P_kind == 0:
                 P_rec[k, i] = P[i, i]
-        elif P_kind == 1:
-            P_rec[k] = P.ravel()
+            elif P_kind == 1:
+                for j in range(n_x):
+                    P_rec[k, i * n_x + j] = P[i, j]
         if inn_rec.shape[0]:
-            inn_rec[k] = r
-            S_rec[k] = S.ravel()
+            for i in range(m):
+                inn_rec[k, i] = r[i]
+                for j in range(m):
+                    S_rec[k, i * m + j] = S[i, j]
         nis_rec[k] = nis
-        mats_out[0][:] = Mo
-        mats_out[1][:] = Ko
-        mats_out[2][:] = Co
-        mats_out[3][:] = Go
+        for out, a in zip(mats_out, (Mo, Ko, Co, Go)):
+            for i in range(a.shape[0]):
+                for j in range(a.shape[1]):
+                    out[i, j] = a[i, j]
         k += 1
         if n_bad:
             return k, MONITOR, holdoff, swapped, maps
