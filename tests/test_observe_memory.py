@@ -162,8 +162,8 @@ def test_streamed_observe_memory_per_sample(sixbar, monkeypatch):
     assert kept == 10
     held, peak = ((b - a) / (6 * 128) for a, b in zip(*got, strict=True))
     # held: the kept arrays, and a few hundred bytes a chunk the interpreter and numba's dispatcher keep for reuse
-    # (their free lists and per-call caches: C allocations no Python object holds; 520-600 bytes a chunk with the
-    # compiled sample loop's calls, against about 360 without them)
+    # (their free lists and per-call caches: C allocations no Python object holds, more with the compiled sample
+    # loop's calls)
     assert held <= kept + 1024 / 128, (held, peak)
     # peak: what is held, or the log check's working arrays (a few floats a sample at once), whichever is more
     assert peak <= 4 * 8, (held, peak)

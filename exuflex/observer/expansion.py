@@ -774,7 +774,7 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         P, P_alt = P_alt, P
         swapped = not swapped
         # the record, element by element (a row or slice assignment compiles numba's shape checks and their
-        # messages into the loop: a third of its compile time)
+        # messages into the loop, which then takes far longer to compile)
         for i in range(n_x):
             x_rec[k, i] = x[i]
             if P_kind == 0:
