@@ -46,11 +46,8 @@ else:  # pragma: no cover
 #: stopped: the samples asked for are done; the held configuration's or the step map's radius was left (the model
 #: renews its arrays and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step`
 #: must take (an input step, a gated channel, an indefinite or non-finite update, the model's own reasons); a
-#: sensor-fault window test failed at the last sample done (the monitor reports it, the loop resumes).
+#: sensor-fault window test failed at the last sample done (the monitor reports it).
 LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
-
-#: the decorator of the filter's compiled code (also :class:`.ekf.ChannelMonitor`'s window arithmetic)
-jit = _jit
 
 
 # --------------------------------------------------------------------------------------------- helpers
