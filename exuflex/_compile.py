@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
 #: CPU seconds a compiling subprocess spends before its first compilation (Python, NumPy, numba, the package,
 #: numba's compiler set up)
-START_COST = 1.6
+START_COST = 2.0
 #: seconds to wait for a compiling subprocess before compiling its share here
 TIMEOUT_S = 900.0
 
@@ -82,17 +82,17 @@ def groups() -> tuple[KernelGroup, ...]:
     return (
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
-                    _compiled._force_terms_shared), cost=18.6),
-        KernelGroup("held", expansion.warm_up_held, (expansion.held_system, expansion.prediction_error), cost=3.9),
+                    _compiled._force_terms_shared), cost=21.3),
+        KernelGroup("held", expansion.warm_up_held, (expansion.held_system, expansion.prediction_error), cost=4.2),
         KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
                     cost=7.4),
         KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,
                     expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.secant_rows),
-                    cost=7.5),
+                    cost=7.6),
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
-                    kalman.window_seen, kalman.window_push), cost=5.1),
-        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=11.4,
+                    kalman.window_seen, kalman.window_push), cost=5.6),
+        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=6.8,
                     needs=("interval", "step_map", "kalman")),
     )
 
