@@ -21,6 +21,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from _pages import publish  # (a script: its folder is on the path)
+
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = {"method": "rk4"}
 
@@ -98,13 +100,7 @@ def main(argv=None) -> int:
     args = [f"--model {a.model}"] if a.model != "slider_crank" else []
     if a.truths != "exudyn,exudyn:4,erls":
         args.append(f"--truths {a.truths}")
-    from exuflex.runs import versions_text
-
-    page = markdown(res, " ".join(["python benchmarks/path_bias.py", *args]))
-    page += f"Versions: {versions_text()}.\n"
-    print(page)
-    if a.out:
-        Path(a.out).write_text(page)
+    publish(markdown(res, " ".join(["python benchmarks/path_bias.py", *args])), a.out)
     return 0
 
 

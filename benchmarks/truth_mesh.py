@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _pages import publish  # (a script: its folder is on the path)
 
 ROOT = Path(__file__).resolve().parents[1]
 START_UP = 0.3
@@ -93,13 +94,7 @@ def main(argv=None) -> int:
         args.append(f"--model {a.model}")
     if meshes != [4, 8, 12]:
         args.append(f"--meshes {a.meshes}")
-    from exuflex.runs import versions_text
-
-    page = markdown(res, " ".join(["python benchmarks/truth_mesh.py", *args]))
-    page += f"Versions: {versions_text()}.\n"
-    print(page)
-    if a.out:
-        Path(a.out).write_text(page)
+    publish(markdown(res, " ".join(["python benchmarks/truth_mesh.py", *args])), a.out)
     return 0
 
 

@@ -323,14 +323,14 @@ def main(argv: list[str] | None = None) -> int:
     numba's cache (what :func:`prepare`'s subprocesses run). Without names: :func:`prepare` (every missing group,
     in :func:`jobs` processes; e.g. ahead of the first use when building a container image)."""
     names = sys.argv[1:] if argv is None else argv
+    logging.basicConfig(level=logging.INFO, format="exuflex._compile: %(message)s", stream=sys.stderr)
     if not names:
-        prepare(progress=lambda msg: print(f"exuflex._compile: {msg}", file=sys.stderr, flush=True))
+        prepare()
         return 0
     known = {g.name: g for g in groups()}
     unknown = [n for n in names if n not in known]
     if unknown:
-        print(f"exuflex._compile: unknown kernel group(s) {unknown}; expected some of {sorted(known)}",
-              file=sys.stderr)
+        log.error("unknown kernel group(s) %s; expected some of %s", unknown, sorted(known))
         return 2
     for name in names:
         _await_needs(known[name], set(names), known)

@@ -810,7 +810,6 @@ def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
     with it the measure costs more than the rebuild it decides on."""
     nx = Pn_new.shape[0]
     e = np.empty(nx)
-    w = np.empty(nx)
     err = 0.0
     for i in range(nx):
         for j in range(nx):
@@ -827,8 +826,7 @@ def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
             dn += Pn_new[i, a] * sn
         var = max(dn + Q_new[i, i], 1e-300)
         sig = math.sqrt(var)
-        w[i] = (math.sqrt(max(de, 0.0)) + 0.5 * abs(Q_new[i, i] - Q_old[i, i]) / sig) / sig
-        err = max(err, w[i])
+        err = max(err, (math.sqrt(max(de, 0.0)) + 0.5 * abs(Q_new[i, i] - Q_old[i, i]) / sig) / sig)
     return err
 
 

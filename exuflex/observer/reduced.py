@@ -317,7 +317,7 @@ class ReducedObserverModel:
         """Forget the held configuration, the cached measurement rows and the closure solver's warm start (a new
         run starts clean: its estimates do not depend on what the model evaluated before)."""
         self._last: _Held | None = None
-        self._last_hold = None  # (z, dt, what _hold returned for them)
+        self._renewed = None  # (z, dt, what _hold returned): an interval the compiled loop renewed and handed back
         self.map_rad = self.remap_rad  # the present map radius (:func:`.expansion.next_map_radius`)
         self.map_errors = array("d")  # the replaced maps' errors (:func:`.expansion.map_error`), 8 bytes each
         self._interval_matrices = None
@@ -440,7 +440,7 @@ class ReducedObserverModel:
             iv.rad = min(iv.rad, self._radius(old, dist, err[0], self.refresh_std_tol, order))
         self.n_refresh += 1
         self._last = iv
-        self._last_hold = None
+        self._renewed = None
         return iv
 
     def _held_error(self, old: _Held, s_old: float, iv: _Held, z: np.ndarray, u: np.ndarray,
@@ -533,15 +533,14 @@ class ReducedObserverModel:
 
     def _hold(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[_Held, np.ndarray, int, _StepMap]:
         """The held configuration and its step map for an interval of ``dt`` from ``z``, each renewed where q
-        left its radius (:meth:`_held_at`, :meth:`_step_map`), with ``dl = q - q0`` and the sub-steps ``n``."""
-        last = self._last_hold
-        if last is not None and last[1] == dt and np.array_equal(last[0], z):
-            return last[2]  # renewed for this interval already (the compiled loop asked first)
+        left its radius (:meth:`_held_at`, :meth:`_step_map`), with ``dl = q - q0`` and the sub-steps ``n``. An
+        interval the compiled loop renewed and handed back (``_renewed``) keeps what was renewed for it."""
+        done, self._renewed = self._renewed, None
+        if done is not None and done[1] == dt and np.array_equal(done[0], z):
+            return done[2]
         iv, dl = self._held_at(z, u, dt)
         n = self.substeps(iv, dt)
-        held = iv, dl, n, self._step_map(iv, z, dl, dt, n)
-        self._last_hold = (z.copy(), dt, held)
-        return held
+        return iv, dl, n, self._step_map(iv, z, dl, dt, n)
 
     def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
@@ -573,13 +572,14 @@ class ReducedObserverModel:
         """The model's arguments of :func:`.expansion.cached_samples` for samples from the state ``z`` with the
         torques ``u`` over ``dt``: the held configuration and its step map renewed for that interval where q left
         their radii (as :meth:`predict` would), the measurement rows of ``channels`` about it."""
-        iv, _, _, sm = self._hold(z, self._input(u), dt)
+        held = iv, _, _, sm = self._hold(z, self._input(u), dt)
+        self._renewed = (z.copy(), dt, held)  # for predict(), if the loop hands this interval back
         self._loop_step = (iv, sm)
         c0, Hm, dH, G = self._secant_rows(iv, channels)
         d = iv.d if iv.old is not None else _NONE
         return (self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
                 min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, sm.n, self.dt_tol, self.remap_ahead,
-                self.remap_horizon, self.torque_var, self._q_extra, *self._map_radius_law[1:], c0, Hm, dH, G, d,
+                self.remap_horizon, self.torque_var, self._q_extra, *self._map_radius_limits, c0, Hm, dH, G, d,
                 iv.dd, *sm.tail[:5], sm.L, sm.Q, *sm.tail[5:])  # (Ts, Vs, C3, P^n, S), L, Q, the held system
 
     def loop_buffers(self) -> tuple:
@@ -599,7 +599,7 @@ class ReducedObserverModel:
             self.n_remap += n_maps
             self.map_errors.extend(errs[:n_maps].tolist())
             if k_map == k:
-                self._last_hold = (z.copy(), dt_map, (iv, z[: self.nq] - iv.q0, sm.n, sm))
+                self._renewed = (z.copy(), dt_map, (iv, z[: self.nq] - iv.q0, sm.n, sm))
         self.last_step = (iv, sm)
         n = self.substeps(iv, dt)
         self._interval_matrices = (*(a.copy() for a in mats), dt / n, n)
@@ -655,7 +655,7 @@ class ReducedObserverModel:
         if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
             err = map_error(sm.Pn, new.Pn, sm.Q, new.Q, self.state_cov())
             self.map_errors.append(err)
-            self.map_rad = next_map_radius(new.q, sm.q, err, *self._map_radius_law)
+            self.map_rad = next_map_radius(new.q, sm.q, err, self.map_rad, *self._map_radius_limits)
         return new
 
     def _new_map(self, iv: _Held, dt: float, n: int, q, Pn, S, L, Q) -> _StepMap:
@@ -666,9 +666,9 @@ class ReducedObserverModel:
         return new
 
     @property
-    def _map_radius_law(self) -> tuple:
-        """The present map radius and the arguments of :func:`.expansion.next_map_radius` after it."""
-        return self.map_rad, self.remap_tol, self.remap_min, self.remap_max
+    def _map_radius_limits(self) -> tuple:
+        """``(remap_tol, remap_min, remap_max)``: the last arguments of :func:`.expansion.next_map_radius`."""
+        return self.remap_tol, self.remap_min, self.remap_max
 
     @staticmethod
     def _secant(iv: _Held) -> tuple:
