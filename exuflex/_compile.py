@@ -76,7 +76,7 @@ def groups() -> tuple[KernelGroup, ...]:
     """The observer's kernel groups. A new kernel joins a group by being called in its warm-up and listed in its
     ``kernels``; a new group is one line here (``needs``: the groups whose kernels its kernels call)."""
     from .erls import _assembly
-    from .observer import expansion, kalman
+    from .observer import augmented, expansion, kalman
     from .reduction import _compiled, model
 
     return (
@@ -94,6 +94,8 @@ def groups() -> tuple[KernelGroup, ...]:
                     kalman.window_seen, kalman.window_push), cost=5.6),
         KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=6.8,
                     needs=("interval", "step_map", "kalman")),
+        KernelGroup("payload", augmented.warm_up, (augmented.scaled_steps, augmented.payload_interval), cost=10.0,
+                    needs=("interval", "step_map")),
     )
 
 

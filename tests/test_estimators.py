@@ -136,6 +136,46 @@ def test_scaled_cached_step_follows_the_scaled_reference(sixbar, mid_run):
     assert effect > 20 * gap_nominal
 
 
+def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
+    """The held model is linear in the held arrays: the scaled steps (the nominal and the increment's held models
+    combined per scale) equal the held step of the arrays ``S + c dS`` themselves, and the interval's kernel
+    (:func:`payload_interval`) returns those steps, the scaled held matrices and, from the maps it builds of them,
+    the step Jacobian of :func:`step_jacobian` with the payload's velocity forms."""
+    from exuflex.observer.augmented import payload_interval, scaled_steps
+    from exuflex.observer.expansion import HeldSystem, held_step, step_jacobian, step_maps_noise
+
+    obs, z, u = mid_run
+    dt = obs.ekf.dt
+    aug = AugmentedModel(obs.model, payload_std=0.01)
+    aug.predict(np.concatenate([z, [1.0]]), u, dt)
+    inner = aug.inner
+    iv, sm = inner.last_step
+    inc = aug.increment(iv, z)
+    n = inner.substeps(iv, dt)
+    dl = z[: inner.nq] - iv.q0
+    s = inner.secant_factor(iv, dl)
+    a = np.array([0.9, -0.4, 0.6])
+    rows, Mr, Kr, Cr, Gr = scaled_steps(z, u, dl, s, dt / n, n, a, *iv.system, *inc)
+    scaled = {"Mr": "Mr", "Ca": "Ca", "dM": "dM", "fg": "fg", "T2": "T2", "old_dM": "old_dM", "old_Ca": "old_Ca",
+              "old_fg": "old_fg", "old_T2": "old_T2"}
+    for k, c in enumerate(a):
+        hs = iv.system._replace(**{f: getattr(iv.system, f) + c * getattr(inc, g) for f, g in scaled.items()})
+        ref, *mats = held_step(z, u, dl, s, dt / n, n, *HeldSystem(*hs))
+        np.testing.assert_allclose(rows[k], ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    for m, ref in zip((Mr, Kr, Cr, Gr), mats):
+        np.testing.assert_allclose(m, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    rho, dTs = aug._shares[iv.serial]
+    Ts, Vs, C3 = iv.forces.jacobian_tensors()
+    out = payload_interval(z, u, dl, s, dt / n, n, a, True, inner.torque_var, np.zeros(0), a[-1], Ts, dTs, Vs, C3,
+                           sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
+    np.testing.assert_array_equal(out[0], rows)
+    Pn, S, L, Q = step_maps_noise(Mr, Kr, Cr, Gr, dt / n, n, inner.torque_var)
+    for got, ref in zip(out[2:], (Pn, S, L, Q, Mr, Kr, Cr, Gr)):
+        np.testing.assert_array_equal(got, ref)
+    np.testing.assert_allclose(out[1], step_jacobian(z, Ts + a[-1] * dTs, Vs, C3, Pn, S), rtol=0,
+                               atol=1e-13 * np.abs(out[1]).max())
+
+
 @pytest.mark.parametrize("theta", [1.0, 1.6])
 def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_run, theta):
     """With the filter's covariance watched the scale is held until the test passes: its left-hand side is

@@ -25,10 +25,11 @@ Per interval the step is the cached step's RK4 sub-steps of that held system (:f
 stiffness, input matrix and geometric terms unchanged. Its derivative in the
 state and the process noise are the nominal step map's where the payload's change of the modal masses,
 ``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
-matrices to (``refresh_tol``); beyond it, the held linear system's maps with ``M_r + (theta - 1) dM_r`` (and the
-damping's increment), rebuilt with the nominal step map or when ``theta`` moved by that tolerance, and the
-force Jacobian with the payload's velocity forms (:meth:`AugmentedModel._scaled_map`). ``theta`` below 0 is taken
-as 0 in the step (a negative mass has no meaning and can make ``M_r`` indefinite).
+matrices to (``refresh_tol``); beyond it, the maps of the scaled held linear system (the step's own matrices at
+the interval's start: ``M_r + (theta - 1) dM_r`` and the damping's increment), rebuilt with the nominal step map
+or when ``theta`` moved by that tolerance, and the force Jacobian with the payload's velocity forms (one compiled
+call per interval, :func:`payload_interval`). ``theta`` below 0 is taken as 0 in the step (a negative mass has no
+meaning and can make ``M_r`` indefinite).
 
 The step's derivative in ``theta`` is the forward difference of the same compiled step at ``theta + DTHETA``
 (``DTHETA = 1e-4``: the step is smooth in ``theta``, the truncation error ``DTHETA / 2 d^2x/dtheta^2`` is far
@@ -85,9 +86,10 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import _held_step, _jit, step_jacobian
+from .expansion import HeldSystem, _held_model, _jit, _rk4_linear, step_jacobian, step_maps_noise
 
-__all__ = ["AugmentedModel", "PayloadIncrement", "payload_rows", "payload_twin", "scaled_steps"]
+__all__ = ["AugmentedModel", "PayloadIncrement", "payload_interval", "payload_rows", "payload_twin",
+           "scaled_steps", "warm_up"]
 
 #: the step of the scale used for the step's derivative in theta (forward difference)
 DTHETA = 1e-4
@@ -140,18 +142,85 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
                   old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
                   iold_fg, iold_T2):  # pragma: no cover - compiled
     """The held step (:func:`.expansion.held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
-    row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. The held arrays come one by
-    one (``*system, *increment``), as the expansion's kernels take them."""
+    row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
+    C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
+    (``*system, *increment``), as the expansion's kernels take them.
+
+    The held model (:func:`.expansion._held_model`) is linear in the held arrays (the stiffness, input matrix and
+    geometric forms are the payload's: unchanged), so it is evaluated once for ``S`` and once for ``dS`` (with
+    zero stiffness, input and geometric arrays) and combined per scale: ``M_r = M_r(S) + a_k M_r(dS)``, likewise
+    the damping and the forces; each scale then costs its RK4 sub-steps only."""
+    r = Mr.shape[0]
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    zr, zg, zq, zv, zc = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape), np.zeros(V2.shape), np.zeros(C2.shape)
+    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, zc, iold_dM, zq, iold_Ca, zg, iold_fg,
+                    iold_T2, zv, zc)
+    M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
+    G0 = np.empty(Gr.shape)
+    f0 = fb = np.empty(r)
+    for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
+        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, hs if k == 0 else di)
+        if k == 0:
+            M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
+        else:
+            Mb, Cb, fb = Mk, Ck, fk
     out = np.empty((a.shape[0], z.shape[0]))
+    M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
     for k in range(a.shape[0]):
         c = a[k]
-        out[k] = _held_step(z, u, dl, s, h, n, has_old, beta, Mr + c * iMr, Kr, Ca + c * iCa, Gr, dM + c * idM, dK,
-                            fg + c * ifg, T2 + c * iT2, V2, C2, old_dM + c * iold_dM, old_dK, old_Ca + c * iold_Ca,
-                            old_Gr, old_fg + c * iold_fg, old_T2 + c * iold_T2, old_V2, old_C2)[0]
-    return out
+        for i in range(r):  # loops, not array expressions (see expansion._mass_stiffness)
+            for j in range(r):
+                M[i, j] = M0[i, j] + c * Mb[i, j]
+                C[i, j] = C0[i, j] + c * Cb[i, j]
+            f[i] = f0[i] + c * fb[i]
+        x = _rk4_linear(z, u, M, K0, C, G0, f, h, n)
+        for i in range(z.shape[0]):
+            out[k, i] = x[i]
+    return out, M, K0, C, G0
 
 
 scaled_steps = _jit(_scaled_steps)
+
+
+def _payload_interval(z, u, dl, s, h, n, a, rebuild, torque_var, q_extra, cT, Ts, dTs, Vs, C3, Pn, SQM, L, Q,
+                      has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                      old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
+                      iold_T2):  # pragma: no cover - compiled
+    """One interval of the cached step with the payload scaled (:meth:`AugmentedModel.predict`), in one call.
+
+    The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
+    scale ``c``), taken again without the secant (``s = 0``, first order) if one is not finite; the held matrices
+    at ``c``; the step map: where ``rebuild``, the maps of the held linear system at ``c``
+    (:func:`.expansion.step_maps_noise`, ``q_extra``, may be empty, added to the noise's diagonal), else ``Pn``,
+    ``SQM``, ``L``, ``Q`` as given; and the step's Jacobian in the state (:func:`.expansion.step_jacobian`) with
+    that map and the velocity forms ``Ts + cT dTs``. Returns ``(rows, F, P^n, S, L, Q, M_r, K_r, C_r, G_r)``."""
+    rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
+                                        idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+    finite = True
+    for k in range(rows.shape[0]):
+        for i in range(rows.shape[1]):
+            if not math.isfinite(rows[k, i]):
+                finite = False
+    if not finite:  # as the nominal step's rescue: first order only
+        rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
+                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+                                            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+    if rebuild:
+        Pn, SQM, L, Q = step_maps_noise(Mo, Ko, Co, Go, h, n, torque_var)
+        for i in range(q_extra.shape[0]):
+            Q[i, i] += q_extra[i]
+    T = np.empty(Ts.shape)
+    for i in range(Ts.shape[0]):  # loops, not array expressions (see expansion._mass_stiffness)
+        for j in range(Ts.shape[1]):
+            for k in range(Ts.shape[2]):
+                T[i, j, k] = Ts[i, j, k] + cT * dTs[i, j, k]
+    F = step_jacobian(z, T, Vs, C3, Pn, SQM)
+    return rows, F, Pn, SQM, L, Q, Mo, Ko, Co, Go
+
+
+payload_interval = _jit(_payload_interval)
 
 
 class AugmentedModel:
@@ -225,6 +294,7 @@ class AugmentedModel:
             n += self.nu
         self.nx = n
         self.linearity_tol = float(linearity_tol)
+        self._q_extra = np.zeros(0) if inner.q_extra is None else np.ascontiguousarray(inner.q_extra, float)
         self._cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._plain = None  # the nominal model's own evaluation, where an increment is asked for later
         self._forget()
@@ -305,40 +375,47 @@ class AugmentedModel:
         return inc
 
     def _scaled_cached(self, z, u, dt, a, fresh):
-        """The cached step at the payload scales ``1 + a_k`` (one row each, :func:`scaled_steps`)."""
+        """The cached step at the payload scales ``1 + a_k`` (one row each, :func:`scaled_steps`), from the
+        held configuration of the last interval."""
         inner = self.inner
         iv, _ = inner.last_step
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)
+        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)[0]
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
-            out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)
+            out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)[0]
         return out
 
-    def _scaled_map(self, z, c, F0, Q0):
-        """``(F, Q, L)`` of the interval at the payload scale ``1 + c``: the nominal step's (``F0``, ``Q0``) where the payload's
-        change of the modal masses, ``|c| rho`` (``rho = max eig(dM_r, M_r)``), is within the error the cached step
-        holds its matrices to (``inner.refresh_tol``, relative in the mass metric); else the held linear system's
-        maps with ``M_r + c dM_r`` and ``C_r + c dC_r`` (rebuilt when the step map is, or when ``c`` moved by
-        more than that tolerance), and the force Jacobian with the payload's velocity forms."""
+    def _scaled_interval(self, z, u, dt, a):
+        """The cached step's interval with the payload scaled (:func:`payload_interval`): the steps at the scales
+        ``1 + a_k`` (rows; the last entry of ``a`` is the interval's own scale ``c``), and the step's Jacobian in
+        the state, process noise and torque response ``(F, Q, L)``.
+
+        Those are the nominal step map's where the payload's change of the modal masses, ``|c| rho``
+        (``rho = max eig(dM_r, M_r)``), is within the error the cached step holds its matrices to
+        (``inner.refresh_tol``, relative in the mass metric); else the maps of the held linear system at the scale
+        ``c`` (rebuilt when the nominal step map is, or when ``c`` moved by more than that tolerance), and the
+        force Jacobian with the payload's velocity forms. The interval's held matrices (for a torque jump) are
+        those at ``c``."""
         inner = self.inner
-        iv, sm = inner.last_step
-        if inner.method != "cached":
-            return F0, Q0, sm.L
+        n_refresh = inner.n_refresh
+        iv, dl, s, n, sm = inner.prepare(z, u, dt)
+        inc = self.increment(iv, z, inner.n_refresh != n_refresh)
         rho, dTs = self._shares[iv.serial]
+        c = float(a[-1])
         tol = inner.refresh_tol
-        if abs(c) * rho <= tol:
-            return F0, Q0, sm.L
+        scaled = abs(c) * rho > tol
         mp = self._map
-        if mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol:
-            inc = self._increments[iv.serial]
-            Mr, Kr, Cr, Gr, h, n = inner.interval_system
-            Pn, S, L, Q = inner.linear_maps(Mr + c * inc.Mr, Kr, Cr + c * inc.Ca, Gr, h * n, n)
-            mp = self._map = (sm, c, Pn, S, L, Q)
-        Ts, Vs, C3 = iv.forces.jacobian_tensors()
-        F = step_jacobian(z, Ts + c * dTs, Vs, C3, mp[2], mp[3])
-        return F, mp[5], mp[4]
+        rebuild = scaled and (mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol)
+        maps = mp[2:] if scaled and not rebuild else (sm.Pn, sm.S, sm.L, sm.Q)
+        rows, F, Pn, S, L, Q, Mr, Kr, Cr, Gr = payload_interval(
+            z, u, dl, s, dt / n, n, a, rebuild, inner.torque_var, self._q_extra, c if scaled else 0.0, sm.tail[0],
+            dTs, sm.tail[1], sm.tail[2], *maps, *iv.system, *inc)
+        if rebuild:
+            self._map = (sm, c, Pn, S, L, Q)
+        inner.interval_system = (Mr, Kr, Cr, Gr, dt / n, n)
+        return rows, F, Q, L
 
     def _scaled_rk4(self, z, u, dt, a):
         """The reference step at the payload scales ``1 + a_k``: RK4 of the nonlinear reduced equations of
@@ -379,29 +456,11 @@ class AugmentedModel:
         if self.i_inputs is not None:
             d = x[self.i_inputs]
             u = u + d
-        # the nominal step: the held configuration, its step map (Jacobian, process noise); a torque jump within
-        # the interval is added below, to whichever step is taken. With the payload scaled (cached step), the
-        # nominal sub-steps would be discarded: the configuration and the maps only
-        n_refresh = inner.n_refresh
         c = 0.0
         if self.i_theta is not None:
             it = self.i_theta
             th = float(x[it])
             c = max(th, 0.0) - 1.0
-        if c != 0.0 and inner.method == "cached":
-            x0 = None
-            F0, Q0 = inner.prepare(z, u, dt)
-        else:
-            x0, F0, Q0 = inner.predict(z, u, dt)
-        L_in = inner.last_step[1].L
-        xn = np.empty(N)
-        F = np.zeros((N, N))
-        F[:n0, :n0] = F0
-        Q = np.zeros((N, N))
-        Q[:n0, :n0] = Q0
-        if x0 is not None:
-            xn[:n0] = x0
-        if self.i_theta is not None:
             # while held (a filter's covariance watched): the step at c +- sigma for the linearity test; once
             # released: at c + DTHETA for the derivative; and at c itself where the nominal step is not that
             held = not self.released and self._cov is not None
@@ -412,16 +471,30 @@ class AugmentedModel:
                 a = [c + DTHETA]
             if c != 0.0:
                 a.append(c)
-            if inner.method == "cached":
-                rows = self._scaled_cached(z, u, dt, np.array(a), inner.n_refresh != n_refresh)
-            else:
-                rows = self._scaled_rk4(z, u, dt, a)
-            xc = x0 if c == 0.0 else rows[-1]
-            if c != 0.0:
-                xn[:n0] = xc
-                Fz, Qz, L_in = self._scaled_map(z, c, F0, Q0)
-                F[:n0, :n0] = Fz
-                Q[:n0, :n0] = Qz
+        # the step: with the payload scaled (cached step), the held system's at the scales of a in one call (the
+        # nominal sub-steps would be discarded); else the nominal step and, for the scale's column, the scaled
+        # steps of the same held configuration. A torque jump within the interval is added below.
+        if c != 0.0 and inner.method == "cached":
+            rows, Fz, Qz, L_in = self._scaled_interval(z, u, dt, np.array(a))
+            xc = rows[-1]
+        else:
+            n_refresh = inner.n_refresh
+            xc, Fz, Qz = inner.predict(z, u, dt)
+            L_in = inner.last_step[1].L
+            if self.i_theta is not None:
+                if inner.method == "cached":
+                    rows = self._scaled_cached(z, u, dt, np.array(a), inner.n_refresh != n_refresh)
+                else:
+                    rows = self._scaled_rk4(z, u, dt, a)
+                    if c != 0.0:  # (the nominal configuration's Jacobian and noise)
+                        xc = rows[-1]
+        xn = np.empty(N)
+        F = np.zeros((N, N))
+        Q = np.zeros((N, N))
+        xn[:n0] = xc
+        F[:n0, :n0] = Fz
+        Q[:n0, :n0] = Qz
+        if self.i_theta is not None:
             if held:
                 # the first-order model over +-sigma: its second-order term against the interval's process noise
                 e2 = 0.5 * (rows[0] + rows[1]) - xc
@@ -474,3 +547,22 @@ class AugmentedModel:
         if name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the scaled step's kernels, for the argument types the model
+    passes: :func:`scaled_steps` and :func:`payload_interval` (which calls it, with the step map's and the step
+    Jacobian's kernels)."""
+    from .expansion import _example_system
+
+    r, nq = 2, 1
+    z, u, dl, a = np.zeros(2 * r), np.zeros(nq), np.zeros(nq), np.zeros(1)
+    M, T3, V3 = np.eye(r), np.zeros((r, r, r)), np.zeros((nq, r, r))
+    for has_old in (False, True):
+        hs = _example_system(r, nq, has_old)
+        inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.old_dM, M, hs.old_fg, hs.old_T2)
+        scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
+        for rebuild in (False, True):
+            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, rebuild, np.ones(nq), np.zeros(0), 0.0, T3, T3, V3,
+                             np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)),
+                             np.eye(2 * r), *hs, *inc)

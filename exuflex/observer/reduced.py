@@ -82,7 +82,6 @@ from .expansion import (
     cached_samples,
     held_interval,
     held_step,
-    held_system,
     map_error,
     next_map_radius,
     prediction_error,
@@ -611,9 +610,13 @@ class ReducedObserverModel:
 
     @property
     def interval_system(self) -> tuple:
-        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval (:meth:`predict` or :meth:`prepare`): the held
-        matrices at its start and its ``n`` sub-steps of ``h``."""
+        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval: the held matrices at its start and its ``n``
+        sub-steps of ``h`` (:meth:`predict`; after :meth:`prepare`, those of the caller's own step)."""
         return self._interval_matrices
+
+    @interval_system.setter
+    def interval_system(self, value: tuple) -> None:
+        self._interval_matrices = value
 
     def linear_maps(self, Mr, Kr, Cr, Gr, dt: float, n: int) -> tuple:
         """``(P^n, S, L, Q)`` of ``n`` RK4 sub-steps over ``dt`` of the linear system with these matrices, the
@@ -626,17 +629,16 @@ class ReducedObserverModel:
         usable secant): the factor the cached step uses."""
         return _secant_factor(iv, dl)
 
-    def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except its sub-steps: the
-        held configuration (evaluated anew where q left its radius), the step map, the interval's held matrices
-        (for :meth:`input_jump_moments`) and ``last_step``, as :meth:`predict` leaves them. Returns ``(F, Q)``,
-        the step's Jacobian and process noise. For a model that steps a modified held system itself (a payload
-        scale: :mod:`.augmented`) and would discard the nominal sub-steps."""
+    def prepare(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple:
+        """Everything of the cached step over ``dt`` from ``z`` with the torques ``u`` except the step itself: the
+        held configuration (evaluated anew where q left its radius) and the step map, and ``last_step`` as
+        :meth:`predict` leaves it. Returns ``(iv, dl, s, n, sm)``: the held configuration, ``dl = q - q0``, the
+        secant factor, the sub-steps and the step map. For a model that steps a modified held system itself (a
+        payload scale: :mod:`.augmented`) and would discard the nominal sub-steps; it sets :attr:`interval_system`
+        to its own step's held matrices (for :meth:`input_jump_moments`)."""
         iv, dl, n, sm = self._hold(z, u, dt)
-        Mr, Kr, Cr, Gr = held_system(dl, _secant_factor(iv, dl), *iv.system)
-        self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         self.last_step = (iv, sm)
-        return step_jacobian(z, *sm.tail[:5]), sm.Q  # (Ts, Vs, C3, P^n, S): the map's fixed arguments
+        return iv, dl, _secant_factor(iv, dl), n, sm
 
     def _step_map(self, iv: _Held, z: np.ndarray, dl: np.ndarray, dt: float, n: int) -> _StepMap:
         """The held configuration's step map, rebuilt when q moved the map radius from where it was built or the
