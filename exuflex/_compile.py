@@ -94,7 +94,7 @@ def groups() -> tuple[KernelGroup, ...]:
                     kalman.window_seen, kalman.window_push), cost=5.6),
         KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=6.8,
                     needs=("interval", "step_map", "kalman")),
-        KernelGroup("payload", augmented.warm_up, (augmented.scaled_steps, augmented.payload_interval), cost=10.0,
+        KernelGroup("payload", augmented.warm_up, (augmented.scaled_steps, augmented.payload_interval), cost=8.5,
                     needs=("interval", "step_map")),
     )
 

@@ -146,14 +146,15 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
     (``*system, *increment``), as the expansion's kernels take them.
 
-    The held model (:func:`.expansion._held_model`) is linear in the held arrays (the stiffness, input matrix and
-    geometric forms are the payload's: unchanged), so it is evaluated once for ``S`` and once for ``dS`` (with
-    zero stiffness, input and geometric arrays) and combined per scale: ``M_r = M_r(S) + a_k M_r(dS)``, likewise
-    the damping and the forces; each scale then costs its RK4 sub-steps only."""
+    The held model (:func:`.expansion._held_model`) is linear in the held arrays, and the stiffness, input matrix
+    and geometric forms do not depend on the payload: it is evaluated once for ``S`` and once for ``dS`` (with
+    zero stiffness, input and geometric arrays) and combined per scale, ``M_r = M_r(S) + a_k M_r(dS)``, likewise
+    the damping and the forces; each scale then costs its Cholesky factor and RK4 sub-steps only."""
     r = Mr.shape[0]
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                     old_T2, old_V2, old_C2)
-    zr, zg, zq, zv, zc = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape), np.zeros(V2.shape), np.zeros(C2.shape)
+    zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
+    zv, zc = np.zeros(V2.shape), np.zeros(C2.shape)
     di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, zc, iold_dM, zq, iold_Ca, zg, iold_fg,
                     iold_T2, zv, zc)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
