@@ -87,6 +87,9 @@ def test_mixture_follows_the_evidence_for_and_against_the_nominal_payload():
     bf = norm.pdf(1.0, x[1], np.sqrt(P[1, 1])) / norm.pdf(1.0, 1.0, 0.5)
     _, _, w = nominal_mixture(x, P, P[:, 1], 1, 0.25, 0.3)
     assert w[0] == pytest.approx(0.3 * bf / (0.3 * bf + 0.7), rel=1e-12)
+    bf = norm.pdf(1.0, x[1], np.sqrt(P[1, 1])) / norm.pdf(1.0, 1.2, 0.5)  # a prior centred elsewhere
+    _, _, w = nominal_mixture(x, P, P[:, 1], 1, 0.25, 0.3, prior_mean=1.2)
+    assert w[0] == pytest.approx(0.3 * bf / (0.3 * bf + 0.7), rel=1e-12)
     xr, Pr, w = nominal_mixture(x, P, P[:, 1], 1, 0.25, 0.0)
     assert w[0] == 0.0 and np.array_equal(xr, x) and np.allclose(Pr, P, rtol=0, atol=1e-15)
     xr, Pr, w = nominal_mixture(x, P, P[:, 1], 1, 0.25, 1.0)

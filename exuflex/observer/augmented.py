@@ -497,7 +497,7 @@ class AugmentedModel:
 
 # ---------------------------------------------------------------------------------------------------- the report
 def nominal_mixture(x: np.ndarray, P: np.ndarray | None, P_theta: np.ndarray, i_theta: int, prior_var,
-                    p_nominal: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                    p_nominal: float, prior_mean: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """The payload estimator's report: the filter's posterior mixed with its conditional on the nominal payload,
     weighted by the nominal payload's posterior probability (module docstring, "The nominal payload as a
     hypothesis").
@@ -513,6 +513,8 @@ def nominal_mixture(x: np.ndarray, P: np.ndarray | None, P_theta: np.ndarray, i_
         The scale's prior variance at each sample: the filter's prior plus its random walk since.
     p_nominal : float
         The prior probability of the nominal payload, in [0, 1].
+    prior_mean : float
+        The scale's prior mean (1 unless the filter was started elsewhere).
 
     Returns
     -------
@@ -532,8 +534,9 @@ def nominal_mixture(x: np.ndarray, P: np.ndarray | None, P_theta: np.ndarray, i_
         w = np.zeros(len(x))
     else:
         # Savage-Dickey: p(data | nominal) / p(data | scale free) is the scale's posterior density at 1 over its
-        # prior density there (the prior's mean is 1)
-        log_bf = 0.5 * np.log(np.asarray(prior_var, float) / s2) - 0.5 * dev**2 / s2
+        # prior density there
+        prior_var = np.asarray(prior_var, float)
+        log_bf = 0.5 * np.log(prior_var / s2) - 0.5 * dev**2 / s2 + 0.5 * (1.0 - prior_mean) ** 2 / prior_var
         with np.errstate(over="ignore", divide="ignore"):
             w = 1.0 if p_nominal >= 1.0 else 1.0 / (1.0 + (1.0 - p_nominal) / p_nominal * np.exp(-log_bf))
         w = np.where(ok, w, 0.0)

@@ -707,6 +707,11 @@ class MultirateEKF:
         return self._x.copy()
 
     @property
+    def x0(self) -> np.ndarray:
+        """The prior mean the filter restarts from (a copy)."""
+        return self._x0.copy()
+
+    @property
     def P0(self) -> np.ndarray:
         """The prior covariance the filter restarts from (a copy)."""
         return self._P0.copy()

@@ -959,7 +959,8 @@ def reported(obs: Observer, res, t0: float):
     record starting at ``t0``: for the payload estimator with ``payload_nominal_p`` > 0 the estimates and
     covariances mixed with their conditional on the nominal payload (:func:`.augmented.nominal_mixture`; the
     scale's prior variance at each sample is the filter's prior plus its random walk since ``t0``) and the nominal
-    payload's probability per sample in ``nominal_p``; else ``res`` itself."""
+    payload's probability per sample in ``nominal_p``; else ``res`` itself. The scale's prior is the filter's
+    (its mean 1 unless the filter was started elsewhere)."""
     fm = obs.ekf.model
     it = getattr(fm, "i_theta", None)
     p = obs.config.payload_nominal_p
@@ -967,7 +968,7 @@ def reported(obs: Observer, res, t0: float):
         return res
     cross = res.P[:, :, it] if isinstance(res, SmoothedResult) else res.P_theta
     prior_var = obs.ekf.P0[it, it] + fm.payload_std**2 * (np.asarray(res.t, float) - t0)
-    x, P, w = nominal_mixture(res.x_hat, res.P, cross, it, prior_var, p)
+    x, P, w = nominal_mixture(res.x_hat, res.P, cross, it, prior_var, p, float(obs.ekf.x0[it]))
     if isinstance(res, SmoothedResult):
         return replace(res, x_hat=x, P=P, nominal_p=w)
     return replace(res, x_hat=x, P=P, P_theta=None, nominal_p=w)
