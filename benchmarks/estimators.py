@@ -36,7 +36,9 @@ samples after `--settle` s only (the payload estimate learned). NIS: the mean no
 runs' updates after the start-up and the two-sided 95 % chi-square band of a consistent filter (updates taken as
 independent). Payload scale: the estimate at the last sample (mean over runs) and its std; "within 10 % after
 settle": the estimate stays within 10 % of the truth at every sample after the settle time; "|err|/std <= 3":
-at the last sample. `n`: runs in the means; `div`: runs whose estimate went non-finite (left out). `ekf@truth`: the
+at the last sample. The payload estimator's rows are its report (`payload_nominal_p`, default 0.5: the filter's
+posterior mixed with its conditional on the nominal payload, `exuflex.observer.augmented.nominal_mixture`); with
+`payload_nominal_p=0` the filter's posterior itself. `n`: runs in the means; `div`: runs whose estimate went non-finite (left out). `ekf@truth`: the
 paper's EKF on a model built with the truth's payload (its own reduced model and basis), what an estimator of the
 payload on the nominal model's basis can at best reach.
 """
@@ -123,6 +125,9 @@ def main(argv=None) -> int:
                     row["theta_std_end"] = float(sd[-1])
                     row["theta_nerr_max"] = float(np.max(np.abs(th - scale) / sd))
                     row["theta_nerr_end"] = float(abs(th[-1] - scale) / sd[-1])
+                    if e.result.nominal_p is not None:  # the report's weight of the nominal payload
+                        row["nominal_p_at_settle"] = float(e.result.nominal_p[k])
+                        row["nominal_p_end"] = float(e.result.nominal_p[-1])
                 rows.append(row)
                 print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()
                                   if k in ("scale", "estimator", "seed", "q1", "q3", "dq1", "dq3", "theta_end",
@@ -258,6 +263,11 @@ def _model_table(rows, out) -> None:
             out(f"      payload scale: end mean {np.mean([r['theta_end'] for r in rr]):.3f}, std "
                   f"{np.mean([r['theta_std_end'] for r in rr]):.3f}; within 10 % after settle in {within:.0%} of "
                   f"runs; |err|/std <= 3 at the end in {cons:.0%}")
+        if "nominal_p_end" in rr[0]:
+            out(f"      nominal payload's probability (the report's weight): at the settle time "
+                f"{np.mean([r['nominal_p_at_settle'] for r in rr]):.3f}, at the end "
+                f"{np.mean([r['nominal_p_end'] for r in rr]):.3f} (mean over runs; min "
+                f"{np.min([r['nominal_p_end'] for r in rr]):.3f}, max {np.max([r['nominal_p_end'] for r in rr]):.3f})")
 
 
 

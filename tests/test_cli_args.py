@@ -54,6 +54,7 @@ CASES = [
     ("n-interior -3", lambda tp: ["observe", SIXBAR, RUN, "--n-interior", "-3"], "--n-interior"),
     ("n-interior 1000", lambda tp: ["observe", SIXBAR, RUN, "--n-interior", "1000"], "n_interior"),
     ("masters typo", lambda tp: ["observe", SIXBAR, RUN, "--masters", "x14,yy15"], "yy15"),
+    ("payload-nominal-p 2", lambda tp: ["observe", SIXBAR, RUN, "--payload-nominal-p", "2"], "--payload-nominal-p"),
     ("empty masters", lambda tp: ["observe", SIXBAR, RUN, "--masters", ","], "--masters"),
     ("model with no sensors", lambda tp: ["observe", _no_sensors(tp), RUN], "no sensor"),
     ("duration 1e-9", lambda tp: ["simulate", SIXBAR, "--out", str(tp / "r"), "--duration", "1e-9"],

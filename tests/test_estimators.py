@@ -9,8 +9,8 @@ import pytest
 
 from exuflex.erls.model import ErlsModel
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.augmented import AugmentedModel, payload_rows
-from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.observer.augmented import AugmentedModel, nominal_mixture, payload_rows
+from exuflex.observer.session import ObserverConfig, _hold, estimate, estimate_chunks, make_observer
 from exuflex.runs import read_run
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -226,6 +226,39 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
         assert np.max(np.abs(4 * e2h - e2)) <= 0.1 * np.abs(e2).max()
     released_model.reset()
     assert not released_model.released and released_model.n_held == 0
+
+
+def test_payload_estimator_reports_its_posterior_mixed_with_the_nominal_hypothesis(sixbar):
+    """``estimate`` with the payload estimator: the filter's record mixed by :func:`nominal_mixture` (the scale's
+    prior variance grown by its walk since the start), the same in chunks; with ``payload_nominal_p`` 0 the
+    filter's posterior itself. On the nominal payload's log the nominal hypothesis gains probability over the run,
+    and the report is closer to the plain EKF than the filter's posterior is."""
+    run = read_run(DATA / "sixbar_erls_3s")
+    S = run.sensors
+    obs = make_observer(sixbar, ObserverConfig(estimator="ekf-payload"))
+    U, Y = _hold(S.select(run.motors).data), S.select(obs.channels).data
+    e = estimate(obs, S.t, U, Y)
+    raw = obs.ekf.run(S.t, U, Y)
+    it = obs.ekf.model.i_theta
+    prior_var = obs.ekf.P0[it, it] + obs.config.payload_std**2 * (S.t - S.t[0])
+    x, P, w = nominal_mixture(raw.x_hat, raw.P, raw.P_theta, it, prior_var, obs.config.payload_nominal_p)
+    np.testing.assert_array_equal(e.result.x_hat, x)
+    np.testing.assert_array_equal(e.result.P, P)
+    np.testing.assert_array_equal(e.result.nominal_p, w)
+    chunks = list(estimate_chunks(obs, S.t, U, Y, rows=400))
+    np.testing.assert_array_equal(np.vstack([c.result.x_hat for c in chunks]), x)
+    assert w[0] == pytest.approx(obs.config.payload_nominal_p) and w[-1] > 0.8
+    plain = make_observer(sixbar)
+    xp = plain.ekf.run(S.t, U, S.select(plain.channels).data).x_hat
+    late = S.t >= S.t[0] + 0.3
+    n0 = obs.ekf.model.n0
+    assert np.abs(x[late, :n0] - xp[late]).mean() < np.abs(raw.x_hat[late, :n0] - xp[late]).mean()
+    with pytest.raises(ValueError, match=r"payload_nominal_p must be a probability in \[0, 1\], got 1.5"):
+        make_observer(sixbar, ObserverConfig(estimator="ekf-payload", payload_nominal_p=1.5))
+    off = make_observer(sixbar, ObserverConfig(estimator="ekf-payload", payload_nominal_p=0.0))
+    e0 = estimate(off, S.t, U, Y)
+    np.testing.assert_array_equal(e0.result.x_hat, raw.x_hat)
+    assert e0.result.nominal_p is None
 
 
 def test_gauss_markov_disturbance_decays_with_its_stationary_variance(mid_run):

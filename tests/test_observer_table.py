@@ -22,7 +22,8 @@ from _toml import dumps  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 SIXBAR = tomllib.loads((ROOT / "models" / "sixbar.toml").read_text())
 TABLE = {"channels": ["q1", "q2", "c1"], "method": "rk4", "q_scale": 2.0, "q_extra_std": 1e-3, "q0_std": 0.02,
-         "gate_p": 1e-4, "fault_window": 50, "fault_isolation": True, "estimator": "ekf-payload", "start_up": 0.5}
+         "gate_p": 1e-4, "fault_window": 50, "fault_isolation": True, "estimator": "ekf-payload", "start_up": 0.5,
+         "payload_nominal_p": 0.9, "payload0_std": 0.3}
 
 
 def _with(table) -> dict:
@@ -37,6 +38,7 @@ def test_the_table_sets_the_observers_settings_over_the_defaults():
     assert cfg.channels == ("q1", "q2", "c1") and cfg.method == "rk4" and cfg.q_scale == 2.0
     assert cfg.q_extra_std == 1e-3 and cfg.q0_std == 0.02 and cfg.gate_p == 1e-4 and cfg.fault_window == 50
     assert cfg.fault_isolation is True and cfg.estimator == "ekf-payload" and cfg.start_up == 0.5
+    assert cfg.payload_nominal_p == 0.9 and cfg.payload0_std == 0.3
     assert cfg.qd0_std == ObserverConfig().qd0_std  # not in the table: the default
     # explicit settings (the command line's) win over the file
     assert ObserverConfig.for_model(mech, q_scale=3.0).q_scale == 3.0
@@ -70,6 +72,8 @@ def test_the_command_lines_options_override_the_file_and_the_rest_comes_from_it(
     ({"fault_window": 1}, "observer.fault_window"),
     ({"fault_isolation": "yes"}, "observer.fault_isolation"),
     ({"start_up": "0.3"}, "observer.start_up"),
+    ({"payload_nominal_p": 1.5}, "observer.payload_nominal_p"),
+    ({"payload_std": 0.0}, "observer.payload_std"),
 ])
 def test_a_bad_entry_is_a_one_line_error_naming_the_file_and_the_field(table, field):
     with pytest.raises(ModelFileError) as err:

@@ -46,6 +46,14 @@ def probability(text: str) -> float:
     return v
 
 
+def unit_probability(text: str) -> float:
+    """A probability in [0, 1]."""
+    v = _float(text)
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}")
+    return v
+
+
 def _int(text: str) -> int:
     try:
         return int(text)

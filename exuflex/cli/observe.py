@@ -23,6 +23,7 @@ from .args import (
     out_path,
     positive_float,
     probability,
+    unit_probability,
 )
 
 __all__ = ["FULL_P_BYTES", "add_parser", "run"]
@@ -120,6 +121,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default=None,
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
                         "as states)")
+    p.add_argument("--payload-nominal-p", type=unit_probability, metavar="P",
+                   help="ekf-payload: prior probability that the payload is the model file's; the estimates are "
+                        "the model average of the nominal payload and the estimated one (default 0.5; 0: the "
+                        "filter's own posterior)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
     p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
@@ -150,6 +155,7 @@ def _config(args, mech):
         "estimator": args.estimator,
         "start_up": args.start_up,
         "jump_p": args.jump_p,
+        "payload_nominal_p": args.payload_nominal_p,
     }
     return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
 
@@ -269,7 +275,9 @@ def run(args) -> int:
 
     print(summary_table(mech, out, bound=True))
     if "parameters" in s:
-        print(f"payload scale {s['parameters']['payload_scale']:.4g} +- {s['parameters']['payload_scale_std']:.2g}")
+        par = s["parameters"]
+        print(f"payload scale {par['payload_scale']:.4g} +- {par['payload_scale_std']:.2g}"
+              + (f" (nominal payload: probability {par['payload_nominal_p']:.3g})" if "payload_nominal_p" in par else ""))
     if "inputs" in s:
         print("torque disturbance (N m): " + ", ".join(f"{k} {v['value']:.3g} +- {v['std']:.2g}"
                                                      for k, v in s["inputs"].items()))

@@ -566,7 +566,8 @@ def _parse_observer(obs: _Reader | None, sensor_names: list[str]) -> ObserverSpe
         if kw["estimator"] not in ESTIMATOR_NAMES:
             raise obs.err("estimator", f"one of {list(ESTIMATOR_NAMES)}", kw["estimator"])
     for key, unit in (("h", "s"), ("q0_std", "rad"), ("qd0_std", "rad/s"), ("elastic0_std", ""),
-                      ("elastic_rate0_std", ""), ("q_scale", ""), ("max_gap", "s")):
+                      ("elastic_rate0_std", ""), ("q_scale", ""), ("max_gap", "s"), ("payload_std", ""),
+                      ("payload0_std", "")):
         if obs.has(key):
             kw[key] = obs.num(key, positive=True, unit=unit)
     for key, unit in (("q_extra_std", ""), ("start_up", "s"), ("fault_holdoff_s", "s")):
@@ -578,6 +579,11 @@ def _parse_observer(obs: _Reader | None, sensor_names: list[str]) -> ObserverSpe
             if not 0.0 < v < 0.5:
                 raise obs.err(key, "a false-alarm probability in (0, 0.5)", v)
             kw[key] = v
+    if obs.has("payload_nominal_p"):
+        v = obs.num("payload_nominal_p")
+        if not 0.0 <= v <= 1.0:
+            raise obs.err("payload_nominal_p", "a probability in [0, 1]", v)
+        kw["payload_nominal_p"] = v
     if obs.has("fault_window"):
         w = obs.int("fault_window")
         if w != 0 and w < 2:

@@ -280,6 +280,9 @@ class ObserverSpec:
     fault_holdoff_s: float | None = None
     fault_isolation: bool | None = None
     estimator: str | None = None
+    payload_std: float | None = None
+    payload0_std: float | None = None
+    payload_nominal_p: float | None = None
 
     def settings(self) -> dict:
         """The fields the file sets, as ``ObserverConfig`` keyword arguments."""

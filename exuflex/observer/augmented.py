@@ -71,6 +71,25 @@ Gauss-Markov: ``d_next = exp(-dt / tau) d``, variance ``input_std^2 (1 - exp(-2 
 then the stationary standard deviation).
 
 The measurements do not depend on ``theta`` or ``d``: their Jacobian columns are zero.
+
+The nominal payload as a hypothesis. A filter that learns the scale pays for it while the scale is uncertain:
+at the nominal payload its states are less accurate than the plain EKF's, which knows the scale, until the data
+have pinned the scale down (on the six-bar most of the first second). The payload is most often the model file's,
+so the estimator reports a Bayesian model average of two hypotheses (:func:`nominal_mixture`): ``H0``, the
+payload is nominal (``theta = 1``), with prior probability ``p`` (``ObserverConfig.payload_nominal_p``), and
+``H1``, it is unknown (the filter's prior and walk). Under ``H0`` the posterior is the filter's conditioned on
+``theta = 1``: ``x0 = x + P_x,theta (1 - theta) / s^2``, ``P0 = P - P_x,theta P_theta,x / s^2`` (``s^2`` the
+scale's variance); for a linear-Gaussian model that is exactly the posterior of a filter that knows the scale.
+The Bayes factor of ``H0`` against ``H1`` needs no second filter: with ``H0`` nested in ``H1`` at ``theta = 1``,
+it is the scale's posterior density at 1 over its prior density there (the Savage-Dickey ratio),
+``B = sqrt(s0^2 / s^2) exp(-(theta - 1)^2 / (2 s^2))`` with ``s0^2`` the prior variance (plus the walk's since
+the start). ``H0``'s posterior probability is ``w = p B / (p B + 1 - p)``, and the report is the two Gaussians'
+mixture: mean ``x + w (x0 - x)``, covariance ``w P0 + (1 - w) P + w (1 - w) (x0 - x)(x0 - x)^T``. At the nominal
+payload ``B`` grows as the scale's deviation narrows around 1 (the evidence for the simpler hypothesis), and the
+report approaches the plain EKF's; with the payload changed ``(theta - 1)^2 / s^2`` grows and ``w`` goes to 0
+within a fraction of a second, leaving the filter's own estimate. The filter itself runs unchanged (its posterior
+is what the next sample needs); the report is computed from its record (``EstimationResult.P_theta``, the
+covariance's scale column) by :func:`.session.reported`.
 """
 
 from __future__ import annotations
@@ -88,8 +107,8 @@ from ..reduction import ReducedModel
 from .base import Measurement, Prediction
 from .expansion import HeldSystem, _held_model, _jit, _rk4_linear, step_jacobian, step_maps_noise
 
-__all__ = ["AugmentedModel", "PayloadIncrement", "payload_interval", "payload_rows", "payload_twin",
-           "scaled_steps", "warm_up"]
+__all__ = ["AugmentedModel", "PayloadIncrement", "nominal_mixture", "payload_interval", "payload_rows",
+           "payload_twin", "scaled_steps", "warm_up"]
 
 #: the step of the scale used for the step's derivative in theta (forward difference)
 DTHETA = 1e-4
@@ -567,3 +586,64 @@ def warm_up() -> None:
             payload_interval(z, u, dl, 0.0, 1e-4, 1, a, rebuild, np.ones(nq), np.zeros(0), 0.0, T3, T3, V3,
                              np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)),
                              np.eye(2 * r), *hs, *inc)
+
+
+# ---------------------------------------------------------------------------------------------------- the report
+def nominal_mixture(x: np.ndarray, P: np.ndarray | None, P_theta: np.ndarray, i_theta: int, prior_var,
+                    p_nominal: float, prior_mean: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The payload estimator's report: the filter's posterior mixed with its conditional on the nominal payload,
+    weighted by the nominal payload's posterior probability (module docstring, "The nominal payload as a
+    hypothesis").
+
+    Parameters
+    ----------
+    x : ndarray (n, nx) or (nx,)
+        The filter's posterior means (the payload scale at ``i_theta``).
+    P : ndarray (n, nx) (variances), (n, nx, nx) (covariances) or None; one sample's without the leading axis.
+    P_theta : ndarray (n, nx) or (nx,)
+        The covariance of every state with the payload scale (the covariance's ``i_theta`` column).
+    prior_var : float or ndarray (n,)
+        The scale's prior variance at each sample: the filter's prior plus its random walk since.
+    p_nominal : float
+        The prior probability of the nominal payload, in [0, 1].
+    prior_mean : float
+        The scale's prior mean (1 unless the filter was started elsewhere).
+
+    Returns
+    -------
+    (x_report, P_report, w)
+        The mixture's mean and covariance (the kind of ``P``; None with ``P`` None) and ``w`` (n,), the nominal
+        payload's posterior probability. Samples without a positive finite scale variance are left as they are
+        (``w`` 0)."""
+    one = x.ndim == 1
+    x, Pt = np.atleast_2d(x), np.atleast_2d(P_theta)
+    if P is not None and one:
+        P = P[None]
+    s2 = Pt[:, i_theta]
+    ok = np.isfinite(s2) & (s2 > 0.0)
+    s2 = np.where(ok, s2, 1.0)
+    dev = x[:, i_theta] - 1.0
+    if p_nominal <= 0.0:
+        w = np.zeros(len(x))
+    else:
+        # Savage-Dickey: p(data | nominal) / p(data | scale free) is the scale's posterior density at 1 over its
+        # prior density there
+        prior_var = np.asarray(prior_var, float)
+        log_bf = 0.5 * np.log(prior_var / s2) - 0.5 * dev**2 / s2 + 0.5 * (1.0 - prior_mean) ** 2 / prior_var
+        with np.errstate(over="ignore", divide="ignore"):
+            w = 1.0 if p_nominal >= 1.0 else 1.0 / (1.0 + (1.0 - p_nominal) / p_nominal * np.exp(-log_bf))
+        w = np.where(ok, w, 0.0)
+    # the conditional on theta = 1: the mean moved along the scale's regression, the scale's share of P removed
+    g = np.where(ok[:, None], Pt / s2[:, None], 0.0)
+    d = -g * dev[:, None]
+    xr = x + w[:, None] * d
+    Pr = None
+    if P is not None:
+        ww = w * (1.0 - w)
+        if P.ndim == 2:
+            Pr = P - w[:, None] * g * Pt + ww[:, None] * d * d
+        else:
+            Pr = P - w[:, None, None] * g[:, :, None] * Pt[:, None, :] + ww[:, None, None] * d[:, :, None] * d[:, None, :]
+    if one:
+        return xr[0], None if Pr is None else Pr[0], w
+    return xr, Pr, w

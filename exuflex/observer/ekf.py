@@ -131,6 +131,13 @@ class EstimationResult:
         "missing"), ``start`` and ``end`` (s), ``mean_z`` (window mean of the normalised innovation when found).
     n_rejected : dict str -> int
         Samples of each channel left out of the update by the gate.
+    P_theta : ndarray, shape (n, nx), or None
+        The covariance of every state with the model's payload scale (its column of the posterior covariance),
+        recorded for a model with a payload state (``model.i_theta``), whatever ``P`` storage was chosen: what
+        the estimate's conditioning on the nominal payload needs (:func:`.augmented.nominal_mixture`).
+    nominal_p : ndarray, shape (n,), or None
+        Set where ``x_hat`` and ``P`` are the payload estimator's report rather than the filter's posterior: the
+        posterior probability of the nominal payload at each sample (:func:`.augmented.nominal_mixture`).
     wall_s : float
         Wall-clock time of the run (s).
     channels : tuple of str
@@ -156,6 +163,8 @@ class EstimationResult:
     flagged_intervals: list = field(default_factory=list)
     channel_faults: list = field(default_factory=list)
     n_rejected: dict = field(default_factory=dict)
+    P_theta: np.ndarray | None = None
+    nominal_p: np.ndarray | None = None
 
     @property
     def P_diag(self) -> np.ndarray | None:
@@ -439,9 +448,13 @@ class RunRecord:
     with them. A caller that needs less of a long log (the command line's ``observe``) runs it in chunks of rows
     and keeps what it needs of each (:func:`exuflex.observer.session.estimate_chunks`)."""
 
-    def __init__(self, t: np.ndarray, nx: int, m: int, store_P: str, innovations: bool = True):
+    def __init__(self, t: np.ndarray, nx: int, m: int, store_P: str, innovations: bool = True,
+                 i_theta: int | None = None):
         n = len(t)
         self.t, self.m, self.store_P = t, m, store_P
+        # the payload scale's column of the covariance (a payload model): 8 nx bytes a sample more
+        self.i_theta = i_theta
+        self.P_theta = None if i_theta is None else np.empty((n, nx))
         self.x_hat = np.empty((n, nx))
         # only the kind asked for: a full (n, nx, nx) array of a long log is gigabytes
         self.P = np.empty((n, nx)) if store_P == "diag" else np.empty((n, nx, nx)) if store_P == "full" else None
@@ -455,6 +468,8 @@ class RunRecord:
         self.x_hat[k] = x
         if self.P is not None:
             self.P[k] = np.nan if f.nonfinite else (f._P.diagonal() if self.store_P == "diag" else f._P)
+        if self.P_theta is not None:
+            self.P_theta[k] = np.nan if f.nonfinite else f._P[:, self.i_theta]
         idx = f.last_idx
         if idx is not None:
             self.nis[k] = f.last_nis
@@ -473,13 +488,15 @@ class RunRecord:
         self.x_hat[k:] = np.nan
         if self.P is not None:
             self.P[k:] = np.nan
+        if self.P_theta is not None:
+            self.P_theta[k:] = np.nan
 
     def result(self, f, wall_s: float, **extra) -> EstimationResult:
         """The :class:`EstimationResult` of the run, with the filter's counters."""
         return EstimationResult(t=self.t, x_hat=self.x_hat, P=self.P, innovations=self.innovations, S=self.S,
                                 nis=self.nis, nis_dof=self.dof, n_missing=f.n_missing, n_updates=f.n_updates,
                                 diverged=f.diverged, diverged_at=f.diverged_at, nonfinite=f.nonfinite, wall_s=wall_s,
-                                channels=f.channels, **extra)
+                                channels=f.channels, P_theta=self.P_theta, **extra)
 
 
 
@@ -688,6 +705,16 @@ class MultirateEKF:
     def x(self) -> np.ndarray:
         """Current state estimate (a copy)."""
         return self._x.copy()
+
+    @property
+    def x0(self) -> np.ndarray:
+        """The prior mean the filter restarts from (a copy)."""
+        return self._x0.copy()
+
+    @property
+    def P0(self) -> np.ndarray:
+        """The prior covariance the filter restarts from (a copy)."""
+        return self._P0.copy()
 
     @property
     def P(self) -> np.ndarray:
@@ -1044,7 +1071,8 @@ class MultirateEKF:
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
+        # (the compiled loop writes no payload column: a model with a payload state has no loop)
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, getattr(self.model, "i_theta", None))
         t_start = time.perf_counter()
         n = len(t)
         loop_end = self._loop_ends(t, U, Y)

@@ -26,7 +26,7 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
-from .augmented import AugmentedModel
+from .augmented import AugmentedModel, nominal_mixture
 from .bound import periodic_posterior, steady_state_covariance, unobservable_states
 from .ekf import EstimationResult, MultirateEKF
 from .kalman import InputStepTest
@@ -92,6 +92,9 @@ class ObserverConfig:
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
     payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
+    payload_nominal_p : the prior probability that the payload is the model file's. The payload estimator reports
+        its posterior mixed with its conditional on the nominal payload, by that hypothesis' posterior probability
+        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is.
     payload_linearity : the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
         deviations (:class:`.augmented.AugmentedModel`, ``linearity_tol``).
@@ -126,6 +129,7 @@ class ObserverConfig:
     payload_std: float = 0.01
     payload0_std: float = 0.5
     payload_linearity: float = 1.0
+    payload_nominal_p: float = 0.5
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -363,6 +367,8 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
     if config.estimator == "ekf-payload":
+        if not 0.0 <= config.payload_nominal_p <= 1.0:
+            raise ValueError(f"payload_nominal_p must be a probability in [0, 1], got {config.payload_nominal_p}")
         fm = AugmentedModel(som, payload_std=config.payload_std, linearity_tol=config.payload_linearity)
     else:
         fm = AugmentedModel(som, input_std=config.input_scale * np.sqrt(som.torque_var_nominal),
@@ -536,6 +542,7 @@ def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | Non
         res = obs.ekf.run(t[a:b], None if U is None else U[a:b], Y[a:b], reset=first, x0=x0 if first else None,
                           P0=P0 if first else None, innovations=innovations)
         wall = time.perf_counter() - w0
+        res = reported(obs, res, float(t[0]))
         yield EstimateChunk(a, res, obs.physical(res.t, res.x_hat, carry=carry), wall)
         del res  # one chunk's record alive at a time
 
@@ -552,7 +559,7 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     if not smooth:
         return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
-    sm = rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0)
+    sm = reported(obs, rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0), float(t[0]))
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
 
@@ -923,7 +930,7 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
     names = physical_names(obs.mech)
     phys = np.empty((n, len(names))) if keep_physical else None
     wall = 0.0
-    final = (np.full(obs.ekf.nx, np.nan), None)
+    final = (np.full(obs.ekf.nx, np.nan), None, None)
     for ch in estimate_chunks(obs, t, U, Y, innovations=False):
         r = ch.result
         a, b = ch.start, ch.start + len(r.t)
@@ -935,9 +942,10 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
         if sink is not None:
             sink(ch)
         if b > a:
-            final = (r.x_hat[-1].copy(), None if r.P is None else r.P_diag[-1].copy())
+            final = (r.x_hat[-1].copy(), None if r.P is None else r.P_diag[-1].copy(),
+                     None if r.nominal_p is None else float(r.nominal_p[-1]))
         # the run-level counters, flags and faults so far, without the chunk's arrays (one chunk alive at a time)
-        last = replace(r, x_hat=None, P=None, innovations=None, S=None)
+        last = replace(r, x_hat=None, P=None, innovations=None, S=None, P_theta=None, nominal_p=None)
         del ch, r
     res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall)
     span = float(t[-1] - t[0]) if n > 1 else 0.0
@@ -946,17 +954,39 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
     return est, final
 
 
-def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None]:
-    """The last sample's state and variances (None without a stored covariance) of a whole record, smoothed
-    where smoothing ran."""
+def reported(obs: Observer, res, t0: float):
+    """What the observer reports of a filtered (:class:`EstimationResult`) or smoothed (:class:`SmoothedResult`)
+    record starting at ``t0``: for the payload estimator with ``payload_nominal_p`` > 0 the estimates and
+    covariances mixed with their conditional on the nominal payload (:func:`.augmented.nominal_mixture`; the
+    scale's prior variance at each sample is the filter's prior plus its random walk since ``t0``) and the nominal
+    payload's probability per sample in ``nominal_p``; else ``res`` itself. The scale's prior is the filter's
+    (its mean 1 unless the filter was started elsewhere)."""
+    fm = obs.ekf.model
+    it = getattr(fm, "i_theta", None)
+    p = obs.config.payload_nominal_p
+    if it is None or p <= 0.0 or res.x_hat is None:
+        return res
+    cross = res.P[:, :, it] if isinstance(res, SmoothedResult) else res.P_theta
+    prior_var = obs.ekf.P0[it, it] + fm.payload_std**2 * (np.asarray(res.t, float) - t0)
+    x, P, w = nominal_mixture(res.x_hat, res.P, cross, it, prior_var, p, float(obs.ekf.x0[it]))
+    if isinstance(res, SmoothedResult):
+        return replace(res, x_hat=x, P=P, nominal_p=w)
+    return replace(res, x_hat=x, P=P, P_theta=None, nominal_p=w)
+
+
+def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """The last sample's state, variances (None without a stored covariance) and nominal payload probability
+    (None where not reported) of a whole record, smoothed where smoothing ran."""
     src = est.smoothed if est.smoothed is not None else est.result
-    return src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None
+    return (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None,
+            None if src.nominal_p is None else float(src.nominal_p[-1]))
 
 
-def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None) -> dict:
+def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:
     """The augmented states' estimates ``x`` and variances ``var`` at the end of the record (smoothed where
     smoothing ran; NaN standard deviations without ``var``): ``{"parameters": {"payload_scale": ...,
-    "payload_scale_std": ...}}`` and ``{"inputs": {motor: {"value", "std"}}}``; empty for a plain model."""
+    "payload_scale_std": ..., "payload_nominal_p": ...}}`` (the last where reported, :func:`reported`) and
+    ``{"inputs": {motor: {"value", "std"}}}``; empty for a plain model."""
     out: dict = {}
     it, ii = getattr(fmodel, "i_theta", None), getattr(fmodel, "i_inputs", None)
     if it is None and ii is None:
@@ -964,6 +994,8 @@ def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None) -> dict:
     var = np.full(len(x), np.nan) if var is None else var
     if it is not None:
         out["parameters"] = {"payload_scale": float(x[it]), "payload_scale_std": float(np.sqrt(var[it]))}
+        if nominal_p is not None:
+            out["parameters"]["payload_nominal_p"] = nominal_p
     if ii is not None:
         names = fmodel.inner.mech.motor_names
         out["inputs"] = {m: {"value": float(v), "std": float(np.sqrt(s))}

@@ -46,6 +46,9 @@ class SmoothedResult:
         Wall-clock time of both passes (s).
     backward_s : float
         Wall-clock time of the backward pass alone (s).
+    nominal_p : ndarray, shape (n,), or None
+        Set where ``x_hat`` and ``P`` are the payload estimator's report (:func:`.session.reported`): the nominal
+        payload's posterior probability at each sample.
     """
 
     t: np.ndarray
@@ -56,6 +59,7 @@ class SmoothedResult:
     nis: np.ndarray
     wall_s: float
     backward_s: float
+    nominal_p: np.ndarray | None = None
 
     @property
     def P_diag(self) -> np.ndarray:
