@@ -164,16 +164,25 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
         np.testing.assert_allclose(rows[k], ref, rtol=0, atol=1e-12 * np.abs(ref).max())
     for m, ref in zip((Mr, Kr, Cr, Gr), mats):
         np.testing.assert_allclose(m, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
-    rho, dTs = aug._shares[iv.serial]
+    _, dTs = aug._shares[iv.serial]
     Ts, Vs, C3 = iv.forces.jacobian_tensors()
-    out = payload_interval(z, u, dl, s, dt / n, n, a, True, inner.torque_var, np.zeros(0), a[-1], Ts, dTs, Vs, C3,
-                           sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
+    n0 = len(z)
+    out = payload_interval(z, u, dl, s, dt / n, n, a, 1.6, 0.2, 0.3, n0 + 2, True, inner.torque_var, np.zeros(0),
+                           a[-1], Ts, dTs, Vs, C3, sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
     np.testing.assert_array_equal(out[0], rows)
     Pn, S, L, Q = step_maps_noise(Mr, Kr, Cr, Gr, dt / n, n, inner.torque_var)
-    for got, ref in zip(out[2:], (Pn, S, L, Q, Mr, Kr, Cr, Gr)):
+    for got, ref in zip(out[4:], (Pn, S, L, Q, Mr, Kr, Cr, Gr)):
         np.testing.assert_array_equal(got, ref)
-    np.testing.assert_allclose(out[1], step_jacobian(z, Ts + a[-1] * dTs, Vs, C3, Pn, S), rtol=0,
-                               atol=1e-13 * np.abs(out[1]).max())
+    # the augmented prediction: [z_next; theta; 0], the Jacobian with the scale's column (rows[0] - rows[-1]) / 0.2
+    x, F, Qx = out[1:4]
+    np.testing.assert_array_equal(x, np.concatenate([rows[-1], [1.6, 0.0]]))
+    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3, Pn, S)
+    np.testing.assert_allclose(F[:n0, :n0], Fz, rtol=0, atol=1e-13 * np.abs(Fz).max())
+    np.testing.assert_array_equal(F[:n0, n0], (rows[0] - rows[-1]) / 0.2)
+    np.testing.assert_array_equal(Qx[:n0, :n0], Q)
+    assert F[n0, n0] == 1.0 and Qx[n0, n0] == 0.3
+    assert not np.any(F[n0 + 1]) and not np.any(F[:, n0 + 1]) and not np.any(F[n0, :n0])
+    assert not np.any(Qx[n0:, :n0]) and not np.any(Qx[:n0, n0:]) and Qx[n0 + 1, n0 + 1] == 0.0
 
 
 @pytest.mark.parametrize("theta", [1.0, 1.6])

@@ -203,8 +203,8 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
 scaled_steps = _jit(_scaled_steps)
 
 
-def _payload_interval(z, u, dl, s, h, n, a, rebuild, torque_var, q_extra, cT, Ts, dTs, Vs, C3, Pn, SQM, L, Q,
-                      has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rebuild, torque_var, q_extra, cT, Ts, dTs,
+                      Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                       old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
                       iold_T2):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`AugmentedModel.predict`), in one call.
@@ -214,7 +214,13 @@ def _payload_interval(z, u, dl, s, h, n, a, rebuild, torque_var, q_extra, cT, Ts
     at ``c``; the step map: where ``rebuild``, the maps of the held linear system at ``c``
     (:func:`.expansion.step_maps_noise`, ``q_extra``, may be empty, added to the noise's diagonal), else ``Pn``,
     ``SQM``, ``L``, ``Q`` as given; and the step's Jacobian in the state (:func:`.expansion.step_jacobian`) with
-    that map and the velocity forms ``Ts + cT dTs``. Returns ``(rows, F, P^n, S, L, Q, M_r, K_r, C_r, G_r)``."""
+    that map and the velocity forms ``Ts + cT dTs``.
+
+    Returns ``(rows, x, F, Qx, P^n, S, L, Q, M_r, K_r, C_r, G_r)`` with the augmented state's prediction
+    (:meth:`AugmentedModel.predict`, ``nx`` states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros
+    beyond): ``x = [rows[-1]; theta; 0]``, ``F`` the step's Jacobian in its leading block, the scale's column the
+    forward difference ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``,
+    ``Qx`` the process noise ``Q`` in its leading block and ``theta_var`` the scale's."""
     rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                         old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
                                         idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
@@ -236,8 +242,23 @@ def _payload_interval(z, u, dl, s, h, n, a, rebuild, torque_var, q_extra, cT, Ts
         for j in range(Ts.shape[1]):
             for k in range(Ts.shape[2]):
                 T[i, j, k] = Ts[i, j, k] + cT * dTs[i, j, k]
-    F = step_jacobian(z, T, Vs, C3, Pn, SQM)
-    return rows, F, Pn, SQM, L, Q, Mo, Ko, Co, Go
+    Fz = step_jacobian(z, T, Vs, C3, Pn, SQM)
+    n0 = z.shape[0]
+    last = rows.shape[0] - 1
+    x = np.zeros(nx)
+    F = np.zeros((nx, nx))
+    Qx = np.zeros((nx, nx))
+    for i in range(n0):  # loops, not slice assignments (see expansion._rk4_linear)
+        x[i] = rows[last, i]
+        for j in range(n0):
+            F[i, j] = Fz[i, j]
+            Qx[i, j] = Q[i, j]
+        if dtheta != 0.0:
+            F[i, n0] = (rows[0, i] - rows[last, i]) / dtheta
+    x[n0] = theta
+    F[n0, n0] = 1.0
+    Qx[n0, n0] = theta_var
+    return rows, x, F, Qx, Pn, SQM, L, Q, Mo, Ko, Co, Go
 
 
 payload_interval = _jit(_payload_interval)
@@ -407,10 +428,11 @@ class AugmentedModel:
             out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)[0]
         return out
 
-    def _scaled_interval(self, z, u, dt, a):
+    def _scaled_interval(self, z, u, dt, a, theta, dtheta):
         """The cached step's interval with the payload scaled (:func:`payload_interval`): the steps at the scales
-        ``1 + a_k`` (rows; the last entry of ``a`` is the interval's own scale ``c``), and the step's Jacobian in
-        the state, process noise and torque response ``(F, Q, L)``.
+        ``1 + a_k`` (rows; the last entry of ``a`` is the interval's own scale ``c``), the augmented state's
+        prediction ``(x, F, Q)`` (the scale ``theta``, its column the forward difference over ``dtheta``, zero
+        where that is zero) and the torque response ``L``.
 
         Those are the nominal step map's where the payload's change of the modal masses, ``|c| rho``
         (``rho = max eig(dM_r, M_r)``), is within the error the cached step holds its matrices to
@@ -429,13 +451,13 @@ class AugmentedModel:
         mp = self._map
         rebuild = scaled and (mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol)
         maps = mp[2:] if scaled and not rebuild else (sm.Pn, sm.S, sm.L, sm.Q)
-        rows, F, Pn, S, L, Q, Mr, Kr, Cr, Gr = payload_interval(
-            z, u, dl, s, dt / n, n, a, rebuild, inner.torque_var, self._q_extra, c if scaled else 0.0, sm.tail[0],
-            dTs, sm.tail[1], sm.tail[2], *maps, *iv.system, *inc)
+        rows, x, F, Qx, Pn, S, L, Q, Mr, Kr, Cr, Gr = payload_interval(
+            z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rebuild, inner.torque_var,
+            self._q_extra, c if scaled else 0.0, sm.tail[0], dTs, sm.tail[1], sm.tail[2], *maps, *iv.system, *inc)
         if rebuild:
             self._map = (sm, c, Pn, S, L, Q)
         inner.interval_system = (Mr, Kr, Cr, Gr, dt / n, n)
-        return rows, F, Q, L
+        return rows, x, F, Qx, L
 
     def _scaled_rk4(self, z, u, dt, a):
         """The reference step at the payload scales ``1 + a_k``: RK4 of the nonlinear reduced equations of
@@ -491,48 +513,47 @@ class AugmentedModel:
                 a = [c + DTHETA]
             if c != 0.0:
                 a.append(c)
-        # the step: with the payload scaled (cached step), the held system's at the scales of a in one call (the
-        # nominal sub-steps would be discarded); else the nominal step and, for the scale's column, the scaled
-        # steps of the same held configuration. A torque jump within the interval is added below.
+        # the step: with the payload scaled (cached step), the held system's at the scales of a and the augmented
+        # prediction in one call (the nominal sub-steps would be discarded); else the nominal step and, for the
+        # scale's column, the scaled steps of the same held configuration. A torque jump is added below.
         if c != 0.0 and inner.method == "cached":
-            rows, Fz, Qz, L_in = self._scaled_interval(z, u, dt, np.array(a))
+            rows, xn, F, Q, L_in = self._scaled_interval(z, u, dt, np.array(a), th, 0.0 if held else DTHETA)
             xc = rows[-1]
         else:
             n_refresh = inner.n_refresh
             xc, Fz, Qz = inner.predict(z, u, dt)
             L_in = inner.last_step[1].L
+            xn = np.empty(N)
+            F = np.zeros((N, N))
+            Q = np.zeros((N, N))
+            xn[:n0] = xc
+            F[:n0, :n0] = Fz
+            Q[:n0, :n0] = Qz
             if self.i_theta is not None:
                 if inner.method == "cached":
                     rows = self._scaled_cached(z, u, dt, np.array(a), inner.n_refresh != n_refresh)
                 else:
                     rows = self._scaled_rk4(z, u, dt, a)
                     if c != 0.0:  # (the nominal configuration's Jacobian and noise)
-                        xc = rows[-1]
-        xn = np.empty(N)
-        F = np.zeros((N, N))
-        Q = np.zeros((N, N))
-        xn[:n0] = xc
-        F[:n0, :n0] = Fz
-        Q[:n0, :n0] = Qz
-        if self.i_theta is not None:
-            if held:
-                # the first-order model over +-sigma: its second-order term against the interval's process noise
-                e2 = 0.5 * (rows[0] + rows[1]) - xc
-                q = np.diagonal(Q)[:n0]
-                self.last_linearity = float(np.max(np.abs(e2) / np.sqrt(np.maximum(q, 1e-300))))
-                if self.last_linearity <= self.linearity_tol:
-                    self.released = True
-                    F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
-                else:
-                    # held: the scale's uncertainty enters the prediction as the noise it causes (module docstring)
-                    self.n_held += 1
-                    e1 = 0.5 * (rows[0] - rows[1])
-                    Q[:n0, :n0] += np.outer(e1, e1)
+                        xc = xn[:n0] = rows[-1]
+                if not held:
+                    F[:n0, it] = (rows[0] - xc) / DTHETA
+                xn[it] = th
+                F[it, it] = 1.0
+                Q[it, it] = self.payload_std**2 * dt
+        if self.i_theta is not None and held:
+            # the first-order model over +-sigma: its second-order term against the interval's process noise
+            e2 = 0.5 * (rows[0] + rows[1]) - xc
+            q = np.diagonal(Q)[:n0]
+            self.last_linearity = float(np.max(np.abs(e2) / np.sqrt(np.maximum(q, 1e-300))))
+            if self.last_linearity <= self.linearity_tol:
+                self.released = True
+                F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
             else:
-                F[:n0, it] = (rows[0] - xc) / DTHETA
-            xn[it] = th
-            F[it, it] = 1.0
-            Q[it, it] = self.payload_std**2 * dt
+                # held: the scale's uncertainty enters the prediction as the noise it causes (module docstring)
+                self.n_held += 1
+                e1 = 0.5 * (rows[0] - rows[1])
+                Q[:n0, :n0] += np.outer(e1, e1)
         if u_next is not None:
             jump = inner.input_jump(u, np.asarray(u_next, float) + (0.0 if self.i_inputs is None else d))
             if jump is not None:
@@ -583,7 +604,8 @@ def warm_up() -> None:
         inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.old_dM, M, hs.old_fg, hs.old_T2)
         scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
         for rebuild in (False, True):
-            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, rebuild, np.ones(nq), np.zeros(0), 0.0, T3, T3, V3,
+            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, rebuild, np.ones(nq), np.zeros(0),
+                             0.0, T3, T3, V3,
                              np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)),
                              np.eye(2 * r), *hs, *inc)
 
