@@ -105,7 +105,7 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import HeldSystem, _held_model, _jit, _rk4_linear, step_jacobian, step_maps_noise
+from .expansion import NO_PAYLOAD, cached_samples, payload_interval, scaled_steps
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "nominal_mixture", "payload_interval", "payload_rows",
            "payload_twin", "scaled_steps", "warm_up"]
@@ -155,113 +155,6 @@ class PayloadIncrement(NamedTuple):
     old_Ca: np.ndarray
     old_fg: np.ndarray
     old_T2: np.ndarray
-
-
-def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
-                  iold_fg, iold_T2):  # pragma: no cover - compiled
-    """The held step (:func:`.expansion.held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
-    row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
-    C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
-    (``*system, *increment``), as the expansion's kernels take them.
-
-    The held model (:func:`.expansion._held_model`) is linear in the held arrays, and the stiffness, input matrix
-    and geometric forms do not depend on the payload: it is evaluated once for ``S`` and once for ``dS`` (with
-    zero stiffness, input and geometric arrays) and combined per scale, ``M_r = M_r(S) + a_k M_r(dS)``, likewise
-    the damping and the forces; each scale then costs its Cholesky factor and RK4 sub-steps only."""
-    r = Mr.shape[0]
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2)
-    zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
-    zv, zc = np.zeros(V2.shape), np.zeros(C2.shape)
-    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, zc, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, zc)
-    M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
-    G0 = np.empty(Gr.shape)
-    f0 = fb = np.empty(r)
-    for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
-        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, hs if k == 0 else di)
-        if k == 0:
-            M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
-        else:
-            Mb, Cb, fb = Mk, Ck, fk
-    out = np.empty((a.shape[0], z.shape[0]))
-    M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
-    for k in range(a.shape[0]):
-        c = a[k]
-        for i in range(r):  # loops, not array expressions (see expansion._mass_stiffness)
-            for j in range(r):
-                M[i, j] = M0[i, j] + c * Mb[i, j]
-                C[i, j] = C0[i, j] + c * Cb[i, j]
-            f[i] = f0[i] + c * fb[i]
-        x = _rk4_linear(z, u, M, K0, C, G0, f, h, n)
-        for i in range(z.shape[0]):
-            out[k, i] = x[i]
-    return out, M, K0, C, G0
-
-
-scaled_steps = _jit(_scaled_steps)
-
-
-def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rebuild, torque_var, q_extra, cT, Ts, dTs,
-                      Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                      old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
-                      iold_T2):  # pragma: no cover - compiled
-    """One interval of the cached step with the payload scaled (:meth:`AugmentedModel.predict`), in one call.
-
-    The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
-    scale ``c``), taken again without the secant (``s = 0``, first order) if one is not finite; the held matrices
-    at ``c``; the step map: where ``rebuild``, the maps of the held linear system at ``c``
-    (:func:`.expansion.step_maps_noise`, ``q_extra``, may be empty, added to the noise's diagonal), else ``Pn``,
-    ``SQM``, ``L``, ``Q`` as given; and the step's Jacobian in the state (:func:`.expansion.step_jacobian`) with
-    that map and the velocity forms ``Ts + cT dTs``.
-
-    Returns ``(rows, x, F, Qx, P^n, S, L, Q, M_r, K_r, C_r, G_r)`` with the augmented state's prediction
-    (:meth:`AugmentedModel.predict`, ``nx`` states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros
-    beyond): ``x = [rows[-1]; theta; 0]``, ``F`` the step's Jacobian in its leading block, the scale's column the
-    forward difference ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``,
-    ``Qx`` the process noise ``Q`` in its leading block and ``theta_var`` the scale's."""
-    rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
-                                        idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
-    finite = True
-    for k in range(rows.shape[0]):
-        for i in range(rows.shape[1]):
-            if not math.isfinite(rows[k, i]):
-                finite = False
-    if not finite:  # as the nominal step's rescue: first order only
-        rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
-                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-                                            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
-    if rebuild:
-        Pn, SQM, L, Q = step_maps_noise(Mo, Ko, Co, Go, h, n, torque_var)
-        for i in range(q_extra.shape[0]):
-            Q[i, i] += q_extra[i]
-    T = np.empty(Ts.shape)
-    for i in range(Ts.shape[0]):  # loops, not array expressions (see expansion._mass_stiffness)
-        for j in range(Ts.shape[1]):
-            for k in range(Ts.shape[2]):
-                T[i, j, k] = Ts[i, j, k] + cT * dTs[i, j, k]
-    Fz = step_jacobian(z, T, Vs, C3, Pn, SQM)
-    n0 = z.shape[0]
-    last = rows.shape[0] - 1
-    x = np.zeros(nx)
-    F = np.zeros((nx, nx))
-    Qx = np.zeros((nx, nx))
-    for i in range(n0):  # loops, not slice assignments (see expansion._rk4_linear)
-        x[i] = rows[last, i]
-        for j in range(n0):
-            F[i, j] = Fz[i, j]
-            Qx[i, j] = Q[i, j]
-        if dtheta != 0.0:
-            F[i, n0] = (rows[0, i] - rows[last, i]) / dtheta
-    x[n0] = theta
-    F[n0, n0] = 1.0
-    Qx[n0, n0] = theta_var
-    return rows, x, F, Qx, Pn, SQM, L, Q, Mo, Ko, Co, Go
-
-
-payload_interval = _jit(_payload_interval)
 
 
 class AugmentedModel:
@@ -573,6 +466,45 @@ class AugmentedModel:
             F[s, s] = phi * np.eye(self.nu)
             Q[s, s] = np.diag(q)
         return Prediction(xn, F, Q)
+
+    # ------------------------------------------------------------------ the filter's compiled sample loop
+    @property
+    def sample_loop(self):
+        """The compiled sample loop (:func:`.expansion.cached_samples`) for the payload scale alone on the cached
+        step: it takes the intervals :meth:`predict` takes with the scale learned (the hold and a scale at exactly
+        1 are left to :meth:`predict`); None with disturbance states or the reference step."""
+        if self.i_theta is None or self.i_inputs is not None or self.inner.method != "cached":
+            return None
+        return cached_samples
+
+    def loop_arrays(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> tuple:
+        """The inner model's arguments of :func:`.expansion.cached_samples` (:meth:`.reduced.ReducedObserverModel.
+        loop_arrays`) with the payload's: the increment of the held configuration, its payload share and velocity
+        forms, the scaled step map where it is the current nominal map's (:meth:`_scaled_interval`)."""
+        inner, n0 = self.inner, self.n0
+        z = x[:n0]
+        n_refresh = inner.n_refresh
+        arrays = inner.loop_arrays(z, u, dt, channels)
+        iv, sm = inner.loop_step
+        inc = self.increment(iv, z, inner.n_refresh != n_refresh)
+        rho, dTs = self._shares[iv.serial]
+        mp = self._map
+        ok = mp is not None and mp[0] is sm
+        scaled = mp[1:] if ok else NO_PAYLOAD[8:13]
+        held = not self.released and self._cov is not None
+        return (*arrays[: -len(NO_PAYLOAD)], True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs,
+                ok, *scaled, *inc)
+
+    def loop_buffers(self) -> tuple:
+        return self.inner.loop_buffers()
+
+    def loop_done(self, mats: tuple, dt: float, maps: tuple, x: np.ndarray, k: int) -> None:
+        """After the compiled loop's samples up to ``k``: the inner model's (:meth:`.reduced.ReducedObserverModel.
+        loop_done`) and the scaled step map the loop leaves (for the current nominal map, or none)."""
+        inner = self.inner
+        inner.loop_done(mats, dt, maps, x[: self.n0], k)
+        ok, c, Pn, S, L, Q = maps[10:]
+        self._map = (inner.last_step[1], c, Pn, S, L, Q) if ok else None
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
         """The inner model's channels; zero Jacobian columns for the extra states."""

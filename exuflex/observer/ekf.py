@@ -1001,7 +1001,7 @@ class MultirateEKF:
             k_next, status, self._holdoff, swapped, model_out = self._loop(
                 t, U, Y, k, k_end, x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn, self._Rdiag,
                 self._floor, self._gate, hold0, *win, self._loop_status, step_w, step_thr, rec.x_hat, P_rec, P_kind,
-                inn, S_rec, rec.nis, mats, *arrays)
+                _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, mats, *arrays)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:

@@ -34,6 +34,7 @@ from .kalman import (
 )
 
 __all__ = [
+    "NO_PAYLOAD",
     "HeldSystem",
     "cached_samples",
     "held_interval",
@@ -42,9 +43,11 @@ __all__ = [
     "map_error",
     "map_lookahead",
     "next_map_radius",
+    "payload_interval",
     "power_sum",
     "prediction_error",
     "rebuild_map",
+    "scaled_steps",
     "secant_factor",
     "secant_rows",
     "step_jacobian",
@@ -383,6 +386,11 @@ def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
 
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
 _NO_MATRIX = np.empty((0, 0))
+_NO_VECTOR = np.empty(0)
+#: :func:`cached_samples`' payload arguments (``pay ... iold_T2``) for a model without a payload state
+NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+              _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+              _NO_VECTOR, _NO_MATRIX)
 
 
 def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
@@ -674,11 +682,13 @@ def _within(x, c, radius):  # pragma: no cover - compiled
 
 def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S, zn, Rd, floor, gate,
                     holdoff, win_Z, win_n, win_sum, win_sq, win_last, win_int, win_tests, win_status, step_w,
-                    step_thr, x_rec, P_rec, P_kind, inn_rec, S_rec, nis_rec, mats_out, jump_w, jump_thr, q0, rad,
-                    meas_rad, h_min, map_q, map_rad, map_dt, map_n, dt_tol, ahead, horizon, torque_var, q_extra,
-                    rad_tol, rad_min, rad_max, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, L, Q,
+                    step_thr, x_rec, P_rec, P_kind, theta_rec, inn_rec, S_rec, nis_rec, mats_out, jump_w, jump_thr,
+                    q0, rad, meas_rad, h_min, map_q, map_rad, map_dt, map_n, dt_tol, ahead, horizon, torque_var,
+                    q_extra, rad_tol, rad_min, rad_max, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, L, Q,
                     has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+                    old_T2, old_V2, old_C2, pay, pay_held, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok,
+                    pay_c, pay_Pn, pay_S, pay_L, pay_Q, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
+                    iold_T2):  # pragma: no cover - compiled
     """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
     :meth:`.ekf.MultirateEKF.step` does it with :meth:`.reduced.ReducedObserverModel.predict` and ``measure``
     (every channel sampled, the held configuration and step map unchanged), until one needs more.
@@ -704,38 +714,55 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     map itself, as the model's ``_step_map`` does (:func:`rebuild_map`, :func:`map_error`,
     :func:`next_map_radius`).
 
+    With ``pay`` the state is a payload-augmented one (:class:`.augmented.AugmentedModel` with the payload scale
+    alone: ``x = [z; theta]``) and each interval is :meth:`.augmented.AugmentedModel.predict`'s with the scale
+    learned: :func:`payload_interval` at the scales ``c + pay_dtheta`` and ``c = max(theta, 0) - 1`` with the
+    increment ``i*`` (:class:`.augmented.PayloadIncrement`) and ``pay_var dt`` the scale's noise; its step map
+    the nominal one where ``|c| pay_rho <= pay_tol``, else the scaled one ``pay_Pn, pay_S, pay_L, pay_Q``, built
+    at ``pay_c`` for the current nominal map (``pay_ok``) and rebuilt as the model rebuilds it. A held scale
+    (``pay_held``) or a scale at exactly 1 is left to the model's own step; ``theta_rec`` (not empty) records the
+    covariance's scale column per sample.
+
     Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
     :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
-    ``(n, map_rad, q_map, dt, P^n, S, L, Q, errors, k_map)``: the maps rebuilt, the last one, the replaced ones'
-    errors (in the first ``n`` entries) and the sample the last was built for (-1: none).
+    ``(n, map_rad, q_map, dt, P^n, S, L, Q, errors, k_map, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``: the
+    maps rebuilt, the last one, the replaced ones' errors (in the first ``n`` entries), the sample the last was
+    built for (-1: none) and the scaled map as the loop leaves it.
     """
     nq = q0.shape[0]
     m = Y.shape[1]
     n_x = x.shape[0]
+    n0 = 2 * Mr.shape[0]
     idx = np.arange(m)
     y_pred = np.empty(m)
-    H = np.empty((m, n_x))
+    H = np.zeros((m, n_x))  # (the columns beyond the model's rows stay zero)
     swapped = False
     errs = np.empty(k1 - k0)
     n_maps = 0
     maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, -1)
+    scales = np.empty(2)
+    scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
     k = k0
-    while k < k1:
+    status = GENERAL if pay and pay_held else LOOP_DONE  # (a held scale: the model's own step)
+    while status == LOOP_DONE and k < k1:
         dt = t[k] - t[k - 1]
         u = U[k - 1]
         u1 = U[k]
         if step_statistic(u, u1, step_w) > step_thr or step_statistic(u, u1, jump_w) > jump_thr:
-            return k, GENERAL, holdoff, swapped, maps
+            status = GENERAL
+            break
         n = max(1, math.ceil(dt / h_min - 1e-9))
         if k > k0:  # (the model's arrays are renewed for the first sample)
             if not _within(x, q0, rad):
-                return k, REFRESH, holdoff, swapped, maps
+                status = REFRESH
+                break
             same_length = abs(map_dt - dt) <= dt_tol * dt
             if not (same_length and _within(x, map_q, map_rad)):
                 if not (same_length and n == map_n):
-                    return k, REMAP, holdoff, swapped, maps
+                    status = REMAP
+                    break
                 # the step map rebuilt ahead of q, its radius from the replaced map's error
-                q_new, Pn_new, SQM, L, Q_new = rebuild_map(x, q0, meas_rad, map_rad, ahead, horizon, d, dd, dt, n,
+                q_new, Pn_new, SQM, L, Q_new = rebuild_map(x[:n0], q0, meas_rad, map_rad, ahead, horizon, d, dd, dt, n,
                                                            torque_var, q_extra, has_old, beta, Mr, Kr, Ca, Gr, dM, dK,
                                                            fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                                                            old_T2, old_V2, old_C2)
@@ -745,19 +772,46 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 n_maps += 1
                 map_q, map_dt, Pn, Q = q_new, dt, Pn_new, Q_new
                 maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, k)
+                pay_ok = False  # the scaled map follows the nominal one
+                scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
         dl = x[:nq] - q0
         s = secant_factor(dl, d, dd)
-        z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca,
-                                             Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                                             old_T2, old_V2, old_C2)
+        if pay:
+            th = x[n0]
+            c = max(th, 0.0) - 1.0
+            if c == 0.0:  # the model's own step at the nominal scale
+                status = GENERAL
+                break
+            scales[0] = c + pay_dtheta
+            scales[1] = c
+            scaled = abs(c) * pay_rho > pay_tol
+            rebuild = scaled and (not pay_ok or abs(c - pay_c) * pay_rho > pay_tol)
+            cT = c if scaled else 0.0
+            Pn_u, S_u, L_u, Q_u = (pay_Pn, pay_S, pay_L, pay_Q) if scaled and not rebuild else (Pn, SQM, L, Q)
+            _, z, F, Qk, Pn_u, S_u, L_u, Q_u, Mo, Ko, Co, Go = payload_interval(
+                x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, rebuild, torque_var,
+                q_extra, cT, Ts, pay_dTs, Vs, C3, Pn_u, S_u, L_u, Q_u, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg,
+                T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg,
+                iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+            if rebuild:
+                pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = True, c, Pn_u, S_u, L_u, Q_u
+                scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
+        else:
+            z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr,
+                                                 Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
+                                                 old_fg, old_T2, old_V2, old_C2)
+            Qk = Q
         if not math.isfinite(z[0]) or not _within(z, q0, meas_rad):
-            return k, GENERAL, holdoff, swapped, maps
+            status = GENERAL
+            break
         dlp = z[:nq] - q0
         sm = secant_factor(dlp, d, dd) * dd if dH.shape[0] else 0.0
         secant_rows(c0, Hm, dH, G, d, sm, z, dlp, y_pred, H)
-        nis, ok, finite = predict_update(F, P, Q, P_pred, work, z, Y[k], y_pred, H, Rd, HP, r, S, x_alt, P_alt, floor)
+        nis, ok, finite = predict_update(F, P, Qk, P_pred, work, z, Y[k], y_pred, H, Rd, HP, r, S, x_alt, P_alt,
+                                         floor)
         if not (ok and finite):
-            return k, GENERAL, holdoff, swapped, maps
+            status = GENERAL
+            break
         n_over = normalise(r, S, gate, zn)
         n_bad = 0
         if holdoff > 0:
@@ -766,7 +820,8 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 window_seen(win_last, win_int, t[k], idx)
         else:
             if n_over:
-                return k, GENERAL, holdoff, swapped, maps
+                status = GENERAL
+                break
             if win_Z.shape[0]:
                 n_bad = window_push(win_Z, win_n, win_sum, win_sq, win_last, win_int, t[k], idx, zn, win_tests[0],
                                     win_tests[1], win_tests[2], win_tests[3], win_status)
@@ -788,14 +843,17 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 for j in range(m):
                     S_rec[k, i * m + j] = S[i, j]
         nis_rec[k] = nis
+        if theta_rec.shape[0]:
+            for i in range(n_x):
+                theta_rec[k, i] = P[i, n0]
         for out, a in zip(mats_out, (Mo, Ko, Co, Go)):
             for i in range(a.shape[0]):
                 for j in range(a.shape[1]):
                     out[i, j] = a[i, j]
         k += 1
         if n_bad:
-            return k, MONITOR, holdoff, swapped, maps
-    return k, LOOP_DONE, holdoff, swapped, maps
+            status = MONITOR
+    return k, status, holdoff, swapped, maps + scaled_map
 
 
 def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
@@ -866,6 +924,107 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
     return min(max(rad, rmin), 2.0 * map_rad, rmax)
 
 
+def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
+                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
+                  iold_fg, iold_T2):  # pragma: no cover - compiled
+    """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
+    row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
+    C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
+    (``*system, *increment``), as the expansion's kernels take them.
+
+    The held model (:func:`_held_model`) is linear in the held arrays, and the stiffness, input matrix
+    and geometric forms do not depend on the payload: it is evaluated once for ``S`` and once for ``dS`` (with
+    zero stiffness, input and geometric arrays) and combined per scale, ``M_r = M_r(S) + a_k M_r(dS)``, likewise
+    the damping and the forces; each scale then costs its Cholesky factor and RK4 sub-steps only."""
+    r = Mr.shape[0]
+    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
+                    old_T2, old_V2, old_C2)
+    zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
+    zv, zc = np.zeros(V2.shape), np.zeros(C2.shape)
+    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, zc, iold_dM, zq, iold_Ca, zg, iold_fg,
+                    iold_T2, zv, zc)
+    M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
+    G0 = np.empty(Gr.shape)
+    f0 = fb = np.empty(r)
+    for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
+        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, hs if k == 0 else di)
+        if k == 0:
+            M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
+        else:
+            Mb, Cb, fb = Mk, Ck, fk
+    out = np.empty((a.shape[0], z.shape[0]))
+    M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
+    for k in range(a.shape[0]):
+        c = a[k]
+        for i in range(r):  # loops, not array expressions (see _mass_stiffness)
+            for j in range(r):
+                M[i, j] = M0[i, j] + c * Mb[i, j]
+                C[i, j] = C0[i, j] + c * Cb[i, j]
+            f[i] = f0[i] + c * fb[i]
+        x = _rk4_linear(z, u, M, K0, C, G0, f, h, n)
+        for i in range(z.shape[0]):
+            out[k, i] = x[i]
+    return out, M, K0, C, G0
+
+
+def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rebuild, torque_var, q_extra, cT, Ts,
+                      dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM,
+                      old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM,
+                      iold_Ca, iold_fg, iold_T2):  # pragma: no cover - compiled
+    """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
+
+    The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
+    scale ``c``), taken again without the secant (``s = 0``, first order) if one is not finite; the held matrices
+    at ``c``; the step map: where ``rebuild``, the maps of the held linear system at ``c``
+    (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the noise's diagonal), else ``Pn``, ``SQM``,
+    ``L``, ``Q`` as given; and the step's Jacobian in the state (:func:`step_jacobian`) with that map and the
+    velocity forms ``Ts + cT dTs``.
+
+    Returns ``(rows, x, F, Qx, P^n, S, L, Q, M_r, K_r, C_r, G_r)`` with the augmented state's prediction (``nx``
+    states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros beyond): ``x = [rows[-1]; theta; 0]``,
+    ``F`` the step's Jacobian in its leading block, the scale's column the forward difference
+    ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``, ``Qx`` the process
+    noise ``Q`` in its leading block and ``theta_var`` the scale's."""
+    rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
+                                        idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+    finite = True
+    for k in range(rows.shape[0]):
+        for i in range(rows.shape[1]):
+            if not math.isfinite(rows[k, i]):
+                finite = False
+    if not finite:  # as the nominal step's rescue: first order only
+        rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
+                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+                                            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+    if rebuild:
+        Pn, SQM, L, Q = step_maps_noise(Mo, Ko, Co, Go, h, n, torque_var)
+        for i in range(q_extra.shape[0]):
+            Q[i, i] += q_extra[i]
+    T = np.empty(Ts.shape)
+    for i in range(Ts.shape[0]):  # loops, not array expressions (see _mass_stiffness)
+        for j in range(Ts.shape[1]):
+            for k in range(Ts.shape[2]):
+                T[i, j, k] = Ts[i, j, k] + cT * dTs[i, j, k]
+    Fz = step_jacobian(z, T, Vs, C3, Pn, SQM)
+    n0 = z.shape[0]
+    last = rows.shape[0] - 1
+    x = np.zeros(nx)
+    F = np.zeros((nx, nx))
+    Qx = np.zeros((nx, nx))
+    for i in range(n0):  # loops, not slice assignments (see expansion._rk4_linear)
+        x[i] = rows[last, i]
+        for j in range(n0):
+            F[i, j] = Fz[i, j]
+            Qx[i, j] = Q[i, j]
+        if dtheta != 0.0:
+            F[i, n0] = (rows[0, i] - rows[last, i]) / dtheta
+    x[n0] = theta
+    F[n0, n0] = 1.0
+    Qx[n0, n0] = theta_var
+    return rows, x, F, Qx, Pn, SQM, L, Q, Mo, Ko, Co, Go
+
+
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _inline(_rk4_linear)
@@ -880,6 +1039,8 @@ secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
 _within = _inline(_within)
+scaled_steps = _jit(_scaled_steps)
+payload_interval = _jit(_payload_interval)
 cached_samples = _jit(_cached_samples)
 map_error = _jit(_map_error)
 rebuild_map = _jit(_rebuild_map)
@@ -936,6 +1097,11 @@ def warm_up_maps() -> None:
                 np.empty((1, 2 * r)))
 
 
+_PAYLOAD_NAMES = ("pay", "pay_held", "pay_var", "pay_dtheta", "pay_rho", "pay_tol", "pay_dTs", "pay_ok", "pay_c",
+                  "pay_Pn", "pay_S", "pay_L", "pay_Q", "iMr", "iCa", "idM", "ifg", "iT2", "iold_dM", "iold_Ca",
+                  "iold_fg", "iold_T2")
+
+
 def warm_up_loop() -> None:
     """Compile (or load) the sample loop :func:`cached_samples`, for the argument types the filter passes: called
     with no sample to do (``k0 = k1``), it returns at once. It calls :func:`held_interval`, the step map's kernels
@@ -947,10 +1113,11 @@ def warm_up_loop() -> None:
         cached_samples(t=v, U=m, Y=m, k0=1, k1=1, x=v, x_alt=v, P=m, P_alt=m, P_pred=m, work=m, HP=m, r=v, S=m,
                        zn=v, Rd=v, floor=v, gate=0.0, holdoff=0, win_Z=m, win_n=n, win_sum=v, win_sq=v, win_last=v,
                        win_int=v, win_tests=v, win_status=n, step_w=v, step_thr=0.0, x_rec=m, P_rec=m, P_kind=0,
-                       inn_rec=m, S_rec=m, nis_rec=v, mats_out=(m, m, m, m), jump_w=v, jump_thr=0.0, q0=v, rad=0.0,
-                       meas_rad=0.0, h_min=1.0, map_q=v, map_rad=0.0, map_dt=0.0, map_n=1, dt_tol=0.0, ahead=0.0,
-                       horizon=0.0, torque_var=v, q_extra=v, rad_tol=0.0, rad_min=0.0, rad_max=0.0, c0=v, Hm=m, dH=m,
-                       G=m, d=v, dd=0.0, Ts=c, Vs=c, C3=c, Pn=m, SQM=m, L=m, Q=m, **_example_system(1, 1)._asdict())
+                       theta_rec=m, inn_rec=m, S_rec=m, nis_rec=v, mats_out=(m, m, m, m), jump_w=v, jump_thr=0.0,
+                       q0=v, rad=0.0, meas_rad=0.0, h_min=1.0, map_q=v, map_rad=0.0, map_dt=0.0, map_n=1, dt_tol=0.0,
+                       ahead=0.0, horizon=0.0, torque_var=v, q_extra=v, rad_tol=0.0, rad_min=0.0, rad_max=0.0, c0=v,
+                       Hm=m, dH=m, G=m, d=v, dd=0.0, Ts=c, Vs=c, C3=c, Pn=m, SQM=m, L=m, Q=m,
+                       **_example_system(1, 1)._asdict(), **dict(zip(_PAYLOAD_NAMES, NO_PAYLOAD)))
     except TypeError as exc:  # a parameter added or renamed: tests/test_compile.py fails until this call follows
         log.warning("expansion.warm_up_loop: the example call does not match cached_samples (%s); it compiles at "
                     "its first use", exc)

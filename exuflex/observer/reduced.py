@@ -78,6 +78,7 @@ from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
 from .expansion import (
+    NO_PAYLOAD,
     HeldSystem,
     cached_samples,
     held_interval,
@@ -579,7 +580,13 @@ class ReducedObserverModel:
         return (self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
                 min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, sm.n, self.dt_tol, self.remap_ahead,
                 self.remap_horizon, self.torque_var, self._q_extra, *self._map_radius_limits, c0, Hm, dH, G, d,
-                iv.dd, *sm.tail[:5], sm.L, sm.Q, *sm.tail[5:])  # (Ts, Vs, C3, P^n, S), L, Q, the held system
+                iv.dd, *sm.tail[:5], sm.L, sm.Q, *sm.tail[5:],  # (Ts, Vs, C3, P^n, S), L, Q, the held system
+                *NO_PAYLOAD)
+
+    @property
+    def loop_step(self) -> tuple:
+        """``(iv, sm)``: the held configuration and step map :meth:`loop_arrays` last handed the loop."""
+        return self._loop_step
 
     def loop_buffers(self) -> tuple:
         """Where :func:`.expansion.cached_samples` leaves the last interval's held matrices ``(M_r, K_r, C_r, G_r)``."""
@@ -592,7 +599,7 @@ class ReducedObserverModel:
         :attr:`interval_system` of its last interval (matrices ``mats`` over ``dt``), as :meth:`predict` leaves
         them. A map built for sample ``k`` stays the map of that interval when :meth:`predict` takes it."""
         iv, sm = self._loop_step
-        n_maps, self.map_rad, q, dt_map, Pn, S, L, Q, errs, k_map = maps
+        n_maps, self.map_rad, q, dt_map, Pn, S, L, Q, errs, k_map = maps[:10]
         if n_maps:
             sm = self._new_map(iv, dt_map, sm.n, q, Pn, S, L, Q)
             self.n_remap += n_maps
