@@ -92,7 +92,7 @@ def groups() -> tuple[KernelGroup, ...]:
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
                     kalman.window_seen, kalman.window_push), cost=5.6),
-        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=8.2,
+        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=8.4,
                     needs=("interval", "step_map", "kalman", "payload")),
         KernelGroup("payload", augmented.warm_up, (augmented.scaled_steps, augmented.payload_interval), cost=8.5,
                     needs=("interval", "step_map")),

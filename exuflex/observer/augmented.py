@@ -105,7 +105,7 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import NO_PAYLOAD, cached_samples, payload_interval, scaled_steps
+from .expansion import NO_EXTRA_STATES, cached_samples, payload_interval, scaled_steps
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "nominal_mixture", "payload_interval", "payload_rows",
            "payload_twin", "scaled_steps", "warm_up"]
@@ -470,30 +470,35 @@ class AugmentedModel:
     # ------------------------------------------------------------------ the filter's compiled sample loop
     @property
     def sample_loop(self):
-        """The compiled sample loop (:func:`.expansion.cached_samples`) for the payload scale alone on the cached
-        step: it takes the intervals :meth:`predict` takes with the scale learned (the hold and a scale at exactly
-        1 are left to :meth:`predict`); None with disturbance states or the reference step."""
-        if self.i_theta is None or self.i_inputs is not None or self.inner.method != "cached":
-            return None
-        return cached_samples
+        """The compiled sample loop (:func:`.expansion.cached_samples`) on the cached step: it takes the intervals
+        :meth:`predict` takes (a held scale and a scale at exactly 1 are left to :meth:`predict`); None with the
+        reference step."""
+        return cached_samples if self.inner.method == "cached" else None
 
     def loop_arrays(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> tuple:
         """The inner model's arguments of :func:`.expansion.cached_samples` (:meth:`.reduced.ReducedObserverModel.
-        loop_arrays`) with the payload's: the increment of the held configuration, its payload share and velocity
-        forms, the scaled step map where it is the current nominal map's (:meth:`_scaled_interval`)."""
+        loop_arrays`, at the torques with the disturbances) with the extra states': the payload's (the increment
+        of the held configuration, its payload share and velocity forms, the scaled step map where it is the
+        current nominal map's, :meth:`_scaled_interval`) and the disturbances' noise."""
         inner, n0 = self.inner, self.n0
         z = x[:n0]
+        if self.i_inputs is not None:
+            u = inner.torques(u) + x[self.i_inputs]
         n_refresh = inner.n_refresh
-        arrays = inner.loop_arrays(z, u, dt, channels)
-        iv, sm = inner.loop_step
-        inc = self.increment(iv, z, inner.n_refresh != n_refresh)
-        rho, dTs = self._shares[iv.serial]
-        mp = self._map
-        ok = mp is not None and mp[0] is sm
-        scaled = mp[1:] if ok else NO_PAYLOAD[8:13]
-        held = not self.released and self._cov is not None
-        return (*arrays[: -len(NO_PAYLOAD)], True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs,
-                ok, *scaled, *inc)
+        arrays = inner.loop_arrays(z, u, dt, channels)[: -len(NO_EXTRA_STATES)]
+        extra = NO_EXTRA_STATES[:-2]
+        if self.i_theta is not None:
+            iv, sm = inner.loop_step
+            inc = self.increment(iv, z, inner.n_refresh != n_refresh)
+            rho, dTs = self._shares[iv.serial]
+            mp = self._map
+            ok = mp is not None and mp[0] is sm
+            held = not self.released and self._cov is not None
+            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, ok,
+                     *(mp[1:] if ok else extra[8:13]), *inc)
+        if self.i_inputs is None:
+            return (*arrays, *extra, *NO_EXTRA_STATES[-2:])
+        return (*arrays, *extra, np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0))
 
     def loop_buffers(self) -> tuple:
         return self.inner.loop_buffers()

@@ -34,7 +34,7 @@ from .kalman import (
 )
 
 __all__ = [
-    "NO_PAYLOAD",
+    "NO_EXTRA_STATES",
     "HeldSystem",
     "cached_samples",
     "held_interval",
@@ -387,10 +387,11 @@ def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
 _NO_MATRIX = np.empty((0, 0))
 _NO_VECTOR = np.empty(0)
-#: :func:`cached_samples`' payload arguments (``pay ... iold_T2``) for a model without a payload state
-NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-              _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-              _NO_VECTOR, _NO_MATRIX)
+#: :func:`cached_samples`' arguments of the augmented states (``pay ... iold_T2``, ``inp_var``, ``inp_tau``) for a
+#: model without them
+NO_EXTRA_STATES = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+                   _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+                   _NO_VECTOR, _NO_MATRIX, _NO_VECTOR, 0.0)
 
 
 def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
@@ -688,7 +689,7 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                     has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                     old_T2, old_V2, old_C2, pay, pay_held, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok,
                     pay_c, pay_Pn, pay_S, pay_L, pay_Q, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
-                    iold_T2):  # pragma: no cover - compiled
+                    iold_T2, inp_var, inp_tau):  # pragma: no cover - compiled
     """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
     :meth:`.ekf.MultirateEKF.step` does it with :meth:`.reduced.ReducedObserverModel.predict` and ``measure``
     (every channel sampled, the held configuration and step map unchanged), until one needs more.
@@ -721,7 +722,10 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     the nominal one where ``|c| pay_rho <= pay_tol``, else the scaled one ``pay_Pn, pay_S, pay_L, pay_Q``, built
     at ``pay_c`` for the current nominal map (``pay_ok``) and rebuilt as the model rebuilds it. A held scale
     (``pay_held``) or a scale at exactly 1 is left to the model's own step; ``theta_rec`` (not empty) records the
-    covariance's scale column per sample.
+    covariance's scale column per sample. With ``inp_var`` (not empty) the state ends with a torque disturbance
+    per motor, added to the torques (the torque-jump test's too): a random walk of variance ``inp_var dt`` per
+    interval (``inp_tau`` 0) or a Gauss-Markov process of stationary variance ``inp_var`` and time constant
+    ``inp_tau``, its columns of the Jacobian the step map's torque response ``L``.
 
     Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
     :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
@@ -742,13 +746,21 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, -1)
     scales = np.empty(2)
     scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
+    n_in = inp_var.shape[0]
+    s0 = n_x - n_in
+    ue, ue1 = np.empty(U.shape[1]), np.empty(U.shape[1])
     k = k0
     status = GENERAL if pay and pay_held else LOOP_DONE  # (a held scale: the model's own step)
     while status == LOOP_DONE and k < k1:
         dt = t[k] - t[k - 1]
         u = U[k - 1]
         u1 = U[k]
-        if step_statistic(u, u1, step_w) > step_thr or step_statistic(u, u1, jump_w) > jump_thr:
+        if n_in:  # the torques with the disturbance
+            for j in range(n_in):
+                ue[j] = u[j] + x[s0 + j]
+                ue1[j] = u1[j] + x[s0 + j]
+        uu, uu1 = (ue, ue1) if n_in else (u, u1)
+        if step_statistic(u, u1, step_w) > step_thr or step_statistic(uu, uu1, jump_w) > jump_thr:
             status = GENERAL
             break
         n = max(1, math.ceil(dt / h_min - 1e-9))
@@ -789,7 +801,7 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
             cT = c if scaled else 0.0
             Pn_u, S_u, L_u, Q_u = (pay_Pn, pay_S, pay_L, pay_Q) if scaled and not rebuild else (Pn, SQM, L, Q)
             _, z, F, Qk, Pn_u, S_u, L_u, Q_u, Mo, Ko, Co, Go = payload_interval(
-                x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, rebuild, torque_var,
+                x[:n0], uu, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, rebuild, torque_var,
                 q_extra, cT, Ts, pay_dTs, Vs, C3, Pn_u, S_u, L_u, Q_u, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg,
                 T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg,
                 iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
@@ -797,10 +809,20 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = True, c, Pn_u, S_u, L_u, Q_u
                 scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
         else:
-            z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr,
-                                                 Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                                                 old_fg, old_T2, old_V2, old_C2)
-            Qk = Q
+            z, F, Mo, Ko, Co, Go = held_interval(x[:n0], uu, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta,
+                                                 Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
+                                                 old_Gr, old_fg, old_T2, old_V2, old_C2)
+            Qk, L_u = Q, L
+            if n_in:
+                z, F, Qk = _augmented(z, F, Q, n_x)
+        if n_in:  # the disturbances: their decay, noise and the step's response to them
+            phi = math.exp(-dt / inp_tau) if inp_tau > 0.0 else 1.0
+            for j in range(n_in):
+                z[s0 + j] = phi * x[s0 + j]
+                F[s0 + j, s0 + j] = phi
+                Qk[s0 + j, s0 + j] = inp_var[j] * (1.0 - phi * phi) if inp_tau > 0.0 else inp_var[j] * dt
+                for i in range(n0):
+                    F[i, s0 + j] = L_u[i, j]
         if not math.isfinite(z[0]) or not _within(z, q0, meas_rad):
             status = GENERAL
             break
@@ -854,6 +876,20 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         if n_bad:
             status = MONITOR
     return k, status, holdoff, swapped, maps + scaled_map
+
+
+def _augmented(z, F, Q, nx):  # pragma: no cover - compiled
+    """``(x, F, Q)`` of an augmented state of ``nx``: the step's in the leading entries, zeros elsewhere."""
+    n0 = z.shape[0]
+    xa = np.zeros(nx)
+    Fa = np.zeros((nx, nx))
+    Qa = np.zeros((nx, nx))
+    for i in range(n0):  # loops, not slice assignments (see _rk4_linear)
+        xa[i] = z[i]
+        for j in range(n0):
+            Fa[i, j] = F[i, j]
+            Qa[i, j] = Q[i, j]
+    return xa, Fa, Qa
 
 
 def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
@@ -1039,6 +1075,7 @@ secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
 _within = _inline(_within)
+_augmented = _inline(_augmented)
 scaled_steps = _jit(_scaled_steps)
 payload_interval = _jit(_payload_interval)
 cached_samples = _jit(_cached_samples)
@@ -1097,9 +1134,9 @@ def warm_up_maps() -> None:
                 np.empty((1, 2 * r)))
 
 
-_PAYLOAD_NAMES = ("pay", "pay_held", "pay_var", "pay_dtheta", "pay_rho", "pay_tol", "pay_dTs", "pay_ok", "pay_c",
+_EXTRA_NAMES = ("pay", "pay_held", "pay_var", "pay_dtheta", "pay_rho", "pay_tol", "pay_dTs", "pay_ok", "pay_c",
                   "pay_Pn", "pay_S", "pay_L", "pay_Q", "iMr", "iCa", "idM", "ifg", "iT2", "iold_dM", "iold_Ca",
-                  "iold_fg", "iold_T2")
+                  "iold_fg", "iold_T2", "inp_var", "inp_tau")
 
 
 def warm_up_loop() -> None:
@@ -1117,7 +1154,7 @@ def warm_up_loop() -> None:
                        q0=v, rad=0.0, meas_rad=0.0, h_min=1.0, map_q=v, map_rad=0.0, map_dt=0.0, map_n=1, dt_tol=0.0,
                        ahead=0.0, horizon=0.0, torque_var=v, q_extra=v, rad_tol=0.0, rad_min=0.0, rad_max=0.0, c0=v,
                        Hm=m, dH=m, G=m, d=v, dd=0.0, Ts=c, Vs=c, C3=c, Pn=m, SQM=m, L=m, Q=m,
-                       **_example_system(1, 1)._asdict(), **dict(zip(_PAYLOAD_NAMES, NO_PAYLOAD)))
+                       **_example_system(1, 1)._asdict(), **dict(zip(_EXTRA_NAMES, NO_EXTRA_STATES)))
     except TypeError as exc:  # a parameter added or renamed: tests/test_compile.py fails until this call follows
         log.warning("expansion.warm_up_loop: the example call does not match cached_samples (%s); it compiles at "
                     "its first use", exc)

@@ -78,7 +78,7 @@ from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
 from .base import Measurement, Prediction
 from .expansion import (
-    NO_PAYLOAD,
+    NO_EXTRA_STATES,
     HeldSystem,
     cached_samples,
     held_interval,
@@ -581,7 +581,7 @@ class ReducedObserverModel:
                 min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, sm.n, self.dt_tol, self.remap_ahead,
                 self.remap_horizon, self.torque_var, self._q_extra, *self._map_radius_limits, c0, Hm, dH, G, d,
                 iv.dd, *sm.tail[:5], sm.L, sm.Q, *sm.tail[5:],  # (Ts, Vs, C3, P^n, S), L, Q, the held system
-                *NO_PAYLOAD)
+                *NO_EXTRA_STATES)
 
     @property
     def loop_step(self) -> tuple:
