@@ -94,7 +94,8 @@ def groups() -> tuple[KernelGroup, ...]:
                     kalman.window_seen, kalman.window_push), cost=5.6),
         KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=8.4,
                     needs=("interval", "step_map", "kalman", "payload")),
-        KernelGroup("payload", augmented.warm_up, (augmented.scaled_steps, augmented.payload_interval), cost=8.5,
+        KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,
+                    expansion.extra_interval), cost=8.5,
                     needs=("interval", "step_map")),
     )
 

@@ -528,23 +528,25 @@ class AugmentedModel:
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) the scaled step's kernels, for the argument types the model
-    passes: :func:`scaled_steps` and :func:`payload_interval` (which calls it, with the step map's and the step
-    Jacobian's kernels)."""
-    from .expansion import _example_system
+    """Compile (or load from numba's on-disk cache) the augmented step's kernels, for the argument types the model
+    and the compiled sample loop pass: :func:`scaled_steps`, :func:`payload_interval` (which calls it, with the
+    step map's and the step Jacobian's kernels) and :func:`.expansion.extra_interval` (the loop's interval of an
+    augmented state)."""
+    from .expansion import _example_system, extra_interval
 
     r, nq = 2, 1
     z, u, dl, a = np.zeros(2 * r), np.zeros(nq), np.zeros(nq), np.zeros(1)
-    M, T3, V3 = np.eye(r), np.zeros((r, r, r)), np.zeros((nq, r, r))
+    M, T3, V3, C3 = np.eye(r), np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r))
+    maps = (np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)), np.eye(2 * r))
     for has_old in (False, True):
         hs = _example_system(r, nq, has_old)
         inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.old_dM, M, hs.old_fg, hs.old_T2)
         scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
         for rebuild in (False, True):
             payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, rebuild, np.ones(nq), np.zeros(0),
-                             0.0, T3, T3, V3,
-                             np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)),
-                             np.eye(2 * r), *hs, *inc)
+                             0.0, T3, T3, V3, C3, *maps, *hs, *inc)
+        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, True, 1.0, 1e-4, 1.0, 0.03, T3, False, 0.0,
+                       *maps, np.ones(nq), 0.0, np.ones(nq), np.zeros(0), T3, V3, C3, *maps, *hs, *inc)
 
 
 # ---------------------------------------------------------------------------------------------------- the report

@@ -37,6 +37,7 @@ __all__ = [
     "NO_EXTRA_STATES",
     "HeldSystem",
     "cached_samples",
+    "extra_interval",
     "held_interval",
     "held_step",
     "held_system",
@@ -744,7 +745,6 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     errs = np.empty(k1 - k0)
     n_maps = 0
     maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, -1)
-    scales = np.empty(2)
     scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
     n_in = inp_var.shape[0]
     s0 = n_x - n_in
@@ -788,41 +788,21 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
         dl = x[:nq] - q0
         s = secant_factor(dl, d, dd)
-        if pay:
-            th = x[n0]
-            c = max(th, 0.0) - 1.0
-            if c == 0.0:  # the model's own step at the nominal scale
-                status = GENERAL
-                break
-            scales[0] = c + pay_dtheta
-            scales[1] = c
-            scaled = abs(c) * pay_rho > pay_tol
-            rebuild = scaled and (not pay_ok or abs(c - pay_c) * pay_rho > pay_tol)
-            cT = c if scaled else 0.0
-            Pn_u, S_u, L_u, Q_u = (pay_Pn, pay_S, pay_L, pay_Q) if scaled and not rebuild else (Pn, SQM, L, Q)
-            _, z, F, Qk, Pn_u, S_u, L_u, Q_u, Mo, Ko, Co, Go = payload_interval(
-                x[:n0], uu, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, rebuild, torque_var,
-                q_extra, cT, Ts, pay_dTs, Vs, C3, Pn_u, S_u, L_u, Q_u, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg,
-                T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg,
-                iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
-            if rebuild:
-                pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = True, c, Pn_u, S_u, L_u, Q_u
-                scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
+        if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
+            status = GENERAL
+            break
+        if pay or n_in:
+            (z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q) = extra_interval(
+                x, uu, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
+                pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
+                beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
+                old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+            scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
         else:
-            z, F, Mo, Ko, Co, Go = held_interval(x[:n0], uu, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta,
-                                                 Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
-                                                 old_Gr, old_fg, old_T2, old_V2, old_C2)
-            Qk, L_u = Q, L
-            if n_in:
-                z, F, Qk = _augmented(z, F, Q, n_x)
-        if n_in:  # the disturbances: their decay, noise and the step's response to them
-            phi = math.exp(-dt / inp_tau) if inp_tau > 0.0 else 1.0
-            for j in range(n_in):
-                z[s0 + j] = phi * x[s0 + j]
-                F[s0 + j, s0 + j] = phi
-                Qk[s0 + j, s0 + j] = inp_var[j] * (1.0 - phi * phi) if inp_tau > 0.0 else inp_var[j] * dt
-                for i in range(n0):
-                    F[i, s0 + j] = L_u[i, j]
+            z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr,
+                                                 Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
+                                                 old_fg, old_T2, old_V2, old_C2)
+            Qk = Q
         if not math.isfinite(z[0]) or not _within(z, q0, meas_rad):
             status = GENERAL
             break
@@ -876,6 +856,56 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         if n_bad:
             status = MONITOR
     return k, status, holdoff, swapped, maps + scaled_map
+
+
+def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
+                    pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
+                    beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
+                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
+                    iold_T2):  # pragma: no cover - compiled
+    """One interval of an augmented state (:func:`cached_samples`' ``pay`` and ``inp_*``, the torques ``u`` with
+    the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
+    scaled step map as this interval leaves it. With the payload scale (not at exactly 1) the interval is
+    :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c``, its step map the nominal one where
+    ``|c| pay_rho <= pay_tol``, else the scaled one (rebuilt where it is not the current nominal map's, ``pay_ok``
+    False, or ``c`` moved from ``pay_c`` by ``pay_tol / pay_rho``); without, :func:`held_interval`'s. The
+    disturbances then decay, gain their noise and enter through the map's torque response."""
+    n_x = x.shape[0]
+    n0 = 2 * Mr.shape[0]
+    n_in = inp_var.shape[0]
+    s0 = n_x - n_in
+    if pay:
+        th = x[n0]
+        c = max(th, 0.0) - 1.0
+        scales = np.empty(2)
+        scales[0] = c + pay_dtheta
+        scales[1] = c
+        scaled = abs(c) * pay_rho > pay_tol
+        rebuild = scaled and (not pay_ok or abs(c - pay_c) * pay_rho > pay_tol)
+        cT = c if scaled else 0.0
+        Pn_u, S_u, L_u, Q_u = (pay_Pn, pay_S, pay_L, pay_Q) if scaled and not rebuild else (Pn, SQM, L, Q)
+        _, z, F, Qk, Pn_u, S_u, L_u, Q_u, Mo, Ko, Co, Go = payload_interval(
+            x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, rebuild, torque_var, q_extra, cT,
+            Ts, pay_dTs, Vs, C3, Pn_u, S_u, L_u, Q_u, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM,
+            old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
+            iold_fg, iold_T2)
+        if rebuild:
+            pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = True, c, Pn_u, S_u, L_u, Q_u
+    else:
+        z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
+                                               Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
+                                               old_fg, old_T2, old_V2, old_C2)
+        z, F, Qk = _augmented(z0, F0, Q, n_x)
+        L_u = L
+    if n_in:  # the disturbances: their decay, noise and the step's response to them
+        phi = math.exp(-dt / inp_tau) if inp_tau > 0.0 else 1.0
+        for j in range(n_in):
+            z[s0 + j] = phi * x[s0 + j]
+            F[s0 + j, s0 + j] = phi
+            Qk[s0 + j, s0 + j] = inp_var[j] * (1.0 - phi * phi) if inp_tau > 0.0 else inp_var[j] * dt
+            for i in range(n0):
+                F[i, s0 + j] = L_u[i, j]
+    return z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q
 
 
 def _augmented(z, F, Q, nx):  # pragma: no cover - compiled
@@ -1078,6 +1108,7 @@ _within = _inline(_within)
 _augmented = _inline(_augmented)
 scaled_steps = _jit(_scaled_steps)
 payload_interval = _jit(_payload_interval)
+extra_interval = _jit(_extra_interval)
 cached_samples = _jit(_cached_samples)
 map_error = _jit(_map_error)
 rebuild_map = _jit(_rebuild_map)
