@@ -147,9 +147,10 @@ def main(argv=None) -> int:
             "`exuflex study payload MODEL --levels 0,100 --out DIR`). Regenerate with:\n\n"
             + "".join(f"    {c}\n" for c in args.measured_by) + f"    {cmd}\n\n```\n" + "\n".join(lines)
             + "\n```\n\n" + LEGEND
-            + ("\n## Speed\n\nMedian wall time of each estimator over the nominal level's seed-0 log, the estimators "
-               "timed in turn within one run (`--speed N`); `wall / ekf` is the ratio to the plain EKF's median "
-               "in that run (the machine is shared: the ratios, not the absolute times, carry over).\n\n```\n"
+            + ("\n## Speed\n\nMedian wall time of each estimator over the nominal level's seed-0 log "
+               "(`estimate`: the filter, its report and the physical estimates), the estimators timed in turn "
+               "within one run (`--speed N`); `wall / ekf` is the ratio to the plain EKF's median in that run "
+               "(the machine is shared: the ratios, not the absolute times, carry over).\n\n```\n"
                + "\n".join(speed) + "\n```\n" if speed else ""))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

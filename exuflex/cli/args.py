@@ -7,7 +7,7 @@ import argparse
 import math
 
 __all__ = ["channel_list", "finite_float", "n_interior", "name_list", "nonneg_int", "nonneg_float", "out_path",
-           "positive_float", "positive_int", "probability", "seed"]
+           "positive_float", "positive_int", "probability", "seed", "unit_probability"]
 
 
 def _float(text: str) -> float:

@@ -276,8 +276,9 @@ def run(args) -> int:
     print(summary_table(mech, out, bound=True))
     if "parameters" in s:
         par = s["parameters"]
+        nominal = par.get("payload_nominal_p")
         print(f"payload scale {par['payload_scale']:.4g} +- {par['payload_scale_std']:.2g}"
-              + (f" (nominal payload: probability {par['payload_nominal_p']:.3g})" if "payload_nominal_p" in par else ""))
+              + (f" (nominal payload: probability {nominal:.3g})" if nominal is not None else ""))
     if "inputs" in s:
         print("torque disturbance (N m): " + ", ".join(f"{k} {v['value']:.3g} +- {v['std']:.2g}"
                                                      for k, v in s["inputs"].items()))

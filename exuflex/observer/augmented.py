@@ -604,7 +604,8 @@ def nominal_mixture(x: np.ndarray, P: np.ndarray | None, P_theta: np.ndarray, i_
         if P.ndim == 2:
             Pr = P - w[:, None] * g * Pt + ww[:, None] * d * d
         else:
-            Pr = P - w[:, None, None] * g[:, :, None] * Pt[:, None, :] + ww[:, None, None] * d[:, :, None] * d[:, None, :]
+            Pr = (P - w[:, None, None] * g[:, :, None] * Pt[:, None, :]
+                  + ww[:, None, None] * d[:, :, None] * d[:, None, :])
     if one:
         return xr[0], None if Pr is None else Pr[0], w
     return xr, Pr, w
