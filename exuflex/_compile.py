@@ -92,11 +92,11 @@ def groups() -> tuple[KernelGroup, ...]:
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.update_settle, kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic,
                     kalman.window_seen, kalman.window_push), cost=3.6),
-        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=9.4,
-                    needs=("interval", "step_map", "kalman", "payload")),
+        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=8.3,
+                    needs=("interval", "step_map", "kalman")),
         KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,
-                    expansion.extra_interval), cost=13.9,
-                    needs=("interval", "step_map")),
+                    expansion.extra_interval), cost=29.1,
+                    needs=("interval", "step_map", "kalman")),
     )
 
 

@@ -486,7 +486,7 @@ class AugmentedModel:
             u = inner.torques(u) + x[self.i_inputs]
         n_refresh = inner.n_refresh
         arrays = inner.loop_arrays(z, u, dt, channels)[: -len(NO_EXTRA_STATES)]
-        extra = NO_EXTRA_STATES[:-2]
+        extra = NO_EXTRA_STATES[:-3]
         if self.i_theta is not None:
             iv, sm = inner.loop_step
             inc = self.increment(iv, z, inner.n_refresh != n_refresh)
@@ -497,8 +497,8 @@ class AugmentedModel:
             extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, ok,
                      *(mp[1:] if ok else extra[8:13]), *inc)
         if self.i_inputs is None:
-            return (*arrays, *extra, *NO_EXTRA_STATES[-2:])
-        return (*arrays, *extra, np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0))
+            return (*arrays, *extra, *NO_EXTRA_STATES[-3:-1], True)
+        return (*arrays, *extra, np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0), True)
 
     def loop_buffers(self) -> tuple:
         return self.inner.loop_buffers()
@@ -531,8 +531,9 @@ def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the augmented step's kernels, for the argument types the model
     and the compiled sample loop pass: :func:`scaled_steps`, :func:`payload_interval` (which calls it, with the
     step map's and the step Jacobian's kernels) and :func:`.expansion.extra_interval` (the loop's interval of an
-    augmented state)."""
-    from .expansion import _example_system, extra_interval
+    augmented state), and the sample loop's specialisation for augmented states
+    (:func:`.expansion.warm_up_loop`)."""
+    from .expansion import _example_system, extra_interval, warm_up_loop
 
     r, nq = 2, 1
     z, u, dl, a = np.zeros(2 * r), np.zeros(nq), np.zeros(nq), np.zeros(1)
@@ -547,6 +548,7 @@ def warm_up() -> None:
                              0.0, T3, T3, V3, C3, *maps, *hs, *inc)
         extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, True, 1.0, 1e-4, 1.0, 0.03, T3, False, 0.0,
                        *maps, np.ones(nq), 0.0, np.ones(nq), np.zeros(0), T3, V3, C3, *maps, *hs, *inc)
+    warm_up_loop(True)
 
 
 # ---------------------------------------------------------------------------------------------------- the report

@@ -388,11 +388,11 @@ def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
 _NO_MATRIX = np.empty((0, 0))
 _NO_VECTOR = np.empty(0)
-#: :func:`cached_samples`' arguments of the augmented states (``pay ... iold_T2``, ``inp_var``, ``inp_tau``) for a
-#: model without them
+#: :func:`cached_samples`' arguments of the augmented states (``pay ... iold_T2``, ``inp_var``, ``inp_tau``,
+#: ``augmented``) for a model without them
 NO_EXTRA_STATES = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
                    _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-                   _NO_VECTOR, _NO_MATRIX, _NO_VECTOR, 0.0)
+                   _NO_VECTOR, _NO_MATRIX, _NO_VECTOR, 0.0, None)
 
 
 def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
@@ -690,7 +690,7 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                     has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                     old_T2, old_V2, old_C2, pay, pay_held, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok,
                     pay_c, pay_Pn, pay_S, pay_L, pay_Q, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
-                    iold_T2, inp_var, inp_tau):  # pragma: no cover - compiled
+                    iold_T2, inp_var, inp_tau, augmented):  # pragma: no cover - compiled
     """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
     :meth:`.ekf.MultirateEKF.step` does it with :meth:`.reduced.ReducedObserverModel.predict` and ``measure``
     (every channel sampled, the held configuration and step map unchanged), until one needs more.
@@ -726,7 +726,9 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     covariance's scale column per sample. With ``inp_var`` (not empty) the state ends with a torque disturbance
     per motor, added to the torques (the torque-jump test's too): a random walk of variance ``inp_var dt`` per
     interval (``inp_tau`` 0) or a Gauss-Markov process of stationary variance ``inp_var`` and time constant
-    ``inp_tau``, its columns of the Jacobian the step map's torque response ``L``.
+    ``inp_tau``, its columns of the Jacobian the step map's torque response ``L``. ``augmented`` is None for a
+    plain state: numba then prunes the augmented interval from the loop's compiled code (one specialisation per
+    kind of state, each compiled at its first use: a plain filter does not compile the augmented kernels).
 
     Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
     :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
@@ -791,14 +793,17 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
             status = GENERAL
             break
-        if pay or n_in:
-            (z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q) = extra_interval(
-                x, uu, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
-                pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
-                beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
-            scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
-        else:
+        extra = False
+        if augmented is not None:  # (pruned by numba for a plain state: see the docstring)
+            if pay or n_in:
+                (z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q) = extra_interval(
+                    x, uu, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
+                    pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
+                    beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
+                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+                scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
+                extra = True
+        if not extra:
             z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr,
                                                  Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
                                                  old_fg, old_T2, old_V2, old_C2)
@@ -1167,15 +1172,16 @@ def warm_up_maps() -> None:
 
 _EXTRA_NAMES = ("pay", "pay_held", "pay_var", "pay_dtheta", "pay_rho", "pay_tol", "pay_dTs", "pay_ok", "pay_c",
                   "pay_Pn", "pay_S", "pay_L", "pay_Q", "iMr", "iCa", "idM", "ifg", "iT2", "iold_dM", "iold_Ca",
-                  "iold_fg", "iold_T2", "inp_var", "inp_tau")
+                  "iold_fg", "iold_T2", "inp_var", "inp_tau", "augmented")
 
 
-def warm_up_loop() -> None:
+def warm_up_loop(augmented: bool | None = None) -> None:
     """Compile (or load) the sample loop :func:`cached_samples`, for the argument types the filter passes: called
     with no sample to do (``k0 = k1``), it returns at once. It calls :func:`held_interval`, the step map's kernels
     (:func:`warm_up_maps`) and Kalman kernels (:func:`.kalman.warm_up`), which numba compiles with it unless they
-    are compiled or cached already. An example call that no longer matches the loop's parameters is reported
-    (the loop then compiles at its first use)."""
+    are compiled or cached already. ``augmented`` None: the plain state's specialisation; True: the augmented
+    states' (with :func:`extra_interval`). An example call that no longer matches the loop's parameters is
+    reported (the loop then compiles at its first use)."""
     v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
     try:
         cached_samples(t=v, U=m, Y=m, k0=1, k1=1, x=v, x_alt=v, P=m, P_alt=m, P_pred=m, work=m, HP=m, r=v, S=m,
@@ -1185,7 +1191,8 @@ def warm_up_loop() -> None:
                        q0=v, rad=0.0, meas_rad=0.0, h_min=1.0, map_q=v, map_rad=0.0, map_dt=0.0, map_n=1, dt_tol=0.0,
                        ahead=0.0, horizon=0.0, torque_var=v, q_extra=v, rad_tol=0.0, rad_min=0.0, rad_max=0.0, c0=v,
                        Hm=m, dH=m, G=m, d=v, dd=0.0, Ts=c, Vs=c, C3=c, Pn=m, SQM=m, L=m, Q=m,
-                       **_example_system(1, 1)._asdict(), **dict(zip(_EXTRA_NAMES, NO_EXTRA_STATES)))
+                       **_example_system(1, 1)._asdict(),
+                       **dict(zip(_EXTRA_NAMES, (*NO_EXTRA_STATES[:-1], augmented), strict=True)))
     except TypeError as exc:  # a parameter added or renamed: tests/test_compile.py fails until this call follows
         log.warning("expansion.warm_up_loop: the example call does not match cached_samples (%s); it compiles at "
                     "its first use", exc)
