@@ -250,19 +250,24 @@ def _warm(group: KernelGroup) -> None:
                     group.name, type(exc).__name__, exc)
 
 
-_prepared = False
+#: the groups only the augmented estimators (``ekf-payload``, ``ekf-input``) use: :func:`prepare` compiles them
+#: for those alone, so that a plain filter's first use does not wait for them
+AUGMENTED_GROUPS = ("payload",)
+
+_prepared: set[str] = set()  # what prepare() did in this process: "plain", "augmented"
 
 
-def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = None) -> float:
+def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = None,
+            augmented: bool = False) -> float:
     """Compile the kernel groups that numba's cache lacks, in ``n_jobs`` processes (:func:`jobs`), so that this
-    process then loads them from the cache. Once per process; returns the wall seconds it compiled for (0 with a
+    process then loads them from the cache: the groups of :data:`AUGMENTED_GROUPS` only with ``augmented`` (an
+    augmented estimator's observer). Once per process and kind; returns the wall seconds it compiled for (0 with a
     warm cache). ``progress``: one line when compiling starts and one when done (default: the log, INFO)."""
-    global _prepared
-    if _prepared:
+    if "augmented" in _prepared or (not augmented and "plain" in _prepared):
         return 0.0
     n = jobs(n_jobs)
-    _prepared = True
-    todo = missing()
+    _prepared.add("augmented" if augmented else "plain")
+    todo = [g for g in missing() if augmented or g.name not in AUGMENTED_GROUPS]
     if not todo:
         return 0.0
     say = progress or (lambda msg: log.info("%s", msg))
@@ -328,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
     names = sys.argv[1:] if argv is None else argv
     logging.basicConfig(level=logging.INFO, format="exuflex._compile: %(message)s", stream=sys.stderr)
     if not names:
-        prepare()
+        prepare(augmented=True)
         return 0
     known = {g.name: g for g in groups()}
     unknown = [n for n in names if n not in known]

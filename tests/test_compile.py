@@ -175,7 +175,7 @@ def test_the_number_of_processes(monkeypatch):
 
 
 def _fake(monkeypatch, groups, writable=True):
-    monkeypatch.setattr(_compile, "_prepared", False)
+    monkeypatch.setattr(_compile, "_prepared", set())
     monkeypatch.setattr(_compile, "missing", lambda: list(groups))
     monkeypatch.setattr(_compile, "_writable", lambda kernel: writable)
 
@@ -221,6 +221,22 @@ def test_a_process_that_cannot_start_leaves_its_groups_to_this_one_in_order(monk
     assert calls == ["a", "b", "loop"]
 
 
+def test_the_augmented_groups_are_compiled_for_the_augmented_estimators_only(monkeypatch):
+    """A plain observer's first use leaves the augmented estimators' groups to theirs; a later augmented one
+    compiles them then (once)."""
+    calls = []
+    monkeypatch.setattr(_compile.subprocess, "Popen", lambda *a, **k: (_ for _ in ()).throw(OSError("none")))
+    _fake(monkeypatch, [_group("a", 1.0, calls), _group(_compile.AUGMENTED_GROUPS[0], 1.0, calls)])
+    _compile.prepare(1, progress=lambda msg: None)
+    assert calls == ["a"]
+    assert _compile.prepare(1, progress=lambda msg: None) == 0.0 and calls == ["a"]
+    monkeypatch.setattr(_compile, "missing", lambda: [_group(_compile.AUGMENTED_GROUPS[0], 1.0, calls)])
+    _compile.prepare(1, progress=lambda msg: None, augmented=True)
+    assert calls == ["a", _compile.AUGMENTED_GROUPS[0]]
+    assert _compile.prepare(1, progress=lambda msg: None, augmented=True) == 0.0
+    assert _compile.prepare(1, progress=lambda msg: None) == 0.0
+
+
 def test_every_needed_group_is_registered():
     names = [g.name for g in _compile.groups()]
     assert len(set(names)) == len(names)
@@ -244,7 +260,7 @@ def test_nothing_to_compile_without_the_jit_or_with_a_warm_cache(monkeypatch):
     assert _compile.missing() == []
     monkeypatch.setattr(numba.config, "DISABLE_JIT", False)
     calls = []
-    monkeypatch.setattr(_compile, "_prepared", False)
+    monkeypatch.setattr(_compile, "_prepared", set())
     monkeypatch.setattr(_compile, "missing", list)
     assert _compile.prepare(2, progress=calls.append) == 0.0
     assert calls == []

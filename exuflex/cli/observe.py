@@ -202,7 +202,7 @@ def run(args) -> int:
     from .. import _compile
     from ..errors import UsageError
     from ..mechanism import load_mechanism
-    from ..observer.session import make_observer, observe_run
+    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer, observe_run
     from ..runs import check_csv_dialect, read_run
     from ..sensors import default_channels
     from ..validate import check_configurations, check_observer_settings, check_run, with_noise
@@ -228,7 +228,8 @@ def run(args) -> int:
     # few floats a row, all rows at once) are freed before the observer's own memory is taken
     log_check = check_run(mech, log, tuple(config.channels) if config.channels else default_channels(mech),
                           dt=config.dt or 1.0 / mech.sample_rate_hz)
-    _compile.prepare(progress=_say)  # the first run: the kernels compiled in parallel, with a line before and after
+    # the first run: the kernels compiled in parallel, with a line before and after
+    _compile.prepare(progress=_say, augmented=config.estimator in AUGMENTED_ESTIMATORS)
     _say("building the reduced model")
     obs = make_observer(mech, config)
     if args.q0 is not None or args.qd0 is not None:

@@ -36,6 +36,8 @@ from .ukf import UnscentedKF
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
 ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
+#: the estimators on an augmented state (:mod:`.augmented`)
+AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input")
 
 __all__ = [
     "CHUNK_ROWS",
@@ -320,7 +322,8 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     check_mechanism_argument(mech)
     config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
-    _compile.prepare()  # the first run with an empty kernel cache: compiled in parallel processes (._compile)
+    # the first run with an empty kernel cache: compiled in parallel processes (._compile)
+    _compile.prepare(augmented=config.estimator in AUGMENTED_ESTIMATORS)
     t0 = time.perf_counter()
     model = model or (cb.model if cb is not None else ErlsModel(mech))
     if cb is None:

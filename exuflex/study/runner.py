@@ -54,7 +54,7 @@ import numpy as np
 from .. import _compile
 from ..errors import UsageError
 from ..mechanism import Mechanism, ModelFileError, load_mechanism
-from ..observer.session import ObserverConfig
+from ..observer.session import AUGMENTED_ESTIMATORS, ObserverConfig
 from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
 from ..sensors import ABSOLUTE_TIP_NAMES, Signals
 from ..truth import Drive, TruthRecord, plan_drive, simulate
@@ -395,9 +395,10 @@ class InlineExecutor(cf.Executor):
 
 
 @contextlib.contextmanager
-def make_executor(workers: int = 1, scheduler: str | None = None):
+def make_executor(workers: int = 1, scheduler: str | None = None, augmented: bool = False):
     """Yield ``(executor, max_in_flight)``: Dask if ``scheduler`` is given, else a process pool for
-    ``workers > 1``, else in-process."""
+    ``workers > 1``, else in-process. ``augmented``: the observers are augmented estimators (their kernels are
+    compiled ahead too)."""
     if scheduler:
         try:
             from distributed import Client
@@ -413,7 +414,8 @@ def make_executor(workers: int = 1, scheduler: str | None = None):
         finally:
             client.close()
     elif workers > 1:
-        _compile.prepare()  # the kernels compiled once here (in parallel): the pool's processes load them
+        # the kernels compiled once here (in parallel): the pool's processes load them
+        _compile.prepare(augmented=augmented)
         with cf.ProcessPoolExecutor(max_workers=workers) as ex:
             yield ex, 2 * workers
     else:
@@ -645,7 +647,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     def level_truth_file(i: int) -> Path:
         return out / "truth" / keys[i] / "truth.npz"
 
-    with make_executor(workers, scheduler) as (ex, max_in_flight):
+    with make_executor(workers, scheduler, spec.observer.estimator in AUGMENTED_ESTIMATORS) as (ex, max_in_flight):
         queue: list[RunTask] = []
         in_flight: dict[cf.Future, tuple[str, Any]] = {}
         bar.update(0, "simulating truth" if pending else "")
