@@ -228,7 +228,6 @@ class AugmentedModel:
             n += self.nu
         self.nx = n
         self.linearity_tol = float(linearity_tol)
-        self._q_extra = np.zeros(0) if inner.q_extra is None else np.ascontiguousarray(inner.q_extra, float)
         self._cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._plain = None  # the nominal model's own evaluation, where an increment is asked for later
         self._forget()
@@ -346,7 +345,7 @@ class AugmentedModel:
         maps = mp[2:] if scaled and not rebuild else (sm.Pn, sm.S, sm.L, sm.Q)
         rows, x, F, Qx, Pn, S, L, Q, Mr, Kr, Cr, Gr = payload_interval(
             z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rebuild, inner.torque_var,
-            self._q_extra, c if scaled else 0.0, sm.tail[0], dTs, sm.tail[1], sm.tail[2], *maps, *iv.system, *inc)
+            inner._q_extra, c if scaled else 0.0, sm.tail[0], dTs, sm.tail[1], sm.tail[2], *maps, *iv.system, *inc)
         if rebuild:
             self._map = (sm, c, Pn, S, L, Q)
         inner.interval_system = (Mr, Kr, Cr, Gr, dt / n, n)
