@@ -17,9 +17,10 @@ with ``p(a, s)`` the point at station ``s`` of link ``a`` and no ``q`` term wher
 coordinate (``cn = 0``, ``cw = 1``), a prismatic joint's line (``cn`` its normal, ``cw = 0``), a slide
 coordinate (``cn`` its axis) or a weld's angle (``cw = cwr = 1``, no ``q``).
 
-The helpers are compiled into the kernels that call them (``_inline``; the ``*_inline`` twins of the public
-kernels are what :mod:`._assembly` and :mod:`exuflex.reduction._compiled` call): see
-:mod:`exuflex.reduction._compiled` for why.
+The Newton iteration and the pose are compiled into the kernels that call them (``_inline``; the ``*_inline``
+twins of the public kernels are what :mod:`._assembly` and :mod:`exuflex.reduction._compiled` call): see
+:mod:`exuflex.reduction._compiled` for why. The small helpers they call at several places (the residual, the
+Jacobian, the solve, the norms) are compiled once and called there, not copied into each place.
 """
 
 from __future__ import annotations
@@ -275,11 +276,14 @@ def _coordinate_rates(z, Sz, Jinv, k, node_link, node_station):  # pragma: no co
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
     _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
-    _residual = _inline(_residual)
-    _jacobian = _inline(_jacobian)
-    _max_abs = _inline(_max_abs)
-    _solve = _inline(_solve_lapack if _xgesv is not None else _solve_numpy)
-    _norm1 = _inline(_norm1)
+    # the small helpers that the Newton iteration and the pose call more than once: compiled once per process and
+    # linked where they are called, not copied into every call site (inline="always" copies them)
+    _shared = numba.njit(nogil=True, error_model="numpy", no_cfunc_wrapper=True)
+    _residual = _shared(_residual)
+    _jacobian = _shared(_jacobian)
+    _max_abs = _shared(_max_abs)
+    _solve = _shared(_solve_lapack if _xgesv is not None else _solve_numpy)
+    _norm1 = _shared(_norm1)
     closure_newton = _jit(_closure_newton)
     pose_sensitivities = _jit(_pose_sensitivities)
     coordinate_rates = _jit(_coordinate_rates)

@@ -331,9 +331,15 @@ def _held_model(z, dl, s, hs):  # pragma: no cover - compiled
     p = z[:r]
     pd = z[r:]
     Mr, Kr, Cr, Gr = _system(dl, s, hs)
-    f = _quadratic_forces(p, pd, nq, hs.fg, hs.T2, hs.V2, hs.C2)
+    f = fo = hs.fg
+    for k in range(2 if hs.has_old else 1):  # the held and the old forms, one inlined copy of the forces for both
+        fk = _quadratic_forces(p, pd, nq, hs.fg if k == 0 else hs.old_fg, hs.T2 if k == 0 else hs.old_T2,
+                               hs.V2 if k == 0 else hs.old_V2, hs.C2 if k == 0 else hs.old_C2)
+        if k == 0:
+            f = fk
+        else:
+            fo = fk
     if hs.has_old:
-        fo = _quadratic_forces(p, pd, nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2)
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
     return Mr, Kr, Cr, Gr, f
@@ -727,8 +733,9 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     per motor, added to the torques (the torque-jump test's too): a random walk of variance ``inp_var dt`` per
     interval (``inp_tau`` 0) or a Gauss-Markov process of stationary variance ``inp_var`` and time constant
     ``inp_tau``, its columns of the Jacobian the step map's torque response ``L``. ``augmented`` is None for a
-    plain state: numba then prunes the augmented interval from the loop's compiled code (one specialisation per
-    kind of state, each compiled at its first use: a plain filter does not compile the augmented kernels).
+    plain state: numba then prunes the augmented interval and the augmented states' bookkeeping (the torques with
+    the disturbances, the nominal-scale exit, ``theta_rec``) from the loop's compiled code (one specialisation
+    per kind of state, each compiled at its first use: a plain filter does not compile the augmented kernels).
 
     Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
     :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
@@ -740,7 +747,9 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     m = Y.shape[1]
     n_x = x.shape[0]
     n0 = 2 * Mr.shape[0]
-    idx = np.arange(m)
+    idx = np.empty(m, np.int64)  # the channels 0 .. m-1 (a loop: numba's np.arange costs more to compile)
+    for i in range(m):
+        idx[i] = i
     y_pred = np.empty(m)
     H = np.zeros((m, n_x))  # (the columns beyond the model's rows stay zero)
     swapped = False
@@ -757,11 +766,13 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
         dt = t[k] - t[k - 1]
         u = U[k - 1]
         u1 = U[k]
-        if n_in:  # the torques with the disturbance
-            for j in range(n_in):
-                ue[j] = u[j] + x[s0 + j]
-                ue1[j] = u1[j] + x[s0 + j]
-        uu, uu1 = (ue, ue1) if n_in else (u, u1)
+        uu, uu1 = u, u1
+        if augmented is not None:  # (the augmented states' bookkeeping: pruned for a plain state)
+            if n_in:  # the torques with the disturbance
+                for j in range(n_in):
+                    ue[j] = u[j] + x[s0 + j]
+                    ue1[j] = u1[j] + x[s0 + j]
+                uu, uu1 = ue, ue1
         if step_statistic(u, u1, step_w) > step_thr or step_statistic(uu, uu1, jump_w) > jump_thr:
             status = GENERAL
             break
@@ -790,11 +801,11 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
         dl = x[:nq] - q0
         s = secant_factor(dl, d, dd)
-        if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
-            status = GENERAL
-            break
         extra = False
         if augmented is not None:  # (pruned by numba for a plain state: see the docstring)
+            if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
+                status = GENERAL
+                break
             if pay or n_in:
                 (z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q) = extra_interval(
                     x, uu, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
@@ -850,9 +861,10 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 for j in range(m):
                     S_rec[k, i * m + j] = S[i, j]
         nis_rec[k] = nis
-        if theta_rec.shape[0]:
-            for i in range(n_x):
-                theta_rec[k, i] = P[i, n0]
+        if augmented is not None:
+            if theta_rec.shape[0]:
+                for i in range(n_x):
+                    theta_rec[k, i] = P[i, n0]
         for out, a in zip(mats_out, (Mo, Ko, Co, Go)):
             for i in range(a.shape[0]):
                 for j in range(a.shape[1]):
