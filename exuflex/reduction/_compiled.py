@@ -14,9 +14,10 @@ checks that all three agree to rounding.
 
 Compilation: numba compiles a kernel that another kernel calls once on its own and then again, with everything
 it calls, inside each caller (its code is linked into the caller's and optimised and translated to machine code
-there anew). So the large kernels are called from Python only (:func:`held_evaluation` chains them), and a small
-helper, or one called from one kernel, is compiled into its caller (numba's ``inline="always"``, the ``_inline``
-decorator; numba copies an inlined helper's code once per block, which makes large inlined helpers costly too).
+there anew). So the large kernels are called from Python only (:func:`held_evaluation` chains them); a helper
+called at one place is compiled into its caller (numba's ``inline="always"``, the ``_inline`` decorator), and a
+small helper called at several places (the products with the 0/1 map, the pairs' rotations) is compiled once and
+called (``_shared``): numba copies an inlined helper's whole code into every call site.
 Every kernel is compiled with the same options (no C-callable wrapper, which nothing here uses): numba compiles
 the NumPy functions a kernel uses once per set of options. Arrays are copied element by element rather than by
 slice assignment, whose compiled shape check links numba's error-message formatting into the kernel.
@@ -275,9 +276,12 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
 if HAVE_NUMBA:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)
     _inline = numba.njit(inline="always", nogil=True, error_model="numpy")
-    _w_product = _inline(_w_product)
-    _t_product = _inline(_t_product)
-    _product_t = _inline(_product_t)
+    # the small products and rotations the kernels call at several places: compiled once and called there (a
+    # helper inlined with inline="always" is copied into every call site)
+    _shared = numba.njit(nogil=True, error_model="numpy", no_cfunc_wrapper=True)
+    _w_product = _shared(_w_product)
+    _t_product = _shared(_t_product)
+    _product_t = _shared(_product_t)
     _tt_product = _inline(_tt_product)
     _element_form = _jit(_element_form)
     _mass_stiffness_gradients = _inline(_mass_stiffness_gradients)
@@ -427,8 +431,8 @@ def _basis_derivative(V, nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kss
 
 
 if HAVE_NUMBA:
-    _rotate_rows = _inline(_rotate_rows)
-    _turn = _inline(_turn)
+    _rotate_rows = _shared(_rotate_rows)
+    _turn = _shared(_turn)
     basis_derivative = _jit(_basis_derivative)
     _basis_derivative_inline = _inline(_basis_derivative)
 else:  # pragma: no cover
