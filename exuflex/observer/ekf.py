@@ -782,7 +782,7 @@ class MultirateEKF:
         r, S, x_new, P_new = np.empty(m), np.empty((m, m)), np.empty(n), self._Pspare
         if FQ is None:
             P = self._P
-            nis, ok, finite = kalman.update_settle(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new, self._floor)
+            nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
         else:
             P = self._Ppred
             nis, ok, finite = kalman.predict_update(FQ[0], self._P, FQ[1], P, self._work, x, y, y_pred, H, Rd,
@@ -815,14 +815,21 @@ class MultirateEKF:
                 m = len(idx)
                 y, y_pred, H = y[keep], y_pred[keep], np.ascontiguousarray(H[keep])
                 r, S = np.empty(m), np.empty((m, m))
-                nis, ok, finite = kalman.update_settle(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new,
-                                                       self._floor)
+                nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
                 if not ok:
                     nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
         self._Pspare = self._P
         self._x, self._P = x_new, P_new
         self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
         return finite
+
+    def _update_settle(self, x, P, y, y_pred, H, Rd, r, S, x_new, P_new) -> tuple[float, bool, bool]:
+        """The update without a prediction (:func:`.kalman.update`, then :func:`.kalman.settle` where ``S`` is
+        positive definite): ``(nis, ok, finite)`` as :func:`.kalman.predict_update`. Two calls rather than a
+        kernel of their own: it runs at the first sample and after a gate only, and a kernel calling both would
+        compile their code once more."""
+        nis, ok = kalman.update(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new)
+        return nis, ok, kalman.settle(x_new, P_new, self._floor) if ok else True
 
     def _lu_update(self, x, P, H, Rd, r, S, x_new, P_new) -> tuple[float, bool]:
         """The update finished by an LU solve where ``S`` is not positive definite (rounding, or a wrong model),

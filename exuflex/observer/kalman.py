@@ -31,8 +31,8 @@ try:
 except ImportError:  # pragma: no cover - numba is a core dependency
     numba = None
 
-__all__ = ["InputStepTest", "apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update", "settle", "step_statistic", "update",
-           "update_settle", "warm_up", "window_push", "window_seen"]
+__all__ = ["InputStepTest", "apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update", "settle",
+           "step_statistic", "update", "warm_up", "window_push", "window_seen"]
 
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
@@ -343,16 +343,6 @@ def predict_update(F, P, Q, P_pred, work, x, y, y_pred, H, Rd, HP, r, S, x_out, 
 
 
 @_jit
-def update_settle(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
-    """:func:`update` then :func:`settle` (a sample without a prediction: the first). Returns ``(nis, ok,
-    finite)`` as :func:`predict_update`."""
-    nis, ok = update(x, P, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
-    if not ok:
-        return nis, False, True
-    return nis, True, settle(x_out, P_out, floor)
-
-
-@_jit
 def window_push(Z, n, sm, sq, last_t, interval, t, idx, z, clip, k_mean, hi, lo, status):  # pragma: no cover
     """:meth:`.ekf.ChannelMonitor.push`'s arithmetic, compiled: the clipped ``z`` of channels ``idx`` into their
     moving windows ``Z`` (sums ``sm``, ``sq`` kept incrementally and recomputed exactly once per window), the
@@ -448,8 +438,6 @@ def warm_up() -> None:
     update(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), x, out)
     predict_update(np.eye(n), P, np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), x, np.ones(m), np.zeros(m), H,
                    np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out, np.zeros(n))
-    update_settle(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out,
-                  np.zeros(n))
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))
     normalise(r, np.eye(m), 1.0, np.empty(m))
