@@ -105,7 +105,15 @@ import scipy.linalg
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
 from .base import Measurement, Prediction
-from .expansion import NO_EXTRA_STATES, cached_samples, payload_interval, scaled_steps
+from .expansion import (
+    NO_DISTURBANCES,
+    NO_EXTRA_STATES,
+    NO_PAYLOAD,
+    LoopExtras,
+    cached_samples,
+    payload_interval,
+    scaled_steps,
+)
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "nominal_mixture", "payload_interval", "payload_rows",
            "payload_twin", "scaled_steps", "warm_up"]
@@ -485,7 +493,7 @@ class AugmentedModel:
             u = inner.torques(u) + x[self.i_inputs]
         n_refresh = inner.n_refresh
         arrays = inner.loop_arrays(z, u, dt, channels)[: -len(NO_EXTRA_STATES)]
-        extra = NO_EXTRA_STATES[:-3]
+        extra = NO_PAYLOAD
         if self.i_theta is not None:
             iv, sm = inner.loop_step
             inc = self.increment(iv, z, inner.n_refresh != n_refresh)
@@ -495,9 +503,9 @@ class AugmentedModel:
             held = not self.released and self._cov is not None
             extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, ok,
                      *(mp[1:] if ok else extra[8:13]), *inc)
-        if self.i_inputs is None:
-            return (*arrays, *extra, *NO_EXTRA_STATES[-3:-1], True)
-        return (*arrays, *extra, np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0), True)
+        inp = (NO_DISTURBANCES if self.i_inputs is None
+               else (np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0)))
+        return (*arrays, LoopExtras(*extra, *inp))
 
     def loop_buffers(self) -> tuple:
         return self.inner.loop_buffers()

@@ -36,6 +36,9 @@ from .kalman import (
 __all__ = [
     "NO_EXTRA_STATES",
     "HeldSystem",
+    "LoopExtras",
+    "NO_DISTURBANCES",
+    "NO_PAYLOAD",
     "cached_samples",
     "extra_interval",
     "held_interval",
@@ -394,11 +397,47 @@ def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
 _NO_MATRIX = np.empty((0, 0))
 _NO_VECTOR = np.empty(0)
-#: :func:`cached_samples`' arguments of the augmented states (``pay ... iold_T2``, ``inp_var``, ``inp_tau``,
-#: ``augmented``) for a model without them
-NO_EXTRA_STATES = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-                   _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-                   _NO_VECTOR, _NO_MATRIX, _NO_VECTOR, 0.0, None)
+
+
+class LoopExtras(NamedTuple):
+    """The arrays of an augmented state that :func:`cached_samples` takes (``augmented``): the payload scale's
+    (``pay`` ... ``pay_Q``; its increment ``i*``, :class:`.augmented.PayloadIncrement`'s fields) and the torque
+    disturbances' (``inp_var``, ``inp_tau``). See :func:`cached_samples` for their meaning."""
+
+    pay: bool
+    pay_held: bool
+    pay_var: float
+    pay_dtheta: float
+    pay_rho: float
+    pay_tol: float
+    pay_dTs: np.ndarray
+    pay_ok: bool
+    pay_c: float
+    pay_Pn: np.ndarray
+    pay_S: np.ndarray
+    pay_L: np.ndarray
+    pay_Q: np.ndarray
+    iMr: np.ndarray
+    iCa: np.ndarray
+    idM: np.ndarray
+    ifg: np.ndarray
+    iT2: np.ndarray
+    iold_dM: np.ndarray
+    iold_Ca: np.ndarray
+    iold_fg: np.ndarray
+    iold_T2: np.ndarray
+    inp_var: np.ndarray
+    inp_tau: float
+
+
+#: :class:`LoopExtras`' payload fields (``pay`` ... ``iold_T2``) of a state without the payload scale
+NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+              _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+              _NO_VECTOR, _NO_MATRIX)
+#: :class:`LoopExtras`' disturbance fields (``inp_var``, ``inp_tau``) of a state without torque disturbances
+NO_DISTURBANCES = (_NO_VECTOR, 0.0)
+#: :func:`cached_samples`' last argument (``augmented``) for a model without augmented states
+NO_EXTRA_STATES = (None,)
 
 
 def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
@@ -694,9 +733,7 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                     q0, rad, meas_rad, h_min, map_q, map_rad, map_dt, map_n, dt_tol, ahead, horizon, torque_var,
                     q_extra, rad_tol, rad_min, rad_max, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, L, Q,
                     has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pay, pay_held, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok,
-                    pay_c, pay_Pn, pay_S, pay_L, pay_Q, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
-                    iold_T2, inp_var, inp_tau, augmented):  # pragma: no cover - compiled
+                    old_T2, old_V2, old_C2, augmented):  # pragma: no cover - compiled
     """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
     :meth:`.ekf.MultirateEKF.step` does it with :meth:`.reduced.ReducedObserverModel.predict` and ``measure``
     (every channel sampled, the held configuration and step map unchanged), until one needs more.
@@ -722,7 +759,8 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     map itself, as the model's ``_step_map`` does (:func:`rebuild_map`, :func:`map_error`,
     :func:`next_map_radius`).
 
-    With ``pay`` the state is a payload-augmented one (:class:`.augmented.AugmentedModel` with the payload scale
+    ``augmented`` (:class:`LoopExtras`) holds an augmented state's arrays. With ``pay`` the state is a
+    payload-augmented one (:class:`.augmented.AugmentedModel` with the payload scale
     alone: ``x = [z; theta]``) and each interval is :meth:`.augmented.AugmentedModel.predict`'s with the scale
     learned: :func:`payload_interval` at the scales ``c + pay_dtheta`` and ``c = max(theta, 0) - 1`` with the
     increment ``i*`` (:class:`.augmented.PayloadIncrement`) and ``pay_var dt`` the scale's noise; its step map
@@ -733,15 +771,17 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     per motor, added to the torques (the torque-jump test's too): a random walk of variance ``inp_var dt`` per
     interval (``inp_tau`` 0) or a Gauss-Markov process of stationary variance ``inp_var`` and time constant
     ``inp_tau``, its columns of the Jacobian the step map's torque response ``L``. ``augmented`` is None for a
-    plain state: numba then prunes the augmented interval and the augmented states' bookkeeping (the torques with
-    the disturbances, the nominal-scale exit, ``theta_rec``) from the loop's compiled code (one specialisation
-    per kind of state, each compiled at its first use: a plain filter does not compile the augmented kernels).
+    plain state: numba then prunes the augmented interval and the augmented states' bookkeeping (their arrays, the
+    torques with the disturbances, the nominal-scale exit, ``theta_rec``) from the loop's compiled code (one
+    specialisation per kind of state, each compiled at its first use: a plain filter does not compile the
+    augmented kernels).
 
     Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
     :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
     ``(n, map_rad, q_map, dt, P^n, S, L, Q, errors, k_map, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``: the
     maps rebuilt, the last one, the replaced ones' errors (in the first ``n`` entries), the sample the last was
-    built for (-1: none) and the scaled map as the loop leaves it.
+    built for (-1: none) and the scaled map as the loop leaves it (for a plain state ``False, 0.0`` and the
+    nominal map the loop started from).
     """
     nq = q0.shape[0]
     m = Y.shape[1]
@@ -756,12 +796,19 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
     errs = np.empty(k1 - k0)
     n_maps = 0
     maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, -1)
+    pay, n_in = False, 0
+    pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = False, 0.0, Pn, SQM, L, Q  # (no scaled map)
+    status = LOOP_DONE
+    if augmented is not None:  # (pruned for a plain state, as every "augmented is not None" below)
+        ex = augmented
+        pay, n_in = ex.pay, ex.inp_var.shape[0]
+        pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = ex.pay_ok, ex.pay_c, ex.pay_Pn, ex.pay_S, ex.pay_L, ex.pay_Q
+        ue, ue1 = np.empty(U.shape[1]), np.empty(U.shape[1])
+        if pay and ex.pay_held:  # (a held scale: the model's own step)
+            status = GENERAL
     scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
-    n_in = inp_var.shape[0]
     s0 = n_x - n_in
-    ue, ue1 = np.empty(U.shape[1]), np.empty(U.shape[1])
     k = k0
-    status = GENERAL if pay and pay_held else LOOP_DONE  # (a held scale: the model's own step)
     while status == LOOP_DONE and k < k1:
         dt = t[k] - t[k - 1]
         u = U[k - 1]
@@ -797,8 +844,9 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 n_maps += 1
                 map_q, map_dt, Pn, Q = q_new, dt, Pn_new, Q_new
                 maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, k)
-                pay_ok = False  # the scaled map follows the nominal one
-                scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
+                if augmented is not None:
+                    pay_ok = False  # the scaled map follows the nominal one
+                    scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
         dl = x[:nq] - q0
         s = secant_factor(dl, d, dd)
         extra = False
@@ -807,11 +855,13 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                 status = GENERAL
                 break
             if pay or n_in:
+                ex = augmented
                 (z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q) = extra_interval(
-                    x, uu, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
-                    pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
-                    beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+                    x, uu, dl, s, dt, n, pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, pay_ok,
+                    pay_c, pay_Pn, pay_S, pay_L, pay_Q, ex.inp_var, ex.inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn,
+                    SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
+                    old_fg, old_T2, old_V2, old_C2, ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iold_dM, ex.iold_Ca,
+                    ex.iold_fg, ex.iold_T2)
                 scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
                 extra = True
         if not extra:
@@ -1182,11 +1232,6 @@ def warm_up_maps() -> None:
                 np.empty((1, 2 * r)))
 
 
-_EXTRA_NAMES = ("pay", "pay_held", "pay_var", "pay_dtheta", "pay_rho", "pay_tol", "pay_dTs", "pay_ok", "pay_c",
-                  "pay_Pn", "pay_S", "pay_L", "pay_Q", "iMr", "iCa", "idM", "ifg", "iT2", "iold_dM", "iold_Ca",
-                  "iold_fg", "iold_T2", "inp_var", "inp_tau", "augmented")
-
-
 def warm_up_loop(augmented: bool | None = None) -> None:
     """Compile (or load) the sample loop :func:`cached_samples`, for the argument types the filter passes: called
     with no sample to do (``k0 = k1``), it returns at once. It calls :func:`held_interval`, the step map's kernels
@@ -1204,7 +1249,7 @@ def warm_up_loop(augmented: bool | None = None) -> None:
                        ahead=0.0, horizon=0.0, torque_var=v, q_extra=v, rad_tol=0.0, rad_min=0.0, rad_max=0.0, c0=v,
                        Hm=m, dH=m, G=m, d=v, dd=0.0, Ts=c, Vs=c, C3=c, Pn=m, SQM=m, L=m, Q=m,
                        **_example_system(1, 1)._asdict(),
-                       **dict(zip(_EXTRA_NAMES, (*NO_EXTRA_STATES[:-1], augmented), strict=True)))
+                       augmented=LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None)
     except TypeError as exc:  # a parameter added or renamed: tests/test_compile.py fails until this call follows
         log.warning("expansion.warm_up_loop: the example call does not match cached_samples (%s); it compiles at "
                     "its first use", exc)
