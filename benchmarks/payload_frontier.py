@@ -168,7 +168,8 @@ def main(argv=None) -> int:
     mech = load_mechanism(args.model)
     levels = {scale: run_level(mech, args.study_dir, scale, args) for scale in (1.0, 2.0)}
     given = argv if argv is not None else sys.argv[1:]
-    command = "python benchmarks/payload_frontier.py " + " ".join("DIR" if a == args.study_dir else a for a in given)
+    shown = [a for i, a in enumerate(given) if a != "--json" and (i == 0 or given[i - 1] != "--json")]
+    command = "python benchmarks/payload_frontier.py " + " ".join("DIR" if a == args.study_dir else a for a in shown)
     if args.json:
         Path(args.json).write_text(json.dumps({"command": command, "levels": {str(k): v for k, v in levels.items()}},
                                               indent=1))
