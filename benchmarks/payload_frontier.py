@@ -138,6 +138,9 @@ def page(model: str, levels: dict, args, command: str) -> str:
         a, b = np.array(nom["rms"][k]), np.array(dbl["rms"][k])
         lines.append(f"| {k} | " + " | ".join(f"{v:.3f}" for v in a / base) + " | "
                      + " | ".join(f"{v:.3f}" for v in b / a) + " |")
+    both = [k for k in keys if np.all(np.array(nom["rms"][k]) / base <= 1.10)
+            and np.all(np.array(dbl["rms"][k]) / np.array(nom["rms"][k]) <= 1.5)]
+    lines += ["", "Meeting both bars in every coordinate: " + (", ".join(both) if both else "none") + "."]
     lines += ["", "RMS errors (rad, rad/s):", "", "| estimator | payload | " + " | ".join(names) + " |",
               "|---|---|" + "---|" * len(names)]
     for scale, lv in levels.items():
@@ -157,6 +160,7 @@ def main(argv=None) -> int:
     ap.add_argument("--start-up", type=float, default=0.3)
     ap.add_argument("--json", default=None)
     ap.add_argument("--md", default=None)
+    ap.add_argument("--from-json", default=None, help="the --json file of an earlier run: the page only")
     args = ap.parse_args(argv)
     args.ps = [float(p) for p in args.ps.split(",")]
     if not all(0.0 < p < 1.0 for p in args.ps):
@@ -165,11 +169,16 @@ def main(argv=None) -> int:
         ap.error(f"--alpha: a fraction strictly between 0 and 1 expected, got {args.alpha}")
     if args.components < 1 or args.seeds < 1:
         ap.error("--components and --seeds: positive integers expected")
-    mech = load_mechanism(args.model)
-    levels = {scale: run_level(mech, args.study_dir, scale, args) for scale in (1.0, 2.0)}
     given = argv if argv is not None else sys.argv[1:]
     shown = [a for i, a in enumerate(given) if a != "--json" and (i == 0 or given[i - 1] != "--json")]
     command = "python benchmarks/payload_frontier.py " + " ".join("DIR" if a == args.study_dir else a for a in shown)
+    if args.from_json:
+        done = json.loads(Path(args.from_json).read_text())
+        levels = {float(k): v for k, v in done["levels"].items()}
+        publish(page(args.model, levels, args, done["command"]), args.md)
+        return 0
+    mech = load_mechanism(args.model)
+    levels = {scale: run_level(mech, args.study_dir, scale, args) for scale in (1.0, 2.0)}
     if args.json:
         Path(args.json).write_text(json.dumps({"command": command, "levels": {str(k): v for k, v in levels.items()}},
                                               indent=1))
