@@ -24,6 +24,7 @@ from exuflex.observer.session import (
     physical_names,
 )
 from exuflex.runs import read_run
+from exuflex.sensors import tip_point
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 DATA = Path(__file__).resolve().parent / "data"
@@ -408,6 +409,36 @@ def test_tip_rate_is_the_time_derivative_of_the_tip_deflection(arm):
         assert np.max(np.abs(ed[1:-1] - fd)) < tol * scale
         disp = np.column_stack([phys[n] for n in names[2:4]])
         assert np.max(np.abs(disp - e)) < 1e-4 * np.max(np.abs(e))  # (1e-2 rad)^2 / 2 of the deflection
+
+
+def test_physical_in_blocks_is_one_call_and_the_row_formula(arm):
+    """:meth:`Observer.physical` on a record cut into blocks (``carry``) gives the numbers of one call on the whole
+    record, bit for bit, with non-finite rows left NaN and not moving the evaluation; each row is the stated
+    formula ``A p``, ``A p' + sum_i (dA/dq_i p) q'_i`` with ``A`` moved to first order from the evaluation in
+    force (rows evaluated where q left the radius), computed here sample by sample."""
+    mech, observer = arm
+    t, Z = _turning_states(observer, mech, n=300)
+    Z[[17, 18, 140]] = np.nan
+    nq, r = observer.model.nq, observer.model.r
+    whole = observer.physical(t, Z, refresh_rad=0.05)
+    carry: dict = {}
+    parts = [observer.physical(t[a:b], Z[a:b], refresh_rad=0.05, carry=carry).data
+             for a, b in ((0, 1), (1, 18), (18, 100), (100, 300))]
+    np.testing.assert_array_equal(np.vstack(parts), whole.data)
+    names = physical_names(mech)
+    tip = np.column_stack([whole[n] for n in names[2 * nq : 2 * nq + 4]])
+    assert np.isnan(tip[[17, 18, 140]]).all() and np.isfinite(np.delete(tip, [17, 18, 140], axis=0)).all()
+    tp = tip_point(mech)
+    rows = None
+    for k in np.flatnonzero(np.all(np.isfinite(Z), axis=1)):
+        q, p, v = Z[k, :nq], Z[k, :r], Z[k, r : 2 * r]
+        if rows is None or np.max(np.abs(q - rows[2])) > 0.05:
+            rows = (observer.model.tip_rows(q, *tp), None, q.copy())
+            rows = (rows[0], np.array([(observer.model.tip_rows(q + 1e-6 * e, *tp) - rows[0]) / 1e-6
+                                       for e in np.eye(nq)]), rows[2])
+        A = rows[0] + np.tensordot(q - rows[2], rows[1], axes=1)
+        want = np.concatenate([A @ p, A @ v + np.tensordot(Z[k, r : r + nq], rows[1], axes=1) @ p])
+        np.testing.assert_allclose(tip[k], want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 
 
 def test_physical_covariance_is_the_physical_map_s_jacobian_squared(arm):

@@ -217,25 +217,48 @@ class Observer:
     def _tip_columns(self, Z: np.ndarray, out: np.ndarray, tp, refresh_rad: float, carry: dict) -> None:
         """The tip elastic displacement and rate columns of :meth:`physical` into ``out``."""
         nq, r = self.model.nq, self.model.r
+        for a, b, (A0, dA, q0) in self._tip_segments(Z, tp, refresh_rad, carry):
+            p, v, qd = Z[a:b, :r], Z[a:b, r : 2 * r], Z[a:b, r : r + nq]
+            A = _rows_along(A0, dA, Z[a:b, :nq] - q0)  # (n, 2, r)
+            out[a:b, 2 * nq : 2 * nq + 2] = _apply_rows(A, p)
+            out[a:b, 2 * nq + 2 : 2 * nq + 4] = _apply_rows(A, v) + _apply_rows(_rows_along(0.0, dA, qd), p)
+
+    def _tip_segments(self, Z: np.ndarray, tp, refresh_rad: float, carry: dict, lookahead: int = 64):
+        """The runs of rows of ``Z`` that share one evaluation of the tip rows: ``(a, b, (A, dA/dq, q0))`` for rows
+        ``a:b``, all finite and with ``max |q - q0| <= refresh_rad``. A row beyond that radius starts a new
+        evaluation at its own ``q``; rows with a non-finite entry, and rows where the loops do not close (no
+        evaluation), are in no run. ``carry["rows"]`` holds the evaluation from one block of rows to the next. The
+        rows' end is searched ``lookahead`` rows at a time, doubling (a run's cost is its length, not the
+        record's)."""
+        nq = self.model.nq
         rows = carry.get("rows")
-        for k in range(len(Z)):
-            q = Z[k, :nq]
-            if not np.all(np.isfinite(Z[k])):
+        finite = np.all(np.isfinite(Z), axis=1)
+        n, k = len(Z), 0
+        while k < n:
+            if not finite[k]:
+                k += 1
                 continue
-            if rows is None or np.max(np.abs(q - rows[2])) > refresh_rad:
-                rows = self._tip_rows_and_rates(q, tp)
+            if rows is None or np.max(np.abs(Z[k, :nq] - rows[2])) > refresh_rad:
+                rows = self._tip_rows_and_rates(Z[k, :nq], tp)
                 if rows is None:  # a runaway estimate where the loops cannot close: no tip value
+                    k += 1
                     continue
-            A0, dA, q0 = rows
-            dq = q - q0
-            A = A0 + np.tensordot(dq, dA, axes=1)
-            out[k, 2 * nq : 2 * nq + 2] = A @ Z[k, :r]
-            out[k, 2 * nq + 2 : 2 * nq + 4] = A @ Z[k, r:] + np.tensordot(Z[k, r : r + nq], dA, axes=1) @ Z[k, :r]
+            b, w = k + 1, lookahead
+            while b < n:
+                e = min(n, b + w)
+                stop = ~finite[b:e] | (np.max(np.abs(Z[b:e, :nq] - rows[2]), axis=1) > refresh_rad)
+                if stop.any():
+                    b += int(np.argmax(stop))
+                    break
+                b, w = e, 2 * w
+            yield k, b, rows
+            k = b
         carry["rows"] = rows
 
     def _tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
-        """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by central differences
-        of step ``eps`` rad (the rows are smooth in q: rotations and Guyan shapes); None where the loops do not
+        """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by forward differences
+        of step ``eps`` rad (the rows are smooth in q, rotations and Guyan shapes: the truncation error is of order
+        ``eps`` relative, far below the first-order interpolation's ``refresh_rad^2``); None where the loops do not
         close."""
         som = self.model
         q = np.array(q, float)
@@ -245,7 +268,7 @@ class Observer:
             for i in range(som.nq):
                 e = np.zeros(som.nq)
                 e[i] = eps
-                dA[i] = (som.tip_rows(q + e, *tp) - som.tip_rows(q - e, *tp)) / (2 * eps)
+                dA[i] = (som.tip_rows(q + e, *tp) - A) / eps
         except KinematicsError:
             return None
         return A, dA, q
@@ -270,15 +293,15 @@ class Observer:
         C = np.zeros((k, nx))
         C[:nq, :nq] = np.eye(nq)
         C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        rows = carry.get("rows")
-        for i in range(len(Z)):
-            if tp is not None:
+        if tp is None:
+            for i in range(len(Z)):
+                out[i] = C @ P[i][:nx, :nx] @ C.T
+            return out
+        out[:] = np.nan
+        for a, b, (A0, dA, q0) in self._tip_segments(Z[:, :nx], tp, refresh_rad, carry):
+            for i in range(a, b):
                 z = Z[i, :nx]
-                q = z[:nq]
-                if rows is None or np.max(np.abs(q - rows[2])) > refresh_rad:
-                    rows = self._tip_rows_and_rates(q, tp)
-                A0, dA, q0 = rows
-                A = A0 + np.tensordot(q - q0, dA, axes=1)
+                A = A0 + np.tensordot(z[:nq] - q0, dA, axes=1)
                 dAp = np.einsum("iaj,j->ai", dA, z[:r])  # d(A p)/dq (2, nq)
                 C[2 * nq :, :] = 0.0
                 C[2 * nq : 2 * nq + 2, :r] = A
@@ -289,9 +312,22 @@ class Observer:
                 # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
                 # left out: of the order of q' times the deflection per radian, times q's small uncertainty
                 C[2 * nq + 2 :, :nq] += np.einsum("iaj,j->ai", dA, z[r:])
-            out[i] = C @ P[i][:nx, :nx] @ C.T
-        carry["rows"] = rows
+                out[i] = C @ P[i][:nx, :nx] @ C.T
         return out
+
+
+def _rows_along(A0, dA: np.ndarray, dQ: np.ndarray) -> np.ndarray:
+    """``A0 + sum_i dQ[:, i] dA[i]`` for each row of ``dQ`` (n, nq): rows (n, *A0.shape) moved to first order.
+    Element by element, so that a row's numbers do not depend on the rows computed with it."""
+    A = np.zeros((len(dQ), *dA.shape[1:])) + A0
+    for i in range(dA.shape[0]):
+        A += dQ[:, i, None, None] * dA[i]
+    return A
+
+
+def _apply_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``A[k] @ p[k]`` for each k (A (n, a, r), p (n, r)), row by row as :func:`_rows_along`."""
+    return (A * p[:, None, :]).sum(axis=-1)
 
 
 def _noise_std(mech: Mechanism, channels: Sequence[str]) -> dict[str, float]:
