@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
 #: CPU seconds a compiling subprocess spends before its first compilation (Python, NumPy, numba, the package,
 #: numba's compiler set up)
-START_COST = 2.0
+START_COST = 1.7
 #: seconds to wait for a compiling subprocess before compiling its share here
 TIMEOUT_S = 900.0
 
