@@ -29,8 +29,9 @@ from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, estimate, make_observer, metrics
 from exuflex.study.runner import _load_truth
 
-LEGEND = """Columns: mean over the seeds of the per-run RMS error after the start-up (rad, rad/s, m); `rtf`: median
-real-time factor of the filter alone (on a shared machine: compare within a table only). Smoothed / filtered: the
+LEGEND = """Columns: mean over the seeds of the per-run RMS error after the start-up (rad, rad/s, m); the speed is
+measured apart, the estimators timed in turn on one log (section "Speed"; the JSON rows keep each accuracy run's
+real-time factor, taken while other runs shared the machine). Smoothed / filtered: the
 RTS smoother's RMS error over the filter's on the same log. "After the settle time": mean RMS errors over the
 samples after `--settle` s only (the payload estimate learned). NIS: the mean normalised innovation squared over all
 runs' updates after the start-up and the two-sided 95 % chi-square band of a consistent filter (updates taken as
@@ -228,14 +229,13 @@ def _model_table(rows, out) -> None:
         [c for c in names if c[0] in "xy"]
     late = [c for c in cols if "late_" + c in rows[0]]
     w = max(12, *(len(r["estimator"]) for r in rows))
-    out(f"{'scale':>5s} {'estimator':>{w}s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols) + "   rtf")
+    out(f"{'scale':>5s} {'estimator':>{w}s} {'n':>3s} {'div':>3s} " + " ".join(f"{c:>9s}" for c in cols))
     for sc, en in keys:
         every = [r for r in rows if r["scale"] == sc and r["estimator"] == en]
         # a run whose estimate went non-finite is counted (div) and left out of the means
         rr = [r for r in every if all(np.isfinite(r[c]) for c in cols)]
         cells = " ".join(f"{np.mean([r[c] for r in rr]):9.3g}" for c in cols)
-        out(f"{sc:5.2f} {en:>{w}s} {len(rr):3d} {len(every) - len(rr):3d} {cells}  "
-            f"{np.median([r['rtf'] for r in rr]):5.1f}")
+        out(f"{sc:5.2f} {en:>{w}s} {len(rr):3d} {len(every) - len(rr):3d} {cells}")
         if late:
             out("      after the settle time: " + ", ".join(
                 f"{c} {np.mean([r['late_' + c] for r in rr]):.3g}" for c in late))
