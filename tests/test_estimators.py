@@ -167,11 +167,13 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     _, dTs = aug._shares[iv.serial]
     Ts, Vs, C3 = iv.forces.jacobian_tensors()
     n0 = len(z)
-    out = payload_interval(z, u, dl, s, dt / n, n, a, 1.6, 0.2, 0.3, n0 + 2, True, inner.torque_var, np.zeros(0),
-                           a[-1], Ts, dTs, Vs, C3, sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
+    # (no scaled map yet and any scale beyond the tolerance: the scaled map is built at a[-1])
+    out = payload_interval(z, u, dl, s, dt / n, n, a, 1.6, 0.2, 0.3, n0 + 2, 1.0, 0.0, False, 0.0, sm.Pn, sm.S,
+                           sm.L, sm.Q, inner.torque_var, np.zeros(0), Ts, dTs, Vs, C3, sm.Pn, sm.S, sm.L, sm.Q,
+                           *iv.system, *inc)
     np.testing.assert_array_equal(out[0], rows)
     Pn, S, L, Q = step_maps_noise(Mr, Kr, Cr, Gr, dt / n, n, inner.torque_var)
-    for got, ref in zip(out[4:], (Pn, S, L, Q, Mr, Kr, Cr, Gr)):
+    for got, ref in zip((*out[5][2:], *out[6:]), (Pn, S, L, Q, Mr, Kr, Cr, Gr)):
         np.testing.assert_array_equal(got, ref)
     # the augmented prediction: [z_next; theta; 0], the Jacobian with the scale's column (rows[0] - rows[-1]) / 0.2
     x, F, Qx = out[1:4]

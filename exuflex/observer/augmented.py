@@ -337,25 +337,22 @@ class AugmentedModel:
         Those are the nominal step map's where the payload's change of the modal masses, ``|c| rho``
         (``rho = max eig(dM_r, M_r)``), is within the error the cached step holds its matrices to
         (``inner.refresh_tol``, relative in the mass metric); else the maps of the held linear system at the scale
-        ``c`` (rebuilt when the nominal step map is, or when ``c`` moved by more than that tolerance), and the
-        force Jacobian with the payload's velocity forms. The interval's held matrices (for a torque jump) are
-        those at ``c``."""
+        ``c`` (rebuilt when the nominal step map is, or when ``c`` moved by more than that tolerance: the kernel
+        decides, and hands back the scaled map it leaves), and the force Jacobian with the payload's velocity
+        forms. The interval's held matrices (for a torque jump) are those at ``c``."""
         inner = self.inner
         n_refresh = inner.n_refresh
         iv, dl, s, n, sm = inner.prepare(z, u, dt)
         inc = self.increment(iv, z, inner.n_refresh != n_refresh)
         rho, dTs = self._shares[iv.serial]
-        c = float(a[-1])
-        tol = inner.refresh_tol
-        scaled = abs(c) * rho > tol
         mp = self._map
-        rebuild = scaled and (mp is None or mp[0] is not sm or abs(c - mp[1]) * rho > tol)
-        maps = mp[2:] if scaled and not rebuild else (sm.Pn, sm.S, sm.L, sm.Q)
-        rows, x, F, Qx, Pn, S, L, Q, Mr, Kr, Cr, Gr = payload_interval(
-            z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rebuild, inner.torque_var,
-            inner._q_extra, c if scaled else 0.0, sm.tail[0], dTs, sm.tail[1], sm.tail[2], *maps, *iv.system, *inc)
-        if rebuild:
-            self._map = (sm, c, Pn, S, L, Q)
+        ok = mp is not None and mp[0] is sm
+        rows, x, F, Qx, L, scaled_map, Mr, Kr, Cr, Gr = payload_interval(
+            z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rho, inner.refresh_tol, ok,
+            *(mp[1:] if ok else NO_PAYLOAD[8:13]), inner.torque_var, inner._q_extra, sm.tail[0], dTs, sm.tail[1],
+            sm.tail[2], sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
+        if scaled_map[0]:
+            self._map = (sm, *scaled_map[1:])
         inner.interval_system = (Mr, Kr, Cr, Gr, dt / n, n)
         return rows, x, F, Qx, L
 
@@ -550,9 +547,9 @@ def warm_up() -> None:
         hs = _example_system(r, nq, has_old)
         inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.old_dM, M, hs.old_fg, hs.old_T2)
         scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
-        for rebuild in (False, True):
-            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, rebuild, np.ones(nq), np.zeros(0),
-                             0.0, T3, T3, V3, C3, *maps, *hs, *inc)
+        for ok in (False, True):
+            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, 1.0, 0.0, ok, 0.0, *maps,
+                             np.ones(nq), np.zeros(0), T3, T3, V3, C3, *maps, *hs, *inc)
         extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, True, 1.0, 1e-4, 1.0, 0.03, T3, False, 0.0,
                        *maps, np.ones(nq), 0.0, np.ones(nq), np.zeros(0), T3, V3, C3, *maps, *hs, *inc)
     warm_up_loop(True)

@@ -1078,7 +1078,6 @@ class MultirateEKF:
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        # (the compiled loop writes no payload column: a model with a payload state has no loop)
         rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, getattr(self.model, "i_theta", None))
         t_start = time.perf_counter()
         n = len(t)

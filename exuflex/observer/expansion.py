@@ -933,9 +933,8 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
     """One interval of an augmented state (:func:`cached_samples`' ``pay`` and ``inp_*``, the torques ``u`` with
     the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
     scaled step map as this interval leaves it. With the payload scale (not at exactly 1) the interval is
-    :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c``, its step map the nominal one where
-    ``|c| pay_rho <= pay_tol``, else the scaled one (rebuilt where it is not the current nominal map's, ``pay_ok``
-    False, or ``c`` moved from ``pay_c`` by ``pay_tol / pay_rho``); without, :func:`held_interval`'s. The
+    :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c`` (which chooses, and rebuilds, the step map: the
+    nominal one or the scaled ``pay_*``); without, :func:`held_interval`'s. The
     disturbances then decay, gain their noise and enter through the map's torque response."""
     n_x = x.shape[0]
     n0 = 2 * Mr.shape[0]
@@ -947,17 +946,12 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
         scales = np.empty(2)
         scales[0] = c + pay_dtheta
         scales[1] = c
-        scaled = abs(c) * pay_rho > pay_tol
-        rebuild = scaled and (not pay_ok or abs(c - pay_c) * pay_rho > pay_tol)
-        cT = c if scaled else 0.0
-        Pn_u, S_u, L_u, Q_u = (pay_Pn, pay_S, pay_L, pay_Q) if scaled and not rebuild else (Pn, SQM, L, Q)
-        _, z, F, Qk, Pn_u, S_u, L_u, Q_u, Mo, Ko, Co, Go = payload_interval(
-            x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, rebuild, torque_var, q_extra, cT,
-            Ts, pay_dTs, Vs, C3, Pn_u, S_u, L_u, Q_u, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM,
-            old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
-            iold_fg, iold_T2)
-        if rebuild:
-            pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = True, c, Pn_u, S_u, L_u, Q_u
+        _, z, F, Qk, L_u, scaled_map, Mo, Ko, Co, Go = payload_interval(
+            x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, pay_rho, pay_tol, pay_ok, pay_c,
+            pay_Pn, pay_S, pay_L, pay_Q, torque_var, q_extra, Ts, pay_dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr,
+            Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+        pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = scaled_map
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
                                                Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
@@ -1100,21 +1094,24 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     return out, M, K0, C, G0
 
 
-def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rebuild, torque_var, q_extra, cT, Ts,
-                      dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM,
-                      old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM,
-                      iold_Ca, iold_fg, iold_T2):  # pragma: no cover - compiled
+def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, tol, map_ok, map_c, map_Pn, map_S,
+                      map_L, map_Q, torque_var, q_extra, Ts, dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca,
+                      Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+                      iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
 
     The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
     scale ``c``), taken again without the secant (``s = 0``, first order) if one is not finite; the held matrices
-    at ``c``; the step map: where ``rebuild``, the maps of the held linear system at ``c``
-    (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the noise's diagonal), else ``Pn``, ``SQM``,
-    ``L``, ``Q`` as given; and the step's Jacobian in the state (:func:`step_jacobian`) with that map and the
-    velocity forms ``Ts + cT dTs``.
+    at ``c``; the step map: the nominal one (``Pn``, ``SQM``, ``L``, ``Q``) where the payload's change of the modal
+    masses ``|c| rho`` is within ``tol``, else the scaled one: ``map_*``, built at the scale ``map_c``, where it is
+    the current nominal map's (``map_ok``) and ``c`` is within ``tol / rho`` of ``map_c``, else rebuilt as the
+    maps of the held linear system at ``c`` (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the
+    noise's diagonal); and the step's Jacobian in the state (:func:`step_jacobian`) with that map and the
+    velocity forms ``Ts + c dTs`` (``Ts`` with the nominal map).
 
-    Returns ``(rows, x, F, Qx, P^n, S, L, Q, M_r, K_r, C_r, G_r)`` with the augmented state's prediction (``nx``
-    states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros beyond): ``x = [rows[-1]; theta; 0]``,
+    Returns ``(rows, x, F, Qx, L, (map_ok, map_c, map_Pn, map_S, map_L, map_Q), M_r, K_r, C_r, G_r)`` with the
+    augmented state's prediction (``nx`` states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros
+    beyond), the map's torque response and the scaled map as the interval leaves it: ``x = [rows[-1]; theta; 0]``,
     ``F`` the step's Jacobian in its leading block, the scale's column the forward difference
     ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``, ``Qx`` the process
     noise ``Q`` in its leading block and ``theta_var`` the scale's."""
@@ -1130,10 +1127,16 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rebuil
         rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
                                             C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
                                             iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
-    if rebuild:
+    c = a[a.shape[0] - 1]
+    scaled = abs(c) * rho > tol
+    cT = c if scaled else 0.0
+    if scaled and map_ok and abs(c - map_c) * rho <= tol:
+        Pn, SQM, L, Q = map_Pn, map_S, map_L, map_Q
+    elif scaled:  # (re)built at c: the scaled map of the current nominal map
         Pn, SQM, L, Q = step_maps_noise(Mo, Ko, Co, Go, h, n, torque_var)
         for i in range(q_extra.shape[0]):
             Q[i, i] += q_extra[i]
+        map_ok, map_c, map_Pn, map_S, map_L, map_Q = True, c, Pn, SQM, L, Q
     T = np.empty(Ts.shape)
     for i in range(Ts.shape[0]):  # loops, not array expressions (see _mass_stiffness)
         for j in range(Ts.shape[1]):
@@ -1155,7 +1158,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rebuil
     x[n0] = theta
     F[n0, n0] = 1.0
     Qx[n0, n0] = theta_var
-    return rows, x, F, Qx, Pn, SQM, L, Q, Mo, Ko, Co, Go
+    return rows, x, F, Qx, L, (map_ok, map_c, map_Pn, map_S, map_L, map_Q), Mo, Ko, Co, Go
 
 
 _times_hA = _shared(_times_hA)

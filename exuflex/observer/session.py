@@ -289,15 +289,12 @@ class Observer:
         nq, r, nx = som.nq, som.r, som.nx
         tp = tip_point(self.mech)
         k = 2 * nq + (4 if tp is not None else 0)
-        out = np.empty((len(Z), k, k))
         C = np.zeros((k, nx))
         C[:nq, :nq] = np.eye(nq)
         C[nq : 2 * nq, r : r + nq] = np.eye(nq)
         if tp is None:
-            for i in range(len(Z)):
-                out[i] = C @ P[i][:nx, :nx] @ C.T
-            return out
-        out[:] = np.nan
+            return C @ P[:, :nx, :nx] @ C.T
+        out = np.full((len(Z), k, k), np.nan)  # (rows in no run of tip rows: no tip value)
         for a, b, (A0, dA, q0) in self._tip_segments(Z[:, :nx], tp, refresh_rad, carry):
             for i in range(a, b):
                 z = Z[i, :nx]
