@@ -27,7 +27,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import numpy as np
 
 __all__ = ["GENERAL", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "CompiledModel", "DiscreteModel",
-           "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "Prediction"]
+           "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "Prediction", "takes_compiled_loop"]
 
 #: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
 #: configuration's or the step map's radius was left (the model renews its arrays, :meth:`CompiledModel.loop_model`,
@@ -167,3 +167,10 @@ class CompiledModel(DiscreteModel, Protocol):
         """After the loop's samples up to ``k`` (not done), the filter's state now ``x``: what the model keeps of
         them (the carried ``state``, the last interval's held matrices ``mats`` over ``dt``)."""
         ...
+
+
+def takes_compiled_loop(model) -> bool:
+    """Whether the filter's compiled sample loop may take ``model``'s intervals: its class implements
+    :class:`CompiledModel` (a wrapping model that forwards attribute reads to the model it wraps does not) and the
+    model's step is the compiled one (``compiled``)."""
+    return all(hasattr(type(model), name) for name in ("compiled", "loop_model", "loop_done")) and bool(model.compiled)

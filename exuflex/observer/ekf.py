@@ -76,7 +76,7 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import MONITOR, REFRESH, REMAP, CompiledModel, DiscreteModel, FilterDivergedError
+from .base import MONITOR, REFRESH, REMAP, DiscreteModel, FilterDivergedError, takes_compiled_loop
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["ChannelMonitor", "EstimationResult", "MultirateEKF", "NISMonitor"]
@@ -640,7 +640,7 @@ class MultirateEKF:
         # keep (x_pred, F, Q) of each sample's prediction in last_prediction (what a smoother's backward pass needs)
         self.record_predictions = False
         # the compiled sample loop (run() hands it the samples it can take) where the model has a compiled step
-        self._loop = loop.samples if isinstance(model, CompiledModel) and model.compiled else None
+        self._loop = loop.samples if takes_compiled_loop(model) else None
         if self._loop is not None:
             self._loop_status = np.zeros(self.m, dtype=np.int64)
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),

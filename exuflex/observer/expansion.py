@@ -24,14 +24,14 @@ from .base import GENERAL, LOOP_DONE, REFRESH, REMAP
 from .kalman import step_statistic
 
 __all__ = [
+    "NO_DISTURBANCES",
+    "NO_PAYLOAD",
+    "NO_SCALED_MAP",
     "CachedStep",
     "HeldSystem",
     "LoopExtras",
     "LoopMap",
     "LoopState",
-    "NO_DISTURBANCES",
-    "NO_PAYLOAD",
-    "NO_SCALED_MAP",
     "cached_interval",
     "cached_rows",
     "extra_interval",
