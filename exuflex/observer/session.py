@@ -69,43 +69,64 @@ log = logging.getLogger(__name__)
 class ObserverConfig:
     """Observer settings (all recorded in result files).
 
-    channels : measured sensor channels used (default :func:`default_channels`).
-    masters, n_interior, q_star, ranking : the reduction (default: the model file's).
-    h : longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
-    dt : nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
+    Parameters
+    ----------
+    channels
+        measured sensor channels used (default :func:`default_channels`).
+    masters, n_interior, q_star, ranking
+        the reduction (default: the model file's).
+    h
+        longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
+    dt
+        nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
         time stamp.
-    method : ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
-    q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations (rad, rad/s, m or modal units,
+    method
+        ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
+    q0_std, qd0_std, elastic0_std, elastic_rate0_std
+        prior standard deviations (rad, rad/s, m or modal units,
         their rates).
-    q_scale : multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. The
+    q_scale
+        multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. The
         steady-state bound always uses the stated noise.
-    jump_p : the false-alarm probability per interval of the test that flags two successive torque samples
+    jump_p
+        the false-alarm probability per interval of the test that flags two successive torque samples
         differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
         unknown instant within it, moment-matched (:meth:`.reduced.ReducedObserverModel.input_jump_moments`).
         ``None`` (default): no test. The test helps where a log's torque steps fall between two samples, and
         biases the prediction where they fall on a sample (a time law aligned with the samples, as
         ``exuflex simulate`` makes them): there the held-input step is exact.
-    q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
+    q_extra_std
+        extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
-    max_gap : longest interval (s) between two samples the filter predicts over.
-    start_up : seconds left out of the error metrics (the filter's transient).
-    gate_p, fault_window, fault_p : per-channel innovation gate and sensor-fault tests (see
+    max_gap
+        longest interval (s) between two samples the filter predicts over.
+    start_up
+        seconds left out of the error metrics (the filter's transient).
+    gate_p, fault_window, fault_p
+        per-channel innovation gate and sensor-fault tests (see
         :mod:`.ekf`, :class:`.ekf.ChannelMonitor`); ``gate_p=None`` and ``fault_window=0`` turn them off.
-    fault_isolation : leave a channel with an open offset or stuck fault out of the updates (off by default: a
+    fault_isolation
+        leave a channel with an open offset or stuck fault out of the updates (off by default: a
         model error, such as a wrong payload, looks like a sensor offset to the tests; they report it).
-    fault_holdoff_s : seconds after a detected torque step during which nothing is gated and the NIS and
+    fault_holdoff_s
+        seconds after a detected torque step during which nothing is gated and the NIS and
         sensor-fault tests pause (the allowance for planned input steps).
-    estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
+    estimator
+        one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
-    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
+    payload_std, payload0_std
+        random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
-    payload_nominal_p : the prior probability that the payload is the model file's. The payload estimator reports
+    payload_nominal_p
+        the prior probability that the payload is the model file's. The payload estimator reports
         its posterior mixed with its conditional on the nominal payload, by that hypothesis' posterior probability
         (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is.
-    payload_linearity : the payload scale is held at its prior from the start until the first interval whose
+    payload_linearity
+        the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
         deviations (:class:`.augmented.AugmentedModel`, ``linearity_tol``).
-    input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
+    input_scale, input_tau, input0_scale
+        torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
     """
