@@ -47,7 +47,7 @@ from ..probes import Probe, ProbeRecord, probes_for
 from .builder import _exu
 from .solid import MODE_FACTOR, SolidLink, solid_link, solid_specs
 
-__all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "ffrf_frequencies"]
+__all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "ffrf_frequencies", "simulate_ffrf"]
 
 log = logging.getLogger(__name__)
 
@@ -292,6 +292,17 @@ def ffrf_frequencies(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_f
 
     fm = build_ffrf(mech, q, mesh_scale=mesh_scale, mode_factor=mode_factor, damping=with_damping,
                     progress=progress)
+    zeta = None
+    if with_damping:
+        import scipy.linalg as sla
+
+        M, K, D, *_ = fm.mbs.ComputeLinearizedSystem(projectIntoConstraintNullspace=True)
+        M, K, D = (np.asarray(a) for a in (M, K, D))
+        n = M.shape[0]
+        Z = np.zeros((n, n))
+        s = sla.eigvals(np.block([[Z, np.eye(n)], [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]]))
+        s = s[s.imag > 1e-6]
+        zeta = (np.abs(s) / (2 * np.pi), -s.real / np.abs(s))
     f, vecs = fm.mbs.ComputeODE2Eigenvalues(convert2Frequencies=True, useSparseSolver=False,
                                             ignoreAlgebraicEquations=False, useAbsoluteValues=True)
     f, vecs = np.asarray(f, float), np.asarray(vecs, float)
@@ -306,7 +317,129 @@ def ffrf_frequencies(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_f
     keep = plan >= 0.5
     out = {"frequencies_hz": f[keep], "out_of_plane_hz": f[~keep], "planarity": plan[keep],
            "settings": fm.settings, "setup_s": fm.setup_s, "cached": fm.cached}
+    if zeta is not None:  # each in-plane mode's ratio: the damped mode nearest in frequency
+        fz, z = zeta
+        out["damping_ratio"] = np.array([z[np.argmin(np.abs(fz - fi))] for fi in out["frequencies_hz"]])
     if fmax is not None:
+        if zeta is not None:
+            out["damping_ratio"] = out["damping_ratio"][out["frequencies_hz"] <= fmax]
+        out["planarity"] = out["planarity"][out["frequencies_hz"] <= fmax]
         out["frequencies_hz"] = out["frequencies_hz"][out["frequencies_hz"] <= fmax]
         out["out_of_plane_hz"] = out["out_of_plane_hz"][out["out_of_plane_hz"] <= fmax]
     return out
+
+
+def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: float = 1e-4,
+                  output_dt: float | None = 1 / 500, q0=None, probes: Sequence[Probe] | None = None,
+                  progress: Callable[[float], None] | None = None, messages: Callable[[str], None] | None = None,
+                  mesh_scale: float = 1.0, mode_factor: float = MODE_FACTOR, damping: bool = True,
+                  newton_tol: float = 1e-4, spectral_radius: float = 0.9, stats: dict | None = None) -> ProbeRecord:
+    """Simulate the FFRF model of ``mech`` from rest at ``q0`` under tabulated motor torques; record the probes.
+
+    Same contract as :func:`exuflex.groundtruth.simulate_truth` (torque table in ``mech.motors`` order, linearly
+    interpolated at the step times and applied as the mean of the held values either side of each step's end, so
+    that generalized-alpha sees the ERLS engine's zero-order hold without lag; probes every ``output_dt``; slopes
+    on the branch of the ERLS pose at ``q0``). ``messages`` receives the meshing and modes' progress lines;
+    ``mesh_scale``, ``mode_factor``, ``damping``: :func:`build_ffrf`. ``stats`` (a dict) receives the solver's
+    statistics and the setup time.
+    """
+    from .simulate import _interp_table
+
+    exu, _ = _exu()
+    if h <= 0 or duration <= 0:
+        raise ValueError(f"h and duration must be positive, got h={h}, duration={duration}")
+    n_steps = round(duration / h)
+    if abs(n_steps * h - duration) > 1e-9 * max(1.0, duration):
+        raise ValueError(f"duration {duration} s is not a multiple of the step h = {h} s")
+    every = 1 if output_dt is None else round(output_dt / h)
+    if every < 1 or (output_dt is not None and abs(every * h - output_dt) > 1e-9):
+        raise ValueError(f"output_dt {output_dt} s must be a positive multiple of the step h = {h} s")
+    probes = tuple(probes_for(mech) if probes is None else probes)
+    fm = build_ffrf(mech, q0, mesh_scale=mesh_scale, mode_factor=mode_factor, damping=damping, probes=probes,
+                    progress=messages)
+    mbs = fm.mbs
+    nm = len(mech.motors)
+    t_steps = np.arange(n_steps + 1) * h
+    tau = _interp_table(t_table, torque_table, t_steps, nm) if nm else np.zeros((n_steps + 1, 0))
+    tau_end = 0.5 * (tau[:-1] + tau[1:])  # torque at the end t_k+1 of step k (simulate_truth's Notes)
+    sd = mbs.systemData
+    ref = np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Reference))
+    n_out = n_steps // every + 1
+    C = np.empty((n_out, len(ref)))
+    Cd = np.empty((n_out, len(ref)))
+    T_out = np.empty(n_out)
+    state = {"i": 0}
+    rep_every = max(1, n_steps // 100)
+    loads = [(ld, sign, j) for j, lds in enumerate(fm.motor_loads) for ld, sign in lds]
+    cur = exu.ConfigurationType.Current
+
+    def record(t):
+        i = state["i"]
+        if i < n_out:
+            C[i] = sd.GetODE2Coordinates(cur)
+            Cd[i] = sd.GetODE2Coordinates_t(cur)
+            T_out[i] = t
+            state["i"] = i + 1
+
+    def pre_step(mbs_, t):
+        k = int(round(t / h)) - 1  # Exudyn passes the step's end time; the state is still at t_k
+        if k < 0 or k >= n_steps:
+            return True
+        if k % every == 0:
+            record(k * h)
+        row = tau_end[k]
+        for ld, sign, j in loads:
+            mbs_.SetLoadParameter(ld, "loadVector", [0.0, 0.0, sign * float(row[j])])
+        if progress is not None and k % rep_every == 0:
+            progress(k / n_steps)
+        return True
+
+    ss = exu.SimulationSettings()
+    ti = ss.timeIntegration
+    ti.numberOfSteps = n_steps
+    ti.endTime = duration
+    ti.verboseMode = 0
+    ti.newton.absoluteTolerance = newton_tol
+    ti.adaptiveStep = False
+    ti.generalizedAlpha.spectralRadius = spectral_radius
+    ti.generalizedAlpha.computeInitialAccelerations = True
+    ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
+    ss.solution.file.write = False
+    ss.solution.sensors.active = False
+    ss.show.statistics = False
+    ss.show.computationTime = False
+    for ld, sign, j in loads:
+        mbs.SetLoadParameter(ld, "loadVector", [0.0, 0.0, sign * float(tau[0, j])])
+    mbs.SetPreStepUserFunction(pre_step)
+    t0, c0 = time.perf_counter(), time.process_time()
+    solver = exu.MainSolverImplicitSecondOrder()
+    ok = solver.SolveSystem(mbs, ss)
+    wall = time.perf_counter() - t0
+    if not ok:
+        raise RuntimeError(f"Exudyn FFRF solver failed before t = {duration} s (see Exudyn's messages)")
+    if n_steps % every == 0:
+        record(n_steps * h)
+    if progress is not None:
+        progress(1.0)
+    if stats is not None:
+        it = solver.it
+        stats.update(wall_s=wall, cpu_s=time.process_time() - c0, setup_s=fm.setup_s, setup_cached=fm.cached,
+                     newton_per_step=it.newtonStepsCount / n_steps, jacobians_per_step=it.newtonJacobiCount / n_steps,
+                     n_steps=n_steps, n_coordinates=len(ref), step_ms=1e3 * wall / n_steps, solid=fm.settings)
+    n = state["i"]
+    c_full = C[:n] + ref
+    cd_full = Cd[:n]
+    rec = ProbeRecord(T_out[:n].copy())
+    from ..erls.kinematics import Kinematics
+
+    pose = Kinematics(mech).pose(np.asarray(mech.q_ref if q0 is None else q0, float))
+    link_angle = {lk.name: pose.z[3 * i + 2] for i, lk in enumerate(mech.links)}
+    for p in probes:
+        v, r = fm.probe_values(p, c_full, cd_full)
+        if p.kind == "slope":
+            v = v + 2 * np.pi * np.round((link_angle[p.link] - v[0]) / (2 * np.pi))
+        rec.values[p.key] = v
+        rec.rates[p.key] = r
+    log.info("FFRF truth %s: %.3g s simulated in %.3g s wall (h = %g s, %.3g ms per step)", mech.name, duration,
+             wall, h, 1e3 * wall / n_steps)
+    return rec

@@ -296,7 +296,11 @@ _ARRAYS = ("modeBasis", "xRef", "massMatrixReduced", "stiffnessMatrixReduced", "
 
 
 def _compute(spec: SolidSpec, progress: Callable[[str], None]) -> SolidLink:
-    import ngsolve as ngs
+    try:
+        import ngsolve as ngs
+    except ImportError as exc:
+        raise ImportError("the FFRF truth meshes its links with netgen and ngsolve: pip install 'exuflex[ffrf]' "
+                          f"(or ngsolve), missing: {exc.name}") from None
     from exudyn.FEM import FEMinterface, HCBstaticModeSelection, ObjectFFRFreducedOrderInterface, ResortIndicesExudyn2NGvector
 
     t0 = time.perf_counter()
