@@ -212,7 +212,7 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
             mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[mk, mb], constrainedAxes=[1, 1, 0, 0, 0, 1]))
         elif m.mass > 0.0:
             node = mbs.AddNode(it.NodePoint(referenceCoordinates=[px, py, 0.0]))
-            body = mbs.AddObject(it.ObjectMassPoint(nodeNumber=node, physicsMass=m.mass))
+            body = mbs.AddObject(it.ObjectMassPoint(nodeNumber=node, mass=m.mass))
             mb = mbs.AddMarker(it.MarkerBodyPosition(bodyNumber=body, localPosition=[0.0, 0.0, 0.0]))
             mbs.AddObject(it.ObjectJointSpherical(markerNumbers=[mk, mb], constrainedAxes=[1, 1, 1]))
         else:
