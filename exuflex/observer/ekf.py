@@ -608,8 +608,18 @@ class BeliefFilter:
             raise ValueError("the prior x0, P0 must be finite")
         return x, np.ascontiguousarray(0.5 * (P + P.T))
 
-    def _reset_tests(self) -> None:
-        """Clear the counters and the monitors (a restart)."""
+    def reset(self, x0=None, P0=None) -> None:
+        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
+        prior of later resets too) and clear every counter and monitor. A model with caches (``reset()``) is reset
+        too, so that a run never depends on what the model evaluated before."""
+        if x0 is not None or P0 is not None:
+            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
+        if hasattr(self.model, "reset"):
+            self.model.reset()
+        self._x = self._x0.copy()
+        self._P = self._P0.copy()
+        self._t_prev: float | None = None
+        self._u_prev = None
         self.n_missing = 0
         self.n_updates = 0
         self.diverged = False
@@ -840,18 +850,8 @@ class MultirateEKF(BeliefFilter):
 
     # ------------------------------------------------------------------ state
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
-        prior of later resets too) and clear every counter. A model with caches (``reset()``) is reset too, so
-        that a run never depends on what the model evaluated before."""
-        if x0 is not None or P0 is not None:
-            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
-        self._t_prev: float | None = None
-        self._u_prev = None
-        self._reset_tests()
+        """Restart from a prior (:meth:`BeliefFilter.reset`)."""
+        super().reset(x0, P0)
         self.n_invalid = 0
         self._model_failure = None
         self.last_prediction = None
