@@ -18,12 +18,12 @@ With ``--json`` one JSON object is printed::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import numpy as np
 
 from ..mechanism import MAX_ELEMENTS  # the loader's limit (exuflex.mechanism.limits), also for --refine
+from ..runs import dump_json
 from ..truth import BEAMS
 from .args import n_interior, name_list, nonneg_int, positive_float, positive_int
 from .simulate import elements_per_link_arg
@@ -73,9 +73,8 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     """Library form of the command: the JSON-ready report."""
     from ..erls.modal import modal_analysis
     from ..erls.model import ErlsModel
-    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
-
     from ..errors import UsageError
+    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
     from ..validate import check_configurations, check_positive
 
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 1:
@@ -184,5 +183,5 @@ def run(args) -> int:
                        exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
                        n_interior=args.n_interior, q_star=args.qstar, along=args.along,
                        elements_per_link=args.elements_per_link, beam=args.beam)
-    print(json.dumps(rep) if args.json else _table(rep))
+    print(dump_json(rep, indent=None) if args.json else _table(rep))
     return 0

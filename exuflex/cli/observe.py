@@ -10,11 +10,12 @@ Stage messages go to stderr (``exuflex observe: ...``); the result table to stdo
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from ..runs import dump_json
 from .args import (
+    add_overwrite,
     channel_list,
     finite_float,
     n_interior,
@@ -87,6 +88,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     add_dialect_arguments(g)
     g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
     p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
+    add_overwrite(p)
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
     p.add_argument("--channels", type=channel_list,
                    help="comma-separated sensor channels (default: the paper's set for the model)")
@@ -199,6 +201,15 @@ def run_manoeuvre(mech, log):
 
 
 def run(args) -> int:
+    if not args.out:
+        return _run(args)
+    from ..runs import output_folder
+
+    with output_folder(args.out, "observe", overwrite=args.overwrite, inputs=[args.run_dir]):
+        return _run(args)
+
+
+def _run(args) -> int:
     from .. import _compile
     from ..errors import UsageError
     from ..mechanism import load_mechanism
@@ -270,7 +281,7 @@ def run(args) -> int:
 
             observer_figures(args.out, mech, log, out)
     if args.json:
-        print(json.dumps(s, indent=1, default=float))
+        print(dump_json(s, default=float))
         return 0
     from ..observer.output import summary_table
 

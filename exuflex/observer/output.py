@@ -3,12 +3,11 @@ figures (:func:`exuflex.plots.observer_figures`)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from ..runs import SignalsCsvWriter, atomic_write_text, package_versions, write_signals_csv
+from ..runs import SignalsCsvWriter, atomic_write_text, dump_json, package_versions, write_signals_csv
 from ..sensors import Signals
 
 __all__ = ["EstimatesTable", "EstimatesWriter", "estimates_table", "summary_table", "write_outcome"]
@@ -154,7 +153,7 @@ def write_outcome(out_dir, mech, run, outcome, observer=None, *, estimates: bool
     summary = dict(outcome.summary)
     summary["versions"] = package_versions()
     summary["run_meta"] = {k: run.meta.get(k) for k in ("engine", "seed", "model", "settings") if k in run.meta}
-    atomic_write_text(out / "result.json", json.dumps(summary, indent=1, default=float))
+    atomic_write_text(out / "result.json", dump_json(summary, default=float))
     return out
 
 
