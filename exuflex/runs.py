@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -300,6 +301,16 @@ OUTPUT_MARK = ".exuflex.json"
 _RUN_ENGINES = ("exudyn", "erls", "reduced")
 
 
+_OUTPUT_NAMES = re.compile(r"^(fig_[\w.-]*\.png|[\w-]*\.gif|estimates\.csv|results?\.(csv|json)|summary\.json|"
+                           r"report\.md|plan\.csv|table2\.json)$")
+"""Names of the files exuflex's library writes into a folder beside a command's (figures drawn after a study,
+a run's estimates): in a folder with exuflex's mark they are exuflex's."""
+
+
+def _output_name(name: str) -> bool:
+    return bool(_OUTPUT_NAMES.match(name))
+
+
 def _is_temporary(name: str) -> bool:
     return name.startswith(".") and name.endswith(".tmp")  # an atomic write's temporary file
 
@@ -342,7 +353,7 @@ def _owner(folder: Path) -> tuple[str | None, list[str]]:
     mark = _read_mark(folder)
     if mark is not None:
         files = mark.get("files")
-        foreign = [e for e in entries if e not in files] if isinstance(files, list) else []
+        foreign = [e for e in entries if e not in files and not _output_name(e)] if isinstance(files, list) else []
         return str(mark.get("command", "?")), foreign
     if not entries:
         return None, []
@@ -398,8 +409,8 @@ def output_folder(path: str | os.PathLike, command: str, *, overwrite: bool = Fa
       beside an exuflex result: figures of a run).
 
     The block runs with the folder marked as being written by ``command``; leaving it normally records the
-    entries as exuflex's; leaving it by an exception removes the folder if this call made it and it is still
-    empty. ``inputs``: the files or folders the command reads; one of them inside the folder (or the folder
+    entries as exuflex's; leaving it by an exception removes the folder if this call made it and it holds no
+    result (nothing, or only hidden files such as a lock). ``inputs``: the files or folders the command reads; one of them inside the folder (or the folder
     itself) is refused, as the command would write over what it reads. Errors are
     :class:`~exuflex.errors.UsageError` naming ``param``.
     """
@@ -448,7 +459,7 @@ def output_folder(path: str | os.PathLike, command: str, *, overwrite: bool = Fa
     try:
         yield p
     except BaseException:
-        if made and p.is_dir() and not _entries(p):
+        if made and p.is_dir() and all(e.startswith(".") for e in _entries(p)):  # nothing but a lock: as it was
             shutil.rmtree(p, ignore_errors=True)
         elif p.is_dir():
             _write_mark(p, command, sorted(set(keep) | set(_entries(p))))
@@ -853,15 +864,53 @@ def read_csv_log(
             f"{path}: missing column(s) {list(missing.values())} (for channel(s) {list(missing)}); "
             f"the header has {header}"
         )
-    data, linenos = _parse_stream(path, lines, header, allow_empty=allow_empty, delimiter=delimiter,
-                                  decimal=decimal, size_bytes=_size(path))
-    ti = header.index(time_column)
-    if np.isnan(data[:, ti]).any():
+    used = list(dict.fromkeys([header.index(time_column)] + [header.index(c) for c in mapping.values()]))
+    size = _size(path)
+    if len(used) < len(header):  # columns not mapped (a status text, a spare channel): not parsed, named once
+        unused = [h for i, h in enumerate(header) if i not in used]
+        first_row = next(lines, None)
+        if first_row is not None:
+            cells = first_row[1].split(delimiter)
+            text = [h for i, h in enumerate(header) if i not in used and i < len(cells)
+                    and not _is_number(cells[i].strip(), decimal)]
+            if text:
+                log.warning("%s: column(s) %s not mapped to a channel and not numbers: ignored", path, text)
+            else:
+                log.info("%s: column(s) %s not mapped to a channel: ignored", path, unused)
+            lines = itertools.chain([first_row], lines)
+        lines = _select_cells(path, lines, used, len(header), delimiter, header)
+        size = size * len(used) // len(header)
+    sub = [header[i] for i in used]
+    data, linenos = _parse_stream(path, lines, sub, allow_empty=allow_empty, delimiter=delimiter,
+                                  decimal=decimal, size_bytes=size)
+    if np.isnan(data[:, 0]).any():
         raise LogFormatError(f"{path}: empty cell in the time column {time_column!r}")
-    t = data[:, ti] * time_scale
+    t = data[:, 0] * time_scale
     _check_time(path, t, linenos, time_column)
-    cols = [header.index(c) for c in mapping.values()]
+    cols = [sub.index(c) for c in mapping.values()]
     return Signals(t, tuple(mapping), data[:, cols], ("",) * len(mapping))
+
+
+def _is_number(cell: str, decimal: str = ".") -> bool:
+    if cell == "":
+        return True
+    try:
+        float(cell.replace(decimal, ".") if decimal != "." else cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _select_cells(path: Path, lines, used: Sequence[int], n_col: int, delimiter: str, header: Sequence[str]):
+    """The lines with only the cells of the columns ``used``, in that order (a line with another number of fields
+    is named as :func:`_parse_table` names it)."""
+    for lineno, text in lines:
+        cells = text.split(delimiter)
+        if len(cells) != n_col:
+            raise LogFormatError(
+                f"{path}: line {lineno}: {len(cells)} fields, expected {n_col} ({', '.join(header)})"
+            )
+        yield lineno, delimiter.join(cells[i] for i in used)
 
 
 def read_lab_run(
@@ -884,6 +933,18 @@ def read_lab_run(
     input); its sensor columns are the channels it offers. ``truth``: an optional truth CSV (time column
     ``time``, columns named like the truth states) for the error metrics. ``columns_name`` names the argument
     in error messages (the command line's ``--map``)."""
+    from .errors import UsageError
+    from .mechanism import Mechanism
+
+    path = _path_argument(path, "path")
+    if not isinstance(mech, Mechanism):
+        raise UsageError(f"mech: expected an exuflex.mechanism.Mechanism, got {type(mech).__name__}"
+                         + (" (a path: load it with exuflex.load_mechanism(path) first)"
+                            if isinstance(mech, (str, os.PathLike)) else ""))
+    if columns is not None and not isinstance(columns, Mapping):
+        raise UsageError(f"{columns_name}: expected a mapping {{channel: column}}, got {type(columns).__name__}")
+    if truth is not None:
+        truth = _path_argument(truth, "truth")
     motors = list(mech.motor_names)
     names = motors + [s.name for s in mech.sensors]
     mapping = None
@@ -896,6 +957,22 @@ def read_lab_run(
             mapping[ours] = theirs
         for m in motors:
             mapping.setdefault(m, m)
+        by_column: dict[str, list[str]] = {}
+        for ours, theirs in mapping.items():
+            by_column.setdefault(theirs, []).append(ours)
+        twice = {col: chans for col, chans in by_column.items() if len(chans) > 1}
+        if twice:
+            col, chans = next(iter(twice.items()))
+            raise LogFormatError(f"{columns_name}: the column {col!r} is mapped to the channels {chans}; expected "
+                                 "one column per channel (each channel its own sensor)")
+    if mapping is None:  # every channel of the model under its own name; the log's other columns are not read
+        check_csv_dialect(delimiter, decimal)
+        first = next(_content_lines(path), None)
+        header = [h.strip() for h in first[1].split(delimiter)] if first is not None else []
+        if header and time_column in header:
+            mapping = {n: n for n in names if n in header}
+            for m in motors:
+                mapping.setdefault(m, m)
     sig = read_csv_log(path, mapping, time_column=time_column, time_scale=time_scale, delimiter=delimiter,
                        decimal=decimal)
     have = [m for m in motors if m in sig]

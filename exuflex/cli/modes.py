@@ -125,8 +125,14 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
             from ..reduction import reduced_modes_report
         except ImportError as exc:
             raise RuntimeError(f"--reduced needs exuflex.reduction.reduced_modes_report, not available: {exc}") from None
-        if along < 0:
-            raise ValueError(f"--along: expected a number of configurations >= 0, got {along}")
+        if isinstance(along, bool) or not isinstance(along, (int, np.integer)) or along < 0:
+            raise UsageError(f"along (--along): expected a number of configurations >= 0, got {along!r}")
+        from ..validate import check_work
+
+        # a configuration: the full model's and the reduced model's eigenproblems (about 10 n^3 flop each) and a
+        # few vectors of the full model's size kept for the worst case
+        check_work(along, along, param="along", flag="--along", what="configurations", bytes_each=8 * 8 * model.n,
+                   flops_each=2 * 10 * model.n**3)
         out["reduced"] = reduced_modes_report(model, q, masters=masters, n_interior=n_interior, q_star=q_star,
                                               fmax=fmax, along=along)
     return out

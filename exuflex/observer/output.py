@@ -174,7 +174,9 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
     if s.get("diverged"):
         lines.append(f"DIVERGED: the estimates became non-finite at t = {s['diverged_at']} s")
     elif s.get("nis_inconsistent"):
-        lines.append(f"NIS inconsistent from t = {s['nis_flagged_at']} s (the innovations exceed what the filter's "
+        when = (f"from t = {s['nis_flagged_at']} s" if s.get("nis_flagged_at") is not None else
+                f"over the whole log (mean NIS {s['nis_mean']:.3g} against {s['nis_expected']:.3g})")
+        lines.append(f"NIS inconsistent {when} (the innovations exceed what the filter's "
                      "covariance explains: model mismatch or noise settings; the estimates stay finite)")
     units = dict(zip(physical_names(mech), physical_units(mech), strict=True))
     met = outcome.metrics

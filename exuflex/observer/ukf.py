@@ -48,7 +48,7 @@ import scipy.linalg
 from filterpy.kalman import MerweScaledSigmaPoints
 
 from .base import FilterDivergedError, Prediction
-from .ekf import EstimationResult, NISMonitor, RunRecord, check_log
+from .ekf import EstimationResult, NISMonitor, RunRecord, check_log, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -186,10 +186,7 @@ class UnscentedKF:
 
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y``."""
-        t = float(t)
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-        y = None if y is None else np.asarray(y, float)
+        t, u, y = step_arguments(self, t, u, y)
         if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
             self._t_prev = t
             return np.full(self.nx, np.nan)

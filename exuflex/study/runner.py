@@ -710,6 +710,14 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     start_up = float(spec.start_up if spec.start_up is not None else min(spec.observer.start_up, duration / 4))
     if not 0 <= start_up < duration:
         raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
+    # bounds before work: every run's row is held (a few kB), and a run filters duration x rate samples (an EKF
+    # sample about 10 nx^3 flop)
+    from ..validate import check_work, state_size_estimate
+
+    n_samples = duration * nominal.sample_rate_hz
+    check_work(f"{spec.runs} runs x {len(spec.levels)} levels", spec.runs * len(spec.levels), param="runs",
+               flag="--runs", what="observer runs", bytes_each=8192,
+               flops_each=n_samples * 10 * state_size_estimate(nominal)**3, workers=workers)
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     for lv, m in zip(spec.levels, truth_mechs, strict=True):  # the model file's configuration check, per level
@@ -882,10 +890,10 @@ def _run_estimator_studies(spec: StudySpec, out: Path, estimators: Sequence[str]
     results = {}
     for e in estimators:
         sub = out / e
-        sub.mkdir(parents=True, exist_ok=True)
-        link = sub / "truth"
-        if not link.exists():
-            link.symlink_to(Path("..") / "truth", target_is_directory=True)
+        with output_folder(sub, "study", mode="resume"):  # the study's folder, with its link to the shared truths
+            link = sub / "truth"
+            if not link.exists():
+                link.symlink_to(Path("..") / "truth", target_is_directory=True)
         base = spec.observer if spec.observer is not None else ObserverConfig.for_model(load_mechanism(spec.model))
         est_spec = dataclasses.replace(spec, observer=dataclasses.replace(base, estimator=e))
         results[e] = run_study(est_spec, sub, **kw)
