@@ -897,7 +897,7 @@ def _bound_model(obs: Observer) -> ReducedObserverModel:
 def check_observable(obs: Observer, log_check=None) -> None:
     """Raise :class:`UnobservableError` if the channels (those the log samples, with ``log_check``) leave states
     that neither decay nor are measured at the start of the manoeuvre (PBH test, :func:`.bound.unobservable_states`)."""
-    _linearised(obs, _start_q(obs.mech), None, log_check)
+    _linearised(obs, start_configuration(obs.mech), None, log_check)
 
 
 def steady_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
