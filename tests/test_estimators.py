@@ -379,13 +379,13 @@ def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys)
 
 # ------------------------------------------------------------------------------------------ sensor design
 def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
-    """The ranking's bounds are :func:`estimation_bound`'s for an observer built on the model with those channels
+    """The ranking's bounds are :func:`steady_bound`'s for an observer built on the model with those channels
     (independently built here); a gauge never raises the bound; the greedy set beats its first station alone."""
     import dataclasses
     import math
 
     from exuflex.observer.design import rank_gauges
-    from exuflex.observer.session import estimation_bound, physical_names
+    from exuflex.observer.session import physical_names, steady_bound
 
     res = rank_gauges(sixbar, n_candidates=2)
     assert len(res.single) == 2 * len(sixbar.links)
@@ -396,7 +396,7 @@ def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
     sensors = tuple(dataclasses.replace(s, noise_std=res.gauge_noise) if s.kind == "curvature" else s
                     for s in sixbar.sensors)
     mech = dataclasses.replace(sixbar, sensors=sensors)
-    bnd = estimation_bound(make_observer(mech))
+    bnd = steady_bound(make_observer(mech))
     nq = len(mech.coordinate_names)
     x, y = physical_names(mech)[2 * nq : 2 * nq + 2]
     assert res.model_set_bound == pytest.approx(math.hypot(bnd[x], bnd[y]), rel=1e-6)

@@ -26,7 +26,7 @@ import scipy.linalg
 from .base import FilterDivergedError
 from .ekf import MultirateEKF
 
-__all__ = ["SmoothedResult", "rts_smooth"]
+__all__ = ["SmoothedResult", "rts_backward", "rts_smooth"]
 
 
 @dataclass
@@ -119,20 +119,37 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
     finally:
         ekf.record_predictions = False
     w1 = time.perf_counter()
-    xs = np.empty_like(X)
+    xs, Ps = rts_backward(P, Fs, Qs, X, Xp)
+    w2 = time.perf_counter()
+    return SmoothedResult(t, xs, Ps, X, P, nis, w2 - w0, w2 - w1)
+
+
+def rts_backward(P, F, Q, X=None, Xp=None) -> tuple[np.ndarray | None, np.ndarray]:
+    """The RTS backward pass (module docstring) over filtered covariances ``P`` (n, nx, nx), with ``F[k]``,
+    ``Q[k]`` the step from sample ``k - 1`` to ``k`` (row 0 unused).
+
+    With ``X`` (filtered means, (n, nx)) and ``Xp`` (predicted means ``x_k|k-1``, row 0 unused) the means too;
+    without, the covariances alone (the smoothed posterior Cramer-Rao bound of :mod:`.bound`). Returns
+    ``(x_k|n or None, P_k|n)``.
+    """
+    n = len(P)
     Ps = np.empty_like(P)
-    xs[-1], Ps[-1] = X[-1], P[-1]
+    Ps[-1] = P[-1]
+    xs = None
+    if X is not None:
+        xs = np.empty_like(X)
+        xs[-1] = X[-1]
     for k in range(n - 2, -1, -1):
-        F = Fs[k + 1]
-        PFt = P[k] @ F.T
-        Pp = F @ PFt + Qs[k + 1]
+        Fk = F[k + 1]
+        PFt = P[k] @ Fk.T
+        Pp = Fk @ PFt + Q[k + 1]
         Pp = 0.5 * (Pp + Pp.T)
         try:
             C = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Pp), PFt.T).T  # P F' Pp^-1 (Pp symmetric)
         except np.linalg.LinAlgError:
             C = np.linalg.lstsq(Pp, PFt.T, rcond=None)[0].T
-        xs[k] = X[k] + C @ (xs[k + 1] - Xp[k + 1])
+        if xs is not None:
+            xs[k] = X[k] + C @ (xs[k + 1] - Xp[k + 1])
         Pk = P[k] + C @ (Ps[k + 1] - Pp) @ C.T
         Ps[k] = 0.5 * (Pk + Pk.T)
-    w2 = time.perf_counter()
-    return SmoothedResult(t, xs, Ps, X, P, nis, w2 - w0, w2 - w1)
+    return xs, Ps
