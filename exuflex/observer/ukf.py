@@ -49,7 +49,7 @@ import numpy as np
 import scipy.linalg
 
 from .base import FilterDivergedError, Prediction
-from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log
+from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -154,10 +154,7 @@ class UnscentedKF(BeliefFilter):
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y`` that the gate and the
         sensor-fault isolation keep."""
-        t = float(t)
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-        y = None if y is None else np.asarray(y, float)
+        t, u, y = step_arguments(self, t, u, y)
         if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
             self._t_prev = t
             return np.full(self.nx, np.nan)
