@@ -571,6 +571,8 @@ def _parse_table(
             try:
                 if decimal != "." and "." in cell:
                     raise ValueError(cell)  # a decimal point where the decimal mark is another
+                if "_" in cell:
+                    raise ValueError(cell)  # Python's float reads '1_0' as 10: a number in a log has no '_'
                 v = float(cell.replace(decimal, ".") if decimal != "." else cell)
             except ValueError:
                 raise LogFormatError(
