@@ -974,9 +974,7 @@ def read_lab_run(
         first = next(_content_lines(path), None)
         header = [h.strip() for h in first[1].split(delimiter)] if first is not None else []
         if header and time_column in header:
-            mapping = {n: n for n in names if n in header}
-            for m in motors:
-                mapping.setdefault(m, m)
+            mapping = {n: n for n in names if n in header}  # a missing torque: named below
     sig = read_csv_log(path, mapping, time_column=time_column, time_scale=time_scale, delimiter=delimiter,
                        decimal=decimal)
     have = [m for m in motors if m in sig]

@@ -587,3 +587,50 @@ def test_a_cell_with_an_underscore_is_not_a_number(tmp_path):
     p.write_text("time,q1\n0,1\n0.002,1_0\n")
     with pytest.raises(LogFormatError, match=r"line 3, column 'q1': '1_0' is not a number"):
         read_csv_log(p)
+
+
+# ------------------------------------------------------------------------------------------ singular paths
+def test_a_tip_line_to_an_open_chains_full_reach_is_refused():
+    import math
+
+    from exuflex.erls.kinematics import Kinematics, KinematicsError
+    from exuflex.manoeuvre import plan
+    from exuflex.mechanism import LinkPoint, Manoeuvre, load_mechanism
+
+    arm = load_mechanism(ROOT / "models" / "serial_arm.toml")
+    reach = sum(lk.length for lk in arm.links)
+    lk = arm.links[-1]
+    z = Kinematics(arm).pose(np.array([-0.3, 1.8])).z
+    i = len(arm.links) - 1
+    p0 = np.array([z[3 * i] + lk.length * math.cos(z[3 * i + 2]), z[3 * i + 1] + lk.length * math.sin(z[3 * i + 2])])
+    g = np.array(arm.joints[0].ground)
+    d = (p0 - g) / np.linalg.norm(p0 - g)
+
+    def line(to):
+        return Manoeuvre("tip_line", 1.0, "quintic", tip=LinkPoint(lk.name, lk.length),
+                         points=(tuple(map(float, p0)), tuple(map(float, g + to * d))))
+
+    plan(arm, line(0.95 * reach), dt=1e-3)  # short of the reach: planned
+    with pytest.raises(KinematicsError, match=r"reaches a singular configuration at t = 1 s, .*path Jacobian"):
+        plan(arm, line(reach), dt=1e-3)
+
+
+def test_a_slider_crank_driven_to_its_toggle_position_is_refused(tmp_path):
+    import math
+
+    from exuflex.erls.kinematics import KinematicsError
+    from exuflex.manoeuvre import plan
+    from exuflex.mechanism import load_mechanism
+
+    src = (ROOT / "models" / "slider_crank.toml").read_text()
+    limit = -math.asin(0.1 / 0.4)  # the rod's steepest angle: the crank square to the slider's axis
+    text = (src.replace('[[coordinates]]\nname = "q1"\nlink = "crank"\njoint = "O"',
+                        '[[coordinates]]\nname = "q1"\nlink = "rod"\njoint = "A"')
+            .replace("q_ref = [1.5707963267948966]", "q_ref = [-0.2]")
+            .replace("q_star = [1.5707963267948966]", "q_star = [-0.2]")
+            .replace("angle_guess = 1.5707963267948966", "angle_guess = 0.9"))
+    text = re.sub(r"rules = \[.*\]", f'rules = [{{ coordinate = "q1", start = -0.2, end = {limit!r} }}]', text)
+    p = tmp_path / "rod_driven.toml"
+    p.write_text(text)
+    with pytest.raises(KinematicsError, match=r"reaches a singular configuration"):
+        plan(load_mechanism(p), dt=1e-3)
