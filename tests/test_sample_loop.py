@@ -1,4 +1,4 @@
-"""The compiled sample loop (:func:`exuflex.observer.expansion.cached_samples`) against :meth:`MultirateEKF.step`.
+"""The compiled sample loop (:func:`exuflex.observer.loop.samples`) against :meth:`MultirateEKF.step`.
 
 :meth:`MultirateEKF.run` hands the samples it can to the model's compiled loop and the others to ``step``; both
 must give the same numbers, bit for bit, on a log that makes the run go back and forth between them: the six-bar's

@@ -13,8 +13,8 @@ keeps ``P`` symmetric positive semi-definite for any gain, where ``(I - K H) P``
 and ``S^-1 r`` come from one Cholesky solve of ``S`` (an LU solve with a warning if ``S`` is not positive
 definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gives the numbers of
 :meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
-compiled sample loop (the cached reduced model, :func:`.expansion.cached_samples`), ``run`` hands it the samples it
-can take (every channel sampled, a valid interval and input), which it processes with the same compiled kernels in
+compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run`` hands :func:`.loop.samples` the
+samples it can take (every channel sampled, a valid interval and input), which it processes with the same compiled kernels in
 the same order as ``step`` until one needs more (a new held configuration, an input step, a gated channel, ...):
 the model renews its arrays and the loop resumes, or ``step`` takes that sample. ``tests/test_sample_loop.py``
 holds the two bit-identical.
@@ -75,8 +75,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..erls.kinematics import KinematicsError
-from . import kalman
-from .base import DiscreteModel, FilterDivergedError
+from . import kalman, loop
+from .base import MONITOR, REFRESH, REMAP, DiscreteModel, FilterDivergedError, takes_compiled_loop
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["ChannelMonitor", "EstimationResult", "MultirateEKF", "NISMonitor"]
@@ -439,8 +439,8 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
 
 class RunRecord:
     """The per-sample outputs of a filter run over a record (estimates, stored covariance, innovations, NIS), shared
-    by the filters: :meth:`put` after each sample reads what the filter's ``step`` left (``_P``, ``last_idx``,
-    ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``).
+    by the filters: :meth:`put` after each sample takes the estimate and covariance and reads what the filter's
+    ``step`` left (``last_idx``, ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``).
 
     Bytes a sample: ``8 nx`` (estimates), ``8 nx`` or ``8 nx**2`` (covariance, ``store_P`` "diag" or "full"),
     ``8 m + 8 m**2`` (innovations and their covariance, only with ``innovations``) and 16 (NIS and its degrees of
@@ -463,13 +463,13 @@ class RunRecord:
         self.nis = np.full(n, np.nan)
         self.dof = np.zeros(n, dtype=np.int64)
 
-    def put(self, k: int, f, x: np.ndarray) -> None:
-        """Sample ``k``'s estimate ``x`` and what the filter ``f`` recorded of it."""
+    def put(self, k: int, x: np.ndarray, P: np.ndarray, f) -> None:
+        """Sample ``k``'s estimate ``x`` with its covariance ``P`` and what the filter ``f`` recorded of it."""
         self.x_hat[k] = x
         if self.P is not None:
-            self.P[k] = np.nan if f.nonfinite else (f._P.diagonal() if self.store_P == "diag" else f._P)
+            self.P[k] = np.nan if f.nonfinite else (P.diagonal() if self.store_P == "diag" else P)
         if self.P_theta is not None:
-            self.P_theta[k] = np.nan if f.nonfinite else f._P[:, self.i_theta]
+            self.P_theta[k] = np.nan if f.nonfinite else P[:, self.i_theta]
         idx = f.last_idx
         if idx is not None:
             self.nis[k] = f.last_nis
@@ -639,14 +639,14 @@ class MultirateEKF:
         self._HP = np.empty((max(self.m, 1), n))
         # keep (x_pred, F, Q) of each sample's prediction in last_prediction (what a smoother's backward pass needs)
         self.record_predictions = False
-        # the model's compiled sample loop (run() hands it the samples it can take) and its buffers
-        # (the model's own: not one a wrapping model passes on from the model it wraps)
-        self._loop = model.sample_loop if hasattr(type(model), "sample_loop") else None
+        # the compiled sample loop (run() hands it the samples it can take) where the model has a compiled step
+        self._loop = loop.samples if takes_compiled_loop(model) else None
         if self._loop is not None:
-            self._loop_mats = model.loop_buffers()
             self._loop_status = np.zeros(self.m, dtype=np.int64)
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
                                 np.zeros(4))
+            loop.warm_up(True if getattr(model, "i_theta", None) is not None or getattr(model, "i_inputs", None)
+                         is not None else None)
         kalman.warm_up()
         self.reset()
 
@@ -984,43 +984,43 @@ class MultirateEKF:
                 and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
 
     def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> int:
-        """Samples ``k .. k_end - 1`` (every channel sampled, valid times and inputs) through the model's compiled
-        loop (:func:`.expansion.cached_samples`: each sample as :meth:`step` does it) until one needs
-        :meth:`step`; the model renews its held arrays where the loop asks. Returns the first sample not done."""
+        """Samples ``k .. k_end - 1`` (every channel sampled, valid times and inputs) through the compiled loop
+        (:func:`.loop.samples`: each sample as :meth:`step` does it) until one needs :meth:`step`; the model
+        renews its arrays where the loop asks. Returns the first sample not done."""
         model, m, n = self.model, self.m, self.nx
         step = self.input_step
         step_w, step_thr = (step.weights, step.threshold) if step is not None else (np.zeros(U.shape[1]), math.inf)
         f = self.faults
         win = (*f.window_arrays, np.array(f.window_tests)) if f is not None else self._no_windows
-        P_rec = _empty_rows(n) if rec.P is None else rec.P.reshape(len(rec.t), -1)
-        P_kind = -1 if rec.P is None else 0 if rec.store_P == "diag" else 1
+        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, *win, self._loop_status, step_w, step_thr)
         inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None
                       else (_empty_rows(m), _empty_rows(m * m)))
+        record = loop.Record(rec.x_hat, _empty_rows(n) if rec.P is None else rec.P.reshape(len(rec.t), -1),
+                             -1 if rec.P is None else 0 if rec.store_P == "diag" else 1,
+                             _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis)
         r, S, zn = np.empty(m), np.empty((m, m)), np.empty(m)
-        mats = self._loop_mats
         while k < k_end:
             x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
             try:
-                arrays = model.loop_arrays(x, U[k - 1], t[k] - t[k - 1], self.channels)
+                lm = model.loop_model(x, U[k - 1], t[k] - t[k - 1], self.channels)
             except _MODEL_FAILURES:  # the model cannot step from here: step() says why
                 break
             hold0 = self._holdoff
-            k_next, status, self._holdoff, swapped, model_out = self._loop(
-                t, U, Y, k, k_end, x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn, self._Rdiag,
-                self._floor, self._gate, hold0, *win, self._loop_status, step_w, step_thr, rec.x_hat, P_rec, P_kind,
-                _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, mats, *arrays)
+            buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn)
+            k_next, status, self._holdoff, swapped, state, mats = self._loop(t, U, Y, k, k_end, hold0, buf, mon, record,
+                                                                             *lm)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
-                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats, model_out)
-                if status == kalman.MONITOR:
+                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats, state)
+                if status == MONITOR:
                     f.verdicts(float(t[k_next - 1]), self._all, self._loop_status)
             k = k_next
-            if status not in (kalman.REFRESH, kalman.REMAP):
+            if status not in (REFRESH, REMAP):
                 break
         return k
 
-    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats, model_out) -> None:
+    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats, state) -> None:
         """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
         test, the record's degrees of freedom) and of the last (times, input, innovations, the model's interval)."""
         m = self.m
@@ -1033,7 +1033,7 @@ class MultirateEKF:
         self._u_prev = U[k1 - 1]
         self.last_idx, self.last_innovation, self.last_S = self._all, r.copy(), S.copy()
         self.last_nis, self.last_dof = float(rec.nis[k1 - 1]), m
-        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), model_out, self._x, k1)
+        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), state, self._x, k1)
 
     def _flag(self, t: float, why: str) -> None:
         if not self.diverged:
@@ -1092,7 +1092,8 @@ class MultirateEKF:
                     k = self._loop_samples(t, U, Y, k, k_end, rec)
                     if k >= n:
                         break
-            rec.put(k, self, self.step(t[k], None if U is None else U[k], Y[k]))
+            x = self.step(t[k], None if U is None else U[k], Y[k])
+            rec.put(k, x, self._P, self)
             k += 1
         intervals, faults = self.fault_report()
         res = rec.result(self, time.perf_counter() - t_start, nis_flagged=self.nis_flagged,

@@ -50,6 +50,7 @@ __all__ = [
     "Observer",
     "ObserverConfig",
     "UnobservableError",
+    "augmented_estimates",
     "bound_track",
     "default_channels",
     "estimate",
@@ -59,6 +60,7 @@ __all__ = [
     "metrics",
     "physical_names",
     "physical_units",
+    "start_configuration",
     "steady_bound",
 ]
 
@@ -401,7 +403,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     som.torque_var_nominal = stated**2
     r, nq = som.r, som.nq
     if x0 is None:
-        x0 = som.initial_state(_start_q(mech))
+        x0 = som.initial_state(start_configuration(mech))
     P0 = np.empty(som.nx)
     P0[:nq] = config.q0_std**2
     P0[nq:r] = config.elastic0_std**2
@@ -463,7 +465,9 @@ def _augmented_mean(ekf_model, x0) -> np.ndarray:
     return out
 
 
-def _start_q(mech: Mechanism) -> np.ndarray:
+def start_configuration(mech: Mechanism) -> np.ndarray:
+    """The configuration the observer starts from: the planned manoeuvre's first (the model's ``q_ref`` without a
+    manoeuvre, or where the plan fails, with a warning)."""
     if mech.manoeuvre is not None:
         try:
             p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
@@ -1219,6 +1223,12 @@ def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | N
     src = est.smoothed if est.smoothed is not None else est.result
     return (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None,
             None if src.nominal_p is None else float(src.nominal_p[-1]))
+
+
+def augmented_estimates(fmodel, est: Estimate) -> dict:
+    """The augmented states' estimates at the end of the record ``est`` of the filter model ``fmodel``
+    (:func:`_extra_states`): the payload scale or the torque disturbances; empty for a plain model."""
+    return _extra_states(fmodel, *_last_state(est))
 
 
 def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:

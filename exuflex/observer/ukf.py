@@ -277,7 +277,7 @@ class UnscentedKF:
                 self.diverged_at = self.diverged_at or float(t[k])
                 rec.fail_from(k)
                 break
-            rec.put(k, self, x)
+            rec.put(k, x, self._P, self)
         return rec.result(self, time.perf_counter() - w0)
 
 
