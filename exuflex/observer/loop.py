@@ -83,7 +83,8 @@ class Monitors(NamedTuple):
 class Record(NamedTuple):
     """Where each sample done is recorded (:class:`.ekf.RunRecord`'s arrays): ``x[k]``, ``P[k]`` (``P_kind`` 0 its
     diagonal, 1 all of it flattened, -1 nothing), ``theta[k]`` the covariance's payload-scale column (empty: none),
-    ``inn[k]``, ``S[k]`` (flattened; empty: none) and ``nis[k]``."""
+    ``inn[k]``, ``S[k]`` (flattened; empty: none), ``nis[k]``, and the prediction ``x_pred[k]``, ``F[k]``,
+    ``Q[k]`` (flattened; empty: none; what a smoother's backward pass needs)."""
 
     x: np.ndarray
     P: np.ndarray
@@ -92,6 +93,9 @@ class Record(NamedTuple):
     inn: np.ndarray
     S: np.ndarray
     nis: np.ndarray
+    x_pred: np.ndarray
+    F: np.ndarray
+    Q: np.ndarray
 
 
 def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # pragma: no cover - compiled
@@ -167,6 +171,12 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
                 for j in range(m):
                     rec.S[k, i * m + j] = S[i, j]
         rec.nis[k] = nis
+        if rec.x_pred.shape[0]:
+            for i in range(n_x):
+                rec.x_pred[k, i] = z[i]
+                for j in range(n_x):
+                    rec.F[k, i * n_x + j] = F[i, j]
+                    rec.Q[k, i * n_x + j] = Qk[i, j]
         if extras is not None and rec.theta.shape[0]:  # (pruned for a plain state)
             n0 = 2 * step.system.Mr.shape[0]
             for i in range(n_x):
@@ -193,7 +203,7 @@ def warm_up(augmented: bool | None = None) -> None:
     v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
     buf = Buffers(v, v, m, m, m, m, m, v, m, v)
     mon = Monitors(v, v, 0.0, m, n, v, v, v, v, v, n, v, 0.0)
-    rec = Record(m, m, 0, m, m, m, v)
+    rec = Record(m, m, 0, m, m, m, v, m, m, m)
     step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, m, m, v, 0.0, c, c, c, v,
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))

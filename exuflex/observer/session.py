@@ -30,7 +30,7 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
 from .bound import BoundTrack, periodic_posterior, riccati_track, steady_posterior, unobservable_states
-from .ekf import EstimationResult, MultirateEKF
+from .ekf import EstimationResult, Monitoring, MultirateEKF
 from .expansion import step_jacobian
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
@@ -410,14 +410,15 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
     fmodel, x0, P0 = _filter_model(som, config, x0, P0)
+    monitoring = Monitoring(gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
+                            fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
+                            input_step=_torque_step_test(som.torque_var, config.fault_p), isolate=config.fault_isolation)
     if config.estimator == "ukf":
-        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
+                          monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
-                           gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
-                           fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
-                           input_step=_torque_step_test(som.torque_var, config.fault_p),
-                           isolate=config.fault_isolation)
+                           **monitoring._asdict())
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -857,7 +858,7 @@ def _bound_model(obs: Observer) -> ReducedObserverModel:
 def check_observable(obs: Observer, log_check=None) -> None:
     """Raise :class:`UnobservableError` if the channels (those the log samples, with ``log_check``) leave states
     that neither decay nor are measured at the start of the manoeuvre (PBH test, :func:`.bound.unobservable_states`)."""
-    _linearised(obs, _start_q(obs.mech), None, log_check)
+    _linearised(obs, start_configuration(obs.mech), None, log_check)
 
 
 def steady_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
