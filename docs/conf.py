@@ -16,6 +16,7 @@ if (ROOT / "exuflex").is_dir():
     sys.path.insert(0, str(ROOT))  # document the checkout being built, not another installed copy
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+sys.path.insert(0, str(Path(__file__).resolve().parent / "_ext"))
 import exuflex  # noqa: E402
 
 project = "exuflex"
@@ -65,12 +66,12 @@ sphinx_gallery_conf = {
     "examples_dirs": str(ROOT / "examples"),
     "gallery_dirs": "auto_examples",
     "filename_pattern": r"/plot_",  # executed at build time; the other examples are shown, not run
-    "ignore_pattern": r"__init__\.py|/data/",
+    "ignore_pattern": r"__init__\.py|/data/|/_",
     "within_subsection_order": "FileNameSortKey",
     "download_all_examples": False,
     "remove_config_comments": True,
     "abort_on_example_error": True,
-    "image_scrapers": ("matplotlib",),
+    "image_scrapers": ("matplotlib", "exuflex_figures"),  # _ext/exuflex_figures.py: the files in FIGURES
     "matplotlib_animations": False,
     "show_memory": False,
 }

@@ -101,3 +101,39 @@ def test_readme_links_exist(site):
         if not ok:
             bad.append(link)
     assert not bad, f"README links to missing pages: {bad}"
+
+
+def test_readme_python_example_runs():
+    """The README's Python example runs as written, from the repository's root, and prints a ratio per quantity."""
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert blocks, "the README has no Python example"
+    code = blocks[0]
+    assert len(code.strip().splitlines()) <= 12, "the README's example should stay about 10 lines"
+    env = dict(os.environ, MPLBACKEND="Agg", PYTHONPATH=str(ROOT))
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = [line.split() for line in res.stdout.strip().splitlines()]
+    assert rows and all(len(r) == 2 and float(r[1]) > 0 for r in rows), res.stdout
+    assert {"q1", "q2", "q3"} <= {r[0] for r in rows}
+
+
+def test_readme_test_command_is_ci_s():
+    """The README's test command and install line are the ones .ci/run runs."""
+    ci = (ROOT / ".ci" / "run").read_text()
+    readme = (ROOT / "README.md").read_text()
+    install = re.search(r'^python -m pip install -e "(\.\[[^\]]*\])"$', ci, re.M).group(1)
+    assert f'python -m pip install -e "{install}"' in readme
+    test_cmd = [ln for ln in ci.splitlines() if ln.startswith("python -m pytest")][-1]
+    assert any(ln.startswith(test_cmd + " ") or ln == test_cmd for ln in readme.splitlines())
+
+
+def test_every_model_has_a_gallery_page():
+    """The gallery shows every mechanism of models/: one script per model file, which loads that file."""
+    missing = []
+    for model in sorted((ROOT / "models").glob("*.toml")):
+        script = ROOT / "examples" / f"plot_{model.stem}.py"
+        if not script.exists() or f'"{model.name}"' not in script.read_text():
+            missing.append(model.name)
+    assert not missing, f"model files without a gallery script examples/plot_<name>.py: {missing}"

@@ -438,11 +438,69 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
     n = len(t)
     if Y.shape != (n, m):
         raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {m})")
+    if np.isinf(Y).any():
+        k = int(np.flatnonzero(np.isinf(Y).any(axis=1))[0])
+        raise ValueError(f"Y: row {k} (t={t[k]:.6g} s) has an infinite measurement; expected finite values, or NaN "
+                         "for 'not sampled'")
     if U is not None:
         U = np.asarray(U, dtype=float)
         if len(U) != n:
             raise ValueError(f"U has {len(U)} rows, expected {n}")
     return t, U, Y
+
+
+def _n_inputs(model) -> int | None:
+    """A model's number of inputs (None if it does not say)."""
+    shape = getattr(model, "_u_shape", None)
+    if shape is not None:
+        return int(shape[0])
+    if hasattr(model, "B"):
+        return 0 if model.B is None else int(np.shape(model.B)[1])
+    return None
+
+
+def step_arguments(filt, t, u, y):
+    """A filter's ``step`` arguments checked at the call: a :class:`~exuflex.errors.UsageError` naming the argument
+    and what was expected (a number ``t``; ``u`` one finite torque per input, ``None`` only for a model without
+    inputs: a missing torque is not zero; ``y`` an array in channel order, NaN for "not sampled", no infinity)."""
+    from ..errors import UsageError
+
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer, np.floating)):
+        raise UsageError(f"t: expected the sample time in s (a number), got {type(t).__name__}")
+    t = float(t)
+    if not math.isfinite(t):
+        raise UsageError(f"t: the sample time {t!r} is not finite")
+    n_in = _n_inputs(filt.model)
+    if u is None:
+        if n_in:
+            raise UsageError(f"u: expected the input sample at t={t:.6g} s ({n_in} torques), got None (a missing "
+                             "torque is not zero: skip the sample or hold the last one)")
+    else:
+        try:
+            u = np.array(u, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise UsageError(f"u: expected an array of {n_in if n_in is not None else 'the'} input values, got "
+                             f"{type(u).__name__}") from None
+        if n_in is not None and u.shape != (n_in,):
+            raise UsageError(f"u: expected {n_in} input values (one per motor), got {u.size}")
+        if not np.isfinite(u).all():
+            raise UsageError(f"u: the input sample at t={t:.6g} s is not finite: {u.tolist()}")
+    if y is not None:
+        if isinstance(y, (dict, str, bytes)) or hasattr(y, "keys"):
+            raise UsageError(f"y: expected an array of {filt.m} values in channel order {filt.channels} (NaN: not "
+                             f"sampled), got {type(y).__name__}")
+        try:
+            y = np.asarray(y, dtype=float)
+        except (TypeError, ValueError):
+            raise UsageError(f"y: expected an array of {filt.m} numbers in channel order {filt.channels}, got "
+                             f"{type(y).__name__}") from None
+        if y.shape != (filt.m,):
+            raise UsageError(f"y: measurement has shape {y.shape}, expected ({filt.m},): channels {filt.channels}")
+        if np.isinf(y).any():
+            bad = [c for c, v in zip(filt.channels, y, strict=True) if np.isinf(v)]
+            raise UsageError(f"y: channel(s) {bad} infinite at t={t:.6g} s; expected a finite value, or NaN for "
+                             "'not sampled'")
+    return t, u, y
 
 
 class RunRecord:
@@ -608,8 +666,18 @@ class BeliefFilter:
             raise ValueError("the prior x0, P0 must be finite")
         return x, np.ascontiguousarray(0.5 * (P + P.T))
 
-    def _reset_tests(self) -> None:
-        """Clear the counters and the monitors (a restart)."""
+    def reset(self, x0=None, P0=None) -> None:
+        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
+        prior of later resets too) and clear every counter and monitor. A model with caches (``reset()``) is reset
+        too, so that a run never depends on what the model evaluated before."""
+        if x0 is not None or P0 is not None:
+            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
+        if hasattr(self.model, "reset"):
+            self.model.reset()
+        self._x = self._x0.copy()
+        self._P = self._P0.copy()
+        self._t_prev: float | None = None
+        self._u_prev = None
         self.n_missing = 0
         self.n_updates = 0
         self.diverged = False
@@ -840,18 +908,8 @@ class MultirateEKF(BeliefFilter):
 
     # ------------------------------------------------------------------ state
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
-        prior of later resets too) and clear every counter. A model with caches (``reset()``) is reset too, so
-        that a run never depends on what the model evaluated before."""
-        if x0 is not None or P0 is not None:
-            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
-        self._t_prev: float | None = None
-        self._u_prev = None
-        self._reset_tests()
+        """Restart from a prior (:meth:`BeliefFilter.reset`)."""
+        super().reset(x0, P0)
         self.n_invalid = 0
         self._model_failure = None
         self.last_prediction = None
@@ -983,17 +1041,7 @@ class MultirateEKF(BeliefFilter):
         FilterDivergedError
             Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test (``"raise"``).
         """
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"sample time {t!r} is not finite")
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-            if not math.isfinite(sum(u.tolist())):
-                raise ValueError(f"the input sample at t={t:.6g} s is not finite: {u.tolist()}")
-        if y is not None:
-            y = np.asarray(y, dtype=float)
-            if y.shape != (self.m,):
-                raise ValueError(f"measurement has shape {y.shape}, expected ({self.m},): channels {self.channels}")
+        t, u, y = self._step_arguments(t, u, y)
         if self._t_prev is not None:
             dt = t - self._t_prev
             if not dt > 1e-9 * self.dt:
@@ -1025,6 +1073,9 @@ class MultirateEKF(BeliefFilter):
                 self._Pspare, self._P = self._P, self._Pspare
             finite = kalman.settle(self._x, self._P, self._floor)
         return self._close(t, finite)
+
+    def _step_arguments(self, t, u, y):
+        return step_arguments(self, t, u, y)
 
     def _close(self, t: float, finite: bool) -> np.ndarray:
         """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""

@@ -49,7 +49,7 @@ import numpy as np
 import scipy.linalg
 
 from .base import FilterDivergedError, Prediction
-from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log
+from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -98,17 +98,9 @@ class UnscentedKF(BeliefFilter):
         self.reset()
 
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from the prior (``x0``/``P0`` given: a new prior) and clear every counter (as the EKF's)."""
-        if x0 is not None or P0 is not None:
-            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
+        """Restart from a prior (:meth:`~exuflex.observer.ekf.BeliefFilter.reset`) with its covariance factor."""
+        super().reset(x0, P0)
         self._L = np.linalg.cholesky(self._P0)
-        self._t_prev = None
-        self._u_prev = None
-        self._reset_tests()
         self.n_model_resets = self.n_linearised = 0
 
     def _sigmas(self, x, L) -> np.ndarray:
@@ -162,10 +154,7 @@ class UnscentedKF(BeliefFilter):
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y`` that the gate and the
         sensor-fault isolation keep."""
-        t = float(t)
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-        y = None if y is None else np.asarray(y, float)
+        t, u, y = step_arguments(self, t, u, y)
         if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
             self._t_prev = t
             return np.full(self.nx, np.nan)
