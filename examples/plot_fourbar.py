@@ -25,7 +25,8 @@ from exuflex.erls.modal import modal_analysis
 from exuflex.plots import modes_figure, observer_figures
 from exuflex.truth import simulate_run
 
-MODELS = Path("models") if Path("models").is_dir() else Path("../models")  # run from the root or examples/
+# the model files, from the repository's root or from examples/
+MODELS = Path("models") if Path("models").is_dir() else Path("../models")
 MODEL = MODELS / "fourbar.toml"
 OUT = Path(tempfile.mkdtemp(prefix="exuflex_fourbar_"))
 
@@ -33,7 +34,7 @@ OUT = Path(tempfile.mkdtemp(prefix="exuflex_fourbar_"))
 # The full-order model's modes at the reference configuration, motors free (``exuflex modes``).
 mech = xf.load_mechanism(MODEL)
 modal = modal_analysis(xf.ErlsModel(mech), mech.q_ref)
-FIGURES = [modes_figure(mech, modal, OUT / "modes.png", n=3)]
+FIGURES = [modes_figure(mech, modal, OUT / "modes.png")]
 
 # %%
 # One second of the manoeuvre simulated by Exudyn (ANCF cable elements), the sensors' noise drawn with seed

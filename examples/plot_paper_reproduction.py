@@ -20,7 +20,8 @@ from pathlib import Path
 
 from exuflex.cli.reproduce import reproduce
 
-MODELS = Path("models") if Path("models").is_dir() else Path("../models")  # run from the root or examples/
+# the model files, from the repository's root or from examples/
+MODELS = Path("models") if Path("models").is_dir() else Path("../models")
 OUT = Path(tempfile.mkdtemp(prefix="exuflex_reproduce_"))
 
 report = reproduce(MODELS / "sixbar.toml", OUT, quick=True)

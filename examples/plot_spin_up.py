@@ -10,17 +10,18 @@ clamped-free beam) are drawn here; the spin-up against Exudyn's ANCF and geometr
 ``python benchmarks/spin_up.py`` (minutes), on :doc:`/validity`.
 """
 
-from pathlib import Path
 import tempfile
+from pathlib import Path
 
 import exuflex as xf
 from exuflex.erls.modal import modal_analysis
 from exuflex.plots import modes_figure
 
-MODELS = Path("models") if Path("models").is_dir() else Path("../models")  # run from the root or examples/
+# the model files, from the repository's root or from examples/
+MODELS = Path("models") if Path("models").is_dir() else Path("../models")
 OUT = Path(tempfile.mkdtemp(prefix="exuflex_spin_up_"))
 
 mech = xf.load_mechanism(MODELS / "spin_up.toml")
 modal = modal_analysis(xf.ErlsModel(mech), mech.q_ref, locked=True)  # the hub held: clamped-free
 print("clamped-free frequencies (rad/s):", [round(2 * 3.141592653589793 * f, 3) for f in modal.frequencies_hz[:3]])
-FIGURES = [modes_figure(mech, modal, OUT / "modes.png", n=3)]
+FIGURES = [modes_figure(mech, modal, OUT / "modes.png")]

@@ -30,3 +30,24 @@ def figure_files_scraper(block, block_vars, gallery_conf, **kwargs) -> str:
 
 def _get_sg_image_scraper():
     return figure_files_scraper
+
+
+#: The gallery's order: the paper's case, then the mechanisms from the simplest, then the examples a user starts
+#: from. A script not listed comes after these, by file name.
+ORDER = ["plot_sixbar.py", "plot_paper_reproduction.py", "plot_single_link.py", "plot_fourbar.py",
+         "plot_slider_crank.py", "plot_serial_arm.py", "plot_fivebar.py", "plot_spin_up.py",
+         "own_mechanism.py", "own_lab_log.py", "online_loop.py", "plot_more_mechanisms.py"]
+
+
+class GalleryOrder:
+    """``within_subsection_order`` for sphinx-gallery: :data:`ORDER`, then the other scripts by name."""
+
+    def __init__(self, src_dir):
+        self.src_dir = src_dir
+
+    def __call__(self, filename: str):
+        name = Path(filename).name
+        return (ORDER.index(name), "") if name in ORDER else (len(ORDER), name)
+
+    def __repr__(self):
+        return "GalleryOrder"

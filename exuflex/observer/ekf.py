@@ -77,7 +77,16 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import MONITOR, REFRESH, REMAP, DiscreteModel, FilterDivergedError, takes_compiled_loop
+from .base import (
+    MONITOR,
+    REFRESH,
+    REMAP,
+    Belief,
+    DiscreteModel,
+    FilterDivergedError,
+    hooks,
+    takes_compiled_loop,
+)
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
@@ -449,16 +458,6 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
     return t, U, Y
 
 
-def _n_inputs(model) -> int | None:
-    """A model's number of inputs (None if it does not say)."""
-    shape = getattr(model, "_u_shape", None)
-    if shape is not None:
-        return int(shape[0])
-    if hasattr(model, "B"):
-        return 0 if model.B is None else int(np.shape(model.B)[1])
-    return None
-
-
 def step_arguments(filt, t, u, y):
     """A filter's ``step`` arguments checked at the call: a :class:`~exuflex.errors.UsageError` naming the argument
     and what was expected (a number ``t``; ``u`` one finite torque per input, ``None`` only for a model without
@@ -470,7 +469,7 @@ def step_arguments(filt, t, u, y):
     t = float(t)
     if not math.isfinite(t):
         raise UsageError(f"t: the sample time {t!r} is not finite")
-    n_in = _n_inputs(filt.model)
+    n_in = filt.hooks.n_inputs
     if u is None:
         if n_in:
             raise UsageError(f"u: expected the input sample at t={t:.6g} s ({n_in} torques), got None (a missing "
@@ -618,9 +617,9 @@ class BeliefFilter:
             raise ValueError(f"max_gap must be a finite number of seconds >= dt={dt}, got {max_gap}")
         self.model = model
         self.nx = int(model.nx)
-        watch = getattr(model, "watch_covariance", None)
-        if watch is not None:  # the model measures its approximations against the filter's uncertainty
-            watch(lambda: self._P)
+        self.hooks = hooks(model)
+        if self.hooks.watch_covariance is not None:  # the model measures its approximations against the filter's P
+            self.hooks.watch_covariance(lambda: self._P)
         self.channels = tuple(channels)
         if len(set(self.channels)) != len(self.channels):
             raise ValueError(f"duplicate channel names in {self.channels}")
@@ -672,8 +671,8 @@ class BeliefFilter:
         too, so that a run never depends on what the model evaluated before."""
         if x0 is not None or P0 is not None:
             self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
+        if self.hooks.reset is not None:
+            self.hooks.reset()
         self._x = self._x0.copy()
         self._P = self._P0.copy()
         self._t_prev: float | None = None
@@ -699,6 +698,11 @@ class BeliefFilter:
         self.last_dof = 0
         if self.monitor is not None:
             self.monitor.reset()
+
+    @property
+    def belief(self) -> Belief:
+        """The current belief ``(x, P)`` (copies)."""
+        return Belief(self._x.copy(), self._P.copy())
 
     @property
     def x(self) -> np.ndarray:
@@ -731,7 +735,7 @@ class BeliefFilter:
         sensor fault)."""
         stepped = (self.input_step is not None and u is not None and self._u_prev is not None
                    and self.input_step(self._u_prev, u))
-        if stepped or getattr(self.model, "n_jumps", 0) != jumps:
+        if stepped or self.hooks.n_jumps() != jumps:
             self._holdoff = self.fault_holdoff
             self.jump_times.append(t)
 
@@ -901,8 +905,7 @@ class MultirateEKF(BeliefFilter):
             self._loop_status = np.zeros(self.m, dtype=np.int64)
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
                                 np.zeros(4))
-            loop.warm_up(True if getattr(model, "i_theta", None) is not None or getattr(model, "i_inputs", None)
-                         is not None else None)
+            loop.warm_up(True if self.hooks.i_theta is not None or self.hooks.i_inputs is not None else None)
         kalman.warm_up()
         self.reset()
 
@@ -1051,7 +1054,7 @@ class MultirateEKF(BeliefFilter):
                     f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
                     f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
             self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
-        jumps = getattr(self.model, "n_jumps", 0)
+        jumps = self.hooks.n_jumps()
         FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
         self._t_now = t
         self._input_steps(t, u, jumps)
@@ -1208,7 +1211,7 @@ class MultirateEKF(BeliefFilter):
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, getattr(self.model, "i_theta", None),
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.hooks.i_theta,
                         predictions)
         self.record_predictions = predictions
         t_start = time.perf_counter()

@@ -131,8 +131,8 @@ class UnscentedKF(BeliefFilter):
         again after ``model.reset()`` (the configuration evaluated at that point). If it breaks down again, the
         point is carried by the mean's linearisation (counted in ``n_linearised``)."""
         p = self.model.predict(x, self._u_prev, dt, u_next)
-        if self._broken(p.x, x, ref) and hasattr(self.model, "reset"):
-            self.model.reset()
+        if self._broken(p.x, x, ref) and self.hooks.reset is not None:
+            self.hooks.reset()
             self.n_model_resets += 1
             p = self.model.predict(x, self._u_prev, dt, u_next)
         if ref is not None and self._broken(p.x, x, ref):
@@ -158,7 +158,7 @@ class UnscentedKF(BeliefFilter):
         if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
             self._t_prev = t
             return np.full(self.nx, np.nan)
-        jumps = getattr(self.model, "n_jumps", 0)
+        jumps = self.hooks.n_jumps()
         first = self._t_prev is None
         if not first:
             dt = t - self._t_prev
