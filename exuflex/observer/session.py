@@ -780,8 +780,6 @@ class _Trajectory:
     tip's elastic displacement, not the reduced model's coordinates)."""
 
     def __init__(self, obs: Observer, t: np.ndarray, truth: Signals | None):
-        from scipy.interpolate import CubicHermiteSpline
-
         self.obs, self.t = obs, np.asarray(t, float)
         mech = obs.mech
         qn = list(mech.coordinate_names)
@@ -801,6 +799,8 @@ class _Trajectory:
             return
         step = float(np.median(np.diff(self.t))) if len(self.t) > 1 else obs.ekf.dt
         p = plan(mech, dt=step, t_end=span + step)
+        from scipy.interpolate import CubicHermiteSpline  # (here: scipy.interpolate is a large import)
+
         sq = CubicHermiteSpline(p.t, p.q, p.qd, axis=0)
         sqd = CubicHermiteSpline(p.t, p.qd, p.qdd, axis=0)
         self._q = lambda ts: sq(ts - t0)
