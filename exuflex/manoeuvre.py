@@ -526,9 +526,18 @@ def _spline(ts, Y, t, bc_type):
     """C2 cubic spline through the samples (rows of Y) at times t; the last sample at rest beyond it."""
     from scipy.interpolate import CubicSpline
 
-    sp = CubicSpline(np.asarray(ts, float), Y, axis=0, bc_type=bc_type)
+    ts = np.asarray(ts, float)
+    sp = CubicSpline(ts, Y, axis=0, bc_type=bc_type)
     tc = np.minimum(t, ts[-1])
     y, yd, ydd = sp(tc), sp(tc, 1), sp(tc, 2)
+    # at a sample's own time the sample itself: the piecewise polynomial's value there can differ by an ulp
+    # (which piece evaluates a knot depends on the SciPy version)
+    k = np.clip(np.searchsorted(ts, tc), 0, len(ts) - 1)
+    on = ts[k] == tc
+    if np.ndim(tc) == 0:
+        y = np.asarray(Y, float)[k].copy() if on else y
+    else:
+        y[on] = np.asarray(Y, float)[k[on]]
     after = t > ts[-1]
     yd[after], ydd[after] = 0.0, 0.0
     return y, yd, ydd

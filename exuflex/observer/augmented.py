@@ -152,17 +152,21 @@ def payload_twin(reduced: ReducedModel, scale: float = 2.0) -> ReducedModel:
 
 class PayloadIncrement(NamedTuple):
     """``dS = dS/dtheta`` of the held system's mass-dependent arrays (:class:`HeldSystem` names), at the held
-    configuration and at its secant partner (``old_*``)."""
+    configuration and at its secant partner (``old_*``): the mass matrix, its q-gradient, the mass-proportional
+    damping, and the forces' forms (weight ``fg``, velocity forms ``T2``, bias force ``C2``, the payload's share of
+    ``J^T M a_b``; ``(0, r)`` where the model has none)."""
 
     Mr: np.ndarray
     Ca: np.ndarray
     dM: np.ndarray
     fg: np.ndarray
     T2: np.ndarray
+    C2: np.ndarray
     old_dM: np.ndarray
     old_Ca: np.ndarray
     old_fg: np.ndarray
     old_T2: np.ndarray
+    old_C2: np.ndarray
 
 
 class AugmentedModel:
@@ -289,19 +293,20 @@ class AugmentedModel:
         p[:nq] = iv.q0
         mats, fm = self.twin.held(p, z[r:])
         beta = self.twin.model.beta
+        c2 = self.inner._c2  # the bias form, (0, r) where the model has none
         if fresh:
             hs = iv.system
-            nom = (hs.Mr, hs.Ca, hs.dM, hs.fg, hs.T2)
+            nom = (hs.Mr, hs.Ca, hs.dM, hs.fg, hs.T2, hs.C2)
         else:
             if self._plain is None:
                 self._plain = payload_twin(self.inner.rm, scale=1.0)
             m0, f0 = self._plain.held(p, z[r:])
-            nom = (m0.Mr, m0.Cr - beta * m0.Kr, f0.dMr2, f0.fg, f0.T2)
+            nom = (m0.Mr, m0.Cr - beta * m0.Kr, f0.dMr2, f0.fg, f0.T2, c2(f0))
         own = (mats.Mr - nom[0], (mats.Cr - beta * mats.Kr) - nom[1], fm.dMr2 - nom[2], fm.fg - nom[3],
-               fm.T2 - nom[4])
+               fm.T2 - nom[4], c2(fm) - nom[5])
         old = self._increments.get(iv.old.serial) if iv.old is not None else None
-        o = own[1:] if old is None else (old.Ca, old.dM, old.fg, old.T2)
-        inc = PayloadIncrement(own[0], own[1], own[2], own[3], own[4], o[1], o[0], o[2], o[3])
+        o = own[1:] if old is None else (old.Ca, old.dM, old.fg, old.T2, old.C2)
+        inc = PayloadIncrement(own[0], own[1], own[2], own[3], own[4], own[5], o[1], o[0], o[2], o[3], o[4])
         # the payload's largest share of a mode's mass, max eig(dM_r, M_r), and the symmetrised velocity forms
         # of the payload's Coriolis and centripetal terms (for the scaled step's Jacobian)
         rho = float(scipy.linalg.eigh(inc.Mr, nom[0], eigvals_only=True)[-1])
@@ -545,7 +550,7 @@ def warm_up() -> None:
     maps = (np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)), np.eye(2 * r))
     for has_old in (False, True):
         hs = _example_system(r, nq, has_old)
-        inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.old_dM, M, hs.old_fg, hs.old_T2)
+        inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.C2, hs.old_dM, M, hs.old_fg, hs.old_T2, hs.old_C2)
         scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
         for ok in (False, True):
             payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, 1.0, 0.0, ok, 0.0, *maps,

@@ -73,11 +73,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2, norm
 
 from ..erls.kinematics import KinematicsError
 from . import kalman
 from .base import DiscreteModel, FilterDivergedError
+from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["ChannelMonitor", "EstimationResult", "MultirateEKF", "NISMonitor"]
 
@@ -245,7 +245,7 @@ class NISMonitor:
         """Chi-square ``confidence`` quantile for ``dof`` degrees of freedom (cached)."""
         b = self._bounds.get(dof)
         if b is None:
-            b = float(chi2.ppf(self.confidence, dof))
+            b = float(chi2_ppf(self.confidence, dof))
             self._bounds[dof] = b
         return b
 
@@ -310,9 +310,9 @@ class ChannelMonitor:
         self.p = float(p)
         self.clip = float(clip)
         self.dt = float(dt)
-        self._k_mean = float(norm.ppf(1 - p / 2)) * math.sqrt(W)
-        self._hi = float(chi2.ppf(1 - p, W))
-        self._lo = float(chi2.ppf(p, W))
+        self._k_mean = float(norm_ppf(1 - p / 2)) * math.sqrt(W)
+        self._hi = float(chi2_ppf(1 - p, W))
+        self._lo = float(chi2_ppf(p, W))
         self.reset()
 
     def reset(self) -> None:
@@ -624,7 +624,7 @@ class MultirateEKF:
         self.fault_holdoff = int(fault_holdoff)
         self.isolate = bool(isolate)
         self.input_step = input_step
-        self._gate = float(chi2.ppf(1 - gate_p, 1)) if gate_p is not None else math.inf
+        self._gate = float(chi2_ppf(1 - gate_p, 1)) if gate_p is not None else math.inf
         self.faults = (
             ChannelMonitor(self.channels, fault_window, fault_p, min(math.sqrt(self._gate), 10.0), dt)
             if fault_window > 0 else None

@@ -422,10 +422,12 @@ class LoopExtras(NamedTuple):
     idM: np.ndarray
     ifg: np.ndarray
     iT2: np.ndarray
+    iC2: np.ndarray
     iold_dM: np.ndarray
     iold_Ca: np.ndarray
     iold_fg: np.ndarray
     iold_T2: np.ndarray
+    iold_C2: np.ndarray
     inp_var: np.ndarray
     inp_tau: float
 
@@ -433,7 +435,7 @@ class LoopExtras(NamedTuple):
 #: :class:`LoopExtras`' payload fields (``pay`` ... ``iold_T2``) of a state without the payload scale
 NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
               _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-              _NO_VECTOR, _NO_MATRIX)
+              _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX)
 #: :class:`LoopExtras`' disturbance fields (``inp_var``, ``inp_tau``) of a state without torque disturbances
 NO_DISTURBANCES = (_NO_VECTOR, 0.0)
 #: :func:`cached_samples`' last argument (``augmented``) for a model without augmented states
@@ -860,8 +862,8 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
                     x, uu, dl, s, dt, n, pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, pay_ok,
                     pay_c, pay_Pn, pay_S, pay_L, pay_Q, ex.inp_var, ex.inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn,
                     SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                    old_fg, old_T2, old_V2, old_C2, ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iold_dM, ex.iold_Ca,
-                    ex.iold_fg, ex.iold_T2)
+                    old_fg, old_T2, old_V2, old_C2, ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM,
+                    ex.iold_Ca, ex.iold_fg, ex.iold_T2, ex.iold_C2)
                 scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
                 extra = True
         if not extra:
@@ -928,8 +930,8 @@ def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S,
 def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
                     pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
                     beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
-                    iold_T2):  # pragma: no cover - compiled
+                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
+                    iold_T2, iold_C2):  # pragma: no cover - compiled
     """One interval of an augmented state (:func:`cached_samples`' ``pay`` and ``inp_*``, the torques ``u`` with
     the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
     scaled step map as this interval leaves it. With the payload scale (not at exactly 1) the interval is
@@ -950,7 +952,7 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
             x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, pay_rho, pay_tol, pay_ok, pay_c,
             pay_Pn, pay_S, pay_L, pay_Q, torque_var, q_extra, Ts, pay_dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr,
             Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+            iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
         pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = scaled_map
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
@@ -1052,8 +1054,8 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
 
 
 def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
-                  iold_fg, iold_T2):  # pragma: no cover - compiled
+                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
+                  iold_fg, iold_T2, iold_C2):  # pragma: no cover - compiled
     """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
     row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
     C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
@@ -1062,14 +1064,15 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     The held model (:func:`_held_model`) is linear in the held arrays, and the stiffness, input matrix
     and geometric forms do not depend on the payload: it is evaluated once for ``S`` and once for ``dS`` (with
     zero stiffness, input and geometric arrays) and combined per scale, ``M_r = M_r(S) + a_k M_r(dS)``, likewise
-    the damping and the forces; each scale then costs its Cholesky factor and RK4 sub-steps only."""
+    the damping and the forces (the weight, the velocity forms and the bias force ``J^T M a_b``, the increment's
+    ``iC2``); each scale then costs its Cholesky factor and RK4 sub-steps only."""
     r = Mr.shape[0]
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                     old_T2, old_V2, old_C2)
     zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
-    zv, zc = np.zeros(V2.shape), np.zeros(C2.shape)
-    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, zc, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, zc)
+    zv = np.zeros(V2.shape)
+    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
+                    iold_T2, zv, iold_C2)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(Gr.shape)
     f0 = fb = np.empty(r)
@@ -1097,7 +1100,8 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
 def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, tol, map_ok, map_c, map_Pn, map_S,
                       map_L, map_Q, torque_var, q_extra, Ts, dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca,
                       Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-                      iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2):  # pragma: no cover - compiled
+                      iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
+                      iold_C2):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
 
     The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
@@ -1107,7 +1111,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     the current nominal map's (``map_ok``) and ``c`` is within ``tol / rho`` of ``map_c``, else rebuilt as the
     maps of the held linear system at ``c`` (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the
     noise's diagonal); and the step's Jacobian in the state (:func:`step_jacobian`) with that map and the
-    velocity forms ``Ts + c dTs`` (``Ts`` with the nominal map).
+    velocity forms ``Ts + c dTs`` and bias form ``C3 + c iC2`` (``Ts``, ``C3`` with the nominal map).
 
     Returns ``(rows, x, F, Qx, L, (map_ok, map_c, map_Pn, map_S, map_L, map_Q), M_r, K_r, C_r, G_r)`` with the
     augmented state's prediction (``nx`` states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros
@@ -1117,7 +1121,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     noise ``Q`` in its leading block and ``theta_var`` the scale's."""
     rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                         old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
-                                        idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+                                        idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
     finite = True
     for k in range(rows.shape[0]):
         for i in range(rows.shape[1]):
@@ -1126,7 +1130,8 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     if not finite:  # as the nominal step's rescue: first order only
         rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
                                             C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-                                            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+                                            iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
+                                            iold_C2)
     c = a[a.shape[0] - 1]
     scaled = abs(c) * rho > tol
     cT = c if scaled else 0.0
@@ -1142,7 +1147,13 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
         for j in range(Ts.shape[1]):
             for k in range(Ts.shape[2]):
                 T[i, j, k] = Ts[i, j, k] + cT * dTs[i, j, k]
-    Fz = step_jacobian(z, T, Vs, C3, Pn, SQM)
+    C = C3.copy()  # the bias form with the payload's share (iC2 is C3's flattening, [k * nq + j, c])
+    if iC2.shape[0]:
+        for k in range(C3.shape[0]):
+            for j in range(C3.shape[1]):
+                for i in range(C3.shape[2]):
+                    C[k, j, i] += cT * iC2[k * C3.shape[1] + j, i]
+    Fz = step_jacobian(z, T, Vs, C, Pn, SQM)
     n0 = z.shape[0]
     last = rows.shape[0] - 1
     x = np.zeros(nx)

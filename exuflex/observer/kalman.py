@@ -24,7 +24,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import chi2
+
+from .stats import chi2_ppf
 
 try:
     import numba
@@ -418,7 +419,7 @@ class InputStepTest:
 
     def __init__(self, var, p: float | None):
         self.weights = np.ascontiguousarray(0.5 / np.asarray(var, dtype=float).reshape(-1))
-        self.threshold = math.inf if p is None else float(chi2.ppf(1.0 - p, len(self.weights)))
+        self.threshold = math.inf if p is None else float(chi2_ppf(1.0 - p, len(self.weights)))
 
     def __call__(self, u0: np.ndarray, u1: np.ndarray) -> bool:
         return step_statistic(u0, u1, self.weights) > self.threshold

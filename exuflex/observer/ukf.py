@@ -45,7 +45,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
-from filterpy.kalman import MerweScaledSigmaPoints
 
 from .base import FilterDivergedError, Prediction
 from .ekf import EstimationResult, NISMonitor, RunRecord, check_log
@@ -96,8 +95,13 @@ class UnscentedKF:
         self.store_P = store_P
         self.nonfinite_action = nonfinite
         n = self.nx
-        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)  # the weights
-        self.Wm, self.Wc = self.points.Wm, self.points.Wc
+        # Merwe's weights, lambda = alpha^2 (n + kappa) - n: Wm_0 = lambda / (n + lambda), Wc_0 = Wm_0 + 1 -
+        # alpha^2 + beta, the others 1 / (2 (n + lambda)) (the arithmetic of filterpy's MerweScaledSigmaPoints)
+        lam = alpha**2 * (n + kappa) - n
+        self.Wm = np.full(2 * n + 1, 0.5 / (n + lam))
+        self.Wc = self.Wm.copy()
+        self.Wm[0] = lam / (n + lam)
+        self.Wc[0] = lam / (n + lam) + (1 - alpha**2 + beta)
         self._spread = alpha * math.sqrt(n + kappa)  # sqrt(n + lambda), lambda = alpha^2 (n + kappa) - n
         self.monitor = NISMonitor(nis_window) if nis_window else None
         x0 = np.asarray(x0, float).reshape(-1)
