@@ -72,20 +72,21 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
-
 from ..erls.modal import ModalResult
 from ..erls.sensing import channel_matrix
 from ..manoeuvre import open_loop_torque, plan
 from ..mechanism import Mechanism
-from ..sensors import default_channels
+from ..sensors import default_channels, tip_dof_names, tip_point
 
-__all__ = ["TRUNCATION_MAX", "PlannedInput", "TruncationSample", "modal_response", "truncation_sample"]
+__all__ = ["TRUNCATION_MAX", "WINDOW_SAMPLES", "PlannedInput", "TruncationSample", "elastic_loads", "modal_response",
+           "truncation_sample", "window_mean_square"]
 
 log = logging.getLogger(__name__)
 
 #: the whitened mean-square truncated output the automatic count allows, summed over the channels (module docstring)
 TRUNCATION_MAX = 0.1
+#: the window (samples) of the mean square: the observer's NIS test window (:class:`exuflex.observer.ekf.NISMonitor`)
+WINDOW_SAMPLES = 100
 
 
 @dataclass(frozen=True)
@@ -94,8 +95,9 @@ class PlannedInput:
 
     ``u`` (n_t, n_motors): the torques on the grid ``t_k = k dt`` (``dt`` half the sample interval), each held over
     its interval, from rest at ``t = 0`` to the manoeuvre's end; ``channels``, their noise std ``noise`` (the
-    observer's default channels with a stated noise); ``tip``: the tip_x and tip_y sensors (the estimated tip
-    deflection), if the model has them.
+    observer's default channels with a stated noise); ``tip``: the (link, station) of the tip whose elastic
+    deflection and rate the observer estimates (:func:`exuflex.sensors.tip_point`), and ``quantities`` their names
+    (:func:`exuflex.sensors.truth_names`), if the model has one.
     """
 
     u: np.ndarray
@@ -104,7 +106,8 @@ class PlannedInput:
     dt: float
     channels: tuple[str, ...]
     noise: np.ndarray
-    tip: tuple[str, ...] = ()
+    tip: tuple[str, float] | None = None
+    quantities: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, mech: Mechanism, channels: Sequence[str] | None = None) -> PlannedInput | None:
@@ -125,61 +128,95 @@ class PlannedInput:
             log.info("%s: no open-loop torques for the truncation requirement (%s); the band limit alone",
                      mech.source or mech.name, exc)
             return None
-        tip = tuple(s.name for s in mech.sensors if s.kind in ("tip_x", "tip_y"))
-        return cls(np.asarray(tau, float), p.qd, p.qdd, dt, channels, np.array([sensors[c].noise_std for c in channels]), tip)
+        tip = tip_point(mech)
+        names = ()
+        if tip is not None:
+            ex, ey = tip_dof_names(mech)
+            names = (ex, ey, "d" + ex, "d" + ey)
+        return cls(np.asarray(tau, float), p.qd, p.qdd, dt, channels, np.array([sensors[c].noise_std for c in channels]),
+                   tip, names)
 
 
-def modal_response(f: np.ndarray, w: np.ndarray, zeta: np.ndarray, dt: float) -> np.ndarray:
+def modal_response(f: np.ndarray, w: np.ndarray, zeta: np.ndarray, dt: float, rates: bool = False):
     """``eta`` (n_t, modes): the exact response from rest of ``eta'' + 2 zeta w eta' + w^2 eta = f(t)`` to the
     staircase forces ``f`` (n_t, modes), ``f[k]`` held over ``[k dt, (k + 1) dt)``, at ``t_n = n dt`` just after the
-    step there (module docstring); ``w`` > 0 (rad/s), ``0 <= zeta < 1``."""
+    step there (module docstring); ``w`` > 0 (rad/s), ``0 <= zeta < 1``. ``rates``: also ``eta'``, ``(eta, eta')``
+    (the step response's rate is ``exp(-zeta w t) sin(w_d t) / w_d``, so ``eta'_n = Im S_n / w_d``)."""
+    from scipy.signal import lfilter  # here, not at import: scipy.signal is a large import
+
     f = np.atleast_2d(np.asarray(f, float))
     df = np.diff(np.vstack([np.zeros((1, f.shape[1])), f]), axis=0)
     wd = w * np.sqrt(1.0 - zeta**2)
     a = np.exp((1j * wd - zeta * w) * dt)
     out = np.empty_like(f)
+    rate = np.empty_like(f)
     for j in range(f.shape[1]):
         S = lfilter([1.0], [1.0, -a[j]], df[:, j].astype(complex))
         out[:, j] = (f[:, j] - np.real((1.0 - 1j * zeta[j] * w[j] / wd[j]) * S)) / w[j] ** 2
-    return out
+        rate[:, j] = np.imag(S) / wd[j]
+    return (out, rate) if rates else out
+
+
+def window_mean_square(E: np.ndarray, n: int) -> np.ndarray:
+    """(n_t - n + 1, k): the mean of ``E**2`` (n_t, k) over every window of ``n`` consecutive rows (all of them
+    when there are fewer)."""
+    n = max(1, min(int(n), len(E)))
+    c = np.vstack([np.zeros((1, E.shape[1])), np.cumsum(E**2, axis=0)])
+    return (c[n:] - c[:-n]) / n
 
 
 @dataclass(frozen=True)
 class TruncationSample:
-    """The truncation figures at one configuration for every set of interior modes.
+    """The truncation series at one configuration, for any set of interior modes.
 
-    ``A`` (n_int, n_int): ``rho(K) = 1_U^T A 1_U`` (module docstring), interior modes in the basis' ascending
-    order; ``A_tip`` the same for the tip deflection's two components in m^2 (None without tip sensors);
-    ``A_channel`` (n_ch, n_int, n_int) per channel.
+    ``S`` (n_t, n_int + 2 n_modes): the quasi-static interior content (every interior mode, in the basis'
+    ascending order), the ringing of every full elastic mode (q held) and its rate; ``Y`` (n_ch, n_int) and ``G``
+    (n_ch, n_modes): the channels' rows of the interior modes and of the full modes, divided by the noise std;
+    ``Y_tip``, ``G_tip`` (2, ...) the same for the tip's elastic deflection (m; None without a tip);
+    ``frequencies_hz``, ``zeta``: the full modes' and their damping ratios; ``ringing_counted``: the modes above the
+    band, whose ringing counts where the reduced model does not follow it; ``loads``, ``C_el``, ``tip_el``: the
+    planned loads and the rows on the elastic coordinates, for the reduced model's own response
+    (:class:`.path.PathSamples`).
     """
 
     q: np.ndarray
-    A: np.ndarray
-    A_channel: np.ndarray
-    A_tip: np.ndarray | None
+    S: np.ndarray
+    Y: np.ndarray
+    G: np.ndarray
+    Y_tip: np.ndarray | None
+    G_tip: np.ndarray | None
+    frequencies_hz: np.ndarray
+    zeta: np.ndarray
+    ringing_counted: np.ndarray
+    loads: np.ndarray
+    dt: float
+    C_el: np.ndarray
+    tip_el: np.ndarray | None
 
-    def rho(self, kept) -> float:
-        """``rho`` with the interior modes ``kept`` (indices): the whitened mean-square truncated output, summed
-        over the channels."""
-        u = self._unkept(kept)
-        return float(u @ self.A @ u)
-
-    def rho_channels(self, kept) -> np.ndarray:
-        """Per channel, its share of :meth:`rho`."""
-        u = self._unkept(kept)
-        return np.einsum("i,kij,j->k", u, self.A_channel, u)
-
-    def tip_rms(self, kept) -> float:
-        """RMS (m) over the manoeuvre of the tip deflection's truncated part (NaN without tip sensors)."""
-        if self.A_tip is None:
-            return float("nan")
-        u = self._unkept(kept)
-        return float(np.sqrt(max(u @ self.A_tip @ u, 0.0)))
-
-    def _unkept(self, kept) -> np.ndarray:
-        u = np.ones(self.A.shape[0])
+    def _weights(self, kept, unfollowed) -> tuple[np.ndarray, np.ndarray]:
+        u = np.ones(self.Y.shape[1])
         u[np.asarray(kept, int)] = 0.0
-        return u
+        f = np.zeros(self.G.shape[1]) if unfollowed is None else np.where(self.ringing_counted, unfollowed, 0.0)
+        return u, f
+
+    def channel_series(self, kept, unfollowed=None) -> np.ndarray:
+        """(n_t, n_ch) the truncated output ``e(t) / sigma`` in every channel with the interior modes ``kept``
+        (indices) and the fractions ``unfollowed`` (n_modes) of the full modes' ringing the reduced model does not
+        follow (None: all followed)."""
+        u, f = self._weights(kept, unfollowed)
+        n_i, n_m = self.Y.shape[1], self.G.shape[1]
+        return self.S[:, :n_i] @ (self.Y * u).T + self.S[:, n_i : n_i + n_m] @ (self.G * f).T
+
+    def quantity_series(self, kept, unfollowed=None) -> np.ndarray:
+        """(n_t, 4) the truncated part of the tip's elastic deflection (x, y; m) and of its rate (m/s; the
+        ringing's, the quasi-static part's rate left out); no columns without a tip."""
+        if self.Y_tip is None:
+            return np.zeros((len(self.S), 0))
+        u, f = self._weights(kept, unfollowed)
+        n_i, n_m = self.Y.shape[1], self.G.shape[1]
+        ring = self.S[:, n_i : n_i + n_m] * f
+        return np.hstack([self.S[:, :n_i] @ (self.Y_tip * u).T + ring @ self.G_tip.T,
+                          (self.S[:, n_i + n_m :] * f) @ self.G_tip.T])
 
 
 def elastic_loads(model, cfg, inp: PlannedInput) -> np.ndarray:
@@ -208,35 +245,36 @@ def elastic_loads(model, cfg, inp: PlannedInput) -> np.ndarray:
 
 def truncation_sample(cb, rc, full: ModalResult, inp: PlannedInput) -> TruncationSample:
     """The :class:`TruncationSample` at ``rc`` (the basis of ``cb`` with every interior mode, at a configuration)
-    with the full modes ``full`` there, under the planned input ``inp``."""
+    with the full modes ``full`` there (q held: ``modal_analysis(..., locked=True)``), under the planned motion
+    ``inp`` (its loads: :func:`elastic_loads`)."""
     model, nq = cb.model, cb.nq
     cfg = rc.cfg
     n_int = rc.Psi.shape[1]
     f_hz = full.frequencies_hz
-    sel = f_hz > 0
-    phi = full.shapes[:, sel]
-    w = 2 * np.pi * f_hz[sel]
+    phi = full.shapes
+    w = 2 * np.pi * f_hz
     zeta = np.clip(model.alpha / (2 * w) + model.beta * w / 2, 0.0, 0.999)
-    if full.locked:
-        F = elastic_loads(model, cfg, inp)  # (n_t, ne)
-        eta = modal_response(F @ phi[nq:], w, zeta, inp.dt)
-    else:
-        eta = modal_response(inp.u @ (model.input_matrix(cfg).T @ phi), w, zeta, inp.dt)  # (n_t, modes)
+    F = elastic_loads(model, cfg, inp)
+    f = F @ phi[nq:]  # (n_t, modes) modal forces
+    eta, eta_d = modal_response(f, w, zeta, inp.dt, rates=True)
+    quasi = f / w**2
     qc, qs = cb._frame_cs(cfg)
     sh = cb._to_frame(phi[nq:], qc, qs)  # w-frame elastic rows
     r = sh[cb.is_] - rc.B @ sh[cb.im]
     coef = np.linalg.solve(rc.Psi, r)  # (n_int, modes): interior content of each full mode
-    z = eta @ coef.T  # (n_t, n_int)
-    gamma = z.T @ z / len(z)
+    # quasi-static interior content, each mode's ringing and its rate (the staircase's quasi-static part is constant
+    # over each interval: the ringing's rate is eta')
+    S = np.hstack([quasi @ coef.T, eta - quasi, eta_d])
     # the interior modes as full-coordinate vectors (q and master rows zero), u = Q(q) w
     W = np.zeros((model.ne, n_int))
     W[cb.is_] = rc.Psi
     X = np.zeros((model.n, n_int))
     X[nq:] = cb._to_frame(W, qc, qs, inverse=True)
-    Cw = channel_matrix(model, cfg, model.mech, inp.channels) @ X / inp.noise[:, None]  # (n_ch, n_int)
-    A_ch = gamma[None] * Cw[:, :, None] * Cw[:, None, :]
-    A_tip = None
-    if inp.tip:
-        Ct = channel_matrix(model, cfg, model.mech, inp.tip) @ X
-        A_tip = gamma * (Ct.T @ Ct)
-    return TruncationSample(np.asarray(cfg.q, float).copy(), A_ch.sum(axis=0), A_ch, A_tip)
+    C = channel_matrix(model, cfg, model.mech, inp.channels) / inp.noise[:, None]
+    Yt = Gt = None
+    if inp.tip is not None:
+        Ct = model.point_displacement_rows(cfg, *inp.tip)  # (2, ne) global x, y
+        Yt, Gt = Ct @ X[nq:], Ct @ phi[nq:]
+    # the series at the sample times (every other point of the grid): what the filter reads
+    return TruncationSample(np.asarray(cfg.q, float).copy(), np.ascontiguousarray(S[::2]), C @ X, C @ phi, Yt, Gt,
+                            f_hz, zeta, f_hz > cb.band_hz, F, inp.dt, C[:, nq:], None if Yt is None else Ct)
