@@ -617,6 +617,8 @@ def read_csv_log(
     allow_empty : bool
         Empty cells read as NaN (not sampled) instead of an error.
 
+    Notes
+    -----
     The file is read in chunks (:func:`_parse_stream`): the reader holds the parsed array, the mapped columns
     and one chunk of text, never the whole text.
     """

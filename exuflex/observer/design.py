@@ -1,7 +1,8 @@
 """Sensor design: rank curvature-gauge stations by the best RMS error any filter can reach with them.
 
-For a candidate channel set the criterion is the steady-state bound of :func:`.session.estimation_bound` (the
-Kalman filter's steady-state posterior covariance of the reduced model linearised mid-manoeuvre, the stated torque
+For a candidate channel set the criterion is the quick, steady-state estimate of the bound,
+:func:`.session.steady_bound` (the Kalman filter's steady-state posterior covariance of the reduced model linearised
+along the manoeuvre's plan and frozen at each of its poses, the stated torque
 noise as process noise): the RMS bound of the tip elastic displacement, ``sqrt(b_x^2 + b_y^2)``, since the
 encoders alone already give the rigid motion. A channel set that leaves states unobservable gets an infinite
 bound.
@@ -28,9 +29,9 @@ from .session import (
     ObserverConfig,
     UnobservableError,
     default_channels,
-    estimation_bound,
     make_observer,
     physical_names,
+    steady_bound,
 )
 
 __all__ = ["DesignResult", "rank_gauges"]
@@ -38,7 +39,7 @@ __all__ = ["DesignResult", "rank_gauges"]
 
 @dataclass(frozen=True)
 class _BoundFilter:
-    """What :func:`estimation_bound` reads of a filter: the channels' noise and the interval."""
+    """What :func:`.session.steady_bound` reads of a filter: the channels' noise and the interval."""
 
     R_std: np.ndarray
     dt: float
@@ -102,7 +103,7 @@ def rank_gauges(mech: Mechanism, n_candidates: int = 9, config: ObserverConfig |
         o = dataclasses.replace(obs, channels=tuple(chans),
                                 ekf=_BoundFilter(np.array([std[c] for c in chans]), obs.ekf.dt))
         try:
-            b = estimation_bound(o)
+            b = steady_bound(o)
         except UnobservableError:
             return math.inf
         return float(math.hypot(b[tip_x], b[tip_y]))
