@@ -235,7 +235,11 @@ def test_compiled_configuration_evaluation_equals_numpy(sixbar, consistent, case
 
         model = ErlsModel(parse_mechanism(_welded_arm(offset=(0.04, -0.03), inertia=1e-4, angle=2.2), "l_arm.toml"))
     if case in ("sixbar", "slider_crank", "l_arm"):
-        cb = CraigBampton(model, **({"q_star": [0.3], "masters": ["node8.x", "node8.y"]} if case == "l_arm" else {}))
+        # the slider-crank with its rod's first three bending modes (the comparison's tolerance is rounding at
+        # the slave block's condition number; the automatic count's fourth mode, 1.6 kHz, raises it)
+        kw = {"q_star": [0.3], "masters": ["node8.x", "node8.y"]} if case == "l_arm" else (
+            {"n_interior": 3} if case == "slider_crank" else {})
+        cb = CraigBampton(model, **kw)
     elif case == "fourbar_guyan_only":
         cb = CraigBampton(model, n_interior=0)
     else:

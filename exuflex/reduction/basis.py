@@ -225,8 +225,11 @@ class CraigBampton:
         # the truncation requirement (.truncation): what the filter needs of the manoeuvre's motion; the automatic
         # count meets it, a fixed count is the user's (its figure is reported)
         self.truncation_max = TRUNCATION_MAX if truncation_max is None else float(truncation_max)
-        planned = PlannedInput.of(model.mech, channels) if self.truncation_max > 0 else None
+        auto = n_interior == "auto"
+        # a fixed count's figure is computed when asked for (:attr:`truncation`)
+        planned = PlannedInput.of(model.mech, channels) if self.truncation_max > 0 and auto else None
         samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max)
+        self._truncation_args = (q_samples, channels, quantity_max)
         self.scores = samples.scores[0]  # IMR scores at q*
         self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior),
                                                  truncation=n_interior == "auto")
@@ -240,7 +243,7 @@ class CraigBampton:
             raise ValueError(f"{src}: n_interior must be in 0..{Phi.shape[1]} (number of slaves), got {n_interior}")
         self.set_interior(n_interior)
         self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
-        self.truncation = _truncation_report(samples, planned, self.kept, self.truncation_max)
+        self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max) if auto else False
         missed = [a for a in self.path_accuracy if not a.ok(self.nco_min, self.freq_error_max_pct)]
         if missed:
             a = min(missed, key=lambda a: a.worst_nco)
@@ -250,7 +253,7 @@ class CraigBampton:
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
                         "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
                         a.worst_nco, np.round(a.q, 4).tolist(), hint)
-        elif self.truncation is not None and not self.truncation["met"]:
+        elif auto and self.truncation is not None and not self.truncation["met"]:
             tr = self.truncation
             log.warning("%s: %d interior modes leave a truncated output of rho = %.3g (limit %.3g; %s) in the "
                         "channels under the manoeuvre (.truncation)%s", src, n_interior, tr["rho"], tr["rho_max"],
@@ -260,6 +263,22 @@ class CraigBampton:
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
+
+    @property
+    def truncation(self) -> dict | None:
+        """The truncation requirement's figures with the kept interior modes (:func:`_truncation_report`; None
+        without a manoeuvre, computable torques or noisy channels, or with ``truncation_max`` 0)."""
+        if self._truncation is False:
+            q_samples, channels, quantity_max = self._truncation_args
+            planned = PlannedInput.of(self.model.mech, channels) if self.truncation_max > 0 else None
+            n = self.n_interior
+            self.set_interior(len(self.order))  # every interior mode, ascending (as :class:`.path.PathSamples` wants)
+            try:
+                samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max)
+            finally:
+                self.set_interior(n)
+            self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max)
+        return self._truncation
 
     # ------------------------------------------------------------------ setup
     def _pairs_setup(self, refs):

@@ -170,7 +170,10 @@ class PathSamples:
         ix = np.ix_(cols, cols)
         out = []
         for q, Mr, Kr, PMH, n1, ff in zip(self.qs, self.Mr, self.Kr, self.PMH, self.n1, self.band_hz):
-            w2, V = sla.eigh(Kr[ix], Mr[ix])
+            try:
+                w2, V = sla.eigh(Kr[ix], Mr[ix])
+            except np.linalg.LinAlgError:  # a degenerate partition (a global master turned axial): no match
+                w2, V = np.zeros(nq), np.zeros((len(cols), nq))
             fr = np.sqrt(np.clip(w2[nq:], 0, None)) / (2 * np.pi)
             Vr = V[:, nq:]
             if not Vr.shape[1]:
@@ -216,7 +219,12 @@ class PathSamples:
             self._cache[key] = out
             return out
         ix = np.ix_(cols, cols)
-        w2, V = sla.eigh(Kr[ix], Mr[ix])
+        try:
+            w2, V = sla.eigh(Kr[ix], Mr[ix])
+        except np.linalg.LinAlgError:  # a degenerate partition (a global master turned axial): nothing followed
+            out = (np.ones(len(t.frequencies_hz)), np.zeros((n_t, n_ch)), np.zeros((n_t, n_qu)))
+            self._cache[key] = out
+            return out
         fr = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
         nco = (PMH[:, cols] @ V) ** 2 / np.einsum("ij,ik,kj->j", V, Mr[ix], V)[None, :]  # (full, reduced)
         best = np.argmax(nco, axis=1)
