@@ -226,7 +226,7 @@ class PathSamples:
             self._cache[key] = out
             return out
         fr = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
-        nco = (PMH[:, cols] @ V) ** 2 / np.einsum("ij,ik,kj->j", V, Mr[ix], V)[None, :]  # (full, reduced)
+        nco = (PMH[:, cols] @ V) ** 2 / np.maximum(np.einsum("ij,ik,kj->j", V, Mr[ix], V), 1e-300)[None, :]
         best = np.argmax(nco, axis=1)
         n = nco[np.arange(len(best)), best]
         e = np.abs(fr[best] - t.frequencies_hz) / t.frequencies_hz
