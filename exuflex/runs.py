@@ -571,6 +571,8 @@ def _parse_table(
             try:
                 if decimal != "." and "." in cell:
                     raise ValueError(cell)  # a decimal point where the decimal mark is another
+                if "_" in cell:
+                    raise ValueError(cell)  # Python's float reads '1_0' as 10: a number in a log has no '_'
                 v = float(cell.replace(decimal, ".") if decimal != "." else cell)
             except ValueError:
                 raise LogFormatError(
@@ -972,9 +974,7 @@ def read_lab_run(
         first = next(_content_lines(path), None)
         header = [h.strip() for h in first[1].split(delimiter)] if first is not None else []
         if header and time_column in header:
-            mapping = {n: n for n in names if n in header}
-            for m in motors:
-                mapping.setdefault(m, m)
+            mapping = {n: n for n in names if n in header}  # a missing torque: named below
     sig = read_csv_log(path, mapping, time_column=time_column, time_scale=time_scale, delimiter=delimiter,
                        decimal=decimal)
     have = [m for m in motors if m in sig]

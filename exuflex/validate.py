@@ -31,8 +31,8 @@ from .errors import LogFormatError
 from .mechanism import Mechanism, ModelFileError
 
 __all__ = ["ANGLE_GUESS_TOL", "Assembly", "LogCheck", "MAX_STEPS", "FLOP_RATE", "TIME_LIMIT_S", "assembly", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
-           "check_positive", "check_run", "check_simulation_settings", "check_work",
-           "memory_limit_bytes", "state_size_estimate", "with_noise"]
+           "check_positive", "check_run", "check_provenance", "check_simulation_settings", "check_work",
+           "memory_limit_bytes", "state_size_estimate", "truth_lag", "with_noise"]
 
 log = logging.getLogger(__name__)
 
@@ -702,3 +702,121 @@ def with_noise(mech: Mechanism, noise: dict[str, float]) -> Mechanism:
         sensors=tuple(dataclasses.replace(s, noise_std=float(noise[s.name])) if s.name in noise else s
                       for s in mech.sensors),
     )
+
+
+UNIT_FACTORS = {
+    "rad": {"rad": 1.0, "deg": math.pi / 180, "degree": math.pi / 180, "degrees": math.pi / 180, "mrad": 1e-3},
+    "m": {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6},
+    "1/m": {"1/m": 1.0, "1/mm": 1e3, "1/km": 1e-3},
+    "N m": {"N m": 1.0, "Nm": 1.0, "N*m": 1.0, "N.m": 1.0, "mN m": 1e-3, "N mm": 1e-3, "Nmm": 1e-3},
+    "rad/s": {"rad/s": 1.0, "deg/s": math.pi / 180},
+    "m/s": {"m/s": 1.0, "mm/s": 1e-3},
+}
+"""Units a run folder's ``meta.json`` may give a column in, per the unit exuflex works in: the factor to it."""
+
+
+def _expected_units(mech: Mechanism) -> dict[str, str]:
+    from .sensors import SENSOR_UNITS
+
+    out = {m.name: "N m" for m in mech.motors}
+    out.update({s.name: SENSOR_UNITS.get(s.kind, "") for s in mech.sensors})
+    return out
+
+
+def check_provenance(mech: Mechanism, run, *, accept_other_model: bool = False, flag: str = "--accept-other-model"):
+    """A run folder's provenance against the model it is observed with; returns ``(run, notes)``: the run with its
+    columns in exuflex's units (``meta.json`` ``units`` honoured: degrees, millimetres ... converted) and one-line
+    notes. Refused with a :class:`~exuflex.errors.UsageError` (or :class:`~exuflex.errors.LogFormatError`):
+
+    - a ``meta.json`` naming another mechanism (unless ``accept_other_model``, then noted);
+    - a column in a unit exuflex does not know for its kind (``rad``, ``m``, ``1/m``, ``N m`` and their multiples);
+    - a truth that is not one (it has the log's torque or sensor columns: a ``sensors.csv``), or whose time is not
+      aligned with the log's: the lag of a coordinate's channel against its true state (:func:`truth_lag`) more
+      than half a sample interval from zero, where that shift at least halves the misfit (a real offset, not noise).
+    """
+    import dataclasses
+
+    from .errors import LogFormatError, UsageError
+    from .sensors import Signals
+
+    notes: list[str] = []
+    meta = run.meta or {}
+    src = mech.source or mech.name
+    name = meta.get("mechanism")
+    if isinstance(name, str) and name and name != mech.name:
+        what = f"{run.path}: meta.json says the run is of the mechanism {name!r}"
+        path = (meta.get("model") or {}).get("path") if isinstance(meta.get("model"), dict) else None
+        what += f" ({path})" if path else ""
+        if not accept_other_model:
+            raise UsageError(f"{what}, the model {src} is {mech.name!r}; expected a run of this model ({flag} to "
+                             "observe it with this one all the same)")
+        notes.append(f"{what}, observed with {mech.name!r} ({flag})")
+    units = (meta.get("units") or {}).get("sensors.csv") or {}
+    expected = _expected_units(mech)
+    S = run.sensors
+    data = None
+    for i, c in enumerate(S.names):
+        u, want = units.get(c), expected.get(c)
+        if not u or not want or u == want:
+            continue
+        factor = UNIT_FACTORS.get(want, {}).get(u)
+        if factor is None:
+            raise LogFormatError(f"{run.path}/meta.json: units: column {c!r} in {u!r}; expected {want!r} or one of "
+                                 f"{sorted(UNIT_FACTORS.get(want, {want: 1}))}")
+        if data is None:
+            data = S.data.copy()
+        data[:, i] *= factor
+        notes.append(f"column {c!r} converted from {u} to {want} (meta.json units)")
+    if data is not None:
+        S = Signals(S.t, S.names, data, tuple(expected.get(c, u) for c, u in zip(S.names, S.units, strict=True)))
+        run = dataclasses.replace(run, sensors=S)
+    truth = run.truth
+    if truth is not None:
+        log_cols = [c for c in truth.names if c in set(mech.motor_names) or c in {s.name for s in mech.sensors}
+                    and not any(c == co.name for co in mech.coordinates)]
+        if log_cols:
+            raise LogFormatError(f"{run.path}: the truth has the log's column(s) {log_cols}: not a truth (time and "
+                                 "the true states q.., dq.., the tip's elastic states); expected a truth.csv")
+        found = truth_lag(mech, S, truth)
+        lag, ratio = found if found is not None else (0.0, 1.0)
+        if abs(lag) > 0.5 / mech.sample_rate_hz and ratio > 2.0:  # a shift that at least halves the misfit
+            raise LogFormatError(f"{run.path}: the truth is {abs(lag):.4g} s {'late' if lag > 0 else 'early'} against "
+                                 "the log (least-squares alignment of a coordinate's channel); expected their clocks "
+                                 "aligned within half a sample interval")
+    return run, notes
+
+
+def truth_lag(mech: Mechanism, sensors, truth, max_lag_s: float = 0.5) -> tuple[float, float] | None:
+    """``(lag, ratio)``: the time by which ``truth`` lags ``sensors`` (s; positive: the truth's stamps late), the
+    shift ``d`` that minimises the mean square of ``y(t) - q(t + d)`` between the log's channel ``y`` and the truth's
+    state ``q`` of the first coordinate both have (the truth interpolated linearly), searched on the log's grid
+    within ``max_lag_s`` and refined by a parabola through the best three; and the ratio of that mean square at
+    zero shift to its minimum (about 1 for aligned clocks, where the misfit is the channel's noise; large where
+    the shift matters). None where they share no coordinate or the coordinate does not move."""
+    for co in mech.coordinates:
+        q = co.name
+        if q not in sensors.names or q not in truth.names:
+            continue
+        ok = np.isfinite(sensors[q])
+        t, y = sensors.t[ok], sensors[q][ok]
+        if len(t) < 8 or not np.ptp(truth[q]) > 0:
+            continue
+        step = float(np.median(np.diff(t)))
+        n = max(1, min(int(max_lag_s / step), len(t) // 4))
+        lags = np.arange(-n, n + 1) * step
+        cost = np.full(len(lags), np.inf)
+        for i, d in enumerate(lags):
+            w = np.interp(t + d, truth.t, truth[q], left=np.nan, right=np.nan)
+            keep = np.isfinite(w)
+            if keep.sum() >= len(t) // 2:
+                cost[i] = float(np.mean((y[keep] - w[keep]) ** 2))
+        k = int(np.argmin(cost))
+        if not np.isfinite(cost[k]) or not np.isfinite(cost[n]):
+            continue
+        ratio = float(cost[n] / cost[k]) if cost[k] > 0 else (1.0 if cost[n] == 0 else math.inf)
+        if 0 < k < len(lags) - 1 and np.all(np.isfinite(cost[k - 1 : k + 2])):
+            c0, c1, c2 = cost[k - 1 : k + 2]
+            den = c0 - 2 * c1 + c2
+            return float(lags[k] + (0.5 * step * (c0 - c2) / den if den > 0 else 0.0)), ratio
+        return float(lags[k]), ratio
+    return None

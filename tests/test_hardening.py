@@ -5,6 +5,7 @@ the generated campaign over these kinds is ``tests/test_hardening_campaign.py``.
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import signal
@@ -503,3 +504,133 @@ def test_sizes_a_user_types_are_bounded_before_work(tmp_path, capsys, argv, matc
     assert len([ln for ln in err.splitlines() if ": error: " in ln]) == 1
     assert peak < 200 * 2**20  # refused before any allocation of the size asked for
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------ provenance
+def _run_copy(tmp_path: Path, src: Path = RUN, **meta_changes) -> Path:
+    d = tmp_path / "run"
+    shutil.copytree(src, d)
+    meta = json.loads((d / "meta.json").read_text())
+    meta.update(meta_changes)
+    (d / "meta.json").write_text(json.dumps(meta))
+    return d
+
+
+def test_a_run_of_another_model_is_refused_or_named(tmp_path, capsys):
+    fourbar = str(ROOT / "models" / "fourbar.toml")
+    assert main(["observe", fourbar, str(RUN)]) == 2
+    err = capsys.readouterr().err
+    assert "meta.json says the run is of the mechanism 'sixbar'" in err and "--accept-other-model" in err, err
+    from exuflex.validate import check_provenance
+
+    import exuflex as xf
+
+    run = xf.read_run(RUN)
+    _, notes = check_provenance(xf.load_mechanism(fourbar), run, accept_other_model=True)
+    assert any("observed with 'fourbar'" in n for n in notes)
+
+
+def test_a_run_folders_units_are_honoured(tmp_path, sixbar):
+    import exuflex as xf
+    from exuflex.errors import LogFormatError
+    from exuflex.validate import check_provenance
+
+    meta = json.loads((RUN / "meta.json").read_text())
+    units = meta["units"]
+    units["sensors.csv"]["q1"] = "deg"
+    d = _run_copy(tmp_path, units=units)
+    lines = (d / "sensors.csv").read_text().splitlines()
+    i = lines[0].split(",").index("q1")
+    rows = [lines[0]] + [",".join(repr(float(c) * 180 / np.pi) if j == i and c else c
+                                  for j, c in enumerate(ln.split(","))) for ln in lines[1:]]
+    (d / "sensors.csv").write_text("\n".join(rows) + "\n")
+    run, notes = check_provenance(sixbar, xf.read_run(d))
+    np.testing.assert_allclose(run.sensors["q1"], xf.read_run(RUN).sensors["q1"], rtol=1e-12)
+    assert any("'q1' converted from deg to rad" in n for n in notes)
+    units["sensors.csv"]["c1"] = "furlongs"
+    (d / "meta.json").write_text(json.dumps(dict(meta, units=units)))
+    with pytest.raises(LogFormatError, match=r"column 'c1' in 'furlongs'; expected '1/m'"):
+        check_provenance(sixbar, xf.read_run(d))
+
+
+def test_a_late_truth_and_a_truth_that_is_a_log_are_refused(tmp_path, capsys):
+    from exuflex.runs import read_run, write_run
+    from exuflex.sensors import Signals
+
+    run = read_run(ROOT / "tests" / "data" / "sixbar_erls_3s")
+    T = run.truth
+    late = tmp_path / "late"
+    write_run(late, run.sensors, Signals(T.t + 0.1, T.names, T.data, T.units),
+              {k: v for k, v in run.meta.items() if k != "units"})
+    assert main(["observe", SIXBAR, str(late)]) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"the truth is 0.09\d* s late against the log", err), err
+    assert main(["observe", SIXBAR, str(RUN / "sensors.csv"), "--truth", str(RUN / "sensors.csv")]) == 2
+    assert "not a truth" in capsys.readouterr().err
+    assert main(["observe", SIXBAR, str(RUN / "sensors.csv"), "--truth", str(tmp_path / "none.csv")]) == 2
+    assert "none.csv: no such file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("opt", [["--time-column", "zzz"], ["--truth", "x.csv"], ["--map", "q1=a"],
+                                 ["--time-scale", "1e-3"], ["--delimiter", ";"], ["--decimal", ","]])
+def test_lab_csv_options_on_a_run_folder_are_refused(capsys, opt):
+    assert main(["observe", SIXBAR, str(RUN), *opt]) == 2
+    err = capsys.readouterr().err
+    assert f"{opt[0]}: options of a lab CSV log, but" in err and "is a run folder" in err, err
+
+
+def test_a_cell_with_an_underscore_is_not_a_number(tmp_path):
+    from exuflex.errors import LogFormatError
+    from exuflex.runs import read_csv_log
+
+    p = tmp_path / "a.csv"
+    p.write_text("time,q1\n0,1\n0.002,1_0\n")
+    with pytest.raises(LogFormatError, match=r"line 3, column 'q1': '1_0' is not a number"):
+        read_csv_log(p)
+
+
+# ------------------------------------------------------------------------------------------ singular paths
+def test_a_tip_line_to_an_open_chains_full_reach_is_refused():
+    import math
+
+    from exuflex.erls.kinematics import Kinematics, KinematicsError
+    from exuflex.manoeuvre import plan
+    from exuflex.mechanism import LinkPoint, Manoeuvre, load_mechanism
+
+    arm = load_mechanism(ROOT / "models" / "serial_arm.toml")
+    reach = sum(lk.length for lk in arm.links)
+    lk = arm.links[-1]
+    z = Kinematics(arm).pose(np.array([-0.3, 1.8])).z
+    i = len(arm.links) - 1
+    p0 = np.array([z[3 * i] + lk.length * math.cos(z[3 * i + 2]), z[3 * i + 1] + lk.length * math.sin(z[3 * i + 2])])
+    g = np.array(arm.joints[0].ground)
+    d = (p0 - g) / np.linalg.norm(p0 - g)
+
+    def line(to):
+        return Manoeuvre("tip_line", 1.0, "quintic", tip=LinkPoint(lk.name, lk.length),
+                         points=(tuple(map(float, p0)), tuple(map(float, g + to * d))))
+
+    plan(arm, line(0.95 * reach), dt=1e-3)  # short of the reach: planned
+    with pytest.raises(KinematicsError, match=r"reaches a singular configuration at t = 1 s, .*path Jacobian"):
+        plan(arm, line(reach), dt=1e-3)
+
+
+def test_a_slider_crank_driven_to_its_toggle_position_is_refused(tmp_path):
+    import math
+
+    from exuflex.erls.kinematics import KinematicsError
+    from exuflex.manoeuvre import plan
+    from exuflex.mechanism import load_mechanism
+
+    src = (ROOT / "models" / "slider_crank.toml").read_text()
+    limit = -math.asin(0.1 / 0.4)  # the rod's steepest angle: the crank square to the slider's axis
+    text = (src.replace('[[coordinates]]\nname = "q1"\nlink = "crank"\njoint = "O"',
+                        '[[coordinates]]\nname = "q1"\nlink = "rod"\njoint = "A"')
+            .replace("q_ref = [1.5707963267948966]", "q_ref = [-0.2]")
+            .replace("q_star = [1.5707963267948966]", "q_star = [-0.2]")
+            .replace("angle_guess = 1.5707963267948966", "angle_guess = 0.9"))
+    text = re.sub(r"rules = \[.*\]", f'rules = [{{ coordinate = "q1", start = -0.2, end = {limit!r} }}]', text)
+    p = tmp_path / "rod_driven.toml"
+    p.write_text(text)
+    with pytest.raises(KinematicsError, match=r"reaches a singular configuration"):
+        plan(load_mechanism(p), dt=1e-3)

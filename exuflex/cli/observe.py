@@ -87,6 +87,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="multiplies the time column, e.g. 1e-3 for milliseconds")
     add_dialect_arguments(g)
     g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
+    p.add_argument("--accept-other-model", action="store_true",
+                   help="observe a run folder whose meta.json names another mechanism (refused otherwise)")
     p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
     add_overwrite(p)
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
@@ -163,6 +165,19 @@ def _config(args, mech):
         "payload_nominal_p": args.payload_nominal_p,
     }
     return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
+
+
+def _csv_options_unused(args) -> None:
+    """A run folder has its own clock, columns and truth: the lab-CSV options are refused there, not ignored."""
+    from ..errors import UsageError
+
+    given = [flag for flag, v, default in (("--map", args.map, None), ("--time-column", args.time_column, "time"),
+                                           ("--time-scale", args.time_scale, 1.0), ("--truth", args.truth, None),
+                                           ("--delimiter", args.delimiter, ","), ("--decimal", args.decimal, "."))
+             if v != default]
+    if given:
+        raise UsageError(f"{' '.join(given)}: options of a lab CSV log, but {args.run_dir} is a run folder (its "
+                         "meta.json names the columns, its truth is its truth.csv); expected them only with a CSV file")
 
 
 def _read_log(args, mech):
@@ -273,7 +288,7 @@ def _run(args) -> int:
     from ..observer.session import AUGMENTED_ESTIMATORS, make_observer, observe_run
     from ..runs import check_csv_dialect, read_run
     from ..sensors import default_channels
-    from ..validate import check_configurations, check_observer_settings, check_run, with_noise
+    from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
@@ -282,6 +297,8 @@ def _run(args) -> int:
     if args.smooth and config.estimator == "ukf":
         raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
+    if Path(args.run_dir).is_dir():
+        _csv_options_unused(args)
     check_csv_dialect(args.delimiter, args.decimal)
     for flag, v in (("--q0", args.q0), ("--qd0", args.qd0)):
         if v is not None and len(v) != len(mech.coordinates):
@@ -290,6 +307,9 @@ def _run(args) -> int:
     check_configurations(mech)  # loops close, away from singularities
     path = Path(args.run_dir)
     log = _read_log(args, mech) if path.is_file() else read_run(path)
+    log, notes = check_provenance(mech, log, accept_other_model=args.accept_other_model)
+    for note in notes:
+        _say(f"note: {note}")
     _say(f"read {path}: {len(log.sensors.t)} rows, {float(log.sensors.t[-1] - log.sensors.t[0]):.4g} s")
     mech = run_manoeuvre(mech, log)
     _check_substeps(mech, config, len(log.sensors.t))

@@ -26,7 +26,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["GENERAL", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "CompiledModel", "DiscreteModel",
+__all__ = ["GENERAL", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "Belief", "CompiledModel", "DiscreteModel",
            "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "ModelHooks", "Prediction", "hooks", "takes_compiled_loop"]
 
 #: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
@@ -39,6 +39,15 @@ LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
 
 class FilterDivergedError(RuntimeError):
     """The filter produced a non-finite state or covariance, or failed its divergence test in ``raise`` mode."""
+
+
+class Belief(NamedTuple):
+    """A Gaussian belief about the state: mean and covariance (what a filter carries from sample to sample)."""
+
+    x: np.ndarray
+    """(nx,) mean."""
+    P: np.ndarray
+    """(nx, nx) covariance."""
 
 
 class Prediction(NamedTuple):

@@ -77,7 +77,16 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import MONITOR, REFRESH, REMAP, DiscreteModel, FilterDivergedError, hooks, takes_compiled_loop
+from .base import (
+    MONITOR,
+    REFRESH,
+    REMAP,
+    Belief,
+    DiscreteModel,
+    FilterDivergedError,
+    hooks,
+    takes_compiled_loop,
+)
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
@@ -689,6 +698,11 @@ class BeliefFilter:
         self.last_dof = 0
         if self.monitor is not None:
             self.monitor.reset()
+
+    @property
+    def belief(self) -> Belief:
+        """The current belief ``(x, P)`` (copies)."""
+        return Belief(self._x.copy(), self._P.copy())
 
     @property
     def x(self) -> np.ndarray:
