@@ -352,7 +352,7 @@ class BoundTrack:
 
 
 def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0, sampled=None, *,
-                  outputs: Callable | None = None, smooth: bool = False, floor: float = 1e-18,
+                  outputs: Callable | None = None, smooth: bool = False, floor: float = 0.0,
                   rows: int = 512, linearise: Callable | None = None) -> BoundTrack:
     """The bound along a record: the Kalman covariance recursion of ``model`` linearised along the states ``X``
     (module docstring), on the record's own sampling schedule.
@@ -383,7 +383,11 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
     smooth : bool
         Also the smoothed bound (RTS backward pass; keeps every ``P``, ``F``, ``Q``: 24 nx^2 bytes a sample).
     floor : float
-        The variance floor of the filter's end-of-sample settling.
+        A floor on the variances after each sample (:func:`.kalman.fix_cov`). None by default: a floor adds
+        variance the recursion's ``Q`` does not hold, and the smoother's backward pass multiplies that
+        inconsistency by ``1/lambda^2`` a sample in a direction that decays by ``lambda`` with no process noise
+        (an undriven damped mode), so that the smoothed bound of such a model diverges backwards (measured on
+        the five-bar with the filter's 1e-18).
     rows : int
         Samples per block of ``outputs`` (the memory beyond the result is a block's covariances).
     linearise : callable, optional
@@ -421,33 +425,53 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
         Fall = np.empty((n, nx, nx))
         Qall = np.empty((n, nx, nx))
     blocks, rows = [], max(int(rows), 1)
-    subsets: dict = {}
+    m = len(channels)
+    subsets: dict = {}  # per set of sampled channels: its rows and the update's buffers
+    work, P_pred, zero, x_out = np.empty((nx, nx)), np.empty((nx, nx)), np.zeros(nx), np.empty(nx)
+    P = np.ascontiguousarray(P)
     x_prev = u_prev = None
     for a in range(0, n, rows):
         b = min(a + rows, n)
         Xb = np.asarray(X[a:b], float)
         Ub = None if U is None else np.asarray(U[a:b], float)
-        Sb = np.ones((b - a, len(channels)), bool) if sampled is None else np.asarray(sampled[a:b], bool)
+        Sb = np.ones((b - a, m), bool) if sampled is None else np.asarray(sampled[a:b], bool)
         Pb = np.empty((b - a, nx, nx))
         for i in range(b - a):
             k = a + i
+            P_out = Pb[i]  # (a C-contiguous view: the kernels write the posterior in place)
+            sel = Sb[i]
             if k > 0:
                 F, Q = step(x_prev, u_prev, t[k] - t[k - 1])
-                P = riccati_predict(F, P, Q)
+                F, Q = np.ascontiguousarray(F, float), np.ascontiguousarray(Q, float)
                 if keep:
                     Fall[k], Qall[k] = F, Q
-            sel = Sb[i]
             if sel.any():
                 key = sel.tobytes()
-                idx = subsets.get(key)
-                if idx is None:
-                    idx = subsets[key] = np.flatnonzero(sel)
+                sub = subsets.get(key)
+                if sub is None:
+                    idx = np.flatnonzero(sel)
+                    k_ = len(idx)
+                    sub = subsets[key] = (idx if k_ < m else None, np.ascontiguousarray(Rd[idx]), np.empty((k_, nx)),
+                                          np.empty(k_), np.empty((k_, k_)), np.zeros(k_))
+                idx, Rs, HP, r, S, y0 = sub
                 H = np.asarray(model.measure(Xb[i], channels).H, float)
-                P = riccati_update(P, H[idx], Rd[idx], fl)
+                H = np.ascontiguousarray(H if idx is None else H[idx])
+                if k > 0:
+                    _, ok, _ = kalman.predict_update(F, P, Q, P_pred, work, zero, y0, y0, H, Rs, HP, r, S, x_out,
+                                                     P_out, fl)
+                else:
+                    _, ok = kalman.update(zero, P, y0, y0, H, Rs, HP, r, S, x_out, P_out)
+                    kalman.fix_cov(P_out, fl)
+                if not ok:
+                    raise np.linalg.LinAlgError(f"the innovation covariance at t={t[k]:.6g} s is not positive "
+                                                "definite")
             else:
-                P = 0.5 * (P + P.T)
-            cur[0] = P
-            Pb[i] = P
+                if k > 0:
+                    kalman.predict_cov(F, P, Q, P_out, work)
+                else:
+                    P_out[:] = P
+                kalman.fix_cov(P_out, fl)
+            P = cur[0] = P_out
             x_prev = Xb[i]
             u_prev = None if Ub is None else Ub[i]
         if keep:

@@ -105,6 +105,12 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
     w0 = time.perf_counter()
     ekf.reset(x0, P0)
     ekf.record_predictions = True
+    # the forward pass without the filter's variance floor (negative variances are still set to zero): the floor
+    # adds variance that Q does not hold, and the backward pass multiplies that by 1/lambda^2 a sample in a
+    # direction that decays by lambda without process noise (an undriven damped mode; the five-bar's smoothed
+    # estimates overflowed)
+    floor = ekf._floor.copy()
+    ekf._floor[:] = 0.0
     try:
         for k in range(n):
             ekf.last_prediction = None
@@ -118,6 +124,7 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
                 Xp[k], Fs[k], Qs[k] = lp
     finally:
         ekf.record_predictions = False
+        ekf._floor[:] = floor
     w1 = time.perf_counter()
     xs, Ps = rts_backward(P, Fs, Qs, X, Xp)
     w2 = time.perf_counter()
