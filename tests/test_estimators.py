@@ -383,6 +383,42 @@ def test_ukf_equals_the_kalman_filter_on_a_linear_model():
         np.testing.assert_allclose(ukf.nis, kf.nis, rtol=1e-6, equal_nan=True)
 
 
+def test_ukf_has_the_ekfs_gate_fault_monitors_and_divergence():
+    """On a linear model the UKF is the Kalman filter, so with the EKF's monitors (:class:`Monitoring`: the gate,
+    the sensor-fault windows) it must gate the same spike, find the same offset fault and report the same NIS flag
+    as the EKF, with "diverged" meaning a non-finite state for both (the NIS flag is ``nis_flagged``)."""
+    from exuflex.observer.ekf import Monitoring, MultirateEKF
+    from exuflex.observer.ukf import UnscentedKF
+
+    from exuflex.observer.base import LinearDiscreteModel
+
+    model, R_std, t, Y2, dt = _linear_system(seed=5, n=400)
+    c3 = np.array([1.0, -1.0, 0, 0])  # a third channel: the gate leaves out a minority of the channels only
+    model = LinearDiscreteModel(model.A, None, {**model.C, "y3": c3}, model.Q)
+    x = np.array([0.1, -0.05, 0.0, 0.3])
+    rng = np.random.default_rng(9)
+    y3 = np.empty(len(t))
+    for k in range(len(t)):  # (y3 of the noise-free motion from the same start: the filters see the same record)
+        x = model.A @ x if k else x
+        y3[k] = c3 @ x + 0.01 * rng.standard_normal()
+    R_std = {**R_std, "y3": 0.05}
+    Y = np.column_stack([Y2, y3])
+    Y[120, 0] += 40 * R_std["y1"]  # a spike in one channel: gated
+    Y[250:, 1] += 8 * R_std["y2"]  # an offset from sample 250: a fault, and the NIS test flags
+    chans = ("y1", "y2", "y3")
+    x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
+    mon = Monitoring(nis_window=50, gate_p=1e-6, fault_window=40)
+    kf = MultirateEKF(model, chans, R_std, x0, P0, dt=dt, **mon._asdict()).run(t, None, Y)
+    ukf = UnscentedKF(model, chans, R_std, x0, P0, dt=dt, monitoring=mon).run(t, None, Y)
+    assert kf.n_rejected["y1"] >= 1 and kf.channel_faults and kf.nis_flagged
+    assert ukf.n_rejected == kf.n_rejected
+    assert [(f["channel"], f["kind"], f["start"]) for f in ukf.channel_faults] == \
+        [(f["channel"], f["kind"], f["start"]) for f in kf.channel_faults]
+    assert ukf.flagged_intervals == kf.flagged_intervals and ukf.nis_flagged_at == kf.nis_flagged_at
+    assert not ukf.diverged and not kf.diverged
+    np.testing.assert_allclose(ukf.x_hat, kf.x_hat, rtol=1e-7, atol=1e-9)
+
+
 # ------------------------------------------------------------------------------------------ command line
 def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys):
     """``--estimator ekf-input --smooth --json``: disturbance estimates per motor with their std (on an ERLS log

@@ -50,7 +50,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--elements-per-link", type=elements_per_link_arg, default="file", metavar="N|file",
                    help="then split elements so that no element is longer than 1/N of its link (default: file)")
     p.add_argument("--beam", choices=tuple(BEAMS), default="ancf",
-                   help="Exudyn beam for --exudyn: ANCF cable (default) or geometrically exact (needs a fine mesh)")
+                   help="Exudyn model for --exudyn: ANCF cable (default), geometrically exact beam (needs a fine mesh), "
+                        "or ffrf (alias solid): floating-frame bodies from solid meshes (netgen, Hurty-Craig-Bampton)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--exudyn", action="store_true", help="add the Exudyn model's frequencies")
     p.add_argument("--reduced", action="store_true", help="add the reduced model's frequencies, NCO and errors")
@@ -115,7 +116,16 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     }
     if asm is not None:
         out["assembly"] = asm.as_dict()
-    if exudyn:
+    if exudyn and BEAMS[beam] == "ffrf":
+        if locked:
+            raise UsageError("--locked: the FFRF truth's modes are reported with the motors free; expected no --locked")
+        from ..groundtruth import ffrf_frequencies  # lazy: Exudyn, netgen and ngsolve are heavy
+
+        r = ffrf_frequencies(mech, q, fmax=fmax, progress=lambda msg: print(msg, file=sys.stderr), with_damping=True)
+        out["exudyn"] = {"frequencies_hz": r["frequencies_hz"].tolist(), "damping_ratio": r["damping_ratio"].tolist(),
+                         "beam": beam, "locked": False,
+                         "out_of_plane_hz": r["out_of_plane_hz"].tolist(), "solid": r["settings"]}
+    elif exudyn:
         from ..groundtruth import exudyn_frequencies  # lazy: Exudyn is heavy and optional here
 
         f = np.asarray(exudyn_frequencies(mech, q, elements_per_link="file", formulation=BEAMS[beam], locked=locked))
@@ -147,8 +157,13 @@ def _table(rep: dict) -> str:
         lines.insert(1, rep["assembly"]["summary"])
     if exu is not None:
         ex = rep["exudyn"]
-        lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} elements), "
-                     f"motors {'locked' if ex.get('locked') else 'free'}")
+        if "solid" in ex:
+            lk = ex["solid"]["links"]
+            lines.append(f"Exudyn model: FFRF bodies from solid meshes ({sum(v['nodes'] for v in lk.values())} nodes, "
+                         f"{sum(v['modes'] for v in lk.values())} modes), motors free; in-plane modes")
+        else:
+            lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} "
+                         f"elements), motors {'locked' if ex.get('locked') else 'free'}")
     if red is not None:
         lines.append(f"reduced model: {red.get('ndof')} dofs, masters {red.get('masters')}, "
                      f"{red.get('interior_modes')} interior modes")

@@ -233,9 +233,9 @@ def run(args) -> int:
     _say("building the reduced model")
     obs = make_observer(mech, config)
     if args.q0 is not None or args.qd0 is not None:
-        from ..observer.session import _start_q
+        from ..observer.session import start_configuration
 
-        q0 = args.q0 if args.q0 is not None else _start_q(mech)
+        q0 = args.q0 if args.q0 is not None else start_configuration(mech)
         x0 = obs.model.initial_state(q0, args.qd0)
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
     if args.out and (not args.smooth or len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES):

@@ -121,7 +121,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "--beam",
         choices=tuple(BEAMS),
         default="ancf",
-        help="Exudyn beam: ANCF cable (default) or geometrically exact (linear, needs 16-32 elements per link)",
+        help="Exudyn model: ANCF cable (default), geometrically exact beam (linear, needs 16-32 elements per link), "
+        "or ffrf (alias solid): floating-frame bodies from solid meshes (netgen, Hurty-Craig-Bampton; cached)",
     )
     p.add_argument(
         "--integrator",
@@ -183,6 +184,7 @@ def run(args) -> int:
             beam=args.beam,
             integrator=args.integrator,
             erls_step=args.erls_step,
+            messages=None if args.no_progress else (lambda msg: print(msg, file=sys.stderr)),
         )
     finally:
         bars.close()

@@ -207,7 +207,8 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
 
     materials: dict[str, Material] = {}
     for r in root.table_list("materials"):
-        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=30.0, hi=3e4, unit="kg/m^3"))
+        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=30.0, hi=3e4, unit="kg/m^3"),
+                     r.num("nu", 0.3, lo=0.0, hi=0.49))
         if m.name in materials:
             raise r.err("name", "a unique material name", m.name)
         materials[m.name] = m
@@ -462,6 +463,46 @@ def _unique(source: str, field: str, names: list[str], others: dict[str, str] | 
         seen[n] = f"{field}[{i}]"
 
 
+def _parse_section(r: _Reader, length: float) -> Section:
+    """The link's cross-section: a round bar (``diameter``), a tube (``diameter``, ``inner_diameter``), a rectangle
+    (``height`` in the plane, ``width`` normal to it) or only ``A`` and ``I`` (with an optional ``height``)."""
+    solid_keys = [k for k in ("diameter", "inner_diameter", "width") if r.has(k)]
+    if (r.has("A") or r.has("I")) and solid_keys:
+        raise r.err("A", f"either {' and '.join(solid_keys)} or A and I, not both", r.table.get("A"))
+    if r.has("diameter"):
+        d = r.num("diameter", positive=True, unit="m")
+        if d >= length:
+            raise r.err("diameter", f"a diameter (m) smaller than the link length {length} m: mm by mistake?", d)
+        if r.has("width") or r.has("height"):
+            key = "width" if r.has("width") else "height"
+            raise r.err(key, "no width or height with a diameter (a rectangle has width and height, no diameter)",
+                        r.table[key])
+        if r.has("inner_diameter"):
+            di = r.num("inner_diameter", positive=True, unit="m")
+            if di >= d:
+                raise r.err("inner_diameter", f"a bore diameter (m) smaller than the outer diameter {d} m", di)
+            return Section(math.pi * (d**2 - di**2) / 4, math.pi * (d**4 - di**4) / 64, d, d, "tube", di)
+        return Section(math.pi * d**2 / 4, math.pi * d**4 / 64, d, d, "round")
+    if r.has("inner_diameter"):
+        raise r.err("diameter", "the outer diameter (m) of the tube", has_got=False)
+    if r.has("width"):
+        w = r.num("width", positive=True, unit="m")
+        h = r.num("height", positive=True, unit="m")
+        for k, v in (("width", w), ("height", h)):
+            if v >= length:
+                raise r.err(k, f"a section size (m) smaller than the link length {length} m: mm by mistake?", v)
+        return Section(w * h, w * h**3 / 12, None, h, "rectangle", None, w)
+    if not (r.has("A") and r.has("I")):
+        raise r.err("diameter", "a diameter (m), a diameter and inner_diameter (tube), width and height "
+                    "(rectangle) or both A (m^2) and I (m^4)", has_got=False)
+    A = r.num("A", positive=True, unit="m^2")
+    I = r.num("I", positive=True, unit="m^4")
+    if A >= length**2:
+        raise r.err("A", f"an area (m^2) much smaller than length^2 = {length**2:g}", A)
+    h = r.num("height", None, positive=True, unit="m")
+    return Section(A, I, None, h)
+
+
 def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, ...]:
     links: list[Link] = []
     next_auto = None
@@ -482,22 +523,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
         mat = r.raw("material")
         if not isinstance(mat, str) or mat not in materials:
             raise r.err("material", f"a material name, one of {sorted(materials)}", mat)
-        if r.has("diameter"):
-            d = r.num("diameter", positive=True, unit="m")
-            if d >= length:
-                raise r.err("diameter", f"a diameter (m) smaller than the link length {length} m: mm by mistake?", d)
-            if r.has("A") or r.has("I"):
-                raise r.err("A", "either diameter or A and I, not both", r.table.get("A"))
-            sec = Section(math.pi * d**2 / 4, math.pi * d**4 / 64, d, d)
-        else:
-            if not (r.has("A") and r.has("I")):
-                raise r.err("diameter", "a diameter (m) or both A (m^2) and I (m^4)", has_got=False)
-            A = r.num("A", positive=True, unit="m^2")
-            I = r.num("I", positive=True, unit="m^4")
-            if A >= length**2:
-                raise r.err("A", f"an area (m^2) much smaller than length^2 = {length**2:g}", A)
-            h = r.num("height", None, positive=True, unit="m")
-            sec = Section(A, I, None, h)
+        sec = _parse_section(r, length)
         if r.has("stations"):
             st = r.nums("stations")
             if r.has("n_elements"):
@@ -532,7 +558,10 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
                             "table with kind = \"weld\")", list(ids))
         if len(set(ids)) != len(ids):
             raise r.err("nodes", "distinct node ids", list(ids))
-        links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None)))
+        mesh_size = r.num("mesh_size", None, positive=True, unit="m")
+        if mesh_size is not None and mesh_size >= length:
+            raise r.err("mesh_size", f"a mesh size (m) smaller than the link length {length} m", mesh_size)
+        links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None), mesh_size))
         r.check_unknown()
     return tuple(links)
 

@@ -104,13 +104,12 @@ import scipy.linalg
 
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
-from .base import Measurement, Prediction
+from .base import LoopModel, Measurement, Prediction
 from .expansion import (
     NO_DISTURBANCES,
-    NO_EXTRA_STATES,
     NO_PAYLOAD,
+    NO_SCALED_MAP,
     LoopExtras,
-    cached_samples,
     payload_interval,
     scaled_steps,
 )
@@ -354,7 +353,7 @@ class AugmentedModel:
         ok = mp is not None and mp[0] is sm
         rows, x, F, Qx, L, scaled_map, Mr, Kr, Cr, Gr = payload_interval(
             z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rho, inner.refresh_tol, ok,
-            *(mp[1:] if ok else NO_PAYLOAD[8:13]), inner.torque_var, inner._q_extra, sm.tail[0], dTs, sm.tail[1],
+            *(mp[1:] if ok else NO_SCALED_MAP), inner.torque_var, inner.q_extra_diag, sm.tail[0], dTs, sm.tail[1],
             sm.tail[2], sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
         if scaled_map[0]:
             self._map = (sm, *scaled_map[1:])
@@ -478,15 +477,14 @@ class AugmentedModel:
 
     # ------------------------------------------------------------------ the filter's compiled sample loop
     @property
-    def sample_loop(self):
-        """The compiled sample loop (:func:`.expansion.cached_samples`) on the cached step: it takes the intervals
-        :meth:`predict` takes (a held scale and a scale at exactly 1 are left to :meth:`predict`); None with the
-        reference step."""
-        return cached_samples if self.inner.method == "cached" else None
+    def compiled(self) -> bool:
+        """The filter's compiled sample loop (:func:`.loop.samples`) may take the intervals :meth:`predict` takes
+        with the cached step (a held scale and a scale at exactly 1 it hands back); not the reference step."""
+        return self.inner.method == "cached"
 
-    def loop_arrays(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> tuple:
-        """The inner model's arguments of :func:`.expansion.cached_samples` (:meth:`.reduced.ReducedObserverModel.
-        loop_arrays`, at the torques with the disturbances) with the extra states': the payload's (the increment
+    def loop_model(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> LoopModel:
+        """The inner model's cached step (:meth:`.reduced.ReducedObserverModel.loop_model`, at the torques with the
+        disturbances) with the extra states' arrays (:class:`.expansion.LoopExtras`): the payload's (the increment
         of the held configuration, its payload share and velocity forms, the scaled step map where it is the
         current nominal map's, :meth:`_scaled_interval`) and the disturbances' noise."""
         inner, n0 = self.inner, self.n0
@@ -494,7 +492,7 @@ class AugmentedModel:
         if self.i_inputs is not None:
             u = inner.torques(u) + x[self.i_inputs]
         n_refresh = inner.n_refresh
-        arrays = inner.loop_arrays(z, u, dt, channels)[: -len(NO_EXTRA_STATES)]
+        step, state, _ = inner.loop_model(z, u, dt, channels)
         extra = NO_PAYLOAD
         if self.i_theta is not None:
             iv, sm = inner.loop_step
@@ -503,21 +501,18 @@ class AugmentedModel:
             mp = self._map
             ok = mp is not None and mp[0] is sm
             held = not self.released and self._cov is not None
-            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, ok,
-                     *(mp[1:] if ok else extra[8:13]), *inc)
+            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, *inc)
+            state = state._replace(scaled=(ok, *(mp[1:] if ok else NO_SCALED_MAP)))
         inp = (NO_DISTURBANCES if self.i_inputs is None
                else (np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0)))
-        return (*arrays, LoopExtras(*extra, *inp))
+        return LoopModel(step, state, LoopExtras(*extra, *inp))
 
-    def loop_buffers(self) -> tuple:
-        return self.inner.loop_buffers()
-
-    def loop_done(self, mats: tuple, dt: float, maps: tuple, x: np.ndarray, k: int) -> None:
+    def loop_done(self, mats: tuple, dt: float, state, x: np.ndarray, k: int) -> None:
         """After the compiled loop's samples up to ``k``: the inner model's (:meth:`.reduced.ReducedObserverModel.
         loop_done`) and the scaled step map the loop leaves (for the current nominal map, or none)."""
         inner = self.inner
-        inner.loop_done(mats, dt, maps, x[: self.n0], k)
-        ok, c, Pn, S, L, Q = maps[10:]
+        inner.loop_done(mats, dt, state, x[: self.n0], k)
+        ok, c, Pn, S, L, Q = state.scaled
         self._map = (inner.last_step[1], c, Pn, S, L, Q) if ok else None
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
@@ -540,9 +535,9 @@ def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the augmented step's kernels, for the argument types the model
     and the compiled sample loop pass: :func:`scaled_steps`, :func:`payload_interval` (which calls it, with the
     step map's and the step Jacobian's kernels) and :func:`.expansion.extra_interval` (the loop's interval of an
-    augmented state), and the sample loop's specialisation for augmented states
-    (:func:`.expansion.warm_up_loop`)."""
-    from .expansion import _example_system, extra_interval, warm_up_loop
+    augmented state), and the filter's sample loop's specialisation for augmented states (:func:`.loop.warm_up`)."""
+    from .expansion import _example_system, extra_interval
+    from .loop import warm_up as warm_up_loop
 
     r, nq = 2, 1
     z, u, dl, a = np.zeros(2 * r), np.zeros(nq), np.zeros(nq), np.zeros(1)

@@ -26,7 +26,15 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["DiscreteModel", "FilterDivergedError", "LinearDiscreteModel", "Measurement", "Prediction"]
+__all__ = ["GENERAL", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "CompiledModel", "DiscreteModel",
+           "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "Prediction", "takes_compiled_loop"]
+
+#: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
+#: configuration's or the step map's radius was left (the model renews its arrays, :meth:`CompiledModel.loop_model`,
+#: and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step` must take (an input
+#: step, a gated channel, an indefinite or non-finite update, the model's own reasons); a sensor-fault window test
+#: failed at the last sample done (the monitor reports it).
+LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
 
 
 class FilterDivergedError(RuntimeError):
@@ -125,3 +133,44 @@ class LinearDiscreteModel:
     def measure(self, x, channels) -> Measurement:
         H = self._C(channels)
         return Measurement(H @ x, H)
+
+
+class LoopModel(NamedTuple):
+    """What a :class:`CompiledModel` hands the filter's compiled sample loop for a stretch of samples: ``step``,
+    the arrays its compiled interval and measurement read (:class:`.expansion.CachedStep`); ``state``, what the
+    interval carries from one sample to the next (:class:`.expansion.LoopState`); ``extras``, an augmented state's
+    arrays (:class:`.expansion.LoopExtras`) or None."""
+
+    step: tuple
+    state: tuple
+    extras: tuple | None
+
+
+@runtime_checkable
+class CompiledModel(DiscreteModel, Protocol):
+    """A :class:`DiscreteModel` whose intervals and measurements (every channel) the filter's compiled sample loop
+    (:func:`.loop.samples`) can take: the same numbers as :meth:`predict` and :meth:`measure`, from the arrays
+    :meth:`loop_model` hands it.
+
+    Optional members a filter uses where a model has them: ``reset()`` (a restart), ``watch_covariance(get_P)``
+    (the model measures its approximations against the filter's covariance), ``n_jumps`` (intervals with a torque
+    step so far: the filter's hold-off), ``i_theta`` (the index of a payload-scale state)."""
+
+    compiled: bool
+    """The compiled loop may take this model's intervals (False: :meth:`predict` alone)."""
+
+    def loop_model(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> LoopModel:
+        """The compiled step's arrays for samples from the state ``x`` with the input ``u`` held over ``dt``."""
+        ...
+
+    def loop_done(self, mats: tuple, dt: float, state: tuple, x: np.ndarray, k: int) -> None:
+        """After the loop's samples up to ``k`` (not done), the filter's state now ``x``: what the model keeps of
+        them (the carried ``state``, the last interval's held matrices ``mats`` over ``dt``)."""
+        ...
+
+
+def takes_compiled_loop(model) -> bool:
+    """Whether the filter's compiled sample loop may take ``model``'s intervals: its class implements
+    :class:`CompiledModel` (a wrapping model that forwards attribute reads to the model it wraps does not) and the
+    model's step is the compiled one (``compiled``)."""
+    return all(hasattr(type(model), name) for name in ("compiled", "loop_model", "loop_done")) and bool(model.compiled)

@@ -43,13 +43,6 @@ else:  # pragma: no cover
     def _jit(f):
         return f
 
-#: Why a model's compiled sample loop (:meth:`.ekf.MultirateEKF.run`, e.g. :func:`.expansion.cached_samples`)
-#: stopped: the samples asked for are done; the held configuration's or the step map's radius was left (the model
-#: renews its arrays and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step`
-#: must take (an input step, a gated channel, an indefinite or non-finite update, the model's own reasons); a
-#: sensor-fault window test failed at the last sample done (the monitor reports it).
-LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
-
 
 # --------------------------------------------------------------------------------------------- helpers
 @_jit

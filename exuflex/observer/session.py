@@ -30,7 +30,7 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
 from .bound import BoundTrack, periodic_posterior, riccati_track, steady_posterior, unobservable_states
-from .ekf import EstimationResult, MultirateEKF
+from .ekf import EstimationResult, Monitoring, MultirateEKF
 from .expansion import step_jacobian
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
@@ -50,6 +50,7 @@ __all__ = [
     "Observer",
     "ObserverConfig",
     "UnobservableError",
+    "augmented_estimates",
     "bound_track",
     "default_channels",
     "estimate",
@@ -59,6 +60,7 @@ __all__ = [
     "metrics",
     "physical_names",
     "physical_units",
+    "start_configuration",
     "steady_bound",
 ]
 
@@ -401,21 +403,22 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     som.torque_var_nominal = stated**2
     r, nq = som.r, som.nq
     if x0 is None:
-        x0 = som.initial_state(_start_q(mech))
+        x0 = som.initial_state(start_configuration(mech))
     P0 = np.empty(som.nx)
     P0[:nq] = config.q0_std**2
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
     fmodel, x0, P0 = _filter_model(som, config, x0, P0)
+    monitoring = Monitoring(gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
+                            fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
+                            input_step=_torque_step_test(som.torque_var, config.fault_p), isolate=config.fault_isolation)
     if config.estimator == "ukf":
-        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
+                          monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
-                           gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
-                           fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
-                           input_step=_torque_step_test(som.torque_var, config.fault_p),
-                           isolate=config.fault_isolation)
+                           **monitoring._asdict())
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -463,7 +466,9 @@ def _augmented_mean(ekf_model, x0) -> np.ndarray:
     return out
 
 
-def _start_q(mech: Mechanism) -> np.ndarray:
+def start_configuration(mech: Mechanism) -> np.ndarray:
+    """The configuration the observer starts from: the planned manoeuvre's first (the model's ``q_ref`` without a
+    manoeuvre, or where the plan fails, with a warning)."""
     if mech.manoeuvre is not None:
         try:
             p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
@@ -853,7 +858,7 @@ def _bound_model(obs: Observer) -> ReducedObserverModel:
 def check_observable(obs: Observer, log_check=None) -> None:
     """Raise :class:`UnobservableError` if the channels (those the log samples, with ``log_check``) leave states
     that neither decay nor are measured at the start of the manoeuvre (PBH test, :func:`.bound.unobservable_states`)."""
-    _linearised(obs, _start_q(obs.mech), None, log_check)
+    _linearised(obs, start_configuration(obs.mech), None, log_check)
 
 
 def steady_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
@@ -1222,6 +1227,12 @@ def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | N
     src = est.smoothed if est.smoothed is not None else est.result
     return (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None,
             None if src.nominal_p is None else float(src.nominal_p[-1]))
+
+
+def augmented_estimates(fmodel, est: Estimate) -> dict:
+    """The augmented states' estimates at the end of the record ``est`` of the filter model ``fmodel``
+    (:func:`_extra_states`): the payload scale or the torque disturbances; empty for a plain model."""
+    return _extra_states(fmodel, *_last_state(est))
 
 
 def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:

@@ -356,9 +356,9 @@ def run_one(task: RunTask) -> dict:
     if tip_stats is not None:
         for k in stats:
             stats[k].update(tip_stats[k])
-    from ..observer.session import _extra_states, _last_state
+    from ..observer.session import augmented_estimates
 
-    extra = _extra_states(obs.ekf.model, *_last_state(est))  # the payload scale (or disturbances) an augmented filter estimates
+    extra = augmented_estimates(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
     return {
         **extra,
         "level_index": task.level_index,

@@ -33,6 +33,7 @@ def simulate_run(
     beam: str = "ancf",
     integrator: str = "gen-alpha",
     erls_step: float | str | None = "auto",
+    messages: Callable[[str], None] | None = None,
 ) -> Path:
     """Simulate the model's manoeuvre with the truth ``engine`` and write a run folder; returns its path.
 
@@ -42,7 +43,8 @@ def simulate_run(
     :func:`exuflex.mechanism.load_manoeuvre`); ``write_plan``: also write the planned q, q', q'' as ``plan.csv`` (a
     trajectory file that plans the same motion again); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
     truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the generalized-alpha step
-    from the model's band, :func:`exuflex.truth.gen_alpha_step`). Bad arguments raise a
+    from the model's band, :func:`exuflex.truth.gen_alpha_step`); ``messages`` receives one-line setup messages (the FFRF
+    truth's meshing and modes). Bad arguments raise a
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
     the engine's name) and the fraction of it done.
     """
@@ -88,6 +90,14 @@ def simulate_run(
         why = element_count_error(remeshed_element_count(mech, elements_per_link))
         if why is not None:
             raise UsageError(f"elements_per_link (--elements-per-link): {elements_per_link} per link: expected {why}")
+    if engine == "exudyn" and BEAMS[beam] == "ffrf":
+        if elements_per_link not in (None, "file"):
+            raise UsageError("elements_per_link (--elements-per-link): the FFRF truth meshes solids (links' mesh_size "
+                             "in the model file); expected no --elements-per-link with --beam ffrf")
+        bare = [lk.name for lk in mech.links if lk.section.shape is None]
+        if bare:
+            raise UsageError(f"beam (--beam): ffrf needs solid sections (diameter, tube or rectangle); links {bare} "
+                             "give only A and I")
     if engine == "erls" and integrator == "gen-alpha":
         gen_alpha_step(erls_step, h, 1.0 / mech.sample_rate_hz, mech.reduction.band_hz)  # before the planning
     seed = new_seed() if seed is None else seed
@@ -96,7 +106,8 @@ def simulate_run(
     truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
     rec = simulate(truth_mech, drive, engine, duration, h,
                    progress=None if progress is None else (lambda f: progress(engine, f)),
-                   elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step)
+                   elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step,
+                   messages=messages)
     meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
     payload = truth_mech.payload
     man = mech.manoeuvre
