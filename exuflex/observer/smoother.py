@@ -118,8 +118,9 @@ def rts_backward(P, F, Q, X=None, Xp=None) -> tuple[np.ndarray | None, np.ndarra
     ``Q[k]`` the step from sample ``k - 1`` to ``k`` (row 0 unused).
 
     With ``X`` (filtered means, (n, nx)) and ``Xp`` (predicted means ``x_k|k-1``, row 0 unused) the means too;
-    without, the covariances alone (the smoothed posterior Cramer-Rao bound of :mod:`.bound`). Returns
-    ``(x_k|n or None, P_k|n)``.
+    without, the covariances alone. Returns ``(x_k|n or None, P_k|n)``. (The bound's smoothed covariances use the
+    modified Bryson-Frazier form instead, :func:`.bound.smoothed_covariances`, which does not amplify rounding in
+    undriven damped directions.)
     """
     n = len(P)
     Ps = np.empty_like(P)
