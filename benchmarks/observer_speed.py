@@ -21,8 +21,8 @@ What a user waits for: ``python -m exuflex observe MODEL RUN`` in a fresh interp
 cache and Python's bytecode warm: one run first), its wall time against the filter's own (the ``wall`` it
 prints), with the import of the command line and the observer timed apart. ``--against DIR`` (a checkout of
 another version, e.g. ``git worktree add /tmp/base main``): the filter's time on the log in a fresh interpreter
-of each checkout, in turn, ``--repeats`` pairs; the median of the pairs' ratios (each pair ran at nearly the same
-moment, so the machine's drift cancels). Figures are ratios and fractions of one run (the machine's
+of each checkout (the median of 5 runs), in turn, ``--repeats`` pairs; the median of the pairs' ratios (each pair
+ran at nearly the same moment, so the machine's drift cancels). Figures are ratios and fractions of one run (the machine's
 speed drifts); the absolute factor holds for this machine at this moment only. The figures go to the markdown page
 ``--md`` with the machine's load average at the end of the run.
 """
@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+CHILD_RUNS = 5  # filter runs per interpreter in --against (their median is the interpreter's time)
 
 
 class _Timer:
@@ -145,7 +146,8 @@ def _env(tree: Path) -> dict:
 
 
 def _child(model: str, run_dir: str) -> int:
-    """One filter run on the log after a warm-up, its time printed as JSON (``--against``'s measurement)."""
+    """The median time of :data:`CHILD_RUNS` filter runs on the log after a warm-up, printed as JSON (``--against``'s
+    measurement)."""
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
     from exuflex.runs import read_run
@@ -156,9 +158,12 @@ def _child(model: str, run_dir: str) -> int:
     U = _hold(S.select(mech.motor_names).data)
     Y = S.select(obs.channels).data
     estimate(obs, S.t, U, Y)
-    t0 = time.perf_counter()
-    estimate(obs, S.t, U, Y)
-    print(json.dumps({"filter_s": time.perf_counter() - t0}))
+    times = []
+    for _ in range(CHILD_RUNS):
+        t0 = time.perf_counter()
+        estimate(obs, S.t, U, Y)
+        times.append(time.perf_counter() - t0)
+    print(json.dumps({"filter_s": statistics.median(times)}))
     return 0
 
 

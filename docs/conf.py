@@ -16,7 +16,8 @@ if (ROOT / "exuflex").is_dir():
     sys.path.insert(0, str(ROOT))  # document the checkout being built, not another installed copy
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-import exuflex  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent / "_ext"))
+import exuflex  # noqa: E402  (after the path is set)
 
 project = "exuflex"
 author = "the exuflex developers"
@@ -65,12 +66,12 @@ sphinx_gallery_conf = {
     "examples_dirs": str(ROOT / "examples"),
     "gallery_dirs": "auto_examples",
     "filename_pattern": r"/plot_",  # executed at build time; the other examples are shown, not run
-    "ignore_pattern": r"__init__\.py|/data/",
-    "within_subsection_order": "FileNameSortKey",
+    "ignore_pattern": r"__init__\.py|/data/|/_",
+    "within_subsection_order": "exuflex_figures.GalleryOrder",  # _ext/exuflex_figures.py
     "download_all_examples": False,
     "remove_config_comments": True,
     "abort_on_example_error": True,
-    "image_scrapers": ("matplotlib",),
+    "image_scrapers": ("matplotlib", "exuflex_figures"),  # _ext/exuflex_figures.py: the files in FIGURES
     "matplotlib_animations": False,
     "show_memory": False,
 }
@@ -81,6 +82,7 @@ html_title = f"exuflex {release}"
 html_static_path = ["_static"]
 html_theme_options = {
     "navigation_with_keys": False,
+    "header_links_before_dropdown": 7,
     "show_toc_level": 2,
     "secondary_sidebar_items": ["page-toc"],
     "footer_start": ["copyright"],
@@ -180,5 +182,18 @@ def _api_pages(app, config=None) -> None:
     _write_if_changed(api / "exuflex.rst", "\n".join(lines))
 
 
+# Pages at the root of docs/ that a section places by name; every other root page is a benchmark page (written by
+# a script in benchmarks/) and is listed under "Benchmarks and results" without editing the site.
+PLACED = {"index", "getting_started", "tuning", "validity", "run_format", "robustness"}
+
+
+def _benchmark_pages(app, config=None) -> None:
+    src = Path(app.srcdir)
+    pages = sorted(p.stem for p in src.glob("*.md") if p.stem not in PLACED)
+    lines = ["```{toctree}", ":maxdepth: 1", ""] + [f"/{p}" for p in pages] + ["```", ""]
+    _write_if_changed(src / "results" / "benchmark_pages.txt", "\n".join(lines))
+
+
 def setup(app):
     app.connect("config-inited", _api_pages)
+    app.connect("config-inited", _benchmark_pages)

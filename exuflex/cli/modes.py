@@ -18,12 +18,12 @@ With ``--json`` one JSON object is printed::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import numpy as np
 
 from ..mechanism import MAX_ELEMENTS  # the loader's limit (exuflex.mechanism.limits), also for --refine
+from ..runs import dump_json
 from ..truth import BEAMS
 from .args import n_interior, name_list, nonneg_int, positive_float, positive_int
 from .simulate import elements_per_link_arg
@@ -74,9 +74,8 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     """Library form of the command: the JSON-ready report."""
     from ..erls.modal import modal_analysis
     from ..erls.model import ErlsModel
-    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
-
     from ..errors import UsageError
+    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
     from ..validate import check_configurations, check_positive
 
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 1:
@@ -136,8 +135,14 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
             from ..reduction import reduced_modes_report
         except ImportError as exc:
             raise RuntimeError(f"--reduced needs exuflex.reduction.reduced_modes_report, not available: {exc}") from None
-        if along < 0:
-            raise ValueError(f"--along: expected a number of configurations >= 0, got {along}")
+        if isinstance(along, bool) or not isinstance(along, (int, np.integer)) or along < 0:
+            raise UsageError(f"along (--along): expected a number of configurations >= 0, got {along!r}")
+        from ..validate import check_work
+
+        # a configuration: the full model's and the reduced model's eigenproblems (about 10 n^3 flop each) and a
+        # few vectors of the full model's size kept for the worst case
+        check_work(along, along, param="along", flag="--along", what="configurations", bytes_each=8 * 8 * model.n,
+                   flops_each=2 * 10 * model.n**3)
         out["reduced"] = reduced_modes_report(model, q, masters=masters, n_interior=n_interior, q_star=q_star,
                                               fmax=fmax, along=along)
     return out
@@ -199,5 +204,5 @@ def run(args) -> int:
                        exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
                        n_interior=args.n_interior, q_star=args.qstar, along=args.along,
                        elements_per_link=args.elements_per_link, beam=args.beam)
-    print(json.dumps(rep) if args.json else _table(rep))
+    print(dump_json(rep, indent=None) if args.json else _table(rep))
     return 0

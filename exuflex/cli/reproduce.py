@@ -11,13 +11,13 @@ the paper's, the bound, settings and versions). ``--quick`` shortens everything 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
 from pathlib import Path
 
-from .args import out_path, positive_int
+from ..runs import dump_json
+from .args import add_overwrite, out_path, positive_int
 from .args import seed as seed_type
 
 __all__ = ["FULL", "QUICK", "add_parser", "reproduce", "run"]
@@ -35,6 +35,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        description=__doc__.split("\n")[0])
     p.add_argument("--model", default=None, help="model file (default: the six-bar, models/sixbar.toml)")
     p.add_argument("--out", required=True, type=out_path, help="output folder")
+    add_overwrite(p)
     p.add_argument("--quick", action="store_true", help="short runs and a tiny payload study (about a minute)")
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes for the payload study")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address for the payload study")
@@ -86,8 +87,18 @@ def _fmt(x, spec=".4g") -> str:
 
 
 def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int = 1, scheduler=None,
-              engine: str = "exudyn", seed: int = 0, runs: int | None = None, progress: bool = False) -> Path:
-    """Library form of the command; returns the path of ``report.md``."""
+              engine: str = "exudyn", seed: int = 0, runs: int | None = None, progress: bool = False,
+              overwrite: bool = False) -> Path:
+    """Library form of the command; returns the path of ``report.md``. ``out`` is claimed before the work
+    (:func:`exuflex.runs.output_folder`; an earlier result is replaced only with ``overwrite``)."""
+    from ..runs import output_folder
+
+    with output_folder(out, "reproduce", overwrite=overwrite) as folder:
+        return _reproduce(model, folder, quick=quick, workers=workers, scheduler=scheduler, engine=engine,
+                          seed=seed, runs=runs, progress=progress)
+
+
+def _reproduce(model, out, *, quick, workers, scheduler, engine, seed, runs, progress) -> Path:
     from .. import _compile
     from ..data import paper_reference
     from ..mechanism import load_mechanism
@@ -120,7 +131,7 @@ def reproduce(model=None, out="reproduce", *, quick: bool = False, workers: int 
     say("Table 2: full and reduced modes at q*")
     t0 = time.perf_counter()
     t2 = _table2(mech)
-    atomic_write_text(out / "table2.json", json.dumps(t2, indent=1, default=float) + "\n")
+    atomic_write_text(out / "table2.json", dump_json(t2, default=float) + "\n")
     walls["table2_s"] = time.perf_counter() - t0
 
     # one run: manoeuvre, torques, observer (Figs 3-10)
@@ -235,7 +246,7 @@ def _report(mech, model, sha, cfg, quick, t2, run_, outcome, study, gif, ref, wa
     L += ["", *_tip_readings(sm), "![payload study](payload_study/fig_payload.png)", "",
           "Every quantity: [payload_study/fig_payload_all.png](payload_study/fig_payload_all.png)", "",
           "## Settings and versions", "", "```json",
-          json.dumps({"settings": cfg, "walls_s": walls, "versions": versions,
+          dump_json({"settings": cfg, "walls_s": walls, "versions": versions,
                       "observer_config": s["config"]}, indent=1, default=str), "```", ""]
     return "\n".join(L)
 
@@ -271,6 +282,7 @@ def _tip_readings(sm: dict) -> list[str]:
 def run(args) -> int:
     t0 = time.perf_counter()
     report = reproduce(args.model, args.out, quick=args.quick, workers=args.workers, scheduler=args.scheduler,
-                       engine=args.engine, seed=args.seed, runs=args.runs, progress=not args.no_progress)
+                       engine=args.engine, seed=args.seed, runs=args.runs, progress=not args.no_progress,
+                       overwrite=args.overwrite)
     print(f"wrote {report} ({time.perf_counter() - t0:.0f} s)")
     return 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import os
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,12 @@ class ModelFileError(ValueError):
         if has_got:
             msg += f", got {got!r}"
         super().__init__(msg)
+
+
+class UsageError(ValueError):
+    """An argument of a command or of a public function is invalid; the message names the argument (the
+    command-line flag, or the function's parameter) and what was expected. (Defined here, with the model file's
+    error, as the mechanism stage imports nothing from the rest; :mod:`exuflex.errors` exports it.)"""
 
 
 class _Reader:
@@ -179,18 +186,23 @@ def column_name_problem(name: str) -> str | None:
 
 
 def load_mechanism(path: str | Path) -> Mechanism:
-    """Read and validate a TOML mechanism file."""
+    """Read and validate a TOML mechanism file (UTF-8; a byte-order mark, as some editors write, is skipped)."""
+    if not isinstance(path, (str, os.PathLike)) or not str(path).strip():
+        raise UsageError(f"path: expected the path of a model file (str or pathlib.Path), got {type(path).__name__}"
+                         + (" (already loaded: pass it on directly)" if isinstance(path, Mechanism) else ""))
     path = Path(path)
     src = str(path)
     if not path.is_file():
         raise ModelFileError(src, "(file)", "an existing TOML model file", has_got=False)
     try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+        raw = path.read_bytes()
+        data = tomllib.loads(raw.decode("utf-8-sig"))
     except tomllib.TOMLDecodeError as exc:
         raise ModelFileError(src, "(syntax)", f"valid TOML ({exc})", has_got=False) from None
     except UnicodeDecodeError:
         raise ModelFileError(src, "(file)", "a UTF-8 text file", has_got=False) from None
+    except OSError as exc:
+        raise ModelFileError(src, "(file)", f"a readable file ({exc.strerror or exc})", has_got=False) from None
     return parse_mechanism(data, src)
 
 
@@ -379,6 +391,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         r.check_unknown()
     _unique(source, "sensors", [s.name for s in sensors], {m.name: f"motors[{i}]" for i, m in enumerate(motors)})
 
+    _check_mobility(source, links, joints, coords)  # a missing coordinate named before the lists sized by them
     nq = len(coords)
     q_ref: tuple[float, ...] = ()
     if q_ref_raw is not None:
@@ -912,15 +925,15 @@ def load_manoeuvre(path: str | Path, mech: Mechanism) -> Manoeuvre:
     return man
 
 
-def _check_topology(mech: Mechanism) -> None:
-    """Joints connect every link to the ground; the coordinates match the mobility."""
-    src = mech.source
-    if not any(j.grounded for j in mech.joints):
+def _check_mobility(src: str, links, joints, coordinates) -> None:
+    """Joints connect every link to the ground; as many coordinates as the mobility (Gruebler's count): checked as
+    soon as links, joints and coordinates are read, so that a missing coordinate is named as such."""
+    if not any(j.grounded for j in joints):
         raise ModelFileError(src, "joints", "at least one joint with a ground position", has_got=False)
-    adj: dict[str, set[str]] = {lk.name: set() for lk in mech.links}
+    adj: dict[str, set[str]] = {lk.name: set() for lk in links}
     grounded: set[str] = set()
     n_eq = 0
-    for j in mech.joints:
+    for j in joints:
         names = [p.link for p in j.points]
         if len(set(names)) != len(names):
             raise ModelFileError(src, f"joints.{j.name}.points", "each link at most once per joint", names)
@@ -944,14 +957,24 @@ def _check_topology(mech: Mechanism) -> None:
     if loose:
         raise ModelFileError(src, "joints", f"joints that connect every link to the ground; not connected: {loose}",
                              has_got=False)
-    mobility = 3 * len(mech.links) - n_eq
-    if mobility != len(mech.coordinates):
+    mobility = 3 * len(links) - n_eq
+    if mobility != len(coordinates):
+        names = ", ".join(c.name for c in coordinates) or "none"
+        k = mobility - len(coordinates)
+        hint = (f"; {k} [[coordinates]] entr{'y' if k == 1 else 'ies'} missing?" if k > 0
+                else "; a coordinate too many, or a joint missing?")
         raise ModelFileError(
             src, "coordinates",
-            f"as many ERLS coordinates as the mechanism's mobility ({mobility}, from 3 x {len(mech.links)} links "
-            f"- {n_eq} joint equations)",
-            len(mech.coordinates),
+            f"as many ERLS coordinates as the mechanism's mobility ({mobility}, from 3 x {len(links)} links "
+            f"- {n_eq} joint equations); the file has {len(coordinates)} ({names}){hint}",
+            has_got=False,
         )
+
+
+def _check_topology(mech: Mechanism) -> None:
+    """Joints connect every link to the ground; the coordinates match the mobility."""
+    _check_mobility(mech.source, mech.links, mech.joints, mech.coordinates)
+    src = mech.source
     # each coordinate's link node at its joint must be distinct (one ERLS constraint per node rotation)
     seen_c = set()
     for c in mech.coordinates:

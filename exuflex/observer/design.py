@@ -74,8 +74,19 @@ class DesignResult:
 
 def rank_gauges(mech: Mechanism, n_candidates: int = 9, config: ObserverConfig | None = None) -> DesignResult:
     """Rank gauge stations of ``mech`` by the tip-displacement bound (module docstring)."""
-    if n_candidates < 1:
-        raise ValueError(f"n_candidates must be a positive integer, got {n_candidates}")
+    from ..errors import UsageError
+    from ..validate import check_mechanism_argument, check_work, state_size_estimate
+
+    check_mechanism_argument(mech)
+    if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 1:
+        raise UsageError(f"n_candidates (--candidates): expected a positive integer, got {n_candidates!r}")
+    # each candidate is a sensor of the ranking observer (its object and measurement rows, a few kB) and enters
+    # a steady-state Riccati solve (about 30 nx^3 flop) alone and in each round of the greedy set
+    nx = state_size_estimate(mech)
+    n_gauges = sum(1 for s in mech.sensors if s.kind == "curvature")
+    count = n_candidates * len(mech.links)
+    check_work(n_candidates, count, param="n_candidates", flag="--candidates", what="candidate stations",
+               bytes_each=4096 + 8 * 4 * nx, flops_each=(1 + n_gauges) * 30 * nx**3)
     gauges = [s for s in mech.sensors if s.kind == "curvature"]
     if not gauges:
         raise ValueError(f"{mech.source or mech.name}: no curvature gauge in the model file to take the gauge "

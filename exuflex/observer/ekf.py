@@ -77,7 +77,16 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import MONITOR, REFRESH, REMAP, DiscreteModel, FilterDivergedError, takes_compiled_loop
+from .base import (
+    MONITOR,
+    REFRESH,
+    REMAP,
+    Belief,
+    DiscreteModel,
+    FilterDivergedError,
+    hooks,
+    takes_compiled_loop,
+)
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
@@ -438,11 +447,59 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
     n = len(t)
     if Y.shape != (n, m):
         raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {m})")
+    if np.isinf(Y).any():
+        k = int(np.flatnonzero(np.isinf(Y).any(axis=1))[0])
+        raise ValueError(f"Y: row {k} (t={t[k]:.6g} s) has an infinite measurement; expected finite values, or NaN "
+                         "for 'not sampled'")
     if U is not None:
         U = np.asarray(U, dtype=float)
         if len(U) != n:
             raise ValueError(f"U has {len(U)} rows, expected {n}")
     return t, U, Y
+
+
+def step_arguments(filt, t, u, y):
+    """A filter's ``step`` arguments checked at the call: a :class:`~exuflex.errors.UsageError` naming the argument
+    and what was expected (a number ``t``; ``u`` one finite torque per input, ``None`` only for a model without
+    inputs: a missing torque is not zero; ``y`` an array in channel order, NaN for "not sampled", no infinity)."""
+    from ..errors import UsageError
+
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer, np.floating)):
+        raise UsageError(f"t: expected the sample time in s (a number), got {type(t).__name__}")
+    t = float(t)
+    if not math.isfinite(t):
+        raise UsageError(f"t: the sample time {t!r} is not finite")
+    n_in = filt.hooks.n_inputs
+    if u is None:
+        if n_in:
+            raise UsageError(f"u: expected the input sample at t={t:.6g} s ({n_in} torques), got None (a missing "
+                             "torque is not zero: skip the sample or hold the last one)")
+    else:
+        try:
+            u = np.array(u, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise UsageError(f"u: expected an array of {n_in if n_in is not None else 'the'} input values, got "
+                             f"{type(u).__name__}") from None
+        if n_in is not None and u.shape != (n_in,):
+            raise UsageError(f"u: expected {n_in} input values (one per motor), got {u.size}")
+        if not np.isfinite(u).all():
+            raise UsageError(f"u: the input sample at t={t:.6g} s is not finite: {u.tolist()}")
+    if y is not None:
+        if isinstance(y, (dict, str, bytes)) or hasattr(y, "keys"):
+            raise UsageError(f"y: expected an array of {filt.m} values in channel order {filt.channels} (NaN: not "
+                             f"sampled), got {type(y).__name__}")
+        try:
+            y = np.asarray(y, dtype=float)
+        except (TypeError, ValueError):
+            raise UsageError(f"y: expected an array of {filt.m} numbers in channel order {filt.channels}, got "
+                             f"{type(y).__name__}") from None
+        if y.shape != (filt.m,):
+            raise UsageError(f"y: measurement has shape {y.shape}, expected ({filt.m},): channels {filt.channels}")
+        if np.isinf(y).any():
+            bad = [c for c, v in zip(filt.channels, y, strict=True) if np.isinf(v)]
+            raise UsageError(f"y: channel(s) {bad} infinite at t={t:.6g} s; expected a finite value, or NaN for "
+                             "'not sampled'")
+    return t, u, y
 
 
 class RunRecord:
@@ -560,9 +617,9 @@ class BeliefFilter:
             raise ValueError(f"max_gap must be a finite number of seconds >= dt={dt}, got {max_gap}")
         self.model = model
         self.nx = int(model.nx)
-        watch = getattr(model, "watch_covariance", None)
-        if watch is not None:  # the model measures its approximations against the filter's uncertainty
-            watch(lambda: self._P)
+        self.hooks = hooks(model)
+        if self.hooks.watch_covariance is not None:  # the model measures its approximations against the filter's P
+            self.hooks.watch_covariance(lambda: self._P)
         self.channels = tuple(channels)
         if len(set(self.channels)) != len(self.channels):
             raise ValueError(f"duplicate channel names in {self.channels}")
@@ -608,8 +665,18 @@ class BeliefFilter:
             raise ValueError("the prior x0, P0 must be finite")
         return x, np.ascontiguousarray(0.5 * (P + P.T))
 
-    def _reset_tests(self) -> None:
-        """Clear the counters and the monitors (a restart)."""
+    def reset(self, x0=None, P0=None) -> None:
+        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
+        prior of later resets too) and clear every counter and monitor. A model with caches (``reset()``) is reset
+        too, so that a run never depends on what the model evaluated before."""
+        if x0 is not None or P0 is not None:
+            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
+        if self.hooks.reset is not None:
+            self.hooks.reset()
+        self._x = self._x0.copy()
+        self._P = self._P0.copy()
+        self._t_prev: float | None = None
+        self._u_prev = None
         self.n_missing = 0
         self.n_updates = 0
         self.diverged = False
@@ -631,6 +698,11 @@ class BeliefFilter:
         self.last_dof = 0
         if self.monitor is not None:
             self.monitor.reset()
+
+    @property
+    def belief(self) -> Belief:
+        """The current belief ``(x, P)`` (copies)."""
+        return Belief(self._x.copy(), self._P.copy())
 
     @property
     def x(self) -> np.ndarray:
@@ -663,7 +735,7 @@ class BeliefFilter:
         sensor fault)."""
         stepped = (self.input_step is not None and u is not None and self._u_prev is not None
                    and self.input_step(self._u_prev, u))
-        if stepped or getattr(self.model, "n_jumps", 0) != jumps:
+        if stepped or self.hooks.n_jumps() != jumps:
             self._holdoff = self.fault_holdoff
             self.jump_times.append(t)
 
@@ -833,25 +905,14 @@ class MultirateEKF(BeliefFilter):
             self._loop_status = np.zeros(self.m, dtype=np.int64)
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
                                 np.zeros(4))
-            loop.warm_up(True if getattr(model, "i_theta", None) is not None or getattr(model, "i_inputs", None)
-                         is not None else None)
+            loop.warm_up(True if self.hooks.i_theta is not None or self.hooks.i_inputs is not None else None)
         kalman.warm_up()
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
-        prior of later resets too) and clear every counter. A model with caches (``reset()``) is reset too, so
-        that a run never depends on what the model evaluated before."""
-        if x0 is not None or P0 is not None:
-            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
-        self._t_prev: float | None = None
-        self._u_prev = None
-        self._reset_tests()
+        """Restart from a prior (:meth:`BeliefFilter.reset`)."""
+        super().reset(x0, P0)
         self.n_invalid = 0
         self._model_failure = None
         self.last_prediction = None
@@ -983,17 +1044,7 @@ class MultirateEKF(BeliefFilter):
         FilterDivergedError
             Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test (``"raise"``).
         """
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"sample time {t!r} is not finite")
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-            if not math.isfinite(sum(u.tolist())):
-                raise ValueError(f"the input sample at t={t:.6g} s is not finite: {u.tolist()}")
-        if y is not None:
-            y = np.asarray(y, dtype=float)
-            if y.shape != (self.m,):
-                raise ValueError(f"measurement has shape {y.shape}, expected ({self.m},): channels {self.channels}")
+        t, u, y = self._step_arguments(t, u, y)
         if self._t_prev is not None:
             dt = t - self._t_prev
             if not dt > 1e-9 * self.dt:
@@ -1003,7 +1054,7 @@ class MultirateEKF(BeliefFilter):
                     f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
                     f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
             self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
-        jumps = getattr(self.model, "n_jumps", 0)
+        jumps = self.hooks.n_jumps()
         FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
         self._t_now = t
         self._input_steps(t, u, jumps)
@@ -1025,6 +1076,9 @@ class MultirateEKF(BeliefFilter):
                 self._Pspare, self._P = self._P, self._Pspare
             finite = kalman.settle(self._x, self._P, self._floor)
         return self._close(t, finite)
+
+    def _step_arguments(self, t, u, y):
+        return step_arguments(self, t, u, y)
 
     def _close(self, t: float, finite: bool) -> np.ndarray:
         """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""
@@ -1157,7 +1211,7 @@ class MultirateEKF(BeliefFilter):
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, getattr(self.model, "i_theta", None),
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.hooks.i_theta,
                         predictions)
         self.record_predictions = predictions
         t_start = time.perf_counter()

@@ -3,13 +3,12 @@ figures (:func:`exuflex.plots.observer_figures`)."""
 
 from __future__ import annotations
 
-import json
 import textwrap
 from pathlib import Path
 
 import numpy as np
 
-from ..runs import SignalsCsvWriter, atomic_write_text, package_versions, write_signals_csv
+from ..runs import SignalsCsvWriter, atomic_write_text, dump_json, package_versions, write_signals_csv
 from ..sensors import Signals
 
 __all__ = ["EstimatesTable", "EstimatesWriter", "estimates_table", "summary_table", "write_outcome"]
@@ -155,7 +154,7 @@ def write_outcome(out_dir, mech, run, outcome, observer=None, *, estimates: bool
     summary = dict(outcome.summary)
     summary["versions"] = package_versions()
     summary["run_meta"] = {k: run.meta.get(k) for k in ("engine", "seed", "model", "settings") if k in run.meta}
-    atomic_write_text(out / "result.json", json.dumps(summary, indent=1, default=float))
+    atomic_write_text(out / "result.json", dump_json(summary, default=float))
     return out
 
 
@@ -186,7 +185,9 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
     if s.get("diverged"):
         lines.append(f"DIVERGED: the estimates became non-finite at t = {s['diverged_at']} s")
     elif s.get("nis_inconsistent"):
-        lines.append(f"NIS inconsistent from t = {s['nis_flagged_at']} s (the innovations exceed what the filter's "
+        when = (f"from t = {s['nis_flagged_at']} s" if s.get("nis_flagged_at") is not None else
+                f"over the whole log (mean NIS {s['nis_mean']:.3g} against {s['nis_expected']:.3g})")
+        lines.append(f"NIS inconsistent {when} (the innovations exceed what the filter's "
                      "covariance explains: model mismatch or noise settings; the estimates stay finite)")
     units = dict(zip(physical_names(mech), physical_units(mech), strict=True))
     met = outcome.metrics

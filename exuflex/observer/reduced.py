@@ -612,6 +612,11 @@ class ReducedObserverModel:
         n = self.substeps(iv, dt)
         self._interval_matrices = (*(a.copy() for a in mats), dt / n, n)
 
+    @property
+    def n_inputs(self) -> int:
+        """The number of inputs a step takes: one torque per motor."""
+        return self._u_shape[0]
+
     # ------------------------------------------------------------------ for models built on this one (augmented)
     def torques(self, u) -> np.ndarray:
         """The motor torques ``u`` as an array of the model's motor count (zeros for None); a clear error else."""

@@ -370,6 +370,45 @@ def _noise_std(mech: Mechanism, channels: Sequence[str]) -> dict[str, float]:
     return out
 
 
+NIS_WHOLE_LOG_P = 1e-6
+"""False-alarm probability of the whole-log NIS test (:func:`nis_whole_log_flag`)."""
+
+NIS_GROSS_FACTOR = 3.0
+"""How far above a consistent filter's bound the whole log's mean NIS must lie to be flagged whatever the window:
+the windowed test judges mild mismatch; this one a gross inconsistency (several times the innovations' stated
+covariance: a log that cannot support the model, wrong units or noise)."""
+
+
+def nis_whole_log_flag(nis_mean: float, nis_expected: float, n_updates: int, p: float = NIS_WHOLE_LOG_P,
+                       factor: float = NIS_GROSS_FACTOR) -> bool:
+    """The NIS test over the whole log, beside the filter's windowed one. With a consistent filter the sum of the
+    ``n`` updates' NIS is chi-square with ``k = n d`` degrees of freedom (``d`` the mean channels per update); the
+    log is flagged where the mean NIS exceeds ``factor`` times that sum's ``1 - p`` quantile over ``n``, so that a
+    mean NIS far above its expectation is flagged even where no window of the windowed test fills (a short log, a
+    slow one). The quantile ``chi2_{1-p}(k) = 2 Q^{-1}(k / 2, p)``, the inverse of the regularised upper incomplete
+    gamma function."""
+    if not (n_updates > 0 and math.isfinite(nis_mean) and math.isfinite(nis_expected) and nis_expected > 0):
+        return False
+    from scipy.special import gammainccinv
+
+    q = 2.0 * float(gammainccinv(n_updates * nis_expected / 2.0, p))
+    return bool(nis_mean * n_updates > factor * q)
+
+
+def _check_arguments(config=None, observer=None) -> None:
+    """``config`` an :class:`ObserverConfig` or None, ``observer`` an :class:`Observer` or None: else a
+    :class:`~exuflex.errors.UsageError` naming the parameter and the type expected."""
+    from ..errors import UsageError
+
+    if config is not None and not isinstance(config, ObserverConfig):
+        raise UsageError(f"config: expected an exuflex.ObserverConfig or None, got {type(config).__name__}"
+                         + (" (settings are its fields, e.g. ObserverConfig(q_scale=1.0))" if isinstance(config, str)
+                            else ""))
+    if observer is not None and not isinstance(observer, Observer):
+        raise UsageError("observer: expected an exuflex.Observer (exuflex.make_observer(mech, config)) or None, got "
+                         f"{type(observer).__name__}")
+
+
 def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None, model: ErlsModel | None = None,
                   cb: CraigBampton | None = None) -> Observer:
     """Build the reduced model and the EKF for ``mech``.
@@ -381,6 +420,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     from ..validate import check_mechanism_argument, check_observer_settings
 
     check_mechanism_argument(mech)
+    _check_arguments(config=config)
     config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
     # the first run with an empty kernel cache: compiled in parallel processes (._compile)
@@ -1052,6 +1092,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     if keep not in KEEP:
         raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
     check_mechanism_argument(mech)
+    _check_arguments(config=config, observer=observer)
     if not hasattr(run, "sensors") or not hasattr(run, "meta"):
         from ..errors import UsageError
 
@@ -1127,7 +1168,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
         # (an estimator that reports its NIS test through ``diverged`` without non-finite values: the UKF)
-        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)),
+        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)
+                                 or nis_whole_log_flag(*res.mean_nis(), res.n_updates)),
+        "nis_whole_log_flag": nis_whole_log_flag(*res.mean_nis(), res.n_updates),
         "nis_flagged_at": res.nis_flagged_at if res.nis_flagged else (
             res.diverged_at if res.diverged and not res.nonfinite else None),
         "flagged_intervals": [list(iv) for iv in res.flagged_intervals],

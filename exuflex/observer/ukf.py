@@ -49,7 +49,7 @@ import numpy as np
 import scipy.linalg
 
 from .base import FilterDivergedError, Prediction
-from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log
+from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -98,17 +98,9 @@ class UnscentedKF(BeliefFilter):
         self.reset()
 
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from the prior (``x0``/``P0`` given: a new prior) and clear every counter (as the EKF's)."""
-        if x0 is not None or P0 is not None:
-            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
+        """Restart from a prior (:meth:`~exuflex.observer.ekf.BeliefFilter.reset`) with its covariance factor."""
+        super().reset(x0, P0)
         self._L = np.linalg.cholesky(self._P0)
-        self._t_prev = None
-        self._u_prev = None
-        self._reset_tests()
         self.n_model_resets = self.n_linearised = 0
 
     def _sigmas(self, x, L) -> np.ndarray:
@@ -139,8 +131,8 @@ class UnscentedKF(BeliefFilter):
         again after ``model.reset()`` (the configuration evaluated at that point). If it breaks down again, the
         point is carried by the mean's linearisation (counted in ``n_linearised``)."""
         p = self.model.predict(x, self._u_prev, dt, u_next)
-        if self._broken(p.x, x, ref) and hasattr(self.model, "reset"):
-            self.model.reset()
+        if self._broken(p.x, x, ref) and self.hooks.reset is not None:
+            self.hooks.reset()
             self.n_model_resets += 1
             p = self.model.predict(x, self._u_prev, dt, u_next)
         if ref is not None and self._broken(p.x, x, ref):
@@ -162,14 +154,11 @@ class UnscentedKF(BeliefFilter):
     def step(self, t: float, u, y) -> np.ndarray:
         """Predict to ``t`` through the sigma points, update with the finite channels of ``y`` that the gate and the
         sensor-fault isolation keep."""
-        t = float(t)
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-        y = None if y is None else np.asarray(y, float)
+        t, u, y = step_arguments(self, t, u, y)
         if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
             self._t_prev = t
             return np.full(self.nx, np.nan)
-        jumps = getattr(self.model, "n_jumps", 0)
+        jumps = self.hooks.n_jumps()
         first = self._t_prev is None
         if not first:
             dt = t - self._t_prev
