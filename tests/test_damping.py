@@ -21,7 +21,7 @@ from exuflex.erls.model import FORMS, ErlsModel
 from exuflex.mechanism import load_mechanism
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _toml import dumps  # noqa: E402
+from _toml import dumps
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
@@ -174,7 +174,7 @@ def test_truth_damper_leaves_rigid_motion_alone(fresh_arm):
     c = tm.coordinates()
     R = tm.rigid_motions(c)
     assert R.shape == (tm.n_coordinates, len(mech.coordinates))
-    M, K, _, Cq, N = tm.mbs.ComputeLinearizedSystem(returnConstraintJacobian=True, returnConstraintNullspace=True)
+    _, K, _, Cq, _ = tm.mbs.ComputeLinearizedSystem(returnConstraintJacobian=True, returnConstraintNullspace=True)
     Cq = np.asarray(Cq)
     assert np.abs(Cq.T @ R).max() <= 1e-9 * np.abs(R).max()  # the rigid motions satisfy all joints
     assert np.abs(np.asarray(K) @ R).max() <= 1e-6 * np.abs(np.asarray(K)).max() * np.abs(R).max()

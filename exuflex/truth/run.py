@@ -44,7 +44,9 @@ def simulate_run(
     truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the generalized-alpha step
     from the model's band, :func:`exuflex.truth.gen_alpha_step`). Bad arguments raise a
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
-    the engine's name) and the fraction of it done.
+    the engine's name) and the fraction of it done. With an ERLS engine, links whose rotation rate approaches the
+    model's validity limit are logged as warnings and listed in ``meta.json`` under ``validity``
+    (:func:`exuflex.erls.validity.signal_warnings`).
     """
     from ..errors import UsageError
     from ..measure import measure, new_seed
@@ -98,6 +100,11 @@ def simulate_run(
                    progress=None if progress is None else (lambda f: progress(engine, f)),
                    elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step)
     meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
+    validity = []
+    if engine != "exudyn":  # an ERLS truth (full or reduced): links turning fast against their clamped frequency
+        from ..erls.validity import signal_warnings
+
+        validity = [w.as_dict() for w in signal_warnings(truth_mech, rec.truth)]  # logged there
     payload = truth_mech.payload
     man = mech.manoeuvre
     man_meta = {"kind": man.kind, "duration_s": man.duration,
@@ -132,6 +139,8 @@ def simulate_run(
             "timings": timings,
         },
     }
+    if validity:
+        meta["validity"] = validity
     if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
         from ..manoeuvre import trajectory_csv
         from ..runs import atomic_write_text
