@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from _pages import rewrite_block  # (a script: its folder is on the path)
 
 from exuflex.erls.modal import aligned_ratios, damping_ratios, modal_analysis
 from exuflex.erls.model import FORMS, ErlsModel
@@ -84,13 +85,7 @@ def main() -> None:
     text = block(rows, args.fmax, " ".join(["python benchmarks/damping_ratios.py", *sys.argv[1:]]))
     print(text)
     if args.docs:
-        page = Path(args.docs)
-        old = page.read_text()
-        if BEGIN in old and END in old:
-            new = old[: old.index(BEGIN)] + text + old[old.index(END) + len(END) :]
-        else:
-            new = old + ("\n" if not old.endswith("\n") else "") + text + "\n"
-        page.write_text(new)
+        rewrite_block(args.docs, BEGIN, END, text)
 
 
 if __name__ == "__main__":

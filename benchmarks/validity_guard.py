@@ -19,6 +19,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+from _pages import rewrite_block  # (a script: its folder is on the path)
 
 from exuflex.erls.validity import (
     DEPARTURE_NRMS,
@@ -60,13 +61,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.docs:
-        page = Path(args.docs)
-        old = page.read_text()
-        if BEGIN in old and END in old:
-            new = old[: old.index(BEGIN)] + text + old[old.index(END) + len(END) :]
-        else:
-            new = old + ("\n" if not old.endswith("\n") else "") + text + "\n"
-        page.write_text(new)
+        rewrite_block(args.docs, BEGIN, END, text)
 
 
 if __name__ == "__main__":
