@@ -1,12 +1,13 @@
-"""Where the observer's time goes: the real-time factor and its split per sample, measured in one run.
+"""Where the observer's time goes: the real-time factor and its split per sample, measured in one run; the wall
+time of ``exuflex observe`` against the filter's own; the filter's speed against another checkout's.
 
     python benchmarks/observer_speed.py [--model models/sixbar.toml] [--run tests/data/sixbar_erls_3s] [--repeats 7]
-                                        [--json] [--md docs/observer_speed.md]
+                                        [--against DIR] [--json] [--md docs/observer_speed.md]
 
 Filters the run's log with default settings ``--repeats`` times and reports the median real-time factor, then
 filters it once more with timers around the parts of a sample (each timer costs a fraction of a microsecond):
 
-- the compiled sample loop (:func:`exuflex.observer.expansion.cached_samples`): per sample the model's interval
+- the compiled sample loop (:func:`exuflex.observer.loop.samples`): per sample the model's interval
   (held step and step Jacobian), the measurement rows, the Kalman algebra and the sensor-fault windows;
 - configuration evaluations (the held model's refreshes, with their spectrum and error estimates);
 - the step maps built from Python (for a newly evaluated configuration; the loop rebuilds the others itself);
@@ -14,7 +15,14 @@ filters it once more with timers around the parts of a sample (each timer costs 
   stretch of samples, the few samples that go through ``MultirateEKF.step``, recording).
 
 The split says what a faster sample would have to remove: the real-time factor with the rest taken away is
-printed as the ceiling of the present arithmetic. Figures are ratios and fractions of one run (the machine's
+printed as the ceiling of the present arithmetic.
+
+What a user waits for: ``python -m exuflex observe MODEL RUN`` in a fresh interpreter ``--repeats`` times (numba's
+cache and Python's bytecode warm: one run first), its wall time against the filter's own (the ``wall`` it
+prints), with the import of the command line and the observer timed apart. ``--against DIR`` (a checkout of
+another version, e.g. ``git worktree add /tmp/base main``): the filter's time on the log in a fresh interpreter
+of each checkout (the median of 5 runs), in turn, ``--repeats`` pairs; the median of the pairs' ratios (each pair
+ran at nearly the same moment, so the machine's drift cancels). Figures are ratios and fractions of one run (the machine's
 speed drifts); the absolute factor holds for this machine at this moment only. The figures go to the markdown page
 ``--md`` with the machine's load average at the end of the run.
 """
@@ -30,6 +38,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+CHILD_RUNS = 5  # filter runs per interpreter in --against (their median is the interpreter's time)
 
 
 class _Timer:
@@ -59,9 +68,13 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default=str(ROOT / "models" / "sixbar.toml"))
     ap.add_argument("--run", default=str(ROOT / "tests" / "data" / "sixbar_erls_3s"), help="a run folder")
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--against", default=None, help="another checkout: the filter's time paired against it")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # one timed filter run, JSON out
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--md", default=str(ROOT / "docs" / "observer_speed.md"), help="markdown page ('' for none)")
     args = ap.parse_args(argv)
+    if args.child:
+        return _child(args.model, args.run)
 
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import reduced
@@ -100,6 +113,9 @@ def main(argv=None) -> int:
            "calls": {k: t.calls for k, t in timers.items()}, "step_map_rebuilds": obs.model.n_remap - maps0,
            "real_time_factor_without_the_rest": ceiling}
     out["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    out["observe"] = _observe_wall(args.model, args.run, args.repeats)
+    if args.against:
+        out["against"] = _paired(args.model, args.run, args.repeats, Path(args.against))
     if args.md:
         Path(args.md).write_text(_page(out, argv if argv is not None else sys.argv[1:], args.repeats))
     if args.json:
@@ -112,7 +128,82 @@ def main(argv=None) -> int:
         c = out["calls"].get(k)
         print(f"  {k:40s} {v:7.1f} us  {100 * out['fraction'][k]:5.1f} %" + (f"  ({c} calls)" if c is not None else ""))
     print(f"real-time factor with the rest removed: {ceiling:.1f}")
+    ob = out["observe"]
+    print(f"exuflex observe: median wall {ob['median_wall_s']:.2f} s, the filter {ob['median_filter_s']:.3f} s, "
+          f"imports {ob['median_import_s']:.2f} s ({args.repeats} runs)")
+    if "against" in out:
+        a = out["against"]
+        print(f"filter time / {a['dir']}'s: median of {args.repeats} pairs {a['median_ratio']:.3f} "
+              f"({', '.join(f'{r:.3f}' for r in a['ratios'])})")
     return 0
+
+
+def _env(tree: Path) -> dict:
+    """A fresh interpreter's environment running ``tree``'s package, writing bytecode as an installed one does."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
+def _child(model: str, run_dir: str) -> int:
+    """The median time of :data:`CHILD_RUNS` filter runs on the log after a warm-up, printed as JSON (``--against``'s
+    measurement)."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.runs import read_run
+
+    mech = load_mechanism(model)
+    S = read_run(run_dir).sensors
+    obs = make_observer(mech, ObserverConfig.for_model(mech))
+    U = _hold(S.select(mech.motor_names).data)
+    Y = S.select(obs.channels).data
+    estimate(obs, S.t, U, Y)
+    times = []
+    for _ in range(CHILD_RUNS):
+        t0 = time.perf_counter()
+        estimate(obs, S.t, U, Y)
+        times.append(time.perf_counter() - t0)
+    print(json.dumps({"filter_s": statistics.median(times)}))
+    return 0
+
+
+def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
+    """``exuflex observe`` in fresh interpreters: wall times, the filter's (its printed ``wall``) and the imports'."""
+    import re
+    import subprocess
+
+    env = _env(ROOT)
+    cmd = [sys.executable, "-m", "exuflex", "observe", model, run_dir]
+    imp = [sys.executable, "-c", ("import time; t = time.perf_counter(); import exuflex.cli, exuflex.cli.observe, "
+                                  "exuflex.observer.session, exuflex.validate; print(time.perf_counter() - t)")]
+    subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, check=True)  # bytecode and numba's cache warm
+    wall, filt, imports = [], [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+        wall.append(time.perf_counter() - t0)
+        filt.append(float(re.search(r"^wall ([0-9.eE+-]+) s", res.stdout, re.MULTILINE).group(1)))
+        imports.append(float(subprocess.run(imp, env=env, cwd=ROOT, capture_output=True, text=True,
+                                            check=True).stdout))
+    return {"wall_s": wall, "filter_s": filt, "import_s": imports, "median_wall_s": statistics.median(wall),
+            "median_filter_s": statistics.median(filt), "median_import_s": statistics.median(imports)}
+
+
+def _paired(model: str, run_dir: str, repeats: int, other: Path) -> dict:
+    """The filter's time in this checkout over ``other``'s, in turn (the order alternating), ``repeats`` pairs."""
+    import subprocess
+
+    def once(tree: Path) -> float:
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--model", model, "--run", run_dir]
+        res = subprocess.run(cmd, env=_env(tree), cwd=tree, capture_output=True, text=True, check=True)
+        return json.loads(res.stdout.strip().splitlines()[-1])["filter_s"]
+
+    once(ROOT), once(other)  # both caches warm
+    ratios = []
+    for i in range(repeats):
+        a, b = (once(ROOT), once(other)) if i % 2 == 0 else reversed((once(other), once(ROOT)))
+        ratios.append(a / b)
+    return {"dir": str(other), "ratios": ratios, "median_ratio": statistics.median(ratios)}
 
 
 def _page(out: dict, argv: list, repeats: int) -> str:
@@ -138,8 +229,27 @@ def _page(out: dict, argv: list, repeats: int) -> str:
         "| part | us per sample | share | calls |\n|---|---|---|---|\n" + rows + "\n\n"
         f"Real-time factor with the rest taken away (the ceiling of the present arithmetic): "
         f"{out['real_time_factor_without_the_rest']:.1f}.\n\n"
-        f"Versions: {versions}.\n"
+        + _observe_section(out, repeats)
+        + f"Versions: {versions}.\n"
     )
+
+
+def _observe_section(out: dict, repeats: int) -> str:
+    """The user's wait (``exuflex observe``) and the paired comparison, as markdown."""
+    ob = out["observe"]
+    text = ("## What a user waits for\n\n"
+            f"`python -m exuflex observe MODEL RUN` in a fresh interpreter, warm caches, {repeats} runs: median wall "
+            f"time **{ob['median_wall_s']:.2f} s**, of which the filter **{ob['median_filter_s']:.3f} s** (its printed "
+            f"wall) and the import of the command line and the observer {ob['median_import_s']:.2f} s (timed apart); "
+            f"the rest (building the model, loading the compiled kernels, the bound, the report): "
+            f"{ob['median_wall_s'] - ob['median_filter_s'] - ob['median_import_s']:.2f} s. Walls: "
+            f"{', '.join(f'{w:.2f}' for w in ob['wall_s'])} s.\n\n")
+    if "against" in out:
+        a = out["against"]
+        text += ("## Against another checkout\n\n"
+                 f"The filter's time on the log, this checkout over `{a['dir']}`, {repeats} pairs run in turn: median "
+                 f"ratio **{a['median_ratio']:.3f}** ({', '.join(f'{r:.3f}' for r in a['ratios'])}).\n\n")
+    return text
 
 
 if __name__ == "__main__":

@@ -1,4 +1,8 @@
-"""An online loop: feed the observer one sample at a time, as a real-time controller would.
+"""
+An online loop: one sample at a time
+====================================
+
+An online loop: feed the observer one sample at a time, as a real-time controller would.
 
     python examples/online_loop.py
 

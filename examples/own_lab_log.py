@@ -1,4 +1,8 @@
-"""Observe your own lab log: a CSV file with your column names and a time column in milliseconds.
+"""
+Observe your own lab log
+========================
+
+Observe your own lab log: a CSV file with your column names and a time column in milliseconds.
 
     python examples/own_lab_log.py [LOG.csv] [--out DIR]
 
@@ -42,7 +46,7 @@ def example_log(path: Path, run_dir: Path = ROOT / "tests" / "data" / "sixbar_er
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split("\n")[3])
     ap.add_argument("log", nargs="?", help="your CSV log (default: an example made from a run folder)")
     ap.add_argument("--from-run", type=Path, default=None, help="the run folder the example log is made from "
                     "(default: the test run shipped with the repository)")

@@ -1,4 +1,8 @@
-"""Your own mechanism: a model file written from scratch (a flexible single link on a hub motor, a strain gauge
+"""
+Your own mechanism, from scratch to observed
+============================================
+
+Your own mechanism: a model file written from scratch (a flexible single link on a hub motor, a strain gauge
 and an encoder), its modes, a simulated run and the observer on it.
 
     python examples/own_mechanism.py [--out DIR]
@@ -105,7 +109,7 @@ n_interior = "auto"
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split("\n")[3])
     ap.add_argument("--out", default=None, help="folder for the model file and the run (default: a temporary one)")
     ap.add_argument("--duration", type=float, default=None, help="simulated time (s; default the manoeuvre's)")
     a = ap.parse_args(argv)

@@ -76,7 +76,7 @@ def groups() -> tuple[KernelGroup, ...]:
     """The observer's kernel groups. A new kernel joins a group by being called in its warm-up and listed in its
     ``kernels``; a new group is one line here (``needs``: the groups whose kernels its kernels call)."""
     from .erls import _assembly
-    from .observer import augmented, expansion, kalman
+    from .observer import augmented, expansion, kalman, loop
     from .reduction import _compiled, model
 
     return (
@@ -92,7 +92,7 @@ def groups() -> tuple[KernelGroup, ...]:
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic, kalman.window_seen,
                     kalman.window_push), cost=4.3),
-        KernelGroup("sample_loop", expansion.warm_up_loop, (expansion.cached_samples,), cost=6.3,
+        KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=6.3,
                     needs=("interval", "step_map", "kalman")),
         KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,
                     expansion.extra_interval), cost=23.4,

@@ -4,17 +4,13 @@ from __future__ import annotations
 
 from .erls.kinematics import KinematicsError
 from .mechanism import ModelFileError
+from .mechanism.loader import UsageError
 
 __all__ = ["LogFormatError", "ModelFileError", "KinematicsError", "UsageError", "EXPECTED_ERRORS"]
 
 
 class LogFormatError(ValueError):
     """A sensor log is malformed; the message names the file, the channel or row, and what was expected."""
-
-
-class UsageError(ValueError):
-    """An argument of a command or of a public function is invalid; the message names the argument (the
-    command-line flag, or the function's parameter) and what was expected."""
 
 
 EXPECTED_ERRORS = (ModelFileError, KinematicsError, LogFormatError, UsageError, FileNotFoundError)

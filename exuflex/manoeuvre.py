@@ -378,17 +378,20 @@ def _solve_path(ik: _PathIK, t, q, qd, qdd, p, pd, pdd, q0: np.ndarray, progress
         k += 1
     if progress is not None:
         progress(0.9)
-    # the closure must be regular at every point of the path: a toggle position between two coarse points (a
-    # rocker stretched in line with its coupler) passes continuation but gives the truth unbounded rates
+    # the path's equations must be regular at every point: a toggle position between two coarse points (a rocker
+    # stretched in line with its coupler, a slider-crank's dead centre under a slider path) passes continuation but
+    # gives the truth unbounded rates, and so does an open chain's reach limit under a tip path (the arm stretched
+    # out): the closure's Jacobian, with the tip equations and the free coordinates where the path has them
     if len(z) and z.shape[1] and nz:
-        cond = np.linalg.cond(kin.jacobian(z), 1)
+        A = ik.jacobian(z) if (ik.tip is not None or ik.nf) else kin.jacobian(z)
+        cond = np.linalg.cond(A, 1)
         bad = np.flatnonzero(~(cond <= PATH_COND_MAX))
         if len(bad):
             k = int(bad[np.argmax(cond[bad])]) if np.all(np.isfinite(cond[bad])) else int(bad[0])
             src = kin.mech.source or kin.mech.name
             raise KinematicsError(
                 f"{src}: the manoeuvre's path reaches a singular configuration at t = {t[k]:.6g} s, q = "
-                f"{np.round(q[k], 6).tolist()} (closure Jacobian condition number {cond[k]:.3g} > {PATH_COND_MAX:.0e}; "
+                f"{np.round(q[k], 6).tolist()} (path Jacobian condition number {cond[k]:.3g} > {PATH_COND_MAX:.0e}; "
                 f"{len(bad)} grid point(s) from t = {t[bad[0]]:.6g} to {t[bad[-1]]:.6g} s): change the manoeuvre or "
                 "the geometry to stay away from it")
     return z, zd, zdd
@@ -526,9 +529,18 @@ def _spline(ts, Y, t, bc_type):
     """C2 cubic spline through the samples (rows of Y) at times t; the last sample at rest beyond it."""
     from scipy.interpolate import CubicSpline
 
-    sp = CubicSpline(np.asarray(ts, float), Y, axis=0, bc_type=bc_type)
+    ts = np.asarray(ts, float)
+    sp = CubicSpline(ts, Y, axis=0, bc_type=bc_type)
     tc = np.minimum(t, ts[-1])
     y, yd, ydd = sp(tc), sp(tc, 1), sp(tc, 2)
+    # at a sample's own time the sample itself: the piecewise polynomial's value there can differ by an ulp
+    # (which piece evaluates a knot depends on the SciPy version)
+    k = np.clip(np.searchsorted(ts, tc), 0, len(ts) - 1)
+    on = ts[k] == tc
+    if np.ndim(tc) == 0:
+        y = np.asarray(Y, float)[k].copy() if on else y
+    else:
+        y[on] = np.asarray(Y, float)[k[on]]
     after = t > ts[-1]
     yd[after], ydd[after] = 0.0, 0.0
     return y, yd, ydd

@@ -21,14 +21,17 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import itertools
 import json
 import logging
 import math
 import os
 import platform
 import re
+import shutil
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -46,7 +49,10 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
     "check_csv_dialect",
+    "check_not_foreign",
+    "dump_json",
     "file_sha256",
+    "output_folder",
     "package_versions",
     "read_csv_log",
     "read_exudyn_sensor",
@@ -240,7 +246,8 @@ def write_run(
     motors : sequence of str
         Which columns of ``sensors`` are measured torques (default: ``meta['motors']``).
     """
-    out = Path(out_dir)
+    out = _path_argument(out_dir, "out_dir")
+    check_not_foreign(out, "out_dir")  # never over a lab's own data
     out.mkdir(parents=True, exist_ok=True)
     # overwriting a run: mark the folder incomplete first, so an interruption cannot leave new data
     # files beside the old meta.json (a folder with a meta.json is complete)
@@ -270,9 +277,9 @@ def write_run(
     elif (out / TRUTH_FILE).exists():
         os.unlink(out / TRUTH_FILE)  # a stale truth would not belong to this run
     # meta last: a folder with a meta.json is complete
-    atomic_write_text(
-        out / META_FILE, json.dumps(meta, indent=2, sort_keys=False, default=_json_default) + "\n"
-    )
+    atomic_write_text(out / META_FILE, dump_json(meta, indent=2) + "\n")
+    if _read_mark(out) is None or isinstance(_read_mark(out).get("files"), list):
+        _seal(out, "write_run")  # a folder write_run wrote alone (no command's block around it) is exuflex's
     return out
 
 
@@ -284,6 +291,217 @@ def _json_default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"meta: cannot store {type(o).__name__} in JSON")
+
+
+# ------------------------------------------------------------------------------------------ output folders
+OUTPUT_MARK = ".exuflex.json"
+"""The mark exuflex leaves in every folder it writes: the command that wrote it and the entries it wrote
+(``files``; ``null`` while a command is writing, when everything in the folder is the command's)."""
+
+_RUN_ENGINES = ("exudyn", "erls", "reduced")
+
+
+_OUTPUT_NAMES = re.compile(r"^(fig_[\w.-]*\.png|[\w-]*\.gif|estimates\.csv|results?\.(csv|json)|summary\.json|"
+                           r"report\.md|plan\.csv|table2\.json)$")
+"""Names of the files exuflex's library writes into a folder beside a command's (figures drawn after a study,
+a run's estimates): in a folder with exuflex's mark they are exuflex's."""
+
+
+def _output_name(name: str) -> bool:
+    return bool(_OUTPUT_NAMES.match(name))
+
+
+def _is_temporary(name: str) -> bool:
+    return name.startswith(".") and name.endswith(".tmp")  # an atomic write's temporary file
+
+
+def _read_mark(folder: Path) -> dict | None:
+    try:
+        mark = json.loads((folder / OUTPUT_MARK).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return mark if isinstance(mark, dict) and mark.get("written_by") == "exuflex" else None
+
+
+def _legacy_owner(folder: Path) -> str | None:
+    """The command that wrote a folder of an exuflex version before the mark, recognised by its own record: a run
+    folder's ``meta.json`` of an exuflex truth engine, a study's ``study.json``; else None."""
+    try:
+        meta = json.loads((folder / META_FILE).read_text(encoding="utf-8"))
+        if isinstance(meta, dict) and meta.get("format") == FORMAT and meta.get("engine") in _RUN_ENGINES \
+                and isinstance(meta.get("versions"), dict) and meta["versions"].get("exuflex"):
+            return "simulate"
+    except (OSError, ValueError):
+        pass
+    try:
+        rec = json.loads((folder / "study.json").read_text(encoding="utf-8"))
+        if isinstance(rec, dict) and str(rec.get("format", "")).startswith("exuflex-study/"):
+            return "study"
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _entries(folder: Path) -> list[str]:
+    return sorted(e.name for e in folder.iterdir() if e.name != OUTPUT_MARK and not _is_temporary(e.name))
+
+
+def _owner(folder: Path) -> tuple[str | None, list[str]]:
+    """``(command, foreign entries)`` of an existing folder: the exuflex command that wrote it (None: not exuflex's
+    or empty) and the entries exuflex did not write."""
+    entries = _entries(folder)
+    mark = _read_mark(folder)
+    if mark is not None:
+        files = mark.get("files")
+        foreign = [e for e in entries if e not in files and not _output_name(e)] if isinstance(files, list) else []
+        return str(mark.get("command", "?")), foreign
+    if not entries:
+        return None, []
+    owner = _legacy_owner(folder)
+    return (owner, []) if owner else (None, entries)
+
+
+def _listed(names: Sequence[str]) -> str:
+    shown = ", ".join(names[:4])
+    return shown + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+
+
+def check_not_foreign(folder: str | os.PathLike, param: str = "out_dir") -> None:
+    """Raise a :class:`~exuflex.errors.UsageError` if ``folder`` is a file, or an existing folder holding anything
+    exuflex did not write (a lab's measured log, a hand-written ``meta.json``): exuflex never writes over those."""
+    from .errors import UsageError
+
+    p = Path(folder)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{param}: {p} is a file, expected a folder (new, empty, or written by exuflex)")
+    if p.is_dir():
+        _, foreign = _owner(p)
+        if foreign:
+            raise UsageError(f"{param}: {p} holds files exuflex did not write ({_listed(foreign)}); expected a new or "
+                             "empty folder, or one exuflex wrote: nothing there is touched")
+
+
+def _write_mark(folder: Path, command: str, files: list[str] | None) -> None:
+    from . import __version__
+
+    atomic_write_text(folder / OUTPUT_MARK, dump_json(
+        {"written_by": "exuflex", "version": __version__, "command": command, "files": files,
+         "updated": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}) + "\n")
+
+
+def _seal(folder: Path, command: str) -> None:
+    """Record what the folder holds now as exuflex's (the command finished writing it)."""
+    if folder.is_dir():
+        _write_mark(folder, command, _entries(folder))
+
+
+@contextmanager
+def output_folder(path: str | os.PathLike, command: str, *, overwrite: bool = False, mode: str = "new",
+                  param: str = "out (--out)", inputs: Sequence[str | os.PathLike] = ()) -> Iterator[Path]:
+    """Claim the folder a command writes, before any work: the one rule of every command that writes a folder.
+
+    - ``path`` a file (or below one): refused at once;
+    - a new or empty folder: taken (created);
+    - a folder holding anything exuflex did not write (no mark :data:`OUTPUT_MARK`, or entries the mark does not
+      list: a lab's ``sensors.csv``, a ``meta.json`` of a measured run): refused, whatever ``overwrite`` says;
+    - an earlier exuflex result: refused unless ``overwrite`` (then its entries are removed first), except
+      ``mode="resume"`` on a folder the same ``command`` wrote (a study resumes) and ``mode="add"`` (files added
+      beside an exuflex result: figures of a run).
+
+    The block runs with the folder marked as being written by ``command``; leaving it normally records the
+    entries as exuflex's; leaving it by an exception removes the folder if this call made it and it holds no
+    result (nothing, or only hidden files such as a lock). ``inputs``: the files or folders the command reads; one of them inside the folder (or the folder
+    itself) is refused, as the command would write over what it reads. Errors are
+    :class:`~exuflex.errors.UsageError` naming ``param``.
+    """
+    from .errors import UsageError
+
+    p = _path_argument(path, param)
+    for src in inputs:
+        a, b = Path(src).resolve(), p.resolve()
+        if a == b or b in a.parents:
+            raise UsageError(f"{param}: {p} holds the input {src}; expected another folder (the command would "
+                             "write over what it reads)")
+    if not isinstance(overwrite, bool):
+        raise UsageError(f"overwrite (--overwrite): expected True or False, got {overwrite!r}")
+    for a in [p, *p.parents]:
+        if a.exists():
+            if not a.is_dir():
+                raise UsageError(f"{param}: {a} is a file, expected a folder" if a == p else
+                                 f"{param}: {a} is a file, so {p} cannot be a folder")
+            break
+    made = not p.exists()
+    keep: list[str] = []
+    if not made:
+        check_not_foreign(p, param)
+        owner, _ = _owner(p)
+        entries = _entries(p)
+        if entries and owner is not None:
+            if mode == "add" or (mode == "resume" and owner == command):
+                keep, command = entries, owner  # the folder stays the earlier command's (a study resumes it)
+            elif not overwrite:
+                raise UsageError(f"{param}: {p} holds an earlier exuflex result (written by {owner}); pass "
+                                 "--overwrite (overwrite=True) to replace it, or choose another folder")
+            else:
+                for name in entries:
+                    e = p / name
+                    if e.is_dir() and not e.is_symlink():
+                        shutil.rmtree(e)
+                    else:
+                        e.unlink()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"{param}: cannot create {p} ({exc.strerror or exc})") from None
+    if not os.access(p, os.W_OK):
+        raise UsageError(f"{param}: {p} is not writable")
+    _write_mark(p, command, None)
+    try:
+        yield p
+    except BaseException:
+        if made and p.is_dir() and all(e.startswith(".") for e in _entries(p)):  # nothing but a lock: as it was
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.is_dir():
+            _write_mark(p, command, sorted(set(keep) | set(_entries(p))))
+        raise
+    _seal(p, command)
+
+
+def _json_safe(o):
+    """``o`` with every non-finite float as None (JSON's ``null``), recursively; NumPy scalars and arrays, paths,
+    tuples as their JSON forms."""
+    if isinstance(o, (float, np.floating)):
+        v = float(o)
+        return v if math.isfinite(v) else None
+    if isinstance(o, dict):
+        return {str(k): _json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_json_safe(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _json_safe(o.tolist())
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, Path):
+        return str(o)
+    return o
+
+
+def dump_json(obj, *, indent: int | None = 1, default=None) -> str:
+    """Strict JSON text of ``obj`` (the one JSON writer of exuflex's files and ``--json`` output): undefined figures
+    (NaN, infinities) as ``null``, NumPy values as numbers; another object through ``default`` (e.g. ``str``),
+    else ``TypeError``. Strict parsers read it: it never holds a bare ``NaN`` or ``Infinity``."""
+
+    def fallback(o):
+        try:
+            return _json_default(o)
+        except TypeError:
+            if default is None:
+                raise
+            return _json_safe(default(o))
+
+    return json.dumps(_json_safe(obj), indent=indent, allow_nan=False, default=fallback)
 
 
 # ------------------------------------------------------------------------------------------ reading
@@ -353,6 +571,8 @@ def _parse_table(
             try:
                 if decimal != "." and "." in cell:
                     raise ValueError(cell)  # a decimal point where the decimal mark is another
+                if "_" in cell:
+                    raise ValueError(cell)  # Python's float reads '1_0' as 10: a number in a log has no '_'
                 v = float(cell.replace(decimal, ".") if decimal != "." else cell)
             except ValueError:
                 raise LogFormatError(
@@ -617,6 +837,8 @@ def read_csv_log(
     allow_empty : bool
         Empty cells read as NaN (not sampled) instead of an error.
 
+    Notes
+    -----
     The file is read in chunks (:func:`_parse_stream`): the reader holds the parsed array, the mapped columns
     and one chunk of text, never the whole text.
     """
@@ -646,15 +868,53 @@ def read_csv_log(
             f"{path}: missing column(s) {list(missing.values())} (for channel(s) {list(missing)}); "
             f"the header has {header}"
         )
-    data, linenos = _parse_stream(path, lines, header, allow_empty=allow_empty, delimiter=delimiter,
-                                  decimal=decimal, size_bytes=_size(path))
-    ti = header.index(time_column)
-    if np.isnan(data[:, ti]).any():
+    used = list(dict.fromkeys([header.index(time_column)] + [header.index(c) for c in mapping.values()]))
+    size = _size(path)
+    if len(used) < len(header):  # columns not mapped (a status text, a spare channel): not parsed, named once
+        unused = [h for i, h in enumerate(header) if i not in used]
+        first_row = next(lines, None)
+        if first_row is not None:
+            cells = first_row[1].split(delimiter)
+            text = [h for i, h in enumerate(header) if i not in used and i < len(cells)
+                    and not _is_number(cells[i].strip(), decimal)]
+            if text:
+                log.warning("%s: column(s) %s not mapped to a channel and not numbers: ignored", path, text)
+            else:
+                log.info("%s: column(s) %s not mapped to a channel: ignored", path, unused)
+            lines = itertools.chain([first_row], lines)
+        lines = _select_cells(path, lines, used, len(header), delimiter, header)
+        size = size * len(used) // len(header)
+    sub = [header[i] for i in used]
+    data, linenos = _parse_stream(path, lines, sub, allow_empty=allow_empty, delimiter=delimiter,
+                                  decimal=decimal, size_bytes=size)
+    if np.isnan(data[:, 0]).any():
         raise LogFormatError(f"{path}: empty cell in the time column {time_column!r}")
-    t = data[:, ti] * time_scale
+    t = data[:, 0] * time_scale
     _check_time(path, t, linenos, time_column)
-    cols = [header.index(c) for c in mapping.values()]
+    cols = [sub.index(c) for c in mapping.values()]
     return Signals(t, tuple(mapping), data[:, cols], ("",) * len(mapping))
+
+
+def _is_number(cell: str, decimal: str = ".") -> bool:
+    if cell == "":
+        return True
+    try:
+        float(cell.replace(decimal, ".") if decimal != "." else cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _select_cells(path: Path, lines, used: Sequence[int], n_col: int, delimiter: str, header: Sequence[str]):
+    """The lines with only the cells of the columns ``used``, in that order (a line with another number of fields
+    is named as :func:`_parse_table` names it)."""
+    for lineno, text in lines:
+        cells = text.split(delimiter)
+        if len(cells) != n_col:
+            raise LogFormatError(
+                f"{path}: line {lineno}: {len(cells)} fields, expected {n_col} ({', '.join(header)})"
+            )
+        yield lineno, delimiter.join(cells[i] for i in used)
 
 
 def read_lab_run(
@@ -677,6 +937,18 @@ def read_lab_run(
     input); its sensor columns are the channels it offers. ``truth``: an optional truth CSV (time column
     ``time``, columns named like the truth states) for the error metrics. ``columns_name`` names the argument
     in error messages (the command line's ``--map``)."""
+    from .errors import UsageError
+    from .mechanism import Mechanism
+
+    path = _path_argument(path, "path")
+    if not isinstance(mech, Mechanism):
+        raise UsageError(f"mech: expected an exuflex.mechanism.Mechanism, got {type(mech).__name__}"
+                         + (" (a path: load it with exuflex.load_mechanism(path) first)"
+                            if isinstance(mech, (str, os.PathLike)) else ""))
+    if columns is not None and not isinstance(columns, Mapping):
+        raise UsageError(f"{columns_name}: expected a mapping {{channel: column}}, got {type(columns).__name__}")
+    if truth is not None:
+        truth = _path_argument(truth, "truth")
     motors = list(mech.motor_names)
     names = motors + [s.name for s in mech.sensors]
     mapping = None
@@ -689,6 +961,20 @@ def read_lab_run(
             mapping[ours] = theirs
         for m in motors:
             mapping.setdefault(m, m)
+        by_column: dict[str, list[str]] = {}
+        for ours, theirs in mapping.items():
+            by_column.setdefault(theirs, []).append(ours)
+        twice = {col: chans for col, chans in by_column.items() if len(chans) > 1}
+        if twice:
+            col, chans = next(iter(twice.items()))
+            raise LogFormatError(f"{columns_name}: the column {col!r} is mapped to the channels {chans}; expected "
+                                 "one column per channel (each channel its own sensor)")
+    if mapping is None:  # every channel of the model under its own name; the log's other columns are not read
+        check_csv_dialect(delimiter, decimal)
+        first = next(_content_lines(path), None)
+        header = [h.strip() for h in first[1].split(delimiter)] if first is not None else []
+        if header and time_column in header:
+            mapping = {n: n for n in names if n in header}  # a missing torque: named below
     sig = read_csv_log(path, mapping, time_column=time_column, time_scale=time_scale, delimiter=delimiter,
                        decimal=decimal)
     have = [m for m in motors if m in sig]

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 import logging
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,8 +30,9 @@ import numpy as np
 from .errors import LogFormatError
 from .mechanism import Mechanism, ModelFileError
 
-__all__ = ["ANGLE_GUESS_TOL", "Assembly", "LogCheck", "MAX_STEPS", "assembly", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
-           "check_positive", "check_run", "check_simulation_settings", "with_noise"]
+__all__ = ["ANGLE_GUESS_TOL", "Assembly", "LogCheck", "MAX_STEPS", "FLOP_RATE", "TIME_LIMIT_S", "assembly", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
+           "check_positive", "check_run", "check_provenance", "check_simulation_settings", "check_work",
+           "memory_limit_bytes", "state_size_estimate", "truth_lag", "with_noise"]
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +69,7 @@ class LogCheck:
     sample_index: np.ndarray | None = None  # each row's instant in model intervals dt from the first row
     channel_rate_hz: dict = field(default_factory=dict)  # per used channel: samples / span (0: never sampled)
     channel_every: dict = field(default_factory=dict)  # per used channel: its usual spacing in log rows
+    saturated: dict = field(default_factory=dict)  # per channel with samples at its full scale: their fraction
     warnings: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -281,6 +284,15 @@ def check_log(
                         f"{source}: {_row_line(k)}, channel {c!r}: {f(col[k])!r} is outside the channel's full scale "
                         f"+-{lim:g} (model file: full_scale); a glitch, or wrong units (degrees? mm?)"
                     )
+                # a reading at the full scale is a clipped one: a bound on the value, not a measurement of it
+                n_at = int(np.count_nonzero(np.abs(np.nan_to_num(col)) >= lim * (1 - 1e-6)))
+                n_ok = int(np.count_nonzero(np.isfinite(col)))
+                if n_at and n_ok:
+                    rep.saturated[c] = n_at / n_ok
+                    rep.warnings.append(
+                        f"channel {c!r}: {n_at} of its {n_ok} samples ({100 * n_at / n_ok:.3g} %) at its full scale "
+                        f"+-{lim:g} (clipped: saturated readings are bounds, not values; leave the channel out with "
+                        "--channels, or check its range and units)")
     if channels:
         any_present = np.zeros(n, dtype=bool)
         span = float(t[-1] - t[0]) if n > 1 else 0.0
@@ -501,8 +513,16 @@ def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=N
                          f"({dt:g} s); expected at least {dt:g} s")
     if duration / h > MAX_STEPS:
         raise UsageError(f"duration (--duration): {duration:g} s at h = {h:g} s is {duration / h:.3g} integration "
-                         f"steps, more than {MAX_STEPS:.0e} (every step is held in memory); split the run or "
-                         "use a coarser --h")
+                         f"steps, more than {MAX_STEPS:.0e} (every step is held in memory); expected at most "
+                         f"{MAX_STEPS * h:.3g} s at this step (split the run) or a coarser --h")
+    nq, nm = len(mech.coordinates), len(mech.motors)
+    # every step: the plan (q, q', q''), the torque table; every output sample: the clean and measured channels
+    # and the truth's states, each held about three times (the engine's record, the measurement, the written table)
+    check_work(f"{duration:g} s at h = {h:g} s", duration / h, param="duration", flag="--duration",
+               what="integration steps", bytes_each=8 * 3 * (3 * nq + nm))
+    cols = len(mech.sensors) + nm + 2 * nq + 8
+    check_work(f"{duration:g} s at {mech.sample_rate_hz:g} Hz", duration * mech.sample_rate_hz, param="duration",
+               flag="--duration", what="output samples", bytes_each=8 * 3 * cols)
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
                              or not 0 <= int(seed) < 2**63):
         raise UsageError(f"seed (--seed): expected an integer in 0 .. 2**63 - 1, got {seed!r}")
@@ -526,6 +546,74 @@ def check_actuation(mech: Mechanism) -> None:
 
 MAX_STEPS = 5e7
 """Most integration steps a simulation may take (about 20 bytes per step and table column are held)."""
+
+RK4_FLOOR = (120 * 2.2e-16) ** 0.2 / 10
+"""``h omega`` below which RK4's local error ``(h omega)^5 / 120`` is under double precision (2.2e-16) for modes
+up to ten times the band's upper edge ``omega = 2 pi band_hz``: a smaller sub-step only adds work (about 1.9e-4)."""
+
+FLOP_RATE = 1e9
+"""Floating-point operations per second the work estimates of :func:`check_work` assume: about one core's
+sustained rate on the dense matrices of tens to hundreds of rows exuflex works with (LAPACK on matrices this small
+runs well below a core's peak), so that an estimate is of the order of the real time, not a wild underestimate."""
+
+TIME_LIMIT_S = 24 * 3600.0
+"""The most work one typed size may ask for, estimated at :data:`FLOP_RATE`: a day."""
+
+
+def memory_limit_bytes() -> int:
+    """The most memory one typed size may ask for: half of this machine's physical memory (8 GB where it cannot
+    be read), leaving the rest to the model, the other processes and the estimate's own slack."""
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")) // 2
+    except (ValueError, OSError, AttributeError):
+        return 8 * 2**30
+
+
+def _bytes(n: float) -> str:
+    for unit, k in (("GB", 2**30), ("MB", 2**20), ("kB", 2**10)):
+        if n >= k:
+            return f"{n / k:.3g} {unit}"
+    return f"{n:.0f} B"
+
+
+def _seconds(s: float) -> str:
+    if s >= 86400:
+        return f"{s / 86400:.3g} days"
+    if s >= 3600:
+        return f"{s / 3600:.3g} h"
+    return f"{s:.3g} s"
+
+
+def check_work(value, count: float, *, param: str, flag: str | None, what: str, bytes_each: float = 0.0,
+               flops_each: float = 0.0, workers: int = 1) -> None:
+    """Bounds before work on a size a user typed: ``count`` units of ``what`` (configurations, candidates,
+    sub-steps, runs ...), each holding ``bytes_each`` bytes and costing ``flops_each`` floating-point operations,
+    must fit in :func:`memory_limit_bytes` and :data:`TIME_LIMIT_S` at :data:`FLOP_RATE` (over ``workers``
+    processes). Else a one-line :class:`~exuflex.errors.UsageError` naming the parameter, the estimate, the limit
+    and the largest count that fits."""
+    from .errors import UsageError
+
+    mem_limit = memory_limit_bytes()
+    mem = count * bytes_each
+    secs = count * flops_each / FLOP_RATE / max(int(workers), 1)
+    where = _where(param, flag)
+    if mem > mem_limit:
+        n_max = mem_limit / bytes_each
+        raise UsageError(f"{where}: {value} means {count:.3g} {what}, about {_bytes(mem)} of memory at "
+                         f"{_bytes(bytes_each)} each, more than {_bytes(mem_limit)} (half of this machine's memory); "
+                         f"expected at most {n_max:.3g} {what}")
+    if secs > TIME_LIMIT_S:
+        n_max = TIME_LIMIT_S * FLOP_RATE * max(int(workers), 1) / flops_each
+        raise UsageError(f"{where}: {value} means {count:.3g} {what}, about {_seconds(secs)} of work (estimated at "
+                         f"{flops_each:.3g} flop each, {FLOP_RATE:.0e} flop/s per process), more than the "
+                         f"{_seconds(TIME_LIMIT_S)} one setting may ask for; expected at most {n_max:.3g} {what}")
+
+
+def state_size_estimate(mech: Mechanism) -> int:
+    """The observer's state size before it is built, for the work estimates: ``2 (nq + 2 n_links)``, the rigid
+    coordinates and about two elastic coordinates per link (the Craig-Bampton masters and interior modes of the
+    gallery's models), positions and rates."""
+    return 2 * (len(mech.coordinates) + 2 * len(mech.links))
 
 
 def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
@@ -579,6 +667,12 @@ def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
     dt = check_positive(config.dt, "dt") if config.dt is not None else 1.0 / mech.sample_rate_hz
     if h > dt * (1 + 1e-9):
         raise UsageError(f"h (--substep): the RK4 sub-step {h:g} s is longer than the sample interval {dt:g} s")
+    h_min = RK4_FLOOR / (2 * math.pi * mech.reduction.band_hz)
+    if h < h_min:
+        raise UsageError(f"h (--substep): the RK4 sub-step {h:g} s is below {h_min:.2g} s, where RK4's error "
+                         f"(h omega)^5 / 120 is under double precision ten times above the model's band "
+                         f"(reduction.band_hz = {mech.reduction.band_hz:g} Hz): smaller steps add only work "
+                         f"({dt / h:.3g} sub-steps a sample); expected h >= {h_min:.2g} s")
     for name, flag in (("q0_std", "--q0-std"), ("qd0_std", "--qd0-std"), ("elastic0_std", "--elastic0-std"),
                        ("elastic_rate0_std", "--elastic-rate0-std"), ("q_scale", "--q-scale")):
         check_positive(getattr(config, name), name, flag)
@@ -608,3 +702,121 @@ def with_noise(mech: Mechanism, noise: dict[str, float]) -> Mechanism:
         sensors=tuple(dataclasses.replace(s, noise_std=float(noise[s.name])) if s.name in noise else s
                       for s in mech.sensors),
     )
+
+
+UNIT_FACTORS = {
+    "rad": {"rad": 1.0, "deg": math.pi / 180, "degree": math.pi / 180, "degrees": math.pi / 180, "mrad": 1e-3},
+    "m": {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6},
+    "1/m": {"1/m": 1.0, "1/mm": 1e3, "1/km": 1e-3},
+    "N m": {"N m": 1.0, "Nm": 1.0, "N*m": 1.0, "N.m": 1.0, "mN m": 1e-3, "N mm": 1e-3, "Nmm": 1e-3},
+    "rad/s": {"rad/s": 1.0, "deg/s": math.pi / 180},
+    "m/s": {"m/s": 1.0, "mm/s": 1e-3},
+}
+"""Units a run folder's ``meta.json`` may give a column in, per the unit exuflex works in: the factor to it."""
+
+
+def _expected_units(mech: Mechanism) -> dict[str, str]:
+    from .sensors import SENSOR_UNITS
+
+    out = {m.name: "N m" for m in mech.motors}
+    out.update({s.name: SENSOR_UNITS.get(s.kind, "") for s in mech.sensors})
+    return out
+
+
+def check_provenance(mech: Mechanism, run, *, accept_other_model: bool = False, flag: str = "--accept-other-model"):
+    """A run folder's provenance against the model it is observed with; returns ``(run, notes)``: the run with its
+    columns in exuflex's units (``meta.json`` ``units`` honoured: degrees, millimetres ... converted) and one-line
+    notes. Refused with a :class:`~exuflex.errors.UsageError` (or :class:`~exuflex.errors.LogFormatError`):
+
+    - a ``meta.json`` naming another mechanism (unless ``accept_other_model``, then noted);
+    - a column in a unit exuflex does not know for its kind (``rad``, ``m``, ``1/m``, ``N m`` and their multiples);
+    - a truth that is not one (it has the log's torque or sensor columns: a ``sensors.csv``), or whose time is not
+      aligned with the log's: the lag of a coordinate's channel against its true state (:func:`truth_lag`) more
+      than half a sample interval from zero, where that shift at least halves the misfit (a real offset, not noise).
+    """
+    import dataclasses
+
+    from .errors import LogFormatError, UsageError
+    from .sensors import Signals
+
+    notes: list[str] = []
+    meta = run.meta or {}
+    src = mech.source or mech.name
+    name = meta.get("mechanism")
+    if isinstance(name, str) and name and name != mech.name:
+        what = f"{run.path}: meta.json says the run is of the mechanism {name!r}"
+        path = (meta.get("model") or {}).get("path") if isinstance(meta.get("model"), dict) else None
+        what += f" ({path})" if path else ""
+        if not accept_other_model:
+            raise UsageError(f"{what}, the model {src} is {mech.name!r}; expected a run of this model ({flag} to "
+                             "observe it with this one all the same)")
+        notes.append(f"{what}, observed with {mech.name!r} ({flag})")
+    units = (meta.get("units") or {}).get("sensors.csv") or {}
+    expected = _expected_units(mech)
+    S = run.sensors
+    data = None
+    for i, c in enumerate(S.names):
+        u, want = units.get(c), expected.get(c)
+        if not u or not want or u == want:
+            continue
+        factor = UNIT_FACTORS.get(want, {}).get(u)
+        if factor is None:
+            raise LogFormatError(f"{run.path}/meta.json: units: column {c!r} in {u!r}; expected {want!r} or one of "
+                                 f"{sorted(UNIT_FACTORS.get(want, {want: 1}))}")
+        if data is None:
+            data = S.data.copy()
+        data[:, i] *= factor
+        notes.append(f"column {c!r} converted from {u} to {want} (meta.json units)")
+    if data is not None:
+        S = Signals(S.t, S.names, data, tuple(expected.get(c, u) for c, u in zip(S.names, S.units, strict=True)))
+        run = dataclasses.replace(run, sensors=S)
+    truth = run.truth
+    if truth is not None:
+        log_cols = [c for c in truth.names if c in set(mech.motor_names) or c in {s.name for s in mech.sensors}
+                    and not any(c == co.name for co in mech.coordinates)]
+        if log_cols:
+            raise LogFormatError(f"{run.path}: the truth has the log's column(s) {log_cols}: not a truth (time and "
+                                 "the true states q.., dq.., the tip's elastic states); expected a truth.csv")
+        found = truth_lag(mech, S, truth)
+        lag, ratio = found if found is not None else (0.0, 1.0)
+        if abs(lag) > 0.5 / mech.sample_rate_hz and ratio > 2.0:  # a shift that at least halves the misfit
+            raise LogFormatError(f"{run.path}: the truth is {abs(lag):.4g} s {'late' if lag > 0 else 'early'} against "
+                                 "the log (least-squares alignment of a coordinate's channel); expected their clocks "
+                                 "aligned within half a sample interval")
+    return run, notes
+
+
+def truth_lag(mech: Mechanism, sensors, truth, max_lag_s: float = 0.5) -> tuple[float, float] | None:
+    """``(lag, ratio)``: the time by which ``truth`` lags ``sensors`` (s; positive: the truth's stamps late), the
+    shift ``d`` that minimises the mean square of ``y(t) - q(t + d)`` between the log's channel ``y`` and the truth's
+    state ``q`` of the first coordinate both have (the truth interpolated linearly), searched on the log's grid
+    within ``max_lag_s`` and refined by a parabola through the best three; and the ratio of that mean square at
+    zero shift to its minimum (about 1 for aligned clocks, where the misfit is the channel's noise; large where
+    the shift matters). None where they share no coordinate or the coordinate does not move."""
+    for co in mech.coordinates:
+        q = co.name
+        if q not in sensors.names or q not in truth.names:
+            continue
+        ok = np.isfinite(sensors[q])
+        t, y = sensors.t[ok], sensors[q][ok]
+        if len(t) < 8 or not np.ptp(truth[q]) > 0:
+            continue
+        step = float(np.median(np.diff(t)))
+        n = max(1, min(int(max_lag_s / step), len(t) // 4))
+        lags = np.arange(-n, n + 1) * step
+        cost = np.full(len(lags), np.inf)
+        for i, d in enumerate(lags):
+            w = np.interp(t + d, truth.t, truth[q], left=np.nan, right=np.nan)
+            keep = np.isfinite(w)
+            if keep.sum() >= len(t) // 2:
+                cost[i] = float(np.mean((y[keep] - w[keep]) ** 2))
+        k = int(np.argmin(cost))
+        if not np.isfinite(cost[k]) or not np.isfinite(cost[n]):
+            continue
+        ratio = float(cost[n] / cost[k]) if cost[k] > 0 else (1.0 if cost[n] == 0 else math.inf)
+        if 0 < k < len(lags) - 1 and np.all(np.isfinite(cost[k - 1 : k + 2])):
+            c0, c1, c2 = cost[k - 1 : k + 2]
+            den = c0 - 2 * c1 + c2
+            return float(lags[k] + (0.5 * step * (c0 - c2) / den if den > 0 else 0.0)), ratio
+        return float(lags[k]), ratio
+    return None

@@ -395,11 +395,12 @@ def test_nan_samples_are_predictions_only_and_counted():
         online.step(t[0] + 1e6, U[0], Y[0])
     with pytest.raises(ValueError, match="not finite"):
         online.step(t[1], [np.nan], Y[1])
-    # an infinite reading is not used, and counted
+    # an infinite reading is refused (issue 31: not taken as "not sampled"; NaN says that), the filter unchanged
     Yi = Y[1].copy()
     Yi[0] = np.inf
-    online.step(t[1], U[1], Yi)
-    assert online.n_invalid == 1 and online.last_dof == np.isfinite(Yi).sum()
+    with pytest.raises(ValueError, match=r"y: channel\(s\) \['x1'\] infinite"):
+        online.step(t[1], U[1], Yi)
+    online.step(t[1], U[1], Y[1])
 
 
 # ----------------------------------------------------------------------------------------------- (d)

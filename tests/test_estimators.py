@@ -156,8 +156,8 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     s = inner.secant_factor(iv, dl)
     a = np.array([0.9, -0.4, 0.6])
     rows, Mr, Kr, Cr, Gr = scaled_steps(z, u, dl, s, dt / n, n, a, *iv.system, *inc)
-    scaled = {"Mr": "Mr", "Ca": "Ca", "dM": "dM", "fg": "fg", "T2": "T2", "old_dM": "old_dM", "old_Ca": "old_Ca",
-              "old_fg": "old_fg", "old_T2": "old_T2"}
+    scaled = {"Mr": "Mr", "Ca": "Ca", "dM": "dM", "fg": "fg", "T2": "T2", "C2": "C2", "old_dM": "old_dM",
+              "old_Ca": "old_Ca", "old_fg": "old_fg", "old_T2": "old_T2", "old_C2": "old_C2"}
     for k, c in enumerate(a):
         hs = iv.system._replace(**{f: getattr(iv.system, f) + c * getattr(inc, g) for f, g in scaled.items()})
         ref, *mats = held_step(z, u, dl, s, dt / n, n, *HeldSystem(*hs))
@@ -178,7 +178,7 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     # the augmented prediction: [z_next; theta; 0], the Jacobian with the scale's column (rows[0] - rows[-1]) / 0.2
     x, F, Qx = out[1:4]
     np.testing.assert_array_equal(x, np.concatenate([rows[-1], [1.6, 0.0]]))
-    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3, Pn, S)
+    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3 + a[-1] * inc.C2.reshape(C3.shape), Pn, S)
     np.testing.assert_allclose(F[:n0, :n0], Fz, rtol=0, atol=1e-13 * np.abs(Fz).max())
     np.testing.assert_array_equal(F[:n0, n0], (rows[0] - rows[-1]) / 0.2)
     np.testing.assert_array_equal(Qx[:n0, :n0], Q)
@@ -355,6 +355,42 @@ def test_ukf_equals_the_kalman_filter_on_a_linear_model():
         np.testing.assert_allclose(ukf.nis, kf.nis, rtol=1e-6, equal_nan=True)
 
 
+def test_ukf_has_the_ekfs_gate_fault_monitors_and_divergence():
+    """On a linear model the UKF is the Kalman filter, so with the EKF's monitors (:class:`Monitoring`: the gate,
+    the sensor-fault windows) it must gate the same spike, find the same offset fault and report the same NIS flag
+    as the EKF, with "diverged" meaning a non-finite state for both (the NIS flag is ``nis_flagged``)."""
+    from exuflex.observer.ekf import Monitoring, MultirateEKF
+    from exuflex.observer.ukf import UnscentedKF
+
+    from exuflex.observer.base import LinearDiscreteModel
+
+    model, R_std, t, Y2, dt = _linear_system(seed=5, n=400)
+    c3 = np.array([1.0, -1.0, 0, 0])  # a third channel: the gate leaves out a minority of the channels only
+    model = LinearDiscreteModel(model.A, None, {**model.C, "y3": c3}, model.Q)
+    x = np.array([0.1, -0.05, 0.0, 0.3])
+    rng = np.random.default_rng(9)
+    y3 = np.empty(len(t))
+    for k in range(len(t)):  # (y3 of the noise-free motion from the same start: the filters see the same record)
+        x = model.A @ x if k else x
+        y3[k] = c3 @ x + 0.01 * rng.standard_normal()
+    R_std = {**R_std, "y3": 0.05}
+    Y = np.column_stack([Y2, y3])
+    Y[120, 0] += 40 * R_std["y1"]  # a spike in one channel: gated
+    Y[250:, 1] += 8 * R_std["y2"]  # an offset from sample 250: a fault, and the NIS test flags
+    chans = ("y1", "y2", "y3")
+    x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
+    mon = Monitoring(nis_window=50, gate_p=1e-6, fault_window=40)
+    kf = MultirateEKF(model, chans, R_std, x0, P0, dt=dt, **mon._asdict()).run(t, None, Y)
+    ukf = UnscentedKF(model, chans, R_std, x0, P0, dt=dt, monitoring=mon).run(t, None, Y)
+    assert kf.n_rejected["y1"] >= 1 and kf.channel_faults and kf.nis_flagged
+    assert ukf.n_rejected == kf.n_rejected
+    assert [(f["channel"], f["kind"], f["start"]) for f in ukf.channel_faults] == \
+        [(f["channel"], f["kind"], f["start"]) for f in kf.channel_faults]
+    assert ukf.flagged_intervals == kf.flagged_intervals and ukf.nis_flagged_at == kf.nis_flagged_at
+    assert not ukf.diverged and not kf.diverged
+    np.testing.assert_allclose(ukf.x_hat, kf.x_hat, rtol=1e-7, atol=1e-9)
+
+
 # ------------------------------------------------------------------------------------------ command line
 def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys):
     """``--estimator ekf-input --smooth --json``: disturbance estimates per motor with their std (on an ERLS log
@@ -379,13 +415,13 @@ def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys)
 
 # ------------------------------------------------------------------------------------------ sensor design
 def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
-    """The ranking's bounds are :func:`estimation_bound`'s for an observer built on the model with those channels
+    """The ranking's bounds are :func:`steady_bound`'s for an observer built on the model with those channels
     (independently built here); a gauge never raises the bound; the greedy set beats its first station alone."""
     import dataclasses
     import math
 
     from exuflex.observer.design import rank_gauges
-    from exuflex.observer.session import estimation_bound, physical_names
+    from exuflex.observer.session import physical_names, steady_bound
 
     res = rank_gauges(sixbar, n_candidates=2)
     assert len(res.single) == 2 * len(sixbar.links)
@@ -396,7 +432,7 @@ def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
     sensors = tuple(dataclasses.replace(s, noise_std=res.gauge_noise) if s.kind == "curvature" else s
                     for s in sixbar.sensors)
     mech = dataclasses.replace(sixbar, sensors=sensors)
-    bnd = estimation_bound(make_observer(mech))
+    bnd = steady_bound(make_observer(mech))
     nq = len(mech.coordinate_names)
     x, y = physical_names(mech)[2 * nq : 2 * nq + 2]
     assert res.model_set_bound == pytest.approx(math.hypot(bnd[x], bnd[y]), rel=1e-6)
@@ -491,3 +527,88 @@ def test_ukf_breakdown_of_a_sigma_point_step(persistent):
     assert ukf.n_model_resets > 0 and not res.nonfinite
     assert (ukf.n_linearised > 0) == persistent
     np.testing.assert_allclose(res.x_hat, ref.x_hat, rtol=1e-9, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def serial_arm_payload():
+    """The serial arm's cached observer model and its payload-augmented model, and a state with both joints
+    turning (the bias force ``J^T M a_b`` is bilinear in the joint rates and the elastic rates) and the torques."""
+    mech = load_mechanism(MODELS / "serial_arm.toml")
+    obs = make_observer(mech)
+    m = obs.model
+    r, nq = m.r, m.nq
+    rng = np.random.default_rng(1)
+    z = m.initial_state(mech.q_ref, qd=np.array([1.5, -2.0]))
+    z[nq:r] = 1e-4 * rng.normal(size=r - nq)
+    z[r + nq :] = 1e-2 * rng.normal(size=r - nq)
+    return mech, m, AugmentedModel(m, payload_std=0.01), z, np.array([1.0, -0.5])
+
+
+def _fresh_increment(m, aug, z, u, dt):
+    """The held configuration evaluated at ``z`` (no secant partner) and its payload increment."""
+    m.reset()
+    aug.reset()
+    aug.predict(np.concatenate([z, [1.0]]), u, dt)
+    iv, _ = m.last_step
+    return iv, aug.increment(iv, z)
+
+
+def test_payload_increment_is_the_derivative_of_the_full_forces_in_the_payload_mass(serial_arm_payload):
+    """The increment's forces (weight, velocity forms and the bias force ``J^T M a_b``) at the held state equal the
+    central difference in the payload scale of the reduced model's forces evaluated directly (``fr`` of
+    :meth:`ReducedModel.matrices`, the full model's forces through ``J``) on models with the payload scaled by
+    ``1 +- 1e-3``: entry by entry within 1e-9 of the largest (the forces are linear in the payload mass, the
+    difference is exact up to rounding). The bias term alone is a visible share of the increment (so that a
+    test without it would fail)."""
+    from exuflex.observer.augmented import payload_twin
+
+    _, m, aug, z, u = serial_arm_payload
+    r, nq = m.r, m.nq
+    iv, inc = _fresh_increment(m, aug, z, u, 1e-3)
+    p, pd = z[:r].copy(), z[r:]
+    p[:nq] = iv.q0
+    f_vel = inc.fg - 0.5 * ((pd @ inc.T2).reshape(r, r) @ pd)
+    f_bias = -np.outer(pd, pd[:nq]).ravel() @ inc.C2
+    eps = 1e-3
+    fd = (payload_twin(m.rm, 1 + eps).matrices(p, pd).fr - payload_twin(m.rm, 1 - eps).matrices(p, pd).fr) / (2 * eps)
+    scale = np.abs(fd).max()
+    np.testing.assert_allclose(f_vel + f_bias, fd, rtol=0, atol=1e-9 * scale)
+    assert np.abs(f_bias).max() > 1e-3 * scale  # measured 1.3e-2 of the largest entry at this state
+    assert np.abs(fd - f_vel).max() > 1e3 * 1e-9 * scale
+
+
+def test_cached_and_reference_payload_steps_agree_to_the_held_configurations_order(serial_arm_payload):
+    """The payload's effect on the step, ``x(theta = 2) - x(theta = 1)``, of the cached step (the held
+    configuration's scaled system, :func:`scaled_steps`) against the reference (RK4 of the scaled nonlinear
+    reduced equations at every stage, ``_scaled_rk4``). The cached step holds the configuration at the interval's
+    start, so the two differ in the rates by ``O(dt^2)`` (a configuration error ``q' t`` integrated over the
+    interval); a force the cached step leaves out, such as the payload's bias force ``J^T M a_b`` with its rate
+    ``g = M_r(2)^-1 f_bias``, adds ``-g dt``. Per rate entry the difference over dt = 0.8, 0.4, 0.2 ms is fitted by
+    ``b dt + a dt^2 + c dt^3``: the first-order coefficient ``b_i`` must be within 10 % of ``|g_i|`` (plus 1e-3 of
+    the largest ``|g|``: the fit's error from the unfitted ``dt^4`` term), where leaving the bias out gives
+    ``b = -g``. Measured: ``|b_i / g_i|`` at most 0.045."""
+    from exuflex.observer.augmented import scaled_steps
+
+    mech, m, aug, z, u = serial_arm_payload
+    r, nq = m.r, m.nq
+    ref = make_observer(mech, ObserverConfig(method="rk4"), cb=m.rm.cb).model
+    aug_r = AugmentedModel(ref, payload_std=0.01)
+    a = np.array([1.0, 0.0])
+    dts = np.array([8e-4, 4e-4, 2e-4])
+    E = []
+    for dt in dts:
+        iv, inc = _fresh_increment(m, aug, z, u, dt)
+        n = m.substeps(iv, dt)
+        dl = z[:nq] - iv.q0
+        assert not np.any(dl)
+        c = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)[0]
+        ref.reset()
+        aug_r.reset()
+        aug_r.predict(np.concatenate([z, [1.0]]), u, dt)
+        rr = aug_r._scaled_rk4(z, u, dt, a)
+        E.append(((c[0] - c[1]) - (rr[0] - rr[1]))[r:])
+    b = np.linalg.solve(np.vstack([dts, dts**2, dts**3]).T, np.array(E))[0]
+    p, pd = z[:r], z[r:]
+    f_bias = -np.outer(pd, pd[:nq]).ravel() @ inc.C2
+    g = np.linalg.solve(iv.mats.Mr + inc.Mr, f_bias)
+    assert np.all(np.abs(b) <= 0.1 * np.abs(g) + 1e-3 * np.abs(g).max()), np.abs(b / g).max()

@@ -171,6 +171,39 @@ def test_run_equals_online_steps_exactly():
     assert np.array_equal(ekf.run(t, U, Y).x_hat, res.x_hat)  # a second run (reset) is identical
 
 
+def test_pure_steps_are_the_filters_step_and_filterpys():
+    """``condition(predict(belief, model.predict(...)), model.measure(...), y, R)`` is the filter's ``step`` bit
+    for bit (every channel and a subset), and equals filterpy's ``KalmanFilter`` predict/update (an independent
+    oracle, Joseph form) on the linear model."""
+    from filterpy.kalman import KalmanFilter
+
+    from exuflex.observer.base import Belief
+
+    model, ch, R, x0, P0, t, U, Y = _linear_case(seed=7, n=40)
+    Y = Y[np.isfinite(Y).any(axis=1)]  # (an all-NaN sample is a prediction alone: not a step to compare here)
+    t, U = t[: len(Y)], U[: len(Y)]
+    ekf = MultirateEKF(model, ch, R, x0, P0, DT)
+    Rd = np.array([R[c] ** 2 for c in ch])
+    kf = KalmanFilter(dim_x=NX, dim_z=M)
+    kf.x, kf.P, kf.F, kf.Q = x0.copy(), P0.copy(), model.A, model.Q
+    b = Belief(x0, P0)
+    for k in range(len(t)):
+        x = ekf.step(t[k], U[k], Y[k])
+        if k:
+            b = kalman.predict(b, model.predict(b.x, U[k - 1], DT))
+            kf.predict(u=U[k - 1], B=model.B)
+        idx = np.flatnonzero(np.isfinite(Y[k]))
+        if len(idx):
+            meas = model.measure(b.x, [ch[i] for i in idx])
+            b, inn = kalman.condition(b, meas, Y[k, idx], Rd[idx], floor=1e-18)
+            assert inn.nis == ekf.last_nis and np.array_equal(inn.r, ekf.last_innovation)
+            kf.update(Y[k, idx], R=np.diag(Rd[idx]), H=meas.H)
+        assert np.array_equal(b.x, x) and np.array_equal(b.P, ekf.P)
+        np.testing.assert_allclose(b.x, kf.x.reshape(-1), rtol=0, atol=1e-10 * np.abs(kf.x).max())
+        np.testing.assert_allclose(b.P, kf.P, rtol=0, atol=1e-9 * np.abs(kf.P).max())
+    assert ekf.belief.x.tolist() == b.x.tolist()
+
+
 def test_per_state_floor_and_degenerate_prior():
     model = random_model(7)
     ch = tuple(model.C)

@@ -15,6 +15,7 @@ from exuflex.observer.session import (
     ObserverConfig,
     UnobservableError,
     estimation_bound,
+    steady_bound,
     make_observer,
     observe_run,
 )
@@ -74,24 +75,24 @@ def test_unobservable_states_pbh():
 
 def test_blank_channel_bound_is_the_bound_without_it(obs):
     rep = check_run(MECH, _blank(["c4"]), obs.channels, dt=obs.ekf.dt)
-    got = estimation_bound(obs, log_check=rep)
-    ref = estimation_bound(make_observer(MECH, ObserverConfig(channels=("q1", "q2", "q3", "c1", "c2"))))
+    got = steady_bound(obs, log_check=rep)
+    ref = steady_bound(make_observer(MECH, ObserverConfig(channels=("q1", "q2", "q3", "c1", "c2"))))
     assert got == pytest.approx(ref, rel=1e-9)
-    full = estimation_bound(obs)
+    full = steady_bound(obs)
     assert got["x25"] > 1.1 * full["x25"]  # c4 carries the tip's elastic motion
 
 
 def test_half_rate_log_bound_is_the_bound_at_that_interval(obs):
     rep = check_run(MECH, _decimated(2), obs.channels, dt=obs.ekf.dt)
-    got = estimation_bound(obs, log_check=rep)
-    ref = estimation_bound(make_observer(MECH, ObserverConfig(dt=0.004)))
+    got = steady_bound(obs, log_check=rep)
+    ref = steady_bound(make_observer(MECH, ObserverConfig(dt=0.004)))
     assert got == pytest.approx(ref, rel=1e-9)
 
 
 def test_gauges_only_names_the_unobservable_states_at_once(obs):
     rep = check_run(MECH, _blank(["q1", "q2", "q3"]), obs.channels, dt=obs.ekf.dt)
     with pytest.raises(UnobservableError, match=r"cannot observe .*q1.*rigid motion: add an encoder"):
-        estimation_bound(obs, log_check=rep)
+        steady_bound(obs, log_check=rep)
 
 
 def test_c4_blank_errors_within_1_5_of_that_logs_bound(obs):

@@ -198,3 +198,36 @@ def test_loaded_values_are_si():
     assert cr.section.I == pytest.approx(np.pi * 0.025**4 / 64)
     assert mech.payload.mass == 0.15 and mech.node_location(mech.payload.node) == ("coupler", 0.7)
     assert mech.link("coupler").stations[4] == 0.5
+
+
+SECTION_CASES = [
+    ({"diameter": 0.02, "inner_diameter": 0.02}, "links[1].inner_diameter", "smaller than the outer diameter"),
+    ({"inner_diameter": 0.01}, "links[1].diameter", "outer diameter"),
+    ({"width": 0.01}, "links[1].height", "this required key"),
+    ({"width": 0.01, "height": 0.02, "diameter": 0.012}, "links[1].width", "no width or height with a diameter"),
+    ({"diameter": 0.012, "mesh_size": 2.0}, "links[1].mesh_size", "smaller than the link length"),
+]
+
+
+@pytest.mark.parametrize("section,field,expected", SECTION_CASES, ids=[c[1] + str(i) for i, c in enumerate(SECTION_CASES)])
+def test_bad_section_is_named(section, field, expected):
+    doc = _doc("fourbar")
+    link = doc["links"][1]
+    link.pop("diameter")
+    link.update(section)
+    with pytest.raises(ModelFileError, match=rf"^s\.toml: {re.escape(field)}: expected .*{re.escape(expected)}"):
+        parse_mechanism(doc, "s.toml")
+
+
+def test_solid_sections_area_and_inertia():
+    """Tube and rectangle: A and I from the closed forms; the shape is kept for the solid mesh."""
+    doc = _doc("fourbar")
+    doc["links"][1].update(diameter=0.02, inner_diameter=0.016)
+    doc["links"][2].pop("diameter")
+    doc["links"][2].update(width=0.01, height=0.02)
+    mech = parse_mechanism(doc, "s.toml")
+    tube, rect = mech.links[1].section, mech.links[2].section
+    assert tube.shape == "tube" and tube.A == pytest.approx(np.pi * (0.02**2 - 0.016**2) / 4)
+    assert tube.I == pytest.approx(np.pi * (0.02**4 - 0.016**4) / 64)
+    assert rect.shape == "rectangle" and rect.A == pytest.approx(2e-4) and rect.I == pytest.approx(0.01 * 0.02**3 / 12)
+    assert mech.links[0].section.shape == "round"

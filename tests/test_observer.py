@@ -22,6 +22,7 @@ from exuflex.observer.session import (
     make_observer,
     metrics,
     physical_names,
+    steady_bound,
 )
 from exuflex.runs import read_run
 from exuflex.sensors import tip_point
@@ -115,7 +116,7 @@ def test_bound_matches_independent_riccati_solution(sixbar, observer):
     for name, value in stored.items():
         assert old[name] == pytest.approx(value, rel=0.05), name
     expected = _independent_bound(sixbar, q, channels, DT)
-    got = estimation_bound(observer, q=q)  # the bound at mid-path, at rest
+    got = steady_bound(observer, q=q)  # the bound at mid-path, at rest
     for name, value in expected.items():
         assert got[name] == pytest.approx(value, rel=0.1), name
 
@@ -528,7 +529,7 @@ def test_physical_covariance_is_the_physical_map_s_jacobian_squared(arm):
 
 
 def test_bound_over_a_span_averages_the_configurations_scored_there(arm):
-    """``estimation_bound(span=...)`` is the RMS of the steady-state bounds at the midpoints of the span's parts:
+    """``steady_bound(span=...)`` is the RMS of the steady-state bounds at the midpoints of the span's parts:
     past the manoeuvre's end the mechanism rests at its final pose, so a span there gives the bound at that pose
     at rest; a span over the whole turn gives the RMS of the bounds at its midpoints' planned states."""
     from exuflex.observer.session import _bound_at
@@ -536,11 +537,11 @@ def test_bound_over_a_span_averages_the_configurations_scored_there(arm):
     mech, observer = arm
     d = mech.manoeuvre.duration
     final = plan(mech, dt=d / 100).q[-1]
-    after = estimation_bound(observer, span=(d + 0.1, d + 0.5), points=2)
+    after = steady_bound(observer, span=(d + 0.1, d + 0.5), points=2)
     at_rest = _bound_at(observer, final)
     for name, v in at_rest.items():
         assert after[name] == pytest.approx(v, rel=1e-9, abs=1e-15), name
-    over = estimation_bound(observer, span=(0.0, d), points=2)
+    over = steady_bound(observer, span=(0.0, d), points=2)
     p = plan(mech, dt=d / 800, t_end=d)
     per = [_bound_at(observer, p.q[k], p.qd[k]) for k in np.searchsorted(p.t, [0.25 * d, 0.75 * d])]
     for name in at_rest:

@@ -1,4 +1,4 @@
-"""The compiled sample loop (:func:`exuflex.observer.expansion.cached_samples`) against :meth:`MultirateEKF.step`.
+"""The compiled sample loop (:func:`exuflex.observer.loop.samples`) against :meth:`MultirateEKF.step`.
 
 :meth:`MultirateEKF.run` hands the samples it can to the model's compiled loop and the others to ``step``; both
 must give the same numbers, bit for bit, on a log that makes the run go back and forth between them: the six-bar's
@@ -139,3 +139,28 @@ def test_augmented_loop_is_step(sixbar_log, estimator, theta0, tau):
         assert getattr(model, "n_held", 0) == held
         if theta0 is not None:
             assert np.array_equal(looped.P_theta, stepped.P_theta)
+
+
+def test_smoother_forward_pass_is_the_loop(sixbar_log):
+    """The RTS smoother's forward pass goes through the compiled loop (its predictions recorded there) and gives
+    the numbers of ``step``: the smoothed means and covariances bit for bit."""
+    from exuflex.observer.smoother import rts_smooth
+
+    _, obs, t, U, Y = sixbar_log
+    ekf, model = obs.ekf, obs.model
+    n = 400
+    calls = []
+    predict = model.predict
+    model.predict = lambda *a, **k: calls.append(1) or predict(*a, **k)
+    try:
+        looped = rts_smooth(ekf, t[:n], U[:n], Y[:n])
+    finally:
+        del model.predict
+    assert len(calls) < n // 4  # the loop took most intervals
+    loop, ekf._loop = ekf._loop, None
+    try:
+        stepped = rts_smooth(ekf, t[:n], U[:n], Y[:n])
+    finally:
+        ekf._loop = loop
+    for name in ("x_hat", "P", "x_filt", "P_filt", "nis"):
+        assert np.array_equal(getattr(looped, name), getattr(stepped, name), equal_nan=True), name

@@ -204,7 +204,7 @@ def _run(tmp_path, mech):
 
 def test_run_round_trip(tmp_path, mech):
     out, sensors, truth = _run(tmp_path, mech)
-    assert sorted(p.name for p in out.iterdir()) == ["meta.json", "sensors.csv", "truth.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [".exuflex.json", "meta.json", "sensors.csv", "truth.csv"]
     assert (out / "sensors.csv").read_text().splitlines()[0] == "time,T1,T2,T3,q1,c1"
     run = read_run(out)
     np.testing.assert_array_equal(run.sensors.t, sensors.t)
@@ -298,7 +298,7 @@ def test_cli_simulate_erls(tmp_path):
         ["simulate", str(MODEL), "--out", str(out), "--engine", "erls", "--duration", "0.05", "--seed", "5"]
     )
     assert rc == 0
-    assert sorted(p.name for p in out.iterdir()) == ["meta.json", "sensors.csv", "truth.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [".exuflex.json", "meta.json", "sensors.csv", "truth.csv"]
     run = read_run(out)
     assert run.sensors.names == (
         "T1",

@@ -23,6 +23,14 @@ ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "sixbar.toml"
 
 
+def _copy_truth(src, out, command="study"):
+    """The truth cache of the study ``src`` copied into ``out``, a study folder (exuflex's: its mark lists it)."""
+    from exuflex.runs import output_folder
+
+    with output_folder(out, command, mode="resume"):
+        shutil.copytree(src / "truth", out / "truth")
+
+
 def _studies(name):
     spec = importlib.util.spec_from_file_location(f"studies_{name}", ROOT / "studies" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
@@ -86,7 +94,7 @@ def test_resume_after_interruption(done_study, tmp_path):
             raise Stop
 
     out = tmp_path / "s"
-    shutil.copytree(done_study.out / "truth", out / "truth")  # the truth cache is exercised by the fixture
+    _copy_truth(done_study.out, out)  # the truth cache is exercised by the fixture
     with pytest.raises(Stop):
         run_study(_tiny(), out, on_result=stop_after_two)
     files = sorted((out / "runs").glob("*/run_*.json"))
@@ -133,7 +141,7 @@ def test_a_running_study_locks_its_folder(done_study, tmp_path):
 
 def test_process_pool_gives_the_same_numbers(done_study, tmp_path):
     out = tmp_path / "s"
-    shutil.copytree(done_study.out / "truth", out / "truth")  # cached truth: only the runs are recomputed
+    _copy_truth(done_study.out, out)  # cached truth: only the runs are recomputed
     res = run_study(_tiny(), out, workers=2)
     assert res.n_computed == 4
     assert _numbers(res.rows) == _numbers(done_study.rows)
@@ -203,7 +211,7 @@ def test_cli_errors(tmp_path, capsys):
 
 def test_studies_script_quick(done_study, tmp_path):
     mod = _studies("payload")
-    shutil.copytree(done_study.out / "truth", tmp_path / "truth")  # same model, levels and duration
+    _copy_truth(done_study.out, tmp_path)  # same model, levels and duration
     res = mod.compute(tmp_path, mod.QUICK)
     assert res.n_computed == 4
     assert mod.plot(res.summary, tmp_path / "f.png").exists()
@@ -231,7 +239,7 @@ def test_killed_cli_study_resumes(tmp_path):
 def test_dask_local_cluster(done_study, tmp_path):
     distributed = pytest.importorskip("distributed")
     out = tmp_path / "s"
-    shutil.copytree(done_study.out / "truth", out / "truth")
+    _copy_truth(done_study.out, out)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True) as cluster:
         res = run_study(_tiny(), out, scheduler=cluster.scheduler_address)
     assert _numbers(res.rows) == _numbers(done_study.rows)
@@ -244,7 +252,7 @@ def test_estimator_studies_share_the_truths(done_study, tmp_path):
     from exuflex.study import estimator_figure_rows, run_estimator_studies
 
     out = tmp_path / "est"
-    shutil.copytree(done_study.out / "truth", out / "truth")
+    _copy_truth(done_study.out, out, "study-estimators")
     n_truth = len(list((out / "truth").glob("L*/truth.npz")))
     res = run_estimator_studies(_tiny(runs=1), out, ["ekf", "ekf-payload"])
     assert list(res) == ["ekf", "ekf-payload"]

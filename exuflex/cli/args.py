@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["channel_list", "finite_float", "n_interior", "name_list", "nonneg_int", "nonneg_float", "out_path",
+__all__ = ["add_overwrite", "channel_list", "finite_float", "n_interior", "name_list", "nonneg_int", "nonneg_float", "out_path",
            "positive_float", "positive_int", "probability", "seed", "unit_probability"]
 
 
@@ -120,3 +120,12 @@ def out_path(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a folder path, got an empty string")
     return text
+
+
+def add_overwrite(p: argparse.ArgumentParser) -> None:
+    """``--overwrite``: the one flag that lets a command replace an earlier exuflex result in its ``--out`` folder
+    (a folder holding anything exuflex did not write is refused whatever it says:
+    :func:`exuflex.runs.output_folder`)."""
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier exuflex result in --out (a folder holding files exuflex did not write "
+                   "is refused all the same)")

@@ -14,9 +14,9 @@ reduction basis build time; the Exudyn ground-truth time. ``--quick``: a 0.2 s m
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
+from ..runs import dump_json
 from .args import positive_float, positive_int
 from .args import seed as seed_type
 
@@ -99,5 +99,5 @@ def run(args) -> int:
         if args.json or not sys.stderr.isatty()
         else lambda m: print(f"... {m}", file=sys.stderr),
     )
-    print(json.dumps(res, indent=2) if args.json else _fmt(res))
+    print(dump_json(res, indent=2) if args.json else _fmt(res))
     return 0

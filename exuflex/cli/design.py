@@ -8,9 +8,9 @@ then a greedy set of as many gauges as the model file has, and where the file's 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
+from ..runs import dump_json
 from .args import positive_int
 
 
@@ -34,7 +34,7 @@ def run(args) -> int:
     mech = load_mechanism(args.model)
     res = rank_gauges(mech, n_candidates=args.candidates)
     if args.json:
-        print(json.dumps(asdict(res), indent=1, default=float))
+        print(dump_json(asdict(res), default=float))
         return 0
     out = sys.stdout
     print(f"{mech.name}: gauge stations ranked by the steady-state RMS bound of the tip elastic displacement "

@@ -23,12 +23,12 @@ With ``--json`` one JSON object is printed::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import numpy as np
 
 from ..mechanism import MAX_ELEMENTS  # the loader's limit (exuflex.mechanism.limits), also for --refine
+from ..runs import dump_json
 from ..truth import BEAMS
 from .args import n_interior, name_list, nonneg_int, positive_float, positive_int
 from .simulate import elements_per_link_arg
@@ -55,7 +55,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--elements-per-link", type=elements_per_link_arg, default="file", metavar="N|file",
                    help="then split elements so that no element is longer than 1/N of its link (default: file)")
     p.add_argument("--beam", choices=tuple(BEAMS), default="ancf",
-                   help="Exudyn beam for --exudyn: ANCF cable (default) or geometrically exact (needs a fine mesh)")
+                   help="Exudyn model for --exudyn: ANCF cable (default), geometrically exact beam (needs a fine mesh), "
+                        "or ffrf (alias solid): floating-frame bodies from solid meshes (netgen, Hurty-Craig-Bampton)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--exudyn", action="store_true", help="add the Exudyn model's frequencies")
     p.add_argument("--reduced", action="store_true", help="add the reduced model's frequencies, NCO and errors")
@@ -78,9 +79,8 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     """Library form of the command: the JSON-ready report."""
     from ..erls.modal import aligned_ratios, damping_ratios, modal_analysis
     from ..erls.model import ErlsModel
-    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
-
     from ..errors import UsageError
+    from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
     from ..validate import check_configurations, check_positive
 
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 1:
@@ -121,7 +121,16 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
     out["full"]["damping_ratio"] = aligned_ratios(res.below(fmax), *damping_ratios(model, q, locked)).tolist()
     if asm is not None:
         out["assembly"] = asm.as_dict()
-    if exudyn:
+    if exudyn and BEAMS[beam] == "ffrf":
+        if locked:
+            raise UsageError("--locked: the FFRF truth's modes are reported with the motors free; expected no --locked")
+        from ..groundtruth import ffrf_frequencies  # lazy: Exudyn, netgen and ngsolve are heavy
+
+        r = ffrf_frequencies(mech, q, fmax=fmax, progress=lambda msg: print(msg, file=sys.stderr), with_damping=True)
+        out["exudyn"] = {"frequencies_hz": r["frequencies_hz"].tolist(), "damping_ratio": r["damping_ratio"].tolist(),
+                         "beam": beam, "locked": False,
+                         "out_of_plane_hz": r["out_of_plane_hz"].tolist(), "solid": r["settings"]}
+    elif exudyn:
         from ..groundtruth import exudyn_frequencies, modal_damping  # lazy: Exudyn is heavy and optional here
 
         f = np.asarray(exudyn_frequencies(mech, q, elements_per_link="file", formulation=BEAMS[beam], locked=locked))
@@ -135,8 +144,14 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
             from ..reduction import reduced_modes_report
         except ImportError as exc:
             raise RuntimeError(f"--reduced needs exuflex.reduction.reduced_modes_report, not available: {exc}") from None
-        if along < 0:
-            raise ValueError(f"--along: expected a number of configurations >= 0, got {along}")
+        if isinstance(along, bool) or not isinstance(along, (int, np.integer)) or along < 0:
+            raise UsageError(f"along (--along): expected a number of configurations >= 0, got {along!r}")
+        from ..validate import check_work
+
+        # a configuration: the full model's and the reduced model's eigenproblems (about 10 n^3 flop each) and a
+        # few vectors of the full model's size kept for the worst case
+        check_work(along, along, param="along", flag="--along", what="configurations", bytes_each=8 * 8 * model.n,
+                   flops_each=2 * 10 * model.n**3)
         out["reduced"] = reduced_modes_report(model, q, masters=masters, n_interior=n_interior, q_star=q_star,
                                               fmax=fmax, along=along)
     return out
@@ -156,8 +171,13 @@ def _table(rep: dict) -> str:
         lines.insert(1, rep["assembly"]["summary"])
     if exu is not None:
         ex = rep["exudyn"]
-        lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} elements), "
-                     f"motors {'locked' if ex.get('locked') else 'free'}")
+        if "solid" in ex:
+            lk = ex["solid"]["links"]
+            lines.append(f"Exudyn model: FFRF bodies from solid meshes ({sum(v['nodes'] for v in lk.values())} nodes, "
+                         f"{sum(v['modes'] for v in lk.values())} modes), motors free; in-plane modes")
+        else:
+            lines.append(f"Exudyn model: {ex.get('beam', 'ancf')} beams on the same mesh ({ex.get('n_elements')} "
+                         f"elements), motors {'locked' if ex.get('locked') else 'free'}")
     if red is not None:
         lines.append(f"reduced model: {red.get('ndof')} dofs, masters {red.get('masters')}, "
                      f"{red.get('interior_modes')} interior modes")
@@ -193,5 +213,5 @@ def run(args) -> int:
                        exudyn=args.exudyn, reduced=args.reduced, masters=args.masters,
                        n_interior=args.n_interior, q_star=args.qstar, along=args.along,
                        elements_per_link=args.elements_per_link, beam=args.beam)
-    print(json.dumps(rep) if args.json else _table(rep))
+    print(dump_json(rep, indent=None) if args.json else _table(rep))
     return 0

@@ -10,11 +10,12 @@ Stage messages go to stderr (``exuflex observe: ...``); the result table to stdo
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from ..runs import dump_json
 from .args import (
+    add_overwrite,
     channel_list,
     finite_float,
     n_interior,
@@ -86,7 +87,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="multiplies the time column, e.g. 1e-3 for milliseconds")
     add_dialect_arguments(g)
     g.add_argument("--truth", help="a truth CSV (time + columns named like the truth states)")
+    p.add_argument("--accept-other-model", action="store_true",
+                   help="observe a run folder whose meta.json names another mechanism (refused otherwise)")
     p.add_argument("--out", type=out_path, help="write estimates.csv, result.json and plots here")
+    add_overwrite(p)
     p.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
     p.add_argument("--channels", type=channel_list,
                    help="comma-separated sensor channels (default: the paper's set for the model)")
@@ -131,6 +135,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "(off by default: a model error looks like a sensor offset; faults are always reported)")
     p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
+    p.add_argument("--allow-undersampled", action="store_true",
+                   help="run on a log sampled too slowly for the reduced model's in-band modes (refused otherwise) "
+                   "and flag the result ('sampling': undersampled)")
     p.set_defaults(func=run)
     return p
 
@@ -158,6 +165,19 @@ def _config(args, mech):
         "payload_nominal_p": args.payload_nominal_p,
     }
     return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
+
+
+def _csv_options_unused(args) -> None:
+    """A run folder has its own clock, columns and truth: the lab-CSV options are refused there, not ignored."""
+    from ..errors import UsageError
+
+    given = [flag for flag, v, default in (("--map", args.map, None), ("--time-column", args.time_column, "time"),
+                                           ("--time-scale", args.time_scale, 1.0), ("--truth", args.truth, None),
+                                           ("--delimiter", args.delimiter, ","), ("--decimal", args.decimal, "."))
+             if v != default]
+    if given:
+        raise UsageError(f"{' '.join(given)}: options of a lab CSV log, but {args.run_dir} is a run folder (its "
+                         "meta.json names the columns, its truth is its truth.csv); expected them only with a CSV file")
 
 
 def _read_log(args, mech):
@@ -198,14 +218,77 @@ def run_manoeuvre(mech, log):
     return mech.replace(manoeuvre=load_manoeuvre(src, mech))
 
 
+def _check_sampling(mech, obs, log, log_check, *, allow: bool, source: str) -> dict:
+    """Sampling adequate for the model: the fastest used channel and the torques sampled at least at twice the
+    reduced model's highest frequency within its band (``reduction.band_hz``) at ``q*`` (Nyquist: a mode above half
+    the sampling rate aliases onto a slower one, and the update cannot tell them apart; a torque held over an
+    interval longer than the mode's half period drives it with an input the log does not show). Refused with a
+    :class:`~exuflex.errors.UsageError` naming the rates, unless ``allow`` (then flagged in the result)."""
+    import numpy as np
+
+    from ..errors import UsageError
+    from ..reduction import reduced_modes
+
+    cb = getattr(getattr(obs.model, "rm", None), "cb", None)
+    band = float(mech.reduction.band_hz)
+    if cb is not None:
+        f = np.asarray(reduced_modes(cb, cb.q_star)[0], float)
+        f = f[(f > 0) & (f <= band)]
+        f_need = float(f.max()) if f.size else 0.0
+    else:
+        f_need = band
+    rates = {c: r for c, r in log_check.channel_rate_hz.items() if r > 0}
+    t = log.sensors.t
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    torque_rate = (len(t) - 1 - log_check.held_torques) / span if span > 0 else 0.0
+    need = 2.0 * f_need
+    why = []
+    if rates and max(rates.values()) < need:
+        c = max(rates, key=rates.get)
+        why.append(f"its fastest channel ({c}, {rates[c]:.4g} Hz) samples below twice the reduced model's highest "
+                   f"in-band frequency ({f_need:.4g} Hz)")
+    if need and torque_rate < need:
+        why.append(f"its torques are sampled at {torque_rate:.4g} Hz, below twice the reduced model's highest "
+                   f"in-band frequency ({f_need:.4g} Hz)")
+    text = f"{source}: the log cannot support the estimate: " + "; ".join(why) if why else ""
+    if why and not allow:
+        raise UsageError(f"{text}; expected rates of at least {need:.4g} Hz (a faster log, a model with a lower "
+                         "reduction.band_hz, or --allow-undersampled to run and flag the result)")
+    return {"undersampled": bool(why), "needed_hz": need, "highest_in_band_hz": f_need,
+            "channel_rate_hz": rates, "torque_rate_hz": torque_rate, "why": "; ".join(why) or None}
+
+
+def _check_substeps(mech, config, n_samples: int) -> None:
+    """Bounds before work on ``--substep``: the RK4 sub-steps over the log (each about 4 evaluations of the reduced
+    model and the propagation of its Jacobian, 4 nx^3 flop) within the time one setting may ask for."""
+    import math
+
+    from ..validate import check_work, state_size_estimate
+
+    dt = config.dt or 1.0 / mech.sample_rate_hz
+    per_sample = max(1, math.ceil(dt / config.h * (1 - 1e-9)))
+    nx = state_size_estimate(mech)
+    check_work(f"{config.h:g} s", float(n_samples) * per_sample, param="h", flag="--substep",
+               what=f"RK4 sub-steps ({per_sample:.3g} a sample over {n_samples} samples)", flops_each=4 * nx**3)
+
+
 def run(args) -> int:
+    if not args.out:
+        return _run(args)
+    from ..runs import output_folder
+
+    with output_folder(args.out, "observe", overwrite=args.overwrite, inputs=[args.run_dir]):
+        return _run(args)
+
+
+def _run(args) -> int:
     from .. import _compile
     from ..errors import UsageError
     from ..mechanism import load_mechanism
     from ..observer.session import AUGMENTED_ESTIMATORS, make_observer, observe_run
     from ..runs import check_csv_dialect, read_run
     from ..sensors import default_channels
-    from ..validate import check_configurations, check_observer_settings, check_run, with_noise
+    from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
@@ -214,6 +297,8 @@ def run(args) -> int:
     if args.smooth and config.estimator == "ukf":
         raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
+    if Path(args.run_dir).is_dir():
+        _csv_options_unused(args)
     check_csv_dialect(args.delimiter, args.decimal)
     for flag, v in (("--q0", args.q0), ("--qd0", args.qd0)):
         if v is not None and len(v) != len(mech.coordinates):
@@ -222,8 +307,12 @@ def run(args) -> int:
     check_configurations(mech)  # loops close, away from singularities
     path = Path(args.run_dir)
     log = _read_log(args, mech) if path.is_file() else read_run(path)
+    log, notes = check_provenance(mech, log, accept_other_model=args.accept_other_model)
+    for note in notes:
+        _say(f"note: {note}")
     _say(f"read {path}: {len(log.sensors.t)} rows, {float(log.sensors.t[-1] - log.sensors.t[0]):.4g} s")
     mech = run_manoeuvre(mech, log)
+    _check_substeps(mech, config, len(log.sensors.t))
     # the log checked before the model is built: a bad log fails at once, and the check's working arrays (a
     # few floats a row, all rows at once) are freed before the observer's own memory is taken
     log_check = check_run(mech, log, tuple(config.channels) if config.channels else default_channels(mech),
@@ -233,11 +322,12 @@ def run(args) -> int:
     _say("building the reduced model")
     obs = make_observer(mech, config)
     if args.q0 is not None or args.qd0 is not None:
-        from ..observer.session import _start_q
+        from ..observer.session import start_configuration
 
-        q0 = args.q0 if args.q0 is not None else _start_q(mech)
+        q0 = args.q0 if args.q0 is not None else start_configuration(mech)
         x0 = obs.model.initial_state(q0, args.qd0)
         obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
+    sampling = _check_sampling(mech, obs, log, log_check, allow=args.allow_undersampled, source=str(path))
     if args.out and (not args.smooth or len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES):
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
     elif not args.out and not args.smooth and obs.ekf.model is obs.model:
@@ -255,10 +345,15 @@ def run(args) -> int:
         out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
                           log_check=log_check)
     s = out.summary
+    s["sampling"] = sampling
+    if sampling["undersampled"]:
+        _say(f"warning: {sampling['why']}: the estimates are not supported by the log (--allow-undersampled)")
     if s["diverged"]:
         _say(f"warning: the filter diverged (estimates non-finite) at t = {s['diverged_at']} s")
     elif s["nis_inconsistent"]:
-        _say(f"warning: NIS inconsistent from t = {s['nis_flagged_at']:.4g} s (innovations larger than the filter's "
+        when = (f"from t = {s['nis_flagged_at']:.4g} s" if s.get("nis_flagged_at") is not None else
+                f"over the whole log (mean NIS {s['nis_mean']:.3g} against {s['nis_expected']:.3g})")
+        _say(f"warning: NIS inconsistent {when} (innovations larger than the filter's "
              "covariance explains: model mismatch, wrong noise settings or units; estimates finite)")
     if args.out:
         from ..observer.output import write_outcome
@@ -270,7 +365,7 @@ def run(args) -> int:
 
             observer_figures(args.out, mech, log, out)
     if args.json:
-        print(json.dumps(s, indent=1, default=float))
+        print(dump_json(s, default=float))
         return 0
     from ..observer.output import summary_table
 

@@ -39,17 +39,38 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from .. import plots
     from ..mechanism import load_mechanism
-    from ..runs import check_csv_dialect, read_run, read_signals_csv
+    from ..runs import check_csv_dialect, output_folder, read_run
     from .observe import _read_log
 
     mech = load_mechanism(args.model)
     check_csv_dialect(args.delimiter, args.decimal)
     path = Path(args.run_dir)
     log = _read_log(args, mech) if path.is_file() else read_run(path)
-    out = Path(args.out) if args.out else (path.parent / f"{path.stem}_figures" if path.is_file() else path)
-    out.mkdir(parents=True, exist_ok=True)
+    if args.out:
+        out = Path(args.out)
+    elif path.is_file():
+        out = path.parent / f"{path.stem}_figures"
+    else:  # the run folder itself if exuflex wrote it; beside it otherwise (a lab's folder is left as it is)
+        out = path if _exuflex_folder(path) else path.parent / f"{path.name}_figures"
+    with output_folder(out, "plot", mode="add") as out:
+        return _draw(args, mech, log, out)
+
+
+def _exuflex_folder(path: Path) -> bool:
+    from ..runs import check_not_foreign
+
+    try:
+        check_not_foreign(path)
+    except ValueError:
+        return False
+    return True
+
+
+def _draw(args, mech, log, out: Path) -> int:
+    from .. import plots
+    from ..runs import read_signals_csv
+
     est = read_signals_csv(args.estimates) if args.estimates else None
     paper = mech.name in plots.PAPER_MODELS
     motors = tuple(log.motors or mech.motor_names)

@@ -13,7 +13,7 @@ import sys
 import time
 
 from ..truth import BEAMS, ENGINES, EXUDYN_ELEMENTS_PER_LINK, INTEGRATORS, simulate_run
-from .args import out_path, positive_float
+from .args import add_overwrite, out_path, positive_float
 from .args import seed as seed_type
 
 __all__ = ["PhaseBars", "ProgressBar", "add_parser", "elements_per_link_arg", "run"]
@@ -87,6 +87,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--out", required=True, type=out_path, help="run folder to write (created if needed)")
+    add_overwrite(p)
     p.add_argument(
         "--engine", choices=ENGINES, default="exudyn",
         help="truth engine: exudyn (independent, default), erls (full-order ERLS model), reduced (the observer's "
@@ -121,7 +122,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "--beam",
         choices=tuple(BEAMS),
         default="ancf",
-        help="Exudyn beam: ANCF cable (default) or geometrically exact (linear, needs 16-32 elements per link)",
+        help="Exudyn model: ANCF cable (default), geometrically exact beam (linear, needs 16-32 elements per link), "
+        "or ffrf (alias solid): floating-frame bodies from solid meshes (netgen, Hurty-Craig-Bampton; cached)",
     )
     p.add_argument(
         "--integrator",
@@ -183,6 +185,8 @@ def run(args) -> int:
             beam=args.beam,
             integrator=args.integrator,
             erls_step=args.erls_step,
+            messages=None if args.no_progress else (lambda msg: print(msg, file=sys.stderr)),
+            overwrite=args.overwrite,
         )
     finally:
         bars.close()

@@ -15,7 +15,7 @@ import argparse
 import sys
 import time
 
-from .args import nonneg_float, out_path, positive_float, positive_int
+from .args import add_overwrite, nonneg_float, out_path, positive_float, positive_int
 from .args import seed as seed_type
 
 __all__ = ["QUICK", "add_parser", "build_spec", "run"]
@@ -27,6 +27,7 @@ DEFAULT_LEVELS = "0,25,50,75,100"
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--out", required=True, type=out_path, help="study folder (created; an existing study there is resumed)")
+    add_overwrite(p)
     p.add_argument("--runs", type=positive_int, default=None, help="noise realisations per level (default 100)")
     p.add_argument("--workers", type=positive_int, default=1, help="local worker processes (default 1: in-process)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786): run there")
@@ -64,16 +65,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def build_spec(args):
     """The :class:`~exuflex.study.StudySpec` of parsed arguments (``--quick`` fills unset options)."""
+    from ..errors import UsageError
     from ..study import StudySpec, parse_set, payload_levels, sweep_levels
 
     runs = args.runs if args.runs is not None else (QUICK["runs"] if args.quick else 100)
     duration = args.duration if args.duration is not None else (QUICK["duration"] if args.quick else None)
     if args.study_kind == "payload":
-        text = args.levels or (QUICK["levels"] if args.quick else DEFAULT_LEVELS)
+        text = args.levels if args.levels is not None else (QUICK["levels"] if args.quick else DEFAULT_LEVELS)
+        cells = [x.strip() for x in text.split(",")]
         try:
-            pct = [float(x) for x in text.split(",") if x.strip()]
+            if not text.strip() or not all(cells):
+                raise ValueError(text)
+            pct = [float(x) for x in cells]
         except ValueError:
-            raise ValueError(f"--levels {text!r}: expected comma-separated percentages, e.g. 0,25,50") from None
+            raise UsageError(f"--levels {text!r}: expected comma-separated percentages, none empty, e.g. 0,25,50"
+                             ) from None
         levels = payload_levels(pct)
     else:
         levels = sweep_levels([parse_set(s) for s in args.sets])
@@ -125,7 +131,7 @@ def run(args) -> int:
         if getattr(args, "estimators", None) is not None:
             return _run_estimators(spec, args, t0)
         res = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, overwrite=args.overwrite)
     except (OverrideError, ValueError, RuntimeError) as exc:
         print(f"exuflex study: error: {exc}", file=sys.stderr)
         return 2
@@ -142,7 +148,7 @@ def _run_estimators(spec, args, t0: float) -> int:
 
     names = [e.strip() for e in args.estimators.split(",") if e.strip()]
     results = run_estimator_studies(spec, args.out, names, workers=args.workers, scheduler=args.scheduler,
-                                    progress=not args.no_progress)
+                                    progress=not args.no_progress, overwrite=args.overwrite)
     for e, res in results.items():
         print(f"estimator {e} ({res.out}):")
         print_summary(res.summary)

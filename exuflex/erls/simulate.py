@@ -7,7 +7,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 __all__ = ["Trajectory", "rk4_amplification", "rk4_step", "rk4_substeps", "simulate"]
 
@@ -130,6 +129,8 @@ def simulate(
                 progress((k + 1) / n_steps)
         return Trajectory(np.array(ts), np.array(ys))
     t_eval = np.arange(0, n_steps + 1, output_every) * h
+    from scipy.integrate import solve_ivp  # here, not at import: scipy.integrate is a large import
+
     sol = solve_ivp(
         lambda t, y: f(t, y, inputs(t)), (0.0, t_end), y0, method=method, t_eval=t_eval, rtol=rtol, atol=atol,
         **({} if jac is None else {"jac": jac}),

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import os
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,12 @@ class ModelFileError(ValueError):
         if has_got:
             msg += f", got {got!r}"
         super().__init__(msg)
+
+
+class UsageError(ValueError):
+    """An argument of a command or of a public function is invalid; the message names the argument (the
+    command-line flag, or the function's parameter) and what was expected. (Defined here, with the model file's
+    error, as the mechanism stage imports nothing from the rest; :mod:`exuflex.errors` exports it.)"""
 
 
 class _Reader:
@@ -179,18 +186,23 @@ def column_name_problem(name: str) -> str | None:
 
 
 def load_mechanism(path: str | Path) -> Mechanism:
-    """Read and validate a TOML mechanism file."""
+    """Read and validate a TOML mechanism file (UTF-8; a byte-order mark, as some editors write, is skipped)."""
+    if not isinstance(path, (str, os.PathLike)) or not str(path).strip():
+        raise UsageError(f"path: expected the path of a model file (str or pathlib.Path), got {type(path).__name__}"
+                         + (" (already loaded: pass it on directly)" if isinstance(path, Mechanism) else ""))
     path = Path(path)
     src = str(path)
     if not path.is_file():
         raise ModelFileError(src, "(file)", "an existing TOML model file", has_got=False)
     try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+        raw = path.read_bytes()
+        data = tomllib.loads(raw.decode("utf-8-sig"))
     except tomllib.TOMLDecodeError as exc:
         raise ModelFileError(src, "(syntax)", f"valid TOML ({exc})", has_got=False) from None
     except UnicodeDecodeError:
         raise ModelFileError(src, "(file)", "a UTF-8 text file", has_got=False) from None
+    except OSError as exc:
+        raise ModelFileError(src, "(file)", f"a readable file ({exc.strerror or exc})", has_got=False) from None
     return parse_mechanism(data, src)
 
 
@@ -207,7 +219,8 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
 
     materials: dict[str, Material] = {}
     for r in root.table_list("materials"):
-        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=30.0, hi=3e4, unit="kg/m^3"))
+        m = Material(r.str("name"), r.num("E", lo=1e6, hi=1e13, unit="Pa"), r.num("rho", lo=30.0, hi=3e4, unit="kg/m^3"),
+                     r.num("nu", 0.3, lo=0.0, hi=0.49))
         if m.name in materials:
             raise r.err("name", "a unique material name", m.name)
         materials[m.name] = m
@@ -378,6 +391,7 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         r.check_unknown()
     _unique(source, "sensors", [s.name for s in sensors], {m.name: f"motors[{i}]" for i, m in enumerate(motors)})
 
+    _check_mobility(source, links, joints, coords)  # a missing coordinate named before the lists sized by them
     nq = len(coords)
     q_ref: tuple[float, ...] = ()
     if q_ref_raw is not None:
@@ -462,6 +476,46 @@ def _unique(source: str, field: str, names: list[str], others: dict[str, str] | 
         seen[n] = f"{field}[{i}]"
 
 
+def _parse_section(r: _Reader, length: float) -> Section:
+    """The link's cross-section: a round bar (``diameter``), a tube (``diameter``, ``inner_diameter``), a rectangle
+    (``height`` in the plane, ``width`` normal to it) or only ``A`` and ``I`` (with an optional ``height``)."""
+    solid_keys = [k for k in ("diameter", "inner_diameter", "width") if r.has(k)]
+    if (r.has("A") or r.has("I")) and solid_keys:
+        raise r.err("A", f"either {' and '.join(solid_keys)} or A and I, not both", r.table.get("A"))
+    if r.has("diameter"):
+        d = r.num("diameter", positive=True, unit="m")
+        if d >= length:
+            raise r.err("diameter", f"a diameter (m) smaller than the link length {length} m: mm by mistake?", d)
+        if r.has("width") or r.has("height"):
+            key = "width" if r.has("width") else "height"
+            raise r.err(key, "no width or height with a diameter (a rectangle has width and height, no diameter)",
+                        r.table[key])
+        if r.has("inner_diameter"):
+            di = r.num("inner_diameter", positive=True, unit="m")
+            if di >= d:
+                raise r.err("inner_diameter", f"a bore diameter (m) smaller than the outer diameter {d} m", di)
+            return Section(math.pi * (d**2 - di**2) / 4, math.pi * (d**4 - di**4) / 64, d, d, "tube", di)
+        return Section(math.pi * d**2 / 4, math.pi * d**4 / 64, d, d, "round")
+    if r.has("inner_diameter"):
+        raise r.err("diameter", "the outer diameter (m) of the tube", has_got=False)
+    if r.has("width"):
+        w = r.num("width", positive=True, unit="m")
+        h = r.num("height", positive=True, unit="m")
+        for k, v in (("width", w), ("height", h)):
+            if v >= length:
+                raise r.err(k, f"a section size (m) smaller than the link length {length} m: mm by mistake?", v)
+        return Section(w * h, w * h**3 / 12, None, h, "rectangle", None, w)
+    if not (r.has("A") and r.has("I")):
+        raise r.err("diameter", "a diameter (m), a diameter and inner_diameter (tube), width and height "
+                    "(rectangle) or both A (m^2) and I (m^4)", has_got=False)
+    A = r.num("A", positive=True, unit="m^2")
+    I = r.num("I", positive=True, unit="m^4")
+    if A >= length**2:
+        raise r.err("A", f"an area (m^2) much smaller than length^2 = {length**2:g}", A)
+    h = r.num("height", None, positive=True, unit="m")
+    return Section(A, I, None, h)
+
+
 def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, ...]:
     links: list[Link] = []
     next_auto = None
@@ -482,22 +536,7 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
         mat = r.raw("material")
         if not isinstance(mat, str) or mat not in materials:
             raise r.err("material", f"a material name, one of {sorted(materials)}", mat)
-        if r.has("diameter"):
-            d = r.num("diameter", positive=True, unit="m")
-            if d >= length:
-                raise r.err("diameter", f"a diameter (m) smaller than the link length {length} m: mm by mistake?", d)
-            if r.has("A") or r.has("I"):
-                raise r.err("A", "either diameter or A and I, not both", r.table.get("A"))
-            sec = Section(math.pi * d**2 / 4, math.pi * d**4 / 64, d, d)
-        else:
-            if not (r.has("A") and r.has("I")):
-                raise r.err("diameter", "a diameter (m) or both A (m^2) and I (m^4)", has_got=False)
-            A = r.num("A", positive=True, unit="m^2")
-            I = r.num("I", positive=True, unit="m^4")
-            if A >= length**2:
-                raise r.err("A", f"an area (m^2) much smaller than length^2 = {length**2:g}", A)
-            h = r.num("height", None, positive=True, unit="m")
-            sec = Section(A, I, None, h)
+        sec = _parse_section(r, length)
         if r.has("stations"):
             st = r.nums("stations")
             if r.has("n_elements"):
@@ -532,7 +571,10 @@ def _parse_links(root: _Reader, materials: dict[str, Material]) -> tuple[Link, .
                             "table with kind = \"weld\")", list(ids))
         if len(set(ids)) != len(ids):
             raise r.err("nodes", "distinct node ids", list(ids))
-        links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None)))
+        mesh_size = r.num("mesh_size", None, positive=True, unit="m")
+        if mesh_size is not None and mesh_size >= length:
+            raise r.err("mesh_size", f"a mesh size (m) smaller than the link length {length} m", mesh_size)
+        links.append(Link(name, length, materials[mat], sec, st, ids, r.num("angle_guess", None), mesh_size))
         r.check_unknown()
     return tuple(links)
 
@@ -883,15 +925,15 @@ def load_manoeuvre(path: str | Path, mech: Mechanism) -> Manoeuvre:
     return man
 
 
-def _check_topology(mech: Mechanism) -> None:
-    """Joints connect every link to the ground; the coordinates match the mobility."""
-    src = mech.source
-    if not any(j.grounded for j in mech.joints):
+def _check_mobility(src: str, links, joints, coordinates) -> None:
+    """Joints connect every link to the ground; as many coordinates as the mobility (Gruebler's count): checked as
+    soon as links, joints and coordinates are read, so that a missing coordinate is named as such."""
+    if not any(j.grounded for j in joints):
         raise ModelFileError(src, "joints", "at least one joint with a ground position", has_got=False)
-    adj: dict[str, set[str]] = {lk.name: set() for lk in mech.links}
+    adj: dict[str, set[str]] = {lk.name: set() for lk in links}
     grounded: set[str] = set()
     n_eq = 0
-    for j in mech.joints:
+    for j in joints:
         names = [p.link for p in j.points]
         if len(set(names)) != len(names):
             raise ModelFileError(src, f"joints.{j.name}.points", "each link at most once per joint", names)
@@ -915,14 +957,24 @@ def _check_topology(mech: Mechanism) -> None:
     if loose:
         raise ModelFileError(src, "joints", f"joints that connect every link to the ground; not connected: {loose}",
                              has_got=False)
-    mobility = 3 * len(mech.links) - n_eq
-    if mobility != len(mech.coordinates):
+    mobility = 3 * len(links) - n_eq
+    if mobility != len(coordinates):
+        names = ", ".join(c.name for c in coordinates) or "none"
+        k = mobility - len(coordinates)
+        hint = (f"; {k} [[coordinates]] entr{'y' if k == 1 else 'ies'} missing?" if k > 0
+                else "; a coordinate too many, or a joint missing?")
         raise ModelFileError(
             src, "coordinates",
-            f"as many ERLS coordinates as the mechanism's mobility ({mobility}, from 3 x {len(mech.links)} links "
-            f"- {n_eq} joint equations)",
-            len(mech.coordinates),
+            f"as many ERLS coordinates as the mechanism's mobility ({mobility}, from 3 x {len(links)} links "
+            f"- {n_eq} joint equations); the file has {len(coordinates)} ({names}){hint}",
+            has_got=False,
         )
+
+
+def _check_topology(mech: Mechanism) -> None:
+    """Joints connect every link to the ground; the coordinates match the mobility."""
+    _check_mobility(mech.source, mech.links, mech.joints, mech.coordinates)
+    src = mech.source
     # each coordinate's link node at its joint must be distinct (one ERLS constraint per node rotation)
     seen_c = set()
     for c in mech.coordinates:

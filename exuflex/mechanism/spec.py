@@ -45,16 +45,25 @@ class Material:
     name: str
     E: float  # Young's modulus, Pa
     rho: float  # density, kg/m^3
+    nu: float = 0.3  # Poisson's ratio (solid links only: the beam models do not use it)
 
 
 @dataclass(frozen=True)
 class Section:
-    """Cross-section: area A (m^2) and second moment I (m^4); ``diameter`` if circular."""
+    """Cross-section: area A (m^2) and second moment I (m^4) about the out-of-plane axis.
+
+    ``shape`` names the solid the section belongs to (the FFRF truth meshes it): ``"round"`` (``diameter``),
+    ``"tube"`` (outer ``diameter``, ``inner_diameter``), ``"rectangle"`` (``height`` in the mechanism's plane,
+    ``width`` normal to it); ``None``: only A and I are known (a beam model can use it, a solid cannot).
+    """
 
     A: float
     I: float
-    diameter: float | None = None  # outer diameter of a solid circle (used for gauges, m)
+    diameter: float | None = None  # outer diameter of a round section or a tube (used for gauges, m)
     height: float | None = None  # distance from neutral axis to the surface * 2 (m)
+    shape: str | None = None  # round | tube | rectangle | None (A and I only)
+    inner_diameter: float | None = None  # tube: bore diameter (m)
+    width: float | None = None  # rectangle: extent normal to the mechanism's plane (m)
 
 
 @dataclass(frozen=True)
@@ -66,6 +75,7 @@ class Link:
     stations: tuple[float, ...]  # node stations along the axis, ascending, first 0, last length
     node_ids: tuple[int, ...]  # global 1-based node id of each station
     angle_guess: float | None = None  # absolute angle at the reference configuration (branch selection)
+    mesh_size: float | None = None  # solid mesh: largest tetrahedron edge (m); None: the FFRF truth's default
 
     @property
     def n_elements(self) -> int:

@@ -39,13 +39,21 @@ def mechanism_document(mech: Mechanism) -> dict[str, Any]:
     for lk in mech.links:
         sec = lk.section
         entry: dict[str, Any] = {"name": lk.name, "length": lk.length, "material": link_material[lk.name]}
-        if sec.diameter is not None:
+        if sec.shape in ("round", "tube"):
+            entry["diameter"] = sec.diameter
+            if sec.shape == "tube":
+                entry["inner_diameter"] = sec.inner_diameter
+        elif sec.shape == "rectangle":
+            entry.update(width=sec.width, height=sec.height)
+        elif sec.diameter is not None:
             entry["diameter"] = sec.diameter
         else:
             entry.update(_drop_none({"A": sec.A, "I": sec.I, "height": sec.height}))
         entry.update(stations=list(lk.stations), nodes=list(lk.node_ids))
         if lk.angle_guess is not None:
             entry["angle_guess"] = lk.angle_guess
+        if lk.mesh_size is not None:
+            entry["mesh_size"] = lk.mesh_size
         links.append(entry)
     joints = []
     for j in mech.joints:
@@ -86,7 +94,7 @@ def mechanism_document(mech: Mechanism) -> dict[str, Any]:
         model["q_ref"] = list(mech.q_ref)
     doc: dict[str, Any] = {
         "model": model,
-        "materials": [{"name": n, "E": m.E, "rho": m.rho} for n, m in materials.items()],
+        "materials": [{"name": n, "E": m.E, "rho": m.rho, **({"nu": m.nu} if m.nu != 0.3 else {})} for n, m in materials.items()],
         "links": links,
         "joints": joints,
         "coordinates": coords,

@@ -6,8 +6,9 @@
 - :mod:`.reduced`: the reduced ERLS model as the filter's model (cached step or the exact RK4 reference), with
   the second-order expansion about held configurations in :mod:`.expansion`; :mod:`.full`: the full-order model.
 - :mod:`.session`: the observer as users run it (:func:`make_observer`, :func:`estimate`, :func:`metrics`,
-  :func:`estimation_bound`).
-- :mod:`.bound`, :mod:`.observability`, :mod:`.stats`, :mod:`.tuning`: the steady-state bound, observability,
+  :func:`estimation_bound`, the posterior Cramer-Rao bound along the truth or the plan).
+- :mod:`.bound`, :mod:`.observability`, :mod:`.stats`, :mod:`.tuning`: the bound's Riccati recursion (along a
+  trajectory, and its frozen steady state as a quick estimate), observability,
   NEES/NIS statistics, process-noise construction.
 - Beyond the paper: :mod:`.augmented` (:class:`AugmentedModel`: the payload scale and motor torque disturbances as
   states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.design` (gauge

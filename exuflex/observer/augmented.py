@@ -104,13 +104,12 @@ import scipy.linalg
 
 from ..erls.model import ErlsModel
 from ..reduction import ReducedModel
-from .base import Measurement, Prediction
+from .base import LoopModel, Measurement, Prediction
 from .expansion import (
     NO_DISTURBANCES,
-    NO_EXTRA_STATES,
     NO_PAYLOAD,
+    NO_SCALED_MAP,
     LoopExtras,
-    cached_samples,
     payload_interval,
     scaled_steps,
 )
@@ -152,17 +151,21 @@ def payload_twin(reduced: ReducedModel, scale: float = 2.0) -> ReducedModel:
 
 class PayloadIncrement(NamedTuple):
     """``dS = dS/dtheta`` of the held system's mass-dependent arrays (:class:`HeldSystem` names), at the held
-    configuration and at its secant partner (``old_*``)."""
+    configuration and at its secant partner (``old_*``): the mass matrix, its q-gradient, the mass-proportional
+    damping, and the forces' forms (weight ``fg``, velocity forms ``T2``, bias force ``C2``, the payload's share of
+    ``J^T M a_b``; ``(0, r)`` where the model has none)."""
 
     Mr: np.ndarray
     Ca: np.ndarray
     dM: np.ndarray
     fg: np.ndarray
     T2: np.ndarray
+    C2: np.ndarray
     old_dM: np.ndarray
     old_Ca: np.ndarray
     old_fg: np.ndarray
     old_T2: np.ndarray
+    old_C2: np.ndarray
 
 
 class AugmentedModel:
@@ -289,19 +292,20 @@ class AugmentedModel:
         p[:nq] = iv.q0
         mats, fm = self.twin.held(p, z[r:])
         beta = self.twin.model.beta
+        c2 = self.inner._c2  # the bias form, (0, r) where the model has none
         if fresh:
             hs = iv.system
-            nom = (hs.Mr, hs.Ca, hs.dM, hs.fg, hs.T2)
+            nom = (hs.Mr, hs.Ca, hs.dM, hs.fg, hs.T2, hs.C2)
         else:
             if self._plain is None:
                 self._plain = payload_twin(self.inner.rm, scale=1.0)
             m0, f0 = self._plain.held(p, z[r:])
-            nom = (m0.Mr, m0.Cr - beta * m0.Kr, f0.dMr2, f0.fg, f0.T2)
+            nom = (m0.Mr, m0.Cr - beta * m0.Kr, f0.dMr2, f0.fg, f0.T2, c2(f0))
         own = (mats.Mr - nom[0], (mats.Cr - beta * mats.Kr) - nom[1], fm.dMr2 - nom[2], fm.fg - nom[3],
-               fm.T2 - nom[4])
+               fm.T2 - nom[4], c2(fm) - nom[5])
         old = self._increments.get(iv.old.serial) if iv.old is not None else None
-        o = own[1:] if old is None else (old.Ca, old.dM, old.fg, old.T2)
-        inc = PayloadIncrement(own[0], own[1], own[2], own[3], own[4], o[1], o[0], o[2], o[3])
+        o = own[1:] if old is None else (old.Ca, old.dM, old.fg, old.T2, old.C2)
+        inc = PayloadIncrement(own[0], own[1], own[2], own[3], own[4], own[5], o[1], o[0], o[2], o[3], o[4])
         # the payload's largest share of a mode's mass, max eig(dM_r, M_r), and the symmetrised velocity forms
         # of the payload's Coriolis and centripetal terms (for the scaled step's Jacobian)
         rho = float(scipy.linalg.eigh(inc.Mr, nom[0], eigvals_only=True)[-1])
@@ -349,7 +353,7 @@ class AugmentedModel:
         ok = mp is not None and mp[0] is sm
         rows, x, F, Qx, L, scaled_map, Mr, Kr, Cr, Gr = payload_interval(
             z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rho, inner.refresh_tol, ok,
-            *(mp[1:] if ok else NO_PAYLOAD[8:13]), inner.torque_var, inner._q_extra, sm.tail[0], dTs, sm.tail[1],
+            *(mp[1:] if ok else NO_SCALED_MAP), inner.torque_var, inner.q_extra_diag, sm.tail[0], dTs, sm.tail[1],
             sm.tail[2], sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
         if scaled_map[0]:
             self._map = (sm, *scaled_map[1:])
@@ -473,15 +477,14 @@ class AugmentedModel:
 
     # ------------------------------------------------------------------ the filter's compiled sample loop
     @property
-    def sample_loop(self):
-        """The compiled sample loop (:func:`.expansion.cached_samples`) on the cached step: it takes the intervals
-        :meth:`predict` takes (a held scale and a scale at exactly 1 are left to :meth:`predict`); None with the
-        reference step."""
-        return cached_samples if self.inner.method == "cached" else None
+    def compiled(self) -> bool:
+        """The filter's compiled sample loop (:func:`.loop.samples`) may take the intervals :meth:`predict` takes
+        with the cached step (a held scale and a scale at exactly 1 it hands back); not the reference step."""
+        return self.inner.method == "cached"
 
-    def loop_arrays(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> tuple:
-        """The inner model's arguments of :func:`.expansion.cached_samples` (:meth:`.reduced.ReducedObserverModel.
-        loop_arrays`, at the torques with the disturbances) with the extra states': the payload's (the increment
+    def loop_model(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> LoopModel:
+        """The inner model's cached step (:meth:`.reduced.ReducedObserverModel.loop_model`, at the torques with the
+        disturbances) with the extra states' arrays (:class:`.expansion.LoopExtras`): the payload's (the increment
         of the held configuration, its payload share and velocity forms, the scaled step map where it is the
         current nominal map's, :meth:`_scaled_interval`) and the disturbances' noise."""
         inner, n0 = self.inner, self.n0
@@ -489,7 +492,7 @@ class AugmentedModel:
         if self.i_inputs is not None:
             u = inner.torques(u) + x[self.i_inputs]
         n_refresh = inner.n_refresh
-        arrays = inner.loop_arrays(z, u, dt, channels)[: -len(NO_EXTRA_STATES)]
+        step, state, _ = inner.loop_model(z, u, dt, channels)
         extra = NO_PAYLOAD
         if self.i_theta is not None:
             iv, sm = inner.loop_step
@@ -498,21 +501,18 @@ class AugmentedModel:
             mp = self._map
             ok = mp is not None and mp[0] is sm
             held = not self.released and self._cov is not None
-            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, ok,
-                     *(mp[1:] if ok else extra[8:13]), *inc)
+            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, *inc)
+            state = state._replace(scaled=(ok, *(mp[1:] if ok else NO_SCALED_MAP)))
         inp = (NO_DISTURBANCES if self.i_inputs is None
                else (np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0)))
-        return (*arrays, LoopExtras(*extra, *inp))
+        return LoopModel(step, state, LoopExtras(*extra, *inp))
 
-    def loop_buffers(self) -> tuple:
-        return self.inner.loop_buffers()
-
-    def loop_done(self, mats: tuple, dt: float, maps: tuple, x: np.ndarray, k: int) -> None:
+    def loop_done(self, mats: tuple, dt: float, state, x: np.ndarray, k: int) -> None:
         """After the compiled loop's samples up to ``k``: the inner model's (:meth:`.reduced.ReducedObserverModel.
         loop_done`) and the scaled step map the loop leaves (for the current nominal map, or none)."""
         inner = self.inner
-        inner.loop_done(mats, dt, maps, x[: self.n0], k)
-        ok, c, Pn, S, L, Q = maps[10:]
+        inner.loop_done(mats, dt, state, x[: self.n0], k)
+        ok, c, Pn, S, L, Q = state.scaled
         self._map = (inner.last_step[1], c, Pn, S, L, Q) if ok else None
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
@@ -535,9 +535,9 @@ def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the augmented step's kernels, for the argument types the model
     and the compiled sample loop pass: :func:`scaled_steps`, :func:`payload_interval` (which calls it, with the
     step map's and the step Jacobian's kernels) and :func:`.expansion.extra_interval` (the loop's interval of an
-    augmented state), and the sample loop's specialisation for augmented states
-    (:func:`.expansion.warm_up_loop`)."""
-    from .expansion import _example_system, extra_interval, warm_up_loop
+    augmented state), and the filter's sample loop's specialisation for augmented states (:func:`.loop.warm_up`)."""
+    from .expansion import _example_system, extra_interval
+    from .loop import warm_up as warm_up_loop
 
     r, nq = 2, 1
     z, u, dl, a = np.zeros(2 * r), np.zeros(nq), np.zeros(nq), np.zeros(1)
@@ -545,7 +545,7 @@ def warm_up() -> None:
     maps = (np.eye(2 * r), np.zeros((2 * r, r)), np.zeros((2 * r, nq)), np.eye(2 * r))
     for has_old in (False, True):
         hs = _example_system(r, nq, has_old)
-        inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.old_dM, M, hs.old_fg, hs.old_T2)
+        inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.C2, hs.old_dM, M, hs.old_fg, hs.old_T2, hs.old_C2)
         scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
         for ok in (False, True):
             payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, 1.0, 0.0, ok, 0.0, *maps,

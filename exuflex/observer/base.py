@@ -20,17 +20,34 @@ Conventions
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["DiscreteModel", "FilterDivergedError", "LinearDiscreteModel", "Measurement", "Prediction"]
+__all__ = ["GENERAL", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "Belief", "CompiledModel", "DiscreteModel",
+           "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "ModelHooks", "Prediction", "hooks", "takes_compiled_loop"]
+
+#: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
+#: configuration's or the step map's radius was left (the model renews its arrays, :meth:`CompiledModel.loop_model`,
+#: and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step` must take (an input
+#: step, a gated channel, an indefinite or non-finite update, the model's own reasons); a sensor-fault window test
+#: failed at the last sample done (the monitor reports it).
+LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
 
 
 class FilterDivergedError(RuntimeError):
     """The filter produced a non-finite state or covariance, or failed its divergence test in ``raise`` mode."""
+
+
+class Belief(NamedTuple):
+    """A Gaussian belief about the state: mean and covariance (what a filter carries from sample to sample)."""
+
+    x: np.ndarray
+    """(nx,) mean."""
+    P: np.ndarray
+    """(nx, nx) covariance."""
 
 
 class Prediction(NamedTuple):
@@ -106,6 +123,11 @@ class LinearDiscreteModel:
             if v.shape != (self.nx,):
                 raise ValueError(f"output row of channel {k!r} has shape {v.shape}, expected ({self.nx},)")
 
+    @property
+    def n_inputs(self) -> int:
+        """The number of inputs (columns of ``B``; 0 without)."""
+        return 0 if self.B is None else int(self.B.shape[1])
+
     def _C(self, channels) -> np.ndarray:
         key = tuple(channels)
         H = self._rows.get(key)
@@ -125,3 +147,73 @@ class LinearDiscreteModel:
     def measure(self, x, channels) -> Measurement:
         H = self._C(channels)
         return Measurement(H @ x, H)
+
+
+class LoopModel(NamedTuple):
+    """What a :class:`CompiledModel` hands the filter's compiled sample loop for a stretch of samples: ``step``,
+    the arrays its compiled interval and measurement read (:class:`.expansion.CachedStep`); ``state``, what the
+    interval carries from one sample to the next (:class:`.expansion.LoopState`); ``extras``, an augmented state's
+    arrays (:class:`.expansion.LoopExtras`) or None."""
+
+    step: tuple
+    state: tuple
+    extras: tuple | None
+
+
+@runtime_checkable
+class CompiledModel(DiscreteModel, Protocol):
+    """A :class:`DiscreteModel` whose intervals and measurements (every channel) the filter's compiled sample loop
+    (:func:`.loop.samples`) can take: the same numbers as :meth:`predict` and :meth:`measure`, from the arrays
+    :meth:`loop_model` hands it.
+
+    The optional members of any :class:`DiscreteModel` are :class:`ModelHooks`' (looked up in one place,
+    :func:`hooks`)."""
+
+    compiled: bool
+    """The compiled loop may take this model's intervals (False: :meth:`predict` alone)."""
+
+    def loop_model(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> LoopModel:
+        """The compiled step's arrays for samples from the state ``x`` with the input ``u`` held over ``dt``."""
+        ...
+
+    def loop_done(self, mats: tuple, dt: float, state: tuple, x: np.ndarray, k: int) -> None:
+        """After the loop's samples up to ``k`` (not done), the filter's state now ``x``: what the model keeps of
+        them (the carried ``state``, the last interval's held matrices ``mats`` over ``dt``)."""
+        ...
+
+
+def takes_compiled_loop(model) -> bool:
+    """Whether the filter's compiled sample loop may take ``model``'s intervals: its class implements
+    :class:`CompiledModel` (a wrapping model that forwards attribute reads to the model it wraps does not) and the
+    model's step is the compiled one (``compiled``)."""
+    return all(hasattr(type(model), name) for name in ("compiled", "loop_model", "loop_done")) and bool(model.compiled)
+
+
+class ModelHooks(NamedTuple):
+    """The optional members of the model contract, as a filter uses them (:func:`hooks` looks them up once; a model
+    without one gets its default)."""
+
+    reset: Callable[[], None] | None
+    """Forget what the model cached (a filter's restart); None: nothing to forget."""
+    watch_covariance: Callable[[Callable[[], np.ndarray]], None] | None
+    """Take the filter's covariance (a callable returning it): the model measures its approximations against it."""
+    n_jumps: Callable[[], int]
+    """Intervals with a torque step so far (the filter's hold-off after one); 0 without the count."""
+    i_theta: int | None
+    """Index of a payload-scale state (None: none)."""
+    i_inputs: np.ndarray | None
+    """Indices of torque-disturbance states (None: none)."""
+    n_inputs: int | None
+    """The number of inputs (torques) a step takes (None: the model does not say)."""
+
+
+def _no_jumps() -> int:
+    return 0
+
+
+def hooks(model) -> ModelHooks:
+    """The optional members of ``model`` (:class:`ModelHooks`): the one place a filter looks for them."""
+    jumps = (lambda: model.n_jumps) if hasattr(model, "n_jumps") else _no_jumps
+    return ModelHooks(getattr(model, "reset", None), getattr(model, "watch_covariance", None), jumps,
+                      getattr(model, "i_theta", None), getattr(model, "i_inputs", None),
+                      getattr(model, "n_inputs", None))

@@ -125,7 +125,7 @@ def with_bias_states(obs, channels: Sequence[str], bias0_std: float | Sequence[f
     if not np.all(np.isfinite(s0) & (s0 > 0)):
         raise ValueError(f"bias0_std must be positive, got {bias0_std!r}")
     model = SensorBiasModel(obs.model, channels, bias_std)
-    x0 = np.concatenate([np.asarray(ekf._x0, float), np.zeros(len(channels))])
+    x0 = np.concatenate([np.asarray(ekf.x0, float), np.zeros(len(channels))])
     P0 = np.zeros((model.nx, model.nx))
     n0 = model.n0
     P0_z = np.asarray(ekf._P0, float)

@@ -1,26 +1,56 @@
-"""The best achievable steady-state estimation error: the stationary Kalman covariance (the "bound").
+"""The estimation bound: the Riccati recursion of the Kalman covariance, along a trajectory or at a frozen pose.
 
-For a linear (or linearised, frozen) model ``x+ = A x + w``, ``y = H x + v`` with ``cov w = Q``, ``cov v = R``
-and every channel sampled every interval, no estimator does better in mean square than the steady-state Kalman
-filter; its prior covariance solves the filter discrete algebraic Riccati equation
+**The bound** (:func:`riccati_track`). For ``x_k = f(x_k-1, u_k-1) + w_k``, ``y_k = h(x_k) + v_k`` with additive
+Gaussian ``w ~ N(0, Q_k)``, ``v ~ N(0, R)`` and a Gaussian prior ``N(x_0, P_0)``, the posterior Cramer-Rao
+bound (Tichavsky, Muravchik and Nehorai 1998) of the model linearised at the true trajectory ``x_k`` is the
+Kalman filter's own covariance recursion with the Jacobians taken there,
+
+    P_k|k-1 = F_k P_k-1|k-1 F_k' + Q_k,        F_k = df/dx (x_k-1, u_k-1),
+    P_k|k   = (I - K_k H_k) P_k|k-1 (I - K_k H_k)' + K_k R_k K_k',    H_k = dh/dx (x_k),
+    K_k     = P_k|k-1 H_k' (H_k P_k|k-1 H_k' + R_k)^-1,
+
+with ``H_k`` and ``R_k`` the rows of the channels sampled at sample ``k`` (none: no update; a multirate log
+updates each channel at its own samples). ``sqrt(diag(P_k|k))`` bounds the RMS error at sample ``k`` of any
+unbiased estimator of the linearised model; for a linear-Gaussian model it is exactly the Kalman filter's
+covariance, which the filter reaches. For the nonlinear model it is an approximation (the model linearised at the
+truth): an EKF's scatter about it reflects its linearisation at its estimates instead. An RMS error over a
+record scatters about the bound's RMS (a short record's by about ``1/sqrt(2 N)`` for ``N`` correlation times), so
+a consistent filter's ratio is below 1 about as often as above.
+
+The smoothed bound (:func:`riccati_track` with ``smooth``) is the RTS backward pass on these covariances
+(:func:`.smoother.rts_backward`): the bound for an estimate that uses the whole record.
+
+The recursion's steps are the filter's own kernels (:func:`.kalman.predict_cov`, the Joseph-form
+:func:`.kalman.update`): :func:`riccati_predict`, :func:`riccati_update`.
+
+**The frozen steady state** (:func:`steady_posterior`, :func:`periodic_posterior`): with ``F``, ``Q``, ``H`` held
+at one pose the recursion converges to the stationary solution of the discrete algebraic Riccati equation
 
     P = A P A' - A P H' (H P H' + R)^-1 H P A' + Q,
 
-and its posterior covariance is ``P+ = P - P H' (H P H' + R)^-1 H P``. ``sqrt(diag(P+))`` is the bound on
-the RMS error of every state; an EKF on the nonlinear model with the same noise levels should come close to it
-near that operating point.
+(periodic where channels are sampled at different rates); at a pose the trajectory stays at, the time-varying
+bound approaches it. It is a quick estimate of the bound (no trajectory needed), not the bound of a moving record.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import logging
 
 import numpy as np
 from scipy.linalg import expm, solve_discrete_are
 
+from . import kalman
 from .base import DiscreteModel
+from .smoother import rts_backward
 
-__all__ = ["bound_rms", "linearise", "periodic_posterior", "steady_state_covariance", "unobservable_states", "van_loan"]
+log = logging.getLogger(__name__)
+
+__all__ = ["BoundTrack", "bound_rms", "linearise", "periodic_posterior", "riccati_predict", "riccati_track",
+           "riccati_update", "steady_posterior", "steady_state_covariance", "unobservable_states", "van_loan"]
 
 
 def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -222,33 +252,213 @@ def periodic_posterior(A, Q, H, R, pattern, *, tol: float = 1e-9, max_periods: i
     started from ``Q`` and iterated period by period until the covariance at the period's start changes by less
     than ``tol`` relative to its diagonal. Detectability is the caller's check (:func:`unobservable_states`).
     """
-    A, Q = np.asarray(A, float), np.asarray(Q, float)
+    A, Q = np.ascontiguousarray(A, float), np.ascontiguousarray(Q, float)
     H, R = np.atleast_2d(np.asarray(H, float)), np.asarray(R, float)
     pattern = np.atleast_2d(np.asarray(pattern, bool))
-    nx = A.shape[0]
-    I = np.eye(nx)
+    rows = [(np.ascontiguousarray(H[sel]), np.ascontiguousarray(R[sel])) if sel.any() else None for sel in pattern]
     P = Q.copy()
-
-    def update(P, sel):
-        if not sel.any():
-            return P
-        Hs, Rs = H[sel], np.diag(R[sel])
-        S = Hs @ P @ Hs.T + Rs
-        K = np.linalg.solve(0.5 * (S + S.T), Hs @ P).T
-        IKH = I - K @ Hs
-        Pp = IKH @ P @ IKH.T + K @ Rs @ K.T  # Joseph form: stays symmetric positive definite
-        return 0.5 * (Pp + Pp.T)
-
     for _ in range(max_periods):
         P_start = P
         acc = np.zeros_like(P)
-        for sel in pattern:
-            Pp = update(P, sel)
+        for hr in rows:
+            Pp = P if hr is None else riccati_update(P, *hr)
             acc += Pp
-            P = A @ Pp @ A.T + Q
-            P = 0.5 * (P + P.T)
+            P = riccati_predict(A, Pp, Q)
         d = np.sqrt(np.abs(np.diag(P_start)))
         d = np.where(d > 0, d, 1.0)
         if np.max(np.abs(P - P_start) / np.outer(d, d)) < tol:
             break
     return acc / len(pattern)
+
+
+def steady_posterior(A, Q, H, R, tol: float = 1e-10, max_periods: int = 200_000) -> np.ndarray:
+    """Steady-state posterior covariance with every channel at every interval: the DARE on a scaled state, else
+    the Riccati recursion iterated to convergence (:func:`periodic_posterior` with a period of one interval).
+
+    The rigid coordinates and the elastic ones differ by orders of magnitude, which can make the DARE's Schur
+    reordering fail; scaling the state by the process noise's spread, and iterating the recursion as a fallback,
+    make the result robust. ``R``: the channels' variances (m,).
+    """
+    A, Q, H, R = (np.asarray(a, float) for a in (A, Q, H, R))
+    d = np.sqrt(np.clip(np.diag(Q), 0, None))
+    d = np.where(d > 0, d, d[d > 0].min() if np.any(d > 0) else 1.0)
+    Di = 1.0 / d
+    As, Qs, Hs = Di[:, None] * A * d[None, :], Di[:, None] * Q * Di[None, :], H * d[None, :]
+    try:
+        _, Ps = steady_state_covariance(As, Qs, Hs, R)
+        if np.all(np.isfinite(Ps)):
+            return d[:, None] * Ps * d[None, :]
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        log.info("DARE failed (%s); iterating the Riccati recursion", exc)
+    return periodic_posterior(A, Q, H, R, np.ones((1, H.shape[0]), bool), tol=tol, max_periods=max_periods)
+
+
+# ------------------------------------------------------------------------------ the recursion along a trajectory
+def riccati_predict(F, P, Q) -> np.ndarray:
+    """``F P F' + Q``: the covariance prediction of the filter (:func:`.kalman.predict_cov`), a new array."""
+    out = np.empty_like(P)
+    kalman.predict_cov(np.ascontiguousarray(F, float), np.ascontiguousarray(P, float),
+                       np.ascontiguousarray(Q, float), out, np.empty_like(out))
+    return out
+
+
+def riccati_update(P, H, Rd, floor: np.ndarray | None = None) -> np.ndarray:
+    """The Joseph-form posterior covariance of a measurement update with rows ``H`` (m, nx) and variances ``Rd``
+    (m,): the filter's :func:`.kalman.update` (a Cholesky solve of ``H P H' + R``) with its end-of-sample
+    symmetrisation and variance floor (:func:`.kalman.fix_cov`), a new array."""
+    P = np.ascontiguousarray(P, float)
+    H = np.ascontiguousarray(H, float)
+    m, n = H.shape
+    out = np.empty_like(P)
+    z = np.zeros(n)
+    zm = np.zeros(m)
+    _, ok = kalman.update(z, P, zm, zm, H, np.ascontiguousarray(Rd, float), np.empty((m, n)), np.empty(m),
+                          np.empty((m, m)), np.empty(n), out)
+    if not ok:
+        raise np.linalg.LinAlgError("the innovation covariance H P H' + R is not positive definite")
+    kalman.fix_cov(out, np.zeros(n) if floor is None else floor)
+    return out
+
+
+@dataclass(frozen=True)
+class BoundTrack:
+    """The bound along a record (:func:`riccati_track`).
+
+    Attributes
+    ----------
+    t : ndarray, shape (n,)
+        The record's sample times.
+    var : ndarray, shape (n, k)
+        The bound's variance of each output quantity at each sample: the posterior ``P_k|k`` mapped to the
+        outputs (filtered).
+    var_smoothed : ndarray, shape (n, k), or None
+        The same from the smoothed covariances ``P_k|n`` (with ``smooth``).
+    wall_s : float
+        Wall-clock time of the recursion (s), the backward pass included.
+    """
+
+    t: np.ndarray
+    var: np.ndarray
+    var_smoothed: np.ndarray | None
+    wall_s: float
+
+    def rms(self, sel=slice(None), smoothed: bool = False) -> np.ndarray:
+        """The RMS over the samples ``sel`` of the bound's standard deviation of each quantity,
+        ``sqrt(mean_k var_k)``: the figure an RMS error over those samples is compared with."""
+        v = self.var_smoothed if smoothed else self.var
+        if v is None:
+            raise ValueError("the track was computed without smooth=True")
+        return np.sqrt(np.mean(v[sel], axis=0))
+
+
+def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0, sampled=None, *,
+                  outputs: Callable | None = None, smooth: bool = False, floor: float = 1e-18,
+                  rows: int = 512, linearise: Callable | None = None) -> BoundTrack:
+    """The bound along a record: the Kalman covariance recursion of ``model`` linearised along the states ``X``
+    (module docstring), on the record's own sampling schedule.
+
+    Parameters
+    ----------
+    model : DiscreteModel
+        Its :meth:`~.base.DiscreteModel.predict` at ``X[k-1]`` with the input ``U[k-1]`` held over ``t[k] -
+        t[k-1]`` gives ``F_k`` and ``Q_k``; its :meth:`~.base.DiscreteModel.measure` at ``X[k]`` gives ``H_k``.
+    t : ndarray, shape (n,)
+        Sample times.
+    X : ndarray or row-sliceable, shape (n, nx)
+        The states the model is linearised at (the true trajectory, or a planned one); ``X[a:b]`` must give the
+        rows ``a`` to ``b`` as an array.
+    U : ndarray or row-sliceable, shape (n, nu), or None
+        The inputs, each held over the interval after its sample.
+    channels : sequence of str
+        The channels, in the order of ``R`` and of ``sampled``'s columns.
+    R : ndarray, shape (m,)
+        The channels' noise variances.
+    P0 : ndarray, shape (nx, nx) or (nx,)
+        The prior covariance at the first sample (before its update).
+    sampled : ndarray or row-sliceable of bool, shape (n, m), optional
+        Which channels are sampled at each sample (default: all, at every sample).
+    outputs : callable, optional
+        ``outputs(a, b, X_ab, P_ab)`` -> (b - a, k) variances of the quantities of interest from the states and
+        covariances (b - a, nx, nx) of rows ``a:b``; default the states' own variances.
+    smooth : bool
+        Also the smoothed bound (RTS backward pass; keeps every ``P``, ``F``, ``Q``: 24 nx^2 bytes a sample).
+    floor : float
+        The variance floor of the filter's end-of-sample settling.
+    rows : int
+        Samples per block of ``outputs`` (the memory beyond the result is a block's covariances).
+    linearise : callable, optional
+        ``linearise(x, u, dt) -> (F, Q)``: the model's step Jacobian and process noise without its step (what
+        :meth:`~.base.DiscreteModel.predict` returns with the state, which the recursion does not need); default
+        through ``predict``.
+
+    Returns
+    -------
+    BoundTrack
+    """
+    w0 = time.perf_counter()
+    t = np.asarray(t, float).reshape(-1)
+    n, nx = len(t), model.nx
+    channels = tuple(channels)
+    Rd = np.ascontiguousarray(np.asarray(R, float).reshape(-1))
+    if len(Rd) != len(channels):
+        raise ValueError(f"R has {len(Rd)} entries, expected one per channel ({len(channels)})")
+    P = np.array(P0, float)
+    if P.ndim == 1:
+        P = np.diag(P)
+    if P.shape != (nx, nx):
+        raise ValueError(f"P0 has shape {P.shape}, expected ({nx}, {nx}) or ({nx},)")
+    fl = np.full(nx, float(floor))
+    outputs = outputs or (lambda a, b, Xb, Pb: np.diagonal(Pb, axis1=1, axis2=2).copy())
+    step = linearise or (lambda x, u, dt: model.predict(x, u, dt)[1:])
+    cur = [P]
+    if hasattr(model, "watch_covariance"):  # the model's held-matrix control measured against this covariance
+        model.watch_covariance(lambda: cur[0])
+    if hasattr(model, "reset"):
+        model.reset()
+    keep = smooth
+    if keep:
+        Pall = np.empty((n, nx, nx))
+        Fall = np.empty((n, nx, nx))
+        Qall = np.empty((n, nx, nx))
+    blocks, rows = [], max(int(rows), 1)
+    subsets: dict = {}
+    x_prev = u_prev = None
+    for a in range(0, n, rows):
+        b = min(a + rows, n)
+        Xb = np.asarray(X[a:b], float)
+        Ub = None if U is None else np.asarray(U[a:b], float)
+        Sb = np.ones((b - a, len(channels)), bool) if sampled is None else np.asarray(sampled[a:b], bool)
+        Pb = np.empty((b - a, nx, nx))
+        for i in range(b - a):
+            k = a + i
+            if k > 0:
+                F, Q = step(x_prev, u_prev, t[k] - t[k - 1])
+                P = riccati_predict(F, P, Q)
+                if keep:
+                    Fall[k], Qall[k] = F, Q
+            sel = Sb[i]
+            if sel.any():
+                key = sel.tobytes()
+                idx = subsets.get(key)
+                if idx is None:
+                    idx = subsets[key] = np.flatnonzero(sel)
+                H = np.asarray(model.measure(Xb[i], channels).H, float)
+                P = riccati_update(P, H[idx], Rd[idx], fl)
+            else:
+                P = 0.5 * (P + P.T)
+            cur[0] = P
+            Pb[i] = P
+            x_prev = Xb[i]
+            u_prev = None if Ub is None else Ub[i]
+        if keep:
+            Pall[a:b] = Pb
+        blocks.append(outputs(a, b, Xb, Pb))
+    var = np.concatenate(blocks) if blocks else np.empty((0, 0))
+    var_s = None
+    if keep and n:
+        _, Ps = rts_backward(Pall, Fall, Qall)
+        var_s = np.concatenate([outputs(a, min(a + rows, n), np.asarray(X[a : min(a + rows, n)], float),
+                                        Ps[a : min(a + rows, n)]) for a in range(0, n, rows)])
+    if hasattr(model, "watch_covariance"):
+        model.watch_covariance(None)
+    return BoundTrack(t, var, var_s, time.perf_counter() - w0)

@@ -1,7 +1,8 @@
 """Sensor design: rank curvature-gauge stations by the best RMS error any filter can reach with them.
 
-For a candidate channel set the criterion is the steady-state bound of :func:`.session.estimation_bound` (the
-Kalman filter's steady-state posterior covariance of the reduced model linearised mid-manoeuvre, the stated torque
+For a candidate channel set the criterion is the quick, steady-state estimate of the bound,
+:func:`.session.steady_bound` (the Kalman filter's steady-state posterior covariance of the reduced model linearised
+along the manoeuvre's plan and frozen at each of its poses, the stated torque
 noise as process noise): the RMS bound of the tip elastic displacement, ``sqrt(b_x^2 + b_y^2)``, since the
 encoders alone already give the rigid motion. A channel set that leaves states unobservable gets an infinite
 bound.
@@ -28,9 +29,9 @@ from .session import (
     ObserverConfig,
     UnobservableError,
     default_channels,
-    estimation_bound,
     make_observer,
     physical_names,
+    steady_bound,
 )
 
 __all__ = ["DesignResult", "rank_gauges"]
@@ -38,7 +39,7 @@ __all__ = ["DesignResult", "rank_gauges"]
 
 @dataclass(frozen=True)
 class _BoundFilter:
-    """What :func:`estimation_bound` reads of a filter: the channels' noise and the interval."""
+    """What :func:`.session.steady_bound` reads of a filter: the channels' noise and the interval."""
 
     R_std: np.ndarray
     dt: float
@@ -73,8 +74,19 @@ class DesignResult:
 
 def rank_gauges(mech: Mechanism, n_candidates: int = 9, config: ObserverConfig | None = None) -> DesignResult:
     """Rank gauge stations of ``mech`` by the tip-displacement bound (module docstring)."""
-    if n_candidates < 1:
-        raise ValueError(f"n_candidates must be a positive integer, got {n_candidates}")
+    from ..errors import UsageError
+    from ..validate import check_mechanism_argument, check_work, state_size_estimate
+
+    check_mechanism_argument(mech)
+    if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 1:
+        raise UsageError(f"n_candidates (--candidates): expected a positive integer, got {n_candidates!r}")
+    # each candidate is a sensor of the ranking observer (its object and measurement rows, a few kB) and enters
+    # a steady-state Riccati solve (about 30 nx^3 flop) alone and in each round of the greedy set
+    nx = state_size_estimate(mech)
+    n_gauges = sum(1 for s in mech.sensors if s.kind == "curvature")
+    count = n_candidates * len(mech.links)
+    check_work(n_candidates, count, param="n_candidates", flag="--candidates", what="candidate stations",
+               bytes_each=4096 + 8 * 4 * nx, flops_each=(1 + n_gauges) * 30 * nx**3)
     gauges = [s for s in mech.sensors if s.kind == "curvature"]
     if not gauges:
         raise ValueError(f"{mech.source or mech.name}: no curvature gauge in the model file to take the gauge "
@@ -102,7 +114,7 @@ def rank_gauges(mech: Mechanism, n_candidates: int = 9, config: ObserverConfig |
         o = dataclasses.replace(obs, channels=tuple(chans),
                                 ekf=_BoundFilter(np.array([std[c] for c in chans]), obs.ekf.dt))
         try:
-            b = estimation_bound(o)
+            b = steady_bound(o)
         except UnobservableError:
             return math.inf
         return float(math.hypot(b[tip_x], b[tip_y]))

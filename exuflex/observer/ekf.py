@@ -13,8 +13,8 @@ keeps ``P`` symmetric positive semi-definite for any gain, where ``(I - K H) P``
 and ``S^-1 r`` come from one Cholesky solve of ``S`` (an LU solve with a warning if ``S`` is not positive
 definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gives the numbers of
 :meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
-compiled sample loop (the cached reduced model, :func:`.expansion.cached_samples`), ``run`` hands it the samples it
-can take (every channel sampled, a valid interval and input), which it processes with the same compiled kernels in
+compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run`` hands :func:`.loop.samples` the
+samples it can take (every channel sampled, a valid interval and input), which it processes with the same compiled kernels in
 the same order as ``step`` until one needs more (a new held configuration, an input step, a gated channel, ...):
 the model renews its arrays and the loop resumes, or ``step`` takes that sample. ``tests/test_sample_loop.py``
 holds the two bit-identical.
@@ -71,15 +71,25 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
-from scipy.stats import chi2, norm
 
 from ..erls.kinematics import KinematicsError
-from . import kalman
-from .base import DiscreteModel, FilterDivergedError
+from . import kalman, loop
+from .base import (
+    MONITOR,
+    REFRESH,
+    REMAP,
+    Belief,
+    DiscreteModel,
+    FilterDivergedError,
+    hooks,
+    takes_compiled_loop,
+)
+from .stats import chi2_ppf, norm_ppf
 
-__all__ = ["ChannelMonitor", "EstimationResult", "MultirateEKF", "NISMonitor"]
+__all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +148,10 @@ class EstimationResult:
     nominal_p : ndarray, shape (n,), or None
         Set where ``x_hat`` and ``P`` are the payload estimator's report rather than the filter's posterior: the
         posterior probability of the nominal payload at each sample (:func:`.augmented.nominal_mixture`).
+    x_pred, F, Q : ndarray, shapes (n, nx), (n, nx, nx), (n, nx, nx), or None
+        Each sample's prediction: the predicted mean, the step Jacobian and the process noise of the interval
+        that ends at it (undefined at the first sample; recorded with ``run(..., predictions=True)``: what the
+        smoother's backward pass needs, :func:`.smoother.rts_backward`).
     wall_s : float
         Wall-clock time of the run (s).
     channels : tuple of str
@@ -165,6 +179,9 @@ class EstimationResult:
     n_rejected: dict = field(default_factory=dict)
     P_theta: np.ndarray | None = None
     nominal_p: np.ndarray | None = None
+    x_pred: np.ndarray | None = None
+    F: np.ndarray | None = None
+    Q: np.ndarray | None = None
 
     @property
     def P_diag(self) -> np.ndarray | None:
@@ -245,7 +262,7 @@ class NISMonitor:
         """Chi-square ``confidence`` quantile for ``dof`` degrees of freedom (cached)."""
         b = self._bounds.get(dof)
         if b is None:
-            b = float(chi2.ppf(self.confidence, dof))
+            b = float(chi2_ppf(self.confidence, dof))
             self._bounds[dof] = b
         return b
 
@@ -310,9 +327,9 @@ class ChannelMonitor:
         self.p = float(p)
         self.clip = float(clip)
         self.dt = float(dt)
-        self._k_mean = float(norm.ppf(1 - p / 2)) * math.sqrt(W)
-        self._hi = float(chi2.ppf(1 - p, W))
-        self._lo = float(chi2.ppf(p, W))
+        self._k_mean = float(norm_ppf(1 - p / 2)) * math.sqrt(W)
+        self._hi = float(chi2_ppf(1 - p, W))
+        self._lo = float(chi2_ppf(p, W))
         self.reset()
 
     def reset(self) -> None:
@@ -430,6 +447,10 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
     n = len(t)
     if Y.shape != (n, m):
         raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {m})")
+    if np.isinf(Y).any():
+        k = int(np.flatnonzero(np.isinf(Y).any(axis=1))[0])
+        raise ValueError(f"Y: row {k} (t={t[k]:.6g} s) has an infinite measurement; expected finite values, or NaN "
+                         "for 'not sampled'")
     if U is not None:
         U = np.asarray(U, dtype=float)
         if len(U) != n:
@@ -437,10 +458,54 @@ def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarra
     return t, U, Y
 
 
+def step_arguments(filt, t, u, y):
+    """A filter's ``step`` arguments checked at the call: a :class:`~exuflex.errors.UsageError` naming the argument
+    and what was expected (a number ``t``; ``u`` one finite torque per input, ``None`` only for a model without
+    inputs: a missing torque is not zero; ``y`` an array in channel order, NaN for "not sampled", no infinity)."""
+    from ..errors import UsageError
+
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer, np.floating)):
+        raise UsageError(f"t: expected the sample time in s (a number), got {type(t).__name__}")
+    t = float(t)
+    if not math.isfinite(t):
+        raise UsageError(f"t: the sample time {t!r} is not finite")
+    n_in = filt.hooks.n_inputs
+    if u is None:
+        if n_in:
+            raise UsageError(f"u: expected the input sample at t={t:.6g} s ({n_in} torques), got None (a missing "
+                             "torque is not zero: skip the sample or hold the last one)")
+    else:
+        try:
+            u = np.array(u, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise UsageError(f"u: expected an array of {n_in if n_in is not None else 'the'} input values, got "
+                             f"{type(u).__name__}") from None
+        if n_in is not None and u.shape != (n_in,):
+            raise UsageError(f"u: expected {n_in} input values (one per motor), got {u.size}")
+        if not np.isfinite(u).all():
+            raise UsageError(f"u: the input sample at t={t:.6g} s is not finite: {u.tolist()}")
+    if y is not None:
+        if isinstance(y, (dict, str, bytes)) or hasattr(y, "keys"):
+            raise UsageError(f"y: expected an array of {filt.m} values in channel order {filt.channels} (NaN: not "
+                             f"sampled), got {type(y).__name__}")
+        try:
+            y = np.asarray(y, dtype=float)
+        except (TypeError, ValueError):
+            raise UsageError(f"y: expected an array of {filt.m} numbers in channel order {filt.channels}, got "
+                             f"{type(y).__name__}") from None
+        if y.shape != (filt.m,):
+            raise UsageError(f"y: measurement has shape {y.shape}, expected ({filt.m},): channels {filt.channels}")
+        if np.isinf(y).any():
+            bad = [c for c, v in zip(filt.channels, y, strict=True) if np.isinf(v)]
+            raise UsageError(f"y: channel(s) {bad} infinite at t={t:.6g} s; expected a finite value, or NaN for "
+                             "'not sampled'")
+    return t, u, y
+
+
 class RunRecord:
     """The per-sample outputs of a filter run over a record (estimates, stored covariance, innovations, NIS), shared
-    by the filters: :meth:`put` after each sample reads what the filter's ``step`` left (``_P``, ``last_idx``,
-    ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``).
+    by the filters: :meth:`put` after each sample takes the estimate and covariance and reads what the filter's
+    ``step`` left (``last_idx``, ``last_innovation``, ``last_S``, ``last_nis``, ``last_dof``, ``nonfinite``).
 
     Bytes a sample: ``8 nx`` (estimates), ``8 nx`` or ``8 nx**2`` (covariance, ``store_P`` "diag" or "full"),
     ``8 m + 8 m**2`` (innovations and their covariance, only with ``innovations``) and 16 (NIS and its degrees of
@@ -449,8 +514,12 @@ class RunRecord:
     and keeps what it needs of each (:func:`exuflex.observer.session.estimate_chunks`)."""
 
     def __init__(self, t: np.ndarray, nx: int, m: int, store_P: str, innovations: bool = True,
-                 i_theta: int | None = None):
+                 i_theta: int | None = None, predictions: bool = False):
         n = len(t)
+        # each sample's prediction (x_pred, F, Q): 8 nx + 16 nx**2 bytes a sample more
+        self.x_pred = np.full((n, nx), np.nan) if predictions else None
+        self.F = np.full((n, nx, nx), np.nan) if predictions else None
+        self.Q = np.full((n, nx, nx), np.nan) if predictions else None
         self.t, self.m, self.store_P = t, m, store_P
         # the payload scale's column of the covariance (a payload model): 8 nx bytes a sample more
         self.i_theta = i_theta
@@ -463,13 +532,15 @@ class RunRecord:
         self.nis = np.full(n, np.nan)
         self.dof = np.zeros(n, dtype=np.int64)
 
-    def put(self, k: int, f, x: np.ndarray) -> None:
-        """Sample ``k``'s estimate ``x`` and what the filter ``f`` recorded of it."""
+    def put(self, k: int, x: np.ndarray, P: np.ndarray, f) -> None:
+        """Sample ``k``'s estimate ``x`` with its covariance ``P`` and what the filter ``f`` recorded of it."""
         self.x_hat[k] = x
         if self.P is not None:
-            self.P[k] = np.nan if f.nonfinite else (f._P.diagonal() if self.store_P == "diag" else f._P)
+            self.P[k] = np.nan if f.nonfinite else (P.diagonal() if self.store_P == "diag" else P)
         if self.P_theta is not None:
-            self.P_theta[k] = np.nan if f.nonfinite else f._P[:, self.i_theta]
+            self.P_theta[k] = np.nan if f.nonfinite else P[:, self.i_theta]
+        if self.x_pred is not None and f.last_prediction is not None:
+            self.x_pred[k], self.F[k], self.Q[k] = f.last_prediction
         idx = f.last_idx
         if idx is not None:
             self.nis[k] = f.last_nis
@@ -496,7 +567,8 @@ class RunRecord:
         return EstimationResult(t=self.t, x_hat=self.x_hat, P=self.P, innovations=self.innovations, S=self.S,
                                 nis=self.nis, nis_dof=self.dof, n_missing=f.n_missing, n_updates=f.n_updates,
                                 diverged=f.diverged, diverged_at=f.diverged_at, nonfinite=f.nonfinite, wall_s=wall_s,
-                                channels=f.channels, P_theta=self.P_theta, **extra)
+                                channels=f.channels, P_theta=self.P_theta, x_pred=self.x_pred, F=self.F, Q=self.Q,
+                                **extra)
 
 
 
@@ -505,7 +577,237 @@ def _empty_rows(width: int) -> np.ndarray:
     return np.zeros((0, width))
 
 
-class MultirateEKF:
+class Monitoring(NamedTuple):
+    """What a filter tests its innovations with (module notes): the NIS test (``nis_window`` updates, 0: off; its
+    ``divergence_confidence``, ``divergence_confirm`` and ``divergence_action``), the per-channel gate (``gate_p``,
+    None: off), the sensor-fault windows (``fault_window`` samples, 0: off; ``fault_p``), the hold-off after an
+    input step (``fault_holdoff`` updates; ``input_step`` the filter's test of one) and ``isolate``."""
+
+    nis_window: int = 100
+    divergence_confidence: float = 0.999
+    divergence_confirm: int = 2
+    divergence_action: str = "flag"
+    gate_p: float | None = None
+    fault_window: int = 0
+    fault_p: float = 1e-6
+    fault_holdoff: int = 200
+    input_step: object = None
+    isolate: bool = False
+
+
+class BeliefFilter:
+    """What the filters share (:class:`MultirateEKF`, :class:`.ukf.UnscentedKF`): the belief ``(x, P)`` about the
+    state with its prior, the channels and their noise, and the innovation monitors: the NIS test, the gate, the
+    hold-off after an input step and the sensor-fault windows, with one meaning of "diverged" (a non-finite state
+    or covariance; the NIS test sets ``nis_flagged``). A filter calls :meth:`_screen` on each update's
+    innovations and :meth:`_count_update` after it."""
+
+    def _setup(self, model, channels: Sequence[str], R_std: Mapping[str, float], x0, P0, dt: float, max_gap: float,
+               store_P: str, nonfinite: str, mon: Monitoring) -> None:
+        """Check and keep the settings common to the filters (constructor parameters of :class:`MultirateEKF`)."""
+        if store_P not in ("diag", "full", "none"):
+            raise ValueError(f"store_P must be 'diag', 'full' or 'none', got {store_P!r}")
+        if mon.divergence_action not in ("flag", "raise"):
+            raise ValueError(f"divergence_action must be 'flag' or 'raise', got {mon.divergence_action!r}")
+        if nonfinite not in ("flag", "raise"):
+            raise ValueError(f"nonfinite must be 'flag' or 'raise', got {nonfinite!r}")
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+        if not (max_gap >= dt and math.isfinite(max_gap)):
+            raise ValueError(f"max_gap must be a finite number of seconds >= dt={dt}, got {max_gap}")
+        self.model = model
+        self.nx = int(model.nx)
+        self.hooks = hooks(model)
+        if self.hooks.watch_covariance is not None:  # the model measures its approximations against the filter's P
+            self.hooks.watch_covariance(lambda: self._P)
+        self.channels = tuple(channels)
+        if len(set(self.channels)) != len(self.channels):
+            raise ValueError(f"duplicate channel names in {self.channels}")
+        missing = [c for c in self.channels if c not in R_std]
+        if missing:
+            raise ValueError(f"R_std has no standard deviation for channel(s) {missing}")
+        self.R_std = np.array([float(R_std[c]) for c in self.channels])
+        if not np.all(self.R_std > 0):
+            raise ValueError("all measurement standard deviations must be positive")
+        self._Rdiag = self.R_std**2
+        self.m = len(self.channels)
+        self.dt = float(dt)
+        self.max_gap = float(max_gap)
+        self.store_P = store_P
+        self.divergence_action = mon.divergence_action
+        self.nonfinite_action = nonfinite
+        self.monitor = (NISMonitor(mon.nis_window, mon.divergence_confidence, mon.divergence_confirm)
+                        if mon.nis_window > 0 else None)
+        gate_p = mon.gate_p
+        if gate_p is not None and not 0 < gate_p < 1:
+            raise ValueError(f"gate_p must be None or in (0, 1), got {gate_p}")
+        self.gate_p = gate_p
+        self.fault_holdoff = int(mon.fault_holdoff)
+        self.isolate = bool(mon.isolate)
+        self.input_step = mon.input_step
+        self._gate = float(chi2_ppf(1 - gate_p, 1)) if gate_p is not None else math.inf
+        self.faults = (
+            ChannelMonitor(self.channels, mon.fault_window, mon.fault_p, min(math.sqrt(self._gate), 10.0), dt)
+            if mon.fault_window > 0 else None
+        )
+        self._x0, self._P0 = self._prior(x0, P0)
+
+    def _prior(self, x0, P0) -> tuple[np.ndarray, np.ndarray]:
+        x = np.array(x0, dtype=float).reshape(-1)
+        if x.shape != (self.nx,):
+            raise ValueError(f"x0 has shape {x.shape}, expected ({self.nx},)")
+        P = np.array(P0, dtype=float)
+        if P.ndim == 1:
+            P = np.diag(P)
+        if P.shape != (self.nx, self.nx):
+            raise ValueError(f"P0 has shape {P.shape}, expected ({self.nx}, {self.nx}) or ({self.nx},)")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            raise ValueError("the prior x0, P0 must be finite")
+        return x, np.ascontiguousarray(0.5 * (P + P.T))
+
+    def reset(self, x0=None, P0=None) -> None:
+        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
+        prior of later resets too) and clear every counter and monitor. A model with caches (``reset()``) is reset
+        too, so that a run never depends on what the model evaluated before."""
+        if x0 is not None or P0 is not None:
+            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
+        if self.hooks.reset is not None:
+            self.hooks.reset()
+        self._x = self._x0.copy()
+        self._P = self._P0.copy()
+        self._t_prev: float | None = None
+        self._u_prev = None
+        self.n_missing = 0
+        self.n_updates = 0
+        self.diverged = False
+        self.diverged_at: float | None = None
+        self.nonfinite = False
+        self.nis_flagged = False
+        self.nis_flagged_at: float | None = None
+        self.flagged_intervals: list[list] = []
+        self.n_rejected = np.zeros(self.m, dtype=np.int64)
+        self._holdoff = 0
+        self._held = False
+        self.jump_times: list[float] = []
+        if self.faults is not None:
+            self.faults.reset()
+        self.last_idx = None
+        self.last_innovation = None
+        self.last_S = None
+        self.last_nis = float("nan")
+        self.last_dof = 0
+        if self.monitor is not None:
+            self.monitor.reset()
+
+    @property
+    def belief(self) -> Belief:
+        """The current belief ``(x, P)`` (copies)."""
+        return Belief(self._x.copy(), self._P.copy())
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current state estimate (a copy)."""
+        return self._x.copy()
+
+    @property
+    def x0(self) -> np.ndarray:
+        """The prior mean the filter restarts from (a copy)."""
+        return self._x0.copy()
+
+    @property
+    def P0(self) -> np.ndarray:
+        """The prior covariance the filter restarts from (a copy)."""
+        return self._P0.copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        """Current covariance (a copy)."""
+        return self._P.copy()
+
+    @property
+    def t(self) -> float | None:
+        """Time of the current estimate (None before the first sample)."""
+        return self._t_prev
+
+    def _input_steps(self, t: float, u, jumps: int) -> None:
+        """The hold-off after a step in the input at ``t``: the filter's test of ``u`` against the previous input,
+        or the model's torque-jump counter moved from ``jumps`` (the transient is the model's to follow, not a
+        sensor fault)."""
+        stepped = (self.input_step is not None and u is not None and self._u_prev is not None
+                   and self.input_step(self._u_prev, u))
+        if stepped or self.hooks.n_jumps() != jumps:
+            self._holdoff = self.fault_holdoff
+            self.jump_times.append(t)
+
+    def _screen(self, idx: np.ndarray, r: np.ndarray, S: np.ndarray) -> np.ndarray | None:
+        """One update's innovations ``r`` (covariance ``S``) of the channels ``idx``, normalised, through the
+        hold-off, the sensor-fault windows, the gate and the isolation (module notes): the mask of the channels to
+        keep where a minority is left out (counted in ``n_rejected``), else None (all kept)."""
+        m = len(idx)
+        z = np.empty(m)
+        n_over = kalman.normalise(r, S, self._gate, z)
+        self._held = self._holdoff > 0
+        if self._held:
+            self._holdoff -= 1
+            n_over = 0
+            if self.faults is not None:
+                self.faults.seen(self._t_now, idx)
+        elif self.faults is not None:
+            self.faults.push(self._t_now, idx, z)
+        rej = None
+        if n_over:
+            rej = z * z > self._gate
+        if self.isolate and self.faults is not None and self.faults._open:
+            # isolation: a channel with an open sensor fault stays out until its innovations are back in band
+            sus = self.faults.suspect()[idx]
+            rej = sus if rej is None else rej | sus
+        if rej is None or not rej.any() or 2 * int(np.count_nonzero(rej)) >= m:
+            return None  # none, or most of the channels off: the filter, not the sensors (the NIS test sees it)
+        self.n_rejected[idx[rej]] += 1
+        return ~rej
+
+    def _count_update(self, t: float, nis: float, dof: int, held: bool) -> None:
+        """An update done at ``t``: counted, and its NIS into the divergence test (not within the hold-off after
+        an input step: the allowance for planned steps)."""
+        self.n_updates += 1
+        mon = self.monitor
+        ev = mon.push(nis, dof) if mon is not None and not held else 0
+        if ev > 0:
+            self.flagged_intervals.append([float(t), None])
+            if not self.nis_flagged:
+                self.nis_flagged, self.nis_flagged_at = True, float(t)
+            log.info("NIS flag set at t=%.6g s: NIS over %d updates above its %.1f%% bound", t, mon.window,
+                     100 * mon.confidence)
+            if self.divergence_action == "raise":
+                raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
+        elif ev < 0:
+            self.flagged_intervals[-1][1] = float(t)
+            log.info("NIS flag cleared at t=%.6g s", t)
+
+    def _flag(self, t: float, why: str) -> None:
+        if not self.diverged:
+            self.diverged = True
+            self.diverged_at = float(t)
+            log.info("filter flagged at t=%.6g s: %s", t, why)
+
+    def fault_report(self) -> tuple[list, list]:
+        """``(flagged_intervals, channel_faults)`` so far, with intervals and faults still open closed at the
+        current time (see :class:`EstimationResult`)."""
+        t = self._t_prev
+        iv = [(a, b if b is not None else t) for a, b in self.flagged_intervals]
+        faults = [] if self.faults is None else [dict(f, end=f["end"] if f["end"] is not None else t)
+                                                  for f in self.faults.faults]
+        return iv, faults
+
+    def _result(self, rec: RunRecord, wall_s: float) -> EstimationResult:
+        """The run's :class:`EstimationResult` with the monitors' findings."""
+        intervals, faults = self.fault_report()
+        return rec.result(self, wall_s, nis_flagged=self.nis_flagged, nis_flagged_at=self.nis_flagged_at,
+                          flagged_intervals=intervals, channel_faults=faults,
+                          n_rejected={c: int(k) for c, k in zip(self.channels, self.n_rejected, strict=True)})
+
+
+class MultirateEKF(BeliefFilter):
     """Multirate extended Kalman filter over a :class:`DiscreteModel`.
 
     Parameters
@@ -581,55 +883,13 @@ class MultirateEKF:
         input_step=None,
         isolate: bool = False,
     ):
-        if store_P not in ("diag", "full", "none"):
-            raise ValueError(f"store_P must be 'diag', 'full' or 'none', got {store_P!r}")
-        if divergence_action not in ("flag", "raise"):
-            raise ValueError(f"divergence_action must be 'flag' or 'raise', got {divergence_action!r}")
-        if nonfinite not in ("flag", "raise"):
-            raise ValueError(f"nonfinite must be 'flag' or 'raise', got {nonfinite!r}")
-        if not (dt > 0 and math.isfinite(dt)):
-            raise ValueError(f"dt must be a positive number of seconds, got {dt}")
-        if not (max_gap >= dt and math.isfinite(max_gap)):
-            raise ValueError(f"max_gap must be a finite number of seconds >= dt={dt}, got {max_gap}")
-        self.model = model
-        self.nx = n = int(model.nx)
-        watch = getattr(model, "watch_covariance", None)
-        if watch is not None:  # the model measures its approximations against the filter's uncertainty
-            watch(lambda: self._P)
-        self.channels = tuple(channels)
-        if len(set(self.channels)) != len(self.channels):
-            raise ValueError(f"duplicate channel names in {self.channels}")
-        missing = [c for c in self.channels if c not in R_std]
-        if missing:
-            raise ValueError(f"R_std has no standard deviation for channel(s) {missing}")
-        self.R_std = np.array([float(R_std[c]) for c in self.channels])
-        if not np.all(self.R_std > 0):
-            raise ValueError("all measurement standard deviations must be positive")
-        self._Rdiag = self.R_std**2
-        self.m = len(self.channels)
-        self.dt = float(dt)
-        self.max_gap = float(max_gap)
-        self.store_P = store_P
-        self.divergence_action = divergence_action
-        self.nonfinite_action = nonfinite
+        self._setup(model, channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite,
+                    Monitoring(nis_window, divergence_confidence, divergence_confirm, divergence_action, gate_p,
+                               fault_window, fault_p, fault_holdoff, input_step, isolate))
+        n = self.nx
         if np.size(p_floor) not in (1, n):
             raise ValueError(f"p_floor has {np.size(p_floor)} entries, expected 1 or {n}")
         self._floor = np.ascontiguousarray(np.broadcast_to(np.asarray(p_floor, float).reshape(-1), (n,)))
-        self.monitor = (
-            NISMonitor(nis_window, divergence_confidence, divergence_confirm) if nis_window > 0 else None
-        )
-        if gate_p is not None and not 0 < gate_p < 1:
-            raise ValueError(f"gate_p must be None or in (0, 1), got {gate_p}")
-        self.gate_p = gate_p
-        self.fault_holdoff = int(fault_holdoff)
-        self.isolate = bool(isolate)
-        self.input_step = input_step
-        self._gate = float(chi2.ppf(1 - gate_p, 1)) if gate_p is not None else math.inf
-        self.faults = (
-            ChannelMonitor(self.channels, fault_window, fault_p, min(math.sqrt(self._gate), 10.0), dt)
-            if fault_window > 0 else None
-        )
-        self._x0, self._P0 = self._prior(x0, P0)
         self._all = np.arange(self.m)
         self._subsets: dict[bytes, tuple] = {}
         # the covariance lives in two buffers that alternate (a kernel never writes the P it reads); scratch
@@ -637,94 +897,25 @@ class MultirateEKF:
         self._Ppred = np.empty((n, n))
         self._work = np.empty((n, n))
         self._HP = np.empty((max(self.m, 1), n))
-        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (what a smoother's backward pass needs)
+        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (run(..., predictions=True) sets it)
         self.record_predictions = False
-        # the model's compiled sample loop (run() hands it the samples it can take) and its buffers
-        # (the model's own: not one a wrapping model passes on from the model it wraps)
-        self._loop = model.sample_loop if hasattr(type(model), "sample_loop") else None
+        # the compiled sample loop (run() hands it the samples it can take) where the model has a compiled step
+        self._loop = loop.samples if takes_compiled_loop(model) else None
         if self._loop is not None:
-            self._loop_mats = model.loop_buffers()
             self._loop_status = np.zeros(self.m, dtype=np.int64)
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
                                 np.zeros(4))
+            loop.warm_up(True if self.hooks.i_theta is not None or self.hooks.i_inputs is not None else None)
         kalman.warm_up()
         self.reset()
 
     # ------------------------------------------------------------------ state
-    def _prior(self, x0, P0) -> tuple[np.ndarray, np.ndarray]:
-        x = np.array(x0, dtype=float).reshape(-1)
-        if x.shape != (self.nx,):
-            raise ValueError(f"x0 has shape {x.shape}, expected ({self.nx},)")
-        P = np.array(P0, dtype=float)
-        if P.ndim == 1:
-            P = np.diag(P)
-        if P.shape != (self.nx, self.nx):
-            raise ValueError(f"P0 has shape {P.shape}, expected ({self.nx}, {self.nx}) or ({self.nx},)")
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
-            raise ValueError("the prior x0, P0 must be finite")
-        return x, np.ascontiguousarray(0.5 * (P + P.T))
-
     def reset(self, x0=None, P0=None) -> None:
-        """Restart from a prior (the constructor's unless ``x0``/``P0`` are given; a given one becomes the
-        prior of later resets too) and clear every counter. A model with caches (``reset()``) is reset too, so
-        that a run never depends on what the model evaluated before."""
-        if x0 is not None or P0 is not None:
-            self._x0, self._P0 = self._prior(self._x0 if x0 is None else x0, self._P0 if P0 is None else P0)
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
-        self._t_prev: float | None = None
-        self._u_prev = None
-        self.n_missing = 0
-        self.n_updates = 0
+        """Restart from a prior (:meth:`BeliefFilter.reset`)."""
+        super().reset(x0, P0)
         self.n_invalid = 0
-        self.diverged = False
-        self.diverged_at: float | None = None
-        self.nonfinite = False
-        self.nis_flagged = False
-        self.nis_flagged_at: float | None = None
-        self.flagged_intervals: list[list] = []
-        self.n_rejected = np.zeros(self.m, dtype=np.int64)
-        self._holdoff = 0
-        self._held = False
-        self.jump_times: list[float] = []
-        if self.faults is not None:
-            self.faults.reset()
         self._model_failure = None
-        self.last_idx = None
-        self.last_innovation = None
-        self.last_S = None
-        self.last_nis = float("nan")
-        self.last_dof = 0
         self.last_prediction = None
-        if self.monitor is not None:
-            self.monitor.reset()
-
-    @property
-    def x(self) -> np.ndarray:
-        """Current state estimate (a copy)."""
-        return self._x.copy()
-
-    @property
-    def x0(self) -> np.ndarray:
-        """The prior mean the filter restarts from (a copy)."""
-        return self._x0.copy()
-
-    @property
-    def P0(self) -> np.ndarray:
-        """The prior covariance the filter restarts from (a copy)."""
-        return self._P0.copy()
-
-    @property
-    def P(self) -> np.ndarray:
-        """Current covariance (a copy)."""
-        return self._P.copy()
-
-    @property
-    def t(self) -> float | None:
-        """Time of the current estimate (None before the first sample)."""
-        return self._t_prev
 
     # ------------------------------------------------------------------ the two steps
     def _predict(self, dt: float, u_next) -> tuple[np.ndarray, np.ndarray]:
@@ -789,35 +980,15 @@ class MultirateEKF:
                                                     self._HP, r, S, x_new, P_new, self._floor)
         if not ok:
             nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
-        z = np.empty(m)
-        n_over = kalman.normalise(r, S, self._gate, z)
-        self._held = self._holdoff > 0
-        if self._held:
-            self._holdoff -= 1
-            n_over = 0
-            if self.faults is not None:
-                self.faults.seen(self._t_now, idx)
-        elif self.faults is not None:
-            self.faults.push(self._t_now, idx, z)
-        rej = None
-        if n_over:
-            rej = z * z > self._gate
-        if self.isolate and self.faults is not None and self.faults._open:
-            # isolation: a channel with an open sensor fault stays out until its innovations are back in band
-            sus = self.faults.suspect()[idx]
-            rej = sus if rej is None else rej | sus
-        if rej is not None and rej.any():
-            n_rej = int(np.count_nonzero(rej))
-            if 2 * n_rej < m:  # a minority of the channels is off: those sensors, not the filter
-                keep = ~rej
-                self.n_rejected[idx[rej]] += 1
-                idx, chans, Rd = idx[keep], tuple(c for c, k in zip(chans, keep, strict=True) if k), Rd[keep]
-                m = len(idx)
-                y, y_pred, H = y[keep], y_pred[keep], np.ascontiguousarray(H[keep])
-                r, S = np.empty(m), np.empty((m, m))
-                nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
-                if not ok:
-                    nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
+        keep = self._screen(idx, r, S)
+        if keep is not None:  # a minority of the channels is off: those sensors, not the filter
+            idx, chans, Rd = idx[keep], tuple(c for c, k in zip(chans, keep, strict=True) if k), Rd[keep]
+            m = len(idx)
+            y, y_pred, H = y[keep], y_pred[keep], np.ascontiguousarray(H[keep])
+            r, S = np.empty(m), np.empty((m, m))
+            nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
+            if not ok:
+                nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
         self._Pspare = self._P
         self._x, self._P = x_new, P_new
         self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
@@ -873,17 +1044,7 @@ class MultirateEKF:
         FilterDivergedError
             Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test (``"raise"``).
         """
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"sample time {t!r} is not finite")
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-            if not math.isfinite(sum(u.tolist())):
-                raise ValueError(f"the input sample at t={t:.6g} s is not finite: {u.tolist()}")
-        if y is not None:
-            y = np.asarray(y, dtype=float)
-            if y.shape != (self.m,):
-                raise ValueError(f"measurement has shape {y.shape}, expected ({self.m},): channels {self.channels}")
+        t, u, y = self._step_arguments(t, u, y)
         if self._t_prev is not None:
             dt = t - self._t_prev
             if not dt > 1e-9 * self.dt:
@@ -893,15 +1054,10 @@ class MultirateEKF:
                     f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
                     f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
             self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
-        jumps = getattr(self.model, "n_jumps", 0)
+        jumps = self.hooks.n_jumps()
         FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
         self._t_now = t
-        stepped = (self.input_step is not None and u is not None and self._u_prev is not None
-                   and self.input_step(self._u_prev, u))
-        if stepped or getattr(self.model, "n_jumps", 0) != jumps:
-            # a step in the input (the model's test): the transient is the model's to follow, not a sensor fault
-            self._holdoff = self.fault_holdoff
-            self.jump_times.append(t)
+        self._input_steps(t, u, jumps)
         self._t_prev = t
         self._u_prev = u
         self.last_idx = None
@@ -921,6 +1077,9 @@ class MultirateEKF:
             finite = kalman.settle(self._x, self._P, self._floor)
         return self._close(t, finite)
 
+    def _step_arguments(self, t, u, y):
+        return step_arguments(self, t, u, y)
+
     def _close(self, t: float, finite: bool) -> np.ndarray:
         """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""
         if not finite:
@@ -936,24 +1095,6 @@ class MultirateEKF:
         elif self.faults is not None and self._t_prev is not None:
             self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
         return self._x.copy()
-
-    def _count_update(self, t: float, nis: float, dof: int, held: bool) -> None:
-        """An update done at ``t``: counted, and its NIS into the divergence test (not within the hold-off after
-        an input step: the allowance for planned steps)."""
-        self.n_updates += 1
-        mon = self.monitor
-        ev = mon.push(nis, dof) if mon is not None and not held else 0
-        if ev > 0:
-            self.flagged_intervals.append([float(t), None])
-            if not self.nis_flagged:
-                self.nis_flagged, self.nis_flagged_at = True, float(t)
-            log.info("NIS flag set at t=%.6g s: NIS over %d updates above its %.1f%% bound", t, mon.window,
-                     100 * mon.confidence)
-            if self.divergence_action == "raise":
-                raise FilterDivergedError(f"NIS divergence test failed at t={t:.6g} s")
-        elif ev < 0:
-            self.flagged_intervals[-1][1] = float(t)
-            log.info("NIS flag cleared at t=%.6g s", t)
 
     # ------------------------------------------------------------------ the compiled sample loop
     def _loop_ends(self, t, U, Y) -> np.ndarray:
@@ -977,50 +1118,53 @@ class MultirateEKF:
         return np.where(pos < len(bad), bad[np.minimum(pos, len(bad) - 1)], n).astype(np.int64)
 
     def _loop_ready(self, U) -> bool:
-        """Can samples go to the model's compiled loop now? (It has one; a run with inputs, after a first sample;
-        no sensor fault open; nothing recorded per prediction; the input-step test one the loop computes.)"""
+        """Can samples go to the compiled loop now? (The model has a compiled step; a run with inputs, after a first
+        sample; no sensor fault open; the input-step test one the loop computes.)"""
         return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
-                and not self.record_predictions and (self.faults is None or not self.faults._open)
+                and (self.faults is None or not self.faults._open)
                 and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
 
     def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> int:
-        """Samples ``k .. k_end - 1`` (every channel sampled, valid times and inputs) through the model's compiled
-        loop (:func:`.expansion.cached_samples`: each sample as :meth:`step` does it) until one needs
-        :meth:`step`; the model renews its held arrays where the loop asks. Returns the first sample not done."""
+        """Samples ``k .. k_end - 1`` (every channel sampled, valid times and inputs) through the compiled loop
+        (:func:`.loop.samples`: each sample as :meth:`step` does it) until one needs :meth:`step`; the model
+        renews its arrays where the loop asks. Returns the first sample not done."""
         model, m, n = self.model, self.m, self.nx
         step = self.input_step
         step_w, step_thr = (step.weights, step.threshold) if step is not None else (np.zeros(U.shape[1]), math.inf)
         f = self.faults
         win = (*f.window_arrays, np.array(f.window_tests)) if f is not None else self._no_windows
-        P_rec = _empty_rows(n) if rec.P is None else rec.P.reshape(len(rec.t), -1)
-        P_kind = -1 if rec.P is None else 0 if rec.store_P == "diag" else 1
+        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, *win, self._loop_status, step_w, step_thr)
         inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None
                       else (_empty_rows(m), _empty_rows(m * m)))
+        rows = len(rec.t)
+        pred = ((rec.x_pred, rec.F.reshape(rows, -1), rec.Q.reshape(rows, -1)) if rec.x_pred is not None
+                else (_empty_rows(n), _empty_rows(n * n), _empty_rows(n * n)))
+        record = loop.Record(rec.x_hat, _empty_rows(n) if rec.P is None else rec.P.reshape(rows, -1),
+                             -1 if rec.P is None else 0 if rec.store_P == "diag" else 1,
+                             _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, *pred)
         r, S, zn = np.empty(m), np.empty((m, m)), np.empty(m)
-        mats = self._loop_mats
         while k < k_end:
             x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
             try:
-                arrays = model.loop_arrays(x, U[k - 1], t[k] - t[k - 1], self.channels)
+                lm = model.loop_model(x, U[k - 1], t[k] - t[k - 1], self.channels)
             except _MODEL_FAILURES:  # the model cannot step from here: step() says why
                 break
             hold0 = self._holdoff
-            k_next, status, self._holdoff, swapped, model_out = self._loop(
-                t, U, Y, k, k_end, x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn, self._Rdiag,
-                self._floor, self._gate, hold0, *win, self._loop_status, step_w, step_thr, rec.x_hat, P_rec, P_kind,
-                _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, mats, *arrays)
+            buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn)
+            k_next, status, self._holdoff, swapped, state, mats = self._loop(t, U, Y, k, k_end, hold0, buf, mon, record,
+                                                                             *lm)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
-                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats, model_out)
-                if status == kalman.MONITOR:
+                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats, state)
+                if status == MONITOR:
                     f.verdicts(float(t[k_next - 1]), self._all, self._loop_status)
             k = k_next
-            if status not in (kalman.REFRESH, kalman.REMAP):
+            if status not in (REFRESH, REMAP):
                 break
         return k
 
-    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats, model_out) -> None:
+    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats, state) -> None:
         """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
         test, the record's degrees of freedom) and of the last (times, input, innovations, the model's interval)."""
         m = self.m
@@ -1033,24 +1177,10 @@ class MultirateEKF:
         self._u_prev = U[k1 - 1]
         self.last_idx, self.last_innovation, self.last_S = self._all, r.copy(), S.copy()
         self.last_nis, self.last_dof = float(rec.nis[k1 - 1]), m
-        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), model_out, self._x, k1)
+        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), state, self._x, k1)
 
-    def _flag(self, t: float, why: str) -> None:
-        if not self.diverged:
-            self.diverged = True
-            self.diverged_at = float(t)
-            log.info("filter flagged at t=%.6g s: %s", t, why)
-
-    def fault_report(self) -> tuple[list, list]:
-        """``(flagged_intervals, channel_faults)`` so far, with intervals and faults still open closed at the
-        current time (see :class:`EstimationResult`)."""
-        t = self._t_prev
-        iv = [(a, b if b is not None else t) for a, b in self.flagged_intervals]
-        faults = [] if self.faults is None else [dict(f, end=f["end"] if f["end"] is not None else t)
-                                                  for f in self.faults.faults]
-        return iv, faults
-
-    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
+    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
+            predictions: bool = False) -> EstimationResult:
         """Filter a whole record: the numbers of :meth:`step` for every sample (the samples the model's compiled
         loop can take go to it, see the module notes).
 
@@ -1070,6 +1200,9 @@ class MultirateEKF:
             Record the innovations and their covariance (``8 m + 8 m**2`` bytes a sample; without them the
             result's ``innovations`` and ``S`` are None). A record run in chunks of rows (``reset=False`` after
             the first) gives the same numbers as one run of the whole record.
+        predictions : bool
+            Record each sample's prediction (the result's ``x_pred``, ``F``, ``Q``: ``8 nx + 16 nx**2`` bytes a
+            sample), what the smoother's backward pass needs (:func:`.smoother.rts_backward`).
 
         Returns
         -------
@@ -1078,7 +1211,9 @@ class MultirateEKF:
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, getattr(self.model, "i_theta", None))
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.hooks.i_theta,
+                        predictions)
+        self.record_predictions = predictions
         t_start = time.perf_counter()
         n = len(t)
         loop_end = self._loop_ends(t, U, Y)
@@ -1092,11 +1227,11 @@ class MultirateEKF:
                     k = self._loop_samples(t, U, Y, k, k_end, rec)
                     if k >= n:
                         break
-            rec.put(k, self, self.step(t[k], None if U is None else U[k], Y[k]))
+            self.last_prediction = None
+            x = self.step(t[k], None if U is None else U[k], Y[k])
+            rec.put(k, x, self._P, self)
             k += 1
-        intervals, faults = self.fault_report()
-        res = rec.result(self, time.perf_counter() - t_start, nis_flagged=self.nis_flagged,
-                         nis_flagged_at=self.nis_flagged_at, flagged_intervals=intervals, channel_faults=faults,
-                         n_rejected={c: int(k) for c, k in zip(self.channels, self.n_rejected, strict=True)})
+        self.record_predictions = False
+        res = self._result(rec, time.perf_counter() - t_start)
         log.info("EKF run: %s", res.summary())
         return res

@@ -20,26 +20,20 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kalman import (
-    GENERAL,
-    LOOP_DONE,
-    MONITOR,
-    REFRESH,
-    REMAP,
-    normalise,
-    predict_update,
-    step_statistic,
-    window_push,
-    window_seen,
-)
+from .base import GENERAL, LOOP_DONE, REFRESH, REMAP
+from .kalman import step_statistic
 
 __all__ = [
-    "NO_EXTRA_STATES",
-    "HeldSystem",
-    "LoopExtras",
     "NO_DISTURBANCES",
     "NO_PAYLOAD",
-    "cached_samples",
+    "NO_SCALED_MAP",
+    "CachedStep",
+    "HeldSystem",
+    "LoopExtras",
+    "LoopMap",
+    "LoopState",
+    "cached_interval",
+    "cached_rows",
     "extra_interval",
     "held_interval",
     "held_step",
@@ -60,7 +54,6 @@ __all__ = [
     "warm_up",
     "warm_up_held",
     "warm_up_interval",
-    "warm_up_loop",
     "warm_up_maps",
 ]
 
@@ -400,9 +393,9 @@ _NO_VECTOR = np.empty(0)
 
 
 class LoopExtras(NamedTuple):
-    """The arrays of an augmented state that :func:`cached_samples` takes (``augmented``): the payload scale's
+    """The arrays of an augmented state that :func:`cached_interval` takes (``ex``): the payload scale's
     (``pay`` ... ``pay_Q``; its increment ``i*``, :class:`.augmented.PayloadIncrement`'s fields) and the torque
-    disturbances' (``inp_var``, ``inp_tau``). See :func:`cached_samples` for their meaning."""
+    disturbances' (``inp_var``, ``inp_tau``). See :func:`cached_interval` for their meaning."""
 
     pay: bool
     pay_held: bool
@@ -411,33 +404,28 @@ class LoopExtras(NamedTuple):
     pay_rho: float
     pay_tol: float
     pay_dTs: np.ndarray
-    pay_ok: bool
-    pay_c: float
-    pay_Pn: np.ndarray
-    pay_S: np.ndarray
-    pay_L: np.ndarray
-    pay_Q: np.ndarray
     iMr: np.ndarray
     iCa: np.ndarray
     idM: np.ndarray
     ifg: np.ndarray
     iT2: np.ndarray
+    iC2: np.ndarray
     iold_dM: np.ndarray
     iold_Ca: np.ndarray
     iold_fg: np.ndarray
     iold_T2: np.ndarray
+    iold_C2: np.ndarray
     inp_var: np.ndarray
     inp_tau: float
 
 
 #: :class:`LoopExtras`' payload fields (``pay`` ... ``iold_T2``) of a state without the payload scale
-NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, False, 0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-              _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
-              _NO_VECTOR, _NO_MATRIX)
+NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX,
+              _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX)
+#: no scaled step map, ``(c, Pn, S, L, Q)`` (:func:`payload_interval`'s ``map_c`` ... ``map_Q``)
+NO_SCALED_MAP = (0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX)
 #: :class:`LoopExtras`' disturbance fields (``inp_var``, ``inp_tau``) of a state without torque disturbances
 NO_DISTURBANCES = (_NO_VECTOR, 0.0)
-#: :func:`cached_samples`' last argument (``augmented``) for a model without augmented states
-NO_EXTRA_STATES = (None,)
 
 
 def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
@@ -727,210 +715,183 @@ def _within(x, c, radius):  # pragma: no cover - compiled
     return True
 
 
-def _cached_samples(t, U, Y, k0, k1, x, x_alt, P, P_alt, P_pred, work, HP, r, S, zn, Rd, floor, gate,
-                    holdoff, win_Z, win_n, win_sum, win_sq, win_last, win_int, win_tests, win_status, step_w,
-                    step_thr, x_rec, P_rec, P_kind, theta_rec, inn_rec, S_rec, nis_rec, mats_out, jump_w, jump_thr,
-                    q0, rad, meas_rad, h_min, map_q, map_rad, map_dt, map_n, dt_tol, ahead, horizon, torque_var,
-                    q_extra, rad_tol, rad_min, rad_max, c0, Hm, dH, G, d, dd, Ts, Vs, C3, Pn, SQM, L, Q,
-                    has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, augmented):  # pragma: no cover - compiled
-    """The filter's samples ``k0 .. k1 - 1`` with the cached step, each exactly as
-    :meth:`.ekf.MultirateEKF.step` does it with :meth:`.reduced.ReducedObserverModel.predict` and ``measure``
-    (every channel sampled, the held configuration and step map unchanged), until one needs more.
+class CachedStep(NamedTuple):
+    """The cached step as the filter's compiled sample loop takes it (:meth:`.reduced.ReducedObserverModel.
+    loop_model`): what :func:`cached_interval` and :func:`cached_rows` read, fixed while the held configuration
+    is held.
 
-    Per sample ``k`` (interval from ``t[k-1]``, input ``U[k-1]`` held, measurement ``Y[k]``): the input-step tests
-    (the filter's ``step_w, step_thr`` and the model's torque-jump test ``jump_w, jump_thr``,
-    :func:`.kalman.step_statistic`), the held configuration's and the step map's radii (not at the first sample:
-    the model's arrays are renewed for it, :meth:`.reduced.ReducedObserverModel.loop_arrays`), the interval (:func:`held_interval`), the
-    measurement radius and rows (:func:`secant_rows`), :func:`.kalman.predict_update`, the gate and, while the
-    hold-off after an input step lasts, :func:`.kalman.window_seen`, else the sensor-fault windows
-    (:func:`.kalman.window_push`; ``win_Z`` empty: none).
+    ``jump_w``, ``jump_thr``: the model's torque-jump test (:func:`.kalman.step_statistic`); ``q0`` the held
+    configuration with its refresh radius ``rad`` and measurement radius ``meas_rad``; ``h_min`` the shortest
+    sub-step; the step map's rebuild rule: the interval-length tolerance ``dt_tol``, the look-ahead ``ahead``,
+    ``horizon`` (:func:`map_lookahead`), the process noise's ``torque_var`` and ``q_extra`` (may be empty), the
+    radius rule ``rad_tol``, ``rad_min``, ``rad_max`` (:func:`next_map_radius`); the measurement rows ``c0, Hm,
+    dH, G`` with the secant ``d``, ``dd`` (:func:`secant_rows`); the step Jacobian's velocity forms ``Ts, Vs,
+    C3``; ``errs``, where the replaced maps' errors go (its length bounds the rebuilds of one call); the held
+    system (:class:`HeldSystem`)."""
 
-    The filter's state lives in two buffer pairs that alternate (``x, P`` current, ``x_alt, P_alt`` written):
-    a sample that needs more is left undone, with nothing of it written but scratch. Each sample done is
-    recorded: ``x_rec[k]``, ``P_rec[k]`` (``P_kind`` 0 its diagonal, 1 all of it flattened, -1 nothing),
-    ``inn_rec[k]``, ``S_rec[k]`` (flattened; empty: none), ``nis_rec[k]``; ``mats_out`` gets the last interval's
-    ``(M_r, K_r, C_r, G_r)``. The model's arrays follow ``jump_w``: the torque-jump test, the held
-    configuration ``q0`` with its refresh and measurement radii, the shortest sub-step, the step map (centre,
-    radius, interval length and its tolerance), the measurement rows ``c0, Hm, dH, G`` with the secant ``d``,
-    ``dd``, the step Jacobian's arrays, ``Q``, and the held system (:class:`HeldSystem`'s fields).
+    jump_w: np.ndarray
+    jump_thr: float
+    q0: np.ndarray
+    rad: float
+    meas_rad: float
+    h_min: float
+    dt_tol: float
+    ahead: float
+    horizon: float
+    torque_var: np.ndarray
+    q_extra: np.ndarray
+    rad_tol: float
+    rad_min: float
+    rad_max: float
+    c0: np.ndarray
+    Hm: np.ndarray
+    dH: np.ndarray
+    G: np.ndarray
+    d: np.ndarray
+    dd: float
+    Ts: np.ndarray
+    Vs: np.ndarray
+    C3: np.ndarray
+    errs: np.ndarray
+    system: HeldSystem
 
-    Where q leaves the step map's radius (the interval's length and sub-steps unchanged) the loop rebuilds the
-    map itself, as the model's ``_step_map`` does (:func:`rebuild_map`, :func:`map_error`,
-    :func:`next_map_radius`).
 
-    ``augmented`` (:class:`LoopExtras`) holds an augmented state's arrays. With ``pay`` the state is a
-    payload-augmented one (:class:`.augmented.AugmentedModel` with the payload scale
-    alone: ``x = [z; theta]``) and each interval is :meth:`.augmented.AugmentedModel.predict`'s with the scale
-    learned: :func:`payload_interval` at the scales ``c + pay_dtheta`` and ``c = max(theta, 0) - 1`` with the
-    increment ``i*`` (:class:`.augmented.PayloadIncrement`) and ``pay_var dt`` the scale's noise; its step map
-    the nominal one where ``|c| pay_rho <= pay_tol``, else the scaled one ``pay_Pn, pay_S, pay_L, pay_Q``, built
-    at ``pay_c`` for the current nominal map (``pay_ok``) and rebuilt as the model rebuilds it. A held scale
-    (``pay_held``) or a scale at exactly 1 is left to the model's own step; ``theta_rec`` (not empty) records the
-    covariance's scale column per sample. With ``inp_var`` (not empty) the state ends with a torque disturbance
-    per motor, added to the torques (the torque-jump test's too): a random walk of variance ``inp_var dt`` per
-    interval (``inp_tau`` 0) or a Gauss-Markov process of stationary variance ``inp_var`` and time constant
-    ``inp_tau``, its columns of the Jacobian the step map's torque response ``L``. ``augmented`` is None for a
-    plain state: numba then prunes the augmented interval and the augmented states' bookkeeping (their arrays, the
-    torques with the disturbances, the nominal-scale exit, ``theta_rec``) from the loop's compiled code (one
-    specialisation per kind of state, each compiled at its first use: a plain filter does not compile the
-    augmented kernels).
+class LoopMap(NamedTuple):
+    """The step map the compiled loop steps with (it rebuilds it where q leaves its radius): its centre ``q``,
+    radius ``rad``, interval length ``dt`` in ``n`` sub-steps, the maps ``Pn`` (state), ``SQM`` (held force),
+    ``L`` (torque) and the noise ``Q``."""
 
-    Returns ``(k, status, holdoff, swapped, maps)``: the first sample not done, why (:data:`.kalman.LOOP_DONE` ...
-    :data:`.kalman.MONITOR`), the hold-off left, whether the current state is in the ``_alt`` buffers, and
-    ``(n, map_rad, q_map, dt, P^n, S, L, Q, errors, k_map, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``: the
-    maps rebuilt, the last one, the replaced ones' errors (in the first ``n`` entries), the sample the last was
-    built for (-1: none) and the scaled map as the loop leaves it (for a plain state ``False, 0.0`` and the
-    nominal map the loop started from).
-    """
-    nq = q0.shape[0]
-    m = Y.shape[1]
-    n_x = x.shape[0]
-    n0 = 2 * Mr.shape[0]
-    idx = np.empty(m, np.int64)  # the channels 0 .. m-1 (a loop: numba's np.arange costs more to compile)
-    for i in range(m):
-        idx[i] = i
-    y_pred = np.empty(m)
-    H = np.zeros((m, n_x))  # (the columns beyond the model's rows stay zero)
-    swapped = False
-    errs = np.empty(k1 - k0)
-    n_maps = 0
-    maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, -1)
+    q: np.ndarray
+    rad: float
+    dt: float
+    n: int
+    Pn: np.ndarray
+    SQM: np.ndarray
+    L: np.ndarray
+    Q: np.ndarray
+
+
+class LoopState(NamedTuple):
+    """What :func:`cached_interval` carries from one interval to the next: the step map, the maps rebuilt so far
+    (their errors in :attr:`CachedStep.errs`), the sample the last was built for (-1: none) and the augmented
+    state's scaled step map ``(ok, c, Pn, S, L, Q)`` (:func:`payload_interval`)."""
+
+    map: LoopMap
+    n_maps: int
+    k_map: int
+    scaled: tuple
+
+
+def _system_args(hs):  # pragma: no cover - compiled
+    """The held system's fields as a plain tuple (numba passes ``f(a, *t)`` as a tuple concatenation, which a
+    named tuple does not join)."""
+    return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
+            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2)
+
+
+def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
+    """One interval of the cached step as :meth:`.reduced.ReducedObserverModel.predict` (or, with ``ex``,
+    :meth:`.augmented.AugmentedModel.predict`) takes it from the filter's state ``x`` with the torques ``u``
+    held over ``dt`` (``u1`` the sample that ends it), where the held arrays ``cs`` (:class:`CachedStep`) serve:
+    ``(status, z, F, Q, mats, st)``, the prediction, the interval's held matrices ``(M_r, K_r, C_r, G_r)`` and
+    the carried state (:class:`LoopState`). ``status`` (:mod:`.base`'s loop codes) is ``LOOP_DONE`` where it
+    served, ``REFRESH`` where q left the held configuration's radius, ``REMAP`` where the step map must be
+    renewed from Python (another interval length or sub-step count; :attr:`CachedStep.errs` full), ``GENERAL``
+    where the model's own step must take the interval (a torque jump, a held or exactly nominal payload scale).
+
+    Not at the ``first`` interval (the model renewed its arrays for it): where q leaves the step map's radius
+    the map is rebuilt ahead of q (:func:`rebuild_map`), its radius from the replaced map's error in the
+    covariance prediction from the filter's ``P`` (:func:`map_error`, :func:`next_map_radius`).
+
+    ``ex`` (:class:`LoopExtras`) holds an augmented state's arrays; None for a plain state (numba then prunes
+    the augmented branches from the compiled code). With ``pay`` the state is ``[z; theta]``: the interval is
+    :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c = max(theta, 0) - 1`` with the increment ``i*``
+    and ``pay_var dt`` the scale's noise (:func:`extra_interval`). With ``inp_var`` (not empty) the state ends
+    with a torque disturbance per motor, added to the torques (the torque-jump test's too)."""
+    sm, n_maps, k_map, scaled = st
+    hs = _system_args(cs.system)
+    nq = cs.q0.shape[0]
+    n0 = 2 * cs.system.Mr.shape[0]
+    none = np.empty((0, 0))
+    z, F, Qk = x, none, none
+    mats = (none, none, none, none)
+    uu, uu1 = u, u1
     pay, n_in = False, 0
-    pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = False, 0.0, Pn, SQM, L, Q  # (no scaled map)
-    status = LOOP_DONE
-    if augmented is not None:  # (pruned for a plain state, as every "augmented is not None" below)
-        ex = augmented
+    if ex is not None:  # (pruned for a plain state, as every "ex is not None" below)
         pay, n_in = ex.pay, ex.inp_var.shape[0]
-        pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = ex.pay_ok, ex.pay_c, ex.pay_Pn, ex.pay_S, ex.pay_L, ex.pay_Q
-        ue, ue1 = np.empty(U.shape[1]), np.empty(U.shape[1])
-        if pay and ex.pay_held:  # (a held scale: the model's own step)
-            status = GENERAL
-    scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
-    s0 = n_x - n_in
-    k = k0
-    while status == LOOP_DONE and k < k1:
-        dt = t[k] - t[k - 1]
-        u = U[k - 1]
-        u1 = U[k]
-        uu, uu1 = u, u1
-        if augmented is not None:  # (the augmented states' bookkeeping: pruned for a plain state)
-            if n_in:  # the torques with the disturbance
-                for j in range(n_in):
-                    ue[j] = u[j] + x[s0 + j]
-                    ue1[j] = u1[j] + x[s0 + j]
-                uu, uu1 = ue, ue1
-        if step_statistic(u, u1, step_w) > step_thr or step_statistic(uu, uu1, jump_w) > jump_thr:
-            status = GENERAL
-            break
-        n = max(1, math.ceil(dt / h_min - 1e-9))
-        if k > k0:  # (the model's arrays are renewed for the first sample)
-            if not _within(x, q0, rad):
-                status = REFRESH
-                break
-            same_length = abs(map_dt - dt) <= dt_tol * dt
-            if not (same_length and _within(x, map_q, map_rad)):
-                if not (same_length and n == map_n):
-                    status = REMAP
-                    break
-                # the step map rebuilt ahead of q, its radius from the replaced map's error
-                q_new, Pn_new, SQM, L, Q_new = rebuild_map(x[:n0], q0, meas_rad, map_rad, ahead, horizon, d, dd, dt, n,
-                                                           torque_var, q_extra, has_old, beta, Mr, Kr, Ca, Gr, dM, dK,
-                                                           fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                                                           old_T2, old_V2, old_C2)
-                err = map_error(Pn, Pn_new, Q, Q_new, P)
-                map_rad = next_map_radius(q_new, map_q, err, map_rad, rad_tol, rad_min, rad_max)
-                errs[n_maps] = err
-                n_maps += 1
-                map_q, map_dt, Pn, Q = q_new, dt, Pn_new, Q_new
-                maps = (n_maps, map_rad, map_q, map_dt, Pn, SQM, L, Q, errs, k)
-                if augmented is not None:
-                    pay_ok = False  # the scaled map follows the nominal one
-                    scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
-        dl = x[:nq] - q0
-        s = secant_factor(dl, d, dd)
-        extra = False
-        if augmented is not None:  # (pruned by numba for a plain state: see the docstring)
-            if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
-                status = GENERAL
-                break
-            if pay or n_in:
-                ex = augmented
-                (z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q) = extra_interval(
-                    x, uu, dl, s, dt, n, pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, pay_ok,
-                    pay_c, pay_Pn, pay_S, pay_L, pay_Q, ex.inp_var, ex.inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn,
-                    SQM, L, Q, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                    old_fg, old_T2, old_V2, old_C2, ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iold_dM, ex.iold_Ca,
-                    ex.iold_fg, ex.iold_T2)
-                scaled_map = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)
-                extra = True
-        if not extra:
-            z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr,
-                                                 Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                                                 old_fg, old_T2, old_V2, old_C2)
-            Qk = Q
-        if not math.isfinite(z[0]) or not _within(z, q0, meas_rad):
-            status = GENERAL
-            break
-        dlp = z[:nq] - q0
-        sm = secant_factor(dlp, d, dd) * dd if dH.shape[0] else 0.0
-        secant_rows(c0, Hm, dH, G, d, sm, z, dlp, y_pred, H)
-        nis, ok, finite = predict_update(F, P, Qk, P_pred, work, z, Y[k], y_pred, H, Rd, HP, r, S, x_alt, P_alt,
-                                         floor)
-        if not (ok and finite):
-            status = GENERAL
-            break
-        n_over = normalise(r, S, gate, zn)
-        n_bad = 0
-        if holdoff > 0:
-            holdoff -= 1
-            if win_Z.shape[0]:
-                window_seen(win_last, win_int, t[k], idx)
-        else:
-            if n_over:
-                status = GENERAL
-                break
-            if win_Z.shape[0]:
-                n_bad = window_push(win_Z, win_n, win_sum, win_sq, win_last, win_int, t[k], idx, zn, win_tests[0],
-                                    win_tests[1], win_tests[2], win_tests[3], win_status)
-        x, x_alt = x_alt, x
-        P, P_alt = P_alt, P
-        swapped = not swapped
-        # the record, element by element (a row or slice assignment compiles numba's shape checks and their
-        # messages into the loop, which then takes far longer to compile)
-        for i in range(n_x):
-            x_rec[k, i] = x[i]
-            if P_kind == 0:
-                P_rec[k, i] = P[i, i]
-            elif P_kind == 1:
-                for j in range(n_x):
-                    P_rec[k, i * n_x + j] = P[i, j]
-        if inn_rec.shape[0]:
-            for i in range(m):
-                inn_rec[k, i] = r[i]
-                for j in range(m):
-                    S_rec[k, i * m + j] = S[i, j]
-        nis_rec[k] = nis
-        if augmented is not None:
-            if theta_rec.shape[0]:
-                for i in range(n_x):
-                    theta_rec[k, i] = P[i, n0]
-        for out, a in zip(mats_out, (Mo, Ko, Co, Go)):
-            for i in range(a.shape[0]):
-                for j in range(a.shape[1]):
-                    out[i, j] = a[i, j]
-        k += 1
-        if n_bad:
-            status = MONITOR
-    return k, status, holdoff, swapped, maps + scaled_map
+        if pay and ex.pay_held:  # a held scale: the model's own step
+            return GENERAL, z, F, Qk, mats, st
+        if n_in:  # the torques with the disturbance
+            s0 = x.shape[0] - n_in
+            uu, uu1 = np.empty(u.shape[0]), np.empty(u.shape[0])
+            for j in range(u.shape[0]):
+                uu[j] = u[j]
+                uu1[j] = u1[j]
+            for j in range(n_in):
+                uu[j] = u[j] + x[s0 + j]
+                uu1[j] = u1[j] + x[s0 + j]
+    if step_statistic(uu, uu1, cs.jump_w) > cs.jump_thr:
+        return GENERAL, z, F, Qk, mats, st
+    n = max(1, math.ceil(dt / cs.h_min - 1e-9))
+    if not first:  # (the model's arrays are renewed for the first interval)
+        if not _within(x, cs.q0, cs.rad):
+            return REFRESH, z, F, Qk, mats, st
+        same_length = abs(sm.dt - dt) <= cs.dt_tol * dt
+        if not (same_length and _within(x, sm.q, sm.rad)):
+            if not (same_length and n == sm.n) or n_maps == cs.errs.shape[0]:
+                return REMAP, z, F, Qk, mats, st
+            # the step map rebuilt ahead of q, its radius from the replaced map's error
+            q_new, Pn_new, SQM, L, Q_new = rebuild_map(x[:n0], cs.q0, cs.meas_rad, sm.rad, cs.ahead, cs.horizon, cs.d,
+                                                       cs.dd, dt, n, cs.torque_var, cs.q_extra, *hs)
+            err = map_error(sm.Pn, Pn_new, sm.Q, Q_new, P)
+            rad = next_map_radius(q_new, sm.q, err, sm.rad, cs.rad_tol, cs.rad_min, cs.rad_max)
+            cs.errs[n_maps] = err
+            n_maps += 1
+            k_map = k
+            sm = LoopMap(q_new, rad, dt, sm.n, Pn_new, SQM, L, Q_new)
+            if ex is not None:  # the scaled map follows the nominal one
+                scaled = (False, scaled[1], scaled[2], scaled[3], scaled[4], scaled[5])
+    dl = x[:nq] - cs.q0
+    s = secant_factor(dl, cs.d, cs.dd)
+    extra = False
+    if ex is not None:
+        if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
+            return GENERAL, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
+        if pay or n_in:
+            z, F, Qk, Mo, Ko, Co, Go, p_ok, p_c, p_Pn, p_S, p_L, p_Q = extra_interval(
+                x, uu, dl, s, dt, n, pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, *scaled,
+                ex.inp_var, ex.inp_tau, cs.torque_var, cs.q_extra, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, sm.L, sm.Q, *hs,
+                ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM, ex.iold_Ca, ex.iold_fg, ex.iold_T2,
+                ex.iold_C2)
+            scaled = (p_ok, p_c, p_Pn, p_S, p_L, p_Q)
+            mats = (Mo, Ko, Co, Go)
+            extra = True
+    if not extra:
+        z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, *hs)
+        Qk = sm.Q
+        mats = (Mo, Ko, Co, Go)
+    return LOOP_DONE, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
+
+
+def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
+    """The measurement at the predicted state ``z`` into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.
+    measure` with every channel): False (nothing written) where ``z`` is not finite or left the held
+    configuration's measurement radius (the model's own rows then)."""
+    if not math.isfinite(z[0]) or not _within(z, cs.q0, cs.meas_rad):
+        return False
+    nq = cs.q0.shape[0]
+    dlp = z[:nq] - cs.q0
+    sm = secant_factor(dlp, cs.d, cs.dd) * cs.dd if cs.dH.shape[0] else 0.0
+    secant_rows(cs.c0, cs.Hm, cs.dH, cs.G, cs.d, sm, z, dlp, y, H)
+    return True
 
 
 def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
                     pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
                     beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg,
-                    iold_T2):  # pragma: no cover - compiled
-    """One interval of an augmented state (:func:`cached_samples`' ``pay`` and ``inp_*``, the torques ``u`` with
+                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
+                    iold_T2, iold_C2):  # pragma: no cover - compiled
+    """One interval of an augmented state (:func:`cached_interval`'s ``pay`` and ``inp_*``, the torques ``u`` with
     the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
     scaled step map as this interval leaves it. With the payload scale (not at exactly 1) the interval is
     :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c`` (which chooses, and rebuilds, the step map: the
@@ -950,7 +911,7 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
             x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, pay_rho, pay_tol, pay_ok, pay_c,
             pay_Pn, pay_S, pay_L, pay_Q, torque_var, q_extra, Ts, pay_dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr,
             Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+            iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
         pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = scaled_map
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
@@ -1052,8 +1013,8 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
 
 
 def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iold_dM, iold_Ca,
-                  iold_fg, iold_T2):  # pragma: no cover - compiled
+                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
+                  iold_fg, iold_T2, iold_C2):  # pragma: no cover - compiled
     """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
     row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
     C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
@@ -1062,14 +1023,15 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     The held model (:func:`_held_model`) is linear in the held arrays, and the stiffness, input matrix
     and geometric forms do not depend on the payload: it is evaluated once for ``S`` and once for ``dS`` (with
     zero stiffness, input and geometric arrays) and combined per scale, ``M_r = M_r(S) + a_k M_r(dS)``, likewise
-    the damping and the forces; each scale then costs its Cholesky factor and RK4 sub-steps only."""
+    the damping and the forces (the weight, the velocity forms and the bias force ``J^T M a_b``, the increment's
+    ``iC2``); each scale then costs its Cholesky factor and RK4 sub-steps only."""
     r = Mr.shape[0]
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
                     old_T2, old_V2, old_C2)
     zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
-    zv, zc = np.zeros(V2.shape), np.zeros(C2.shape)
-    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, zc, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, zc)
+    zv = np.zeros(V2.shape)
+    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
+                    iold_T2, zv, iold_C2)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(Gr.shape)
     f0 = fb = np.empty(r)
@@ -1097,7 +1059,8 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
 def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, tol, map_ok, map_c, map_Pn, map_S,
                       map_L, map_Q, torque_var, q_extra, Ts, dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca,
                       Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-                      iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2):  # pragma: no cover - compiled
+                      iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
+                      iold_C2):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
 
     The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
@@ -1107,7 +1070,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     the current nominal map's (``map_ok``) and ``c`` is within ``tol / rho`` of ``map_c``, else rebuilt as the
     maps of the held linear system at ``c`` (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the
     noise's diagonal); and the step's Jacobian in the state (:func:`step_jacobian`) with that map and the
-    velocity forms ``Ts + c dTs`` (``Ts`` with the nominal map).
+    velocity forms ``Ts + c dTs`` and bias form ``C3 + c iC2`` (``Ts``, ``C3`` with the nominal map).
 
     Returns ``(rows, x, F, Qx, L, (map_ok, map_c, map_Pn, map_S, map_L, map_Q), M_r, K_r, C_r, G_r)`` with the
     augmented state's prediction (``nx`` states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros
@@ -1117,7 +1080,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     noise ``Q`` in its leading block and ``theta_var`` the scale's."""
     rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
                                         old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
-                                        idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+                                        idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
     finite = True
     for k in range(rows.shape[0]):
         for i in range(rows.shape[1]):
@@ -1126,7 +1089,8 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     if not finite:  # as the nominal step's rescue: first order only
         rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
                                             C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
-                                            iCa, idM, ifg, iT2, iold_dM, iold_Ca, iold_fg, iold_T2)
+                                            iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
+                                            iold_C2)
     c = a[a.shape[0] - 1]
     scaled = abs(c) * rho > tol
     cT = c if scaled else 0.0
@@ -1142,7 +1106,13 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
         for j in range(Ts.shape[1]):
             for k in range(Ts.shape[2]):
                 T[i, j, k] = Ts[i, j, k] + cT * dTs[i, j, k]
-    Fz = step_jacobian(z, T, Vs, C3, Pn, SQM)
+    C = C3.copy()  # the bias form with the payload's share (iC2 is C3's flattening, [k * nq + j, c])
+    if iC2.shape[0]:
+        for k in range(C3.shape[0]):
+            for j in range(C3.shape[1]):
+                for i in range(C3.shape[2]):
+                    C[k, j, i] += cT * iC2[k * C3.shape[1] + j, i]
+    Fz = step_jacobian(z, T, Vs, C, Pn, SQM)
     n0 = z.shape[0]
     last = rows.shape[0] - 1
     x = np.zeros(nx)
@@ -1179,7 +1149,9 @@ _augmented = _inline(_augmented)
 scaled_steps = _jit(_scaled_steps)
 payload_interval = _jit(_payload_interval)
 extra_interval = _jit(_extra_interval)
-cached_samples = _jit(_cached_samples)
+_system_args = _shared(_system_args)
+cached_interval = _shared(_cached_interval)
+cached_rows = _shared(_cached_rows)
 map_error = _jit(_map_error)
 rebuild_map = _jit(_rebuild_map)
 next_map_radius = _jit(_next_map_radius)
@@ -1235,38 +1207,14 @@ def warm_up_maps() -> None:
                 np.empty((1, 2 * r)))
 
 
-def warm_up_loop(augmented: bool | None = None) -> None:
-    """Compile (or load) the sample loop :func:`cached_samples`, for the argument types the filter passes: called
-    with no sample to do (``k0 = k1``), it returns at once. It calls :func:`held_interval`, the step map's kernels
-    (:func:`warm_up_maps`) and Kalman kernels (:func:`.kalman.warm_up`), which numba compiles with it unless they
-    are compiled or cached already. ``augmented`` None: the plain state's specialisation; True: the augmented
-    states' (with :func:`extra_interval`). An example call that no longer matches the loop's parameters is
-    reported (the loop then compiles at its first use)."""
-    v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
-    try:
-        cached_samples(t=v, U=m, Y=m, k0=1, k1=1, x=v, x_alt=v, P=m, P_alt=m, P_pred=m, work=m, HP=m, r=v, S=m,
-                       zn=v, Rd=v, floor=v, gate=0.0, holdoff=0, win_Z=m, win_n=n, win_sum=v, win_sq=v, win_last=v,
-                       win_int=v, win_tests=v, win_status=n, step_w=v, step_thr=0.0, x_rec=m, P_rec=m, P_kind=0,
-                       theta_rec=m, inn_rec=m, S_rec=m, nis_rec=v, mats_out=(m, m, m, m), jump_w=v, jump_thr=0.0,
-                       q0=v, rad=0.0, meas_rad=0.0, h_min=1.0, map_q=v, map_rad=0.0, map_dt=0.0, map_n=1, dt_tol=0.0,
-                       ahead=0.0, horizon=0.0, torque_var=v, q_extra=v, rad_tol=0.0, rad_min=0.0, rad_max=0.0, c0=v,
-                       Hm=m, dH=m, G=m, d=v, dd=0.0, Ts=c, Vs=c, C3=c, Pn=m, SQM=m, L=m, Q=m,
-                       **_example_system(1, 1)._asdict(),
-                       augmented=LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None)
-    except TypeError as exc:  # a parameter added or renamed: tests/test_compile.py fails until this call follows
-        log.warning("expansion.warm_up_loop: the example call does not match cached_samples (%s); it compiles at "
-                    "its first use", exc)
-
-
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the kernels once per process, so that the first interval of
-    a filter does not carry it (:func:`warm_up_held`, :func:`warm_up_interval`, :func:`warm_up_maps`,
-    :func:`warm_up_loop`)."""
+    a filter does not carry it (:func:`warm_up_held`, :func:`warm_up_interval`, :func:`warm_up_maps`; the
+    filter's sample loop: :func:`.loop.warm_up`)."""
     global _warm
     if _warm:
         return
     warm_up_held()
     warm_up_interval()
     warm_up_maps()
-    warm_up_loop()
     _warm = True

@@ -4,7 +4,9 @@
 - :func:`update`: innovation, its covariance, one Cholesky solve for the gain and ``S^-1 r``, the posterior mean
   and the Joseph-form covariance (eqs. 14-15);
 - :func:`settle`: symmetrisation, a floor on the variances and the finiteness test that end every sample;
-- :func:`predict_update`: the three in one call (what a sample with a measurement does).
+- :func:`predict_update`: the three in one call (what a sample with a measurement does);
+- :func:`predict`, :func:`condition`: the same algebra as pure steps on a :class:`~.base.Belief` (new arrays; the
+  filter's driver calls the kernels on its own buffers).
 
 At the observer's size (tens of states, a few channels) a NumPy call costs more in dispatch and temporaries
 than in arithmetic, so the update's thin products are loops over contiguous rows (``row_i += a * row_k``, the
@@ -22,17 +24,35 @@ Without numba (a core dependency) the kernels run as plain, slow Python.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
-from scipy.stats import chi2
+
+from .base import Belief, Measurement, Prediction
+from .stats import chi2_ppf
 
 try:
     import numba
 except ImportError:  # pragma: no cover - numba is a core dependency
     numba = None
 
-__all__ = ["InputStepTest", "apply_gain", "fix_cov", "normalise", "predict_cov", "predict_update", "settle",
-           "step_statistic", "update", "warm_up", "window_push", "window_seen"]
+__all__ = [
+    "Innovation",
+    "InputStepTest",
+    "apply_gain",
+    "condition",
+    "fix_cov",
+    "normalise",
+    "predict",
+    "predict_cov",
+    "predict_update",
+    "settle",
+    "step_statistic",
+    "update",
+    "warm_up",
+    "window_push",
+    "window_seen",
+]
 
 if numba is not None:
     # error_model="numpy": a division by zero gives inf/nan, with no exception checks in the loops; no fastmath
@@ -41,13 +61,6 @@ else:  # pragma: no cover
 
     def _jit(f):
         return f
-
-#: Why a model's compiled sample loop (:meth:`.ekf.MultirateEKF.run`, e.g. :func:`.expansion.cached_samples`)
-#: stopped: the samples asked for are done; the held configuration's or the step map's radius was left (the model
-#: renews its arrays and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step`
-#: must take (an input step, a gated channel, an indefinite or non-finite update, the model's own reasons); a
-#: sensor-fault window test failed at the last sample done (the monitor reports it).
-LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -418,10 +431,49 @@ class InputStepTest:
 
     def __init__(self, var, p: float | None):
         self.weights = np.ascontiguousarray(0.5 / np.asarray(var, dtype=float).reshape(-1))
-        self.threshold = math.inf if p is None else float(chi2.ppf(1.0 - p, len(self.weights)))
+        self.threshold = math.inf if p is None else float(chi2_ppf(1.0 - p, len(self.weights)))
 
     def __call__(self, u0: np.ndarray, u1: np.ndarray) -> bool:
         return step_statistic(u0, u1, self.weights) > self.threshold
+
+
+class Innovation(NamedTuple):
+    """What a measurement update saw: the innovation ``r = y - g(x)``, its covariance ``S = H P H' + R`` and the
+    normalised innovation squared ``r' S^-1 r`` (what the monitors test)."""
+
+    r: np.ndarray
+    S: np.ndarray
+    nis: float
+
+
+def predict(belief: Belief, interval: Prediction) -> Belief:
+    """The belief carried over one interval (eqs. 10-13): the model's predicted mean ``interval.x`` and
+    ``P = F P F' + Q`` (:func:`predict_cov`)."""
+    n = len(belief.x)
+    P = np.empty((n, n))
+    predict_cov(np.ascontiguousarray(interval.F, float), np.ascontiguousarray(belief.P, float),
+                np.ascontiguousarray(interval.Q, float), P, np.empty((n, n)))
+    return Belief(np.array(interval.x, float), P)
+
+
+def condition(belief: Belief, measurement: Measurement, y, R_diag, floor=0.0) -> tuple[Belief, Innovation]:
+    """The belief conditioned on the measurement ``y`` of channels with the noise variances ``R_diag``
+    (eqs. 14-15: the gain by a Cholesky solve of ``S``, the Joseph-form covariance; :func:`update`), settled
+    (symmetrised, its variances floored at ``floor``: :func:`settle`); with what the update saw.
+
+    Raises ``numpy.linalg.LinAlgError`` where ``S`` is not positive definite (the filter's driver finishes such an
+    update by an LU solve, with a warning)."""
+    x = np.ascontiguousarray(belief.x, float)
+    P = np.ascontiguousarray(belief.P, float)
+    H = np.ascontiguousarray(measurement.H, float)
+    m, n = H.shape
+    r, S, x_out, P_out = np.empty(m), np.empty((m, m)), np.empty(n), np.empty((n, n))
+    nis, ok = update(x, P, np.ascontiguousarray(y, float), np.ascontiguousarray(measurement.y, float), H,
+                     np.ascontiguousarray(R_diag, float), np.empty((m, n)), r, S, x_out, P_out)
+    if not ok:
+        raise np.linalg.LinAlgError("the innovation covariance is not positive definite")
+    settle(x_out, P_out, np.ascontiguousarray(np.broadcast_to(np.asarray(floor, float), (n,))))
+    return Belief(x_out, P_out), Innovation(r, S, nis)
 
 
 def warm_up() -> None:

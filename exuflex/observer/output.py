@@ -3,12 +3,12 @@ figures (:func:`exuflex.plots.observer_figures`)."""
 
 from __future__ import annotations
 
-import json
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
-from ..runs import SignalsCsvWriter, atomic_write_text, package_versions, write_signals_csv
+from ..runs import SignalsCsvWriter, atomic_write_text, dump_json, package_versions, write_signals_csv
 from ..sensors import Signals
 
 __all__ = ["EstimatesTable", "EstimatesWriter", "estimates_table", "summary_table", "write_outcome"]
@@ -154,16 +154,26 @@ def write_outcome(out_dir, mech, run, outcome, observer=None, *, estimates: bool
     summary = dict(outcome.summary)
     summary["versions"] = package_versions()
     summary["run_meta"] = {k: run.meta.get(k) for k in ("engine", "seed", "model", "settings") if k in run.meta}
-    atomic_write_text(out / "result.json", json.dumps(summary, indent=1, default=float))
+    atomic_write_text(out / "result.json", dump_json(summary, default=float))
     return out
 
 
 _UNITS = {"rad": "rad", "rad/s": "rad/s", "m": "m", "m/s": "m/s"}
 
 
+#: what the bound column of :func:`summary_table` is, and how to read a ratio (printed under the table)
+BOUND_NOTE = ("bound: the RMS over the scored samples of the posterior Cramer-Rao bound's standard deviation, the "
+              "Kalman covariance recursion of the observer's model linearised along the {along}, with the stated "
+              "noise and the log's sampling (docs/bound.md). A consistent filter's RMS error scatters about it: "
+              "ratios below 1 are expected about as often as above (a linear-Gaussian model's Kalman filter reaches "
+              "the bound; for this nonlinear model the linearised bound is an approximation).")
+
+
 def summary_table(mech, outcome, bound: bool = True) -> str:
     """The result as text: a header (samples, model, channels, NIS), then one row per physical quantity with its
-    unit, RMS and max error against the truth (if any), the bound for this log and their ratio."""
+    unit, RMS and max error against the truth (if any), the bound for this log (the posterior Cramer-Rao bound's
+    RMS over the scored samples, :func:`.session.estimation_bound`; with smoothing the smoothed bound) and their
+    ratio, and a note saying what the bound is."""
     s = outcome.summary
     from .session import physical_names, physical_units
 
@@ -175,21 +185,37 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
     if s.get("diverged"):
         lines.append(f"DIVERGED: the estimates became non-finite at t = {s['diverged_at']} s")
     elif s.get("nis_inconsistent"):
-        lines.append(f"NIS inconsistent from t = {s['nis_flagged_at']} s (the innovations exceed what the filter's "
+        when = (f"from t = {s['nis_flagged_at']} s" if s.get("nis_flagged_at") is not None else
+                f"over the whole log (mean NIS {s['nis_mean']:.3g} against {s['nis_expected']:.3g})")
+        lines.append(f"NIS inconsistent {when} (the innovations exceed what the filter's "
                      "covariance explains: model mismatch or noise settings; the estimates stay finite)")
     units = dict(zip(physical_names(mech), physical_units(mech), strict=True))
     met = outcome.metrics
     bnd = outcome.bound or {}
+    smoothed = bool(s.get("smoothed"))
+    est = "smoothed" if smoothed else "RMS error"
     if met:
-        lines.append(f"{'quantity':10s} {'unit':>6s} {'RMS error':>11s} {'max error':>11s} {'bound':>11s} "
-                     f"{'ratio':>6s}")
+        lines.append(f"{'quantity':10s} {'unit':>6s} {est:>11s} {'max error':>11s} {'bound':>11s} {'ratio':>6s}"
+                     + (f" {'filtered':>11s} {'f. bound':>11s} {'ratio':>6s}" if smoothed else ""))
+        fe, fb = s.get("filtered_rms_error") or {}, s.get("filtered_bound_rms") or {}
         for k, v in met["rms_error"].items():
             b = bnd.get(k)
             ratio = f"{v / b:6.2f}" if b else "     -"
             bs = f"{b:11.3g}" if b else "          -"
-            lines.append(f"{k:10s} {units.get(k, ''):>6s} {v:11.3g} {met['max_error'][k]:11.3g} {bs} {ratio}")
+            row = f"{k:10s} {units.get(k, ''):>6s} {v:11.3g} {met['max_error'][k]:11.3g} {bs} {ratio}"
+            if smoothed and k in fe and fb.get(k):
+                row += f" {fe[k]:11.3g} {fb[k]:11.3g} {fe[k] / fb[k]:6.2f}"
+            lines.append(row)
     elif bound and bnd:
         lines.append(f"{'quantity':10s} {'unit':>6s} {'bound':>11s}")
         for k, b in bnd.items():
             lines.append(f"{k:10s} {units.get(k, ''):>6s} {b:11.3g}")
+    if bnd and (met or bound):
+        along = (s.get("bound_for") or {}).get("along", "truth")
+        words = {"truth": "true trajectory", "plan": "planned trajectory (the log has no truth)",
+                 "q_ref": "reference pose at rest (no manoeuvre)"}.get(along, along)
+        note = BOUND_NOTE.format(along=words)
+        if smoothed:
+            note += " Smoothed estimates are scored against the smoothed bound (RTS on the bound's covariances)."
+        lines += textwrap.wrap(note, 110)
     return "\n".join(lines)

@@ -76,11 +76,12 @@ from ..erls.kinematics import KinematicsError
 from ..erls.simulate import rk4_amplification
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
-from .base import Measurement, Prediction
+from .base import LoopModel, Measurement, Prediction
 from .expansion import (
-    NO_EXTRA_STATES,
+    CachedStep,
     HeldSystem,
-    cached_samples,
+    LoopMap,
+    LoopState,
     held_interval,
     held_step,
     map_error,
@@ -289,7 +290,8 @@ class ReducedObserverModel:
             raise ValueError(f"torque_std has {len(sig)} entries, expected one per motor ({nu})")
         self.torque_var = np.asarray(sig, float) ** 2
         self.q_extra = None if q_extra is None else np.asarray(q_extra, float)
-        self._q_extra = _NONE if q_extra is None else np.ascontiguousarray(self.q_extra)
+        #: the diagonal added to the process noise per interval as the kernels take it (empty: none)
+        self.q_extra_diag = _NONE if q_extra is None else np.ascontiguousarray(self.q_extra)
         self.jump_p = jump_p
         self.jump_test = InputStepTest(self.torque_var, jump_p)
         self._u_shape = (nu,)
@@ -300,6 +302,7 @@ class ReducedObserverModel:
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = 0
         self.state_cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._serial = 0
+        self._map_errs = np.empty(1024)  # the step maps the compiled loop replaces: their errors, per call
         self.reset()
         warm_up()
         if method == "cached":  # compile (or load) the evaluation's kernels now, not in a run's first interval
@@ -563,52 +566,56 @@ class ReducedObserverModel:
 
     # ------------------------------------------------------------------ the filter's compiled sample loop
     @property
-    def sample_loop(self):
-        """The compiled sample loop of this model's step (:func:`.expansion.cached_samples`) for
-        :meth:`.ekf.MultirateEKF.run`, or None (the exact reference step runs sample by sample)."""
-        return cached_samples if self.method == "cached" else None
+    def compiled(self) -> bool:
+        """The filter's compiled sample loop (:func:`.loop.samples`) may take this model's intervals: the cached
+        step (the exact reference step runs sample by sample)."""
+        return self.method == "cached"
 
-    def loop_arrays(self, z: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> tuple:
-        """The model's arguments of :func:`.expansion.cached_samples` for samples from the state ``z`` with the
-        torques ``u`` over ``dt``: the held configuration and its step map renewed for that interval where q left
-        their radii (as :meth:`predict` would), the measurement rows of ``channels`` about it."""
+    def loop_model(self, z: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> LoopModel:
+        """The cached step as the compiled loop takes it (:class:`.expansion.CachedStep`, its carried
+        :class:`.expansion.LoopState`) for samples from the state ``z`` with the torques ``u`` over ``dt``: the held
+        configuration and its step map renewed for that interval where q left their radii (as :meth:`predict`
+        would), the measurement rows of ``channels`` about it."""
         held = iv, _, _, sm = self._hold(z, self._input(u), dt)
         self._renewed = (z.copy(), dt, held)  # for predict(), if the loop hands this interval back
-        self._loop_step = (iv, sm)
         c0, Hm, dH, G = self._secant_rows(iv, channels)
         d = iv.d if iv.old is not None else _NONE
-        return (self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
-                min(self.h, iv.h_stable), sm.q, self.map_rad, sm.dt, sm.n, self.dt_tol, self.remap_ahead,
-                self.remap_horizon, self.torque_var, self._q_extra, *self._map_radius_limits, c0, Hm, dH, G, d,
-                iv.dd, *sm.tail[:5], sm.L, sm.Q, *sm.tail[5:],  # (Ts, Vs, C3, P^n, S), L, Q, the held system
-                *NO_EXTRA_STATES)
+        step = CachedStep(self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
+                          min(self.h, iv.h_stable), self.dt_tol, self.remap_ahead, self.remap_horizon,
+                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, dH, G, d, iv.dd,
+                          *sm.tail[:3], self._map_errs, iv.system)
+        state = LoopState(LoopMap(sm.q, self.map_rad, sm.dt, sm.n, sm.Pn, sm.S, sm.L, sm.Q), 0, -1,
+                          (False, 0.0, sm.Pn, sm.S, sm.L, sm.Q))
+        self._loop_step = (iv, sm)
+        return LoopModel(step, state, None)
 
     @property
     def loop_step(self) -> tuple:
-        """``(iv, sm)``: the held configuration and step map :meth:`loop_arrays` last handed the loop."""
+        """``(iv, sm)``: the held configuration and step map :meth:`loop_model` last handed the loop."""
         return self._loop_step
 
-    def loop_buffers(self) -> tuple:
-        """Where :func:`.expansion.cached_samples` leaves the last interval's held matrices ``(M_r, K_r, C_r, G_r)``."""
-        r = self.r
-        return np.empty((r, r)), np.empty((r, r)), np.empty((r, r)), np.empty((r, self._u_shape[0]))
-
-    def loop_done(self, mats: tuple, dt: float, maps: tuple, z: np.ndarray, k: int) -> None:
+    def loop_done(self, mats: tuple, dt: float, state: LoopState, z: np.ndarray, k: int) -> None:
         """After samples of the compiled loop up to ``k`` (not done), the filter's state now ``z``: the step maps
-        it rebuilt (``maps``, see :func:`.expansion.cached_samples`), and ``last_step`` and
-        :attr:`interval_system` of its last interval (matrices ``mats`` over ``dt``), as :meth:`predict` leaves
-        them. A map built for sample ``k`` stays the map of that interval when :meth:`predict` takes it."""
+        it rebuilt (``state``, :func:`.expansion.cached_interval`), and ``last_step`` and :attr:`interval_system`
+        of its last interval (matrices ``mats`` over ``dt``), as :meth:`predict` leaves them. A map built for
+        sample ``k`` stays the map of that interval when :meth:`predict` takes it."""
         iv, sm = self._loop_step
-        n_maps, self.map_rad, q, dt_map, Pn, S, L, Q, errs, k_map = maps[:10]
+        lm, n_maps, k_map = state.map, state.n_maps, state.k_map
+        self.map_rad = lm.rad
         if n_maps:
-            sm = self._new_map(iv, dt_map, sm.n, q, Pn, S, L, Q)
+            sm = self._new_map(iv, lm.dt, sm.n, lm.q, lm.Pn, lm.SQM, lm.L, lm.Q)
             self.n_remap += n_maps
-            self.map_errors.extend(errs[:n_maps].tolist())
+            self.map_errors.extend(self._map_errs[:n_maps].tolist())
             if k_map == k:
-                self._renewed = (z.copy(), dt_map, (iv, z[: self.nq] - iv.q0, sm.n, sm))
+                self._renewed = (z.copy(), lm.dt, (iv, z[: self.nq] - iv.q0, sm.n, sm))
         self.last_step = (iv, sm)
         n = self.substeps(iv, dt)
         self._interval_matrices = (*(a.copy() for a in mats), dt / n, n)
+
+    @property
+    def n_inputs(self) -> int:
+        """The number of inputs a step takes: one torque per motor."""
+        return self._u_shape[0]
 
     # ------------------------------------------------------------------ for models built on this one (augmented)
     def torques(self, u) -> np.ndarray:
@@ -659,7 +666,7 @@ class ReducedObserverModel:
             return sm
         new = self._new_map(iv, dt, n, *rebuild_map(z, iv.q0, self._measurement_radius(iv), self.map_rad,
                                                     self.remap_ahead, self.remap_horizon, *self._secant(iv), dt, n,
-                                                    self.torque_var, self._q_extra, *iv.system))
+                                                    self.torque_var, self.q_extra_diag, *iv.system))
         self.n_remap += 1
         if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
             err = map_error(sm.Pn, new.Pn, sm.Q, new.Q, self.state_cov())

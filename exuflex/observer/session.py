@@ -3,8 +3,10 @@
 :func:`make_observer` builds the reduced model and the multirate EKF for a mechanism and a channel set;
 :func:`estimate` filters a log (offline) and reconstructs the physical states the truth files use
 (q, dq/dt, tip elastic displacement and velocity, see :mod:`exuflex.sensors`); :func:`metrics` compares
-them with a truth; :func:`estimation_bound` gives the best RMS error any filter can reach with these
-sensors (the steady-state Kalman covariance of the linearised reduced model at a configuration).
+them with a truth; :func:`estimation_bound` gives the yardstick of an RMS error: the posterior Cramer-Rao bound of
+the reduced model linearised along the true trajectory (or the planned one), on the log's sampling schedule
+(:func:`bound_track`, :mod:`.bound`); :func:`steady_bound` a quick estimate of it, the steady-state Kalman
+covariance at frozen poses.
 """
 
 from __future__ import annotations
@@ -27,8 +29,9 @@ from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
-from .bound import periodic_posterior, steady_state_covariance, unobservable_states
-from .ekf import EstimationResult, MultirateEKF
+from .bound import BoundTrack, periodic_posterior, riccati_track, steady_posterior, unobservable_states
+from .ekf import EstimationResult, Monitoring, MultirateEKF
+from .expansion import step_jacobian
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
@@ -47,6 +50,8 @@ __all__ = [
     "Observer",
     "ObserverConfig",
     "UnobservableError",
+    "augmented_estimates",
+    "bound_track",
     "default_channels",
     "estimate",
     "estimate_chunks",
@@ -55,6 +60,8 @@ __all__ = [
     "metrics",
     "physical_names",
     "physical_units",
+    "start_configuration",
+    "steady_bound",
 ]
 
 log = logging.getLogger(__name__)
@@ -64,43 +71,64 @@ log = logging.getLogger(__name__)
 class ObserverConfig:
     """Observer settings (all recorded in result files).
 
-    channels : measured sensor channels used (default :func:`default_channels`).
-    masters, n_interior, q_star, ranking : the reduction (default: the model file's).
-    h : longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
-    dt : nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
+    Parameters
+    ----------
+    channels
+        measured sensor channels used (default :func:`default_channels`).
+    masters, n_interior, q_star, ranking
+        the reduction (default: the model file's).
+    h
+        longest RK4 sub-step (s); shorter where the reduced model's stiffest mode needs it (:mod:`.reduced`).
+    dt
+        nominal sample interval (s, default 1 / the model's sample rate); the filter steps by each sample's own
         time stamp.
-    method : ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
-    q0_std, qd0_std, elastic0_std, elastic_rate0_std : prior standard deviations (rad, rad/s, m or modal units,
+    method
+        ``"cached"`` (default) or ``"rk4"`` (the exact reference), see :mod:`.reduced`.
+    q0_std, qd0_std, elastic0_std, elastic_rate0_std
+        prior standard deviations (rad, rad/s, m or modal units,
         their rates).
-    q_scale : multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. The
+    q_scale
+        multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. The
         steady-state bound always uses the stated noise.
-    jump_p : the false-alarm probability per interval of the test that flags two successive torque samples
+    jump_p
+        the false-alarm probability per interval of the test that flags two successive torque samples
         differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
         unknown instant within it, moment-matched (:meth:`.reduced.ReducedObserverModel.input_jump_moments`).
         ``None`` (default): no test. The test helps where a log's torque steps fall between two samples, and
         biases the prediction where they fall on a sample (a time law aligned with the samples, as
         ``exuflex simulate`` makes them): there the held-input step is exact.
-    q_extra_std : extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
+    q_extra_std
+        extra white noise per interval on the elastic rates (unmodelled dynamics), as a standard
         deviation in the state's unit.
-    max_gap : longest interval (s) between two samples the filter predicts over.
-    start_up : seconds left out of the error metrics (the filter's transient).
-    gate_p, fault_window, fault_p : per-channel innovation gate and sensor-fault tests (see
+    max_gap
+        longest interval (s) between two samples the filter predicts over.
+    start_up
+        seconds left out of the error metrics (the filter's transient).
+    gate_p, fault_window, fault_p
+        per-channel innovation gate and sensor-fault tests (see
         :mod:`.ekf`, :class:`.ekf.ChannelMonitor`); ``gate_p=None`` and ``fault_window=0`` turn them off.
-    fault_isolation : leave a channel with an open offset or stuck fault out of the updates (off by default: a
+    fault_isolation
+        leave a channel with an open offset or stuck fault out of the updates (off by default: a
         model error, such as a wrong payload, looks like a sensor offset to the tests; they report it).
-    fault_holdoff_s : seconds after a detected torque step during which nothing is gated and the NIS and
+    fault_holdoff_s
+        seconds after a detected torque step during which nothing is gated and the NIS and
         sensor-fault tests pause (the allowance for planned input steps).
-    estimator : one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
+    estimator
+        one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
         state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
-    payload_std, payload0_std : random-walk std of the payload scale per sqrt(s) (the payload is constant within a
+    payload_std, payload0_std
+        random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
-    payload_nominal_p : the prior probability that the payload is the model file's. The payload estimator reports
+    payload_nominal_p
+        the prior probability that the payload is the model file's. The payload estimator reports
         its posterior mixed with its conditional on the nominal payload, by that hypothesis' posterior probability
         (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is.
-    payload_linearity : the payload scale is held at its prior from the start until the first interval whose
+    payload_linearity
+        the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
         deviations (:class:`.augmented.AugmentedModel`, ``linearity_tol``).
-    input_scale, input_tau, input0_scale : torque-disturbance std per motor as a multiple of the motor's torque-noise
+    input_scale, input_tau, input0_scale
+        torque-disturbance std per motor as a multiple of the motor's torque-noise
         std (per sqrt(s) for a random walk, stationary for a Gauss-Markov process with correlation time
         ``input_tau`` s), and its prior std (about 0) as such a multiple.
     """
@@ -296,20 +324,20 @@ class Observer:
             return C @ P[:, :nx, :nx] @ C.T
         out = np.full((len(Z), k, k), np.nan)  # (rows in no run of tip rows: no tip value)
         for a, b, (A0, dA, q0) in self._tip_segments(Z[:, :nx], tp, refresh_rad, carry):
-            for i in range(a, b):
-                z = Z[i, :nx]
-                A = A0 + np.tensordot(z[:nq] - q0, dA, axes=1)
-                dAp = np.einsum("iaj,j->ai", dA, z[:r])  # d(A p)/dq (2, nq)
-                C[2 * nq :, :] = 0.0
-                C[2 * nq : 2 * nq + 2, :r] = A
-                C[2 * nq : 2 * nq + 2, :nq] += dAp
-                C[2 * nq + 2 :, r:] = A
-                C[2 * nq + 2 :, :r] = np.tensordot(z[r : r + nq], dA, axes=1)
-                C[2 * nq + 2 :, r : r + nq] += dAp
-                # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
-                # left out: of the order of q' times the deflection per radian, times q's small uncertainty
-                C[2 * nq + 2 :, :nq] += np.einsum("iaj,j->ai", dA, z[r:])
-                out[i] = C @ P[i][:nx, :nx] @ C.T
+            z = Z[a:b, :nx]
+            A = _rows_along(A0, dA, z[:, :nq] - q0)  # (m, 2, r)
+            dAp = np.einsum("iaj,kj->kai", dA, z[:, :r])  # d(A p)/dq (m, 2, nq)
+            Cb = np.zeros((b - a, k, nx))
+            Cb[:] = C
+            Cb[:, 2 * nq : 2 * nq + 2, :r] = A
+            Cb[:, 2 * nq : 2 * nq + 2, :nq] += dAp
+            Cb[:, 2 * nq + 2 :, r:] = A
+            Cb[:, 2 * nq + 2 :, :r] = _rows_along(0.0, dA, z[:, r : r + nq])
+            Cb[:, 2 * nq + 2 :, r : r + nq] += dAp
+            # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
+            # left out: of the order of q' times the deflection per radian, times q's small uncertainty
+            Cb[:, 2 * nq + 2 :, :nq] += np.einsum("iaj,kj->kai", dA, z[:, r:])
+            out[a:b] = Cb @ P[a:b, :nx, :nx] @ Cb.transpose(0, 2, 1)
         return out
 
 
@@ -342,6 +370,45 @@ def _noise_std(mech: Mechanism, channels: Sequence[str]) -> dict[str, float]:
     return out
 
 
+NIS_WHOLE_LOG_P = 1e-6
+"""False-alarm probability of the whole-log NIS test (:func:`nis_whole_log_flag`)."""
+
+NIS_GROSS_FACTOR = 3.0
+"""How far above a consistent filter's bound the whole log's mean NIS must lie to be flagged whatever the window:
+the windowed test judges mild mismatch; this one a gross inconsistency (several times the innovations' stated
+covariance: a log that cannot support the model, wrong units or noise)."""
+
+
+def nis_whole_log_flag(nis_mean: float, nis_expected: float, n_updates: int, p: float = NIS_WHOLE_LOG_P,
+                       factor: float = NIS_GROSS_FACTOR) -> bool:
+    """The NIS test over the whole log, beside the filter's windowed one. With a consistent filter the sum of the
+    ``n`` updates' NIS is chi-square with ``k = n d`` degrees of freedom (``d`` the mean channels per update); the
+    log is flagged where the mean NIS exceeds ``factor`` times that sum's ``1 - p`` quantile over ``n``, so that a
+    mean NIS far above its expectation is flagged even where no window of the windowed test fills (a short log, a
+    slow one). The quantile ``chi2_{1-p}(k) = 2 Q^{-1}(k / 2, p)``, the inverse of the regularised upper incomplete
+    gamma function."""
+    if not (n_updates > 0 and math.isfinite(nis_mean) and math.isfinite(nis_expected) and nis_expected > 0):
+        return False
+    from scipy.special import gammainccinv
+
+    q = 2.0 * float(gammainccinv(n_updates * nis_expected / 2.0, p))
+    return bool(nis_mean * n_updates > factor * q)
+
+
+def _check_arguments(config=None, observer=None) -> None:
+    """``config`` an :class:`ObserverConfig` or None, ``observer`` an :class:`Observer` or None: else a
+    :class:`~exuflex.errors.UsageError` naming the parameter and the type expected."""
+    from ..errors import UsageError
+
+    if config is not None and not isinstance(config, ObserverConfig):
+        raise UsageError(f"config: expected an exuflex.ObserverConfig or None, got {type(config).__name__}"
+                         + (" (settings are its fields, e.g. ObserverConfig(q_scale=1.0))" if isinstance(config, str)
+                            else ""))
+    if observer is not None and not isinstance(observer, Observer):
+        raise UsageError("observer: expected an exuflex.Observer (exuflex.make_observer(mech, config)) or None, got "
+                         f"{type(observer).__name__}")
+
+
 def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None, model: ErlsModel | None = None,
                   cb: CraigBampton | None = None) -> Observer:
     """Build the reduced model and the EKF for ``mech``.
@@ -353,6 +420,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     from ..validate import check_mechanism_argument, check_observer_settings
 
     check_mechanism_argument(mech)
+    _check_arguments(config=config)
     config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
     # the first run with an empty kernel cache: compiled in parallel processes (._compile)
@@ -375,21 +443,22 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     som.torque_var_nominal = stated**2
     r, nq = som.r, som.nq
     if x0 is None:
-        x0 = som.initial_state(_start_q(mech))
+        x0 = som.initial_state(start_configuration(mech))
     P0 = np.empty(som.nx)
     P0[:nq] = config.q0_std**2
     P0[nq:r] = config.elastic0_std**2
     P0[r : r + nq] = config.qd0_std**2
     P0[r + nq :] = config.elastic_rate0_std**2
     fmodel, x0, P0 = _filter_model(som, config, x0, P0)
+    monitoring = Monitoring(gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
+                            fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
+                            input_step=_torque_step_test(som.torque_var, config.fault_p), isolate=config.fault_isolation)
     if config.estimator == "ukf":
-        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap)
+        ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
+                          monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
-                           gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
-                           fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
-                           input_step=_torque_step_test(som.torque_var, config.fault_p),
-                           isolate=config.fault_isolation)
+                           **monitoring._asdict())
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -437,7 +506,9 @@ def _augmented_mean(ekf_model, x0) -> np.ndarray:
     return out
 
 
-def _start_q(mech: Mechanism) -> np.ndarray:
+def start_configuration(mech: Mechanism) -> np.ndarray:
+    """The configuration the observer starts from: the planned manoeuvre's first (the model's ``q_ref`` without a
+    manoeuvre, or where the plan fails, with a warning)."""
     if mech.manoeuvre is not None:
         try:
             p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
@@ -599,6 +670,23 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
 
+def _scored(t: np.ndarray, start_up: float, truth_t: np.ndarray | None = None) -> np.ndarray:
+    """The samples of a record of times ``t`` that :func:`metrics` scores: from ``t[0] + start_up`` on, within the
+    truth's span (half a median interval's tolerance) where a truth's times are given."""
+    t = np.asarray(t, float)
+    sel = t >= t[0] + start_up
+    if truth_t is not None and len(truth_t):
+        tol = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        sel &= (t >= float(truth_t[0]) - tol) & (t <= float(truth_t[-1]) + tol)
+    return sel
+
+
+def _bound_kind(along: str, smooth: bool) -> str:
+    """What the bound of a summary is, in words (``bound_kind``)."""
+    return (("smoothed " if smooth else "") + "posterior Cramer-Rao bound along the "
+            + {"truth": "truth", "plan": "plan (no truth)", "q_ref": "reference pose at rest (no manoeuvre)"}[along])
+
+
 def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None, *,
             min_coverage: float = 0.9) -> dict:
     """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times).
@@ -639,22 +727,195 @@ def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence
     return {"rms_error": rms, "max_error": mx, "truth_coverage": coverage}
 
 
-def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
-                     span: tuple[float, float] | None = None) -> dict[str, float]:
-    """Best achievable RMS error per physical quantity: the steady-state Kalman covariance of the reduced model
-    linearised at a configuration, the stated torque noise as process noise.
+def estimation_bound(obs: Observer, run=None, *, span: tuple[float, float] | None = None, smooth: bool = False,
+                     log_check=None) -> dict[str, float]:
+    """The bound an RMS error is compared with: the RMS over ``span`` of the posterior Cramer-Rao bound's standard
+    deviation of each physical quantity (:func:`bound_track`).
+
+    ``run`` (:class:`exuflex.runs.Run`): along its truth if it has one, else along the plan, on its log's times,
+    torques and sampled channels; without: along the plan at the observer's interval, every channel at every
+    sample, the plan's computed torques. ``span = (t0, t1)`` in seconds from the first sample (default: from the
+    observer's ``start_up`` to the end). ``smooth``: the smoothed bound. ``log_check`` (the log's
+    :class:`exuflex.validate.LogCheck`) is only used for the observability test's channel set.
+
+    Raises
+    ------
+    UnobservableError
+        As :func:`steady_bound`: the channels leave states that neither decay nor are measured.
+    """
+    mech = obs.mech
+    if run is None:
+        d = mech.manoeuvre.duration if mech.manoeuvre is not None else 1.0
+        t = np.arange(0.0, d + 0.5 * obs.ekf.dt, obs.ekf.dt)
+        U, sampled, truth = None, None, None
+    else:
+        S = run.sensors
+        t = np.asarray(S.t, float)
+        U = LogColumns.of(S, run.motors or mech.motor_names, hold=True)
+        sampled = _Sampled(S, obs.channels)
+        truth = run.truth
+    check_observable(obs, log_check)
+    track, _ = bound_track(obs, t, U, sampled, truth=truth, smooth=smooth)
+    t0, t1 = (obs.config.start_up, float(t[-1] - t[0])) if span is None else (float(span[0]), float(span[1]))
+    sel = (t - t[0] >= t0 - 1e-9) & (t - t[0] <= t1 + 1e-9)
+    if not sel.any():
+        raise ValueError(f"span {span} holds no sample of the record ({t[0]:.6g} to {t[-1]:.6g} s)")
+    return dict(zip(physical_names(mech), map(float, track.rms(sel, smoothed=smooth)), strict=True))
+
+
+class _Sampled:
+    """Which of ``channels`` are sampled (finite) in each row of a log's table, a block of rows at a time."""
+
+    def __init__(self, signals: Signals, channels: Sequence[str]):
+        self._cols = LogColumns.of(signals, channels)
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        return np.isfinite(self._cols[rows])
+
+
+class _Trajectory:
+    """Reduced states along a trajectory of the rigid coordinates, a block of rows at a time: ``q`` and ``q'`` at
+    the times ``t`` from a truth (linear interpolation of its samples) or from the plan (cubic Hermite from the
+    plan's grid at the log's interval); the elastic coordinates and their rates at zero (the truth files hold the
+    tip's elastic displacement, not the reduced model's coordinates)."""
+
+    def __init__(self, obs: Observer, t: np.ndarray, truth: Signals | None):
+        from scipy.interpolate import CubicHermiteSpline
+
+        self.obs, self.t = obs, np.asarray(t, float)
+        mech = obs.mech
+        qn = list(mech.coordinate_names)
+        self.plan_torque = None
+        if truth is not None:
+            self._q = lambda ts: np.column_stack([np.interp(ts, truth.t, truth[n]) for n in qn])
+            self._qd = lambda ts: np.column_stack([np.interp(ts, truth.t, truth["d" + n]) for n in qn])
+            self.along = "truth"
+            return
+        t0 = float(self.t[0])
+        span = float(self.t[-1] - t0) if len(self.t) > 1 else 0.0
+        if mech.manoeuvre is None:
+            q = np.asarray(mech.q_ref, float)
+            self._q = lambda ts: np.tile(q, (len(ts), 1))
+            self._qd = lambda ts: np.zeros((len(ts), len(q)))
+            self.along = "q_ref"
+            return
+        step = float(np.median(np.diff(self.t))) if len(self.t) > 1 else obs.ekf.dt
+        p = plan(mech, dt=step, t_end=span + step)
+        sq = CubicHermiteSpline(p.t, p.q, p.qd, axis=0)
+        sqd = CubicHermiteSpline(p.t, p.qd, p.qdd, axis=0)
+        self._q = lambda ts: sq(ts - t0)
+        self._qd = lambda ts: sqd(ts - t0)
+        self._plan = p
+        self.along = "plan"
+
+    def torques(self) -> np.ndarray:
+        """The plan's computed torques (:func:`exuflex.manoeuvre.computed_torque`) at the times ``t``; zeros
+        without a plan."""
+        from ..manoeuvre import computed_torque
+
+        nu = len(self.obs.mech.motors)
+        if self.along != "plan":
+            return np.zeros((len(self.t), nu))
+        p = self._plan
+        tau = computed_torque(self.obs.mech, p)
+        return np.column_stack([np.interp(self.t - self.t[0], p.t, tau[:, i]) for i in range(nu)])
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        som = self.obs.model
+        ts = self.t[rows]
+        X = np.zeros((len(ts), som.nx))
+        X[:, : som.nq] = self._q(ts)
+        X[:, som.r : som.r + som.nq] = self._qd(ts)
+        return X
+
+
+def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None = None,
+                smooth: bool = False) -> tuple[BoundTrack, str]:
+    """The posterior Cramer-Rao bound of the observer's reduced model along a record (:func:`.bound.riccati_track`):
+    the Kalman covariance recursion with the model's step and measurement Jacobians evaluated at the true states
+    (``truth``: :class:`~exuflex.sensors.Signals` with the truth columns) or, without a truth, at the planned ones,
+    mapped into the reduced coordinates (:class:`_Trajectory`: the rigid coordinates and their rates; the elastic
+    ones at zero). The filter's noise model and prior: the motors' stated torque noise as process noise through
+    the model's interval maps (not ``q_scale`` or ``q_extra``, the filter's tuning), the channels' stated noise, the
+    filter's prior covariance ``P0`` at the first sample, and the model's own step (``method``, held matrices and
+    step maps under the same error control as the filter's, measured against this recursion's covariance).
+
+    ``t`` (n,): the sample times; ``U``: the torques (n, n_motors) held over each interval (None: the plan's
+    computed torques); ``sampled``: which channels of ``obs.channels`` each sample holds ((n, m) bool, default
+    all). ``smooth``: also the smoothed bound. Returns the track (variances of the :func:`physical_names`
+    quantities, through the maps of :meth:`Observer.physical_covariance`) and what it runs along (``"truth"``,
+    ``"plan"``, or ``"q_ref"`` at rest without a manoeuvre).
+    """
+    t = np.asarray(t, float)
+    traj = _Trajectory(obs, t, truth)
+    if U is None:
+        U = traj.torques()
+    model = _bound_model(obs)
+    P0 = obs.ekf.P0
+    nx = model.nx
+    P0 = np.diag(P0[:nx]) if P0.ndim == 1 else P0[:nx, :nx]
+    R = np.asarray(obs.ekf.R_std, float) ** 2
+    carry: dict = {}
+
+    def outputs(a, b, Xb, Pb):
+        if a == 0:  # a pass over the record starts (the smoothed one after the filtered one)
+            carry.clear()
+        return np.diagonal(obs.physical_covariance(Xb, Pb, refresh_rad=BOUND_TIP_RADIUS, carry=carry),
+                           axis1=1, axis2=2)
+
+    track = riccati_track(model, t, traj, U, obs.channels, R, P0, sampled, outputs=outputs, smooth=smooth,
+                          linearise=_step_linearisation(model))
+    return track, traj.along
+
+
+#: the radius (rad) within which the bound's tip rows follow q to first order (:meth:`Observer.physical_covariance`):
+#: their error, about half its square relative, stays below 5e-4 of the tip's standard deviations
+BOUND_TIP_RADIUS = 3e-2
+
+
+def _step_linearisation(model: ReducedObserverModel):
+    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` without its sub-steps (the
+    held configuration and step map as :meth:`.reduced.ReducedObserverModel.predict` renews them, and the step
+    Jacobian kernel :func:`.expansion.step_jacobian` it calls with them); None for the reference step (``rk4``:
+    through ``predict``). ``tests/test_bound.py`` checks that it returns ``predict``'s ``F`` and ``Q``."""
+    if model.method != "cached":
+        return None
+
+    def linearise(x, u, dt):
+        sm = model.prepare(x, model.torques(u), dt)[4]
+        return step_jacobian(x, *sm.tail[:5]), sm.Q
+
+    return linearise
+
+
+def _bound_model(obs: Observer) -> ReducedObserverModel:
+    """The observer's reduced model (its step ``method`` and sub-step ``h``) with the stated torque noise: a model of
+    its own, so that the filter's caches are left alone."""
+    var = getattr(obs.model, "torque_var_nominal", obs.model.torque_var)
+    return ReducedObserverModel(obs.model.rm, h=obs.model.h, method=obs.model.method, torque_std=np.sqrt(var))
+
+
+def check_observable(obs: Observer, log_check=None) -> None:
+    """Raise :class:`UnobservableError` if the channels (those the log samples, with ``log_check``) leave states
+    that neither decay nor are measured at the start of the manoeuvre (PBH test, :func:`.bound.unobservable_states`)."""
+    _linearised(obs, start_configuration(obs.mech), None, log_check)
+
+
+def steady_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
+                 span: tuple[float, float] | None = None) -> dict[str, float]:
+    """A quick estimate of the bound: the steady-state Kalman covariance of the reduced model linearised and frozen
+    at a configuration, the stated torque noise as process noise (no trajectory is followed: at a pose the
+    trajectory stays at, :func:`estimation_bound` approaches it).
 
     The covariance depends on the configuration (a tip's global x and y swap roles as its link turns; the
     sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
     configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
-    and the per-quantity standard deviations are combined as an RMS, the figure an RMS error along the
-    manoeuvre is compared with. ``span = (t0, t1)`` (s from the manoeuvre's start): the configurations at the
-    midpoints of ``points`` equal parts of that interval instead (past the manoeuvre's end: its final pose at
-    rest), so that the bound is the time average over the interval an RMS error is scored on (what
-    :func:`observe_run` passes: from the start-up to the log's end). With ``q`` (and ``qd``) given, or without a
-    manoeuvre (``q_ref``, at rest): that one configuration.
+    and the per-quantity standard deviations are combined as an RMS. ``span = (t0, t1)`` (s from the manoeuvre's
+    start): the configurations at the midpoints of ``points`` equal parts of that interval instead (past the
+    manoeuvre's end: its final pose at rest). With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``,
+    at rest): that one configuration.
 
-    ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the bound for that log: the
+    ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the estimate for that log: the
     interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
     every k-th interval (:func:`.bound.periodic_posterior`, averaged over the period). Without it: every channel
     of the observer at every interval of the model's rate.
@@ -685,10 +946,11 @@ def estimation_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_che
     return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
 
 
-def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
-    """:func:`estimation_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
+def _linearised(obs: Observer, q, qd=None, log_check=None) -> tuple:
+    """The reduced model frozen at ``q`` with rates ``qd`` (None: at rest) over the log's interval: ``(som, z, A, Q,
+    H, R, channels, every)`` with the channels the log samples and their spacing in intervals; the PBH test of
+    their observability first (:class:`UnobservableError`)."""
     mech = obs.mech
-    # a model of its own, so that the observer's caches are left alone
     som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
     q = np.asarray(q, float)
     z = som.initial_state(q, qd)
@@ -724,14 +986,23 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
             f"the channels {channels} cannot observe {', '.join(bad)}"
             + (" (the rigid motion: add an encoder)" if rigid else " (add a strain gauge or a tip sensor)")
             + "; no filter has a bounded error there")
+    return som, z, A, Q, H, R, channels, every
+
+
+def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
+    """:func:`steady_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
+    mech = obs.mech
+    som, z, A, Q, H, R, channels, every = _linearised(obs, q, qd, log_check)
     period = int(np.lcm.reduce([every[c] for c in channels]))
     if period == 1:
-        P = _steady_posterior(A, Q, H, R)
+        P = steady_posterior(A, Q, H, R)
     else:
         if period > 1000:
             raise UnobservableError(f"channel spacings {every} give a period of {period} intervals; resample the log")
         pattern = np.array([[k % every[c] == 0 for c in channels] for k in range(period)])
         P = periodic_posterior(A, Q, H, R, pattern)
+    nq, r = som.nq, som.r
+    q = np.asarray(q, float)
     names = physical_names(mech)
     out = {}
     sd = np.sqrt(np.diag(P))
@@ -758,41 +1029,6 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
 
 class UnobservableError(ValueError):
     """A channel set that leaves states unobservable (the bound does not exist); the message names them."""
-
-
-def _steady_posterior(A, Q, H, R, tol: float = 1e-10, max_iter: int = 200_000) -> np.ndarray:
-    """Steady-state posterior covariance: DARE on a scaled state, else the Riccati recursion to convergence.
-
-    The rigid coordinates and the elastic ones differ by orders of magnitude, which can make the DARE's
-    Schur reordering fail; scaling the state by the process noise's spread, and iterating the filter
-    recursion as a fallback, make the result robust.
-    """
-    d = np.sqrt(np.clip(np.diag(Q), 0, None))
-    d = np.where(d > 0, d, d[d > 0].min() if np.any(d > 0) else 1.0)
-    Di = 1.0 / d
-    As, Qs, Hs = Di[:, None] * A * d[None, :], Di[:, None] * Q * Di[None, :], H * d[None, :]
-    try:
-        _, Ps = steady_state_covariance(As, Qs, Hs, R)
-        if np.all(np.isfinite(Ps)):
-            return d[:, None] * Ps * d[None, :]
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        log.info("DARE failed (%s); iterating the Riccati recursion", exc)
-    Rm = np.diag(R)
-    P = Q.copy()
-    I = np.eye(len(A))
-    for _ in range(max_iter):
-        S = H @ P @ H.T + Rm
-        K = np.linalg.solve(S, H @ P).T
-        Pp = (I - K @ H) @ P @ (I - K @ H).T + K @ Rm @ K.T
-        Pn = A @ Pp @ A.T + Q
-        Pn = 0.5 * (Pn + Pn.T)
-        if np.max(np.abs(Pn - P) / (np.abs(np.diag(P))[:, None] ** 0.5 * np.abs(np.diag(P))[None, :] ** 0.5 + 1e-300)) < tol:
-            P = Pn
-            break
-        P = Pn
-    S = H @ P @ H.T + Rm
-    K = np.linalg.solve(S, H @ P).T
-    return (I - K @ H) @ P @ (I - K @ H).T + K @ Rm @ K.T
 
 
 def _mid_q(mech: Mechanism) -> np.ndarray:
@@ -853,6 +1089,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     if keep not in KEEP:
         raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
     check_mechanism_argument(mech)
+    _check_arguments(config=config, observer=observer)
     if not hasattr(run, "sensors") or not hasattr(run, "meta"):
         from ..errors import UsageError
 
@@ -877,13 +1114,10 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
     U = LogColumns.of(S, motors, hold=True)
     Y = LogColumns.of(S, obs.channels)
-    bnd, unobservable = None, None
+    bnd, unobservable, track = None, None, None
     if with_bound:  # before filtering: an unobservable channel set is reported at once
         try:
-            span_s = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
-            scored = (config.start_up if span_s > config.start_up else 0.5 * span_s, span_s)
-            bnd = estimation_bound(obs, log_check=log_check, span=scored)
-            say("bound for this log: " + ", ".join(f"{k} {v:.3g}" for k, v in bnd.items()))
+            check_observable(obs, log_check)
         except UnobservableError as exc:
             unobservable = str(exc)
             say(f"warning: no bound: {exc}")
@@ -899,6 +1133,12 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             from ..errors import LogFormatError
 
             raise LogFormatError(f"{Path(run.path) / 'truth.csv'}: {exc}") from None
+    if with_bound and unobservable is None:
+        track, along = bound_track(obs, S.t, U, _Sampled(S, obs.channels), truth=run.truth, smooth=smooth)
+        scored = _scored(S.t, start_up, None if run.truth is None else run.truth.t)
+        names = physical_names(mech)
+        bnd = dict(zip(names, map(float, track.rms(scored, smoothed=smooth)), strict=True))
+        say(f"bound for this log ({_bound_kind(along, smooth)}): " + ", ".join(f"{k} {v:.3g}" for k, v in bnd.items()))
     say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
     if keep == "all" or smooth:
         est = estimate(obs, S.t, U[:], Y[:], smooth=smooth)
@@ -925,7 +1165,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
         "diverged": bool(res.nonfinite),
         "diverged_at": res.diverged_at if res.nonfinite else None,
         # (an estimator that reports its NIS test through ``diverged`` without non-finite values: the UKF)
-        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)),
+        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)
+                                 or nis_whole_log_flag(*res.mean_nis(), res.n_updates)),
+        "nis_whole_log_flag": nis_whole_log_flag(*res.mean_nis(), res.n_updates),
         "nis_flagged_at": res.nis_flagged_at if res.nis_flagged else (
             res.diverged_at if res.diverged and not res.nonfinite else None),
         "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
@@ -955,9 +1197,18 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     summary["validity"] = [w.as_dict() for w in signal_warnings(mech, motion)] if motion is not None else []
     if bnd is not None:
         summary["bound_rms"] = bnd
-        summary["bound_for"] = {"interval_s": log_check.interval_s, "channel_rate_hz": log_check.channel_rate_hz}
+        summary["bound_kind"] = _bound_kind(along, smooth)
+        summary["bound_for"] = {"interval_s": log_check.interval_s, "channel_rate_hz": log_check.channel_rate_hz,
+                                "along": along, "smoothed": bool(smooth), "scored_from_s": start_up}
+        summary["bound_wall_s"] = track.wall_s
+        if smooth:
+            summary["filtered_bound_rms"] = dict(zip(bnd, map(float, track.rms(scored)), strict=True))
         if met is not None:
             summary["ratio_to_bound"] = {k: met["rms_error"][k] / bnd[k] for k in met["rms_error"] if bnd.get(k)}
+            if smooth and "filtered_rms_error" in summary:
+                fb = summary["filtered_bound_rms"]
+                summary["filtered_ratio_to_bound"] = {k: v / fb[k] for k, v in summary["filtered_rms_error"].items()
+                                                      if fb.get(k)}
     return Outcome(est, met, bnd, summary)
 
 
@@ -1021,6 +1272,12 @@ def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | N
     src = est.smoothed if est.smoothed is not None else est.result
     return (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None,
             None if src.nominal_p is None else float(src.nominal_p[-1]))
+
+
+def augmented_estimates(fmodel, est: Estimate) -> dict:
+    """The augmented states' estimates at the end of the record ``est`` of the filter model ``fmodel``
+    (:func:`_extra_states`): the payload scale or the torque disturbances; empty for a plain model."""
+    return _extra_states(fmodel, *_last_state(est))
 
 
 def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:

@@ -1,9 +1,9 @@
 """Rauch-Tung-Striebel smoother for logged runs, on :class:`~exuflex.observer.ekf.MultirateEKF`'s forward pass.
 
 A logged run can use every sample, later ones included, for the state at each time. The forward pass is the
-filter itself (:meth:`MultirateEKF.step` over the log, with ``record_predictions`` set: each sample's predicted
-mean ``x_k|k-1``, step Jacobian ``F_k`` and process noise ``Q_k``); the backward pass is the RTS recursion on
-the filter's linearisation (extended RTS)::
+filter itself (:meth:`MultirateEKF.run` with ``predictions=True``, its compiled loop where the model has one: each
+sample's predicted mean ``x_k|k-1``, step Jacobian ``F_k`` and process noise ``Q_k`` recorded); the backward pass
+is the RTS recursion on the filter's linearisation (extended RTS)::
 
     P_k+1|k = F_k+1 P_k|k F_k+1' + Q_k+1
     C_k     = P_k|k F_k+1' P_k+1|k^-1
@@ -26,7 +26,7 @@ import scipy.linalg
 from .base import FilterDivergedError
 from .ekf import MultirateEKF
 
-__all__ = ["SmoothedResult", "rts_smooth"]
+__all__ = ["SmoothedResult", "rts_backward", "rts_smooth"]
 
 
 @dataclass
@@ -67,12 +67,14 @@ class SmoothedResult:
 
 
 def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResult:
-    """Filter a record with ``ekf`` (from its prior, or ``x0``/``P0``) and smooth it backwards (module docstring).
+    """Filter a record with ``ekf`` (from its prior, or ``x0``/``P0``) and smooth it backwards (module docstring):
+    the forward pass is :meth:`MultirateEKF.run` with the full covariance and each sample's prediction recorded
+    (the compiled loop where the model has one), the backward pass :func:`rts_backward` on that record.
 
     Parameters
     ----------
     ekf : MultirateEKF
-        Its ``step`` is driven over the record from a reset (the filter's state is that of the last sample after).
+        Runs over the record from a reset (the filter's state is that of the last sample after).
     t, U, Y : as :meth:`MultirateEKF.run`.
     x0, P0 : array_like, optional
         A prior for this record.
@@ -88,51 +90,48 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
     """
     if not isinstance(ekf, MultirateEKF):
         raise TypeError(f"the RTS smoother runs on the EKF's linearisation (MultirateEKF), not on a "
-                         f"{type(ekf).__name__}")
-    t = np.asarray(t, dtype=float).reshape(-1)
-    Y = np.asarray(Y, dtype=float)
-    n, nx = len(t), ekf.nx
-    if Y.shape != (n, ekf.m):
-        raise ValueError(f"Y has shape {Y.shape}, expected ({n}, {ekf.m})")
-    if U is not None and len(U) != n:
-        raise ValueError(f"U has {len(U)} rows, expected {n}")
-    X = np.empty((n, nx))
-    P = np.empty((n, nx, nx))
-    Xp = np.empty((n, nx))
-    Fs = np.empty((n, nx, nx))
-    Qs = np.empty((n, nx, nx))
-    nis = np.full(n, np.nan)
+                        f"{type(ekf).__name__}")
     w0 = time.perf_counter()
-    ekf.reset(x0, P0)
-    ekf.record_predictions = True
+    store = ekf.store_P
+    ekf.store_P = "full"
     try:
-        for k in range(n):
-            ekf.last_prediction = None
-            X[k] = ekf.step(t[k], None if U is None else U[k], Y[k])
-            if ekf.nonfinite:
-                raise FilterDivergedError(f"the forward pass went non-finite at t={t[k]:.6g} s; nothing to smooth")
-            P[k] = ekf.P
-            nis[k] = ekf.last_nis
-            lp = ekf.last_prediction
-            if lp is not None:
-                Xp[k], Fs[k], Qs[k] = lp
+        res = ekf.run(t, U, Y, x0=x0, P0=P0, innovations=False, predictions=True)
     finally:
-        ekf.record_predictions = False
+        ekf.store_P = store
+    if res.nonfinite:
+        raise FilterDivergedError(f"the forward pass went non-finite at t={res.diverged_at:.6g} s; nothing to smooth")
     w1 = time.perf_counter()
-    xs = np.empty_like(X)
+    xs, Ps = rts_backward(res.P, res.F, res.Q, res.x_hat, res.x_pred)
+    w2 = time.perf_counter()
+    return SmoothedResult(res.t, xs, Ps, res.x_hat, res.P, res.nis, w2 - w0, w2 - w1)
+
+
+def rts_backward(P, F, Q, X=None, Xp=None) -> tuple[np.ndarray | None, np.ndarray]:
+    """The RTS backward pass (module docstring) over filtered covariances ``P`` (n, nx, nx), with ``F[k]``,
+    ``Q[k]`` the step from sample ``k - 1`` to ``k`` (row 0 unused).
+
+    With ``X`` (filtered means, (n, nx)) and ``Xp`` (predicted means ``x_k|k-1``, row 0 unused) the means too;
+    without, the covariances alone (the smoothed posterior Cramer-Rao bound of :mod:`.bound`). Returns
+    ``(x_k|n or None, P_k|n)``.
+    """
+    n = len(P)
     Ps = np.empty_like(P)
-    xs[-1], Ps[-1] = X[-1], P[-1]
+    Ps[-1] = P[-1]
+    xs = None
+    if X is not None:
+        xs = np.empty_like(X)
+        xs[-1] = X[-1]
     for k in range(n - 2, -1, -1):
-        F = Fs[k + 1]
-        PFt = P[k] @ F.T
-        Pp = F @ PFt + Qs[k + 1]
+        Fk = F[k + 1]
+        PFt = P[k] @ Fk.T
+        Pp = Fk @ PFt + Q[k + 1]
         Pp = 0.5 * (Pp + Pp.T)
         try:
             C = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Pp), PFt.T).T  # P F' Pp^-1 (Pp symmetric)
         except np.linalg.LinAlgError:
             C = np.linalg.lstsq(Pp, PFt.T, rcond=None)[0].T
-        xs[k] = X[k] + C @ (xs[k + 1] - Xp[k + 1])
+        if xs is not None:
+            xs[k] = X[k] + C @ (xs[k + 1] - Xp[k + 1])
         Pk = P[k] + C @ (Ps[k + 1] - Pp) @ C.T
         Ps[k] = 0.5 * (Pk + Pk.T)
-    w2 = time.perf_counter()
-    return SmoothedResult(t, xs, Ps, X, P, nis, w2 - w0, w2 - w1)
+    return xs, Ps

@@ -15,11 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv, ndtri
 
 __all__ = [
     "ConsistencyCheck",
     "chi2_band",
+    "chi2_ppf",
     "eq21_stats",
     "fft_peaks",
     "match_peaks",
@@ -92,6 +93,21 @@ def nis(innov, S) -> tuple[np.ndarray, np.ndarray]:
     return out, dof
 
 
+def chi2_ppf(q, dof):
+    """Quantile ``q`` of the chi-square distribution with ``dof`` degrees of freedom, ``2 P^-1(dof/2, q)``.
+
+    ``P^-1`` is the inverse of the regularised lower incomplete gamma function (the arithmetic of
+    ``scipy.stats.chi2.ppf`` for ``0 <= q <= 1``, through ``scipy.special`` so that the filter does not import
+    ``scipy.stats``, a large import, to evaluate it).
+    """
+    return 2 * gammaincinv(np.asarray(dof, float) / 2, q)
+
+
+def norm_ppf(q):
+    """Quantile ``q`` of the standard normal distribution (``scipy.special.ndtri``)."""
+    return ndtri(q)
+
+
 def chi2_band(dof_total, n_avg, confidence: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     """Two-sided chi-square band of an average of ``n_avg`` chi-square terms with ``dof_total`` summed dof.
 
@@ -99,7 +115,7 @@ def chi2_band(dof_total, n_avg, confidence: float = 0.95) -> tuple[np.ndarray, n
     """
     a = 1.0 - confidence
     dof_total = np.asarray(dof_total, float)
-    return chi2.ppf(a / 2, dof_total) / n_avg, chi2.ppf(1 - a / 2, dof_total) / n_avg
+    return chi2_ppf(a / 2, dof_total) / n_avg, chi2_ppf(1 - a / 2, dof_total) / n_avg
 
 
 @dataclass

@@ -36,7 +36,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import brentq
 
 from .base import DiscreteModel, Prediction
 from .bound import van_loan
@@ -246,6 +245,8 @@ def tune_q_scale(
         log.warning("tune_q_scale: mean NIS target not bracketed by scale bounds %s; returning %g", bounds, s)
         mn = history[0][1] if f_lo <= 0 else history[1][1]
         return QScaleResult(s, mn, expected[0], False, history)
+    from scipy.optimize import brentq  # here, not at import: scipy.optimize is a large import
+
     logs = brentq(f, lo, hi, xtol=np.log1p(rtol), maxiter=max_iter)
     s = float(np.exp(logs))
     f(logs)

@@ -31,7 +31,9 @@ linearisation if it breaks down again (:meth:`UnscentedKF._predict`).
 
 The process noise ``Q`` is the one the model returns for the mean's interval (additive noise). Channels and gaps
 are handled as by the EKF: NaN channels are left out of the update, an all-NaN sample is a prediction only,
-intervals longer than ``max_gap`` are refused.
+intervals longer than ``max_gap`` are refused. The innovations go through the EKF's monitors
+(:class:`~exuflex.observer.ekf.BeliefFilter`: the NIS test, the gate, the hold-off after an input step, the
+sensor-fault windows; "diverged" is a non-finite state or covariance, as for the EKF).
 
 Cost: ``2 n + 1`` model steps and measurements per sample instead of one step and its Jacobian.
 """
@@ -45,10 +47,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
-from filterpy.kalman import MerweScaledSigmaPoints
 
 from .base import FilterDivergedError, Prediction
-from .ekf import EstimationResult, NISMonitor, RunRecord, check_log
+from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -59,7 +60,7 @@ log = logging.getLogger(__name__)
 BREAKDOWN = 10.0
 
 
-class UnscentedKF:
+class UnscentedKF(BeliefFilter):
     """Multirate unscented Kalman filter over a :class:`DiscreteModel` (module docstring).
 
     Parameters
@@ -74,67 +75,33 @@ class UnscentedKF:
         ``kappa = 3 - n`` with tens of states) gives weights of hundreds with opposite signs, whose cancellation
         costs the covariance its small (elastic) entries and can make it indefinite.
     store_P : {"diag", "full", "none"}
+    monitoring : Monitoring, optional
+        The innovation monitors, as :class:`~exuflex.observer.ekf.MultirateEKF`'s keyword arguments (default: the
+        NIS test over ``nis_window`` updates alone).
     """
 
     def __init__(self, model, channels: Sequence[str], R_std: Mapping[str, float], x0, P0, dt: float,
                  alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, max_gap: float = 1.0,
-                 store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise"):
-        self.model = model
-        self.nx = int(model.nx)
-        watch = getattr(model, "watch_covariance", None)
-        if watch is not None:  # the model measures its approximations against the filter's uncertainty
-            watch(lambda: self._P)
-        self.channels = tuple(channels)
-        self.m = len(self.channels)
-        missing = [c for c in self.channels if c not in R_std]
-        if missing:
-            raise ValueError(f"no measurement-noise std for channel(s) {missing}")
-        self.R_std = np.array([float(R_std[c]) for c in self.channels])
-        self._Rdiag = self.R_std**2
-        self.dt = float(dt)
-        self.max_gap = float(max_gap)
-        self.store_P = store_P
-        self.nonfinite_action = nonfinite
+                 store_P: str = "diag", nis_window: int = 100, nonfinite: str = "raise",
+                 monitoring: Monitoring | None = None):
+        self._setup(model, channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite,
+                    monitoring if monitoring is not None else Monitoring(nis_window=nis_window))
         n = self.nx
-        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)  # the weights
-        self.Wm, self.Wc = self.points.Wm, self.points.Wc
+        # Merwe's weights, lambda = alpha^2 (n + kappa) - n: Wm_0 = lambda / (n + lambda), Wc_0 = Wm_0 + 1 -
+        # alpha^2 + beta, the others 1 / (2 (n + lambda)) (the arithmetic of filterpy's MerweScaledSigmaPoints)
+        lam = alpha**2 * (n + kappa) - n
+        self.Wm = np.full(2 * n + 1, 0.5 / (n + lam))
+        self.Wc = self.Wm.copy()
+        self.Wm[0] = lam / (n + lam)
+        self.Wc[0] = lam / (n + lam) + (1 - alpha**2 + beta)
         self._spread = alpha * math.sqrt(n + kappa)  # sqrt(n + lambda), lambda = alpha^2 (n + kappa) - n
-        self.monitor = NISMonitor(nis_window) if nis_window else None
-        x0 = np.asarray(x0, float).reshape(-1)
-        P0 = np.asarray(P0, float)
-        self._x0 = x0.copy()
-        self._P0 = np.diag(P0) if P0.ndim == 1 else P0.copy()
         self.reset()
 
     def reset(self, x0=None, P0=None) -> None:
-        if x0 is not None:
-            self._x0 = np.asarray(x0, float).reshape(-1).copy()
-        if P0 is not None:
-            P0 = np.asarray(P0, float)
-            self._P0 = np.diag(P0) if P0.ndim == 1 else P0.copy()
-        if hasattr(self.model, "reset"):
-            self.model.reset()
-        self._x = self._x0.copy()
-        self._P = self._P0.copy()
-        self._L = np.linalg.cholesky(0.5 * (self._P0 + self._P0.T))
-        self._t_prev = None
-        self._u_prev = None
-        self.n_missing = self.n_updates = self.n_model_resets = self.n_linearised = 0
-        self.diverged = False
-        self.diverged_at = None
-        self.nonfinite = False
-        self.last_nis, self.last_dof, self.last_idx = math.nan, 0, None
-        self.last_innovation = self.last_S = None
-        if self.monitor is not None:
-            self.monitor.reset()
-
-    @property
-    def x(self) -> np.ndarray:
-        return self._x.copy()
-
-    @property
-    def P(self) -> np.ndarray:
-        return self._P.copy()
+        """Restart from a prior (:meth:`~exuflex.observer.ekf.BeliefFilter.reset`) with its covariance factor."""
+        super().reset(x0, P0)
+        self._L = np.linalg.cholesky(self._P0)
+        self.n_model_resets = self.n_linearised = 0
 
     def _sigmas(self, x, L) -> np.ndarray:
         """Merwe's sigma points of the mean ``x`` and the covariance factor ``L``: ``x`` and ``x +- c L[:, i]``
@@ -164,8 +131,8 @@ class UnscentedKF:
         again after ``model.reset()`` (the configuration evaluated at that point). If it breaks down again, the
         point is carried by the mean's linearisation (counted in ``n_linearised``)."""
         p = self.model.predict(x, self._u_prev, dt, u_next)
-        if self._broken(p.x, x, ref) and hasattr(self.model, "reset"):
-            self.model.reset()
+        if self._broken(p.x, x, ref) and self.hooks.reset is not None:
+            self.hooks.reset()
             self.n_model_resets += 1
             p = self.model.predict(x, self._u_prev, dt, u_next)
         if ref is not None and self._broken(p.x, x, ref):
@@ -185,15 +152,15 @@ class UnscentedKF:
         return float(np.max(np.abs(xn - m0.x - lin))) > BREAKDOWN * float(np.max(np.abs(lin)))
 
     def step(self, t: float, u, y) -> np.ndarray:
-        """Predict to ``t`` through the sigma points, update with the finite channels of ``y``."""
-        t = float(t)
-        if u is not None:
-            u = np.array(u, dtype=float).reshape(-1)
-        y = None if y is None else np.asarray(y, float)
+        """Predict to ``t`` through the sigma points, update with the finite channels of ``y`` that the gate and the
+        sensor-fault isolation keep."""
+        t, u, y = step_arguments(self, t, u, y)
         if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
             self._t_prev = t
             return np.full(self.nx, np.nan)
-        if self._t_prev is not None:
+        jumps = self.hooks.n_jumps()
+        first = self._t_prev is None
+        if not first:
             dt = t - self._t_prev
             if not dt > 0:
                 raise ValueError(f"sample time {t!r} s is not after the previous sample's ({self._t_prev!r} s)")
@@ -212,45 +179,53 @@ class UnscentedKF:
                 return self._nonfinite(t)
             self._x = self.Wm @ Xf
             self._L = self._factor(Xf - self._x, _psd_sqrt(m0.Q))
+        self._t_now = t
+        self._input_steps(t, u, jumps)
         self._t_prev, self._u_prev = t, u
         self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
         mask = None if y is None else np.isfinite(y)
         if mask is not None and mask.any():
             idx = np.flatnonzero(mask)
-            chans = tuple(self.channels[i] for i in idx)
             X = self._sigmas(self._x, self._L)
-            Z = np.array([self.model.measure(xi, chans).y for xi in X])
-            zm = self.Wm @ Z
-            Dz = Z - zm
-            Dx = X - self._x  # (the sigma points' weighted mean is x)
-            sR = np.sqrt(self._Rdiag[idx])
-            Ls = self._factor(Dz, np.diag(sR))  # S = Ls Ls'
-            S = Ls @ Ls.T
-            C = (Dx.T * self.Wc) @ Dz
-            r = y[idx] - zm
+            Z = np.array([self.model.measure(xi, tuple(self.channels[i] for i in idx)).y for xi in X])
+            r, Ls, C = self._innovation(X, Z, y, idx)
+            keep = self._screen(idx, r, Ls @ Ls.T)
+            if keep is not None:  # the channels the gate or the isolation left out
+                idx, Z = idx[keep], Z[:, keep]
+                r, Ls, C = self._innovation(X, Z, y, idx)
             cf = (Ls, True)
             K = scipy.linalg.cho_solve(cf, C.T).T
             self._x = self._x + K @ r
             # Joseph form with the statistical linearisation H = C' P^-1: (I - K H) L = L - K (L^-1 C)'
             H_L = scipy.linalg.solve_triangular(self._L, C, lower=True).T  # H L
-            self._L = _lower_from_qr(np.vstack([(self._L - K @ H_L).T, (K * sR).T]))
+            self._L = _lower_from_qr(np.vstack([(self._L - K @ H_L).T, (K * np.sqrt(self._Rdiag[idx])).T]))
             nis = float(r @ scipy.linalg.cho_solve(cf, r))
             self.last_idx, self.last_nis, self.last_dof = idx, nis, len(idx)
-            self.last_innovation, self.last_S = r, S
-            self.n_updates += 1
-            if self.monitor is not None and self.monitor.push(nis, len(idx)) and not self.diverged:
-                self.diverged, self.diverged_at = True, t
+            self.last_innovation, self.last_S = r, Ls @ Ls.T
         else:
             self.n_missing += 1
         self._P = self._L @ self._L.T
         if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
             return self._nonfinite(t)
+        if self.last_idx is not None:
+            self._count_update(t, self.last_nis, self.last_dof, self._held)
+        elif self.faults is not None and not first:
+            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
         return self._x.copy()
+
+    def _innovation(self, X: np.ndarray, Z: np.ndarray, y: np.ndarray, idx: np.ndarray) -> tuple:
+        """``(r, Ls, C)`` of the sigma points ``X`` and their channels ``Z`` (columns: the channels ``idx``): the
+        innovation ``y - z``, the lower factor of ``S = Ls Ls'`` and the cross covariance ``C``."""
+        zm = self.Wm @ Z
+        Dz = Z - zm
+        Dx = X - self._x  # (the sigma points' weighted mean is x)
+        Ls = self._factor(Dz, np.diag(np.sqrt(self._Rdiag[idx])))  # S = Ls Ls'
+        C = (Dx.T * self.Wc) @ Dz
+        return np.ascontiguousarray(y[idx] - zm), Ls, C
 
     def _nonfinite(self, t: float) -> np.ndarray:
         """A non-finite state or covariance: raise, or flag the run and return NaN (``nonfinite="flag"``)."""
-        if not self.diverged:
-            self.diverged, self.diverged_at = True, t
+        self._flag(t, "non-finite state or covariance")
         self.nonfinite = True
         if self.nonfinite_action == "raise":
             raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
@@ -273,8 +248,8 @@ class UnscentedKF:
                 self.diverged_at = self.diverged_at or float(t[k])
                 rec.fail_from(k)
                 break
-            rec.put(k, self, x)
-        return rec.result(self, time.perf_counter() - w0)
+            rec.put(k, x, self._P, self)
+        return self._result(rec, time.perf_counter() - w0)
 
 
 def _lower_from_qr(A: np.ndarray) -> np.ndarray:

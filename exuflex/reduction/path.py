@@ -54,7 +54,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
-from scipy.signal import lfilter
 
 from ..erls.modal import ModalResult, modal_analysis
 from ..erls.sensing import channel_matrix
@@ -134,6 +133,8 @@ class Excitation:
         zeta = model.alpha / (2 * w) + model.beta * w / 2
         wd = w * np.sqrt(np.clip(1 - zeta**2, 0, None))
         poles = np.exp((1j * wd - zeta * w) * self.dt)
+        from scipy.signal import lfilter  # here, not at import: scipy.signal is a large import
+
         peak = np.zeros_like(b)
         for j, a in enumerate(poles):
             s = lfilter([1.0], [1.0, -a], self.du.astype(complex), axis=0)

@@ -139,12 +139,15 @@ def _set_link(path: str, link, name: str, value: Any, mech: Mechanism):
     sec = link.section
     if name == "diameter":
         d = _positive(path, value)
-        sec = dataclasses.replace(sec, diameter=d, A=math.pi * d**2 / 4, I=math.pi * d**4 / 64,
-                                  height=d if sec.height is not None else None)
+        di = sec.inner_diameter if sec.shape == "tube" else 0.0  # a tube keeps its bore
+        sec = dataclasses.replace(sec, diameter=d, A=math.pi * (d**2 - di**2) / 4, I=math.pi * (d**4 - di**4) / 64,
+                                  height=d if sec.height is not None or sec.shape == "rectangle" else None,
+                                  shape="tube" if sec.shape == "tube" else "round", width=None)
         return dataclasses.replace(link, section=sec)
     if name in ("A", "I"):
         v = _positive(path, value)
-        return dataclasses.replace(link, section=dataclasses.replace(sec, **{name: v}, diameter=None))
+        return dataclasses.replace(link, section=dataclasses.replace(sec, **{name: v}, diameter=None, shape=None,
+                                                                     inner_diameter=None, width=None))
     if name in ("E", "rho"):
         v = _positive(path, value)
         return dataclasses.replace(link, material=dataclasses.replace(link.material, **{name: v}))

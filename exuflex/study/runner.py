@@ -55,7 +55,14 @@ from .. import _compile
 from ..errors import UsageError
 from ..mechanism import Mechanism, ModelFileError, load_mechanism
 from ..observer.session import AUGMENTED_ESTIMATORS, ObserverConfig
-from ..runs import atomic_write_bytes, atomic_write_text, file_sha256, package_versions
+from ..runs import (
+    atomic_write_bytes,
+    atomic_write_text,
+    dump_json,
+    file_sha256,
+    output_folder,
+    package_versions,
+)
 from ..sensors import ABSOLUTE_TIP_NAMES, Signals
 from ..truth import Drive, TruthRecord, plan_drive, simulate
 from .overrides import OverrideError, apply_overrides
@@ -112,11 +119,23 @@ class Level:
 def payload_levels(increases_pct: Sequence[float]) -> tuple[Level, ...]:
     """Levels of the paper's Fig. 11: payload increase in % over nominal (scale ``1 + pct / 100``)."""
     out = []
+    pcts = []
     for p in increases_pct:
-        p = float(p)
+        try:
+            p = float(p)
+        except (TypeError, ValueError):
+            raise UsageError(f"levels (--levels): expected payload increases in %, got {p!r}") from None
+        if not math.isfinite(p):
+            raise UsageError(f"levels (--levels): expected finite payload increases in %, got {p!r}")
         if not 1 + p / 100 > 0:
-            raise ValueError(f"payload increase {p} % leaves no payload (scale {1 + p / 100})")
+            raise UsageError(f"levels (--levels): payload increase {p:g} % leaves no payload (scale {1 + p / 100:g}); "
+                             "expected increases above -100 %")
+        if p in pcts:
+            raise UsageError(f"levels (--levels): the level {p:g} % is given twice; expected each level once")
+        pcts.append(p)
         out.append(Level(f"{p:+g} %", p, (), 1.0 + p / 100.0))
+    if not out:
+        raise UsageError("levels (--levels): expected at least one payload increase in %, e.g. 0,25,50")
     return tuple(out)
 
 
@@ -125,6 +144,14 @@ def sweep_levels(sets: Sequence[tuple[str, Sequence[Any]]]) -> tuple[Level, ...]
     full grid (every combination), the first field varying slowest."""
     if not sets:
         raise ValueError("a sweep needs at least one --set FIELD=V1,V2,...")
+    fields = [f for f, _ in sets]
+    for fld, vals in sets:
+        if fields.count(fld) > 1:
+            raise UsageError(f"--set {fld}: the field is set twice; expected each field once (its values in one list)")
+        seen = [str(v) for v in vals]
+        dup = sorted({v for v in seen if seen.count(v) > 1})
+        if dup:
+            raise UsageError(f"--set {fld}: the value(s) {', '.join(dup)} given twice; expected each level once")
     combos: list[tuple[tuple[str, Any], ...]] = [()]
     for fld, vals in sets:
         combos = [c + ((fld, v),) for c in combos for v in vals]
@@ -356,9 +383,9 @@ def run_one(task: RunTask) -> dict:
     if tip_stats is not None:
         for k in stats:
             stats[k].update(tip_stats[k])
-    from ..observer.session import _extra_states, _last_state
+    from ..observer.session import augmented_estimates
 
-    extra = _extra_states(obs.ekf.model, *_last_state(est))  # the payload scale (or disturbances) an augmented filter estimates
+    extra = augmented_estimates(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
     return {
         **extra,
         "level_index": task.level_index,
@@ -414,9 +441,15 @@ def make_executor(workers: int = 1, scheduler: str | None = None, augmented: boo
         finally:
             client.close()
     elif workers > 1:
+        cores = os.cpu_count() or 1
+        if workers > cores:
+            log.warning("workers (--workers): %d asked, %d used (the machine's cores; more processes only share them)",
+                        workers, cores)
+            workers = cores
+    if not scheduler and workers > 1:
         # the kernels compiled once here (in parallel): the pool's processes load them
         _compile.prepare(augmented=augmented)
-        with cf.ProcessPoolExecutor(max_workers=workers) as ex:
+        with cf.ProcessPoolExecutor(max_workers=workers, initializer=_worker_init, initargs=(os.getpid(),)) as ex:
             yield ex, 2 * workers
     else:
         yield InlineExecutor(), 1
@@ -510,27 +543,108 @@ def _read_json(path: Path) -> dict | None:
 LOCK_NAME = ".study.lock"
 
 
+_LOCK_FD: list[int] = []
+"""The descriptor of the study lock this process holds (a worker forked from it closes its copy)."""
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _lock_holders(path: Path) -> list[int]:
+    """The processes holding a ``flock`` on ``path`` (Linux ``/proc/locks``; empty elsewhere)."""
+    try:
+        ino = path.stat().st_ino
+        rows = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return []
+    pids = []
+    for row in rows:
+        f = row.split()
+        if len(f) > 5 and f[1] == "FLOCK" and f[5].rsplit(":", 1)[-1] == str(ino):
+            pids.append(int(f[4]))
+    return sorted(set(pids))
+
+
 @contextlib.contextmanager
 def study_lock(out: Path):
     """Exclusive lock on a study folder for the life of the block (``flock`` on ``out/.study.lock``, released
-    by the kernel if the process dies): two studies writing one folder would mix their files."""
+    by the kernel when the process dies; the workers close their inherited copy, :func:`_worker_init`): two
+    studies writing one folder would mix their files. The file holds the holder's pid while it runs; a pid left
+    there by a study that died is named when the lock is taken over."""
     out.mkdir(parents=True, exist_ok=True)
-    fh = open(out / LOCK_NAME, "a+")  # noqa: SIM115 (held open for the block)
+    path = out / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
     try:
         try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            fh.seek(0)
-            who = fh.read().strip()
+            who = os.pread(fd, 200, 0).decode(errors="replace").strip()
+            pid = int(who.split()[1]) if who.startswith("pid ") and who.split()[1].isdigit() else None
+            if pid is not None and not _pid_alive(pid):
+                holders = _lock_holders(path)
+                raise UsageError(f"{out}: the study that ran here (pid {pid}) has died, but its worker processes "
+                                 f"{', '.join(map(str, holders)) or '(unknown pids)'} still hold the folder's lock; "
+                                 "expected them stopped: kill them, then run the study again") from None
             raise UsageError(f"{out}: another study is running in this folder ({who or 'lock held'}); wait for it "
                              "or use another folder") from None
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"pid {os.getpid()}\n")
-        fh.flush()
-        yield
+        who = os.pread(fd, 200, 0).decode(errors="replace").strip()
+        if who.startswith("pid ") and who.split()[1].isdigit() and int(who.split()[1]) != os.getpid():
+            log.warning("%s: taking over the lock of a study that stopped without releasing it (pid %s no longer "
+                        "runs); its finished runs are reused", out, who.split()[1])
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}\n".encode(), 0)
+        _LOCK_FD.append(fd)
+        try:
+            yield
+        finally:
+            _LOCK_FD.remove(fd)
+            os.ftruncate(fd, 0)  # released normally: no pid left to take over
     finally:
-        fh.close()
+        os.close(fd)
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Make this worker process end when ``parent`` (the study) dies, even by ``kill -9``: Linux's
+    ``PR_SET_PDEATHSIG`` (SIGKILL), and elsewhere a daemon thread that polls the parent pid once a second."""
+    import signal
+    import threading
+
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch():
+        while True:
+            time.sleep(1.0)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="exuflex-parent-watch", daemon=True).start()
+
+
+def _worker_init(parent: int) -> None:
+    """Initializer of a study's worker process: drop the inherited lock (only the study holds it) and exit with
+    the study (:func:`_exit_with_parent`)."""
+    for fd in _LOCK_FD:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _LOCK_FD.clear()
+    _exit_with_parent(parent)
 
 
 def _check_same_study(out: Path, record: dict) -> None:
@@ -538,7 +652,7 @@ def _check_same_study(out: Path, record: dict) -> None:
     old = _read_json(out / "study.json")
     if old is None:
         return
-    new = json.loads(json.dumps(record, default=str))
+    new = json.loads(dump_json(record, default=str))
     free = ("runs_per_level", "seeds")
     diff = []
     for k in ("model_sha256", "levels"):
@@ -559,17 +673,22 @@ def run_study(
     scheduler: str | None = None,
     progress: bool = False,
     on_result: Callable[[dict], None] | None = None,
+    overwrite: bool = False,
 ) -> StudyResult:
     """Run (or resume) a study into ``out``; returns the per-run rows and the summary.
+
+    ``out`` is claimed first (:func:`exuflex.runs.output_folder`): a folder holding anything exuflex did not write
+    is refused; a study's folder is resumed; another exuflex result there is replaced only with ``overwrite``.
 
     The folder is locked for the run (:func:`study_lock`: a second study into it is refused while this one
     runs), and a folder holding a study with other settings is refused (only ``runs`` may grow).
     ``on_result`` is called in this process after each finished run has been written (tests use it to
     interrupt a study).
     """
-    out = Path(out)
-    with study_lock(out):
-        return _run_study(spec, out, workers=workers, scheduler=scheduler, progress=progress, on_result=on_result)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise UsageError(f"workers (--workers): expected a positive integer, got {workers!r}")
+    with output_folder(out, "study", overwrite=overwrite, mode="resume") as folder, study_lock(folder):
+        return _run_study(spec, folder, workers=workers, scheduler=scheduler, progress=progress, on_result=on_result)
 
 
 def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> StudyResult:
@@ -591,6 +710,14 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     start_up = float(spec.start_up if spec.start_up is not None else min(spec.observer.start_up, duration / 4))
     if not 0 <= start_up < duration:
         raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
+    # bounds before work: every run's row is held (a few kB), and a run filters duration x rate samples (an EKF
+    # sample about 10 nx^3 flop)
+    from ..validate import check_work, state_size_estimate
+
+    n_samples = duration * nominal.sample_rate_hz
+    check_work(f"{spec.runs} runs x {len(spec.levels)} levels", spec.runs * len(spec.levels), param="runs",
+               flag="--runs", what="observer runs", bytes_each=8192,
+               flops_each=n_samples * 10 * state_size_estimate(nominal)**3, workers=workers)
     model_sha = file_sha256(model_path)
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     for lv, m in zip(spec.levels, truth_mechs, strict=True):  # the model file's configuration check, per level
@@ -623,7 +750,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     _check_same_study(out, record)
     for sub in ("truth", "runs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "study.json", json.dumps(record, indent=1, default=str) + "\n")
+    atomic_write_text(out / "study.json", dump_json(record, default=str) + "\n")
 
     # what is done already
     done: dict[tuple[int, int], dict] = {}
@@ -647,6 +774,8 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     def level_truth_file(i: int) -> Path:
         return out / "truth" / keys[i] / "truth.npz"
 
+    n_tasks = sum(map(len, pending.values())) + len(pending)  # runs and (at most) one truth per level
+    workers = max(1, min(workers, n_tasks))  # a process per task at most
     with make_executor(workers, scheduler, spec.observer.estimator in AUGMENTED_ESTIMATORS) as (ex, max_in_flight):
         queue: list[RunTask] = []
         in_flight: dict[cf.Future, tuple[str, Any]] = {}
@@ -703,7 +832,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
                     f.parent.mkdir(parents=True, exist_ok=True)
                     _save_truth(f, lt)
                     timings[keys[i]] = lt.timings
-                    atomic_write_text(f.parent / "level.json", json.dumps(
+                    atomic_write_text(f.parent / "level.json", dump_json(
                         {"key": keys[i], "level": spec.levels[i].as_dict(), "engine": spec.engine,
                          "duration_s": duration, "h_s": spec.h, "model_sha256": model_sha, "timings": lt.timings,
                          "versions": package_versions()}, indent=1, default=str) + "\n")
@@ -713,7 +842,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
                 else:
                     r = fut.result()
                     atomic_write_text(out / "runs" / r["level_key"] / f"run_{r['run']:04d}.json",
-                                      json.dumps(r, indent=1, default=float) + "\n")
+                                      dump_json(r, default=float) + "\n")
                     done[(r["level_index"], r["run"])] = r
                     n_new += 1
                     bar.update(n_new, f"level {spec.levels[r['level_index']].label}")
@@ -725,12 +854,17 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
                     ("truth", i)
             fill()
     bar.close()
+    for i, key in enumerate(keys):  # a level finished in an earlier session: its truth's provenance from level.json
+        if key not in timings:
+            meta = _read_json(level_truth_file(i).parent / "level.json")
+            if meta is not None and meta.get("key") == key:
+                timings[key] = meta.get("timings", {})
 
     rows = [done[k] for k in sorted(done)]
     summary = _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings,
                        time.perf_counter() - t_start, n_new, n_reused, workers, scheduler)
     _write_results_csv(out / "results.csv", spec, rows, nominal.coordinate_names)
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
+    atomic_write_text(out / "summary.json", dump_json(summary, default=float) + "\n")
     return StudyResult(out, rows, summary, n_new, n_reused)
 
 
@@ -747,15 +881,19 @@ def run_estimator_studies(spec: StudySpec, out, estimators: Sequence[str], **kw)
         raise ValueError(f"estimators must be among {', '.join(ESTIMATORS)}; got {', '.join(bad) or 'none'}")
     if len(set(estimators)) != len(estimators):
         raise ValueError(f"estimators {', '.join(estimators)}: each at most once")
-    out = Path(out)
+    with output_folder(out, "study-estimators", overwrite=kw.pop("overwrite", False), mode="resume") as folder:
+        return _run_estimator_studies(spec, folder, estimators, **kw)
+
+
+def _run_estimator_studies(spec: StudySpec, out: Path, estimators: Sequence[str], **kw) -> dict[str, StudyResult]:
     (out / "truth").mkdir(parents=True, exist_ok=True)
     results = {}
     for e in estimators:
         sub = out / e
-        sub.mkdir(parents=True, exist_ok=True)
-        link = sub / "truth"
-        if not link.exists():
-            link.symlink_to(Path("..") / "truth", target_is_directory=True)
+        with output_folder(sub, "study", mode="resume"):  # the study's folder, with its link to the shared truths
+            link = sub / "truth"
+            if not link.exists():
+                link.symlink_to(Path("..") / "truth", target_is_directory=True)
         base = spec.observer if spec.observer is not None else ObserverConfig.for_model(load_mechanism(spec.model))
         est_spec = dataclasses.replace(spec, observer=dataclasses.replace(base, estimator=e))
         results[e] = run_study(est_spec, sub, **kw)

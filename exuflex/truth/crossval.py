@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TruthComparison:
-    """Agreement of two truths: max |dq| per coordinate (rad) and normalised RMS of the tip's elastic
+    """Agreement of two truths: max ``|dq|`` per coordinate (rad) and normalised RMS of the tip's elastic
     displacement per component (RMS of the difference / RMS of the reference)."""
 
     q_max_abs: dict[str, float]

@@ -50,8 +50,9 @@ log = logging.getLogger(__name__)
 
 ENGINES = ("exudyn", "erls", "reduced")
 """The truth engines :func:`simulate` knows."""
-BEAMS = {"ancf": "ancf", "ge": "gebeam"}
-"""Exudyn beam choices: ANCF cable or geometrically exact beam (:func:`exuflex.groundtruth.build_truth`)."""
+BEAMS = {"ancf": "ancf", "ge": "gebeam", "ffrf": "ffrf", "solid": "ffrf"}
+"""Exudyn model choices: ANCF cable or geometrically exact beam (:func:`exuflex.groundtruth.build_truth`), or
+floating-frame bodies reduced from solid meshes (``ffrf``, alias ``solid``: :func:`exuflex.groundtruth.build_ffrf`)."""
 INTEGRATORS = ("gen-alpha", "rk4")
 """Integrators of the ERLS engine: implicit generalized-alpha, or the explicit RK4 reference."""
 EXUDYN_ELEMENTS_PER_LINK = 4
@@ -225,7 +226,8 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
 def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", duration: float | None = None,
              h: float = 1e-4, progress: Callable[[float], None] | None = None, *,
              elements_per_link: int | str | None = None, beam: str = "ancf",
-             integrator: str = "gen-alpha", erls_step: float | str | None = None) -> TruthRecord:
+             integrator: str = "gen-alpha", erls_step: float | str | None = None,
+             messages: Callable[[str], None] | None = None) -> TruthRecord:
     """Simulate ``truth_mech`` under ``drive`` for ``duration`` s (default: its manoeuvre's) with the truth
     ``engine`` (one of :data:`ENGINES`), step ``h``, output at the model's sample rate; ``progress`` is called
     with the fraction done.
@@ -234,7 +236,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
     model file's), a positive integer (no element longer than 1/N of its link) or ``"file"``; ``beam``: Exudyn's
     beam, a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of :data:`INTEGRATORS`, ``erls_step`` its
     generalized-alpha step (:func:`gen_alpha_step`). The record's ``settings`` state them with the solver's
-    statistics."""
+    statistics; ``messages`` receives one-line setup messages (the FFRF truth's meshing and modes)."""
     from ..sensors import monotonic_record, sensor_channels, true_states
 
     if engine not in ENGINES:
@@ -260,7 +262,17 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
                         "sample interval, torque sampled"}
         return rec
     solver: dict = {}
-    if engine == "exudyn":
+    if engine == "exudyn" and BEAMS[beam] == "ffrf":
+        from ..groundtruth import simulate_ffrf  # Exudyn, netgen and ngsolve are imported only there
+
+        if elements_per_link not in (None, "file"):
+            raise ValueError("elements_per_link: the FFRF truth meshes solids (mesh_size in the model file); "
+                             f"expected none, got {elements_per_link!r}")
+        probes = simulate_ffrf(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
+                               progress=progress, messages=messages or log.info, stats=solver)
+        settings = {"engine": "exudyn", "beam": beam, "formulation": "ffrf", "integrator": "generalized-alpha (Exudyn)",
+                    **solver}
+    elif engine == "exudyn":
         from ..groundtruth import simulate_truth  # Exudyn is imported only there
 
         mesh = exudyn_mesh(truth_mech) if elements_per_link is None else elements_per_link

@@ -33,6 +33,8 @@ def simulate_run(
     beam: str = "ancf",
     integrator: str = "gen-alpha",
     erls_step: float | str | None = "auto",
+    messages: Callable[[str], None] | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Simulate the model's manoeuvre with the truth ``engine`` and write a run folder; returns its path.
 
@@ -42,22 +44,26 @@ def simulate_run(
     :func:`exuflex.mechanism.load_manoeuvre`); ``write_plan``: also write the planned q, q', q'' as ``plan.csv`` (a
     trajectory file that plans the same motion again); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
     truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the generalized-alpha step
-    from the model's band, :func:`exuflex.truth.gen_alpha_step`). Bad arguments raise a
+    from the model's band, :func:`exuflex.truth.gen_alpha_step`); ``messages`` receives one-line setup messages (the FFRF
+    truth's meshing and modes). Bad arguments raise a
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
-    the engine's name) and the fraction of it done. With an ERLS engine, links whose rotation rate approaches the
+    the engine's name) and the fraction of it done. ``out`` is claimed before the work
+    (:func:`exuflex.runs.output_folder`): a folder holding anything exuflex did not write is refused, an earlier
+     exuflex result is replaced only with ``overwrite``. With an ERLS engine, links whose rotation rate approaches the
     model's validity limit are logged as warnings and listed in ``meta.json`` under ``validity``
     (:func:`exuflex.erls.validity.signal_warnings`).
     """
     from ..errors import UsageError
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
-    from ..runs import file_sha256, write_run
+    from ..runs import check_not_foreign, file_sha256, output_folder, write_run
     from ..validate import check_actuation, check_configurations, check_positive, check_simulation_settings
 
     if not isinstance(model_path, (str, Path)):
         raise UsageError(f"model_path: expected the path of a model file (TOML), got {type(model_path).__name__}")
     if not isinstance(out, (str, Path)) or not str(out).strip():
         raise UsageError(f"out (--out): expected a folder path, got {out!r}")
+    check_not_foreign(out, "out (--out)")  # a file, or a lab's folder: refused before anything is read
     if engine not in ENGINES:
         raise UsageError(f"engine (--engine): expected one of {', '.join(ENGINES)}, got {engine!r}")
     check_positive(payload_scale, "payload_scale", "--payload-scale")
@@ -90,61 +96,71 @@ def simulate_run(
         why = element_count_error(remeshed_element_count(mech, elements_per_link))
         if why is not None:
             raise UsageError(f"elements_per_link (--elements-per-link): {elements_per_link} per link: expected {why}")
+    if engine == "exudyn" and BEAMS[beam] == "ffrf":
+        if elements_per_link not in (None, "file"):
+            raise UsageError("elements_per_link (--elements-per-link): the FFRF truth meshes solids (links' mesh_size "
+                             "in the model file); expected no --elements-per-link with --beam ffrf")
+        bare = [lk.name for lk in mech.links if lk.section.shape is None]
+        if bare:
+            raise UsageError(f"beam (--beam): ffrf needs solid sections (diameter, tube or rectangle); links {bare} "
+                             "give only A and I")
     if engine == "erls" and integrator == "gen-alpha":
         gen_alpha_step(erls_step, h, 1.0 / mech.sample_rate_hz, mech.reduction.band_hz)  # before the planning
     seed = new_seed() if seed is None else seed
 
-    drive = plan_drive(mech, duration, h, progress)  # nominal model: the controller's knowledge
-    truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
-    rec = simulate(truth_mech, drive, engine, duration, h,
-                   progress=None if progress is None else (lambda f: progress(engine, f)),
-                   elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step)
-    meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
-    validity = []
-    if engine != "exudyn":  # an ERLS truth (full or reduced): links turning fast against their clamped frequency
-        from ..erls.validity import signal_warnings
+    with output_folder(out, "simulate", overwrite=overwrite):  # claimed before the work
+        drive = plan_drive(mech, duration, h, progress)  # nominal model: the controller's knowledge
+        truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
+        rec = simulate(truth_mech, drive, engine, duration, h,
+                       progress=None if progress is None else (lambda f: progress(engine, f)),
+                       elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step,
+                       messages=messages)
+        meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
+        validity = []
+        if engine in ("erls", "reduced"):  # an ERLS truth: links turning fast against their clamped frequency
+            from ..erls.validity import signal_warnings
 
-        validity = [w.as_dict() for w in signal_warnings(truth_mech, rec.truth)]  # logged there
-    payload = truth_mech.payload
-    man = mech.manoeuvre
-    man_meta = {"kind": man.kind, "duration_s": man.duration,
-                "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
-    if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
-        man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
-    if man.kind == "waypoints":
-        man_meta.update(interpolation=man.interpolation, n_waypoints=len(man.times))
-    if man.file:
-        man_meta.update(file=str(Path(man.file).resolve()), file_sha256=file_sha256(man.file),
-                        n_samples=len(man.samples))
-    timings = {"plan_s": drive.plan_s, "plan_and_torque_s": drive.seconds, "torque_s": drive.seconds - drive.plan_s,
-               "plan_and_torque_cpu_s": drive.cpu_s, **rec.timings}
-    meta = {
-        "engine": engine,
-        "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
-        "mechanism": mech.name,
-        "seed": meas.seed,
-        "settings": {
-            "duration_s": duration,
-            "h_s": h,
-            "integrator": rec.settings["integrator"],
-            "truth": rec.settings,
-            "torque_table_dt_s": float(drive.t[1] - drive.t[0]),
-            "output_dt_s": 1.0 / mech.sample_rate_hz,
-            "payload_scale": payload_scale,
-            "payload_mass_kg": None if payload is None else payload.mass,
-            "computed_torque_model": "measured torques (file), open loop" if man.kind == "torque"
-            else "rigid ERLS, nominal payload",
-            "manoeuvre": man_meta,
-            "measurement": meas.settings,
-            "timings": timings,
-        },
-    }
-    if validity:
-        meta["validity"] = validity
-    if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
-        from ..manoeuvre import trajectory_csv
-        from ..runs import atomic_write_text
+            validity = [w.as_dict() for w in signal_warnings(truth_mech, rec.truth)]  # logged there
+        payload = truth_mech.payload
+        man = mech.manoeuvre
+        man_meta = {"kind": man.kind, "duration_s": man.duration,
+                    "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
+        if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
+            man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
+        if man.kind == "waypoints":
+            man_meta.update(interpolation=man.interpolation, n_waypoints=len(man.times))
+        if man.file:
+            man_meta.update(file=str(Path(man.file).resolve()), file_sha256=file_sha256(man.file),
+                            n_samples=len(man.samples))
+        timings = {"plan_s": drive.plan_s, "plan_and_torque_s": drive.seconds, "torque_s": drive.seconds - drive.plan_s,
+                   "plan_and_torque_cpu_s": drive.cpu_s, **rec.timings}
+        meta = {
+            "engine": engine,
+            "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
+            "mechanism": mech.name,
+            "seed": meas.seed,
+            "settings": {
+                "duration_s": duration,
+                "h_s": h,
+                "integrator": rec.settings["integrator"],
+                "truth": rec.settings,
+                "torque_table_dt_s": float(drive.t[1] - drive.t[0]),
+                "output_dt_s": 1.0 / mech.sample_rate_hz,
+                "payload_scale": payload_scale,
+                "payload_mass_kg": None if payload is None else payload.mass,
+                "computed_torque_model": "measured torques (file), open loop" if man.kind == "torque"
+                else "rigid ERLS, nominal payload",
+                "manoeuvre": man_meta,
+                "measurement": meas.settings,
+                "timings": timings,
+            },
+        }
+        if validity:
+            meta["validity"] = validity
+        if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
+            from ..manoeuvre import trajectory_csv
+            from ..runs import atomic_write_text
 
-        Path(out).mkdir(parents=True, exist_ok=True)
-        atomic_write_text(Path(out) / "plan.csv", trajectory_csv(drive.plan))
-    return write_run(out, meas.signals, rec.truth, meta, motors=mech.motor_names)
+            Path(out).mkdir(parents=True, exist_ok=True)
+            atomic_write_text(Path(out) / "plan.csv", trajectory_csv(drive.plan))
+        return write_run(out, meas.signals, rec.truth, meta, motors=mech.motor_names)

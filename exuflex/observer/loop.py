@@ -1,0 +1,211 @@
+"""The filter's compiled sample loop: samples of a log, each exactly as :meth:`.ekf.MultirateEKF.step` takes it,
+over a model's compiled interval and measurement (:class:`.base.CompiledModel`).
+
+Per sample ``k`` (the interval from ``t[k-1]``, input ``U[k-1]`` held, measurement ``Y[k]``, every channel
+sampled)::
+
+    the filter's input-step test                        (:func:`.kalman.step_statistic`)
+    z, F, Q = the model's interval from x               (:func:`.expansion.cached_interval`)
+    y_pred, H = the model's measurement at z            (:func:`.expansion.cached_rows`)
+    x, P = predict and update                           (:func:`.kalman.predict_update`, eqs. 13-15)
+    gate, hold-off, sensor-fault windows                (:func:`.kalman.normalise`, :func:`.kalman.window_push`)
+    record x, P, innovations, NIS
+
+until a sample needs more (the model's arrays renewed, a sample for :meth:`~.ekf.MultirateEKF.step`: see
+:data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs that alternate (``x, P`` current,
+``x_alt, P_alt`` written): a sample left undone has written nothing but scratch. ``tests/test_sample_loop.py``
+holds the loop and ``step`` bit-identical.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import NamedTuple
+
+import numpy as np
+
+from .base import GENERAL, LOOP_DONE, MONITOR
+from .expansion import (
+    NO_DISTURBANCES,
+    NO_PAYLOAD,
+    CachedStep,
+    LoopExtras,
+    LoopMap,
+    LoopState,
+    _example_system,
+    cached_interval,
+    cached_rows,
+)
+from .kalman import normalise, predict_update, step_statistic, window_push, window_seen
+
+__all__ = ["Buffers", "Monitors", "Record", "samples", "warm_up"]
+
+log = logging.getLogger(__name__)
+
+
+class Buffers(NamedTuple):
+    """The filter's state and scratch: the current ``x, P`` and the pair written (``x_alt, P_alt``), the predicted
+    covariance, work space, ``H P``, the innovation ``r``, its covariance ``S`` and the normalised innovation
+    ``zn``."""
+
+    x: np.ndarray
+    x_alt: np.ndarray
+    P: np.ndarray
+    P_alt: np.ndarray
+    P_pred: np.ndarray
+    work: np.ndarray
+    HP: np.ndarray
+    r: np.ndarray
+    S: np.ndarray
+    zn: np.ndarray
+
+
+class Monitors(NamedTuple):
+    """The filter's measurement noise and tests: ``R``'s diagonal, the covariance's floor, the gate (chi-square(1)
+    quantile), the sensor-fault windows (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their
+    tests ``(clip, k_mean, hi, lo)`` and verdicts, and the input-step test ``step_w``, ``step_thr``."""
+
+    Rd: np.ndarray
+    floor: np.ndarray
+    gate: float
+    win_Z: np.ndarray
+    win_n: np.ndarray
+    win_sum: np.ndarray
+    win_sq: np.ndarray
+    win_last: np.ndarray
+    win_int: np.ndarray
+    win_tests: np.ndarray
+    win_status: np.ndarray
+    step_w: np.ndarray
+    step_thr: float
+
+
+class Record(NamedTuple):
+    """Where each sample done is recorded (:class:`.ekf.RunRecord`'s arrays): ``x[k]``, ``P[k]`` (``P_kind`` 0 its
+    diagonal, 1 all of it flattened, -1 nothing), ``theta[k]`` the covariance's payload-scale column (empty: none),
+    ``inn[k]``, ``S[k]`` (flattened; empty: none), ``nis[k]``, and the prediction ``x_pred[k]``, ``F[k]``,
+    ``Q[k]`` (flattened; empty: none; what a smoother's backward pass needs)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    P_kind: int
+    theta: np.ndarray
+    inn: np.ndarray
+    S: np.ndarray
+    nis: np.ndarray
+    x_pred: np.ndarray
+    F: np.ndarray
+    Q: np.ndarray
+
+
+def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # pragma: no cover - compiled
+    """Samples ``k0 .. k1 - 1`` (module docstring), ``holdoff`` updates of the hold-off after an input step left,
+    the filter's :class:`Buffers`, :class:`Monitors` and :class:`Record`, the model's :class:`.base.LoopModel`
+    parts ``step``, ``state``, ``extras`` (None for a plain state: numba prunes the augmented branches).
+
+    Returns ``(k, status, holdoff, swapped, state, mats)``: the first sample not done, why, the hold-off left,
+    whether the current state is in the ``_alt`` buffers, the model's carried state and the last interval's held
+    matrices (for :meth:`.base.CompiledModel.loop_done`)."""
+    x, x_alt, P, P_alt = buf.x, buf.x_alt, buf.P, buf.P_alt
+    r, S, zn = buf.r, buf.S, buf.zn
+    m = Y.shape[1]
+    n_x = x.shape[0]
+    idx = np.empty(m, np.int64)  # the channels 0 .. m-1 (a loop: numba's np.arange costs more to compile)
+    for i in range(m):
+        idx[i] = i
+    y_pred = np.empty(m)
+    H = np.zeros((m, n_x))  # (the columns beyond the model's rows stay zero)
+    none = np.empty((0, 0))
+    mats = (none, none, none, none)
+    swapped = False
+    status = LOOP_DONE
+    k = k0
+    while k < k1:
+        u = U[k - 1]
+        u1 = U[k]
+        if step_statistic(u, u1, mon.step_w) > mon.step_thr:
+            status = GENERAL
+            break
+        status, z, F, Qk, mats_k, state = cached_interval(step, extras, state, x, u, u1, t[k] - t[k - 1], k == k0,
+                                                          k, P)
+        if status != LOOP_DONE:
+            break
+        if not cached_rows(step, z, y_pred, H):
+            status = GENERAL
+            break
+        nis, ok, finite = predict_update(F, P, Qk, buf.P_pred, buf.work, z, Y[k], y_pred, H, mon.Rd, buf.HP, r, S,
+                                         x_alt, P_alt, mon.floor)
+        if not (ok and finite):
+            status = GENERAL
+            break
+        n_over = normalise(r, S, mon.gate, zn)
+        n_bad = 0
+        if holdoff > 0:
+            holdoff -= 1
+            if mon.win_Z.shape[0]:
+                window_seen(mon.win_last, mon.win_int, t[k], idx)
+        else:
+            if n_over:
+                status = GENERAL
+                break
+            if mon.win_Z.shape[0]:
+                n_bad = window_push(mon.win_Z, mon.win_n, mon.win_sum, mon.win_sq, mon.win_last, mon.win_int, t[k],
+                                    idx, zn, mon.win_tests[0], mon.win_tests[1], mon.win_tests[2], mon.win_tests[3],
+                                    mon.win_status)
+        x, x_alt = x_alt, x
+        P, P_alt = P_alt, P
+        swapped = not swapped
+        mats = mats_k
+        # the record, element by element (a row or slice assignment compiles numba's shape checks and their
+        # messages into the loop, which then takes far longer to compile)
+        for i in range(n_x):
+            rec.x[k, i] = x[i]
+            if rec.P_kind == 0:
+                rec.P[k, i] = P[i, i]
+            elif rec.P_kind == 1:
+                for j in range(n_x):
+                    rec.P[k, i * n_x + j] = P[i, j]
+        if rec.inn.shape[0]:
+            for i in range(m):
+                rec.inn[k, i] = r[i]
+                for j in range(m):
+                    rec.S[k, i * m + j] = S[i, j]
+        rec.nis[k] = nis
+        if rec.x_pred.shape[0]:
+            for i in range(n_x):
+                rec.x_pred[k, i] = z[i]
+                for j in range(n_x):
+                    rec.F[k, i * n_x + j] = F[i, j]
+                    rec.Q[k, i * n_x + j] = Qk[i, j]
+        if extras is not None and rec.theta.shape[0]:  # (pruned for a plain state)
+            n0 = 2 * step.system.Mr.shape[0]
+            for i in range(n_x):
+                rec.theta[k, i] = P[i, n0]
+        k += 1
+        if n_bad:
+            status = MONITOR
+            break
+    return k, status, holdoff, swapped, state, mats
+
+
+try:  # numba is a core dependency; without it the loop runs as plain (slow) Python
+    import numba
+
+    samples = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_samples)
+except ImportError:  # pragma: no cover
+    samples = _samples
+
+
+def warm_up(augmented: bool | None = None) -> None:
+    """Compile (or load from numba's on-disk cache) :func:`samples` for the argument types the filter passes: called
+    with no sample to do (``k0 = k1``), it returns at once. ``augmented`` None: the plain state's specialisation;
+    True: the augmented states' (with :func:`.expansion.extra_interval`)."""
+    v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
+    buf = Buffers(v, v, m, m, m, m, m, v, m, v)
+    mon = Monitors(v, v, 0.0, m, n, v, v, v, v, v, n, v, 0.0)
+    rec = Record(m, m, 0, m, m, m, v, m, m, m)
+    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, m, m, v, 0.0, c, c, c, v,
+                      _example_system(1, 1))
+    state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
+    extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None
+    samples(v, m, m, 1, 1, 0, buf, mon, rec, step, state, extras)
