@@ -301,7 +301,7 @@ class TruthModel:
         """Position (2,), tangent angle and the linear maps (2, nc), (nc,) at a link station.
 
         The maps give the first-order changes of position and tangent angle with the total ODE2
-        coordinates ``c`` (used for the ERLS-mapped damper); at an interior node the first
+        coordinates ``c`` (used for the coordinate read-out and the locked modes); at an interior node the first
         adjacent element is used (position and slope are continuous there).
         """
         lm = self.links[link]
