@@ -49,7 +49,7 @@ def simulate_run(
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
     the engine's name) and the fraction of it done. ``out`` is claimed before the work
     (:func:`exuflex.runs.output_folder`): a folder holding anything exuflex did not write is refused, an earlier
-     exuflex result is replaced only with ``overwrite``. With an ERLS engine, links whose rotation rate approaches the
+    exuflex result is replaced only with ``overwrite``. With an ERLS engine, links whose rotation rate approaches the
     model's validity limit are logged as warnings and listed in ``meta.json`` under ``validity``
     (:func:`exuflex.erls.validity.signal_warnings`).
     """
