@@ -151,7 +151,11 @@ def _benchmark():
 # Gallery models that do not meet issue 15's acceptance with the observer as it is (measured with
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
 # the filter core and the reduction of issue 15 are done. None at present.
-KNOWN_SHORT: dict[str, str] = {}
+KNOWN_SHORT: dict[str, str] = {
+    "three_link_arm": ("seed 2: q3 (the wrist angle) 1.97x its bound on the Exudyn truth, 1.92x on the full-order ERLS "
+                       "truth; the exact step map (method='rk4') takes it to 1.68x and 10 interior modes to 1.51x on "
+                       "the ERLS truth (issue 28 items 1-2; docs/acceptance.md)"),
+}
 
 
 @pytest.mark.slow
