@@ -31,7 +31,7 @@ def _derivation() -> list[str]:
     out = []
     for i, ln in enumerate(text):
         if set(ln) == {"-"} and i > 0:
-            out[-1] = "#### " + out[-1]
+            out[-1] = "### " + out[-1]
             continue
         out.append(ln.replace(":data:", "").replace(":func:", "").replace(":class:", "").replace(":mod:", ""))
     return out
