@@ -780,8 +780,6 @@ class _Trajectory:
     tip's elastic displacement, not the reduced model's coordinates)."""
 
     def __init__(self, obs: Observer, t: np.ndarray, truth: Signals | None):
-        from scipy.interpolate import CubicHermiteSpline
-
         self.obs, self.t = obs, np.asarray(t, float)
         mech = obs.mech
         qn = list(mech.coordinate_names)
@@ -801,6 +799,8 @@ class _Trajectory:
             return
         step = float(np.median(np.diff(self.t))) if len(self.t) > 1 else obs.ekf.dt
         p = plan(mech, dt=step, t_end=span + step)
+        from scipy.interpolate import CubicHermiteSpline  # (here: scipy.interpolate is a large import)
+
         sq = CubicHermiteSpline(p.t, p.q, p.qd, axis=0)
         sqd = CubicHermiteSpline(p.t, p.qd, p.qdd, axis=0)
         self._q = lambda ts: sq(ts - t0)
@@ -1193,6 +1193,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
     if unobservable:
         summary["unobservable"] = unobservable
+    # the ERLS model's validity along the motion (links turning fast against their clamped frequency; logged)
+    from ..erls.validity import signal_warnings
+
+    motion = run.truth if run.truth is not None else est.physical
+    summary["validity"] = [w.as_dict() for w in signal_warnings(mech, motion)] if motion is not None else []
     if bnd is not None:
         summary["bound_rms"] = bnd
         summary["bound_kind"] = _bound_kind(along, smooth)
