@@ -10,8 +10,8 @@ For each model file in ``models/`` with a manoeuvre and each seed:
    :func:`exuflex.truth.simulate_run`; Exudyn truth by default), written to a temporary folder;
 2. the observer with default settings on that log (:func:`exuflex.observer.session.observe_run`, what
    ``exuflex observe MODEL RUN`` runs): RMS error of every physical estimate after the start-up, divided by the
-   observer's own bound (``bound_rms``: :func:`exuflex.observer.session.estimation_bound` for the log at hand,
-   the steady-state Kalman standard deviations over the scored interval, from the start-up to the log's end); the time-averaged NIS against the mean number of channels per update (its expectation);
+   observer's own bound (``bound_rms``: the posterior Cramer-Rao bound along the truth, its standard deviations'
+   RMS over the scored samples, from the start-up to the log's end, :func:`exuflex.observer.session.bound_track`); the time-averaged NIS against the mean number of channels per update (its expectation);
    the filter's flags (NIS divergence test, non-finite state);
 3. the same log through the exact reference step map (:data:`REFERENCE`: the reduced model integrated by RK4
    over every interval, no held matrices): the default path's RMS error divided by the reference's, per quantity.
@@ -222,8 +222,8 @@ def markdown(rows: list[dict], settings: dict) -> str:
          f"is the observer with {', '.join(f'{k}={v!r}' for k, v in REFERENCE.items())}."),
         "",
         (f"Acceptance of issue 15 per run: every RMS error after the start-up within {RATIO_MAX}x the observer's "
-         f"own bound (`estimation_bound` for the log: steady-state Kalman standard deviations over the scored "
-         f"interval, from the start-up to the log's end), time-averaged NIS "
+         f"own bound (`bound_rms`: the posterior Cramer-Rao bound along the truth, its standard deviations' RMS "
+         f"over the scored samples, from the start-up to the log's end; docs/bound.md), time-averaged NIS "
          f"within {NIS_TOL:.0%} of the channel count, no flag (NIS divergence test, non-finite state), and the "
          f"default path's RMS errors within {PATH_TOL:.0%} of the reference's. Runs passing: {n_pass} of "
          f"{len(rows)}."),
