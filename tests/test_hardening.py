@@ -411,8 +411,9 @@ def test_a_log_sampled_below_the_models_modes_is_refused_or_flagged(tmp_path, ca
     assert main(["observe", SIXBAR, str(run), "--allow-undersampled", "--json"]) == 0
     cap = capsys.readouterr()
     s = json.loads(cap.out)
-    assert s["sampling"]["undersampled"] and s["sampling"]["needed_hz"] > 2 * 100
-    assert s["nis_inconsistent"] and s["nis_whole_log_flag"]  # the result carries its flags
+    assert s["sampling"]["undersampled"] and s["sampling"]["needed_hz"] > 2 * 100  # the result carries its flag
+    # (the NIS need not flag it: with the stated damping, docs/validity.md, this log's NIS is 9.0 for 6 channels
+    # over 31 updates, inside the whole-log test; it was 35.9 while alpha M_uu over-damped the six-bar's modes)
     assert "not supported by the log" in cap.err
 
 
