@@ -510,7 +510,7 @@ def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=N
                          f"{dt:g} s ({mech.sample_rate_hz:g} Hz); expected h <= {dt:g} s")
     if duration < dt * (1 - 1e-9):
         raise UsageError(f"duration (--duration): {duration:g} s is shorter than one sample interval of the model "
-                         f"({dt:g} s); expected at least {dt:g} s")
+                         f"({dt:g} s, model.sample_rate_hz = {mech.sample_rate_hz:g}); expected at least {dt:g} s")
     if duration / h > MAX_STEPS:
         raise UsageError(f"duration (--duration): {duration:g} s at h = {h:g} s is {duration / h:.3g} integration "
                          f"steps, more than {MAX_STEPS:.0e} (every step is held in memory); expected at most "
@@ -665,6 +665,12 @@ def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
         raise UsageError(f"n_interior (--n-interior): expected a non-negative integer or 'auto', got {ni!r}")
     h = check_positive(config.h, "h", "--substep")
     dt = check_positive(config.dt, "dt") if config.dt is not None else 1.0 / mech.sample_rate_hz
+    band = mech.reduction.band_hz
+    if config.dt is None and mech.sample_rate_hz < 2 * band:
+        raise ModelFileError(src, "model.sample_rate_hz", f"at least twice reduction.band_hz = {band:g} Hz, the "
+                             f"highest frequency the reduced model keeps ({2 * band:g} Hz: a mode above half the "
+                             "filter's rate aliases onto a slower one), or a lower reduction.band_hz",
+                             mech.sample_rate_hz)
     if h > dt * (1 + 1e-9):
         raise UsageError(f"h (--substep): the RK4 sub-step {h:g} s is longer than the sample interval {dt:g} s")
     h_min = RK4_FLOOR / (2 * math.pi * mech.reduction.band_hz)

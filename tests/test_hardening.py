@@ -634,3 +634,38 @@ def test_a_slider_crank_driven_to_its_toggle_position_is_refused(tmp_path):
     p.write_text(text)
     with pytest.raises(KinematicsError, match=r"reaches a singular configuration"):
         plan(load_mechanism(p), dt=1e-3)
+
+
+# ------------------------------------------------------------------------------------------ solver failures
+def test_a_truth_solver_failure_names_its_likely_cause_in_the_input(tmp_path, capsys):
+    rc = main(["simulate", SIXBAR, "--out", str(tmp_path / "r"), "--payload-scale", "1e6", "--duration", "0.1",
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "internal error" not in err and "a bug" not in err, err
+    assert re.search(r"the exudyn truth's solver failed .*the likely cause is in the input: payload.mass \(times "
+                     r"--payload-scale\) = 4.6e\+04 kg", err), err
+    assert not (tmp_path / "r").exists()  # nothing left behind
+
+
+def test_solver_failure_names_each_field():
+    import dataclasses
+    from types import SimpleNamespace
+
+    import exuflex as xf
+    from exuflex.errors import SimulationError
+    from exuflex.truth.engines import solver_failure
+
+    mech = xf.load_mechanism(SIXBAR)
+    drive = SimpleNamespace(tau=np.zeros((3, 3)))
+    err = solver_failure(mech, drive, "exudyn", 1e-4, RuntimeError("boom"))
+    assert isinstance(err, SimulationError) and "no input far out of range" in str(err) and "--h" in str(err)
+    heavy = dataclasses.replace(mech, gravity=(0.0, -9.81e4))
+    assert "model.gravity = [0.0, -98100.0] m/s^2, 1e+04 g" in str(solver_failure(heavy, drive, "erls", 1e-4,
+                                                                                  RuntimeError("x")))
+    tiny = dataclasses.replace(mech, links=(dataclasses.replace(mech.links[0], length=1e-4),) + mech.links[1:])
+    assert f"links.{mech.links[0].name}.length = 0.0001 m" in str(solver_failure(tiny, drive, "erls", 1e-4,
+                                                                                 RuntimeError("x")))
+    fs = mech.motors[0].full_scale
+    strong = SimpleNamespace(tau=np.full((3, 3), 1e3 * fs))
+    assert f"the planned torque of {mech.motors[0].name} peaks at" in str(solver_failure(mech, strong, "exudyn", 1e-4,
+                                                                                         RuntimeError("x")))
