@@ -82,13 +82,15 @@ html_title = f"exuflex {release}"
 html_static_path = ["_static"]
 html_theme_options = {
     "navigation_with_keys": False,
-    "header_links_before_dropdown": 7,
+    "header_links_before_dropdown": 6,
     "show_toc_level": 2,
     "secondary_sidebar_items": ["page-toc"],
     "footer_start": ["copyright"],
     "footer_end": ["sphinx-version", "theme-version"],
 }
 html_show_sourcelink = False
+html_css_files = ["custom.css"]
+html_sidebars = {"index": [], "getting_started": []}  # single pages: no section navigation
 html_context = {"default_mode": "light"}
 
 

@@ -127,3 +127,19 @@ def test_a_link_without_a_solid_section_is_named():
                                                                                               lk.section.I)}),))
     with pytest.raises(ValueError, match=r"links\[0\] \(arm\): the FFRF truth needs a solid section"):
         build_ffrf(bare)
+
+
+@pytest.mark.slow
+def test_fourbar_ffrf_truth_meets_the_observer_acceptance(tmp_path):
+    """Issue 30's acceptance: the four-bar's FFRF truth (default meshes), observed with the beam observer: every
+    RMS error within 1.5x its bound and the mean NIS within 10 % of its expectation."""
+    from exuflex.observer.session import observe_run
+    from exuflex.runs import read_run
+    from exuflex.truth import simulate_run
+
+    model = MODELS / "fourbar.toml"
+    run = read_run(simulate_run(model, tmp_path / "run", beam="ffrf", seed=1))
+    out = observe_run(load_mechanism(model), run)
+    ratios = out.summary["ratio_to_bound"]
+    assert max(ratios.values()) < 1.5, ratios
+    assert out.summary["nis_mean"] == pytest.approx(out.summary["nis_expected"], rel=0.1)

@@ -12,7 +12,7 @@ With ``--json`` one JSON object is printed::
      "full": {"ndof": 30, "n_elastic": 27, "frequencies_hz": [...]},
      "exudyn": {"frequencies_hz": [...], "beam": "ancf", "locked": false, "elements_per_link": "file",
                 "n_elements": 30},                  # with --exudyn
-     "reduced": {..., "along": {...}}}               # with --reduced
+     "reduced": {..., "along": {...}, "truncation": {...}}}   # with --reduced
 """
 
 from __future__ import annotations
@@ -196,6 +196,15 @@ def _table(rep: dict) -> str:
             f"{_q(al['worst_nco_q'])} (full mode {al['worst_nco_mode_hz']:.1f} Hz), worst frequency error "
             f"{al['worst_freq_error_pct']:.3f} % at q = {_q(al['worst_freq_error_q'])} (full mode "
             f"{al['worst_freq_error_mode_hz']:.1f} Hz){'' if al['ok'] else ', BELOW THE THRESHOLDS'}")
+    tr = red.get("truncation") if red is not None else None
+    if tr:
+        ch = ", ".join(f"{c} {v:.3g}" for c, v in tr["rho_channels"].items())
+        qu = ", ".join(f"{k} {v:.2e}" for k, v in tr["quantities_rms"].items())
+        lines.append(
+            f"truncation (docs/reduction.md): the manoeuvre's truncated output in the channels, whitened mean square "
+            f"in the worst window, rho = {tr['rho']:.3g} (limit {tr['rho_max']:g}; {ch}; without interior modes "
+            f"{tr['rho_without_interior']:.3g}){'' if tr['met'] else ', ABOVE THE LIMIT'}"
+            + (f"; estimated tip quantities' truncated part, RMS in the worst window: {qu}" if qu else ""))
     return "\n".join(lines)
 
 

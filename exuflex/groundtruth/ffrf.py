@@ -24,12 +24,16 @@ with a rotary inertia or an offset is an ``ObjectRigidBody2D`` held at its offse
 (x, y, rotation about z). Motors: ``LoadTorqueVector`` about z on the interface markers (+T on the motor's link,
 -T on the reaction link), set once per step.
 
-Damping: the model file's Rayleigh ``alpha M + beta K`` on each body's modal coordinates
+Damping: the model file's Rayleigh ``alpha M_d + beta K`` on each body's modal coordinates
 (``dampingMatrixReduced``; the frames are undamped, so rigid motion is not braked). ``beta K`` gives every
-elastic mode of the mechanism the ratio ``beta w / 2`` exactly (all stiffness is modal); ``alpha M_ff`` damps
-only the part of a mode's kinetic energy carried by the bodies' deformation relative to their frames, so the
-alpha part of a mechanism mode's ratio is at most ``alpha / (2 w)`` (``exuflex modes --exudyn --beam ffrf
---json`` reports the ratios, ``docs/ffrf.md`` the comparison).
+elastic mode of the mechanism the ratio ``beta w / 2`` exactly (all stiffness is modal). ``M_d``
+(:func:`deformation_mass`) is the mass of the deformation relative to the body's own mean axes, not the modal
+mass ``M_ff``: the floating frame sits on one interface (Hurty-Craig-Bampton), so a link pinned at both ends
+and bending in its first mode appears, in that frame, to turn as well as bend, and ``alpha M_ff`` would damp that
+apparent turning too (on the four-bar up to five times the stated ratio). ``alpha M_d`` damps a mechanism mode
+by the share of its kinetic energy in the links' deformation about their mean axes; a mode in which links also
+move rigidly gets less than ``alpha / (2 w)`` (``exuflex modes --exudyn --beam ffrf --json`` reports the
+ratios, ``docs/ffrf_modes.md`` compares them with the stated ones).
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from ..probes import Probe, ProbeRecord, probes_for
 from .builder import _exu
 from .solid import MODE_FACTOR, SolidLink, solid_link, solid_specs
 
-__all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "ffrf_frequencies", "simulate_ffrf"]
+__all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "deformation_mass", "ffrf_frequencies", "simulate_ffrf"]
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +105,25 @@ class FfrfModel:
         v = np.column_stack([frd[:, 0] - phid * (si * lx + co * ly) + co * ud[:, 0] - si * ud[:, 1],
                              frd[:, 1] + phid * (co * lx - si * ly) + si * ud[:, 0] + co * ud[:, 1]])
         return p, v
+
+
+def _skew(v) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def deformation_mass(a: dict[str, np.ndarray]) -> np.ndarray:
+    """The modal mass of the deformation relative to the body's mass-weighted rigid motion (its mean axes):
+    ``M_ff - B^T M_rr^-1 B``, the Schur complement of the rigid block in the mass matrix of the rigid fields
+    (translations ``Phi_t``, rotations ``Phi_r = -x~`` about the origin) and the modes ``Psi``:
+    ``B = [Phi_t^T M Psi; -x~^T M Psi]``, ``M_rr = [[m I, -m chi~], [-m chi~^T, Theta]]`` (``chi`` the centre of
+    mass, ``Theta`` the inertia about the origin), all from the reduced-order invariants. Positive
+    semi-definite; zero on a mode combination that moves the body rigidly."""
+    m = float(a["totalMass"])
+    chi = _skew(a["chiU"])
+    Mrr = np.block([[m * np.eye(3), -m * chi], [-m * chi.T, a["inertiaLocal"]]])
+    B = np.vstack([a["mPhitTPsi"], -a["mXRefTildePsi"]])
+    Md = a["massMatrixReduced"] - B.T @ np.linalg.solve(Mrr, B)
+    return 0.5 * (Md + Md.T)
 
 
 def _probe_stations(mech: Mechanism, probes: Sequence[Probe]) -> dict[str, tuple[float, ...]]:
@@ -157,7 +180,7 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
         D = []
         if alpha or beta:
             D = exu.MatrixContainer()
-            D.SetWithDenseMatrix(alpha * a["massMatrixReduced"] + beta * a["stiffnessMatrixReduced"],
+            D.SetWithDenseMatrix(alpha * deformation_mass(a) + beta * a["stiffnessMatrixReduced"],
                                  useDenseMatrix=False)
         obj = mbs.AddObject(it.ObjectFFRFreducedOrder(
             nodeNumbers=[n_rigid, n_modal], stiffnessMatrixReduced=K, massMatrixReduced=M, dampingMatrixReduced=D,
@@ -381,7 +404,10 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
             T_out[i] = t
             state["i"] = i + 1
 
+    pre_time = [0.0]
+
     def pre_step(mbs_, t):
+        t_in = time.perf_counter()
         k = int(round(t / h)) - 1  # Exudyn passes the step's end time; the state is still at t_k
         if k < 0 or k >= n_steps:
             return True
@@ -392,6 +418,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
             mbs_.SetLoadParameter(ld, "loadVector", [0.0, 0.0, sign * float(row[j])])
         if progress is not None and k % rep_every == 0:
             progress(k / n_steps)
+        pre_time[0] += time.perf_counter() - t_in
         return True
 
     ss = exu.SimulationSettings()
@@ -424,6 +451,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     if stats is not None:
         it = solver.it
         stats.update(wall_s=wall, cpu_s=time.process_time() - c0, setup_s=fm.setup_s, setup_cached=fm.cached,
+                     pre_step_s=pre_time[0],
                      newton_per_step=it.newtonStepsCount / n_steps, jacobians_per_step=it.newtonJacobiCount / n_steps,
                      n_steps=n_steps, n_coordinates=len(ref), step_ms=1e3 * wall / n_steps, solid=fm.settings)
     n = state["i"]
