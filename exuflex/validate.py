@@ -145,12 +145,19 @@ def check_log(
     t = np.asarray(sensors.t, float)
     f = float  # plain floats in messages (no np.float64(...) reprs)
     n = len(t)
-    if n == 0:
-        raise LogFormatError(f"{source}: no data rows (expected at least one sample)")
+    if n < 2:
+        raise LogFormatError(f"{source}: {'no data rows' if n == 0 else 'one data row'}: too short to filter or "
+                             "score; expected at least 2 samples")
+    if n < MIN_SCORED_SAMPLES:
+        warnings_early = [f"only {n} samples: too short to score (an RMS over so few samples says little; expected "
+                          f"at least {MIN_SCORED_SAMPLES})"]
+    else:
+        warnings_early = []
     if not np.all(np.isfinite(t)):
         k = int(np.flatnonzero(~np.isfinite(t))[0])
         raise LogFormatError(f"{source}: {_row_line(k)}: time {f(t[k])!r} is not a finite number")
     rep = LogCheck(n_samples=n, dt=dt)
+    rep.warnings.extend(warnings_early)
     if n > 1:
         steps = np.diff(t)
         bad = np.flatnonzero(steps <= 0)
@@ -543,6 +550,9 @@ def check_actuation(mech: Mechanism) -> None:
                              f"(computed torque); {list(mech.motor_names)} actuate only {rank}",
                              has_got=False)
 
+
+MIN_SCORED_SAMPLES = 10
+"""Fewest samples a log is scored on without a note (an RMS over fewer says little)."""
 
 MAX_STEPS = 5e7
 """Most integration steps a simulation may take (about 20 bytes per step and table column are held)."""

@@ -22,32 +22,17 @@ from exuflex.cli import main
 from exuflex.errors import UsageError
 from exuflex.runs import OUTPUT_MARK, dump_json, output_folder
 
+from _sentinels import stop_work
+
 ROOT = Path(__file__).resolve().parents[1]
 SIXBAR = str(ROOT / "models" / "sixbar.toml")
 RUN = ROOT / "tests" / "data" / "sixbar_short"
 
 
-class Reached(BaseException):
-    """The command passed its checks: the work would start here."""
-
-
-def _reach(*a, **k):
-    raise Reached
-
-
 @pytest.fixture
 def no_work(monkeypatch):
-    """Every command's work replaced by :class:`Reached` (the checks before it run as usual)."""
-    import exuflex.cli.reproduce
-    import exuflex.manoeuvre
-    import exuflex.observer.session as session
-    from exuflex.study.runner import StudySpec
-
-    monkeypatch.setattr(exuflex.manoeuvre, "plan", _reach)
-    monkeypatch.setattr(session, "make_observer", _reach)
-    monkeypatch.setattr(StudySpec, "settings", _reach)
-    monkeypatch.setattr(exuflex.cli.reproduce, "_reproduce", _reach)
-    return Reached
+    """Every command's work replaced by a sentinel (the checks before it run as usual)."""
+    stop_work(monkeypatch)
 
 
 # ------------------------------------------------------------------------------------------ folders a lab owns
@@ -669,3 +654,40 @@ def test_solver_failure_names_each_field():
     strong = SimpleNamespace(tau=np.full((3, 3), 1e3 * fs))
     assert f"the planned torque of {mech.motors[0].name} peaks at" in str(solver_failure(mech, strong, "exudyn", 1e-4,
                                                                                          RuntimeError("x")))
+
+
+# ------------------------------------------------------------------------------------------ model files, studies
+def test_an_encoder_relative_to_its_own_link_is_refused(tmp_path):
+    from exuflex.mechanism import ModelFileError, load_mechanism
+
+    text = Path(SIXBAR).read_text()
+    assert 'relative_to = "L4"' in text
+    p = tmp_path / "m.toml"
+    p.write_text(text.replace('relative_to = "L4"', 'relative_to = "L5"'))
+    with pytest.raises(ModelFileError, match=r"relative_to: expected another link at joint .* than the encoder's own "
+                                             r"link 'L5' \(one of \['L4'\]\), got 'L5'"):
+        load_mechanism(p)
+
+
+def test_payload_levels_on_a_model_without_payload_mass_are_refused(tmp_path):
+    from exuflex.study import StudySpec, payload_levels, run_study
+
+    text = Path(SIXBAR).read_text()
+    p = tmp_path / "m.toml"
+    p.write_text(re.sub(r"(\[payload\][^\[]*?mass\s*=\s*)[0-9.eE+-]+", r"\g<1>0.0", text, count=1))
+    with pytest.raises(UsageError, match=r"levels \(--levels\): the levels scale the payload, but .* a payload of "
+                                         r"mass 0: every level would be the same truth"):
+        run_study(StudySpec(model=str(p), levels=payload_levels([0, 50]), runs=1, engine="reduced", duration=0.06),
+                  tmp_path / "s")
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_log_too_short_to_score_is_named(tmp_path, capsys):
+    lines = (RUN / "sensors.csv").read_text().splitlines()
+    one, three = tmp_path / "one.csv", tmp_path / "three.csv"
+    one.write_text("\n".join(lines[:2]) + "\n")
+    three.write_text("\n".join(lines[:4]) + "\n")
+    assert main(["observe", SIXBAR, str(one)]) == 2
+    assert "one data row: too short to filter or score; expected at least 2 samples" in capsys.readouterr().err
+    assert main(["observe", SIXBAR, str(three), "--json"]) == 0
+    assert "only 3 samples: too short to score" in capsys.readouterr().err

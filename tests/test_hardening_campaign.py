@@ -29,7 +29,9 @@ import numpy as np
 import pytest
 
 from exuflex.cli import main
-from exuflex.errors import EXPECTED_ERRORS, LogFormatError, UsageError
+from exuflex.errors import EXPECTED_ERRORS
+
+from _sentinels import Reached, reach, stop_work
 
 ROOT = Path(__file__).resolve().parents[1]
 SIXBAR = str(ROOT / "models" / "sixbar.toml")
@@ -38,29 +40,9 @@ TALLY: Counter = Counter()
 SECONDS: dict = {}
 
 
-class Reached(BaseException):
-    """The checks passed: the work would start here."""
-
-
-def _reach(*a, **k):
-    raise Reached
-
-
 @pytest.fixture
 def no_work(monkeypatch):
-    import exuflex.cli.reproduce
-    import exuflex.manoeuvre
-    import exuflex.observer.design
-    import exuflex.observer.session as session
-    import exuflex.reduction
-    from exuflex.study.runner import StudySpec
-
-    monkeypatch.setattr(exuflex.manoeuvre, "plan", _reach)
-    monkeypatch.setattr(session, "make_observer", _reach)
-    monkeypatch.setattr(StudySpec, "settings", _reach)
-    monkeypatch.setattr(exuflex.cli.reproduce, "_reproduce", _reach)
-    monkeypatch.setattr(exuflex.reduction, "reduced_modes_report", _reach)
-    monkeypatch.setattr(exuflex.observer.design, "make_observer", _reach)
+    stop_work(monkeypatch)
 
 
 def _run_cli(argv) -> tuple[str, int | None]:
@@ -254,8 +236,8 @@ def test_campaign_api_errors_are_documented_types(api, tmp_path, monkeypatch):
     from exuflex.study.runner import StudySpec
 
     xf, mech, run, obs = api
-    monkeypatch.setattr(exuflex.manoeuvre, "plan", _reach)  # an argument that passes: no simulation
-    monkeypatch.setattr(StudySpec, "settings", _reach)
+    monkeypatch.setattr(exuflex.manoeuvre, "plan", reach)  # an argument that passes: no simulation
+    monkeypatch.setattr(StudySpec, "settings", reach)
     kinds: Counter = Counter()
     for what, call in _api_calls(xf, mech, run, obs, tmp_path):
         try:
@@ -283,3 +265,61 @@ def test_campaign_tally(capsys):
         print("slowest size cases (s): " + ", ".join(f"{k} {v:.2f}" for k, v in slow))
     if len(TALLY) >= 4:  # the whole file ran
         assert total >= 500, TALLY
+
+
+# ------------------------------------------------------------------------------------------ results and their flags
+def _degraded(tmp: Path, kind: str, k: int) -> tuple[Path, list[str]]:
+    """The six-bar's 3 s log degraded: decimated by ``k``, channel noise scaled by ``k``, a channel's units off by
+    ``k`` (degrees for radians at k = 57), its torques scaled by ``k``."""
+    from exuflex.runs import read_run, write_run
+    from exuflex.sensors import Signals
+
+    run = read_run(ROOT / "tests" / "data" / "sixbar_erls_3s")
+    S = run.sensors
+    t, data = S.t, S.data.copy()
+    extra: list[str] = []
+    if kind == "decimated":
+        keep = np.arange(0, len(t), k)
+        t, data = t[keep], data[keep]
+        extra = ["--allow-undersampled"]
+    elif kind == "noisier":
+        rng = np.random.default_rng(k)
+        for c in ("c1", "c2", "c4"):
+            i = S.names.index(c)
+            data[:, i] += rng.normal(0, 3e-3 * k, len(t)) * np.nanstd(data[:, i])
+    elif kind == "units":
+        data[:, S.names.index("q2")] *= k
+    elif kind == "torque":
+        for m in run.motors:
+            data[:, S.names.index(m)] *= k
+    d = tmp / f"{kind}{k}"
+    write_run(d, Signals(t, S.names, data, S.units), run.truth, {key: v for key, v in run.meta.items() if key != "units"})
+    return d, extra
+
+
+RESULT_CASES = [("decimated", 5), ("decimated", 25), ("decimated", 100), ("noisier", 10), ("noisier", 100),
+                ("units", 3), ("units", 57), ("torque", 0.5), ("torque", 3)]
+
+
+@pytest.mark.slow
+def test_campaign_no_exit_0_result_contradicts_its_flags(tmp_path, capsys):
+    """An exit-0 observe result whose errors are far beyond its own bound must say so in its flags (NIS
+    inconsistent, undersampled or diverged): no confident garbage."""
+    n = 0
+    for kind, k in RESULT_CASES:
+        d, extra = _degraded(tmp_path, kind, k)
+        rc = main(["observe", SIXBAR, str(d), "--json", *extra])
+        cap = capsys.readouterr()
+        if rc != 0:
+            assert rc == 2 and len([ln for ln in cap.err.splitlines() if ": error: " in ln]) == 1, (kind, k, cap.err)
+            n += 1
+            continue
+        s = json.loads(cap.out)
+        ratios = [r for r in (s.get("ratio_to_bound") or {}).values() if r is not None]
+        flagged = s["nis_inconsistent"] or s["diverged"] or (s.get("sampling") or {}).get("undersampled")
+        if ratios and np.median(ratios) > 10:
+            assert flagged, (kind, k, np.median(ratios), s["nis_mean"], s["nis_expected"])
+        if s.get("nis_whole_log_flag"):
+            assert s["nis_inconsistent"], (kind, k)
+        n += 1
+    TALLY["observe results checked against their flags"] += n
