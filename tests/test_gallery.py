@@ -150,8 +150,13 @@ def _benchmark():
 
 # Gallery models that do not meet issue 15's acceptance with the observer as it is (measured with
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
-# the filter core and the reduction of issue 15 are done. None at present.
-KNOWN_SHORT: dict[str, str] = {}
+# the filter core and the reduction of issue 15 are done.
+KNOWN_SHORT: dict[str, str] = {
+    "sixbar": "with the damping as stated (docs/validity.md) q1's RMS error is 1.55-1.78x its bound on the Exudyn "
+              "truth, seeds 1-3 (1.23-1.48x while alpha M_uu over-damped modes 3, 5, 6 by 9-19x); on the stored ERLS "
+              "log 1.50x (was 1.12x), 1.54x with 8 interior modes: the less damped modes above the band, cause not "
+              "pinned down (issue 28 item 1)",
+}
 
 
 @pytest.mark.slow

@@ -1193,6 +1193,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
     if unobservable:
         summary["unobservable"] = unobservable
+    # the ERLS model's validity along the motion (links turning fast against their clamped frequency; logged)
+    from ..erls.validity import signal_warnings
+
+    motion = run.truth if run.truth is not None else est.physical
+    summary["validity"] = [w.as_dict() for w in signal_warnings(mech, motion)] if motion is not None else []
     if bnd is not None:
         summary["bound_rms"] = bnd
         summary["bound_kind"] = _bound_kind(along, smooth)
