@@ -30,7 +30,7 @@ elastic mode of the mechanism the ratio ``beta w / 2`` exactly (all stiffness is
 (:func:`deformation_mass`) is the mass of the deformation relative to the body's own mean axes, not the modal
 mass ``M_ff``: the floating frame sits on one interface (Hurty-Craig-Bampton), so a link pinned at both ends
 and bending in its first mode appears, in that frame, to turn as well as bend, and ``alpha M_ff`` would damp that
-apparent turning too (on the four-bar up to five times the stated ratio). ``alpha M_d`` damps a mechanism mode
+apparent turning too (several times the stated ratio on the gallery's mechanisms). ``alpha M_d`` damps a mechanism mode
 by the share of its kinetic energy in the links' deformation about their mean axes; a mode in which links also
 move rigidly gets less than ``alpha / (2 w)`` (``exuflex modes --exudyn --beam ffrf --json`` reports the
 ratios, ``docs/ffrf_modes.md`` compares them with the stated ones).
