@@ -17,6 +17,7 @@ deflection's RMS.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import tomllib
@@ -156,7 +157,11 @@ def main(argv=None) -> int:
         return [float(v) for v in s.split(",") if v.strip()]
 
     rows = [modes(r, False, say) for r in floats(a.ratios)] + [modes(r, True, say) for r in floats(a.tube_ratios)]
+    if a.out:
+        Path(a.out).with_suffix(".json").write_text(json.dumps({"modes": rows}, indent=1))
     resp = [response(r, False, say) for r in floats(a.response)]
+    if a.out:
+        Path(a.out).with_suffix(".json").write_text(json.dumps({"modes": rows, "response": resp}, indent=1))
     args = [f"--{k.replace('_', '-')} {v}" for k, v, d in (("ratios", a.ratios, "50,30,20,15,10,7,5,4,3"),
                                                           ("tube_ratios", a.tube_ratios, "50,20,10,5"),
                                                           ("response", a.response, "50,10,5,3")) if v != d]

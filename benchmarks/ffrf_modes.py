@@ -15,6 +15,7 @@ ratios (linearised, damped) with the model file's Rayleigh ratio ``alpha / (2 w)
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -167,14 +168,21 @@ def main(argv=None) -> int:
 
     models = a.models.split(",")
     scales = sorted((float(s) for s in a.scales.split(",")), reverse=True)
-    res = [model_modes(m, say) for m in models]
-    conv = [convergence(m, scales, say) for m in CONVERGENCE if m in models]
     args = []
     if models != list(GALLERY):
         args.append(f"--models {a.models}")
     if a.scales != "2,1.4,1,0.7":
         args.append(f"--scales {a.scales}")
-    publish(markdown(res, conv, " ".join(["python benchmarks/ffrf_modes.py", *args])), a.out)
+    cmd = " ".join(["python benchmarks/ffrf_modes.py", *args])
+    res = [model_modes(m, say) for m in models]
+    conv: list[dict] = []
+    # the page after the gallery and after each convergence model: the finest meshes take longest
+    for m in (None, *[m for m in CONVERGENCE if m in models]):
+        if m is not None:
+            conv.append(convergence(m, scales, say))
+        if a.out:
+            Path(a.out).with_suffix(".json").write_text(json.dumps({"modes": res, "convergence": conv}, indent=1))
+        publish(markdown(res, conv, cmd), a.out)
     return 0
 
 

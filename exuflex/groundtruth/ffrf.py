@@ -269,6 +269,7 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
         "mesh_scale": mesh_scale,
         "mode_factor": mode_factor,
         "links": {n: {"mesh_size_m": s.spec.mesh_size, "nodes": s.n_nodes, "tetrahedra": s.n_tets,
+                      "setup_s": round(s.setup_s, 2), "from_cache": s.cached,
                       "modes": s.n_modes, "interfaces": list(s.spec.interfaces),
                       "fixed_interface_hz": np.round(s.fixed_interface_hz, 2).tolist()} for n, s in solids.items()},
         "damping": "Rayleigh alpha M + beta K on each body's modal coordinates" if damping else "none",
