@@ -29,14 +29,16 @@ CONVERGENCE = ("sixbar", "fourbar")
 
 
 def _pair(f_ref: np.ndarray, f: np.ndarray, tol: float = 0.05):
-    """For each reference mode, the nearest mode of ``f`` within ``tol`` (relative) or None."""
-    out = []
-    for fr in f_ref:
-        if len(f) == 0:
-            out.append(None)
-            continue
-        j = int(np.argmin(np.abs(f - fr)))
-        out.append(float(f[j]) if abs(f[j] - fr) <= tol * fr else None)
+    """One-to-one pairing: for each reference mode, a mode of ``f`` within ``tol`` (relative) or None, the closest
+    pairs taken first (a mode pairs once)."""
+    cand = sorted((abs(fj - fr) / fr, i, j) for i, fr in enumerate(f_ref) for j, fj in enumerate(f)
+                  if abs(fj - fr) <= tol * fr)
+    out: list[float | None] = [None] * len(f_ref)
+    used: set[int] = set()
+    for _, i, j in cand:
+        if out[i] is None and j not in used:
+            out[i] = float(f[j])
+            used.add(j)
     return out
 
 
@@ -118,7 +120,8 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
             for p in (pf[i], p4[i], pa[i]):
                 cells += ["-" if p is None else f"{p:.2f}", _pct(f, p)]
             lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
-        missing = [f for f in r["erls"] if not _pair(np.array([f]), np.array(r["ffrf"]))[0]]
+        back = _pair(np.array(r["erls"]), np.array(r["ffrf"]))
+        missing = [f for f, p in zip(r["erls"], back) if p is None]
         if missing:
             lines.append(f"\nERLS (file mesh) modes without an FFRF mode within 5 %: {missing}.")
         links = "; ".join(f"{k}: {v['nodes']} nodes, {v['modes']} modes, mesh {1e3 * v['mesh_size_m']:.3g} mm"
@@ -161,6 +164,7 @@ def main(argv=None) -> int:
     ap.add_argument("--models", default=",".join(GALLERY))
     ap.add_argument("--scales", default="2,1.4,1,0.7", help="FFRF mesh-size scales for the convergence table")
     ap.add_argument("--out", default=str(ROOT / "docs" / "ffrf_modes.md"))
+    ap.add_argument("--from-json", default=None, help="re-render the page from a JSON this script wrote")
     a = ap.parse_args(argv)
 
     def say(msg):
@@ -174,6 +178,10 @@ def main(argv=None) -> int:
     if a.scales != "2,1.4,1,0.7":
         args.append(f"--scales {a.scales}")
     cmd = " ".join(["python benchmarks/ffrf_modes.py", *args])
+    if a.from_json:  # re-render a page from its numbers
+        data = json.loads(Path(a.from_json).read_text())
+        publish(markdown(data["modes"], data["convergence"], data.get("command", cmd)), a.out)
+        return 0
     res = [model_modes(m, say) for m in models]
     conv: list[dict] = []
     # the page after the gallery and after each convergence model: the finest meshes take longest
@@ -181,7 +189,8 @@ def main(argv=None) -> int:
         if m is not None:
             conv.append(convergence(m, scales, say))
         if a.out:
-            Path(a.out).with_suffix(".json").write_text(json.dumps({"modes": res, "convergence": conv}, indent=1))
+            Path(a.out).with_suffix(".json").write_text(json.dumps({"command": cmd, "modes": res, "convergence": conv},
+                                                                   indent=1))
         publish(markdown(res, conv, cmd), a.out)
     return 0
 
