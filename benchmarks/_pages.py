@@ -13,3 +13,15 @@ def publish(page: str, out: str | None) -> None:
     print(page)
     if out:
         Path(out).write_text(page)
+
+
+def rewrite_block(path: str | Path, begin: str, end: str, text: str) -> None:
+    """Replace the page's block from the marker ``begin`` to ``end`` by ``text`` (which holds both markers),
+    or append it if the page has none."""
+    page = Path(path)
+    old = page.read_text() if page.exists() else ""
+    if begin in old and end in old:
+        new = old[: old.index(begin)] + text + old[old.index(end) + len(end) :]
+    else:
+        new = old + ("\n" if old and not old.endswith("\n") else "") + text + "\n"
+    page.write_text(new)

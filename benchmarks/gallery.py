@@ -2,6 +2,7 @@
 
     python benchmarks/gallery.py [--models serial_arm,fivebar] [--seeds 1,2,3] [--engine exudyn]
                                  [--no-reference] [--json docs/gallery.json] [--md docs/gallery.md]
+    python benchmarks/gallery.py --acceptance --truth-dir DIR [--json J] [--md docs/acceptance.md]
 
 For each model file in ``models/`` with a manoeuvre and each seed:
 
@@ -9,8 +10,8 @@ For each model file in ``models/`` with a manoeuvre and each seed:
    :func:`exuflex.truth.simulate_run`; Exudyn truth by default), written to a temporary folder;
 2. the observer with default settings on that log (:func:`exuflex.observer.session.observe_run`, what
    ``exuflex observe MODEL RUN`` runs): RMS error of every physical estimate after the start-up, divided by the
-   observer's own bound (``bound_rms``: :func:`exuflex.observer.session.estimation_bound` for the log at hand,
-   the steady-state Kalman standard deviations over the scored interval, from the start-up to the log's end); the time-averaged NIS against the mean number of channels per update (its expectation);
+   observer's own bound (``bound_rms``: the posterior Cramer-Rao bound along the truth, its standard deviations'
+   RMS over the scored samples, from the start-up to the log's end, :func:`exuflex.observer.session.bound_track`); the time-averaged NIS against the mean number of channels per update (its expectation);
    the filter's flags (NIS divergence test, non-finite state);
 3. the same log through the exact reference step map (:data:`REFERENCE`: the reduced model integrated by RK4
    over every interval, no held matrices): the default path's RMS error divided by the reference's, per quantity.
@@ -18,6 +19,12 @@ For each model file in ``models/`` with a manoeuvre and each seed:
 The acceptance of issue 15 (:func:`acceptance`): every RMS error within 1.5x its bound, the NIS within 10 % of
 the channel count, no flag, and the default path within 10 % of the reference. The script prints a table and
 writes the measured figures as JSON and as the markdown page ``docs/gallery.md``.
+
+``--acceptance``: issue 28's acceptance (:data:`ACCEPTANCE`) on both truths, the full-order ERLS engine and
+Exudyn, without the reference path: every RMS error within 1.25x the bound on the ERLS truth and 1.5x on the
+Exudyn truth, the NIS within 10 % of the channel count, no flag; per model the mean and worst over the seeds,
+written to ``docs/acceptance.md``. ``--truth-dir DIR`` keeps the truth runs (``DIR/<engine>/<model>/s<seed>``)
+and reuses those already there, so that observer variants are scored on the same truths.
 """
 
 from __future__ import annotations
@@ -41,6 +48,8 @@ REFERENCE = {"method": "rk4"}
 """The exact reference path's observer settings (ObserverConfig fields): the step map by RK4 every interval."""
 
 RATIO_MAX = 1.5  # RMS error after the start-up / the observer's bound
+ACCEPTANCE = {"erls": 1.25, "exudyn": 1.5}
+"""Issue 28's largest RMS error / bound per truth engine (``--acceptance``)."""
 NIS_TOL = 0.10  # |time-averaged NIS / channels - 1|
 PATH_TOL = 0.10  # |RMS default / RMS reference - 1|
 
@@ -51,9 +60,10 @@ def gallery() -> list[str]:
 
 
 def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool = True,
-              work: Path | None = None) -> dict:
+              work: Path | None = None, truth_dir: Path | None = None) -> dict:
     """Truth, log and observer (default and, if ``reference``, the exact reference path) for one model and seed;
-    the measured figures as a JSON-ready dict."""
+    the measured figures as a JSON-ready dict. ``truth_dir``: keep the truth run in
+    ``truth_dir/<engine>/<model>/s<seed>`` and reuse it when it is there."""
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig, physical_names
     from exuflex.runs import read_run
@@ -63,7 +73,13 @@ def run_chain(model: str, seed: int, *, engine: str = "exudyn", reference: bool 
     mech = load_mechanism(path)
     with tempfile.TemporaryDirectory(dir=work) as tmp:
         t0 = time.perf_counter()
-        run = read_run(simulate_run(path, Path(tmp) / "run", engine=engine, seed=seed))
+        kept = None if truth_dir is None else Path(truth_dir) / engine / model / f"s{seed}"
+        if kept is not None and (kept / "meta.json").exists():
+            run = read_run(kept)
+        else:
+            if kept is not None:
+                kept.parent.mkdir(parents=True, exist_ok=True)
+            run = read_run(simulate_run(path, kept or Path(tmp) / "run", engine=engine, seed=seed))
         truth_s = time.perf_counter() - t0
         config = ObserverConfig()
         out = _observe(mech, run, config)
@@ -206,8 +222,8 @@ def markdown(rows: list[dict], settings: dict) -> str:
          f"is the observer with {', '.join(f'{k}={v!r}' for k, v in REFERENCE.items())}."),
         "",
         (f"Acceptance of issue 15 per run: every RMS error after the start-up within {RATIO_MAX}x the observer's "
-         f"own bound (`estimation_bound` for the log: steady-state Kalman standard deviations over the scored "
-         f"interval, from the start-up to the log's end), time-averaged NIS "
+         f"own bound (`bound_rms`: the posterior Cramer-Rao bound along the truth, its standard deviations' RMS "
+         f"over the scored samples, from the start-up to the log's end; docs/bound.md), time-averaged NIS "
          f"within {NIS_TOL:.0%} of the channel count, no flag (NIS divergence test, non-finite state), and the "
          f"default path's RMS errors within {PATH_TOL:.0%} of the reference's. Runs passing: {n_pass} of "
          f"{len(rows)}."),
@@ -230,19 +246,96 @@ def markdown(rows: list[dict], settings: dict) -> str:
     return "\n".join(lines)
 
 
+def acceptance_28(row: dict) -> dict:
+    """Issue 28's acceptance for one run (:data:`ACCEPTANCE`): the worst RMS error / bound within the engine's limit,
+    the NIS within 10 % of the channel count, no flag."""
+    a = acceptance(row)
+    limit = ACCEPTANCE[row["engine"]]
+    ok = math.isfinite(a["worst_ratio"]) and a["worst_ratio"] <= limit
+    return {"limit": limit, "worst_ratio": a["worst_ratio"], "worst_quantity": a["worst_quantity"],
+            "nis_rel": a["nis_rel"], "passed": ok and a["nis_consistent"] and a["no_flag"],
+            "flags": not a["no_flag"]}
+
+
+def acceptance_page(rows: list[dict], settings: dict) -> str:
+    """The markdown page of ``--acceptance``: per engine and model the worst RMS / bound and the NIS over the seeds
+    (mean and worst), the runs passing, then every run."""
+    cmd = "python benchmarks/gallery.py" + settings["command_args"]
+    seeds = settings["seeds"]
+    lines = ["# Issue 28's acceptance on the gallery", "",
+             f"Generated by `{cmd}` (do not edit: rerun the script); the code at commit {settings.get('commit', '?')}.",
+             "", (f"Default settings, no per-file tuning; seeds {', '.join(map(str, seeds))}. Per run: every RMS error "
+                  "after the start-up within the engine's limit times the observer's own bound (`bound_rms`, "
+                  + ", ".join(f"{k} truth {v}x" for k, v in ACCEPTANCE.items())
+                  + f"), the time-averaged NIS within {NIS_TOL:.0%} of the channel count, no flag (NIS divergence "
+                  "test, non-finite state). 'worst RMS / bound' is a run's largest ratio over its quantities; mean "
+                  "and worst are over the seeds."), ""]
+    n_pass = sum(r["acc28"]["passed"] for r in rows)
+    lines += [f"Runs passing: {n_pass} of {len(rows)}.", ""]
+    for engine in dict.fromkeys(r["engine"] for r in rows):
+        rs = [r for r in rows if r["engine"] == engine]
+        lines += [f"## {engine} truth (limit {ACCEPTANCE[engine]}x)", "",
+                  "| model | worst RMS / bound: mean | worst (quantity, seed) | NIS / channels: mean | worst |flags "
+                  "| passing |", "|---|---|---|---|---|---|---|"]
+        for model in dict.fromkeys(r["model"] for r in rs):
+            m = [r for r in rs if r["model"] == model]
+            w = [r["acc28"]["worst_ratio"] for r in m]
+            k = int(max(range(len(m)), key=lambda i: w[i] if math.isfinite(w[i]) else math.inf))
+            nis = [r["nis_mean"] / r["nis_expected"] if r["nis_expected"] else float("nan") for r in m]
+            kn = int(max(range(len(m)), key=lambda i: abs(nis[i] - 1) if math.isfinite(nis[i]) else math.inf))
+            lines.append(f"| {model} | {_fmt(sum(w) / len(w))} | {_fmt(w[k])} ({m[k]['acc28']['worst_quantity']}, "
+                         f"{m[k]['seed']}) | {_fmt(sum(nis) / len(nis), 3)} | {_fmt(nis[kn], 3)} | "
+                         f"{sum(r['acc28']['flags'] for r in m)} | {sum(r['acc28']['passed'] for r in m)} of {len(m)} |")
+        lines.append("")
+    lines += ["## Every run", "", "| engine | model | seed | reduced dofs | worst RMS / bound | NIS / channels | passes |",
+              "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        a = r["acc28"]
+        lines.append(f"| {r['engine']} | {r['model']} | {r['seed']} | {r['reduced_ndof']} | {_fmt(a['worst_ratio'])} "
+                     f"({a['worst_quantity']}) | {_fmt(r['nis_mean'])} / {_fmt(r['nis_expected'], 1)} | "
+                     f"{'yes' if a['passed'] else 'no'} |")
+    lines += ["", f"Versions: {', '.join(f'{k} {v}' for k, v in settings['versions'].items())}.", ""]
+    return "\n".join(lines)
+
+
+def _commit() -> str:
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except Exception:  # noqa: BLE001 - not a git checkout
+        return "?"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default=None, help="comma-separated model names (default: every file in models/)")
     ap.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated noise seeds (default 1,2,3)")
-    ap.add_argument("--engine", default="exudyn", choices=("exudyn", "erls", "reduced"), help="truth engine")
+    ap.add_argument("--engine", default=None,
+                    help="truth engine(s), comma-separated: exudyn, erls, reduced (default exudyn; --acceptance: erls,exudyn)")
+    ap.add_argument("--acceptance", action="store_true",
+                    help="issue 28's acceptance on the ERLS and Exudyn truths (no reference path); writes --md")
+    ap.add_argument("--truth-dir", default=None, help="keep the truth runs here and reuse those already there")
     ap.add_argument("--no-reference", action="store_true", help="skip the exact reference path")
     ap.add_argument("--json", default=str(ROOT / "docs" / "gallery.json"), help="JSON output ('' for none)")
     ap.add_argument("--md", default=str(ROOT / "docs" / "gallery.md"), help="markdown page ('' for none)")
     ap.add_argument("--markdown-from", default=None, help="rewrite --md from this JSON of an earlier run (no runs)")
     a = ap.parse_args(argv)
+    engines = (a.engine or ("erls,exudyn" if a.acceptance else "exudyn")).split(",")
+    bad = [e for e in engines if e not in ("exudyn", "erls", "reduced")]
+    if bad:
+        ap.error(f"--engine: expected exudyn, erls or reduced, got {bad[0]!r}")
+    if a.acceptance:
+        a.no_reference = True
+        if a.md == str(ROOT / "docs" / "gallery.md"):
+            a.md = str(ROOT / "docs" / "acceptance.md")
+        if a.json == str(ROOT / "docs" / "gallery.json"):
+            a.json = ""
     if a.markdown_from:
         data = json.loads(Path(a.markdown_from).read_text())
-        Path(a.md).write_text(markdown(data["runs"], data["settings"]))
+        page = acceptance_page if data["settings"].get("acceptance_28") else markdown
+        Path(a.md).write_text(page(data["runs"], data["settings"]))
         print(f"wrote {a.md}")
         return 0
     models = a.models.split(",") if a.models else gallery()
@@ -253,20 +346,35 @@ def main(argv=None) -> int:
     from exuflex.runs import package_versions
 
     rows = []
-    for m in models:
-        for s in seeds:
-            r = run_chain(m, s, engine=a.engine, reference=not a.no_reference)
-            rows.append(r)
-            ac = r["acceptance"]
-            print(f"{m:12s} seed {s}: worst RMS/bound {ac['worst_ratio']:.2f} ({ac['worst_quantity']}), NIS "
-                  f"{r['nis_mean']:.2f} / {r['nis_expected']:.1f}, diverged {r['diverged']}, "
-                  + (f"default/reference {ac['path_worst']:.3f} ({ac['path_worst_quantity']}), " if "path_worst" in ac
-                     else "") + f"{'PASS' if ac['passed'] else 'FAIL'}", flush=True)
-    args = ((f" --models {a.models}" if a.models else "") + (f" --seeds {a.seeds}" if seeds != list(SEEDS) else "")
-            + (f" --engine {a.engine}" if a.engine != "exudyn" else "") + (" --no-reference" if a.no_reference else ""))
-    settings = {"engine": a.engine, "seeds": seeds, "models": models, "reference": None if a.no_reference else
+    for engine, m, s in ((e, m, s) for e in engines for m in models for s in seeds):
+        r = run_chain(m, s, engine=engine, reference=not a.no_reference, truth_dir=a.truth_dir)
+        if engine in ACCEPTANCE:
+            r["acc28"] = acceptance_28(r)
+        rows.append(r)
+        ac = r["acceptance"]
+        print(f"{engine:6s} {m:14s} seed {s}: worst RMS/bound {ac['worst_ratio']:.2f} ({ac['worst_quantity']}), NIS "
+              f"{r['nis_mean']:.2f} / {r['nis_expected']:.1f}, diverged {r['diverged']}, "
+              + (f"default/reference {ac['path_worst']:.3f} ({ac['path_worst_quantity']}), " if "path_worst" in ac
+                 else "") + (f"issue 28 ({r['acc28']['limit']}x): {'PASS' if r['acc28']['passed'] else 'FAIL'}"
+                             if a.acceptance else f"{'PASS' if ac['passed'] else 'FAIL'}"), flush=True)
+    args = ((" --acceptance --truth-dir DIR" if a.acceptance else "") + (f" --models {a.models}" if a.models else "")
+            + (f" --seeds {a.seeds}" if seeds != list(SEEDS) else "")
+            + (f" --engine {a.engine}" if a.engine else "")
+            + (" --no-reference" if a.no_reference and not a.acceptance else ""))
+    settings = {"engine": ",".join(engines), "seeds": seeds, "models": models, "reference": None if a.no_reference else
                 REFERENCE, "acceptance": {"ratio_max": RATIO_MAX, "nis_tol": NIS_TOL, "path_tol": PATH_TOL},
+                "acceptance_28": ACCEPTANCE if a.acceptance else None, "commit": _commit(),
                 "command_args": args, "versions": {**package_versions(), "python": platform.python_version()}}
+    if a.acceptance:
+        if a.json:
+            Path(a.json).write_text(json.dumps({"settings": settings, "runs": rows}, indent=1, default=float) + "\n")
+            print(f"wrote {a.json}")
+        page = acceptance_page(rows, settings)
+        print(page)
+        if a.md:
+            Path(a.md).write_text(page)
+            print(f"wrote {a.md}")
+        return 0
     print("\n".join(summary_table(rows)))
     if a.json:
         Path(a.json).write_text(json.dumps({"settings": settings, "runs": rows}, indent=1, default=float) + "\n")

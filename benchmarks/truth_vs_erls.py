@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from exuflex.truth.crossval import manoeuvre_table, truth_vs_erls
 from exuflex.mechanism import load_mechanism
+from exuflex.truth.crossval import manoeuvre_table, truth_vs_erls
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,12 +49,15 @@ def _table_from_run(mech, run, cache):
 def _write_docs(path: Path, mech, cmp, args, duration: float) -> None:
     """Rewrite the page's block between ``<!-- truth_vs_erls.py MODEL FORM: begin -->`` and its end marker (appended
     if absent) with this comparison's figures."""
-    key = f"truth_vs_erls.py {mech.name} {args.form}"
+    key = f"truth_vs_erls.py {mech.name} {args.form}" + (
+        f" mesh {args.elements_per_link}" if args.elements_per_link is not None else "")
     begin, end = f"<!-- {key}: begin -->", f"<!-- {key}: end -->"
     cmd = " ".join(["python benchmarks/truth_vs_erls.py", *sys.argv[1:]])
     q = ", ".join(f"{n} {v:.2e}" for n, v in cmp.q_max_abs.items())
     tip = ", ".join(f"{n} {100 * v:.2f} %" for n, v in cmp.tip_nrms.items())
-    block = (f"{begin}\n- ERLS `{args.form}` vs Exudyn, {mech.name}, {duration:g} s manoeuvre (`{cmd}`): max |dq| (rad) "
+    mesh = (", Exudyn on the ERLS mesh" if args.elements_per_link == "file" else
+            f", Exudyn {args.elements_per_link} elements per link" if args.elements_per_link else "")
+    block = (f"{begin}\n- ERLS `{args.form}` vs Exudyn{mesh}, {mech.name}, {duration:g} s manoeuvre (`{cmd}`): max |dq| (rad) "
              f"{q}; tip elastic displacement NRMS {tip}\n{end}")
     text = path.read_text() if path.exists() else ""
     if begin in text and end in text:
@@ -76,7 +79,14 @@ def main() -> None:
     ap.add_argument("--form", default="lagrange", choices=("lagrange", "eq2"),
                     help="the ERLS full-order model's velocity forces (exuflex.erls.model)")
     ap.add_argument("--docs", default=None, help="docs page whose 'truth_vs_erls.py FORM' block is rewritten")
+    ap.add_argument("--elements-per-link", default=None,
+                    help="the Exudyn truth's mesh: N elements per link or 'file' (the ERLS mesh; default: "
+                         "exuflex.groundtruth.simulate_truth's)")
     args = ap.parse_args()
+    truth_kwargs = {}
+    if args.elements_per_link is not None:
+        truth_kwargs["elements_per_link"] = (args.elements_per_link if args.elements_per_link == "file"
+                                             else int(args.elements_per_link))
     mech = load_mechanism(args.model)
     erls_truth = table = None
     duration = args.duration
@@ -96,7 +106,8 @@ def main() -> None:
         table = manoeuvre_table(mech, duration, args.h)
     if args.erls_run and args.form != "lagrange":
         raise SystemExit("--erls-run holds a 'lagrange' ERLS truth; drop it to simulate another form")
-    cmp, exu, erl = truth_vs_erls(mech, duration, h=args.h, erls_truth=erls_truth, table=table, form=args.form)
+    cmp, exu, erl = truth_vs_erls(mech, duration, h=args.h, erls_truth=erls_truth, table=table, form=args.form,
+                                  **truth_kwargs)
     if args.json:
         print(json.dumps(cmp.as_dict(), indent=2))
     else:

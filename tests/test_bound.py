@@ -187,3 +187,27 @@ def test_a_blank_channel_is_left_out_of_the_schedule():
     ref = estimation_bound(without, RUN)
     assert got == pytest.approx(ref, rel=1e-12)
     assert got["x25"] > 1.1 * estimation_bound(with_c4, RUN)["x25"]  # c4 carries the tip's elastic motion
+
+
+def test_smoothed_bound_stays_bounded_with_an_undriven_damped_mode():
+    """A mode that halves every sample and no process noise drives (a damped mode the torques do not excite), in a
+    basis where it mixes with the others: the RTS gain is 2 along it and the RTS backward pass multiplies the
+    rounding there by 4 a sample (on these filtered covariances its smoothed variances exceed the filtered ones by
+    orders of magnitude: 8e2 to 1e11 over eight random bases); the modified Bryson-Frazier form stays at or
+    below the filtered bound. (Where both hold they agree: the filterpy comparison of the multirate test.)"""
+    from exuflex.observer.smoother import rts_backward
+
+    T, _ = np.linalg.qr(np.random.default_rng(0).standard_normal((3, 3)))
+    A = T @ np.array([[1.0, 0.01, 0.0], [0.0, 0.99, 0.0], [0.0, 0.0, 0.5]]) @ T.T
+    Q = T @ np.diag([1e-6, 1e-4, 0.0]) @ T.T
+    model = LinearDiscreteModel(A, None, {"y": T @ np.array([1.0, 0.0, 1.0])}, Q)
+    n = 300
+    t, X = np.arange(n) * 0.01, np.zeros((n, 3))
+    full = lambda a, b, Xb, Pb: Pb.reshape(len(Pb), -1).copy()  # noqa: E731
+    track = riccati_track(model, t, X, None, ("y",), np.array([1e-4]), np.eye(3), outputs=full, smooth=True)
+    P, Ps = track.var.reshape(-1, 3, 3), track.var_smoothed.reshape(-1, 3, 3)
+    d, ds = np.diagonal(P, axis1=1, axis2=2), np.diagonal(Ps, axis1=1, axis2=2)
+    assert np.all(np.isfinite(ds)) and np.all(ds <= d * (1 + 1e-9))
+    with np.errstate(all="ignore"):
+        _, Prts = rts_backward(P, np.array([A] * n), np.array([Q] * n))
+    assert np.nanmax(np.abs(np.diagonal(Prts, axis1=1, axis2=2)) / d) > 1e2

@@ -340,6 +340,34 @@ def test_rts_smoother_equals_filterpy_on_a_linear_model():
     np.testing.assert_array_equal(sm.x_hat[-1], sm.x_filt[-1])
 
 
+def test_rts_smoother_stays_finite_with_an_undriven_damped_mode():
+    """A mode that decays by 0.9 a sample with no process noise: its filtered variance falls below the filter's
+    variance floor within the record. The smoother's forward pass leaves the floor out, so the backward pass does
+    not amplify it (by 1/0.81 a sample: 1e18 over the last 200 samples, as the five-bar's smoothed estimates
+    overflowed): the smoothed covariances are filterpy's on the same forward pass and never above the filtered."""
+    from filterpy.kalman import KalmanFilter
+
+    from exuflex.observer.base import LinearDiscreteModel
+    from exuflex.observer.ekf import MultirateEKF
+    from exuflex.observer.smoother import rts_smooth
+
+    A = np.array([[1.0, 0.0], [0.0, 0.9]])
+    Q = np.diag([1e-4, 0.0])
+    model = LinearDiscreteModel(A, None, {"y": np.array([1.0, 1.0])}, Q)
+    n = 600
+    rng = np.random.default_rng(2)
+    t, Y = np.arange(n) * 0.01, rng.standard_normal((n, 1)) * 0.01
+    ekf = MultirateEKF(model, ("y",), {"y": 0.01}, np.zeros(2), np.array([1.0, 1.0]), dt=0.01)
+    sm = rts_smooth(ekf, t, None, Y)
+    assert np.diagonal(sm.P_filt, axis1=1, axis2=2)[-1, 1] < 1e-18  # below the filter's floor
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    xs, Ps, _, _ = kf.rts_smoother(sm.x_filt.copy(), sm.P_filt.copy(), Fs=[A] * n, Qs=[Q] * n)
+    np.testing.assert_allclose(sm.x_hat, xs, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(sm.P, Ps, rtol=1e-7, atol=1e-14)
+    assert np.all(sm.P_diag <= np.diagonal(sm.P_filt, axis1=1, axis2=2) * (1 + 1e-9) + 1e-30)
+    assert ekf._floor[1] == 1e-18  # the filter's own floor is back
+
+
 # ------------------------------------------------------------------------------------------ UKF
 def test_ukf_equals_the_kalman_filter_on_a_linear_model():
     from exuflex.observer.ekf import MultirateEKF

@@ -29,7 +29,8 @@ GALLERY = sorted(p.name for p in MODELS.glob("*.toml") if "manoeuvre" in tomllib
 
 
 def test_the_gallery_holds_the_issue_s_mechanisms():
-    assert {"sixbar.toml", "fourbar.toml", "single_link.toml", "serial_arm.toml", "fivebar.toml"} <= set(GALLERY)
+    assert {"sixbar.toml", "fourbar.toml", "single_link.toml", "serial_arm.toml", "fivebar.toml", "three_link_arm.toml",
+            "l_arm.toml"} <= set(GALLERY)
 
 
 def _closure_errors(mech, kin: Kinematics, q) -> tuple[float, float]:
@@ -69,9 +70,15 @@ def _closure_errors(mech, kin: Kinematics, q) -> tuple[float, float]:
 def test_gallery_model_assembles_at_q_ref_and_along_its_manoeuvre(name):
     mech = load_mechanism(MODELS / name)
     check_configurations(mech)
-    assert mech.manoeuvre is not None and mech.reduction.masters, "a gallery model has a manoeuvre and masters"
+    assert mech.manoeuvre is not None, "a gallery model has a manoeuvre"
     dofs = elastic_dofs(mech)
-    for m in mech.reduction.masters:
+    masters = mech.reduction.masters
+    if not masters:  # none named: the automatic choice (exuflex.reduction.masters) finds some
+        from exuflex.reduction import automatic_masters
+
+        masters = automatic_masters(ErlsModel(mech), np.asarray(mech.q_ref, float)[None])
+        assert masters, "a gallery model names masters or has joints off the ground or free tips to choose them at"
+    for m in masters:
         dofs.locate(m)  # raises on a master that is no elastic dof (global or link-frame name)
     assert {s.kind for s in mech.sensors} >= {"encoder", "curvature"}
     kin = Kinematics(mech)
@@ -143,8 +150,16 @@ def _benchmark():
 
 # Gallery models that do not meet issue 15's acceptance with the observer as it is (measured with
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
-# the filter core and the reduction of issue 15 are done. None at present.
-KNOWN_SHORT: dict[str, str] = {}
+# the filter core and the reduction of issue 15 are done.
+KNOWN_SHORT: dict[str, str] = {
+    "sixbar": "with the damping as stated (docs/validity.md) q1's RMS error is 1.55-1.78x its bound on the Exudyn "
+              "truth, seeds 1-3 (1.23-1.48x while alpha M_uu over-damped modes 3, 5, 6 by 9-19x); on the stored ERLS "
+              "log 1.50x (was 1.12x), 1.54x with 8 interior modes: the less damped modes above the band, cause not "
+              "pinned down (issue 28 item 1)",
+    "three_link_arm": ("seed 2: q3 (the wrist angle) 1.97x its bound on the Exudyn truth, 1.92x on the full-order ERLS "
+                       "truth; the exact step map (method='rk4') takes it to 1.68x and 10 interior modes to 1.51x on "
+                       "the ERLS truth (issue 28 items 1-2; docs/acceptance.md)"),
+}
 
 
 @pytest.mark.slow

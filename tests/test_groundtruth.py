@@ -78,7 +78,8 @@ def test_modes_agree_with_converged_erls(mech, q):
 
 
 def test_damping_is_equivalent_to_erls_rayleigh(mech):
-    """The ERLS-mapped alpha damper plus beta material damping give the ERLS model's modal damping."""
+    """The truth's own alpha damper plus beta material damping give the same modal damping as the ERLS model
+    (each built from its own matrices: both have the model file's Rayleigh ratios, ``tests/test_damping.py``)."""
     f, zeta = modal_damping(mech, elements_per_link=4, fmax=BAND_HZ)
     m = ErlsModel(refine_mechanism(mech, 2))
     cfg = m.configuration(mech.q_ref)
@@ -91,7 +92,7 @@ def test_damping_is_equivalent_to_erls_rayleigh(mech):
     zeta_erls = (-s.real / np.abs(s))[np.argsort(np.abs(s))]
     k = len(f)
     np.testing.assert_allclose(f, wn[:k] / (2 * np.pi), rtol=1e-2)
-    np.testing.assert_allclose(zeta, zeta_erls[:k], rtol=0.05)
+    np.testing.assert_allclose(zeta, zeta_erls[:k], rtol=0.02)
 
 
 def _pulse(duration, amp):
@@ -175,13 +176,19 @@ def test_torque_step_timing_matches_erls_zero_order_hold(mech):
     """Torques switched on at t_on and off at t_off (ERLS: zero-order hold at each step's start): both
     engines start moving at the switch (Exudyn's force ramps over the two steps around it) and after the
     pulse coast with the same rigid momentum. Regression: the torque of the step's end time (seen 3.9e-6
-    rad at 0.2 s) or of its start (-3.2e-6) moves the truth h/2 early or late; the mean of the two: 3-4e-7."""
+    rad at 0.2 s) or of its start (-3.2e-6) moves the truth h/2 early or late. The truth on the ERLS mesh with
+    alpha = 30 1/s (20 % at the first mode): at the file's 1 % the vibration the pulse excites is still there at
+    0.2 s and the two independent models' phases differ by up to 2e-6 rad; damped out, the mean of the two
+    torques leaves 3e-7..1.2e-6."""
+    from exuflex.mechanism.spec import Damping
+
+    mech = mech.replace(damping=Damping(30.0, mech.damping.beta))
     h, duration, t_on, t_off = 1e-4, 0.2, 0.01, 0.06
     amp = np.array([2.0, 4.0, 0.02])
     n = round(duration / h) + 1
     tg = np.arange(n) * h
     tau_tab = np.outer((tg >= t_on - h / 2) & (tg < t_off - h / 2), amp)
-    rec = simulate_truth(mech, tg, tau_tab, duration, h=h, output_dt=None)
+    rec = simulate_truth(mech, tg, tau_tab, duration, h=h, output_dt=None, elements_per_link="file")
     keys = [p.key for p in probes_for(mech)[:3]]
     q_exu = np.column_stack([rec.values[k][:, 0] for k in keys])
 
@@ -220,14 +227,19 @@ SINGLE_LINK = MODEL.parent / "single_link.toml"
 
 
 def test_stale_alpha_damper_brakes_a_rigid_rotation_by_alpha_delta_squared():
-    """The ERLS-mapped alpha damper evaluated with the link turned by delta from the damper's configuration sees a
-    rigid rotation at rate w as the axial elastic rates w r sin(delta) (and lateral w r (1 - cos delta)), so it
-    brakes the rotation with the power -alpha w^2 4 sin^2(delta / 2) J, J = rho A L^3 / 3 + m_tip L^2 (the axial
-    mass's second moment about the hub; linear axial shape functions integrate it exactly). At delta = 0 it does no
-    work on the rotation. This is the error :func:`simulate_truth`'s refresh policy bounds (its ``damping_tol``)."""
+    """The alpha damper ``alpha (M - M R (R^T M R)^-1 R^T M)`` evaluated with the link turned by delta from the
+    damper's configuration has the rigid field ``R`` turned by delta: the rotation at rate w (link positions and
+    slopes turning, the hub body spinning in place) keeps only the part ``(cos(delta) J_p + J_h) / (J_p + J_h)``
+    of itself along ``R`` (``J_p = rho A L^3 / 3 + m_tip L^2``: the link's and tip mass's second moment about the
+    hub, which ANCF's cubic interpolation of the linear rigid field integrates exactly; ``J_h``: the hub body's
+    inertia), so it is braked with the power ``-alpha w^2 (J - (cos(delta) J_p + J_h)^2 / J)``, ``J = J_p + J_h``,
+    about ``-alpha w^2 delta^2 J_p`` for small delta: quadratic in delta. At delta = 0 it does no work on
+    the rotation. This is the error :func:`simulate_truth`'s refresh policy bounds (its ``damping_tol``)."""
     mech = load_mechanism(SINGLE_LINK)
     lk = mech.links[0]
-    J = lk.material.rho * lk.section.A * lk.length**3 / 3 + mech.payload.mass * lk.length**2
+    Jp = lk.material.rho * lk.section.A * lk.length**3 / 3 + mech.payload.mass * lk.length**2
+    Jh = next(m.inertia for m in mech.all_masses() if m.label == "hub")
+    J = Jp + Jh
     tm = build_truth(mech, q=[0.0])
     c0 = tm.coordinates()
     w = 1.3
@@ -246,7 +258,7 @@ def test_stale_alpha_damper_brakes_a_rigid_rotation_by_alpha_delta_squared():
             cdelta[node_coords] = [c * x - s * y, s * x + c * y, c * sx - s * sy, s * sx + c * sy]
         tm.update_dampers(cdelta)
         power = -cd @ tm.D_alpha @ cd
-        expected = -tm.alpha * w**2 * 4 * np.sin(delta / 2) ** 2 * J
+        expected = -tm.alpha * w**2 * (J - (c * Jp + Jh) ** 2 / J)
         assert power == pytest.approx(expected, rel=1e-3, abs=1e-12 * tm.alpha * w**2 * J)
 
 

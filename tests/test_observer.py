@@ -52,12 +52,71 @@ def _arrays(run, channels, n):
     return S.t[:n], S.select(run.motors).data[:n], S.select(channels).data[:n]
 
 
+def _independent_bound(mech, q, channels, dt, elastic_mass=None):
+    """Steady-state Kalman filter on the full-order model (30 dofs) linearised at rest at q: exact ZOH
+    discretisation of its state matrix, the measured torques' noise held over the interval as the process noise,
+    the channels' rows by finite differences of the truth's sensor model (:func:`exuflex.sensors.sensor_channels`
+    on :func:`~exuflex.sensors.erls_probe_record`), the Riccati recursion to its fixed point; RMS after an update.
+    ``elastic_mass``: replaces the model's damping mass (the old convention ``M_uu``, for the stored reference)."""
+    import scipy.linalg as sla
+
+    from exuflex.erls.model import ErlsModel
+    from exuflex.sensors import erls_probe_record, sensor_channels
+
+    model = ErlsModel(mech)
+    if elastic_mass is not None:
+        model.elastic_mass = lambda cfg: elastic_mass(model, cfg)
+    n, nq = model.n, model.nq
+    cfg = model.configuration(q)
+    A, Minv = model.state_matrix(cfg)
+    B = np.zeros((2 * n, len(mech.motors)))
+    B[n:] = Minv @ model.input_matrix(cfg)
+    m = B.shape[1]
+    E = sla.expm(np.block([[A, B], [np.zeros((m, 2 * n + m))]]) * dt)
+    Ad, Bd = E[: 2 * n, : 2 * n], E[: 2 * n, 2 * n :]
+    Qd = Bd @ np.diag([mo.noise_std**2 for mo in mech.motors]) @ Bd.T
+    x0 = np.zeros(2 * n)
+    x0[:nq] = q
+    eps = 1e-7
+    Y = np.vstack([x0] + [x0 + eps * e for e in np.eye(2 * n)])
+    sig = sensor_channels(mech, erls_probe_record(model, np.arange(len(Y)) * 1e-3, Y))
+    cols = [sig.names.index(c) for c in channels]
+    C = ((sig.data[1:, cols] - sig.data[0, cols]) / eps).T
+    R = np.diag([next(s for s in mech.sensors if s.name == c).noise_std ** 2 for c in channels])
+    P = Qd.copy()
+    for _ in range(100000):
+        new = Ad @ (P - P @ C.T @ np.linalg.solve(C @ P @ C.T + R, C @ P)) @ Ad.T + Qd
+        if np.allclose(new, P, rtol=1e-10, atol=1e-14 * np.abs(new).max()):
+            break
+        P = 0.5 * (new + new.T)
+    P = P - P @ C.T @ np.linalg.solve(C @ P @ C.T + R, C @ P)
+    out = {}
+    for j, c in enumerate(mech.coordinate_names):
+        out[c], out["d" + c] = np.sqrt(P[j, j]), np.sqrt(P[n + j, n + j])
+    for name in ("x25", "y26"):
+        i = model.index(name)
+        out[name], out["d" + name] = np.sqrt(P[i, i]), np.sqrt(P[n + i, n + i])
+    return out
+
+
 def test_bound_matches_independent_riccati_solution(sixbar, observer):
+    """The observer's bound (13-dof reduced model) at mid-path against an independent steady-state Kalman filter
+    on the full-order model (:func:`_independent_bound`), within 10 %. The independent solution is itself checked
+    against the team's stored one (``exuflex_reference``, 30 dofs), which used the earlier damping convention
+    ``alpha M_uu + beta K_uu`` on the elastic block: with that convention it reproduces it within 5 %. (With the
+    stated damping, ``docs/validity.md``, the rates and the tip are less damped and their bound is 19-33 % higher.)"""
     ref = paper_reference()["exuflex_reference"]["rms_bound_steady_state_kf"]
-    expected = dict(zip(ref["columns"], ref["rows"]["mid-path, 13 dofs, encoders + gauges"]))
+    stored = dict(zip(ref["columns"], ref["rows"]["mid-path, 30 dofs, encoders + gauges"]))
     from exuflex.observer.session import _mid_q
 
-    got = steady_bound(observer, q=_mid_q(sixbar))  # the reference is the bound at mid-path, at rest
+    q = _mid_q(sixbar)
+    channels = ("q1", "q2", "q3", "c1", "c2", "c4")
+    assert tuple(observer.channels) == channels
+    old = _independent_bound(sixbar, q, channels, DT, elastic_mass=lambda m, cfg: m.T.T @ cfg.M_N @ m.T)
+    for name, value in stored.items():
+        assert old[name] == pytest.approx(value, rel=0.05), name
+    expected = _independent_bound(sixbar, q, channels, DT)
+    got = steady_bound(observer, q=q)  # the bound at mid-path, at rest
     for name, value in expected.items():
         assert got[name] == pytest.approx(value, rel=0.1), name
 
@@ -248,8 +307,10 @@ def test_fast_steps_agree_with_the_papers_rk4_reference(sixbar, observer, erls_l
 def test_runaway_estimate_is_a_divergence_not_a_model_error(sixbar):
     """Encoders reading 0 rad (dead channels) under torques 1e5 times too large (a unit error in the log):
     the estimate runs away until the loops cannot close; that must surface as FilterDivergedError, never as
-    a KinematicsError blaming the model file. With the right torques and dead encoders the estimate settles
-    on the wrong configuration and the NIS test flags the run."""
+    a KinematicsError blaming the model file. With the right torques and dead encoders the run must not pass
+    silently either: the NIS test flags it, or the estimate runs away into a FilterDivergedError (which of the two
+    depends on the model's damping: with the stated damping, ``docs/validity.md``, the estimate goes non-finite
+    at 18 ms; with the earlier ``alpha M_uu`` it settled on the wrong configuration)."""
     from exuflex.observer import FilterDivergedError
 
     obs = make_observer(sixbar)
@@ -261,7 +322,11 @@ def test_runaway_estimate_is_a_divergence_not_a_model_error(sixbar):
     # the NIS test, without the per-channel gate (which, with half the channels dead from the first sample, may
     # reject the live ones' partners and let the estimate run away: a FilterDivergedError, never silent)
     plain = make_observer(sixbar, ObserverConfig(gate_p=None, fault_window=0), cb=obs.model.rm.cb)
-    res = plain.ekf.run(t, U, Y)
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            res = plain.ekf.run(t, U, Y)
+    except FilterDivergedError:
+        return
     assert res.nis_flagged and not res.diverged and not res.nonfinite
 
 

@@ -108,7 +108,9 @@ def test_held_mass_and_stiffness_gradients(cb, consistent):
 def test_reduced_trajectory_follows_the_full_model():
     """RK4 (0.1 ms) over the first 0.1 s of the six-bar's manoeuvre under its computed torques, from the same
     start: the reduced model's coordinates against the full-order model's. The consistent velocity
-    transformation stays within 2.6e-5 rad, the paper's eq. 7 form (``x' ~ H p'``) drifts 2.8e-4 rad."""
+    transformation stays within 7.6e-5 rad, the paper's eq. 7 form (``x' ~ H p'``) drifts 9.3e-4 rad. (Both were
+    about 3 times smaller while the elastic block's damping was ``alpha M_uu``, which damped the six-bar's modes 3, 5
+    and 6 at 9-19 times the stated ratio: the truncated modes' response now decays as the model file states.)"""
     mech = load_mechanism(MODELS / "sixbar.toml")
     model = ErlsModel(mech)
     h, duration = 1e-4, 0.1
@@ -128,6 +130,6 @@ def test_reduced_trajectory_follows_the_full_model():
         z0[rm.r : rm.r + rm.nq] = pl.qd[0]
         red = simulate(rm.rhs, z0, duration, torque, h=h, output_every=10).y[:, : rm.nq]
         drift[consistent] = float(np.abs(red - full).max())
-    assert drift[True] < 3e-5
-    assert 2.5e-4 < drift[False] < 3.2e-4
+    assert drift[True] < 1e-4
+    assert 8e-4 < drift[False] < 1.1e-3
     assert drift[False] > 8 * drift[True]

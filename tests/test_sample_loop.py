@@ -111,7 +111,7 @@ def test_augmented_loop_is_step(sixbar_log, estimator, theta0, tau):
     ekf = make_observer(mech, ObserverConfig(estimator=estimator, input_tau=tau), cb=obs.model.rm.cb).ekf
     model = ekf.model
     assert ekf._loop is not None
-    x0 = ekf._x0.copy()
+    x0 = ekf.x0
     if theta0 is not None:
         x0[model.i_theta] = theta0
     n = 700

@@ -35,7 +35,8 @@ def _get_sg_image_scraper():
 #: The gallery's order: the paper's case, then the mechanisms from the simplest, then the examples a user starts
 #: from. A script not listed comes after these, by file name.
 ORDER = ["plot_sixbar.py", "plot_paper_reproduction.py", "plot_single_link.py", "plot_fourbar.py",
-         "plot_slider_crank.py", "plot_serial_arm.py", "plot_fivebar.py", "plot_spin_up.py",
+         "plot_slider_crank.py", "plot_l_arm.py", "plot_serial_arm.py", "plot_three_link_arm.py", "plot_fivebar.py",
+         "plot_spin_up.py",
          "own_mechanism.py", "own_lab_log.py", "online_loop.py", "plot_more_mechanisms.py"]
 
 

@@ -9,10 +9,15 @@ split by ``--refine`` and then by ``--elements-per-link`` (:func:`exuflex.mechan
 With ``--json`` one JSON object is printed::
 
     {"model": ..., "q": [...], "locked": false, "fmax_hz": 180.0,
-     "full": {"ndof": 30, "n_elastic": 27, "frequencies_hz": [...]},
-     "exudyn": {"frequencies_hz": [...], "beam": "ancf", "locked": false, "elements_per_link": "file",
-                "n_elements": 30},                  # with --exudyn
-     "reduced": {..., "along": {...}}}               # with --reduced
+     "full": {"ndof": 30, "n_elastic": 27, "frequencies_hz": [...], "damping_ratio": [...]},
+     "exudyn": {"frequencies_hz": [...], "damping_ratio": [...], "beam": "ancf", "locked": false,
+                "elements_per_link": "file", "n_elements": 30},  # with --exudyn
+     "reduced": {..., "along": {...}, "truncation": {...}}}   # with --reduced
+
+``damping_ratio``: each mode's ratio (a fraction, aligned with ``frequencies_hz``) from the damped eigenvalues
+``s`` of the linearised system, ``-Re s / |s|`` (ERLS: :func:`exuflex.erls.modal.damping_ratios`; Exudyn:
+:func:`exuflex.groundtruth.modal_damping`, its ``ComputeLinearizedSystem``); motors free, the model file's
+``alpha / (2 w) + beta w / 2``.
 """
 
 from __future__ import annotations
@@ -72,7 +77,7 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
                  exudyn: bool = False, reduced: bool = False, masters=None, n_interior=None, q_star=None,
                  along: int = 41, elements_per_link: int | str = "file", beam: str = "ancf") -> dict:
     """Library form of the command: the JSON-ready report."""
-    from ..erls.modal import modal_analysis
+    from ..erls.modal import aligned_ratios, damping_ratios, modal_analysis
     from ..erls.model import ErlsModel
     from ..errors import UsageError
     from ..mechanism import load_mechanism, refine_mechanism, remesh_mechanism, remeshed_element_count
@@ -113,6 +118,7 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
         "fmax_hz": fmax,
         "full": {"ndof": model.n, "n_elastic": model.ne, "frequencies_hz": res.below(fmax).tolist()},
     }
+    out["full"]["damping_ratio"] = aligned_ratios(res.below(fmax), *damping_ratios(model, q, locked)).tolist()
     if asm is not None:
         out["assembly"] = asm.as_dict()
     if exudyn and BEAMS[beam] == "ffrf":
@@ -125,10 +131,13 @@ def modes_report(model_path: str, *, q=None, fmax: float = 180.0, locked: bool =
                          "beam": beam, "locked": False,
                          "out_of_plane_hz": r["out_of_plane_hz"].tolist(), "solid": r["settings"]}
     elif exudyn:
-        from ..groundtruth import exudyn_frequencies  # lazy: Exudyn is heavy and optional here
+        from ..groundtruth import exudyn_frequencies, modal_damping  # lazy: Exudyn is heavy and optional here
 
         f = np.asarray(exudyn_frequencies(mech, q, elements_per_link="file", formulation=BEAMS[beam], locked=locked))
-        out["exudyn"] = {"frequencies_hz": f[f <= fmax].tolist(), "beam": beam, "locked": locked,
+        f = f[f <= fmax]
+        zeta = aligned_ratios(f, *modal_damping(mech, q, elements_per_link="file", formulation=BEAMS[beam],
+                                                locked=locked))
+        out["exudyn"] = {"frequencies_hz": f.tolist(), "damping_ratio": zeta.tolist(), "beam": beam, "locked": locked,
                          "elements_per_link": elements_per_link, "n_elements": sum(lk.n_elements for lk in mech.links)}
     if reduced:
         try:
@@ -196,6 +205,15 @@ def _table(rep: dict) -> str:
             f"{_q(al['worst_nco_q'])} (full mode {al['worst_nco_mode_hz']:.1f} Hz), worst frequency error "
             f"{al['worst_freq_error_pct']:.3f} % at q = {_q(al['worst_freq_error_q'])} (full mode "
             f"{al['worst_freq_error_mode_hz']:.1f} Hz){'' if al['ok'] else ', BELOW THE THRESHOLDS'}")
+    tr = red.get("truncation") if red is not None else None
+    if tr:
+        ch = ", ".join(f"{c} {v:.3g}" for c, v in tr["rho_channels"].items())
+        qu = ", ".join(f"{k} {v:.2e}" for k, v in tr["quantities_rms"].items())
+        lines.append(
+            f"truncation (docs/reduction.md): the manoeuvre's truncated output in the channels, whitened mean square "
+            f"in the worst window, rho = {tr['rho']:.3g} (limit {tr['rho_max']:g}; {ch}; without interior modes "
+            f"{tr['rho_without_interior']:.3g}){'' if tr['met'] else ', ABOVE THE LIMIT'}"
+            + (f"; estimated quantities' truncated part (q, q', tip), RMS in the worst window: {qu}" if qu else ""))
     return "\n".join(lines)
 
 

@@ -18,7 +18,9 @@ import scipy.linalg as sla
 
 from .model import ErlsModel
 
-__all__ = ["ModalResult", "modal_analysis"]
+__all__ = ["ModalResult", "aligned_ratios", "damping_ratios", "modal_analysis"]
+
+MATCH_TOL = 0.02  # a damped eigenvalue belongs to an undamped mode if |s| / w - 1 is below this
 
 
 @dataclass(frozen=True)
@@ -59,3 +61,42 @@ def modal_analysis(model: ErlsModel, q=None, locked: bool = False) -> ModalResul
     rigid = f[:n_rigid]
     f, full = f[n_rigid:], full[:, n_rigid:]
     return ModalResult(q, locked, f, full, cfg.W @ full, rigid, names)
+
+
+def damping_ratios(model: ErlsModel, q=None, locked: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``(f_hz, zeta)``: the modes' natural frequencies ``|s| / 2 pi`` and damping ratios ``-Re s / |s|`` from
+    the eigenvalues ``s`` (``Im s > 0``) of the state matrix at rest at ``q``
+    (:meth:`~exuflex.erls.model.ErlsModel.state_matrix`; ``locked``: its elastic block, q held), ascending, the
+    mechanism's zero modes dropped. With the model's damping (module docstring of :mod:`exuflex.erls.model`,
+    "Damping") the free modes' ``zeta`` is ``alpha / (2 w) + beta w / 2`` mode by mode (the stated damping is
+    that of the free modes; locked modes have other ratios)."""
+    q = np.asarray(model.mech.q_ref if q is None else q, float)
+    cfg = model.configuration(q)
+    A, _ = model.state_matrix(cfg)
+    if locked:  # u only: [[0, I], [-M_uu^-1 K_uu, -M_uu^-1 C_uu]]
+        nq, ne = model.nq, model.ne
+        MK = np.linalg.solve(model.mass(cfg)[nq:, nq:],
+                             np.hstack([model.stiffness(cfg)[nq:, nq:], model.damping(cfg)[nq:, nq:]]))
+        A = np.block([[np.zeros((ne, ne)), np.eye(ne)], [-MK[:, :ne], -MK[:, ne:]]])
+    return _oscillating(sla.eigvals(A))
+
+
+def _oscillating(s: np.ndarray, rigid_hz: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    s = s[(s.imag > 0.0) & (np.abs(s) > 2 * np.pi * rigid_hz)]
+    s = s[np.argsort(np.abs(s))]
+    return np.abs(s) / (2 * np.pi), -s.real / np.abs(s)
+
+
+def aligned_ratios(f_hz, f_damped, zeta) -> np.ndarray:
+    """The damping ratio of each undamped mode ``f_hz`` (ascending): that of the nearest unused damped
+    eigenvalue within :data:`MATCH_TOL` of it (``nan`` if none: an overdamped mode has no oscillating pair)."""
+    f_damped, zeta = np.asarray(f_damped, float), np.asarray(zeta, float)
+    used = np.zeros(len(f_damped), bool)
+    out = np.full(len(f_hz), np.nan)
+    for i, f in enumerate(np.asarray(f_hz, float)):
+        d = np.where(used, np.inf, np.abs(f_damped / f - 1.0))
+        if len(d) and d.min() <= MATCH_TOL:
+            j = int(np.argmin(d))
+            used[j] = True
+            out[i] = zeta[j]
+    return out

@@ -29,9 +29,10 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]`` with the symmetric
     ``M_N' = sum_e theta_e' R_e (G m_e - m_e G) R_e^T`` (``S' = dS/dt``; the terms of ``dW/dq``
     cancel because ``d^2 r/dq_j dq_k`` is symmetric). The two q-row terms are second order in the
-    elastic motion. ``C = diag(0, alpha M_uu + beta K_uu)``: Rayleigh damping as a dissipation function
-    of the elastic rates. Exactly energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q``
-    (``tests/test_energy.py``). ``M_N' S q'`` is not zero under pure rigid motion.
+    elastic motion. ``C = diag(0, C_uu)`` with ``C_uu = alpha M_e + beta K_uu``: Rayleigh damping as the
+    dissipation function ``u'^T C_uu u' / 2`` of the elastic rates (see "Damping" below). Exactly
+    energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q`` (``tests/test_energy.py``). ``M_N' S q'`` is not
+    zero under pure rigid motion.
 ``form="eq2"`` (the paper's eq. 2 as written)
     Virtual work with ``delta p = R N R^T delta b`` and the acceleration
     ``p'' = R N R^T b'' + 2 theta' R (G2 N - N G) R^T u' + (terms in theta'^2 u and theta'' u)``, the
@@ -41,6 +42,22 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     The damping is ``W^T C_N T u'`` with ``C_N = alpha M_N + beta K_N``: eq. 2's ``S^T C u'`` in the
     q rows (``K_N S = 0``, so only ``alpha S^T M_N T u'`` remains there). Neither ``M_G`` nor the q rows'
     damping derives from an energy or a dissipation function, so this form has no power balance identity.
+
+Damping. The model file's ``alpha``, ``beta`` are the Rayleigh damping of the free elastic modes: each mode
+of ``M(q) x'' + C x' + K x = 0`` at rest (motors free) has the damping ratio ``alpha / (2 w) + beta w / 2``.
+``K = diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, and the elastic modes
+are M-orthogonal to them: ``M_qq phi_q + M_qu phi_u = 0``, the ERLS counter-rotates against the deformation.
+A mode's kinetic energy is therefore ``phi^T M phi = phi_u^T M_e phi_u`` with the Schur complement
+``M_e = M_uu - M_uq M_qq^-1 M_qu`` (``M_qq = S^T M_N S``, ``M_qu = S^T M_N T``), and
+``u'^T M_e u' = min_a |S a + T u'|^2_{M_N}``: twice the kinetic energy of the elastic rates relative to the
+rigid mechanism motion that carries their momentum. ``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K =
+diag(0, alpha M_e + beta K_uu)`` then gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on the
+mass-normalised elastic modes and ``C E = 0``: the Rayleigh ratios exactly, no force on rigid motion and none
+on a counter-rotation of the ERLS that leaves the bodies' motion rigid (``alpha M_uu`` would damp it).
+``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I] + beta K`` in the u columns): also the
+Rayleigh ratios (its state matrix is block-triangular in rigid and elastic modal coordinates), but with
+forces in the q rows that no dissipation function gives. ``tests/test_damping.py`` checks both forms' ratios
+against the formula from the state matrix's eigenvalues.
 
 On rigid motion (``u = u' = 0``) the q rows of the two forms coincide (``M_N'`` and the ``dT/dq`` term
 cancel on rigid fields). On a uniformly spinning link the elastic rows of ``"eq2"`` are exactly the
@@ -261,15 +278,25 @@ class ErlsModel:
         return K
 
     def damping(self, cfg: Configuration) -> np.ndarray:
-        """The damping matrix C (n x n) of the form: ``"lagrange"``: Rayleigh on the elastic block,
-        ``diag(0, alpha M_uu + beta K_uu)``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns."""
+        """The damping matrix C (n x n) of the form: ``"lagrange"``: ``diag(0, alpha M_e + beta K_uu)`` with
+        :meth:`elastic_mass` ``M_e``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
+        docstring, "Damping")."""
         C = np.zeros((self.n, self.n))
         if self.form == "eq2":
             C[:, self.nq :] = cfg.W.T @ (self.alpha * (cfg.M_N @ self.T) + self.beta * (cfg.K_N @ self.T))
             return C
         Tt = self.T.T
-        C[self.nq :, self.nq :] = self.alpha * (Tt @ cfg.M_N @ self.T) + self.beta * (Tt @ cfg.K_N @ self.T)
+        C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
         return C
+
+    def elastic_mass(self, cfg: Configuration) -> np.ndarray:
+        """``M_e = M_uu - M_uq M_qq^-1 M_qu`` (ne x ne): the mass of the elastic rates relative to the rigid
+        mechanism motion that carries their momentum, ``u'^T M_e u' = min_a |S a + T u'|^2_{M_N}`` (the
+        ``"lagrange"`` form's mass-proportional damping; module docstring, "Damping")."""
+        MS = cfg.M_N @ cfg.pose.S
+        MT = cfg.M_N @ self.T
+        X = self.T.T @ MS  # M_uq
+        return self.T.T @ MT - X @ np.linalg.solve(cfg.pose.S.T @ MS, X.T)
 
     def input_matrix(self, cfg: Configuration) -> np.ndarray:
         """Generalised forces of unit motor torques, W^T B (n x n_motors)."""
@@ -450,15 +477,17 @@ class ErlsModel:
         nq = self.nq
         rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
         T, Tt = self.T, self.T.T
-        # K_uu u = T^T K_N T u and C_uu u' = T^T (alpha M_N + beta K_N) T u', as matrix-vector products
+        # K_uu u = T^T K_N T u and the damping as matrix-vector products
         rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
         if self.alpha or self.beta:
             Tud = T @ v[nq:]
             Cud = self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud)
             if self.form == "eq2":  # W^T C_N T u': also the q rows
                 rhs -= cfg.W.T @ Cud
-            else:
-                rhs[nq:] -= Tt @ Cud
+            else:  # (alpha M_e + beta K_uu) u' with M_e = M_uu - M_uq M_qq^-1 M_qu
+                S = cfg.pose.S
+                MS = cfg.M_N @ S
+                rhs[nq:] -= Tt @ Cud - self.alpha * (Tt @ (MS @ np.linalg.solve(S.T @ MS, MS.T @ Tud)))
         return rhs
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):

@@ -41,33 +41,41 @@ which the simulation sets once per time step (``LoadTorqueVector`` on ``MarkerNo
 same but costs the solver 60 % more time per step). The model is built directly in the closed, rigid configuration of
 the ERLS at ``q`` (links straight, at rest), so no assembly step is needed.
 
-Damping (the model file's Rayleigh ``C = alpha M_uu + beta K_uu`` on the ERLS elastic block)
---------------------------------------------------------------------------------------------
-- ``beta``: exact and mesh-consistent, as material damping of the beams: bending moment
-  ``EI kappa + beta EI kappa'``, axial force ``EA eps + beta EA eps'`` (``bendingDamping``,
-  ``axialDamping``); linearised, this is ``beta K``, as in the ERLS.
-- ``alpha`` (``damping="erls"``, default): an absolute-coordinate model has no elastic block, and
-  ``alpha M`` on absolute velocities would brake the rigid motion. The ERLS elastic rates are,
-  to first order, a linear map of the Exudyn coordinate rates, ``u' = U c'`` (Exudyn nodes ->
-  ERLS nodal x, y, theta by the beam shape functions, then ``[q'; u'] = W^+ b'`` with the ERLS
-  ``W = [S, T]``, exact on motions that satisfy the joints). The damper ``D = alpha U^T M_uu U``
-  therefore does the same virtual work as the ERLS term ``alpha M_uu u'`` and no work on any rigid
-  motion of the mechanism. ``U`` and ``M_uu`` depend on the configuration and are refreshed during
-  a simulation (:func:`exuflex.groundtruth.simulate_truth`). Between refreshes the damper is stale: a
-  link turned by ``delta`` since the damper's configuration sees its rigid rotation partly as elastic
-  (axial) rates, ``U c' ~ q' delta r``, and the damper brakes the rotation with the power
-  ``-alpha delta^2 J q'^2``: a relative deceleration ``alpha delta^2`` (1/s), quadratic in ``delta``. The
-  simulation therefore evaluates the damper at the configuration expected halfway through the coming
-  interval (the mean of ``delta^2`` over it is then ``(omega dt)^2 / 12``) and sets the interval from the
-  links' rotation rate ``omega`` so that this mean stays below a tolerance. In a simulation the damper force ``-D c'`` is applied explicitly, with the rates at
-  the start of each step (``alpha h`` and ``zeta omega h`` are below 0.01 for the damped modes, so
-  this is stable and its lag negligible; a dense implicit damping matrix would make the sparse
-  solver 50 % slower); for modal analysis ``D`` is the object's damping matrix.
-- ``damping="corotational"``: an ERLS-independent alternative, ``D_l = alpha (M_l - M_l R
-  (R^T M_l R)^-1 R^T M_l)`` per link (``R``: the link's rigid velocity fields), which damps each
-  link's deformation relative to its own mass-weighted rigid motion. It gives different modal
-  damping than the ERLS (link-local "elastic" motion is defined differently);
-  :func:`exuflex.groundtruth.modal_damping` measures either.
+Damping (the model file's Rayleigh damping of the free elastic modes)
+--------------------------------------------------------------------
+The model file's ``alpha``, ``beta`` state that every free elastic mode (motors free) has the damping ratio
+``alpha / (2 w) + beta w / 2``. The truth builds this from its own bodies only (it never reads the ERLS model):
+
+- ``beta``: material damping of the beams: bending moment ``EI kappa + beta EI kappa'``, axial force
+  ``EA eps + beta EA eps'`` (``bendingDamping``, ``axialDamping``); linearised, ``beta K`` with the truth's own
+  stiffness ``K``.
+- ``alpha`` (``damping="rayleigh"``, default): ``alpha M`` on the absolute coordinates would brake the rigid
+  motion. The damper is the mass-proportional part with the rigid mechanism motions projected out,
+  ``D = alpha (M - M R (R^T M R)^-1 R^T M)``, on all ODE2 coordinates (links and hub bodies): ``M`` the truth's
+  own mass matrix (Exudyn's, constant for ANCF cables, geometrically exact beams and rigid bodies), ``R`` (n_c x
+  n_q) the velocity fields of the rigid motions of the mechanism at the configuration ``c``: every link's rigid
+  translations and rotation (its nodes' positions and slopes or rotations, and its hub bodies, turning with it),
+  combined so that the joints hold (the null space of the truth's own constraint Jacobian ``G`` applied to them;
+  ``G`` is Exudyn's, of the joints between links, which are linear in the coordinates; the hub bodies' welds hold
+  by construction). The rigid motions are the null space of the linearised stiffness within the constraints and
+  the elastic modes are M-orthogonal to them, so on the constraint null space ``phi_i^T D phi_j = alpha
+  delta_ij`` and ``D R = 0``: with ``beta K`` every elastic mode has the stated ratio and no rigid motion is
+  damped (``tests/test_damping.py`` checks the ratios from Exudyn's linearised system,
+  :func:`exuflex.groundtruth.modal_damping`). ``R`` depends on the configuration and is refreshed during a
+  simulation (:func:`exuflex.groundtruth.simulate_truth`). Between refreshes the damper is stale: a link turned
+  by ``delta`` since the damper's configuration has a rigid velocity field that is no longer quite in the span
+  of ``R``, and the damper brakes the rotation with the power ``~ -alpha delta^2 J q'^2``: a relative
+  deceleration ``alpha delta^2`` (1/s), quadratic in ``delta``. The simulation therefore evaluates the damper at
+  the configuration expected halfway through the coming interval (the mean of ``delta^2`` over it is then
+  ``(omega dt)^2 / 12``) and sets the interval from the links' rotation rate ``omega`` so that this mean stays
+  below a tolerance. In a simulation the damper force ``-D c'`` is applied explicitly, with the rates at the
+  start of each step (``alpha h`` and ``zeta omega h`` are below 0.01 for the damped modes, so this is stable
+  and its lag negligible; a dense implicit damping matrix would make the sparse solver 50 % slower); for modal
+  analysis ``D`` is the object's damping matrix.
+- ``damping="corotational"``: ``D_l = alpha (M_l - M_l R_l (R_l^T M_l R_l)^-1 R_l^T M_l)`` per link (``R_l``:
+  the link's own rigid velocity fields), which damps each link's deformation relative to its own mass-weighted
+  rigid motion. It also damps the links' rigid motions relative to each other, so the mechanism's modes get
+  other ratios than the stated ones; :func:`exuflex.groundtruth.modal_damping` measures either.
 - ``damping="stiffness"``: ``beta`` only; ``None``: undamped (generalized-alpha still damps the
   highest frequencies numerically).
 """
@@ -85,7 +93,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..erls.kinematics import Kinematics
-from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
 from ..mechanism.refine import split_segments
 
@@ -104,7 +111,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FORMULATIONS = ("ancf", "gebeam")
-DAMPINGS = ("erls", "corotational", "stiffness", None)
+DAMPINGS = ("rayleigh", "corotational", "stiffness", None)
 HUBS = ("rigid", "slopes")
 MESH_FILE = "file"  # elements_per_link: the mechanism's own element boundaries
 SHEAR_CORRECTION = 0.9  # circular section (gebeam only)
@@ -219,16 +226,17 @@ class TruthModel:
     damping: str | None
     alpha: float
     beta: float
-    forces: int  # ObjectGenericODE2 over all link nodes: motor torques and alpha damper (forceVector)
+    forces: int  # ObjectGenericODE2 over all nodes: motor torques and alpha damper (forceVector)
     n_link_coordinates: int = 0  # coordinates of the link nodes (first in the ODE2 order; hub bodies after)
     hub: str = "rigid"
     explicit_damping: bool = True  # alpha damper as explicit force (simulation) or damping matrix (modal)
     D_alpha: np.ndarray | None = None  # current alpha damping matrix on all ODE2 coordinates
-    erls: ErlsModel | None = None
+    mass_matrix: np.ndarray | None = None  # (n_c, n_c) Exudyn's mass matrix on all ODE2 coordinates ("rayleigh")
+    joint_jacobian: np.ndarray | None = None  # (n_g, n_c) Exudyn's constraint Jacobian of the joints between links
+    hub_bodies: dict = field(default_factory=dict)  # link name -> ODE2 indices (x, y, phi) of its hub bodies
     _q_last: np.ndarray | None = None
     _ref: np.ndarray | None = None
     _motor_map: tuple | None = None
-    _erls_rows: tuple | None = None
 
     @property
     def n_coordinates(self) -> int:
@@ -286,14 +294,14 @@ class TruthModel:
         c = self.coordinates()
         cd = self.velocities() if self.explicit_damping and self.D_alpha is not None else None
         f = self.generalized_forces(tau, c, cd)
-        self.mbs.SetObjectParameter(self.forces, "forceVector", f[: self.n_link_coordinates])
+        self.mbs.SetObjectParameter(self.forces, "forceVector", f)
 
     # ------------------------------------------------------------------ kinematic read-out
     def point_rows(self, link: str, station: float, c: np.ndarray):
         """Position (2,), tangent angle and the linear maps (2, nc), (nc,) at a link station.
 
         The maps give the first-order changes of position and tangent angle with the total ODE2
-        coordinates ``c`` (used for the ERLS-mapped damper); at an interior node the first
+        coordinates ``c`` (used for the coordinate read-out and the locked modes); at an interior node the first
         adjacent element is used (position and slope are continuous there).
         """
         lm = self.links[link]
@@ -355,8 +363,8 @@ class TruthModel:
 
     # ------------------------------------------------------------------ damping
     def update_dampers(self, c: np.ndarray | None = None) -> None:
-        """Refresh the configuration-dependent alpha damper(s) for the current (or given) coordinates."""
-        if self.alpha == 0.0 or self.damping not in ("erls", "corotational"):
+        """Refresh the configuration-dependent alpha damper for the current (or given) coordinates."""
+        if self.alpha == 0.0 or self.damping not in ("rayleigh", "corotational"):
             return
         c = self.coordinates() if c is None else np.asarray(c, float)
         if self.damping == "corotational":
@@ -366,60 +374,37 @@ class TruthModel:
                 D[np.ix_(idx, idx)] = _corotational_damping(lm, c[idx], self.alpha, self.formulation)
             self._set_damping(D)
             return
-        q = self.coordinate_values(c)
-        self._q_last = q
-        m = self.erls
-        cfg = m.configuration(q)
-        # ERLS nodal coordinates b (x, y, theta of every ERLS node) as a linear map of dc
-        B = self._erls_node_map(c)
-        U = np.linalg.pinv(cfg.W)[m.nq :] @ B  # du = U dc on motions that satisfy the joints
-        Muu = m.T.T @ cfg.M_N @ m.T
-        D = self.alpha * (U.T @ Muu @ U)
+        M = self.mass_matrix
+        R = self.rigid_motions(c)
+        MR = M @ R
+        D = self.alpha * (M - MR @ np.linalg.solve(R.T @ MR, MR.T))
         self._set_damping(0.5 * (D + D.T))
 
-    def _erls_node_map(self, c: np.ndarray) -> np.ndarray:
-        """(m.N, n_c) linear map of dc to the ERLS nodal coordinates (x, y, theta of every ERLS node).
+    def rigid_motions(self, c: np.ndarray) -> np.ndarray:
+        """(n_c, n_q) velocity fields of the mechanism's rigid motions at the coordinates ``c``.
 
-        Rows as :meth:`point_rows` at the ERLS nodes; for ANCF the position rows (constant shape
-        functions) are cached and the tangent-angle rows are computed for all nodes at once.
+        Every link's rigid translations and rotation about the origin (its nodes' positions and slopes, or
+        rotations, and its hub bodies turning with it), combined by the n_q right singular vectors of
+        ``G L`` with the smallest singular values (``G``: the joints' constraint Jacobian, ``L`` the links'
+        fields): exact at a configuration where the links are straight, first order in the strains otherwise.
         """
-        m = self.erls
-        nodes = [m.mech.node_location(node) for node in m.mech.node_ids]
-        if self.formulation != "ancf":
-            B = np.zeros((m.N, len(c)))
-            for k, (link, st) in enumerate(nodes):
-                _, _, P, A = self.point_rows(link, st, c)
-                B[3 * k : 3 * k + 2] = P
-                B[3 * k + 2] = A
-            return B
-        if self._erls_rows is None:
-            B0 = np.zeros((m.N, len(c)))
-            idx, S1 = [], []
-            for k, (link, st) in enumerate(nodes):
-                _, _, P, _ = self.point_rows(link, st, c)
-                B0[3 * k : 3 * k + 2] = P
-                lm = self.links[link]
-                e, xi = lm.locate(st)[0]
-                idx.append(lm.ode2[e : e + 2].ravel())  # [x0, y0, x0', y0', x1, y1, x1', y1']
-                S1.append(ancf_shape(xi, lm.stations[e + 1] - lm.stations[e], 1))
-            idx = np.array(idx, dtype=int)
-            rows = np.repeat(3 * np.arange(len(nodes)) + 2, 4)
-            self._erls_rows = (B0, idx, np.array(S1), rows, idx[:, 0::2].ravel(), idx[:, 1::2].ravel())
-        B0, idx, S1, rows, cols_x, cols_y = self._erls_rows
-        ce = c[idx].reshape(len(idx), 4, 2)
-        rp = np.einsum("nk,nkd->nd", S1, ce)  # slopes r' at the nodes
-        n2 = rp[:, 0] * rp[:, 0] + rp[:, 1] * rp[:, 1]
-        B = B0.copy()
-        # d atan2(ry', rx') = (rx' d ry' - ry' d rx') / |r'|^2
-        B[rows, cols_x] = (-rp[:, 1:2] * S1 / n2[:, None]).ravel()
-        B[rows, cols_y] = (rp[:, 0:1] * S1 / n2[:, None]).ravel()
-        return B
+        n, links = len(c), list(self.links.values())
+        L = np.zeros((n, 3 * len(links)))
+        for i, lm in enumerate(links):
+            idx = lm.ode2.ravel()
+            L[idx, 3 * i : 3 * i + 3] = _rigid_fields(c[idx], self.formulation)
+            for body in self.hub_bodies.get(lm.name, ()):
+                x, y, ph = body
+                L[x, 3 * i], L[y, 3 * i + 1] = 1.0, 1.0
+                L[x, 3 * i + 2], L[y, 3 * i + 2], L[ph, 3 * i + 2] = -c[y], c[x], 1.0
+        nq = len(self.mech.coordinates)
+        _, _, Vt = np.linalg.svd(self.joint_jacobian @ L)
+        return L @ Vt[-nq:].T if Vt.shape[0] >= nq else L
 
     def _set_damping(self, D: np.ndarray) -> None:
         self.D_alpha = D
         if not self.explicit_damping:
-            nl = self.n_link_coordinates  # D has no entries on the hub bodies' coordinates
-            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D[:nl, :nl])
+            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", D)
 
 
 def link_mesh_stations(
@@ -540,7 +525,7 @@ def build_truth(
     elements_per_link: int | None = 4,
     formulation: str = "ancf",
     align_stations: tuple[tuple[str, float], ...] = (),
-    damping: str | None = "erls",
+    damping: str | None = "rayleigh",
     explicit_damping: bool = True,
     reduced_integration: bool = True,
     hub: str = "rigid",
@@ -558,7 +543,7 @@ def build_truth(
         ``"file"``: the mechanism's own mesh.
     formulation : "ancf" or "gebeam"
     align_stations : (link, station) pairs that must also be element boundaries (e.g. gauges).
-    damping : "erls", "corotational", "stiffness" or None
+    damping : "rayleigh", "corotational", "stiffness" or None
         How the model file's Rayleigh damping is reproduced (see module docstring).
     explicit_damping : bool
         Apply the alpha damper as an explicit force (for simulation, refreshed by
@@ -590,7 +575,7 @@ def build_truth(
     SC = exu.SystemContainer()
     mbs = SC.AddSystem()
     ground = mbs.AddObject(it.ObjectGround(referencePosition=[0.0, 0.0, 0.0]))
-    alpha = mech.damping.alpha if damping in ("erls", "corotational") else 0.0
+    alpha = mech.damping.alpha if damping in ("rayleigh", "corotational") else 0.0
     beta = mech.damping.beta if damping is not None else 0.0
 
     extra: dict[str, list[float]] = {}
@@ -649,6 +634,7 @@ def build_truth(
     # slopes model, also the link mass matrices of the corotational damper)
     lumped: dict[str, dict[int, np.ndarray]] = {name: {} for name in links}
     bodies: dict[str, dict[int, list]] = {name: {} for name in links}  # masses with J or an offset (hub rigid)
+    body_nodes: dict[str, list[int]] = {name: [] for name in links}  # their rigid bodies' nodes, by link
     point_mass: dict[str, dict[int, float]] = {name: {} for name in links}  # the others' point masses
     for m in mech.all_masses():
         name, s = mech.node_location(m.node)
@@ -682,6 +668,7 @@ def build_truth(
                     a, b = m.offset
                     body_node = mbs.AddNode(it.NodeRigidBody2D(
                         referenceCoordinates=[ref[0] + c * a - s_ * b, ref[1] + s_ * a + c * b, th]))
+                    body_nodes[name].append(body_node)
                     body = mbs.AddObject(it.ObjectRigidBody2D(nodeNumber=body_node, mass=m.mass, inertia=m.inertia))
                     m_body = mbs.AddMarker(it.MarkerBodyRigid(bodyNumber=body, localPosition=[-a, -b, 0.0]))
                     m_node = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=node))
@@ -768,19 +755,22 @@ def build_truth(
             lm, lk.material.rho * lk.section.A, lk.material.rho * lk.section.I, lumped[lk.name], formulation
         )
     n_c = node_size * len(all_nodes)
+    hub_nodes = [n for nodes in body_nodes.values() for n in nodes]
+    n_all = n_c + 3 * len(hub_nodes)  # the hub bodies' coordinates follow the links' (NodeRigidBody2D: x, y, phi)
     forces = mbs.AddObject(
         it.ObjectGenericODE2(
-            nodeNumbers=all_nodes,
-            massMatrix=np.zeros((n_c, n_c)) if not explicit_damping else None,
-            dampingMatrix=np.zeros((n_c, n_c)) if not explicit_damping else None,
-            forceVector=np.zeros(n_c),
+            nodeNumbers=all_nodes + hub_nodes,
+            massMatrix=np.zeros((n_all, n_all)) if not explicit_damping else None,
+            dampingMatrix=np.zeros((n_all, n_all)) if not explicit_damping else None,
+            forceVector=np.zeros(n_all),
         )
     )
     mbs.Assemble()
     for lm in links.values():
         lm.ode2 = np.array([mbs.GetNodeODE2Index(n) + np.arange(node_size) for n in lm.nodes], dtype=int)
     order = np.concatenate([lm.ode2.ravel() for lm in links.values()])
-    if not np.array_equal(order, np.arange(len(order))) or len(order) != n_c:
+    order = np.concatenate([order] + [mbs.GetNodeODE2Index(n) + np.arange(3) for n in hub_nodes])
+    if not np.array_equal(order, np.arange(len(order))) or len(order) != n_all or mbs.systemData.ODE2Size() != n_all:
         raise RuntimeError(
             "Exudyn numbered the node coordinates out of node order; the force object assumes it"
         )
@@ -801,8 +791,17 @@ def build_truth(
         n_link_coordinates=n_c,
         hub=hub,
         explicit_damping=explicit_damping,
-        erls=ErlsModel(mech) if (alpha != 0.0 and damping == "erls") else None,
     )
+    tm.hub_bodies = {name: [mbs.GetNodeODE2Index(n) + np.arange(3) for n in nodes]
+                     for name, nodes in body_nodes.items()}
+    if alpha != 0.0 and damping == "rayleigh":
+        # the truth's own mass matrix and the Jacobian of its joints between links (rows on link nodes only: the
+        # hub bodies' welds are nonlinear, the rigid fields of rigid_motions satisfy them by construction)
+        lin = mbs.ComputeLinearizedSystem(returnConstraintJacobian=True)  # [M, K, D, C^T]
+        M, G = lin[0], np.asarray(lin[3]).T
+        hub_cols = np.arange(n_c, G.shape[1])
+        tm.mass_matrix = np.asarray(M)
+        tm.joint_jacobian = G[~np.any(G[:, hub_cols] != 0.0, axis=1)] if len(hub_cols) else G
     ref = np.asarray(mbs.systemData.GetODE2Coordinates(exu.ConfigurationType.Reference))
     tm.update_dampers(ref)
     log.debug(

@@ -127,11 +127,14 @@ def modal_damping(
     formulation: str = "ancf",
     fmax: float | None = None,
     hub: str = "rigid",
+    locked: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Damped natural frequencies (Hz) and damping ratios of the Exudyn model with its damping.
 
     Linearises the constrained model at rest at ``q`` (``ComputeLinearizedSystem`` projected onto the
-    constraint null space) and solves the quadratic eigenproblem ``(s^2 M + s D + K) phi = 0``.
+    constraint null space; ``locked``: q held, :func:`lock_coordinates`) and solves the quadratic eigenproblem
+    ``(s^2 M + s D + K) phi = 0``: ``f = |s| / 2 pi``, ``zeta = -Re s / |s|``. With the default damping the
+    free modes' ``zeta`` is the model file's ``alpha / (2 w) + beta w / 2`` (:mod:`exuflex.groundtruth.builder`).
 
     Returns
     -------
@@ -142,10 +145,12 @@ def modal_damping(
         q,
         elements_per_link=elements_per_link,
         formulation=formulation,
-        damping="erls",
+        damping="rayleigh",
         explicit_damping=False,
         hub=hub,
     )
+    if locked:
+        lock_coordinates(tm)
     M, K, D, *_ = tm.mbs.ComputeLinearizedSystem(projectIntoConstraintNullspace=True)
     M, K, D = (np.asarray(a) for a in (M, K, D))
     n = M.shape[0]

@@ -137,7 +137,7 @@ def simulate_truth(
     formulation: str = "ancf",
     probes: Sequence[Probe] | None = None,
     progress: Callable[[float], None] | None = None,
-    damping: str | None = "erls",
+    damping: str | None = "rayleigh",
     damping_update: float = 0.02,
     damping_tol: float | None = 1e-5,
     newton_tol: float = 1e-4,
@@ -284,7 +284,7 @@ def simulate_truth(
     inv_h = 1.0 / h
     pre_time = [0.0]
     f = np.zeros(n_c)  # the generalized force, rewritten every step (Exudyn copies it)
-    f_links = f[: tm.n_link_coordinates]  # the force object's coordinates (hub bodies' come after)
+    f_links = f  # the force object spans all coordinates (links', then the hub bodies')
     f_items = memoryview(f)  # its entries as Python floats, without NumPy's per-element cost
     torques = neg_T.tolist()  # per step, the signed torques as Python floats
 

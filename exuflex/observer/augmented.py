@@ -458,7 +458,6 @@ class AugmentedModel:
         if u_next is not None:
             jump = inner.input_jump(u, np.asarray(u_next, float) + (0.0 if self.i_inputs is None else d))
             if jump is not None:
-                inner.n_jumps += 1
                 dx, dQ = inner.input_jump_moments(jump)
                 xn[:n0] += dx
                 Q[:n0, :n0] += dQ

@@ -17,8 +17,9 @@ truth): an EKF's scatter about it reflects its linearisation at its estimates in
 record scatters about the bound's RMS (a short record's by about ``1/sqrt(2 N)`` for ``N`` correlation times), so
 a consistent filter's ratio is below 1 about as often as above.
 
-The smoothed bound (:func:`riccati_track` with ``smooth``) is the RTS backward pass on these covariances
-(:func:`.smoother.rts_backward`): the bound for an estimate that uses the whole record.
+The smoothed bound (:func:`riccati_track` with ``smooth``) is the fixed-interval (Rauch-Tung-Striebel) smoother
+on these covariances, in its modified Bryson-Frazier form (:func:`smoothed_covariances`): the bound for an
+estimate that uses the whole record.
 
 The recursion's steps are the filter's own kernels (:func:`.kalman.predict_cov`, the Joseph-form
 :func:`.kalman.update`): :func:`riccati_predict`, :func:`riccati_update`.
@@ -41,16 +42,16 @@ from dataclasses import dataclass
 import logging
 
 import numpy as np
+import scipy.linalg
 from scipy.linalg import expm, solve_discrete_are
 
 from . import kalman
 from .base import DiscreteModel
-from .smoother import rts_backward
 
 log = logging.getLogger(__name__)
 
 __all__ = ["BoundTrack", "bound_rms", "linearise", "periodic_posterior", "riccati_predict", "riccati_track",
-           "riccati_update", "steady_posterior", "steady_state_covariance", "unobservable_states", "van_loan"]
+           "riccati_update", "smoothed_covariances", "steady_posterior", "steady_state_covariance", "unobservable_states", "van_loan"]
 
 
 def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -320,6 +321,49 @@ def riccati_update(P, H, Rd, floor: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
+def smoothed_covariances(P_prior, F, updates) -> np.ndarray:
+    """The fixed-interval smoothed covariances ``P_k|n`` from each sample's prior ``P_k|k-1`` (n, nx, nx), step
+    Jacobian ``F[k]`` (from sample ``k - 1`` to ``k``; row 0 unused) and update ``updates[k] = (H_k, R_k)`` (the rows
+    and variances of the channels sampled at ``k``; None: no update).
+
+    The modified Bryson-Frazier form of the Rauch-Tung-Striebel smoother (Bierman 1977), on the adjoint
+    ``Lambda``, from ``Lambda_n = 0`` backwards::
+
+        S_k = H_k P_k|k-1 H_k' + R_k,    K_k = P_k|k-1 H_k' S_k^-1
+        L_k = H_k' S_k^-1 H_k + (I - K_k H_k)' Lambda_k (I - K_k H_k)      (L_k = Lambda_k without an update)
+        P_k|n = P_k|k-1 - P_k|k-1 L_k P_k|k-1,     Lambda_k-1 = F_k' L_k F_k
+
+    In exact arithmetic the RTS recursion's ``P_k|n`` (:func:`.smoother.rts_backward`); but the RTS gain
+    ``P_k|k F' P_k+1|k^-1`` is ``1/lambda`` in a direction that decays by ``lambda`` a sample without process
+    noise (a damped mode the torques do not drive: an overdamped interior mode decays by orders of magnitude in
+    one sample), and the RTS backward pass multiplies the rounding error of such a direction by ``1/lambda^2`` a
+    sample (the slider-crank's smoothed bound overflowed). Here the adjoint runs backwards through ``F'``, which
+    contracts those directions: no inverse of a prior, no growth.
+    """
+    n, nx = len(P_prior), P_prior.shape[1]
+    Ps = np.empty_like(P_prior)
+    lam = np.zeros((nx, nx))
+    eye = np.eye(nx)
+    for k in range(n - 1, -1, -1):
+        Pp = P_prior[k]
+        up = updates[k]
+        if up is None:
+            L = lam
+        else:
+            H, Rd = up
+            S = H @ Pp @ H.T + np.diag(Rd)
+            cho = scipy.linalg.cho_factor(0.5 * (S + S.T))
+            SiH = scipy.linalg.cho_solve(cho, H)  # S^-1 H
+            A = eye - Pp @ H.T @ SiH  # I - K H
+            L = H.T @ SiH + A.T @ lam @ A
+        Pk = Pp - Pp @ L @ Pp
+        Ps[k] = 0.5 * (Pk + Pk.T)
+        if k:
+            lam = F[k].T @ L @ F[k]
+            lam = 0.5 * (lam + lam.T)
+    return Ps
+
+
 @dataclass(frozen=True)
 class BoundTrack:
     """The bound along a record (:func:`riccati_track`).
@@ -352,7 +396,7 @@ class BoundTrack:
 
 
 def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0, sampled=None, *,
-                  outputs: Callable | None = None, smooth: bool = False, floor: float = 1e-18,
+                  outputs: Callable | None = None, smooth: bool = False, floor: float = 0.0,
                   rows: int = 512, linearise: Callable | None = None) -> BoundTrack:
     """The bound along a record: the Kalman covariance recursion of ``model`` linearised along the states ``X``
     (module docstring), on the record's own sampling schedule.
@@ -381,9 +425,14 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
         ``outputs(a, b, X_ab, P_ab)`` -> (b - a, k) variances of the quantities of interest from the states and
         covariances (b - a, nx, nx) of rows ``a:b``; default the states' own variances.
     smooth : bool
-        Also the smoothed bound (RTS backward pass; keeps every ``P``, ``F``, ``Q``: 24 nx^2 bytes a sample).
+        Also the smoothed bound (:func:`smoothed_covariances`; keeps every prior and ``F``: 16 nx^2 bytes a
+        sample).
     floor : float
-        The variance floor of the filter's end-of-sample settling.
+        A floor on the variances after each sample (:func:`.kalman.fix_cov`). None by default: a floor adds
+        variance the recursion's ``Q`` does not hold, and the smoother's backward pass multiplies that
+        inconsistency by ``1/lambda^2`` a sample in a direction that decays by ``lambda`` with no process noise
+        (an undriven damped mode), so that the smoothed bound of such a model diverges backwards (measured on
+        the five-bar with the filter's 1e-18).
     rows : int
         Samples per block of ``outputs`` (the memory beyond the result is a block's covariances).
     linearise : callable, optional
@@ -416,47 +465,70 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
     if hasattr(model, "reset"):
         model.reset()
     keep = smooth
-    if keep:
-        Pall = np.empty((n, nx, nx))
+    if keep:  # what the backward pass needs: each sample's prior, step Jacobian and update
+        Ppri = np.empty((n, nx, nx))
         Fall = np.empty((n, nx, nx))
-        Qall = np.empty((n, nx, nx))
+        Hall: list = [None] * n
     blocks, rows = [], max(int(rows), 1)
-    subsets: dict = {}
+    m = len(channels)
+    subsets: dict = {}  # per set of sampled channels: its rows and the update's buffers
+    work, P_pred, zero, x_out = np.empty((nx, nx)), np.empty((nx, nx)), np.zeros(nx), np.empty(nx)
+    P = np.ascontiguousarray(P)
     x_prev = u_prev = None
     for a in range(0, n, rows):
         b = min(a + rows, n)
         Xb = np.asarray(X[a:b], float)
         Ub = None if U is None else np.asarray(U[a:b], float)
-        Sb = np.ones((b - a, len(channels)), bool) if sampled is None else np.asarray(sampled[a:b], bool)
+        Sb = np.ones((b - a, m), bool) if sampled is None else np.asarray(sampled[a:b], bool)
         Pb = np.empty((b - a, nx, nx))
         for i in range(b - a):
             k = a + i
+            P_out = Pb[i]  # (a C-contiguous view: the kernels write the posterior in place)
+            sel = Sb[i]
             if k > 0:
                 F, Q = step(x_prev, u_prev, t[k] - t[k - 1])
-                P = riccati_predict(F, P, Q)
+                F, Q = np.ascontiguousarray(F, float), np.ascontiguousarray(Q, float)
                 if keep:
-                    Fall[k], Qall[k] = F, Q
-            sel = Sb[i]
+                    Fall[k] = F
             if sel.any():
                 key = sel.tobytes()
-                idx = subsets.get(key)
-                if idx is None:
-                    idx = subsets[key] = np.flatnonzero(sel)
+                sub = subsets.get(key)
+                if sub is None:
+                    idx = np.flatnonzero(sel)
+                    k_ = len(idx)
+                    sub = subsets[key] = (idx if k_ < m else None, np.ascontiguousarray(Rd[idx]), np.empty((k_, nx)),
+                                          np.empty(k_), np.empty((k_, k_)), np.zeros(k_))
+                idx, Rs, HP, r, S, y0 = sub
                 H = np.asarray(model.measure(Xb[i], channels).H, float)
-                P = riccati_update(P, H[idx], Rd[idx], fl)
+                H = np.ascontiguousarray(H if idx is None else H[idx])
+                if k > 0:
+                    _, ok, _ = kalman.predict_update(F, P, Q, P_pred, work, zero, y0, y0, H, Rs, HP, r, S, x_out,
+                                                     P_out, fl)
+                else:
+                    _, ok = kalman.update(zero, P, y0, y0, H, Rs, HP, r, S, x_out, P_out)
+                    kalman.fix_cov(P_out, fl)
+                if not ok:
+                    raise np.linalg.LinAlgError(f"the innovation covariance at t={t[k]:.6g} s is not positive "
+                                                "definite")
+                if keep:
+                    Ppri[k] = P_pred if k > 0 else P
+                    Hall[k] = (H, Rs)
             else:
-                P = 0.5 * (P + P.T)
-            cur[0] = P
-            Pb[i] = P
+                if k > 0:
+                    kalman.predict_cov(F, P, Q, P_out, work)
+                else:
+                    P_out[:] = P
+                kalman.fix_cov(P_out, fl)
+                if keep:
+                    Ppri[k] = P_out
+            P = cur[0] = P_out
             x_prev = Xb[i]
             u_prev = None if Ub is None else Ub[i]
-        if keep:
-            Pall[a:b] = Pb
         blocks.append(outputs(a, b, Xb, Pb))
     var = np.concatenate(blocks) if blocks else np.empty((0, 0))
     var_s = None
     if keep and n:
-        _, Ps = rts_backward(Pall, Fall, Qall)
+        Ps = smoothed_covariances(Ppri, Fall, Hall)
         var_s = np.concatenate([outputs(a, min(a + rows, n), np.asarray(X[a : min(a + rows, n)], float),
                                         Ps[a : min(a + rows, n)]) for a in range(0, n, rows)])
     if hasattr(model, "watch_covariance"):

@@ -730,7 +730,6 @@ class ReducedObserverModel:
         if u_next is not None:
             jump = self.input_jump(u, u_next)
             if jump is not None:
-                self.n_jumps += 1
                 dx, dQ = self.input_jump_moments(jump)
                 pred = Prediction(pred.x + dx, pred.F, pred.Q + dQ)
         return pred
@@ -738,9 +737,11 @@ class ReducedObserverModel:
     def input_jump(self, u0, u1):
         """The increment ``u1 - u0`` of two successive torque samples if it is a jump: beyond what the sample
         noise explains (chi-square test against twice the noise variance, false-alarm probability ``jump_p`` per
-        interval); else (and with ``jump_p`` None) None. See :meth:`input_jump_moments`."""
+        interval); else (and with ``jump_p`` None) None. A jump is counted in ``n_jumps`` (the interval that holds it
+        is predicted with it: :meth:`input_jump_moments`)."""
         if self.jump_p is None or not self.jump_test(u0, u1):
             return None
+        self.n_jumps += 1
         return np.subtract(u1, u0)
 
     def input_jump_moments(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

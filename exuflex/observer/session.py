@@ -89,7 +89,7 @@ class ObserverConfig:
         their rates).
     q_scale
         multiplies the torque-noise process covariance; 1.0 (default) is the stated noise. The
-        steady-state bound always uses the stated noise.
+        bound always uses the stated noise.
     jump_p
         the false-alarm probability per interval of the test that flags two successive torque samples
         differing by more than their noise (chi-square); a flagged interval gets the effect of a jump at an
@@ -780,8 +780,6 @@ class _Trajectory:
     tip's elastic displacement, not the reduced model's coordinates)."""
 
     def __init__(self, obs: Observer, t: np.ndarray, truth: Signals | None):
-        from scipy.interpolate import CubicHermiteSpline
-
         self.obs, self.t = obs, np.asarray(t, float)
         mech = obs.mech
         qn = list(mech.coordinate_names)
@@ -801,6 +799,8 @@ class _Trajectory:
             return
         step = float(np.median(np.diff(self.t))) if len(self.t) > 1 else obs.ekf.dt
         p = plan(mech, dt=step, t_end=span + step)
+        from scipy.interpolate import CubicHermiteSpline  # (here: scipy.interpolate is a large import)
+
         sq = CubicHermiteSpline(p.t, p.q, p.qd, axis=0)
         sqd = CubicHermiteSpline(p.t, p.qd, p.qdd, axis=0)
         self._q = lambda ts: sq(ts - t0)
@@ -1066,8 +1066,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
 
     The log is checked first (:func:`exuflex.validate.check_run`): its clock, per-channel availability and rates.
     The filter steps by each sample's own time stamp (jitter and drift within the documented tolerance need no
-    grid). The bound is the one for this log (its rate, its channels' availability and rates,
-    :func:`estimation_bound`), computed before filtering so that an unobservable channel set is reported at once.
+    grid). The bound is the one for this log (:func:`bound_track`: the posterior Cramer-Rao bound along its truth,
+    else along the plan, on its times, torques and sampled channels; with ``smooth`` the smoothed bound), its RMS
+    over the samples :func:`metrics` scores (``bound_rms``, ``ratio_to_bound``; with ``smooth`` also
+    ``filtered_bound_rms`` and ``filtered_ratio_to_bound`` for the filter's errors); it is computed before
+    filtering, and an unobservable channel set is reported at once.
     ``report``: a callable taking one-line stage messages (the CLI prints them on stderr). ``log_check``: the
     log's check if the caller made it already (:func:`exuflex.validate.check_run` with the observer's channels and
     sample interval; the command line checks a log before it builds the model).
@@ -1190,6 +1193,11 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
     if unobservable:
         summary["unobservable"] = unobservable
+    # the ERLS model's validity along the motion (links turning fast against their clamped frequency; logged)
+    from ..erls.validity import signal_warnings
+
+    motion = run.truth if run.truth is not None else est.physical
+    summary["validity"] = [w.as_dict() for w in signal_warnings(mech, motion)] if motion is not None else []
     if bnd is not None:
         summary["bound_rms"] = bnd
         summary["bound_kind"] = _bound_kind(along, smooth)

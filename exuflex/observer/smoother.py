@@ -94,10 +94,17 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
     w0 = time.perf_counter()
     store = ekf.store_P
     ekf.store_P = "full"
+    # the forward pass without the filter's variance floor (negative variances are still set to zero): the floor
+    # adds variance that Q does not hold, and the backward pass multiplies that by 1/lambda^2 a sample in a
+    # direction that decays by lambda without process noise (an undriven damped mode; the five-bar's smoothed
+    # estimates overflowed)
+    floor = ekf._floor.copy()
+    ekf._floor[:] = 0.0
     try:
         res = ekf.run(t, U, Y, x0=x0, P0=P0, innovations=False, predictions=True)
     finally:
         ekf.store_P = store
+        ekf._floor[:] = floor
     if res.nonfinite:
         raise FilterDivergedError(f"the forward pass went non-finite at t={res.diverged_at:.6g} s; nothing to smooth")
     w1 = time.perf_counter()
@@ -111,8 +118,9 @@ def rts_backward(P, F, Q, X=None, Xp=None) -> tuple[np.ndarray | None, np.ndarra
     ``Q[k]`` the step from sample ``k - 1`` to ``k`` (row 0 unused).
 
     With ``X`` (filtered means, (n, nx)) and ``Xp`` (predicted means ``x_k|k-1``, row 0 unused) the means too;
-    without, the covariances alone (the smoothed posterior Cramer-Rao bound of :mod:`.bound`). Returns
-    ``(x_k|n or None, P_k|n)``.
+    without, the covariances alone. Returns ``(x_k|n or None, P_k|n)``. (The bound's smoothed covariances use the
+    modified Bryson-Frazier form instead, :func:`.bound.smoothed_covariances`, which does not amplify rounding in
+    undriven damped directions.)
     """
     n = len(P)
     Ps = np.empty_like(P)

@@ -538,7 +538,11 @@ def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consi
     Kr = JtK @ Hu
     if alpha != 0.0 or beta != 0.0:
         TJ = _t_product(t_index, Ju)
-        Cr = alpha * (np.ascontiguousarray(TJ.T) @ (M_N @ TJ)) + beta * (JtK @ Ju)
+        TJt = np.ascontiguousarray(TJ.T)
+        MS = M_N @ np.ascontiguousarray(W[:, :nq])
+        X = TJt @ MS  # alpha M_e = alpha (T^T M_N T - M_uq M_qq^-1 M_qu), ErlsModel.elastic_mass
+        Mqq = np.ascontiguousarray(W[:, :nq].T) @ MS
+        Cr = alpha * (TJt @ (M_N @ TJ) - X @ np.linalg.solve(Mqq, np.ascontiguousarray(X.T))) + beta * (JtK @ Ju)
     else:
         Cr = np.zeros((r, r))
     Gr = WJt @ B_N

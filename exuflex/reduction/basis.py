@@ -55,7 +55,8 @@ import scipy.linalg as sla
 from ..erls.model import Configuration, ErlsModel
 from . import _compiled
 from .masters import automatic_masters
-from .path import VISIBILITY, Excitation, PathSamples, interior_mode_scores, manoeuvre_configurations
+from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
+from .truncation import TRUNCATION_MAX, PlannedInput
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -78,6 +79,28 @@ class ReducedConfiguration:
         return self.cfg.q
 
 
+def _truncation_report(samples: PathSamples, planned, kept, rho_max: float) -> dict | None:
+    """The truncation requirement's figures with the interior modes ``kept`` at the worst sample
+    (:mod:`.truncation`): ``rho`` (the whitened mean-square truncated output summed over the channels), its share per
+    channel, the RMS of the tip deflection's truncated part (m), where (q), the limit and whether it is met; None
+    without a planned input."""
+    if not samples.truncation:
+        return None
+    rho = samples.rho(kept)
+    i = int(np.argmax(rho))
+    zr = samples.quantities_rms(kept)
+    quantities = {k: float(v) for k, v in zip(planned.quantities, zr.max(axis=0))} if zr.size else {}
+    met = bool(rho[i] <= rho_max)
+    if samples.quantity_max is not None and zr.size:
+        met = met and bool(np.all(zr.max(axis=0) <= samples.quantity_max))
+    return {"rho": float(rho[i]), "rho_max": rho_max, "met": met,
+            "rho_channels": dict(zip(planned.channels, map(float, samples.rho_channels(kept)[i]))),
+            "q": samples.truncation[i].q.tolist(), "rho_without_interior": float(samples.rho([]).max()),
+            "quantities_rms": quantities,
+            "quantity_max": (None if samples.quantity_max is None else
+                             {k: float(v) for k, v in zip(planned.quantities, samples.quantity_max)})}
+
+
 class CraigBampton:
     """The modified Craig-Bampton basis ``H(q, q*)`` of an ERLS model.
 
@@ -90,17 +113,21 @@ class CraigBampton:
         (:mod:`.masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
     n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
-        ``freq_error_max_pct`` for every full mode below ``band_hz`` at q* and at every configuration of
-        ``path``), or ``None`` (the model file's value, else ``"auto"``).
+        ``freq_error_max_pct`` for every full mode below ``band_hz``, and the truncation requirement
+        ``rho <= truncation_max``, at q* and at every configuration of ``path``), or ``None`` (the model file's
+        value, else ``"auto"``).
     ranking : ``"imr"`` (interior-mode ranking) or ``"frequency"`` (lowest modes).
     path : configurations (n, nq) the interior modes are chosen over besides q* (:mod:`.path`); default
         (``None``): ``path_samples`` configurations of the model's manoeuvre; ``False``: q* only.
-    channels : the observer's sensor channels (default: :func:`exuflex.sensors.default_channels`); with the
-        automatic count, the full modes the manoeuvre makes visible in them (below the sample rate's Nyquist
-        frequency) join the band of the accuracy thresholds (:class:`.path.Excitation`); a fixed count is kept
-        as given, with the band's thresholds alone.
-    visibility : a mode is visible when its peak response reaches this multiple of a channel's noise std
-        (default :data:`.path.VISIBILITY`; 0: the band limit alone).
+    channels : the observer's sensor channels (default: :func:`exuflex.sensors.default_channels`): those the
+        truncation requirement reads (:mod:`.truncation`: the truncated modes' output under the manoeuvre's planned
+        motion, against each channel's noise). The automatic count meets it; a fixed count is kept as given, its
+        modes chosen by the band's thresholds alone, and the figure is reported (:attr:`truncation`).
+    truncation_max : the requirement's limit on ``rho`` (default :data:`.truncation.TRUNCATION_MAX`; 0: the band
+        limit alone).
+    quantity_max : the largest RMS of the truncated part of each estimated tip quantity (name -> m or m/s), as
+        the observer sets it from its bound (:func:`exuflex.observer.session.make_observer`); None: the channels'
+        requirement alone.
     """
 
     def __init__(
@@ -116,7 +143,8 @@ class CraigBampton:
         path=None,
         path_samples: int = 16,
         channels=None,
-        visibility: float | None = None,
+        truncation_max: float | None = None,
+        quantity_max: dict[str, float] | None = None,
     ):
         t0 = time.perf_counter()
         spec = model.mech.reduction
@@ -194,15 +222,17 @@ class CraigBampton:
         self.set_interior(Phi.shape[1])
         if n_interior is None:
             n_interior = spec.n_interior if spec.n_interior is not None else "auto"
-        # the modes the channels see join the band of the automatic count (.path); a fixed count is the user's
-        self.visibility = VISIBILITY if visibility is None else float(visibility)
-        excitation = (Excitation.of(model.mech, channels) if self.visibility > 0 and n_interior == "auto"
-                      else None)
-        samples = PathSamples(self, q_samples, excitation, self.visibility)
-        # full modes above the band limit that the channels see, at any sample (Hz, rounded for the report)
-        self.visible_hz = np.unique(np.round(np.concatenate([np.zeros(0), *samples.visible_hz]), 1))
+        # the truncation requirement (.truncation): what the filter needs of the manoeuvre's motion; the automatic
+        # count meets it, a fixed count is the user's (its figure is reported)
+        self.truncation_max = TRUNCATION_MAX if truncation_max is None else float(truncation_max)
+        auto = n_interior == "auto"
+        # a fixed count's figure is computed when asked for (:attr:`truncation`)
+        planned = PlannedInput.of(model.mech, channels) if self.truncation_max > 0 and auto else None
+        samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max)
+        self._truncation_args = (q_samples, channels, quantity_max)
         self.scores = samples.scores[0]  # IMR scores at q*
-        self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior))
+        self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior),
+                                                 truncation=n_interior == "auto")
         self.path_q = q_samples  # q* and the path's configurations the choice was made on
         if n_interior is None:
             n_interior = spec.n_interior if spec.n_interior is not None else "auto"
@@ -213,6 +243,7 @@ class CraigBampton:
             raise ValueError(f"{src}: n_interior must be in 0..{Phi.shape[1]} (number of slaves), got {n_interior}")
         self.set_interior(n_interior)
         self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
+        self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max) if auto else False
         missed = [a for a in self.path_accuracy if not a.ok(self.nco_min, self.freq_error_max_pct)]
         if missed:
             a = min(missed, key=lambda a: a.worst_nco)
@@ -222,13 +253,32 @@ class CraigBampton:
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
                         "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
                         a.worst_nco, np.round(a.q, 4).tolist(), hint)
-        elif len(self.visible_hz) and not samples.visible_met:
-            log.info("%s: %d interior modes, the most the automatic count adds for the full modes the channels see "
-                     "above the band (%.0f-%.0f Hz along the manoeuvre); some of them are followed only in part",
-                     src, n_interior, self.visible_hz.min(), self.visible_hz.max())
+        elif auto and self.truncation is not None and not self.truncation["met"]:
+            tr = self.truncation
+            log.warning("%s: %d interior modes leave a truncated output of rho = %.3g (limit %.3g; %s) in the "
+                        "channels under the manoeuvre (.truncation)%s", src, n_interior, tr["rho"], tr["rho_max"],
+                        ", ".join(f"{c} {v:.2g}" for c, v in tr["rho_channels"].items()),
+                        "; the modes that would lower it decay within a sample interval (a master dof would carry "
+                        "their static shape)" if n_interior == n_needed else f"; 'auto' would keep {n_needed}")
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s), built in %.3f s",
                  self.n_m, n_interior, ranking, self.build_seconds)
+
+    @property
+    def truncation(self) -> dict | None:
+        """The truncation requirement's figures with the kept interior modes (:func:`_truncation_report`; None
+        without a manoeuvre, computable torques or noisy channels, or with ``truncation_max`` 0)."""
+        if self._truncation is False:
+            q_samples, channels, quantity_max = self._truncation_args
+            planned = PlannedInput.of(self.model.mech, channels) if self.truncation_max > 0 else None
+            n = self.n_interior
+            self.set_interior(len(self.order))  # every interior mode, ascending (as :class:`.path.PathSamples` wants)
+            try:
+                samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max)
+            finally:
+                self.set_interior(n)
+            self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max)
+        return self._truncation
 
     # ------------------------------------------------------------------ setup
     def _pairs_setup(self, refs):

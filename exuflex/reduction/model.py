@@ -185,9 +185,12 @@ class ReducedModel:
         Kuu = rc.Kuu
         JtK = Ju.T @ Kuu
         Kr = JtK @ Hu
-        if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha T^T M_N T + beta K_uu) J_u, thin products only
+        if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha M_e + beta K_uu) J_u, thin products only
             TJ = T @ Ju
-            Cr = model.alpha * (TJ.T @ (cfg.M_N @ TJ)) + model.beta * (JtK @ Ju)
+            MS = cfg.M_N @ cfg.pose.S
+            X = TJ.T @ MS  # M_e = T^T M_N T - M_uq M_qq^-1 M_qu (ErlsModel.elastic_mass)
+            Cr = (model.alpha * (TJ.T @ (cfg.M_N @ TJ) - X @ np.linalg.solve(cfg.pose.S.T @ MS, X.T))
+                  + model.beta * (JtK @ Ju))
         else:
             Cr = np.zeros((self.r, self.r))
         Gr = WJ.T @ model.B_N

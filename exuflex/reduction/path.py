@@ -21,29 +21,22 @@ motion:
 
 With q* alone (``CraigBampton(..., path=False)``) the same selection is made at q* only.
 
-Modes the sensors see
+What the filter needs
 ---------------------
-The band's limit is the user's statement of the dynamics of interest, but the observer's channels see every
-mode the manoeuvre's torques excite above their noise. A mode just above the band that rings visibly in a
-strain gauge after a torque step, and that the reduced model represents only by a spurious mode at another
-frequency, is read by the filter as motion of its own modes: the single link's third mode (225 Hz, band 180
-Hz) rings at about its gauge's noise level after each step of its trapezoid, and the reduced model without it
-has a mode near 360 Hz instead; its estimation errors after the steps then exceed the filter's own bound
-(``docs/gallery.md`` shows the figures). So at every sample the accuracy requirement also covers the full modes
-*visible* in the channels (:class:`Excitation`, :meth:`Excitation.snr`): below the Nyquist frequency of the
-sample rate and with a peak dynamic response to the manoeuvre's torques of at least ``visibility`` times a
-channel's noise std. The default :data:`VISIBILITY` = sqrt(0.2) = 0.45: a ringing of amplitude ``a`` has mean
-square ``a^2 / 2``, so a mode below it raises no channel's innovation variance by more than 10 %, the tolerance
-of the observer's NIS test.
+The band's limit is the user's statement of the dynamics of interest, but the observer's channels read every
+part of the motion the manoeuvre excites: the quasi-static deflection of the slaves under the motion's inertial
+loads and the ringing of modes above the band after every torque step. What no reduced state can represent, the
+filter explains with its own states (a bias) or leaves in its innovations. So the automatic count also meets the
+truncation requirement of :mod:`.truncation`: at every sample, the mean square of the truncated modes' output in
+the observer's channels under the planned motion, in units of each channel's noise variance and summed over the
+channels, ``rho``, at most ``rho_max`` (default :data:`.truncation.TRUNCATION_MAX`). The forward selection then
+maximises the smaller of the two margins, the band thresholds' and ``(rho_max - rho) / rho_max``.
 
-A visible mode counts as followed when the part of its ringing the reduced model cannot follow
-(:meth:`PathSamples._unexplained`: its shape outside the matched reduced mode, or the dephasing of a frequency
-error over the ringing's decay) times its response stays below ``visibility``. Modes that mix along the
-manoeuvre (the four-bar's pairs near 450 and 490 Hz) cannot all be followed by a few interior modes; the
-automatic count adds at most one interior mode per visible mode (:meth:`PathSamples._visible_cap`) and says so.
-Modes above the Nyquist frequency are left to the band limit: the samples see them only aliased, and the count
-would grow with them (the six-bar at 500 Hz would take its 487 and 558 Hz modes); a model that needs one fixes
-``n_interior`` (the slider-crank keeps its 895 Hz mode so).
+A mode whose ringing decays within one sample interval (``zeta w > f_s``, the sample rate) acts on the samples
+only through its quasi-static part; keeping it would make the reduced model stiff without following any dynamics
+the filter sees (a master dof is the remedy for a static shape). The truncation requirement adds only modes
+that ring for longer; where those cannot meet it, the count stops when the next mode raises the worst margin by
+less than 0.01 (``rho`` by 1 % of ``rho_max``), and says so (:attr:`PathSamples.truncation_met`).
 """
 
 from __future__ import annotations
@@ -56,92 +49,15 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..erls.modal import ModalResult, modal_analysis
-from ..erls.sensing import channel_matrix
-from ..manoeuvre import open_loop_torque, plan
+from ..manoeuvre import plan
 from ..mechanism import Mechanism
-from ..sensors import default_channels
 from .accuracy import AccuracyResult
+from .truncation import (TRUNCATION_MAX, WINDOW_SAMPLES, PlannedInput, modal_response, quantity_columns,
+                         truncation_sample, window_mean_square)
 
-__all__ = ["VISIBILITY", "Excitation", "PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
+__all__ = ["PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
 
 log = logging.getLogger(__name__)
-
-#: a full mode whose response in a channel reaches this multiple of the channel's noise std is part of the band
-#: (module docstring: a ringing below it raises the channel's innovation variance by at most 10 %)
-VISIBILITY = float(np.sqrt(0.2))
-
-
-@dataclass(frozen=True)
-class Excitation:
-    """What the observer's channels see of the full modes under the model's manoeuvre.
-
-    ``du`` (n_t, n_motors): the increments of the open-loop torques on a grid of ``dt`` (half the sample
-    interval: it resolves every frequency below the sample rate's Nyquist frequency), from rest before the
-    manoeuvre to rest after it; ``channels`` and their noise std ``noise``; ``nyquist_hz``, half the model's
-    sample rate.
-    """
-
-    du: np.ndarray
-    dt: float
-    channels: tuple[str, ...]
-    noise: np.ndarray
-    nyquist_hz: float
-
-    @classmethod
-    def of(cls, mech: Mechanism, channels: Sequence[str] | None = None) -> Excitation | None:
-        """The excitation of ``mech``'s manoeuvre seen by ``channels`` (default: the sensors with a stated noise
-        except tip positions, :func:`exuflex.sensors.default_channels`); None without a manoeuvre or channels."""
-        if mech.manoeuvre is None or not mech.motors:
-            return None
-        channels = tuple(default_channels(mech) if channels is None else channels)
-        sensors = {s.name: s for s in mech.sensors}
-        channels = tuple(c for c in channels if c in sensors and sensors[c].noise_std > 0)
-        if not channels:
-            return None
-        dt = 0.5 / mech.sample_rate_hz
-        try:
-            tau = open_loop_torque(mech, plan(mech, dt=dt, t_end=mech.manoeuvre.duration))
-        except Exception as exc:  # noqa: BLE001 - no torques (e.g. a coordinate without a motor): the band alone
-            log.info("%s: no open-loop torques for the modes the channels see (%s); the band limit alone",
-                     mech.source or mech.name, exc)
-            return None
-        zero = np.zeros((1, tau.shape[1]))
-        du = np.diff(np.vstack([zero, tau, zero]), axis=0)
-        return cls(du, dt, channels, np.array([sensors[c].noise_std for c in channels]), 0.5 * mech.sample_rate_hz)
-
-    def snr(self, model, q, full: ModalResult) -> np.ndarray:
-        """Per full mode below the Nyquist frequency (others: 0), the peak of its dynamic response to the torques
-        in any channel, in units of that channel's noise std.
-
-        A mode of mass-normalised shape ``phi`` and frequency ``w`` (Rayleigh damping ratio ``zeta``) driven by
-        torques ``u(t)`` moves as ``eta = (b . u) / w^2 - (1 / w^2) integral cos(w_d (t - s)) e^(-zeta w (t - s))
-        b . du(s)`` (integration by parts of the oscillator's response), ``b = phi^T G`` its modal input. The
-        first term is the quasi-static part, which the Craig-Bampton shapes carry; the second rings at the
-        mode's frequency after each change of the torques. Its peak is bounded by ``sum_m |b_m| max_t |S_m(t)|
-        / w^2`` with ``S_m(t) = sum_k exp((i w_d - zeta w)(t - t_k)) du_m(t_k)``, and a channel of row ``c``
-        reads it times ``|c . phi|``."""
-        cfg = model.configuration(np.asarray(q, float))
-        f = full.frequencies_hz
-        out = np.zeros(len(f))
-        sel = np.flatnonzero((f > 0) & (f < self.nyquist_hz))
-        if not sel.size:
-            return out
-        phi = full.shapes[:, sel]
-        b = np.abs(phi.T @ model.input_matrix(cfg))  # (modes, motors)
-        read = np.abs(channel_matrix(model, cfg, model.mech, self.channels) @ phi) / self.noise[:, None]
-        w = 2 * np.pi * f[sel]
-        zeta = model.alpha / (2 * w) + model.beta * w / 2
-        wd = w * np.sqrt(np.clip(1 - zeta**2, 0, None))
-        poles = np.exp((1j * wd - zeta * w) * self.dt)
-        from scipy.signal import lfilter  # here, not at import: scipy.signal is a large import
-
-        peak = np.zeros_like(b)
-        for j, a in enumerate(poles):
-            s = lfilter([1.0], [1.0, -a], self.du.astype(complex), axis=0)
-            peak[j] = np.abs(s).max(axis=0)
-        out[sel] = read.max(axis=0) * (b * peak).sum(axis=1) / w**2
-        return out
-
 
 def interior_mode_scores(Phi_all: np.ndarray, M_ss: np.ndarray, band_shapes_s: np.ndarray, band_shapes_m: np.ndarray,
                          B: np.ndarray) -> np.ndarray:
@@ -186,21 +102,30 @@ class PathSamples:
     ----------
     cb : CraigBampton whose every interior mode is kept (``set_interior`` with all modes, in ascending order).
     qs : (n_c, nq) configurations.
-    excitation : what the channels see (:class:`Excitation`); with it the band at each sample also holds the
-        full modes visible there (``visibility``, module docstring), listed per sample in :attr:`visible_hz`.
+    planned : the manoeuvre's planned input and the channels (:class:`.truncation.PlannedInput`); with it, the
+        truncation requirement at every sample (:mod:`.truncation`, module docstring), in :attr:`truncation`.
+    rho_max : the truncation requirement's limit (0: the band's thresholds alone).
+    quantity_max : the largest RMS of the truncated part allowed per estimated tip quantity (a mapping from its
+        name, :attr:`.truncation.PlannedInput.quantities`, to m or m/s; the observer sets it from its bound); None:
+        the channels' requirement alone.
     """
 
-    def __init__(self, cb, qs: np.ndarray, excitation: Excitation | None = None, visibility: float = VISIBILITY):
+    def __init__(self, cb, qs: np.ndarray, planned: PlannedInput | None = None, rho_max: float = TRUNCATION_MAX,
+                 quantity_max=None):
         model, nq = cb.model, cb.nq
+        self.quantity_max = None
+        if quantity_max is not None and planned is not None and planned.quantities:
+            self.quantity_max = np.array([quantity_max.get(k, np.inf) for k in planned.quantities], float)
         self.cb = cb
         self.qs = np.atleast_2d(np.asarray(qs, float))
-        self.visibility = float(visibility)
+        self.rho_max = float(rho_max)
         self.band_hz: list[np.ndarray] = []
-        self.visible_hz: list[np.ndarray] = []  # full modes above the band limit that the channels see
-        self.visible_snr: list[np.ndarray] = []  # their peak response / noise std (:meth:`Excitation.snr`)
-        # per sample, with every interior mode: H^T M H, H^T K H and the cross products Phi^T M H of the band's and
-        # the visible full modes (the accuracy of a subset reads their rows and columns: no products with the
-        # full model)
+        self.truncation = []  # per sample, :class:`.truncation.TruncationSample` (empty without a planned input)
+        self._locked = []  # per sample, for :meth:`_ringing`
+        self._tix = []  # the samples with a truncation figure
+        self._cache: dict = {}
+        # per sample, with every interior mode: H^T M H, H^T K H and the band's full modes' cross products Phi^T M H
+        # (the accuracy of a subset reads their rows and columns: no products with the full model)
         self.Mr, self.Kr, self.PMH, self.n1 = [], [], [], []
         scores = []
         s_ = cb.is_
@@ -211,39 +136,45 @@ class PathSamples:
             qc, qsn = cb._frame_cs(rc.cfg)
             Mw = cb._congruence(M[nq:, nq:], qc, qsn)
             band = full.frequencies_hz <= cb.band_hz
-            seen = np.zeros_like(band)
-            if excitation is not None and self.visibility > 0:
-                snr = excitation.snr(model, q, full)
-                seen = (snr >= self.visibility) & ~band
-                self.visible_snr.append(snr[seen])
-            else:
-                self.visible_snr.append(np.zeros(0))
-            self.visible_hz.append(full.frequencies_hz[seen])
             shapes = cb._to_frame(full.shapes[nq:, band], qc, qsn)
             scores.append(interior_mode_scores(rc.Psi, Mw[np.ix_(s_, s_)], shapes[s_], shapes[cb.im], rc.B))
-            Phi = np.hstack([full.shapes[:, band], full.shapes[:, seen]])  # the band's modes, then the visible ones
+            Phi = full.shapes[:, band]
             H = rc.H
             self.band_hz.append(full.frequencies_hz[band])
             self.Mr.append(H.T @ M @ H)
             self.Kr.append(H.T @ K @ H)
             self.PMH.append(Phi.T @ M @ H)
             self.n1.append(np.einsum("ij,ik,kj->j", Phi, M, Phi))
+            if planned is not None and self.rho_max > 0 and len(self.band_hz) % 2 == 1:  # q* and every other sample
+                locked = modal_analysis(model, q, locked=True)
+                t = truncation_sample(cb, rc, locked, planned)
+                self.truncation.append(t)
+                self._tix.append(len(self.band_hz) - 1)
+                # q held: the reduced model's elastic block and the full modes' cross products with it
+                He = H[nq:, nq:]
+                self._locked.append((self.Mr[-1][nq:, nq:], self.Kr[-1][nq:, nq:], locked.shapes[nq:].T @ M[nq:, nq:] @ He, He))
         self.scores = np.array(scores)  # (n_c, n_interior modes)
+        # the interior modes that ring for at least a sample interval (zeta w <= f_s): the truncation requirement's
+        # candidates (module docstring)
+        w = 2 * np.pi * cb.interior_frequencies_hz
+        zeta = model.alpha / (2 * np.maximum(w, 1e-12)) + model.beta * w / 2
+        self.dynamic = zeta * w <= model.mech.sample_rate_hz
         self.reachable = True  # every sample's band thresholds met by some count (:meth:`choose`)
-        self.visible_met = True  # the visible modes' requirement met within :meth:`_visible_cap`
+        self.truncation_met = True  # the truncation requirement met by the count chosen
 
     def _match(self, kept) -> list[AccuracyResult]:
-        """The accuracy indices (:func:`~.accuracy.match_modes`) of the band's and the visible full modes (in
-        that order) at every sample with the interior modes ``kept`` (indices into all of them)."""
+        """The accuracy indices (:func:`~.accuracy.match_modes`) of the band's full modes at every sample with the
+        interior modes ``kept`` (indices into all of them)."""
         cb = self.cb
         nq = cb.nq
         cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(kept, int))]
         ix = np.ix_(cols, cols)
         out = []
-        for q, Mr, Kr, PMH, n1, fb, fv in zip(self.qs, self.Mr, self.Kr, self.PMH, self.n1, self.band_hz,
-                                              self.visible_hz):
-            ff = np.r_[fb, fv]
-            w2, V = sla.eigh(Kr[ix], Mr[ix])
+        for q, Mr, Kr, PMH, n1, ff in zip(self.qs, self.Mr, self.Kr, self.PMH, self.n1, self.band_hz):
+            try:
+                w2, V = sla.eigh(Kr[ix], Mr[ix])
+            except np.linalg.LinAlgError:  # a degenerate partition (a global master turned axial): no match
+                w2, V = np.zeros(nq), np.zeros((len(cols), nq))
             fr = np.sqrt(np.clip(w2[nq:], 0, None)) / (2 * np.pi)
             Vr = V[:, nq:]
             if not Vr.shape[1]:
@@ -259,104 +190,190 @@ class PathSamples:
 
     def evaluate(self, kept) -> list[AccuracyResult]:
         """The accuracy indices of the band's full modes at every sample with the interior modes ``kept``."""
-        out = []
-        for a, fb in zip(self._match(kept), self.band_hz):
-            k = len(fb)
-            out.append(AccuracyResult(a.q, a.full_hz[:k], a.reduced_hz[:k], a.nco[:k], a.freq_error_pct[:k]))
+        return self._match(kept)
+
+    def _ringing(self, c: int, kept) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """At sample ``c`` with the interior modes ``kept`` (q held): ``(unfollowed, ms_channels, ms_quantities)``.
+
+        ``unfollowed`` (n_full_modes): the fraction of each full mode's ringing the reduced model does not follow,
+        the larger of the shape's part outside its best-matching reduced mode, ``sqrt(1 - NCO)``, and the dephasing
+        of a ringing followed at a frequency off by the relative error ``e``: over its decay a ringing
+        ``exp(-zeta w t) sin(w t)`` and the same at ``w (1 + e)`` differ by ``e / (sqrt(2) zeta)`` of its RMS (to
+        first order in ``e``; at most 1). The reduced model's own modes above the band ring too under the planned
+        loads; the part of that ringing no full mode matches (the same fraction, from the reduced mode's side) is
+        a response the truth does not have: its series in the channels (whitened, n_t x n_ch) and in the estimated tip
+        quantities (n_t x 4) are ``ms_channels``, ``ms_quantities``, subtracted from the truth's side's."""
+        key = (c, tuple(sorted(int(i) for i in kept)))
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        cb = self.cb
+        t = self.truncation[c]
+        Mr, Kr, PMH, He = self._locked[c]
+        me = cb.n_m - cb.nq
+        cols = np.r_[np.arange(me), me + np.sort(np.asarray(kept, int))].astype(int)
+        n_ch = t.C_el.shape[0]
+        n_qu = 2 * t.tip_el.shape[0]
+        n_t = len(t.S)
+        if not len(cols):
+            out = (np.ones(len(t.frequencies_hz)), np.zeros((n_t, n_ch)), np.zeros((n_t, n_qu)))
+            self._cache[key] = out
+            return out
+        ix = np.ix_(cols, cols)
+        try:
+            w2, V = sla.eigh(Kr[ix], Mr[ix])
+        except np.linalg.LinAlgError:  # a degenerate partition (a global master turned axial): nothing followed
+            out = (np.ones(len(t.frequencies_hz)), np.zeros((n_t, n_ch)), np.zeros((n_t, n_qu)))
+            self._cache[key] = out
+            return out
+        fr = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
+        nco = (PMH[:, cols] @ V) ** 2 / np.maximum(np.einsum("ij,ik,kj->j", V, Mr[ix], V), 1e-300)[None, :]
+        best = np.argmax(nco, axis=1)
+        n = nco[np.arange(len(best)), best]
+        e = np.abs(fr[best] - t.frequencies_hz) / t.frequencies_hz
+        unf = np.maximum(np.sqrt(np.clip(1.0 - n, 0.0, 1.0)), np.minimum(1.0, e / (np.sqrt(2.0) * t.zeta)))
+        # the reduced modes above the band, by the same measure from their side
+        model = cb.model
+        ms_ch, ms_qu = np.zeros((n_t, n_ch)), np.zeros((n_t, n_qu))
+        wr = 2 * np.pi * fr
+        zr = np.clip(model.alpha / (2 * np.maximum(wr, 1e-12)) + model.beta * wr / 2, 1e-9, 0.999)
+        # the reduced modes above the band that ring for at least a sample interval (as :attr:`dynamic`)
+        sel = np.flatnonzero((fr > cb.band_hz) & (zr * wr <= model.mech.sample_rate_hz))
+        if sel.size:
+            jb = np.argmax(nco[:, sel], axis=0)
+            wr, zr = wr[sel], zr[sel]
+            er = np.abs(t.frequencies_hz[jb] - fr[sel]) / fr[sel]
+            v = np.maximum(np.sqrt(np.clip(1.0 - nco[jb, sel], 0.0, 1.0)), np.minimum(1.0, er / (np.sqrt(2.0) * zr)))
+            shapes = He[:, cols] @ V[:, sel]  # (ne, k) the reduced modes in the elastic coordinates
+            f = t.loads[::2] @ shapes  # the loads held over each sample interval: the sample times, as the truth's side
+            eta, eta_d = modal_response(f, wr, zr, 2 * t.dt, rates=True)
+            ring = (eta - f / wr**2) * v
+            ms_ch = -(ring @ (t.C_el @ shapes).T)  # a response the truth does not have: the truth minus it
+            A = t.tip_el @ shapes
+            ms_qu = -quantity_columns(ring @ A.T, (eta_d * v) @ A.T, t.n_q)
+        out = (unf, ms_ch, ms_qu)
+        self._cache[key] = out
         return out
 
-    def margins(self, kept, visible: bool = True) -> np.ndarray:
-        """Per sample, the smallest margin to the requirements with the interior modes ``kept``: the thresholds
-        on the band's modes (:func:`margin`), and on each visible mode the part of its ringing the reduced model
-        cannot follow, ``snr * u`` (:meth:`_unexplained`), against ``visibility``: ``(visibility - unexplained) / visibility``; ``visible=False``: the
-        band's thresholds alone."""
-        cb = self.cb
+    def _windowed(self, kept, quantities: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per sample, ``(rho_channels, quantities_rms)`` at the worst window (:data:`.truncation.WINDOW_SAMPLES`
+        samples): the channels' whitened mean squares in the window where their sum is largest, and (with
+        ``quantities``, else empty) each tip quantity's largest RMS over the windows."""
+        key = ("w", quantities, tuple(sorted(int(i) for i in kept)))
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
         out = []
-        for a, fb, snr in zip(self._match(kept), self.band_hz, self.visible_snr):
-            k = len(fb)
-            band = AccuracyResult(a.q, a.full_hz[:k], a.reduced_hz[:k], a.nco[:k], a.freq_error_pct[:k])
-            m = margin(band, cb.nco_min, cb.freq_error_max_pct)
-            if visible and len(snr):
-                m = min(m, float(((self.visibility - snr * self._unexplained(a, k)) / self.visibility).min()))
-            out.append(m)
-        return np.array(out)
+        for c, t in enumerate(self.truncation):
+            unf, y_ch, y_qu = self._ringing(c, kept)
+            n = WINDOW_SAMPLES
+            ms = window_mean_square(t.channel_series(kept, unf) + y_ch, n)
+            zq = t.quantity_series(kept, unf) if quantities else np.zeros((0, 0))
+            qu = np.sqrt(window_mean_square(zq + y_qu, n).max(axis=0)) if zq.shape[1] else np.zeros(0)
+            out.append((ms[int(np.argmax(ms.sum(axis=1)))], qu))
+        self._cache[key] = out
+        return out
 
-    def _unexplained(self, a: AccuracyResult, k: int) -> np.ndarray:
-        """The fraction ``u`` of each visible mode's ringing (entries ``k:`` of ``a``) that the reduced model cannot
-        follow: the larger of the shape's part outside the matched reduced mode, ``sqrt(1 - NCO)``, and the
-        dephasing of a ringing followed at a frequency off by the relative error ``e``: over its decay a ringing
-        ``exp(-zeta w t) sin(w t)`` and the same at ``w (1 + e)`` differ by ``e / (sqrt(2) zeta)`` of its RMS
-        (to first order in ``e``; at most 1)."""
-        model = self.cb.model
-        w = 2 * np.pi * a.full_hz[k:]
-        zeta = model.alpha / (2 * w) + model.beta * w / 2
-        phase = np.minimum(1.0, a.freq_error_pct[k:] / 100.0 / (np.sqrt(2.0) * np.maximum(zeta, 1e-12)))
-        return np.maximum(np.sqrt(np.clip(1.0 - a.nco[k:], 0.0, 1.0)), phase)
+    def rho(self, kept) -> np.ndarray:
+        """Per sample, the truncation figure ``rho`` with the interior modes ``kept``: the whitened mean square of
+        the truncated output summed over the channels, in the worst window (empty without a planned input)."""
+        return self.rho_channels(kept).sum(axis=1) if self.truncation else np.zeros(0)
 
-    def _visible_cap(self, band_need: int) -> int:
-        """The most interior modes the visible modes may add to the band's need: one per visible mode of the sample
-        that has most (a mode the reduced model cannot follow with that many is reported, not chased)."""
-        return band_need + max((len(v) for v in self.visible_snr), default=0)
+    def rho_channels(self, kept) -> np.ndarray:
+        """(samples, channels): :meth:`rho` per channel."""
+        return np.array([w[0] for w in self._windowed(kept)])
 
-    def choose(self, ranking: str, n_max: int | None = None) -> tuple[np.ndarray, int, list[AccuracyResult]]:
+    def quantities_rms(self, kept) -> np.ndarray:
+        """(samples, 4): the largest windowed RMS of the truncated part of the estimated tip deflection and rate
+        (:meth:`.truncation.TruncationSample.quantity_series`, less the reduced model's unmatched ringing; no
+        columns without a tip)."""
+        return np.array([w[1] for w in self._windowed(kept, quantities=True)])
+
+    def margins(self, kept, truncation: bool = True) -> np.ndarray:
+        """Per sample, the smallest margin to the requirements with the interior modes ``kept``: the thresholds on
+        the band's modes (:func:`margin`), ``(rho_max - rho) / rho_max`` and, with :attr:`quantity_max`, the
+        estimated tip quantities' ``(max - rms) / max``; ``truncation=False``: the band's thresholds alone."""
+        cb = self.cb
+        m = np.array([margin(a, cb.nco_min, cb.freq_error_max_pct) for a in self._match(kept)])
+        if truncation and self.truncation:
+            ix = self._tix
+            m[ix] = np.minimum(m[ix], (self.rho_max - self.rho(kept)) / self.rho_max)
+            if self.quantity_max is not None and self.quantity_max.size:
+                m[ix] = np.minimum(m[ix], ((self.quantity_max - self.quantities_rms(kept)) / self.quantity_max).min(axis=1))
+        return m
+
+    def choose(self, ranking: str, n_max: int | None = None, truncation: bool = True
+               ) -> tuple[np.ndarray, int, list[AccuracyResult]]:
         """``(order, n_needed, accuracy)``: the interior modes in the order they are kept, how many the
-        thresholds need at every sample (module docstring) and the samples' indices with that many.
+        requirements need at every sample (module docstring) and the samples' indices with that many.
 
         ``ranking="imr"``: forward selection; each step keeps the mode that makes the smallest margin over
         the samples largest (ties: the higher score at q*), up to ``n_max`` modes (default: until every
-        sample meets the thresholds), then the others by their largest score over the samples.
-        ``"frequency"``: the lowest modes first. Where no count meets the thresholds at every sample
-        (:attr:`reachable` False; e.g. a global master that becomes a link's axial direction), the smallest count
-        meeting them wherever some count does."""
+        sample meets the requirements), then the others by their largest score over the samples. Once the band's
+        thresholds hold, only modes that ring for a sample interval are candidates (:attr:`dynamic`); the
+        automatic count stops where the next raises the worst margin by less than 0.01 (1 % of ``rho_max``)
+        (:attr:`truncation_met` False); ``truncation=False``: the band's thresholds alone (a fixed count keeps the
+        modes the band needs, as the paper's). ``"frequency"``: the lowest modes first. Where no count meets the
+        band's thresholds at every sample (:attr:`reachable` False; e.g. a global master that becomes a link's
+        axial direction), the smallest count meeting them wherever some count does."""
         n_all = self.scores.shape[1]
         self.reachable = True
+        self.truncation_met = True
+        use = truncation and bool(self.truncation)
         if ranking == "frequency":
             order = np.arange(n_all)
-            k = self._need(order)
+            k = self._need(order, use)
             return order, k, self.evaluate(order[:k])
         tie = np.argsort(-self.scores[0], kind="stable")  # q*'s IMR order
         seq: list[int] = []
-        worst = self.margins(seq).min()
-        n_needed, band_need = None, None
-        self.visible_met = True
+        n_needed = None
+        band_met = False
         while len(seq) < n_all:
-            if band_need is None and self.margins(seq, visible=False).min() >= 0:
-                band_need = len(seq)
-            if worst >= 0 and n_needed is None:
+            m = self.margins(seq, use)
+            band_met = band_met or bool(self.margins(seq, truncation=False).min() >= 0)
+            if n_needed is None and m.min() >= 0:
                 n_needed = len(seq)
-            if n_needed is None and band_need is not None and len(seq) >= self._visible_cap(band_need):
-                n_needed, self.visible_met = len(seq), False  # the visible modes' best effort
             if (n_needed is not None and n_max is None) or (n_max is not None and len(seq) >= n_max):
                 break
+            cands = [int(i) for i in tie if i not in seq and (not band_met or self.dynamic[i] or n_max is not None)]
+            if not cands:
+                if n_needed is None:
+                    n_needed, self.truncation_met = len(seq), False
+                if n_max is None:
+                    break
+                cands = [int(i) for i in tie if i not in seq]
             best, best_m = -1, -np.inf
-            for i in tie:
-                if i in seq:
-                    continue
-                m = self.margins(seq + [int(i)]).min()
-                if m > best_m:
-                    best, best_m = int(i), m
+            for i in cands:
+                mi = self.margins(seq + [i], use).min()
+                if mi > best_m:
+                    best, best_m = i, mi
+            if n_needed is None and band_met and use and best_m - m.min() < 0.01:
+                n_needed, self.truncation_met = len(seq), False  # the next mode no longer helps: best effort
+                if n_max is None:
+                    break
             seq.append(best)
-            worst = best_m
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
         order = np.array(seq + [int(i) for i in rest if i not in set(seq)], int)
         if n_needed is None:  # a fixed count below the need, or every mode: the need by the order's prefixes
-            n_needed = self._need(order)
+            n_needed = self._need(order, use)
         return order, n_needed, self.evaluate(order[:n_needed])
 
-    def _need(self, order: np.ndarray) -> int:
-        """The smallest prefix of ``order`` meeting the thresholds at every sample where some prefix does
-        (:attr:`reachable` False if that is not every sample)."""
-        mb = np.array([self.margins(order[:k], visible=False) for k in range(len(order) + 1)])  # (prefix, sample)
+    def _need(self, order: np.ndarray, truncation: bool = True) -> int:
+        """The smallest prefix of ``order`` meeting the band's thresholds at every sample where some prefix does
+        (:attr:`reachable` False if that is not every sample), and the truncation requirement where a prefix
+        does (else the band's need: :attr:`truncation_met` False)."""
+        mb = np.array([self.margins(order[:k], truncation=False) for k in range(len(order) + 1)])  # (prefix, sample)
         can = (mb >= 0).any(axis=0)
         self.reachable = bool(can.all())
         band_need = next(k for k in range(len(order) + 1) if np.all(mb[k, can] >= 0))
-        cap = min(self._visible_cap(band_need), len(order))
-        for k in range(band_need, cap + 1):
+        if not truncation:
+            return band_need
+        for k in range(band_need, len(order) + 1):
             if np.all(self.margins(order[:k])[can] >= 0):
-                self.visible_met = True
+                self.truncation_met = True
                 return k
-        self.visible_met = False
-        return cap
+        self.truncation_met = False
+        return band_need
 
     def worst_margin(self, kept) -> float:
         """The smallest of :meth:`margins` over the samples."""

@@ -42,6 +42,7 @@ def reduced_modes_report(model, q=None, masters=None, n_interior=None, q_star=No
         "ok": acc.ok(cb.nco_min, cb.freq_error_max_pct),
         "basis_s": cb.build_seconds,
         "along": _along(cb, along) if along else None,
+        "truncation": cb.truncation,
     }
 
 

@@ -719,6 +719,11 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
                flag="--runs", what="observer runs", bytes_each=8192,
                flops_each=n_samples * 10 * state_size_estimate(nominal)**3, workers=workers)
     model_sha = file_sha256(model_path)
+    scaled = sorted({lv.payload_scale for lv in spec.levels})
+    if len(scaled) > 1 and (nominal.payload is None or not nominal.payload.mass > 0):
+        raise UsageError(f"levels (--levels): the levels scale the payload, but {model_path} has "
+                         f"{'no [payload]' if nominal.payload is None else 'a payload of mass 0'}: every level would "
+                         "be the same truth; expected a model with a payload (payload.mass > 0)")
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     for lv, m in zip(spec.levels, truth_mechs, strict=True):  # the model file's configuration check, per level
         if lv.overrides:

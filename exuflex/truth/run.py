@@ -49,7 +49,9 @@ def simulate_run(
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
     the engine's name) and the fraction of it done. ``out`` is claimed before the work
     (:func:`exuflex.runs.output_folder`): a folder holding anything exuflex did not write is refused, an earlier
-    exuflex result is replaced only with ``overwrite``.
+    exuflex result is replaced only with ``overwrite``. With an ERLS engine, links whose rotation rate approaches the
+    model's validity limit are logged as warnings and listed in ``meta.json`` under ``validity``
+    (:func:`exuflex.erls.validity.signal_warnings`).
     """
     from ..errors import UsageError
     from ..measure import measure, new_seed
@@ -114,6 +116,11 @@ def simulate_run(
                        elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step,
                        messages=messages)
         meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
+        validity = []
+        if engine in ("erls", "reduced"):  # an ERLS truth: links turning fast against their clamped frequency
+            from ..erls.validity import signal_warnings
+
+            validity = [w.as_dict() for w in signal_warnings(truth_mech, rec.truth)]  # logged there
         payload = truth_mech.payload
         man = mech.manoeuvre
         man_meta = {"kind": man.kind, "duration_s": man.duration,
@@ -148,6 +155,8 @@ def simulate_run(
                 "timings": timings,
             },
         }
+        if validity:
+            meta["validity"] = validity
         if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
             from ..manoeuvre import trajectory_csv
             from ..runs import atomic_write_text

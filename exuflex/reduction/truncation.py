@@ -1,0 +1,306 @@
+"""What the reduced model leaves out of the manoeuvre's own motion, as the observer's channels read it.
+
+The interior modes are kept for the filter's sake: a part of the true motion that no reduced state can represent
+reaches the sensors as a signal the filter must explain with its own states (biasing them) or leave in its
+innovations (raising the NIS). This module measures that part along the planned manoeuvre and states the
+requirement the automatic interior-mode count meets (:mod:`.path`); ``docs/reduction.md`` gives the derivation
+with the gallery's figures.
+
+The truncated part of a motion
+------------------------------
+At a configuration ``q`` the Craig-Bampton coordinates of a full elastic displacement ``u`` (in the partition's
+coordinates ``w = Q^T u``, :mod:`.basis`) are exact for the masters, and the slaves split as
+
+``w_s = B w_m + Psi zeta``,  ``zeta = Psi^-1 (w_s - B w_m)``,
+
+with ``Psi`` (s, s) *every* interior mode turned to ``q`` (:meth:`.basis.CraigBampton.rotated_modes`): the interior
+modes span the slave space, so ``zeta`` is unique. A basis keeping the set ``K`` of interior modes represents
+``u`` up to ``sum_{i not in K} psi_i zeta_i``; the ERLS coordinates ``q`` and the masters are represented
+exactly. A Galerkin reduced model reproduces any motion that lies in its basis, so the part outside it is the
+truncation error of the motion, to first order in it.
+
+The motion: the manoeuvre's own input
+-------------------------------------
+At a sampled configuration ``q_c`` of the manoeuvre the full model with its coordinates q held (the plan's q(t)
+is what the encoders read) is driven by the planned motion's loads on the elastic coordinates,
+
+``F(t) = G_u u(t) - M_uq(q_c) q''(t) - h_u(q_c, q'(t))`` (:func:`elastic_loads`),
+
+the motor torques ``u(t)`` (:func:`exuflex.manoeuvre.open_loop_torque`), the inertial load of the planned
+acceleration and the velocity forces (centrifugal, quadratic in q'), held over a grid of half the sample
+interval from rest at ``t = 0``: the trapezoid's steps included. Each elastic mode ``phi_j`` (q held,
+mass-normalised, frequency ``w_j``, the model file's Rayleigh ratio ``zeta_j = alpha / (2 w_j) + beta w_j / 2``)
+moves as ``eta_j'' + 2 zeta_j w_j eta_j' + w_j^2 eta_j = phi_j^T F(t)``, exactly for a staircase with steps
+``df_k`` at ``t_k`` (the oscillator's step response summed, :func:`modal_response`):
+
+``eta_j(t_n) = f_j(t_n) / w_j^2 - Re[(1 - i zeta_j w_j / w_dj) S_n] / w_j^2``,
+``S_n = sum_{k <= n} df_k exp((i w_dj - zeta_j w_j)(t_n - t_k))`` (a first-order recursion).
+
+``eta_j = f_j / w_j^2 + r_j``: a quasi-static part and the ringing ``r_j`` after every step.
+
+What the reduced model misses
+-----------------------------
+- **The quasi-static part's interior content.** ``zeta_qs(t) = sum_j Psi^-1 (phi_j,s - B phi_j,m) f_j(t) /
+  w_j^2``, of every full mode: the slaves' deflection between the masters under the motion's inertial loads. The
+  modes not kept leave ``sum_{i not in K} psi_i zeta_qs,i(t)``.
+- **Ringing it does not follow.** A full mode above the band rings after each step; the reduced model follows a
+  fraction of it: a full mode whose shape lies outside its best-matching reduced mode (NCO), or whose frequency is
+  off by ``e`` (its ringing dephases: over its decay a ringing ``exp(-zeta w t) sin(w t)`` and the same at
+  ``w (1 + e)`` differ by ``e / (sqrt(2) zeta)`` of its RMS), leaves ``u_j = max(sqrt(1 - NCO), e / (sqrt(2)
+  zeta))`` (at most 1) of ``r_j(t)``. The band's modes are the band thresholds' (NCO, frequency error): the filter
+  follows their phase through its measurements.
+- **Ringing the truth does not have.** The reduced model's own modes above the band ring too under the same
+  loads; a reduced mode matching no full mode (a spurious mode between the band and the kept interior modes)
+  rings at a frequency the truth has not, the same fraction from the reduced mode's side.
+
+In a channel of row ``c`` (noise std ``sigma``) the three add to ``e(t)``; in the estimated tip quantities (the
+tip's elastic deflection and its rate) likewise, in metres and m/s. The motors are torque-driven, so an elastic
+motion ``u`` also moves the coordinates by its recoil, ``dq = -M_qq^-1 M_qu u`` (the q rows' momentum balance
+under unchanged torques), which the encoders read: a channel's row on the elastic coordinates is ``c_u - c_q
+M_qq^-1 M_qu``.
+
+The requirement
+---------------
+The figure is the whitened mean square of ``e`` summed over the channels, in the worst window of
+:data:`WINDOW_SAMPLES` samples (the observer's NIS test window):
+
+``rho = max_windows sum_channels mean_window (e(t) / sigma)^2``.
+
+A signal of mean square ``rho_k sigma_k^2`` left unexplained raises channel ``k``'s NIS by at most ``rho_k`` over
+the window (its innovation variance is at least ``sigma_k^2``); explained, it moves an update's estimate by ``dx =
+P C^T S^-1 e`` with ``dx^T P^-1 dx <= e^T R^-1 e`` (the update is an R^-1-weighted projection). :data:`TRUNCATION_MAX`
+= 0.1 keeps the windowed NIS within 0.1 of its expectation in all (the observer's test allows 10 % of the channel
+count) and a bias of ``b`` posterior standard deviations adds to a consistent filter's error as ``sqrt(1 +
+b^2)``, about 1.05x at ``b^2 = 0.1``. A window rather than the whole manoeuvre: the ringing after a step lasts a
+few tens of milliseconds, and averaged over a whole manoeuvre it would vanish while the filter meets it at once.
+The requirement holds at q* and at every other sampled configuration of the manoeuvre, the worst counting; the
+estimated tip quantities' truncated part is reported beside it (``docs/reduction.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from ..erls.modal import ModalResult
+from ..erls.sensing import channel_matrix
+from ..manoeuvre import open_loop_torque, plan
+from ..mechanism import Mechanism
+from ..sensors import default_channels, tip_dof_names, tip_point
+
+__all__ = ["TRUNCATION_MAX", "WINDOW_SAMPLES", "PlannedInput", "TruncationSample", "elastic_loads", "modal_response",
+           "truncation_sample", "window_mean_square"]
+
+log = logging.getLogger(__name__)
+
+#: the whitened mean-square truncated output the automatic count allows, summed over the channels (module docstring)
+TRUNCATION_MAX = 0.1
+#: the window (samples) of the mean square: the observer's NIS test window (:class:`exuflex.observer.ekf.NISMonitor`)
+WINDOW_SAMPLES = 100
+
+
+@dataclass(frozen=True)
+class PlannedInput:
+    """The manoeuvre's open-loop torques and the channels that read the motion.
+
+    ``u`` (n_t, n_motors): the torques on the grid ``t_k = k dt`` (``dt`` half the sample interval), each held over
+    its interval, from rest at ``t = 0`` to the manoeuvre's end; ``channels``, their noise std ``noise`` (the
+    observer's default channels with a stated noise); ``tip``: the (link, station) of the tip whose elastic
+    deflection and rate the observer estimates (:func:`exuflex.sensors.tip_point`), if the model has one;
+    ``quantities``: the names of the estimated quantities (:func:`exuflex.sensors.truth_names`: q, q', the tip's).
+    """
+
+    u: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    dt: float
+    channels: tuple[str, ...]
+    noise: np.ndarray
+    tip: tuple[str, float] | None = None
+    quantities: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, mech: Mechanism, channels: Sequence[str] | None = None) -> PlannedInput | None:
+        """The planned input of ``mech``'s manoeuvre (None without a manoeuvre, motors, noisy channels or
+        computable torques)."""
+        if mech.manoeuvre is None or not mech.motors:
+            return None
+        channels = tuple(default_channels(mech) if channels is None else channels)
+        sensors = {s.name: s for s in mech.sensors}
+        channels = tuple(c for c in channels if c in sensors and sensors[c].noise_std > 0)
+        if not channels:
+            return None
+        dt = 0.5 / mech.sample_rate_hz
+        try:
+            p = plan(mech, dt=dt, t_end=mech.manoeuvre.duration)
+            tau = open_loop_torque(mech, p)
+        except Exception as exc:  # noqa: BLE001 - no torques (e.g. a coordinate without a motor): the band alone
+            log.info("%s: no open-loop torques for the truncation requirement (%s); the band limit alone",
+                     mech.source or mech.name, exc)
+            return None
+        tip = tip_point(mech)
+        qn = tuple(mech.coordinate_names)
+        names = qn + tuple("d" + n for n in qn)
+        if tip is not None:
+            ex, ey = tip_dof_names(mech)
+            names += (ex, ey, "d" + ex, "d" + ey)
+        return cls(np.asarray(tau, float), p.qd, p.qdd, dt, channels, np.array([sensors[c].noise_std for c in channels]),
+                   tip, names)
+
+
+def modal_response(f: np.ndarray, w: np.ndarray, zeta: np.ndarray, dt: float, rates: bool = False):
+    """``eta`` (n_t, modes): the exact response from rest of ``eta'' + 2 zeta w eta' + w^2 eta = f(t)`` to the
+    staircase forces ``f`` (n_t, modes), ``f[k]`` held over ``[k dt, (k + 1) dt)``, at ``t_n = n dt`` just after the
+    step there (module docstring); ``w`` > 0 (rad/s), ``0 <= zeta < 1``. ``rates``: also ``eta'``, ``(eta, eta')``
+    (the step response's rate is ``exp(-zeta w t) sin(w_d t) / w_d``, so ``eta'_n = Im S_n / w_d``)."""
+    from scipy.signal import lfilter  # here, not at import: scipy.signal is a large import
+
+    f = np.atleast_2d(np.asarray(f, float))
+    df = np.diff(np.vstack([np.zeros((1, f.shape[1])), f]), axis=0)
+    wd = w * np.sqrt(1.0 - zeta**2)
+    a = np.exp((1j * wd - zeta * w) * dt)
+    out = np.empty_like(f)
+    rate = np.empty_like(f)
+    for j in range(f.shape[1]):
+        S = lfilter([1.0], [1.0, -a[j]], df[:, j].astype(complex))
+        out[:, j] = (f[:, j] - np.real((1.0 - 1j * zeta[j] * w[j] / wd[j]) * S)) / w[j] ** 2
+        rate[:, j] = np.imag(S) / wd[j]
+    return (out, rate) if rates else out
+
+
+def quantity_columns(disp: np.ndarray, rate: np.ndarray, n_q: int) -> np.ndarray:
+    """The estimated quantities' columns (q, q', tip deflection, its rate) from displacement-type rows (the
+    coordinates' first ``n_q``, then the tip's) and their rates."""
+    return np.hstack([disp[:, :n_q], rate[:, :n_q], disp[:, n_q:], rate[:, n_q:]])
+
+
+def window_mean_square(E: np.ndarray, n: int) -> np.ndarray:
+    """(n_t - n + 1, k): the mean of ``E**2`` (n_t, k) over every window of ``n`` consecutive rows (all of them
+    when there are fewer)."""
+    n = max(1, min(int(n), len(E)))
+    c = np.vstack([np.zeros((1, E.shape[1])), np.cumsum(E**2, axis=0)])
+    return (c[n:] - c[:-n]) / n
+
+
+@dataclass(frozen=True)
+class TruncationSample:
+    """The truncation series at one configuration, for any set of interior modes.
+
+    ``S`` (n_t, n_int + 2 n_modes): the quasi-static interior content (every interior mode, in the basis'
+    ascending order), the ringing of every full elastic mode (q held) and its rate; ``Y`` (n_ch, n_int) and ``G``
+    (n_ch, n_modes): the channels' rows of the interior modes and of the full modes, divided by the noise std;
+    ``Y_tip``, ``G_tip`` (k, ...) the same for the estimated quantities' displacement rows (``tip_el``: the
+    coordinates' recoil ``-M_qq^-1 M_qu`` and, with a tip, its elastic deflection), whose rates are the other
+    estimated quantities (``n_q`` coordinates);
+    ``frequencies_hz``, ``zeta``: the full modes' and their damping ratios; ``ringing_counted``: the modes above the
+    band, whose ringing counts where the reduced model does not follow it; ``loads``, ``C_el``, ``tip_el``: the
+    planned loads and the rows on the elastic coordinates, for the reduced model's own response
+    (:class:`.path.PathSamples`).
+    """
+
+    q: np.ndarray
+    S: np.ndarray
+    Y: np.ndarray
+    G: np.ndarray
+    Y_tip: np.ndarray | None
+    G_tip: np.ndarray | None
+    frequencies_hz: np.ndarray
+    zeta: np.ndarray
+    ringing_counted: np.ndarray
+    loads: np.ndarray
+    dt: float
+    C_el: np.ndarray
+    tip_el: np.ndarray | None
+    n_q: int = 0
+
+    def _weights(self, kept, unfollowed) -> tuple[np.ndarray, np.ndarray]:
+        u = np.ones(self.Y.shape[1])
+        u[np.asarray(kept, int)] = 0.0
+        f = np.zeros(self.G.shape[1]) if unfollowed is None else np.where(self.ringing_counted, unfollowed, 0.0)
+        return u, f
+
+    def channel_series(self, kept, unfollowed=None) -> np.ndarray:
+        """(n_t, n_ch) the truncated output ``e(t) / sigma`` in every channel with the interior modes ``kept``
+        (indices) and the fractions ``unfollowed`` (n_modes) of the full modes' ringing the reduced model does not
+        follow (None: all followed)."""
+        u, f = self._weights(kept, unfollowed)
+        n_i, n_m = self.Y.shape[1], self.G.shape[1]
+        return self.S[:, :n_i] @ (self.Y * u).T + self.S[:, n_i : n_i + n_m] @ (self.G * f).T
+
+    def quantity_series(self, kept, unfollowed=None) -> np.ndarray:
+        """(n_t, n_quantities) the truncated part of the estimated quantities in :attr:`PlannedInput.quantities`'
+        order: the coordinates' recoil (rad, m) and its rate, the tip's elastic deflection (x, y; m) and its rate
+        (the rates: the ringing's, the quasi-static part's rate left out)."""
+        u, f = self._weights(kept, unfollowed)
+        n_i, n_m = self.Y.shape[1], self.G.shape[1]
+        ring = self.S[:, n_i : n_i + n_m] * f
+        disp = self.S[:, :n_i] @ (self.Y_tip * u).T + ring @ self.G_tip.T
+        rate = (self.S[:, n_i + n_m :] * f) @ self.G_tip.T
+        return quantity_columns(disp, rate, self.n_q)
+
+
+def elastic_loads(model, cfg, inp: PlannedInput) -> np.ndarray:
+    """(n_t, ne) the elastic rows of the loads of the planned motion on the mechanism held at ``cfg``'s
+    configuration with its elastic coordinates at rest: ``G_u u(t) - M_uq q''(t) - h_u(q'(t))``; ``h_u`` is
+    quadratic in ``q'`` and is evaluated from its ``nq (nq + 1) / 2`` coefficient vectors."""
+    nq, n = model.nq, model.n
+    M = model.mass(cfg)
+    F = inp.u @ model.input_matrix(cfg)[nq:].T - inp.qdd @ M[nq:, :nq].T
+    x = np.zeros(n)
+    x[:nq] = cfg.q
+
+    def h(qd):
+        v = np.zeros(n)
+        v[:nq] = qd
+        return model.velocity_forces(cfg, x, v)[nq:]
+
+    e = np.eye(nq)
+    hd = [h(e[i]) for i in range(nq)]
+    for i in range(nq):
+        F -= inp.qd[:, i : i + 1] ** 2 * hd[i][None, :]
+        for j in range(i + 1, nq):
+            F -= (inp.qd[:, i] * inp.qd[:, j])[:, None] * (h(e[i] + e[j]) - hd[i] - hd[j])[None, :]
+    return F
+
+
+def truncation_sample(cb, rc, full: ModalResult, inp: PlannedInput) -> TruncationSample:
+    """The :class:`TruncationSample` at ``rc`` (the basis of ``cb`` with every interior mode, at a configuration)
+    with the full modes ``full`` there (q held: ``modal_analysis(..., locked=True)``), under the planned motion
+    ``inp`` (its loads: :func:`elastic_loads`)."""
+    model, nq = cb.model, cb.nq
+    cfg = rc.cfg
+    n_int = rc.Psi.shape[1]
+    f_hz = full.frequencies_hz
+    phi = full.shapes
+    w = 2 * np.pi * f_hz
+    zeta = np.clip(model.alpha / (2 * w) + model.beta * w / 2, 0.0, 0.999)
+    F = elastic_loads(model, cfg, inp)
+    f = F @ phi[nq:]  # (n_t, modes) modal forces
+    eta, eta_d = modal_response(f, w, zeta, inp.dt, rates=True)
+    quasi = f / w**2
+    qc, qs = cb._frame_cs(cfg)
+    sh = cb._to_frame(phi[nq:], qc, qs)  # w-frame elastic rows
+    r = sh[cb.is_] - rc.B @ sh[cb.im]
+    coef = np.linalg.solve(rc.Psi, r)  # (n_int, modes): interior content of each full mode
+    # quasi-static interior content, each mode's ringing and its rate (the staircase's quasi-static part is constant
+    # over each interval: the ringing's rate is eta')
+    S = np.hstack([quasi @ coef.T, eta - quasi, eta_d])
+    # the interior modes as full-coordinate vectors (q and master rows zero), u = Q(q) w
+    W = np.zeros((model.ne, n_int))
+    W[cb.is_] = rc.Psi
+    X = np.zeros((model.n, n_int))
+    X[nq:] = cb._to_frame(W, qc, qs, inverse=True)
+    C = channel_matrix(model, cfg, model.mech, inp.channels) / inp.noise[:, None]
+    # the motors are torque-driven: an elastic motion u moves q by its recoil, M_qq dq = -M_qu u (the momentum
+    # balance of the q rows under unchanged torques), which the encoders read
+    M = model.mass(cfg)
+    recoil = -np.linalg.solve(M[:nq, :nq], M[:nq, nq:])  # (nq, ne)
+    C_el = C[:, nq:] + C[:, :nq] @ recoil
+    # the estimated quantities' displacement rows: the coordinates' recoil and the tip's elastic deflection
+    Z = recoil if inp.tip is None else np.vstack([recoil, model.point_displacement_rows(cfg, *inp.tip)])
+    # the series at the sample times (every other point of the grid): what the filter reads
+    return TruncationSample(np.asarray(cfg.q, float).copy(), np.ascontiguousarray(S[::2]), C_el @ X[nq:],
+                            C_el @ phi[nq:], Z @ X[nq:], Z @ phi[nq:], f_hz, zeta, f_hz > cb.band_hz, F, inp.dt, C_el,
+                            Z, nq)
