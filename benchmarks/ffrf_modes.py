@@ -133,7 +133,10 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
               f"mesh, {100 * worst_ref:.2f} % against the ERLS refined 4x.", ""]
     lines += ["## Mesh convergence of the FFRF modes", "",
               "Every link's mesh size scaled (1 = the default: the section's height, `exuflex.groundtruth.solid."
-              "default_mesh_size`; a model file's `mesh_size` sets it per link). Change: against the finest mesh.", ""]
+              "default_mesh_size`; a model file's `mesh_size` sets it per link). netgen also grades the mesh by the "
+              "surface's curvature (edges of about a quarter of a round section's diameter), so on round links a "
+              "scale above about 0.25 leaves the mesh as it is; below, the largest edge refines it. Change: against "
+              "the finest mesh.", ""]
     for c in conv:
         rows = c["rows"]
         n = min(len(r["f"]) for r in rows)
@@ -146,10 +149,12 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
                          + f" | {100 * np.max(np.abs(f - fine) / fine):.3f} |")
         lines.append("")
     lines += ["## Damping", "",
-              "The FFRF truth puts the model file's Rayleigh damping on each body's modal coordinates, `alpha M_ff + "
-              "beta K_ff` (the frames undamped). The stiffness part gives every mechanism mode `beta w / 2` exactly; "
-              "the mass part damps only the deformation's share of a mode's kinetic energy, so a mode whose links' "
-              "frames carry much of its motion gets less than `alpha / (2 w)`.", "",
+              "The FFRF truth puts the model file's Rayleigh damping on each body's modal coordinates, `alpha M_d + "
+              "beta K_ff` (`M_d`: the mass of the deformation about the body's own mean axes, "
+              "`exuflex.groundtruth.ffrf.deformation_mass`; the frames undamped). The stiffness part gives every "
+              "mechanism mode `beta w / 2` exactly; the mass part damps only the share of a mode's kinetic energy in "
+              "the links' deformation, so a mode in which links also move rigidly (the first modes, where a crank, "
+              "a hub or a payload swings) gets less than `alpha / (2 w)`.", "",
               "| model | mode (Hz) | FFRF ratio % | stated % |", "|---|---|---|---|"]
     for r in res:
         for f, z, zs in zip(r["ffrf"], r["zeta"], r["zeta_stated"]):
