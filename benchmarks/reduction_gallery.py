@@ -31,7 +31,7 @@ def _derivation() -> list[str]:
     out = []
     for i, ln in enumerate(text):
         if set(ln) == {"-"} and i > 0:
-            out[-1] = "#### " + out[-1]
+            out[-1] = "### " + out[-1]
             continue
         out.append(ln.replace(":data:", "").replace(":func:", "").replace(":class:", "").replace(":mod:", ""))
     return out
@@ -132,10 +132,10 @@ def main(argv=None) -> int:
         "modes meeting the band's thresholds (the count before the truncation requirement), scored by it; 'default':",
         "the automatic count. rho: the whitened mean square of the truncated output summed over the channels in",
         "the worst 100-sample window (limit 0.1), its largest shares per channel; the estimated tip quantities'",
-        "truncated part (RMS in the worst window, m and m/s), to compare with the observer's bound",
+        "truncated part (q, q' and the tip's; RMS in the worst window, rad, m and their rates), to compare with the observer's bound",
         "(`docs/gallery.md`). The paper's six-bar keeps the paper's five modes: its rows are that count.",
         "",
-        "| model | count | interior | kept (Hz at q*) | rho | channels | tip quantities |",
+        "| model | count | interior | kept (Hz at q*) | rho | channels | estimated quantities |",
         "|---|---|---|---|---|---|---|",
     ]
     for name in names:

@@ -17,6 +17,7 @@ if (ROOT / "exuflex").is_dir():
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "_ext"))
+sys.path.insert(0, str(ROOT / "examples"))  # the gallery's scripts import examples/_whole_chain.py
 import exuflex  # noqa: E402  (after the path is set)
 
 project = "exuflex"
@@ -68,7 +69,7 @@ sphinx_gallery_conf = {
     "examples_dirs": str(ROOT / "examples"),
     "gallery_dirs": "auto_examples",
     "filename_pattern": r"/plot_",  # executed at build time; the other examples are shown, not run
-    "ignore_pattern": r"__init__\.py|/data/|/_",
+    "ignore_pattern": r"__init__\.py|/data/|(^|/)_[^/]*\.py$",  # _whole_chain.py: a module the scripts import
     "within_subsection_order": "exuflex_figures.GalleryOrder",  # _ext/exuflex_figures.py
     "download_all_examples": False,
     "remove_config_comments": True,

@@ -30,10 +30,10 @@ report = reproduce(MODELS / "sixbar.toml", OUT, quick=True)
 # Table 2: the full-order model's frequencies at q* against the paper's, and the reduced model's normalised
 # cross-orthogonality (NCO, eq. 16) and frequency error (eq. 17).
 table2 = json.loads((OUT / "table2.json").read_text())
-print(f"{'mode':>4} {'full Hz':>8} {'paper Hz':>8} {'NCO':>7} {'paper NCO':>9} {'err %':>6} {'paper err %':>11}")
+print("mode  full Hz  paper Hz     NCO  paper NCO   err %  paper err %")
 for r in table2["rows"]:
-    print(f"{r['mode']:4d} {r['full_hz']:8.2f} {r['paper_full_hz']:8.2f} {r['nco']:7.4f} {r['paper_nco']:9.4f} "
-          f"{r['freq_error_pct']:6.3f} {r['paper_freq_error_pct']:11.3f}")
+    print(f"{r['mode']:4d} {r['full_hz']:8.2f} {r['paper_full_hz']:9.2f} {r['nco']:7.4f} "
+          f"{r['paper_nco']:10.4f} {r['freq_error_pct']:7.3f} {r['paper_freq_error_pct']:12.3f}")
 
 # %%
 # Figs 3 and 6-7: the tip's path, truth and estimate, and the joint errors against the observer's bound.

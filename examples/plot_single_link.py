@@ -14,34 +14,17 @@ the command line::
     exuflex simulate models/single_link.toml --out runs/single_link --seed 1 --duration 1
     exuflex observe models/single_link.toml runs/single_link --out obs/single_link
 
+The chain is the same on every mechanism's page: ``examples/_whole_chain.py``, shown on :doc:`plot_sixbar`.
 The acceptance over three seeds and the whole manoeuvre, for every mechanism: :doc:`/gallery`.
 """
 
-import tempfile
-from pathlib import Path
-
-import exuflex as xf
-from exuflex.erls.modal import modal_analysis
-from exuflex.plots import modes_figure, observer_figures
-from exuflex.truth import simulate_run
-
-# the model files, from the repository's root or from examples/
-MODELS = Path("models") if Path("models").is_dir() else Path("../models")
-MODEL = MODELS / "single_link.toml"
-OUT = Path(tempfile.mkdtemp(prefix="exuflex_single_link_"))
+from _whole_chain import modes, observed
 
 # %%
 # The full-order model's modes at the reference configuration, motors free (``exuflex modes``).
-mech = xf.load_mechanism(MODEL)
-modal = modal_analysis(xf.ErlsModel(mech), mech.q_ref)
-FIGURES = [modes_figure(mech, modal, OUT / "modes.png")]
+FIGURES = modes("single_link")
 
 # %%
-# One second of the manoeuvre simulated by Exudyn (ANCF cable elements), the sensors' noise drawn with seed
-# 1; then the reduced-order EKF on the log, scored against the truth from the start-up on.
-run = xf.read_run(simulate_run(MODEL, OUT / "run", engine="exudyn", seed=1, duration=1.0))
-out = xf.observe_run(mech, run)
-print({k: round(v, 2) for k, v in out.summary["ratio_to_bound"].items()})  # RMS error / bound
-
-SHOWN = ("fig_trajectory.png", "fig_joint_errors.png", "fig_tip_errors.png")
-FIGURES = [p for p in observer_figures(OUT, mech, run, out) if p.name in SHOWN]
+# One second of the manoeuvre: the Exudyn truth, the observer on its log, its RMS error over its bound.
+FIGURES, ratio_to_bound = observed("single_link")
+print(ratio_to_bound)

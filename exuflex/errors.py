@@ -6,11 +6,16 @@ from .erls.kinematics import KinematicsError
 from .mechanism import ModelFileError
 from .mechanism.loader import UsageError
 
-__all__ = ["LogFormatError", "ModelFileError", "KinematicsError", "UsageError", "EXPECTED_ERRORS"]
+__all__ = ["LogFormatError", "ModelFileError", "KinematicsError", "SimulationError", "UsageError", "EXPECTED_ERRORS"]
 
 
 class LogFormatError(ValueError):
     """A sensor log is malformed; the message names the file, the channel or row, and what was expected."""
 
 
-EXPECTED_ERRORS = (ModelFileError, KinematicsError, LogFormatError, UsageError, FileNotFoundError)
+class SimulationError(ValueError):
+    """A truth's solver failed on the input it was given; the message names the input's likely cause (the model
+    file's field or the argument) and what was expected."""
+
+
+EXPECTED_ERRORS = (ModelFileError, KinematicsError, LogFormatError, UsageError, SimulationError, FileNotFoundError)

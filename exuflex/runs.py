@@ -842,12 +842,14 @@ def read_csv_log(
     The file is read in chunks (:func:`_parse_stream`): the reader holds the parsed array, the mapped columns
     and one chunk of text, never the whole text.
     """
+    from .errors import UsageError
+
     path = _path_argument(path, "path")
     check_csv_dialect(delimiter, decimal)
     if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)) or not (
         math.isfinite(time_scale) and time_scale > 0
     ):
-        raise ValueError(f"read_csv_log: time_scale must be a positive number, got {time_scale!r}")
+        raise UsageError(f"time_scale (--time-scale): expected a positive number, got {time_scale!r}")
     lines = _content_lines(path, comment)
     first = next(lines, None)
     if first is None:

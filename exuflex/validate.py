@@ -145,12 +145,19 @@ def check_log(
     t = np.asarray(sensors.t, float)
     f = float  # plain floats in messages (no np.float64(...) reprs)
     n = len(t)
-    if n == 0:
-        raise LogFormatError(f"{source}: no data rows (expected at least one sample)")
+    if n < 2:
+        raise LogFormatError(f"{source}: {'no data rows' if n == 0 else 'one data row'}: too short to filter or "
+                             "score; expected at least 2 samples")
+    if n < MIN_SCORED_SAMPLES:
+        warnings_early = [f"only {n} samples: too short to score (an RMS over so few samples says little; expected "
+                          f"at least {MIN_SCORED_SAMPLES})"]
+    else:
+        warnings_early = []
     if not np.all(np.isfinite(t)):
         k = int(np.flatnonzero(~np.isfinite(t))[0])
         raise LogFormatError(f"{source}: {_row_line(k)}: time {f(t[k])!r} is not a finite number")
     rep = LogCheck(n_samples=n, dt=dt)
+    rep.warnings.extend(warnings_early)
     if n > 1:
         steps = np.diff(t)
         bad = np.flatnonzero(steps <= 0)
@@ -510,7 +517,7 @@ def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=N
                          f"{dt:g} s ({mech.sample_rate_hz:g} Hz); expected h <= {dt:g} s")
     if duration < dt * (1 - 1e-9):
         raise UsageError(f"duration (--duration): {duration:g} s is shorter than one sample interval of the model "
-                         f"({dt:g} s); expected at least {dt:g} s")
+                         f"({dt:g} s, model.sample_rate_hz = {mech.sample_rate_hz:g}); expected at least {dt:g} s")
     if duration / h > MAX_STEPS:
         raise UsageError(f"duration (--duration): {duration:g} s at h = {h:g} s is {duration / h:.3g} integration "
                          f"steps, more than {MAX_STEPS:.0e} (every step is held in memory); expected at most "
@@ -543,6 +550,9 @@ def check_actuation(mech: Mechanism) -> None:
                              f"(computed torque); {list(mech.motor_names)} actuate only {rank}",
                              has_got=False)
 
+
+MIN_SCORED_SAMPLES = 10
+"""Fewest samples a log is scored on without a note (an RMS over fewer says little)."""
 
 MAX_STEPS = 5e7
 """Most integration steps a simulation may take (about 20 bytes per step and table column are held)."""
@@ -665,6 +675,12 @@ def check_observer_settings(mech: Mechanism, config) -> tuple[str, ...]:
         raise UsageError(f"n_interior (--n-interior): expected a non-negative integer or 'auto', got {ni!r}")
     h = check_positive(config.h, "h", "--substep")
     dt = check_positive(config.dt, "dt") if config.dt is not None else 1.0 / mech.sample_rate_hz
+    band = mech.reduction.band_hz
+    if config.dt is None and mech.sample_rate_hz < 2 * band:
+        raise ModelFileError(src, "model.sample_rate_hz", f"at least twice reduction.band_hz = {band:g} Hz, the "
+                             f"highest frequency the reduced model keeps ({2 * band:g} Hz: a mode above half the "
+                             "filter's rate aliases onto a slower one), or a lower reduction.band_hz",
+                             mech.sample_rate_hz)
     if h > dt * (1 + 1e-9):
         raise UsageError(f"h (--substep): the RK4 sub-step {h:g} s is longer than the sample interval {dt:g} s")
     h_min = RK4_FLOOR / (2 * math.pi * mech.reduction.band_hz)

@@ -132,13 +132,13 @@ def test_readme_test_command_is_ci_s():
 
 
 def test_every_model_has_a_gallery_page():
-    """The gallery shows every mechanism of models/: a script of its own (examples/plot_<name>.py, which loads
+    """The gallery shows every mechanism of models/: a script of its own (examples/plot_<name>.py, which runs
     that file) or, for a model file added without one, examples/plot_more_mechanisms.py, which draws every model
     file that has no script."""
     assert (ROOT / "examples" / "plot_more_mechanisms.py").exists()
     bad = []
     for model in sorted((ROOT / "models").glob("*.toml")):
         script = ROOT / "examples" / f"plot_{model.stem}.py"
-        if script.exists() and f'"{model.name}"' not in script.read_text():
+        if script.exists() and f'"{model.stem}"' not in script.read_text():
             bad.append(model.name)
     assert not bad, f"gallery scripts that do not load their model file: {bad}"

@@ -246,7 +246,7 @@ def test_generic_log_time_in_ms_and_channels(tmp_path):
     p.write_text("t_ms;enc1\n0;1.0\n2;1.1\n4;1.2\n")
     sig = read_csv_log(p, {"q1": "enc1"}, time_column="t_ms", time_scale=1e-3, delimiter=";")
     np.testing.assert_allclose(sig.t, [0, 0.002, 0.004])
-    with pytest.raises(ValueError, match="time_scale must be a positive number"):
+    with pytest.raises(ValueError, match=r"time_scale \(--time-scale\): expected a positive number"):
         read_csv_log(p, time_column="t_ms", time_scale=0.0, delimiter=";")
     p.write_text("t_ms;enc1\n0;1.0\n2;inf\n")
     with pytest.raises(LogFormatError, match="'inf' is not a finite number"):

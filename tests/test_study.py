@@ -206,7 +206,7 @@ def test_cli_errors(tmp_path, capsys):
     assert "links.L1.diam" in capsys.readouterr().err
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path), "--runs", "0"]) == 2
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path / "e"), "--estimators", "ekf,kalman"]) == 2
-    assert "estimators must be among ekf, ukf, ekf-payload, ekf-input; got kalman" in capsys.readouterr().err
+    assert "estimators (--estimators): expected names among ekf, ukf, ekf-payload, ekf-input; got kalman" in capsys.readouterr().err
 
 
 def test_studies_script_quick(done_study, tmp_path):
@@ -265,7 +265,7 @@ def test_estimator_studies_share_the_truths(done_study, tmp_path):
     rows = estimator_figure_rows({e: r.summary for e, r in res.items()})
     assert {r["series"] for r in rows} == {"ekf", "ekf-payload"}
     assert payload_study_figure(rows, out / "fig.png").exists()
-    with pytest.raises(ValueError, match="estimators must be among"):
+    with pytest.raises(ValueError, match="expected names among"):
         run_estimator_studies(_tiny(runs=1), out, ["ekf", "kalman"])
     with pytest.raises(ValueError, match="each at most once"):
         run_estimator_studies(_tiny(runs=1), out, ["ekf", "ekf"])

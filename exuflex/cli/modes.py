@@ -213,7 +213,7 @@ def _table(rep: dict) -> str:
             f"truncation (docs/reduction.md): the manoeuvre's truncated output in the channels, whitened mean square "
             f"in the worst window, rho = {tr['rho']:.3g} (limit {tr['rho_max']:g}; {ch}; without interior modes "
             f"{tr['rho_without_interior']:.3g}){'' if tr['met'] else ', ABOVE THE LIMIT'}"
-            + (f"; estimated tip quantities' truncated part, RMS in the worst window: {qu}" if qu else ""))
+            + (f"; estimated quantities' truncated part (q, q', tip), RMS in the worst window: {qu}" if qu else ""))
     return "\n".join(lines)
 
 

@@ -378,6 +378,10 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
             rel = link_ref(r, "relative_to", None)
             if rel is not None and rel not in [p.link for p in joint_by[joint].points]:
                 raise r.err("relative_to", f"a link at joint {joint!r}", rel)
+            if rel is not None and rel == lk:  # an angle relative to itself: always zero
+                others = [p.link for p in joint_by[joint].points if p.link != lk]
+                raise r.err("relative_to", f"another link at joint {joint!r} than the encoder's own link {lk!r}"
+                            + (f" (one of {others})" if others else " (or no relative_to: the absolute angle)"), rel)
         elif kind != "slider":
             station = point(r, "any").station
         sensors.append(

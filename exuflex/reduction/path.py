@@ -52,7 +52,8 @@ from ..erls.modal import ModalResult, modal_analysis
 from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from .accuracy import AccuracyResult
-from .truncation import TRUNCATION_MAX, WINDOW_SAMPLES, PlannedInput, modal_response, truncation_sample, window_mean_square
+from .truncation import (TRUNCATION_MAX, WINDOW_SAMPLES, PlannedInput, modal_response, quantity_columns,
+                         truncation_sample, window_mean_square)
 
 __all__ = ["PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
 
@@ -212,7 +213,7 @@ class PathSamples:
         me = cb.n_m - cb.nq
         cols = np.r_[np.arange(me), me + np.sort(np.asarray(kept, int))].astype(int)
         n_ch = t.C_el.shape[0]
-        n_qu = 0 if t.tip_el is None else 4
+        n_qu = 2 * t.tip_el.shape[0]
         n_t = len(t.S)
         if not len(cols):
             out = (np.ones(len(t.frequencies_hz)), np.zeros((n_t, n_ch)), np.zeros((n_t, n_qu)))
@@ -248,9 +249,8 @@ class PathSamples:
             eta, eta_d = modal_response(f, wr, zr, 2 * t.dt, rates=True)
             ring = (eta - f / wr**2) * v
             ms_ch = -(ring @ (t.C_el @ shapes).T)  # a response the truth does not have: the truth minus it
-            if n_qu:
-                A = t.tip_el @ shapes
-                ms_qu = -np.hstack([ring @ A.T, (eta_d * v) @ A.T])
+            A = t.tip_el @ shapes
+            ms_qu = -quantity_columns(ring @ A.T, (eta_d * v) @ A.T, t.n_q)
         out = (unf, ms_ch, ms_qu)
         self._cache[key] = out
         return out

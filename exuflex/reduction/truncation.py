@@ -54,7 +54,10 @@ What the reduced model misses
   rings at a frequency the truth has not, the same fraction from the reduced mode's side.
 
 In a channel of row ``c`` (noise std ``sigma``) the three add to ``e(t)``; in the estimated tip quantities (the
-tip's elastic deflection and its rate) likewise, in metres and m/s.
+tip's elastic deflection and its rate) likewise, in metres and m/s. The motors are torque-driven, so an elastic
+motion ``u`` also moves the coordinates by its recoil, ``dq = -M_qq^-1 M_qu u`` (the q rows' momentum balance
+under unchanged torques), which the encoders read: a channel's row on the elastic coordinates is ``c_u - c_q
+M_qq^-1 M_qu``.
 
 The requirement
 ---------------
@@ -105,8 +108,8 @@ class PlannedInput:
     ``u`` (n_t, n_motors): the torques on the grid ``t_k = k dt`` (``dt`` half the sample interval), each held over
     its interval, from rest at ``t = 0`` to the manoeuvre's end; ``channels``, their noise std ``noise`` (the
     observer's default channels with a stated noise); ``tip``: the (link, station) of the tip whose elastic
-    deflection and rate the observer estimates (:func:`exuflex.sensors.tip_point`), and ``quantities`` their names
-    (:func:`exuflex.sensors.truth_names`), if the model has one.
+    deflection and rate the observer estimates (:func:`exuflex.sensors.tip_point`), if the model has one;
+    ``quantities``: the names of the estimated quantities (:func:`exuflex.sensors.truth_names`: q, q', the tip's).
     """
 
     u: np.ndarray
@@ -138,10 +141,11 @@ class PlannedInput:
                      mech.source or mech.name, exc)
             return None
         tip = tip_point(mech)
-        names = ()
+        qn = tuple(mech.coordinate_names)
+        names = qn + tuple("d" + n for n in qn)
         if tip is not None:
             ex, ey = tip_dof_names(mech)
-            names = (ex, ey, "d" + ex, "d" + ey)
+            names += (ex, ey, "d" + ex, "d" + ey)
         return cls(np.asarray(tau, float), p.qd, p.qdd, dt, channels, np.array([sensors[c].noise_std for c in channels]),
                    tip, names)
 
@@ -166,6 +170,12 @@ def modal_response(f: np.ndarray, w: np.ndarray, zeta: np.ndarray, dt: float, ra
     return (out, rate) if rates else out
 
 
+def quantity_columns(disp: np.ndarray, rate: np.ndarray, n_q: int) -> np.ndarray:
+    """The estimated quantities' columns (q, q', tip deflection, its rate) from displacement-type rows (the
+    coordinates' first ``n_q``, then the tip's) and their rates."""
+    return np.hstack([disp[:, :n_q], rate[:, :n_q], disp[:, n_q:], rate[:, n_q:]])
+
+
 def window_mean_square(E: np.ndarray, n: int) -> np.ndarray:
     """(n_t - n + 1, k): the mean of ``E**2`` (n_t, k) over every window of ``n`` consecutive rows (all of them
     when there are fewer)."""
@@ -181,7 +191,9 @@ class TruncationSample:
     ``S`` (n_t, n_int + 2 n_modes): the quasi-static interior content (every interior mode, in the basis'
     ascending order), the ringing of every full elastic mode (q held) and its rate; ``Y`` (n_ch, n_int) and ``G``
     (n_ch, n_modes): the channels' rows of the interior modes and of the full modes, divided by the noise std;
-    ``Y_tip``, ``G_tip`` (2, ...) the same for the tip's elastic deflection (m; None without a tip);
+    ``Y_tip``, ``G_tip`` (k, ...) the same for the estimated quantities' displacement rows (``tip_el``: the
+    coordinates' recoil ``-M_qq^-1 M_qu`` and, with a tip, its elastic deflection), whose rates are the other
+    estimated quantities (``n_q`` coordinates);
     ``frequencies_hz``, ``zeta``: the full modes' and their damping ratios; ``ringing_counted``: the modes above the
     band, whose ringing counts where the reduced model does not follow it; ``loads``, ``C_el``, ``tip_el``: the
     planned loads and the rows on the elastic coordinates, for the reduced model's own response
@@ -201,6 +213,7 @@ class TruncationSample:
     dt: float
     C_el: np.ndarray
     tip_el: np.ndarray | None
+    n_q: int = 0
 
     def _weights(self, kept, unfollowed) -> tuple[np.ndarray, np.ndarray]:
         u = np.ones(self.Y.shape[1])
@@ -217,15 +230,15 @@ class TruncationSample:
         return self.S[:, :n_i] @ (self.Y * u).T + self.S[:, n_i : n_i + n_m] @ (self.G * f).T
 
     def quantity_series(self, kept, unfollowed=None) -> np.ndarray:
-        """(n_t, 4) the truncated part of the tip's elastic deflection (x, y; m) and of its rate (m/s; the
-        ringing's, the quasi-static part's rate left out); no columns without a tip."""
-        if self.Y_tip is None:
-            return np.zeros((len(self.S), 0))
+        """(n_t, n_quantities) the truncated part of the estimated quantities in :attr:`PlannedInput.quantities`'
+        order: the coordinates' recoil (rad, m) and its rate, the tip's elastic deflection (x, y; m) and its rate
+        (the rates: the ringing's, the quasi-static part's rate left out)."""
         u, f = self._weights(kept, unfollowed)
         n_i, n_m = self.Y.shape[1], self.G.shape[1]
         ring = self.S[:, n_i : n_i + n_m] * f
-        return np.hstack([self.S[:, :n_i] @ (self.Y_tip * u).T + ring @ self.G_tip.T,
-                          (self.S[:, n_i + n_m :] * f) @ self.G_tip.T])
+        disp = self.S[:, :n_i] @ (self.Y_tip * u).T + ring @ self.G_tip.T
+        rate = (self.S[:, n_i + n_m :] * f) @ self.G_tip.T
+        return quantity_columns(disp, rate, self.n_q)
 
 
 def elastic_loads(model, cfg, inp: PlannedInput) -> np.ndarray:
@@ -280,10 +293,14 @@ def truncation_sample(cb, rc, full: ModalResult, inp: PlannedInput) -> Truncatio
     X = np.zeros((model.n, n_int))
     X[nq:] = cb._to_frame(W, qc, qs, inverse=True)
     C = channel_matrix(model, cfg, model.mech, inp.channels) / inp.noise[:, None]
-    Yt = Gt = None
-    if inp.tip is not None:
-        Ct = model.point_displacement_rows(cfg, *inp.tip)  # (2, ne) global x, y
-        Yt, Gt = Ct @ X[nq:], Ct @ phi[nq:]
+    # the motors are torque-driven: an elastic motion u moves q by its recoil, M_qq dq = -M_qu u (the momentum
+    # balance of the q rows under unchanged torques), which the encoders read
+    M = model.mass(cfg)
+    recoil = -np.linalg.solve(M[:nq, :nq], M[:nq, nq:])  # (nq, ne)
+    C_el = C[:, nq:] + C[:, :nq] @ recoil
+    # the estimated quantities' displacement rows: the coordinates' recoil and the tip's elastic deflection
+    Z = recoil if inp.tip is None else np.vstack([recoil, model.point_displacement_rows(cfg, *inp.tip)])
     # the series at the sample times (every other point of the grid): what the filter reads
-    return TruncationSample(np.asarray(cfg.q, float).copy(), np.ascontiguousarray(S[::2]), C @ X, C @ phi, Yt, Gt,
-                            f_hz, zeta, f_hz > cb.band_hz, F, inp.dt, C[:, nq:], None if Yt is None else Ct)
+    return TruncationSample(np.asarray(cfg.q, float).copy(), np.ascontiguousarray(S[::2]), C_el @ X[nq:],
+                            C_el @ phi[nq:], Z @ X[nq:], Z @ phi[nq:], f_hz, zeta, f_hz > cb.band_hz, F, inp.dt, C_el,
+                            Z, nq)

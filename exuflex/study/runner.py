@@ -143,7 +143,7 @@ def sweep_levels(sets: Sequence[tuple[str, Sequence[Any]]]) -> tuple[Level, ...]
     """Levels of a sweep: one ``(field, values)`` gives one level per value; several fields are combined as a
     full grid (every combination), the first field varying slowest."""
     if not sets:
-        raise ValueError("a sweep needs at least one --set FIELD=V1,V2,...")
+        raise UsageError("sets (--set): a sweep needs at least one --set FIELD=V1,V2,...")
     fields = [f for f, _ in sets]
     for fld, vals in sets:
         if fields.count(fld) > 1:
@@ -665,6 +665,34 @@ def _check_same_study(out: Path, record: dict) -> None:
                          "use another folder, or delete this one to start over")
 
 
+def _check_spec(spec) -> None:
+    """A :class:`StudySpec`'s fields of the right kinds, before any work: else a
+    :class:`~exuflex.errors.UsageError` naming the field and its flag."""
+    from ..validate import check_positive
+
+    if not isinstance(spec, StudySpec):
+        raise UsageError(f"spec: expected an exuflex.study.StudySpec, got {type(spec).__name__}")
+    if not isinstance(spec.model, (str, os.PathLike)) or not str(spec.model).strip():
+        raise UsageError(f"model: expected the path of a model file, got {spec.model!r}")
+    if not isinstance(spec.levels, (tuple, list)) or not all(isinstance(lv, Level) for lv in spec.levels):
+        raise UsageError(f"levels (--levels): expected a sequence of Level (payload_levels, sweep_levels), got "
+                         f"{type(spec.levels).__name__}")
+    if isinstance(spec.runs, bool) or not isinstance(spec.runs, (int, np.integer)) or spec.runs < 1:
+        raise UsageError(f"runs (--runs): expected a positive integer, got {spec.runs!r}")
+    if isinstance(spec.base_seed, bool) or not isinstance(spec.base_seed, (int, np.integer)) \
+            or not 0 <= spec.base_seed < 2**63 - spec.runs:
+        raise UsageError(f"base_seed (--seed): expected an integer in 0 .. 2**63 - 1 - runs, got {spec.base_seed!r}")
+    if spec.engine not in ("exudyn", "erls", "reduced"):
+        raise UsageError(f"engine (--engine): expected exudyn, erls or reduced, got {spec.engine!r}")
+    if spec.duration is not None:
+        check_positive(spec.duration, "duration", "--duration")
+    check_positive(spec.h, "h", "--h")
+    if spec.start_up is not None:
+        check_positive(spec.start_up, "start_up", "--start-up", allow_zero=True)
+    if spec.observer is not None and not isinstance(spec.observer, ObserverConfig):
+        raise UsageError(f"observer: expected an exuflex.ObserverConfig or None, got {type(spec.observer).__name__}")
+
+
 def run_study(
     spec: StudySpec,
     out: str | os.PathLike,
@@ -687,6 +715,7 @@ def run_study(
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise UsageError(f"workers (--workers): expected a positive integer, got {workers!r}")
+    _check_spec(spec)
     with output_folder(out, "study", overwrite=overwrite, mode="resume") as folder, study_lock(folder):
         return _run_study(spec, folder, workers=workers, scheduler=scheduler, progress=progress, on_result=on_result)
 
@@ -700,16 +729,17 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     check_configurations(nominal)  # loops close, away from singularities
     if spec.observer is None:  # the model file's [observer] table over the defaults
         spec = dataclasses.replace(spec, observer=ObserverConfig.for_model(nominal))
-    if spec.runs < 1:
-        raise ValueError(f"runs must be at least 1, got {spec.runs}")
+    if isinstance(spec.runs, bool) or not isinstance(spec.runs, (int, np.integer)) or spec.runs < 1:
+        raise UsageError(f"runs (--runs): expected a positive integer, got {spec.runs!r}")
     if not spec.levels:
-        raise ValueError("a study needs at least one level")
+        raise UsageError("levels (--levels): a study needs at least one level")
     if nominal.manoeuvre is None and spec.duration is None:
-        raise ValueError(f"{model_path}: no [manoeuvre] in the model; a study simulates its manoeuvre")
+        raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table: a study simulates it",
+                             has_got=False)
     duration = float(spec.duration if spec.duration is not None else nominal.manoeuvre.duration)
     start_up = float(spec.start_up if spec.start_up is not None else min(spec.observer.start_up, duration / 4))
     if not 0 <= start_up < duration:
-        raise ValueError(f"start-up {start_up} s must lie in [0, duration = {duration} s)")
+        raise UsageError(f"start_up (--start-up): {start_up:g} s; expected a value in [0, duration = {duration:g} s)")
     # bounds before work: every run's row is held (a few kB), and a run filters duration x rate samples (an EKF
     # sample about 10 nx^3 flop)
     from ..validate import check_work, state_size_estimate
@@ -719,6 +749,11 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
                flag="--runs", what="observer runs", bytes_each=8192,
                flops_each=n_samples * 10 * state_size_estimate(nominal)**3, workers=workers)
     model_sha = file_sha256(model_path)
+    scaled = sorted({lv.payload_scale for lv in spec.levels})
+    if len(scaled) > 1 and (nominal.payload is None or not nominal.payload.mass > 0):
+        raise UsageError(f"levels (--levels): the levels scale the payload, but {model_path} has "
+                         f"{'no [payload]' if nominal.payload is None else 'a payload of mass 0'}: every level would "
+                         "be the same truth; expected a model with a payload (payload.mass > 0)")
     truth_mechs = [_level_mech(nominal, lv) for lv in spec.levels]  # override errors before any work
     for lv, m in zip(spec.levels, truth_mechs, strict=True):  # the model file's configuration check, per level
         if lv.overrides:
@@ -875,12 +910,15 @@ def run_estimator_studies(spec: StudySpec, out, estimators: Sequence[str], **kw)
     level's truth does not depend on the observer). ``kw``: as :func:`run_study`."""
     from ..observer.session import ESTIMATORS
 
+    if isinstance(estimators, str) or not isinstance(estimators, Sequence) or \
+            not all(isinstance(e, str) for e in estimators):
+        raise UsageError(f"estimators (--estimators): expected a list of estimator names, got {estimators!r}")
     estimators = [e.strip() for e in estimators]
     bad = [e for e in estimators if e not in ESTIMATORS]
     if bad or not estimators:
-        raise ValueError(f"estimators must be among {', '.join(ESTIMATORS)}; got {', '.join(bad) or 'none'}")
+        raise UsageError(f"estimators (--estimators): expected names among {', '.join(ESTIMATORS)}; got {', '.join(bad) or 'none'}")
     if len(set(estimators)) != len(estimators):
-        raise ValueError(f"estimators {', '.join(estimators)}: each at most once")
+        raise UsageError(f"estimators (--estimators): {', '.join(estimators)}: expected each at most once")
     with output_folder(out, "study-estimators", overwrite=kw.pop("overwrite", False), mode="resume") as folder:
         return _run_estimator_studies(spec, folder, estimators, **kw)
 

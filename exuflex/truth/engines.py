@@ -223,6 +223,49 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
                        {"plan_and_torque_s": drive.seconds})
 
 
+def solver_failure(mech, drive, engine: str, h: float, exc: BaseException):
+    """A :class:`~exuflex.errors.SimulationError` for a truth solver's failure, naming the input's likely cause:
+    the fields of the model file (or the arguments) far outside what a flexible mechanism's solver is set up for,
+    largest first: a payload many times the links' mass (``payload.mass``, ``--payload-scale``), gravity far
+    above the earth's (``model.gravity``), a link far shorter than the others (``links.NAME.length``), a planned
+    torque far above the motors' full scale (the manoeuvre against ``motors.NAME.full_scale``); else the step."""
+    from ..errors import SimulationError
+
+    src = mech.source or mech.name
+    causes: list[tuple[float, str]] = []
+    link_mass = sum(lk.length * lk.material.rho * lk.section.A for lk in mech.links)
+    if mech.payload is not None and link_mass > 0 and mech.payload.mass > 100 * link_mass:
+        r = mech.payload.mass / link_mass
+        causes.append((r, f"payload.mass (times --payload-scale) = {mech.payload.mass:.3g} kg, {r:.3g} times the "
+                          f"links' {link_mass:.3g} kg (expected a payload comparable to the links')"))
+    g = float(np.hypot(*mech.gravity)) if mech.gravity else 0.0
+    if g > 100 * 9.81:
+        causes.append((g / 9.81, f"model.gravity = {list(mech.gravity)} m/s^2, {g / 9.81:.3g} g (expected about "
+                                 "9.81 m/s^2 or none)"))
+    lengths = [lk.length for lk in mech.links]
+    short = min(mech.links, key=lambda lk: lk.length)
+    if len(lengths) > 1 and short.length < 1e-2 * max(lengths):
+        r = max(lengths) / short.length
+        causes.append((r, f"links.{short.name}.length = {short.length:.3g} m, 1/{r:.3g} of the longest link (expected "
+                          "links of comparable length, or a rigid joint in its place)"))
+    tau = np.asarray(getattr(drive, "tau", np.empty((0, 0))), float)
+    for j, m in enumerate(mech.motors):
+        if m.full_scale and tau.ndim == 2 and tau.shape[1] > j and len(tau):
+            peak = float(np.max(np.abs(tau[:, j])))
+            if peak > 100 * m.full_scale:
+                causes.append((peak / m.full_scale, f"the planned torque of {m.name} peaks at {peak:.3g} N m, "
+                                                    f"{peak / m.full_scale:.3g} times motors.{m.name}.full_scale "
+                                                    "(expected a manoeuvre the motors can drive)"))
+    causes.sort(key=lambda c: -c[0])
+    why = " ".join(str(exc).split())
+    if causes:
+        hint = "the likely cause is in the input: " + "; ".join(c for _, c in causes)
+    else:
+        hint = (f"no input far out of range was found: try a smaller step (--h, now {h:g} s) or the other engine "
+                f"(--engine {'erls' if engine == 'exudyn' else 'exudyn'})")
+    return SimulationError(f"{src}: the {engine} truth's solver failed ({why}); {hint}")
+
+
 def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", duration: float | None = None,
              h: float = 1e-4, progress: Callable[[float], None] | None = None, *,
              elements_per_link: int | str | None = None, beam: str = "ancf",
@@ -276,8 +319,11 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
         from ..groundtruth import simulate_truth  # Exudyn is imported only there
 
         mesh = exudyn_mesh(truth_mech) if elements_per_link is None else elements_per_link
-        probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
-                                progress=progress, elements_per_link=mesh, formulation=BEAMS[beam], stats=solver)
+        try:
+            probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
+                                    progress=progress, elements_per_link=mesh, formulation=BEAMS[beam], stats=solver)
+        except RuntimeError as exc:
+            raise solver_failure(truth_mech, drive, "exudyn", h, exc) from exc
         settings = {
             "engine": "exudyn",
             "beam": beam,
@@ -295,8 +341,11 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
         mech = truth_mech
         if elements_per_link not in (None, "file"):
             mech = remesh_mechanism(truth_mech, elements_per_link)
-        probes = erls_truth(mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress,
-                            integrator=integrator, stats=solver, step=erls_step)
+        try:
+            probes = erls_truth(mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress,
+                                integrator=integrator, stats=solver, step=erls_step)
+        except (RuntimeError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            raise solver_failure(truth_mech, drive, "erls", h, exc) from exc
         settings = {
             "engine": "erls",
             "elements_per_link": "file" if elements_per_link is None else elements_per_link,
