@@ -15,6 +15,7 @@ ratios (linearised, damped) with the model file's Rayleigh ratio ``alpha / (2 w)
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -28,14 +29,16 @@ CONVERGENCE = ("sixbar", "fourbar")
 
 
 def _pair(f_ref: np.ndarray, f: np.ndarray, tol: float = 0.05):
-    """For each reference mode, the nearest mode of ``f`` within ``tol`` (relative) or None."""
-    out = []
-    for fr in f_ref:
-        if len(f) == 0:
-            out.append(None)
-            continue
-        j = int(np.argmin(np.abs(f - fr)))
-        out.append(float(f[j]) if abs(f[j] - fr) <= tol * fr else None)
+    """One-to-one pairing: for each reference mode, a mode of ``f`` within ``tol`` (relative) or None, the closest
+    pairs taken first (a mode pairs once)."""
+    cand = sorted((abs(fj - fr) / fr, i, j) for i, fr in enumerate(f_ref) for j, fj in enumerate(f)
+                  if abs(fj - fr) <= tol * fr)
+    out: list[float | None] = [None] * len(f_ref)
+    used: set[int] = set()
+    for _, i, j in cand:
+        if out[i] is None and j not in used:
+            out[i] = float(f[j])
+            used.add(j)
     return out
 
 
@@ -117,7 +120,8 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
             for p in (pf[i], p4[i], pa[i]):
                 cells += ["-" if p is None else f"{p:.2f}", _pct(f, p)]
             lines.append(f"| {i + 1} | " + " | ".join(cells) + " |")
-        missing = [f for f in r["erls"] if not _pair(np.array([f]), np.array(r["ffrf"]))[0]]
+        back = _pair(np.array(r["erls"]), np.array(r["ffrf"]))
+        missing = [f for f, p in zip(r["erls"], back) if p is None]
         if missing:
             lines.append(f"\nERLS (file mesh) modes without an FFRF mode within 5 %: {missing}.")
         links = "; ".join(f"{k}: {v['nodes']} nodes, {v['modes']} modes, mesh {1e3 * v['mesh_size_m']:.3g} mm"
@@ -129,7 +133,10 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
               f"mesh, {100 * worst_ref:.2f} % against the ERLS refined 4x.", ""]
     lines += ["## Mesh convergence of the FFRF modes", "",
               "Every link's mesh size scaled (1 = the default: the section's height, `exuflex.groundtruth.solid."
-              "default_mesh_size`; a model file's `mesh_size` sets it per link). Change: against the finest mesh.", ""]
+              "default_mesh_size`; a model file's `mesh_size` sets it per link). netgen also grades the mesh by the "
+              "surface's curvature (edges of about a quarter of a round section's diameter), so on round links a "
+              "scale above about 0.25 leaves the mesh as it is; below, the largest edge refines it. Change: against "
+              "the finest mesh.", ""]
     for c in conv:
         rows = c["rows"]
         n = min(len(r["f"]) for r in rows)
@@ -142,10 +149,12 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
                          + f" | {100 * np.max(np.abs(f - fine) / fine):.3f} |")
         lines.append("")
     lines += ["## Damping", "",
-              "The FFRF truth puts the model file's Rayleigh damping on each body's modal coordinates, `alpha M_ff + "
-              "beta K_ff` (the frames undamped). The stiffness part gives every mechanism mode `beta w / 2` exactly; "
-              "the mass part damps only the deformation's share of a mode's kinetic energy, so a mode whose links' "
-              "frames carry much of its motion gets less than `alpha / (2 w)`.", "",
+              "The FFRF truth puts the model file's Rayleigh damping on each body's modal coordinates, `alpha M_d + "
+              "beta K_ff` (`M_d`: the mass of the deformation about the body's own mean axes, "
+              "`exuflex.groundtruth.ffrf.deformation_mass`; the frames undamped). The stiffness part gives every "
+              "mechanism mode `beta w / 2` exactly; the mass part damps only the share of a mode's kinetic energy in "
+              "the links' deformation, so a mode in which links also move rigidly (the first modes, where a crank, "
+              "a hub or a payload swings) gets less than `alpha / (2 w)`.", "",
               "| model | mode (Hz) | FFRF ratio % | stated % |", "|---|---|---|---|"]
     for r in res:
         for f, z, zs in zip(r["ffrf"], r["zeta"], r["zeta_stated"]):
@@ -160,6 +169,7 @@ def main(argv=None) -> int:
     ap.add_argument("--models", default=",".join(GALLERY))
     ap.add_argument("--scales", default="2,1.4,1,0.7", help="FFRF mesh-size scales for the convergence table")
     ap.add_argument("--out", default=str(ROOT / "docs" / "ffrf_modes.md"))
+    ap.add_argument("--from-json", default=None, help="re-render the page from a JSON this script wrote")
     a = ap.parse_args(argv)
 
     def say(msg):
@@ -167,14 +177,26 @@ def main(argv=None) -> int:
 
     models = a.models.split(",")
     scales = sorted((float(s) for s in a.scales.split(",")), reverse=True)
-    res = [model_modes(m, say) for m in models]
-    conv = [convergence(m, scales, say) for m in CONVERGENCE if m in models]
     args = []
     if models != list(GALLERY):
         args.append(f"--models {a.models}")
     if a.scales != "2,1.4,1,0.7":
         args.append(f"--scales {a.scales}")
-    publish(markdown(res, conv, " ".join(["python benchmarks/ffrf_modes.py", *args])), a.out)
+    cmd = " ".join(["python benchmarks/ffrf_modes.py", *args])
+    if a.from_json:  # re-render a page from its numbers
+        data = json.loads(Path(a.from_json).read_text())
+        publish(markdown(data["modes"], data["convergence"], data.get("command", cmd)), a.out)
+        return 0
+    res = [model_modes(m, say) for m in models]
+    conv: list[dict] = []
+    # the page after the gallery and after each convergence model: the finest meshes take longest
+    for m in (None, *[m for m in CONVERGENCE if m in models]):
+        if m is not None:
+            conv.append(convergence(m, scales, say))
+        if a.out:
+            Path(a.out).with_suffix(".json").write_text(json.dumps({"command": cmd, "modes": res, "convergence": conv},
+                                                                   indent=1))
+        publish(markdown(res, conv, cmd), a.out)
     return 0
 
 

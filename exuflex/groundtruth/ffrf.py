@@ -30,7 +30,7 @@ elastic mode of the mechanism the ratio ``beta w / 2`` exactly (all stiffness is
 (:func:`deformation_mass`) is the mass of the deformation relative to the body's own mean axes, not the modal
 mass ``M_ff``: the floating frame sits on one interface (Hurty-Craig-Bampton), so a link pinned at both ends
 and bending in its first mode appears, in that frame, to turn as well as bend, and ``alpha M_ff`` would damp that
-apparent turning too (on the four-bar up to five times the stated ratio). ``alpha M_d`` damps a mechanism mode
+apparent turning too (several times the stated ratio on the gallery's mechanisms). ``alpha M_d`` damps a mechanism mode
 by the share of its kinetic energy in the links' deformation about their mean axes; a mode in which links also
 move rigidly gets less than ``alpha / (2 w)`` (``exuflex modes --exudyn --beam ffrf --json`` reports the
 ratios, ``docs/ffrf_modes.md`` compares them with the stated ones).
@@ -269,6 +269,7 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
         "mesh_scale": mesh_scale,
         "mode_factor": mode_factor,
         "links": {n: {"mesh_size_m": s.spec.mesh_size, "nodes": s.n_nodes, "tetrahedra": s.n_tets,
+                      "setup_s": round(s.setup_s, 2), "from_cache": s.cached,
                       "modes": s.n_modes, "interfaces": list(s.spec.interfaces),
                       "fixed_interface_hz": np.round(s.fixed_interface_hz, 2).tolist()} for n, s in solids.items()},
         "damping": "Rayleigh alpha M + beta K on each body's modal coordinates" if damping else "none",

@@ -77,8 +77,8 @@ FORMAT = 2  # cache format version (part of the key)
 
 def default_mesh_size(section) -> float:
     """Default largest tetrahedron edge (m): the section's in-plane height (diameter, or height of a rectangle);
-    quadratic tetrahedra and netgen's curvature grading resolve the section itself (``docs/ffrf.md`` shows the
-    modes converge)."""
+    quadratic tetrahedra and netgen's curvature grading resolve the section itself (``benchmarks/ffrf_modes.py``
+    refines it: ``docs/ffrf_modes.md``)."""
     if section.shape in ("round", "tube"):
         return float(section.diameter)
     if section.shape == "rectangle":
