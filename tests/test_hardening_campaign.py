@@ -250,6 +250,7 @@ def test_campaign_api_errors_are_documented_types(api, tmp_path, monkeypatch):
     from exuflex.study.runner import StudySpec
 
     xf, mech, run, obs = api
+    monkeypatch.chdir(tmp_path)  # relative paths among the arguments ("nonexistent/x") land here
     monkeypatch.setattr(exuflex.manoeuvre, "plan", reach)  # an argument that passes: no simulation
     monkeypatch.setattr(StudySpec, "settings", reach)
     kinds: Counter = Counter()

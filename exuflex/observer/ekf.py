@@ -1151,8 +1151,8 @@ class MultirateEKF(BeliefFilter):
                 break
             hold0 = self._holdoff
             buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn)
-            k_next, status, self._holdoff, swapped, state, mats = self._loop(t, U, Y, k, k_end, hold0, buf, mon, record,
-                                                                             *lm)
+            k_next, status, self._holdoff, swapped, state, mats = self._loop(
+                t, U, Y, k, k_end, hold0, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:

@@ -29,6 +29,7 @@ from .expansion import (
     NO_DISTURBANCES,
     NO_PAYLOAD,
     CachedStep,
+    HeldSystem,
     LoopExtras,
     LoopMap,
     LoopState,
@@ -38,7 +39,7 @@ from .expansion import (
 )
 from .kalman import normalise, predict_update, step_statistic, window_push, window_seen
 
-__all__ = ["Buffers", "Monitors", "Record", "samples", "warm_up"]
+__all__ = ["Buffers", "Monitors", "Record", "plain", "samples", "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +106,13 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
 
     Returns ``(k, status, holdoff, swapped, state, mats)``: the first sample not done, why, the hold-off left,
     whether the current state is in the ``_alt`` buffers, the model's carried state and the last interval's held
-    matrices (for :meth:`.base.CompiledModel.loop_done`)."""
+    matrices (for :meth:`.base.CompiledModel.loop_done`).
+
+    The named tuples arrive as plain tuples (:func:`plain`) and are named here: numba types a plain tuple of arrays
+    from its fingerprint, a named one through a slower path that keeps a few objects alive per call."""
+    buf, mon, rec = Buffers(*buf), Monitors(*mon), Record(*rec)
+    step = CachedStep(*step[:-1], HeldSystem(*step[-1]))
+    state = LoopState(LoopMap(*state[0]), state[1], state[2], state[3])
     x, x_alt, P, P_alt = buf.x, buf.x_alt, buf.P, buf.P_alt
     r, S, zn = buf.r, buf.S, buf.zn
     m = Y.shape[1]
@@ -196,6 +203,12 @@ except ImportError:  # pragma: no cover
     samples = _samples
 
 
+def plain(buf: Buffers, mon: Monitors, rec: Record, step, state) -> tuple:
+    """The arguments :func:`samples` takes for ``buf``, ``mon``, ``rec`` and the model's ``step``
+    (:class:`.expansion.CachedStep`) and ``state`` (:class:`.expansion.LoopState`): the same, as plain tuples."""
+    return tuple(buf), tuple(mon), tuple(rec), (*step[:-1], tuple(step.system)), (tuple(state.map), *state[1:])
+
+
 def warm_up(augmented: bool | None = None) -> None:
     """Compile (or load from numba's on-disk cache) :func:`samples` for the argument types the filter passes: called
     with no sample to do (``k0 = k1``), it returns at once. ``augmented`` None: the plain state's specialisation;
@@ -208,4 +221,4 @@ def warm_up(augmented: bool | None = None) -> None:
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
     extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None
-    samples(v, m, m, 1, 1, 0, buf, mon, rec, step, state, extras)
+    samples(v, m, m, 1, 1, 0, *plain(buf, mon, rec, step, state), extras)
