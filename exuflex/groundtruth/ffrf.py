@@ -49,6 +49,7 @@ import numpy as np
 from ..mechanism import Mechanism
 from ..probes import Probe, ProbeRecord, probes_for
 from .builder import _exu
+from .simulate import implicit_settings
 from .solid import MODE_FACTOR, SolidLink, solid_link, solid_specs
 
 __all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "deformation_mass", "ffrf_frequencies", "simulate_ffrf"]
@@ -422,20 +423,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
         pre_time[0] += time.perf_counter() - t_in
         return True
 
-    ss = exu.SimulationSettings()
-    ti = ss.timeIntegration
-    ti.numberOfSteps = n_steps
-    ti.endTime = duration
-    ti.verboseMode = 0
-    ti.newton.absoluteTolerance = newton_tol
-    ti.adaptiveStep = False
-    ti.generalizedAlpha.spectralRadius = spectral_radius
-    ti.generalizedAlpha.computeInitialAccelerations = True
-    ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
-    ss.solution.file.write = False
-    ss.solution.sensors.active = False
-    ss.show.statistics = False
-    ss.show.computationTime = False
+    ss = implicit_settings(exu, n_steps, duration, newton_tol, spectral_radius)
     for ld, sign, j in loads:
         mbs.SetLoadParameter(ld, "loadVector", [0.0, 0.0, sign * float(tau[0, j])])
     mbs.SetPreStepUserFunction(pre_step)

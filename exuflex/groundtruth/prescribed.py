@@ -22,7 +22,7 @@ import numpy as np
 from ..mechanism import Mechanism
 from ..probes import Probe, ProbeRecord
 from .builder import _exu, build_truth
-from .simulate import probe_values
+from .simulate import implicit_settings, probe_values
 
 __all__ = ["simulate_prescribed"]
 
@@ -134,20 +134,7 @@ def simulate_prescribed(
         set_drive(t)
         return True
 
-    ss = exu.SimulationSettings()
-    ti = ss.timeIntegration
-    ti.numberOfSteps = n_steps
-    ti.endTime = duration
-    ti.verboseMode = 0
-    ti.newton.absoluteTolerance = newton_tol
-    ti.adaptiveStep = False
-    ti.generalizedAlpha.spectralRadius = spectral_radius
-    ti.generalizedAlpha.computeInitialAccelerations = True
-    ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
-    ss.solution.file.write = False
-    ss.solution.sensors.active = False
-    ss.show.statistics = False
-    ss.show.computationTime = False
+    ss = implicit_settings(exu, n_steps, duration, newton_tol, spectral_radius)
     set_drive(0.0)
     mbs.SetPreStepUserFunction(pre_step)
     t0 = time.perf_counter()

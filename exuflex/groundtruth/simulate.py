@@ -18,6 +18,27 @@ __all__ = ["probe_values", "simulate_truth", "smooth_torque_table", "time_truth"
 log = logging.getLogger(__name__)
 
 
+def implicit_settings(exu, n_steps: int, duration: float, newton_tol: float, spectral_radius: float):
+    """Exudyn's settings for a truth run: generalised-alpha with ``n_steps`` fixed steps over ``duration`` (no
+    adaptive step: a reduced step would leave the grid of the torque table and the record), the given Newton
+    tolerance and spectral radius, a sparse solver, and no files, sensors or statistics written."""
+    ss = exu.SimulationSettings()
+    ti = ss.timeIntegration
+    ti.numberOfSteps = n_steps
+    ti.endTime = duration
+    ti.verboseMode = 0
+    ti.newton.absoluteTolerance = newton_tol
+    ti.adaptiveStep = False
+    ti.generalizedAlpha.spectralRadius = spectral_radius
+    ti.generalizedAlpha.computeInitialAccelerations = True
+    ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
+    ss.solution.file.write = False
+    ss.solution.sensors.active = False
+    ss.show.statistics = False
+    ss.show.computationTime = False
+    return ss
+
+
 def smooth_torque_table(
     mech: Mechanism,
     duration: float,
@@ -345,20 +366,7 @@ def simulate_truth(
             progress(k / n_steps)
         return True
 
-    ss = exu.SimulationSettings()
-    ti = ss.timeIntegration
-    ti.numberOfSteps = n_steps
-    ti.endTime = duration
-    ti.verboseMode = 0
-    ti.newton.absoluteTolerance = newton_tol
-    ti.adaptiveStep = False  # a reduced step would leave the grid of the torque table and the record
-    ti.generalizedAlpha.spectralRadius = spectral_radius
-    ti.generalizedAlpha.computeInitialAccelerations = True
-    ss.linearSolver.solverType = exu.LinearSolverType.EigenSparse
-    ss.solution.file.write = False
-    ss.solution.sensors.active = False
-    ss.show.statistics = False
-    ss.show.computationTime = False
+    ss = implicit_settings(exu, n_steps, duration, newton_tol, spectral_radius)
     for path, value in (solver_settings or {}).items():
         obj = ss
         *parents, leaf = path.split(".")
