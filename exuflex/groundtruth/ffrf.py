@@ -49,7 +49,7 @@ import numpy as np
 from ..mechanism import Mechanism
 from ..probes import Probe, ProbeRecord, probes_for
 from .builder import _exu
-from .simulate import implicit_settings
+from .simulate import implicit_settings, step_grid
 from .solid import MODE_FACTOR, SolidLink, solid_link, solid_specs
 
 __all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "deformation_mass", "ffrf_frequencies", "simulate_ffrf"]
@@ -371,14 +371,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     from .simulate import _interp_table
 
     exu, _ = _exu()
-    if h <= 0 or duration <= 0:
-        raise ValueError(f"h and duration must be positive, got h={h}, duration={duration}")
-    n_steps = round(duration / h)
-    if abs(n_steps * h - duration) > 1e-9 * max(1.0, duration):
-        raise ValueError(f"duration {duration} s is not a multiple of the step h = {h} s")
-    every = 1 if output_dt is None else round(output_dt / h)
-    if every < 1 or (output_dt is not None and abs(every * h - output_dt) > 1e-9):
-        raise ValueError(f"output_dt {output_dt} s must be a positive multiple of the step h = {h} s")
+    n_steps, every = step_grid(h, duration, output_dt)
     probes = tuple(probes_for(mech) if probes is None else probes)
     fm = build_ffrf(mech, q0, mesh_scale=mesh_scale, mode_factor=mode_factor, damping=damping, probes=probes,
                     progress=messages)

@@ -22,7 +22,7 @@ import numpy as np
 from ..mechanism import Mechanism
 from ..probes import Probe, ProbeRecord
 from .builder import _exu, build_truth
-from .simulate import implicit_settings, probe_values
+from .simulate import implicit_settings, probe_values, step_grid
 
 __all__ = ["simulate_prescribed"]
 
@@ -62,14 +62,7 @@ def simulate_prescribed(
         ``values[key]``, ``rates[key]`` per probe (slopes wrapped to (-pi, pi]).
     """
     exu, it = _exu()
-    if h <= 0 or duration <= 0:
-        raise ValueError(f"h and duration must be positive, got h={h}, duration={duration}")
-    n_steps = round(duration / h)
-    if abs(n_steps * h - duration) > 1e-9 * max(1.0, duration):
-        raise ValueError(f"duration {duration} s is not a multiple of the step h = {h} s")
-    every = 1 if output_dt is None else round(output_dt / h)
-    if every < 1 or (output_dt is not None and abs(every * h - output_dt) > 1e-9):
-        raise ValueError(f"output_dt {output_dt} s must be a positive multiple of the step h = {h} s")
+    n_steps, every = step_grid(h, duration, output_dt)
     q0 = np.asarray(motion(0.0), float)
     if q0.shape != (len(mech.coordinates),):
         raise ValueError(f"motion(t) must return one angle per coordinate {list(mech.coordinate_names)}, "

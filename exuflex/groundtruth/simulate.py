@@ -18,6 +18,20 @@ __all__ = ["probe_values", "simulate_truth", "smooth_torque_table", "time_truth"
 log = logging.getLogger(__name__)
 
 
+def step_grid(h: float, duration: float, output_dt: float | None) -> tuple[int, int]:
+    """The fixed steps of a truth run: ``n_steps`` of ``h`` over ``duration``, and a record every ``every`` steps
+    (``output_dt``, every step when None). ValueError unless both are whole multiples of ``h``."""
+    if h <= 0 or duration <= 0:
+        raise ValueError(f"h and duration must be positive, got h={h}, duration={duration}")
+    n_steps = round(duration / h)
+    if abs(n_steps * h - duration) > 1e-9 * max(1.0, duration):
+        raise ValueError(f"duration {duration} s is not a multiple of the step h = {h} s")
+    every = 1 if output_dt is None else round(output_dt / h)
+    if every < 1 or (output_dt is not None and abs(every * h - output_dt) > 1e-9):
+        raise ValueError(f"output_dt {output_dt} s must be a positive multiple of the step h = {h} s")
+    return n_steps, every
+
+
 def implicit_settings(exu, n_steps: int, duration: float, newton_tol: float, spectral_radius: float):
     """Exudyn's settings for a truth run: generalised-alpha with ``n_steps`` fixed steps over ``duration`` (no
     adaptive step: a reduced step would leave the grid of the torque table and the record), the given Newton
@@ -232,17 +246,7 @@ def simulate_truth(
     thus ramps over ``[t_k-1, t_k+1]``, centred on ``t_k``. The same function refreshes the damper.
     """
     exu, _ = _exu()
-    if h <= 0 or duration <= 0:
-        raise ValueError(f"h and duration must be positive, got h={h}, duration={duration}")
-    n_steps = round(duration / h)
-    if abs(n_steps * h - duration) > 1e-9 * max(1.0, duration):
-        raise ValueError(f"duration {duration} s is not a multiple of the step h = {h} s")
-    if output_dt is None:
-        every = 1
-    else:
-        every = round(output_dt / h)
-        if every < 1 or abs(every * h - output_dt) > 1e-9:
-            raise ValueError(f"output_dt {output_dt} s must be a positive multiple of the step h = {h} s")
+    n_steps, every = step_grid(h, duration, output_dt)
     probes = tuple(probes_for(mech) if probes is None else probes)
     tm = build_truth(
         mech,

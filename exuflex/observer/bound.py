@@ -431,8 +431,8 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
         A floor on the variances after each sample (:func:`.kalman.fix_cov`). None by default: a floor adds
         variance the recursion's ``Q`` does not hold, and the smoother's backward pass multiplies that
         inconsistency by ``1/lambda^2`` a sample in a direction that decays by ``lambda`` with no process noise
-        (an undriven damped mode), so that the smoothed bound of such a model diverges backwards (measured on
-        the five-bar with the filter's 1e-18).
+        (an undriven damped mode), so that the smoothed bound of such a model diverges backwards (the five-bar's did with the
+        filter's floor of 1e-18).
     rows : int
         Samples per block of ``outputs`` (the memory beyond the result is a block's covariances).
     linearise : callable, optional
