@@ -77,16 +77,8 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import (
-    MONITOR,
-    REFRESH,
-    REMAP,
-    Belief,
-    DiscreteModel,
-    FilterDivergedError,
-    hooks,
-    takes_compiled_loop,
-)
+from .base import (MONITOR, REFRESH, REMAP, Belief, DiscreteModel, FilterDivergedError, hooks,
+                   takes_compiled_loop)
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
@@ -577,6 +569,11 @@ def _empty_rows(width: int) -> np.ndarray:
     return np.zeros((0, width))
 
 
+def _copy_of(name: str, doc: str) -> property:
+    """A read-only property: a copy of the array held in the attribute ``name``."""
+    return property(lambda self: getattr(self, name).copy(), doc=doc)
+
+
 class Monitoring(NamedTuple):
     """What a filter tests its innovations with (module notes): the NIS test (``nis_window`` updates, 0: off; its
     ``divergence_confidence``, ``divergence_confirm`` and ``divergence_action``), the per-channel gate (``gate_p``,
@@ -704,25 +701,10 @@ class BeliefFilter:
         """The current belief ``(x, P)`` (copies)."""
         return Belief(self._x.copy(), self._P.copy())
 
-    @property
-    def x(self) -> np.ndarray:
-        """Current state estimate (a copy)."""
-        return self._x.copy()
-
-    @property
-    def x0(self) -> np.ndarray:
-        """The prior mean the filter restarts from (a copy)."""
-        return self._x0.copy()
-
-    @property
-    def P0(self) -> np.ndarray:
-        """The prior covariance the filter restarts from (a copy)."""
-        return self._P0.copy()
-
-    @property
-    def P(self) -> np.ndarray:
-        """Current covariance (a copy)."""
-        return self._P.copy()
+    x = _copy_of("_x", "Current state estimate (a copy).")
+    x0 = _copy_of("_x0", "The prior mean the filter restarts from (a copy).")
+    P = _copy_of("_P", "Current covariance (a copy).")
+    P0 = _copy_of("_P0", "The prior covariance the filter restarts from (a copy).")
 
     @property
     def t(self) -> float | None:
