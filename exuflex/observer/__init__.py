@@ -10,12 +10,14 @@
 - :mod:`.observability`, :mod:`.tuning`, :mod:`.stats`: observability, process-noise construction, the filter's
   quantiles.
 - Beyond the paper: :mod:`.augmented` (:class:`AugmentedModel`: the payload scale and motor torque disturbances as
-  states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`).
+  states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.imm` (:class:`IMMFilter`:
+  interacting multiple models, the payload estimator with a nominal mode).
 """
 
 from .augmented import AugmentedModel
 from .base import DiscreteModel, FilterDivergedError, LinearDiscreteModel, Measurement, Prediction
 from .ekf import EstimationResult, MultirateEKF, NISMonitor
+from .imm import IMMFilter
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
@@ -29,6 +31,7 @@ __all__ = [
     "DiscreteModel",
     "EstimationResult",
     "FilterDivergedError",
+    "IMMFilter",
     "LinearDiscreteModel",
     "Measurement",
     "MultirateEKF",

@@ -25,15 +25,16 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
 from .ekf import EstimationResult, Monitoring, MultirateEKF
+from .imm import NO_SMOOTHER, IMMFilter
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
-ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
+ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input", "imm")
 #: the estimators on an augmented state (:mod:`.augmented`)
-AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input")
+AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input", "imm")
 
 __all__ = [
     "CHUNK_ROWS",
@@ -103,14 +104,20 @@ class ObserverConfig:
         sensor-fault tests pause (the allowance for planned input steps).
     estimator
         one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
-        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
+        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`; ``"imm"``
+        (an interacting multiple-model filter of the plain EKF and ``ekf-payload``'s filter, :mod:`.imm`).
     payload_std, payload0_std
         random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
     payload_nominal_p
         the prior probability that the payload is the model file's. The payload estimator reports
         its posterior mixed with its conditional on the nominal payload, by that hypothesis' posterior probability
-        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is.
+        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is. The IMM: the nominal mode's
+        prior probability.
+    imm_dwell_s
+        the IMM's expected dwell time in each mode (s): its transition matrix (:func:`.imm.transition_matrix`).
+        None (default): the manoeuvre's duration (a payload is picked or placed about once a manoeuvre), 1 s
+        without a manoeuvre.
     payload_linearity
         the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
@@ -148,6 +155,7 @@ class ObserverConfig:
     payload0_std: float = 0.5
     payload_linearity: float = 1.0
     payload_nominal_p: float = 0.5
+    imm_dwell_s: float | None = None
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -401,9 +409,13 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.q_extra_std > 0:
         q_extra = np.zeros(2 * cb.r)
         q_extra[cb.r + len(mech.coordinate_names) :] = config.q_extra_std**2
-    som = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
-                               torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
-    som.torque_var_nominal = stated**2
+    def reduced_model() -> ReducedObserverModel:
+        m = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
+                                 torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
+        m.torque_var_nominal = stated**2
+        return m
+
+    som = reduced_model()
     r, nq = som.r, som.nq
     if x0 is None:
         x0 = som.initial_state(start_configuration(mech))
@@ -419,6 +431,11 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.estimator == "ukf":
         ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                           monitoring=monitoring)
+    elif config.estimator == "imm":  # the nominal mode: the plain EKF's model (its own held configuration)
+        dwell = config.imm_dwell_s or (mech.manoeuvre.duration if mech.manoeuvre is not None else 1.0)
+        ekf = IMMFilter([reduced_model(), fmodel], [[1.0], []], channels, _noise_std(mech, channels), x0, P0, dt,
+                        dwell_s=[dwell, dwell], mode_p0=[config.payload_nominal_p, 1.0 - config.payload_nominal_p],
+                        max_gap=config.max_gap, monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                            **monitoring._asdict())
@@ -434,7 +451,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}; got {config.estimator!r}")
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
-    if config.estimator == "ekf-payload":
+    if config.estimator in ("ekf-payload", "imm"):
         if not 0.0 <= config.payload_nominal_p <= 1.0:
             raise ValueError(f"payload_nominal_p must be a probability in [0, 1], got {config.payload_nominal_p}")
         fm = AugmentedModel(som, payload_std=config.payload_std, linearity_tol=config.payload_linearity)
@@ -628,6 +645,10 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     if not smooth:
         return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    if isinstance(obs.ekf, IMMFilter):
+        from ..errors import UsageError
+
+        raise UsageError(NO_SMOOTHER)
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     sm = reported(obs, rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0), float(t[0]))
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
@@ -643,7 +664,7 @@ def reported(obs: Observer, res, t0: float):
     fm = obs.ekf.model
     it = getattr(fm, "i_theta", None)
     p = obs.config.payload_nominal_p
-    if it is None or p <= 0.0 or res.x_hat is None:
+    if it is None or p <= 0.0 or res.x_hat is None or res.nominal_p is not None:  # (the IMM reports its own)
         return res
     cross = res.P[:, :, it] if isinstance(res, SmoothedResult) else res.P_theta
     prior_var = obs.ekf.P0[it, it] + fm.payload_std**2 * (np.asarray(res.t, float) - t0)

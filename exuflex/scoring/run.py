@@ -287,6 +287,7 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
     dof = np.empty(n, dtype=np.int16)  # a count of channels
     names = physical_names(obs.mech)
     phys = np.empty((n, len(names))) if keep_physical else None
+    nominal = None  # the nominal payload's probability per sample, where reported
     wall = 0.0
     final = (np.full(obs.ekf.nx, np.nan), None, None)
     for ch in estimate_chunks(obs, t, U, Y, innovations=False):
@@ -296,6 +297,9 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
         dof[a:b] = r.nis_dof
         if phys is not None:
             phys[a:b] = ch.physical.data
+        if r.nominal_p is not None:
+            nominal = np.empty(n) if nominal is None else nominal
+            nominal[a:b] = r.nominal_p
         wall += ch.wall_s
         if sink is not None:
             sink(ch)
@@ -305,7 +309,7 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
         # the run-level counters, flags and faults so far, without the chunk's arrays (one chunk alive at a time)
         last = replace(r, x_hat=None, P=None, innovations=None, S=None, P_theta=None, nominal_p=None)
         del ch, r
-    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall)
+    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall, nominal_p=nominal)
     span = float(t[-1] - t[0]) if n > 1 else 0.0
     est = Estimate(res, None if phys is None else Signals(t, names, phys, physical_units(obs.mech)), wall,
                    span / wall if wall > 0 else float("inf"))
