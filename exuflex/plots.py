@@ -1110,14 +1110,52 @@ def sweep_figure(summary: Mapping, path, quantities=None) -> Path:
     return _save(fig, path)
 
 
+def slenderness_figure(summary: Mapping, path, departure: Mapping[float, float] | None = None,
+                       limit: float = 1.5) -> Path:
+    """A slenderness study (observer scored against its bound): the worst quantity's ratio RMS error / bound per
+    level (mean over the runs, bars from the smallest to the largest run), each quantity's mean ratio (thin lines)
+    and the acceptance ``limit``; x: the link's L/d on a log axis, stubby links to the right. ``departure``
+    (L/d -> percent): the beam model's first-mode error against the solid truth, on a second axis."""
+    levels = sorted(summary["levels"], key=lambda lv: -float(lv["value"]))
+    x = np.array([float(lv["value"]) for lv in levels])
+    fig, axes = _figure(1, 1, size=(6.4, 4.0))
+    ax = axes[0, 0]
+    w = [lv.get("worst_ratio") or {} for lv in levels]
+    mean = np.array([v.get("mean", np.nan) for v in w])
+    lo, hi = np.array([v.get("min", np.nan) for v in w]), np.array([v.get("max", np.nan) for v in w])
+    qs = sorted({q for lv in levels for q in (lv.get("ratio_to_bound_mean") or {})})
+    for q in qs:
+        ax.plot(x, [(lv.get("ratio_to_bound_mean") or {}).get(q, np.nan) for lv in levels], lw=0.6, alpha=0.5)
+    ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], fmt="o-", color="k", capsize=4, label="worst quantity")
+    ax.axhline(limit, color="r", ls="--", lw=1, label=f"{limit:g}x the bound")
+    ax.set_xscale("log")
+    ax.invert_xaxis()
+    ax.set_xticks(x)
+    ax.set_xticklabels([f"{v:g}" for v in x])
+    ax.set_xlabel("L/d of the swept link (stubby to the right)")
+    ax.set_ylabel("RMS error / bound")
+    ax.grid(True, lw=0.3)
+    if departure:
+        ax2 = ax.twinx()
+        xs = sorted(departure, reverse=True)
+        ax2.plot(xs, [departure[v] for v in xs], "s:", color="tab:blue", label="beam f1 error vs solid (%)")
+        ax2.set_ylabel("beam model's first-mode error (%)", color="tab:blue")
+        ax2.legend(loc="upper center", fontsize=8)
+    ax.legend(loc="upper left", fontsize=8)
+    fig.suptitle(f"Beam observer on solid (FFRF) truths: {summary['model']['name']}")
+    return _save(fig, path)
+
+
 def study_figure(summary: Mapping, out_dir) -> Path:
     """The figure of a study's summary in ``out_dir``. A payload study: Fig. 11 (``fig_payload.png``,
     :func:`payload_study_figure`), the paper's four panels (the tip coordinates' displacements and velocities) when
     the study has them, with every quantity in ``fig_payload_all.png``; a sweep: :func:`sweep_figure`
-    (``fig_sweep.png``)."""
+    (``fig_sweep.png``); a slenderness study: :func:`slenderness_figure` (``fig_slenderness.png``)."""
     from .study.runner import figure_rows
 
     out_dir = Path(out_dir)
+    if summary["settings"]["kind"] == "slenderness":
+        return slenderness_figure(summary, out_dir / "fig_slenderness.png")
     if summary["settings"]["kind"] != "payload":
         return sweep_figure(summary, out_dir / "fig_sweep.png")
     paper = (summary.get("model") or {}).get("name") in PAPER_MODELS
