@@ -32,7 +32,7 @@ LIMIT = 1.5
 
 
 def first_modes(mech, levels, say) -> dict:
-    """Per level value: the ERLS and FFRF first in-plane mode (Hz) of the level's model (its mesh size, if the
+    """Per level value: the ERLS and FFRF first two in-plane modes (Hz) of the level's model (its mesh size, if the
     level sets one)."""
     from exuflex.erls.modal import modal_analysis
     from exuflex.erls.model import ErlsModel
@@ -43,9 +43,11 @@ def first_modes(mech, levels, say) -> dict:
     for lv in levels:
         m = apply_overrides(mech, lv.overrides)
         q = np.asarray(m.q_ref, float)
-        f_erls = float(modal_analysis(ErlsModel(m), q).below(1e9)[0])
-        f_ffrf = float(ffrf_frequencies(m, q, progress=say)["frequencies_hz"][0])
-        out[lv.value] = {"erls": f_erls, "ffrf": f_ffrf, "err_pct": 100 * (f_erls - f_ffrf) / f_ffrf}
+        f_erls = np.asarray(modal_analysis(ErlsModel(m), q).below(1e9))[:2]
+        f_ffrf = np.asarray(ffrf_frequencies(m, q, progress=say)["frequencies_hz"])[:2]
+        err = 100 * (f_erls - f_ffrf) / f_ffrf
+        out[lv.value] = {"erls": float(f_erls[0]), "ffrf": float(f_ffrf[0]), "err_pct": float(err[0]),
+                         "erls2": float(f_erls[1]), "ffrf2": float(f_ffrf[1]), "err2_pct": float(err[1])}
     return out
 
 
@@ -75,9 +77,9 @@ def markdown(data: dict, cmd: str, figure: str) -> str:
         "its truth. Worst ratio: the largest RMS error / bound over the estimated quantities in a run; mean over "
         "the runs (smallest - largest), and the quantity that is worst most often.",
         "",
-        "| L/d | FFRF f1 (Hz) | ERLS f1 error % | worst ratio, FFRF truth | worst ratio, ERLS truth | NIS / expected, "
-        "FFRF truth |",
-        "|---|---|---|---|---|---|",
+        "| L/d | FFRF f1 (Hz) | ERLS f1 error % | FFRF f2 (Hz) | ERLS f2 error % | worst ratio, FFRF truth | "
+        "worst ratio, ERLS truth | NIS / expected, FFRF truth |",
+        "|---|---|---|---|---|---|---|---|",
     ]
 
     def cell(lv):
@@ -88,21 +90,30 @@ def markdown(data: dict, cmd: str, figure: str) -> str:
 
     for a, b in zip(lv_f, lv_e):
         m = modes[str(a["value"])]
-        lines.append(f"| {a['value']:g} | {m['ffrf']:.2f} | {m['err_pct']:+.2f} | {cell(a)} | {cell(b)} | "
-                     f"{a['nis_mean']:.2f} / {a['nis_expected']:.2f} |")
+        lines.append(f"| {a['value']:g} | {m['ffrf']:.2f} | {m['err_pct']:+.2f} | {m['ffrf2']:.2f} | "
+                     f"{m['err2_pct']:+.2f} | {cell(a)} | {cell(b)} | {a['nis_mean']:.2f} / {a['nis_expected']:.2f} |")
     x = [lv["value"] for lv in lv_f]
     worst = [(lv.get("worst_ratio") or {}).get("mean", float("nan")) for lv in lv_f]
+    base = [(lv.get("worst_ratio") or {}).get("mean", float("nan")) for lv in lv_e]
     err = [abs(modes[str(v)]["err_pct"]) for v in x]
-    c15, c1, c5 = crossing(x, worst, LIMIT), crossing(x, err, 1.0), crossing(x, err, 5.0)
+    err2 = [abs(modes[str(v)]["err2_pct"]) for v in x]
+    c1, c5, c2x = crossing(x, err, 1.0), crossing(x, err, 5.0), crossing(x, worst, 2 * worst[0])
+    d1, d5 = crossing(x, err2, 1.0), crossing(x, err2, 5.0)
 
     def at(v):
         return f"L/d = {v:.1f}" if v is not None else "not within the levels"
 
+    reach = (f"is above {LIMIT}x the bound already at the most slender level (L/d = {x[0]:g}: {worst[0]:.2f}, "
+             f"against {base[0]:.2f} on the ERLS truth)" if worst[0] >= LIMIT else
+             f"reaches {LIMIT}x the bound at {at(crossing(x, worst, LIMIT))}")
     lines += [
         "",
-        f"The mean worst ratio on the FFRF truth reaches {LIMIT}x the bound at {at(c15)}; the ERLS first mode departs "
-        f"from the solid's by 1 % at {at(c1)} and by 5 % at {at(c5)} (the sweep at constant material, "
-        "{doc}`/beam_validity`, has 12.3 and 5.4: the departure depends on the shape and Poisson's ratio only).",
+        f"On the FFRF truth the mean worst ratio {reach}, and twice that value at {at(c2x)}, while the ERLS truth's "
+        f"stays at {min(base):.2f}-{max(base):.2f} over the levels. The ERLS first mode departs from the solid's by "
+        f"1 % at {at(c1)} and by 5 % at {at(c5)}; the second mode by 1 % at {at(d1)} and by 5 % at {at(d5)}. The sweep at constant material ({{doc}}`/beam_validity`: 1 % at "
+        "L/d = 12.3, 5 % at 5.4) departs sooner: there the stubby link outweighs the hub and the tip mass, and its "
+        "first mode is the free-pinned beam's, whose shorter wavelength feels shear more; here the link keeps its "
+        "mass, and its first mode stays the hub-clamped one.",
         "",
         f"![worst ratio per level, and the beam model's first-mode error]({figure})",
         "",
@@ -156,7 +167,8 @@ def main(argv=None) -> int:
         out = Path(a.md)
         out.with_suffix(".json").write_text(json.dumps(data, indent=1, default=float))
         slenderness_figure(data["ffrf"], out.parent / figure,
-                           departure={float(k): abs(v["err_pct"]) for k, v in data["modes"].items()})
+                           departure={f"beam f{i} error (%)": {float(k): abs(v[key]) for k, v in data["modes"].items()}
+                                      for i, key in ((1, "err_pct"), (2, "err2_pct"))}, reference=data["erls"])
     publish(markdown(data, cmd, figure), a.md)
     return 0
 

@@ -23,6 +23,13 @@ every finished run and every cached truth):
   seeds, package versions, wall time). The figure (``fig_payload.png`` / ``fig_sweep.png``) is drawn from the
   summary by :func:`exuflex.plots.study_figure` (the command line does it; the library does not plot).
 
+A slenderness study (:func:`slenderness_levels`, ``exuflex study slenderness``) tests beam theory rather than a
+parameter: each level changes a link's shape, the truth is that geometry as solid FFRF bodies (``StudySpec.beam``),
+the observer is built on each level's own model (``observer_model = "level"``: the drive and observer keys then
+follow the level), and each run is also scored against its posterior Cramer-Rao bound along the truth
+(``with_bound``: ``bound_rms``, ``ratio_to_bound`` per run; per level ``ratio_to_bound_mean`` and the worst
+quantity's ratio ``worst_ratio``).
+
 Execution goes through a :class:`concurrent.futures.Executor`: in-process (``workers=1``), a
 ``ProcessPoolExecutor`` (``workers > 1``) or a Dask cluster (``scheduler="tcp://..."``). Workers get all their
 data in the task (no shared file system needed) and build the observer once per process.
