@@ -51,6 +51,7 @@ __all__ = [
     "joint_errors_figure",
     "joint_states_figure",
     "measurements_figure",
+    "mode_probability_figure",
     "modes_figure",
     "nis_figure",
     "observer_figures",
@@ -617,13 +618,32 @@ def nis_figure(result, path, window: int = 50, confidence: float = 0.95, start_u
     return _save(fig, path)
 
 
+def mode_probability_figure(result, path, start_up: float = 0.0) -> Path:
+    """The posterior probability of the nominal payload vs time (the IMM's nominal mode, or the payload EKF's
+    model average) and of the payload-scale hypothesis, ``1 - p``."""
+    t = np.asarray(result.t, float)
+    p = np.asarray(result.nominal_p, float)
+    fig, axes = _figure(1, 1, size=(9.0, 3.6))
+    ax = axes[0, 0]
+    _shade_start_up(ax, t[0], start_up)
+    ax.plot(t, p, color=ESTIMATE_COLOUR, lw=1.0, label="nominal payload")
+    ax.plot(t, 1.0 - p, color=MEASURED_COLOUR, lw=1.0, ls="--", label="payload scale estimated")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("probability (-)")
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(True, lw=0.3)
+    return _save(fig, path)
+
+
 # ------------------------------------------------------------------------------------------ all
 def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
     """All observer figures of one run into ``out_dir`` (truth-dependent ones only when the run has a truth).
 
     Files: ``fig_trajectory.png``, ``fig_torques.png``, ``fig_measurements.png``, ``fig_joint_states.png``,
     ``fig_tip_displacement.png``, ``fig_nis.png``, and with a truth ``fig_joint_errors.png``,
-    ``fig_tip_errors.png``, ``fig_fft.png``. A figure that fails is logged and skipped.
+    ``fig_tip_errors.png``, ``fig_fft.png``; ``fig_payload_probability.png`` where the estimator reports the
+    nominal payload's probability (:func:`mode_probability_figure`). A figure that fails is logged and skipped.
 
     Parameters
     ----------
@@ -657,6 +677,8 @@ def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
         ("fig_tip_displacement.png", lambda p: tip_displacement_figure(mech, truth, est, p, su)),
         ("fig_nis.png", lambda p: nis_figure(res, p, start_up=su)),
     ]
+    if getattr(res, "nominal_p", None) is not None:
+        jobs.append(("fig_payload_probability.png", lambda p: mode_probability_figure(res, p, start_up=su)))
     if truth is not None:
         jobs += [
             ("fig_joint_errors.png", lambda p: joint_errors_figure(mech, truth, est, p, bound, su)),

@@ -122,13 +122,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    "default: no test; helps logs whose torque steps fall between samples, e.g. a drifting clock)")
     t.add_argument("--start-up", type=nonneg_float,
                    help="seconds left out of the error metrics (default 0.3)")
-    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default=None,
+    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input", "imm"), default=None,
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
-                        "as states)")
+                        "as states), imm (interacting multiple models: the plain EKF and ekf-payload's filter)")
     p.add_argument("--payload-nominal-p", type=unit_probability, metavar="P",
                    help="ekf-payload: prior probability that the payload is the model file's; the estimates are "
                         "the model average of the nominal payload and the estimated one (default 0.5; 0: the "
-                        "filter's own posterior)")
+                        "filter's own posterior); imm: the nominal mode's prior probability")
+    p.add_argument("--imm-dwell", type=positive_float, metavar="S",
+                   help="imm: expected dwell time in each mode (s), its transition matrix (default: the "
+                        "manoeuvre's duration)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
     p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
@@ -163,6 +166,7 @@ def _config(args, mech):
         "start_up": args.start_up,
         "jump_p": args.jump_p,
         "payload_nominal_p": args.payload_nominal_p,
+        "imm_dwell_s": args.imm_dwell,
     }
     return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
 
@@ -294,8 +298,10 @@ def _run(args) -> int:
     if args.noise:
         mech = with_noise(mech, args.noise)
     config = _config(args, mech)
-    if args.smooth and config.estimator == "ukf":
-        raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
+    if args.smooth and config.estimator in ("ukf", "imm"):
+        raise UsageError(f"--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not "
+                         f"{config.estimator}" + (" (a mixture of two filters: docs/imm.md)" if config.estimator == "imm"
+                                                  else ""))
     check_observer_settings(mech, config)  # before anything is built or read
     if Path(args.run_dir).is_dir():
         _csv_options_unused(args)

@@ -56,7 +56,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     _common(pp)
     pp.add_argument("--levels", default=None, help=f"payload increases in %% (default {DEFAULT_LEVELS})")
     pp.add_argument("--estimators", default=None, metavar="E1,E2,...",
-                    help="run the study once per estimator (ekf, ukf, ekf-payload, ekf-input) into OUT/<estimator> "
+                    help="run the study once per estimator (ekf, ukf, ekf-payload, ekf-input, imm) into OUT/<estimator> "
                          "on the same truths and draw Fig. 11 with them side by side (OUT/fig_payload_estimators.png)"
                          "; default: the paper's EKF alone in OUT")
     sp = ss.add_parser("sweep", help="truth parameter sweep: --set FIELD=V1,V2,...")

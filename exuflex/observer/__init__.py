@@ -12,13 +12,15 @@
   NEES/NIS statistics, process-noise construction.
 - Beyond the paper: :mod:`.augmented` (:class:`AugmentedModel`: the payload scale and motor torque disturbances as
   states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.design` (gauge
-  stations ranked by the bound).
+  stations ranked by the bound), :mod:`.imm` (:class:`IMMFilter`: interacting multiple models, the payload
+  estimator with a nominal mode).
 """
 
 from .augmented import AugmentedModel
 from .base import DiscreteModel, FilterDivergedError, LinearDiscreteModel, Measurement, Prediction
 from .bound import bound_rms, linearise, steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF, NISMonitor
+from .imm import IMMFilter
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
@@ -32,6 +34,7 @@ __all__ = [
     "DiscreteModel",
     "EstimationResult",
     "FilterDivergedError",
+    "IMMFilter",
     "LinearDiscreteModel",
     "Measurement",
     "MultirateEKF",

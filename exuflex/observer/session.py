@@ -32,15 +32,16 @@ from .augmented import AugmentedModel, nominal_mixture
 from .bound import BoundTrack, periodic_posterior, riccati_track, steady_posterior, unobservable_states
 from .ekf import EstimationResult, Monitoring, MultirateEKF
 from .expansion import step_jacobian
+from .imm import NO_SMOOTHER, IMMFilter
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
-ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
+ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input", "imm")
 #: the estimators on an augmented state (:mod:`.augmented`)
-AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input")
+AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input", "imm")
 
 __all__ = [
     "CHUNK_ROWS",
@@ -115,14 +116,20 @@ class ObserverConfig:
         sensor-fault tests pause (the allowance for planned input steps).
     estimator
         one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
-        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
+        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`; ``"imm"``
+        (an interacting multiple-model filter of the plain EKF and ``ekf-payload``'s filter, :mod:`.imm`).
     payload_std, payload0_std
         random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
     payload_nominal_p
         the prior probability that the payload is the model file's. The payload estimator reports
         its posterior mixed with its conditional on the nominal payload, by that hypothesis' posterior probability
-        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is.
+        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is. The IMM: the nominal mode's
+        prior probability.
+    imm_dwell_s
+        the IMM's expected dwell time in each mode (s): its transition matrix (:func:`.imm.transition_matrix`).
+        None (default): the manoeuvre's duration (a payload is picked or placed about once a manoeuvre), 1 s
+        without a manoeuvre.
     payload_linearity
         the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
@@ -160,6 +167,7 @@ class ObserverConfig:
     payload0_std: float = 0.5
     payload_linearity: float = 1.0
     payload_nominal_p: float = 0.5
+    imm_dwell_s: float | None = None
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -438,9 +446,13 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.q_extra_std > 0:
         q_extra = np.zeros(2 * cb.r)
         q_extra[cb.r + len(mech.coordinate_names) :] = config.q_extra_std**2
-    som = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
-                               torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
-    som.torque_var_nominal = stated**2
+    def reduced_model() -> ReducedObserverModel:
+        m = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
+                                 torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
+        m.torque_var_nominal = stated**2
+        return m
+
+    som = reduced_model()
     r, nq = som.r, som.nq
     if x0 is None:
         x0 = som.initial_state(start_configuration(mech))
@@ -456,6 +468,11 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.estimator == "ukf":
         ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                           monitoring=monitoring)
+    elif config.estimator == "imm":  # the nominal mode: the plain EKF's model (its own held configuration)
+        dwell = config.imm_dwell_s or (mech.manoeuvre.duration if mech.manoeuvre is not None else 1.0)
+        ekf = IMMFilter([reduced_model(), fmodel], [[1.0], []], channels, _noise_std(mech, channels), x0, P0, dt,
+                        dwell_s=[dwell, dwell], mode_p0=[config.payload_nominal_p, 1.0 - config.payload_nominal_p],
+                        max_gap=config.max_gap, monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                            **monitoring._asdict())
@@ -471,7 +488,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}; got {config.estimator!r}")
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
-    if config.estimator == "ekf-payload":
+    if config.estimator in ("ekf-payload", "imm"):
         if not 0.0 <= config.payload_nominal_p <= 1.0:
             raise ValueError(f"payload_nominal_p must be a probability in [0, 1], got {config.payload_nominal_p}")
         fm = AugmentedModel(som, payload_std=config.payload_std, linearity_tol=config.payload_linearity)
@@ -665,6 +682,10 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     if not smooth:
         return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    if isinstance(obs.ekf, IMMFilter):
+        from ..errors import UsageError
+
+        raise UsageError(NO_SMOOTHER)
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     sm = reported(obs, rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0), float(t[0]))
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
@@ -1224,6 +1245,7 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
     dof = np.empty(n, dtype=np.int16)  # a count of channels
     names = physical_names(obs.mech)
     phys = np.empty((n, len(names))) if keep_physical else None
+    nominal = None  # the nominal payload's probability per sample, where reported
     wall = 0.0
     final = (np.full(obs.ekf.nx, np.nan), None, None)
     for ch in estimate_chunks(obs, t, U, Y, innovations=False):
@@ -1233,6 +1255,9 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
         dof[a:b] = r.nis_dof
         if phys is not None:
             phys[a:b] = ch.physical.data
+        if r.nominal_p is not None:
+            nominal = np.empty(n) if nominal is None else nominal
+            nominal[a:b] = r.nominal_p
         wall += ch.wall_s
         if sink is not None:
             sink(ch)
@@ -1242,7 +1267,7 @@ def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink
         # the run-level counters, flags and faults so far, without the chunk's arrays (one chunk alive at a time)
         last = replace(r, x_hat=None, P=None, innovations=None, S=None, P_theta=None, nominal_p=None)
         del ch, r
-    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall)
+    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall, nominal_p=nominal)
     span = float(t[-1] - t[0]) if n > 1 else 0.0
     est = Estimate(res, None if phys is None else Signals(t, names, phys, physical_units(obs.mech)), wall,
                    span / wall if wall > 0 else float("inf"))
@@ -1259,7 +1284,7 @@ def reported(obs: Observer, res, t0: float):
     fm = obs.ekf.model
     it = getattr(fm, "i_theta", None)
     p = obs.config.payload_nominal_p
-    if it is None or p <= 0.0 or res.x_hat is None:
+    if it is None or p <= 0.0 or res.x_hat is None or res.nominal_p is not None:  # (the IMM reports its own)
         return res
     cross = res.P[:, :, it] if isinstance(res, SmoothedResult) else res.P_theta
     prior_var = obs.ekf.P0[it, it] + fm.payload_std**2 * (np.asarray(res.t, float) - t0)
