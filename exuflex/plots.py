@@ -457,7 +457,7 @@ def tip_errors_figure(mech, truth: Signals, estimate: Signals, path, bound: Mapp
 # ------------------------------------------------------------------------------------------ FFT
 def spectrum(t, x, pad: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """One-sided magnitude spectrum (Hann window, de-meaned, zero-padded), normalised like
-    :func:`exuflex.observer.stats.fft_peaks` (a sinusoid of amplitude A shows a peak of about A).
+    :func:`exuflex.scoring.stats.fft_peaks` (a sinusoid of amplitude A shows a peak of about A).
 
     Non-uniform or gappy samples are first interpolated onto a uniform grid.
     """
@@ -493,7 +493,7 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
     fmax : float
         Upper frequency shown (Hz); the paper's reduced model is tuned for 0-180 Hz.
     n_peaks : int
-        Peaks marked per curve (by :func:`exuflex.observer.stats.fft_peaks`), searched above
+        Peaks marked per curve (by :func:`exuflex.scoring.stats.fft_peaks`), searched above
         ``max(5 Hz, 4 / record length)`` (below that is the manoeuvre's own rigid-motion content).
     peak_floor : float
         Peaks weaker than this fraction of the curve's strongest peak are not marked.
@@ -504,7 +504,7 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
     -------
     Path
     """
-    from .observer.stats import fft_peaks
+    from .scoring.stats import fft_peaks
 
     names = _tip_names(mech)[:2]
     fig, axes = _figure(1, max(len(names), 1), size=(11.0, 4.2))
@@ -580,7 +580,7 @@ def nis_figure(result, path, window: int = 50, confidence: float = 0.95, start_u
     -------
     Path
     """
-    from .observer.stats import chi2_band
+    from .scoring.stats import chi2_band
 
     t = np.asarray(result.t, float)
     v = np.asarray(result.nis, float)
@@ -650,7 +650,7 @@ def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
     out_dir : path-like
     mech : Mechanism
     run : exuflex.runs.Run
-    outcome : exuflex.observer.session.Outcome
+    outcome : exuflex.scoring.run.Outcome
 
     Returns
     -------

@@ -12,7 +12,8 @@ import pytest
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
 from exuflex.observer.bias import SensorBiasModel, with_bias_states
-from exuflex.observer.session import ObserverConfig, make_observer, observe_run
+from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.scoring.run import observe_run
 from exuflex.runs import read_run
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -25,22 +25,10 @@ from exuflex.observer import (
     MultirateEKF,
     NISMonitor,
     Prediction,
-    bound_rms,
-    linearise,
-    steady_state_covariance,
 )
-from exuflex.observer.bound import van_loan
-from exuflex.observer.stats import (
-    chi2_band,
-    eq21_stats,
-    fft_peaks,
-    match_peaks,
-    max_error,
-    mc_consistency,
-    nees,
-    nis,
-    rms_error,
-)
+from exuflex.observer.tuning import van_loan
+from exuflex.scoring import bound_rms, linearise, steady_state_covariance
+from exuflex.scoring.stats import chi2_band, eq21_stats, fft_peaks, match_peaks, max_error, mc_consistency, nees, nis, rms_error
 from exuflex.observer.tuning import (
     ScaledNoiseModel,
     continuous_torque_noise,

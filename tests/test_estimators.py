@@ -448,8 +448,9 @@ def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
     import dataclasses
     import math
 
-    from exuflex.observer.design import rank_gauges
-    from exuflex.observer.session import physical_names, steady_bound
+    from exuflex.scoring.design import rank_gauges
+    from exuflex.observer.session import physical_names
+    from exuflex.scoring.bound import steady_bound
 
     res = rank_gauges(sixbar, n_candidates=2)
     assert len(res.single) == 2 * len(sixbar.links)

@@ -385,7 +385,7 @@ def _reset_observer(obs) -> None:
 
 
 def _abs_error_stats(est: Signals, truth: Signals, start_up: float) -> dict:
-    from ..observer.stats import eq21_stats
+    from ..scoring.stats import eq21_stats
 
     sel = est.t >= est.t[0] + start_up
     out = {"mean_abs": {}, "std_abs": {}, "rms": {}, "max": {}}
