@@ -68,6 +68,20 @@ def model_modes(name: str, say) -> dict:
             "links": r["settings"]["links"], "ffrf_s": ffrf_s, "cached": r["cached"]}
 
 
+def damping(name: str, f_ffrf, say) -> dict:
+    """The FFRF truth's damping ratios (default meshes) of the modes ``f_ffrf`` (nearest in frequency) and the
+    stated ones."""
+    from exuflex.groundtruth import ffrf_frequencies
+    from exuflex.mechanism import load_mechanism
+
+    mech = load_mechanism(ROOT / "models" / f"{name}.toml")
+    r = ffrf_frequencies(mech, progress=say, with_damping=True)
+    f = np.asarray(f_ffrf, float)
+    zeta = [float(r["damping_ratio"][np.argmin(np.abs(r["frequencies_hz"] - fi))]) for fi in f]
+    w = 2 * np.pi * f
+    return {"zeta": zeta, "zeta_stated": (mech.damping.alpha / (2 * w) + mech.damping.beta * w / 2).tolist()}
+
+
 def convergence(name: str, scales: list[float], say) -> dict:
     from exuflex.groundtruth import ffrf_frequencies
     from exuflex.mechanism import load_mechanism
@@ -87,7 +101,7 @@ def _pct(a, b):
     return "-" if a is None or b is None else f"{100 * (a - b) / b:+.2f}"
 
 
-def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
+def markdown(res: list[dict], conv: list[dict], cmd: str, damping_cmd: str | None = None) -> str:
     lines = [
         "# Three-way modes: ERLS, ANCF and FFRF (solid meshes)",
         "",
@@ -149,17 +163,17 @@ def markdown(res: list[dict], conv: list[dict], cmd: str) -> str:
                          + f" | {100 * np.max(np.abs(f - fine) / fine):.3f} |")
         lines.append("")
     lines += ["## Damping", "",
-              "The FFRF truth puts the model file's Rayleigh damping on each body's modal coordinates, `alpha M_d + "
-              "beta K_ff` (`M_d`: the mass of the deformation about the body's own mean axes, "
-              "`exuflex.groundtruth.ffrf.deformation_mass`; the frames undamped). The stiffness part gives every "
-              "mechanism mode `beta w / 2` exactly; the mass part damps only the share of a mode's kinetic energy in "
-              "the links' deformation, so a mode in which links also move rigidly (the first modes, where a crank, "
-              "a hub or a payload swings) gets less than `alpha / (2 w)`.", "",
-              "| model | mode (Hz) | FFRF ratio % | stated % |", "|---|---|---|---|"]
+              "The FFRF truth's damping as the model file states it (each free elastic mode `alpha / (2 w) + beta w / "
+              "2`): `beta K_ff` on each body's modal coordinates and `alpha` times the mass matrix with the "
+              "mechanism's rigid motions projected out, at system level (`exuflex.groundtruth.ffrf`'s module "
+              "docstring). Ratios from Exudyn's linearised damped system (`ComputeLinearizedSystem`), as `exuflex "
+              "modes MODEL --exudyn --beam ffrf --json` reports them"
+              + (f"; refreshed by `{damping_cmd}`" if damping_cmd else "") + ".", "",
+              "| model | mode (Hz) | FFRF ratio % | stated % | ratio / stated |", "|---|---|---|---|---|"]
     for r in res:
         for f, z, zs in zip(r["ffrf"], r["zeta"], r["zeta_stated"]):
             if f <= r["band_hz"]:
-                lines.append(f"| {r['model']} | {f:.2f} | {100 * z:.3f} | {100 * zs:.3f} |")
+                lines.append(f"| {r['model']} | {f:.2f} | {100 * z:.3f} | {100 * zs:.3f} | {z / zs:.4f} |")
     lines.append("")
     return "\n".join(lines)
 
@@ -170,6 +184,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scales", default="2,1.4,1,0.7", help="FFRF mesh-size scales for the convergence table")
     ap.add_argument("--out", default=str(ROOT / "docs" / "ffrf_modes.md"))
     ap.add_argument("--from-json", default=None, help="re-render the page from a JSON this script wrote")
+    ap.add_argument("--refresh-damping", action="store_true",
+                    help="with --from-json: recompute the FFRF damping ratios (default meshes, cached) and keep the rest")
     a = ap.parse_args(argv)
 
     def say(msg):
@@ -185,7 +201,13 @@ def main(argv=None) -> int:
     cmd = " ".join(["python benchmarks/ffrf_modes.py", *args])
     if a.from_json:  # re-render a page from its numbers
         data = json.loads(Path(a.from_json).read_text())
-        publish(markdown(data["modes"], data["convergence"], data.get("command", cmd)), a.out)
+        if a.refresh_damping:
+            for r in data["modes"]:
+                r.update(damping(r["model"], r["ffrf"], say))
+            data["damping_command"] = f"python benchmarks/ffrf_modes.py --from-json {a.from_json} --refresh-damping"
+            Path(a.from_json).write_text(json.dumps(data, indent=1))
+        publish(markdown(data["modes"], data["convergence"], data.get("command", cmd), data.get("damping_command")),
+                a.out)
         return 0
     res = [model_modes(m, say) for m in models]
     conv: list[dict] = []

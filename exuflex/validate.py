@@ -12,7 +12,7 @@
   reference configuration is compared with the links' ``angle_guess`` (:func:`assembly`); a link solved more
   than :data:`ANGLE_GUESS_TOL` away from its guess is warned about, naming the link.
 
-Nothing here changes data; the observer session (``exuflex.observer.session.observe_run``) is meant to call
+Nothing here changes data; the observer session (``exuflex.scoring.run.observe_run``) is meant to call
 :func:`check_run` before filtering.
 """
 

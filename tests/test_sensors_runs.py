@@ -361,3 +361,18 @@ def test_cli_simulate_needs_a_manoeuvre(tmp_path, capsys):
     rc = main(["simulate", str(model), "--out", str(tmp_path / "x"), "--engine", "erls"])
     assert rc == 2
     assert "manoeuvre: expected a [manoeuvre] table to simulate" in capsys.readouterr().err
+
+
+def test_simulate_runs_measures_one_truth_with_each_seed(tmp_path):
+    """One truth, several noise seeds: every folder holds the same truth, and each seed's log is the one
+    ``simulate_run`` writes with that seed (the truth's motion does not depend on the seed)."""
+    from exuflex.truth import simulate_run, simulate_runs
+
+    a, b = simulate_runs(MODEL, {3: tmp_path / "s3", 4: tmp_path / "s4"}, engine="erls", duration=0.02)
+    single = read_run(simulate_run(MODEL, tmp_path / "one", engine="erls", duration=0.02, seed=4))
+    ra, rb = read_run(a), read_run(b)
+    np.testing.assert_array_equal(ra.truth.data, rb.truth.data)
+    assert (ra.meta["seed"], rb.meta["seed"]) == (3, 4)
+    assert not np.array_equal(ra.sensors.data, rb.sensors.data)
+    np.testing.assert_array_equal(rb.sensors.data, single.sensors.data)
+    np.testing.assert_array_equal(rb.truth.data, single.truth.data)

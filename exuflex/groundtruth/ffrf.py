@@ -24,16 +24,27 @@ with a rotary inertia or an offset is an ``ObjectRigidBody2D`` held at its offse
 (x, y, rotation about z). Motors: ``LoadTorqueVector`` about z on the interface markers (+T on the motor's link,
 -T on the reaction link), set once per step.
 
-Damping: the model file's Rayleigh ``alpha M_d + beta K`` on each body's modal coordinates
-(``dampingMatrixReduced``; the frames are undamped, so rigid motion is not braked). ``beta K`` gives every
-elastic mode of the mechanism the ratio ``beta w / 2`` exactly (all stiffness is modal). ``M_d``
-(:func:`deformation_mass`) is the mass of the deformation relative to the body's own mean axes, not the modal
-mass ``M_ff``: the floating frame sits on one interface (Hurty-Craig-Bampton), so a link pinned at both ends
-and bending in its first mode appears, in that frame, to turn as well as bend, and ``alpha M_ff`` would damp that
-apparent turning too (several times the stated ratio on the gallery's mechanisms). ``alpha M_d`` damps a mechanism mode
-by the share of its kinetic energy in the links' deformation about their mean axes; a mode in which links also
-move rigidly gets less than ``alpha / (2 w)`` (``exuflex modes --exudyn --beam ffrf --json`` reports the
-ratios, ``docs/ffrf_modes.md`` compares them with the stated ones).
+Damping (the model file's Rayleigh damping of the free elastic modes: each has ``alpha / (2 w) + beta w / 2``):
+
+- ``beta K`` on each body's modal coordinates (``dampingMatrixReduced``): all stiffness is modal, so every
+  elastic mode of the mechanism gets ``beta w / 2`` exactly and no rigid motion is damped.
+- ``alpha``: the mass-proportional part with the mechanism's rigid motions projected out, as the beam truth
+  does (:mod:`.builder`): ``D = alpha (M - M R (R^T M R)^-1 R^T M)`` on all ODE2 coordinates, ``M`` the truth's own
+  mass matrix (Exudyn's, from ``ComputeLinearizedSystem`` at the build configuration) and ``R`` (n_c x n_q) the
+  velocity fields of the mechanism's rigid motions (:meth:`FfrfModel.rigid_motions`): each body's frame
+  translations and rotation, with the masses attached to it turning along and the modal rates zero, combined so
+  that every joint's axis point moves alike on the links it joins (and stays on the ground or the slide axis).
+  The elastic modes are M-orthogonal to the rigid motions (the null space of the stiffness within the
+  constraints), so ``phi_i^T D phi_j = alpha delta_ij`` and ``D R = 0``: with ``beta K`` every elastic mode
+  has the stated ratio. ``M`` depends on each frame's angle ``theta`` only through the rotation ``A(theta)`` of
+  the frame's translation and rotation-parameter blocks (kinetic energy in body-frame velocities is invariant;
+  Exudyn's Rxyz parameters at ``rx = ry = 0`` give body rates ``A_z^T`` times the parameter rates), so
+  ``M(c) = S M_0 S^T`` with ``S`` those rotations by the angles turned since the build: exact for undeformed
+  bodies, first order in the deformation otherwise, as ``R`` is (it uses the joints' undeformed stations). ``R``
+  changes with the configuration, so the damper is refreshed during a simulation on the beam truth's schedule
+  (:func:`exuflex.groundtruth.simulate_truth`'s ``damping_tol``) and applied as the explicit force ``-D c'`` of
+  one ``ObjectGenericODE2`` over all nodes; for modal analysis ``D`` is that object's damping matrix
+  (``exuflex modes --exudyn --beam ffrf --json`` reports the ratios of Exudyn's linearised system).
 """
 
 from __future__ import annotations
@@ -52,7 +63,7 @@ from .builder import _exu
 from .simulate import implicit_settings, step_grid
 from .solid import MODE_FACTOR, SolidLink, solid_link, solid_specs
 
-__all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "deformation_mass", "ffrf_frequencies", "simulate_ffrf"]
+__all__ = ["FfrfBody", "FfrfModel", "build_ffrf", "ffrf_frequencies", "simulate_ffrf"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +79,7 @@ class FfrfBody:
     obj: int
     markers: list[int]  # one MarkerSuperElementRigid per interface
     frame_idx: np.ndarray | None = None  # ODE2 indices of the frame's x, y, rot_z
+    rot_idx: np.ndarray | None = None  # ODE2 indices of the frame's rot_x, rot_y (turned with rot_z in M)
     modal_idx: np.ndarray | None = None  # ODE2 indices of the modal coordinates
 
 
@@ -84,6 +96,86 @@ class FfrfModel:
     setup_s: float = 0.0
     cached: bool = True
     settings: dict = field(default_factory=dict)
+    alpha: float = 0.0
+    forces: int | None = None  # ObjectGenericODE2 over all nodes: the alpha damper (forceVector or dampingMatrix)
+    explicit_damping: bool = True
+    mass_ref: np.ndarray | None = None  # Exudyn's mass matrix at the build configuration (all ODE2 coordinates)
+    angle_ref: dict[str, float] = field(default_factory=dict)  # each frame's angle at the build
+    masses: list[tuple[str, np.ndarray, bool]] = field(default_factory=list)  # (link, ODE2 x, y[, phi], rigid)
+    D_alpha: np.ndarray | None = None  # current alpha damper on all ODE2 coordinates
+
+    # ------------------------------------------------------------------ alpha damper (module docstring)
+    def mass_matrix(self, c: np.ndarray) -> np.ndarray:
+        """Exudyn's mass matrix at total coordinates ``c``: the build's, each frame's translation and
+        rotation-parameter blocks turned by the angle the frame turned since (``S M_0 S^T``)."""
+        S = np.eye(len(c))
+        for b in self.bodies.values():
+            d = float(c[b.frame_idx[2]]) - self.angle_ref[b.link]
+            A = np.array([[math.cos(d), -math.sin(d)], [math.sin(d), math.cos(d)]])
+            for ij in (b.frame_idx[:2], b.rot_idx):
+                S[np.ix_(ij, ij)] = A
+        M = S @ self.mass_ref @ S.T
+        return 0.5 * (M + M.T)
+
+    def rigid_motions(self, c: np.ndarray) -> np.ndarray:
+        """(n_c, n_q) velocity fields of the mechanism's rigid motions at total coordinates ``c``.
+
+        Per body three fields (frame translations, rotation about the frame's origin; modal rates zero; its masses
+        carried along), combined by the n_q right singular vectors with the smallest singular values of the
+        joints' velocity conditions on them: a joint's axis point (its undeformed station, in each link's
+        frame) moves alike on every link it joins; a ground pivot's is at rest, a slider's normal to its axis."""
+        names = list(self.bodies)
+        col = {n: 3 * i for i, n in enumerate(names)}
+        L = np.zeros((len(c), 3 * len(names)))
+        for n, b in self.bodies.items():
+            ix, iy, ith = b.frame_idx
+            L[ix, col[n]], L[iy, col[n] + 1], L[ith, col[n] + 2] = 1.0, 1.0, 1.0
+        for link, idx, rigid in self.masses:
+            b = self.bodies[link]
+            j = col[link]
+            L[idx[0], j], L[idx[1], j + 1] = 1.0, 1.0
+            L[idx[0], j + 2] = -(c[idx[1]] - c[b.frame_idx[1]])
+            L[idx[1], j + 2] = c[idx[0]] - c[b.frame_idx[0]]
+            if rigid:
+                L[idx[2], j + 2] = 1.0
+
+        def point_rows(p):  # velocity (2 rows) of the link's axis point at p.station, on the 3 fields per body
+            b = self.bodies[p.link]
+            th = float(c[b.frame_idx[2]])
+            dx, dy = math.cos(th) * p.station, math.sin(th) * p.station
+            rows = np.zeros((2, L.shape[1]))
+            j = col[p.link]
+            rows[0, j], rows[0, j + 2] = 1.0, -dy
+            rows[1, j + 1], rows[1, j + 2] = 1.0, dx
+            return rows
+
+        H = []
+        for jt in self.mech.joints:
+            r0 = point_rows(jt.points[0])
+            H.extend(r0 - point_rows(p) for p in jt.points[1:])
+            if jt.kind == "prismatic":
+                H.append(r0[[0 if abs(jt.normal[0]) > 0.5 else 1]])
+            elif jt.ground is not None:
+                H.append(r0)
+        nq = len(self.mech.coordinates)
+        _, _, Vt = np.linalg.svd(np.vstack(H))
+        return L @ Vt[-nq:].T
+
+    def rotation_rate(self, c: np.ndarray, cd: np.ndarray) -> float:
+        """The frames' fastest rotation rate (rad/s) at coordinates ``c`` and rates ``cd``."""
+        return max(abs(float(cd[b.frame_idx[2]])) for b in self.bodies.values())
+
+    def update_damper(self, c: np.ndarray) -> None:
+        """Refresh the alpha damper ``D = alpha (M - M R (R^T M R)^-1 R^T M)`` at total coordinates ``c``."""
+        if self.forces is None:
+            return
+        M = self.mass_matrix(c)
+        R = self.rigid_motions(c)
+        MR = M @ R
+        D = self.alpha * (M - MR @ np.linalg.solve(R.T @ MR, MR.T))
+        self.D_alpha = 0.5 * (D + D.T)
+        if not self.explicit_damping:
+            self.mbs.SetObjectParameter(self.forces, "dampingMatrix", self.D_alpha)
 
     def probe_values(self, probe: Probe, c: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Values and rates (n_t, width) of a probe from total ODE2 coordinates and rates (n_t, n_coords).
@@ -108,25 +200,6 @@ class FfrfModel:
         return p, v
 
 
-def _skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def deformation_mass(a: dict[str, np.ndarray]) -> np.ndarray:
-    """The modal mass of the deformation relative to the body's mass-weighted rigid motion (its mean axes):
-    ``M_ff - B^T M_rr^-1 B``, the Schur complement of the rigid block in the mass matrix of the rigid fields
-    (translations ``Phi_t``, rotations ``Phi_r = -x~`` about the origin) and the modes ``Psi``:
-    ``B = [Phi_t^T M Psi; -x~^T M Psi]``, ``M_rr = [[m I, -m chi~], [-m chi~^T, Theta]]`` (``chi`` the centre of
-    mass, ``Theta`` the inertia about the origin), all from the reduced-order invariants. Positive
-    semi-definite; zero on a mode combination that moves the body rigidly."""
-    m = float(a["totalMass"])
-    chi = _skew(a["chiU"])
-    Mrr = np.block([[m * np.eye(3), -m * chi], [-m * chi.T, a["inertiaLocal"]]])
-    B = np.vstack([a["mPhitTPsi"], -a["mXRefTildePsi"]])
-    Md = a["massMatrixReduced"] - B.T @ np.linalg.solve(Mrr, B)
-    return 0.5 * (Md + Md.T)
-
-
 def _probe_stations(mech: Mechanism, probes: Sequence[Probe]) -> dict[str, tuple[float, ...]]:
     st: dict[str, list[float]] = {}
     for p in probes:
@@ -136,12 +209,15 @@ def _probe_stations(mech: Mechanism, probes: Sequence[Probe]) -> dict[str, tuple
 
 def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor: float = MODE_FACTOR,
                damping: bool = True, probes: Sequence[Probe] | None = None,
-               progress: Callable[[str], None] | None = None, cache: bool = True) -> FfrfModel:
+               progress: Callable[[str], None] | None = None, cache: bool = True,
+               explicit_damping: bool = True) -> FfrfModel:
     """Build the FFRF model of ``mech`` at rest in the closed rigid configuration at ``q`` (default ``q_ref``).
 
     ``mesh_scale`` scales every link's mesh size (a convergence study), ``mode_factor`` the fixed-interface modes
     kept (up to ``mode_factor x band_hz``); ``damping``: the model file's Rayleigh damping on the modal
-    coordinates (see the module docstring); ``probes`` (default :func:`~exuflex.probes.probes_for`) fixes the
+    coordinates and the rigid-motion-free alpha damper (see the module docstring), applied as an explicit force
+    (``explicit_damping``, for simulation: :func:`simulate_ffrf` refreshes it) or as a damping matrix (for
+    linearised analysis); ``probes`` (default :func:`~exuflex.probes.probes_for`) fixes the
     read-out stations; ``progress`` receives one-line messages of the meshing and modes (cached on disk)."""
     from ..erls.kinematics import Kinematics
 
@@ -179,10 +255,9 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
         M = exu.MatrixContainer()
         M.SetWithDenseMatrix(a["massMatrixReduced"], useDenseMatrix=False)
         D = []
-        if alpha or beta:
+        if beta:
             D = exu.MatrixContainer()
-            D.SetWithDenseMatrix(alpha * deformation_mass(a) + beta * a["stiffnessMatrixReduced"],
-                                 useDenseMatrix=False)
+            D.SetWithDenseMatrix(beta * a["stiffnessMatrixReduced"], useDenseMatrix=False)
         obj = mbs.AddObject(it.ObjectFFRFreducedOrder(
             nodeNumbers=[n_rigid, n_modal], stiffnessMatrixReduced=K, massMatrixReduced=M, dampingMatrixReduced=D,
             modeBasis=a["modeBasis"], referencePositions=a["xRef"], mass=float(a["totalMass"]),
@@ -222,6 +297,7 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
                                                   constrainedAxes=[1, 1, 0]))
 
     pose_of = {lk.name: z[3 * i : 3 * i + 3] for i, lk in enumerate(mech.links)}
+    mass_nodes = []  # (link, node, rigid)
     for m in mech.all_masses():
         name, s = mech.node_location(m.node)
         x0, y0, th = (float(v) for v in pose_of[name])
@@ -234,11 +310,13 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
             body = mbs.AddObject(it.ObjectRigidBody2D(nodeNumber=node, mass=m.mass, inertia=m.inertia))
             mb = mbs.AddMarker(it.MarkerBodyRigid(bodyNumber=body, localPosition=[-a_, -b_, 0.0]))
             mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[mk, mb], constrainedAxes=[1, 1, 0, 0, 0, 1]))
+            mass_nodes.append((name, node, True))
         elif m.mass > 0.0:
             node = mbs.AddNode(it.NodePoint(referenceCoordinates=[px, py, 0.0]))
             body = mbs.AddObject(it.ObjectMassPoint(nodeNumber=node, mass=m.mass))
             mb = mbs.AddMarker(it.MarkerBodyPosition(bodyNumber=body, localPosition=[0.0, 0.0, 0.0]))
             mbs.AddObject(it.ObjectJointSpherical(markerNumbers=[mk, mb], constrainedAxes=[1, 1, 1]))
+            mass_nodes.append((name, node, False))
         else:
             continue
         if has_gravity:
@@ -256,14 +334,35 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
             loads.append((mbs.AddLoad(it.LoadTorqueVector(markerNumber=marker(lname, st), loadVector=[0.0, 0.0, 0.0])),
                           sign))
         motor_loads.append(loads)
+    ode2_nodes = [(n, k) for b in bodies.values() for n, k in ((b.node_rigid, 6), (b.node_modal, b.solid.n_modes))]
+    ode2_nodes += [(n, 3) for _, n, _ in mass_nodes]
+    n_c = sum(k for _, k in ode2_nodes)
+    forces = None
+    if alpha:
+        forces = mbs.AddObject(it.ObjectGenericODE2(
+            nodeNumbers=[n for n, _ in ode2_nodes], forceVector=np.zeros(n_c),
+            massMatrix=None if explicit_damping else np.zeros((n_c, n_c)),
+            dampingMatrix=None if explicit_damping else np.zeros((n_c, n_c))))
     mbs.Assemble()
     for b in bodies.values():
         r0 = mbs.GetNodeODE2Index(b.node_rigid)
         m0 = mbs.GetNodeODE2Index(b.node_modal)
         b.frame_idx = np.array([r0, r0 + 1, r0 + 5])
+        b.rot_idx = np.array([r0 + 3, r0 + 4])
         b.modal_idx = m0 + np.arange(b.solid.n_modes)
+    starts = np.cumsum([0] + [k for _, k in ode2_nodes])
+    if [mbs.GetNodeODE2Index(n) for n, _ in ode2_nodes] != starts[:-1].tolist() or mbs.systemData.ODE2Size() != n_c:
+        raise RuntimeError("Exudyn numbered the node coordinates out of node order; the damper object assumes it")
     fm = FfrfModel(mech, q, SC, mbs, bodies, motor_loads, time.perf_counter() - t0,
-                   all(s.cached for s in solids.values()))
+                   all(s.cached for s in solids.values()), alpha=alpha, forces=forces,
+                   explicit_damping=explicit_damping)
+    if forces is not None:
+        fm.mass_ref = np.asarray(mbs.ComputeLinearizedSystem()[0])  # the truth's own mass matrix at q
+        ref = np.asarray(mbs.systemData.GetODE2Coordinates(exu.ConfigurationType.Reference))
+        fm.angle_ref = {n: float(ref[b.frame_idx[2]]) for n, b in bodies.items()}
+        fm.masses = [(link, mbs.GetNodeODE2Index(n) + np.arange(3 if rigid else 2), rigid)
+                     for link, n, rigid in mass_nodes]
+        fm.update_damper(ref)
     fm.settings = {
         "formulation": "FFRF reduced order (Exudyn ObjectFFRFreducedOrder), Hurty-Craig-Bampton modes, RBE2 interfaces",
         "mesh_order": 2,
@@ -273,7 +372,8 @@ def build_ffrf(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_factor:
                       "setup_s": round(s.setup_s, 2), "from_cache": s.cached,
                       "modes": s.n_modes, "interfaces": list(s.spec.interfaces),
                       "fixed_interface_hz": np.round(s.fixed_interface_hz, 2).tolist()} for n, s in solids.items()},
-        "damping": "Rayleigh alpha M + beta K on each body's modal coordinates" if damping else "none",
+        "damping": ("Rayleigh: beta K on each body's modal coordinates, alpha M with the mechanism's rigid motions "
+                    "projected out (system level)") if damping else "none",
     }
     return fm
 
@@ -316,7 +416,7 @@ def ffrf_frequencies(mech: Mechanism, q=None, *, mesh_scale: float = 1.0, mode_f
     from .eigen import RIGID_TOL_HZ
 
     fm = build_ffrf(mech, q, mesh_scale=mesh_scale, mode_factor=mode_factor, damping=with_damping,
-                    progress=progress)
+                    progress=progress, explicit_damping=False)
     zeta = None
     if with_damping:
         import scipy.linalg as sla
@@ -358,6 +458,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
                   output_dt: float | None = 1 / 500, q0=None, probes: Sequence[Probe] | None = None,
                   progress: Callable[[float], None] | None = None, messages: Callable[[str], None] | None = None,
                   mesh_scale: float = 1.0, mode_factor: float = MODE_FACTOR, damping: bool = True,
+                  damping_update: float = 0.02, damping_tol: float | None = 1e-5,
                   newton_tol: float = 1e-4, spectral_radius: float = 0.9, stats: dict | None = None) -> ProbeRecord:
     """Simulate the FFRF model of ``mech`` from rest at ``q0`` under tabulated motor torques; record the probes.
 
@@ -365,10 +466,13 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     interpolated at the step times and applied as the mean of the held values either side of each step's end, so
     that generalized-alpha sees the ERLS engine's zero-order hold without lag; probes every ``output_dt``; slopes
     on the branch of the ERLS pose at ``q0``). ``messages`` receives the meshing and modes' progress lines;
-    ``mesh_scale``, ``mode_factor``, ``damping``: :func:`build_ffrf`. ``stats`` (a dict) receives the solver's
+    ``mesh_scale``, ``mode_factor``, ``damping``: :func:`build_ffrf`; the alpha damper is refreshed on
+    :class:`~exuflex.groundtruth.simulate.DamperSchedule` (``damping_update``, ``damping_tol``: as in
+    :func:`~exuflex.groundtruth.simulate_truth`) and applied as the force ``-D c'`` with the rates at each step's
+    start. ``stats`` (a dict) receives the solver's
     statistics and the setup time.
     """
-    from .simulate import _interp_table
+    from .simulate import DamperSchedule, _interp_table
 
     exu, _ = _exu()
     n_steps, every = step_grid(h, duration, output_dt)
@@ -400,6 +504,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
             state["i"] = i + 1
 
     pre_time = [0.0]
+    schedule = DamperSchedule(fm.alpha, h, damping_update, damping_tol)
 
     def pre_step(mbs_, t):
         t_in = time.perf_counter()
@@ -408,6 +513,12 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
             return True
         if k % every == 0:
             record(k * h)
+        if fm.forces is not None:
+            cd = np.asarray(sd.GetODE2Coordinates_t(cur))
+            if schedule.due(k):
+                fm.update_damper(schedule.plan(k, np.asarray(sd.GetODE2Coordinates(cur)) + ref, cd,
+                                               fm.rotation_rate))
+            mbs_.SetObjectParameter(fm.forces, "forceVector", -(fm.D_alpha @ cd))
         row = tau_end[k]
         for ld, sign, j in loads:
             mbs_.SetLoadParameter(ld, "loadVector", [0.0, 0.0, sign * float(row[j])])

@@ -160,6 +160,42 @@ def probe_values(
     return np.mean(vals, axis=0), np.mean(rates, axis=0)
 
 
+class DamperSchedule:
+    """When to refresh a configuration-dependent alpha damper during a simulation, and at which configuration.
+
+    Between refreshes a link turned by ``delta`` from the damper's configuration is braked at the relative rate
+    ``alpha delta^2`` (:mod:`.builder`). The damper is evaluated at the configuration extrapolated to the middle of
+    the coming interval ``dt`` (``c + c' dt / 2``), so ``delta`` runs over ``omega dt [-1/2, 1/2]`` with ``omega``
+    the links' fastest rotation rate at the refresh, and ``dt`` is the longest interval (at most ``longest`` s)
+    with the mean braking rate ``alpha (omega dt)^2 / 12 <= tol``. ``tol = None``: every ``longest`` s, at the
+    refresh's configuration."""
+
+    def __init__(self, alpha: float, h: float, longest: float, tol: float | None):
+        if tol is not None and not tol > 0:
+            raise ValueError(f"damping_tol must be positive or None, got {tol}")
+        self.h, self.tol = h, tol
+        self.every = max(1, round(longest / h))
+        # longest rotation omega dt (rad) of a link over one refresh interval
+        self.omega_dt_max = math.sqrt(12.0 * tol / alpha) if tol is not None and alpha > 0 else math.inf
+        self.next = 0
+
+    def due(self, k: int) -> bool:
+        """Whether step ``k`` refreshes the damper."""
+        return k >= self.next
+
+    def plan(self, k: int, c: np.ndarray, cd: np.ndarray, rotation_rate: Callable) -> np.ndarray:
+        """Schedule the refresh after the one at step ``k`` (coordinates ``c``, rates ``cd``) and return the
+        configuration to evaluate the damper at; ``rotation_rate(c, cd)`` gives the links' fastest rate."""
+        steps = self.every
+        if self.tol is not None:
+            omega_h = rotation_rate(c, cd) * self.h  # rotation per step
+            if omega_h * self.every > self.omega_dt_max:
+                steps = max(1, int(self.omega_dt_max / omega_h))
+            c = c + (0.5 * steps * self.h) * cd
+        self.next = k + steps
+        return c
+
+
 def simulate_truth(
     mech: Mechanism,
     t_table,
@@ -273,12 +309,7 @@ def simulate_truth(
     T_out = np.empty(n_out)
     sd = mbs.systemData
     cur = exu.ConfigurationType.Current
-    upd_every = max(1, round(damping_update / h))
-    upd = {"next": 0}  # next refresh step of the alpha damper
-    if damping_tol is not None and not damping_tol > 0:
-        raise ValueError(f"damping_tol must be positive or None, got {damping_tol}")
-    # longest rotation omega dt (rad) of a link over one refresh interval (see damping_tol)
-    omega_dt_max = math.sqrt(12.0 * damping_tol / tm.alpha) if damping_tol is not None and tm.alpha > 0 else math.inf
+    schedule = DamperSchedule(tm.alpha, h, damping_update, damping_tol)
     rep_every = max(1, n_steps // 100)
     state = {"i": 0}
 
@@ -329,19 +360,10 @@ def simulate_truth(
         if k % every == 0:
             record(k * h, u, cd)
         if damped:
-            if k >= upd["next"]:
+            if schedule.due(k):
                 c_now = np.asarray(u) + ref
-                steps = upd_every
-                if damping_tol is not None:
-                    # the mean braking alpha (omega dt)^2 / 12 of a damper centred on the interval <= damping_tol
-                    cd_now = np.asarray(cd)
-                    omega_h = tm.rotation_rate(c_now, cd_now) * h  # rotation per step
-                    if omega_h * upd_every > omega_dt_max:
-                        steps = max(1, int(omega_dt_max / omega_h))
-                    c_now = c_now + (0.5 * steps * h) * cd_now
-                tm.update_dampers(c_now)
+                tm.update_dampers(schedule.plan(k, c_now, np.asarray(cd), tm.rotation_rate))
                 neg_D[0] = -tm.D_alpha
-                upd["next"] = k + steps
             np.dot(neg_D[0], cd, out=f)  # explicit alpha damper -D c' with the rates at t_k
         else:
             f.fill(0.0)

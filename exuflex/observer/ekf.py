@@ -77,16 +77,8 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import (
-    MONITOR,
-    REFRESH,
-    REMAP,
-    Belief,
-    DiscreteModel,
-    FilterDivergedError,
-    hooks,
-    takes_compiled_loop,
-)
+from .base import (MONITOR, REFRESH, REMAP, Belief, DiscreteModel, FilterDivergedError, hooks,
+                   takes_compiled_loop)
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
@@ -577,6 +569,11 @@ def _empty_rows(width: int) -> np.ndarray:
     return np.zeros((0, width))
 
 
+def _copy_of(name: str, doc: str) -> property:
+    """A read-only property: a copy of the array held in the attribute ``name``."""
+    return property(lambda self: getattr(self, name).copy(), doc=doc)
+
+
 class Monitoring(NamedTuple):
     """What a filter tests its innovations with (module notes): the NIS test (``nis_window`` updates, 0: off; its
     ``divergence_confidence``, ``divergence_confirm`` and ``divergence_action``), the per-channel gate (``gate_p``,
@@ -634,6 +631,7 @@ class BeliefFilter:
         self.dt = float(dt)
         self.max_gap = float(max_gap)
         self.store_P = store_P
+        self.monitoring = mon
         self.divergence_action = mon.divergence_action
         self.nonfinite_action = nonfinite
         self.monitor = (NISMonitor(mon.nis_window, mon.divergence_confidence, mon.divergence_confirm)
@@ -704,25 +702,10 @@ class BeliefFilter:
         """The current belief ``(x, P)`` (copies)."""
         return Belief(self._x.copy(), self._P.copy())
 
-    @property
-    def x(self) -> np.ndarray:
-        """Current state estimate (a copy)."""
-        return self._x.copy()
-
-    @property
-    def x0(self) -> np.ndarray:
-        """The prior mean the filter restarts from (a copy)."""
-        return self._x0.copy()
-
-    @property
-    def P0(self) -> np.ndarray:
-        """The prior covariance the filter restarts from (a copy)."""
-        return self._P0.copy()
-
-    @property
-    def P(self) -> np.ndarray:
-        """Current covariance (a copy)."""
-        return self._P.copy()
+    x = _copy_of("_x", "Current state estimate (a copy).")
+    x0 = _copy_of("_x0", "The prior mean the filter restarts from (a copy).")
+    P = _copy_of("_P", "Current covariance (a copy).")
+    P0 = _copy_of("_P0", "The prior covariance the filter restarts from (a copy).")
 
     @property
     def t(self) -> float | None:
@@ -827,29 +810,18 @@ class MultirateEKF(BeliefFilter):
         Nominal sample interval (s): used to count the samples a gap skipped (``n_missing``).
     store_P : {"diag", "full", "none"}
         What :meth:`run` records of the posterior covariance.
-    nis_window, divergence_confidence, divergence_confirm
-        NIS test, see :class:`NISMonitor`. ``nis_window=0`` disables it.
-    divergence_action : {"flag", "raise"}
-        When the NIS test is set: record it and go on, or raise :class:`FilterDivergedError`.
-    gate_p : float or None
-        Per-channel gate: a channel whose squared normalised innovation exceeds the chi-square(1) quantile
-        ``1 - gate_p`` is left out of the update (see the module notes). None (default): no gating, the
-        textbook filter.
-    fault_window : int
-        Samples per channel in the sensor-fault tests (:class:`ChannelMonitor`); 0 (default) disables them.
-    isolate : bool
-        Leave a channel with an open offset or stuck fault out of the updates until the fault clears.
-    fault_p : float
-        False-alarm probability of each sensor-fault test.
-    fault_holdoff : int
-        Updates after a step in the input (a model with an ``n_jumps`` counter, see
-        :meth:`.reduced.ReducedObserverModel.input_jump`) during which nothing is gated and the NIS and
-        sensor-fault tests are paused: the allowance for planned torque steps, whose transient the model follows
-        with a larger error than its steady state (the end-of-manoeuvre step of a clean log would otherwise set
-        the NIS flag).
-    input_step : callable ``(u0, u1) -> bool`` or None
-        Test for a step between two successive input samples (1-D float arrays) that starts the hold-off
-        (besides the model's own ``n_jumps`` counter, if it has one).
+    monitoring : Monitoring
+        What the filter tests its innovations with: the NIS test (``nis_window``, 0: off; see :class:`NISMonitor`;
+        ``divergence_action`` "flag" records a set test and goes on, "raise" raises :class:`FilterDivergedError`),
+        the per-channel gate (``gate_p``: a channel whose squared normalised innovation exceeds the chi-square(1)
+        quantile ``1 - gate_p`` is left out of the update, see the module notes; None, the default: no gating, the
+        textbook filter), the sensor-fault tests (``fault_window`` samples per channel, :class:`ChannelMonitor`;
+        0, the default: off; ``fault_p`` their false-alarm probability; ``isolate`` leaves a channel with an open
+        offset or stuck fault out of the updates until it clears), and the hold-off after a step in the input
+        (``fault_holdoff`` updates after a model's ``n_jumps`` step, see
+        :meth:`.reduced.ReducedObserverModel.input_jump`, or one ``input_step(u0, u1)`` detects, during which
+        nothing is gated and the NIS and sensor-fault tests are paused: the allowance for planned torque steps,
+        whose transient the model follows with a larger error than its steady state).
     nonfinite : {"raise", "flag"}
         On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run and return NaN
         estimates from then on.
@@ -869,23 +841,12 @@ class MultirateEKF(BeliefFilter):
         dt: float = 1 / 500,
         *,
         store_P: str = "diag",
-        nis_window: int = 100,
-        divergence_confidence: float = 0.999,
-        divergence_confirm: int = 2,
-        divergence_action: str = "flag",
         nonfinite: str = "raise",
         p_floor=1e-18,
         max_gap: float = 1.0,
-        gate_p: float | None = None,
-        fault_window: int = 0,
-        fault_p: float = 1e-6,
-        fault_holdoff: int = 200,
-        input_step=None,
-        isolate: bool = False,
+        monitoring: Monitoring = Monitoring(),
     ):
-        self._setup(model, channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite,
-                    Monitoring(nis_window, divergence_confidence, divergence_confirm, divergence_action, gate_p,
-                               fault_window, fault_p, fault_holdoff, input_step, isolate))
+        self._setup(model, channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite, monitoring)
         n = self.nx
         if np.size(p_floor) not in (1, n):
             raise ValueError(f"p_floor has {np.size(p_floor)} entries, expected 1 or {n}")

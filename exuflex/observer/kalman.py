@@ -65,6 +65,32 @@ else:  # pragma: no cover
 
 # --------------------------------------------------------------------------------------------- helpers
 @_jit
+def _substitute(row, u, rows, d):
+    """One row of a triangular solve in place: ``row = (row - sum_k u[k] rows[k]) / d``, ``k`` ascending."""
+    for k in range(u.shape[0]):
+        uk = u[k]
+        prev = rows[k]
+        for j in range(row.shape[0]):
+            row[j] -= uk * prev[j]
+    for j in range(row.shape[0]):
+        row[j] /= d
+
+
+@_jit
+def _less_combination(out, base, coef, rows, tmp):
+    """``out = base - sum_i coef[i] rows[i, :len(tmp)]`` (``i`` ascending, summed in the scratch ``tmp``; ``out``
+    may alias ``base``)."""
+    tmp[:] = 0.0
+    for i in range(coef.shape[0]):
+        c = coef[i]
+        r = rows[i]
+        for j in range(tmp.shape[0]):
+            tmp[j] += c * r[j]
+    for j in range(tmp.shape[0]):
+        out[j] = base[j] - tmp[j]
+
+
+@_jit
 def _cholesky_solve(S, sol, U):
     """Solve ``S X = sol`` in place through the Cholesky factor ``S = U' U`` of the upper triangle of ``S``.
 
@@ -85,27 +111,10 @@ def _cholesky_solve(S, sol, U):
             for k in range(j):
                 s -= U[k, j] * U[k, i]
             U[j, i] = s / d
-    c = sol.shape[1]
     for i in range(m):  # U' Z = B
-        row = sol[i]
-        for k in range(i):
-            u = U[k, i]
-            prev = sol[k]
-            for j in range(c):
-                row[j] -= u * prev[j]
-        d = U[i, i]
-        for j in range(c):
-            row[j] /= d
+        _substitute(sol[i], U[:i, i], sol[:i], U[i, i])
     for i in range(m - 1, -1, -1):  # U X = Z
-        row = sol[i]
-        for k in range(i + 1, m):
-            u = U[i, k]
-            nxt = sol[k]
-            for j in range(c):
-                row[j] -= u * nxt[j]
-        d = U[i, i]
-        for j in range(c):
-            row[j] /= d
+        _substitute(sol[i], U[i, i + 1 :], sol[i + 1 :], U[i, i])
     return True
 
 
@@ -179,16 +188,7 @@ def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
     for j in range(n):
         x_out[j] = x[j] + tmp[j]
     for l in range(n):  # A' = P - (H P)' K', kept in P_out
-        tmp[:] = 0.0
-        for i in range(m):
-            hp = HP[i, l]
-            k = sol[i]
-            for j in range(n):
-                tmp[j] += hp * k[j]
-        row = P_out[l]
-        p = P[l]
-        for j in range(n):
-            row[j] = p[j] - tmp[j]
+        _less_combination(P_out[l], P[l], HP[:m, l], sol, tmp)
     Bt = np.zeros((m, n))
     for i in range(m):  # B' = H A' - R K'
         row = Bt[i]
@@ -203,15 +203,7 @@ def apply_gain(x, P, H, HP, Rd, r, sol, x_out, P_out):
         for j in range(n):
             row[j] -= k[j] * rd
     for l in range(n):  # A' - K B'
-        tmp[:] = 0.0
-        for i in range(m):
-            k = sol[i, l]
-            b = Bt[i]
-            for j in range(n):
-                tmp[j] += k * b[j]
-        row = P_out[l]
-        for j in range(n):
-            row[j] -= tmp[j]
+        _less_combination(P_out[l], P_out[l], sol[:m, l], Bt, tmp)
     return nis
 
 

@@ -32,16 +32,17 @@ wide range of ``s``; check ``QScaleResult.history`` before trusting the factor.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import expm
 
 from .base import DiscreteModel, Prediction
-from .bound import van_loan
 
 __all__ = [
     "QScaleResult",
+    "van_loan",
     "ScaledNoiseModel",
     "continuous_torque_noise",
     "input_jacobian",
@@ -50,6 +51,28 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation of ``x' = A_c x + w`` with white ``w`` of intensity ``Qc`` over ``dt`` (Van Loan).
+
+    Returns
+    -------
+    A : ndarray
+        ``expm(A_c dt)``.
+    Q : ndarray
+        ``int_0^dt expm(A_c s) Qc expm(A_c s)' ds``.
+    """
+    A_c = np.asarray(A_c, float)
+    n = A_c.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -A_c
+    M[:n, n:] = Qc
+    M[n:, n:] = A_c.T
+    E = expm(M * dt)
+    A = E[n:, n:].T
+    Q = A @ E[:n, n:]
+    return A, 0.5 * (Q + Q.T)
 
 
 def _add_diag(Q: np.ndarray, extra_diag) -> np.ndarray:
@@ -175,23 +198,9 @@ class QScaleResult:
     history: list = field(default_factory=list)
 
 
-def tune_q_scale(
-    model: DiscreteModel,
-    channels: Sequence[str],
-    R_std: Mapping[str, float],
-    x0,
-    P0,
-    t,
-    U,
-    Y,
-    dt: float = 1 / 500,
-    *,
-    bounds: tuple[float, float] = (1e-4, 1e4),
-    burn_in: int = 0,
-    rtol: float = 0.01,
-    max_iter: int = 40,
-    ekf_kwargs: dict | None = None,
-) -> QScaleResult:
+def tune_q_scale(filter_for: Callable[[DiscreteModel], object], model: DiscreteModel, t, U, Y, *,
+                 bounds: tuple[float, float] = (1e-4, 1e4), burn_in: int = 0, rtol: float = 0.01,
+                 max_iter: int = 40) -> QScaleResult:
     """One-parameter search of ``s`` in ``Q -> s Q`` bringing the mean NIS of a run to its expected value.
 
     The mean NIS decreases monotonically with ``s`` in practice (more process noise, larger ``S``); the
@@ -199,10 +208,11 @@ def tune_q_scale(
 
     Parameters
     ----------
+    filter_for : callable
+        ``filter_for(model)``: the filter to run on a model (e.g. a :class:`~exuflex.observer.ekf.MultirateEKF`
+        with ``nonfinite="flag"``, so that a blow-up counts as too little process noise).
     model : DiscreteModel
         Model with the nominal ``Q``.
-    channels, R_std, x0, P0, dt
-        As for :class:`~exuflex.observer.ekf.MultirateEKF`.
     t, U, Y
         A recorded run (as for :meth:`~exuflex.observer.ekf.MultirateEKF.run`).
     bounds : (float, float)
@@ -213,24 +223,17 @@ def tune_q_scale(
         Relative tolerance on ``s``.
     max_iter : int
         Maximum evaluations inside the bracket.
-    ekf_kwargs : dict, optional
-        Extra keyword arguments of the filter.
 
     Returns
     -------
     QScaleResult
     """
-    from .ekf import MultirateEKF
-
-    kw = {"nis_window": 0, "store_P": "none", "nonfinite": "flag"}
-    kw.update(ekf_kwargs or {})
     history: list[tuple[float, float]] = []
     expected = [float("nan")]
 
     def f(logs: float) -> float:
         s = float(np.exp(logs))
-        ekf = MultirateEKF(ScaledNoiseModel(model, s), channels, R_std, x0, P0, dt, **kw)
-        res = ekf.run(t, U, Y)
+        res = filter_for(ScaledNoiseModel(model, s)).run(t, U, Y)
         mn, ex = res.mean_nis(burn_in)
         expected[0] = ex
         history.append((s, mn))

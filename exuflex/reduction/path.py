@@ -95,6 +95,11 @@ def margin(acc: AccuracyResult, nco_min: float, err_max_pct: float) -> float:
     return float(min(a.min(), b.min()))
 
 
+def _key(kept) -> tuple[int, ...]:
+    """A set of interior modes as a cache key: their indices, sorted."""
+    return tuple(sorted(int(i) for i in kept))
+
+
 class PathSamples:
     """The sampled configurations and what the interior-mode choice evaluates there.
 
@@ -154,6 +159,7 @@ class PathSamples:
                 He = H[nq:, nq:]
                 self._locked.append((self.Mr[-1][nq:, nq:], self.Kr[-1][nq:, nq:], locked.shapes[nq:].T @ M[nq:, nq:] @ He, He))
         self.scores = np.array(scores)  # (n_c, n_interior modes)
+        self._tpos = {c: j for j, c in enumerate(self._tix)}  # sample -> its index in :attr:`truncation`
         # the interior modes that ring for at least a sample interval (zeta w <= f_s): the truncation requirement's
         # candidates (module docstring)
         w = 2 * np.pi * cb.interior_frequencies_hz
@@ -165,27 +171,36 @@ class PathSamples:
     def _match(self, kept) -> list[AccuracyResult]:
         """The accuracy indices (:func:`~.accuracy.match_modes`) of the band's full modes at every sample with the
         interior modes ``kept`` (indices into all of them)."""
+        key = _key(kept)
+        return [self._match_at(c, key) for c in range(len(self.qs))]
+
+    def _match_at(self, c: int, key: tuple[int, ...]) -> AccuracyResult:
+        """:meth:`_match` at sample ``c`` with the interior modes ``key`` (sorted; kept per sample: the forward
+        selection asks for the same subsets again)."""
+        hit = self._cache.get(("m", c, key))
+        if hit is not None:
+            return hit
         cb = self.cb
         nq = cb.nq
-        cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(kept, int))]
+        q, Mr, Kr, PMH, n1, ff = self.qs[c], self.Mr[c], self.Kr[c], self.PMH[c], self.n1[c], self.band_hz[c]
+        cols = np.r_[np.arange(cb.n_m), cb.n_m + np.asarray(key, int)]
         ix = np.ix_(cols, cols)
-        out = []
-        for q, Mr, Kr, PMH, n1, ff in zip(self.qs, self.Mr, self.Kr, self.PMH, self.n1, self.band_hz):
-            try:
-                w2, V = sla.eigh(Kr[ix], Mr[ix])
-            except np.linalg.LinAlgError:  # a degenerate partition (a global master turned axial): no match
-                w2, V = np.zeros(nq), np.zeros((len(cols), nq))
-            fr = np.sqrt(np.clip(w2[nq:], 0, None)) / (2 * np.pi)
-            Vr = V[:, nq:]
-            if not Vr.shape[1]:
-                z = np.zeros(len(ff))
-                out.append(AccuracyResult(q, ff, np.full(len(ff), np.inf), z, np.full(len(ff), np.inf)))
-                continue
+        try:
+            w2, V = sla.eigh(Kr[ix], Mr[ix])
+        except np.linalg.LinAlgError:  # a degenerate partition (a global master turned axial): no match
+            w2, V = np.zeros(nq), np.zeros((len(cols), nq))
+        fr = np.sqrt(np.clip(w2[nq:], 0, None)) / (2 * np.pi)
+        Vr = V[:, nq:]
+        if not Vr.shape[1]:
+            z = np.zeros(len(ff))
+            out = AccuracyResult(q, ff, np.full(len(ff), np.inf), z, np.full(len(ff), np.inf))
+        else:
             n2 = np.einsum("ij,ik,kj->j", Vr, Mr[ix], Vr)
             nco = (PMH[:, cols] @ Vr) ** 2 / np.outer(n1, n2)
             best = np.argmax(nco, axis=1)
             fr_m = fr[best]
-            out.append(AccuracyResult(q, ff, fr_m, nco[np.arange(len(ff)), best], np.abs(ff - fr_m) / ff * 100.0))
+            out = AccuracyResult(q, ff, fr_m, nco[np.arange(len(ff)), best], np.abs(ff - fr_m) / ff * 100.0)
+        self._cache[("m", c, key)] = out
         return out
 
     def evaluate(self, kept) -> list[AccuracyResult]:
@@ -203,7 +218,7 @@ class PathSamples:
         loads; the part of that ringing no full mode matches (the same fraction, from the reduced mode's side) is
         a response the truth does not have: its series in the channels (whitened, n_t x n_ch) and in the estimated tip
         quantities (n_t x 4) are ``ms_channels``, ``ms_quantities``, subtracted from the truth's side's."""
-        key = (c, tuple(sorted(int(i) for i in kept)))
+        key = ("r", c, _key(kept))
         hit = self._cache.get(key)
         if hit is not None:
             return hit
@@ -259,18 +274,21 @@ class PathSamples:
         """Per sample, ``(rho_channels, quantities_rms)`` at the worst window (:data:`.truncation.WINDOW_SAMPLES`
         samples): the channels' whitened mean squares in the window where their sum is largest, and (with
         ``quantities``, else empty) each tip quantity's largest RMS over the windows."""
-        key = ("w", quantities, tuple(sorted(int(i) for i in kept)))
+        return [self._windowed_at(c, kept, quantities) for c in range(len(self.truncation))]
+
+    def _windowed_at(self, c: int, kept, quantities: bool) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_windowed` at the ``c``-th sample with a truncation figure."""
+        key = ("w", c, quantities, _key(kept))
         hit = self._cache.get(key)
         if hit is not None:
             return hit
-        out = []
-        for c, t in enumerate(self.truncation):
-            unf, y_ch, y_qu = self._ringing(c, kept)
-            n = WINDOW_SAMPLES
-            ms = window_mean_square(t.channel_series(kept, unf) + y_ch, n)
-            zq = t.quantity_series(kept, unf) if quantities else np.zeros((0, 0))
-            qu = np.sqrt(window_mean_square(zq + y_qu, n).max(axis=0)) if zq.shape[1] else np.zeros(0)
-            out.append((ms[int(np.argmax(ms.sum(axis=1)))], qu))
+        t = self.truncation[c]
+        unf, y_ch, y_qu = self._ringing(c, kept)
+        n = WINDOW_SAMPLES
+        ms = window_mean_square(t.channel_series(kept, unf) + y_ch, n)
+        zq = t.quantity_series(kept, unf) if quantities else np.zeros((0, 0))
+        qu = np.sqrt(window_mean_square(zq + y_qu, n).max(axis=0)) if zq.shape[1] else np.zeros(0)
+        out = (ms[int(np.argmax(ms.sum(axis=1)))], qu)
         self._cache[key] = out
         return out
 
@@ -293,14 +311,32 @@ class PathSamples:
         """Per sample, the smallest margin to the requirements with the interior modes ``kept``: the thresholds on
         the band's modes (:func:`margin`), ``(rho_max - rho) / rho_max`` and, with :attr:`quantity_max`, the
         estimated tip quantities' ``(max - rms) / max``; ``truncation=False``: the band's thresholds alone."""
+        return np.array([self._margin_at(c, kept, truncation) for c in range(len(self.qs))])
+
+    def _margin_at(self, c: int, kept, truncation: bool, above: float = -np.inf) -> float:
+        """:meth:`margins` at sample ``c``; once the band's margin is at most ``above``, that margin (the
+        truncation's can only lower it: :meth:`_least_margin`)."""
         cb = self.cb
-        m = np.array([margin(a, cb.nco_min, cb.freq_error_max_pct) for a in self._match(kept)])
-        if truncation and self.truncation:
-            ix = self._tix
-            m[ix] = np.minimum(m[ix], (self.rho_max - self.rho(kept)) / self.rho_max)
+        m = margin(self._match_at(c, _key(kept)), cb.nco_min, cb.freq_error_max_pct)
+        j = self._tpos.get(c) if truncation and m > above else None
+        if j is not None:
+            m = np.minimum(m, (self.rho_max - self._windowed_at(j, kept, False)[0].sum()) / self.rho_max)
             if self.quantity_max is not None and self.quantity_max.size:
-                m[ix] = np.minimum(m[ix], ((self.quantity_max - self.quantities_rms(kept)) / self.quantity_max).min(axis=1))
-        return m
+                rms = self._windowed_at(j, kept, True)[1]
+                m = np.minimum(m, ((self.quantity_max - rms) / self.quantity_max).min())
+        return float(m)
+
+    def _least_margin(self, kept, truncation: bool, samples, above: float) -> float:
+        """The smallest of :meth:`margins` over ``samples``, or, once the running minimum is at most ``above``,
+        that running minimum: a bound the forward selection's candidate cannot beat (the minimum over every sample
+        is no larger), so the remaining samples are not evaluated. The selection is the same as with every
+        sample's margin; the worst samples first make the bound bite early."""
+        least = np.inf
+        for c in samples:
+            least = np.minimum(least, self._margin_at(c, kept, truncation, above))
+            if not least > above:
+                break
+        return float(least)
 
     def choose(self, ranking: str, n_max: int | None = None, truncation: bool = True
                ) -> tuple[np.ndarray, int, list[AccuracyResult]]:
@@ -343,8 +379,9 @@ class PathSamples:
                     break
                 cands = [int(i) for i in tie if i not in seq]
             best, best_m = -1, -np.inf
+            worst_first = np.argsort(m, kind="stable")
             for i in cands:
-                mi = self.margins(seq + [i], use).min()
+                mi = self._least_margin(seq + [i], use, worst_first, best_m)
                 if mi > best_m:
                     best, best_m = i, mi
             if n_needed is None and band_met and use and best_m - m.min() < 0.01:

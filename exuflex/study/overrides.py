@@ -15,7 +15,8 @@ A field path names a model-file field the way the TOML spells it:
 
 Link fields as written in a model file: ``length`` (keeps the fractions of its stations and of the joints,
 sensors and manoeuvre tip on it), ``diameter`` (solid circle:
-A and I recomputed), ``A``, ``I``, ``E``, ``rho`` (this link's material only), ``material`` (a material's name).
+A and I recomputed), ``A``, ``I``, ``E``, ``rho`` (this link's material only), ``material`` (a material's name),
+``mesh_size`` (the FFRF truth's solid mesh).
 Values keep the field's type (numbers, tuples for lists). Every error names the field path, what exists, and
 what was expected. After each override the mechanism passes through the model file loader's checks
 (:func:`exuflex.mechanism.writer.revalidate`: units and ranges, limits, topology), so a value the loader would
@@ -162,9 +163,11 @@ def _set_link(path: str, link, name: str, value: Any, mech: Mechanism):
         return dataclasses.replace(link, length=L, stations=tuple(s * f for s in link.stations))
     if name in ("name", "stations", "node_ids", "section"):
         raise OverrideError(f"{path}: {name!r} is structural and cannot be overridden in a study")
+    if name == "mesh_size":  # the FFRF truth's solid mesh (the beam models ignore it)
+        return dataclasses.replace(link, mesh_size=None if value is None else _positive(path, value))
     if name != "angle_guess":
         raise OverrideError(f"{path}: no link field {name!r}; a link has "
-                            "['length', 'diameter', 'A', 'I', 'E', 'rho', 'material', 'angle_guess']")
+                            "['length', 'diameter', 'A', 'I', 'E', 'rho', 'material', 'angle_guess', 'mesh_size']")
     return _set_field(path, link, name, value)
 
 

@@ -22,7 +22,7 @@ from .engines import (
     reduced_truth,
     simulate,
 )
-from .run import simulate_run
+from .run import simulate_run, simulate_runs
 
 __all__ = [
     "BEAMS",
@@ -41,5 +41,6 @@ __all__ = [
     "reduced_truth",
     "simulate",
     "simulate_run",
+    "simulate_runs",
     "truth_vs_erls",
 ]

@@ -10,21 +10,32 @@
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 
 from .engines import BEAMS, ENGINES, INTEGRATORS, gen_alpha_step, plan_drive, simulate
 
-__all__ = ["simulate_run"]
+__all__ = ["simulate_run", "simulate_runs"]
 
-def simulate_run(
+
+def simulate_run(model_path: str | Path, out: str | Path, *, seed: int | None = None, **kwargs) -> Path:
+    """Simulate the model's manoeuvre with the truth ``engine`` and write a run folder; returns its path.
+
+    ``duration`` defaults to the manoeuvre's; ``seed`` (default: a fresh one, recorded in ``meta.json``) draws
+    the measurement noise; the other keyword arguments are :func:`simulate_runs`'.
+    """
+    return simulate_runs(model_path, {seed: out}, **kwargs)[0]
+
+
+def simulate_runs(
     model_path: str | Path,
-    out: str | Path,
+    outs,
     *,
     engine: str = "exudyn",
     duration: float | None = None,
     payload_scale: float = 1.0,
-    seed: int | None = None,
     h: float = 1e-4,
     progress: Callable[[str, float], None] | None = None,
     manoeuvre: str | Path | None = None,
@@ -35,11 +46,13 @@ def simulate_run(
     erls_step: float | str | None = "auto",
     messages: Callable[[str], None] | None = None,
     overwrite: bool = False,
-) -> Path:
-    """Simulate the model's manoeuvre with the truth ``engine`` and write a run folder; returns its path.
+) -> list[Path]:
+    """Simulate the model's manoeuvre with the truth ``engine`` once and write a run folder per noise seed.
 
-    ``duration`` defaults to the manoeuvre's; ``seed`` (default: a fresh one, recorded in ``meta.json``) draws
-    the measurement noise; ``h`` is the integration step and the torque table's step; ``manoeuvre`` replaces the
+    ``outs`` maps each seed (None: a fresh one, recorded in ``meta.json``) to its folder: the truth's motion does
+    not depend on the seed (the torques are the plan's, the engines deterministic), so every folder holds the same
+    truth measured with its own noise (:func:`exuflex.measure.measure`); returns the folders' paths in ``outs``'
+    order. ``duration`` defaults to the manoeuvre's; ``h`` is the integration step and the torque table's step; ``manoeuvre`` replaces the
     model's (a TOML file with a ``[manoeuvre]`` table, or a CSV trajectory or measured-torque table,
     :func:`exuflex.mechanism.load_manoeuvre`); ``write_plan``: also write the planned q, q', q'' as ``plan.csv`` (a
     trajectory file that plans the same motion again); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
@@ -47,7 +60,7 @@ def simulate_run(
     from the model's band, :func:`exuflex.truth.gen_alpha_step`); ``messages`` receives one-line setup messages (the FFRF
     truth's meshing and modes). Bad arguments raise a
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
-    the engine's name) and the fraction of it done. ``out`` is claimed before the work
+    the engine's name) and the fraction of it done. Every folder is claimed before the work
     (:func:`exuflex.runs.output_folder`): a folder holding anything exuflex did not write is refused, an earlier
     exuflex result is replaced only with ``overwrite``. With an ERLS engine, links whose rotation rate approaches the
     model's validity limit are logged as warnings and listed in ``meta.json`` under ``validity``
@@ -61,9 +74,13 @@ def simulate_run(
 
     if not isinstance(model_path, (str, Path)):
         raise UsageError(f"model_path: expected the path of a model file (TOML), got {type(model_path).__name__}")
-    if not isinstance(out, (str, Path)) or not str(out).strip():
-        raise UsageError(f"out (--out): expected a folder path, got {out!r}")
-    check_not_foreign(out, "out (--out)")  # a file, or a lab's folder: refused before anything is read
+    outs = dict(outs)
+    if not outs:
+        raise UsageError("outs: expected at least one seed and its folder")
+    for out in outs.values():
+        if not isinstance(out, (str, Path)) or not str(out).strip():
+            raise UsageError(f"out (--out): expected a folder path, got {out!r}")
+        check_not_foreign(out, "out (--out)")  # a file, or a lab's folder: refused before anything is read
     if engine not in ENGINES:
         raise UsageError(f"engine (--engine): expected one of {', '.join(ENGINES)}, got {engine!r}")
     check_positive(payload_scale, "payload_scale", "--payload-scale")
@@ -75,7 +92,8 @@ def simulate_run(
     if mech.manoeuvre is None:
         raise ModelFileError(str(model_path), "manoeuvre", "a [manoeuvre] table to simulate", has_got=False)
     duration = mech.manoeuvre.duration if duration is None else duration
-    check_simulation_settings(mech, duration, h, seed)
+    for seed in outs:
+        check_simulation_settings(mech, duration, h, seed)
     if mech.manoeuvre.kind != "torque":
         check_actuation(mech)  # before planning: computed torque needs every coordinate actuated
     duration = float(duration)
@@ -106,16 +124,15 @@ def simulate_run(
                              "give only A and I")
     if engine == "erls" and integrator == "gen-alpha":
         gen_alpha_step(erls_step, h, 1.0 / mech.sample_rate_hz, mech.reduction.band_hz)  # before the planning
-    seed = new_seed() if seed is None else seed
-
-    with output_folder(out, "simulate", overwrite=overwrite):  # claimed before the work
+    with ExitStack() as claimed:
+        for out in outs.values():  # claimed before the work
+            claimed.enter_context(output_folder(out, "simulate", overwrite=overwrite))
         drive = plan_drive(mech, duration, h, progress)  # nominal model: the controller's knowledge
         truth_mech = mech if payload_scale == 1.0 else mech.with_payload_scale(payload_scale)
         rec = simulate(truth_mech, drive, engine, duration, h,
                        progress=None if progress is None else (lambda f: progress(engine, f)),
                        elements_per_link=elements_per_link, beam=beam, integrator=integrator, erls_step=erls_step,
                        messages=messages)
-        meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=seed, t_end=duration)
         validity = []
         if engine in ("erls", "reduced"):  # an ERLS truth: links turning fast against their clamped frequency
             from ..erls.validity import signal_warnings
@@ -138,7 +155,7 @@ def simulate_run(
             "engine": engine,
             "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
             "mechanism": mech.name,
-            "seed": meas.seed,
+            "seed": None,
             "settings": {
                 "duration_s": duration,
                 "h_s": h,
@@ -151,16 +168,23 @@ def simulate_run(
                 "computed_torque_model": "measured torques (file), open loop" if man.kind == "torque"
                 else "rigid ERLS, nominal payload",
                 "manoeuvre": man_meta,
-                "measurement": meas.settings,
+                "measurement": None,
                 "timings": timings,
             },
         }
         if validity:
             meta["validity"] = validity
-        if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
-            from ..manoeuvre import trajectory_csv
-            from ..runs import atomic_write_text
+        written = []
+        for seed, out in outs.items():
+            meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=new_seed() if seed is None else seed,
+                           t_end=duration)
+            meta["seed"] = meas.seed
+            meta["settings"]["measurement"] = meas.settings
+            if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
+                from ..manoeuvre import trajectory_csv
+                from ..runs import atomic_write_text
 
-            Path(out).mkdir(parents=True, exist_ok=True)
-            atomic_write_text(Path(out) / "plan.csv", trajectory_csv(drive.plan))
-        return write_run(out, meas.signals, rec.truth, meta, motors=mech.motor_names)
+                Path(out).mkdir(parents=True, exist_ok=True)
+                atomic_write_text(Path(out) / "plan.csv", trajectory_csv(drive.plan))
+            written.append(write_run(out, meas.signals, rec.truth, copy.deepcopy(meta), motors=mech.motor_names))
+        return written
