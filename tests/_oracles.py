@@ -110,12 +110,12 @@ def rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):
 
 
 def held_step(z, u, dl, s, h, n, hs: HeldSystem):
-    """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``, the matrices at the interval's midpoint positions,
-    the forces at its start."""
+    """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``, the matrices at the interval's midpoint elastic
+    coordinates, the forces at its start."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
-    tm = 0.5 * h * n  # the matrices at the interval's midpoint positions p + tm p'
-    Mr, Kr, Cr, Gr = held_matrices(dl + tm * z[r : r + nq], s, hs, z[nq:r] + tm * z[r + nq :])
+    tm = 0.5 * h * n  # the matrices at the interval's midpoint elastic coordinates p_e + tm p_e'
+    Mr, Kr, Cr, Gr = held_matrices(dl, s, hs, z[nq:r] + tm * z[r + nq :])
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
     if hs.has_old:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))

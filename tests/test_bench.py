@@ -36,6 +36,6 @@ def test_bench_quick_json_has_the_documented_keys():
     # the default path against the exact reference (rk4): far below the estimation error
     ref = r["reference"]
     assert ref["method"] == "rk4" and set(ref["difference_over_error"]) >= {"q1", "q2", "q3", "x25", "y26"}
-    # (0.2 s: the start-up transient, where the held matrices differ most; measured 0.71. After the transient the
+    # (0.2 s: the start-up transient, where the held matrices differ most; measured 0.42. After the transient the
     # difference is a fraction of the bound: test_observer's cached-against-rk4 test)
     assert ref["worst_ratio"] < 0.75, ref

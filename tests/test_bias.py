@@ -89,7 +89,7 @@ def sixbar():
 
 def test_offset_from_the_first_sample_is_estimated_with_a_second_reading(sixbar):
     """q1 read twice (q1, and q3rel = q3 - q1 - pi): a 0.06 rad q1 offset from t = 0 is estimated by q1's bias
-    state within its standard deviation, and q1 is within twice its bound (1.86 measured); without the offset the
+    state within its standard deviation, and q1 is within twice its bound (1.92 measured); without the offset the
     bias estimate is consistent with zero."""
     mech, run = sixbar
     cfg = ObserverConfig(channels=REDUNDANT)

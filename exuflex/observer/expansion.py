@@ -383,27 +383,25 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
 
 
 def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
-    """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at the
-    positions ``tm`` seconds on, ``p + tm p'`` (the interval's midpoint for ``tm = dt/2``), and the forces at
-    ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``.
+    """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
+    the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``.
 
-    Over an interval the configuration moves, and the matrices with it; held at the interval's start they are
-    wrong by ``dM/dt dt`` at its end, an error of first order in ``dt`` in the state's rate. Held at the midpoint
-    (the positions advanced by their rates, the exponential midpoint rule) the error of the rate averages to
-    second order. The forces stay at the start (they depend on the rates, whose advance needs the accelerations
-    of the fast elastic modes; measured, docs/step_jacobian.md). The secant factor ``s`` is the start's (its
-    change over ``tm``, ``tm q' . d / (d . d)``, multiplies only the second-order term)."""
+    The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
+    interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
+    state's rate; held at the midpoint (the exponential midpoint rule) the error averages to second order. The
+    configuration ``q`` stays at the start: advanced too, the step depends on the rates through ``dM/dq q'``, a
+    term the step Jacobian leaves out, strong where ``M`` changes fast with ``q`` (a slider-crank near its dead
+    centres); both measured in docs/step_jacobian.md. The forces stay at the start (their advance needs the
+    accelerations of the fast elastic modes)."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     p = z[:r]
     pd = z[r:]
-    dlm = np.empty(nq)
-    for i in range(nq):
-        dlm[i] = dl[i] + tm * pd[i]
     pem = np.empty(r - nq)
     for k in range(r - nq):
         pem[k] = p[nq + k] + tm * pd[nq + k]
-    Mr, Kr, Cr, Gr = _system(dlm, s, pem, hs)
+    Mr, Kr, Cr, Gr = _system(dl, s, pem, hs)
     f = fo = hs.fg
     for k in range(2 if hs.has_old else 1):  # the held and the old forms, one inlined copy of the forces for both
         fk = _quadratic_forces(p, pd, nq, hs.fg if k == 0 else hs.old_fg, hs.T2 if k == 0 else hs.old_T2,

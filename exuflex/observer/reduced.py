@@ -11,7 +11,7 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   quadratic forms and the q-gradients of ``M_r``, ``K_r``: :meth:`ReducedModel.held`) is evaluated only when q
   leaves a refresh radius around the held one, undeformed; in between the model follows the links to second order
   in q and the elastic coordinates exactly to first order (:mod:`.expansion`), and each interval's sub-steps use
-  the matrices at the interval's midpoint positions ``p + dt/2 p'`` and the forces at its start
+  the matrices at the interval's midpoint elastic coordinates ``p_e + dt/2 p_e'`` and the forces at its start
   (:func:`.expansion._held_model`). The radius adapts
   like an ODE step size under two error targets, the smaller radius winning. (1) The held matrices' validity:
   the previous held model's relative error of ``M_r`` and ``K_r`` (mass metric,
@@ -636,8 +636,8 @@ class ReducedObserverModel:
     @property
     def interval_system(self) -> tuple:
         """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval: the held matrices of its sub-steps (cached: at its
-        midpoint positions) and its ``n`` sub-steps of ``h`` (:meth:`predict`; after :meth:`prepare`, those of the
-        caller's own step)."""
+        midpoint elastic coordinates) and its ``n`` sub-steps of ``h`` (:meth:`predict`; after :meth:`prepare`,
+        those of the caller's own step)."""
         return self._interval_matrices
 
     @interval_system.setter
