@@ -2,7 +2,7 @@
 time of ``exuflex observe`` against the filter's own; the filter's speed against another checkout's.
 
     python benchmarks/observer_speed.py [--model models/sixbar.toml] [--run tests/data/sixbar_erls_3s] [--repeats 7]
-                                        [--against DIR] [--json] [--md docs/observer_speed.md]
+                                        [--against DIR [--against-label TEXT]] [--json] [--md docs/observer_speed.md]
 
 Filters the run's log with default settings ``--repeats`` times and reports the median real-time factor, then
 filters it once more with timers around the parts of a sample (each timer costs a fraction of a microsecond):
@@ -70,6 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run", default=str(ROOT / "tests" / "data" / "sixbar_erls_3s"), help="a run folder")
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--against", default=None, help="another checkout: the filter's time paired against it")
+    ap.add_argument("--against-label", default=None, help="what --against holds, for the page (e.g. 'main at abc1234')")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # one timed filter run, JSON out
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--md", default=str(ROOT / "docs" / "observer_speed.md"), help="markdown page ('' for none)")
@@ -117,6 +118,7 @@ def main(argv=None) -> int:
     out["observe"] = _observe_wall(args.model, args.run, args.repeats)
     if args.against:
         out["against"] = _paired(args.model, args.run, args.repeats, Path(args.against))
+        out["against"]["label"] = args.against_label
     if args.md:
         Path(args.md).write_text(_page(out, argv if argv is not None else sys.argv[1:], args.repeats))
     if args.json:
@@ -268,7 +270,8 @@ def _observe_section(out: dict, repeats: int) -> str:
     if "against" in out:
         a = out["against"]
         text += ("## Against another checkout\n\n"
-                 f"The filter's time on the log, this checkout over `{a['dir']}`, {repeats} pairs run in turn: median "
+                 + (f"`{a['dir']}`: {a['label']}.\n\n" if a.get("label") else "")
+                 + f"The filter's time on the log, this checkout over `{a['dir']}`, {repeats} pairs run in turn: median "
                  f"ratio **{a['median_ratio']:.3f}** ({', '.join(f'{r:.3f}' for r in a['ratios'])}).\n\n"
                  f"`exuflex observe` on the log, this checkout over `{a['dir']}`, {repeats} pairs in turn: median ratio of "
                  f"the wall times **{a['median_observe_wall_ratio']:.3f}** "
