@@ -170,7 +170,7 @@ def test_a_link_without_a_solid_section_is_named():
 def test_fourbar_ffrf_truth_meets_the_observer_acceptance(tmp_path):
     """Issue 30's acceptance: the four-bar's FFRF truth (default meshes), observed with the beam observer: every
     RMS error within 1.5x its bound and the mean NIS within 10 % of its expectation."""
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
     from exuflex.truth import simulate_run
 

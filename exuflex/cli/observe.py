@@ -289,7 +289,8 @@ def _run(args) -> int:
     from .. import _compile
     from ..errors import UsageError
     from ..mechanism import load_mechanism
-    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer, observe_run
+    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer
+    from ..scoring.run import observe_run
     from ..runs import check_csv_dialect, read_run
     from ..sensors import default_channels
     from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
@@ -342,7 +343,7 @@ def _run(args) -> int:
     # only what the summary needs; estimates.csv is written as the filter runs (observe_run's memory notes)
     keep = "all" if args.smooth else "physical" if args.out and not args.no_plots else "summary"
     if args.out:
-        from ..observer.output import EstimatesWriter
+        from ..scoring.output import EstimatesWriter
 
         with EstimatesWriter(args.out, mech, observer=obs) as writer:
             out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
@@ -362,7 +363,7 @@ def _run(args) -> int:
         _say(f"warning: NIS inconsistent {when} (innovations larger than the filter's "
              "covariance explains: model mismatch, wrong noise settings or units; estimates finite)")
     if args.out:
-        from ..observer.output import write_outcome
+        from ..scoring.output import write_outcome
 
         _say(f"writing {args.out}")
         write_outcome(args.out, mech, log, out, observer=obs, estimates=False)
@@ -373,7 +374,7 @@ def _run(args) -> int:
     if args.json:
         print(dump_json(s, default=float))
         return 0
-    from ..observer.output import summary_table
+    from ..scoring.output import summary_table
 
     print(summary_table(mech, out, bound=True))
     if "parameters" in s:

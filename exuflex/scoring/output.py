@@ -17,16 +17,16 @@ __all__ = ["EstimatesTable", "EstimatesWriter", "estimates_table", "summary_tabl
 def estimates_table(mech, outcome, observer=None) -> Signals:
     """The physical estimates with their standard deviations and the absolute tip position.
 
-    Columns: the physical quantities (q, dq/dt, tip elastic displacement and rate; :func:`.session.physical_names`),
+    Columns: the physical quantities (q, dq/dt, tip elastic displacement and rate; :func:`exuflex.observer.session.physical_names`),
     the absolute tip position and velocity ``tip_x tip_y dtip_x dtip_y`` (rigid + elastic,
     :func:`exuflex.sensors.absolute_tip`), then ``std_<name>`` for every quantity whose standard deviation the
     filter's covariance gives to first order: q and dq/dt from the posterior variances; with the full covariance
-    (``store_P="full"``, :meth:`.session.Observer.physical_covariance`) also the tip elastic columns and the
+    (``store_P="full"``, :meth:`exuflex.observer.session.Observer.physical_covariance`) also the tip elastic columns and the
     absolute tip position, ``J_q P_qq J_q' + J_q P_qe + P_eq J_q' + P_ee`` with ``J_q`` the rigid tip point's
     sensitivity to q. The absolute tip velocity's standard deviation would need the second derivative of the
     kinematics and is not given. A filter with a payload-scale state adds ``payload_scale`` (its estimate) and,
     where the estimator reports it (the payload EKF's model average, the IMM's nominal mode), ``p_nominal``: the
-    nominal payload's posterior probability. An outcome that kept no per-sample record (:func:`.session.observe_run` with
+    nominal payload's posterior probability. An outcome that kept no per-sample record (:func:`.run.observe_run` with
     ``keep="summary"``) has no table: write it as the filter runs (:class:`EstimatesWriter`)."""
     res = outcome.estimate.result
     if outcome.estimate.physical is None or res.x_hat is None:
@@ -115,8 +115,8 @@ class EstimatesTable:
 
 
 class EstimatesWriter:
-    """``estimates.csv`` in ``out_dir`` written as the filter runs: a ``sink`` for :func:`.session.observe_run`
-    that turns each :class:`~.session.EstimateChunk` into rows of :func:`estimates_table` (:class:`EstimatesTable`)
+    """``estimates.csv`` in ``out_dir`` written as the filter runs: a ``sink`` for :func:`.run.observe_run`
+    that turns each :class:`~exuflex.observer.session.EstimateChunk` into rows of :func:`estimates_table` (:class:`EstimatesTable`)
     and appends them (:class:`exuflex.runs.SignalsCsvWriter`: the bytes :func:`write_outcome` writes for the
     whole table, atomically, readable by everyone). Use as a context manager: leaving it normally renames the
     file into place; by an exception it removes the partial file (and the folder, if it made it and it is still
@@ -182,10 +182,10 @@ BOUND_NOTE = ("bound: the RMS over the scored samples of the posterior Cramer-Ra
 def summary_table(mech, outcome, bound: bool = True) -> str:
     """The result as text: a header (samples, model, channels, NIS), then one row per physical quantity with its
     unit, RMS and max error against the truth (if any), the bound for this log (the posterior Cramer-Rao bound's
-    RMS over the scored samples, :func:`.session.estimation_bound`; with smoothing the smoothed bound) and their
+    RMS over the scored samples, :func:`.bound.estimation_bound`; with smoothing the smoothed bound) and their
     ratio, and a note saying what the bound is."""
     s = outcome.summary
-    from .session import physical_names, physical_units
+    from ..observer.session import physical_names, physical_units
 
     res = outcome.estimate.result
     lines = [f"{mech.name}: {len(res.t)} samples, reduced model {s['reduced_ndof']} dofs, channels "
