@@ -408,7 +408,7 @@ def test_ukf_has_the_ekfs_gate_fault_monitors_and_divergence():
     chans = ("y1", "y2", "y3")
     x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
     mon = Monitoring(nis_window=50, gate_p=1e-6, fault_window=40)
-    kf = MultirateEKF(model, chans, R_std, x0, P0, dt=dt, **mon._asdict()).run(t, None, Y)
+    kf = MultirateEKF(model, chans, R_std, x0, P0, dt=dt, monitoring=mon).run(t, None, Y)
     ukf = UnscentedKF(model, chans, R_std, x0, P0, dt=dt, monitoring=mon).run(t, None, Y)
     assert kf.n_rejected["y1"] >= 1 and kf.channel_faults and kf.nis_flagged
     assert ukf.n_rejected == kf.n_rejected

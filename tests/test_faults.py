@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
+from exuflex.observer.ekf import Monitoring
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -24,7 +25,8 @@ def _cv3(**kw) -> MultirateEKF:
     A = np.array([[1.0, DT], [0.0, 1.0]])
     model = LinearDiscreteModel(A=A, B=np.zeros((2, 1)), C={c: np.array([1.0, 0.0]) for c in CH3},
                                 Q=np.diag([1e-8, 1e-4]))
-    return MultirateEKF(model, CH3, {c: 0.01 for c in CH3}, np.zeros(2), np.diag([1.0, 1.0]), dt=DT, **kw)
+    return MultirateEKF(model, CH3, {c: 0.01 for c in CH3}, np.zeros(2), np.diag([1.0, 1.0]), dt=DT,
+                        monitoring=Monitoring(**kw))
 
 
 def _record(n: int, seed: int = 0):

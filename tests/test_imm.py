@@ -18,6 +18,7 @@ import pytest
 
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
 from exuflex.observer.base import Belief
+from exuflex.observer.ekf import Monitoring
 from exuflex.observer.imm import IMMFilter, combine, mix, transition_matrix
 
 DT = 1 / 100
@@ -52,7 +53,7 @@ def test_one_mode_is_the_ekf():
     t, U, Y = record(model, 300, 1)
     R = {c: 0.1 for c in model.C}
     x0, P0 = np.zeros(model.nx), np.eye(model.nx)
-    ekf = MultirateEKF(model, tuple(model.C), R, x0, P0, dt=DT, gate_p=1e-4, fault_window=20)
+    ekf = MultirateEKF(model, tuple(model.C), R, x0, P0, dt=DT, monitoring=Monitoring(gate_p=1e-4, fault_window=20))
     imm = IMMFilter([model], [[]], tuple(model.C), R, x0, P0, DT, dwell_s=[1.0], mode_p0=[1.0],
                     monitoring=ekf_monitoring(ekf))
     a = ekf.run(t, U, Y)
@@ -68,8 +69,6 @@ def test_one_mode_is_the_ekf():
 
 
 def ekf_monitoring(ekf):
-    from exuflex.observer.ekf import Monitoring
-
     return Monitoring(gate_p=ekf.gate_p, fault_window=ekf.faults.window, fault_p=ekf.faults.p)
 
 

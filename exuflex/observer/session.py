@@ -438,7 +438,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
                         max_gap=config.max_gap, monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
-                           **monitoring._asdict())
+                           monitoring=monitoring)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
