@@ -481,7 +481,7 @@ def run_one(task: RunTask) -> dict:
 
 
 def _bound_ratios(obs, t: np.ndarray, U: np.ndarray, truth: Signals, start_up: float, rms: dict) -> dict:
-    """The run's bound (:func:`exuflex.observer.session.bound_track` along the truth, on the run's times and
+    """The run's bound (:func:`exuflex.scoring.bound.bound_track` along the truth, on the run's times and
     torques, every channel sampled; its RMS after ``start_up``) and each quantity's RMS error over it."""
     from ..observer.session import physical_names
     from ..scoring import bound_track
