@@ -45,10 +45,14 @@ def test_levels_set_the_diameter_and_keep_the_beam_dynamics():
     (("arm", []), r"expected at least one slenderness ratio"),
 ])
 def test_level_errors_name_the_argument(args, words):
+    """Each bad argument gets one error naming it; a level whose scaled material the model file's checks refuse
+    says so with the way out."""
     with pytest.raises(UsageError, match=words):
         slenderness_levels(load_mechanism(MODEL), *args)
     with pytest.raises(UsageError, match=r"keep \(--keep\): expected one of dynamics, material, got 'shape'"):
         slenderness_levels(load_mechanism(MODEL), "arm", [10], keep="shape")
+    with pytest.raises(UsageError, match=r"L/d = 3 on link 'arm': .*rho.* choose ratios nearer it, or --keep material"):
+        slenderness_levels(load_mechanism(MODEL), "arm", [3])
 
 
 def test_observer_follows_the_level_and_runs_are_scored_against_their_bound(tmp_path):
