@@ -534,7 +534,7 @@ def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=N
 
 
 def check_seed(seed) -> None:
-    """``seed`` None (a fresh one) or an integer in ``0 .. 2**63 - 1``; else a :class:`~exuflex.errors.UsageError`
+    """``seed`` None (a fresh one) or an integer from ``0`` to ``2**63 - 1``; else a :class:`~exuflex.errors.UsageError`
     naming ``--seed``."""
     from .errors import UsageError
 

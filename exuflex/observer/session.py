@@ -267,7 +267,7 @@ class Observer:
                 k += 1
                 continue
             if rows is None or np.max(np.abs(Z[k, :nq] - rows[2])) > refresh_rad:
-                rows = self._tip_rows_and_rates(Z[k, :nq], tp)
+                rows = self.tip_rows_and_rates(Z[k, :nq], tp)
                 if rows is None:  # a runaway estimate where the loops cannot close: no tip value
                     k += 1
                     continue
@@ -283,7 +283,7 @@ class Observer:
             k = b
         carry["rows"] = rows
 
-    def _tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
+    def tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
         """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by forward differences
         of step ``eps`` rad (the rows are smooth in q, rotations and Guyan shapes: the truncation error is of order
         ``eps`` relative, far below the first-order interpolation's ``refresh_rad^2``); None where the loops do not
