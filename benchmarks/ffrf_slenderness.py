@@ -103,8 +103,11 @@ def markdown(data: dict, cmd: str, figure: str) -> str:
     def at(v):
         return f"L/d = {v:.1f}" if v is not None else "not within the levels"
 
+    e0 = modes[str(x[0])]
     reach = (f"is above {LIMIT}x the bound already at the most slender level (L/d = {x[0]:g}: {worst[0]:.2f}, "
-             f"against {base[0]:.2f} on the ERLS truth)" if worst[0] >= LIMIT else
+             f"against {base[0]:.2f} on the ERLS truth, where the beam's first mode is {e0['err_pct']:+.2f} % off the solid's "
+             f"and its second {e0['err2_pct']:+.2f} %: the filter's bound is tight enough to resolve a truth "
+             "that close)" if worst[0] >= LIMIT else
              f"reaches {LIMIT}x the bound at {at(crossing(x, worst, LIMIT))}")
     lines += [
         "",

@@ -45,10 +45,14 @@ def test_levels_set_the_diameter_and_keep_the_beam_dynamics():
     (("arm", []), r"expected at least one slenderness ratio"),
 ])
 def test_level_errors_name_the_argument(args, words):
+    """Each bad argument gets one error naming it; a level whose scaled material the model file's checks refuse
+    says so with the way out."""
     with pytest.raises(UsageError, match=words):
         slenderness_levels(load_mechanism(MODEL), *args)
     with pytest.raises(UsageError, match=r"keep \(--keep\): expected one of dynamics, material, got 'shape'"):
         slenderness_levels(load_mechanism(MODEL), "arm", [10], keep="shape")
+    with pytest.raises(UsageError, match=r"L/d = 3 on link 'arm': .*rho.* choose ratios nearer it, or --keep material"):
+        slenderness_levels(load_mechanism(MODEL), "arm", [3])
 
 
 def test_observer_follows_the_level_and_runs_are_scored_against_their_bound(tmp_path):
@@ -85,3 +89,26 @@ def test_cli_errors(tmp_path, capsys):
     assert "--levels '50,,3': expected comma-separated slenderness ratios" in capsys.readouterr().err
     assert main(base + ["--link", "arm", "--beam", "shell"]) == 2
     assert "--beam 'shell': expected one of" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_quick_cli_study_on_ffrf_truths(tmp_path, monkeypatch, capsys):
+    """``exuflex study slenderness --quick`` on FFRF truths (coarse solid meshes): three levels of two runs, each
+    scored against its bound, the summary's levels in the order given, the figure written; a second call resumes
+    every run."""
+    pytest.importorskip("ngsolve")
+    from exuflex.cli import main
+
+    monkeypatch.setenv("EXUFLEX_CACHE", str(tmp_path / "cache"))
+    args = ["study", "slenderness", str(MODEL), "--link", "arm", "--quick", "--mesh-scale", "2", "--no-progress",
+            "--out", str(tmp_path / "s")]
+    assert main(args) == 0
+    import json
+
+    summary = json.loads((tmp_path / "s" / "summary.json").read_text())
+    assert [lv["value"] for lv in summary["levels"]] == [50.0, 10.0, 5.5]
+    assert summary["settings"]["beam"] == "ffrf" and summary["settings"]["kind"] == "slenderness"
+    assert all(lv["n_runs"] == 2 and np.isfinite(lv["worst_ratio"]["mean"]) for lv in summary["levels"])
+    assert (tmp_path / "s" / "fig_slenderness.png").exists()
+    assert main(args) == 0
+    assert "0 run(s) computed, 6 reused" in capsys.readouterr().out

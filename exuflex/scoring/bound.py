@@ -807,7 +807,7 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
     tp = tip_point(mech)
     if tp is not None:
         # the maps of Observer.physical linearised at z: e = A(q) p, e' = A(q) p' + sum_i (dA/dq_i p) q'_i
-        A, dA, _ = obs._tip_rows_and_rates(q, tp)
+        A, dA, _ = obs.tip_rows_and_rates(q, tp)
         dAp = np.einsum("iaj,j->ai", dA, z[:r])
         for k in range(2):
             C = np.zeros(som.nx)

@@ -177,20 +177,9 @@ def mc_consistency(values, dof, confidence: float = 0.95, burn_in: int = 0) -> C
     tlo, thi = chi2_band(d.sum(), n_terms, confidence)
     tau = autocorrelation_time(v)
     elo, ehi = chi2_band(d.sum() / tau, n_terms / tau, confidence)
-    return ConsistencyCheck(
-        per_step=per,
-        per_step_lo=lo,
-        per_step_hi=hi,
-        fraction_inside=frac,
-        time_avg=tavg,
-        time_avg_lo=float(tlo),
-        time_avg_hi=float(thi),
-        expected=float(d.sum() / n_terms),
-        confidence=confidence,
-        tau=tau,
-        time_avg_lo_eff=float(elo),
-        time_avg_hi_eff=float(ehi),
-    )
+    return ConsistencyCheck(per_step=per, per_step_lo=lo, per_step_hi=hi, fraction_inside=frac, time_avg=tavg,
+                            time_avg_lo=float(tlo), time_avg_hi=float(thi), expected=float(d.sum() / n_terms),
+                            confidence=confidence, tau=tau, time_avg_lo_eff=float(elo), time_avg_hi_eff=float(ehi))
 
 
 def autocorrelation_time(values, c: float = 5.0) -> float:

@@ -216,6 +216,13 @@ def slenderness_levels(mech: Mechanism, link: str, ratios: Sequence[float], mesh
             ov += ((f"links.{link}.E", lk.material.E * f**4), (f"links.{link}.rho", lk.material.rho * f**2))
         if mesh_scale is not None:
             ov += ((f"links.{link}.mesh_size", mesh_scale * d),)
+        try:
+            apply_overrides(mech, ov)
+        except OverrideError as exc:
+            hint = (f"; keep=dynamics scales E with d^-4 and rho with d^-2 from the file's L/d = "
+                    f"{lk.length / lk.section.diameter:g}: choose ratios nearer it, or --keep material"
+                    if keep == "dynamics" else "")
+            raise UsageError(f"levels (--levels): L/d = {r:g} on link {link!r}: {exc}{hint}") from None
         out.append(Level(f"L/d = {r:g}", r, ov, 1.0))
     if not out:
         raise UsageError("levels (--levels): expected at least one slenderness ratio L/d, e.g. 50,20,10,5,3")
@@ -481,7 +488,7 @@ def run_one(task: RunTask) -> dict:
 
 
 def _bound_ratios(obs, t: np.ndarray, U: np.ndarray, truth: Signals, start_up: float, rms: dict) -> dict:
-    """The run's bound (:func:`exuflex.observer.session.bound_track` along the truth, on the run's times and
+    """The run's bound (:func:`exuflex.scoring.bound.bound_track` along the truth, on the run's times and
     torques, every channel sampled; its RMS after ``start_up``) and each quantity's RMS error over it."""
     from ..observer.session import physical_names
     from ..scoring import bound_track
