@@ -2,10 +2,12 @@
 
     python benchmarks/step_jacobian.py hold [--model models/sixbar.toml] [--run tests/data/sixbar_erls_3s]
                                             [--json hold.json]
+    python benchmarks/step_jacobian.py refreshes [--model ...] [--run ...] [--json refreshes.json]
     python benchmarks/step_jacobian.py entries [--json entries.json]
     python benchmarks/step_jacobian.py page [--hold hold.json] [--entries entries.json]
                                             [--gallery after.json [--before before.json]]
                                             [--acceptance acc.json [--acceptance-before acc_before.json]]
+                                            [--refreshes refreshes.json] [--speed speed.json]
                                             [--md docs/step_jacobian.md]
 
 ``hold``: the filter with default settings on one log, with each step of:
@@ -16,6 +18,8 @@
   exactly and held over the interval as a linear system (the forces at the start), its matrices at the start, at
   the elastic coordinates ``p_e + dt/2 p_e'``, or at all positions ``p + dt/2 p'``: what holding the model over an
   interval costs, without the cached step's expansion in q (the Jacobian and process noise are the reference's).
+
+``refreshes``: the cached step's held-model error at every refresh, split by held quantity (:func:`refreshes`).
 
 ``entries``: the cached step's Jacobian against central differences of the step, entry by entry, each entry
 against its own size (``tests/test_step_jacobian.py``'s measure), on every model of the gallery and the fresh
@@ -187,7 +191,7 @@ def _acceptance_rows(rows: list[dict]) -> dict:
 
 
 def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance=None,
-         acceptance_before=None, refreshes_json=None) -> None:
+         acceptance_before=None, refreshes_json=None, speed_json=None) -> None:
     lines = ["# The cached step's accuracy and its Jacobian", "",
              "Written by `python benchmarks/step_jacobian.py page` (its docstring has the commands; the figures "
              "below come from the runs named in each section).", ""]
@@ -232,6 +236,17 @@ def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance
                       "comes from the start-up, where the estimate jumps off the secant's line (first order) "
                       "and the elastic accelerations are largest."]
         lines.append("")
+    if speed_json:
+        sp = json.loads(Path(speed_json).read_text())["against"]
+        r = sp["ratios"]
+        lines += ["## Cost", "",
+                  "`python benchmarks/observer_speed.py --repeats 5 --against DIR --md '' --json` (DIR: the tree "
+                  "before the change): the six-bar's default filter on `tests/data/sixbar_erls_3s`, this tree's "
+                  "time over the other's, in pairs run at nearly the same moment: median "
+                  f"{sp['median_ratio']:.3f} over {len(r)} pairs ({', '.join(f'{x:.2f}' for x in r)}); "
+                  f"`exuflex observe`'s wall time {sp['median_observe_wall_ratio']:.3f}. Per interval the step "
+                  "adds the elastic coordinates' rows (`(r - nq) nq r` products for each of `M`, `K`, `C`), per "
+                  "refresh `ReducedModel.elastic_forms` (a few products of the basis derivative).", ""]
     if refreshes_json:
         rf = json.loads(Path(refreshes_json).read_text())["refreshes"]
         worst = sorted(rf, key=lambda x: -x["err"])[:5]
@@ -335,6 +350,7 @@ def main(argv=None) -> int:
     p.add_argument("--gallery", default=None)
     p.add_argument("--before", default=None)
     p.add_argument("--refreshes", default=None)
+    p.add_argument("--speed", default=None, help="observer_speed.py --against ... --json output")
     p.add_argument("--acceptance", default=None, help="gallery.py --acceptance --json of this tree")
     p.add_argument("--acceptance-before", default=None, help="the same of the tree before")
     p.add_argument("--md", default=str(ROOT / "docs" / "step_jacobian.md"))
@@ -346,7 +362,7 @@ def main(argv=None) -> int:
     elif a.cmd == "entries":
         Path(a.json).write_text(json.dumps(entries(), indent=1))
     else:
-        page(a.hold, a.entries, a.gallery, a.before, a.md, a.acceptance, a.acceptance_before, a.refreshes)
+        page(a.hold, a.entries, a.gallery, a.before, a.md, a.acceptance, a.acceptance_before, a.refreshes, a.speed)
     return 0
 
 
