@@ -20,8 +20,8 @@ import pytest
 
 pytest.importorskip("exudyn")
 
-from exuflex.groundtruth.builder import _exu, build_truth  # noqa: E402
-from exuflex.mechanism.loader import parse_mechanism  # noqa: E402
+from exuflex.groundtruth.builder import _exu, build_truth
+from exuflex.mechanism.loader import parse_mechanism
 
 G = 9.81
 E, RHO, D, L = 69.0e9, 2700.0, 0.02, 1.0
@@ -161,8 +161,9 @@ def test_vertical_link_exudyn_truth_follows_the_erls_truth_under_gravity():
     holding 6.1 N m at the end) under the computed torque, which includes gravity: the Exudyn truth's joint angle
     follows the ERLS truth's within 1e-3 rad (seen 2.6e-4; 8.5e-5 with gravity 0: the open-loop hold at the
     horizontal is neutrally stable under gravity, so differences grow there) and the tip's elastic displacement
-    within 10 % of its RMS (seen 1.3 %). The truth without the weight swung 4.3 rad past the plan by the end."""
+    within 10 % of its RMS (seen 1.9 %, 1.3 %). The truth without the weight swung 4.3 rad past the plan by the end."""
     from exuflex.mechanism import load_mechanism
+    from exuflex.sensors import tip_dof_names
 
     mech = load_mechanism(VERTICAL_LINK)
     assert mech.gravity == (0.0, -9.81)
@@ -172,6 +173,6 @@ def test_vertical_link_exudyn_truth_follows_the_erls_truth_under_gravity():
     q_exu, q_erls = _column(exu, "q1")[:n], _column(erls, "q1")[:n]
     assert abs(q_erls[-1]) < 2e-3  # the ERLS truth ends at the plan's horizontal
     assert np.max(np.abs(q_exu - q_erls)) < 1e-3
-    tip = next(name for name in exu.names if name.startswith("y"))  # the tip's elastic displacement across
-    e, r = _column(exu, tip)[:n], _column(erls, tip)[:n]
-    assert np.sqrt(np.mean((e - r) ** 2)) < 0.1 * np.sqrt(np.mean(r**2))
+    for tip in tip_dof_names(mech):  # the tip's elastic displacement
+        e, r = _column(exu, tip)[:n], _column(erls, tip)[:n]
+        assert np.sqrt(np.mean((e - r) ** 2)) < 0.1 * np.sqrt(np.mean(r**2))
