@@ -6,11 +6,11 @@ frozen steady-state estimate the observer was scored against before.
 
 For each model file of the gallery (``models/*.toml`` with a manoeuvre) and each seed: the run folder of
 ``exuflex simulate MODEL --seed S`` (Exudyn truth by default) in a temporary folder; the observer with default
-settings on it (:func:`exuflex.observer.session.observe_run`), then
+settings on it (:func:`exuflex.scoring.run.observe_run`), then
 
 - ``pcrb``: each RMS error after the start-up over the bound it is now scored against (``bound_rms``: the RMS over
   the scored samples of the posterior Cramer-Rao bound's standard deviation along the truth);
-- ``steady``: the same errors over the frozen steady-state estimate (:func:`~exuflex.observer.session.steady_bound`
+- ``steady``: the same errors over the frozen steady-state estimate (:func:`~exuflex.scoring.bound.steady_bound`
   with the log's check and the scored span: the figure ``bound_rms`` was before);
 - ``smoothed``: with ``smooth=True``, the smoothed errors over the smoothed bound (now) and over the filtered
   steady-state estimate (before);
@@ -42,20 +42,10 @@ from gallery import MODELS, SEEDS, gallery  # noqa: E402
 def run_one(model: str, seed: int, engine: str = "exudyn") -> dict:
     """Truth, log, observer (filtered and smoothed) and the bounds for one model and seed: a JSON-ready dict."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.bound import riccati_track
-    from exuflex.observer.session import (
-        LogColumns,
-        _bound_model,
-        _Sampled,
-        _scored,
-        _step_linearisation,
-        _Trajectory,
-        bound_track,
-        make_observer,
-        observe_run,
-        physical_names,
-        steady_bound,
-    )
+    from exuflex.scoring.bound import riccati_track
+    from exuflex.observer.session import LogColumns, make_observer, physical_names
+    from exuflex.scoring.bound import _bound_model, _Sampled, _step_linearisation, _Trajectory, bound_track, steady_bound
+    from exuflex.scoring.run import _scored, observe_run
     from exuflex.runs import read_run
     from exuflex.truth import simulate_run
     from exuflex.validate import check_run
@@ -164,7 +154,7 @@ def markdown(rows: list[dict], settings: dict) -> str:
         "posterior Cramer-Rao bound's standard deviation** of that quantity (`bound_rms` in `result.json`, the "
         "`bound` column of the printed table): `sqrt(mean_k var_k)` with `var_k` the variance of the quantity at "
         "sample `k` from the posterior covariance `P_k|k`. `P_k|k` is the Kalman covariance recursion of the "
-        "observer's reduced model linearised along the true trajectory (`exuflex.observer.bound.riccati_track`): "
+        "observer's reduced model linearised along the true trajectory (`exuflex.scoring.bound.riccati_track`): "
         "the step Jacobian and process noise of the model's own step at the true state of the previous sample, "
         "the measurement rows at the true state, the stated torque and sensor noise, the filter's prior `P0` at "
         "the first sample, and the log's own times and sampled channels (a channel is updated at the samples that "

@@ -26,7 +26,8 @@ import numpy as np
 
 from exuflex.measure import measure
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import ObserverConfig, estimate, make_observer, metrics
+from exuflex.observer.session import ObserverConfig, estimate, make_observer
+from exuflex.scoring.run import metrics
 from exuflex.study.runner import _load_truth
 
 LEGEND = """Columns: mean over the seeds of the per-run RMS error after the start-up (rad, rad/s, m); the speed is

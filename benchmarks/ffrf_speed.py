@@ -78,7 +78,7 @@ def markdown(r: dict, cmd: str) -> str:
         f"files, on a machine shared with other jobs): {links}.",
         "",
         f"What a step costs: of the solve, the pre-step Python function (torques set on the motor loads, the "
-        f"record) took {f['pre_step_s']:.2f} s ({100 * f['pre_step_s'] / f['solve_s']:.0f} %); the rest is Exudyn's "
+        f"alpha damper's force and its refreshes, the record) took {f['pre_step_s']:.2f} s ({100 * f['pre_step_s'] / f['solve_s']:.0f} %); the rest is Exudyn's "
         "generalized-alpha Newton iterations, each of which evaluates every body's FFRF mass matrix and quadratic "
         "velocity terms (dense in the body's modal coordinates), the joint markers (a few interface nodes each, "
         "through the mode basis) and the constraints, and solves the sparse system. With about as many coordinates "

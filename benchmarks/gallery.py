@@ -9,10 +9,10 @@ For each model file in ``models/`` with a manoeuvre and each seed:
 
 1. the run folder of ``exuflex simulate MODEL --seed S`` (its library entry point,
    :func:`exuflex.truth.simulate_run`; Exudyn truth by default), written to a temporary folder;
-2. the observer with default settings on that log (:func:`exuflex.observer.session.observe_run`, what
+2. the observer with default settings on that log (:func:`exuflex.scoring.run.observe_run`, what
    ``exuflex observe MODEL RUN`` runs): RMS error of every physical estimate after the start-up, divided by the
    observer's own bound (``bound_rms``: the posterior Cramer-Rao bound along the truth, its standard deviations'
-   RMS over the scored samples, from the start-up to the log's end, :func:`exuflex.observer.session.bound_track`); the time-averaged NIS against the mean number of channels per update (its expectation);
+   RMS over the scored samples, from the start-up to the log's end, :func:`exuflex.scoring.bound.bound_track`); the time-averaged NIS against the mean number of channels per update (its expectation);
    the filter's flags (NIS divergence test, non-finite state);
 3. the same log through the exact reference step map (:data:`REFERENCE`: the reduced model integrated by RK4
    over every interval, no held matrices): the default path's RMS error divided by the reference's, per quantity.
@@ -170,7 +170,7 @@ def _observe(mech, run, config):
     """The observer's outcome on a run, or the message of the :class:`FilterDivergedError` it raised (a non-finite
     state or covariance)."""
     from exuflex.observer import FilterDivergedError
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
 
     try:
         return observe_run(mech, run, config)

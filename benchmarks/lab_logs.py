@@ -6,7 +6,7 @@
 
 The logs are those of ``tests/test_lab_acceptance.py`` (``tests/_lablog.py``: the 3 s manoeuvre's full-order ERLS
 truth, +-0.2 ms uniform time-stamp jitter, a clock 500 ppm fast, Table-3 noise; one log per seed, the truth shared).
-Each is observed as ``exuflex observe`` does (:func:`exuflex.observer.session.observe_run`, default settings unless
+Each is observed as ``exuflex observe`` does (:func:`exuflex.scoring.run.observe_run`, default settings unless
 ``--set``, the bound for that log), in memory instead of through the CSV files (the CSV's time column in ms with
 six decimals rounds the stamps to 1 ns).
 
@@ -36,7 +36,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 from _lablog import MODEL, LabTruth, lab_signals, lab_truth
 
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import ObserverConfig, make_observer, observe_run
+from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.scoring.run import observe_run
 from exuflex.runs import Run
 from exuflex.sensors import Signals
 

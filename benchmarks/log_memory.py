@@ -9,7 +9,7 @@ until ``sensors.csv`` reaches ``--mb`` megabytes; no truth. Each measurement run
 - ``observe``: ``exuflex observe models/sixbar.toml RUN --json`` and ``... --out DIR --no-plots --json`` (the
   estimates streamed to ``estimates.csv``) under ``/usr/bin/time -v`` (maximum resident set size, wall time),
   with ``--observe``; the same on the 3 s log, the process's size without a long log;
-- what ``observe`` holds per log row (the log, what :func:`exuflex.observer.session.observe_run` keeps of the
+- what ``observe`` holds per log row (the log, what :func:`exuflex.scoring.run.observe_run` keeps of the
   filtered record) and per chunk of :data:`~exuflex.observer.session.CHUNK_ROWS` rows, counted from the arrays
   of a run on the 3 s log, beside the filter's whole record (``keep="all"``, the library's default).
 
@@ -120,8 +120,9 @@ def record_bytes_per_sample() -> tuple[dict, dict]:
     filtered record, and the filter's whole record (``keep="all"``); and the bytes of one chunk of the streamed
     path (a constant)."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.output import EstimatesTable
-    from exuflex.observer.session import CHUNK_ROWS, ObserverConfig, estimate_chunks, make_observer, observe_run
+    from exuflex.scoring.output import EstimatesTable
+    from exuflex.observer.session import CHUNK_ROWS, ObserverConfig, estimate_chunks, make_observer
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
 
     mech = load_mechanism(MODEL)

@@ -25,8 +25,10 @@ import numpy as np
 
 from exuflex.measure import measure
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import ObserverConfig, make_observer, metrics, physical_names, steady_bound
-from exuflex.observer.stats import fft_peaks, match_peaks, mc_consistency
+from exuflex.observer.session import ObserverConfig, make_observer, physical_names
+from exuflex.scoring.run import metrics
+from exuflex.scoring.bound import steady_bound
+from exuflex.scoring.stats import fft_peaks, match_peaks, mc_consistency
 from exuflex.sensors import Signals
 from exuflex.truth import plan_drive, simulate
 

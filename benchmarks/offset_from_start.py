@@ -64,7 +64,8 @@ def faulty(run, channel: str | None, t0: float, fault) -> object:
 def main(argv=None) -> int:
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.bias import with_bias_states
-    from exuflex.observer.session import ObserverConfig, make_observer, observe_run
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])

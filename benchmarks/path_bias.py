@@ -45,7 +45,8 @@ def clean_run(mech, drive, engine: str, mesh):
 
 def run(model: str, truths: list[str]) -> dict:
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, observe_run
+    from exuflex.observer.session import ObserverConfig
+    from exuflex.scoring.run import observe_run
     from exuflex.truth import plan_drive
 
     mech = load_mechanism(ROOT / "models" / f"{model}.toml")

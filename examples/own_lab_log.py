@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
     run = xf.read_lab_run(log_path, mech, MAP, time_column="Time_ms", time_scale=1e-3)  # ms -> s
     out = xf.observe_run(mech, run, report=print)  # checks the log, prints its channels, rates and the bound
     if a.out:
-        from exuflex.observer.output import write_outcome
+        from exuflex.scoring.output import write_outcome
         from exuflex.plots import observer_figures
 
         write_outcome(a.out, mech, run, out)

@@ -171,7 +171,8 @@ def run_bench(
     from .measure import measure
     from .mechanism import load_mechanism
     from .observer.ekf import MultirateEKF
-    from .observer.session import ObserverConfig, _hold, _noise_std, estimate, make_observer, metrics
+    from .observer.session import ObserverConfig, _hold, _noise_std, estimate, make_observer
+    from .scoring.run import metrics
     from .sensors import monotonic_record, sensor_channels, tip_dof_names, true_states
 
     say = progress or (lambda msg: log.info("%s", msg))

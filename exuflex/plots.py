@@ -51,6 +51,7 @@ __all__ = [
     "joint_errors_figure",
     "joint_states_figure",
     "measurements_figure",
+    "mode_probability_figure",
     "modes_figure",
     "nis_figure",
     "observer_figures",
@@ -456,7 +457,7 @@ def tip_errors_figure(mech, truth: Signals, estimate: Signals, path, bound: Mapp
 # ------------------------------------------------------------------------------------------ FFT
 def spectrum(t, x, pad: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """One-sided magnitude spectrum (Hann window, de-meaned, zero-padded), normalised like
-    :func:`exuflex.observer.stats.fft_peaks` (a sinusoid of amplitude A shows a peak of about A).
+    :func:`exuflex.scoring.stats.fft_peaks` (a sinusoid of amplitude A shows a peak of about A).
 
     Non-uniform or gappy samples are first interpolated onto a uniform grid.
     """
@@ -492,7 +493,7 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
     fmax : float
         Upper frequency shown (Hz); the paper's reduced model is tuned for 0-180 Hz.
     n_peaks : int
-        Peaks marked per curve (by :func:`exuflex.observer.stats.fft_peaks`), searched above
+        Peaks marked per curve (by :func:`exuflex.scoring.stats.fft_peaks`), searched above
         ``max(5 Hz, 4 / record length)`` (below that is the manoeuvre's own rigid-motion content).
     peak_floor : float
         Peaks weaker than this fraction of the curve's strongest peak are not marked.
@@ -503,7 +504,7 @@ def fft_figure(mech, truth: Signals | None, estimate: Signals, path, fmax: float
     -------
     Path
     """
-    from .observer.stats import fft_peaks
+    from .scoring.stats import fft_peaks
 
     names = _tip_names(mech)[:2]
     fig, axes = _figure(1, max(len(names), 1), size=(11.0, 4.2))
@@ -579,7 +580,7 @@ def nis_figure(result, path, window: int = 50, confidence: float = 0.95, start_u
     -------
     Path
     """
-    from .observer.stats import chi2_band
+    from .scoring.stats import chi2_band
 
     t = np.asarray(result.t, float)
     v = np.asarray(result.nis, float)
@@ -617,20 +618,39 @@ def nis_figure(result, path, window: int = 50, confidence: float = 0.95, start_u
     return _save(fig, path)
 
 
+def mode_probability_figure(result, path, start_up: float = 0.0) -> Path:
+    """The posterior probability of the nominal payload vs time (the IMM's nominal mode, or the payload EKF's
+    model average) and of the payload-scale hypothesis, ``1 - p``."""
+    t = np.asarray(result.t, float)
+    p = np.asarray(result.nominal_p, float)
+    fig, axes = _figure(1, 1, size=(9.0, 3.6))
+    ax = axes[0, 0]
+    _shade_start_up(ax, t[0], start_up)
+    ax.plot(t, p, color=ESTIMATE_COLOUR, lw=1.0, label="nominal payload")
+    ax.plot(t, 1.0 - p, color=MEASURED_COLOUR, lw=1.0, ls="--", label="payload scale estimated")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("probability (-)")
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(True, lw=0.3)
+    return _save(fig, path)
+
+
 # ------------------------------------------------------------------------------------------ all
 def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
     """All observer figures of one run into ``out_dir`` (truth-dependent ones only when the run has a truth).
 
     Files: ``fig_trajectory.png``, ``fig_torques.png``, ``fig_measurements.png``, ``fig_joint_states.png``,
     ``fig_tip_displacement.png``, ``fig_nis.png``, and with a truth ``fig_joint_errors.png``,
-    ``fig_tip_errors.png``, ``fig_fft.png``. A figure that fails is logged and skipped.
+    ``fig_tip_errors.png``, ``fig_fft.png``; ``fig_payload_probability.png`` where the estimator reports the
+    nominal payload's probability (:func:`mode_probability_figure`). A figure that fails is logged and skipped.
 
     Parameters
     ----------
     out_dir : path-like
     mech : Mechanism
     run : exuflex.runs.Run
-    outcome : exuflex.observer.session.Outcome
+    outcome : exuflex.scoring.run.Outcome
 
     Returns
     -------
@@ -657,6 +677,8 @@ def observer_figures(out_dir, mech, run, outcome) -> list[Path]:
         ("fig_tip_displacement.png", lambda p: tip_displacement_figure(mech, truth, est, p, su)),
         ("fig_nis.png", lambda p: nis_figure(res, p, start_up=su)),
     ]
+    if getattr(res, "nominal_p", None) is not None:
+        jobs.append(("fig_payload_probability.png", lambda p: mode_probability_figure(res, p, start_up=su)))
     if truth is not None:
         jobs += [
             ("fig_joint_errors.png", lambda p: joint_errors_figure(mech, truth, est, p, bound, su)),
@@ -1110,14 +1132,64 @@ def sweep_figure(summary: Mapping, path, quantities=None) -> Path:
     return _save(fig, path)
 
 
+def slenderness_figure(summary: Mapping, path, departure: Mapping[str, Mapping[float, float]] | None = None,
+                       limit: float = 1.5, reference: Mapping | None = None) -> Path:
+    """A slenderness study (observer scored against its bound): the worst quantity's ratio RMS error / bound per
+    level (mean over the runs, bars from the smallest to the largest run), each quantity's mean ratio (thin lines)
+    and the acceptance ``limit``; x: the link's L/d on a log axis, stubby links to the right. ``departure``
+    (a label -> {L/d: percent}, e.g. the beam model's first- and second-mode errors against the solid truth): on a
+    second axis. ``reference``: another study's summary on the same levels (e.g. on the observer's own beam
+    formulation as the truth), its worst ratio drawn in grey."""
+    from matplotlib.ticker import NullFormatter
+
+    levels = sorted(summary["levels"], key=lambda lv: -float(lv["value"]))
+    x = np.array([float(lv["value"]) for lv in levels])
+    fig, axes = _figure(1, 1, size=(6.4, 4.0))
+    ax = axes[0, 0]
+    w = [lv.get("worst_ratio") or {} for lv in levels]
+    mean = np.array([v.get("mean", np.nan) for v in w])
+    lo, hi = np.array([v.get("min", np.nan) for v in w]), np.array([v.get("max", np.nan) for v in w])
+    qs = sorted({q for lv in levels for q in (lv.get("ratio_to_bound_mean") or {})})
+    for q in qs:
+        ax.plot(x, [(lv.get("ratio_to_bound_mean") or {}).get(q, np.nan) for lv in levels], lw=0.6, alpha=0.5)
+    ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], fmt="o-", color="k", capsize=4,
+                label=f"worst quantity, {summary['settings'].get('beam', 'ancf')} truth")
+    if reference is not None:
+        ref = {float(lv["value"]): (lv.get("worst_ratio") or {}).get("mean", np.nan) for lv in reference["levels"]}
+        ax.plot(x, [ref.get(v, np.nan) for v in x], "o--", color="0.5",
+                label=f"worst quantity, {reference['settings'].get('engine', 'reference')} truth")
+    ax.axhline(limit, color="r", ls="--", lw=1, label=f"{limit:g}x the bound")
+    ax.set_xscale("log")
+    ax.invert_xaxis()
+    ax.set_xticks(x)
+    ax.set_xticklabels([f"{v:g}" for v in x])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel("L/d of the swept link (stubby to the right)")
+    ax.set_ylabel("RMS error / bound")
+    ax.grid(True, lw=0.3)
+    if departure:
+        ax2 = ax.twinx()
+        for (label, dep), mk in zip(departure.items(), "s^vd"):
+            xs = sorted(dep, reverse=True)
+            ax2.plot(xs, [dep[v] for v in xs], mk + ":", color="tab:blue", label=label)
+        ax2.set_ylabel("beam model's mode error against the solid (%)", color="tab:blue")
+        ax2.xaxis.set_minor_formatter(NullFormatter())
+        ax2.legend(loc="upper center", fontsize=8)
+    ax.legend(loc="upper left", fontsize=8)
+    fig.suptitle(f"Beam observer on solid (FFRF) truths: {summary['model']['name']}")
+    return _save(fig, path)
+
+
 def study_figure(summary: Mapping, out_dir) -> Path:
     """The figure of a study's summary in ``out_dir``. A payload study: Fig. 11 (``fig_payload.png``,
     :func:`payload_study_figure`), the paper's four panels (the tip coordinates' displacements and velocities) when
     the study has them, with every quantity in ``fig_payload_all.png``; a sweep: :func:`sweep_figure`
-    (``fig_sweep.png``)."""
+    (``fig_sweep.png``); a slenderness study: :func:`slenderness_figure` (``fig_slenderness.png``)."""
     from .study.runner import figure_rows
 
     out_dir = Path(out_dir)
+    if summary["settings"]["kind"] == "slenderness":
+        return slenderness_figure(summary, out_dir / "fig_slenderness.png")
     if summary["settings"]["kind"] != "payload":
         return sweep_figure(summary, out_dir / "fig_sweep.png")
     paper = (summary.get("model") or {}).get("name") in PAPER_MODELS

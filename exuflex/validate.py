@@ -12,7 +12,7 @@
   reference configuration is compared with the links' ``angle_guess`` (:func:`assembly`); a link solved more
   than :data:`ANGLE_GUESS_TOL` away from its guess is warned about, naming the link.
 
-Nothing here changes data; the observer session (``exuflex.observer.session.observe_run``) is meant to call
+Nothing here changes data; the observer session (``exuflex.scoring.run.observe_run``) is meant to call
 :func:`check_run` before filtering.
 """
 
@@ -31,7 +31,7 @@ from .errors import LogFormatError
 from .mechanism import Mechanism, ModelFileError
 
 __all__ = ["ANGLE_GUESS_TOL", "Assembly", "LogCheck", "MAX_STEPS", "FLOP_RATE", "TIME_LIMIT_S", "assembly", "check_actuation", "check_configurations", "check_log", "check_mechanism_argument", "check_observer_settings",
-           "check_positive", "check_run", "check_provenance", "check_simulation_settings", "check_work",
+           "check_positive", "check_run", "check_provenance", "check_seed", "check_simulation_settings", "check_work",
            "memory_limit_bytes", "state_size_estimate", "truth_lag", "with_noise"]
 
 log = logging.getLogger(__name__)
@@ -530,6 +530,14 @@ def check_simulation_settings(mech: Mechanism, duration: float, h: float, seed=N
     cols = len(mech.sensors) + nm + 2 * nq + 8
     check_work(f"{duration:g} s at {mech.sample_rate_hz:g} Hz", duration * mech.sample_rate_hz, param="duration",
                flag="--duration", what="output samples", bytes_each=8 * 3 * cols)
+    check_seed(seed)
+
+
+def check_seed(seed) -> None:
+    """``seed`` None (a fresh one) or an integer from ``0`` to ``2**63 - 1``; else a :class:`~exuflex.errors.UsageError`
+    naming ``--seed``."""
+    from .errors import UsageError
+
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
                              or not 0 <= int(seed) < 2**63):
         raise UsageError(f"seed (--seed): expected an integer in 0 .. 2**63 - 1, got {seed!r}")

@@ -17,7 +17,7 @@ def stop_work(monkeypatch) -> None:
     settings, reproduce's body, the reduced modes report, the design's observer) by :func:`reach`."""
     import exuflex.cli.reproduce
     import exuflex.manoeuvre
-    import exuflex.observer.design
+    import exuflex.scoring.design
     import exuflex.observer.session as session
     import exuflex.reduction
     from exuflex.study.runner import StudySpec
@@ -27,4 +27,4 @@ def stop_work(monkeypatch) -> None:
     monkeypatch.setattr(StudySpec, "settings", reach)
     monkeypatch.setattr(exuflex.cli.reproduce, "_reproduce", reach)
     monkeypatch.setattr(exuflex.reduction, "reduced_modes_report", reach)
-    monkeypatch.setattr(exuflex.observer.design, "make_observer", reach)
+    monkeypatch.setattr(exuflex.scoring.design, "make_observer", reach)

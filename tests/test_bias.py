@@ -12,7 +12,9 @@ import pytest
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
 from exuflex.observer.bias import SensorBiasModel, with_bias_states
-from exuflex.observer.session import ObserverConfig, make_observer, observe_run
+from exuflex.observer.ekf import Monitoring
+from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.scoring.run import observe_run
 from exuflex.runs import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,7 +66,7 @@ def test_bias_model_is_the_augmented_linear_system():
     U = np.sin(2 * np.pi * 0.7 * t)[:, None]
     Y = np.column_stack([0.02 + 0.01 * rng.standard_normal(n), 0.05 * rng.standard_normal(n)])
     Y[::3, 1] = np.nan
-    kw = dict(dt=DT, nis_window=0, fault_window=0)
+    kw = dict(dt=DT, monitoring=Monitoring(nis_window=0, fault_window=0))
     x0, P0 = np.zeros(3), np.diag([1e-2, 1e-2, 0.1])
     ra = MultirateEKF(m, ("p", "v"), {"p": 0.01, "v": 0.05}, x0, P0, **kw).run(t, U, Y)
     rb = MultirateEKF(oracle, ("p", "v"), {"p": 0.01, "v": 0.05}, x0, P0, **kw).run(t, U, Y)

@@ -1,4 +1,4 @@
-"""The bound along a record (:func:`exuflex.observer.bound.riccati_track`, :func:`exuflex.observer.session.bound_track`).
+"""The bound along a record (:func:`exuflex.scoring.bound.riccati_track`, :func:`exuflex.scoring.bound.bound_track`).
 
 Checked against independent paths: filterpy's Kalman filter and RTS smoother on a linear model (the bound of a
 linear-Gaussian model is the Kalman filter's own covariance), the observer's own filter on that model, the
@@ -16,23 +16,10 @@ from filterpy.kalman import KalmanFilter
 
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
-from exuflex.observer.bound import riccati_track
-from exuflex.observer.session import (
-    LogColumns,
-    ObserverConfig,
-    _bound_model,
-    _mid_q,
-    _Sampled,
-    _scored,
-    _step_linearisation,
-    _Trajectory,
-    bound_track,
-    estimation_bound,
-    make_observer,
-    observe_run,
-    physical_names,
-    steady_bound,
-)
+from exuflex.scoring.bound import riccati_track
+from exuflex.observer.session import LogColumns, ObserverConfig, make_observer, physical_names
+from exuflex.scoring.bound import _bound_model, _mid_q, _Sampled, _step_linearisation, _Trajectory, bound_track, estimation_bound, steady_bound
+from exuflex.scoring.run import _scored, observe_run
 from exuflex.runs import Run, read_run
 from exuflex.sensors import Signals, truth_names
 

@@ -119,7 +119,8 @@ def test_usage_errors_name_the_command_and_the_help(capsys):
 
 
 def test_python_api_says_a_path_is_not_a_mechanism():
-    from exuflex.observer.session import ObserverConfig, make_observer, observe_run
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.scoring.run import observe_run
 
     with pytest.raises(UsageError, match=r"mech: expected an exuflex.mechanism.Mechanism, got str \(a path: load it"):
         make_observer(SIXBAR)

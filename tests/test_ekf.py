@@ -25,22 +25,11 @@ from exuflex.observer import (
     MultirateEKF,
     NISMonitor,
     Prediction,
-    bound_rms,
-    linearise,
-    steady_state_covariance,
 )
-from exuflex.observer.bound import van_loan
-from exuflex.observer.stats import (
-    chi2_band,
-    eq21_stats,
-    fft_peaks,
-    match_peaks,
-    max_error,
-    mc_consistency,
-    nees,
-    nis,
-    rms_error,
-)
+from exuflex.observer.ekf import Monitoring
+from exuflex.observer.tuning import van_loan
+from exuflex.scoring import bound_rms, linearise, steady_state_covariance
+from exuflex.scoring.stats import chi2_band, eq21_stats, fft_peaks, match_peaks, max_error, mc_consistency, nees, nis, rms_error
 from exuflex.observer.tuning import (
     ScaledNoiseModel,
     continuous_torque_noise,
@@ -472,7 +461,7 @@ def test_divergence_flag():
     assert bad.nis_flagged and 0 < bad.nis_flagged_at < t[-1] and not bad.diverged
     assert bad.flagged_intervals[0][0] == bad.nis_flagged_at
     with pytest.raises(FilterDivergedError):
-        MultirateEKF(wrong, CH2, R2, X0_2, P0_2, DT, divergence_action="raise").run(t, U, Y)
+        MultirateEKF(wrong, CH2, R2, X0_2, P0_2, DT, monitoring=Monitoring(divergence_action="raise")).run(t, U, Y)
 
 
 def test_nis_monitor_needs_disjoint_confirmation():
@@ -579,7 +568,8 @@ def test_tune_q_scale_restores_nis():
     low_q = ScaledNoiseModel(truth, 0.02)
 
     def ekf(model):
-        return MultirateEKF(model, CH2, R, X0_2, P0_2, DT, nis_window=0, store_P="none", nonfinite="flag")
+        return MultirateEKF(model, CH2, R, X0_2, P0_2, DT, store_P="none", nonfinite="flag",
+                            monitoring=Monitoring(nis_window=0))
 
     r = tune_q_scale(ekf, low_q, t, U, Y, bounds=(1e-1, 1e4), burn_in=100, rtol=0.05)
     assert r.converged and abs(r.mean_nis / r.expected_nis - 1) < 0.02

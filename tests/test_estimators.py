@@ -408,7 +408,7 @@ def test_ukf_has_the_ekfs_gate_fault_monitors_and_divergence():
     chans = ("y1", "y2", "y3")
     x0, P0 = np.zeros(4), np.array([0.1, 0.1, 1.0, 1.0])
     mon = Monitoring(nis_window=50, gate_p=1e-6, fault_window=40)
-    kf = MultirateEKF(model, chans, R_std, x0, P0, dt=dt, **mon._asdict()).run(t, None, Y)
+    kf = MultirateEKF(model, chans, R_std, x0, P0, dt=dt, monitoring=mon).run(t, None, Y)
     ukf = UnscentedKF(model, chans, R_std, x0, P0, dt=dt, monitoring=mon).run(t, None, Y)
     assert kf.n_rejected["y1"] >= 1 and kf.channel_faults and kf.nis_flagged
     assert ukf.n_rejected == kf.n_rejected
@@ -448,8 +448,9 @@ def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
     import dataclasses
     import math
 
-    from exuflex.observer.design import rank_gauges
-    from exuflex.observer.session import physical_names, steady_bound
+    from exuflex.scoring.design import rank_gauges
+    from exuflex.observer.session import physical_names
+    from exuflex.scoring.bound import steady_bound
 
     res = rank_gauges(sixbar, n_candidates=2)
     assert len(res.single) == 2 * len(sixbar.links)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
+from exuflex.observer.ekf import Monitoring
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -24,7 +25,8 @@ def _cv3(**kw) -> MultirateEKF:
     A = np.array([[1.0, DT], [0.0, 1.0]])
     model = LinearDiscreteModel(A=A, B=np.zeros((2, 1)), C={c: np.array([1.0, 0.0]) for c in CH3},
                                 Q=np.diag([1e-8, 1e-4]))
-    return MultirateEKF(model, CH3, {c: 0.01 for c in CH3}, np.zeros(2), np.diag([1.0, 1.0]), dt=DT, **kw)
+    return MultirateEKF(model, CH3, {c: 0.01 for c in CH3}, np.zeros(2), np.diag([1.0, 1.0]), dt=DT,
+                        monitoring=Monitoring(**kw))
 
 
 def _record(n: int, seed: int = 0):
@@ -120,7 +122,8 @@ def test_a_jump_in_time_is_refused_before_any_prediction():
 @pytest.fixture(scope="module")
 def sixbar():
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, estimation_bound, make_observer
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.scoring.bound import estimation_bound
     from exuflex.runs import read_run
 
     mech = load_mechanism(ROOT / "models" / "sixbar.toml")
@@ -130,7 +133,8 @@ def sixbar():
 
 
 def _observe(sixbar, change=None):
-    from exuflex.observer.session import estimate, metrics
+    from exuflex.observer.session import estimate
+    from exuflex.scoring.run import metrics
 
     mech, obs, run, bnd = sixbar
     S = run.sensors
@@ -191,7 +195,7 @@ def test_sixbar_clean_and_single_spike_have_no_flag(sixbar):
 
 
 def test_sixbar_dropout_flags_clears_and_reaches_the_json(sixbar, tmp_path):
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run, write_run
     from exuflex.sensors import Signals
 
@@ -213,7 +217,7 @@ def test_sixbar_dropout_flags_clears_and_reaches_the_json(sixbar, tmp_path):
 def test_truth_must_cover_the_scored_interval(caplog):
     """Scoring holds no truth value past its end: a truth cut at 0.5 s of a 3 s log, or on a clock 100 s off, is
     an error naming both spans; one ending 0.1 s early is a warning and the covered part is scored."""
-    from exuflex.observer.session import metrics
+    from exuflex.scoring.run import metrics
     from exuflex.sensors import Signals
 
     t = np.arange(1501) * 0.002
@@ -237,7 +241,7 @@ def test_truth_must_cover_the_scored_interval(caplog):
 
 def test_observe_refuses_a_truth_cut_short_before_filtering(sixbar, tmp_path):
     from exuflex.errors import LogFormatError
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run, write_run
     from exuflex.sensors import Signals
 
@@ -258,7 +262,7 @@ def test_clean_exudyn_log_past_the_manoeuvre_has_no_flag(tmp_path):
     at its end used to set a latching flag at 3.164 s): no NIS flag, no sensor fault, nothing gated."""
     from exuflex.cli import main
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
 
     out = tmp_path / "run10"

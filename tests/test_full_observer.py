@@ -11,7 +11,7 @@ from exuflex.erls.model import ErlsModel
 from exuflex.erls.simulate import simulate
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.base import DiscreteModel
-from exuflex.observer.ekf import MultirateEKF
+from exuflex.observer.ekf import Monitoring, MultirateEKF
 from exuflex.observer.full import FullObserverModel
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "sixbar.toml"
@@ -95,7 +95,7 @@ def test_ekf_runs_on_the_full_model(fm):
     x_true = fm.initial_state(mech.q_ref)
     chans = ("q1", "q2", "q3", "c1", "c2", "c4")
     R = {c: next(s.noise_std for s in mech.sensors if s.name == c) for c in chans}
-    ekf = MultirateEKF(fm, chans, R, x_true, np.full(fm.nx, 1e-8), dt=DT, nis_window=0)
+    ekf = MultirateEKF(fm, chans, R, x_true, np.full(fm.nx, 1e-8), dt=DT, monitoring=Monitoring(nis_window=0))
     u = np.array([1.0, 1.0, 0.0])
     for k in range(10):
         y, _ = fm.measure(x_true, chans)

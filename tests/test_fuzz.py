@@ -233,7 +233,7 @@ def observer_env():
 
 
 def _check_log(muts, mech, observer) -> None:
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
 
     text, meta = _apply_log(muts)
     d = Path(tempfile.mkdtemp(prefix="fuzzrun"))

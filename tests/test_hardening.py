@@ -402,7 +402,7 @@ def test_a_log_sampled_below_the_models_modes_is_refused_or_flagged(tmp_path, ca
 
 
 def test_the_whole_log_nis_test():
-    from exuflex.observer.session import nis_whole_log_flag
+    from exuflex.scoring.run import nis_whole_log_flag
 
     assert not nis_whole_log_flag(6.0, 6.0, 10)  # consistent
     assert not nis_whole_log_flag(12.0, 6.0, 1000)  # twice the expectation: the windowed test's domain

@@ -89,7 +89,7 @@ def test_exudyn_is_imported_by_the_ground_truth_subpackage_only():
 
 
 def test_model_reduction_and_observer_never_import_the_ground_truth():
-    for sub in ("erls", "reduction", "observer"):
+    for sub in ("erls", "reduction", "observer", "scoring"):
         for p in _modules(sub):
             bad = {m for m in _imports(p) if m.startswith(("exuflex.groundtruth", "exuflex.truth"))
                    or m.split(".")[0] == "exudyn"}
@@ -122,6 +122,7 @@ LAYERS = (
     ("exuflex.errors", "exuflex.manoeuvre", "exuflex.reduction", "exuflex.sensors", "exuflex.validate"),
     ("exuflex.groundtruth", "exuflex.measure", "exuflex.runs"),
     ("exuflex.observer", "exuflex._compile"),
+    ("exuflex.scoring",),
     ("exuflex.truth",),
     ("exuflex.bench", "exuflex.study"),
     ("exuflex.plots",),

@@ -30,7 +30,7 @@ def _loaded_after(code: str) -> list[str]:
 
 def test_package_cli_and_observer_imports_stay_light():
     code = ("import exuflex, exuflex.observer, exuflex.observer.session, exuflex.cli, exuflex.cli.observe, "
-            "exuflex.runs, exuflex.validate, exuflex.observer.output, exuflex._compile\n"
+            "exuflex.runs, exuflex.validate, exuflex.scoring.output, exuflex.scoring.run, exuflex._compile\n"
             "from exuflex.cli import _build_parser\n_build_parser()")
     assert _loaded_after(code) == []
 

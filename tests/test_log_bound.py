@@ -10,15 +10,10 @@ import numpy as np
 import pytest
 
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.bound import periodic_posterior, steady_state_covariance, unobservable_states
-from exuflex.observer.session import (
-    ObserverConfig,
-    UnobservableError,
-    estimation_bound,
-    steady_bound,
-    make_observer,
-    observe_run,
-)
+from exuflex.scoring.bound import periodic_posterior, steady_state_covariance, unobservable_states
+from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.scoring.bound import UnobservableError, estimation_bound, steady_bound
+from exuflex.scoring.run import observe_run
 from exuflex.runs import Run, read_run
 from exuflex.sensors import Signals
 from exuflex.validate import check_run

@@ -12,8 +12,9 @@ import pytest
 
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import session
-from exuflex.observer.output import EstimatesWriter, write_outcome
-from exuflex.observer.session import LogColumns, _hold, make_observer, observe_run
+from exuflex.scoring.output import EstimatesWriter, write_outcome
+from exuflex.observer.session import LogColumns, _hold, make_observer
+from exuflex.scoring.run import observe_run
 from exuflex.runs import Run, read_run
 from exuflex.sensors import Signals
 

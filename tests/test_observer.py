@@ -15,15 +15,9 @@ from exuflex.data import paper_reference
 from exuflex.manoeuvre import plan
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.observability import observability
-from exuflex.observer.session import (
-    ObserverConfig,
-    estimate,
-    estimation_bound,
-    make_observer,
-    metrics,
-    physical_names,
-    steady_bound,
-)
+from exuflex.observer.session import ObserverConfig, estimate, make_observer, physical_names
+from exuflex.scoring.bound import estimation_bound, steady_bound
+from exuflex.scoring.run import metrics
 from exuflex.runs import read_run
 from exuflex.sensors import tip_point
 
@@ -107,7 +101,7 @@ def test_bound_matches_independent_riccati_solution(sixbar, observer):
     stated damping, ``docs/validity.md``, the rates and the tip are less damped and their bound is 19-33 % higher.)"""
     ref = paper_reference()["exuflex_reference"]["rms_bound_steady_state_kf"]
     stored = dict(zip(ref["columns"], ref["rows"]["mid-path, 30 dofs, encoders + gauges"]))
-    from exuflex.observer.session import _mid_q
+    from exuflex.scoring.bound import _mid_q
 
     q = _mid_q(sixbar)
     channels = ("q1", "q2", "q3", "c1", "c2", "c4")
@@ -241,7 +235,7 @@ def test_jump_moments_are_those_of_a_jump_at_a_uniform_sub_step(sixbar, observer
 def test_fft_of_estimated_tip_matches_the_truths_peaks(sixbar, observer, erls_log):
     """Significant spectral peaks (>= 10 % of the largest, 5-180 Hz) of the true tip elastic displacement are
     found in the estimate's spectrum within 2 % (paper Fig. 10)."""
-    from exuflex.observer.stats import fft_peaks, match_peaks
+    from exuflex.scoring.stats import fft_peaks, match_peaks
 
     t, U, Y = _arrays(erls_log, observer.channels, len(erls_log.sensors.t))
     phys = observer.physical(t, observer.ekf.run(t, U, Y).x_hat)
@@ -331,7 +325,7 @@ def test_runaway_estimate_is_a_divergence_not_a_model_error(sixbar):
 
 
 def test_autocorrelation_time_of_white_and_correlated_sequences():
-    from exuflex.observer.stats import autocorrelation_time, mc_consistency
+    from exuflex.scoring.stats import autocorrelation_time, mc_consistency
 
     rng = np.random.default_rng(3)
     white = rng.chisquare(6, size=(20, 2000))
@@ -355,7 +349,7 @@ def test_filter_is_consistent(engine):
     inconsistency (``benchmarks/observer_accuracy.py``, seeds 1000-1049: ERLS NEES 97.9 % of the steps, 10.20;
     NIS 94.7 %, 6.003)."""
     from exuflex.measure import measure
-    from exuflex.observer.stats import mc_consistency
+    from exuflex.scoring.stats import mc_consistency
     from exuflex.truth import plan_drive, simulate
 
     sixbar = load_mechanism(MODELS / "sixbar.toml")
@@ -532,7 +526,7 @@ def test_bound_over_a_span_averages_the_configurations_scored_there(arm):
     """``steady_bound(span=...)`` is the RMS of the steady-state bounds at the midpoints of the span's parts:
     past the manoeuvre's end the mechanism rests at its final pose, so a span there gives the bound at that pose
     at rest; a span over the whole turn gives the RMS of the bounds at its midpoints' planned states."""
-    from exuflex.observer.session import _bound_at
+    from exuflex.scoring.bound import _bound_at
 
     mech, observer = arm
     d = mech.manoeuvre.duration

@@ -11,7 +11,8 @@ import numpy as np
 
 from exuflex.cli import main
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import make_observer, observe_run
+from exuflex.observer.session import make_observer
+from exuflex.scoring.run import observe_run
 from exuflex.runs import read_run, read_signals_csv
 from exuflex.sensors import absolute_tip
 

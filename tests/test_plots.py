@@ -11,7 +11,8 @@ from exuflex import plots
 from exuflex.erls.modal import ModalResult
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.ekf import EstimationResult
-from exuflex.observer.session import Estimate, Outcome
+from exuflex.observer.session import Estimate
+from exuflex.scoring.run import Outcome
 from exuflex.runs import Run
 from exuflex.sensors import Signals
 

@@ -22,6 +22,7 @@ from exuflex.erls.kinematics import KinematicsError  # noqa: E402
 from exuflex.errors import EXPECTED_ERRORS, LogFormatError  # noqa: E402
 from exuflex.mechanism import ModelFileError, load_mechanism, parse_mechanism  # noqa: E402
 from exuflex.observer import FilterDivergedError, LinearDiscreteModel, MultirateEKF, Prediction  # noqa: E402
+from exuflex.observer.ekf import Monitoring  # noqa: E402
 from exuflex.runs import atomic_write_text, read_run, write_run  # noqa: E402
 from exuflex.sensors import Signals  # noqa: E402
 from exuflex.validate import check_configurations  # noqa: E402
@@ -217,7 +218,9 @@ def _toy_ekf(**kw):
     A = np.array([[1.0, dt], [0.0, 1.0]])
     model = LinearDiscreteModel(A=A, B=np.zeros((2, 1)), C={"pos": np.array([1.0, 0.0])},
                                 Q=np.diag([1e-8, 1e-4]))
-    return MultirateEKF(model, ["pos"], {"pos": 0.01}, np.zeros(2), np.diag([1.0, 1.0]), dt=dt, **kw)
+    store_P = kw.pop("store_P", "diag")
+    return MultirateEKF(model, ["pos"], {"pos": 0.01}, np.zeros(2), np.diag([1.0, 1.0]), dt=dt, store_P=store_P,
+                        monitoring=Monitoring(**kw))
 
 
 def _toy_record(n=600, bias_from=None, bias=1.0, seed=0):

@@ -206,7 +206,7 @@ def test_cli_errors(tmp_path, capsys):
     assert "links.L1.diam" in capsys.readouterr().err
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path), "--runs", "0"]) == 2
     assert main(["study", "payload", str(MODEL), "--out", str(tmp_path / "e"), "--estimators", "ekf,kalman"]) == 2
-    assert "estimators (--estimators): expected names among ekf, ukf, ekf-payload, ekf-input; got kalman" in capsys.readouterr().err
+    assert "estimators (--estimators): expected names among ekf, ukf, ekf-payload, ekf-input, imm; got kalman" in capsys.readouterr().err
 
 
 def test_studies_script_quick(done_study, tmp_path):

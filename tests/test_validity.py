@@ -158,7 +158,7 @@ def test_simulate_and_observe_carry_the_warnings(tmp_path, caplog):
     """A soft arm written for the test (the single link at twice the length and half the diameter: omega_c
     7.9 rad/s) turned 5 rad in 1.5 s: the ERLS run logs the warning and writes it to meta.json; the observer's
     summary (result.json) carries it too."""
-    from exuflex.observer.session import observe_run
+    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
     from exuflex.truth import simulate_run
 

@@ -2,7 +2,7 @@
 
 Candidates at ``--candidates`` evenly spaced interior stations of every link, each alone with the model's encoders;
 then a greedy set of as many gauges as the model file has, and where the file's own gauges rank
-(:func:`exuflex.observer.design.rank_gauges`).
+(:func:`exuflex.scoring.design.rank_gauges`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def run(args) -> int:
     from dataclasses import asdict
 
     from ..mechanism import load_mechanism
-    from ..observer.design import rank_gauges
+    from ..scoring.design import rank_gauges
 
     mech = load_mechanism(args.model)
     res = rank_gauges(mech, n_candidates=args.candidates)

@@ -122,13 +122,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    "default: no test; helps logs whose torque steps fall between samples, e.g. a drifting clock)")
     t.add_argument("--start-up", type=nonneg_float,
                    help="seconds left out of the error metrics (default 0.3)")
-    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input"), default=None,
+    p.add_argument("--estimator", choices=("ekf", "ukf", "ekf-payload", "ekf-input", "imm"), default=None,
                    help="ekf (default), ukf, ekf-payload (payload scale as a state), ekf-input (torque disturbances "
-                        "as states)")
+                        "as states), imm (interacting multiple models: the plain EKF and ekf-payload's filter)")
     p.add_argument("--payload-nominal-p", type=unit_probability, metavar="P",
                    help="ekf-payload: prior probability that the payload is the model file's; the estimates are "
                         "the model average of the nominal payload and the estimated one (default 0.5; 0: the "
-                        "filter's own posterior)")
+                        "filter's own posterior); imm: the nominal mode's prior probability")
+    p.add_argument("--imm-dwell", type=positive_float, metavar="S",
+                   help="imm: expected dwell time in each mode (s), its transition matrix (default: 100 "
+                        "manoeuvre durations)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
     p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
@@ -163,6 +166,7 @@ def _config(args, mech):
         "start_up": args.start_up,
         "jump_p": args.jump_p,
         "payload_nominal_p": args.payload_nominal_p,
+        "imm_dwell_s": args.imm_dwell,
     }
     return ObserverConfig.for_model(mech, **{k: v for k, v in given.items() if v is not None})
 
@@ -285,7 +289,8 @@ def _run(args) -> int:
     from .. import _compile
     from ..errors import UsageError
     from ..mechanism import load_mechanism
-    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer, observe_run
+    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer
+    from ..scoring.run import observe_run
     from ..runs import check_csv_dialect, read_run
     from ..sensors import default_channels
     from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
@@ -294,8 +299,10 @@ def _run(args) -> int:
     if args.noise:
         mech = with_noise(mech, args.noise)
     config = _config(args, mech)
-    if args.smooth and config.estimator == "ukf":
-        raise UsageError("--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not ukf")
+    if args.smooth and config.estimator in ("ukf", "imm"):
+        raise UsageError(f"--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not "
+                         f"{config.estimator}" + (" (a mixture of two filters: docs/imm.md)" if config.estimator == "imm"
+                                                  else ""))
     check_observer_settings(mech, config)  # before anything is built or read
     if Path(args.run_dir).is_dir():
         _csv_options_unused(args)
@@ -336,7 +343,7 @@ def _run(args) -> int:
     # only what the summary needs; estimates.csv is written as the filter runs (observe_run's memory notes)
     keep = "all" if args.smooth else "physical" if args.out and not args.no_plots else "summary"
     if args.out:
-        from ..observer.output import EstimatesWriter
+        from ..scoring.output import EstimatesWriter
 
         with EstimatesWriter(args.out, mech, observer=obs) as writer:
             out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
@@ -356,7 +363,7 @@ def _run(args) -> int:
         _say(f"warning: NIS inconsistent {when} (innovations larger than the filter's "
              "covariance explains: model mismatch, wrong noise settings or units; estimates finite)")
     if args.out:
-        from ..observer.output import write_outcome
+        from ..scoring.output import write_outcome
 
         _say(f"writing {args.out}")
         write_outcome(args.out, mech, log, out, observer=obs, estimates=False)
@@ -367,7 +374,7 @@ def _run(args) -> int:
     if args.json:
         print(dump_json(s, default=float))
         return 0
-    from ..observer.output import summary_table
+    from ..scoring.output import summary_table
 
     print(summary_table(mech, out, bound=True))
     if "parameters" in s:

@@ -102,8 +102,9 @@ def _reproduce(model, out, *, quick, workers, scheduler, engine, seed, runs, pro
     from .. import _compile
     from ..data import paper_reference
     from ..mechanism import load_mechanism
-    from ..observer.output import write_outcome
-    from ..observer.session import ObserverConfig, observe_run
+    from ..scoring.output import write_outcome
+    from ..observer.session import ObserverConfig
+    from ..scoring.run import observe_run
     from ..plots import animate_manoeuvre, observer_figures, study_figure
     from ..runs import atomic_write_text, file_sha256, package_versions, read_run
     from ..study import StudySpec, payload_levels, run_study

@@ -1,10 +1,14 @@
-"""``exuflex study payload|sweep MODEL --out DIR``: model-mismatch studies (truth changed, observer nominal).
+"""``exuflex study payload|sweep|slenderness MODEL --out DIR``: model-mismatch studies (truth changed, observer
+nominal; or, for slenderness, beam theory against solid truths).
 
 ``payload``: the paper's Fig. 11 study, the truth's tip payload raised by each of ``--levels`` percent;
 ``--estimators ekf,ekf-payload,ukf`` runs it once per estimator (``OUT/<estimator>``, on the same truths) and
 draws them side by side.
 ``sweep``: any model-file field(s) of the truth, ``--set links.L1.diameter=0.030,0.031`` (several ``--set``
-form a grid). Each writes ``results.csv`` (one row per run), ``summary.json`` (eq. 21 mu and sigma per level
+form a grid).
+``slenderness``: the beam-theory study, ``--link NAME --levels 50,20,10,5,3``: the link's L/d set by its diameter,
+the truth that geometry as solid FFRF bodies (``--beam``), the observer the level's own (beam) model, each run
+scored against its bound (``ratio_to_bound``). Each writes ``results.csv`` (one row per run), ``summary.json`` (eq. 21 mu and sigma per level
 and quantity, settings, model and sha256, seeds, versions, wall time) and a figure. A study restarted with
 the same arguments skips its finished runs and cached truths.
 """
@@ -22,6 +26,7 @@ __all__ = ["QUICK", "add_parser", "build_spec", "run"]
 
 QUICK = {"duration": 0.4, "runs": 3, "levels": "0,50,100"}
 DEFAULT_LEVELS = "0,25,50,75,100"
+SLENDERNESS = {"levels": "50,20,10,7,5.5", "runs": 5, "quick_levels": "50,10,5.5", "quick_runs": 2}
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -51,7 +56,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     _common(pp)
     pp.add_argument("--levels", default=None, help=f"payload increases in %% (default {DEFAULT_LEVELS})")
     pp.add_argument("--estimators", default=None, metavar="E1,E2,...",
-                    help="run the study once per estimator (ekf, ukf, ekf-payload, ekf-input) into OUT/<estimator> "
+                    help="run the study once per estimator (ekf, ukf, ekf-payload, ekf-input, imm) into OUT/<estimator> "
                          "on the same truths and draw Fig. 11 with them side by side (OUT/fig_payload_estimators.png)"
                          "; default: the paper's EKF alone in OUT")
     sp = ss.add_parser("sweep", help="truth parameter sweep: --set FIELD=V1,V2,...")
@@ -59,6 +64,18 @@ def add_parser(sub) -> argparse.ArgumentParser:
     sp.add_argument("--set", dest="sets", action="append", required=True, metavar="FIELD=V1,V2,...",
                     help="a model-file field of the truth and its values, e.g. links.L1.diameter=0.03,0.031; "
                          "repeat for a grid")
+    sl = ss.add_parser("slenderness", help="beam theory's limits: the beam observer on solid (FFRF) truths as "
+                                           "--link grows stubby (--levels L/d)")
+    _common(sl)
+    sl.add_argument("--link", required=True, help="the link whose slenderness is swept (a round section)")
+    sl.add_argument("--levels", default=None,
+                    help=f"slenderness ratios L/d (default {SLENDERNESS['levels']}; --quick {SLENDERNESS['quick_levels']})")
+    sl.add_argument("--beam", default="ffrf", help="the truth's bodies (default ffrf: solid meshes; ancf, ge: beams)")
+    sl.add_argument("--keep", default="dynamics", help="dynamics (default: the link's EI and rho A kept, E and rho "
+                    "scaled with the diameter: only the solid's shape changes) or material (E and rho kept)")
+    sl.add_argument("--mesh-scale", type=positive_float, default=None,
+                    help="the truth's solid mesh size on the link as a multiple of its diameter (default: the "
+                         "truth's default; 2 is a coarse, quick mesh)")
     p.set_defaults(func=run)
     return p
 
@@ -70,6 +87,24 @@ def build_spec(args):
 
     runs = args.runs if args.runs is not None else (QUICK["runs"] if args.quick else 100)
     duration = args.duration if args.duration is not None else (QUICK["duration"] if args.quick else None)
+    if args.study_kind == "slenderness":
+        from ..mechanism import load_mechanism
+        from ..study import slenderness_levels
+        from ..truth import BEAMS
+
+        if args.beam not in BEAMS:
+            raise UsageError(f"--beam {args.beam!r}: expected one of {', '.join(BEAMS)}")
+        text = args.levels if args.levels is not None else \
+            SLENDERNESS["quick_levels" if args.quick else "levels"]
+        cells = [x.strip() for x in text.split(",")]
+        if not text.strip() or not all(cells):
+            raise UsageError(f"--levels {text!r}: expected comma-separated slenderness ratios L/d, e.g. 50,20,10,5,3")
+        levels = slenderness_levels(load_mechanism(args.model), args.link, cells, args.mesh_scale, args.keep)
+        if args.runs is None:
+            runs = SLENDERNESS["quick_runs" if args.quick else "runs"]
+        return StudySpec(model=args.model, levels=levels, runs=runs, base_seed=args.seed, engine=args.engine,
+                         duration=duration, h=args.h, start_up=args.start_up, kind="slenderness", beam=args.beam,
+                         observer_model="level", with_bound=True)
     if args.study_kind == "payload":
         text = args.levels if args.levels is not None else (QUICK["levels"] if args.quick else DEFAULT_LEVELS)
         cells = [x.strip() for x in text.split(",")]
@@ -111,6 +146,14 @@ def print_summary(summary: dict, stream=None) -> None:
     if absolute:
         print("absolute tip position and velocity, rigid + elastic (m, m/s):", file=stream)
         _print_table(summary, absolute, stream)
+    if any(lv.get("worst_ratio") for lv in summary["levels"]):
+        print("RMS error / bound (posterior Cramer-Rao bound along the truth): the worst quantity per run, mean "
+              "(min - max) over the runs", file=stream)
+        for lv in summary["levels"]:
+            w = lv.get("worst_ratio") or {}
+            worst = max(set(w.get("quantity", [])), key=w.get("quantity", []).count, default="-")
+            print(f"{lv['label'][:24]:>24s} {w.get('mean', float('nan')):6.2f} ({w.get('min', float('nan')):.2f} - "
+                  f"{w.get('max', float('nan')):.2f})  mostly {worst}", file=stream)
     print("div: diverged runs (non-finite, or a joint-angle error above the track-loss limit); nis: runs the "
           "NIS window test flags (inconsistency, expected under mismatch)", file=stream)
 

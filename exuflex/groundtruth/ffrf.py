@@ -141,7 +141,7 @@ class FfrfModel:
 
         def point_rows(p):  # velocity (2 rows) of the link's axis point at p.station, on the 3 fields per body
             b = self.bodies[p.link]
-            x, y, th = (float(c[i]) for i in b.frame_idx)
+            th = float(c[b.frame_idx[2]])
             dx, dy = math.cos(th) * p.station, math.sin(th) * p.station
             rows = np.zeros((2, L.shape[1]))
             j = col[p.link]

@@ -262,7 +262,7 @@ class ReductionSpec:
     freq_error_max_pct: float = 2.0
 
 
-ESTIMATOR_NAMES = ("ekf", "ukf", "ekf-payload", "ekf-input")
+ESTIMATOR_NAMES = ("ekf", "ukf", "ekf-payload", "ekf-input", "imm")
 """The observer's estimators a model file's ``[observer] estimator`` may name (``exuflex.observer.ESTIMATORS``)."""
 
 

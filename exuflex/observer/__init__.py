@@ -5,24 +5,23 @@
   offline ``run``), :class:`EstimationResult`; the Kalman algebra compiled in :mod:`.kalman`.
 - :mod:`.reduced`: the reduced ERLS model as the filter's model (cached step or the exact RK4 reference), with
   the second-order expansion about held configurations in :mod:`.expansion`; :mod:`.full`: the full-order model.
-- :mod:`.session`: the observer as users run it (:func:`make_observer`, :func:`estimate`, :func:`metrics`,
-  :func:`estimation_bound`, the posterior Cramer-Rao bound along the truth or the plan).
-- :mod:`.bound`, :mod:`.observability`, :mod:`.stats`, :mod:`.tuning`: the bound's Riccati recursion (along a
-  trajectory, and its frozen steady state as a quick estimate), observability,
-  NEES/NIS statistics, process-noise construction.
+- :mod:`.session`: the observer as users run it (:func:`make_observer`, :func:`estimate`); scored against a
+  truth and its bound in :mod:`exuflex.scoring`.
+- :mod:`.observability`, :mod:`.tuning`, :mod:`.stats`: observability, process-noise construction, the filter's
+  quantiles.
 - Beyond the paper: :mod:`.augmented` (:class:`AugmentedModel`: the payload scale and motor torque disturbances as
-  states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.design` (gauge
-  stations ranked by the bound).
+  states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.imm` (:class:`IMMFilter`:
+  interacting multiple models, the payload estimator with a nominal mode).
 """
 
 from .augmented import AugmentedModel
 from .base import DiscreteModel, FilterDivergedError, LinearDiscreteModel, Measurement, Prediction
-from .bound import bound_rms, linearise, steady_state_covariance
 from .ekf import EstimationResult, MultirateEKF, NISMonitor
+from .imm import IMMFilter
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
-from .session import Observer, ObserverConfig, estimate, estimation_bound, make_observer, metrics, observe_run
+from .session import Observer, ObserverConfig, estimate, make_observer
 
 __all__ = [
     "AugmentedModel",
@@ -32,6 +31,7 @@ __all__ = [
     "DiscreteModel",
     "EstimationResult",
     "FilterDivergedError",
+    "IMMFilter",
     "LinearDiscreteModel",
     "Measurement",
     "MultirateEKF",
@@ -40,12 +40,6 @@ __all__ = [
     "ObserverConfig",
     "Prediction",
     "ReducedObserverModel",
-    "bound_rms",
     "estimate",
-    "estimation_bound",
-    "linearise",
     "make_observer",
-    "metrics",
-    "observe_run",
-    "steady_state_covariance",
 ]

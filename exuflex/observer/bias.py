@@ -113,7 +113,7 @@ def with_bias_states(obs, channels: Sequence[str], bias0_std: float | Sequence[f
     ``channels``: prior mean 0 and standard deviation ``bias0_std`` (channel units; one value or one per
     channel), random walk ``bias_std`` per sqrt(s). The EKF is rebuilt with the observer's settings."""
     from .ekf import MultirateEKF
-    from .session import _noise_std, _torque_step_test
+    from .session import _noise_std
 
     ekf = obs.ekf
     if not isinstance(ekf, MultirateEKF) or ekf.model is not obs.model:
@@ -128,13 +128,9 @@ def with_bias_states(obs, channels: Sequence[str], bias0_std: float | Sequence[f
     x0 = np.concatenate([np.asarray(ekf.x0, float), np.zeros(len(channels))])
     P0 = np.zeros((model.nx, model.nx))
     n0 = model.n0
-    P0_z = np.asarray(ekf._P0, float)
+    P0_z = ekf.P0
     P0[:n0, :n0] = np.diag(P0_z) if P0_z.ndim == 1 else P0_z
     P0[n0:, n0:] = np.diag(s0**2)
-    cfg = obs.config
-    dt = ekf.dt
-    new = MultirateEKF(model, obs.channels, _noise_std(obs.mech, obs.channels), x0, P0, dt=dt,
-                       max_gap=cfg.max_gap, gate_p=cfg.gate_p, fault_window=cfg.fault_window, fault_p=cfg.fault_p,
-                       fault_holdoff=max(0, round(cfg.fault_holdoff_s / dt)),
-                       input_step=_torque_step_test(obs.model.torque_var, cfg.fault_p), isolate=cfg.fault_isolation)
+    new = MultirateEKF(model, obs.channels, _noise_std(obs.mech, obs.channels), x0, P0, dt=ekf.dt,
+                       max_gap=obs.config.max_gap, monitoring=ekf.monitoring)
     return dataclasses.replace(obs, ekf=new)

@@ -631,6 +631,7 @@ class BeliefFilter:
         self.dt = float(dt)
         self.max_gap = float(max_gap)
         self.store_P = store_P
+        self.monitoring = mon
         self.divergence_action = mon.divergence_action
         self.nonfinite_action = nonfinite
         self.monitor = (NISMonitor(mon.nis_window, mon.divergence_confidence, mon.divergence_confirm)
@@ -809,29 +810,18 @@ class MultirateEKF(BeliefFilter):
         Nominal sample interval (s): used to count the samples a gap skipped (``n_missing``).
     store_P : {"diag", "full", "none"}
         What :meth:`run` records of the posterior covariance.
-    nis_window, divergence_confidence, divergence_confirm
-        NIS test, see :class:`NISMonitor`. ``nis_window=0`` disables it.
-    divergence_action : {"flag", "raise"}
-        When the NIS test is set: record it and go on, or raise :class:`FilterDivergedError`.
-    gate_p : float or None
-        Per-channel gate: a channel whose squared normalised innovation exceeds the chi-square(1) quantile
-        ``1 - gate_p`` is left out of the update (see the module notes). None (default): no gating, the
-        textbook filter.
-    fault_window : int
-        Samples per channel in the sensor-fault tests (:class:`ChannelMonitor`); 0 (default) disables them.
-    isolate : bool
-        Leave a channel with an open offset or stuck fault out of the updates until the fault clears.
-    fault_p : float
-        False-alarm probability of each sensor-fault test.
-    fault_holdoff : int
-        Updates after a step in the input (a model with an ``n_jumps`` counter, see
-        :meth:`.reduced.ReducedObserverModel.input_jump`) during which nothing is gated and the NIS and
-        sensor-fault tests are paused: the allowance for planned torque steps, whose transient the model follows
-        with a larger error than its steady state (the end-of-manoeuvre step of a clean log would otherwise set
-        the NIS flag).
-    input_step : callable ``(u0, u1) -> bool`` or None
-        Test for a step between two successive input samples (1-D float arrays) that starts the hold-off
-        (besides the model's own ``n_jumps`` counter, if it has one).
+    monitoring : Monitoring
+        What the filter tests its innovations with: the NIS test (``nis_window``, 0: off; see :class:`NISMonitor`;
+        ``divergence_action`` "flag" records a set test and goes on, "raise" raises :class:`FilterDivergedError`),
+        the per-channel gate (``gate_p``: a channel whose squared normalised innovation exceeds the chi-square(1)
+        quantile ``1 - gate_p`` is left out of the update, see the module notes; None, the default: no gating, the
+        textbook filter), the sensor-fault tests (``fault_window`` samples per channel, :class:`ChannelMonitor`;
+        0, the default: off; ``fault_p`` their false-alarm probability; ``isolate`` leaves a channel with an open
+        offset or stuck fault out of the updates until it clears), and the hold-off after a step in the input
+        (``fault_holdoff`` updates after a model's ``n_jumps`` step, see
+        :meth:`.reduced.ReducedObserverModel.input_jump`, or one ``input_step(u0, u1)`` detects, during which
+        nothing is gated and the NIS and sensor-fault tests are paused: the allowance for planned torque steps,
+        whose transient the model follows with a larger error than its steady state).
     nonfinite : {"raise", "flag"}
         On a non-finite state/covariance: raise :class:`FilterDivergedError`, or flag the run and return NaN
         estimates from then on.
@@ -851,23 +841,12 @@ class MultirateEKF(BeliefFilter):
         dt: float = 1 / 500,
         *,
         store_P: str = "diag",
-        nis_window: int = 100,
-        divergence_confidence: float = 0.999,
-        divergence_confirm: int = 2,
-        divergence_action: str = "flag",
         nonfinite: str = "raise",
         p_floor=1e-18,
         max_gap: float = 1.0,
-        gate_p: float | None = None,
-        fault_window: int = 0,
-        fault_p: float = 1e-6,
-        fault_holdoff: int = 200,
-        input_step=None,
-        isolate: bool = False,
+        monitoring: Monitoring = Monitoring(),
     ):
-        self._setup(model, channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite,
-                    Monitoring(nis_window, divergence_confidence, divergence_confirm, divergence_action, gate_p,
-                               fault_window, fault_p, fault_holdoff, input_step, isolate))
+        self._setup(model, channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite, monitoring)
         n = self.nx
         if np.size(p_floor) not in (1, n):
             raise ValueError(f"p_floor has {np.size(p_floor)} entries, expected 1 or {n}")

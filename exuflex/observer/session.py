@@ -2,22 +2,17 @@
 
 :func:`make_observer` builds the reduced model and the multirate EKF for a mechanism and a channel set;
 :func:`estimate` filters a log (offline) and reconstructs the physical states the truth files use
-(q, dq/dt, tip elastic displacement and velocity, see :mod:`exuflex.sensors`); :func:`metrics` compares
-them with a truth; :func:`estimation_bound` gives the yardstick of an RMS error: the posterior Cramer-Rao bound of
-the reduced model linearised along the true trajectory (or the planned one), on the log's sampling schedule
-(:func:`bound_track`, :mod:`.bound`); :func:`steady_bound` a quick estimate of it, the steady-state Kalman
-covariance at frozen poses.
+(q, dq/dt, tip elastic displacement and velocity, see :mod:`exuflex.sensors`). Scoring them against a truth and
+the bound they are compared with: :mod:`exuflex.scoring`.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -29,18 +24,20 @@ from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
-from .bound import BoundTrack, periodic_posterior, riccati_track, steady_posterior, unobservable_states
 from .ekf import EstimationResult, Monitoring, MultirateEKF
-from .expansion import step_jacobian
+from .imm import NO_SMOOTHER, IMMFilter
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
 from .ukf import UnscentedKF
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
-ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input")
+ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input", "imm")
+#: the IMM's default expected dwell time in a mode, in manoeuvre durations (``ObserverConfig.imm_dwell_s``): the
+#: payload changes within one manoeuvre with the probability ``1 - exp(-1 / IMM_DWELL_MANOEUVRES)``, about 1 %
+IMM_DWELL_MANOEUVRES = 100.0
 #: the estimators on an augmented state (:mod:`.augmented`)
-AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input")
+AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input", "imm")
 
 __all__ = [
     "CHUNK_ROWS",
@@ -49,19 +46,14 @@ __all__ = [
     "LogColumns",
     "Observer",
     "ObserverConfig",
-    "UnobservableError",
     "augmented_estimates",
-    "bound_track",
     "default_channels",
     "estimate",
     "estimate_chunks",
-    "estimation_bound",
     "make_observer",
-    "metrics",
     "physical_names",
     "physical_units",
     "start_configuration",
-    "steady_bound",
 ]
 
 log = logging.getLogger(__name__)
@@ -115,14 +107,21 @@ class ObserverConfig:
         sensor-fault tests pause (the allowance for planned input steps).
     estimator
         one of :data:`ESTIMATORS`: ``"ekf"`` (the paper's), ``"ekf-payload"`` (the payload scale as a
-        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`.
+        state), ``"ekf-input"`` (a torque disturbance per motor as states), see :mod:`.augmented`; ``"imm"``
+        (an interacting multiple-model filter of the plain EKF and ``ekf-payload``'s filter, :mod:`.imm`).
     payload_std, payload0_std
         random-walk std of the payload scale per sqrt(s) (the payload is constant within a
         run: a small walk keeps the filter from locking on it), and its prior std (about 1).
     payload_nominal_p
         the prior probability that the payload is the model file's. The payload estimator reports
         its posterior mixed with its conditional on the nominal payload, by that hypothesis' posterior probability
-        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is.
+        (:func:`.augmented.nominal_mixture`); 0: the filter's posterior as it is. The IMM: the nominal mode's
+        prior probability.
+    imm_dwell_s
+        the IMM's expected dwell time in each mode (s): its transition matrix (:func:`.imm.transition_matrix`).
+        None (default): :data:`IMM_DWELL_MANOEUVRES` times the manoeuvre's duration (1 s without a manoeuvre): a
+        payload is picked or placed at rest, between motions, and changes within a motion in about one of that
+        many.
     payload_linearity
         the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
@@ -160,6 +159,7 @@ class ObserverConfig:
     payload0_std: float = 0.5
     payload_linearity: float = 1.0
     payload_nominal_p: float = 0.5
+    imm_dwell_s: float | None = None
     input_scale: float = 1.0
     input_tau: float | None = None
     input0_scale: float = 1.0
@@ -267,7 +267,7 @@ class Observer:
                 k += 1
                 continue
             if rows is None or np.max(np.abs(Z[k, :nq] - rows[2])) > refresh_rad:
-                rows = self._tip_rows_and_rates(Z[k, :nq], tp)
+                rows = self.tip_rows_and_rates(Z[k, :nq], tp)
                 if rows is None:  # a runaway estimate where the loops cannot close: no tip value
                     k += 1
                     continue
@@ -283,7 +283,7 @@ class Observer:
             k = b
         carry["rows"] = rows
 
-    def _tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
+    def tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
         """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by forward differences
         of step ``eps`` rad (the rows are smooth in q, rotations and Guyan shapes: the truncation error is of order
         ``eps`` relative, far below the first-order interpolation's ``refresh_rad^2``); None where the loops do not
@@ -370,32 +370,7 @@ def _noise_std(mech: Mechanism, channels: Sequence[str]) -> dict[str, float]:
     return out
 
 
-NIS_WHOLE_LOG_P = 1e-6
-"""False-alarm probability of the whole-log NIS test (:func:`nis_whole_log_flag`)."""
-
-NIS_GROSS_FACTOR = 3.0
-"""How far above a consistent filter's bound the whole log's mean NIS must lie to be flagged whatever the window:
-the windowed test judges mild mismatch; this one a gross inconsistency (several times the innovations' stated
-covariance: a log that cannot support the model, wrong units or noise)."""
-
-
-def nis_whole_log_flag(nis_mean: float, nis_expected: float, n_updates: int, p: float = NIS_WHOLE_LOG_P,
-                       factor: float = NIS_GROSS_FACTOR) -> bool:
-    """The NIS test over the whole log, beside the filter's windowed one. With a consistent filter the sum of the
-    ``n`` updates' NIS is chi-square with ``k = n d`` degrees of freedom (``d`` the mean channels per update); the
-    log is flagged where the mean NIS exceeds ``factor`` times that sum's ``1 - p`` quantile over ``n``, so that a
-    mean NIS far above its expectation is flagged even where no window of the windowed test fills (a short log, a
-    slow one). The quantile ``chi2_{1-p}(k) = 2 Q^{-1}(k / 2, p)``, the inverse of the regularised upper incomplete
-    gamma function."""
-    if not (n_updates > 0 and math.isfinite(nis_mean) and math.isfinite(nis_expected) and nis_expected > 0):
-        return False
-    from scipy.special import gammainccinv
-
-    q = 2.0 * float(gammainccinv(n_updates * nis_expected / 2.0, p))
-    return bool(nis_mean * n_updates > factor * q)
-
-
-def _check_arguments(config=None, observer=None) -> None:
+def check_arguments(config=None, observer=None) -> None:
     """``config`` an :class:`ObserverConfig` or None, ``observer`` an :class:`Observer` or None: else a
     :class:`~exuflex.errors.UsageError` naming the parameter and the type expected."""
     from ..errors import UsageError
@@ -420,7 +395,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     from ..validate import check_mechanism_argument, check_observer_settings
 
     check_mechanism_argument(mech)
-    _check_arguments(config=config)
+    check_arguments(config=config)
     config = config or ObserverConfig.for_model(mech)
     check_observer_settings(mech, config)
     # the first run with an empty kernel cache: compiled in parallel processes (._compile)
@@ -438,9 +413,13 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.q_extra_std > 0:
         q_extra = np.zeros(2 * cb.r)
         q_extra[cb.r + len(mech.coordinate_names) :] = config.q_extra_std**2
-    som = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
-                               torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
-    som.torque_var_nominal = stated**2
+    def reduced_model() -> ReducedObserverModel:
+        m = ReducedObserverModel(cb, h=config.h, method=config.method, jump_p=config.jump_p,
+                                 torque_std=stated * np.sqrt(config.q_scale), q_extra=q_extra)
+        m.torque_var_nominal = stated**2
+        return m
+
+    som = reduced_model()
     r, nq = som.r, som.nq
     if x0 is None:
         x0 = som.initial_state(start_configuration(mech))
@@ -456,9 +435,14 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     if config.estimator == "ukf":
         ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                           monitoring=monitoring)
+    elif config.estimator == "imm":  # the nominal mode: the plain EKF's model (its own held configuration)
+        dwell = config.imm_dwell_s or IMM_DWELL_MANOEUVRES * (mech.manoeuvre.duration if mech.manoeuvre else 1.0)
+        ekf = IMMFilter([reduced_model(), fmodel], [[1.0], []], channels, _noise_std(mech, channels), x0, P0, dt,
+                        dwell_s=[dwell, dwell], mode_p0=[config.payload_nominal_p, 1.0 - config.payload_nominal_p],
+                        max_gap=config.max_gap, monitoring=monitoring)
     else:
         ekf = MultirateEKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
-                           **monitoring._asdict())
+                           monitoring=monitoring)
     info = {"reduced_ndof": int(cb.r), "masters": list(mech.coordinate_names) + list(cb.masters),
             "interior_modes": int(cb.n_interior), "channels": list(channels)}
     return Observer(mech, config, som, ekf, channels, basis_s, info)
@@ -471,7 +455,7 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}; got {config.estimator!r}")
     if config.estimator in ("ekf", "ukf"):
         return som, x0, P0
-    if config.estimator == "ekf-payload":
+    if config.estimator in ("ekf-payload", "imm"):
         if not 0.0 <= config.payload_nominal_p <= 1.0:
             raise ValueError(f"payload_nominal_p must be a probability in [0, 1], got {config.payload_nominal_p}")
         fm = AugmentedModel(som, payload_std=config.payload_std, linearity_tol=config.payload_linearity)
@@ -665,588 +649,13 @@ def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> 
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     if not smooth:
         return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
+    if isinstance(obs.ekf, IMMFilter):
+        from ..errors import UsageError
+
+        raise UsageError(NO_SMOOTHER)
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
     sm = reported(obs, rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0), float(t[0]))
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
-
-
-def _scored(t: np.ndarray, start_up: float, truth_t: np.ndarray | None = None) -> np.ndarray:
-    """The samples of a record of times ``t`` that :func:`metrics` scores: from ``t[0] + start_up`` on, within the
-    truth's span (half a median interval's tolerance) where a truth's times are given."""
-    t = np.asarray(t, float)
-    sel = t >= t[0] + start_up
-    if truth_t is not None and len(truth_t):
-        tol = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else 0.0
-        sel &= (t >= float(truth_t[0]) - tol) & (t <= float(truth_t[-1]) + tol)
-    return sel
-
-
-def _bound_kind(along: str, smooth: bool) -> str:
-    """What the bound of a summary is, in words (``bound_kind``)."""
-    return (("smoothed " if smooth else "") + "posterior Cramer-Rao bound along the "
-            + {"truth": "truth", "plan": "plan (no truth)", "q_ref": "reference pose at rest (no manoeuvre)"}[along])
-
-
-def metrics(est: Signals, truth: Signals, start_up: float = 0.3, names: Sequence[str] | None = None, *,
-            min_coverage: float = 0.9) -> dict:
-    """RMS and max absolute error per quantity after ``start_up`` s (truth interpolated onto the estimate's times).
-
-    The truth must cover the scored interval ``[t_0 + start_up, t_end]`` of the estimate: interpolation holds a
-    truth's end values, so a truth cut short or on another clock would be scored silently against constants.
-    Only the estimate's samples within the truth's span (half a sample's tolerance) are scored; if they are less
-    than ``min_coverage`` of the scored interval it is an error (``ValueError`` naming both spans), else a
-    partial cover is a warning. ``truth_coverage`` in the result is the covered fraction.
-    """
-    names = [n for n in (names or est.names) if n in truth]
-    sel = est.t >= est.t[0] + start_up
-    if not np.any(sel):
-        raise ValueError(
-            f"the log is {est.t[-1] - est.t[0]:.3g} s long, not longer than the start-up period left out of the "
-            f"error metrics ({start_up:g} s); use a longer log or a shorter start_up"
-        )
-    ts = est.t[sel]
-    tol = 0.5 * float(np.median(np.diff(est.t))) if len(est.t) > 1 else 0.0
-    t0, t1 = (float(truth.t[0]), float(truth.t[-1])) if len(truth.t) else (math.nan, math.nan)
-    inside = (ts >= t0 - tol) & (ts <= t1 + tol)
-    coverage = float(inside.mean())
-    span = f"the truth spans {t0:.6g} to {t1:.6g} s, the scored estimate {ts[0]:.6g} to {ts[-1]:.6g} s"
-    if coverage < min_coverage:
-        raise ValueError(f"the truth covers {coverage:.0%} of the scored interval ({span}): not the same run or "
-                         f"clock? (at least {min_coverage:.0%} needed)")
-    if coverage < 1.0:
-        log.warning("the truth covers %.1f%% of the scored interval (%s); scoring the covered part only",
-                    100 * coverage, span)
-    ts = ts[inside]
-    rms, mx = {}, {}
-    for n in names:
-        tr = np.interp(ts, truth.t, truth[n])
-        e = est[n][sel][inside] - tr
-        e = e[np.isfinite(e)]
-        rms[n] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
-        mx[n] = float(np.max(np.abs(e))) if e.size else float("nan")
-    return {"rms_error": rms, "max_error": mx, "truth_coverage": coverage}
-
-
-def estimation_bound(obs: Observer, run=None, *, span: tuple[float, float] | None = None, smooth: bool = False,
-                     log_check=None) -> dict[str, float]:
-    """The bound an RMS error is compared with: the RMS over ``span`` of the posterior Cramer-Rao bound's standard
-    deviation of each physical quantity (:func:`bound_track`).
-
-    ``run`` (:class:`exuflex.runs.Run`): along its truth if it has one, else along the plan, on its log's times,
-    torques and sampled channels; without: along the plan at the observer's interval, every channel at every
-    sample, the plan's computed torques. ``span = (t0, t1)`` in seconds from the first sample (default: from the
-    observer's ``start_up`` to the end). ``smooth``: the smoothed bound. ``log_check`` (the log's
-    :class:`exuflex.validate.LogCheck`) is only used for the observability test's channel set.
-
-    Raises
-    ------
-    UnobservableError
-        As :func:`steady_bound`: the channels leave states that neither decay nor are measured.
-    """
-    mech = obs.mech
-    if run is None:
-        d = mech.manoeuvre.duration if mech.manoeuvre is not None else 1.0
-        t = np.arange(0.0, d + 0.5 * obs.ekf.dt, obs.ekf.dt)
-        U, sampled, truth = None, None, None
-    else:
-        S = run.sensors
-        t = np.asarray(S.t, float)
-        U = LogColumns.of(S, run.motors or mech.motor_names, hold=True)
-        sampled = _Sampled(S, obs.channels)
-        truth = run.truth
-    check_observable(obs, log_check)
-    track, _ = bound_track(obs, t, U, sampled, truth=truth, smooth=smooth)
-    t0, t1 = (obs.config.start_up, float(t[-1] - t[0])) if span is None else (float(span[0]), float(span[1]))
-    sel = (t - t[0] >= t0 - 1e-9) & (t - t[0] <= t1 + 1e-9)
-    if not sel.any():
-        raise ValueError(f"span {span} holds no sample of the record ({t[0]:.6g} to {t[-1]:.6g} s)")
-    return dict(zip(physical_names(mech), map(float, track.rms(sel, smoothed=smooth)), strict=True))
-
-
-class _Sampled:
-    """Which of ``channels`` are sampled (finite) in each row of a log's table, a block of rows at a time."""
-
-    def __init__(self, signals: Signals, channels: Sequence[str]):
-        self._cols = LogColumns.of(signals, channels)
-
-    def __getitem__(self, rows: slice) -> np.ndarray:
-        return np.isfinite(self._cols[rows])
-
-
-class _Trajectory:
-    """Reduced states along a trajectory of the rigid coordinates, a block of rows at a time: ``q`` and ``q'`` at
-    the times ``t`` from a truth (linear interpolation of its samples) or from the plan (cubic Hermite from the
-    plan's grid at the log's interval); the elastic coordinates and their rates at zero (the truth files hold the
-    tip's elastic displacement, not the reduced model's coordinates)."""
-
-    def __init__(self, obs: Observer, t: np.ndarray, truth: Signals | None):
-        self.obs, self.t = obs, np.asarray(t, float)
-        mech = obs.mech
-        qn = list(mech.coordinate_names)
-        self.plan_torque = None
-        if truth is not None:
-            self._q = lambda ts: np.column_stack([np.interp(ts, truth.t, truth[n]) for n in qn])
-            self._qd = lambda ts: np.column_stack([np.interp(ts, truth.t, truth["d" + n]) for n in qn])
-            self.along = "truth"
-            return
-        t0 = float(self.t[0])
-        span = float(self.t[-1] - t0) if len(self.t) > 1 else 0.0
-        if mech.manoeuvre is None:
-            q = np.asarray(mech.q_ref, float)
-            self._q = lambda ts: np.tile(q, (len(ts), 1))
-            self._qd = lambda ts: np.zeros((len(ts), len(q)))
-            self.along = "q_ref"
-            return
-        step = float(np.median(np.diff(self.t))) if len(self.t) > 1 else obs.ekf.dt
-        p = plan(mech, dt=step, t_end=span + step)
-        from scipy.interpolate import CubicHermiteSpline  # (here: scipy.interpolate is a large import)
-
-        sq = CubicHermiteSpline(p.t, p.q, p.qd, axis=0)
-        sqd = CubicHermiteSpline(p.t, p.qd, p.qdd, axis=0)
-        self._q = lambda ts: sq(ts - t0)
-        self._qd = lambda ts: sqd(ts - t0)
-        self._plan = p
-        self.along = "plan"
-
-    def torques(self) -> np.ndarray:
-        """The plan's computed torques (:func:`exuflex.manoeuvre.computed_torque`) at the times ``t``; zeros
-        without a plan."""
-        from ..manoeuvre import computed_torque
-
-        nu = len(self.obs.mech.motors)
-        if self.along != "plan":
-            return np.zeros((len(self.t), nu))
-        p = self._plan
-        tau = computed_torque(self.obs.mech, p)
-        return np.column_stack([np.interp(self.t - self.t[0], p.t, tau[:, i]) for i in range(nu)])
-
-    def __getitem__(self, rows: slice) -> np.ndarray:
-        som = self.obs.model
-        ts = self.t[rows]
-        X = np.zeros((len(ts), som.nx))
-        X[:, : som.nq] = self._q(ts)
-        X[:, som.r : som.r + som.nq] = self._qd(ts)
-        return X
-
-
-def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None = None,
-                smooth: bool = False) -> tuple[BoundTrack, str]:
-    """The posterior Cramer-Rao bound of the observer's reduced model along a record (:func:`.bound.riccati_track`):
-    the Kalman covariance recursion with the model's step and measurement Jacobians evaluated at the true states
-    (``truth``: :class:`~exuflex.sensors.Signals` with the truth columns) or, without a truth, at the planned ones,
-    mapped into the reduced coordinates (:class:`_Trajectory`: the rigid coordinates and their rates; the elastic
-    ones at zero). The filter's noise model and prior: the motors' stated torque noise as process noise through
-    the model's interval maps (not ``q_scale`` or ``q_extra``, the filter's tuning), the channels' stated noise, the
-    filter's prior covariance ``P0`` at the first sample, and the model's own step (``method``, held matrices and
-    step maps under the same error control as the filter's, measured against this recursion's covariance).
-
-    ``t`` (n,): the sample times; ``U``: the torques (n, n_motors) held over each interval (None: the plan's
-    computed torques); ``sampled``: which channels of ``obs.channels`` each sample holds ((n, m) bool, default
-    all). ``smooth``: also the smoothed bound. Returns the track (variances of the :func:`physical_names`
-    quantities, through the maps of :meth:`Observer.physical_covariance`) and what it runs along (``"truth"``,
-    ``"plan"``, or ``"q_ref"`` at rest without a manoeuvre).
-    """
-    t = np.asarray(t, float)
-    traj = _Trajectory(obs, t, truth)
-    if U is None:
-        U = traj.torques()
-    model = _bound_model(obs)
-    P0 = obs.ekf.P0
-    nx = model.nx
-    P0 = np.diag(P0[:nx]) if P0.ndim == 1 else P0[:nx, :nx]
-    R = np.asarray(obs.ekf.R_std, float) ** 2
-    carry: dict = {}
-
-    def outputs(a, b, Xb, Pb):
-        if a == 0:  # a pass over the record starts (the smoothed one after the filtered one)
-            carry.clear()
-        return np.diagonal(obs.physical_covariance(Xb, Pb, refresh_rad=BOUND_TIP_RADIUS, carry=carry),
-                           axis1=1, axis2=2)
-
-    track = riccati_track(model, t, traj, U, obs.channels, R, P0, sampled, outputs=outputs, smooth=smooth,
-                          linearise=_step_linearisation(model))
-    return track, traj.along
-
-
-#: the radius (rad) within which the bound's tip rows follow q to first order (:meth:`Observer.physical_covariance`):
-#: their error, about half its square relative, stays below 5e-4 of the tip's standard deviations
-BOUND_TIP_RADIUS = 3e-2
-
-
-def _step_linearisation(model: ReducedObserverModel):
-    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` without its sub-steps (the
-    held configuration and step map as :meth:`.reduced.ReducedObserverModel.predict` renews them, and the step
-    Jacobian kernel :func:`.expansion.step_jacobian` it calls with them); None for the reference step (``rk4``:
-    through ``predict``). ``tests/test_bound.py`` checks that it returns ``predict``'s ``F`` and ``Q``."""
-    if model.method != "cached":
-        return None
-
-    def linearise(x, u, dt):
-        sm = model.prepare(x, model.torques(u), dt)[4]
-        return step_jacobian(x, *sm.tail[:5]), sm.Q
-
-    return linearise
-
-
-def _bound_model(obs: Observer) -> ReducedObserverModel:
-    """The observer's reduced model (its step ``method`` and sub-step ``h``) with the stated torque noise: a model of
-    its own, so that the filter's caches are left alone."""
-    var = getattr(obs.model, "torque_var_nominal", obs.model.torque_var)
-    return ReducedObserverModel(obs.model.rm, h=obs.model.h, method=obs.model.method, torque_std=np.sqrt(var))
-
-
-def check_observable(obs: Observer, log_check=None) -> None:
-    """Raise :class:`UnobservableError` if the channels (those the log samples, with ``log_check``) leave states
-    that neither decay nor are measured at the start of the manoeuvre (PBH test, :func:`.bound.unobservable_states`)."""
-    _linearised(obs, start_configuration(obs.mech), None, log_check)
-
-
-def steady_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
-                 span: tuple[float, float] | None = None) -> dict[str, float]:
-    """A quick estimate of the bound: the steady-state Kalman covariance of the reduced model linearised and frozen
-    at a configuration, the stated torque noise as process noise (no trajectory is followed: at a pose the
-    trajectory stays at, :func:`estimation_bound` approaches it).
-
-    The covariance depends on the configuration (a tip's global x and y swap roles as its link turns; the
-    sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
-    configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
-    and the per-quantity standard deviations are combined as an RMS. ``span = (t0, t1)`` (s from the manoeuvre's
-    start): the configurations at the midpoints of ``points`` equal parts of that interval instead (past the
-    manoeuvre's end: its final pose at rest). With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``,
-    at rest): that one configuration.
-
-    ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the estimate for that log: the
-    interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
-    every k-th interval (:func:`.bound.periodic_posterior`, averaged over the period). Without it: every channel
-    of the observer at every interval of the model's rate.
-
-    Raises
-    ------
-    UnobservableError
-        The channels leave states that neither decay nor are measured (e.g. gauges only: the rigid motion); the
-        message names them.
-    """
-    mech = obs.mech
-    if q is not None or mech.manoeuvre is None or points < 1:
-        return _bound_at(obs, _mid_q(mech) if q is None else q, qd, log_check)
-    d = mech.manoeuvre.duration
-    t_end = d if span is None else max(float(span[1]), float(span[0]))
-    try:
-        p = plan(mech, dt=t_end / 400 if t_end > 0 else d / 200, t_end=t_end if t_end > 0 else d)
-    except Exception as exc:  # noqa: BLE001 - the bound at q_ref instead, with a note
-        log.warning("could not plan the manoeuvre for the bound (%s); using the bound at q_ref", exc)
-        return _bound_at(obs, np.asarray(mech.q_ref, float), None, log_check)
-    if span is None:
-        idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
-    else:
-        t0, t1 = float(span[0]), t_end
-        ts = t0 + (np.arange(points) + 0.5) * (t1 - t0) / points
-        idx = np.unique(np.clip(np.searchsorted(p.t, ts), 0, len(p.t) - 1))
-    per = [_bound_at(obs, p.q[k], p.qd[k], log_check) for k in idx]
-    return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
-
-
-def _linearised(obs: Observer, q, qd=None, log_check=None) -> tuple:
-    """The reduced model frozen at ``q`` with rates ``qd`` (None: at rest) over the log's interval: ``(som, z, A, Q,
-    H, R, channels, every)`` with the channels the log samples and their spacing in intervals; the PBH test of
-    their observability first (:class:`UnobservableError`)."""
-    mech = obs.mech
-    som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
-    q = np.asarray(q, float)
-    z = som.initial_state(q, qd)
-    u = np.zeros(len(mech.motors))
-    channels = list(obs.channels)
-    R_all = {c: s**2 for c, s in zip(obs.channels, obs.ekf.R_std, strict=True)}
-    dt = obs.ekf.dt
-    every = {c: 1 for c in channels}
-    if log_check is not None:
-        dt = log_check.interval_s or dt
-        mult = max(1, round(dt / obs.ekf.dt))
-        channels = [c for c in channels if log_check.channel_rate_hz.get(c, 1.0) > 0]
-        every = {c: max(1, round(log_check.channel_every.get(c, mult) / mult)) for c in channels}
-    if not channels:
-        raise UnobservableError(f"{mech.source or mech.name}: no channel of {list(obs.channels)} is sampled in the "
-                                "log: nothing to estimate with")
-    pred, _, maps = som.frozen_interval(z, u, dt)
-    A = pred.F
-    # the bound is a property of the sensors and the *stated* noise, not of the filter's tuning
-    var = getattr(obs.model, "torque_var_nominal", som.torque_var)
-    Q = (maps.L * var) @ maps.L.T
-    _, H = som.measure(z, channels)
-    R = np.array([R_all[c] for c in channels])
-    nq, r = som.nq, som.r
-    state_names = (list(mech.coordinate_names) + [f"p{i + 1}" for i in range(r - nq)]
-                   + [f"d{c}" for c in mech.coordinate_names] + [f"dp{i + 1}" for i in range(r - nq)])
-    d = np.sqrt(np.clip(np.diag(Q), 0, None))
-    d = np.where(d > 0, d, d[d > 0].min() if np.any(d > 0) else 1.0)
-    bad = unobservable_states(A, H, state_names, scale=d)
-    if bad:
-        rigid = [b for b in bad if not b.lstrip("d").startswith("p")]
-        raise UnobservableError(
-            f"the channels {channels} cannot observe {', '.join(bad)}"
-            + (" (the rigid motion: add an encoder)" if rigid else " (add a strain gauge or a tip sensor)")
-            + "; no filter has a bounded error there")
-    return som, z, A, Q, H, R, channels, every
-
-
-def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
-    """:func:`steady_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
-    mech = obs.mech
-    som, z, A, Q, H, R, channels, every = _linearised(obs, q, qd, log_check)
-    period = int(np.lcm.reduce([every[c] for c in channels]))
-    if period == 1:
-        P = steady_posterior(A, Q, H, R)
-    else:
-        if period > 1000:
-            raise UnobservableError(f"channel spacings {every} give a period of {period} intervals; resample the log")
-        pattern = np.array([[k % every[c] == 0 for c in channels] for k in range(period)])
-        P = periodic_posterior(A, Q, H, R, pattern)
-    nq, r = som.nq, som.r
-    q = np.asarray(q, float)
-    names = physical_names(mech)
-    out = {}
-    sd = np.sqrt(np.diag(P))
-    for i in range(nq):
-        out[names[i]] = float(sd[i])
-        out[names[nq + i]] = float(sd[r + i])
-    tp = tip_point(mech)
-    if tp is not None:
-        # the maps of Observer.physical linearised at z: e = A(q) p, e' = A(q) p' + sum_i (dA/dq_i p) q'_i
-        A, dA, _ = obs._tip_rows_and_rates(q, tp)
-        dAp = np.einsum("iaj,j->ai", dA, z[:r])
-        for k in range(2):
-            C = np.zeros(som.nx)
-            C[:r] = A[k]
-            C[:nq] += dAp[k]
-            out[names[2 * nq + k]] = float(np.sqrt(C @ P @ C))
-            Cd = np.zeros(som.nx)
-            Cd[r:] = A[k]
-            Cd[:r] += np.tensordot(z[r : r + nq], dA, axes=1)[k]
-            Cd[r : r + nq] += dAp[k]
-            out[names[2 * nq + 2 + k]] = float(np.sqrt(Cd @ P @ Cd))
-    return out
-
-
-class UnobservableError(ValueError):
-    """A channel set that leaves states unobservable (the bound does not exist); the message names them."""
-
-
-def _mid_q(mech: Mechanism) -> np.ndarray:
-    if mech.manoeuvre is not None:
-        try:
-            d = mech.manoeuvre.duration
-            p = plan(mech, dt=d / 2, t_end=d)
-            return np.asarray(p.q[len(p.q) // 2], float)
-        except Exception as exc:  # noqa: BLE001
-            log.warning("could not plan the manoeuvre's middle (%s); using q_ref", exc)
-    return np.asarray(mech.q_ref, float)
-
-
-
-# ------------------------------------------------------------------------------------------ runs
-@dataclass
-class Outcome:
-    """The observer run on one log, with everything a result file records."""
-
-    estimate: Estimate
-    metrics: dict | None
-    bound: dict | None
-    summary: dict
-
-
-#: what :func:`observe_run` keeps of the filtered record (``keep``)
-KEEP = ("all", "physical", "summary")
-
-
-def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
-                observer: Observer | None = None, report=None, smooth: bool = False, keep: str = "all",
-                sink=None, log_check=None) -> Outcome:
-    """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
-    (``smooth``: the RTS-smoothed estimates; the filter's errors are then in ``filtered_rms_error``).
-
-    The log is checked first (:func:`exuflex.validate.check_run`): its clock, per-channel availability and rates.
-    The filter steps by each sample's own time stamp (jitter and drift within the documented tolerance need no
-    grid). The bound is the one for this log (:func:`bound_track`: the posterior Cramer-Rao bound along its truth,
-    else along the plan, on its times, torques and sampled channels; with ``smooth`` the smoothed bound), its RMS
-    over the samples :func:`metrics` scores (``bound_rms``, ``ratio_to_bound``; with ``smooth`` also
-    ``filtered_bound_rms`` and ``filtered_ratio_to_bound`` for the filter's errors); it is computed before
-    filtering, and an unobservable channel set is reported at once.
-    ``report``: a callable taking one-line stage messages (the CLI prints them on stderr). ``log_check``: the
-    log's check if the caller made it already (:func:`exuflex.validate.check_run` with the observer's channels and
-    sample interval; the command line checks a log before it builds the model).
-
-    Memory: besides the log, ``keep`` says what the outcome holds of the filtered record, per sample:
-
-    - ``"all"`` (default): the filter's whole record (:class:`~.ekf.EstimationResult`: estimates, covariances as
-      the filter's ``store_P`` says, innovations, NIS) and the physical estimates;
-    - ``"physical"``: the physical estimates (8 bytes a column) and the NIS sequence (10 bytes);
-    - ``"summary"``: the NIS sequence, and the physical estimates only where a truth is scored.
-
-    Except with ``"all"`` or ``smooth`` (the smoother needs the whole record) the log is filtered
-    :data:`CHUNK_ROWS` rows at a time (:func:`estimate_chunks`, the same numbers) and nothing else grows with it.
-    ``sink``: called with each :class:`EstimateChunk` as it is filtered (the smoothed run: once, with the smoothed
-    physical estimates), e.g. :class:`.output.EstimatesWriter` streaming ``estimates.csv``.
-    """
-    from ..validate import check_mechanism_argument, check_run
-
-    if keep not in KEEP:
-        raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
-    check_mechanism_argument(mech)
-    _check_arguments(config=config, observer=observer)
-    if not hasattr(run, "sensors") or not hasattr(run, "meta"):
-        from ..errors import UsageError
-
-        hint = " (a path: read it with exuflex.runs.read_run(path) first)" if isinstance(run, (str, bytes)) or \
-            hasattr(run, "__fspath__") else ""
-        raise UsageError(f"run: expected an exuflex.runs.Run, got {type(run).__name__}{hint}")
-    say = report or (lambda msg: log.info("%s", msg))
-    config = config or ObserverConfig.for_model(mech)
-    obs = observer or make_observer(mech, config)
-    if log_check is None:
-        log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
-    elif set(log_check.channel_rate_hz) != set(obs.channels) or log_check.dt != obs.ekf.dt:
-        raise ValueError(f"log_check: made for channels {sorted(log_check.channel_rate_hz)} at {log_check.dt} s, "
-                         f"the observer has {sorted(obs.channels)} at {obs.ekf.dt} s")
-    say(f"channels: {log_check.availability()}; log interval {log_check.interval_s * 1e3:.4g} ms"
-        + (f", clock {log_check.clock_drift_ppm:+.1f} ppm, jitter up to {log_check.jitter_max_s * 1e6:.3g} us"
-           if log_check.jitter_max_s > 1e-6 * log_check.dt else ""))
-    for w in log_check.warnings:
-        say(f"note: {w}")
-    S = run.sensors
-    motors = run.motors or mech.motor_names
-    # a torque not sampled at a time: hold the last value (documented in docs/run_format.md)
-    U = LogColumns.of(S, motors, hold=True)
-    Y = LogColumns.of(S, obs.channels)
-    bnd, unobservable, track = None, None, None
-    if with_bound:  # before filtering: an unobservable channel set is reported at once
-        try:
-            check_observable(obs, log_check)
-        except UnobservableError as exc:
-            unobservable = str(exc)
-            say(f"warning: no bound: {exc}")
-    span = float(S.t[-1] - S.t[0]) if len(S.t) > 1 else 0.0
-    start_up = config.start_up if span > config.start_up else 0.5 * span
-    if start_up != config.start_up:
-        log.warning("log is %.3g s long: error metrics from %.3g s instead of the %.3g s start-up", span, start_up,
-                    config.start_up)
-    if run.truth is not None:  # before filtering: a truth of another run or clock is refused at once
-        try:
-            metrics(Signals(S.t, (), np.empty((len(S.t), 0))), run.truth, start_up)
-        except ValueError as exc:
-            from ..errors import LogFormatError
-
-            raise LogFormatError(f"{Path(run.path) / 'truth.csv'}: {exc}") from None
-    if with_bound and unobservable is None:
-        track, along = bound_track(obs, S.t, U, _Sampled(S, obs.channels), truth=run.truth, smooth=smooth)
-        scored = _scored(S.t, start_up, None if run.truth is None else run.truth.t)
-        names = physical_names(mech)
-        bnd = dict(zip(names, map(float, track.rms(scored, smoothed=smooth)), strict=True))
-        say(f"bound for this log ({_bound_kind(along, smooth)}): " + ", ".join(f"{k} {v:.3g}" for k, v in bnd.items()))
-    say(f"filtering {len(S.t)} samples" + (" (and smoothing)" if smooth else ""))
-    if keep == "all" or smooth:
-        est = estimate(obs, S.t, U[:], Y[:], smooth=smooth)
-        last = _last_state(est)
-        if sink is not None:
-            sink(EstimateChunk(0, est.result, est.physical, est.wall_s))
-    else:
-        est, last = _estimate_kept(obs, S.t, U, Y, keep == "physical" or run.truth is not None, sink)
-    met = metrics(est.physical, run.truth, start_up) if run.truth is not None else None
-    res = est.result
-    summary = {
-        "model": mech.name,
-        "model_file": mech.source,
-        "run": str(run.path),
-        "channels": list(obs.channels),
-        "channels_used": [c for c in obs.channels if log_check.channel_rate_hz.get(c, 0) > 0],
-        "reduced_ndof": obs.info["reduced_ndof"],
-        "config": config.as_dict(),
-        "nis_mean": res.mean_nis()[0],
-        "nis_expected": res.mean_nis()[1],
-        "n_updates": res.n_updates,
-        "n_missing": res.n_missing,
-        # diverged: the estimates became non-finite (the filter's covariance test can only flag inconsistency)
-        "diverged": bool(res.nonfinite),
-        "diverged_at": res.diverged_at if res.nonfinite else None,
-        # (an estimator that reports its NIS test through ``diverged`` without non-finite values: the UKF)
-        "nis_inconsistent": bool(res.nis_flagged or (res.diverged and not res.nonfinite)
-                                 or nis_whole_log_flag(*res.mean_nis(), res.n_updates)),
-        "nis_whole_log_flag": nis_whole_log_flag(*res.mean_nis(), res.n_updates),
-        "nis_flagged_at": res.nis_flagged_at if res.nis_flagged else (
-            res.diverged_at if res.diverged and not res.nonfinite else None),
-        "flagged_intervals": [list(iv) for iv in res.flagged_intervals],
-        "channel_faults": [dict(f) for f in res.channel_faults],
-        "n_rejected": dict(res.n_rejected),
-        "wall_s": est.wall_s,
-        "real_time_factor": est.real_time_factor,
-        "basis_s": obs.basis_s,
-        "log_check": log_check.as_dict(),
-        "metrics_from_s": start_up,
-    }
-    summary["estimator"] = config.estimator
-    summary["smoothed"] = bool(smooth)
-    if obs.ekf.model is obs.model and obs.model.method == "cached":
-        summary["held_model_error"] = obs.model.held_error_summary()
-    summary.update(_extra_states(obs.ekf.model, *last))
-    if met is not None:
-        summary.update(met)
-        if est.filtered_physical is not None:
-            summary["filtered_rms_error"] = metrics(est.filtered_physical, run.truth, start_up)["rms_error"]
-    if unobservable:
-        summary["unobservable"] = unobservable
-    # the ERLS model's validity along the motion (links turning fast against their clamped frequency; logged)
-    from ..erls.validity import signal_warnings
-
-    motion = run.truth if run.truth is not None else est.physical
-    summary["validity"] = [w.as_dict() for w in signal_warnings(mech, motion)] if motion is not None else []
-    if bnd is not None:
-        summary["bound_rms"] = bnd
-        summary["bound_kind"] = _bound_kind(along, smooth)
-        summary["bound_for"] = {"interval_s": log_check.interval_s, "channel_rate_hz": log_check.channel_rate_hz,
-                                "along": along, "smoothed": bool(smooth), "scored_from_s": start_up}
-        summary["bound_wall_s"] = track.wall_s
-        if smooth:
-            summary["filtered_bound_rms"] = dict(zip(bnd, map(float, track.rms(scored)), strict=True))
-        if met is not None:
-            summary["ratio_to_bound"] = {k: met["rms_error"][k] / bnd[k] for k in met["rms_error"] if bnd.get(k)}
-            if smooth and "filtered_rms_error" in summary:
-                fb = summary["filtered_bound_rms"]
-                summary["filtered_ratio_to_bound"] = {k: v / fb[k] for k, v in summary["filtered_rms_error"].items()
-                                                      if fb.get(k)}
-    return Outcome(est, met, bnd, summary)
-
-
-def _estimate_kept(obs: Observer, t: np.ndarray, U, Y, keep_physical: bool, sink) -> tuple[Estimate, tuple]:
-    """The record filtered in chunks (:func:`estimate_chunks`), of which only the NIS sequence (and with
-    ``keep_physical`` the physical estimates) is kept; each chunk goes to ``sink``. Returns the estimate and the
-    last sample's state and variances (None if the filter stores no covariance)."""
-    n = len(t)
-    nis = np.empty(n)
-    dof = np.empty(n, dtype=np.int16)  # a count of channels
-    names = physical_names(obs.mech)
-    phys = np.empty((n, len(names))) if keep_physical else None
-    wall = 0.0
-    final = (np.full(obs.ekf.nx, np.nan), None, None)
-    for ch in estimate_chunks(obs, t, U, Y, innovations=False):
-        r = ch.result
-        a, b = ch.start, ch.start + len(r.t)
-        nis[a:b] = r.nis
-        dof[a:b] = r.nis_dof
-        if phys is not None:
-            phys[a:b] = ch.physical.data
-        wall += ch.wall_s
-        if sink is not None:
-            sink(ch)
-        if b > a:
-            final = (r.x_hat[-1].copy(), None if r.P is None else r.P_diag[-1].copy(),
-                     None if r.nominal_p is None else float(r.nominal_p[-1]))
-        # the run-level counters, flags and faults so far, without the chunk's arrays (one chunk alive at a time)
-        last = replace(r, x_hat=None, P=None, innovations=None, S=None, P_theta=None, nominal_p=None)
-        del ch, r
-    res = replace(last, t=t, nis=nis, nis_dof=dof, wall_s=wall)
-    span = float(t[-1] - t[0]) if n > 1 else 0.0
-    est = Estimate(res, None if phys is None else Signals(t, names, phys, physical_units(obs.mech)), wall,
-                   span / wall if wall > 0 else float("inf"))
-    return est, final
 
 
 def reported(obs: Observer, res, t0: float):
@@ -1259,7 +668,7 @@ def reported(obs: Observer, res, t0: float):
     fm = obs.ekf.model
     it = getattr(fm, "i_theta", None)
     p = obs.config.payload_nominal_p
-    if it is None or p <= 0.0 or res.x_hat is None:
+    if it is None or p <= 0.0 or res.x_hat is None or res.nominal_p is not None:  # (the IMM reports its own)
         return res
     cross = res.P[:, :, it] if isinstance(res, SmoothedResult) else res.P_theta
     prior_var = obs.ekf.P0[it, it] + fm.payload_std**2 * (np.asarray(res.t, float) - t0)
@@ -1269,7 +678,7 @@ def reported(obs: Observer, res, t0: float):
     return replace(res, x_hat=x, P=P, P_theta=None, nominal_p=w)
 
 
-def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+def last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | None]:
     """The last sample's state, variances (None without a stored covariance) and nominal payload probability
     (None where not reported) of a whole record, smoothed where smoothing ran."""
     src = est.smoothed if est.smoothed is not None else est.result
@@ -1279,11 +688,11 @@ def _last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | N
 
 def augmented_estimates(fmodel, est: Estimate) -> dict:
     """The augmented states' estimates at the end of the record ``est`` of the filter model ``fmodel``
-    (:func:`_extra_states`): the payload scale or the torque disturbances; empty for a plain model."""
-    return _extra_states(fmodel, *_last_state(est))
+    (:func:`extra_states`): the payload scale or the torque disturbances; empty for a plain model."""
+    return extra_states(fmodel, *last_state(est))
 
 
-def _extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:
+def extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:
     """The augmented states' estimates ``x`` and variances ``var`` at the end of the record (smoothed where
     smoothing ran; NaN standard deviations without ``var``): ``{"parameters": {"payload_scale": ...,
     "payload_scale_std": ..., "payload_nominal_p": ...}}`` (the last where reported, :func:`reported`) and

@@ -36,12 +36,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import expm
 
 from .base import DiscreteModel, Prediction
-from .bound import van_loan
 
 __all__ = [
     "QScaleResult",
+    "van_loan",
     "ScaledNoiseModel",
     "continuous_torque_noise",
     "input_jacobian",
@@ -50,6 +51,28 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation of ``x' = A_c x + w`` with white ``w`` of intensity ``Qc`` over ``dt`` (Van Loan).
+
+    Returns
+    -------
+    A : ndarray
+        ``expm(A_c dt)``.
+    Q : ndarray
+        ``int_0^dt expm(A_c s) Qc expm(A_c s)' ds``.
+    """
+    A_c = np.asarray(A_c, float)
+    n = A_c.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -A_c
+    M[:n, n:] = Qc
+    M[n:, n:] = A_c.T
+    E = expm(M * dt)
+    A = E[n:, n:].T
+    Q = A @ E[:n, n:]
+    return A, 0.5 * (Q + Q.T)
 
 
 def _add_diag(Q: np.ndarray, extra_diag) -> np.ndarray:

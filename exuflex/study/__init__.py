@@ -12,6 +12,7 @@ from .runner import (
     payload_levels,
     run_estimator_studies,
     run_study,
+    slenderness_levels,
     sweep_levels,
 )
 
@@ -30,5 +31,6 @@ __all__ = [
     "payload_levels",
     "run_estimator_studies",
     "run_study",
+    "slenderness_levels",
     "sweep_levels",
 ]

@@ -23,6 +23,13 @@ every finished run and every cached truth):
   seeds, package versions, wall time). The figure (``fig_payload.png`` / ``fig_sweep.png``) is drawn from the
   summary by :func:`exuflex.plots.study_figure` (the command line does it; the library does not plot).
 
+A slenderness study (:func:`slenderness_levels`, ``exuflex study slenderness``) tests beam theory rather than a
+parameter: each level changes a link's shape, the truth is that geometry as solid FFRF bodies (``StudySpec.beam``),
+the observer is built on each level's own model (``observer_model = "level"``: the drive and observer keys then
+follow the level), and each run is also scored against its posterior Cramer-Rao bound along the truth
+(``with_bound``: ``bound_rms``, ``ratio_to_bound`` per run; per level ``ratio_to_bound_mean`` and the worst
+quantity's ratio ``worst_ratio``).
+
 Execution goes through a :class:`concurrent.futures.Executor`: in-process (``workers=1``), a
 ``ProcessPoolExecutor`` (``workers > 1``) or a Dask cluster (``scheduler="tcp://..."``). Workers get all their
 data in the task (no shared file system needed) and build the observer once per process.
@@ -77,6 +84,7 @@ __all__ = [
     "payload_levels",
     "run_estimator_studies",
     "run_study",
+    "slenderness_levels",
     "sweep_levels",
 ]
 
@@ -163,6 +171,64 @@ def sweep_levels(sets: Sequence[tuple[str, Sequence[Any]]]) -> tuple[Level, ...]
     return tuple(out)
 
 
+SLENDERNESS_KEEPS = ("dynamics", "material")
+
+
+def slenderness_levels(mech: Mechanism, link: str, ratios: Sequence[float], mesh_scale: float | None = None,
+                       keep: str = "dynamics") -> tuple[Level, ...]:
+    """Levels of a beam-theory study: link ``link``'s slenderness ``L / d`` set to each of ``ratios`` by its
+    diameter (a round section, ``d = L / ratio``; its length and everything else kept).
+
+    ``keep``: ``"dynamics"`` (default) also sets the link's ``E`` and ``rho`` so that its bending stiffness ``EI``
+    and mass per length ``rho A`` stay the nominal ones (``E ~ d^-4``, ``rho ~ d^-2``; Poisson's ratio kept): an
+    Euler-Bernoulli model of the link is then the same at every level (up to its rotary inertia and axial
+    stiffness), its first modes stay in the band and the motors' torques unchanged, and what changes is the
+    solid's shape, which beam theory leaves out (shear, the section's rotary inertia and warping). ``"material"``
+    keeps ``E`` and ``rho``: the link grows heavier (``d^2``) and stiffer (``d^4``), its modes leave the band and
+    the motors need torques growing with ``d^2``. ``mesh_scale``: the FFRF truth's solid mesh size on that link
+    as a multiple of ``d`` (default: the truth's own default)."""
+    names = [lk.name for lk in mech.links]
+    if link not in names:
+        raise UsageError(f"link (--link): {link!r} is not a link of {mech.name}; expected one of {', '.join(names)}")
+    lk = mech.link(link)
+    if lk.section.shape != "round":
+        raise UsageError(f"link (--link): {link!r} has a {lk.section.shape or 'A-and-I'} section; the slenderness "
+                         "study scales a round section's diameter (expected shape round)")
+    if keep not in SLENDERNESS_KEEPS:
+        raise UsageError(f"keep (--keep): expected one of {', '.join(SLENDERNESS_KEEPS)}, got {keep!r}")
+    if mesh_scale is not None and not (isinstance(mesh_scale, (int, float)) and mesh_scale > 0):
+        raise UsageError(f"mesh_scale (--mesh-scale): expected a positive number, got {mesh_scale!r}")
+    out, seen = [], []
+    for r in ratios:
+        try:
+            r = float(r)
+        except (TypeError, ValueError):
+            raise UsageError(f"levels (--levels): expected slenderness ratios L/d, got {r!r}") from None
+        if not (math.isfinite(r) and r > 1):
+            raise UsageError(f"levels (--levels): slenderness L/d {r:g}; expected a finite ratio above 1")
+        if r in seen:
+            raise UsageError(f"levels (--levels): the level L/d = {r:g} is given twice; expected each level once")
+        seen.append(r)
+        d = lk.length / r
+        ov = ((f"links.{link}.diameter", d),)
+        if keep == "dynamics":
+            f = lk.section.diameter / d
+            ov += ((f"links.{link}.E", lk.material.E * f**4), (f"links.{link}.rho", lk.material.rho * f**2))
+        if mesh_scale is not None:
+            ov += ((f"links.{link}.mesh_size", mesh_scale * d),)
+        try:
+            apply_overrides(mech, ov)
+        except OverrideError as exc:
+            hint = (f"; keep=dynamics scales E with d^-4 and rho with d^-2 from the file's L/d = "
+                    f"{lk.length / lk.section.diameter:g}: choose ratios nearer it, or --keep material"
+                    if keep == "dynamics" else "")
+            raise UsageError(f"levels (--levels): L/d = {r:g} on link {link!r}: {exc}{hint}") from None
+        out.append(Level(f"L/d = {r:g}", r, ov, 1.0))
+    if not out:
+        raise UsageError("levels (--levels): expected at least one slenderness ratio L/d, e.g. 50,20,10,5,3")
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class StudySpec:
     """Everything that determines a study's numbers (recorded in ``summary.json``)."""
@@ -177,8 +243,19 @@ class StudySpec:
     start_up: float | None = None  # None: min(observer.start_up, duration / 4)
     observer: ObserverConfig | None = None  # None: ObserverConfig.for_model(the nominal model)
     kind: str = "payload"
+    beam: str = "ancf"  # the Exudyn truth's bodies (exuflex.truth.BEAMS)
+    observer_model: str = "nominal"  # "nominal", or "level": the observer's model is each level's model
+    with_bound: bool = False  # score each run against its posterior Cramer-Rao bound (ratio_to_bound)
 
     def settings(self, duration: float, start_up: float) -> dict:
+        extra = {}  # non-default choices only (a study written before they existed resumes unchanged)
+        if self.beam != "ancf":
+            extra["beam"] = self.beam
+        if self.observer_model != "nominal":
+            extra["observer_model"] = "each level's model (the observer follows the level's geometry)"
+        if self.with_bound:
+            extra["bound"] = ("posterior Cramer-Rao bound of the observer's model along the level's truth, RMS after "
+                              "start_up (ratio_to_bound = RMS error / bound, per run)")
         return {
             "kind": self.kind,
             "runs_per_level": self.runs,
@@ -191,6 +268,7 @@ class StudySpec:
             "observer": None if self.observer is None else self.observer.as_dict(),
             "computed_torque_model": "rigid ERLS, nominal model (the controller's knowledge)",
             "observer_model": "nominal model",
+            **extra,
         }
 
 
@@ -277,6 +355,7 @@ class RunTask:
     config: ObserverConfig
     start_up: float
     duration: float
+    with_bound: bool = False
 
 
 _OBSERVERS: dict[str, Any] = {}
@@ -313,7 +392,7 @@ def _reset_observer(obs) -> None:
 
 
 def _abs_error_stats(est: Signals, truth: Signals, start_up: float) -> dict:
-    from ..observer.stats import eq21_stats
+    from ..scoring.stats import eq21_stats
 
     sel = est.t >= est.t[0] + start_up
     out = {"mean_abs": {}, "std_abs": {}, "rms": {}, "max": {}}
@@ -386,6 +465,8 @@ def run_one(task: RunTask) -> dict:
     from ..observer.session import augmented_estimates
 
     extra = augmented_estimates(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
+    if task.with_bound:
+        extra.update(_bound_ratios(obs, S.t, U, lt.truth, task.start_up, stats["rms"]))
     return {
         **extra,
         "level_index": task.level_index,
@@ -404,6 +485,19 @@ def run_one(task: RunTask) -> dict:
         "worker": f"{socket.gethostname()}:{os.getpid()}",
         **stats,
     }
+
+
+def _bound_ratios(obs, t: np.ndarray, U: np.ndarray, truth: Signals, start_up: float, rms: dict) -> dict:
+    """The run's bound (:func:`exuflex.scoring.bound.bound_track` along the truth, on the run's times and
+    torques, every channel sampled; its RMS after ``start_up``) and each quantity's RMS error over it."""
+    from ..observer.session import physical_names
+    from ..scoring import bound_track
+
+    track, _ = bound_track(obs, t, U, None, truth=truth)
+    sel = t >= t[0] + start_up
+    bound = dict(zip(physical_names(obs.mech), map(float, track.rms(sel)), strict=True))
+    return {"bound_rms": bound,
+            "ratio_to_bound": {q: rms[q] / b for q, b in bound.items() if b > 0 and q in rms}}
 
 
 # ------------------------------------------------------------------------------------------ executors
@@ -689,6 +783,12 @@ def _check_spec(spec) -> None:
     check_positive(spec.h, "h", "--h")
     if spec.start_up is not None:
         check_positive(spec.start_up, "start_up", "--start-up", allow_zero=True)
+    from ..truth import BEAMS
+
+    if spec.beam not in BEAMS:
+        raise UsageError(f"beam (--beam): expected one of {', '.join(BEAMS)}, got {spec.beam!r}")
+    if spec.observer_model not in ("nominal", "level"):
+        raise UsageError(f"observer_model: expected 'nominal' or 'level', got {spec.observer_model!r}")
     if spec.observer is not None and not isinstance(spec.observer, ObserverConfig):
         raise UsageError(f"observer: expected an exuflex.ObserverConfig or None, got {type(spec.observer).__name__}")
 
@@ -762,7 +862,9 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
             except ModelFileError as exc:
                 raise OverrideError(f"level {lv.label}: the model file's check refuses it: "
                                     f"{str(exc).removeprefix(f'{exc.source}: ')}") from None
-    drive_mechs = [drive_mech(nominal, lv) for lv in spec.levels]
+    # the mechanism each level's drive is planned on and its observer built from: the nominal one with the level's
+    # manoeuvre, or (observer_model "level") the level's own model
+    drive_mechs = truth_mechs if spec.observer_model == "level" else [drive_mech(nominal, lv) for lv in spec.levels]
     for lv, dm in zip(spec.levels, drive_mechs, strict=True):  # a longer manoeuvre than the nominal one is cut
         if spec.duration is None and dm.manoeuvre is not None and dm.manoeuvre.duration > duration:
             log.warning("level %s: its manoeuvre lasts %g s, the study simulates %g s (the nominal manoeuvre's; "
@@ -771,15 +873,19 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
     # a level's own manoeuvre changes its drive and the observer's start (the controller knows the manoeuvre)
     man_ov = [{"manoeuvre": [list(o) for o in manoeuvre_overrides(lv)]} if manoeuvre_overrides(lv) else {}
               for lv in spec.levels]
+    if spec.observer_model == "level":
+        man_ov = [{"level_model": lv.as_dict()} for lv in spec.levels]
     obs_keys = [_hash({"model": model_sha, "observer": spec.observer.as_dict(), **m}) for m in man_ov]
     drive_keys = [_hash({"model": model_sha, "duration": duration, "h": spec.h, **m}, 10) for m in man_ov]
     keys, hashes = [], []
     for i, lv in enumerate(spec.levels):
         truth_def = {"model": model_sha, "level": lv.as_dict(), "engine": spec.engine, "duration": duration,
                      "h": spec.h}
+        if spec.beam != "ancf":
+            truth_def["beam"] = spec.beam
         keys.append(f"L{i:02d}-{_hash(truth_def, 10)}")
         hashes.append(_hash({"truth": truth_def, "observer": obs_keys[i], "start_up": start_up,
-                             "stats": STATS_VERSION}))
+                             "stats": STATS_VERSION, **({"bound": True} if spec.with_bound else {})}))
     record = {"format": FORMAT, "model": str(model_path.resolve()), "model_sha256": model_sha, "settings": settings,
               "levels": [dict(lv.as_dict(), key=k) for lv, k in zip(spec.levels, keys, strict=True)]}
     _check_same_study(out, record)
@@ -820,7 +926,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
             small = _hold_on_grid(with_absolute_tip(nominal, lt), nominal.sample_rate_hz, duration)
             for j in pending.get(i, []):
                 queue.append(RunTask(i, keys[i], j, spec.base_seed + j, hashes[i], obs_keys[i], drive_mechs[i],
-                                     truth_mechs[i], small, spec.observer, start_up, duration))
+                                     truth_mechs[i], small, spec.observer, start_up, duration, spec.with_bound))
 
         # truths: cached ones are loaded, the others simulated through the executor (in parallel with runs)
         truth_jobs = []
@@ -844,7 +950,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
             return drives[k]
 
         for i in truth_jobs:
-            fut = ex.submit(simulate, truth_mechs[i], drive(i), spec.engine, duration, spec.h)
+            fut = ex.submit(simulate, truth_mechs[i], drive(i), spec.engine, duration, spec.h, beam=spec.beam)
             in_flight[fut] = ("truth", i)
             if isinstance(ex, InlineExecutor):
                 break  # in-process: simulate one level, run it, then the next
@@ -885,7 +991,7 @@ def _run_study(spec, out: Path, *, workers, scheduler, progress, on_result) -> S
                         on_result(r)
             if waiting_truth and not any(v[0] == "truth" for v in in_flight.values()) and not queue:
                 i = waiting_truth.pop(0)
-                in_flight[ex.submit(simulate, truth_mechs[i], drive(i), spec.engine, duration, spec.h)] = \
+                in_flight[ex.submit(simulate, truth_mechs[i], drive(i), spec.engine, duration, spec.h, beam=spec.beam)] = \
                     ("truth", i)
             fill()
     bar.close()
@@ -1014,6 +1120,7 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
             "max_mean": {q: _finite_mean(r["max"].get(q, nan) for r in good) for q in qs},
             "nis_mean": float(np.mean([r["nis_mean"] for r in good])) if good else float("nan"),
             "nis_expected": float(np.mean([r["nis_expected"] for r in good])) if good else float("nan"),
+            **_ratio_summary(good, qs),
             "observer_wall_s_mean": float(np.mean([r["wall_s"] for r in rs])) if rs else float("nan"),
             "truth_timings": timings.get(keys[i], {}),
         })
@@ -1033,6 +1140,19 @@ def _summary(spec, model_path, model_sha, nominal, keys, rows, settings, timings
                       "wall_s": wall},
         "versions": package_versions(),
     }
+
+
+def _ratio_summary(rows: Sequence[dict], qs: Sequence[str]) -> dict:
+    """Per level (runs scored against their bound): each quantity's ratio RMS error / bound, its mean over the runs,
+    and the worst quantity's ratio per run (its mean, min and max over the runs); empty without bounds."""
+    rows = [r for r in rows if r.get("ratio_to_bound")]
+    if not rows:
+        return {}
+    names = [q for q in qs if all(q in r["ratio_to_bound"] for r in rows)]
+    worst = [max(r["ratio_to_bound"][q] for q in names) for r in rows]
+    return {"ratio_to_bound_mean": {q: _finite_mean(r["ratio_to_bound"][q] for r in rows) for q in names},
+            "worst_ratio": {"mean": _finite_mean(worst), "min": float(np.min(worst)), "max": float(np.max(worst)),
+                            "quantity": [max(names, key=lambda q: r["ratio_to_bound"][q]) for r in rows]}}
 
 
 def _tip_quantities(nominal: Mechanism, qs: Sequence[str]) -> dict:

@@ -26,6 +26,9 @@ def simulate_run(model_path: str | Path, out: str | Path, *, seed: int | None = 
     ``duration`` defaults to the manoeuvre's; ``seed`` (default: a fresh one, recorded in ``meta.json``) draws
     the measurement noise; the other keyword arguments are :func:`simulate_runs`'.
     """
+    from ..validate import check_seed
+
+    check_seed(seed)  # before it keys simulate_runs' outs
     return simulate_runs(model_path, {seed: out}, **kwargs)[0]
 
 

@@ -1,7 +1,7 @@
 """Sensor design: rank curvature-gauge stations by the best RMS error any filter can reach with them.
 
 For a candidate channel set the criterion is the quick, steady-state estimate of the bound,
-:func:`.session.steady_bound` (the Kalman filter's steady-state posterior covariance of the reduced model linearised
+:func:`.bound.steady_bound` (the Kalman filter's steady-state posterior covariance of the reduced model linearised
 along the manoeuvre's plan and frozen at each of its poses, the stated torque
 noise as process noise): the RMS bound of the tip elastic displacement, ``sqrt(b_x^2 + b_y^2)``, since the
 encoders alone already give the rigid motion. A channel set that leaves states unobservable gets an infinite
@@ -25,21 +25,15 @@ import numpy as np
 
 from ..mechanism import Mechanism
 from ..sensors import tip_point
-from .session import (
-    ObserverConfig,
-    UnobservableError,
-    default_channels,
-    make_observer,
-    physical_names,
-    steady_bound,
-)
+from ..observer.session import ObserverConfig, default_channels, make_observer, physical_names
+from .bound import UnobservableError, steady_bound
 
 __all__ = ["DesignResult", "rank_gauges"]
 
 
 @dataclass(frozen=True)
 class _BoundFilter:
-    """What :func:`.session.steady_bound` reads of a filter: the channels' noise and the interval."""
+    """What :func:`.bound.steady_bound` reads of a filter: the channels' noise and the interval."""
 
     R_std: np.ndarray
     dt: float

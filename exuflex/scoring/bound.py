@@ -21,8 +21,8 @@ The smoothed bound (:func:`riccati_track` with ``smooth``) is the fixed-interval
 on these covariances, in its modified Bryson-Frazier form (:func:`smoothed_covariances`): the bound for an
 estimate that uses the whole record.
 
-The recursion's steps are the filter's own kernels (:func:`.kalman.predict_cov`, the Joseph-form
-:func:`.kalman.update`): :func:`riccati_predict`, :func:`riccati_update`.
+The recursion's steps are the filter's own kernels (:func:`exuflex.observer.kalman.predict_cov`, the Joseph-form
+:func:`exuflex.observer.kalman.update`): :func:`riccati_predict`, :func:`riccati_update`.
 
 **The frozen steady state** (:func:`steady_posterior`, :func:`periodic_posterior`): with ``F``, ``Q``, ``H`` held
 at one pose the recursion converges to the stationary solution of the discrete algebraic Riccati equation
@@ -43,37 +43,22 @@ import logging
 
 import numpy as np
 import scipy.linalg
-from scipy.linalg import expm, solve_discrete_are
+from scipy.linalg import solve_discrete_are
 
-from . import kalman
-from .base import DiscreteModel
+from ..manoeuvre import plan
+from ..mechanism import Mechanism
+from ..observer import kalman
+from ..observer.base import DiscreteModel
+from ..observer.expansion import step_jacobian
+from ..observer.reduced import ReducedObserverModel
+from ..observer.session import LogColumns, Observer, physical_names, start_configuration
+from ..observer.tuning import van_loan
+from ..sensors import Signals, tip_point
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BoundTrack", "bound_rms", "linearise", "periodic_posterior", "riccati_predict", "riccati_track",
-           "riccati_update", "smoothed_covariances", "steady_posterior", "steady_state_covariance", "unobservable_states", "van_loan"]
-
-
-def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact discretisation of ``x' = A_c x + w`` with white ``w`` of intensity ``Qc`` over ``dt`` (Van Loan).
-
-    Returns
-    -------
-    A : ndarray
-        ``expm(A_c dt)``.
-    Q : ndarray
-        ``int_0^dt expm(A_c s) Qc expm(A_c s)' ds``.
-    """
-    A_c = np.asarray(A_c, float)
-    n = A_c.shape[0]
-    M = np.zeros((2 * n, 2 * n))
-    M[:n, :n] = -A_c
-    M[:n, n:] = Qc
-    M[n:, n:] = A_c.T
-    E = expm(M * dt)
-    A = E[n:, n:].T
-    Q = A @ E[:n, n:]
-    return A, 0.5 * (Q + Q.T)
+__all__ = ["BoundTrack", "UnobservableError", "bound_rms", "bound_track", "check_observable", "estimation_bound", "linearise", "periodic_posterior", "riccati_predict", "riccati_track",
+           "riccati_update", "smoothed_covariances", "steady_bound", "steady_posterior", "steady_state_covariance", "unobservable_states"]
 
 
 def steady_state_covariance(
@@ -296,7 +281,7 @@ def steady_posterior(A, Q, H, R, tol: float = 1e-10, max_periods: int = 200_000)
 
 # ------------------------------------------------------------------------------ the recursion along a trajectory
 def riccati_predict(F, P, Q) -> np.ndarray:
-    """``F P F' + Q``: the covariance prediction of the filter (:func:`.kalman.predict_cov`), a new array."""
+    """``F P F' + Q``: the covariance prediction of the filter (:func:`exuflex.observer.kalman.predict_cov`), a new array."""
     out = np.empty_like(P)
     kalman.predict_cov(np.ascontiguousarray(F, float), np.ascontiguousarray(P, float),
                        np.ascontiguousarray(Q, float), out, np.empty_like(out))
@@ -305,8 +290,8 @@ def riccati_predict(F, P, Q) -> np.ndarray:
 
 def riccati_update(P, H, Rd, floor: np.ndarray | None = None) -> np.ndarray:
     """The Joseph-form posterior covariance of a measurement update with rows ``H`` (m, nx) and variances ``Rd``
-    (m,): the filter's :func:`.kalman.update` (a Cholesky solve of ``H P H' + R``) with its end-of-sample
-    symmetrisation and variance floor (:func:`.kalman.fix_cov`), a new array."""
+    (m,): the filter's :func:`exuflex.observer.kalman.update` (a Cholesky solve of ``H P H' + R``) with its end-of-sample
+    symmetrisation and variance floor (:func:`exuflex.observer.kalman.fix_cov`), a new array."""
     P = np.ascontiguousarray(P, float)
     H = np.ascontiguousarray(H, float)
     m, n = H.shape
@@ -333,7 +318,7 @@ def smoothed_covariances(P_prior, F, updates) -> np.ndarray:
         L_k = H_k' S_k^-1 H_k + (I - K_k H_k)' Lambda_k (I - K_k H_k)      (L_k = Lambda_k without an update)
         P_k|n = P_k|k-1 - P_k|k-1 L_k P_k|k-1,     Lambda_k-1 = F_k' L_k F_k
 
-    In exact arithmetic the RTS recursion's ``P_k|n`` (:func:`.smoother.rts_backward`); but the RTS gain
+    In exact arithmetic the RTS recursion's ``P_k|n`` (:func:`exuflex.observer.smoother.rts_backward`); but the RTS gain
     ``P_k|k F' P_k+1|k^-1`` is ``1/lambda`` in a direction that decays by ``lambda`` a sample without process
     noise (a damped mode the torques do not drive: an overdamped interior mode decays by orders of magnitude in
     one sample), and the RTS backward pass multiplies the rounding error of such a direction by ``1/lambda^2`` a
@@ -404,8 +389,8 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
     Parameters
     ----------
     model : DiscreteModel
-        Its :meth:`~.base.DiscreteModel.predict` at ``X[k-1]`` with the input ``U[k-1]`` held over ``t[k] -
-        t[k-1]`` gives ``F_k`` and ``Q_k``; its :meth:`~.base.DiscreteModel.measure` at ``X[k]`` gives ``H_k``.
+        Its :meth:`~exuflex.observer.base.DiscreteModel.predict` at ``X[k-1]`` with the input ``U[k-1]`` held over ``t[k] -
+        t[k-1]`` gives ``F_k`` and ``Q_k``; its :meth:`~exuflex.observer.base.DiscreteModel.measure` at ``X[k]`` gives ``H_k``.
     t : ndarray, shape (n,)
         Sample times.
     X : ndarray or row-sliceable, shape (n, nx)
@@ -428,7 +413,7 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
         Also the smoothed bound (:func:`smoothed_covariances`; keeps every prior and ``F``: 16 nx^2 bytes a
         sample).
     floor : float
-        A floor on the variances after each sample (:func:`.kalman.fix_cov`). None by default: a floor adds
+        A floor on the variances after each sample (:func:`exuflex.observer.kalman.fix_cov`). None by default: a floor adds
         variance the recursion's ``Q`` does not hold, and the smoother's backward pass multiplies that
         inconsistency by ``1/lambda^2`` a sample in a direction that decays by ``lambda`` with no process noise
         (an undriven damped mode), so that the smoothed bound of such a model diverges backwards (the five-bar's did with the
@@ -437,7 +422,7 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
         Samples per block of ``outputs`` (the memory beyond the result is a block's covariances).
     linearise : callable, optional
         ``linearise(x, u, dt) -> (F, Q)``: the model's step Jacobian and process noise without its step (what
-        :meth:`~.base.DiscreteModel.predict` returns with the state, which the recursion does not need); default
+        :meth:`~exuflex.observer.base.DiscreteModel.predict` returns with the state, which the recursion does not need); default
         through ``predict``.
 
     Returns
@@ -534,3 +519,319 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
     if hasattr(model, "watch_covariance"):
         model.watch_covariance(None)
     return BoundTrack(t, var, var_s, time.perf_counter() - w0)
+
+
+# ------------------------------------------------------------------------------------------ an observer's bound
+def estimation_bound(obs: Observer, run=None, *, span: tuple[float, float] | None = None, smooth: bool = False,
+                     log_check=None) -> dict[str, float]:
+    """The bound an RMS error is compared with: the RMS over ``span`` of the posterior Cramer-Rao bound's standard
+    deviation of each physical quantity (:func:`bound_track`).
+
+    ``run`` (:class:`exuflex.runs.Run`): along its truth if it has one, else along the plan, on its log's times,
+    torques and sampled channels; without: along the plan at the observer's interval, every channel at every
+    sample, the plan's computed torques. ``span = (t0, t1)`` in seconds from the first sample (default: from the
+    observer's ``start_up`` to the end). ``smooth``: the smoothed bound. ``log_check`` (the log's
+    :class:`exuflex.validate.LogCheck`) is only used for the observability test's channel set.
+
+    Raises
+    ------
+    UnobservableError
+        As :func:`steady_bound`: the channels leave states that neither decay nor are measured.
+    """
+    mech = obs.mech
+    if run is None:
+        d = mech.manoeuvre.duration if mech.manoeuvre is not None else 1.0
+        t = np.arange(0.0, d + 0.5 * obs.ekf.dt, obs.ekf.dt)
+        U, sampled, truth = None, None, None
+    else:
+        S = run.sensors
+        t = np.asarray(S.t, float)
+        U = LogColumns.of(S, run.motors or mech.motor_names, hold=True)
+        sampled = _Sampled(S, obs.channels)
+        truth = run.truth
+    check_observable(obs, log_check)
+    track, _ = bound_track(obs, t, U, sampled, truth=truth, smooth=smooth)
+    t0, t1 = (obs.config.start_up, float(t[-1] - t[0])) if span is None else (float(span[0]), float(span[1]))
+    sel = (t - t[0] >= t0 - 1e-9) & (t - t[0] <= t1 + 1e-9)
+    if not sel.any():
+        raise ValueError(f"span {span} holds no sample of the record ({t[0]:.6g} to {t[-1]:.6g} s)")
+    return dict(zip(physical_names(mech), map(float, track.rms(sel, smoothed=smooth)), strict=True))
+
+
+class _Sampled:
+    """Which of ``channels`` are sampled (finite) in each row of a log's table, a block of rows at a time."""
+
+    def __init__(self, signals: Signals, channels: Sequence[str]):
+        self._cols = LogColumns.of(signals, channels)
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        return np.isfinite(self._cols[rows])
+
+
+class _Trajectory:
+    """Reduced states along a trajectory of the rigid coordinates, a block of rows at a time: ``q`` and ``q'`` at
+    the times ``t`` from a truth (linear interpolation of its samples) or from the plan (cubic Hermite from the
+    plan's grid at the log's interval); the elastic coordinates and their rates at zero (the truth files hold the
+    tip's elastic displacement, not the reduced model's coordinates)."""
+
+    def __init__(self, obs: Observer, t: np.ndarray, truth: Signals | None):
+        self.obs, self.t = obs, np.asarray(t, float)
+        mech = obs.mech
+        qn = list(mech.coordinate_names)
+        self.plan_torque = None
+        if truth is not None:
+            self._q = lambda ts: np.column_stack([np.interp(ts, truth.t, truth[n]) for n in qn])
+            self._qd = lambda ts: np.column_stack([np.interp(ts, truth.t, truth["d" + n]) for n in qn])
+            self.along = "truth"
+            return
+        t0 = float(self.t[0])
+        span = float(self.t[-1] - t0) if len(self.t) > 1 else 0.0
+        if mech.manoeuvre is None:
+            q = np.asarray(mech.q_ref, float)
+            self._q = lambda ts: np.tile(q, (len(ts), 1))
+            self._qd = lambda ts: np.zeros((len(ts), len(q)))
+            self.along = "q_ref"
+            return
+        step = float(np.median(np.diff(self.t))) if len(self.t) > 1 else obs.ekf.dt
+        p = plan(mech, dt=step, t_end=span + step)
+        from scipy.interpolate import CubicHermiteSpline  # (here: scipy.interpolate is a large import)
+
+        sq = CubicHermiteSpline(p.t, p.q, p.qd, axis=0)
+        sqd = CubicHermiteSpline(p.t, p.qd, p.qdd, axis=0)
+        self._q = lambda ts: sq(ts - t0)
+        self._qd = lambda ts: sqd(ts - t0)
+        self._plan = p
+        self.along = "plan"
+
+    def torques(self) -> np.ndarray:
+        """The plan's computed torques (:func:`exuflex.manoeuvre.computed_torque`) at the times ``t``; zeros
+        without a plan."""
+        from ..manoeuvre import computed_torque
+
+        nu = len(self.obs.mech.motors)
+        if self.along != "plan":
+            return np.zeros((len(self.t), nu))
+        p = self._plan
+        tau = computed_torque(self.obs.mech, p)
+        return np.column_stack([np.interp(self.t - self.t[0], p.t, tau[:, i]) for i in range(nu)])
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        som = self.obs.model
+        ts = self.t[rows]
+        X = np.zeros((len(ts), som.nx))
+        X[:, : som.nq] = self._q(ts)
+        X[:, som.r : som.r + som.nq] = self._qd(ts)
+        return X
+
+
+def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None = None,
+                smooth: bool = False) -> tuple[BoundTrack, str]:
+    """The posterior Cramer-Rao bound of the observer's reduced model along a record (:func:`.bound.riccati_track`):
+    the Kalman covariance recursion with the model's step and measurement Jacobians evaluated at the true states
+    (``truth``: :class:`~exuflex.sensors.Signals` with the truth columns) or, without a truth, at the planned ones,
+    mapped into the reduced coordinates (:class:`_Trajectory`: the rigid coordinates and their rates; the elastic
+    ones at zero). The filter's noise model and prior: the motors' stated torque noise as process noise through
+    the model's interval maps (not ``q_scale`` or ``q_extra``, the filter's tuning), the channels' stated noise, the
+    filter's prior covariance ``P0`` at the first sample, and the model's own step (``method``, held matrices and
+    step maps under the same error control as the filter's, measured against this recursion's covariance).
+
+    ``t`` (n,): the sample times; ``U``: the torques (n, n_motors) held over each interval (None: the plan's
+    computed torques); ``sampled``: which channels of ``obs.channels`` each sample holds ((n, m) bool, default
+    all). ``smooth``: also the smoothed bound. Returns the track (variances of the :func:`exuflex.observer.session.physical_names`
+    quantities, through the maps of :meth:`exuflex.observer.session.Observer.physical_covariance`) and what it runs along (``"truth"``,
+    ``"plan"``, or ``"q_ref"`` at rest without a manoeuvre).
+    """
+    t = np.asarray(t, float)
+    traj = _Trajectory(obs, t, truth)
+    if U is None:
+        U = traj.torques()
+    model = _bound_model(obs)
+    P0 = obs.ekf.P0
+    nx = model.nx
+    P0 = np.diag(P0[:nx]) if P0.ndim == 1 else P0[:nx, :nx]
+    R = np.asarray(obs.ekf.R_std, float) ** 2
+    carry: dict = {}
+
+    def outputs(a, b, Xb, Pb):
+        if a == 0:  # a pass over the record starts (the smoothed one after the filtered one)
+            carry.clear()
+        return np.diagonal(obs.physical_covariance(Xb, Pb, refresh_rad=BOUND_TIP_RADIUS, carry=carry),
+                           axis1=1, axis2=2)
+
+    track = riccati_track(model, t, traj, U, obs.channels, R, P0, sampled, outputs=outputs, smooth=smooth,
+                          linearise=_step_linearisation(model))
+    return track, traj.along
+
+
+#: the radius (rad) within which the bound's tip rows follow q to first order (:meth:`exuflex.observer.session.Observer.physical_covariance`):
+#: their error, about half its square relative, stays below 5e-4 of the tip's standard deviations
+BOUND_TIP_RADIUS = 3e-2
+
+
+def _step_linearisation(model: ReducedObserverModel):
+    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` without its sub-steps (the
+    held configuration and step map as :meth:`exuflex.observer.reduced.ReducedObserverModel.predict` renews them, and the step
+    Jacobian kernel :func:`exuflex.observer.expansion.step_jacobian` it calls with them); None for the reference step (``rk4``:
+    through ``predict``). ``tests/test_bound.py`` checks that it returns ``predict``'s ``F`` and ``Q``."""
+    if model.method != "cached":
+        return None
+
+    def linearise(x, u, dt):
+        sm = model.prepare(x, model.torques(u), dt)[4]
+        return step_jacobian(x, *sm.tail[:5]), sm.Q
+
+    return linearise
+
+
+def _bound_model(obs: Observer) -> ReducedObserverModel:
+    """The observer's reduced model (its step ``method`` and sub-step ``h``) with the stated torque noise: a model of
+    its own, so that the filter's caches are left alone."""
+    var = getattr(obs.model, "torque_var_nominal", obs.model.torque_var)
+    return ReducedObserverModel(obs.model.rm, h=obs.model.h, method=obs.model.method, torque_std=np.sqrt(var))
+
+
+def check_observable(obs: Observer, log_check=None) -> None:
+    """Raise :class:`UnobservableError` if the channels (those the log samples, with ``log_check``) leave states
+    that neither decay nor are measured at the start of the manoeuvre (PBH test, :func:`.bound.unobservable_states`)."""
+    _linearised(obs, start_configuration(obs.mech), None, log_check)
+
+
+def steady_bound(obs: Observer, q=None, qd=None, points: int = 9, *, log_check=None,
+                 span: tuple[float, float] | None = None) -> dict[str, float]:
+    """A quick estimate of the bound: the steady-state Kalman covariance of the reduced model linearised and frozen
+    at a configuration, the stated torque noise as process noise (no trajectory is followed: at a pose the
+    trajectory stays at, :func:`estimation_bound` approaches it).
+
+    The covariance depends on the configuration (a tip's global x and y swap roles as its link turns; the
+    sensitivities of the encoders and gauges change with the pose), so by default it is evaluated at ``points``
+    configurations of the manoeuvre (its plan, positions and rates, evenly spread over 5-95 % of its duration)
+    and the per-quantity standard deviations are combined as an RMS. ``span = (t0, t1)`` (s from the manoeuvre's
+    start): the configurations at the midpoints of ``points`` equal parts of that interval instead (past the
+    manoeuvre's end: its final pose at rest). With ``q`` (and ``qd``) given, or without a manoeuvre (``q_ref``,
+    at rest): that one configuration.
+
+    ``log_check`` (:class:`exuflex.validate.LogCheck` of the log at hand) makes it the estimate for that log: the
+    interval is the log's, channels never sampled are left out, and channels sampled every k-th row update
+    every k-th interval (:func:`.bound.periodic_posterior`, averaged over the period). Without it: every channel
+    of the observer at every interval of the model's rate.
+
+    Raises
+    ------
+    UnobservableError
+        The channels leave states that neither decay nor are measured (e.g. gauges only: the rigid motion); the
+        message names them.
+    """
+    mech = obs.mech
+    if q is not None or mech.manoeuvre is None or points < 1:
+        return _bound_at(obs, _mid_q(mech) if q is None else q, qd, log_check)
+    d = mech.manoeuvre.duration
+    t_end = d if span is None else max(float(span[1]), float(span[0]))
+    try:
+        p = plan(mech, dt=t_end / 400 if t_end > 0 else d / 200, t_end=t_end if t_end > 0 else d)
+    except Exception as exc:  # noqa: BLE001 - the bound at q_ref instead, with a note
+        log.warning("could not plan the manoeuvre for the bound (%s); using the bound at q_ref", exc)
+        return _bound_at(obs, np.asarray(mech.q_ref, float), None, log_check)
+    if span is None:
+        idx = np.unique(np.round(np.linspace(0.05, 0.95, points) * (len(p.t) - 1)).astype(int))
+    else:
+        t0, t1 = float(span[0]), t_end
+        ts = t0 + (np.arange(points) + 0.5) * (t1 - t0) / points
+        idx = np.unique(np.clip(np.searchsorted(p.t, ts), 0, len(p.t) - 1))
+    per = [_bound_at(obs, p.q[k], p.qd[k], log_check) for k in idx]
+    return {name: float(np.sqrt(np.mean([b[name] ** 2 for b in per]))) for name in per[0]}
+
+
+def _linearised(obs: Observer, q, qd=None, log_check=None) -> tuple:
+    """The reduced model frozen at ``q`` with rates ``qd`` (None: at rest) over the log's interval: ``(som, z, A, Q,
+    H, R, channels, every)`` with the channels the log samples and their spacing in intervals; the PBH test of
+    their observability first (:class:`UnobservableError`)."""
+    mech = obs.mech
+    som = ReducedObserverModel(obs.model.rm, h=obs.model.h, method="rk4")
+    q = np.asarray(q, float)
+    z = som.initial_state(q, qd)
+    u = np.zeros(len(mech.motors))
+    channels = list(obs.channels)
+    R_all = {c: s**2 for c, s in zip(obs.channels, obs.ekf.R_std, strict=True)}
+    dt = obs.ekf.dt
+    every = {c: 1 for c in channels}
+    if log_check is not None:
+        dt = log_check.interval_s or dt
+        mult = max(1, round(dt / obs.ekf.dt))
+        channels = [c for c in channels if log_check.channel_rate_hz.get(c, 1.0) > 0]
+        every = {c: max(1, round(log_check.channel_every.get(c, mult) / mult)) for c in channels}
+    if not channels:
+        raise UnobservableError(f"{mech.source or mech.name}: no channel of {list(obs.channels)} is sampled in the "
+                                "log: nothing to estimate with")
+    pred, _, maps = som.frozen_interval(z, u, dt)
+    A = pred.F
+    # the bound is a property of the sensors and the *stated* noise, not of the filter's tuning
+    var = getattr(obs.model, "torque_var_nominal", som.torque_var)
+    Q = (maps.L * var) @ maps.L.T
+    _, H = som.measure(z, channels)
+    R = np.array([R_all[c] for c in channels])
+    nq, r = som.nq, som.r
+    state_names = (list(mech.coordinate_names) + [f"p{i + 1}" for i in range(r - nq)]
+                   + [f"d{c}" for c in mech.coordinate_names] + [f"dp{i + 1}" for i in range(r - nq)])
+    d = np.sqrt(np.clip(np.diag(Q), 0, None))
+    d = np.where(d > 0, d, d[d > 0].min() if np.any(d > 0) else 1.0)
+    bad = unobservable_states(A, H, state_names, scale=d)
+    if bad:
+        rigid = [b for b in bad if not b.lstrip("d").startswith("p")]
+        raise UnobservableError(
+            f"the channels {channels} cannot observe {', '.join(bad)}"
+            + (" (the rigid motion: add an encoder)" if rigid else " (add a strain gauge or a tip sensor)")
+            + "; no filter has a bounded error there")
+    return som, z, A, Q, H, R, channels, every
+
+
+def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
+    """:func:`steady_bound` at one configuration ``q`` with rates ``qd`` (None: at rest)."""
+    mech = obs.mech
+    som, z, A, Q, H, R, channels, every = _linearised(obs, q, qd, log_check)
+    period = int(np.lcm.reduce([every[c] for c in channels]))
+    if period == 1:
+        P = steady_posterior(A, Q, H, R)
+    else:
+        if period > 1000:
+            raise UnobservableError(f"channel spacings {every} give a period of {period} intervals; resample the log")
+        pattern = np.array([[k % every[c] == 0 for c in channels] for k in range(period)])
+        P = periodic_posterior(A, Q, H, R, pattern)
+    nq, r = som.nq, som.r
+    q = np.asarray(q, float)
+    names = physical_names(mech)
+    out = {}
+    sd = np.sqrt(np.diag(P))
+    for i in range(nq):
+        out[names[i]] = float(sd[i])
+        out[names[nq + i]] = float(sd[r + i])
+    tp = tip_point(mech)
+    if tp is not None:
+        # the maps of Observer.physical linearised at z: e = A(q) p, e' = A(q) p' + sum_i (dA/dq_i p) q'_i
+        A, dA, _ = obs.tip_rows_and_rates(q, tp)
+        dAp = np.einsum("iaj,j->ai", dA, z[:r])
+        for k in range(2):
+            C = np.zeros(som.nx)
+            C[:r] = A[k]
+            C[:nq] += dAp[k]
+            out[names[2 * nq + k]] = float(np.sqrt(C @ P @ C))
+            Cd = np.zeros(som.nx)
+            Cd[r:] = A[k]
+            Cd[:r] += np.tensordot(z[r : r + nq], dA, axes=1)[k]
+            Cd[r : r + nq] += dAp[k]
+            out[names[2 * nq + 2 + k]] = float(np.sqrt(Cd @ P @ Cd))
+    return out
+
+
+class UnobservableError(ValueError):
+    """A channel set that leaves states unobservable (the bound does not exist); the message names them."""
+
+
+def _mid_q(mech: Mechanism) -> np.ndarray:
+    if mech.manoeuvre is not None:
+        try:
+            d = mech.manoeuvre.duration
+            p = plan(mech, dt=d / 2, t_end=d)
+            return np.asarray(p.q[len(p.q) // 2], float)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("could not plan the manoeuvre's middle (%s); using q_ref", exc)
+    return np.asarray(mech.q_ref, float)

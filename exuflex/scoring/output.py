@@ -17,20 +17,22 @@ __all__ = ["EstimatesTable", "EstimatesWriter", "estimates_table", "summary_tabl
 def estimates_table(mech, outcome, observer=None) -> Signals:
     """The physical estimates with their standard deviations and the absolute tip position.
 
-    Columns: the physical quantities (q, dq/dt, tip elastic displacement and rate; :func:`.session.physical_names`),
+    Columns: the physical quantities (q, dq/dt, tip elastic displacement and rate; :func:`exuflex.observer.session.physical_names`),
     the absolute tip position and velocity ``tip_x tip_y dtip_x dtip_y`` (rigid + elastic,
     :func:`exuflex.sensors.absolute_tip`), then ``std_<name>`` for every quantity whose standard deviation the
     filter's covariance gives to first order: q and dq/dt from the posterior variances; with the full covariance
-    (``store_P="full"``, :meth:`.session.Observer.physical_covariance`) also the tip elastic columns and the
+    (``store_P="full"``, :meth:`exuflex.observer.session.Observer.physical_covariance`) also the tip elastic columns and the
     absolute tip position, ``J_q P_qq J_q' + J_q P_qe + P_eq J_q' + P_ee`` with ``J_q`` the rigid tip point's
     sensitivity to q. The absolute tip velocity's standard deviation would need the second derivative of the
-    kinematics and is not given. An outcome that kept no per-sample record (:func:`.session.observe_run` with
+    kinematics and is not given. A filter with a payload-scale state adds ``payload_scale`` (its estimate) and,
+    where the estimator reports it (the payload EKF's model average, the IMM's nominal mode), ``p_nominal``: the
+    nominal payload's posterior probability. An outcome that kept no per-sample record (:func:`.run.observe_run` with
     ``keep="summary"``) has no table: write it as the filter runs (:class:`EstimatesWriter`)."""
     res = outcome.estimate.result
     if outcome.estimate.physical is None or res.x_hat is None:
         raise ValueError("estimates_table: the outcome kept no per-sample estimates (observe_run(keep='all') "
                          "keeps them; EstimatesWriter writes them as the filter runs)")
-    return EstimatesTable(mech, observer).rows(outcome.estimate.physical, res.x_hat, res.P)
+    return EstimatesTable(mech, observer).rows(outcome.estimate.physical, res.x_hat, res.P, res.nominal_p)
 
 
 class EstimatesTable:
@@ -49,9 +51,11 @@ class EstimatesTable:
         self._kin = Kinematics(mech) if self.tp is not None else None  # the tip position's sensitivity
         self._z = None
 
-    def rows(self, phys: Signals, x_hat: np.ndarray, P: np.ndarray | None) -> Signals:
+    def rows(self, phys: Signals, x_hat: np.ndarray, P: np.ndarray | None, nominal_p: np.ndarray | None = None
+             ) -> Signals:
         """The table's rows for the physical estimates ``phys`` of a block, the filter's states ``x_hat`` and
-        covariances ``P`` (diagonal (n, nx), full (n, nx, nx), or None) of the same rows."""
+        covariances ``P`` (diagonal (n, nx), full (n, nx, nx), or None) of the same rows, and the nominal payload's
+        probability ``nominal_p`` (n,) where reported."""
         from ..sensors import ABSOLUTE_TIP_NAMES, absolute_tip
 
         mech, observer, tp = self.mech, self.observer, self.tp
@@ -101,12 +105,18 @@ class EstimatesTable:
             names += std_names
             cols += std_cols
             units += [units[names.index(n[4:])] for n in std_names]
+        it = None if observer is None else getattr(observer.ekf.model, "i_theta", None)
+        for name, col in (("payload_scale", None if it is None else x_hat[:, it]), ("p_nominal", nominal_p)):
+            if col is not None:
+                names.append(name)
+                cols.append(np.asarray(col, float).reshape(-1, 1))
+                units.append("1")
         return Signals(phys.t, tuple(names), np.hstack(cols), tuple(units))
 
 
 class EstimatesWriter:
-    """``estimates.csv`` in ``out_dir`` written as the filter runs: a ``sink`` for :func:`.session.observe_run`
-    that turns each :class:`~.session.EstimateChunk` into rows of :func:`estimates_table` (:class:`EstimatesTable`)
+    """``estimates.csv`` in ``out_dir`` written as the filter runs: a ``sink`` for :func:`.run.observe_run`
+    that turns each :class:`~exuflex.observer.session.EstimateChunk` into rows of :func:`estimates_table` (:class:`EstimatesTable`)
     and appends them (:class:`exuflex.runs.SignalsCsvWriter`: the bytes :func:`write_outcome` writes for the
     whole table, atomically, readable by everyone). Use as a context manager: leaving it normally renames the
     file into place; by an exception it removes the partial file (and the folder, if it made it and it is still
@@ -123,7 +133,7 @@ class EstimatesWriter:
 
     def __call__(self, chunk) -> None:
         res = chunk.result
-        sig = self._table.rows(chunk.physical, res.x_hat, res.P)
+        sig = self._table.rows(chunk.physical, res.x_hat, res.P, res.nominal_p)
         if self._csv is None:
             self._csv = SignalsCsvWriter(self.path, sig.names)
         self._csv.write(sig)
@@ -172,10 +182,10 @@ BOUND_NOTE = ("bound: the RMS over the scored samples of the posterior Cramer-Ra
 def summary_table(mech, outcome, bound: bool = True) -> str:
     """The result as text: a header (samples, model, channels, NIS), then one row per physical quantity with its
     unit, RMS and max error against the truth (if any), the bound for this log (the posterior Cramer-Rao bound's
-    RMS over the scored samples, :func:`.session.estimation_bound`; with smoothing the smoothed bound) and their
+    RMS over the scored samples, :func:`.bound.estimation_bound`; with smoothing the smoothed bound) and their
     ratio, and a note saying what the bound is."""
     s = outcome.summary
-    from .session import physical_names, physical_units
+    from ..observer.session import physical_names, physical_units
 
     res = outcome.estimate.result
     lines = [f"{mech.name}: {len(res.t)} samples, reduced model {s['reduced_ndof']} dofs, channels "

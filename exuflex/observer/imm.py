@@ -1,0 +1,324 @@
+"""Interacting multiple-model (IMM) filter: EKF modes over nested state spaces, mixed by their likelihoods.
+
+The payload estimator (``estimator="imm"``, :func:`.session.make_observer`) has two modes: the reduced model at
+the model file's payload (state ``z``) and the payload-augmented model (``[z; theta]``, :class:`.augmented.
+AugmentedModel`). The modes' states are nested: mode ``j``'s state is the first ``n_j`` components of the common
+state ``x`` (the largest mode's), and a mode holds the components beyond its own at fixed values, its ``tail``
+(the nominal mode: ``theta = 1``).
+
+One sample (Blom and Bar-Shalom 1988; Bar-Shalom, Li and Kirubarajan 2001, sec. 11.6.6), with ``T_ij`` the
+probability of mode ``j`` at this sample given mode ``i`` at the previous one and ``mu_i`` the previous
+sample's mode probabilities:
+
+1. Mixing: ``c_j = sum_i T_ij mu_i``, ``w_ij = T_ij mu_i / c_j``, and mode ``j`` starts from the moments of the
+   mixture ``x0_j = sum_i w_ij x_ij``, ``P0_j = sum_i w_ij (P_ij + (x_ij - x0_j)(x_ij - x0_j)')``. ``(x_ij,
+   P_ij)`` is mode ``i``'s belief in mode ``j``'s state space: its own components; for the components mode ``j``
+   has and mode ``i`` has not, mode ``j``'s own mean and covariance, uncorrelated with the rest ("unbiased
+   mixing": entering the payload mode means the payload changed to a value that mode's own estimate is the best
+   knowledge of, not that it is nominal; filling with the nominal ``theta = 1`` at zero variance instead would
+   collapse the payload mode's scale variance at every sample where the nominal mode dominates, and it could
+   not learn a payload changed later); components mode ``j`` has not are left out (the marginal: the physical
+   state does not jump when the payload does).
+2. Mode-matched filtering: each mode's EKF step from ``(x0_j, P0_j)``: :func:`.kalman.predict` over the model's
+   interval (eq. 13) and :func:`.kalman.condition` on the measurement (eqs. 14-15).
+3. Mode probabilities: ``mu_j = c_j L_j / sum_i c_i L_i``, with ``L_j = N(r_j; 0, S_j)`` the Gaussian likelihood
+   of mode ``j``'s innovation ``r_j`` (covariance ``S_j``).
+4. Combination (the estimate): ``x = sum_j mu_j x_j``, ``P = sum_j mu_j (P_j + (x_j - x)(x_j - x)')``, each mode
+   in the common space with its tail at variance 0: the payload scale reported is ``mu_0 + mu_1 theta_1``.
+
+With one mode every weight is 1 and the filter is that mode's EKF; with identical modes the likelihoods are
+equal and the probabilities keep their prior (the tests check both, and the mixing and probabilities against
+filterpy's ``IMMEstimator`` on a linear system).
+
+Transition matrix. A mode is left at the rate ``1 / tau`` (``tau`` its expected dwell time), to each other mode
+alike: the generator ``G_ii = -1 / tau``, ``G_ij = 1 / (tau (N - 1))``, and over an interval ``dt``
+``T = expm(G dt)`` (each interval its own ``T``: irregular sampling needs no grid). The payload estimator's
+``tau`` is ``ObserverConfig.imm_dwell_s``, by default a hundred manoeuvre durations
+(:data:`.session.IMM_DWELL_MANOEUVRES`): a payload is picked or placed at rest, between motions, and changes
+within a motion about once in a hundred. The dwell time sets how long the filter keeps evidence: a mode
+probability driven down is pulled back towards the chain's stationary share at the rate ``1 / tau``, and a
+``tau`` of the log's length lets a stretch of samples that one mode happens to fit better undo what the whole
+log said.
+
+Monitors. The innovations the monitors test (:class:`.ekf.BeliefFilter`: the gate, the hold-off after an input
+step, the sensor-fault windows, the NIS test) are the mixture's: ``r = sum_j c_j r_j`` (the measurement less the
+mixture's prediction ``sum_j c_j y_j``) with ``S = sum_j c_j (S_j + (r_j - r)(r_j - r)')``. A channel the gate or
+the isolation leaves out is left out of every mode's update.
+
+Smoothing is not offered: the extended RTS recursion (:mod:`.smoother`) runs back along one filter's
+linearisation, and the combined estimate is a mixture of two, with mode probabilities that a smoother would have
+to run backwards too (an IMM smoother, e.g. Helmick, Blair and Hoffman 1995, is a filter of its own).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+
+import numpy as np
+import scipy.linalg
+
+from . import kalman
+from .base import Belief, FilterDivergedError, Measurement, hooks
+from .ekf import _MODEL_FAILURES, BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
+
+__all__ = ["IMMFilter", "combine", "mix", "transition_matrix"]
+
+#: what the RTS smoother says of the IMM (module notes)
+NO_SMOOTHER = ("the IMM estimator has no smoother: its estimate mixes two filters' linearisations, which the RTS "
+               "recursion cannot run back along (docs/imm.md); use ekf or ekf-payload with --smooth")
+
+
+def transition_matrix(dwell_s: Sequence[float], dt: float) -> np.ndarray:
+    """``T = expm(G dt)``: the modes' transition probabilities over ``dt`` s, each mode left at the rate
+    ``1 / dwell_s[i]`` to the others alike (module notes); rows sum to 1."""
+    rate = 1.0 / np.asarray(dwell_s, float)
+    k = len(rate)
+    if k == 1:
+        return np.ones((1, 1))
+    G = np.repeat((rate / (k - 1))[:, None], k, axis=1)
+    np.fill_diagonal(G, -rate)
+    T = scipy.linalg.expm(G * dt)
+    return T / T.sum(axis=1, keepdims=True)
+
+
+def _moments(w: np.ndarray, X: Sequence[np.ndarray], P: Sequence[np.ndarray]) -> Belief:
+    """Mean and covariance of the Gaussian mixture with the weights ``w`` (summing to 1), means ``X``, covariances
+    ``P``."""
+    x = sum(wi * xi for wi, xi in zip(w, X, strict=True))
+    C = sum(wi * (Pi + np.outer(xi - x, xi - x)) for wi, xi, Pi in zip(w, X, P, strict=True))
+    return Belief(x, 0.5 * (C + C.T))
+
+
+def mix(mu: np.ndarray, T: np.ndarray, beliefs: Sequence[Belief]) -> tuple[np.ndarray, list[Belief]]:
+    """Step 1 of the module notes: the predicted mode probabilities ``c`` and each mode's mixed start, over modes
+    whose beliefs may differ in size (nested states, unbiased mixing)."""
+    c = mu @ T
+    out = []
+    for j, bj in enumerate(beliefs):
+        n = len(bj.x)
+        W = T[:, j] * mu / c[j] if c[j] > 0 else (np.arange(len(mu)) == j).astype(float)
+        X, P = [], []
+        for bi in beliefs:
+            k = min(len(bi.x), n)
+            x, Pi = bj.x.copy(), np.zeros((n, n))
+            x[:k] = bi.x[:k]
+            Pi[:k, :k] = bi.P[:k, :k]
+            Pi[k:, k:] = bj.P[k:, k:]
+            X.append(x)
+            P.append(Pi)
+        out.append(_moments(W, X, P))
+    return c, out
+
+
+def combine(mu: np.ndarray, beliefs: Sequence[Belief], tails: Sequence[np.ndarray]) -> Belief:
+    """Step 4 of the module notes: the mixture's moments in the common space, each mode's ``tail`` (its fixed
+    components) appended at variance 0."""
+    n = len(beliefs[0].x) + len(tails[0])
+    X, P = [], []
+    for b, tail in zip(beliefs, tails, strict=True):
+        k = len(b.x)
+        Pi = np.zeros((n, n))
+        Pi[:k, :k] = b.P
+        X.append(np.concatenate([b.x, tail]))
+        P.append(Pi)
+    return _moments(mu, X, P)
+
+
+class IMMFilter(BeliefFilter):
+    """Interacting multiple-model filter over EKF modes (module notes).
+
+    Parameters
+    ----------
+    models : sequence of DiscreteModel
+        The modes' models; mode ``j``'s state is the first ``models[j].nx`` components of the common state (the
+        largest model's).
+    tails : sequence of array_like
+        Per mode, the values it holds the common state's components beyond its own at (empty for the largest).
+    channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite, p_floor
+        As :class:`.ekf.MultirateEKF`; ``x0``, ``P0`` in the common state (each mode starts from its block).
+    dwell_s : sequence of float
+        Each mode's expected dwell time (s): the transition matrix (:func:`transition_matrix`).
+    mode_p0 : sequence of float
+        The modes' prior probabilities (summing to 1).
+    monitoring : Monitoring, optional
+        The innovation monitors on the mixture's innovations (default: the NIS test alone).
+    """
+
+    def __init__(self, models: Sequence, tails: Sequence, channels: Sequence[str], R_std: Mapping[str, float], x0,
+                 P0, dt: float, *, dwell_s: Sequence[float], mode_p0: Sequence[float], max_gap: float = 1.0,
+                 store_P: str = "diag", nonfinite: str = "raise", p_floor: float = 1e-18,
+                 monitoring: Monitoring | None = None):
+        dims = [int(m.nx) for m in models]
+        top = int(np.argmax(dims))
+        self._setup(models[top], channels, R_std, x0, P0, dt, max_gap, store_P, nonfinite,
+                    monitoring if monitoring is not None else Monitoring())
+        self.models, self.dims, self._top = tuple(models), dims, top
+        self.tails = [np.asarray(tl, float).reshape(-1) for tl in tails]
+        bad = [j for j, (n, tl) in enumerate(zip(dims, self.tails, strict=True)) if n + len(tl) != self.nx]
+        if bad:
+            raise ValueError(f"tails: mode(s) {bad} with {[dims[j] for j in bad]} states need "
+                             f"{[self.nx - dims[j] for j in bad]} fixed values to fill the common {self.nx}")
+        self.dwell_s = np.asarray(dwell_s, float).reshape(-1)
+        self.mode_p0 = np.asarray(mode_p0, float).reshape(-1)
+        if len(self.dwell_s) != len(dims) or not np.all(self.dwell_s > 0):
+            raise ValueError(f"dwell_s: expected {len(dims)} positive dwell times (s), got {list(self.dwell_s)}")
+        if len(self.mode_p0) != len(dims) or np.any(self.mode_p0 < 0) or abs(self.mode_p0.sum() - 1) > 1e-12:
+            raise ValueError(f"mode_p0: expected {len(dims)} probabilities summing to 1, got {list(self.mode_p0)}")
+        self._floor = np.full(self.nx, float(p_floor))
+        self._hooks = [hooks(m) for m in models]
+        for j, h in enumerate(self._hooks):  # each model measures its approximations against its own mode's P
+            if h.watch_covariance is not None:
+                h.watch_covariance(lambda j=j: self._beliefs[j].P)
+        self._T: tuple[float, np.ndarray] | None = None
+        self.reset()
+
+    def reset(self, x0=None, P0=None) -> None:
+        """Restart every mode from its block of the prior, with the prior mode probabilities
+        (:meth:`.ekf.BeliefFilter.reset`; every mode's model reset)."""
+        super().reset(x0, P0)
+        for j, h in enumerate(self._hooks):  # (the largest mode's model: BeliefFilter.reset)
+            if j != self._top and h.reset is not None:
+                h.reset()
+        self._beliefs = [Belief(self._x0[:n].copy(), self._P0[:n, :n].copy()) for n in self.dims]
+        self.mode_p = self.mode_p0.copy()
+
+    def _transition(self, dt: float) -> np.ndarray:
+        if self._T is None or self._T[0] != dt:
+            self._T = (dt, transition_matrix(self.dwell_s, dt))
+        return self._T[1]
+
+    def _predict(self, b: Belief, j: int, dt: float, u_next) -> Belief | None:
+        """Mode ``j``'s prediction from its mixed start ``b`` (None where its model cannot step from there)."""
+        try:
+            pred = self.models[j].predict(b.x, self._u_prev, dt, u_next)
+        except _MODEL_FAILURES:
+            return None
+        return kalman.predict(b, pred)
+
+    def _condition(self, j: int, y: np.ndarray, idx: np.ndarray):
+        """Mode ``j``'s update with the channels ``idx``: ``(belief, innovation)``, or None where its model cannot
+        measure there or its innovation covariance is not positive definite."""
+        b = self._beliefs[j]
+        try:
+            meas = self.models[j].measure(b.x, tuple(self.channels[i] for i in idx))
+            return kalman.condition(b, Measurement(np.asarray(meas.y, float), meas.H), y[idx], self._Rdiag[idx],
+                                    self._floor[: len(b.x)])
+        except (*_MODEL_FAILURES, np.linalg.LinAlgError):
+            return None
+
+    def step(self, t: float, u, y) -> np.ndarray:
+        """One sample (module notes): mixing, each mode's prediction and update, the mode probabilities and the
+        combined estimate (a new array; NaN once non-finite in ``"flag"`` mode)."""
+        t, u, y = step_arguments(self, t, u, y)
+        if self.nonfinite:
+            self._t_prev = t
+            return np.full(self.nx, np.nan)
+        jumps = self.hooks.n_jumps()
+        c = self.mode_p
+        alive = np.ones(len(self.models), dtype=bool)
+        if self._t_prev is not None:
+            dt = t - self._t_prev
+            if not dt > 1e-9 * self.dt or dt > self.max_gap:
+                raise ValueError(f"sample time {t!r} s: expected after the previous sample ({self._t_prev!r} s) by at "
+                                 f"most max_gap={self.max_gap:g} s")
+            self.n_missing += max(round(dt / self.dt) - 1, 0)
+            c, self._beliefs = mix(self.mode_p, self._transition(dt), self._beliefs)
+            for j, b in enumerate(self._beliefs):
+                p = self._predict(b, j, dt, u)
+                alive[j] = p is not None
+                self._beliefs[j] = b if p is None else p
+            # a mode whose model cannot step from its start is dropped (probability 0); none left: diverged
+            c = np.where(alive, c, 0.0)
+            if not c.sum() > 0:
+                self._beliefs = [Belief(np.full(len(b.x), np.nan), b.P) for b in self._beliefs]
+                c = self.mode_p
+            c = c / c.sum()
+        self._t_now = t
+        self._input_steps(t, u, jumps)
+        self._t_prev, self._u_prev = t, u
+        self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
+        idx = np.empty(0, dtype=np.int64) if y is None else np.flatnonzero(np.isfinite(y))
+        if len(idx):
+            self._update(c, alive, y, idx)
+        else:
+            self.n_missing += 1
+            for b in self._beliefs:
+                kalman.settle(b.x, b.P, self._floor[: len(b.x)])
+            self.mode_p = c
+        self._x, self._P = combine(self.mode_p, self._beliefs, self.tails)
+        if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
+            self._flag(t, "non-finite state or covariance")
+            self.nonfinite = True
+            if self.nonfinite_action == "raise":
+                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
+            return np.full(self.nx, np.nan)
+        if self.last_idx is not None:
+            self._count_update(t, self.last_nis, self.last_dof, self._held)
+        elif self.faults is not None:
+            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
+        return self._x.copy()
+
+    def _update(self, c: np.ndarray, alive: np.ndarray, y: np.ndarray, idx: np.ndarray) -> None:
+        """Steps 2-3 of the module notes on the channels ``idx``, the mixture's innovations through the monitors
+        (:meth:`.ekf.BeliefFilter._screen`: a channel left out is left out of every mode's update)."""
+        out = [self._condition(j, y, idx) if alive[j] else None for j in range(len(self.models))]
+        ok = np.array([o is not None for o in out])
+        w = np.where(ok, c, 0.0)
+        if not w.sum() > 0:  # no mode could update: the filter has diverged
+            self._beliefs = [Belief(np.full(len(b.x), np.nan), b.P) for b in self._beliefs]
+            return
+        w = w / w.sum()
+        r, S = self._mixture(w, out)
+        keep = self._screen(idx, r, S)
+        if keep is not None:
+            idx = idx[keep]
+            out = [self._condition(j, y, idx) if ok[j] else None for j in range(len(self.models))]
+            ok = np.array([o is not None for o in out])
+            w = np.where(ok, w, 0.0)
+            w = w / w.sum()
+            r, S = self._mixture(w, out)
+        m = len(idx)
+        log_l = np.full(len(out), -np.inf)
+        for j, o in enumerate(out):
+            if o is not None:
+                self._beliefs[j] = o[0]
+                sign, logdet = np.linalg.slogdet(o[1].S)
+                log_l[j] = -0.5 * (o[1].nis + logdet + m * math.log(2.0 * math.pi)) if sign > 0 else -np.inf
+        with np.errstate(divide="ignore"):
+            log_p = np.log(c) + log_l
+        top = np.max(log_p)
+        p = np.exp(log_p - top) if np.isfinite(top) else w
+        self.mode_p = p / p.sum()
+        nis = float(r @ np.linalg.solve(S, r))
+        self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
+
+    @staticmethod
+    def _mixture(w: np.ndarray, out: list) -> tuple[np.ndarray, np.ndarray]:
+        """The mixture's innovation and its covariance, weights ``w`` over the modes' updates ``out`` (module
+        notes, "Monitors")."""
+        inn = [o[1] for o in out if o is not None]
+        ww = w[[o is not None for o in out]]
+        b = _moments(ww, [i.r for i in inn], [i.S for i in inn])
+        return b.x, b.P
+
+    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
+            predictions: bool = False) -> EstimationResult:
+        """:meth:`step` over a record (as :meth:`.ekf.MultirateEKF.run`); the result's ``nominal_p`` is the first
+        mode's probability at each sample. ``predictions`` (what the smoother needs) is refused (module notes)."""
+        if predictions:
+            from ..errors import UsageError
+
+            raise UsageError(NO_SMOOTHER)
+        t, U, Y = check_log(t, U, Y, self.m)
+        if reset or x0 is not None or P0 is not None:
+            self.reset(x0, P0)
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
+        mode_p = np.empty((len(t), len(self.models)))
+        w0 = time.perf_counter()
+        for k in range(len(t)):
+            rec.put(k, self.step(t[k], None if U is None else U[k], Y[k]), self._P, self)
+            mode_p[k] = self.mode_p
+        return replace(self._result(rec, time.perf_counter() - w0), nominal_p=mode_p[:, 0])
