@@ -355,7 +355,9 @@ def acceptance_page(rows: list[dict], settings: dict) -> str:
                   "seed). Truths: "
                   + ", ".join(f"{k} (limit {v}x)" for k, v in ACCEPTANCE.items())
                   + f", and the consistent reference `{CONSISTENT}` (the observer's own reduced model generating the "
-                  "data: what a consistent filter's figures and their scatter look like)."), ""]
+                  "data: what a consistent filter's figures and their scatter look like; it is stepped by the frozen "
+                  "map of each interval's start configuration, `exuflex.truth.reduced_truth`, so the paired "
+                  "excess over it includes that map's departure from the continuous dynamics)."), ""]
     stats = seed_statistics(rows, pc)
     engines = list(dict.fromkeys(r["engine"] for r in rows))
     models = list(dict.fromkeys(r["model"] for r in rows))
@@ -529,7 +531,7 @@ def main(argv=None) -> int:
             r["acc28"] = acceptance_28(r)
         rows.append(r)
         ac = r["acceptance"]
-        print(f"{engine:6s} {m:14s} seed {s}: worst RMS/bound {ac['worst_ratio']:.2f} ({ac['worst_quantity']}), NIS "
+        print(f"{engine:6s} {Path(m).stem:14s} seed {s}: worst RMS/bound {ac['worst_ratio']:.2f} ({ac['worst_quantity']}), NIS "
               f"{r['nis_mean']:.2f} / {r['nis_expected']:.1f}, diverged {r['diverged']}, "
               + (f"default/reference {ac['path_worst']:.3f} ({ac['path_worst_quantity']}), " if "path_worst" in ac
                  else "") + (f"issue 28 ({r['acc28']['limit']}x): {'PASS' if r['acc28']['passed'] else 'FAIL'}"

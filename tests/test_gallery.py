@@ -186,3 +186,35 @@ def test_whole_chain_on_the_gallery_meets_the_acceptance(name):
         assert abs(r["nis_mean"] / r["nis_expected"] - 1) <= 0.1
         assert not r["diverged"] and not r["nonfinite"]
         assert all(abs(v - 1) <= 0.1 for v in r["default_over_reference"].values())
+
+
+def test_seed_statistics_mean_percentile_and_paired_excess():
+    """The over-the-seeds figures of ``--acceptance``: each quantity's mean and 90th percentile over the seeds, the
+    paired excess over the consistent truth (per seed the difference, its mean and the standard error of the mean),
+    and the verdict from the means (a run above the limit does not fail a model whose mean is within it)."""
+    bench = _benchmark()
+    a = [1.0, 1.4, 1.1, 1.3]  # erls, per seed
+    b = [0.9, 1.2, 1.1, 1.0]  # the consistent truth, same seeds
+
+    def row(engine, seed, v):
+        return {"engine": engine, "model": "m", "seed": seed, "ratio_to_bound": {"q1": v, "dq1": 1.0},
+                "nis_mean": 2.0 + 0.1 * seed, "nis_expected": 2.0, "diverged": False, "nonfinite": False}
+
+    rows = [row("erls", s, v) for s, v in enumerate(a, 1)] + [row(bench.CONSISTENT, s, v) for s, v in enumerate(b, 1)]
+    st = bench.seed_statistics(rows, 90)
+    e = st[("erls", "m")]
+    q = e["quantities"]["q1"]
+    assert q["mean"] == pytest.approx(np.mean(a))
+    assert q["p"] == pytest.approx(np.percentile(a, 90))
+    d = np.subtract(a, b)
+    assert q["excess"] == pytest.approx(d.mean())
+    assert q["excess_se"] == pytest.approx(d.std(ddof=1) / 2.0)
+    assert e["worst"] == "q1" and e["n"] == 4
+    assert e["nis_mean"] == pytest.approx(np.mean([1.05, 1.1, 1.15, 1.2]))
+    assert e["passed"] is False  # NIS / channels 1.125 on average: more than 10 % above 1
+    assert "excess" not in st[(bench.CONSISTENT, "m")]["quantities"]["q1"]
+    for r in rows:
+        r["nis_mean"] = 2.0
+    st = bench.seed_statistics(rows, 90)
+    assert st[("erls", "m")]["passed"] is True  # mean 1.2 within 1.25 although seed 2's run is at 1.4
+    assert bench._seeds("1-3,7") == [1, 2, 3, 7]
