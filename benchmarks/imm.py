@@ -78,6 +78,35 @@ def run_model(model: Path, study_dir: Path, seeds: int, estimators: list[str], s
     return out
 
 
+def traces_figure(model: Path, study_dir: Path, seeds: int, path: str) -> None:
+    """The IMM's nominal-mode probability and payload scale against time, seeds ``0 .. seeds - 1``, at the nominal and
+    the doubled payload (one panel pair per level)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    mech = load_mechanism(model)
+    obs = make_observer(mech, _config(mech, "imm"))
+    it = obs.ekf.model.i_theta
+    fig, axes = plt.subplots(2, 2, figsize=(10, 5.5), sharex=True, constrained_layout=True)
+    for col, scale in enumerate((1.0, 2.0)):
+        lt = _level(str(study_dir), scale)
+        truth_mech = mech.with_payload_scale(scale) if scale != 1.0 else mech
+        for seed in range(seeds):
+            S = measure(truth_mech, lt.clean, lt.torque_t, lt.torques, seed=seed, t_end=float(lt.clean.t[-1])).signals
+            res = estimate(obs, S.t, S.select(mech.motor_names).data, S.select(obs.channels).data).result
+            axes[0, col].plot(res.t, res.nominal_p, lw=0.7)
+            axes[1, col].plot(res.t, res.x_hat[:, it], lw=0.7)
+        axes[0, col].set_title(f"{model.stem}, payload x{scale:g}")
+        axes[1, col].axhline(scale, color="k", lw=0.8, ls="--")
+        axes[1, col].axhspan(0.9 * scale, 1.1 * scale, color="0.9")
+        axes[1, col].set_xlabel("time (s)")
+    axes[0, 0].set_ylabel("nominal mode's probability")
+    axes[1, 0].set_ylabel("payload scale reported")
+    fig.savefig(path, dpi=110)
+
+
 def _config(mech, spec: str) -> ObserverConfig:
     """``NAME`` or ``NAME@FIELD=VALUE;...``: the estimator with the model's settings and those fields changed."""
     name, _, rest = spec.partition("@")
@@ -150,11 +179,18 @@ def main(argv=None) -> int:
     ap.add_argument("--start-up", type=float, default=0.3)
     ap.add_argument("--json", default=None, help="results so far, rewritten after each model (resumed from)")
     ap.add_argument("--md", default=None)
+    ap.add_argument("--figure", default=None, metavar="PNG", help="the IMM's mode probability and payload traces of "
+                    "the first model's first 5 seeds, written to PNG (nothing else is run)")
     ap.add_argument("--block", default="", help="the page's block to rewrite (its markers name it)")
     args = ap.parse_args(argv)
     given = argv if argv is not None else sys.argv[1:]
     shown = [a for i, a in enumerate(given) if a != "--json" and (i == 0 or given[i - 1] != "--json")]
     command = "python benchmarks/imm.py " + " ".join("ROOT" if a == args.root else a for a in shown)
+    if args.figure:
+        name = args.models.split(",")[0].partition(":")[0]
+        model = Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml"
+        traces_figure(model, Path(args.root) / model.stem, 5, args.figure)
+        return 0
     estimators = ["ekf"] + [e for e in args.estimators.split(",") if e != "ekf"]
     results = {}
     if args.json and Path(args.json).exists():

@@ -217,3 +217,16 @@ def test_payload_imm_on_the_sixbar_reports_its_combination():
                                           rel=1e-12)
     with pytest.raises(UsageError, match="no smoother"):
         estimate(obs, S.t[:k], U, Y, smooth=True)
+
+
+def test_cli_refuses_smoothing_the_imm(capsys):
+    """``exuflex observe --estimator imm --smooth``: a one-line usage error before anything is built."""
+    from pathlib import Path
+
+    from exuflex.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    rc = main(["observe", str(root / "models" / "sixbar.toml"), str(root / "tests" / "data" / "sixbar_erls_3s"),
+               "--estimator", "imm", "--smooth"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--smooth" in err[0] and "not imm" in err[0]
