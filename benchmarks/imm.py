@@ -34,13 +34,12 @@ from exuflex.observer.session import ObserverConfig, estimate, make_observer
 from payload_frontier import _level
 
 ROOT = Path(__file__).resolve().parents[1]
-BEGIN, END = "<!-- imm.py: begin -->", "<!-- imm.py: end -->"
 NOMINAL_BAR, DOUBLED_BAR, PAYLOAD_BAR, PAYLOAD_TOL = 1.05, 1.25, 0.95, 0.10
 
 
-def run_model(stem: str, study_dir: Path, seeds: int, estimators: list[str], start_up: float) -> dict:
+def run_model(model: Path, study_dir: Path, seeds: int, estimators: list[str], start_up: float) -> dict:
     """RMS errors per estimator and level, and the payload's hit rate, over ``seeds`` noise realisations."""
-    mech = load_mechanism(ROOT / "models" / f"{stem}.toml")
+    mech, stem = load_mechanism(model), model.stem
     out: dict = {"seeds": seeds, "levels": {}}
     for scale in (1.0, 2.0):
         lt = _level(str(study_dir), scale)
@@ -79,6 +78,35 @@ def run_model(stem: str, study_dir: Path, seeds: int, estimators: list[str], sta
     return out
 
 
+def traces_figure(model: Path, study_dir: Path, seeds: int, path: str) -> None:
+    """The IMM's nominal-mode probability and payload scale against time, seeds ``0 .. seeds - 1``, at the nominal and
+    the doubled payload (one panel pair per level)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    mech = load_mechanism(model)
+    obs = make_observer(mech, _config(mech, "imm"))
+    it = obs.ekf.model.i_theta
+    fig, axes = plt.subplots(2, 2, figsize=(10, 5.5), sharex=True, constrained_layout=True)
+    for col, scale in enumerate((1.0, 2.0)):
+        lt = _level(str(study_dir), scale)
+        truth_mech = mech.with_payload_scale(scale) if scale != 1.0 else mech
+        for seed in range(seeds):
+            S = measure(truth_mech, lt.clean, lt.torque_t, lt.torques, seed=seed, t_end=float(lt.clean.t[-1])).signals
+            res = estimate(obs, S.t, S.select(mech.motor_names).data, S.select(obs.channels).data).result
+            axes[0, col].plot(res.t, res.nominal_p, lw=0.7)
+            axes[1, col].plot(res.t, res.x_hat[:, it], lw=0.7)
+        axes[0, col].set_title(f"{model.stem}, payload x{scale:g}")
+        axes[1, col].axhline(scale, color="k", lw=0.8, ls="--")
+        axes[1, col].axhspan(0.9 * scale, 1.1 * scale, color="0.9")
+        axes[1, col].set_xlabel("time (s)")
+    axes[0, 0].set_ylabel("nominal mode's probability")
+    axes[1, 0].set_ylabel("payload scale reported")
+    fig.savefig(path, dpi=110)
+
+
 def _config(mech, spec: str) -> ObserverConfig:
     """``NAME`` or ``NAME@FIELD=VALUE;...``: the estimator with the model's settings and those fields changed."""
     name, _, rest = spec.partition("@")
@@ -93,8 +121,15 @@ def _bars(stem: str, names: list[str]) -> list[int]:
     return list(range(len(names)))
 
 
-def page(results: dict, command: str, start_up: float) -> str:
-    lines = [BEGIN, "", f"Written by `{command}`; `ROOT/<model>` holds the level truths of `exuflex study payload "
+def markers(block: str) -> tuple[str, str]:
+    """The page's markers around the block ``block`` writes."""
+    name = f"imm.py{' ' + block if block else ''}"
+    return f"<!-- {name}: begin -->", f"<!-- {name}: end -->"
+
+
+def page(results: dict, command: str, start_up: float, block: str = "") -> str:
+    begin, end = markers(block)
+    lines = [begin, "", f"Written by `{command}`; `ROOT/<model>` holds the level truths of `exuflex study payload "
              "models/<model>.toml --levels 0,100 --runs 1 --out ROOT/<model>` (Exudyn). `imm` is the estimator above, "
              "`ekf-payload` the payload scale as a state with its report the model average against the nominal "
              "payload ({doc}`/payload_frontier`), all with the observer's default settings. "
@@ -132,36 +167,47 @@ def page(results: dict, command: str, start_up: float) -> str:
                              + f" | {lv['wall_s'][e]:.2f} |")
     from exuflex.runs import versions_text
 
-    return "\n".join(lines + ["", f"Versions: {versions_text()}.", "", END])
+    return "\n".join(lines + ["", f"Versions: {versions_text()}.", "", end])
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("root", help="folder of payload studies, one per model stem")
-    ap.add_argument("--models", default="sixbar:20", help="STEM:SEEDS,... (models/STEM.toml)")
+    ap.add_argument("--models", default="sixbar:20", help="MODEL:SEEDS,... (MODEL: a stem of models/, or a .toml "
+                    "file; its study in ROOT/<its stem>)")
     ap.add_argument("--estimators", default="ekf-payload,imm")
     ap.add_argument("--start-up", type=float, default=0.3)
     ap.add_argument("--json", default=None, help="results so far, rewritten after each model (resumed from)")
     ap.add_argument("--md", default=None)
+    ap.add_argument("--figure", default=None, metavar="PNG", help="the IMM's mode probability and payload traces of "
+                    "the first model's first 5 seeds, written to PNG (nothing else is run)")
+    ap.add_argument("--block", default="", help="the page's block to rewrite (its markers name it)")
     args = ap.parse_args(argv)
     given = argv if argv is not None else sys.argv[1:]
     shown = [a for i, a in enumerate(given) if a != "--json" and (i == 0 or given[i - 1] != "--json")]
     command = "python benchmarks/imm.py " + " ".join("ROOT" if a == args.root else a for a in shown)
+    if args.figure:
+        name = args.models.split(",")[0].partition(":")[0]
+        model = Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml"
+        traces_figure(model, Path(args.root) / model.stem, 5, args.figure)
+        return 0
     estimators = ["ekf"] + [e for e in args.estimators.split(",") if e != "ekf"]
     results = {}
     if args.json and Path(args.json).exists():
         results = json.loads(Path(args.json).read_text())["results"]
     for item in args.models.split(","):
-        stem, _, seeds = item.partition(":")
-        if stem in results and results[stem]["seeds"] == int(seeds or 10):
+        name, _, seeds = item.partition(":")
+        model = Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml"
+        if model.stem in results and results[model.stem]["seeds"] == int(seeds or 10):
             continue
-        results[stem] = run_model(stem, Path(args.root) / stem, int(seeds or 10), estimators, args.start_up)
+        results[model.stem] = run_model(model, Path(args.root) / model.stem, int(seeds or 10), estimators,
+                                        args.start_up)
         if args.json:
             Path(args.json).write_text(json.dumps({"command": command, "results": results}, indent=1))
-    text = page(results, command, args.start_up)
+    text = page(results, command, args.start_up, args.block)
     print(text)
     if args.md:
-        rewrite_block(args.md, BEGIN, END, text)
+        rewrite_block(args.md, *markers(args.block), text)
     return 0
 
 

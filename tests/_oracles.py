@@ -50,9 +50,12 @@ def numpy_filter(model, channels, R_std, x0, P0, t, U, Y, p_floor=1e-18):
     return X, Ps, N
 
 
-def held_matrices(dl, s, hs: HeldSystem):
-    """``(M_r, K_r, C_r, G_r)`` of the held system at ``q0 + dl``."""
+def held_matrices(dl, s, hs: HeldSystem, pe=None):
+    """``(M_r, K_r, C_r, G_r)`` of the held system at ``q0 + dl`` with the elastic coordinates ``pe`` (None: zero):
+    the q-expansion, then the elastic coordinates' first-order rows (and, for the symmetric ``M_r`` and damping,
+    columns) as matrices."""
     r = hs.Mr.shape[0]
+    nq = dl.shape[0]
     gM, gK = dl @ hs.dM, dl @ hs.dK
     Ca, Gr = hs.Ca, hs.Gr
     if hs.has_old:
@@ -60,8 +63,21 @@ def held_matrices(dl, s, hs: HeldSystem):
         gK = gK + 0.5 * s * (gK - dl @ hs.old_dK)
         Ca = hs.Ca + s * (hs.Ca - hs.old_Ca)
         Gr = hs.Gr + s * (hs.Gr - hs.old_Gr)
-    Kr = hs.Kr + gK.reshape(r, r)
-    return hs.Mr + gM.reshape(r, r), Kr, Ca + hs.beta * Kr, Gr
+    Mr, Kr = hs.Mr + gM.reshape(r, r), hs.Kr + gK.reshape(r, r)
+    if pe is not None and hs.pM.shape[0]:
+        E = np.zeros((r, r))  # the rigid rows' change embedded in full matrices
+        rows = {}
+        for name in ("pM", "pK", "pC"):
+            E = np.zeros((r, r))
+            E[:nq] = (pe @ getattr(hs, name)).reshape(nq, r)
+            rows[name] = E
+        m = Gr.shape[1]
+        dG = (pe @ hs.pG).reshape(nq, m + 1)[:, :m]
+        Mr = Mr + rows["pM"] + rows["pM"].T
+        Kr = Kr + rows["pK"]
+        Ca = Ca + rows["pC"] + rows["pC"].T + hs.beta * rows["pK"].T
+        Gr = Gr + np.vstack([dG, np.zeros((r - nq, m))])
+    return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 
 def quadratic_forces(p, pd, nq, fg, T2, V2, C2):
@@ -94,13 +110,17 @@ def rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):
 
 
 def held_step(z, u, dl, s, h, n, hs: HeldSystem):
-    """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``."""
+    """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``, the matrices at the interval's midpoint elastic
+    coordinates, the forces at its start."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
-    Mr, Kr, Cr, Gr = held_matrices(dl, s, hs)
+    tm = 0.5 * h * n  # the matrices at the interval's midpoint elastic coordinates p_e + tm p_e'
+    Mr, Kr, Cr, Gr = held_matrices(dl, s, hs, z[nq:r] + tm * z[r + nq :])
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
     if hs.has_old:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))
+    if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
+        f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
     return rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 

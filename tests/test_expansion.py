@@ -34,13 +34,15 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
     old = _system(r, nq, seed=seed + 1)
     C2 = np.zeros((0, r)) if noC else fo["C2"]
     oC2 = np.zeros((0, r)) if noC else old[6]["C2"]
+    pf = [1e-1 * rng.normal(size=(r - nq, nq * r)) for _ in range(3)]  # the elastic coordinates' terms
+    pG = rng.normal(size=(r - nq, nq * (Gr.shape[1] + 1)))
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
-                           grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2)
+                           grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG)
 
 
 def test_kernel_parameters_are_the_held_system_fields():
     """The kernels take the held arrays one by one, called with ``*system``: their names must be the fields."""
-    for f, lead in ((ex._held_step, 6), (ex._held_system, 2), (ex._prediction_error, 4), (ex._held_interval, 11)):
+    for f, lead in ((ex._held_step, 6), (ex._held_system, 3), (ex._prediction_error, 4), (ex._held_interval, 11)):
         names = list(inspect.signature(getattr(f, "py_func", f)).parameters)[lead:]
         assert names == list(HeldSystem._fields), f.__name__
 
@@ -80,8 +82,8 @@ def test_held_system_kernel_equals_numpy_oracle(has_old):
     """The held model's matrices at a point off the step's configuration (where a step map is built ahead of q)."""
     r, nq = 13, 3
     rng, hs = _held(r, nq, has_old)
-    dl = 1e-3 * rng.normal(size=nq)
-    for a, b in zip(oracle.held_matrices(dl, 0.4, hs), ex.held_system(dl, 0.4, *hs)):
+    dl, pe = 1e-3 * rng.normal(size=nq), 1e-2 * rng.normal(size=r - nq)
+    for a, b in zip(oracle.held_matrices(dl, 0.4, hs, pe), ex.held_system(dl, 0.4, pe, *hs)):
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-14 * np.abs(a).max())
 
 
@@ -334,3 +336,64 @@ def test_refresh_radius_keeps_the_held_models_error_at_its_tolerance(sixbar_obse
         assert som._radius(old, 8e-3, 1e9, 0.3, 3.0) == som.refresh_min
     finally:
         old.rad = saved
+
+
+@pytest.mark.parametrize("name", ["sixbar", "slider_crank"])
+def test_elastic_forms_are_the_derivatives_of_the_reduced_matrices(name):
+    """The held matrices' change with the elastic coordinates (:meth:`ReducedModel.elastic_forms`, applied by the
+    kernel's :func:`~exuflex.observer.expansion._elastic_terms`) against central differences of the reduced
+    matrices themselves (:meth:`ReducedModel.matrices`, which builds ``J`` at the deformed state), entry by entry,
+    each entry against its own size: exact, as ``J`` is linear in the elastic coordinates. And the first-order
+    model's error at elastic coordinates of the filter's size: second order (``p^2 A^T M A``, left out)."""
+    from pathlib import Path
+
+    from exuflex.erls.model import ErlsModel
+    from exuflex.mechanism import load_mechanism
+    from exuflex.reduction import CraigBampton, ReducedModel
+
+    root = Path(__file__).resolve().parents[1]
+    mech = load_mechanism(root / "models" / f"{name}.toml")
+    rm = ReducedModel(CraigBampton(ErlsModel(mech)))
+    nq, r = rm.nq, rm.r
+    p0 = np.zeros(r)
+    p0[:nq] = rm.cb.q_star
+    p0[:nq] += 0.05
+    mats, fm = rm.held(p0, np.zeros(r))
+    beta = rm.model.beta
+    hs = ex.HeldSystem(False, beta, mats.Mr, mats.Kr, mats.Cr - beta * mats.Kr, mats.Gr, fm.dMr2, fm.dKr2, fm.fg,
+                       fm.T2, fm.V2, fm.C2 if fm.C2 is not None else np.zeros((0, r)), fm.dMr2, fm.dKr2,
+                       mats.Cr - beta * mats.Kr, mats.Gr, fm.fg, fm.T2, fm.V2,
+                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic)
+    zq = np.zeros(nq)
+
+    def exact(pe):
+        p = p0.copy()
+        p[nq:] = pe
+        m = rm.matrices(p, np.zeros(r))
+        return m.Mr, m.Kr, m.Cr, m.Gr, m.fr
+
+    def model(pe):
+        M, K, C, G = ex.held_system(zq, 0.0, pe, *hs)
+        f = fm.fg.copy()
+        mg = hs.pG.shape[1] // nq
+        f[:nq] += (pe @ hs.pG).reshape(nq, mg)[:, -1]
+        return M, K, C, G, f
+
+    eps = 1e-4
+    for k in range(r - nq):
+        e = np.zeros(r - nq)
+        e[k] = eps
+        for name_, a, b, c0 in zip("MKCGf", exact(e), exact(-e), model(np.zeros(r - nq))):
+            fd = (a - b) / (2 * eps)
+            an = model(e)[ "MKCGf".index(name_)] - c0
+            an = an / eps
+            # each entry against its own size; the floor is the differences' rounding (entries of M up to |M|)
+            floor = 1e-9 * np.abs(c0).max() / eps + 1e-300
+            assert np.all(np.abs(an - fd) <= 1e-6 * np.abs(fd) + floor), (name_, k)
+    # the first-order model's error is second order in the elastic coordinates
+    rng = np.random.default_rng(2)
+    pe = 1e-3 * rng.normal(size=r - nq)
+    e1 = np.abs(exact(pe)[0] - model(pe)[0]).max()
+    e2 = np.abs(exact(2 * pe)[0] - model(2 * pe)[0]).max()
+    assert 3.5 < e2 / e1 < 4.5, (e1, e2)
+    assert e1 < 1e-4 * np.abs(mats.Mr).max()

@@ -193,7 +193,7 @@ def test_payload_imm_on_the_sixbar_reports_its_combination():
 
     from exuflex.errors import UsageError
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.observer.session import IMM_DWELL_MANOEUVRES, ObserverConfig, estimate, make_observer
     from exuflex.runs import read_run
 
     root = Path(__file__).resolve().parents[1]
@@ -203,7 +203,7 @@ def test_payload_imm_on_the_sixbar_reports_its_combination():
     imm = obs.ekf
     assert isinstance(imm, IMMFilter) and imm.models[1] is obs.ekf.model and imm.models[0] is not obs.model
     np.testing.assert_array_equal(imm.mode_p0, [0.3, 0.7])
-    np.testing.assert_allclose(imm.dwell_s, mech.manoeuvre.duration)
+    np.testing.assert_allclose(imm.dwell_s, IMM_DWELL_MANOEUVRES * mech.manoeuvre.duration)
     S = run.sensors
     k = np.searchsorted(S.t, 0.4)
     U, Y = S.select(mech.motor_names).data[:k], S.select(obs.channels).data[:k]
@@ -217,3 +217,16 @@ def test_payload_imm_on_the_sixbar_reports_its_combination():
                                           rel=1e-12)
     with pytest.raises(UsageError, match="no smoother"):
         estimate(obs, S.t[:k], U, Y, smooth=True)
+
+
+def test_cli_refuses_smoothing_the_imm(capsys):
+    """``exuflex observe --estimator imm --smooth``: a one-line usage error before anything is built."""
+    from pathlib import Path
+
+    from exuflex.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    rc = main(["observe", str(root / "models" / "sixbar.toml"), str(root / "tests" / "data" / "sixbar_erls_3s"),
+               "--estimator", "imm", "--smooth"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--smooth" in err[0] and "not imm" in err[0]

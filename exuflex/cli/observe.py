@@ -130,8 +130,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "the model average of the nominal payload and the estimated one (default 0.5; 0: the "
                         "filter's own posterior); imm: the nominal mode's prior probability")
     p.add_argument("--imm-dwell", type=positive_float, metavar="S",
-                   help="imm: expected dwell time in each mode (s), its transition matrix (default: the "
-                        "manoeuvre's duration)")
+                   help="imm: expected dwell time in each mode (s), its transition matrix (default: 100 "
+                        "manoeuvre durations)")
     p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
     p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "

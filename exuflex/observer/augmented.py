@@ -281,8 +281,9 @@ class AugmentedModel:
     def increment(self, iv, z: np.ndarray, fresh: bool = False) -> PayloadIncrement:
         """``dS/dtheta`` of the held configuration ``iv``, cached per configuration: the twin's evaluation at
         ``iv``'s q with the coordinates of ``z`` less the nominal one there. ``fresh``: ``iv`` was evaluated at
-        ``z`` in this interval (its q ahead along the motion, the other coordinates ``z``'s), so the nominal
-        arrays are ``iv``'s own; else the nominal model is evaluated too. The secant partner's increment comes
+        ``z`` in this interval (its q ahead along the motion), so the nominal arrays are ``iv``'s own where ``z``
+        is undeformed as ``iv`` is held; else the nominal model is evaluated too (the increment is taken at
+        ``z``'s elastic coordinates: the payload's share of the matrices' change with them is held). The secant partner's increment comes
         from the cache (its own if that is gone: the payload's share is then held, not followed)."""
         hit = self._increments.get(iv.serial)
         if hit is not None:
@@ -293,7 +294,7 @@ class AugmentedModel:
         mats, fm = self.twin.held(p, z[r:])
         beta = self.twin.model.beta
         c2 = self.inner._c2  # the bias form, (0, r) where the model has none
-        if fresh:
+        if fresh and not np.any(p[nq:]):  # (the nominal held configuration is undeformed)
             hs = iv.system
             nom = (hs.Mr, hs.Ca, hs.dM, hs.fg, hs.T2, hs.C2)
         else:

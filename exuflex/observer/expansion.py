@@ -4,7 +4,11 @@ The cached step (:class:`exuflex.observer.reduced.ReducedObserverModel`) holds t
 configuration ``q0`` and follows the links from there: ``M_r`` and ``K_r`` to second order in ``q - q0`` (their
 analytic gradients at ``q0``, and the change of the gradients since the previous held configuration along the
 line joining the two), the damping, input matrix and velocity-dependent forces to first order along that line
-(a secant). Per interval it then advances the linear system ``M p'' + C p' + K p = G u + f`` (forces and input
+(a secant). The held arrays are those of the configuration undeformed, and the matrices follow the elastic
+coordinates exactly to first order (the consistent velocity map ``J`` is linear in them: :func:`_elastic_terms`);
+held at a deformed state instead, the mass-proportional damping and ``M_r`` would keep that state's elastic
+coordinates for the whole radius, and the secant's differences would mix the change of the elastic
+coordinates between two evaluations into the change with ``q``. Per interval it then advances the linear system ``M p'' + C p' + K p = G u + f`` (forces and input
 held, as the paper's RK4 does between two samples) by ``n`` RK4 sub-steps. :class:`HeldSystem` names the held
 arrays the kernels read.
 
@@ -63,11 +67,14 @@ log = logging.getLogger(__name__)
 class HeldSystem(NamedTuple):
     """The held configuration's arrays (``r`` reduced coordinates, ``nq`` rigid ones), and its secant partner's.
 
-    ``M_r``, ``K_r``, ``G_r`` and ``Ca = C_r - beta K_r`` (the damping's mass-proportional part; the stiffness
-    part follows ``K_r``) at ``q0``; ``dM``, ``dK`` (nq, r*r) the q-gradients of ``M_r`` and ``K_r``; ``fg``,
-    ``T2``, ``V2``, ``C2`` the velocity-dependent forces as quadratic forms
-    (:class:`exuflex.reduction.model.QuadraticForces`). ``old_*``: the same of the previous held configuration
-    (the secant partner; the held configuration's own arrays when ``has_old`` is False).
+    The arrays are those of the configuration undeformed (elastic coordinates zero): ``M_r``, ``K_r``, ``G_r`` and
+    ``Ca = C_r - beta K_r`` (the damping's mass-proportional part; the stiffness part follows ``K_r``) at ``q0``;
+    ``dM``, ``dK`` (nq, r*r) the q-gradients of ``M_r`` and ``K_r``; ``fg``, ``T2``, ``V2``, ``C2`` the
+    velocity-dependent forces as quadratic forms (:class:`exuflex.reduction.model.QuadraticForces`). ``old_*``: the
+    same of the previous held configuration (the secant partner; the held configuration's own arrays when
+    ``has_old`` is False). ``pM``, ``pK``, ``pC`` (r - nq, nq*r) and ``pG`` (r - nq, nq*(n_motors + 1)): the
+    matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
+    empty: none).
     """
 
     has_old: bool
@@ -90,6 +97,10 @@ class HeldSystem(NamedTuple):
     old_T2: np.ndarray
     old_V2: np.ndarray
     old_C2: np.ndarray
+    pM: np.ndarray
+    pK: np.ndarray
+    pC: np.ndarray
+    pG: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -301,32 +312,96 @@ def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
 
 
 @_inline
-def _system(dl, s, hs):  # pragma: no cover - compiled
-    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl``; ``C_a`` and ``G_r`` along the secant."""
+def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
+    """Add to the held ``M_r``, ``K_r``, ``C_a``, ``G_r`` (in place) their change with the elastic coordinates
+    ``pe = p[nq:]`` (the held arrays are those of the configuration undeformed, :class:`HeldSystem`).
+
+    The consistent velocity map ``J = H + [d(H p)/dq, 0]`` is linear in the elastic coordinates and changes
+    only the ``nq`` rigid columns: with ``A_k = d(W H e_k)/dq`` the rigid columns of ``W J`` gain
+    ``sum_k p_k A_k``. Per unit ``p_k`` the reduced matrices' rigid rows gain ``pM_k = A_k^T M_N W H``,
+    ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u``, ``pC_k = alpha A_k^T P T H_u`` (``P`` the mass relative to the rigid
+    motion) and ``pG_k = A_k^T B_N`` (rows ``[i * ncol + j]``, :meth:`.ReducedModel.elastic_forms`); ``M_r`` and
+    the alpha damping gain the transposed columns too (symmetric forms), the beta damping ``beta J_u^T K_uu
+    J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). First order in ``p`` (the second,
+    ``p^2 A^T M A``, is left out: ``tests/test_expansion.py`` measures it)."""
+    n_el = hs.pM.shape[0] if pe.shape[0] else 0
+    if n_el == 0:
+        return
+    r = Mr.shape[0]
+    nq = r - n_el
+    m = Gr.shape[1]
+    mg = hs.pG.shape[1] // nq  # the input matrix's columns (and the weight's, last)
+    gM = np.zeros(nq * r)
+    gK = np.zeros(nq * r)
+    gC = np.zeros(nq * r)
+    gG = np.zeros(nq * mg)
+    for k in range(n_el):
+        w = pe[k]
+        if w != 0.0:
+            for j in range(nq * r):
+                gM[j] += w * hs.pM[k, j]
+                gK[j] += w * hs.pK[k, j]
+                gC[j] += w * hs.pC[k, j]
+            for j in range(nq * mg):
+                gG[j] += w * hs.pG[k, j]
+    for i in range(nq):
+        for j in range(r):
+            a = gM[i * r + j]
+            Mr[i, j] += a
+            Mr[j, i] += a
+            Kr[i, j] += gK[i * r + j]
+            c = gC[i * r + j]
+            Ca[i, j] += c
+            Ca[j, i] += c + hs.beta * gK[i * r + j]
+        for j in range(m):
+            Gr[i, j] += gG[i * mg + j]
+
+
+@_inline
+def _system(dl, s, pe, hs):  # pragma: no cover - compiled
+    """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl`` with the elastic coordinates ``pe`` (empty: the
+    configuration undeformed); ``C_a`` and ``G_r`` along the secant (:func:`_elastic_terms`)."""
     Mr, Kr = _mass_stiffness(dl, s, hs)
     r = Mr.shape[0]
-    Cr = np.empty((r, r))
+    Ca = np.empty((r, r))
     Gr = hs.Gr.copy()
-    for i in range(r):  # C_a (along the secant) + beta K_r; loops, not array expressions (see _mass_stiffness)
+    for i in range(r):  # C_a along the secant; loops, not array expressions (see _mass_stiffness)
         for j in range(r):
             ca = hs.Ca[i, j]
             if hs.has_old:
                 ca += s * (hs.Ca[i, j] - hs.old_Ca[i, j])
-            Cr[i, j] = ca + hs.beta * Kr[i, j]
+            Ca[i, j] = ca
         if hs.has_old:
             for j in range(Gr.shape[1]):
                 Gr[i, j] += s * (hs.Gr[i, j] - hs.old_Gr[i, j])
+    _elastic_terms(pe, hs, Mr, Kr, Ca, Gr)
+    Cr = np.empty((r, r))
+    for i in range(r):  # + beta K_r
+        for j in range(r):
+            Cr[i, j] = Ca[i, j] + hs.beta * Kr[i, j]
     return Mr, Kr, Cr, Gr
 
 
-def _held_model(z, dl, s, hs):  # pragma: no cover - compiled
-    """The held model at ``q0 + dl`` (:func:`_system`) and the forces at ``z`` along the secant:
-    ``(M_r, K_r, C_r, G_r, f)``."""
+def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
+    """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
+    the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``.
+
+    The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
+    interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
+    state's rate; held at the midpoint (the exponential midpoint rule) the error averages to second order. The
+    configuration ``q`` stays at the start: advanced too, the step depends on the rates through ``dM/dq q'``, a
+    term the step Jacobian leaves out, strong where ``M`` changes fast with ``q`` (a slider-crank near its dead
+    centres); both measured in docs/step_jacobian.md. The forces stay at the start (their advance needs the
+    accelerations of the fast elastic modes)."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     p = z[:r]
     pd = z[r:]
-    Mr, Kr, Cr, Gr = _system(dl, s, hs)
+    pem = np.empty(r - nq)
+    for k in range(r - nq):
+        pem[k] = p[nq + k] + tm * pd[nq + k]
+    Mr, Kr, Cr, Gr = _system(dl, s, pem, hs)
     f = fo = hs.fg
     for k in range(2 if hs.has_old else 1):  # the held and the old forms, one inlined copy of the forces for both
         fk = _quadratic_forces(p, pd, nq, hs.fg if k == 0 else hs.old_fg, hs.T2 if k == 0 else hs.old_T2,
@@ -338,32 +413,39 @@ def _held_model(z, dl, s, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
+    n_el = hs.pG.shape[0]
+    if n_el:  # the weight's change with the elastic coordinates (pG's last column, :func:`_elastic_terms`)
+        mg = hs.pG.shape[1] // nq
+        for k in range(n_el):
+            w = p[nq + k]
+            for i in range(nq):
+                f[i] += w * hs.pG[k, i * mg + mg - 1]
     return Mr, Kr, Cr, Gr, f
 
 
 def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
     """One interval of the cached step: the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
     sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the held ``M_r`` is not
     positive definite there. The held system's arrays are passed one by one (their names are
     :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
     of a tuple of arrays."""
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2)
-    Mr, Kr, Cr, Gr, f = _held_model(z, dl, s, hs)
+                    old_T2, old_V2, old_C2, pM, pK, pC, pG)
+    Mr, Kr, Cr, Gr, f = _held_model(z, dl, s, 0.5 * h * n, hs)
     return _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
     """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
     then serves :func:`held_step` too (see :func:`_inline` for why one). The helpers are
     called here directly rather than through :func:`_held_step`: numba copies an inlined helper's whole code once
     per block, so one large helper costs far more to inline than its parts."""
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2)
-    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, hs)
+                    old_T2, old_V2, old_C2, pM, pK, pC, pG)
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.5 * h * n, hs)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
@@ -379,12 +461,12 @@ def held_step(z, u, dl, s, h, n, *system):
     return z_next, Mr, Kr, Cr, Gr
 
 
-def _held_system(dl, s, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+def _held_system(dl, s, pe, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
+                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
     """:func:`_system` (call with ``*system``, see :func:`_held_step`); its own kernel, as the filter calls it at
     every step-map rebuild."""
-    return _system(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
-                                     old_Gr, old_fg, old_T2, old_V2, old_C2))
+    return _system(dl, s, pe, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
+                                     old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG))
 
 
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
@@ -528,14 +610,14 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
 
 
 def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2):  # pragma: no cover - compiled
+                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
     """How well the held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` against the exact ``Mr``, ``Kr`` there:
     the largest entry of the differences whitened by the exact mass matrix, ``L^-1 (M_pred - M) L^-T``
     (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s relative to the largest entry of
     ``L^-1 K L^-T`` (within a factor ``r`` of the spectral norms, at a tenth of their cost). ``inf`` if ``Mr`` is
     not positive definite. (Call with ``*system``, see :func:`_held_step`.)"""
     Mp, Kp = _mass_stiffness(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
+                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG))
     Mr, Kr = Mr_exact, Kr_exact
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
@@ -786,7 +868,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     """The held system's fields as a plain tuple (numba passes ``f(a, *t)`` as a tuple concatenation, which a
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
-            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2)
+            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -889,7 +971,7 @@ def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
 def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
                     pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
                     beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                    old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
+                    old_V2, old_C2, pM, pK, pC, pG, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
                     iold_T2, iold_C2):  # pragma: no cover - compiled
     """One interval of an augmented state (:func:`cached_interval`'s ``pay`` and ``inp_*``, the torques ``u`` with
     the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
@@ -910,13 +992,13 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
         _, z, F, Qk, L_u, scaled_map, Mo, Ko, Co, Go = payload_interval(
             x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, pay_rho, pay_tol, pay_ok, pay_c,
             pay_Pn, pay_S, pay_L, pay_Q, torque_var, q_extra, Ts, pay_dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr,
-            Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+            Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr,
             iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
         pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = scaled_map
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
                                                Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                                               old_fg, old_T2, old_V2, old_C2)
+                                               old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG)
         z, F, Qk = _augmented(z0, F0, Q, n_x)
         L_u = L
     if n_in:  # the disturbances: their decay, noise and the step's response to them
@@ -978,10 +1060,11 @@ def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
 
 def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, q_extra, has_old, beta, Mr, Kr, Ca,
                  Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2,
-                 old_C2):  # pragma: no cover - compiled
+                 old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
     """A step map of the held configuration ``q0`` for an interval of ``dt`` in ``n`` sub-steps, built ahead of
-    ``q`` along its motion (:func:`map_lookahead`, not beyond ``lim`` from ``q0``): the held model there
-    (:func:`_system`, along the secant ``d``) and its maps :func:`step_maps_noise`, ``q_extra`` (may be empty)
+    ``q`` along its motion (:func:`map_lookahead`, not beyond ``lim`` from ``q0``): the held model there,
+    undeformed (:func:`_system`, along the secant ``d``; the elastic coordinates of the instant of the rebuild
+    would stay in the map while they oscillate, measured in docs/step_jacobian.md) and its maps :func:`step_maps_noise`, ``q_extra`` (may be empty)
     added to the noise's diagonal. Returns ``(q_map, P^n, S, L, Q)`` (:meth:`.reduced.ReducedObserverModel._step_map`)."""
     nq = q0.shape[0]
     shift = map_lookahead(z, nq, map_rad, ahead, horizon)
@@ -989,8 +1072,8 @@ def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, 
     for i in range(nq):
         dla[i] = min(max((z[i] - q0[i]) + shift[i], -lim), lim)
     s = secant_factor(dla, d, dd)
-    Ma, Ka, Ca_, Ga = _system(dla, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                                                 old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2))
+    Ma, Ka, Ca_, Ga = _system(dla, s, z[:0], HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
+                                                 old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG))
     Pn, S, L, Q = step_maps_noise(Ma, Ka, Ca_, Ga, dt / n, n, torque_var)
     for i in range(q_extra.shape[0]):
         Q[i, i] += q_extra[i]
@@ -1013,7 +1096,7 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
 
 
 def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
+                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
                   iold_fg, iold_T2, iold_C2):  # pragma: no cover - compiled
     """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
     row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
@@ -1027,16 +1110,17 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     ``iC2``); each scale then costs its Cholesky factor and RK4 sub-steps only."""
     r = Mr.shape[0]
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2)
+                    old_T2, old_V2, old_C2, pM, pK, pC, pG)
     zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
     zv = np.zeros(V2.shape)
+    ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(Gr.shape)
     f0 = fb = np.empty(r)
     for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
-        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, hs if k == 0 else di)
+        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, 0.5 * h * n, hs if k == 0 else di)
         if k == 0:
             M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
         else:
@@ -1058,7 +1142,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
 
 def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, tol, map_ok, map_c, map_Pn, map_S,
                       map_L, map_Q, torque_var, q_extra, Ts, dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca,
-                      Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+                      Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr,
                       iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
                       iold_C2):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
@@ -1079,7 +1163,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``, ``Qx`` the process
     noise ``Q`` in its leading block and ``theta_var`` the scale's."""
     rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr, iCa,
+                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr, iCa,
                                         idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
     finite = True
     for k in range(rows.shape[0]):
@@ -1088,7 +1172,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
                 finite = False
     if not finite:  # as the nominal step's rescue: first order only
         rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
-                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, iMr,
+                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr,
                                             iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
                                             iold_C2)
     c = a[a.shape[0] - 1]
@@ -1162,7 +1246,8 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     M, g2, f = np.eye(r), np.zeros((nq, r * r)), np.zeros(r)
     T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
     G = np.zeros((r, nq))
-    return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2)
+    pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
+    return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg)
 
 
 _warm = False
@@ -1176,7 +1261,7 @@ def warm_up_held() -> None:
     M = np.eye(r)
     for has_old in (False, True):
         hs = _example_system(r, nq, has_old)
-        held_system(dl, 0.0, *hs)
+        held_system(dl, 0.0, np.zeros(r - nq), *hs)
         prediction_error(dl, 0.0, M, M, *hs)
 
 

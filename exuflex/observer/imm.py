@@ -33,8 +33,12 @@ filterpy's ``IMMEstimator`` on a linear system).
 Transition matrix. A mode is left at the rate ``1 / tau`` (``tau`` its expected dwell time), to each other mode
 alike: the generator ``G_ii = -1 / tau``, ``G_ij = 1 / (tau (N - 1))``, and over an interval ``dt``
 ``T = expm(G dt)`` (each interval its own ``T``: irregular sampling needs no grid). The payload estimator's
-``tau`` is ``ObserverConfig.imm_dwell_s``, by default the manoeuvre's duration: a payload is picked or placed
-between motions, so it changes about once a manoeuvre (1 s without a manoeuvre).
+``tau`` is ``ObserverConfig.imm_dwell_s``, by default a hundred manoeuvre durations
+(:data:`.session.IMM_DWELL_MANOEUVRES`): a payload is picked or placed at rest, between motions, and changes
+within a motion about once in a hundred. The dwell time sets how long the filter keeps evidence: a mode
+probability driven down is pulled back towards the chain's stationary share at the rate ``1 / tau``, and a
+``tau`` of the log's length lets a stretch of samples that one mode happens to fit better undo what the whole
+log said.
 
 Monitors. The innovations the monitors test (:class:`.ekf.BeliefFilter`: the gate, the hold-off after an input
 step, the sensor-fault windows, the NIS test) are the mixture's: ``r = sum_j c_j r_j`` (the measurement less the

@@ -9,8 +9,10 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
 
 - ``"cached"`` (the default): the configuration (pose, basis, reduced matrices, the velocity-dependent forces as
   quadratic forms and the q-gradients of ``M_r``, ``K_r``: :meth:`ReducedModel.held`) is evaluated only when q
-  leaves a refresh radius around the held one; in between the model follows the links to second order in q
-  (:mod:`.expansion`), and each interval's sub-steps use the matrices at the interval's start. The radius adapts
+  leaves a refresh radius around the held one, undeformed; in between the model follows the links to second order
+  in q and the elastic coordinates exactly to first order (:mod:`.expansion`), and each interval's sub-steps use
+  the matrices at the interval's midpoint elastic coordinates ``p_e + dt/2 p_e'`` and the forces at its start
+  (:func:`.expansion._held_model`). The radius adapts
   like an ODE step size under two error targets, the smaller radius winning. (1) The held matrices' validity:
   the previous held model's relative error of ``M_r`` and ``K_r`` (mass metric,
   :func:`.expansion.prediction_error`) near ``refresh_tol``. (2) What the held model costs the filter: the
@@ -334,8 +336,10 @@ class ReducedObserverModel:
         model with the q-derivatives of the cached step; with ``frozen_forces`` the forces at z and their force
         model without q-derivatives."""
         forces = None
-        if held:
-            mats, forces = self.rm.held(z[: self.r], z[self.r :])
+        if held:  # undeformed: the cached step adds the elastic coordinates' terms (:func:`.expansion._elastic_terms`)
+            p = z[: self.r].copy()
+            p[self.nq :] = 0.0
+            mats, forces = self.rm.held(p, z[self.r :])
         elif frozen_forces:
             mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=False)
         else:
@@ -514,7 +518,14 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o))
+            old_C2=self._c2(o), **self._elastic(fm))
+
+    @staticmethod
+    def _elastic(fm) -> dict:
+        """The held system's elastic-coordinate terms (``pM, pK, pC, pG``; empty in the paper's form)."""
+        if fm.elastic is None:
+            return {"pM": _NO_ROWS, "pK": _NO_ROWS, "pC": _NO_ROWS, "pG": _NO_ROWS}
+        return dict(zip(("pM", "pK", "pC", "pG"), fm.elastic))
 
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
@@ -624,8 +635,9 @@ class ReducedObserverModel:
 
     @property
     def interval_system(self) -> tuple:
-        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval: the held matrices at its start and its ``n``
-        sub-steps of ``h`` (:meth:`predict`; after :meth:`prepare`, those of the caller's own step)."""
+        """``(M_r, K_r, C_r, G_r, h, n)`` of the last interval: the held matrices of its sub-steps (cached: at its
+        midpoint elastic coordinates) and its ``n`` sub-steps of ``h`` (:meth:`predict`; after :meth:`prepare`,
+        those of the caller's own step)."""
         return self._interval_matrices
 
     @interval_system.setter

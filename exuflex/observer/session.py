@@ -33,6 +33,9 @@ from .ukf import UnscentedKF
 
 #: the estimators :func:`make_observer` builds (``ObserverConfig.estimator``)
 ESTIMATORS = ("ekf", "ukf", "ekf-payload", "ekf-input", "imm")
+#: the IMM's default expected dwell time in a mode, in manoeuvre durations (``ObserverConfig.imm_dwell_s``): the
+#: payload changes within one manoeuvre with the probability ``1 - exp(-1 / IMM_DWELL_MANOEUVRES)``, about 1 %
+IMM_DWELL_MANOEUVRES = 100.0
 #: the estimators on an augmented state (:mod:`.augmented`)
 AUGMENTED_ESTIMATORS = ("ekf-payload", "ekf-input", "imm")
 
@@ -116,8 +119,9 @@ class ObserverConfig:
         prior probability.
     imm_dwell_s
         the IMM's expected dwell time in each mode (s): its transition matrix (:func:`.imm.transition_matrix`).
-        None (default): the manoeuvre's duration (a payload is picked or placed about once a manoeuvre), 1 s
-        without a manoeuvre.
+        None (default): :data:`IMM_DWELL_MANOEUVRES` times the manoeuvre's duration (1 s without a manoeuvre): a
+        payload is picked or placed at rest, between motions, and changes within a motion in about one of that
+        many.
     payload_linearity
         the payload scale is held at its prior from the start until the first interval whose
         second-order term in the scale over its standard deviation is within this many process-noise standard
@@ -432,7 +436,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
         ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                           monitoring=monitoring)
     elif config.estimator == "imm":  # the nominal mode: the plain EKF's model (its own held configuration)
-        dwell = config.imm_dwell_s or (mech.manoeuvre.duration if mech.manoeuvre is not None else 1.0)
+        dwell = config.imm_dwell_s or IMM_DWELL_MANOEUVRES * (mech.manoeuvre.duration if mech.manoeuvre else 1.0)
         ekf = IMMFilter([reduced_model(), fmodel], [[1.0], []], channels, _noise_std(mech, channels), x0, P0, dt,
                         dwell_s=[dwell, dwell], mode_p0=[config.payload_nominal_p, 1.0 - config.payload_nominal_p],
                         max_gap=config.max_gap, monitoring=monitoring)

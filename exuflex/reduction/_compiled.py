@@ -610,7 +610,7 @@ else:  # pragma: no cover
 def held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_link, node_station,
                     t_index, im, is_, Phi_u, px, py, pnode, plocal, keep, theta_star, B_N, g_N, Gl, KGl, el_dofs,
                     el_link, alpha, beta, nq, rotate, has_local, consistent, gradients):
-    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs)``: what
+    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs, dHdq)``: what
     :meth:`~exuflex.reduction.model.ReducedModel.held` computes (without ``fr``) from a full configuration: the
     pairs' rotations (:func:`pair_rotations`), the basis at q (:func:`basis_at`), its derivative for every reduced
     coordinate (:func:`basis_derivative`), the reduced matrices (:func:`held_matrices`) and the force model
@@ -634,7 +634,7 @@ def held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_li
                                                      node_station, t_index, B_N, alpha, beta, nq, consistent)
     fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,
                                                              el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients)
-    return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs
+    return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs, dHdq
 
 
 if not HAVE_NUMBA:  # pragma: no cover

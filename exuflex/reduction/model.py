@@ -74,6 +74,7 @@ class QuadraticForces:
         self.T2 = Tk.reshape(r, r * r)
         self.V2 = V.reshape(nq * r, r)
         self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
+        self.elastic = None  # (pM, pK, pC, pG) of :meth:`ReducedModel.elastic_forms`, with the gradients
         if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
@@ -214,7 +215,42 @@ class ReducedModel:
         rc = self.cb.at(p[: self.nq])
         dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
         mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
-        return mats, self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+        fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+        if gradients:
+            fm.elastic = self.elastic_forms(rc, dHdq)
+        return mats, fm
+
+    def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
+        """``(pM, pK, pC, pG)``: the change of the reduced matrices with the elastic coordinates at a
+        configuration, per unit elastic coordinate ``p_k`` (``k >= nq``), flattened ``[k - nq, i * ncol + j]``
+        over the ``nq`` rigid rows ``i``. None in the paper's form (``J = H`` does not depend on ``p``).
+
+        ``J = H + [d(H p)/dq, 0]`` is linear in ``p`` and changes only the rigid columns: with ``A_k = T d(H_u
+        e_k)/dq`` (N, nq) the rigid columns of ``W J`` gain ``sum_k p_k A_k``, so to first order ``M_r`` gains
+        ``pM_k = A_k^T M_N W J`` in its rigid rows and the transpose in its rigid columns, ``K_r = J_u^T K_uu
+        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, the alpha damping
+        ``alpha (T J_u)^T P (T J_u)`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass relative to the rigid
+        motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains ``pC_k = alpha A_k^T P T J_u`` (and
+        the transpose), and ``G_r = (W J)^T B_N`` and the weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N,
+        M_N g]`` (the weight the last column). Exact where ``p`` is zero (``J = H``); the cached observer step
+        holds its configurations undeformed and adds these terms (:func:`exuflex.observer.expansion.
+        _elastic_terms`)."""
+        if not self.consistent:
+            return None
+        model, nq, r = self.model, self.nq, self.r
+        cfg = rc.cfg
+        H = rc.H
+        dHu = dHdq[nq:, nq:, :]  # (r - nq, ne, nq): d(H_u e_k)/dq of the elastic coordinates
+        A = model.T @ dHu  # (r - nq, N, nq)
+        At = np.swapaxes(A, 1, 2)
+        WH = cfg.W @ H
+        S = cfg.pose.S
+        MS = cfg.M_N @ S
+        TH = model.T @ H[nq:]
+        PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
+        BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
+        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
+        return tuple(np.ascontiguousarray(x.reshape(r - nq, -1)) for x in out)
 
     def _held_compiled(self, p: np.ndarray, gradients: bool) -> tuple[ReducedMatrices, QuadraticForces]:
         """:meth:`held` without ``fr`` through :func:`._compiled.held_evaluation`: the basis, its derivative, the
@@ -224,14 +260,17 @@ class ReducedModel:
         kin = model.kin
         cfg = model.configuration(p[:nq])
         pose = cfg.pose
-        (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs) = _compiled.held_evaluation(
+        (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs, dHdq) = _compiled.held_evaluation(
             p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin.arrays,
             kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
             cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
             model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
             self.consistent, gradients)
         mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
-        return mats, self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
+        fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
+        if gradients:
+            fm.elastic = self.elastic_forms(mats.rc, dHdq)
+        return mats, fm
 
     def reduced_mass(self, p: np.ndarray) -> np.ndarray:
         """``M_r = J^T M J`` at (the configuration of) ``p`` alone."""
