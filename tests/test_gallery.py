@@ -159,12 +159,16 @@ KNOWN_SHORT: dict[str, str] = {
               "interval's start (the exact model held so, its elastic coordinates at the midpoint, gives the "
               "cached step's figures on tests/data/sixbar_erls_3s; advancing q too costs the slider-crank, whose "
               "step Jacobian lacks dM/dq q'; docs/step_jacobian.md)",
-    "three_link_arm": ("with the damping as stated the wrist and elbow angles' RMS errors are 3.3-4.4x their bounds on the "
-                       "Exudyn truth, 2.5-4.6x on the full-order ERLS truth (docs/acceptance.md); on the ERLS truth, "
-                       "seed 1, q3: 3.13x with the cached step map (1.44x since the cached step's change, "
-                       "docs/step_jacobian.md), 1.58x with the exact one (method='rk4'), 2.25x "
-                       "with 8 interior modes; the truncation requirement's figures are small (rho 0.046, q3's "
-                       "truncated part 6e-8 rad): the step map's approximation (issue 28 item 2)"),
+    "three_link_arm": ("the wrist and elbow angles' RMS errors are 3.0-4.6x their bounds with the cached step on both truths "
+                       "(docs/acceptance.md; since the cached step's change, worst per seed ERLS 1.44, 2.71, 1.30 and "
+                       "Exudyn 2.94, 4.89, 1.25: docs/step_jacobian.md). With the exact step (method='rk4') q3 stays at 1.14-1.67x on the ERLS truth, "
+                       "seeds 1-3, and at up to 1.67x (10 seeds, 7 above 1.3) on the observer's own reduced model as the truth: a "
+                       "deterministic error, not truncation or scatter. Noiseless logs, rk4: q3's error is 0.92 of its "
+                       "bound on the ERLS truth, 0.83 on the reduced truth and 0.54 on a reduced truth stepped by the "
+                       "filter's own rk4 map, +1.0-1.5 bound during the acceleration ramp and -1.0 to -1.9 during the "
+                       "deceleration, unchanged with 8 interior modes, a torque table held per sample, or the step "
+                       "Jacobian's q-columns by central differences; the estimate's encoder reading errs as its q3 "
+                       "(not a definition mismatch): cause not pinned down (issue 28 items 1-2)"),
 }
 
 
@@ -186,3 +190,35 @@ def test_whole_chain_on_the_gallery_meets_the_acceptance(name):
         assert abs(r["nis_mean"] / r["nis_expected"] - 1) <= 0.1
         assert not r["diverged"] and not r["nonfinite"]
         assert all(abs(v - 1) <= 0.1 for v in r["default_over_reference"].values())
+
+
+def test_seed_statistics_mean_percentile_and_paired_excess():
+    """The over-the-seeds figures of ``--acceptance``: each quantity's mean and 90th percentile over the seeds, the
+    paired excess over the consistent truth (per seed the difference, its mean and the standard error of the mean),
+    and the verdict from the means (a run above the limit does not fail a model whose mean is within it)."""
+    bench = _benchmark()
+    a = [1.0, 1.4, 1.1, 1.3]  # erls, per seed
+    b = [0.9, 1.2, 1.1, 1.0]  # the consistent truth, same seeds
+
+    def row(engine, seed, v):
+        return {"engine": engine, "model": "m", "seed": seed, "ratio_to_bound": {"q1": v, "dq1": 1.0},
+                "nis_mean": 2.0 + 0.1 * seed, "nis_expected": 2.0, "diverged": False, "nonfinite": False}
+
+    rows = [row("erls", s, v) for s, v in enumerate(a, 1)] + [row(bench.CONSISTENT, s, v) for s, v in enumerate(b, 1)]
+    st = bench.seed_statistics(rows, 90)
+    e = st[("erls", "m")]
+    q = e["quantities"]["q1"]
+    assert q["mean"] == pytest.approx(np.mean(a))
+    assert q["p"] == pytest.approx(np.percentile(a, 90))
+    d = np.subtract(a, b)
+    assert q["excess"] == pytest.approx(d.mean())
+    assert q["excess_se"] == pytest.approx(d.std(ddof=1) / 2.0)
+    assert e["worst"] == "q1" and e["n"] == 4
+    assert e["nis_mean"] == pytest.approx(np.mean([1.05, 1.1, 1.15, 1.2]))
+    assert e["passed"] is False  # NIS / channels 1.125 on average: more than 10 % above 1
+    assert "excess" not in st[(bench.CONSISTENT, "m")]["quantities"]["q1"]
+    for r in rows:
+        r["nis_mean"] = 2.0
+    st = bench.seed_statistics(rows, 90)
+    assert st[("erls", "m")]["passed"] is True  # mean 1.2 within 1.25 although seed 2's run is at 1.4
+    assert bench._seeds("1-3,7") == [1, 2, 3, 7]

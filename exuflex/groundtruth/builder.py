@@ -41,6 +41,12 @@ which the simulation sets once per time step (``LoadTorqueVector`` on ``MarkerNo
 same but costs the solver 60 % more time per step). The model is built directly in the closed, rigid configuration of
 the ERLS at ``q`` (links straight, at rest), so no assembly step is needed.
 
+The model's ``gravity`` ``g`` loads every mass the truth has, from its own bodies: each beam element by
+``LoadMassProportional`` on a ``MarkerBodyMass`` (Exudyn integrates ``int S^T rho A g dx``), each hub body the
+same way, and a constant mass matrix ``M_k`` on a node (point masses; the legacy slopes hub) by the generalized
+force ``M_k t_g`` (``LoadCoordinate``), ``t_g`` the node's coordinates of a rigid translation by ``g``
+(positions ``g``, slopes or rotation 0; the weight is the work of ``g`` on every mass point).
+
 Damping (the model file's Rayleigh damping of the free elastic modes)
 --------------------------------------------------------------------
 The model file's ``alpha``, ``beta`` state that every free elastic mode (motors free) has the damping ratio
@@ -582,6 +588,8 @@ def build_truth(
     for name, s in align_stations:
         extra.setdefault(name, []).append(float(s))
 
+    gravity = [float(mech.gravity[0]), float(mech.gravity[1]), 0.0]
+    has_gravity = any(gravity)
     node_size = 4 if formulation == "ancf" else 3
     links: dict[str, LinkMesh] = {}
     for i, lk in enumerate(mech.links):
@@ -628,6 +636,9 @@ def build_truth(
                     shearDamping=beta * GA,
                 )
             lm.elements.append(mbs.AddObject(obj))
+            if has_gravity:  # the element's distributed mass: int S^T rho A g dx, Exudyn's own quadrature
+                mbs.AddLoad(it.LoadMassProportional(
+                    markerNumber=mbs.AddMarker(it.MarkerBodyMass(bodyNumber=lm.elements[-1])), loadVector=gravity))
         links[lk.name] = lm
 
     # lumped masses and rotary inertias at their stations (mass matrices on the node's coordinates: the legacy
@@ -674,10 +685,23 @@ def build_truth(
                     m_node = mbs.AddMarker(it.MarkerNodeRigid(nodeNumber=node))
                     mbs.AddObject(it.ObjectJointGeneric(markerNumbers=[m_node, m_body],
                                                         constrainedAxes=[1, 1, 0, 0, 0, 1]))
+                    if has_gravity:
+                        mbs.AddLoad(it.LoadMassProportional(
+                            markerNumber=mbs.AddMarker(it.MarkerBodyMass(bodyNumber=body)), loadVector=gravity))
                 Mk = point_mass[name].get(k, 0.0) * np.diag([1.0, 1.0, 0.0, 0.0])
                 if not Mk.any():
                     continue
             mbs.AddObject(it.ObjectGenericODE2(nodeNumbers=[node], massMatrix=Mk))
+            if has_gravity:
+                # a constant mass matrix on the node: the weight's generalized force is Mk t_g, t_g the node's
+                # coordinates of a rigid translation by g (positions g, slopes or rotation 0); for an offset mass
+                # on the slopes this includes the moment of its weight about the node
+                t_g = np.zeros(node_size)
+                t_g[:2] = gravity[:2]
+                for coord, f in enumerate(Mk @ t_g):
+                    if f != 0.0:
+                        mbs.AddLoad(it.LoadCoordinate(markerNumber=mbs.AddMarker(
+                            it.MarkerNodeCoordinate(nodeNumber=node, coordinate=coord)), load=float(f)))
 
     # joints: revolute between coincident nodes; ground pins
     def node_marker(link: str, station: float) -> int:

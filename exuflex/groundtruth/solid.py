@@ -20,11 +20,17 @@ one line) sees the same rigid motion as one over all of them: the markers use a 
 
 Section read-out (``SolidLink.sections``): at a station ``s`` the displacement field of each mode is sampled at
 points of the cross-section (ngsolve's point evaluation of the quadratic field) and fitted, by least squares
-over the section, with ``u_x = a + b y + c z`` and ``eps_xx = a' + b' y + c' z``: the section's mean
-displacement ``(u_x, u_y)`` (its centre line), its rotation ``theta = -b`` (plane sections: ``u_x = -theta y``)
-and its bending curvature ``kappa = -b'`` (``eps_xx = -kappa y``), each a linear function of the modal
-coordinates. These are what a tip sensor, an encoder on a rigid hub and a pair of strain gauges on opposite
-faces measure; in a slender link they are beam theory's axis displacement, tangent angle and curvature.
+over the section, with ``u_x = a + b y + c z``: the section's mean displacement ``(u_x, u_y)`` (its centre
+line) and its rotation ``theta = -b`` (plane sections: ``u_x = -theta y``). The bending curvature is the mean
+over a gauge length ``g`` centred at ``s`` (:func:`gauge_length`, half the section's height):
+``kappa = (theta(s + g/2) - theta(s - g/2)) / g``, which is the mean of ``-d eps_xx / dy`` over the gauge's
+grid, what a pair of strain gauges of that length on opposite faces measures. It is read from displacements
+because the strain of quadratic tetrahedra at one point is a mesh-dependent error of about 1 % at the default
+mesh (it moves by that much between meshes, both ways; the rotation's difference does not), and the beam
+observer's gauge model is that sensitive (``docs/ffrf_slenderness.md``). Each read-out is a linear function of
+the modal coordinates. These are what a tip sensor, an encoder on a rigid hub and the gauge pair measure; in a
+slender link they are beam theory's axis displacement, tangent angle and curvature (the gauge's mean differs
+from the curvature at ``s`` by ``g^2 kappa'' / 24``).
 
 The cache key is a hash of everything that defines the modes (geometry, material, mesh size and order,
 interfaces, read-out stations, mode rule, the format version); a changed model file or setting misses the
@@ -52,11 +58,13 @@ from ..mechanism import Mechanism
 
 __all__ = [
     "CACHE_ENV",
+    "GAUGE_FRACTION",
     "MESH_ORDER",
     "MODE_FACTOR",
     "SolidLink",
     "SolidSpec",
     "default_mesh_size",
+    "gauge_length",
     "link_interfaces",
     "solid_link",
     "solid_specs",
@@ -71,8 +79,10 @@ MESH_ORDER = 2
 MODE_FACTOR = 4.0
 """Fixed-interface eigenmodes are kept up to this multiple of the model's band (``reduction.band_hz``)."""
 MIN_EIGEN_MODES = 4
+GAUGE_FRACTION = 0.5
+"""The curvature read-out's gauge length as a fraction of the section's height (:func:`gauge_length`)."""
 MARKER_NODES = 8  # nodes per joint marker (a rigid interface: any three off a line give the same motion)
-FORMAT = 2  # cache format version (part of the key)
+FORMAT = 3  # cache format version (part of the key): 3, the curvature over a gauge length
 
 
 def default_mesh_size(section) -> float:
@@ -234,26 +244,44 @@ def _section_points(spec: SolidSpec, x: float) -> np.ndarray:
     return np.array(pts)
 
 
+def gauge_length(spec: SolidSpec) -> float:
+    """The curvature read-out's gauge length (m): :data:`GAUGE_FRACTION` of the section's in-plane height (the
+    diameter of a round or tube section), at most the link's length."""
+    h = spec.height if spec.shape == "rectangle" else spec.diameter
+    return min(GAUGE_FRACTION * float(h), spec.length)
+
+
 def _section_rows(mesh, fes, modes_ng: np.ndarray, spec: SolidSpec, station: float) -> np.ndarray:
-    """(4, n_modes): u_x, u_y, theta, kappa of the section at ``station`` per unit modal coordinate."""
+    """(4, n_modes): u_x, u_y, theta, kappa of the section at ``station`` per unit modal coordinate.
+
+    ``u_x, u_y, theta`` from the displacements sampled over the section at ``station``; ``kappa`` the mean
+    curvature over the gauge length ``g`` (:func:`gauge_length`) centred there (moved inside the link near an
+    end): ``(theta(s + g/2) - theta(s - g/2)) / g``, the mean of ``-d eps_xx / dy`` over the gauge's grid, from
+    displacements, not from the strain at one point (the module docstring says why)."""
     import ngsolve as ngs
 
     eps = 1e-6 * spec.length
+    g = gauge_length(spec)
     x = min(max(station, eps), spec.length - eps)
-    P = _section_points(spec, x)
-    mp = mesh(P[:, 0], P[:, 1], P[:, 2])
-    A = np.column_stack([np.ones(len(P)), P[:, 1], P[:, 2]])
-    pinv = np.linalg.pinv(A)
+    a = min(max(x - g / 2, eps), spec.length - eps - g)
+    a = max(a, eps)
+    b = min(a + g, spec.length - eps)
     gf = ngs.GridFunction(fes)
-    grad = ngs.Grad(gf)
+
+    def fit(xs):  # (3, n_modes): mean u_x, mean u_y and theta of the section at xs
+        P = _section_points(spec, xs)
+        mp = mesh(P[:, 0], P[:, 1], P[:, 2])
+        pinv = np.linalg.pinv(np.column_stack([np.ones(len(P)), P[:, 1], P[:, 2]]))
+        out = np.empty((3, modes_ng.shape[1]))
+        for i in range(modes_ng.shape[1]):
+            gf.vec.FV().NumPy()[:] = modes_ng[:, i]
+            u = np.asarray(gf(mp)).reshape(len(P), 3)
+            out[:, i] = (u[:, 0].mean(), u[:, 1].mean(), -(pinv @ u[:, 0])[1])
+        return out
+
     rows = np.empty((4, modes_ng.shape[1]))
-    for i in range(modes_ng.shape[1]):
-        gf.vec.FV().NumPy()[:] = modes_ng[:, i]
-        u = np.asarray(gf(mp)).reshape(len(P), 3)
-        g = np.asarray(grad(mp)).reshape(len(P), 9)  # row-major d u_i / d x_j
-        cu = pinv @ u[:, 0]
-        ce = pinv @ g[:, 0]
-        rows[:, i] = (u[:, 0].mean(), u[:, 1].mean(), -cu[1], -ce[1])
+    rows[:3] = fit(x)
+    rows[3] = (fit(b)[2] - fit(a)[2]) / (b - a)
     return rows
 
 
