@@ -447,6 +447,11 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr
                     old_T2, old_V2, old_C2, pM, pK, pC, pG)
     Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.5 * h * n, hs)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
+    if not math.isfinite(z_next[0]):
+        # M_r not positive definite at the midpoint's elastic coordinates: a long interval (a gap, a log sampled
+        # far below the modes), over which their linear advance means nothing; the matrices at the start
+        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.0, hs)
+        z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM)
