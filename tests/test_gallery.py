@@ -152,12 +152,16 @@ def _benchmark():
 # ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
 # the filter core and the reduction of issue 15 are done.
 KNOWN_SHORT: dict[str, str] = {
-    "sixbar": "with the damping as stated (docs/validity.md) q1's RMS error is 1.55-1.78x its bound on the Exudyn "
-              "truth, seeds 1-3 (1.23-1.48x while alpha M_uu over-damped modes 3, 5, 6 by 9-19x); on the stored ERLS "
-              "log 1.50x (was 1.12x), 1.54x with 8 interior modes: the less damped modes above the band, cause not "
-              "pinned down (issue 28 item 1)",
+    "sixbar": "every RMS error within 1.5x its bound on the Exudyn truth, seeds 1-3 (worst 1.34, 1.36, 1.17 since the "
+              "cached step holds its configurations undeformed and the elastic coordinates at the interval's "
+              "midpoint, docs/step_jacobian.md; 1.73, 1.66, 1.50 before), but the default path's q1 RMS error is "
+              "1.11x and 1.14x the rk4 reference's on seeds 1 and 2 (the criterion: within 10 %): q held at the "
+              "interval's start (the exact model held so, its elastic coordinates at the midpoint, gives the "
+              "cached step's figures on tests/data/sixbar_erls_3s; advancing q too costs the slider-crank, whose "
+              "step Jacobian lacks dM/dq q'; docs/step_jacobian.md)",
     "three_link_arm": ("the wrist and elbow angles' RMS errors are 3.0-4.6x their bounds with the cached step on both truths "
-                       "(docs/acceptance.md). With the exact step (method='rk4') q3 stays at 1.14-1.67x on the ERLS truth, "
+                       "(docs/acceptance.md; since the cached step's change, worst per seed ERLS 1.44, 2.71, 1.30 and "
+                       "Exudyn 2.94, 4.89, 1.25: docs/step_jacobian.md). With the exact step (method='rk4') q3 stays at 1.14-1.67x on the ERLS truth, "
                        "seeds 1-3, and at up to 1.67x (10 seeds, 7 above 1.3) on the observer's own reduced model as the truth: a "
                        "deterministic error, not truncation or scatter. Noiseless logs, rk4: q3's error is 0.92 of its "
                        "bound on the ERLS truth, 0.83 on the reduced truth and 0.54 on a reduced truth stepped by the "
