@@ -149,6 +149,21 @@ def _cholesky_factor(A):  # pragma: no cover - compiled
 
 
 @_shared
+def _substitute_row(X, L, i, lo, hi, transpose):  # pragma: no cover - compiled
+    """Row ``i`` of a triangular solve in place: ``X[i] = (X[i] - sum_k l_k X[k]) / L[i, i]`` over the solved
+    rows ``lo <= k < hi``, with ``l_k = L[i, k]`` (forward, ``L Y = B``) or ``L[k, i]`` (``transpose``: backward,
+    ``L^T X = Y``); an axpy over the columns per row."""
+    m = X.shape[1]
+    for k in range(lo, hi):
+        lk = L[k, i] if transpose else L[i, k]
+        for c in range(m):
+            X[i, c] -= lk * X[k, c]
+    d = 1.0 / L[i, i]
+    for c in range(m):
+        X[i, c] *= d
+
+
+@_shared
 def _cholesky_solve(A, B):  # pragma: no cover - compiled
     """``A^-1 B`` for a symmetric positive definite ``A`` (a reduced mass matrix); NaN if it is not."""
     r = A.shape[0]
@@ -156,23 +171,10 @@ def _cholesky_solve(A, B):  # pragma: no cover - compiled
     if not ok:
         return np.full(B.shape, np.nan)
     X = B.copy()
-    m = B.shape[1]
-    for i in range(r):  # forward: L Y = B, row i of Y from the rows above (axpy over the columns)
-        for k in range(i):
-            lik = L[i, k]
-            for c in range(m):
-                X[i, c] -= lik * X[k, c]
-        d = 1.0 / L[i, i]
-        for c in range(m):
-            X[i, c] *= d
-    for i in range(r - 1, -1, -1):  # backward: L^T X = Y
-        for k in range(i + 1, r):
-            lki = L[k, i]
-            for c in range(m):
-                X[i, c] -= lki * X[k, c]
-        d = 1.0 / L[i, i]
-        for c in range(m):
-            X[i, c] *= d
+    for i in range(r):  # forward: L Y = B, row i of Y from the rows above
+        _substitute_row(X, L, i, 0, i, False)
+    for i in range(r - 1, -1, -1):  # backward: L^T X = Y, row i from the rows below
+        _substitute_row(X, L, i, i + 1, r, True)
     return X
 
 
@@ -281,24 +283,27 @@ def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
 
 
 @_inline
+def _along(dl, dA, dB):  # pragma: no cover - compiled
+    """The changes ``sum_i dl_i dA[i]`` and ``sum_i dl_i dB[i]`` of two matrices (rows of ``dA``, ``dB``: their
+    flattened q-gradients) for the step ``dl`` in q."""
+    n = dA.shape[1]
+    gA = np.zeros(n)
+    gB = np.zeros(n)
+    for i in range(dl.shape[0]):
+        for k in range(n):
+            gA[k] += dl[i] * dA[i, k]
+            gB[k] += dl[i] * dB[i, k]
+    return gA, gB
+
+
+@_inline
 def _mass_stiffness(dl, s, hs):  # pragma: no cover - compiled
     """``M_r``, ``K_r`` of the held model at ``q0 + dl``: gradients at ``q0`` and, with a secant partner, half the
     change of the gradients along the secant (``s = (dl . d) / (d . d)``, ``d = q0 - q_old``): second order."""
     r = hs.Mr.shape[0]
-    nq = dl.shape[0]
-    gM = np.zeros(r * r)
-    gK = np.zeros(r * r)
-    for i in range(nq):
-        for k in range(r * r):
-            gM[k] += dl[i] * hs.dM[i, k]
-            gK[k] += dl[i] * hs.dK[i, k]
+    gM, gK = _along(dl, hs.dM, hs.dK)
     if hs.has_old:
-        hM = np.zeros(r * r)
-        hK = np.zeros(r * r)
-        for i in range(nq):
-            for k in range(r * r):
-                hM[k] += dl[i] * hs.old_dM[i, k]
-                hK[k] += dl[i] * hs.old_dK[i, k]
+        hM, hK = _along(dl, hs.old_dM, hs.old_dK)
         for k in range(r * r):
             gM[k] += 0.5 * s * (gM[k] - hM[k])
             gK[k] += 0.5 * s * (gK[k] - hK[k])
