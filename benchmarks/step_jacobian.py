@@ -181,6 +181,14 @@ def _gallery_rows(rows: list[dict]) -> dict:
             for k, v in sorted(agg.items())}
 
 
+def _runs_before_after(rows, path, before_path):
+    """``rows`` of the runs in the JSON at ``path`` and at ``before_path`` (``{}`` without one)."""
+    def load(p):
+        return rows(json.loads(Path(p).read_text())["runs"])
+
+    return load(path), load(before_path) if before_path else {}
+
+
 def _acceptance_rows(rows: list[dict]) -> dict:
     """Per (engine, model): the seeds' worst RMS / bound (a run's largest ratio over its quantities)."""
     agg: dict = {}
@@ -272,8 +280,7 @@ def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance
                   "The damping, input matrix and forces, held along the secant only, are small against it since "
                   "the held configurations are undeformed.", ""]
     if acceptance:
-        after = _acceptance_rows(json.loads(Path(acceptance).read_text())["runs"])
-        before = _acceptance_rows(json.loads(Path(acceptance_before).read_text())["runs"]) if acceptance_before else {}
+        after, before = _runs_before_after(_acceptance_rows, acceptance, acceptance_before)
         lines += ["## The gallery before and after", "",
                   "`python benchmarks/gallery.py --acceptance --truth-dir DIR --md '' --json FILE` with this tree "
                   "and with the tree before the change (`--acceptance-before`), on the same truths (issue 28's "
@@ -286,8 +293,7 @@ def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance
                          f"{', '.join(_fmt(x) for x in v)} |")
         lines.append("")
     if gallery_json:
-        after = _gallery_rows(json.loads(Path(gallery_json).read_text())["runs"])
-        before = _gallery_rows(json.loads(Path(before_json).read_text())["runs"]) if before_json else {}
+        after, before = _runs_before_after(_gallery_rows, gallery_json, before_json)
         lines += ["## The gallery: cached against rk4", "",
                   "`python benchmarks/gallery.py --engine erls,exudyn --truth-dir DIR --json FILE` (default "
                   "settings, seeds 1-3, the truths of issue 28's acceptance run): per model and truth engine, the "

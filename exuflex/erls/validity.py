@@ -9,8 +9,7 @@ model diverges where the softening cancels the bending stiffness, ``Omega = omeg
 
 ``docs/validity.md`` measures this on a spinning cantilever (``benchmarks/spin_up.py``, ERLS against Exudyn's
 geometrically exact beams): the normalised RMS error of the tip deflection passes 5 % at
-``Omega = DEPARTURE_RATIO omega_c`` and follows the square law below it (0.86 % at half that speed's 3.52 %
-speed). The guard therefore estimates each link's error along a trajectory as
+``Omega = DEPARTURE_RATIO omega_c`` and follows the square law below it (the page's table). The guard therefore estimates each link's error along a trajectory as
 ``DEPARTURE_NRMS (Omega / (DEPARTURE_RATIO omega_c))^2`` from its own ``omega_c`` and warns, naming the link and
 the time, where the estimate reaches :data:`WARN_NRMS` (half the departure criterion: the rate approaches the
 departure speed), where it passes the departure (``"departed"``) and where the rate reaches ``omega_c``

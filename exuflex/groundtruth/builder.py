@@ -76,7 +76,7 @@ The model file's ``alpha``, ``beta`` state that every free elastic mode (motors 
   ``(omega dt)^2 / 12``) and sets the interval from the links' rotation rate ``omega`` so that this mean stays
   below a tolerance. In a simulation the damper force ``-D c'`` is applied explicitly, with the rates at the
   start of each step (``alpha h`` and ``zeta omega h`` are below 0.01 for the damped modes, so this is stable
-  and its lag negligible; a dense implicit damping matrix would make the sparse solver 50 % slower); for modal
+  and its lag negligible; a dense implicit damping matrix would fill the sparse solver's system); for modal
   analysis ``D`` is the object's damping matrix.
 - ``damping="corotational"``: ``D_l = alpha (M_l - M_l R_l (R_l^T M_l R_l)^-1 R_l^T M_l)`` per link (``R_l``:
   the link's own rigid velocity fields), which damps each link's deformation relative to its own mass-weighted

@@ -25,8 +25,8 @@ line) and its rotation ``theta = -b`` (plane sections: ``u_x = -theta y``). The 
 over a gauge length ``g`` centred at ``s`` (:func:`gauge_length`, half the section's height):
 ``kappa = (theta(s + g/2) - theta(s - g/2)) / g``, which is the mean of ``-d eps_xx / dy`` over the gauge's
 grid, what a pair of strain gauges of that length on opposite faces measures. It is read from displacements
-because the strain of quadratic tetrahedra at one point is a mesh-dependent error of about 1 % at the default
-mesh (it moves by that much between meshes, both ways; the rotation's difference does not), and the beam
+because the strain of quadratic tetrahedra at one point carries a mesh-dependent error (it moves between
+meshes, both ways, as ``docs/ffrf_gap.md`` measures; the rotation's difference does not), and the beam
 observer's gauge model is that sensitive (``docs/ffrf_slenderness.md``). Each read-out is a linear function of
 the modal coordinates. These are what a tip sensor, an encoder on a rigid hub and the gauge pair measure; in a
 slender link they are beam theory's axis displacement, tangent angle and curvature (the gauge's mean differs
