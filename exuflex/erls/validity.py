@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 DEPARTURE_RATIO = 0.31
 """Rate / first clamped frequency where the ERLS departs (tip deflection NRMS > 5 %) from a geometrically
-stiffened beam, measured on the spin-up benchmark (``docs/validity.md``; ``tests/test_validity.py`` reads the
+stiffened beam, from the spin-up benchmark (``docs/validity.md``; ``tests/test_validity.py`` reads the
 page and keeps the two equal)."""
 DEPARTURE_NRMS = 0.05  # the departure criterion of that benchmark
 WARN_NRMS = 0.025  # warn from this estimated error: Omega >= DEPARTURE_RATIO omega_c / sqrt(2)
