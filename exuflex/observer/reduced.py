@@ -854,11 +854,12 @@ class ReducedObserverModel:
         Ut, G = plan.rates(self.model, rc.cfg)
         # dU/dq_k = U_theta dtheta_l/dq_k, l each channel's link (none: the encoders)
         turn = np.where((plan.link >= 0)[:, None], iv.Sz_theta[plan.link], 0.0)  # (m, nq)
-        D = np.zeros((nq, len(channels), r))
-        D[:, :, nq:] = np.einsum("ik,ie,ec->kic", turn, Ut, rc.H[nq:, nq:])
+        m, ne = U.shape
         # d(H_u e_c)/dq_k of the elastic coordinates c (the basis's q-columns do not change)
         dHu = self.rm.cb.basis_derivative(rc, np.eye(r)[:, nq:])[:, nq:, :]  # (r - nq, ne, nq)
-        D[:, :, nq:] += np.einsum("ie,cek->kic", U, dHu)
+        UdH = (U @ dHu.transpose(1, 0, 2).reshape(ne, -1)).reshape(m, r - nq, nq)
+        D = np.zeros((nq, m, r))
+        D[:, :, nq:] = UdH.transpose(2, 0, 1) + turn.T[:, :, None] * (Ut @ rc.H[nq:, nq:])[None]
         return c0, Hm, D, np.ascontiguousarray(G)
 
     # ------------------------------------------------------------------ physical states
