@@ -74,27 +74,31 @@ def _split_debug(argv: list[str]) -> tuple[list[str], bool]:
 def setting_up():
     """Python's cyclic garbage collector paused while a command makes what lives until it ends (the modules it
     imports, the compiled kernels loaded from numba's cache, the model): a bounded amount of memory that is not
-    garbage, which each full collection would otherwise traverse again (loading numba's kernels creates many
-    objects, and so triggers many collections). Resumed on leaving: the work that grows with the log (filtering,
-    writing) runs with the collector on."""
+    garbage, which each collection of the oldest generation would otherwise traverse again (importing SciPy and
+    loading numba's kernels create many objects, and so trigger many collections). On leaving, what exists is
+    frozen (:func:`gc.freeze`: left out of later collections) and the collector resumes: the work that grows with
+    the log (filtering, writing) runs with it on. :func:`main` gives the frozen objects back to the collector when
+    it returns to a caller in Python."""
     was = gc.isenabled()
     gc.disable()
     try:
         yield
     finally:
+        gc.freeze()
         if was:
             gc.enable()
 
 
 def main(argv: list[str] | None = None) -> int:
     """The command line (``argv`` without the program's name; default ``sys.argv``). Called as the program (no
-    ``argv``), what the command made is frozen out of the interpreter's collections at exit (:func:`gc.freeze`:
-    they would traverse every object of numba's and the model's once more before the process ends anyway)."""
+    ``argv``), what the command made stays frozen out of the interpreter's collections until it exits
+    (:func:`gc.freeze`: its last collections would traverse every object of numba's and the model's once more);
+    called from Python, the objects frozen while the command set up are given back to the collector
+    (:func:`gc.unfreeze`)."""
     try:
         return _main(argv)
     finally:
-        if argv is None:
-            gc.freeze()
+        gc.freeze() if argv is None else gc.unfreeze()
 
 
 def _main(argv: list[str] | None) -> int:
@@ -111,8 +115,9 @@ def _main(argv: list[str] | None) -> int:
         logging.getLogger("exuflex.observer.ekf").addFilter(_NisFlagFilter())
     if debug:
         return int(args.func(args) or 0)
-    from ..errors import EXPECTED_ERRORS
-    from ..observer.base import FilterDivergedError
+    with setting_up():
+        from ..errors import EXPECTED_ERRORS
+        from ..observer.base import FilterDivergedError
 
     prog = f"exuflex {args.command}"
     try:

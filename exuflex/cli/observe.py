@@ -286,15 +286,17 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from .. import _compile
-    from ..errors import UsageError
     from . import setting_up
-    from ..mechanism import load_mechanism
-    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer
-    from ..scoring.run import observe_run
-    from ..runs import check_csv_dialect, read_run
-    from ..sensors import default_channels
-    from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
+
+    with setting_up():  # the observer's modules (and SciPy, numba) imported
+        from .. import _compile
+        from ..errors import UsageError
+        from ..mechanism import load_mechanism
+        from ..observer.session import AUGMENTED_ESTIMATORS, make_observer
+        from ..runs import check_csv_dialect, read_run
+        from ..scoring.run import observe_run
+        from ..sensors import default_channels
+        from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
