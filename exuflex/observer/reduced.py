@@ -856,7 +856,12 @@ class ReducedObserverModel:
         turn = np.where((plan.link >= 0)[:, None], iv.Sz_theta[plan.link], 0.0)  # (m, nq)
         m, ne = U.shape
         # d(H_u e_c)/dq_k of the elastic coordinates c (the basis's q-columns do not change)
-        dHu = self.rm.cb.basis_derivative(rc, np.eye(r)[:, nq:])[:, nq:, :]  # (r - nq, ne, nq)
+        dH = None if iv.forces is None else iv.forces.dHdq  # the held evaluation's, else computed here
+        if dH is None:
+            dH = self.rm.cb.basis_derivative(rc, np.eye(r)[:, nq:])
+        else:
+            dH = dH[nq:]
+        dHu = dH[:, nq:, :]  # (r - nq, ne, nq)
         UdH = (U @ dHu.transpose(1, 0, 2).reshape(ne, -1)).reshape(m, r - nq, nq)
         D = np.zeros((nq, m, r))
         D[:, :, nq:] = UdH.transpose(2, 0, 1) + turn.T[:, :, None] * (Ut @ rc.H[nq:, nq:])[None]

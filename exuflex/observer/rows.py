@@ -35,7 +35,9 @@ class ChannelRows:
     For the rows' change with the configuration (:meth:`rates`): ``link`` (m,) the link whose angle turns each
     channel's u row (-1: none, the encoders' rows do not turn), ``curv_rate`` the Hermite rows turned by 90
     degrees (``W c``, see :meth:`rates`), ``point_at`` ``(links, stations, weights)``: the point channels' points
-    (link index, station) and the weights ``w`` of their reading ``w . p - offset`` (:func:`point_channel`).
+    (link index, station) and the weights ``w`` of their reading ``w . p - offset`` (:func:`point_channel`);
+    ``rate_points`` ``(links, stations)``: every link's origin, then the point channels' points (the points whose
+    pose derivatives :meth:`rates` takes).
     """
 
     angle: np.ndarray
@@ -48,6 +50,7 @@ class ChannelRows:
     link: np.ndarray
     curv_rate: np.ndarray
     point_at: tuple
+    rate_points: tuple
 
     def at(self, model, cfg) -> tuple[np.ndarray, list]:
         """``(U, points)`` at configuration ``cfg``: the u rows (m, ne) of every channel (those of the point
@@ -87,9 +90,7 @@ class ChannelRows:
         for (i, s), st in zip(self.points, stations):
             w = weights[i]
             Ut[i] = w @ model.point_displacement_rows(cfg, s.link, st, rate=True)
-        kin = model.kin
-        P = kin.coordinate_rates(cfg.pose, np.concatenate([np.arange(nl), links]),
-                                 np.concatenate([np.zeros(nl), stations]))  # (nq, 3 (nl + points), nq)
+        P = model.kin.coordinate_rates(cfg.pose, *self.rate_points)  # (nq, 3 (nl + points), nq)
         G = np.einsum("il,jlk->ijk", self.angle, P[:, 2 : 3 * nl : 3])
         for k, (i, _) in enumerate(self.points):
             G[i] += np.einsum("c,jck->jk", weights[i], P[:, 3 * (nl + k) : 3 * (nl + k) + 2])
@@ -129,5 +130,8 @@ def channel_rows(model, sensors, link_names: list[str]) -> ChannelRows:
     cr = np.array(cr, dtype=float).reshape(-1, 6)
     rate = np.zeros_like(cr)  # W c: each node's translation pair (a, b) turned to (-b, a)
     rate[:, [0, 3]], rate[:, [1, 4]] = -cr[:, [1, 4]], cr[:, [0, 3]]
-    return ChannelRows(angle, u_fixed, ce, cr, take, flat, tuple(points), link, rate,
-                       (np.array(p_link, dtype=np.int64), np.array(p_station, dtype=float), weights))
+    p_link, p_station = np.array(p_link, dtype=np.int64), np.array(p_station, dtype=float)
+    nl = len(link_names)
+    return ChannelRows(angle, u_fixed, ce, cr, take, flat, tuple(points), link, rate, (p_link, p_station, weights),
+                       (np.concatenate([np.arange(nl, dtype=np.int64), p_link]),
+                        np.concatenate([np.zeros(nl), p_station])))
