@@ -79,13 +79,16 @@ its hand gauge's row changes with the elbow angle at about the size of the row i
 
 ## The rows' error at the distance from the held configuration
 
-Per model: the elastic rows' largest relative error over the observer's channels and {n_dir} random directions,
-first order (the rows at `q*`) and with the expansion; the rigid part's largest error on an undeformed state in
-units of the channel's noise; the expansion's cost per held configuration against the held evaluation's (CPU,
-median of {n_rep}).
+Per model, at `|dl|` = 0.01 / 0.02 / 0.04 rad from `q*` in {n_dir} random directions: the elastic rows' largest
+relative error over the observer's channels (`|E_i(q) - approx| / |E_i(q*)|`, over the channels with an elastic
+row), first order (the rows at `q*`) and with the expansion; the elastic part's error in units of the channel's
+noise for an elastic state whose largest reading is a tenth of its channel's full scale (random, one per
+direction: the rows' size says little alone, a gauge reads its state with a signal-to-noise ratio of 100 or more);
+the rigid part's largest error on an undeformed state in units of the channel's noise at 0.04 rad; the expansion's
+cost per held configuration against the held evaluation's (CPU, median of {n_rep}).
 
-| model | channels | rows at q*: 0.01 / 0.02 / 0.04 rad | expansion: 0.01 / 0.02 / 0.04 rad | rigid / noise, first order: 0.04 rad | with G: 0.04 rad | cost / held evaluation |
-|---|---|---|---|---|---|---|
+| model | channels | rows at q*, relative | expansion, relative | rows at q*, elastic / noise | expansion, elastic / noise | rigid / noise, first order | with G | cost / held evaluation |
+|---|---|---|---|---|---|---|---|---|
 """
 
 
@@ -121,8 +124,12 @@ def measure(path: Path, n_dir: int, n_rep: int) -> dict:
     dirs = rng.standard_normal((n_dir, nq))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     first, expanded = np.zeros(len(STEPS)), np.zeros(len(STEPS))
+    y_first, y_expanded = np.zeros(len(STEPS)), np.zeros(len(STEPS))
     rigid1 = rigid2 = 0.0
+    scale = np.array([m.sensors[c].full_scale or np.inf for c in channels])
     for u in dirs:
+        pe = rng.standard_normal(r - nq)  # an elastic state reading at most a tenth of a channel's full scale
+        pe *= 0.1 / np.max(np.abs(Hm[:, nq:r] @ pe) / scale)
         for s, h in enumerate(STEPS):
             dl = h * u
             x = m.initial_state(q0 + dl)
@@ -131,6 +138,8 @@ def measure(path: Path, n_dir: int, n_rep: int) -> dict:
             approx = Hm[:, nq:r] + np.tensordot(dl, D[:, :, nq:], axes=1)
             first[s] = max(first[s], float(np.max(np.linalg.norm(E - Hm[:, nq:r], axis=1)[el] / E0[el])))
             expanded[s] = max(expanded[s], float(np.max(np.linalg.norm(E - approx, axis=1)[el] / E0[el])))
+            y_first[s] = max(y_first[s], float(np.max(np.abs((E - Hm[:, nq:r]) @ pe) / noise)))
+            y_expanded[s] = max(y_expanded[s], float(np.max(np.abs((E - approx) @ pe) / noise)))
             if h == STEPS[-1]:
                 y = c + H @ x
                 y1 = c0 + Hm @ x
@@ -142,7 +151,7 @@ def measure(path: Path, n_dir: int, n_rep: int) -> dict:
     t_rows = _cpu(lambda: m._expansion(iv, channels), n_rep)
     t_affine = _cpu(lambda: m._affine(iv, channels), n_rep)
     return {"model": mech.name, "channels": ", ".join(channels), "first": first.tolist(),
-            "expanded": expanded.tolist(), "rigid_first": rigid1, "rigid_second": rigid2,
+            "expanded": expanded.tolist(), "y_first": y_first.tolist(), "y_expanded": y_expanded.tolist(), "rigid_first": rigid1, "rigid_second": rigid2,
             "cost": (t_rows - t_affine) / t_held}
 
 
@@ -150,7 +159,11 @@ def _row(f: dict) -> str:
     def trio(v):
         return " / ".join(f"{a:.1e}" for a in v)
 
+    def trio2(v):
+        return " / ".join(f"{a:.2g}" for a in v)
+
     return (f"| {f['model']} | {f['channels']} | {trio(f['first'])} | {trio(f['expanded'])} | "
+            f"{trio2(f['y_first'])} | {trio2(f['y_expanded'])} | "
             f"{f['rigid_first']:.2g} | {f['rigid_second']:.2g} | {f['cost']:.2f} |")
 
 
