@@ -45,9 +45,24 @@ step, the sensor-fault windows, the NIS test) are the mixture's: ``r = sum_j c_j
 mixture's prediction ``sum_j c_j y_j``) with ``S = sum_j c_j (S_j + (r_j - r)(r_j - r)')``. A channel the gate or
 the isolation leaves out is left out of every mode's update.
 
-Smoothing is not offered: the extended RTS recursion (:mod:`.smoother`) runs back along one filter's
-linearisation, and the combined estimate is a mixture of two, with mode probabilities that a smoother would have
-to run backwards too (an IMM smoother, e.g. Helmick, Blair and Hoffman 1995, is a filter of its own).
+Smoothing (:meth:`IMMFilter.smooth`): Kim's fixed-interval smoother (Kim 1994; Kim and Nelson 1999, sec. 5.2)
+on the modes' extended RTS steps, backwards from the last sample (smoothed = filtered there). With ``W_ij = T_ij
+mu_i / c_j`` the forward mixing weight, ``P(s_k = i | s_k+1 = j, y_1..k)``, from sample ``k + 1`` to ``k``:
+
+1. Mode probabilities: ``mu_i|n = sum_j W_ij mu_j|n(k + 1)`` (summing to 1, as each column of ``W`` does):
+   ``P(s_k | s_k+1, y_1..n)`` taken as ``P(s_k | s_k+1, y_1..k)`` (Kim's approximation).
+2. Per pair (mode ``i`` at ``k``, ``j`` at ``k + 1``): mode ``i``'s posterior in ``j``'s space as step 1 extends
+   it (``a_ij``, ``A_ij``; the components ``i`` has beyond ``j``'s kept, with zero columns in ``F_j``: ``j``'s
+   interval does not read them, the smoother corrects them through their correlation), carried by mode ``j``'s
+   interval linearised at its mixed start ``x0_j``: ``x_ij = f_j(x0_j) + F_j (a_ij - x0_j)``, ``F_j A_ij F_j' +
+   Q_j``; then the RTS step (:func:`.smoother.rts_step`) towards mode ``j``'s smoothed belief at ``k + 1``.
+3. Mode ``i``'s smoothed belief: the moments of its pairs, weighted ``P(s_k+1 = j | s_k = i, y_1..n) = W_ij
+   mu_j|n(k + 1) / mu_i|n``, in its own space; the estimate combines them as step 4.
+
+With one mode this is the extended RTS smoother on the filter's pass (:func:`.smoother.rts_backward`), and so with
+identical modes. The pairs' predictions are linear in ``a_ij``: mixed by ``W`` they give each mode's forward
+prediction. What is approximate (Kim's step 1, a Gaussian per mode, the linearisation) the tests measure against
+the exact posterior over every mode sequence of a short linear record.
 """
 
 from __future__ import annotations
@@ -56,20 +71,25 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
 
 from . import kalman
 from .base import Belief, FilterDivergedError, Measurement, hooks
-from .ekf import _MODEL_FAILURES, BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
+from .ekf import (
+    _MODEL_FAILURES,
+    BeliefFilter,
+    EstimationResult,
+    Monitoring,
+    RunRecord,
+    check_log,
+    step_arguments,
+)
+from .smoother import SmoothedResult, rts_step
 
-__all__ = ["IMMFilter", "combine", "mix", "transition_matrix"]
-
-#: what the RTS smoother says of the IMM (module notes)
-NO_SMOOTHER = ("the IMM estimator has no smoother: its estimate mixes two filters' linearisations, which the RTS "
-               "recursion cannot run back along (docs/imm.md); use ekf or ekf-payload with --smooth")
-
+__all__ = ["IMMFilter", "ModeTrack", "combine", "mix", "smooth_back", "transition_matrix"]
 
 def transition_matrix(dwell_s: Sequence[float], dt: float) -> np.ndarray:
     """``T = expm(G dt)``: the modes' transition probabilities over ``dt`` s, each mode left at the rate
@@ -92,6 +112,19 @@ def _moments(w: np.ndarray, X: Sequence[np.ndarray], P: Sequence[np.ndarray]) ->
     return Belief(x, 0.5 * (C + C.T))
 
 
+def _extend(b: Belief, other: Belief) -> Belief:
+    """``b`` with the components ``other`` has beyond it appended from ``other``, uncorrelated with the rest (step 1
+    of the module notes: unbiased mixing)."""
+    k, n = len(b.x), len(other.x)
+    if n <= k:
+        return b
+    x, P = other.x.copy(), np.zeros((n, n))
+    x[:k] = b.x
+    P[:k, :k] = b.P
+    P[k:, k:] = other.P[k:, k:]
+    return Belief(x, P)
+
+
 def mix(mu: np.ndarray, T: np.ndarray, beliefs: Sequence[Belief]) -> tuple[np.ndarray, list[Belief]]:
     """Step 1 of the module notes: the predicted mode probabilities ``c`` and each mode's mixed start, over modes
     whose beliefs may differ in size (nested states, unbiased mixing)."""
@@ -100,16 +133,8 @@ def mix(mu: np.ndarray, T: np.ndarray, beliefs: Sequence[Belief]) -> tuple[np.nd
     for j, bj in enumerate(beliefs):
         n = len(bj.x)
         W = T[:, j] * mu / c[j] if c[j] > 0 else (np.arange(len(mu)) == j).astype(float)
-        X, P = [], []
-        for bi in beliefs:
-            k = min(len(bi.x), n)
-            x, Pi = bj.x.copy(), np.zeros((n, n))
-            x[:k] = bi.x[:k]
-            Pi[:k, :k] = bi.P[:k, :k]
-            Pi[k:, k:] = bj.P[k:, k:]
-            X.append(x)
-            P.append(Pi)
-        out.append(_moments(W, X, P))
+        ext = [_extend(bi, bj) for bi in beliefs]
+        out.append(_moments(W, [e.x[:n] for e in ext], [e.P[:n, :n] for e in ext]))
     return c, out
 
 
@@ -184,6 +209,8 @@ class IMMFilter(BeliefFilter):
                 h.reset()
         self._beliefs = [Belief(self._x0[:n].copy(), self._P0[:n, :n].copy()) for n in self.dims]
         self.mode_p = self.mode_p0.copy()
+        self.starts: list = [None] * len(self.models)
+        self.intervals: list = [None] * len(self.models)
 
     def _transition(self, dt: float) -> np.ndarray:
         if self._T is None or self._T[0] != dt:
@@ -191,12 +218,13 @@ class IMMFilter(BeliefFilter):
         return self._T[1]
 
     def _predict(self, b: Belief, j: int, dt: float, u_next) -> Belief | None:
-        """Mode ``j``'s prediction from its mixed start ``b`` (None where its model cannot step from there)."""
+        """Mode ``j``'s prediction from its mixed start ``b`` (None where its model cannot step from there); the
+        model's interval kept in ``intervals[j]`` (what the smoother needs)."""
         try:
-            pred = self.models[j].predict(b.x, self._u_prev, dt, u_next)
+            self.intervals[j] = self.models[j].predict(b.x, self._u_prev, dt, u_next)
         except _MODEL_FAILURES:
             return None
-        return kalman.predict(b, pred)
+        return kalman.predict(b, self.intervals[j])
 
     def _condition(self, j: int, y: np.ndarray, idx: np.ndarray):
         """Mode ``j``'s update with the channels ``idx``: ``(belief, innovation)``, or None where its model cannot
@@ -226,6 +254,7 @@ class IMMFilter(BeliefFilter):
                                  f"most max_gap={self.max_gap:g} s")
             self.n_missing += max(round(dt / self.dt) - 1, 0)
             c, self._beliefs = mix(self.mode_p, self._transition(dt), self._beliefs)
+            self.starts, self.intervals = list(self._beliefs), [None] * len(self.models)
             for j, b in enumerate(self._beliefs):
                 p = self._predict(b, j, dt, u)
                 alive[j] = p is not None
@@ -307,18 +336,92 @@ class IMMFilter(BeliefFilter):
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
             predictions: bool = False) -> EstimationResult:
         """:meth:`step` over a record (as :meth:`.ekf.MultirateEKF.run`); the result's ``nominal_p`` is the first
-        mode's probability at each sample. ``predictions`` (what the smoother needs) is refused (module notes)."""
-        if predictions:
-            from ..errors import UsageError
-
-            raise UsageError(NO_SMOOTHER)
+        mode's probability at each sample. ``predictions``: each mode's posterior and interval per sample kept in
+        ``track`` (:class:`ModeTrack`, what :meth:`smooth` needs)."""
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
         rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
         mode_p = np.empty((len(t), len(self.models)))
+        self.track = ModeTrack(t, mode_p, [], [], []) if predictions else None
         w0 = time.perf_counter()
         for k in range(len(t)):
             rec.put(k, self.step(t[k], None if U is None else U[k], Y[k]), self._P, self)
             mode_p[k] = self.mode_p
+            if predictions:
+                self.track.beliefs.append(list(self._beliefs))
+                self.track.starts.append(self.starts)
+                self.track.intervals.append(self.intervals)
         return replace(self._result(rec, time.perf_counter() - w0), nominal_p=mode_p[:, 0])
+
+    def smooth(self, t, U, Y, *, x0=None, P0=None) -> SmoothedResult:
+        """Filter a record (from the prior, or ``x0``/``P0``) and smooth it backwards (module notes, "Smoothing"):
+        the combined smoothed estimates and covariances, the first mode's smoothed probability in ``nominal_p`` and
+        all modes' in ``mode_p``.
+
+        Raises
+        ------
+        FilterDivergedError
+            The forward pass went non-finite (a smoother cannot run back through it).
+        """
+        w0 = time.perf_counter()
+        store, floor = self.store_P, self._floor.copy()
+        self.store_P = "full"
+        self._floor[:] = 0.0  # (as the RTS smoother's forward pass, :func:`.smoother.rts_smooth`)
+        try:
+            res = self.run(t, U, Y, x0=x0, P0=P0, innovations=False, predictions=True)
+        finally:
+            self.store_P, self._floor[:] = store, floor
+        if res.nonfinite:
+            raise FilterDivergedError(f"the forward pass went non-finite at t={res.diverged_at:.6g} s; nothing to "
+                                      "smooth")
+        w1 = time.perf_counter()
+        tr, n = self.track, len(res.t)
+        xs, Ps, mu_s = np.empty_like(res.x_hat), np.empty_like(res.P), np.empty_like(tr.mode_p)
+        sm, mu_s[-1] = tr.beliefs[-1], tr.mode_p[-1]
+        xs[-1], Ps[-1] = combine(mu_s[-1], sm, self.tails)
+        for k in range(n - 2, -1, -1):
+            sm, mu_s[k] = smooth_back(tr, k, self._transition(float(tr.t[k + 1] - tr.t[k])), sm, mu_s[k + 1])
+            xs[k], Ps[k] = combine(mu_s[k], sm, self.tails)
+        self.track = None
+        w2 = time.perf_counter()
+        return SmoothedResult(res.t, xs, Ps, res.x_hat, res.P, res.nis, w2 - w0, w2 - w1, mu_s[:, 0], mu_s)
+
+
+class ModeTrack(NamedTuple):
+    """A run's per-mode record (:meth:`IMMFilter.run` with ``predictions``): sample times ``t``, mode probabilities
+    ``mode_p`` (n, modes) and per sample the modes' posteriors (``beliefs[k][j]``), their mixed starts at the
+    previous sample (``starts[k][j]``) and the models' intervals from those (``intervals[k][j]``, a
+    :class:`.base.Prediction`; None at the first sample and where the model could not step)."""
+
+    t: np.ndarray
+    mode_p: np.ndarray
+    beliefs: list
+    starts: list
+    intervals: list
+
+
+def smooth_back(track: ModeTrack, k: int, T: np.ndarray, after: Sequence[Belief], mu_after: np.ndarray):
+    """One step of the IMM smoother's backward pass (module notes, "Smoothing") from sample ``k + 1``'s smoothed
+    mode-conditioned beliefs ``after`` and mode probabilities ``mu_after`` to sample ``k``'s, ``T`` the transition
+    matrix of the interval between them."""
+    mu, now = track.mode_p[k], track.beliefs[k]
+    c = mu @ T
+    W = np.divide(T * mu[:, None], c, out=np.zeros_like(T), where=c > 0)  # P(s_k = i | s_k+1 = j, y_1..k)
+    mu_s = W @ mu_after
+    out = []
+    for i, bi in enumerate(now):
+        w = W[i] * mu_after / mu_s[i] if mu_s[i] > 0 else np.zeros(len(now))
+        X, P = [], []
+        for j in np.flatnonzero(w > 0):
+            a = _extend(bi, now[j])
+            F, Q = track.intervals[k + 1][j].F, track.intervals[k + 1][j].Q
+            nj = len(F)
+            Fa = np.zeros((nj, len(a.x)))
+            Fa[:, :nj] = F
+            xp = track.intervals[k + 1][j].x + F @ (a.x[:nj] - track.starts[k + 1][j].x)
+            x, Pk = rts_step(a.P, Fa, Q, after[j].P, a.x, xp, after[j].x)
+            X.append(x[: len(bi.x)])
+            P.append(Pk[: len(bi.x), : len(bi.x)])
+        out.append(_moments(w[w > 0] / w.sum(), X, P) if X else bi)
+    return out, mu_s
