@@ -26,7 +26,7 @@ import scipy.linalg
 from .base import FilterDivergedError
 from .ekf import MultirateEKF
 
-__all__ = ["SmoothedResult", "rts_backward", "rts_smooth", "rts_step"]
+__all__ = ["SmoothedResult", "rts_backward", "rts_smooth"]
 
 
 @dataclass
@@ -133,24 +133,16 @@ def rts_backward(P, F, Q, X=None, Xp=None) -> tuple[np.ndarray | None, np.ndarra
         xs = np.empty_like(X)
         xs[-1] = X[-1]
     for k in range(n - 2, -1, -1):
-        x_k, Ps[k] = rts_step(P[k], F[k + 1], Q[k + 1], Ps[k + 1], *((X[k], Xp[k + 1], xs[k + 1]) if X is not None
-                                                                     else ()))
+        Fk = F[k + 1]
+        PFt = P[k] @ Fk.T
+        Pp = Fk @ PFt + Q[k + 1]
+        Pp = 0.5 * (Pp + Pp.T)
+        try:
+            C = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Pp), PFt.T).T  # P F' Pp^-1 (Pp symmetric)
+        except np.linalg.LinAlgError:
+            C = np.linalg.lstsq(Pp, PFt.T, rcond=None)[0].T
         if xs is not None:
-            xs[k] = x_k
+            xs[k] = X[k] + C @ (xs[k + 1] - Xp[k + 1])
+        Pk = P[k] + C @ (Ps[k + 1] - Pp) @ C.T
+        Ps[k] = 0.5 * (Pk + Pk.T)
     return xs, Ps
-
-
-def rts_step(P, F, Q, Ps_next, x=None, xp=None, xs_next=None) -> tuple[np.ndarray | None, np.ndarray]:
-    """One step of the RTS backward pass (module docstring): from the filtered ``P`` (and mean ``x``) at a sample,
-    the step ``F``, ``Q`` to the next, that one's predicted mean ``xp`` and smoothed ``xs_next``, ``Ps_next``:
-    ``(x_k|n or None, P_k|n)``. ``F`` may map to a smaller state (``(n', n)``: the next state does not depend on
-    the last components, which the smoother then corrects through their correlation with the others alone)."""
-    PFt = P @ F.T
-    Pp = F @ PFt + Q
-    Pp = 0.5 * (Pp + Pp.T)
-    try:
-        C = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Pp), PFt.T).T  # P F' Pp^-1 (Pp symmetric)
-    except np.linalg.LinAlgError:
-        C = np.linalg.lstsq(Pp, PFt.T, rcond=None)[0].T
-    Pk = P + C @ (Ps_next - Pp) @ C.T
-    return None if x is None else x + C @ (xs_next - xp), 0.5 * (Pk + Pk.T)
