@@ -2,7 +2,10 @@
 with their exact first-order change with q.
 
     python benchmarks/measurement_rows.py [--models a,b,...] [--extra benchmarks/models/three_link_reach.toml]
-                                          [--directions 6] [--md docs/measurement_rows.md]
+                                          [--directions 6] [--run MODEL_FILE=RUN_DIR ...] [--md docs/measurement_rows.md]
+
+``--run``: a run folder, e.g. one ``benchmarks/gallery.py --acceptance --truth-dir DIR`` keeps
+(``DIR/<engine>/<model>/s<seed>``).
 
 For each model (default: the gallery, ``models/*.toml`` with a manoeuvre, and the fresh mechanism
 ``benchmarks/models/three_link_reach.toml``) the observer's model with default settings holds the undeformed
@@ -92,6 +95,20 @@ cost per held configuration against the held evaluation's (CPU, median of {n_rep
 """
 
 
+RUN_HEAD = """
+## Along a run
+
+At every measurement of the filter on a run (the observer's default settings, the sample-by-sample path: the
+same rows), the channels from the held rows with their expansion against the rows of the estimate's own
+configuration evaluated anew, in units of each channel's noise: the largest and the RMS over the run, with the
+largest distance from the held configuration. What remains is the expansion's second-order term, `O(dl^2 |p_e|)`,
+with the filter's own elastic state (larger and in other directions than the tenth of a full scale above).
+
+| model | run | measurements | largest max abs dl (rad) | largest error / noise | RMS error / noise |
+|---|---|---|---|---|---|
+"""
+
+
 def gallery() -> list[Path]:
     return sorted(p for p in (ROOT / "models").glob("*.toml") if "manoeuvre" in tomllib.loads(p.read_text()))
 
@@ -155,6 +172,42 @@ def measure(path: Path, n_dir: int, n_rep: int) -> dict:
             "cost": (t_rows - t_affine) / t_held}
 
 
+def along_run(path: Path, run_dir: Path) -> dict:
+    """The expansion's error along the filter's own estimates on a run: at every measurement of the observer
+    (the Python path, the same rows as the compiled loop's), the channels from the held rows with their expansion
+    against the rows of the estimate's own configuration evaluated anew, in units of the channel's noise, with the
+    distance ``max |dl|`` from the held configuration."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.reduced import ReducedObserverModel
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.runs import read_run
+    from exuflex.scoring.run import observe_run
+
+    mech = load_mechanism(path)
+    obs = make_observer(mech, ObserverConfig())
+    m = obs.model
+    rec = []
+
+    class Recording(ReducedObserverModel):
+        compiled = False  # every sample through measure()
+
+        def measure(self, x, channels):
+            meas = super().measure(x, channels)
+            held, warm = self._last, self.model.kin.warm_start
+            c0, Hm = self._affine(self._configuration(np.asarray(x, float)), tuple(channels))
+            self._last, self.model.kin.warm_start = held, warm
+            noise = np.array([self.sensors[c].noise_std for c in channels])
+            rec.append((float(np.max(np.abs(x[: self.nq] - held.q0))), *(np.abs(meas.y - c0 - Hm @ x) / noise)))
+            return meas
+
+    m.__class__ = Recording
+    observe_run(mech, read_run(run_dir), ObserverConfig(), observer=obs, with_bound=False, keep="summary")
+    a = np.array(rec)
+    return {"model": mech.name, "run": str(run_dir), "channels": list(obs.channels), "n": len(a),
+            "dl_max": float(a[:, 0].max()), "max": a[:, 1:].max(axis=0).tolist(),
+            "rms": np.sqrt((a[:, 1:] ** 2).mean(axis=0)).tolist()}
+
+
 def _row(f: dict) -> str:
     def trio(v):
         return " / ".join(f"{a:.1e}" for a in v)
@@ -173,6 +226,8 @@ def main(argv=None) -> int:
     ap.add_argument("--extra", default=str(EXTRA.relative_to(ROOT)), help="a further model file ('' for none)")
     ap.add_argument("--directions", type=int, default=6, help="random directions of dl per distance")
     ap.add_argument("--repeats", type=int, default=21, help="repeats of the cost's timing")
+    ap.add_argument("--run", action="append", default=[],
+                    help="MODEL_FILE=RUN_DIR: also the expansion's error along the filter's estimates on that run")
     ap.add_argument("--md", default=str(ROOT / "docs" / "measurement_rows.md"), help="markdown page ('' for none)")
     a = ap.parse_args(argv)
     paths = [Path(p) for p in a.models.split(",")] if a.models else gallery()
@@ -185,7 +240,18 @@ def main(argv=None) -> int:
         print(rows[-1], flush=True)
     args = "".join(f" --{k} {v}" for k, v in (("models", a.models), ("directions", a.directions if a.directions != 6
                                                                          else None)) if v)
+    args += "".join(f" --run {spec}" for spec in a.run)
     text = HEAD.format(args=args, n_dir=a.directions, n_rep=a.repeats) + "\n".join(rows) + "\n"
+    if a.run:
+        text += RUN_HEAD
+        for spec in a.run:
+            model, run_dir = spec.split("=", 1)
+            f = along_run(Path(model), Path(run_dir))
+            line = (f"| {f['model']} | `{Path(f['run']).name}` | {f['n']} | {f['dl_max']:.3f} | "
+                    + ", ".join(f"{c} {v:.2f}" for c, v in zip(f["channels"], f["max"])) + " | "
+                    + ", ".join(f"{c} {v:.3f}" for c, v in zip(f["channels"], f["rms"])) + " |")
+            text += line + "\n"
+            print(line, flush=True)
     text += (f"\nVersions: numpy {np.__version__}, python {platform.python_version()}.\n")
     if a.md:
         Path(a.md).write_text(text)

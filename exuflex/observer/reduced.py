@@ -61,7 +61,7 @@ direction, and the rigid parts to second order (:meth:`ReducedObserverModel._exp
 with the configuration at rates of the elastic rows themselves per radian (the basis's static shapes change
 with the joint angles, the rows turn with their links), which over the measurement radius is of the order of
 the gauges' noise. The measurement Jacobian is the exact derivative of the channels returned
-(:meth:`ReducedObserverModel.measure`); the derivation is in docs/reduction.md.
+(:meth:`ReducedObserverModel.measure`); the derivation is in docs/measurement_rows.md.
 """
 
 from __future__ import annotations
