@@ -179,6 +179,7 @@ class PathSamples:
         self.reachable = True  # every sample's band thresholds met by some count (:meth:`choose`)
         self.truncation_met = True  # the truncation requirement met by the count chosen
         self.bias_met = True  # the filter requirement met by the count chosen
+        self.bias_tried: list[int] = []  # the modes the filter requirement tried, in order (:meth:`_extend_for_bias`)
 
     def bias(self, kept) -> np.ndarray:
         """Per estimated quantity (:attr:`.truncation.PlannedInput.quantities`), the filter requirement's figure with
@@ -210,9 +211,12 @@ class PathSamples:
         ``max bias <= bias_max`` (:meth:`bias`); returns the count. Each step keeps the mode, among those ringing for
         a sample interval (:attr:`dynamic`), that makes the largest figure smallest at the configuration where it is
         largest now (ties: the IMR order at q*), if it lowers it there by 1 % of ``bias_max``. Where none does, or
-        three modes in a row lower the figure over all configurations by less, or none is left: the count with the
-        smallest figure so far (:attr:`bias_met` False). A mode the input, the loads and the channels do not couple
-        to changes no figure, so it is never kept."""
+        three modes in a row lower the figure over all configurations by less, or none is left, the requirement
+        cannot be met: ``seq`` is left as it was (the modes would make the filter's model larger and stiffer for a
+        figure still above the limit; :attr:`bias_met` False, the figure reported). A mode the input, the loads and
+        the channels do not couple to changes no figure, so it is never kept. :attr:`bias_tried`: the modes added,
+        in order, before the outcome."""
+        n0 = len(seq)
         best_n, best_b = len(seq), float(self.bias(seq).max())
         stall = 0
         cb = self.cb
@@ -235,9 +239,10 @@ class PathSamples:
                 best_n, best_b, stall = len(seq), b, 0
             else:
                 stall += 1
-        del seq[best_n:]
+        self.bias_tried = list(seq[n0:])
         self.bias_met = best_b <= self.bias_max
-        return best_n
+        del seq[best_n if self.bias_met else n0:]
+        return len(seq)
 
     def _match(self, kept) -> list[AccuracyResult]:
         """The accuracy indices (:func:`~.accuracy.match_modes`) of the band's full modes at every sample with the

@@ -109,8 +109,10 @@ also meets a requirement on what the filter's estimates become:
 
 The count: after the band's thresholds and ``rho``, interior modes are added one at a time, each the mode (among
 those ringing for a sample interval) that makes the largest ``b`` smallest at the configuration where it is largest,
-until every ``b <= BIAS_MAX``; where no mode lowers it by 1 % of the limit, the count with the smallest figure
-(reported as not met). A mode the input, the loads and the channels do not couple to changes no figure and is
+until every ``b <= BIAS_MAX``. Where the modes that ring for a sample interval cannot meet it (no mode lowers the
+largest figure by 1 % of the limit), none is added for it: a larger, stiffer model for a figure still above the
+limit did not pay on the slider-crank (``docs/filter_requirement.md``); the figure is reported as not met and
+logged. A mode the input, the loads and the channels do not couple to changes no figure and is
 never kept. ``exuflex modes MODEL --reduced`` prints ``b`` per quantity (``--json``: ``truncation.bias``).
 """
 
