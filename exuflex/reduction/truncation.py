@@ -110,8 +110,8 @@ also meets a requirement on what the filter's estimates become:
 The count: after the band's thresholds and ``rho``, interior modes are added one at a time, each the mode (among
 those ringing for a sample interval) that makes the largest ``b`` smallest at the configuration where it is largest,
 until every ``b <= BIAS_MAX``. Where the modes that ring for a sample interval cannot meet it (no mode lowers the
-largest figure by 1 % of the limit), none is added for it: a larger, stiffer model for a figure still above the
-limit did not pay on the slider-crank (``docs/filter_requirement.md``); the figure is reported as not met and
+largest figure by 1 % of the limit), none is added for it: they would make the filter's model larger and stiffer
+without meeting the limit, and the figure is a linearised estimate; the figure is reported as not met and
 logged. A mode the input, the loads and the channels do not couple to changes no figure and is
 never kept. ``exuflex modes MODEL --reduced`` prints ``b`` per quantity (``--json``: ``truncation.bias``).
 """
