@@ -189,8 +189,6 @@ def along_run(path: Path, run_dir: Path) -> dict:
     rec = []
 
     class Recording(ReducedObserverModel):
-        compiled = False  # every sample through measure()
-
         def measure(self, x, channels):
             meas = super().measure(x, channels)
             held, warm = self._last, self.model.kin.warm_start
@@ -201,6 +199,7 @@ def along_run(path: Path, run_dir: Path) -> dict:
             return meas
 
     m.__class__ = Recording
+    obs.ekf._loop = None  # the filter's compiled sample loop off: every sample through measure()
     observe_run(mech, read_run(run_dir), ObserverConfig(), observer=obs, with_bound=False, keep="summary")
     a = np.array(rec)
     return {"model": mech.name, "run": str(run_dir), "channels": list(obs.channels), "n": len(a),

@@ -84,8 +84,8 @@ def _second_order(e1, e2, scale, what):
 def test_rows_follow_the_configuration_to_second_order(case):
     """y and H of :meth:`measure` against the exact measurement at ``q0 + h u`` and ``q0 + h u / 2`` (h = 0.01
     rad, where the third-order terms are small against the second-order ones on every model) for u along every coordinate and two other directions: on a deflected state, y and H's elastic columns
-    to second order in h; on the undeformed state, H's q-columns too (their error on a deflected state is of
-    order ``h |p_e|``: the change of ``D_k`` with q is left out)."""
+    to second order in h; on the undeformed state, H's q-columns too (on a deflected state they leave out the
+    elastic rows' q-derivative, :meth:`ReducedObserverModel.measure`)."""
     m, iv, channels, pe = case
     nq, r = m.nq, m.r
     h = 0.01
@@ -118,13 +118,16 @@ def test_rows_follow_the_configuration_to_second_order(case):
 def test_measurement_jacobian_is_the_derivative_of_the_returned_channels(case):
     """H of :meth:`measure` is the derivative of the y it returns (central differences in every state entry,
     1e-6 of each entry's own size), off the held configuration in a direction of all coordinates at once, on a
-    deflected state."""
+    deflected state, once the elastic rows' q-derivative ``D_j x`` it leaves out of the q-columns is added
+    (:meth:`ReducedObserverModel.measure`)."""
     m, iv, channels, pe = case
     nq, r = m.nq, m.r
     x = m.initial_state(iv.q0 + 0.05 * _directions(nq)[-1])
     x[nq:r] = pe
     m._last = iv
     H = m.measure(x, channels).H
+    D = m._rows(iv, channels)[2]
+    H[:, :nq] += np.einsum("jic,c->ij", D, x[:r])  # the left-out term
     eps = 1e-6
     fd = np.empty_like(H)
     for j in range(m.nx):

@@ -539,7 +539,8 @@ def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
 def _measurement_rows(c0, Hm, D, G, x, dl, y, H):  # pragma: no cover - compiled
     """The measurement at ``x``, ``dl = q - q0`` from the held configuration, into ``y``, ``H``
     (:meth:`.reduced.ReducedObserverModel.measure`): ``y_i = c0_i + (Hm + sum_k dl_k D_k)_i x + 1/2 dl^T G_i dl``
-    and its exact derivative, ``H = Hm + sum_k dl_k D_k`` with ``D_j x + G_i dl`` added to q-column ``j``."""
+    and its derivative ``H = Hm + sum_k dl_k D_k`` with the rigid part's ``G_i dl`` added to q-column ``j``; the
+    elastic rows' own q-derivative ``D_j x`` is left out of ``H`` (see the method)."""
     m, n = Hm.shape
     nq = dl.shape[0]
     r = D.shape[2]
@@ -558,10 +559,7 @@ def _measurement_rows(c0, Hm, D, G, x, dl, y, H):  # pragma: no cover - compiled
             for k in range(nq):
                 g += G[i, j, k] * dl[k]
             acc += 0.5 * g * dl[j]
-            dx = 0.0
-            for c in range(r):
-                dx += D[j, i, c] * x[c]
-            H[i, j] += dx + g
+            H[i, j] += g
         y[i] = acc
 
 
