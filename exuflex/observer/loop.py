@@ -140,8 +140,8 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
         if not cached_rows(step, z, y_pred, H):
             status = GENERAL
             break
-        nis, ok, finite = predict_update(F, P, Qk, buf.P_pred, buf.work, z, Y[k], y_pred, H, mon.Rd, buf.HP, r, S,
-                                         x_alt, P_alt, mon.floor)
+        nis, ok, finite = predict_update(F, P, Qk, z, Y[k], y_pred, H, mon.Rd, mon.floor,
+                                         (buf.P_pred, buf.work, buf.HP), (r, S, x_alt, P_alt))
         if not (ok and finite):
             status = GENERAL
             break
