@@ -7,9 +7,12 @@ from pathlib import Path
 
 
 def _code_commit() -> str | None:
-    """The checkout's commit when the script started (its code is what measured the page), ``+changes`` if the
-    package's files differ from it; None outside a git checkout."""
-    root = Path(__file__).resolve().parents[1]
+    """The commit of the checkout the imported ``exuflex`` comes from (an editable install may be another checkout
+    than this script's), when the script started: its code measured the page; ``+changes`` if the package's
+    files differ from it; None outside a git checkout."""
+    import exuflex
+
+    root = Path(exuflex.__file__).resolve().parents[1]
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True, check=True, timeout=10).stdout.strip()
