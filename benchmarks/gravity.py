@@ -19,7 +19,8 @@ by ``[0, 0]`` for comparison), in a temporary copy of the file:
    the mass matrix, elastic rows included), the term ``F`` leaves out with the held matrices' change with q.
 
 Usage: python benchmarks/gravity.py [--models benchmarks/models/vertical_link.toml,models/serial_arm.toml]
-       [--gravity 0,-9.81] [--seed 1] [--md docs/gravity.md] [--json docs/gravity.json]
+       [--gravity 0,-9.81] [--seeds 1,2,3] [--engines exudyn,erls,reduced] [--md docs/gravity.md]
+       [--json docs/gravity.json]
 """
 
 from __future__ import annotations  # noqa: I001  (exuflex first: single-threaded BLAS before NumPy loads it)
@@ -88,32 +89,37 @@ def position_block(mech) -> dict:
     return {"F": (F[r : r + nq, :nq] / dt).tolist(), "exact": (Fd / dt).tolist()}
 
 
-def measure(model: Path, gravity: tuple[float, float], seed: int) -> dict:
+def measure(model: Path, gravity: tuple[float, float], seeds: list[int], engines=ENGINES) -> dict:
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig
     from exuflex.runs import read_run
     from exuflex.scoring.run import observe_run
-    from exuflex.truth import simulate_run
+    from exuflex.truth import simulate_runs
 
     with tempfile.TemporaryDirectory() as tmp:
         path = with_gravity(model, gravity, Path(tmp))
         mech = load_mechanism(path)
         runs, wall = {}, {}
-        for engine in ENGINES:
+        for engine in engines:
             t0 = time.perf_counter()
-            runs[engine] = read_run(simulate_run(path, Path(tmp) / engine, engine=engine, seed=seed))
+            outs = {seed: Path(tmp) / f"{engine}_{seed}" for seed in seeds}
+            runs[engine] = [read_run(p) for p in simulate_runs(path, outs, engine=engine)]
             wall[engine] = time.perf_counter() - t0
-        row = {"model": model.stem, "gravity": list(gravity), "truth_wall_s": wall,
-               "position_block": position_block(mech),
-               **truth_difference(mech, runs["exudyn"].truth, runs["erls"].truth), "observer": {}}
-        for engine in ENGINES:
-            s = observe_run(mech, runs[engine], ObserverConfig()).summary
-            ratios = s["ratio_to_bound"]
-            worst = max(ratios, key=lambda k: ratios[k] if np.isfinite(ratios[k]) else np.inf)
-            row["observer"][engine] = {"worst_quantity": worst, "worst_ratio": float(ratios[worst]),
-                                       "ratio_to_bound": {k: float(v) for k, v in ratios.items()},
-                                       "nis_mean": float(s["nis_mean"]), "nis_expected": float(s["nis_expected"]),
-                                       "diverged": bool(s["diverged"])}
+        row = {"model": model.stem, "gravity": list(gravity), "seeds": seeds, "truth_wall_s": wall,
+               "position_block": position_block(mech), "observer": {}}
+        if "exudyn" in runs and "erls" in runs:
+            row.update(truth_difference(mech, runs["exudyn"][0].truth, runs["erls"][0].truth))
+        for engine in engines:
+            per_seed = []
+            for run in runs[engine]:
+                s = observe_run(mech, run, ObserverConfig()).summary
+                ratios = s["ratio_to_bound"]
+                worst = max(ratios, key=lambda k: ratios[k] if np.isfinite(ratios[k]) else np.inf)
+                per_seed.append({"worst_quantity": worst, "worst_ratio": float(ratios[worst]),
+                                 "ratio_to_bound": {k: float(v) for k, v in ratios.items()},
+                                 "nis_mean": float(s["nis_mean"]), "nis_expected": float(s["nis_expected"]),
+                                 "diverged": bool(s["diverged"])})
+            row["observer"][engine] = per_seed
     return row
 
 
@@ -139,6 +145,8 @@ def markdown(rows: list[dict], command: str) -> str:
         "|---|---|---|---|---|",
     ]
     for r in rows:
+        if "tip_nrms" not in r:
+            continue
         tip = ", ".join(f"{k} {100 * v:.2f} %" for k, v in r["tip_nrms"].items())
         ends = ", ".join(f"{a:.4f} / {b:.4f}" for a, b in zip(r["q_end_exudyn"], r["q_end_erls"], strict=True))
         lines.append(f"| {r['model']} | {r['gravity']} | {r['q_max']:.2e} | {tip} | {ends} |")
@@ -151,13 +159,16 @@ def markdown(rows: list[dict], command: str) -> str:
         "reduced model as the truth (`exuflex simulate --engine reduced`): there the model is exact and only the "
         "filter's approximations remain."),
         "",
-        "| model | gravity (m/s^2) | truth | worst RMS / bound | NIS / channels | diverged |",
+        "| model | gravity (m/s^2) | truth | worst RMS / bound, per seed | NIS / channels, per seed | diverged |",
         "|---|---|---|---|---|---|",
     ]
     for r in rows:
-        for engine, o in r["observer"].items():
-            lines.append(f"| {r['model']} | {r['gravity']} | {engine} | {o['worst_ratio']:.2f} ({o['worst_quantity']}) | "
-                         f"{o['nis_mean']:.2f} / {o['nis_expected']:.1f} | {'yes' if o['diverged'] else 'no'} |")
+        for engine, per_seed in r["observer"].items():
+            worst = ", ".join(f"{o['worst_ratio']:.2f} ({o['worst_quantity']})" for o in per_seed)
+            nis = ", ".join(f"{o['nis_mean']:.2f}" for o in per_seed)
+            div = "yes" if any(o["diverged"] for o in per_seed) else "no"
+            lines.append(f"| {r['model']} | {r['gravity']} | {engine} | {worst} | {nis} / "
+                         f"{per_seed[0]['nis_expected']:.1f} | {div} |")
     lines += [
         "",
         "## The step Jacobian's configuration block at rest",
@@ -193,7 +204,9 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="benchmarks/models/vertical_link.toml,models/serial_arm.toml")
     ap.add_argument("--gravity", default="0,-9.81", help="gx,gy (m/s^2)")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seeds", default="1", help="noise seeds, comma-separated (one truth per engine, measured "
+                    "with each seed's noise)")
+    ap.add_argument("--engines", default=",".join(ENGINES), help="truth engines, comma-separated")
     ap.add_argument("--md", default="")
     ap.add_argument("--json", default="")
     a = ap.parse_args(argv)
@@ -203,7 +216,7 @@ def main(argv=None) -> None:
     rows = []
     for m in a.models.split(","):
         for gravity in (g, (0.0, 0.0)):
-            rows.append(measure(ROOT / m, gravity, a.seed))
+            rows.append(measure(ROOT / m, gravity, [int(v) for v in a.seeds.split(",")], a.engines.split(",")))
             print(json.dumps(rows[-1]), flush=True)
     command = "python benchmarks/gravity.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if a.json:

@@ -392,7 +392,7 @@ class ReducedObserverModel:
         n = self.substeps(iv, dt)
         Pn, S, L, Q = self._maps(m.Mr, m.Kr, m.Cr, m.Gr, dt, n)
         x = Pn @ z + L @ u + S @ m.fr
-        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S)
+        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, iv.forces.Wg)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
 
@@ -518,7 +518,7 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm))
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg)
 
     @staticmethod
     def _elastic(fm) -> dict:

@@ -677,8 +677,8 @@ def _step_linearisation(model: ReducedObserverModel):
         return None
 
     def linearise(x, u, dt):
-        sm = model.prepare(x, model.torques(u), dt)[4]
-        return step_jacobian(x, *sm.tail[:5]), sm.Q
+        iv, _, _, _, sm = model.prepare(x, model.torques(u), dt)
+        return step_jacobian(x, *sm.tail[:5], iv.system.Wg), sm.Q
 
     return linearise
 
