@@ -209,19 +209,25 @@ def main(argv=None) -> None:
     ap.add_argument("--engines", default=",".join(ENGINES), help="truth engines, comma-separated")
     ap.add_argument("--md", default="")
     ap.add_argument("--json", default="")
+    ap.add_argument("--page-from", default="", help="write the page from this JSON of an earlier run (its "
+                    "'command' the run's) instead of measuring")
     a = ap.parse_args(argv)
     g = tuple(float(v) for v in a.gravity.split(","))
     if len(g) != 2:
         ap.error(f"--gravity: expected gx,gy, got {a.gravity!r}")
+    if a.page_from:
+        doc = json.loads(Path(a.page_from).read_text())
+        publish(markdown(doc["rows"], doc["command"]), a.md)
+        return
     rows = []
     for m in a.models.split(","):
         for gravity in (g, (0.0, 0.0)):
             rows.append(measure(ROOT / m, gravity, [int(v) for v in a.seeds.split(",")], a.engines.split(",")))
             print(json.dumps(rows[-1]), flush=True)
-    command = "python benchmarks/gravity.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = ("python benchmarks/gravity.py " + " ".join(argv if argv is not None else sys.argv[1:])).strip()
     if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
-    publish(markdown(rows, command.strip()), a.md)
+        Path(a.json).write_text(json.dumps({"command": command, "rows": rows}, indent=1) + "\n")
+    publish(markdown(rows, command), a.md)
 
 
 if __name__ == "__main__":

@@ -46,6 +46,7 @@ __all__ = [
     "map_lookahead",
     "next_map_radius",
     "payload_interval",
+    "position_forces",
     "power_sum",
     "prediction_error",
     "rebuild_map",
@@ -473,8 +474,45 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr
         z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
-        F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, hs.Wg)
+        Fp = hs.Wg
+        if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
+            Fp = position_forces(z, u, hs.Wg, hs.dM, hs.dK, hs.beta, Mr_, Kr_, Cr_, Gr_, f)
+        F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _position_forces(z, u, Wg, dM, dK, beta, Mr, Kr, Cr, Gr, f):  # pragma: no cover - compiled
+    """``Fp`` (r, r): the change of the held system's generalised forces with the positions at ``z`` under the
+    torques ``u``, where gravity loads the mechanism: the weight's gradient ``Wg`` and, in the q columns, the held
+    matrices' change with q as the forces it causes, ``-dK/dq_i (p + beta p') - dM/dq_i a`` with the acceleration
+    ``a = M^-1 (G u + f - K p - C p')``: ``M p'' + C p' + K p = G u + f`` differentiated in ``q_i`` with the state
+    held, ``M da = dF/dq_i - dK/dq_i p - dC/dq_i p' - dM/dq_i a`` (the damping's mass-proportional part follows
+    the secant only and is left out). ``dM``, ``dK``: :class:`HeldSystem`'s gradients (nq, r*r).
+
+    Under gravity the positions carry the links' static sag and the acceleration the weight's share, both of the
+    weight's size: in global elastic coordinates a sagging link turned by ``dq`` changes its elastic force by
+    about as much as its weight's load changes (``dK/dq p``), and the two enter together. Without gravity they
+    multiply vibrations only, and the filter gained nothing from them (docs/step_jacobian.md): the step
+    Jacobian then leaves them out."""
+    r = Mr.shape[0]
+    nq = dM.shape[0]
+    rhs = np.empty((r, 1))
+    for i in range(r):
+        acc = f[i]
+        for j in range(u.shape[0]):
+            acc += Gr[i, j] * u[j]
+        for j in range(r):
+            acc -= Kr[i, j] * z[j] + Cr[i, j] * z[r + j]
+        rhs[i, 0] = acc
+    a = _cholesky_solve(Mr, rhs)
+    Fp = Wg.copy()
+    for i in range(nq):
+        for c in range(r):
+            acc = 0.0
+            for k in range(r):
+                acc += dK[i, c * r + k] * (z[k] + beta * z[r + k]) + dM[i, c * r + k] * a[k, 0]
+            Fp[c, i] -= acc
+    return Fp
 
 
 def held_step(z, u, dl, s, h, n, *system):
@@ -597,18 +635,18 @@ def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compi
     return shift
 
 
-def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Wg):  # pragma: no cover - compiled
+def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     """The step's Jacobian ``Pn + SQM dF/dz``.
 
     ``Pn`` is the Jacobian of the interval's RK4 steps with the matrices and forces held; the forces held over
     the interval depend on the start state (the velocity-dependent forces and the geometric q-row term: exact
-    derivatives of their quadratic forms ``Ts``, ``Vs``, ``C3``, :meth:`QuadraticForces.jacobian_tensors`; the
-    weight: its gradient in the positions ``Wg``, empty without gravity, :class:`HeldSystem`), and ``SQM`` is the
-    interval's response to a held generalised force. Leaving the second term out lets the filter diverge in
-    start-up transients, where the elastic rates are large; without the weight's gradient the filter propagates
-    its covariance as if the mechanism had no gravity stiffness. The q-dependence of ``M_r`` and ``K_r`` is left
-    out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the step, docs/step_jacobian.md
-    gives the reason)."""
+    derivatives of their quadratic forms ``Ts``, ``Vs``, ``C3``, :meth:`QuadraticForces.jacobian_tensors`; under
+    gravity ``Fp``, the weight's gradient with the held matrices' change with q, :func:`position_forces`; empty
+    without gravity), and ``SQM`` is the interval's response to a held generalised force. Leaving the second term
+    out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
+    propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
+    ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
+    step, docs/step_jacobian.md gives the reason)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
@@ -629,9 +667,9 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Wg):  # pragma: no cover - compiled
             for c in range(r):
                 G[c, r + k] -= C3[k, j, c] * pd[j]
                 G[c, r + j] -= pd[k] * C3[k, j, c]
-    for c in range(Wg.shape[0]):  # the weight's change with the positions
+    for c in range(Fp.shape[0]):  # the forces' change with the positions under gravity
         for m in range(r):
-            G[c, m] += Wg[c, m]
+            G[c, m] += Fp[c, m]
     F = SQM @ G
     for i in range(F.shape[0]):  # + Pn, as a loop (an in-place array expression compiles to far more code)
         for j in range(F.shape[1]):
@@ -1226,7 +1264,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
             for j in range(C3.shape[1]):
                 for i in range(C3.shape[2]):
                     C[k, j, i] += cT * iC2[k * C3.shape[1] + j, i]
-    Fz = step_jacobian(z, T, Vs, C, Pn, SQM, Wg)
+    Fz = step_jacobian(z, T, Vs, C, Pn, SQM, _NO_MATRIX)  # (the forces' change with q left out, as by no gravity)
     n0 = z.shape[0]
     last = rows.shape[0] - 1
     x = np.zeros(nx)
@@ -1252,6 +1290,7 @@ _quadratic_forces = _inline(_quadratic_forces)
 _held_model = _inline(_held_model)
 _held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
+position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
 secant_rows = _jit(_secant_rows)

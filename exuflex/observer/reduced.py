@@ -88,6 +88,7 @@ from .expansion import (
     held_step,
     map_error,
     next_map_radius,
+    position_forces,
     prediction_error,
     rebuild_map,
     secant_factor,
@@ -301,6 +302,7 @@ class ReducedObserverModel:
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._noC2 = np.zeros((0, self.r))
+        self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = 0
         self.state_cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._serial = 0
@@ -340,8 +342,8 @@ class ReducedObserverModel:
             p = z[: self.r].copy()
             p[self.nq :] = 0.0
             mats, forces = self.rm.held(p, z[self.r :])
-        elif frozen_forces:
-            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=False)
+        elif frozen_forces:  # with gravity the gradients too (the step Jacobian's position_forces)
+            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=self._weight)
         else:
             mats = self.rm.matrices(z[: self.r], z[self.r :])
         self.n_evaluations += 1
@@ -392,7 +394,11 @@ class ReducedObserverModel:
         n = self.substeps(iv, dt)
         Pn, S, L, Q = self._maps(m.Mr, m.Kr, m.Cr, m.Gr, dt, n)
         x = Pn @ z + L @ u + S @ m.fr
-        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, iv.forces.Wg)
+        Fp = iv.forces.Wg
+        if Fp.shape[0]:
+            Fp = position_forces(z, u, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta), m.Mr, m.Kr, m.Cr,
+                                 m.Gr, m.fr)
+        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
 
