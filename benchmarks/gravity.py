@@ -127,8 +127,8 @@ def markdown(rows: list[dict], command: str) -> str:
     lines = [
         "# Gravity: mechanisms in a vertical plane",
         "",
-        (f"Written by `{command}` (one seed: an RMS over a short log scatters by some 10 %; "
-        "{doc}`/acceptance` gives statistics over seeds)."),
+        (f"Written by `{command}` (each truth simulated once and measured with each seed's noise: an RMS over a "
+         "short log scatters by some 10 %; {doc}`/acceptance` gives statistics over seeds)."),
         "",
         ("Each model file is copied with its `model.gravity` replaced (and with `[0, 0]` beside it). The computed "
         "torque of the manoeuvre includes gravity; the Exudyn truth (ANCF cables; the weight of every element, "
@@ -187,15 +187,47 @@ def markdown(rows: list[dict], command: str) -> str:
         lines.append(f"| {r['model']} | {r['gravity']} | {fmt(pb['F'])} | {fmt(pb['exact'])} |")
     lines += [
         "",
+        "## The weight in the observer's step",
+        "",
+        ("The reduced weight is `fg = (W J)^T M_N g` (`W = [S, T]` the nodal velocities per coordinate, `J = H + "
+         "[d(H p)/dq, 0]` the consistent velocity map, `M_N` the nodal mass matrix in global axes, `g` the nodal "
+         "gravity vector). Its gradient in the positions, `Wg[c, m] = d fg_c / dp_m` "
+         "(`ReducedModel.weight_gradient`, computed with the held configuration by `_compiled.held_evaluation`):"),
+        "",
+        ("- in `q_i` (columns `m < nq`): `d fg / dq_i = (d(W J)/dq_i)^T M_N g + (W J)^T (dM_N/dq_i) g`, with "
+         "`d(W J)/dq_i = dS/dq_i J_q + W dH/dq_i` (the links turn, the static shapes change with the configuration; "
+         "the same product as `dM_r/dq`) and `dM_N/dq_i = sum_e (dtheta_e/dq_i) R_e (G M_e - M_e G) R_e^T` (the "
+         "element and offset masses turn with their links, `G` the rotation generator; point masses without "
+         "offset are invariant);"),
+        ("- in the elastic coordinates (columns `m >= nq`, q rows, consistent form): `J`'s q columns gain `sum_m p_m "
+         "d(H e_m)/dq`, so `d fg_i / dp_m = (W dH/dq_i e_m)^T M_N g`, the last column of `elastic_forms`' `pG`;"),
+        ("- exact on undeformed states (the basis's second derivatives times the elastic coordinates are left out, "
+         "as in `dM_r/dq`); `tests/test_step_jacobian.py` compares it with central differences of the reduced "
+         "forces at rest entry by entry, and the compiled with the NumPy evaluation."),
+        "",
+        ("The cached step holds `Wg` with the configuration (`HeldSystem.Wg`): over the refresh radius the weight "
+         "follows `q` as `fg + Wg[:, :nq] (q - q0)` (first order in every direction, where the secant was first "
+         "order along its line only), and the step Jacobian `F = P^n + S df/dz` gains, in its positions' columns, "
+         "`Fp = Wg` less the held matrices' change with q as the forces it causes, `dK/dq_i (p + beta p') + "
+         "dM/dq_i a` with the acceleration `a` at the interval's start (`expansion.position_forces`): under gravity "
+         "the positions hold the links' static sag and the accelerations the weight's share, so in global elastic "
+         "coordinates a sagging link turned by `dq` changes its elastic force by about as much as its weight's load "
+         "changes, and the two terms enter together (the weight's gradient alone made the serial arm's "
+         "own-model run worse). Without gravity `Wg` is empty: the held step and `F` are those of the held arrays "
+         "alone, and the estimates are byte-identical to those before. Left out, measured: the input matrix's "
+         "change with q (`G_r = (W J)^T B_N`; zero to rounding on every gallery model, the motors acting at "
+         "joints whose nodal rotations are coordinates), the velocity forms' (quadratic in the rates, along the "
+         "secant as before), the mass-proportional damping's (along the secant), the payload's share of the "
+         "weight (the payload-scaled step keeps its Jacobian without `Fp`)."),
+        "",
         ("How to read it: the rows with gravity 0 are the mechanisms as the gallery has them (the vertical link "
          "then turning in a horizontal plane). The truths' agreement under gravity is that of an open-loop motion "
          "under a computed torque: where the mechanism is unstable under its weight (the serial arm's forearm "
          "pointing up, an inverted pendulum) the two truths' small differences grow along the run, and they agree "
          "less than without gravity. The observer's rows on the `reduced` truth show what gravity does to the "
-         "filter alone: a ratio above 1 there, where the model is exact, is not a truth's doing. The step Jacobian's "
-         "table shows a candidate cause, not confirmed by a fix: `F` holds none of the weight's change with the "
-         "configuration, so the filter propagates its covariance as if the mechanism had no gravity stiffness "
-         "(the exact step's block, which vanishes at gravity 0)."),
+         "filter alone: a ratio above 1 there, where the model is exact, is not a truth's doing. The exact step's "
+         "block at rest also holds what happens within the interval (the elastic coordinates start to sag under "
+         "the weight during it), which `F`, first order in the interval, does not."),
     ]
     return "\n".join(lines) + "\n\n"
 
