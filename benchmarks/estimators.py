@@ -9,6 +9,11 @@ RMS errors after the start-up, the payload estimate after ``--settle`` s and its
     python benchmarks/estimators.py models/sixbar.toml DIR --speed 5 --estimators ekf,ekf-payload,ekf-input,ukf
     python benchmarks/estimators.py models/single_link.toml DIR --seeds 10 --estimators ekf@truth  # the reference
 
+    python benchmarks/estimators.py models/M.toml DIR --from-json A.json,B.json --walk-table docs/tuning.md
+
+The last writes the payload random walk's table (``ekf-payload`` rows at two ``payload_std`` values per model, from
+runs with ``--payload-std``) into the page between its ``estimators.py walk`` markers.
+
 ``DIR`` may also be the folder of ``exuflex study payload MODEL --estimators ...`` (its shared ``truth``). With
 ``--speed N`` the estimators are timed in turn on one log instead (ratios within one run).
 """
@@ -63,6 +68,9 @@ def main(argv=None) -> int:
                     "(listed in the --doc page)")
     ap.add_argument("--doc", default=None, help="write the tables to this markdown page")
     ap.add_argument("--json", default=None, help="write the per-run rows here")
+    ap.add_argument("--walk-table", default=None, metavar="PAGE",
+                    help="with --from-json: the payload random walk's table (ekf-payload rows at two payload_std "
+                         "values per model) into PAGE between its estimators.py walk markers")
     ap.add_argument("--speed", type=int, default=0, metavar="N",
                     help="instead: time each estimator N times on the nominal level's seed-0 log, in rotation "
                          "(ratios within one run), and the RTS smoother's passes")
@@ -112,6 +120,8 @@ def main(argv=None) -> int:
                 mean_nis, exp_nis = e.result.mean_nis(burn_in=int(0.3 * 500))
                 label = est_name + (f" ({', '.join(args.config)})" if args.config else "")
                 row = {"model": mech.name, "scale": scale, "estimator": label, "seed": seed,
+                       "payload_std": ObserverConfig(estimator=est_name if est_name != "ekf@truth" else "ekf",
+                                                     **kw).payload_std,
                        "rtf": e.real_time_factor,
                        "wall_s": wall, "diverged": bool(e.result.diverged), "nis_mean": mean_nis,
                        "nis_expected": exp_nis, "n_nis": int(np.isfinite(e.result.nis[150:]).sum()),
@@ -134,6 +144,15 @@ def main(argv=None) -> int:
                 print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()
                                   if k in ("scale", "estimator", "seed", "q1", "q3", "dq1", "dq3", "theta_end",
                                            "theta_std_end", "theta_nerr_end", "rtf", "nis_mean")}), flush=True)
+    if args.walk_table:
+        if not args.from_json:
+            ap.error("--walk-table: the table is made from --from-json files")
+        from _pages import rewrite_block
+
+        files = ",".join(Path(f).name for f in args.from_json.split(","))
+        cmd = f"python benchmarks/estimators.py {args.model} DIR --from-json {files} --walk-table {args.walk_table}"
+        rewrite_block(args.walk_table, *WALK, "\n".join(_walk_table(rows, cmd, args.measured_by)))
+        return 0
     lines = _table(rows)
     speed = _speed_table(rows)
     if args.doc:
@@ -220,6 +239,49 @@ def _table(rows) -> list[str]:
             out(f"{model}:")
         _model_table([r for r in rows if r.get("model", "") == model], out)
     return lines
+
+
+WALK = ("<!-- estimators.py walk: begin -->", "<!-- estimators.py walk: end -->")
+
+
+def _walk_table(rows, cmd: str, measured_by: list[str]) -> list[str]:
+    """The payload scale's random walk (``payload_std``) at its two values per model: the spread of ``z``, the
+    scale's error over its standard deviation at the last sample, over the seeds; the runs with ``|z| > 3``; and
+    the states' RMS errors at the larger walk over those at the smaller (the range over the quantities), at the
+    nominal payload and with it doubled. Rows: ``ekf-payload`` without ``--config`` (the report, default
+    ``payload_nominal_p``); a row without ``payload_std`` ran with the default."""
+    from exuflex.observer.session import ObserverConfig
+
+    default = ObserverConfig().payload_std
+    rows = [dict(r, payload_std=r.get("payload_std", default)) for r in rows if r.get("estimator") == "ekf-payload"]
+    lines = [WALK[0], "Measured by", "", *(f"    {c}" for c in measured_by), f"    {cmd}", "",
+             "`z`: the payload scale's error over its standard deviation at the last sample; its mean (sd) and "
+             "the runs with abs(z) > 3 over the seeds, at the smaller walk -> the larger; state RMS: the mean RMS "
+             "error at the larger walk over the mean at the smaller, smallest-largest over the joint angles, rates "
+             "and tip displacements.", "",
+             "| mechanism | seeds | `z` mean (sd): nominal | +100 % | runs with abs(z) > 3: nominal | +100 % "
+             "| state RMS, larger walk over smaller: nominal | +100 % |",
+             "|---|---|---|---|---|---|---|---|"]
+    for model in dict.fromkeys(r["model"] for r in rows):
+        mine = [r for r in rows if r["model"] == model]
+        walks = sorted({r["payload_std"] for r in mine})
+        if len(walks) != 2:
+            raise SystemExit(f"--walk-table: {model}: expected ekf-payload rows at two payload_std values, got "
+                             f"{walks}")
+        cols = [c for c in mine[0] if re.fullmatch(r"(d?q|x|y)\d+", c)]
+        z, big, ratio, n = {}, {}, {}, set()
+        for scale in (1.0, 2.0):
+            at = {w: [r for r in mine if r["payload_std"] == w and r["scale"] == scale
+                      and np.isfinite(r["theta_end"])] for w in walks}
+            n |= {len(v) for v in at.values()}
+            zs = {w: np.array([(r["theta_end"] - scale) / r["theta_std_end"] for r in v]) for w, v in at.items()}
+            z[scale] = " -> ".join(f"{np.mean(zs[w]):+.2f} ({np.std(zs[w], ddof=1):.2f})" for w in walks)
+            big[scale] = " -> ".join(f"{int(np.sum(np.abs(zs[w]) > 3))} of {len(zs[w])}" for w in walks)
+            rr = [np.mean([r[c] for r in at[walks[1]]]) / np.mean([r[c] for r in at[walks[0]]]) for c in cols]
+            ratio[scale] = f"{min(rr):.3f}-{max(rr):.3f}"
+        lines.append(f"| {model} ({walks[0]:g} -> {walks[1]:g}) | {'/'.join(map(str, sorted(n)))} | {z[1.0]} | "
+                     f"{z[2.0]} | {big[1.0]} | {big[2.0]} | {ratio[1.0]} | {ratio[2.0]} |")
+    return [*lines, WALK[1]]
 
 
 def _model_table(rows, out) -> None:

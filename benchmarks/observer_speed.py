@@ -19,7 +19,11 @@ printed as the ceiling of the present arithmetic.
 
 What a user waits for: ``python -m exuflex observe MODEL RUN`` in a fresh interpreter ``--repeats`` times (numba's
 cache and Python's bytecode warm: one run first), its wall time against the filter's own (the ``wall`` it
-prints), with the import of the command line and the observer timed apart. ``--against DIR`` (a checkout of
+prints), with the import of the command line and the observer timed apart. Where the rest goes: as many fresh
+interpreters that run the same command with timers around its parts (:data:`STAGES`; each part's wall, and the
+kernels loaded from numba's cache wherever they load), and as many that only start Python, import NumPy, SciPy's
+``linalg`` and ``special`` and numba and call one trivial kernel from numba's cache (the floor those libraries
+set: no exuflex code runs); the runs of the three kinds alternate. ``--against DIR`` (a checkout of
 another version, e.g. ``git worktree add /tmp/base main``): the filter's time on the log in a fresh interpreter
 of each checkout (the median of 5 runs), in turn, ``--repeats`` pairs; the median of the pairs' ratios (each pair
 ran at nearly the same moment, so the machine's drift cancels); the same for the wall time of ``exuflex observe``
@@ -40,6 +44,19 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CHILD_RUNS = 5  # filter runs per interpreter in --against (their median is the interpreter's time)
+#: the parts of ``exuflex observe`` timed apart (module, function, what it does), in the order they run
+STAGES = (
+    ("exuflex.mechanism", "load_mechanism", "reading the model file"),
+    ("exuflex.validate", "check_configurations", "closing the loops at q_ref and q* (with numba's set-up)"),
+    ("exuflex.runs", "read_run", "reading the log"),
+    ("exuflex.validate", "check_run", "checking the log"),
+    ("exuflex.observer.session", "make_observer", "building the observer (basis, reduced model, filter)"),
+    ("exuflex.scoring.run", "check_observable", "the observability test"),
+    ("exuflex.scoring.run", "bound_track", "the bound along the log"),
+    ("exuflex.scoring.run", "_estimate_kept", "filtering, with the physical estimates of each chunk"),
+    ("exuflex.erls.validity", "signal_warnings", "the validity check along the truth"),
+)
+IMPORTS = ("exuflex.cli", "exuflex.cli.observe", "exuflex.observer.session", "exuflex.scoring.run", "exuflex.validate")
 
 
 class _Timer:
@@ -72,11 +89,14 @@ def main(argv=None) -> int:
     ap.add_argument("--against", default=None, help="another checkout: the filter's time paired against it")
     ap.add_argument("--against-label", default=None, help="what --against holds, for the page (e.g. 'main at abc1234')")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # one timed filter run, JSON out
+    ap.add_argument("--stages-child", action="store_true", help=argparse.SUPPRESS)  # observe with timed parts
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--md", default=str(ROOT / "docs" / "observer_speed.md"), help="markdown page ('' for none)")
     args = ap.parse_args(argv)
     if args.child:
         return _child(args.model, args.run)
+    if args.stages_child:
+        return _stages_child(args.model, args.run)
 
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import reduced
@@ -134,6 +154,7 @@ def main(argv=None) -> int:
     ob = out["observe"]
     print(f"exuflex observe: median wall {ob['median_wall_s']:.2f} s, the filter {ob['median_filter_s']:.3f} s, "
           f"imports {ob['median_import_s']:.2f} s ({args.repeats} runs)")
+    print(_breakdown_section(ob["breakdown"], args.repeats))
     if "against" in out:
         a = out["against"]
         print(f"filter time / {a['dir']}'s: median of {args.repeats} pairs {a['median_ratio']:.3f} "
@@ -172,26 +193,127 @@ def _child(model: str, run_dir: str) -> int:
     return 0
 
 
+def _stages_child(model: str, run_dir: str) -> int:
+    """``exuflex observe MODEL RUN`` in this fresh interpreter with timers around its parts (:data:`STAGES`, the
+    imports, numba's cache loads), printed as JSON (seconds of wall time)."""
+    import contextlib
+    import importlib
+    import io
+    import re
+
+    t0 = time.perf_counter()
+    import numba  # noqa: F401 - the libraries first: their import is the floor's, not the package's
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
+    import scipy.special  # noqa: F401
+
+    t1 = time.perf_counter()
+    for name in IMPORTS:
+        importlib.import_module(name)
+    t2 = time.perf_counter()
+    spent = {label: 0.0 for _, _, label in STAGES}
+    loads = [0, 0.0]
+
+    def timed(f, label, acc):
+        def w(*a, **k):
+            s0 = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                acc[label] += time.perf_counter() - s0
+        return w
+
+    for mod, name, label in STAGES:
+        m = importlib.import_module(mod)
+        setattr(m, name, timed(getattr(m, name), label, spent))
+    from numba.core import caching
+
+    load = caching.Cache.load_overload
+
+    def counted(self, *a, **k):
+        s0 = time.perf_counter()
+        try:
+            return load(self, *a, **k)
+        finally:
+            loads[0] += 1
+            loads[1] += time.perf_counter() - s0
+
+    caching.Cache.load_overload = counted
+    from exuflex.cli import main
+
+    out = io.StringIO()
+    t3 = time.perf_counter()
+    sys.argv = ["exuflex", "observe", model, run_dir]  # as the program: main() reads them
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        rc = main()
+    t4 = time.perf_counter()
+    if rc != 0:
+        raise SystemExit(f"exuflex observe returned {rc}")
+    filt = float(re.search(r"^wall ([0-9.eE+-]+) s", out.getvalue(), re.MULTILINE).group(1))
+    print(json.dumps({"libraries_s": t1 - t0, "package_imports_s": t2 - t1, "command_s": t4 - t3, "stages": spent,
+                      "filter_s": filt, "kernel_loads": loads[0], "kernel_load_s": loads[1],
+                      "in_process_s": t4 - t0}))
+    return 0
+
+
+FLOOR = "import numpy, scipy.linalg, scipy.special, numba\nfrom one_kernel import one\none(1.0)\n"
+KERNEL = "import numba\n\n\n@numba.njit(cache=True)\ndef one(x):\n    return x + 1.0\n"
+
+
 def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
     """``exuflex observe`` in fresh interpreters: wall times, the filter's (its printed ``wall``) and the imports'."""
     import re
     import subprocess
 
+    import resource
+    import tempfile
+
     env = _env(ROOT)
     cmd = [sys.executable, "-m", "exuflex", "observe", model, run_dir]
     imp = [sys.executable, "-c", ("import time; t = time.perf_counter(); import exuflex.cli, exuflex.cli.observe, "
                                   "exuflex.observer.session, exuflex.validate; print(time.perf_counter() - t)")]
-    subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, check=True)  # bytecode and numba's cache warm
-    wall, filt, imports = [], [], []
-    for _ in range(repeats):
+    stages = [sys.executable, str(Path(__file__).resolve()), "--stages-child", "--model", model, "--run", run_dir]
+    tmp = tempfile.TemporaryDirectory()
+    Path(tmp.name, "one_kernel.py").write_text(KERNEL)
+    floor_env = dict(env, PYTHONPATH=tmp.name)
+    floor = [sys.executable, "-c", FLOOR]
+
+    def run(c, e=env, cwd=ROOT):
+        """(wall, CPU seconds of the process, its output)."""
+        c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
-        res = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, check=True)
-        wall.append(time.perf_counter() - t0)
-        filt.append(float(re.search(r"^wall ([0-9.eE+-]+) s", res.stdout, re.MULTILINE).group(1)))
-        imports.append(float(subprocess.run(imp, env=env, cwd=ROOT, capture_output=True, text=True,
-                                            check=True).stdout))
-    return {"wall_s": wall, "filter_s": filt, "import_s": imports, "median_wall_s": statistics.median(wall),
-            "median_filter_s": statistics.median(filt), "median_import_s": statistics.median(imports)}
+        res = subprocess.run(c, env=e, cwd=cwd, capture_output=True, text=True, check=True)
+        wall = time.perf_counter() - t0
+        c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return wall, (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime), res.stdout
+
+    run(cmd)  # bytecode and numba's cache warm
+    run(floor, floor_env, tmp.name)  # the trivial kernel compiled into its cache
+    wall, cpu, filt, imports, parts, floors = [], [], [], [], [], []
+    for _ in range(repeats):
+        w, c, out = run(cmd)
+        wall.append(w)
+        cpu.append(c)
+        filt.append(float(re.search(r"^wall ([0-9.eE+-]+) s", out, re.MULTILINE).group(1)))
+        imports.append(float(run(imp)[2]))
+        w, _, out = run(stages)
+        parts.append(dict(json.loads(out.strip().splitlines()[-1]), wall_s=w))
+        floors.append(run(floor, floor_env, tmp.name)[0])
+    tmp.cleanup()
+    med = statistics.median
+    breakdown = {"floor_s": med(floors), "floor_runs_s": floors, "wall_s": med([p["wall_s"] for p in parts]),
+                 "filter_s": med([p["filter_s"] for p in parts]),
+                 "kernel_loads": med([p["kernel_loads"] for p in parts]),
+                 "kernel_load_s": med([p["kernel_load_s"] for p in parts]),
+                 "start_s": med([p["wall_s"] - p["in_process_s"] for p in parts]),
+                 "libraries_s": med([p["libraries_s"] for p in parts]),
+                 "package_imports_s": med([p["package_imports_s"] for p in parts]),
+                 "stages": {k: med([p["stages"][k] for p in parts]) for k in parts[0]["stages"]},
+                 "rest_s": med([p["command_s"] - sum(p["stages"].values()) for p in parts]),
+                 "physical_s": med([p["stages"][STAGES[-2][2]] - p["filter_s"] for p in parts])}
+    return {"wall_s": wall, "cpu_s": cpu, "filter_s": filt, "import_s": imports, "median_wall_s": med(wall),
+            "median_cpu_s": med(cpu), "median_filter_s": med(filt), "median_import_s": med(imports),
+            "breakdown": breakdown}
 
 
 def _paired(model: str, run_dir: str, repeats: int, other: Path) -> dict:
@@ -256,6 +378,33 @@ def _page(out: dict, argv: list, repeats: int) -> str:
     )
 
 
+def _breakdown_section(b: dict, repeats: int) -> str:
+    """Where the wall time of ``exuflex observe`` goes (:func:`_stages_child`), and the libraries' floor."""
+    st = b["stages"]
+    filt_label = STAGES[-2][2]
+    rows = [("starting Python and ending it (outside the command's code)", b["start_s"]),
+            ("importing NumPy, SciPy (linalg, special) and numba", b["libraries_s"]),
+            ("importing the package's modules (command line, observer, scoring)", b["package_imports_s"])]
+    rows += [(label, v) for label, v in st.items() if label != filt_label]
+    rows += [("the physical estimates of the filtered chunks", b["physical_s"]),
+             ("the filter itself (its printed wall)", b["filter_s"]),
+             ("the rest (argument parsing, the summary, the report)", b["rest_s"])]
+    table = "\n".join(f"| {k} | {v:.3f} | {100 * v / b['wall_s']:.0f} % |" for k, v in rows)
+    outside = b["wall_s"] - b["filter_s"]
+    return ("### Where the rest goes\n\n"
+            f"The same command in {repeats} more fresh interpreters with timers around its parts (medians of each "
+            f"part; the parts' medians need not add up to the median wall {b['wall_s']:.2f} s exactly):\n\n"
+            "| part | wall s | share |\n|---|---|---|\n" + table + "\n\n"
+            f"Loading the compiled kernels from numba's cache, wherever it happens in the parts above: "
+            f"{b['kernel_loads']:.0f} kernels, {b['kernel_load_s']:.3f} s.\n\n"
+            f"The floor the libraries set, without any of the package's code: a fresh interpreter that imports NumPy, "
+            f"SciPy's linalg and special and numba and calls one trivial kernel from numba's cache (numba's "
+            f"set-up), {repeats} runs alternating with the above: median {b['floor_s']:.2f} s "
+            f"({', '.join(f'{w:.2f}' for w in b['floor_runs_s'])}), {100 * b['floor_s'] / outside:.0f} % of the "
+            f"wall less the filter ({outside:.2f} s in these runs). The package's own share of the wait is the "
+            f"difference, {outside - b['floor_s']:.2f} s.\n\n")
+
+
 def _observe_section(out: dict, repeats: int) -> str:
     """The user's wait (``exuflex observe``) and the paired comparison, as markdown."""
     ob = out["observe"]
@@ -266,7 +415,8 @@ def _observe_section(out: dict, repeats: int) -> str:
             f"the rest (building the model, loading the compiled kernels, the bound, the report): "
             f"{ob['median_wall_s'] - ob['median_filter_s'] - ob['median_import_s']:.2f} s; the wall less the filter "
             f"{ob['median_wall_s'] - ob['median_filter_s']:.2f} s (issue 29's aim: at most 1.0 s). Walls: "
-            f"{', '.join(f'{w:.2f}' for w in ob['wall_s'])} s.\n\n")
+            f"{', '.join(f'{w:.2f}' for w in ob['wall_s'])} s; CPU seconds of the process (median): "
+            f"{ob['median_cpu_s']:.2f}.\n\n" + _breakdown_section(ob["breakdown"], repeats))
     if "against" in out:
         a = out["against"]
         text += ("## Against another checkout\n\n"

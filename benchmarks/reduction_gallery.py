@@ -133,7 +133,7 @@ def main(argv=None) -> int:
         "the automatic count. rho: the whitened mean square of the truncated output summed over the channels in",
         "the worst 100-sample window (limit 0.1), its largest shares per channel; the estimated tip quantities'",
         "truncated part (q, q' and the tip's; RMS in the worst window, rad, m and their rates), to compare with the observer's bound",
-        "(`docs/gallery.md`). The paper's six-bar keeps the paper's five modes: its rows are that count.",
+        "(`docs/acceptance.md`). The paper's six-bar keeps the paper's five modes: its rows are that count.",
         "",
         "| model | count | interior | kept (Hz at q*) | rho | channels | estimated quantities |",
         "|---|---|---|---|---|---|---|",

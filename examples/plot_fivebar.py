@@ -15,7 +15,7 @@ the command line::
     exuflex observe models/fivebar.toml runs/fivebar --out obs/fivebar
 
 The chain is the same on every mechanism's page: ``examples/_whole_chain.py``, shown on :doc:`plot_sixbar`.
-The acceptance over three seeds and the whole manoeuvre, for every mechanism: :doc:`/gallery`.
+The acceptance over ten seeds and three truths, for every mechanism: :doc:`/acceptance`.
 """
 
 from _whole_chain import modes, observed

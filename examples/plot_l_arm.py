@@ -16,7 +16,7 @@ the command line::
     exuflex observe models/l_arm.toml runs/l_arm --out obs/l_arm
 
 The chain is the same on every mechanism's page: ``examples/_whole_chain.py``, shown on :doc:`plot_sixbar`.
-The acceptance over three seeds and the whole manoeuvre, for every mechanism: :doc:`/gallery`.
+The acceptance over ten seeds and three truths, for every mechanism: :doc:`/acceptance`.
 """
 
 from _whole_chain import modes, observed

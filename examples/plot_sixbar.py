@@ -15,7 +15,7 @@ the command line::
     exuflex observe models/sixbar.toml runs/sixbar --out obs/sixbar
 
 The chain is the same on every mechanism's page: ``examples/_whole_chain.py`` (below). The acceptance over
-three seeds and the whole manoeuvre, for every mechanism: :doc:`/gallery`.
+ten seeds and three truths, for every mechanism: :doc:`/acceptance`.
 
 .. literalinclude:: ../../examples/_whole_chain.py
    :pyobject: observed

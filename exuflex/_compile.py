@@ -83,7 +83,7 @@ def groups() -> tuple[KernelGroup, ...]:
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
                     _compiled._force_terms_shared), cost=14.6),
-        KernelGroup("held", expansion.warm_up_held, (expansion.held_system, expansion.prediction_error), cost=3.2),
+        KernelGroup("held", expansion.warm_up_held, (expansion.prediction_error,), cost=3.2),
         KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
                     cost=5.8),
         KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,

@@ -149,7 +149,7 @@ def _benchmark():
 
 
 # Gallery models that do not meet issue 15's acceptance with the observer as it is (measured with
-# ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; docs/gallery.md has the table): expected to pass once
+# ``python benchmarks/gallery.py``, Exudyn truth, seeds 1-3; the script prints the table): expected to pass once
 # the filter core and the reduction of issue 15 are done.
 KNOWN_SHORT: dict[str, str] = {
     "sixbar": "every RMS error within 1.5x its bound on the Exudyn truth, seeds 1-3 (worst 1.34, 1.36, 1.17 since the "

@@ -18,10 +18,10 @@ HEAVY = ("scipy.signal", "scipy.stats", "scipy.optimize", "scipy.integrate", "sc
          "matplotlib", "exudyn")
 
 
-def _loaded_after(code: str) -> list[str]:
-    """The heavy modules in ``sys.modules`` after running ``code`` in a fresh interpreter (this checkout first on
-    the path)."""
-    probe = code + f"\nimport sys, json\nprint(json.dumps([m for m in {list(HEAVY)!r} if m in sys.modules]))\n"
+def _loaded_after(code: str, names=HEAVY) -> list[str]:
+    """The modules of ``names`` (default the heavy ones) in ``sys.modules`` after running ``code`` in a fresh
+    interpreter (this checkout first on the path)."""
+    probe = code + f"\nimport sys, json\nprint(json.dumps([m for m in {list(names)!r} if m in sys.modules]))\n"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, cwd=ROOT,
                          check=True)
@@ -33,6 +33,20 @@ def test_package_cli_and_observer_imports_stay_light():
             "exuflex.runs, exuflex.validate, exuflex.scoring.output, exuflex.scoring.run, exuflex._compile\n"
             "from exuflex.cli import _build_parser\n_build_parser()")
     assert _loaded_after(code) == []
+
+
+def test_a_command_line_imports_its_own_command_only():
+    """``exuflex observe ...`` builds the parser of ``observe`` alone: the other commands' modules, and what they
+    import (the truth engines' registry, the plots), stay unimported; ``exuflex --help`` still lists them all."""
+    from exuflex.cli import COMMANDS, _build_parser
+
+    others = [f"exuflex.cli.{c}" for c in COMMANDS if c != "observe"] + ["exuflex.truth", "exuflex.plots"]
+    assert _loaded_after("from exuflex.cli import _build_parser\n_build_parser('observe')", others) == []
+    assert set(_loaded_after("from exuflex.cli import _build_parser\n_build_parser()", others)) >= \
+        {f"exuflex.cli.{c}" for c in COMMANDS if c != "observe"}
+    helps = _build_parser().format_help()
+    assert all(c in helps for c in COMMANDS)
+    assert _build_parser("observe").parse_args(["observe", "m.toml", "run"]).run_dir == "run"
 
 
 @pytest.mark.slow

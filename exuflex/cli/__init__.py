@@ -10,11 +10,13 @@ anywhere on the command line.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import sys
+from contextlib import contextmanager
 
-__all__ = ["main"]
+__all__ = ["main", "setting_up"]
 
 COMMANDS = ("modes", "simulate", "observe", "plot", "study", "reproduce", "bench", "design")
 
@@ -27,7 +29,9 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {msg} (see {self.prog} --help)\n")
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def _build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or of ``command`` alone (what a command line naming it needs: the other
+    commands' modules, and what they import, stay unimported)."""
     from .. import __version__
 
     p = _Parser(prog="exuflex", description=__doc__.split("\n")[0])
@@ -35,7 +39,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true",
                    help="show tracebacks and debug logging (may stand anywhere on the command line)")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for name in COMMANDS:
+    for name in (command,) if command in COMMANDS else COMMANDS:
         try:
             mod = importlib.import_module(f".{name}", __name__)
         except ModuleNotFoundError as exc:
@@ -66,9 +70,41 @@ def _split_debug(argv: list[str]) -> tuple[list[str], bool]:
     return [a for i, a in enumerate(argv) if not (i < stop and a == "--debug")], debug
 
 
+@contextmanager
+def setting_up():
+    """Python's cyclic garbage collector paused while a command makes what lives until it ends (the modules it
+    imports, the compiled kernels loaded from numba's cache, the model): a bounded amount of memory that is not
+    garbage, which each collection of the oldest generation would otherwise traverse again (importing SciPy and
+    loading numba's kernels create many objects, and so trigger many collections). On leaving, what exists is
+    frozen (:func:`gc.freeze`: left out of later collections) and the collector resumes: the work that grows with
+    the log (filtering, writing) runs with it on. :func:`main` gives the frozen objects back to the collector when
+    it returns to a caller in Python."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if was:
+            gc.enable()
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The command line (``argv`` without the program's name; default ``sys.argv``). Called as the program (no
+    ``argv``), what the command made stays frozen out of the interpreter's collections until it exits
+    (:func:`gc.freeze`: its last collections would traverse every object of numba's and the model's once more);
+    called from Python, the objects frozen while the command set up are given back to the collector
+    (:func:`gc.unfreeze`)."""
+    try:
+        return _main(argv)
+    finally:
+        gc.freeze() if argv is None else gc.unfreeze()
+
+
+def _main(argv: list[str] | None) -> int:
     argv, debug = _split_debug(list(sys.argv[1:] if argv is None else argv))
-    parser = _build_parser()
+    with setting_up():  # a command first: its parser alone (its module imported); else (--help) all
+        parser = _build_parser(argv[0] if argv else None)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a usage error already printed in one line
@@ -79,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("exuflex.observer.ekf").addFilter(_NisFlagFilter())
     if debug:
         return int(args.func(args) or 0)
-    from ..errors import EXPECTED_ERRORS
-    from ..observer.base import FilterDivergedError
+    with setting_up():
+        from ..errors import EXPECTED_ERRORS
+        from ..observer.base import FilterDivergedError
 
     prog = f"exuflex {args.command}"
     try:

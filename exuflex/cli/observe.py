@@ -286,14 +286,17 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from .. import _compile
-    from ..errors import UsageError
-    from ..mechanism import load_mechanism
-    from ..observer.session import AUGMENTED_ESTIMATORS, make_observer
-    from ..scoring.run import observe_run
-    from ..runs import check_csv_dialect, read_run
-    from ..sensors import default_channels
-    from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
+    from . import setting_up
+
+    with setting_up():  # the observer's modules (and SciPy, numba) imported
+        from .. import _compile
+        from ..errors import UsageError
+        from ..mechanism import load_mechanism
+        from ..observer.session import AUGMENTED_ESTIMATORS, make_observer
+        from ..runs import check_csv_dialect, read_run
+        from ..scoring.run import observe_run
+        from ..sensors import default_channels
+        from ..validate import check_configurations, check_observer_settings, check_provenance, check_run, with_noise
 
     mech = load_mechanism(args.model)
     if args.noise:
@@ -311,7 +314,8 @@ def _run(args) -> int:
         if v is not None and len(v) != len(mech.coordinates):
             raise UsageError(f"{flag}: expected {len(mech.coordinates)} values ({', '.join(mech.coordinate_names)}), "
                              f"got {len(v)}")
-    check_configurations(mech)  # loops close, away from singularities
+    with setting_up():  # (numba's set-up: the first compiled kernel)
+        check_configurations(mech)  # loops close, away from singularities
     path = Path(args.run_dir)
     log = _read_log(args, mech) if path.is_file() else read_run(path)
     log, notes = check_provenance(mech, log, accept_other_model=args.accept_other_model)
@@ -327,13 +331,14 @@ def _run(args) -> int:
     # the first run: the kernels compiled in parallel, with a line before and after
     _compile.prepare(progress=_say, augmented=config.estimator in AUGMENTED_ESTIMATORS)
     _say("building the reduced model")
-    obs = make_observer(mech, config)
-    if args.q0 is not None or args.qd0 is not None:
-        from ..observer.session import start_configuration
+    with setting_up():  # the kernels loaded, the model built
+        obs = make_observer(mech, config)
+        if args.q0 is not None or args.qd0 is not None:
+            from ..observer.session import start_configuration
 
-        q0 = args.q0 if args.q0 is not None else start_configuration(mech)
-        x0 = obs.model.initial_state(q0, args.qd0)
-        obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
+            q0 = args.q0 if args.q0 is not None else start_configuration(mech)
+            x0 = obs.model.initial_state(q0, args.qd0)
+            obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
     sampling = _check_sampling(mech, obs, log, log_check, allow=args.allow_undersampled, source=str(path))
     if args.out and (not args.smooth or len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES):
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it

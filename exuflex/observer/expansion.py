@@ -1324,15 +1324,14 @@ _warm = False
 
 
 def warm_up_held() -> None:
-    """Compile (or load from numba's on-disk cache) the kernels of the held configuration's renewal (called from
-    Python; no other kernel calls them): :func:`held_system`, :func:`prediction_error`."""
+    """Compile (or load from numba's on-disk cache) the kernel of the held configuration's renewal (called from
+    Python; no other kernel calls it): :func:`prediction_error`. (:func:`held_system`, which the observer does not
+    call, compiles at its first call.)"""
     r, nq = 2, 1
     dl = np.zeros(nq)
     M = np.eye(r)
     for has_old in (False, True):
-        hs = _example_system(r, nq, has_old)
-        held_system(dl, 0.0, np.zeros(r - nq), *hs)
-        prediction_error(dl, 0.0, M, M, *hs)
+        prediction_error(dl, 0.0, M, M, *_example_system(r, nq, has_old))
 
 
 def warm_up_interval() -> None:

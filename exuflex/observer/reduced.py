@@ -733,7 +733,7 @@ class ReducedObserverModel:
         """The motor torques as an array of the model's motor count (zeros for None); a clear error else."""
         if u is None:
             return np.zeros(self._u_shape)
-        u = np.asarray(u, float)
+        u = np.ascontiguousarray(u, float)  # (a log's row may be strided: one compiled version of each kernel)
         if u.shape != self._u_shape:
             raise ValueError(f"input has shape {u.shape}, expected {self._u_shape}: one torque per motor "
                              f"{list(self.mech.motor_names)}")
