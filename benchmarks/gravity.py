@@ -209,7 +209,9 @@ def markdown(rows: list[dict], command: str) -> str:
          "follows `q` as `fg + Wg[:, :nq] (q - q0)` (first order in every direction, where the secant was first "
          "order along its line only), and the step Jacobian `F = P^n + S df/dz` gains, in its positions' columns, "
          "`Fp = Wg` less the held matrices' change with q as the forces it causes, `dK/dq_i (p + beta p') + "
-         "dM/dq_i a` with the acceleration `a` at the interval's start (`expansion.position_forces`): under gravity "
+         "dM/dq_i a` with the interval's mean positions, rates and accelerations (`expansion.position_forces`; `F` "
+         "takes the forces as held over the interval, and at the start of a log, undeformed under the weight, the "
+         "elastic accelerations are thousands of times their mean over it): under gravity "
          "the positions hold the links' static sag and the accelerations the weight's share, so in global elastic "
          "coordinates a sagging link turned by `dq` changes its elastic force by about as much as its weight's load "
          "changes, and the two terms enter together (the weight's gradient alone made the serial arm's "
@@ -241,15 +243,19 @@ def main(argv=None) -> None:
     ap.add_argument("--engines", default=",".join(ENGINES), help="truth engines, comma-separated")
     ap.add_argument("--md", default="")
     ap.add_argument("--json", default="")
-    ap.add_argument("--page-from", default="", help="write the page from this JSON of an earlier run (its "
-                    "'command' the run's) instead of measuring")
+    ap.add_argument("--page-from", default="", help="write the page (and --json) from the JSON of earlier runs "
+                    "(comma-separated) instead of measuring")
     a = ap.parse_args(argv)
     g = tuple(float(v) for v in a.gravity.split(","))
     if len(g) != 2:
         ap.error(f"--gravity: expected gx,gy, got {a.gravity!r}")
-    if a.page_from:
-        doc = json.loads(Path(a.page_from).read_text())
-        publish(markdown(doc["rows"], doc["command"]), a.md)
+    if a.page_from:  # one or several runs' JSON, their rows in order
+        docs = [json.loads(Path(f).read_text()) for f in a.page_from.split(",")]
+        rows = [r for d in docs for r in d["rows"]]
+        command = "`, `".join(d["command"] for d in docs)
+        if a.json:
+            Path(a.json).write_text(json.dumps({"command": command, "rows": rows}, indent=1) + "\n")
+        publish(markdown(rows, command), a.md)
         return
     rows = []
     for m in a.models.split(","):

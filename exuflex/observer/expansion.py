@@ -476,41 +476,40 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
         Fp = hs.Wg
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
-            Fp = position_forces(z, u, hs.Wg, hs.dM, hs.dK, hs.beta, Mr_, Kr_, Cr_, Gr_, f)
+            Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
     return z_next, F, Mr_, Kr_, Cr_, Gr_
 
 
-def _position_forces(z, u, Wg, dM, dK, beta, Mr, Kr, Cr, Gr, f):  # pragma: no cover - compiled
-    """``Fp`` (r, r): the change of the held system's generalised forces with the positions at ``z`` under the
-    torques ``u``, where gravity loads the mechanism: the weight's gradient ``Wg`` and, in the q columns, the held
-    matrices' change with q as the forces it causes, ``-dK/dq_i (p + beta p') - dM/dq_i a`` with the acceleration
-    ``a = M^-1 (G u + f - K p - C p')``: ``M p'' + C p' + K p = G u + f`` differentiated in ``q_i`` with the state
-    held, ``M da = dF/dq_i - dK/dq_i p - dC/dq_i p' - dM/dq_i a`` (the damping's mass-proportional part follows
-    the secant only and is left out). ``dM``, ``dK``: :class:`HeldSystem`'s gradients (nq, r*r).
+def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
+    """``Fp`` (r, r): the change of the held system's generalised forces with the positions over an interval from
+    ``z`` to ``z_next`` (``dt``), where gravity loads the mechanism: the weight's gradient ``Wg`` and, in the q
+    columns, the held matrices' change with q as the forces it causes, ``-dK/dq_i (p + beta p') - dM/dq_i a``
+    (``M p'' + C p' + K p = G u + f`` differentiated in ``q_i`` with the state held: ``M da = dF/dq_i - dK/dq_i p -
+    dC/dq_i p' - dM/dq_i a``; the damping's mass-proportional part follows the secant only and is left out), with
+    the interval's mean positions ``(p + p_next) / 2``, rates ``(p_next - p) / dt`` and accelerations
+    ``(p'_next - p') / dt``: the step Jacobian takes the forces as held over the interval (its response ``S``),
+    and within it the elastic coordinates oscillate (at the start of a log, undeformed under the weight, their
+    accelerations are thousands of times their mean). ``dM``, ``dK``: :class:`HeldSystem`'s gradients (nq, r*r).
 
-    Under gravity the positions carry the links' static sag and the acceleration the weight's share, both of the
+    Under gravity the positions carry the links' static sag and the accelerations the weight's share, both of the
     weight's size: in global elastic coordinates a sagging link turned by ``dq`` changes its elastic force by
     about as much as its weight's load changes (``dK/dq p``), and the two enter together. Without gravity they
     multiply vibrations only, and the filter gained nothing from them (docs/step_jacobian.md): the step
     Jacobian then leaves them out."""
-    r = Mr.shape[0]
+    r = z.shape[0] // 2
     nq = dM.shape[0]
-    rhs = np.empty((r, 1))
-    for i in range(r):
-        acc = f[i]
-        for j in range(u.shape[0]):
-            acc += Gr[i, j] * u[j]
-        for j in range(r):
-            acc -= Kr[i, j] * z[j] + Cr[i, j] * z[r + j]
-        rhs[i, 0] = acc
-    a = _cholesky_solve(Mr, rhs)
+    pm = np.empty(r)  # p + beta p' over the interval
+    am = np.empty(r)
+    for k in range(r):
+        pm[k] = 0.5 * (z[k] + z_next[k]) + beta * (z_next[k] - z[k]) / dt
+        am[k] = (z_next[r + k] - z[r + k]) / dt
     Fp = Wg.copy()
     for i in range(nq):
         for c in range(r):
             acc = 0.0
             for k in range(r):
-                acc += dK[i, c * r + k] * (z[k] + beta * z[r + k]) + dM[i, c * r + k] * a[k, 0]
+                acc += dK[i, c * r + k] * pm[k] + dM[i, c * r + k] * am[k]
             Fp[c, i] -= acc
     return Fp
 

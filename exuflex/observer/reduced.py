@@ -48,7 +48,8 @@ Intervals of different length (a lab clock's jitter) are each integrated over th
 
 Jacobian: ``F = P^n + S dF/dz``: the held linear system's map ``P^n`` plus its response ``S`` to the change of the
 held generalised forces with the start state (the velocity-dependent forces, exactly:
-:func:`.expansion.step_jacobian`).
+:func:`.expansion.step_jacobian`; under gravity the weight's gradient and the held matrices' change with q as the
+forces it causes, :func:`.expansion.position_forces`).
 
 Process noise: the measured torques carry white noise of std ``sigma`` (the motors' ``noise_std``), held over
 the interval, so ``Q = L diag(sigma^2) L^T`` with ``L`` the interval's response to a unit torque held over it,
@@ -396,8 +397,7 @@ class ReducedObserverModel:
         x = Pn @ z + L @ u + S @ m.fr
         Fp = iv.forces.Wg
         if Fp.shape[0]:
-            Fp = position_forces(z, u, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta), m.Mr, m.Kr, m.Cr,
-                                 m.Gr, m.fr)
+            Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
         F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
