@@ -4,10 +4,15 @@
                                             [--json hold.json]
     python benchmarks/step_jacobian.py refreshes [--model ...] [--run ...] [--json refreshes.json]
     python benchmarks/step_jacobian.py entries [--json entries.json]
+    python benchmarks/step_jacobian.py terms [--models a,b] [--truth-dir DIR] [--engine erls] [--seed 1]
+                                             [--every 50] [--json terms.json]
+    python benchmarks/step_jacobian.py oracle --variant exact -- GALLERY_ARGUMENTS
     python benchmarks/step_jacobian.py page [--hold hold.json] [--entries entries.json]
                                             [--gallery after.json [--before before.json]]
                                             [--acceptance acc.json [--acceptance-before acc_before.json]]
                                             [--refreshes refreshes.json] [--speed speed.json]
+                                            [--terms terms.json] [--oracle-base default.json
+                                             --oracle exact=exact.json ...] [--gap hold_s1.json ...]
                                             [--md docs/step_jacobian.md]
 
 ``hold``: the filter with default settings on one log, with each step of:
@@ -25,6 +30,14 @@
 against its own size (``tests/test_step_jacobian.py``'s measure), on every model of the gallery and the fresh
 mechanism of that test: the largest error of the terms the Jacobian holds (the velocity columns) and the size of
 the terms it leaves out (the change of the held matrices with the configuration and the elastic coordinates).
+
+``terms``: the Jacobian's left-out terms along the default filter's run on each model's truth log
+(``DIR/<engine>/<model>/s<seed>``), split by their source, against each entry's own scale and by their effect on the
+filter's predicted standard deviations (:func:`left_out_terms`).
+
+``oracle``: ``benchmarks/gallery.py`` (its arguments after ``--``) with the filter's step Jacobian replaced by an
+oracle of the same step: ``exact``, central differences of the whole cached step (:func:`oracle_jacobian`): what
+the left-out terms would change in the acceptance figures, without touching the kernels.
 
 ``page``: the markdown page from those JSON files and ``python benchmarks/gallery.py --engine erls,exudyn
 --truth-dir DIR --json FILE`` (cached against rk4 per model; ``--before``: the same from another checkout).
@@ -73,8 +86,8 @@ def hold(model: str, run: str) -> dict:
     step's ``held_model_error``."""
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig, make_observer
-    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
+    from exuflex.scoring.run import observe_run
 
     mech = load_mechanism(model)
     log = read_run(run)
@@ -107,8 +120,8 @@ def refreshes(model: str, run: str) -> dict:
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.expansion import held_system
     from exuflex.observer.session import ObserverConfig, make_observer
-    from exuflex.scoring.run import observe_run
     from exuflex.runs import read_run
+    from exuflex.scoring.run import observe_run
 
     mech = load_mechanism(model)
     cfg = ObserverConfig.for_model(mech)
@@ -161,6 +174,187 @@ def entries() -> dict:
     return out
 
 
+#: the oracle filters' step Jacobians (:func:`oracle_jacobian`)
+ORACLES = ("exact", "map", "q_columns", "elastic_columns", "python")
+
+
+def _central_step(step, z, nq, r, dq=1e-6, de=1e-7, dv=1e-5):
+    """Central differences of ``step`` (the next state) in every component of ``z``: steps ``dq`` in q, ``de`` in
+    the elastic coordinates, ``dv`` in the rates."""
+    J = np.empty((len(z), len(z)))
+    for j in range(len(z)):
+        e = np.zeros(len(z))
+        e[j] = dq if j < nq else de if j < r else dv
+        J[:, j] = (step(z + e) - step(z - e)) / (2 * e[j])
+    return J
+
+
+def oracle_jacobian(variant: str):
+    """Patch :class:`exuflex.observer.reduced.ReducedObserverModel` so that the filter (not the bound) steps with
+    another Jacobian of the same cached step (the step itself and the process noise unchanged; the filter then runs
+    sample by sample, not in the compiled loop): ``exact``, central differences of the whole cached step in every
+    state component with its held configuration and secant factor fixed (the matrices follow q along the expansion
+    and the midpoint elastic coordinates, the forces the state; the secant factor drops to zero where q turns
+    away from the secant, a jump no difference should straddle); ``map``, the step map built at the interval's own held matrices
+    (``P^n + S df/dz`` of the matrices the step used: no map radius, the elastic coordinates' terms in the map)
+    but without the matrices' derivatives; ``q_columns``, ``map`` with the q columns of ``exact``;
+    ``elastic_columns``, ``map`` with the elastic coordinates' and rates' columns of ``exact``; ``python``, the
+    default Jacobian on the same sample-by-sample path (the control)."""
+    from exuflex.observer import expansion as ex
+    from exuflex.observer import reduced as R
+
+    if variant not in ORACLES:
+        raise SystemExit(f"--variant: expected one of {ORACLES}, got {variant!r}")
+    cls = R.ReducedObserverModel
+    orig = cls._cached
+    cls.compiled = property(lambda self: False)
+    if variant == "python":
+        return
+
+    def cached(self, z, u, dt):
+        pred = orig(self, z, u, dt)
+        iv, _ = self.last_step
+        nq, r = self.nq, self.r
+        Mr, Kr, Cr, Gr, h, n = self._interval_matrices
+        Pn, S = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, self.torque_var)[:2]
+        F_map = ex.step_jacobian(np.asarray(z, float), *iv.forces.jacobian_tensors(), Pn, S)
+        if variant == "map":
+            return R.Prediction(pred.x, F_map, pred.Q)
+
+        s0 = R._secant_factor(iv, np.asarray(z[:nq], float) - iv.q0)
+
+        def step(x):
+            return ex.held_step(x, u, x[:nq] - iv.q0, s0, h, n, *iv.system)[0]
+
+        F = _central_step(step, np.asarray(z, float), nq, r)
+        if variant == "q_columns":
+            F_map[:, :nq] = F[:, :nq]
+            F = F_map
+        elif variant == "elastic_columns":
+            F_map[:, nq:r] = F[:, nq:r]
+            F_map[:, r + nq:] = F[:, r + nq:]
+            F = F_map
+        return R.Prediction(pred.x, F, pred.Q)
+
+    cls._cached = cached
+
+
+#: the left-out terms of the step Jacobian (:func:`left_out_terms`): the held system's arrays each one zeroes
+TERMS = {"dM/dq": ("dM", "old_dM"), "dK/dq": ("dK", "old_dK"), "C_a, G_r along the secant": ("old_Ca", "old_Gr"),
+         "elastic: M": ("pM",), "elastic: K": ("pK",), "elastic: C": ("pC",), "elastic: G and weight": ("pG",)}
+
+
+def _without(hs, fields):
+    """The held system ``hs`` with the arrays ``fields`` removed from the step: a gradient zeroed; a secant
+    partner's array replaced by the held one's (no change along the secant); an elastic-coordinate array zeroed."""
+    rep = {}
+    for f in fields:
+        rep[f] = getattr(hs, f[4:]) if f.startswith("old_") else np.zeros_like(getattr(hs, f))
+        if f in ("dM", "dK"):  # the secant's second-order term goes with the gradient
+            rep["old_" + f] = np.zeros_like(getattr(hs, f))
+    return hs._replace(**rep)
+
+
+def left_out_terms(model: str, run: str, every: int = 50) -> dict:
+    """The step Jacobian's left-out terms along the default filter's run on a log, every ``every``-th interval:
+    ``F_exact`` (central differences of the whole cached step, held configuration and secant factor fixed) against
+    the filter's ``F``, split by the term's source: ``F_exact`` minus the same differences with that source's arrays
+    removed from the step (:data:`TERMS`, :func:`_without`; the elastic terms' midpoint ``p_e + dt/2 p_e'`` puts
+    them in the rates' columns too), and ``map``, the step map built at the undeformed held model at the map's
+    centre against the map at the interval's own matrices (the filter's ``F`` against ``map``). Per term, the
+    largest over the intervals of: ``nat``, its largest entry over the natural scale of ``F_exact``
+    (``tests/test_step_jacobian.py``'s ``natural_scale``); ``own``, its largest entry over the entry itself among
+    the entries of at least 1e-3 of their natural scale; ``dqdd_dq``, its q' rows' q columns over ``dt``
+    (1/s^2); ``std``, its effect on the filter's uncertainty, ``max_i sqrt((dF P dF^T)_ii / (F P F^T + Q)_ii)``
+    with the filter's ``P`` before the interval (what a term of this size changes in the predicted standard
+    deviations). ``elastic_snr``: the elastic coordinates' estimate against the filter's uncertainty of it,
+    ``sqrt(p_e^T P_ee^-1 p_e / n_e)`` (median and largest over the intervals): the left-out q-column terms are
+    products of the elastic state (``dK/dq p``, ``dM/dq a``) with a change of q, and where this is about 1 or below
+    the filter does not know their coefficients even in sign."""
+    import test_step_jacobian as tsj
+
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer import expansion as ex
+    from exuflex.observer import reduced as R
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.runs import read_run
+    from exuflex.scoring.run import observe_run
+
+    R.ReducedObserverModel.compiled = property(lambda self: False)  # sample by sample: predict() sees each
+    mech = load_mechanism(model)
+    cfg = ObserverConfig.for_model(mech)
+    obs = make_observer(mech, cfg)
+    som = obs.model
+    orig = R.ReducedObserverModel._cached
+    out: dict = {}
+    count = [0]
+    snr: list = []
+
+    def record(F_a, F_b, F_ref, nat, P, Q, dt, nq, r, name):
+        d = F_a - F_b
+        big = np.abs(F_ref) >= 1e-3 * nat
+        own = float((np.abs(d)[big] / np.abs(F_ref)[big]).max()) if big.any() else 0.0
+        cov = F_ref @ P @ F_ref.T + Q
+        std = float(np.sqrt(np.maximum(np.diagonal(d @ P @ d.T), 0) / np.diagonal(cov)).max())
+        row = {"nat": float((np.abs(d) / nat).max()), "own": own,
+               "dqdd_dq": float(np.abs(d[r : r + nq, :nq]).max() / dt), "std": std}
+        o = out.setdefault(name, {k: [] for k in row})
+        for k, v in row.items():
+            o[k].append(v)
+
+    def cached(self, z, u, dt):
+        pred = orig(self, z, u, dt)
+        count[0] += 1
+        if count[0] % every or self.state_cov is None:
+            return pred
+        iv, _ = self.last_step
+        nq, r = self.nq, self.r
+        Mr, Kr, Cr, Gr, h, n = self._interval_matrices
+        z = np.asarray(z, float)
+        s0 = R._secant_factor(iv, z[:nq] - iv.q0)
+
+        def fd(hs):
+            return _central_step(lambda x: ex.held_step(x, u, x[:nq] - iv.q0, s0, h, n, *hs)[0], z, nq, r)
+
+        F_ex = fd(iv.system)
+        if not np.all(np.isfinite(F_ex)):
+            return pred
+        nat = tsj.natural_scale(F_ex)
+        P = self.state_cov()[: self.nx, : self.nx]
+        Pn, S = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, self.torque_var)[:2]
+        F_map = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S)
+        pe, Pe = z[nq:r], P[nq:r, nq:r]
+        if r > nq:  # the elastic coordinates' estimate against its uncertainty: the left-out terms' coefficients
+            snr.append(float(np.sqrt(pe @ np.linalg.solve(Pe, pe) / (r - nq))))
+        record(F_map, pred.F, F_ex, nat, P, pred.Q, dt, nq, r, "map")
+        record(F_ex, pred.F, F_ex, nat, P, pred.Q, dt, nq, r, "all")
+        for name, fields in TERMS.items():
+            if fields[0].startswith("p") and not iv.system.pM.shape[0]:
+                continue
+            if fields[0].startswith("old") and not iv.system.has_old:
+                continue
+            record(F_ex, fd(_without(iv.system, fields)), F_ex, nat, P, pred.Q, dt, nq, r, name)
+        return pred
+
+    som._cached = cached.__get__(som)
+    observe_run(mech, read_run(run), cfg, observer=obs, with_bound=False)
+    res = {"model": Path(model).stem, "run": str(run), "intervals": count[0] // every, "terms": {},
+           "elastic_snr": {"median": float(np.median(snr)), "max": float(np.max(snr))} if snr else None}
+    for name, o in out.items():
+        res["terms"][name] = {k: {"max": float(np.max(v)), "median": float(np.median(v))} for k, v in o.items()}
+        print(res["model"], name, {k: round(v["max"], 4) for k, v in res["terms"][name].items()}, flush=True)
+    return res
+
+
+def oracle(variant: str, gallery_args: list[str]) -> int:
+    """``benchmarks/gallery.py`` with the observer's step Jacobian replaced (:func:`oracle_jacobian`)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import gallery
+
+    oracle_jacobian(variant)
+    return gallery.main(gallery_args)
+
+
 def _fmt(v, nd=2):
     return "-" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
 
@@ -198,8 +392,46 @@ def _acceptance_rows(rows: list[dict]) -> dict:
     return dict(sorted(agg.items()))
 
 
+def _oracle_rows(base_json: str, variants: dict) -> list[tuple]:
+    """Per (model, truth) over the seeds both runs hold: the default's and each variant's mean worst RMS / bound,
+    and per variant the paired change of each quantity's RMS error (variant / default, mean over the seeds) at its
+    largest and its smallest, with the mean NIS / channels."""
+    def load(path):
+        return {(r["model"], r["engine"], r["seed"]): r for r in json.loads(Path(path).read_text())["runs"]}
+
+    base = load(base_json)
+    var = {k: load(v) for k, v in variants.items()}
+    keys = sorted({(m, e) for (m, e, _) in base}, key=lambda x: (x[0], ["erls", "exudyn", "reduced"].index(x[1])
+                                                                 if x[1] in ("erls", "exudyn", "reduced") else 9))
+    out = []
+    for m, e in keys:
+        row = [m, e]
+        for name, runs in var.items():
+            seeds = sorted(s for (mm, ee, s) in runs if (mm, ee) == (m, e) and (m, e, s) in base)
+            if not seeds:
+                row.append(None)
+                continue
+            b = [base[(m, e, s)] for s in seeds]
+            v = [runs[(m, e, s)] for s in seeds]
+
+            def worst(rs):
+                return float(np.mean([max(x for x in r["ratio_to_bound"].values() if np.isfinite(x)) for r in rs]))
+
+            def nis(rs):
+                return float(np.mean([r["nis_mean"] / r["nis_expected"] for r in rs]))
+
+            qs = list(b[0]["rms_error"])
+            ch = {q: float(np.mean([vv["rms_error"][q] / bb["rms_error"][q] for vv, bb in zip(v, b)])) for q in qs}
+            hi = max(ch, key=ch.get)
+            lo = min(ch, key=ch.get)
+            row.append((len(seeds), worst(b), worst(v), hi, ch[hi], lo, ch[lo], nis(b), nis(v)))
+        out.append(tuple(row))
+    return out
+
+
 def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance=None,
-         acceptance_before=None, refreshes_json=None, speed_json=None) -> None:
+         acceptance_before=None, refreshes_json=None, speed_json=None, terms_json=None, oracle_base=None,
+         oracles=None, gap_jsons=None) -> None:
     lines = ["# The cached step's accuracy and its Jacobian", "",
              "Written by `python benchmarks/step_jacobian.py page` (its docstring has the commands; the figures "
              "below come from the runs named in each section).", ""]
@@ -333,8 +565,103 @@ def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance
                   "With the terms the filter carries its elastic-state errors into q through `dK/dq p` and "
                   "`dM/dq a`; the step map's own error (`remap_tol`, against the filter's uncertainty) is of the "
                   "same order. The test keeps the left-out entries' size measured (it would see them grow).", ""]
+    if terms_json:
+        lines += _terms_section(json.loads(Path(terms_json).read_text()))
+    if oracle_base and oracles:
+        lines += _oracle_section(oracle_base, oracles)
+    if gap_jsons:
+        lines += _gap_section(gap_jsons)
     Path(md).write_text("\n".join(lines))
     print("wrote", md)
+
+
+def _terms_section(res: list[dict]) -> list[str]:
+    """The left-out terms along a run, per model (:func:`left_out_terms`)."""
+    runs = sorted({str(Path(r["run"]).parent.parent.name) + "/s" + Path(r["run"]).name[1:] for r in res})
+    lines = ["## The left-out terms along a run", "",
+             "`python benchmarks/step_jacobian.py terms --truth-dir DIR` (the default filter on each model's "
+             f"{', '.join(runs)} log, every 50th interval): the cached step's exact Jacobian (central differences of "
+             "the whole step, its held configuration and secant factor fixed) against the filter's `F`, split by "
+             "the source of each left-out term (the step's differences with that source removed from the held "
+             "system). Per term, the largest over the intervals (median in brackets) of: its largest entry over "
+             "the natural scale of the exact Jacobian (`nat`, the test's measure), the entry's own size among the "
+             "entries of at least 1e-3 of their natural scale (`own`: 1 where the filter's entry is zero), and "
+             "its effect on the filter's predicted standard deviations (`std`: `max_i sqrt((dF P dF^T)_ii / "
+             "(F P F^T + Q)_ii)` with the filter's `P` before the interval). `all`: the exact Jacobian against "
+             "`F` (every term at once: `dM/dq a` and `dK/dq p` largely cancel, the elastic part of `M a + K p` "
+             "being balanced by the forces); `map`: the step map built at the undeformed held model at its centre "
+             "against the one of the interval's own matrices (the map radius and the elastic coordinates' terms "
+             "in the map). Terms absent from a model (no secant partner yet, no elastic-coordinate rows) are "
+             "left blank.", ""]
+    names = ["all", "map", *TERMS]
+    lines += ["| model | quantity | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for r in res:
+        for key, label in (("nat", "nat"), ("own", "own"), ("std", "std")):
+            cells = []
+            for n in names:
+                t = r["terms"].get(n)
+                cells.append("" if t is None else f"{t[key]['max']:.2g} ({t[key]['median']:.2g})")
+            lines.append(f"| {r['model'] if key == 'nat' else ''} | {label} | " + " | ".join(cells) + " |")
+    lines.append("")
+    return lines
+
+
+def _oracle_section(base: str, oracles: dict) -> list[str]:
+    """The gallery's figures with the oracle Jacobians against the default (:func:`oracle_jacobian`)."""
+    rows = _oracle_rows(base, oracles)
+    names = list(oracles)
+    lines = ["## What the left-out terms change in the acceptance figures", "",
+             "`python benchmarks/step_jacobian.py oracle --variant V -- --acceptance --truth-dir DIR --seeds S "
+             "--md '' --json FILE` against the default (`python benchmarks/gallery.py --acceptance --truth-dir DIR "
+             "--json FILE`), on the same truths and noise: the filter stepping with another Jacobian of the same "
+             "cached step (the step itself, its process noise, the measurement and the bound unchanged; "
+             "`oracle_jacobian`): " + ", ".join(f"`{n}`" for n in names) + " (`exact`: central differences of the "
+             "whole step, every term in; `q_columns`: only the q columns exact). Per model and truth over the "
+             "seeds both hold: the mean of a run's worst RMS / bound, default and variant; the quantity whose RMS "
+             "error the variant changes most (variant / default RMS, mean over the seeds, up and down); the mean "
+             "NIS / channels.", ""]
+    head = "| model | truth | seeds | default: worst / bound |"
+    sep = "|---|---|---|---|"
+    for n in names:
+        head += f" {n}: worst / bound | {n}: largest change | {n}: smallest | {n}: NIS / channels (default) |"
+        sep += "---|---|---|---|"
+    lines += [head, sep]
+    for row in rows:
+        m, e, *vals = row
+        first = next((v for v in vals if v is not None), None)
+        if first is None:
+            continue
+        cells = [m, e, str(first[0]), f"{first[1]:.2f}"]
+        for v in vals:
+            if v is None:
+                cells += ["-"] * 4
+                continue
+            _, _, wv, hi, chi, lo, clo, nb, nv = v
+            cells += [f"{wv:.2f}", f"{hi} {chi:.3f}", f"{lo} {clo:.3f}", f"{nv:.3f} ({nb:.3f})"]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    return lines
+
+
+def _gap_section(paths: list[str]) -> list[str]:
+    """The six-bar's cached step against rk4 on the Exudyn truths (:func:`hold` per log)."""
+    hs = [json.loads(Path(p).read_text()) for p in paths]
+    steps = list(hs[0]["steps"])
+    qs = list(hs[0]["steps"][steps[0]]["ratio_to_bound"])
+    lines = ["## The six-bar's cached step against rk4 on the Exudyn truths", "",
+             "`python benchmarks/step_jacobian.py hold --model models/sixbar.toml --run DIR/exudyn/sixbar/sS` for "
+             f"the seeds {', '.join(Path(h['run']).name[1:] for h in hs)} (the acceptance's Exudyn truths): RMS "
+             "error / bound per quantity, the mean over the seeds, for each step of the `hold` section (the held "
+             "variants use the exact reduced model's matrices held over the interval, with rk4's Jacobian, process "
+             "noise and measurement rows: they differ from `rk4` only in the holding, from `cached` in everything "
+             "else: the expansion in q, the elastic coordinates' first order, the step map and the rows).", "",
+             "| step | " + " | ".join(qs) + " | NIS / channels |", "|---|" + "---|" * (len(qs) + 1)]
+    for st in steps:
+        vals = [np.mean([h["steps"][st]["ratio_to_bound"][q] for h in hs]) for q in qs]
+        nis = np.mean([h["steps"][st]["nis_mean"] / h["steps"][st]["nis_expected"] for h in hs])
+        lines.append(f"| {st} | " + " | ".join(_fmt(v) for v in vals) + f" | {nis:.3f} |")
+    lines.append("")
+    return lines
 
 
 def main(argv=None) -> int:
@@ -350,6 +677,16 @@ def main(argv=None) -> int:
     f.add_argument("--json", default="refreshes.json")
     e = sub.add_parser("entries")
     e.add_argument("--json", default="entries.json")
+    o = sub.add_parser("oracle", help="gallery.py with an oracle step Jacobian (the arguments after -- go to it)")
+    o.add_argument("--variant", default="exact", choices=ORACLES)
+    o.add_argument("gallery_args", nargs=argparse.REMAINDER)
+    t = sub.add_parser("terms", help="the left-out terms along a filter run, per model (left_out_terms)")
+    t.add_argument("--models", default=None, help="comma-separated names or files (default: the gallery)")
+    t.add_argument("--truth-dir", default="/tmp/three/final_truth", help="DIR/<engine>/<model>/s<seed>")
+    t.add_argument("--engine", default="erls")
+    t.add_argument("--seed", type=int, default=1)
+    t.add_argument("--every", type=int, default=50)
+    t.add_argument("--json", default="terms.json")
     p = sub.add_parser("page")
     p.add_argument("--hold", default=None)
     p.add_argument("--entries", default=None)
@@ -359,16 +696,32 @@ def main(argv=None) -> int:
     p.add_argument("--speed", default=None, help="observer_speed.py --against ... --json output")
     p.add_argument("--acceptance", default=None, help="gallery.py --acceptance --json of this tree")
     p.add_argument("--acceptance-before", default=None, help="the same of the tree before")
+    p.add_argument("--terms", default=None, help="terms --json output")
+    p.add_argument("--oracle-base", default=None, help="gallery.py --acceptance --json of the default filter")
+    p.add_argument("--oracle", action="append", default=[], help="NAME=FILE: oracle --variant NAME's --json")
+    p.add_argument("--gap", nargs="*", default=[], help="hold --json outputs on the six-bar's Exudyn truths")
     p.add_argument("--md", default=str(ROOT / "docs" / "step_jacobian.md"))
     a = ap.parse_args(argv)
     if a.cmd == "hold":
         Path(a.json).write_text(json.dumps(hold(a.model, a.run), indent=1))
     elif a.cmd == "refreshes":
         Path(a.json).write_text(json.dumps(refreshes(a.model, a.run), indent=1))
+    elif a.cmd == "terms":
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        import gallery
+
+        res = []
+        for m in (a.models.split(",") if a.models else gallery.gallery()):
+            run = Path(a.truth_dir) / a.engine / Path(m).stem / f"s{a.seed}"
+            res.append(left_out_terms(str(gallery.model_path(m)), str(run), a.every))
+            Path(a.json).write_text(json.dumps(res, indent=1))
+    elif a.cmd == "oracle":
+        return oracle(a.variant, [x for x in a.gallery_args if x != "--"])
     elif a.cmd == "entries":
         Path(a.json).write_text(json.dumps(entries(), indent=1))
     else:
-        page(a.hold, a.entries, a.gallery, a.before, a.md, a.acceptance, a.acceptance_before, a.refreshes, a.speed)
+        page(a.hold, a.entries, a.gallery, a.before, a.md, a.acceptance, a.acceptance_before, a.refreshes, a.speed,
+             a.terms, a.oracle_base, dict(o.split("=", 1) for o in a.oracle), a.gap)
     return 0
 
 
