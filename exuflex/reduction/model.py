@@ -372,7 +372,7 @@ class ReducedModel:
         six-bar at elastic coordinates 1e-4 (``tests/test_reduced_derivatives.py``, central differences). ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
         ``SE`` (:meth:`~exuflex.erls.model.ErlsModel.element_rotation_term`) if already computed.
         """
-        model, nq = self.model, self.nq
+        model = self.model
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
         if Sd is None:
