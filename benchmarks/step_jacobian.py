@@ -178,6 +178,16 @@ def entries() -> dict:
 ORACLES = ("exact", "map", "q_columns", "elastic_columns", "python", "q_midpoint", "q_midpoint_exact")
 
 
+def _position_forces(hs, z, z_next, dt):
+    """The step Jacobian's position forces as the cached step takes them (:func:`exuflex.observer.expansion.
+    position_forces` under gravity; empty without)."""
+    from exuflex.observer import expansion as ex
+
+    if not hs.Wg.shape[0]:
+        return hs.Wg
+    return ex.position_forces(z, z_next, dt, hs.Wg, hs.dM, hs.dK, hs.beta)
+
+
 def _central_step(step, z, nq, r, dq=1e-6, de=1e-7, dv=1e-5):
     """Central differences of ``step`` (the next state) in every component of ``z``: steps ``dq`` in q, ``de`` in
     the elastic coordinates, ``dv`` in the rates."""
@@ -239,7 +249,8 @@ def oracle_jacobian(variant: str):
         nq, r = self.nq, self.r
         Mr, Kr, Cr, Gr, h, n = self._interval_matrices
         Pn, S = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, self.torque_var)[:2]
-        F_map = ex.step_jacobian(np.asarray(z, float), *iv.forces.jacobian_tensors(), Pn, S)
+        F_map = ex.step_jacobian(np.asarray(z, float), *iv.forces.jacobian_tensors(), Pn, S,
+                                 _position_forces(iv.system, np.asarray(z, float), pred.x, h * n))
         if variant == "map":
             return R.Prediction(pred.x, F_map, pred.Q)
 
@@ -265,7 +276,8 @@ def oracle_jacobian(variant: str):
 
 #: the left-out terms of the step Jacobian (:func:`left_out_terms`): the held system's arrays each one zeroes
 TERMS = {"dM/dq": ("dM", "old_dM"), "dK/dq": ("dK", "old_dK"), "C_a, G_r along the secant": ("old_Ca", "old_Gr"),
-         "elastic: M": ("pM",), "elastic: K": ("pK",), "elastic: C": ("pC",), "elastic: G and weight": ("pG",)}
+         "elastic: M": ("pM",), "elastic: K": ("pK",), "elastic: C": ("pC",), "elastic: G and weight": ("pG",),
+         "weight's gradient": ("Wg",)}
 
 
 def _without(hs, fields):
@@ -346,7 +358,8 @@ def left_out_terms(model: str, run: str, every: int = 50) -> dict:
         nat = tsj.natural_scale(F_ex)
         P = self.state_cov()[: self.nx, : self.nx]
         Pn, S = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, self.torque_var)[:2]
-        F_map = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S)
+        F_map = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S,
+                                 _position_forces(iv.system, z, pred.x, h * n))
         pe, Pe = z[nq:r], P[nq:r, nq:r]
         if r > nq:  # the elastic coordinates' estimate against its uncertainty: the left-out terms' coefficients
             snr.append(float(np.sqrt(pe @ np.linalg.solve(Pe, pe) / (r - nq))))
@@ -356,6 +369,8 @@ def left_out_terms(model: str, run: str, every: int = 50) -> dict:
             if fields[0].startswith("p") and not iv.system.pM.shape[0]:
                 continue
             if fields[0].startswith("old") and not iv.system.has_old:
+                continue
+            if not all(hasattr(iv.system, f) and getattr(iv.system, f).size for f in fields):
                 continue
             record(F_ex, fd(_without(iv.system, fields)), F_ex, nat, P, pred.Q, dt, nq, r, name)
         return pred
