@@ -14,6 +14,11 @@ observer's default settings, and scored over the samples after ``--start-up`` s,
 
     python benchmarks/imm.py ROOT --models sixbar:20,fourbar:10 --md docs/imm.md --json docs/imm.json
 
+``--speed LOG`` (no study needed) times instead the plain EKF and the IMM, each filtering and smoothing the
+log ``LOG`` of ``--models``' first model, paired (the four one after the other, repeated), medians of
+``--repeats``; ``--smoother`` holds the IMM smoother against the exact posterior over every mode sequence
+(``tests/test_imm.py``'s linear two-mode system) at several dwell times.
+
 The page's measured block (between its markers) is rewritten; the prose around it is the page's own.
 """
 
@@ -107,6 +112,34 @@ def traces_figure(model: Path, study_dir: Path, seeds: int, path: str) -> None:
     fig.savefig(path, dpi=110)
 
 
+def speed(model: Path, log_dir: Path, repeats: int) -> dict:
+    """Wall times (s) of the EKF and the IMM filtering and smoothing the log, paired, medians of ``repeats``."""
+    from exuflex.runs import read_run
+
+    mech, S = load_mechanism(model), read_run(log_dir).sensors
+    obs = {e: make_observer(mech, _config(mech, e)) for e in ("ekf", "imm")}
+    U = S.select(mech.motor_names).data
+    times: dict = {f"{e} {w}": [] for e in obs for w in ("filter", "smoother")}
+    for _ in range(repeats + 1):  # the first round compiles and loads: not counted
+        for e, o in obs.items():
+            Y = S.select(o.channels).data
+            for what in ("filter", "smoother"):
+                w0 = time.perf_counter()
+                estimate(o, S.t, U, Y, smooth=what == "smoother")
+                times[f"{e} {what}"].append(time.perf_counter() - w0)
+    return {k: float(np.median(v[1:])) for k, v in times.items()}
+
+
+def smoother_accuracy(dwells: list[float], seeds: int) -> dict:
+    """The IMM smoother against the exact posterior (``tests/test_imm.py``): per dwell time the largest error of the
+    smoothed means in the exact posterior's standard deviations, of its standard deviations relative, of the mode
+    probabilities, and the filter's mean error, over ``seeds`` records of 12 samples."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_imm import smoother_case
+
+    return {str(d): np.max([smoother_case(d, s) for s in range(seeds)], axis=0).tolist() for d in dwells}
+
+
 def _config(mech, spec: str) -> ObserverConfig:
     """``NAME`` or ``NAME@FIELD=VALUE;...``: the estimator with the model's settings and those fields changed."""
     name, _, rest = spec.partition("@")
@@ -170,9 +203,30 @@ def page(results: dict, command: str, start_up: float, block: str = "") -> str:
     return "\n".join(lines + ["", f"Versions: {versions_text()}.", "", end])
 
 
+def speed_page(res: dict, command: str, repeats: int) -> str:
+    begin, end = markers("speed")
+    head = (f"Written by `{command}`: wall time (s) of `estimate` on the log, the four runs paired (one after the "
+            f"other, {repeats} rounds after one not counted), medians.")
+    rows = [f"| {w} | {res['ekf ' + w]:.3f} | {res['imm ' + w]:.3f} | {res['imm ' + w] / res['ekf ' + w]:.2f} |"
+            for w in ("filter", "smoother")]
+    return "\n".join([begin, "", head, "", "| | EKF | IMM | IMM / EKF |", "|---|---|---|---|", *rows, "", end])
+
+
+def smoother_page(res: dict, command: str, seeds: int) -> str:
+    begin, end = markers("smoother")
+    head = (f"Written by `{command}`: {seeds} records of 12 samples each per dwell time (the sample interval "
+            "0.01 s); the largest error over all samples and records.")
+    cols = ("| dwell (s) | smoothed mean (exact sd) | smoothed sd (relative) | mode probability | filtered mean "
+            "(exact smoothed sd) |")
+    lines = [begin, "", head, "", cols, "|---|---|---|---|---|"]
+    lines += [f"| {d} | {v[0]:.3g} | {v[1]:.3g} | {v[2]:.3g} | {v[3]:.3g} |" for d, v in res.items()]
+    return "\n".join([*lines, "", end])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("root", help="folder of payload studies, one per model stem")
+    ap.add_argument("root", nargs="?", default=".", help="folder of payload studies, one per model stem (not for "
+                    "--speed, --smoother)")
     ap.add_argument("--models", default="sixbar:20", help="MODEL:SEEDS,... (MODEL: a stem of models/, or a .toml "
                     "file; its study in ROOT/<its stem>)")
     ap.add_argument("--estimators", default="ekf-payload,imm")
@@ -182,6 +236,10 @@ def main(argv=None) -> int:
     ap.add_argument("--figure", default=None, metavar="PNG", help="the IMM's mode probability and payload traces of "
                     "the first model's first 5 seeds, written to PNG (nothing else is run)")
     ap.add_argument("--block", default="", help="the page's block to rewrite (its markers name it)")
+    ap.add_argument("--speed", default=None, metavar="LOG", help="time the EKF and the IMM on LOG (block 'speed')")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--smoother", default=None, metavar="DWELLS", help="the smoother against the exact posterior at "
+                    "these dwell times (s, comma-separated; block 'smoother', --repeats records each)")
     args = ap.parse_args(argv)
     given = argv if argv is not None else sys.argv[1:]
     shown = [a for i, a in enumerate(given) if a != "--json" and (i == 0 or given[i - 1] != "--json")]
@@ -190,6 +248,18 @@ def main(argv=None) -> int:
         name = args.models.split(",")[0].partition(":")[0]
         model = Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml"
         traces_figure(model, Path(args.root) / model.stem, 5, args.figure)
+        return 0
+    if args.speed or args.smoother:
+        if args.speed:
+            name = args.models.split(",")[0].partition(":")[0]
+            model = Path(name) if name.endswith(".toml") else ROOT / "models" / f"{name}.toml"
+            text = speed_page(speed(model, Path(args.speed), args.repeats), command, args.repeats)
+        else:
+            dwells = [float(d) for d in args.smoother.split(",")]
+            text = smoother_page(smoother_accuracy(dwells, args.repeats), command, args.repeats)
+        print(text)
+        if args.md:
+            rewrite_block(args.md, *markers("speed" if args.speed else "smoother"), text)
         return 0
     estimators = ["ekf"] + [e for e in args.estimators.split(",") if e != "ekf"]
     results = {}

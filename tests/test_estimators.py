@@ -561,9 +561,12 @@ def test_ukf_breakdown_of_a_sigma_point_step(persistent):
 @pytest.fixture(scope="module")
 def serial_arm_payload():
     """The serial arm's cached observer model and its payload-augmented model, and a state with both joints
-    turning (the bias force ``J^T M a_b`` is bilinear in the joint rates and the elastic rates) and the torques."""
+    turning (the bias force ``J^T M a_b`` is bilinear in the joint rates and the elastic rates) and the torques.
+    One interior mode (the band's count): the order fit over dt below assumes the steps' difference smooth in dt,
+    which an interior mode at 372 Hz (``omega dt`` 1.9 at the largest dt, kept by the automatic count's filter
+    requirement) breaks."""
     mech = load_mechanism(MODELS / "serial_arm.toml")
-    obs = make_observer(mech)
+    obs = make_observer(mech, ObserverConfig(n_interior=1))
     m = obs.model
     r, nq = m.r, m.nq
     rng = np.random.default_rng(1)

@@ -132,7 +132,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--imm-dwell", type=positive_float, metavar="S",
                    help="imm: expected dwell time in each mode (s), its transition matrix (default: 100 "
                         "manoeuvre durations)")
-    p.add_argument("--smooth", action="store_true", help="RTS-smoothed estimates of the whole log (EKF variants)")
+    p.add_argument("--smooth", action="store_true", help="smoothed estimates of the whole log (EKF variants and the IMM)")
     p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
                         "(off by default: a model error looks like a sensor offset; faults are always reported)")
@@ -302,10 +302,8 @@ def _run(args) -> int:
     if args.noise:
         mech = with_noise(mech, args.noise)
     config = _config(args, mech)
-    if args.smooth and config.estimator in ("ukf", "imm"):
-        raise UsageError(f"--smooth: the RTS smoother needs an EKF estimator (ekf, ekf-payload, ekf-input), not "
-                         f"{config.estimator}" + (" (a mixture of two filters: docs/imm.md)" if config.estimator == "imm"
-                                                  else ""))
+    if args.smooth and config.estimator == "ukf":
+        raise UsageError("--smooth: the smoother needs an EKF estimator (ekf, ekf-payload, ekf-input or imm), not ukf")
     check_observer_settings(mech, config)  # before anything is built or read
     if Path(args.run_dir).is_dir():
         _csv_options_unused(args)

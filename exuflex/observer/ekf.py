@@ -937,8 +937,8 @@ class MultirateEKF(BeliefFilter):
             nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
         else:
             P = self._Ppred
-            nis, ok, finite = kalman.predict_update(FQ[0], self._P, FQ[1], P, self._work, x, y, y_pred, H, Rd,
-                                                    self._HP, r, S, x_new, P_new, self._floor)
+            nis, ok, finite = kalman.predict_update(FQ[0], self._P, FQ[1], x, y, y_pred, H, Rd, self._floor,
+                                                    (P, self._work, self._HP), (r, S, x_new, P_new))
         if not ok:
             nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
         keep = self._screen(idx, r, S)

@@ -44,6 +44,7 @@ __all__ = [
     "held_system",
     "map_error",
     "map_lookahead",
+    "measurement_rows",
     "next_map_radius",
     "payload_interval",
     "power_sum",
@@ -51,7 +52,6 @@ __all__ = [
     "rebuild_map",
     "scaled_steps",
     "secant_factor",
-    "secant_rows",
     "step_jacobian",
     "step_maps",
     "step_maps_noise",
@@ -536,30 +536,33 @@ def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
     return a / dd
 
 
-def _secant_rows(c0, Hm, dH, G, d, s, x, dl, y, H):  # pragma: no cover - compiled
-    """The measurement along the secant into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.measure`):
-    ``H = Hm + s dH`` (``Hm`` where ``s`` is zero or ``dH`` empty) and ``y = c0 + H x``; with ``G`` (not empty)
-    and ``s`` nonzero the second-order q term, ``g = G dl``: ``y += s g / 2`` and the q-columns of ``H``
-    ``+= (g d' + s G) / 2`` (its exact derivative)."""
+def _measurement_rows(c0, Hm, D, G, x, dl, y, H):  # pragma: no cover - compiled
+    """The measurement at ``x``, ``dl = q - q0`` from the held configuration, into ``y``, ``H``
+    (:meth:`.reduced.ReducedObserverModel.measure`): ``y_i = c0_i + (Hm + sum_k dl_k D_k)_i x + 1/2 dl^T G_i dl``
+    and its exact derivative, ``H = Hm + sum_k dl_k D_k`` with ``D_j x + G_i dl`` added to q-column ``j``."""
     m, n = Hm.shape
-    along = s != 0.0 and dH.shape[0] > 0
+    nq = dl.shape[0]
+    r = D.shape[2]
     for i in range(m):
+        for j in range(n):
+            H[i, j] = Hm[i, j]
+        for k in range(nq):
+            a = dl[k]
+            for j in range(r):
+                H[i, j] += a * D[k, i, j]
         acc = c0[i]
         for j in range(n):
-            h = Hm[i, j] + s * dH[i, j] if along else Hm[i, j]
-            H[i, j] = h
-            acc += h * x[j]
+            acc += H[i, j] * x[j]
+        for j in range(nq):
+            g = 0.0
+            for k in range(nq):
+                g += G[i, j, k] * dl[k]
+            acc += 0.5 * g * dl[j]
+            dx = 0.0
+            for c in range(r):
+                dx += D[j, i, c] * x[c]
+            H[i, j] += dx + g
         y[i] = acc
-    if s == 0.0 or G.shape[0] == 0:
-        return
-    nq = dl.shape[0]
-    for i in range(m):
-        g = 0.0
-        for j in range(nq):
-            g += G[i, j] * dl[j]
-        y[i] += (0.5 * s) * g
-        for j in range(nq):
-            H[i, j] += 0.5 * (g * d[j] + s * G[i, j])
 
 
 def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
@@ -817,7 +820,7 @@ class CachedStep(NamedTuple):
     sub-step; the step map's rebuild rule: the interval-length tolerance ``dt_tol``, the look-ahead ``ahead``,
     ``horizon`` (:func:`map_lookahead`), the process noise's ``torque_var`` and ``q_extra`` (may be empty), the
     radius rule ``rad_tol``, ``rad_min``, ``rad_max`` (:func:`next_map_radius`); the measurement rows ``c0, Hm,
-    dH, G`` with the secant ``d``, ``dd`` (:func:`secant_rows`); the step Jacobian's velocity forms ``Ts, Vs,
+    D, G`` (:func:`measurement_rows`); the secant ``d``, ``dd``; the step Jacobian's velocity forms ``Ts, Vs,
     C3``; ``errs``, where the replaced maps' errors go (its length bounds the rebuilds of one call); the held
     system (:class:`HeldSystem`)."""
 
@@ -837,7 +840,7 @@ class CachedStep(NamedTuple):
     rad_max: float
     c0: np.ndarray
     Hm: np.ndarray
-    dH: np.ndarray
+    D: np.ndarray
     G: np.ndarray
     d: np.ndarray
     dd: float
@@ -971,10 +974,7 @@ def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
     configuration's measurement radius (the model's own rows then)."""
     if not math.isfinite(z[0]) or not _within(z, cs.q0, cs.meas_rad):
         return False
-    nq = cs.q0.shape[0]
-    dlp = z[:nq] - cs.q0
-    sm = secant_factor(dlp, cs.d, cs.dd) * cs.dd if cs.dH.shape[0] else 0.0
-    secant_rows(cs.c0, cs.Hm, cs.dH, cs.G, cs.d, sm, z, dlp, y, H)
+    measurement_rows(cs.c0, cs.Hm, cs.D, cs.G, z, z[: cs.q0.shape[0]] - cs.q0, y, H)
     return True
 
 
@@ -1234,7 +1234,7 @@ _held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
-secant_rows = _jit(_secant_rows)
+measurement_rows = _jit(_measurement_rows)
 secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
@@ -1288,7 +1288,7 @@ def warm_up_interval() -> None:
 def warm_up_maps() -> None:
     """Compile (or load) the step map's kernels and the measurement rows': :func:`rebuild_map` (with
     :func:`step_maps_noise` and :func:`secant_factor`, each also as Python calls it), :func:`map_error`,
-    :func:`next_map_radius`, :func:`secant_rows`."""
+    :func:`next_map_radius`, :func:`measurement_rows`."""
     r, nq = 2, 1
     z, dl = np.zeros(2 * r), np.zeros(nq)
     M, G = np.eye(r), np.zeros((r, nq))
@@ -1297,8 +1297,8 @@ def warm_up_maps() -> None:
     rebuild_map(z, dl, 1.0, 0.1, 0.0, 0.0, dl, 0.0, 1e-4, 1, np.ones(nq), np.zeros(2 * r), *_example_system(r, nq))
     map_error(np.eye(2 * r), np.eye(2 * r), M, M, np.eye(2 * r))
     next_map_radius(dl, dl, 0.0, 0.1, 0.5, 0.01, 1.0)
-    secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), np.zeros((1, nq)), dl, 0.0, z, dl, np.empty(1),
-                np.empty((1, 2 * r)))
+    measurement_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((nq, 1, r)), np.zeros((1, nq, nq)), z, dl,
+                     np.empty(1), np.empty((1, 2 * r)))
 
 
 def warm_up() -> None:

@@ -339,12 +339,15 @@ def normalise(r, S, gate, z):
 
 
 @_jit
-def predict_update(F, P, Q, P_pred, work, x, y, y_pred, H, Rd, HP, r, S, x_out, P_out, floor):
+def predict_update(F, P, Q, x, y, y_pred, H, Rd, floor, scratch, out):
     """One whole sample: :func:`predict_cov` into ``P_pred``, :func:`update` from it, :func:`settle`.
 
-    ``x`` is the predicted mean (the model's step). Returns ``(nis, ok, finite)``; with ``ok`` False (``S`` not
-    positive definite) nothing after the prediction is written and the caller finishes the update from
-    ``P_pred``."""
+    ``x`` is the predicted mean (the model's step); ``scratch`` is ``(P_pred, work, HP)`` (the predicted covariance
+    and :func:`predict_cov`'s and :func:`update`'s scratch), ``out`` is ``(r, S, x_out, P_out)`` (:func:`update`'s
+    outputs). Returns ``(nis, ok, finite)``; with ``ok`` False (``S`` not positive definite) nothing after the
+    prediction is written and the caller finishes the update from ``P_pred``."""
+    P_pred, work, HP = scratch
+    r, S, x_out, P_out = out
     predict_cov(F, P, Q, P_pred, work)
     nis, ok = update(x, P_pred, y, y_pred, H, Rd, HP, r, S, x_out, P_out)
     if not ok:
@@ -485,8 +488,8 @@ def warm_up() -> None:
     r = np.empty(m)
     x = np.zeros(n)
     update(x, P, np.ones(m), np.zeros(m), H, np.ones(m), HP, r, np.empty((m, m)), x, out)
-    predict_update(np.eye(n), P, np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), x, np.ones(m), np.zeros(m), H,
-                   np.ones(m), HP, r, np.empty((m, m)), np.empty(n), out, np.zeros(n))
+    predict_update(np.eye(n), P, np.zeros((n, n)), x, np.ones(m), np.zeros(m), H, np.ones(m), np.zeros(n),
+                   (np.empty((n, n)), np.empty((n, n)), HP), (r, np.empty((m, m)), np.empty(n), out))
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))
     normalise(r, np.eye(m), 1.0, np.empty(m))

@@ -140,8 +140,8 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
         if not cached_rows(step, z, y_pred, H):
             status = GENERAL
             break
-        nis, ok, finite = predict_update(F, P, Qk, buf.P_pred, buf.work, z, Y[k], y_pred, H, mon.Rd, buf.HP, r, S,
-                                         x_alt, P_alt, mon.floor)
+        nis, ok, finite = predict_update(F, P, Qk, z, Y[k], y_pred, H, mon.Rd, mon.floor,
+                                         (buf.P_pred, buf.work, buf.HP), (r, S, x_alt, P_alt))
         if not (ok and finite):
             status = GENERAL
             break
@@ -217,7 +217,7 @@ def warm_up(augmented: bool | None = None) -> None:
     buf = Buffers(v, v, m, m, m, m, m, v, m, v)
     mon = Monitors(v, v, 0.0, m, n, v, v, v, v, v, n, v, 0.0)
     rec = Record(m, m, 0, m, m, m, v, m, m, m)
-    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, m, m, v, 0.0, c, c, c, v,
+    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, c, c, c, v,
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
     extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None

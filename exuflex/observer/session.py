@@ -25,7 +25,7 @@ from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
 from .ekf import EstimationResult, Monitoring, MultirateEKF
-from .imm import NO_SMOOTHER, IMMFilter
+from .imm import IMMFilter
 from .kalman import InputStepTest
 from .reduced import ReducedObserverModel
 from .smoother import SmoothedResult, rts_smooth
@@ -641,20 +641,17 @@ def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | Non
 def estimate(obs: Observer, t, U, Y, x0=None, P0=None, smooth: bool = False) -> Estimate:
     """Filter a record: times (n,), measured torques (n, n_motors), channels (n, m) in ``obs.channels`` order.
     ``x0``, ``P0``: a prior for this record (reduced state and its covariance or variances; default the
-    observer's). ``smooth``: also the RTS smoother (:func:`.smoother.rts_smooth`, which runs the filter's forward
-    pass again, recording its predictions)."""
+    observer's). ``smooth``: also the smoother (:func:`.smoother.rts_smooth`; the IMM's :meth:`.imm.IMMFilter.smooth`),
+    which runs the filter's forward pass again, recording its predictions."""
     t = np.asarray(t, float)
     (chunk,) = estimate_chunks(obs, t, U, Y, x0, P0, rows=max(len(t), 1))
     res, phys, wall = chunk.result, chunk.physical, chunk.wall_s
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     if not smooth:
         return Estimate(res, phys, wall, span / wall if wall > 0 else float("inf"))
-    if isinstance(obs.ekf, IMMFilter):
-        from ..errors import UsageError
-
-        raise UsageError(NO_SMOOTHER)
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
-    sm = reported(obs, rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0), float(t[0]))
+    sm = (obs.ekf.smooth(t, U, Y, x0=x0, P0=P0) if isinstance(obs.ekf, IMMFilter)
+          else reported(obs, rts_smooth(obs.ekf, t, U, Y, x0=x0, P0=P0), float(t[0])))
     return Estimate(res, obs.physical(sm.t, sm.x_hat), wall, span / wall if wall > 0 else float("inf"), sm, phys)
 
 

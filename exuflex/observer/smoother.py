@@ -49,6 +49,8 @@ class SmoothedResult:
     nominal_p : ndarray, shape (n,), or None
         Set where ``x_hat`` and ``P`` are the payload estimator's report (:func:`.session.reported`): the nominal
         payload's posterior probability at each sample.
+    mode_p : ndarray, shape (n, modes), or None
+        The IMM's smoothed mode probabilities (:meth:`.imm.IMMFilter.smooth`).
     """
 
     t: np.ndarray
@@ -60,6 +62,7 @@ class SmoothedResult:
     wall_s: float
     backward_s: float
     nominal_p: np.ndarray | None = None
+    mode_p: np.ndarray | None = None
 
     @property
     def P_diag(self) -> np.ndarray:

@@ -75,6 +75,7 @@ class QuadraticForces:
         self.V2 = V.reshape(nq * r, r)
         self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
         self.elastic = None  # (pM, pK, pC, pG) of :meth:`ReducedModel.elastic_forms`, with the gradients
+        self.dHdq = None  # d(H e_k)/dq (r, n, nq) of :meth:`ReducedModel.held` (the measurement rows' change)
         if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
@@ -216,6 +217,7 @@ class ReducedModel:
         dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
         mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
         fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+        fm.dHdq = dHdq
         if gradients:
             fm.elastic = self.elastic_forms(rc, dHdq)
         return mats, fm
@@ -268,6 +270,7 @@ class ReducedModel:
             self.consistent, gradients)
         mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
         fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
+        fm.dHdq = dHdq
         if gradients:
             fm.elastic = self.elastic_forms(mats.rc, dHdq)
         return mats, fm

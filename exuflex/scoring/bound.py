@@ -487,8 +487,8 @@ def riccati_track(model: DiscreteModel, t, X, U, channels: Sequence[str], R, P0,
                 H = np.asarray(model.measure(Xb[i], channels).H, float)
                 H = np.ascontiguousarray(H if idx is None else H[idx])
                 if k > 0:
-                    _, ok, _ = kalman.predict_update(F, P, Q, P_pred, work, zero, y0, y0, H, Rs, HP, r, S, x_out,
-                                                     P_out, fl)
+                    _, ok, _ = kalman.predict_update(F, P, Q, zero, y0, y0, H, Rs, fl, (P_pred, work, HP),
+                                                     (r, S, x_out, P_out))
                 else:
                     _, ok = kalman.update(zero, P, y0, y0, H, Rs, HP, r, S, x_out, P_out)
                     kalman.fix_cov(P_out, fl)
