@@ -462,10 +462,12 @@ class FilterSample:
         W[1:] += (self.u[:-1] @ B.T) @ (np.eye(2 * r) - K @ C).T
         est = np.empty_like(W)
         x = est[0] = W[0]
-        for j in range(1, len(W)):
-            x = est[j] = F @ x + W[j]
-        err = est @ Zr.T - self.z
+        with np.errstate(over="ignore", invalid="ignore"):  # a degenerate partition: no stable filter, figure inf
+            for j in range(1, len(W)):
+                x = est[j] = F @ x + W[j]
+            err = est @ Zr.T - self.z
+            ms = (err**2).mean(axis=0)
         nq = self.n_q
         order = np.r_[np.arange(nq), k + np.arange(nq), np.arange(nq, k), k + np.arange(nq, k)]
-        return (err**2).mean(axis=0)[order], np.clip(var, 0.0, None)[order]
+        return np.where(np.isfinite(ms), ms, np.inf)[order], np.clip(var, 0.0, None)[order]
 
