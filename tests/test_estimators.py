@@ -178,7 +178,7 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     # the augmented prediction: [z_next; theta; 0], the Jacobian with the scale's column (rows[0] - rows[-1]) / 0.2
     x, F, Qx = out[1:4]
     np.testing.assert_array_equal(x, np.concatenate([rows[-1], [1.6, 0.0]]))
-    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3 + a[-1] * inc.C2.reshape(C3.shape), Pn, S)
+    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3 + a[-1] * inc.C2.reshape(C3.shape), Pn, S, np.zeros((0, 0)))
     np.testing.assert_allclose(F[:n0, :n0], Fz, rtol=0, atol=1e-13 * np.abs(Fz).max())
     np.testing.assert_array_equal(F[:n0, n0], (rows[0] - rows[-1]) / 0.2)
     np.testing.assert_array_equal(Qx[:n0, :n0], Q)

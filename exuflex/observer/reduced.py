@@ -48,7 +48,8 @@ Intervals of different length (a lab clock's jitter) are each integrated over th
 
 Jacobian: ``F = P^n + S dF/dz``: the held linear system's map ``P^n`` plus its response ``S`` to the change of the
 held generalised forces with the start state (the velocity-dependent forces, exactly:
-:func:`.expansion.step_jacobian`).
+:func:`.expansion.step_jacobian`; under gravity the weight's gradient and the held matrices' change with q as the
+forces it causes, :func:`.expansion.position_forces`).
 
 Process noise: the measured torques carry white noise of std ``sigma`` (the motors' ``noise_std``), held over
 the interval, so ``Q = L diag(sigma^2) L^T`` with ``L`` the interval's response to a unit torque held over it,
@@ -90,6 +91,7 @@ from .expansion import (
     map_error,
     measurement_rows,
     next_map_radius,
+    position_forces,
     prediction_error,
     rebuild_map,
     secant_factor,
@@ -301,6 +303,7 @@ class ReducedObserverModel:
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._noC2 = np.zeros((0, self.r))
+        self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = 0
         self.state_cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._serial = 0
@@ -340,8 +343,8 @@ class ReducedObserverModel:
             p = z[: self.r].copy()
             p[self.nq :] = 0.0
             mats, forces = self.rm.held(p, z[self.r :])
-        elif frozen_forces:
-            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=False)
+        elif frozen_forces:  # with gravity the gradients too (the step Jacobian's position_forces)
+            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=self._weight)
         else:
             mats = self.rm.matrices(z[: self.r], z[self.r :])
         self.n_evaluations += 1
@@ -392,7 +395,10 @@ class ReducedObserverModel:
         n = self.substeps(iv, dt)
         Pn, S, L, Q = self._maps(m.Mr, m.Kr, m.Cr, m.Gr, dt, n)
         x = Pn @ z + L @ u + S @ m.fr
-        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S)
+        Fp = iv.forces.Wg
+        if Fp.shape[0]:
+            Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
+        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
 
@@ -518,7 +524,7 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm))
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg)
 
     @staticmethod
     def _elastic(fm) -> dict:

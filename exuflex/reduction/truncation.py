@@ -458,16 +458,16 @@ class FilterSample:
         var = np.einsum("ij,jk,ik->i", Zr, P - K @ C @ P, Zr)
         # the filter: predict with the held torque, update with the full model's channels
         F = (np.eye(2 * r) - K @ C) @ A
-        drive = (self.u @ B.T) @ (np.eye(2 * r) - K @ C).T
-        Ky = self.y @ K.T
-        x = Ky[0].copy()  # the first sample's update from the rest state
-        est = np.empty((len(Ky), 2 * r))
-        est[0] = x
-        for j in range(1, len(Ky)):
-            x = F @ x + drive[j - 1] + Ky[j]
-            est[j] = x
-        err = est @ Zr.T - self.z
+        W = self.y @ K.T  # x_j = F x_j-1 + (I - K C) B u_j-1 + K y_j, x_0 = K y_0 (the rest state updated)
+        W[1:] += (self.u[:-1] @ B.T) @ (np.eye(2 * r) - K @ C).T
+        est = np.empty_like(W)
+        x = est[0] = W[0]
+        with np.errstate(over="ignore", invalid="ignore"):  # a degenerate partition: no stable filter, figure inf
+            for j in range(1, len(W)):
+                x = est[j] = F @ x + W[j]
+            err = est @ Zr.T - self.z
+            ms = (err**2).mean(axis=0)
         nq = self.n_q
         order = np.r_[np.arange(nq), k + np.arange(nq), np.arange(nq, k), k + np.arange(nq, k)]
-        return (err**2).mean(axis=0)[order], np.clip(var, 0.0, None)[order]
+        return np.where(np.isfinite(ms), ms, np.inf)[order], np.clip(var, 0.0, None)[order]
 
