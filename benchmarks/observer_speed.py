@@ -386,7 +386,7 @@ def _breakdown_section(b: dict, repeats: int) -> str:
             ("importing NumPy, SciPy (linalg, special) and numba", b["libraries_s"]),
             ("importing the package's modules (command line, observer, scoring)", b["package_imports_s"])]
     rows += [(label, v) for label, v in st.items() if label != filt_label]
-    rows += [("the physical estimates of the filtered chunks", b["physical_s"]),
+    rows += [("the physical estimates of the filtered chunks (and the chunks' bookkeeping)", b["physical_s"]),
              ("the filter itself (its printed wall)", b["filter_s"]),
              ("the rest (argument parsing, the summary, the report)", b["rest_s"])]
     table = "\n".join(f"| {k} | {v:.3f} | {100 * v / b['wall_s']:.0f} % |" for k, v in rows)
@@ -402,7 +402,15 @@ def _breakdown_section(b: dict, repeats: int) -> str:
             f"set-up), {repeats} runs alternating with the above: median {b['floor_s']:.2f} s "
             f"({', '.join(f'{w:.2f}' for w in b['floor_runs_s'])}), {100 * b['floor_s'] / outside:.0f} % of the "
             f"wall less the filter ({outside:.2f} s in these runs). The package's own share of the wait is the "
-            f"difference, {outside - b['floor_s']:.2f} s.\n\n")
+            f"difference, {outside - b['floor_s']:.2f} s.\n\n"
+            + ("Against issue 29's aim (the wall less the filter at most 1.0 s): met in these runs.\n\n"
+               if outside <= 1.0 else
+               f"Against issue 29's aim (the wall less the filter at most 1.0 s): not met in these runs "
+               f"({outside:.2f} s); " + (f"the floor alone takes {b['floor_s']:.2f} s here, so no change in the "
+                                         "package meets it on this machine at this load"
+                                         if b["floor_s"] >= 1.0 else
+                                         f"the package would have to give up {outside - 1.0:.2f} s of its "
+                                         f"{outside - b['floor_s']:.2f} s") + ".\n\n"))
 
 
 def _observe_section(out: dict, repeats: int) -> str:

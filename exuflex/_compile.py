@@ -87,7 +87,7 @@ def groups() -> tuple[KernelGroup, ...]:
         KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
                     cost=5.8),
         KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,
-                    expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.secant_rows),
+                    expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.measurement_rows),
                     cost=6.5),
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic, kalman.window_seen,

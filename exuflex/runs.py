@@ -67,6 +67,8 @@ log = logging.getLogger(__name__)
 
 FORMAT = "exuflex-run/1"
 SENSORS_FILE, TRUTH_FILE, META_FILE = "sensors.csv", "truth.csv", "meta.json"
+MANOEUVRE_FILE = "manoeuvre.toml"
+"""The copy of the manoeuvre file a simulated run was made with (``exuflex simulate --manoeuvre``)."""
 TIME = "time"
 
 

@@ -119,6 +119,8 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
     if hs.has_old:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))
+    if hs.Wg.shape[0]:  # the weight by its gradient in q instead of along the secant
+        f = f + hs.Wg[:, :nq] @ dl - (s * (hs.fg - hs.old_fg) if hs.has_old else 0.0)
     if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
         f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
     return rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr

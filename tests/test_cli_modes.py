@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from exuflex.cli import main
@@ -116,3 +117,28 @@ def test_subprocess():
     out = subprocess.run([sys.executable, "-m", "exuflex", "modes", str(MODELS / "fourbar.toml"), "--json"],
                          capture_output=True, text=True, check=True).stdout
     assert json.loads(out)["full"]["ndof"] == 31
+
+
+def test_reduced_reports_the_filter_requirement(capsys):
+    """``--reduced`` reports the filter requirement's figure per estimated quantity (``truncation.bias``, the same
+    numbers as :meth:`PathSamples.bias` with the kept modes), its limit and whether the count meets it; the text
+    names it. The fresh steel-forearm arm: the automatic count meets it."""
+    from exuflex.erls.model import ErlsModel
+    from exuflex.mechanism import load_mechanism
+    from exuflex.reduction import CraigBampton, PathSamples
+    from exuflex.reduction.truncation import BIAS_MAX, PlannedInput
+
+    steel = str(MODELS.parent / "benchmarks" / "models" / "steel_arm.toml")
+    tr = _json(capsys, steel, "--reduced", "--along", "0")["reduced"]["truncation"]
+    mech = load_mechanism(steel)
+    model = ErlsModel(mech)
+    cb = CraigBampton(model)
+    every = CraigBampton(model, n_interior=0, truncation_max=0)
+    every.set_interior(len(every.order))
+    planned = PlannedInput.of(mech)
+    b = PathSamples(every, cb.path_q, planned).bias(cb.kept)
+    assert list(tr["bias"]) == list(planned.quantities)
+    assert np.allclose(list(tr["bias"].values()), b, rtol=1e-9, atol=0)
+    assert tr["bias_max"] == BIAS_MAX and tr["bias_met"] and max(b) <= BIAS_MAX < tr["bias_without_interior"]
+    assert main(["modes", steel, "--reduced", "--along", "0"]) == 0
+    assert "filter (docs/reduction.md): the steady filter's mean-square error" in capsys.readouterr().out

@@ -178,7 +178,7 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     # the augmented prediction: [z_next; theta; 0], the Jacobian with the scale's column (rows[0] - rows[-1]) / 0.2
     x, F, Qx = out[1:4]
     np.testing.assert_array_equal(x, np.concatenate([rows[-1], [1.6, 0.0]]))
-    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3 + a[-1] * inc.C2.reshape(C3.shape), Pn, S)
+    Fz = step_jacobian(z, Ts + a[-1] * dTs, Vs, C3 + a[-1] * inc.C2.reshape(C3.shape), Pn, S, np.zeros((0, 0)))
     np.testing.assert_allclose(F[:n0, :n0], Fz, rtol=0, atol=1e-13 * np.abs(Fz).max())
     np.testing.assert_array_equal(F[:n0, n0], (rows[0] - rows[-1]) / 0.2)
     np.testing.assert_array_equal(Qx[:n0, :n0], Q)
@@ -561,9 +561,12 @@ def test_ukf_breakdown_of_a_sigma_point_step(persistent):
 @pytest.fixture(scope="module")
 def serial_arm_payload():
     """The serial arm's cached observer model and its payload-augmented model, and a state with both joints
-    turning (the bias force ``J^T M a_b`` is bilinear in the joint rates and the elastic rates) and the torques."""
+    turning (the bias force ``J^T M a_b`` is bilinear in the joint rates and the elastic rates) and the torques.
+    One interior mode (the band's count): the order fit over dt below assumes the steps' difference smooth in dt,
+    which an interior mode at 372 Hz (``omega dt`` 1.9 at the largest dt, kept by the automatic count's filter
+    requirement) breaks."""
     mech = load_mechanism(MODELS / "serial_arm.toml")
-    obs = make_observer(mech)
+    obs = make_observer(mech, ObserverConfig(n_interior=1))
     m = obs.model
     r, nq = m.r, m.nq
     rng = np.random.default_rng(1)

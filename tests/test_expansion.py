@@ -36,8 +36,9 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
     oC2 = np.zeros((0, r)) if noC else old[6]["C2"]
     pf = [1e-1 * rng.normal(size=(r - nq, nq * r)) for _ in range(3)]  # the elastic coordinates' terms
     pG = rng.normal(size=(r - nq, nq * (Gr.shape[1] + 1)))
+    Wg = rng.normal(size=(r, r))  # the weight's gradient (gravity)
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
-                           grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG)
+                           grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG, Wg)
 
 
 def test_kernel_parameters_are_the_held_system_fields():
@@ -150,7 +151,7 @@ def test_step_jacobian_kernel_equals_the_force_model_jacobian(sixbar_observer_st
     sm = iv.map
     Gp, Gpd = iv.forces.jacobian(z[: m.r], z[m.r :])
     ref = sm.Pn + sm.S @ np.hstack([Gp, Gpd])
-    fast = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S)
+    fast = ex.step_jacobian(z, *iv.forces.jacobian_tensors(), sm.Pn, sm.S, iv.forces.Wg)
     assert np.abs(ref - sm.Pn).max() > 1.0  # the correction matters
     np.testing.assert_allclose(fast, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
 
@@ -363,7 +364,7 @@ def test_elastic_forms_are_the_derivatives_of_the_reduced_matrices(name):
     hs = ex.HeldSystem(False, beta, mats.Mr, mats.Kr, mats.Cr - beta * mats.Kr, mats.Gr, fm.dMr2, fm.dKr2, fm.fg,
                        fm.T2, fm.V2, fm.C2 if fm.C2 is not None else np.zeros((0, r)), fm.dMr2, fm.dKr2,
                        mats.Cr - beta * mats.Kr, mats.Gr, fm.fg, fm.T2, fm.V2,
-                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic)
+                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg)
     zq = np.zeros(nq)
 
     def exact(pe):

@@ -348,3 +348,24 @@ def test_plan_errors_name_the_manoeuvre_file(tmp_path, five):
     with pytest.raises(ModelFileError, match=r"corners\.toml: manoeuvre\.ramp_time: expected at most half the "
                        r"shortest segment's time 0\.17\d* s"):
         plan(five, man, dt=0.01)
+
+
+def test_a_run_keeps_its_manoeuvre_file(five, tmp_path):
+    """``simulate --manoeuvre FILE`` copies the file into the run folder (``manoeuvre.toml``, named in meta.json):
+    exuflex observe starts the run where that manoeuvre starts after the original file is gone."""
+    from exuflex.cli.observe import run_manoeuvre
+    from exuflex.runs import MANOEUVRE_FILE, read_run
+    from exuflex.truth import simulate_run
+
+    doc = tmp_path / "joint.toml"
+    doc.write_text('[manoeuvre]\nkind = "joint"\nduration = 0.05\ntime_law = "trapezoid"\nramp_time = 0.01\n'
+                   'rules = [{ coordinate = "q1", start = 2.0, end = 2.01 }, '
+                   '{ coordinate = "q2", start = 0.7, end = 0.71 }]\n')
+    out = simulate_run(FIVEBAR, tmp_path / "run", seed=1, manoeuvre=doc)
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["settings"]["manoeuvre"]["copy"] == MANOEUVRE_FILE
+    assert (out / MANOEUVRE_FILE).read_text() == doc.read_text()
+    doc.unlink()
+    man = run_manoeuvre(five, read_run(out)).manoeuvre
+    assert man.kind == "joint" and man.duration == 0.05
+    assert [r[1] for r in man.rules] == [2.0, 0.7]

@@ -214,6 +214,12 @@ def _table(rep: dict) -> str:
             f"in the worst window, rho = {tr['rho']:.3g} (limit {tr['rho_max']:g}; {ch}; without interior modes "
             f"{tr['rho_without_interior']:.3g}){'' if tr['met'] else ', ABOVE THE LIMIT'}"
             + (f"; estimated quantities' truncated part (q, q', tip), RMS in the worst window: {qu}" if qu else ""))
+        if tr.get("bias"):
+            bi = ", ".join(f"{k} {v:.3g}" for k, v in tr["bias"].items())
+            lines.append(
+                f"filter (docs/reduction.md): the steady filter's mean-square error on the linearised full model under "
+                f"the manoeuvre, over the bound's variance: {bi} (limit {tr['bias_max']:g}; without interior modes "
+                f"{tr['bias_without_interior']:.3g}){'' if tr['bias_met'] else ', ABOVE THE LIMIT'}")
     return "\n".join(lines)
 
 

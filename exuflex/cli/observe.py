@@ -213,9 +213,12 @@ def run_manoeuvre(mech, log):
     model's (recorded in its meta.json): the observer starts where that manoeuvre starts."""
     from ..mechanism import load_manoeuvre
 
-    src = ((log.meta or {}).get("settings") or {}).get("manoeuvre", {}).get("source", "model")
+    man = ((log.meta or {}).get("settings") or {}).get("manoeuvre", {})
+    src = man.get("source", "model")
     if src in (None, "model"):
         return mech
+    if man.get("copy") and getattr(log, "path", None) is not None and (Path(log.path) / man["copy"]).is_file():
+        src = Path(log.path) / man["copy"]
     if not Path(src).is_file():
         print(f"exuflex observe: warning: the run's manoeuvre file {src} is gone; using the model's", file=sys.stderr)
         return mech

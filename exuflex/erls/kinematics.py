@@ -457,12 +457,16 @@ class Kinematics:
         Sd[2::3] = Std
         return Szd, Sd
 
-    def coordinate_rates(self, pose: Pose) -> np.ndarray:
+    def coordinate_rates(self, pose: Pose, links: np.ndarray | None = None,
+                         stations: np.ndarray | None = None) -> np.ndarray:
         """``dS/dq_j`` for every coordinate j at once: array (nq, 3 n_nodes, nq), entry j the nodal ``dS/dt`` of
-        :meth:`rates` along ``q' = e_j`` (the same formulas, batched over j)."""
+        :meth:`rates` along ``q' = e_j`` (the same formulas, batched over j). With ``links`` and ``stations``
+        (int and float arrays of one length) the same of those link points instead of the nodes: entry ``j`` row
+        ``3 k + c`` is ``d^2 x_c / dq_j dq`` of point k's ``(x, y, angle)``, the second derivatives of its pose."""
+        li = self.node_link if links is None else np.asarray(links, dtype=np.int64)
+        s = self.node_station if stations is None else np.asarray(stations, dtype=float)
         if coordinate_rates is not None and self.compiled and pose.Jinv is not None:
-            return coordinate_rates(pose.z, np.ascontiguousarray(pose.Sz), pose.Jinv, self.arrays, self.node_link,
-                                    self.node_station)
+            return coordinate_rates(pose.z, np.ascontiguousarray(pose.Sz), pose.Jinv, self.arrays, li, s)
         Sz = pose.Sz
         th = pose.z[2::3]
         thd = Sz[2::3].T  # (nq, n_links): link angle rates along each e_j
@@ -484,7 +488,6 @@ class Kinematics:
             Szd = -(pose.Jinv @ JdS)
         else:
             Szd = -np.linalg.solve(self.jacobian(pose.z), JdS)
-        li, s = self.node_link, self.node_station
         c, sn = np.cos(th[li]), np.sin(th[li])
         thn = thd[:, li][:, :, None]  # (nq, nn, 1)
         St = Sz[2::3][li][None]  # (1, nn, nq)

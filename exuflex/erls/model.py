@@ -572,8 +572,13 @@ class ErlsModel:
             row[self.el_dofs[e]] += (cl @ cfg.R[e].T) / len(locs)
         return row @ self.T
 
-    def point_displacement_rows(self, cfg: Configuration, link: str, station: float) -> np.ndarray:
-        """(2, ne) map from u to the global elastic displacement of a link point."""
+    def point_displacement_rows(self, cfg: Configuration, link: str, station: float,
+                                rate: bool = False) -> np.ndarray:
+        """(2, ne) map from u to the global elastic displacement of a link point: ``r N R^T`` on the element's
+        dofs, with ``N`` the element-frame shape functions (linear axially, Hermite transversely), ``R`` the
+        element rotation and ``r`` its 2x2 block. With ``rate`` the derivative of that map in the link's angle:
+        ``dR/dtheta = R W`` (``W`` the 90-degree rotation's generator ``[[0, -1], [1, 0]]`` on each node's
+        translations), so ``d(r N R^T)/dtheta = r (w N - N W) R^T`` with ``w = [[0, -1], [1, 0]]``."""
         e, xi = self.locate(link, station)[0]
         L = self.el_len[e]
         N = np.zeros((2, 6))
@@ -582,6 +587,10 @@ class ErlsModel:
         N[1, 2] = L * (xi - 2 * xi**2 + xi**3)
         N[1, 4] = 3 * xi**2 - 2 * xi**3
         N[1, 5] = L * (-(xi**2) + xi**3)
+        if rate:  # w N - N W: rows (-N_y, N_x) minus N's translation columns turned the other way
+            NW = np.zeros((2, 6))
+            NW[:, [0, 3]], NW[:, [1, 4]] = N[:, [1, 4]], -N[:, [0, 3]]
+            N = np.array([-N[1], N[0]]) - NW
         r2 = cfg.R[e][:2, :2]
         rows = np.zeros((2, self.N))
         rows[:, self.el_dofs[e]] = r2 @ N @ cfg.R[e].T

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["channel_matrix", "sensor", "sensor_rows"]
+__all__ = ["channel_matrix", "point_channel", "sensor", "sensor_rows"]
 
 
 def sensor(mech, sensors: dict, channel: str):
@@ -42,19 +42,23 @@ def sensor_rows(model, cfg, s, link_names: list[str]):
         return "angle", a, row
     if s.kind == "curvature":
         return "linear", None, model.curvature_row(cfg, s.link, s.station)
-    if s.kind in ("tip_x", "tip_y"):
-        c = 0 if s.kind == "tip_x" else 1
-        rows = model.point_displacement_rows(cfg, s.link, s.station)
-        p0, Sp = model.kin.point(cfg.pose, s.link, s.station)
-        return "point", (p0[c], Sp[c]), rows[c]
-    if s.kind == "slider":  # axis . (p - ground) of the prismatic joint's node
-        jt = model.mech.joint(s.joint)
-        st = next(p.station for p in jt.points if p.link == s.link)
-        d = np.asarray(jt.axis, float)
-        rows = model.point_displacement_rows(cfg, s.link, st)
-        p0, Sp = model.kin.point(cfg.pose, s.link, st)
-        return "point", (d @ (p0 - np.asarray(jt.ground, float)), d @ Sp), d @ rows
+    if s.kind in ("tip_x", "tip_y", "slider"):
+        station, w, offset = point_channel(model, s)
+        rows = model.point_displacement_rows(cfg, s.link, station)
+        p0, Sp = model.kin.point(cfg.pose, s.link, station)
+        return "point", (w @ p0 - offset, w @ Sp), w @ rows
     raise KeyError(f"unsupported sensor kind {s.kind!r}")  # pragma: no cover - the loader admits only these
+
+
+def point_channel(model, s) -> tuple[float, np.ndarray, float]:
+    """``(station, w, offset)`` of a point sensor (tip_x, tip_y, slider): the channel reads ``w . p - offset``
+    with ``p`` the position of the point at ``station`` on the sensor's link (tip: ``w`` a unit axis, no offset;
+    slider: ``axis . (p - ground)`` of the prismatic joint's node)."""
+    if s.kind == "slider":
+        jt = model.mech.joint(s.joint)
+        d = np.asarray(jt.axis, float)
+        return next(p.station for p in jt.points if p.link == s.link), d, float(d @ np.asarray(jt.ground, float))
+    return s.station, np.array([1.0, 0.0] if s.kind == "tip_x" else [0.0, 1.0]), 0.0
 
 
 def channel_matrix(model, cfg, mech, channels: Sequence[str]) -> np.ndarray:

@@ -44,14 +44,15 @@ __all__ = [
     "held_system",
     "map_error",
     "map_lookahead",
+    "measurement_rows",
     "next_map_radius",
     "payload_interval",
+    "position_forces",
     "power_sum",
     "prediction_error",
     "rebuild_map",
     "scaled_steps",
     "secant_factor",
-    "secant_rows",
     "step_jacobian",
     "step_maps",
     "step_maps_noise",
@@ -74,7 +75,10 @@ class HeldSystem(NamedTuple):
     same of the previous held configuration (the secant partner; the held configuration's own arrays when
     ``has_old`` is False). ``pM``, ``pK``, ``pC`` (r - nq, nq*r) and ``pG`` (r - nq, nq*(n_motors + 1)): the
     matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
-    empty: none).
+    empty: none). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
+    (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
+    column): the weight follows ``q`` by it over the radius (:func:`_held_model`) and the step Jacobian holds it
+    (:func:`_step_jacobian`); empty (0, 0) without gravity, where both are the held arrays' alone.
     """
 
     has_old: bool
@@ -101,6 +105,7 @@ class HeldSystem(NamedTuple):
     pK: np.ndarray
     pC: np.ndarray
     pG: np.ndarray
+    Wg: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -390,7 +395,9 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
 def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
     the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
-    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``.
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. The weight follows ``q`` by its gradient
+    instead (``fg + Wg[:, :nq] dl``, first order in every direction; the secant's is first order along its line
+    only), where the held system has one (gravity).
 
     The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
     interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
@@ -418,6 +425,14 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
+    if hs.Wg.shape[0]:  # the weight by its gradient in q, its secant taken out again
+        for i in range(r):
+            acc = 0.0
+            for j in range(nq):
+                acc += hs.Wg[i, j] * dl[j]
+            if hs.has_old:
+                acc -= s * (hs.fg[i] - hs.old_fg[i])
+            f[i] += acc
     n_el = hs.pG.shape[0]
     if n_el:  # the weight's change with the elastic coordinates (pG's last column, :func:`_elastic_terms`)
         mg = hs.pG.shape[1] // nq
@@ -429,27 +444,27 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
 
 
 def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
+                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
     """One interval of the cached step: the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
     sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the held ``M_r`` is not
     positive definite there. The held system's arrays are passed one by one (their names are
     :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
     of a tuple of arrays."""
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pM, pK, pC, pG)
+                    old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
     Mr, Kr, Cr, Gr, f = _held_model(z, dl, s, 0.5 * h * n, hs)
     return _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
+                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
     """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
     then serves :func:`held_step` too (see :func:`_inline` for why one). The helpers are
     called here directly rather than through :func:`_held_step`: numba copies an inlined helper's whole code once
     per block, so one large helper costs far more to inline than its parts."""
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pM, pK, pC, pG)
+                    old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
     Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.5 * h * n, hs)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
@@ -459,8 +474,44 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr
         z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
-        F = step_jacobian(z, Ts, Vs, C3, Pn, SQM)
+        Fp = hs.Wg
+        if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
+            Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
+        F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
+    """``Fp`` (r, r): the change of the held system's generalised forces with the positions over an interval from
+    ``z`` to ``z_next`` (``dt``), where gravity loads the mechanism: the weight's gradient ``Wg`` and, in the q
+    columns, the held matrices' change with q as the forces it causes, ``-dK/dq_i (p + beta p') - dM/dq_i a``
+    (``M p'' + C p' + K p = G u + f`` differentiated in ``q_i`` with the state held: ``M da = dF/dq_i - dK/dq_i p -
+    dC/dq_i p' - dM/dq_i a``; the damping's mass-proportional part follows the secant only and is left out), with
+    the interval's mean positions ``(p + p_next) / 2``, rates ``(p_next - p) / dt`` and accelerations
+    ``(p'_next - p') / dt``: the step Jacobian takes the forces as held over the interval (its response ``S``),
+    and within it the elastic coordinates oscillate (at the start of a log, undeformed under the weight, their
+    accelerations are thousands of times their mean). ``dM``, ``dK``: :class:`HeldSystem`'s gradients (nq, r*r).
+
+    Under gravity the positions carry the links' static sag and the accelerations the weight's share, both of the
+    weight's size: in global elastic coordinates a sagging link turned by ``dq`` changes its elastic force by
+    about as much as its weight's load changes (``dK/dq p``), and the two enter together. Without gravity they
+    multiply vibrations only, and the filter gained nothing from them (docs/step_jacobian.md): the step
+    Jacobian then leaves them out."""
+    r = z.shape[0] // 2
+    nq = dM.shape[0]
+    pm = np.empty(r)  # p + beta p' over the interval
+    am = np.empty(r)
+    for k in range(r):
+        pm[k] = 0.5 * (z[k] + z_next[k]) + beta * (z_next[k] - z[k]) / dt
+        am[k] = (z_next[r + k] - z[r + k]) / dt
+    Fp = Wg.copy()
+    for i in range(nq):
+        for c in range(r):
+            acc = 0.0
+            for k in range(r):
+                acc += dK[i, c * r + k] * pm[k] + dM[i, c * r + k] * am[k]
+            Fp[c, i] -= acc
+    return Fp
 
 
 def held_step(z, u, dl, s, h, n, *system):
@@ -472,11 +523,11 @@ def held_step(z, u, dl, s, h, n, *system):
 
 
 def _held_system(dl, s, pe, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
+                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
     """:func:`_system` (call with ``*system``, see :func:`_held_step`); its own kernel, as the filter calls it at
     every step-map rebuild."""
     return _system(dl, s, pe, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
-                                     old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG))
+                                     old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg))
 
 
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
@@ -536,30 +587,33 @@ def _secant_factor(dl, d, dd):  # pragma: no cover - compiled
     return a / dd
 
 
-def _secant_rows(c0, Hm, dH, G, d, s, x, dl, y, H):  # pragma: no cover - compiled
-    """The measurement along the secant into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.measure`):
-    ``H = Hm + s dH`` (``Hm`` where ``s`` is zero or ``dH`` empty) and ``y = c0 + H x``; with ``G`` (not empty)
-    and ``s`` nonzero the second-order q term, ``g = G dl``: ``y += s g / 2`` and the q-columns of ``H``
-    ``+= (g d' + s G) / 2`` (its exact derivative)."""
+def _measurement_rows(c0, Hm, D, G, x, dl, y, H):  # pragma: no cover - compiled
+    """The measurement at ``x``, ``dl = q - q0`` from the held configuration, into ``y``, ``H``
+    (:meth:`.reduced.ReducedObserverModel.measure`): ``y_i = c0_i + (Hm + sum_k dl_k D_k)_i x + 1/2 dl^T G_i dl``
+    and its exact derivative, ``H = Hm + sum_k dl_k D_k`` with ``D_j x + G_i dl`` added to q-column ``j``."""
     m, n = Hm.shape
-    along = s != 0.0 and dH.shape[0] > 0
+    nq = dl.shape[0]
+    r = D.shape[2]
     for i in range(m):
+        for j in range(n):
+            H[i, j] = Hm[i, j]
+        for k in range(nq):
+            a = dl[k]
+            for j in range(r):
+                H[i, j] += a * D[k, i, j]
         acc = c0[i]
         for j in range(n):
-            h = Hm[i, j] + s * dH[i, j] if along else Hm[i, j]
-            H[i, j] = h
-            acc += h * x[j]
+            acc += H[i, j] * x[j]
+        for j in range(nq):
+            g = 0.0
+            for k in range(nq):
+                g += G[i, j, k] * dl[k]
+            acc += 0.5 * g * dl[j]
+            dx = 0.0
+            for c in range(r):
+                dx += D[j, i, c] * x[c]
+            H[i, j] += dx + g
         y[i] = acc
-    if s == 0.0 or G.shape[0] == 0:
-        return
-    nq = dl.shape[0]
-    for i in range(m):
-        g = 0.0
-        for j in range(nq):
-            g += G[i, j] * dl[j]
-        y[i] += (0.5 * s) * g
-        for j in range(nq):
-            H[i, j] += 0.5 * (g * d[j] + s * G[i, j])
 
 
 def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compiled where a kernel calls it
@@ -583,15 +637,18 @@ def map_lookahead(z, nq, remap_rad, ahead, horizon):  # pragma: no cover - compi
     return shift
 
 
-def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
+def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     """The step's Jacobian ``Pn + SQM dF/dz``.
 
     ``Pn`` is the Jacobian of the interval's RK4 steps with the matrices and forces held; the forces held over
     the interval depend on the start state (the velocity-dependent forces and the geometric q-row term: exact
-    derivatives of their quadratic forms ``Ts``, ``Vs``, ``C3``, :meth:`QuadraticForces.jacobian_tensors`), and
-    ``SQM`` is the interval's response to a held generalised force. Leaving the second term out lets the filter
-    diverge in start-up transients, where the elastic rates are large. The q-dependence of ``M_r`` and ``K_r`` is
-    left out (``tests/test_expansion.py`` compares ``F`` with finite differences of the step)."""
+    derivatives of their quadratic forms ``Ts``, ``Vs``, ``C3``, :meth:`QuadraticForces.jacobian_tensors`; under
+    gravity ``Fp``, the weight's gradient with the held matrices' change with q, :func:`position_forces`; empty
+    without gravity), and ``SQM`` is the interval's response to a held generalised force. Leaving the second term
+    out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
+    propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
+    ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
+    step, docs/step_jacobian.md gives the reason)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
@@ -612,6 +669,9 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
             for c in range(r):
                 G[c, r + k] -= C3[k, j, c] * pd[j]
                 G[c, r + j] -= pd[k] * C3[k, j, c]
+    for c in range(Fp.shape[0]):  # the forces' change with the positions under gravity
+        for m in range(r):
+            G[c, m] += Fp[c, m]
     F = SQM @ G
     for i in range(F.shape[0]):  # + Pn, as a loop (an in-place array expression compiles to far more code)
         for j in range(F.shape[1]):
@@ -620,14 +680,14 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM):  # pragma: no cover - compiled
 
 
 def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
+                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
     """How well the held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` against the exact ``Mr``, ``Kr`` there:
     the largest entry of the differences whitened by the exact mass matrix, ``L^-1 (M_pred - M) L^-T``
     (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s relative to the largest entry of
     ``L^-1 K L^-T`` (within a factor ``r`` of the spectral norms, at a tenth of their cost). ``inf`` if ``Mr`` is
     not positive definite. (Call with ``*system``, see :func:`_held_step`.)"""
     Mp, Kp = _mass_stiffness(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG))
+                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg))
     Mr, Kr = Mr_exact, Kr_exact
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
@@ -817,7 +877,7 @@ class CachedStep(NamedTuple):
     sub-step; the step map's rebuild rule: the interval-length tolerance ``dt_tol``, the look-ahead ``ahead``,
     ``horizon`` (:func:`map_lookahead`), the process noise's ``torque_var`` and ``q_extra`` (may be empty), the
     radius rule ``rad_tol``, ``rad_min``, ``rad_max`` (:func:`next_map_radius`); the measurement rows ``c0, Hm,
-    dH, G`` with the secant ``d``, ``dd`` (:func:`secant_rows`); the step Jacobian's velocity forms ``Ts, Vs,
+    D, G`` (:func:`measurement_rows`); the secant ``d``, ``dd``; the step Jacobian's velocity forms ``Ts, Vs,
     C3``; ``errs``, where the replaced maps' errors go (its length bounds the rebuilds of one call); the held
     system (:class:`HeldSystem`)."""
 
@@ -837,7 +897,7 @@ class CachedStep(NamedTuple):
     rad_max: float
     c0: np.ndarray
     Hm: np.ndarray
-    dH: np.ndarray
+    D: np.ndarray
     G: np.ndarray
     d: np.ndarray
     dd: float
@@ -878,7 +938,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     """The held system's fields as a plain tuple (numba passes ``f(a, *t)`` as a tuple concatenation, which a
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
-            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG)
+            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG, hs.Wg)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -971,17 +1031,14 @@ def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
     configuration's measurement radius (the model's own rows then)."""
     if not math.isfinite(z[0]) or not _within(z, cs.q0, cs.meas_rad):
         return False
-    nq = cs.q0.shape[0]
-    dlp = z[:nq] - cs.q0
-    sm = secant_factor(dlp, cs.d, cs.dd) * cs.dd if cs.dH.shape[0] else 0.0
-    secant_rows(cs.c0, cs.Hm, cs.dH, cs.G, cs.d, sm, z, dlp, y, H)
+    measurement_rows(cs.c0, cs.Hm, cs.D, cs.G, z, z[: cs.q0.shape[0]] - cs.q0, y, H)
     return True
 
 
 def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
                     pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
                     beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                    old_V2, old_C2, pM, pK, pC, pG, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
+                    old_V2, old_C2, pM, pK, pC, pG, Wg, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
                     iold_T2, iold_C2):  # pragma: no cover - compiled
     """One interval of an augmented state (:func:`cached_interval`'s ``pay`` and ``inp_*``, the torques ``u`` with
     the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
@@ -1002,13 +1059,13 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
         _, z, F, Qk, L_u, scaled_map, Mo, Ko, Co, Go = payload_interval(
             x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, pay_rho, pay_tol, pay_ok, pay_c,
             pay_Pn, pay_S, pay_L, pay_Q, torque_var, q_extra, Ts, pay_dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr,
-            Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr,
+            Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr,
             iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
         pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = scaled_map
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
                                                Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                                               old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG)
+                                               old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
         z, F, Qk = _augmented(z0, F0, Q, n_x)
         L_u = L
     if n_in:  # the disturbances: their decay, noise and the step's response to them
@@ -1070,7 +1127,7 @@ def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
 
 def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, q_extra, has_old, beta, Mr, Kr, Ca,
                  Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2,
-                 old_C2, pM, pK, pC, pG):  # pragma: no cover - compiled
+                 old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
     """A step map of the held configuration ``q0`` for an interval of ``dt`` in ``n`` sub-steps, built ahead of
     ``q`` along its motion (:func:`map_lookahead`, not beyond ``lim`` from ``q0``): the held model there,
     undeformed (:func:`_system`, along the secant ``d``; the elastic coordinates of the instant of the rebuild
@@ -1083,7 +1140,7 @@ def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, 
         dla[i] = min(max((z[i] - q0[i]) + shift[i], -lim), lim)
     s = secant_factor(dla, d, dd)
     Ma, Ka, Ca_, Ga = _system(dla, s, z[:0], HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                                                 old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG))
+                                                 old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg))
     Pn, S, L, Q = step_maps_noise(Ma, Ka, Ca_, Ga, dt / n, n, torque_var)
     for i in range(q_extra.shape[0]):
         Q[i, i] += q_extra[i]
@@ -1106,7 +1163,7 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
 
 
 def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
+                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
                   iold_fg, iold_T2, iold_C2):  # pragma: no cover - compiled
     """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
     row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
@@ -1120,12 +1177,12 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     ``iC2``); each scale then costs its Cholesky factor and RK4 sub-steps only."""
     r = Mr.shape[0]
     hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pM, pK, pC, pG)
+                    old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
     zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
     zv = np.zeros(V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(Gr.shape)
     f0 = fb = np.empty(r)
@@ -1152,7 +1209,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
 
 def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, tol, map_ok, map_c, map_Pn, map_S,
                       map_L, map_Q, torque_var, q_extra, Ts, dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca,
-                      Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr,
+                      Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr,
                       iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
                       iold_C2):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
@@ -1173,7 +1230,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``, ``Qx`` the process
     noise ``Q`` in its leading block and ``theta_var`` the scale's."""
     rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr, iCa,
+                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr, iCa,
                                         idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
     finite = True
     for k in range(rows.shape[0]):
@@ -1182,7 +1239,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
                 finite = False
     if not finite:  # as the nominal step's rescue: first order only
         rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
-                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, iMr,
+                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr,
                                             iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
                                             iold_C2)
     c = a[a.shape[0] - 1]
@@ -1206,7 +1263,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
             for j in range(C3.shape[1]):
                 for i in range(C3.shape[2]):
                     C[k, j, i] += cT * iC2[k * C3.shape[1] + j, i]
-    Fz = step_jacobian(z, T, Vs, C, Pn, SQM)
+    Fz = step_jacobian(z, T, Vs, C, Pn, SQM, _NO_MATRIX)  # (the forces' change with q left out, as by no gravity)
     n0 = z.shape[0]
     last = rows.shape[0] - 1
     x = np.zeros(nx)
@@ -1232,9 +1289,10 @@ _quadratic_forces = _inline(_quadratic_forces)
 _held_model = _inline(_held_model)
 _held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
+position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
-secant_rows = _jit(_secant_rows)
+measurement_rows = _jit(_measurement_rows)
 secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
 step_maps_noise = _jit(_step_maps_noise)
@@ -1257,7 +1315,8 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
     G = np.zeros((r, nq))
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
-    return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg)
+    return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
+                      np.zeros((0, 0)))
 
 
 _warm = False
@@ -1280,7 +1339,7 @@ def warm_up_interval() -> None:
     r, nq = 2, 1
     z, u, dl = np.zeros(2 * r), np.zeros(nq), np.zeros(nq)
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
-    step_jacobian(z, *jac)
+    step_jacobian(z, *jac, np.zeros((0, 0)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))
 
@@ -1288,7 +1347,7 @@ def warm_up_interval() -> None:
 def warm_up_maps() -> None:
     """Compile (or load) the step map's kernels and the measurement rows': :func:`rebuild_map` (with
     :func:`step_maps_noise` and :func:`secant_factor`, each also as Python calls it), :func:`map_error`,
-    :func:`next_map_radius`, :func:`secant_rows`."""
+    :func:`next_map_radius`, :func:`measurement_rows`."""
     r, nq = 2, 1
     z, dl = np.zeros(2 * r), np.zeros(nq)
     M, G = np.eye(r), np.zeros((r, nq))
@@ -1297,8 +1356,8 @@ def warm_up_maps() -> None:
     rebuild_map(z, dl, 1.0, 0.1, 0.0, 0.0, dl, 0.0, 1e-4, 1, np.ones(nq), np.zeros(2 * r), *_example_system(r, nq))
     map_error(np.eye(2 * r), np.eye(2 * r), M, M, np.eye(2 * r))
     next_map_radius(dl, dl, 0.0, 0.1, 0.5, 0.01, 1.0)
-    secant_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((1, 2 * r)), np.zeros((1, nq)), dl, 0.0, z, dl, np.empty(1),
-                np.empty((1, 2 * r)))
+    measurement_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((nq, 1, r)), np.zeros((1, nq, nq)), z, dl,
+                     np.empty(1), np.empty((1, 2 * r)))
 
 
 def warm_up() -> None:

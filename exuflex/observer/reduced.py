@@ -48,7 +48,8 @@ Intervals of different length (a lab clock's jitter) are each integrated over th
 
 Jacobian: ``F = P^n + S dF/dz``: the held linear system's map ``P^n`` plus its response ``S`` to the change of the
 held generalised forces with the start state (the velocity-dependent forces, exactly:
-:func:`.expansion.step_jacobian`).
+:func:`.expansion.step_jacobian`; under gravity the weight's gradient and the held matrices' change with q as the
+forces it causes, :func:`.expansion.position_forces`).
 
 Process noise: the measured torques carry white noise of std ``sigma`` (the motors' ``noise_std``), held over
 the interval, so ``Q = L diag(sigma^2) L^T`` with ``L`` the interval's response to a unit torque held over it,
@@ -56,12 +57,12 @@ plus an optional diagonal for unmodelled dynamics. A torque jump between two sam
 differing by more than their noise, :meth:`input_jump`) adds the mean and covariance of its effect at an
 unknown instant of the interval (:meth:`input_jump_moments`).
 
-Measurements: the rows about a held configuration, with their dependence on ``q`` to second order along the
-secant to the previous one (a rigid channel such as a slider's position is quadratic in ``q`` over the
-measurement radius, :meth:`ReducedObserverModel.measure`). Measurement Jacobians: exact in ``p`` for every
-channel and in ``q`` for the rigid part (link angles, rigid tip position); the dependence of the curvature and
-elastic-displacement rows on ``q`` is left out (of the order of the measured elastic quantity per radian, far
-below the sensor noise).
+Measurements: the rows about a held configuration with their exact first-order change with ``q`` in every
+direction, and the rigid parts to second order (:meth:`ReducedObserverModel._expansion`): the gauges' rows change
+with the configuration at rates of the elastic rows themselves per radian (the basis's static shapes change
+with the joint angles, the rows turn with their links), which over the measurement radius is of the order of
+the gauges' noise. The measurement Jacobian is the exact derivative of the channels returned
+(:meth:`ReducedObserverModel.measure`); the derivation is in docs/reduction.md.
 """
 
 from __future__ import annotations
@@ -87,11 +88,12 @@ from .expansion import (
     held_interval,
     held_step,
     map_error,
+    measurement_rows,
     next_map_radius,
+    position_forces,
     prediction_error,
     rebuild_map,
     secant_factor,
-    secant_rows,
     step_jacobian,
     step_maps,
     step_maps_noise,
@@ -185,11 +187,10 @@ class _Held:
     err: float = float("nan")  # prediction error of the previous held model at q0
     system: HeldSystem | None = None  # the held arrays of the compiled step
     map: _StepMap | None = None
-    rows: dict = None  # measurement rows about q0 per channel tuple: (c0, Hm) and the secant's (c0, Hm, dH)
-    secant_rows: dict = None
+    rows: dict = None  # measurement rows about q0 per channel tuple: (c0, Hm, D, G) (:meth:`_expansion`)
 
     def __post_init__(self):
-        self.rows, self.secant_rows = {}, {}
+        self.rows = {}
 
 
 class _Pairs:
@@ -301,6 +302,7 @@ class ReducedObserverModel:
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._noC2 = np.zeros((0, self.r))
+        self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = 0
         self.state_cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._serial = 0
@@ -340,8 +342,8 @@ class ReducedObserverModel:
             p = z[: self.r].copy()
             p[self.nq :] = 0.0
             mats, forces = self.rm.held(p, z[self.r :])
-        elif frozen_forces:
-            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=False)
+        elif frozen_forces:  # with gravity the gradients too (the step Jacobian's position_forces)
+            mats, forces = self.rm.held(z[: self.r], z[self.r :], fr=True, gradients=self._weight)
         else:
             mats = self.rm.matrices(z[: self.r], z[self.r :])
         self.n_evaluations += 1
@@ -392,7 +394,10 @@ class ReducedObserverModel:
         n = self.substeps(iv, dt)
         Pn, S, L, Q = self._maps(m.Mr, m.Kr, m.Cr, m.Gr, dt, n)
         x = Pn @ z + L @ u + S @ m.fr
-        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S)
+        Fp = iv.forces.Wg
+        if Fp.shape[0]:
+            Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
+        F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
 
@@ -518,7 +523,7 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm))
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg)
 
     @staticmethod
     def _elastic(fm) -> dict:
@@ -589,11 +594,11 @@ class ReducedObserverModel:
         would), the measurement rows of ``channels`` about it."""
         held = iv, _, _, sm = self._hold(z, self._input(u), dt)
         self._renewed = (z.copy(), dt, held)  # for predict(), if the loop hands this interval back
-        c0, Hm, dH, G = self._secant_rows(iv, channels)
+        c0, Hm, D, G = self._rows(iv, channels)
         d = iv.d if iv.old is not None else _NONE
         step = CachedStep(self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
                           min(self.h, iv.h_stable), self.dt_tol, self.remap_ahead, self.remap_horizon,
-                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, dH, G, d, iv.dd,
+                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, D, G, d, iv.dd,
                           *sm.tail[:3], self._map_errs, iv.system)
         state = LoopState(LoopMap(sm.q, self.map_rad, sm.dt, sm.n, sm.Pn, sm.S, sm.L, sm.Q), 0, -1,
                           (False, 0.0, sm.Pn, sm.S, sm.L, sm.Q))
@@ -794,63 +799,33 @@ class ReducedObserverModel:
         iv = self._last = self._configuration(x)
         return iv, x[: self.nq] - iv.q0
 
-    def _secant_rows(self, iv: _Held, channels: tuple) -> tuple:
-        """``(c0, Hm, dH, G)``: ``y = c0 + (Hm + s dH) x`` about iv, with ``s`` the secant coordinate of x, plus the
-        second-order q term of :meth:`measure` with ``G`` (``dH`` and ``G`` empty without a secant partner, ``G``
-        empty where the q-columns do not change); kept with the held configuration."""
-        lin = iv.secant_rows.get(channels)
-        if lin is None:
-            c0, Hm = self._linear(iv, channels)
-            if iv.old is None:
-                lin = (c0, Hm, _NO_ROWS, _NO_ROWS)
-            else:
-                # the elastic rows follow the configuration along the secant (the gauges' rows change with
-                # H(q)); the q-columns change along it too (:meth:`measure`'s second-order term). A secant of
-                # the rigid intercepts alone would make y depend on q through s without the Jacobian saying so,
-                # an inconsistency that breaks the filter during the start-up transient: the second-order term
-                # comes with its exact derivative instead
-                nq, r = self.nq, self.r
-                H1 = self._linear(iv.old, channels)[1]
-                dH = np.zeros_like(Hm)
-                dH[:, nq:r] = (Hm[:, nq:r] - H1[:, nq:r]) / iv.dd
-                G = (Hm[:, :nq] - H1[:, :nq]) / iv.dd
-                lin = (c0, Hm, dH, G if np.any(G) else _NO_ROWS)
-            iv.secant_rows[channels] = lin
-        return lin
+    def _rows(self, iv: _Held, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)`` of the channels about the held ``iv`` (:meth:`_expansion`), kept with it."""
+        rows = iv.rows.get(channels)
+        if rows is None:
+            rows = iv.rows[channels] = self._expansion(iv, channels)
+        return rows
 
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
-        """The channels at ``x`` about the held configuration: ``y = c0 + H x`` with the elastic rows along the
-        secant to the previous held configuration (:meth:`_secant_rows`), and the q-dependence to second order.
-
-        A rigid channel is a nonlinear function of q (a slider's position ``r cos q + sqrt(l^2 - r^2 sin^2 q)``,
-        a dependent link's angle), and x lies up to the measurement radius from the held ``q0``: to first order
-        its error is ``1/2 y''(q0) dl^2``. Along the secant ``d = q0 - q_old`` the change ``Delta`` of the
-        q-columns of the rows from the partner gives the second derivative, ``y''(q0) dl ~ Delta dl / |d|``
-        for ``dl`` along ``d``, so ``y`` gains ``1/2 a Delta dl`` with ``a = (dl . d) / (d . d)`` (the error is
-        then of third order in dl) and the q-columns of ``H`` its exact derivative
-        ``1/2 ((Delta dl) d^T / (d . d) + a Delta)``. Where ``dl`` leaves the secant's line
-        (:func:`_secant_factor` zero), the rows stay first order."""
+        """The channels at ``x`` from the held configuration's rows and their exact first-order change with q
+        (:meth:`_expansion`): ``y_i = c0_i + (Hm + sum_k dl_k D_k)_i x + 1/2 dl^T G_i dl``, ``dl = q - q0``, and
+        ``H`` its exact derivative in x (:func:`.expansion.measurement_rows`)."""
         x = np.asarray(x, float)
         iv, dl = self._measurement_interval(x)
-        c0, Hm, dH, G = self._secant_rows(iv, tuple(channels))
-        s = _secant_factor(iv, dl) * iv.dd if dH.shape[0] else 0.0
+        c0, Hm, D, G = self._rows(iv, tuple(channels))
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
-        secant_rows(c0, Hm, dH, G, iv.d if G.shape[0] else _NONE, s, x, dl, y, H)
+        measurement_rows(c0, Hm, D, G, x, dl, y, H)
         return Measurement(y, H)
 
-    def _linear(self, iv: _Held, channels: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_affine`, kept with the held configuration."""
-        channels = tuple(channels)
-        lin = iv.rows.get(channels)
-        if lin is None:
-            lin = iv.rows[channels] = self._affine(iv, channels)
-        return lin
-
     def _affine(self, iv: _Held, channels: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """``y = c0 + Hm x`` for the channels, about the interval's configuration (rigid parts to first
-        order in q, elastic parts exact in p): the rows of :func:`.rows.sensor_rows`, for all channels at once
+        """``y = c0 + Hm x`` for the channels, about the configuration ``iv`` (rigid parts to first order in q,
+        elastic parts exact in p): the rows of :func:`.rows.sensor_rows`, for all channels at once
         (:class:`.rows.ChannelRows`)."""
+        return self._affine_rows(iv, channels)[:2]
+
+    def _affine_rows(self, iv: _Held, channels: tuple) -> tuple:
+        """``(c0, Hm, U, plan)``: :meth:`_affine`'s rows, the channels' u rows and their :class:`.rows.ChannelRows`."""
         nq, r = self.nq, self.r
         plan = self._channel_rows.get(channels)
         if plan is None:
@@ -865,7 +840,38 @@ class ReducedObserverModel:
         for i, p0, Sp in points:
             c0[i] = p0 - Sp @ iv.q0
             Hm[i, :nq] += Sp
-        return c0, Hm
+        return c0, Hm, U, plan
+
+    def _expansion(self, iv: _Held, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)``: the channels about the configuration ``iv`` to first order in ``dl = q - q0``.
+
+        Every channel is ``y(q, p) = rigid(q) + U(q) H_u(q) p`` (:mod:`.rows`; ``H_u`` the basis's
+        elastic-displacement rows, whose q-columns are zero). :meth:`_affine` gives ``y ~ c0 + Hm x`` with the
+        rigid part to first order and the rows at ``q0``. To first order in ``dl`` the rows ``E = U H_u`` change
+        by ``sum_k dl_k D_k``, ``D_k = dU/dq_k H_u + U dH_u/dq_k`` (the u rows turn with their link's angle,
+        :meth:`.rows.ChannelRows.rates`; the basis changes with the configuration, ``dH/dq`` of
+        :meth:`~exuflex.reduction.CraigBampton.basis_derivative`), and the rigid part gains its second-order
+        term ``1/2 dl^T G dl``, ``G = d^2 rigid/dq^2``. The error of ``y`` is then ``O(dl^2 |p_e|) + O(dl^3)``
+        (against ``O(dl |p_e|) + O(dl^2)`` of the rows at ``q0`` alone); ``H``'s elastic columns err by
+        ``O(dl^2)``, its q-columns by ``O(dl |p_e|) + O(dl^2)`` (``D_k``'s own change with q is left out)."""
+        nq, r = self.nq, self.r
+        c0, Hm, U, plan = self._affine_rows(iv, channels)
+        rc = iv.mats.rc
+        Ut, G = plan.rates(self.model, rc.cfg)
+        # dU/dq_k = U_theta dtheta_l/dq_k, l each channel's link (none: the encoders)
+        turn = np.where((plan.link >= 0)[:, None], iv.Sz_theta[plan.link], 0.0)  # (m, nq)
+        m, ne = U.shape
+        # d(H_u e_c)/dq_k of the elastic coordinates c (the basis's q-columns do not change)
+        dH = None if iv.forces is None else iv.forces.dHdq  # the held evaluation's, else computed here
+        if dH is None:
+            dH = self.rm.cb.basis_derivative(rc, np.eye(r)[:, nq:])
+        else:
+            dH = dH[nq:]
+        dHu = dH[:, nq:, :]  # (r - nq, ne, nq)
+        UdH = (U @ dHu.transpose(1, 0, 2).reshape(ne, -1)).reshape(m, r - nq, nq)
+        D = np.zeros((nq, m, r))
+        D[:, :, nq:] = UdH.transpose(2, 0, 1) + turn.T[:, :, None] * (Ut @ rc.H[nq:, nq:])[None]
+        return c0, Hm, D, np.ascontiguousarray(G)
 
     # ------------------------------------------------------------------ physical states
     def initial_state(self, q, qd=None) -> np.ndarray:

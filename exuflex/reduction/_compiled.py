@@ -143,27 +143,67 @@ def _element_form(X, el_dofs, R, Km, S_th, nq):  # pragma: no cover - compiled
     return out
 
 
-def _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq):  # pragma: no cover - compiled
-    """``(dM_r/dq, dK_r/dq)`` (nq, r, r) each, from the element terms ``SE`` (mass) and ``SEe`` (stiffness)
-    of :func:`force_terms`, see :meth:`~exuflex.reduction.model.ReducedModel.mass_derivative_analytic`."""
+def _element_vector(X, v, el_dofs, R, Km, S_th, nq):  # pragma: no cover - compiled
+    """``sum_e S_th[e, k] X_e^T R_e K_e R_e^T v_e`` (nq, r): :func:`_element_form` with a vector ``v`` (N,) on the
+    right (the weight's change with the element masses' rotation, ``v = g``, ``K_e`` the mass rotation rate)."""
+    r = X.shape[1]
+    out = np.zeros((nq, r))
+    Ae = np.empty((6, r))
+    kv = np.empty(6)
+    for e in range(el_dofs.shape[0]):
+        for a in range(6):  # element frame: K_e R_e^T v_e
+            acc = 0.0
+            for b in range(6):
+                acc += R[e, b, a] * v[el_dofs[e, b]]
+            kv[a] = acc
+        for a in range(6):
+            for j in range(r):
+                acc = 0.0
+                for b in range(6):
+                    acc += R[e, b, a] * X[el_dofs[e, b], j]
+                Ae[a, j] = acc
+        for j in range(r):
+            acc = 0.0
+            for a in range(6):
+                w = 0.0
+                for b in range(6):
+                    w += Km[e, a, b] * kv[b]
+                acc += Ae[a, j] * w
+            for k in range(nq):
+                out[k, j] += S_th[e, k] * acc
+    return out
+
+
+def _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq, Mg, gradients):
+    # pragma: no cover - compiled
+    """``(dM_r/dq, dK_r/dq, dW)``: the q-gradients (nq, r, r) of ``M_r`` and ``K_r`` from the element terms ``SE``
+    (mass) and ``SEe`` (stiffness) of :func:`force_terms` (see
+    :meth:`~exuflex.reduction.model.ReducedModel.mass_derivative_analytic`; empty without ``gradients``), and
+    ``dW[i, b] = (d(W J)/dq_i e_b)^T M_N g`` (nq, r) with ``Mg = M_N g`` (empty ``Mg``: ``dW`` empty), the part of
+    the weight's gradient through the velocity map (:meth:`~exuflex.reduction.model.ReducedModel.weight_gradient`)."""
     N, n = W.shape
     r = J.shape[1]
     ne = n - nq
-    # dK_r/dq_i = SEe + dH_u^T K_uu H_u + its transpose
-    KH = Kuu @ np.ascontiguousarray(H[nq:])  # (ne, r)
-    dKr = np.empty((nq, r, r))
-    dHu = np.empty((r, ne))
-    for i in range(nq):
-        for a in range(r):
-            for u in range(ne):
-                dHu[a, u] = dHdq[a, nq + u, i]
-        dHK = dHu @ KH  # (r, r)
-        for a in range(r):
-            for b in range(r):
-                dKr[i, a, b] = SEe[i, a, b] + dHK[a, b] + dHK[b, a]
+    if not gradients:
+        dMr = dKr = np.zeros((0, r, r))
+        if Mg.shape[0] == 0:
+            return dMr, dKr, np.zeros((0, r))
+    if gradients:  # dK_r/dq_i = SEe + dH_u^T K_uu H_u + its transpose
+        KH = Kuu @ np.ascontiguousarray(H[nq:])  # (ne, r)
+        dKr = np.empty((nq, r, r))
+        dHu = np.empty((r, ne))
+        for i in range(nq):
+            for a in range(r):
+                for u in range(ne):
+                    dHu[a, u] = dHdq[a, nq + u, i]
+            dHK = dHu @ KH  # (r, r)
+            for a in range(r):
+                for b in range(r):
+                    dKr[i, a, b] = SEe[i, a, b] + dHK[a, b] + dHK[b, a]
+        dMr = np.empty((nq, r, r))
     # dM_r/dq_i = dWJ_i^T M_N WJ + its transpose + SE, with dWJ_i = dS/dq_i J_q + W dH/dq_i
     Jq = np.ascontiguousarray(J[:nq])
-    dMr = np.empty((nq, r, r))
+    dW = np.zeros((nq if Mg.shape[0] else 0, r))
     dH = np.empty((n, nq * r))  # [a, i r + b] = dH/dq_i e_b, row a: W dH/dq_i for all i in one product
     for i in range(nq):
         for a in range(n):
@@ -178,17 +218,24 @@ def _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq
                 for c in range(nq):
                     acc += Sd3[i, a, c] * Jq[c, b]
                 dWJ[a, b] = acc
-        A = np.ascontiguousarray(dWJ.T) @ MWJ
-        for a in range(r):
-            for b in range(r):
-                dMr[i, a, b] = A[a, b] + A[b, a] + SE[i, a, b]
-    return dMr, dKr
+        if Mg.shape[0]:
+            for a in range(N):
+                w = Mg[a]
+                for b in range(r):
+                    dW[i, b] += dWJ[a, b] * w
+        if gradients:
+            A = np.ascontiguousarray(dWJ.T) @ MWJ
+            for a in range(r):
+                for b in range(r):
+                    dMr[i, a, b] = A[a, b] + A[b, a] + SE[i, a, b]
+    return dMr, dKr, dW
 
 
 def _force_terms(W, J, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients):
     # pragma: no cover - compiled twin of ReducedModel.force_model
-    """``(fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs)`` of :class:`~exuflex.reduction.model.QuadraticForces` (``Ts, Vs``:
-    its :meth:`~exuflex.reduction.model.QuadraticForces.jacobian_tensors`), see
+    """``(fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs, Wg)`` of :class:`~exuflex.reduction.model.QuadraticForces` (``Ts, Vs``:
+    its :meth:`~exuflex.reduction.model.QuadraticForces.jacobian_tensors`; ``Wg``: the weight's gradient, empty
+    without gravity, :meth:`~exuflex.reduction.model.ReducedModel.weight_gradient`), see
     :meth:`~exuflex.reduction.model.ReducedModel.force_model` for the formulas. ``Gl`` (n_el, 6, 6): the element
     mass rotation rate in the element frame; ``Sd3`` (nq, N, nq): ``dS/dq_j``; ``t_index``: the 0/1 part of
     ``W = [S, T]`` (:func:`_w_product`); without ``gradients`` ``dMr`` and ``dKr`` are empty."""
@@ -228,7 +275,12 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
             for j in range(r):
                 V[k, i, j] = 0.25 * (SEe[k, i, j] + SEe[k, j, i])
     WJt = np.ascontiguousarray(WJ.T)
-    fg = WJt @ (M_N @ g_N)
+    Mg = M_N @ g_N
+    fg = WJt @ Mg
+    weight = False
+    for a in range(N):
+        if g_N[a] != 0.0:
+            weight = True
     if consistent:  # J^T M W = (W J)^T [M_N S, M_N T]
         MW = np.empty((N, n))
         MS = M_N @ np.ascontiguousarray(W[:, :nq])
@@ -241,10 +293,21 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
         JtM = WJt @ MW
     else:
         JtM = np.zeros((0, n))
-    if gradients:
-        dMr, dKr = _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq)
-    else:
-        dMr = dKr = np.zeros((0, r, r))
+    dMr, dKr, dW = _mass_stiffness_gradients(W, t_index, J, H, Kuu, MWJ, SE, SEe, Sd3, dHdq, nq,
+                                             Mg if weight else np.zeros(0), gradients)
+    # the weight's gradient in the positions, Wg[c, m] = d fg_c / dp_m (empty without gravity): through the
+    # velocity map and the element masses' rotation in the q columns; the q rows' change with the elastic
+    # coordinates through J = H + [d(H p)/dq, 0] (consistent form) in the elastic columns
+    Wg = np.zeros((r if weight else 0, r if weight else 0))
+    if weight:
+        Ev = _element_vector(WJ, g_N, el_dofs, R, Gl, S_th, nq)
+        for c in range(r):
+            for i in range(nq):
+                Wg[c, i] = dW[i, c] + Ev[i, c]
+        if consistent:
+            for c in range(nq):
+                for m in range(nq, r):
+                    Wg[c, m] = dW[c, m]
     # bias term: C[k, j, :] = J^T M W dH/dq_j e_k, flattened (r nq, r) and doubled
     if consistent:
         X = np.empty((n, r * nq))  # [a, k nq + j] = dHdq[k, a, j]
@@ -270,7 +333,7 @@ def _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl, el
         for i in range(r):
             for j in range(r):
                 Vs[k, i, j] = V[k, i, j] + V[k, j, i]
-    return fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs
+    return fg, Tk, V, JtM, dMr, dKr, C2, Ts, Vs, Wg
 
 
 if HAVE_NUMBA:
@@ -284,6 +347,7 @@ if HAVE_NUMBA:
     _product_t = _shared(_product_t)
     _tt_product = _inline(_tt_product)
     _element_form = _jit(_element_form)
+    _element_vector = _inline(_element_vector)
     _mass_stiffness_gradients = _inline(_mass_stiffness_gradients)
     _force_terms_shared = _jit(_force_terms_shared)
     force_terms = _jit(_force_terms)
@@ -610,7 +674,7 @@ else:  # pragma: no cover
 def held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_link, node_station,
                     t_index, im, is_, Phi_u, px, py, pnode, plocal, keep, theta_star, B_N, g_N, Gl, KGl, el_dofs,
                     el_link, alpha, beta, nq, rotate, has_local, consistent, gradients):
-    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs, dHdq)``: what
+    """``(K_uu, B, K_ss^-1, Psi, H, J, M_r, K_r, C_r, G_r, fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, dHdq)``: what
     :meth:`~exuflex.reduction.model.ReducedModel.held` computes (without ``fr``) from a full configuration: the
     pairs' rotations (:func:`pair_rotations`), the basis at q (:func:`basis_at`), its derivative for every reduced
     coordinate (:func:`basis_derivative`), the reduced matrices (:func:`held_matrices`) and the force model
@@ -632,9 +696,10 @@ def held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_li
                             Phi_u, px, py, Sn, Kuu, qc, qs, plocal, keep, has_local)
     J, WJ, MWJ, Mr, Kr, Cr, Gr, Sd3 = held_matrices(p, H, dHdq, Kuu, M_N, W, z, Sz, Jinv, closure, node_link,
                                                      node_station, t_index, B_N, alpha, beta, nq, consistent)
-    fg, Tk, V, _, dMr, dKr, C2, Ts, Vs = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl, KGl,
-                                                             el_dofs, S_th, Sd3, dHdq, nq, consistent, gradients)
-    return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs, dHdq
+    fg, Tk, V, _, dMr, dKr, C2, Ts, Vs, Wg = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl,
+                                                                 KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent,
+                                                                 gradients)
+    return Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, dHdq
 
 
 if not HAVE_NUMBA:  # pragma: no cover

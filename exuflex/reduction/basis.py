@@ -56,7 +56,7 @@ from ..erls.model import Configuration, ErlsModel
 from . import _compiled
 from .masters import automatic_masters
 from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
-from .truncation import TRUNCATION_MAX, PlannedInput
+from .truncation import BIAS_MAX, TRUNCATION_MAX, PlannedInput
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -82,8 +82,10 @@ class ReducedConfiguration:
 def _truncation_report(samples: PathSamples, planned, kept, rho_max: float) -> dict | None:
     """The truncation requirement's figures with the interior modes ``kept`` at the worst sample
     (:mod:`.truncation`): ``rho`` (the whitened mean-square truncated output summed over the channels), its share per
-    channel, the RMS of the tip deflection's truncated part (m), where (q), the limit and whether it is met; None
-    without a planned input."""
+    channel, the RMS of the tip deflection's truncated part (m), where (q), the limit; the filter requirement's
+    ``bias`` per estimated quantity (the steady filter's mean-square error on the linearised full model over the
+    bound's variance, "What the filter makes of it"), its limit ``bias_max`` and its value without interior modes;
+    ``met``: both requirements hold. None without a planned input."""
     if not samples.truncation:
         return None
     rho = samples.rho(kept)
@@ -93,7 +95,12 @@ def _truncation_report(samples: PathSamples, planned, kept, rho_max: float) -> d
     met = bool(rho[i] <= rho_max)
     if samples.quantity_max is not None and zr.size:
         met = met and bool(np.all(zr.max(axis=0) <= samples.quantity_max))
-    return {"rho": float(rho[i]), "rho_max": rho_max, "met": met,
+    b = samples.bias(kept)
+    bias = {k: float(v) for k, v in zip(planned.quantities, b)} if b.size else {}
+    bias_met = bool(b.max() <= samples.bias_max) if b.size else True
+    return {"rho": float(rho[i]), "rho_max": rho_max, "met": met and bias_met,
+            "bias": bias, "bias_max": samples.bias_max, "bias_met": bias_met,
+            "bias_without_interior": float(samples.bias([]).max()) if b.size else None,
             "rho_channels": dict(zip(planned.channels, map(float, samples.rho_channels(kept)[i]))),
             "q": samples.truncation[i].q.tolist(), "rho_without_interior": float(samples.rho([]).max()),
             "quantities_rms": quantities,
@@ -114,8 +121,8 @@ class CraigBampton:
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
     n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
         ``freq_error_max_pct`` for every full mode below ``band_hz``, and the truncation requirement
-        ``rho <= truncation_max``, at q* and at every configuration of ``path``), or ``None`` (the model file's
-        value, else ``"auto"``).
+        ``rho <= truncation_max``, at q* and at every configuration of ``path``, then the filter requirement
+        ``bias_max``), or ``None`` (the model file's value, else ``"auto"``).
     ranking : ``"imr"`` (interior-mode ranking) or ``"frequency"`` (lowest modes).
     path : configurations (n, nq) the interior modes are chosen over besides q* (:mod:`.path`); default
         (``None``): ``path_samples`` configurations of the model's manoeuvre; ``False``: q* only.
@@ -128,6 +135,10 @@ class CraigBampton:
     quantity_max : the largest RMS of the truncated part of each estimated tip quantity (name -> m or m/s), as
         the observer sets it from its bound (:func:`exuflex.observer.session.make_observer`); None: the channels'
         requirement alone.
+    bias_max : the filter requirement's limit (default :data:`.truncation.BIAS_MAX`; 0: off): the automatic count
+        also keeps interior modes until the steady filter's mean-square error on the linearised full model under the
+        manoeuvre is at most ``bias_max`` times its bound's variance in every estimated quantity (:mod:`.truncation`,
+        "What the filter makes of it").
     """
 
     def __init__(
@@ -145,6 +156,7 @@ class CraigBampton:
         channels=None,
         truncation_max: float | None = None,
         quantity_max: dict[str, float] | None = None,
+        bias_max: float | None = None,
     ):
         t0 = time.perf_counter()
         spec = model.mech.reduction
@@ -228,7 +240,8 @@ class CraigBampton:
         auto = n_interior == "auto"
         # a fixed count's figure is computed when asked for (:attr:`truncation`)
         planned = PlannedInput.of(model.mech, channels) if self.truncation_max > 0 and auto else None
-        samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max)
+        self.bias_max = BIAS_MAX if bias_max is None else float(bias_max)
+        samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max, self.bias_max)
         self._truncation_args = (q_samples, channels, quantity_max)
         self.scores = samples.scores[0]  # IMR scores at q*
         self.order, n_needed, _ = samples.choose(ranking, None if n_interior == "auto" else int(n_interior),
@@ -253,6 +266,13 @@ class CraigBampton:
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
                         "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
                         a.worst_nco, np.round(a.q, 4).tolist(), hint)
+        elif auto and self.truncation is not None and not self.truncation["bias_met"]:
+            tr = self.truncation
+            worst = max(tr["bias"], key=tr["bias"].get)
+            log.warning("%s: %d interior modes leave the steady filter a mean-square error of %.3g x its bound's "
+                        "variance in %s (limit %.3g) on the linearised full model under the manoeuvre (.truncation); no "
+                        "further interior mode that rings for a sample interval lowers it", src, n_interior,
+                        tr["bias"][worst], worst, tr["bias_max"])
         elif auto and self.truncation is not None and not self.truncation["met"]:
             tr = self.truncation
             log.warning("%s: %d interior modes leave a truncated output of rho = %.3g (limit %.3g; %s) in the "
@@ -274,7 +294,7 @@ class CraigBampton:
             n = self.n_interior
             self.set_interior(len(self.order))  # every interior mode, ascending (as :class:`.path.PathSamples` wants)
             try:
-                samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max)
+                samples = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max, self.bias_max)
             finally:
                 self.set_interior(n)
             self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max)

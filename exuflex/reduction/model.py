@@ -58,15 +58,19 @@ class QuadraticForces:
     q-gradients of ``M_r`` and of ``H_u^T K_uu H_u`` (``K_r``'s elastic rows; its q rows' ``d(H p)/dq``
     part, linear in the elastic coordinates, is not differentiated) at the held configuration, flattened
     (nq, r*r), for the cached step; both equal central differences to 1e-6 on undeformed states
-    (``tests/test_reduced_derivatives.py``).
+    (``tests/test_reduced_derivatives.py``). ``Wg``: the weight's gradient in the positions
+    (:meth:`ReducedModel.weight_gradient`; empty without gravity).
     """
 
     def __init__(self, nq: int, fg: np.ndarray, Tk: np.ndarray, V: np.ndarray, dHdq: np.ndarray | None,
                  JtM: np.ndarray | None, dMr: np.ndarray | None = None, dKr: np.ndarray | None = None,
-                 C2: np.ndarray | None = None, symmetrised: tuple | None = None):
+                 C2: np.ndarray | None = None, symmetrised: tuple | None = None, Wg: np.ndarray | None = None):
         r = len(fg)
         self.nq, self.r = nq, r
         self.fg = fg
+        #: the weight's gradient in the positions, ``Wg[c, m] = d fg_c / dp_m`` (r, r; empty (0, 0) without
+        #: gravity: :meth:`ReducedModel.weight_gradient`)
+        self.Wg = np.zeros((0, 0)) if Wg is None else Wg
         self.dMr2 = None if dMr is None else dMr.reshape(nq, r * r)
         self.dKr2 = None if dKr is None else dKr.reshape(nq, r * r)
         self._tensors = None
@@ -75,6 +79,7 @@ class QuadraticForces:
         self.V2 = V.reshape(nq * r, r)
         self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
         self.elastic = None  # (pM, pK, pC, pG) of :meth:`ReducedModel.elastic_forms`, with the gradients
+        self.dHdq = None  # d(H e_k)/dq (r, n, nq) of :meth:`ReducedModel.held` (the measurement rows' change)
         if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
@@ -216,6 +221,7 @@ class ReducedModel:
         dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
         mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
         fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+        fm.dHdq = dHdq
         if gradients:
             fm.elastic = self.elastic_forms(rc, dHdq)
         return mats, fm
@@ -260,14 +266,15 @@ class ReducedModel:
         kin = model.kin
         cfg = model.configuration(p[:nq])
         pose = cfg.pose
-        (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs, dHdq) = _compiled.held_evaluation(
+        (Kuu, B, Kinv, Psi, H, J, Mr, Kr, Cr, Gr, fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, dHdq) = _compiled.held_evaluation(
             p, cfg.K_N, cfg.M_N, cfg.R, cfg.W, pose.z, pose.Sz, pose.r, pose.S, pose.Jinv, kin.arrays,
             kin.node_link, kin.node_station, model.t_index, cb.im, cb.is_, cb._Phi_u, cb._px,
             cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
             model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
             self.consistent, gradients)
         mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
-        fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
+        fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, gradients)
+        fm.dHdq = dHdq
         if gradients:
             fm.elastic = self.elastic_forms(mats.rc, dHdq)
         return mats, fm
@@ -327,32 +334,34 @@ class ReducedModel:
         V = 0.25 * (SEe + np.swapaxes(SEe, 1, 2))  # J's q rows are [I 0]
         JtM = WJ.T @ cfg.M_N @ cfg.W if self.consistent else None
         fg = WJ.T @ (cfg.M_N @ model.g_N)
+        Wg = self.weight_gradient(mats, dHdq, Sd, WJ)
         if not gradients:
-            return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM)
+            return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, Wg=Wg)
         # d K_r / d q_i with K_r = H_u^T K_uu H_u: stiffness rotated with the elements, basis with the links;
         # per element (T H)_e^T R K_G R^T (T H)_e = A_e^T K_G A_e, so no assembly is needed
         KH = rc.Kuu @ rc.H[nq:]
         dHK = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_uu H_u per q_i
         dKr = SEe + dHK + np.swapaxes(dHK, 1, 2)
         dMr = self.mass_derivative_analytic(mats, dHdq, Sd, WJ, SE)
-        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr)
+        return QuadraticForces(nq, fg, Tk, V, dHdq if self.consistent else None, JtM, dMr, dKr, Wg=Wg)
 
     def _force_model_compiled(self, mats: ReducedMatrices, dHdq: np.ndarray, gradients: bool) -> QuadraticForces:
         """:meth:`force_model` through :func:`._compiled.force_terms` (the same formulas, one call)."""
         model, nq = self.model, self.nq
         cfg = mats.rc.cfg
-        fg, Tk, V, _JtM, dMr, dKr, C2, Ts, Vs = _compiled.force_terms(
+        fg, Tk, V, _JtM, dMr, dKr, C2, Ts, Vs, Wg = _compiled.force_terms(
             cfg.W, np.ascontiguousarray(mats.J), mats.rc.H, cfg.M_N, model.t_index, np.ascontiguousarray(mats.rc.Kuu),
             model.g_N, cfg.R, model.Gl, model.KGl, model.el_dofs, np.ascontiguousarray(cfg.pose.Sz[2::3][model.el_link]),
             model.kin.coordinate_rates(cfg.pose), np.ascontiguousarray(dHdq), nq, self.consistent, gradients)
-        return self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients)
+        return self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, gradients)
 
-    def _compiled_forces(self, fg, Tk, V, dMr, dKr, C2, Ts, Vs, gradients: bool) -> QuadraticForces:
-        """The force model from a compiled evaluation's terms, whose bias form ``C2`` and symmetrised forms
-        ``Ts, Vs`` are computed there (``C2`` is used by the consistent form only, ``dMr, dKr`` with
-        ``gradients`` only)."""
+    def _compiled_forces(self, fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, gradients: bool) -> QuadraticForces:
+        """The force model from a compiled evaluation's terms, whose bias form ``C2``, symmetrised forms
+        ``Ts, Vs`` and weight gradient ``Wg`` are computed there (``C2`` is used by the consistent form only,
+        ``dMr, dKr`` with ``gradients`` only)."""
         return QuadraticForces(self.nq, fg, Tk, V, None, None, dMr if gradients else None,
-                               dKr if gradients else None, C2=C2 if self.consistent else None, symmetrised=(Ts, Vs))
+                               dKr if gradients else None, C2=C2 if self.consistent else None, symmetrised=(Ts, Vs),
+                               Wg=Wg)
 
     def mass_derivative_analytic(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None,
                                  WJ: np.ndarray | None = None, SE: np.ndarray | None = None) -> np.ndarray:
@@ -363,7 +372,7 @@ class ReducedModel:
         six-bar at elastic coordinates 1e-4 (``tests/test_reduced_derivatives.py``, central differences). ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
         ``SE`` (:meth:`~exuflex.erls.model.ErlsModel.element_rotation_term`) if already computed.
         """
-        model, nq = self.model, self.nq
+        model = self.model
         rc, J = mats.rc, mats.J
         cfg = rc.cfg
         if Sd is None:
@@ -372,13 +381,48 @@ class ReducedModel:
             WJ = cfg.W @ J
         if SE is None:  # W J^T dM_N/dq_i W J: the element masses rotate with their links
             SE = model.element_rotation_term(cfg, WJ)
-        r = WJ.shape[1]
-        n = dHdq.shape[1]
-        # d(W J)/dq_i = dS/dq_i J_q + W dH/dq_i
-        WdH = (cfg.W @ dHdq.transpose(1, 0, 2).reshape(n, r * nq)).reshape(-1, r, nq)
-        dWJ = np.stack([Sdi @ J[:nq] + WdH[:, :, i] for i, Sdi in enumerate(Sd)])
+        dWJ = self._velocity_map_gradient(mats, dHdq, Sd)
         A = np.swapaxes(dWJ, 1, 2) @ (cfg.M_N @ WJ)
         return A + np.swapaxes(A, 1, 2) + SE
+
+    def _velocity_map_gradient(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list) -> np.ndarray:
+        """``d(W J)/dq_i = dS/dq_i J_q + W dH/dq_i`` (nq, N, r): the nodal velocity map's change with q (the second
+        derivatives of the basis times the elastic coordinates left out, see :meth:`mass_derivative_analytic`)."""
+        nq, J, W = self.nq, mats.J, mats.rc.cfg.W
+        r, n = J.shape[1], dHdq.shape[1]
+        WdH = (W @ dHdq.transpose(1, 0, 2).reshape(n, r * nq)).reshape(-1, r, nq)
+        return np.stack([Sdi @ J[:nq] + WdH[:, :, i] for i, Sdi in enumerate(Sd)])
+
+    def weight_gradient(self, mats: ReducedMatrices, dHdq: np.ndarray, Sd: list | None = None,
+                        WJ: np.ndarray | None = None) -> np.ndarray:
+        """``Wg[c, m] = d fg_c / dp_m`` (r, r): the weight ``fg = (W J)^T M_N g`` (:meth:`force_model`) differentiated
+        in the positions at ``mats``' state; empty (0, 0) without gravity.
+
+        In q (columns ``m < nq``), ``d fg/dq_i = (d(W J)/dq_i)^T M_N g + (W J)^T (dM_N/dq_i) g``: the velocity map
+        turns with the links (:meth:`_velocity_map_gradient`) and the element masses with them
+        (``dM_N/dq_i = sum_e dtheta_e/dq_i R_e G_e R_e^T``, ``G_e`` the local mass rotation rate: the offset
+        masses' weight moves with their link). In the elastic coordinates (columns ``m >= nq``, consistent form
+        only), ``J = H + [d(H p)/dq, 0]`` changes the q rows: ``d fg_i / dp_m = (W dH/dq_i e_m)^T M_N g``, the
+        last column of :meth:`elastic_forms`' ``pG``. Exact where the elastic coordinates are zero (the second
+        derivatives of the basis times them are left out, as in :meth:`mass_derivative_analytic`); central
+        differences of ``fr`` at rest agree entry by entry (``tests/test_step_jacobian.py``)."""
+        model, nq, r = self.model, self.nq, self.r
+        if not np.any(model.g_N):
+            return np.zeros((0, 0))
+        cfg = mats.rc.cfg
+        if Sd is None:
+            Sd = model.coordinate_derivatives(cfg)
+        if WJ is None:
+            WJ = cfg.W @ mats.J
+        dW = self._velocity_map_gradient(mats, dHdq, Sd).transpose(0, 2, 1) @ (cfg.M_N @ model.g_N)  # (nq, r)
+        RGR = cfg.R @ model.Gl @ np.swapaxes(cfg.R, 1, 2)  # dM_N/dtheta_e per element
+        Ee = np.einsum("eaj,eab,eb->ej", WJ[model.el_dofs], RGR, model.g_N[model.el_dofs])  # (n_el, r)
+        S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
+        Wg = np.zeros((r, r))
+        Wg[:, :nq] = (dW + S_th.T @ Ee).T
+        if self.consistent:
+            Wg[:nq, nq:] = dW[:, nq:]
+        return Wg
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         if mats is None:

@@ -37,6 +37,11 @@ only through its quasi-static part; keeping it would make the reduced model stif
 the filter sees (a master dof is the remedy for a static shape). The truncation requirement adds only modes
 that ring for longer; where those cannot meet it, the count stops when the next mode raises the worst margin by
 less than 0.01 (``rho`` by 1 % of ``rho_max``), and says so (:attr:`PathSamples.truncation_met`).
+
+Last, the filter requirement (:mod:`.truncation`, "What the filter makes of it"): the steady filter's error on the
+linearised full model under the manoeuvre, per estimated quantity over the bound's variance, ``b <= bias_max``
+(:meth:`PathSamples.bias`); modes are added until it holds (:meth:`PathSamples._extend_for_bias`,
+:attr:`PathSamples.bias_met`).
 """
 
 from __future__ import annotations
@@ -52,8 +57,8 @@ from ..erls.modal import ModalResult, modal_analysis
 from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from .accuracy import AccuracyResult
-from .truncation import (TRUNCATION_MAX, WINDOW_SAMPLES, PlannedInput, modal_response, quantity_columns,
-                         truncation_sample, window_mean_square)
+from .truncation import (BIAS_MAX, TRUNCATION_MAX, WINDOW_SAMPLES, FilterSample, PlannedInput, modal_response,
+                         quantity_columns, truncation_sample, window_mean_square)
 
 __all__ = ["PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
 
@@ -113,10 +118,12 @@ class PathSamples:
     quantity_max : the largest RMS of the truncated part allowed per estimated tip quantity (a mapping from its
         name, :attr:`.truncation.PlannedInput.quantities`, to m or m/s; the observer sets it from its bound); None:
         the channels' requirement alone.
+    bias_max : the filter requirement's limit (0: off), :data:`.truncation.BIAS_MAX` by default; its figures need
+        ``planned`` and ``rho_max > 0``.
     """
 
     def __init__(self, cb, qs: np.ndarray, planned: PlannedInput | None = None, rho_max: float = TRUNCATION_MAX,
-                 quantity_max=None):
+                 quantity_max=None, bias_max: float = BIAS_MAX):
         model, nq = cb.model, cb.nq
         self.quantity_max = None
         if quantity_max is not None and planned is not None and planned.quantities:
@@ -124,6 +131,8 @@ class PathSamples:
         self.cb = cb
         self.qs = np.atleast_2d(np.asarray(qs, float))
         self.rho_max = float(rho_max)
+        self.bias_max = float(bias_max)
+        self.filters: list[FilterSample] = []  # per truncation sample, the observer's linear model (.truncation)
         self.band_hz: list[np.ndarray] = []
         self.truncation = []  # per sample, :class:`.truncation.TruncationSample` (empty without a planned input)
         self._locked = []  # per sample, for :meth:`_ringing`
@@ -158,6 +167,8 @@ class PathSamples:
                 # q held: the reduced model's elastic block and the full modes' cross products with it
                 He = H[nq:, nq:]
                 self._locked.append((self.Mr[-1][nq:, nq:], self.Kr[-1][nq:, nq:], locked.shapes[nq:].T @ M[nq:, nq:] @ He, He))
+                if self.bias_max > 0:
+                    self.filters.append(FilterSample(model, rc, planned))
         self.scores = np.array(scores)  # (n_c, n_interior modes)
         self._tpos = {c: j for j, c in enumerate(self._tix)}  # sample -> its index in :attr:`truncation`
         # the interior modes that ring for at least a sample interval (zeta w <= f_s): the truncation requirement's
@@ -167,6 +178,71 @@ class PathSamples:
         self.dynamic = zeta * w <= model.mech.sample_rate_hz
         self.reachable = True  # every sample's band thresholds met by some count (:meth:`choose`)
         self.truncation_met = True  # the truncation requirement met by the count chosen
+        self.bias_met = True  # the filter requirement met by the count chosen
+        self.bias_tried: list[int] = []  # the modes the filter requirement tried, in order (:meth:`_extend_for_bias`)
+
+    def bias(self, kept) -> np.ndarray:
+        """Per estimated quantity (:attr:`.truncation.PlannedInput.quantities`), the filter requirement's figure with
+        the interior modes ``kept``: the mean square of the steady filter's error made of the truncated motion, over
+        the sampled configurations, in units of the bound's variance there (its mean over them) (:mod:`.truncation`,
+        "What the filter makes of it"); empty without a planned input or with ``bias_max`` 0."""
+        if not self.filters:
+            return np.zeros(0)
+        key = ("b", _key(kept))
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        cb = self.cb
+        cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(kept, int))].astype(int)
+        ms, var = [], []
+        for fs in self.filters:
+            a, b = fs.bias(cols)
+            ms.append(a)
+            var.append(b)
+        v = np.mean(var, axis=0)
+        v = np.where(v > 0, v, np.inf)
+        out = np.mean(ms, axis=0) / v
+        self._cache[key] = out
+        self._cache[("bv", key)] = (np.array(ms) / v, v)
+        return out
+
+    def _extend_for_bias(self, seq: list[int], tie) -> int:
+        """Interior modes added to ``seq`` (the band's and the channels' choice) until the filter requirement holds,
+        ``max bias <= bias_max`` (:meth:`bias`); returns the count. Each step keeps the mode, among those ringing for
+        a sample interval (:attr:`dynamic`), that makes the largest figure smallest at the configuration where it is
+        largest now (ties: the IMR order at q*), if it lowers it there by 1 % of ``bias_max``. Where none does, or
+        three modes in a row lower the figure over all configurations by less, or none is left, the requirement
+        cannot be met: ``seq`` is left as it was (the modes would make the filter's model larger and stiffer for a
+        figure still above the limit; :attr:`bias_met` False, the figure reported). A mode the input, the loads and
+        the channels do not couple to changes no figure, so it is never kept. :attr:`bias_tried`: the modes added,
+        in order, before the outcome."""
+        n0 = len(seq)
+        best_n, best_b = len(seq), float(self.bias(seq).max())
+        stall = 0
+        cb = self.cb
+        while best_b > self.bias_max and stall < 3:
+            cands = [int(i) for i in tie if i not in seq and self.dynamic[i]]
+            if not cands:
+                break
+            self.bias(seq)
+            per, v = self._cache[("bv", ("b", _key(seq)))]  # (configurations, quantities)
+            j = int(np.argmax(per.max(axis=1)))
+            scores = []
+            for i in cands:
+                cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(seq + [i], int))].astype(int)
+                scores.append(float((self.filters[j].bias(cols)[0] / v).max()))
+            if min(scores) > per[j].max() - 0.01 * self.bias_max:
+                break
+            seq.append(cands[int(np.argmin(scores))])
+            b = float(self.bias(seq).max())
+            if b < best_b - 0.01 * self.bias_max:
+                best_n, best_b, stall = len(seq), b, 0
+            else:
+                stall += 1
+        self.bias_tried = list(seq[n0:])
+        self.bias_met = best_b <= self.bias_max
+        del seq[best_n if self.bias_met else n0:]
+        return len(seq)
 
     def _match(self, kept) -> list[AccuracyResult]:
         """The accuracy indices (:func:`~.accuracy.match_modes`) of the band's full modes at every sample with the
@@ -389,6 +465,8 @@ class PathSamples:
                 if n_max is None:
                     break
             seq.append(best)
+        if use and n_max is None and n_needed is not None and self.filters:
+            n_needed = self._extend_for_bias(seq, tie)
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
         order = np.array(seq + [int(i) for i in rest if i not in set(seq)], int)
         if n_needed is None:  # a fixed count below the need, or every mode: the need by the order's prefixes

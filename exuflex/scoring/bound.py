@@ -49,7 +49,7 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..observer import kalman
 from ..observer.base import DiscreteModel
-from ..observer.expansion import step_jacobian
+from ..observer.expansion import held_interval, step_jacobian
 from ..observer.reduced import ReducedObserverModel
 from ..observer.session import LogColumns, Observer, physical_names, start_configuration
 from ..observer.tuning import van_loan
@@ -677,8 +677,11 @@ def _step_linearisation(model: ReducedObserverModel):
         return None
 
     def linearise(x, u, dt):
-        sm = model.prepare(x, model.torques(u), dt)[4]
-        return step_jacobian(x, *sm.tail[:5]), sm.Q
+        u = model.torques(u)
+        iv, dl, s, n, sm = model.prepare(x, u, dt)
+        if iv.system.Wg.shape[0]:  # gravity: the Jacobian takes the interval's held matrices (position_forces)
+            return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
+        return step_jacobian(x, *sm.tail[:5], iv.system.Wg), sm.Q
 
     return linearise
 

@@ -72,7 +72,7 @@ def simulate_runs(
     from ..errors import UsageError
     from ..measure import measure, new_seed
     from ..mechanism import ModelFileError, load_manoeuvre, load_mechanism
-    from ..runs import check_not_foreign, file_sha256, output_folder, write_run
+    from ..runs import MANOEUVRE_FILE, atomic_write_text, check_not_foreign, file_sha256, output_folder, write_run
     from ..validate import check_actuation, check_configurations, check_positive, check_simulation_settings
 
     if not isinstance(model_path, (str, Path)):
@@ -145,6 +145,8 @@ def simulate_runs(
         man = mech.manoeuvre
         man_meta = {"kind": man.kind, "duration_s": man.duration,
                     "source": str(Path(manoeuvre).resolve()) if manoeuvre else "model"}
+        if manoeuvre and not man.file:  # a copy in the run folder: the run does not depend on the file staying put
+            man_meta["copy"] = MANOEUVRE_FILE
         if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline"):
             man_meta.update(time_law=man.time_law, ramp_time_s=man.ramp_time)
         if man.kind == "waypoints":
@@ -183,9 +185,11 @@ def simulate_runs(
                            t_end=duration)
             meta["seed"] = meas.seed
             meta["settings"]["measurement"] = meas.settings
-            if write_plan:  # before write_run: its meta.json comes last and marks the folder complete
+            if "copy" in man_meta:  # before write_run: its meta.json comes last and marks the folder complete
+                Path(out).mkdir(parents=True, exist_ok=True)
+                atomic_write_text(Path(out) / MANOEUVRE_FILE, Path(manoeuvre).read_text(encoding="utf-8"))
+            if write_plan:
                 from ..manoeuvre import trajectory_csv
-                from ..runs import atomic_write_text
 
                 Path(out).mkdir(parents=True, exist_ok=True)
                 atomic_write_text(Path(out) / "plan.csv", trajectory_csv(drive.plan))
