@@ -254,7 +254,8 @@ def _walk_table(rows, cmd: str, measured_by: list[str]) -> list[str]:
 
     default = ObserverConfig().payload_std
     rows = [dict(r, payload_std=r.get("payload_std", default)) for r in rows if r.get("estimator") == "ekf-payload"]
-    lines = [WALK[0], "Measured by", "", *(f"    {c}" for c in measured_by), f"    {cmd}", "",
+    lines = [WALK[0], "Measured on the payload study's level truths (the nominal payload and the payload doubled) by",
+             "", *(f"    {c}" for c in measured_by), f"    {cmd}", "",
              "`z`: the payload scale's error over its standard deviation at the last sample; its mean (sd) and "
              "the runs with abs(z) > 3 over the seeds, at the smaller walk -> the larger; state RMS: the mean RMS "
              "error at the larger walk over the mean at the smaller, smallest-largest over the joint angles, rates "
