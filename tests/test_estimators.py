@@ -441,6 +441,21 @@ def test_cli_observe_with_the_input_estimator_and_the_smoother(tmp_path, capsys)
     assert rc == 2 and "needs an EKF estimator" in capsys.readouterr().err
 
 
+def test_cli_observe_refuses_a_smoother_record_beyond_the_memory_limit(tmp_path, capsys, monkeypatch):
+    """``--smooth`` keeps about three n x n matrices per sample: past the memory limit a one-line refusal naming
+    --smooth and the need, before the filter runs (nothing written)."""
+    import exuflex.validate as validate
+    from exuflex.cli import main
+
+    n_samples, nx = 1501, 26  # the six-bar log: 3 s at 500 Hz; need about 8 nx^2 x 3 per sample (24 MB)
+    monkeypatch.setattr(validate, "memory_limit_bytes", lambda: 8 * nx**2 * 3 * n_samples // 10)
+    rc = main(["observe", str(MODELS / "sixbar.toml"), str(DATA / "sixbar_erls_3s"), "--smooth",
+               "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert rc == 2 and "--smooth:" in err and "samples of a" in err and "more than the" in err, err
+    assert not (tmp_path / "out" / "estimates.csv").exists()
+
+
 # ------------------------------------------------------------------------------------------ sensor design
 def test_gauge_ranking_bounds_are_the_observers_bounds_and_monotone(sixbar):
     """The ranking's bounds are :func:`steady_bound`'s for an observer built on the model with those channels

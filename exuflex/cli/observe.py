@@ -225,6 +225,23 @@ def run_manoeuvre(mech, log):
     return mech.replace(manoeuvre=load_manoeuvre(src, mech))
 
 
+def _check_smoother_memory(obs, n_samples: int) -> None:
+    """``--smooth`` keeps the whole filtered record in memory: per sample about three n x n matrices for the RTS
+    pass (the predicted and filtered covariances and the step Jacobian), about four per mode for the IMM's.
+    Refused with a :class:`~exuflex.errors.UsageError` where that exceeds :func:`~exuflex.validate.memory_limit_bytes`
+    (without ``--smooth`` the log is filtered in chunks, for any length)."""
+    from ..errors import UsageError
+    from ..validate import _bytes, memory_limit_bytes
+
+    ekf = obs.ekf
+    per_sample = 8 * ekf.nx**2 * (4 * len(ekf.models) if hasattr(ekf, "dims") else 3)
+    need, limit = n_samples * per_sample, memory_limit_bytes()
+    if need > limit:
+        raise UsageError(f"--smooth: {n_samples} samples of a {ekf.nx}-state filter need about {_bytes(need)} in "
+                         f"memory, more than the {_bytes(limit)} allowed (half this machine's memory); expected a "
+                         "shorter log, or no --smooth (the filter alone runs in chunks for any length)")
+
+
 def _check_sampling(mech, obs, log, log_check, *, allow: bool, source: str) -> dict:
     """Sampling adequate for the model: the fastest used channel and the torques sampled at least at twice the
     reduced model's highest frequency within its band (``reduction.band_hz``) at ``q*`` (Nyquist: a mode above half
@@ -341,6 +358,8 @@ def _run(args) -> int:
             x0 = obs.model.initial_state(q0, args.qd0)
             obs = make_observer(mech, config, x0=x0, cb=obs.model.rm.cb)
     sampling = _check_sampling(mech, obs, log, log_check, allow=args.allow_undersampled, source=str(path))
+    if args.smooth:
+        _check_smoother_memory(obs, len(log.sensors.t))
     if args.out and (not args.smooth or len(log.sensors.t) * obs.ekf.nx**2 * 8 <= FULL_P_BYTES):
         obs.ekf.store_P = "full"  # the standard deviations of the tip columns in estimates.csv need it
     elif not args.out and not args.smooth and obs.ekf.model is obs.model:
