@@ -638,17 +638,19 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
                 dCj[j, :nq, :] += c * Pc
                 dCj[j, :, :nq] += c * Pc.T
                 dGj[j, :nq, :] += c * hs.pG[k].reshape(nq, mg)[:, :m]
-    # the sub-steps with their tangent
-    Ak, Ac = Minv @ K, Minv @ C
+    # the sub-steps with their tangent (the derivatives stacked: one product per stage and kind)
+    KC = np.hstack([K, C])
+    A = Minv @ KC  # [M^-1 K, M^-1 C]
     b0 = G @ u + f
-    g0 = dF + np.einsum("jac,c->aj", dGj, u)
+    g0 = (dF + np.einsum("jac,c->aj", dGj, u)).T.copy()  # (nx, r): row j the forcing of column j
+    dKC = np.concatenate([dKj, dCj], axis=2).reshape(nx * r, 2 * r)
+    dM2 = dMj.reshape(nx * r, r)
     x, X = z.copy(), np.eye(nx)
 
     def rate(y, Y):
-        a = Minv @ (b0 - K @ y[:r] - C @ y[r:])
-        g = g0 - np.einsum("jab,b->aj", dKj, y[:r]) - np.einsum("jab,b->aj", dCj, y[r:]) \
-            - np.einsum("jab,b->aj", dMj, a)
-        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g - Ak @ Y[:r] - Ac @ Y[r:]])
+        a = Minv @ (b0 - KC @ y)
+        g = g0 - (dKC @ y).reshape(nx, r) - (dM2 @ a).reshape(nx, r)
+        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g.T - A @ Y])
 
     for _ in range(n):
         k1, K1 = rate(x, X)
