@@ -7,6 +7,10 @@
     python benchmarks/step_jacobian.py terms [--models a,b] [--truth-dir DIR] [--engine erls] [--seed 1]
                                              [--every 50] [--json terms.json]
     python benchmarks/step_jacobian.py oracle --variant exact -- GALLERY_ARGUMENTS
+    python benchmarks/step_jacobian.py own [--model models/sixbar.toml] [--truth-dir DIR] [--seeds 1-5]
+                                           [--variants default,exact,...] [--phases-every 50] [--json own.json]
+    python benchmarks/step_jacobian.py own-entries [--json own_entries.json]
+    python benchmarks/step_jacobian.py own-page --own own.json [--entries own_entries.json] [--text TEXT]
     python benchmarks/step_jacobian.py page [--hold hold.json] [--entries entries.json]
                                             [--gallery after.json [--before before.json]]
                                             [--acceptance acc.json [--acceptance-before acc_before.json]]
@@ -38,6 +42,12 @@ filter's predicted standard deviations (:func:`left_out_terms`).
 ``oracle``: ``benchmarks/gallery.py`` (its arguments after ``--``) with the filter's step Jacobian replaced by an
 oracle of the same step: ``exact``, central differences of the whole cached step (:func:`oracle_jacobian`): what
 the left-out terms would change in the acceptance figures, without touching the kernels.
+
+``own``: the filter on its own model's truth (``DIR/reduced/<model>/s<seed>``) with each step Jacobian of
+:data:`OWN_VARIANTS` (:func:`own_model`): where the exact Jacobian changes the figures and why. ``own-entries``: the
+exact Jacobian (:func:`exuflex.observer.expansion.exact_jacobian`) against central differences of the step per
+model (``tests/test_step_jacobian.py``'s ``exact_entries``). ``own-page``: their section of the page, written in
+place (:func:`own_page`).
 
 ``page``: the markdown page from those JSON files and ``python benchmarks/gallery.py --engine erls,exudyn
 --truth-dir DIR --json FILE`` (cached against rk4 per model; ``--before``: the same from another checkout).
@@ -175,7 +185,8 @@ def entries() -> dict:
 
 
 #: the oracle filters' step Jacobians (:func:`oracle_jacobian`)
-ORACLES = ("exact", "map", "q_columns", "elastic_columns", "python", "q_midpoint", "q_midpoint_exact")
+ORACLES = ("exact", "map", "q_columns", "elastic_columns", "python", "q_midpoint", "q_midpoint_exact",
+           "exact_after_start_up")
 
 
 def _position_forces(hs, z, z_next, dt):
@@ -212,7 +223,9 @@ def oracle_jacobian(variant: str):
     default Jacobian on the same sample-by-sample path (the control). Two variants of the step itself:
     ``q_midpoint``, the held matrices at the interval's midpoint configuration ``q + dt/2 q'`` as well as its
     midpoint elastic coordinates (the default holds ``q`` at the start), the default Jacobian and noise;
-    ``q_midpoint_exact``, the same with ``exact``'s Jacobian of that step."""
+    ``q_midpoint_exact``, the same with ``exact``'s Jacobian of that step. ``exact_after_start_up``: ``exact``
+    from the filter's default start-up (``ObserverConfig.start_up``, where the score starts) on, the default
+    before (the intervals counted from the model's last ``reset``)."""
     from exuflex.observer import expansion as ex
     from exuflex.observer import reduced as R
 
@@ -243,8 +256,23 @@ def oracle_jacobian(variant: str):
             cls._cached = midpoint
             return
 
+    from exuflex.observer.session import ObserverConfig
+
+    start_up = ObserverConfig().start_up
+    reset = cls.reset
+
+    def reset_clock(self):
+        reset(self)
+        self._oracle_t = 0.0
+
+    cls.reset = reset_clock
+
     def cached(self, z, u, dt):
         pred = orig(self, z, u, dt)
+        t = getattr(self, "_oracle_t", 0.0)
+        self._oracle_t = t + dt
+        if variant == "exact_after_start_up" and t < start_up:
+            return pred
         iv, _ = self.last_step
         nq, r = self.nq, self.r
         Mr, Kr, Cr, Gr, h, n = self._interval_matrices

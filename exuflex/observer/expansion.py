@@ -536,8 +536,8 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     with the secant factor ``s`` of the secant ``d``, ``dd = d . d``; ``d`` empty without a partner) and its
     exact Jacobian in ``z``, by the tangent of its RK4 sub-steps: the reference for :func:`step_jacobian`, which
     leaves terms out (``tests/test_step_jacobian.py`` compares both with finite differences of the step, entry
-    by entry). NumPy, about a hundred times the compiled step's cost on the six-bar: a reference, not the
-    filter's.
+    by entry). NumPy: a reference and a measurement, not the filter's (it carries the tangent of every state
+    component through every RK4 stage).
 
     Every input of the held system ``M p'' + C p' + K p = G u + f`` (:func:`_held_model`) that the step takes
     from ``z`` is differentiated: ``M_r``, ``K_r`` in ``q`` (the gradients, the secant's second order and, where
@@ -778,7 +778,8 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
     propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
     ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
-    step, docs/step_jacobian.md gives the reason)."""
+    step and with the step's exact Jacobian :func:`exact_jacobian`; docs/step_jacobian.md measures what the
+    left-out terms change and why they stay out)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
