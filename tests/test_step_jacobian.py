@@ -117,9 +117,9 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
     dl0 = z[:nq] - iv.q0
 
     def step(x):
-        return ex.held_step(x, u, x[:nq] - iv.q0, 0.0, h, n, *hs)[0]
+        return ex.held_step(x, u, x[:nq] - iv.q0, 0.0, h, n, hs)[0]
 
-    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl0, 0.0, h, n, *hs)
+    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl0, 0.0, h, n, hs)
 
     def forces(x):  # the held forces at x
         f = oracle.quadratic_forces(x[:r], x[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
@@ -138,7 +138,7 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
 
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
     tensors = iv.forces.jacobian_tensors()
-    F = ex.held_interval(z, u, dl0, 0.0, h, n, *tensors, Pn, S, *hs)[1]  # the cached step's own F
+    F = ex.held_interval(z, u, dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]  # the cached step's own F
     Fp = hs.Wg
     if hs.Wg.shape[0]:  # gravity: F holds the held matrices' change with q as forces at z (position_forces)
         Fp = ex.position_forces(z, step(z), dt, hs.Wg, hs.dM, hs.dK, hs.beta)
