@@ -200,7 +200,7 @@ def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
 
     def step(x):
         dl = x[:nq] - iv.q0
-        return ex.held_step(x, u, dl, _secant_factor(iv, dl), h, n, *iv.system)[0]
+        return ex.held_step(x, u, dl, _secant_factor(iv, dl), h, n, iv.system)[0]
 
     dl = z[:nq] - iv.q0
     s = _secant_factor(iv, dl)
@@ -208,9 +208,9 @@ def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
     x_ref = step(z)
     assert np.allclose(x1, x_ref, rtol=1e-12, atol=1e-13 * np.abs(x_ref).max())
     Fd = _central(step, z, r)
-    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl, s, h, n, *iv.system)
+    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl, s, h, n, iv.system)
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
-    F_filter = ex.held_interval(z, u, dl, s, h, n, *iv.forces.jacobian_tensors(), Pn, S, *iv.system)[1]
+    F_filter = ex.held_interval(z, u, dl, s, h, n, *iv.forces.jacobian_tensors(), Pn, S, tuple(iv.system))[1]
     return {"s": s, "exact": float(entry_error(F, Fd, 1e-5, 1e-8).max()),
             "left_out": float((np.abs(F_filter - F) / natural_scale(F)).max())}
 

@@ -544,7 +544,7 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     tm = 0.5 * h * n
     for tm in (tm, 0.0):  # the midpoint elastic coordinates; the start where M_r is not positive definite there
         pem = p[nq:] + tm * pd[nq:]
-        M, K, C, G = held_system(dl, s, pem if n_el else pem[:0], *hs)
+        M, K, C, G = held_system(dl, s, pem if n_el else pem[:0], tuple(hs))
         try:
             Minv = np.linalg.inv(np.linalg.cholesky(M))
         except np.linalg.LinAlgError:
