@@ -78,8 +78,9 @@ class HeldSystem(NamedTuple):
     matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
     empty: none). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
     (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
-    column): the weight follows ``q`` by it over the radius (:func:`_held_model`) and the step Jacobian holds it
-    (:func:`_step_jacobian`); empty (0, 0) without gravity, where both are the held arrays' alone.
+    column): the weight follows ``q`` by it over the radius, and with a secant partner by its curvature along the
+    secant too (:func:`_held_model`: second order), and the step Jacobian holds it (:func:`_step_jacobian`); empty
+    (0, 0) without gravity, where both are the held arrays' alone.
     """
 
     has_old: bool
@@ -396,9 +397,13 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
 def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
     the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
-    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. The weight follows ``q`` by its gradient
-    instead (``fg + Wg[:, :nq] dl``, first order in every direction; the secant's is first order along its line
-    only), where the held system has one (gravity).
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. Where the held system has a weight gradient
+    (gravity) the weight follows ``q`` to second order instead, as ``M_r`` and ``K_r`` do: its gradient in every
+    direction and, with a secant partner (``d = q0 - q_old``, ``s = (dl . d) / (d . d)``), its curvature along the
+    secant from the partner's weight, ``fg_old = fg - Wg d + 1/2 D2(d, d)``, so ``1/2 D2(dl, dl) = s^2 (fg_old - fg)
+    + s Wg dl`` on the line and ``f_g = fg + (1 + s) Wg dl - s^2 (fg - fg_old)``. To first order only, the
+    weight's error ``1/2 D2(dl, dl)`` is of one sign over the whole radius: a bias the filter takes for signal
+    (docs/gravity.md measures what it did to the filter on its own model).
 
     The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
     interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
@@ -426,13 +431,13 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-    if hs.Wg.shape[0]:  # the weight by its gradient in q, its secant taken out again
+    if hs.Wg.shape[0]:  # the weight to second order: its gradient, and its curvature along the secant
         for i in range(r):
             acc = 0.0
             for j in range(nq):
                 acc += hs.Wg[i, j] * dl[j]
-            if hs.has_old:
-                acc -= s * (hs.fg[i] - hs.old_fg[i])
+            if hs.has_old:  # the secant's first-order term taken out, the curvature along it put in: (1 + s) x
+                acc = (1.0 + s) * (acc - s * (hs.fg[i] - hs.old_fg[i]))
             f[i] += acc
     n_el = hs.pG.shape[0]
     if n_el:  # the weight's change with the elastic coordinates (pG's last column, :func:`_elastic_terms`)
