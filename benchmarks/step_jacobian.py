@@ -153,8 +153,8 @@ def refreshes(model: str, run: str) -> dict:
         zq[:nq] = iv.q0
         dl = iv.q0 - old.q0
         pe = zq[nq:r]
-        Mh, Kh, Ch, Gh = held_system(dl, s_old, pe, *old.system)
-        Me, Ke, Ce, Ge = held_system(np.zeros(nq), 0.0, pe, *iv.system)
+        Mh, Kh, Ch, Gh = held_system(dl, s_old, pe, tuple(old.system))
+        Me, Ke, Ce, Ge = held_system(np.zeros(nq), 0.0, pe, tuple(iv.system))
         fh, fe = forces(old.system, zq, s_old, nq, r), forces(iv.system, zq, 0.0, nq, r)
         p, pd = zq[:r], zq[r:]
         acc = np.linalg.solve(Me, Ge @ u + fe - Ke @ p - Ce @ pd)
@@ -244,7 +244,7 @@ def oracle_jacobian(variant: str):
         _, _, _, _, h, n = self._interval_matrices
         z = np.asarray(z, float)
         dl = z[:nq] - iv.q0 + 0.5 * dt * z[r : r + nq]
-        x, *mats = ex.held_step(z, u, dl, R._secant_factor(iv, dl), h, n, *iv.system)
+        x, *mats = ex.held_step(z, u, dl, R._secant_factor(iv, dl), h, n, iv.system)
         if not np.isfinite(x[0]):
             return pred
         self._interval_matrices = (*mats, h, n)
@@ -287,7 +287,7 @@ def oracle_jacobian(variant: str):
         s0 = R._secant_factor(iv, z[:nq] - iv.q0 + mid * z[r : r + nq])
 
         def step(x):
-            return ex.held_step(x, u, x[:nq] - iv.q0 + mid * x[r : r + nq], s0, h, n, *iv.system)[0]
+            return ex.held_step(x, u, x[:nq] - iv.q0 + mid * x[r : r + nq], s0, h, n, iv.system)[0]
 
         F = _central_step(step, np.asarray(z, float), nq, r)
         if variant == "q_columns":
@@ -378,7 +378,7 @@ def left_out_terms(model: str, run: str, every: int = 50) -> dict:
         s0 = R._secant_factor(iv, z[:nq] - iv.q0)
 
         def fd(hs):
-            return _central_step(lambda x: ex.held_step(x, u, x[:nq] - iv.q0, s0, h, n, *hs)[0], z, nq, r)
+            return _central_step(lambda x: ex.held_step(x, u, x[:nq] - iv.q0, s0, h, n, hs)[0], z, nq, r)
 
         F_ex = fd(iv.system)
         if not np.all(np.isfinite(F_ex)):
