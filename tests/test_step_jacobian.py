@@ -14,6 +14,10 @@ What it leaves out, the held matrices' change with the positions (and, through t
 which they are held, with the rates), is measured against central differences of the whole step, per model of the gallery and
 on a mechanism written here (a double pendulum in a vertical plane: the weight's force changes with q and with the
 elastic coordinates); docs/step_jacobian.md gives the reason it is left out.
+
+The whole step's exact Jacobian, every term in (:func:`exuflex.observer.expansion.exact_jacobian`, the tangent of
+the step's RK4 sub-steps), is compared with central differences of the step entry by entry on every model, with a
+secant partner in use (``exact_entries``): the reference the filter's ``F`` is measured against.
 """
 
 import functools

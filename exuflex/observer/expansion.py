@@ -527,8 +527,8 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     with the secant factor ``s`` of the secant ``d``, ``dd = d . d``; ``d`` empty without a partner) and its
     exact Jacobian in ``z``, by the tangent of its RK4 sub-steps: the reference for :func:`step_jacobian`, which
     leaves terms out (``tests/test_step_jacobian.py`` compares both with finite differences of the step, entry
-    by entry). NumPy, about a hundred times the compiled step's cost on the six-bar: a reference, not the
-    filter's.
+    by entry). NumPy: a reference and a measurement, not the filter's (it carries the tangent of every state
+    component through every RK4 stage).
 
     Every input of the held system ``M p'' + C p' + K p = G u + f`` (:func:`_held_model`) that the step takes
     from ``z`` is differentiated: ``M_r``, ``K_r`` in ``q`` (the gradients, the secant's second order and, where
@@ -629,17 +629,19 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
                 dCj[j, :nq, :] += c * Pc
                 dCj[j, :, :nq] += c * Pc.T
                 dGj[j, :nq, :] += c * hs.pG[k].reshape(nq, mg)[:, :m]
-    # the sub-steps with their tangent
-    Ak, Ac = Minv @ K, Minv @ C
+    # the sub-steps with their tangent (the derivatives stacked: one product per stage and kind)
+    KC = np.hstack([K, C])
+    A = Minv @ KC  # [M^-1 K, M^-1 C]
     b0 = G @ u + f
-    g0 = dF + np.einsum("jac,c->aj", dGj, u)
+    g0 = (dF + np.einsum("jac,c->aj", dGj, u)).T.copy()  # (nx, r): row j the forcing of column j
+    dKC = np.concatenate([dKj, dCj], axis=2).reshape(nx * r, 2 * r)
+    dM2 = dMj.reshape(nx * r, r)
     x, X = z.copy(), np.eye(nx)
 
     def rate(y, Y):
-        a = Minv @ (b0 - K @ y[:r] - C @ y[r:])
-        g = g0 - np.einsum("jab,b->aj", dKj, y[:r]) - np.einsum("jab,b->aj", dCj, y[r:]) \
-            - np.einsum("jab,b->aj", dMj, a)
-        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g - Ak @ Y[:r] - Ac @ Y[r:]])
+        a = Minv @ (b0 - KC @ y)
+        g = g0 - (dKC @ y).reshape(nx, r) - (dM2 @ a).reshape(nx, r)
+        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g.T - A @ Y])
 
     for _ in range(n):
         k1, K1 = rate(x, X)
@@ -767,7 +769,8 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
     propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
     ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
-    step, docs/step_jacobian.md gives the reason)."""
+    step and with the step's exact Jacobian :func:`exact_jacobian`; docs/step_jacobian.md measures what the
+    left-out terms change and why they stay out)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
