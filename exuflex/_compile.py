@@ -54,6 +54,8 @@ JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
 START_COST = 1.7
 #: seconds to wait for a compiling subprocess before compiling its share here
 TIMEOUT_S = 900.0
+#: seconds between two looks at the other processes' progress (a line per group compiled)
+PROGRESS_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -377,8 +379,8 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
     """Compile the kernel groups that numba's cache lacks, in ``n_jobs`` processes (:func:`jobs`), so that this
     process then loads them from the cache: the groups of :data:`AUGMENTED_GROUPS` only with ``augmented`` (an
     augmented estimator's observer). Once per process and kind; returns the wall seconds it compiled for (0 with a
-    warm cache), from :func:`start` where that began it. ``progress``: one line when compiling starts and one when
-    done (default: the log, INFO)."""
+    warm cache), from :func:`start` where that began it. ``progress``: one line when compiling starts, one per
+    group compiled (here or in another process) and one when done (default: the log, INFO)."""
     global _started
     if _started is None:
         start(n_jobs, progress, augmented)
@@ -390,19 +392,41 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
     st, _started = _started, None
     known = {g.name: g for g in groups()}
     workers = st.workers
+    todo = st.here + [g for _, _, share in workers for g in share]
+    done: set[str] = set()
+
+    def tick() -> None:
+        """A line for each group compiled since the last look (here, or cached by another process)."""
+        for g in todo:
+            if g.name not in done and g.cached():
+                done.add(g.name)
+                st.say(f"compiled the {g.name} kernels ({len(done)} of {len(todo)} groups, "
+                       f"{time.perf_counter() - st.t0:.0f} s)")
+
+    def alive() -> bool:
+        tick()
+        return all(p.poll() in (None, 0) for p, _, _ in workers)
+
     try:
         here = _needs_first(st.here)
         local = {g.name for g in here}
         for g in here:
-            _await_needs(g, local, known, alive=lambda: all(p.poll() in (None, 0) for p, _, _ in workers))
+            _await_needs(g, local, known, alive=alive)
             _warm(g)
+            tick()
         for proc, err, share in workers:
-            try:
-                rc = proc.wait(timeout=max(1.0, TIMEOUT_S - (time.perf_counter() - st.t0)))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-                rc = "timeout"
+            deadline = st.t0 + TIMEOUT_S
+            while True:
+                try:
+                    rc = proc.wait(timeout=min(PROGRESS_S, max(0.01, deadline - time.perf_counter())))
+                    break
+                except subprocess.TimeoutExpired:
+                    tick()
+                    if time.perf_counter() >= deadline:
+                        proc.kill()
+                        proc.wait()
+                        rc = "timeout"
+                        break
             if rc != 0:
                 err.seek(0)
                 tail = err.read().decode(errors="replace").strip().splitlines()[-1:] or [""]
@@ -413,6 +437,7 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
     for _, _, share in workers:  # loaded from the cache the subprocesses wrote (or compiled here if they did not)
         for g in share:
             _warm(g)
+    tick()
     wall = time.perf_counter() - st.t0
     st.say(f"numba kernels compiled in {wall:.0f} s (cached on disk for later runs)")
     return wall
