@@ -590,16 +590,16 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     if hs.has_old and d.shape[0]:
         act = not (float(dl @ d) ** 2 < 0.49 * float(dl @ dl) * dd)
     ds = d / dd if act else np.zeros(nq)
-    if act:
-        along = fk[0] - fk[1]
-        if hs.Wg.shape[0]:
-            along = along - (hs.fg - hs.old_fg)
-        dF[:, :nq] += np.outer(along, ds)
-    if hs.Wg.shape[0]:  # the weight by its gradient in q (its secant taken out again) and the elastic coordinates
-        f += hs.Wg[:, :nq] @ dl
+    along = fk[0] - fk[1] if hs.has_old else 0.0
+    if hs.Wg.shape[0]:  # the weight to second order (:func:`_held_model`): (1 + s) (Wg dl - s (fg - fg_old))
+        wdl = hs.Wg[:, :nq] @ dl
+        dfg = hs.fg - hs.old_fg
+        f += (1.0 + s) * (wdl - s * dfg) if hs.has_old else wdl
+        dF[:, :nq] += (1.0 + s) * hs.Wg[:, :nq] if hs.has_old else hs.Wg[:, :nq]
         if hs.has_old:
-            f -= s * (hs.fg - hs.old_fg)
-        dF[:, :nq] += hs.Wg[:, :nq]
+            along = along + wdl - (1.0 + 2.0 * s) * dfg
+    if act:  # the secant factor's own change moves everything along the secant
+        dF[:, :nq] += np.outer(along, ds)
     if n_el:
         mg = hs.pG.shape[1] // nq
         wcol = hs.pG.reshape(n_el, nq, mg)[:, :, mg - 1]  # (n_el, nq)
