@@ -280,11 +280,11 @@ def test_held_weight_follows_the_configuration_to_second_order():
         z = np.zeros(2 * r)
         z[0] = q0 + h
         n = som.substeps(iv, dt)
-        want = held_step(z, u, zero, 0.0, dt / n, n, *exact.system)[0]
-        change = np.abs(want - held_step(z, u, zero, 0.0, dt / n, n, *iv.system)[0]).max()
-        step.append(np.abs(held_step(z, u, np.array([h]), 1.0, dt / n, n, *iv.system)[0] - want).max() / change)
+        want = held_step(z, u, zero, 0.0, dt / n, n, exact.system)[0]
+        change = np.abs(want - held_step(z, u, zero, 0.0, dt / n, n, iv.system)[0]).max()
+        step.append(np.abs(held_step(z, u, np.array([h]), 1.0, dt / n, n, iv.system)[0] - want).max() / change)
         # without the partner's curvature: the weight to first order (s = 0 drops the secant altogether)
-        first.append(np.abs(held_step(z, u, np.array([h]), 0.0, dt / n, n, *iv.system)[0] - want).max() / change)
+        first.append(np.abs(held_step(z, u, np.array([h]), 0.0, dt / n, n, iv.system)[0] - want).max() / change)
         fg0, fg_old, fg_h = iv.forces.fg, iv.old.forces.fg, exact.forces.fg
         expanded = fg0 + 2.0 * iv.forces.Wg[:, 0] * h - (fg0 - fg_old)  # s = 1
         weight.append(np.abs(expanded - fg_h).max() / np.abs(fg_h - fg0).max())
