@@ -457,6 +457,7 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
     import test_step_jacobian as tsj
 
     from exuflex.mechanism import load_mechanism
+    from exuflex.observer import FilterDivergedError
     from exuflex.observer import expansion as ex
     from exuflex.observer import reduced as R
     from exuflex.observer.session import ObserverConfig, make_observer
@@ -521,6 +522,10 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
             cls._cached = cached
             try:
                 res = observe_run(mech, run, cfg, observer=make_observer(mech, cfg))
+            except FilterDivergedError as exc:  # (recorded: the filter went non-finite)
+                out["runs"].setdefault(variant, {})[seed] = {"diverged": str(exc)}
+                print(out["model"], variant, seed, "diverged:", exc, flush=True)
+                continue
             finally:
                 cls._cached = orig
             s = res.summary
@@ -888,8 +893,11 @@ def _own_section(path: str, entries_path: str | None = None) -> list[str]:
              "start-up, `sigma` the filter's own; 1 for a consistent filter).", "",
              "| step Jacobian | seeds | " + " | ".join(slow) + " | worst | NIS / channels | normalised q | normalised q' |",
              "|---|---|" + "---|" * (len(slow) + 4)]
-    for v, rs in runs.items():
+    for v, rs_all in runs.items():
+        rs = {k: x for k, x in rs_all.items() if "diverged" not in x}
         ss = sorted(rs, key=int)
+        if len(rs) < len(rs_all):
+            v = f"{v} (diverged on seed {', '.join(k for k, x in rs_all.items() if 'diverged' in x)})"
         mean = {q: np.mean([rs[s]["ratio_to_bound"][q] for s in ss]) for q in slow}
         worst = np.mean([max(rs[s]["ratio_to_bound"].values()) for s in ss])
         nis = np.mean([rs[s]["nis_mean"] / rs[s]["nis_expected"] for s in ss])
