@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
 #: CPU seconds a compiling subprocess spends before its first compilation (Python, NumPy, numba, the package,
 #: numba's compiler set up)
-START_COST = 1.7
+START_COST = 1.1
 #: seconds to wait for a compiling subprocess before compiling its share here
 TIMEOUT_S = 900.0
 #: seconds between two looks at the other processes' progress (a line per group compiled)
@@ -87,23 +87,23 @@ def groups() -> tuple[KernelGroup, ...]:
 
     return (
         KernelGroup(CHECKS_GROUP, _warm_up_kinematics, (_closure.closure_newton, _closure.pose_sensitivities,
-                    _closure.coordinate_rates), cost=3.4),
+                    _closure.coordinate_rates), cost=4.6),
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
-                    _compiled._force_terms_shared, _compiled.force_terms), cost=14.6, needs=(CHECKS_GROUP,)),
-        KernelGroup("held", expansion.warm_up_held, (expansion.prediction_error,), cost=3.2),
+                    _compiled._force_terms_shared, _compiled.force_terms), cost=20.3, needs=(CHECKS_GROUP,)),
+        KernelGroup("held", expansion.warm_up_held, (expansion.prediction_error,), cost=2.7),
         KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
-                    cost=5.8),
+                    cost=7.8),
         KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,
                     expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.measurement_rows),
-                    cost=6.5),
+                    cost=7.8),
         KernelGroup("kalman", _warm_up_kalman, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic, kalman.window_seen,
-                    kalman.window_push, kalman.condition_on, kalman.gate, kalman.fix_cov), cost=4.3),
-        KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=6.3,
+                    kalman.window_push, kalman.condition_on, kalman.gate, kalman.fix_cov), cost=5.3),
+        KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=15.1,
                     needs=("interval", "step_map", "kalman")),
         KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,
-                    expansion.extra_interval), cost=23.4,
+                    expansion.extra_interval), cost=48.3,
                     needs=("interval", "step_map", "kalman")),
     )
 
