@@ -91,7 +91,7 @@ def groups() -> tuple[KernelGroup, ...]:
                     cost=6.5),
         KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic, kalman.window_seen,
-                    kalman.window_push), cost=4.3),
+                    kalman.window_push, kalman.condition_on, kalman.gate), cost=4.3),
         KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=6.3,
                     needs=("interval", "step_map", "kalman")),
         KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,

@@ -117,6 +117,54 @@ def test_update_kernel_equals_numpy_expressions(m):
                                atol=1e-12 * np.abs(P).max())
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_condition_on_a_subset_is_the_update_with_those_rows_and_filterpys(seed):
+    """:func:`kalman.condition_on` with a channel mask: bit for bit the update kernel and ``settle`` on the rows kept
+    (selected in NumPy), and filterpy's ``KalmanFilter.update`` with those rows (an independent oracle)."""
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(seed)
+    L = rng.standard_normal((NX, NX))
+    P = np.ascontiguousarray(0.5 * (L @ L.T + (L @ L.T).T) / NX)
+    H = rng.standard_normal((M, NX))
+    Rd = rng.uniform(0.01, 0.1, M)
+    x = rng.standard_normal(NX)
+    y_pred = H @ x
+    y = y_pred + 0.1 * rng.standard_normal(M)
+    keep = rng.random(M) < 0.5
+    keep[seed % M] = True
+    floor = np.full(NX, 1e-18)
+    x_out, P_out = np.empty(NX), np.empty((NX, NX))
+    nis, ok, finite, r, S = kalman.condition_on(keep, x, P, y, y_pred, H, Rd, floor, np.empty((M, NX)), x_out, P_out)
+    assert ok and finite and r.shape == (keep.sum(),)
+    x_ref, P_ref, r_ref, S_ref = np.empty(NX), np.empty((NX, NX)), np.empty(keep.sum()), np.empty((keep.sum(),) * 2)
+    Hk = np.ascontiguousarray(H[keep])
+    nis_ref, _ = kalman.update(x, P, y[keep], y_pred[keep], Hk, Rd[keep], np.empty((M, NX)), r_ref, S_ref, x_ref, P_ref)
+    kalman.settle(x_ref, P_ref, floor)
+    assert nis == nis_ref and np.array_equal(r, r_ref) and np.array_equal(S, S_ref)
+    assert np.array_equal(x_out, x_ref) and np.array_equal(P_out, P_ref)
+    kf = KalmanFilter(dim_x=NX, dim_z=int(keep.sum()))
+    kf.x, kf.P = x.copy(), P.copy()
+    kf.update(y[keep], R=np.diag(Rd[keep]), H=Hk)
+    np.testing.assert_allclose(x_out, kf.x.reshape(-1), rtol=0, atol=1e-10 * np.abs(kf.x).max())
+    np.testing.assert_allclose(P_out, kf.P, rtol=0, atol=1e-9 * np.abs(kf.P).max())
+
+
+def test_gate_leaves_out_a_minority_beyond_the_threshold():
+    """:func:`kalman.gate`: channels beyond the threshold (or isolated beforehand) are left out while they are
+    fewer than half; none within the hold-off (``n_over`` 0) unless isolated; all stay where half or more are off."""
+
+    def chosen(z, n_over, keep=None):
+        keep = np.ones(len(z), dtype=bool) if keep is None else np.array(keep)
+        return kalman.gate(np.array(z, float), 9.0, n_over, keep), keep.tolist()
+
+    assert chosen([0.1, 5.0, -0.2, 0.3], 1) == (3, [True, False, True, True])
+    assert chosen([0.1, 5.0, -0.2, 0.3], 0) == (4, [True] * 4)  # the hold-off: no gating
+    assert chosen([5.0, -5.0, 0.1, 0.2], 2) == (4, [True] * 4)  # half off: the filter, not the sensors
+    assert chosen([0.1, 0.2, 0.3, 0.4], 0, [True, True, False, True]) == (3, [True, True, False, True])
+    assert chosen([0.1, 5.0, 0.3, 0.4, 0.5], 1, [True, True, False, True, True]) == (3, [True, False, False, True, True])
+
+
 def test_predict_and_settle_kernels_equal_numpy_expressions():
     rng = np.random.default_rng(1)
     F, Q = rng.standard_normal((NX, NX)), rng.standard_normal((NX, NX))

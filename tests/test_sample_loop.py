@@ -164,3 +164,28 @@ def test_smoother_forward_pass_is_the_loop(sixbar_log):
         ekf._loop = loop
     for name in ("x_hat", "P", "x_filt", "P_filt", "nis"):
         assert np.array_equal(getattr(looped, name), getattr(stepped, name), equal_nan=True), name
+
+
+def test_loop_takes_gated_blank_and_partial_samples(sixbar_log):
+    """A spike the gate leaves out, a blank sample (a prediction only) and samples with a channel missing stay in
+    the compiled loop (the update redone without the gated channel, the channels sampled alone): ``step`` takes
+    only the samples the loop cannot (the first, the model's own intervals), with the same numbers."""
+    mech, obs, t, U, Y = sixbar_log
+    n = 640
+    t, U, Y = t[:n].copy(), U[:n].copy(), Y[:n].copy()
+    Y[450, 1] += 50 * obs.ekf.R_std[1]
+    Y[500, :] = np.nan
+    Y[520, 2] = np.nan
+    Y[530:560:3, 4] = np.nan
+    ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
+    stepped = []
+    step = ekf.step
+    ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
+    try:
+        looped = ekf.run(t, U, Y)
+    finally:
+        del ekf.step
+    assert not {450, 500, 520, 530, 533} & set(stepped) and len(stepped) < 10
+    assert looped.n_rejected[obs.channels[1]] == 1 and looped.nis_dof[520] == 5 and looped.nis_dof[500] == 0
+    assert np.isnan(looped.innovations[520, 2]) and np.isnan(looped.S[520, 2]).all()
+    _same(looped, _step_by_step(ekf, t, U, Y))

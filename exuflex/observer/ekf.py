@@ -737,17 +737,17 @@ class BeliefFilter:
                 self.faults.seen(self._t_now, idx)
         elif self.faults is not None:
             self.faults.push(self._t_now, idx, z)
-        rej = None
-        if n_over:
-            rej = z * z > self._gate
+        keep = None
         if self.isolate and self.faults is not None and self.faults._open:
             # isolation: a channel with an open sensor fault stays out until its innovations are back in band
-            sus = self.faults.suspect()[idx]
-            rej = sus if rej is None else rej | sus
-        if rej is None or not rej.any() or 2 * int(np.count_nonzero(rej)) >= m:
+            keep = ~self.faults.suspect()[idx]
+        if not n_over and keep is None:
+            return None
+        keep = np.ones(m, dtype=bool) if keep is None else keep
+        if kalman.gate(z, self._gate, n_over, keep) == m:
             return None  # none, or most of the channels off: the filter, not the sensors (the NIS test sees it)
-        self.n_rejected[idx[rej]] += 1
-        return ~rej
+        self.n_rejected[idx[~keep]] += 1
+        return keep
 
     def _count_update(self, t: float, nis: float, dof: int, held: bool) -> None:
         """An update done at ``t``: counted, and its NIS into the divergence test (not within the hold-off after
@@ -863,9 +863,8 @@ class MultirateEKF(BeliefFilter):
         # the compiled sample loop (run() hands it the samples it can take) where the model has a compiled step
         self._loop = loop.samples if takes_compiled_loop(model) else None
         if self._loop is not None:
-            self._loop_status = np.zeros(self.m, dtype=np.int64)
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
-                                np.zeros(4))
+                                np.zeros(4), np.zeros(0, dtype=np.int64), math.nan)
             loop.warm_up(True if self.hooks.i_theta is not None or self.hooks.i_inputs is not None else None)
         kalman.warm_up()
         self.reset()
@@ -874,7 +873,6 @@ class MultirateEKF(BeliefFilter):
     def reset(self, x0=None, P0=None) -> None:
         """Restart from a prior (:meth:`BeliefFilter.reset`)."""
         super().reset(x0, P0)
-        self.n_invalid = 0
         self._model_failure = None
         self.last_prediction = None
 
@@ -905,7 +903,6 @@ class MultirateEKF(BeliefFilter):
         if math.isfinite(sum(y.tolist())):  # every channel (the common case): one sum of a list
             return self._all, self.channels, self._Rdiag
         mask = np.isfinite(y)
-        self.n_invalid += int(np.count_nonzero(np.isinf(y)))
         if not mask.any():
             return None
         key = mask.tobytes()
@@ -917,7 +914,8 @@ class MultirateEKF(BeliefFilter):
 
     def _update(self, y: np.ndarray, idx: np.ndarray, chans: tuple, Rd: np.ndarray, FQ) -> bool:
         """Covariance prediction with ``FQ = (F, Q)`` (None: none, the first sample) and the measurement update
-        with the channels ``chans`` (eqs. 13-15), then the end-of-sample settling. Returns finiteness."""
+        with the channels ``chans`` (eqs. 13-15; the monitors may leave some out, :meth:`_screen`, and the update
+        is then redone without them), settled (:func:`.kalman.condition_on`). Returns finiteness."""
         x = self._x
         m, n = len(idx), self.nx
         try:
@@ -926,42 +924,34 @@ class MultirateEKF(BeliefFilter):
             self._model_failure = f"{type(exc).__name__}: {exc}"
             return False
         H = np.ascontiguousarray(H, dtype=float)
-        y_pred = np.asarray(y_pred, dtype=float)
+        y_pred = np.ascontiguousarray(y_pred, dtype=float)
         if H.shape != (m, n) or y_pred.shape != (m,):
             raise ValueError(f"model.measure returned y {y_pred.shape}, H {H.shape} for {m} channels; expected "
                              f"({m},) and ({m}, {n})")
         y = np.ascontiguousarray(y if m == self.m else y[idx])
-        r, S, x_new, P_new = np.empty(m), np.empty((m, m)), np.empty(n), self._Pspare
-        if FQ is None:
-            P = self._P
-            nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
-        else:
+        P = self._P
+        if FQ is not None:
             P = self._Ppred
-            nis, ok, finite = kalman.predict_update(FQ[0], self._P, FQ[1], x, y, y_pred, H, Rd, self._floor,
-                                                    (P, self._work, self._HP), (r, S, x_new, P_new))
-        if not ok:
-            nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
-        keep = self._screen(idx, r, S)
-        if keep is not None:  # a minority of the channels is off: those sensors, not the filter
-            idx, chans, Rd = idx[keep], tuple(c for c, k in zip(chans, keep, strict=True) if k), Rd[keep]
-            m = len(idx)
-            y, y_pred, H = y[keep], y_pred[keep], np.ascontiguousarray(H[keep])
-            r, S = np.empty(m), np.empty((m, m))
-            nis, ok, finite = self._update_settle(x, P, y, y_pred, H, Rd, r, S, x_new, P_new)
-            if not ok:
-                nis, finite = self._lu_update(x, P, H, Rd, r, S, x_new, P_new)
+            kalman.predict_cov(FQ[0], self._P, FQ[1], P, self._work)
+        x_new, P_new = np.empty(n), self._Pspare
+        keep = np.ones(m, dtype=bool)
+        nis, finite, r, S = self._condition(keep, x, P, y, y_pred, H, Rd, x_new, P_new)
+        gated = self._screen(idx, r, S)
+        if gated is not None:  # a minority of the channels is off: those sensors, not the filter
+            idx = idx[gated]
+            nis, finite, r, S = self._condition(gated, x, P, y, y_pred, H, Rd, x_new, P_new)
         self._Pspare = self._P
         self._x, self._P = x_new, P_new
-        self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, m
+        self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, len(idx)
         return finite
 
-    def _update_settle(self, x, P, y, y_pred, H, Rd, r, S, x_new, P_new) -> tuple[float, bool, bool]:
-        """The update without a prediction (:func:`.kalman.update`, then :func:`.kalman.settle` where ``S`` is
-        positive definite): ``(nis, ok, finite)`` as :func:`.kalman.predict_update`. Two calls rather than a
-        kernel of their own: it runs at the first sample and after a gate only, and a kernel calling both would
-        compile their code once more."""
-        nis, ok = kalman.update(x, P, y, y_pred, H, Rd, self._HP, r, S, x_new, P_new)
-        return nis, ok, kalman.settle(x_new, P_new, self._floor) if ok else True
+    def _condition(self, keep, x, P, y, y_pred, H, Rd, x_new, P_new) -> tuple:
+        """The update from ``(x, P)`` with the channels ``keep`` marks, settled (:func:`.kalman.condition_on`),
+        finished by an LU solve where ``S`` is not positive definite: ``(nis, finite, r, S)``."""
+        nis, ok, finite, r, S = kalman.condition_on(keep, x, P, y, y_pred, H, Rd, self._floor, self._HP, x_new, P_new)
+        if not ok:
+            nis, finite = self._lu_update(x, P, H[keep], Rd[keep], r, S, x_new, P_new)
+        return nis, finite, r, S
 
     def _lu_update(self, x, P, H, Rd, r, S, x_new, P_new) -> tuple[float, bool]:
         """The update finished by an LU solve where ``S`` is not positive definite (rounding, or a wrong model),
@@ -1059,13 +1049,12 @@ class MultirateEKF(BeliefFilter):
 
     # ------------------------------------------------------------------ the compiled sample loop
     def _loop_ends(self, t, U, Y) -> np.ndarray:
-        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: every channel
-        finite, the interval valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
+        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: the interval
+        valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
         n = len(t)
         if self._loop is None or U is None or n < 2:
             return np.zeros(n, dtype=np.int64)
-        ok = np.isfinite(Y).all(axis=1)
-        ok &= np.isfinite(U.reshape(n, -1)).all(axis=1)
+        ok = np.isfinite(U.reshape(n, -1)).all(axis=1)
         dt = np.diff(t)
         ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
         ok[0] = False
@@ -1093,8 +1082,9 @@ class MultirateEKF(BeliefFilter):
         step = self.input_step
         step_w, step_thr = (step.weights, step.threshold) if step is not None else (np.zeros(U.shape[1]), math.inf)
         f = self.faults
-        win = (*f.window_arrays, np.array(f.window_tests)) if f is not None else self._no_windows
-        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, *win, self._loop_status, step_w, step_thr)
+        win = ((*f.window_arrays, np.array(f.window_tests), f._status, math.nan if f._t0 is None else f._t0)
+               if f is not None else self._no_windows)
+        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected, *win, step_w, step_thr)
         inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None
                       else (_empty_rows(m), _empty_rows(m * m)))
         rows = len(rec.t)
@@ -1102,8 +1092,7 @@ class MultirateEKF(BeliefFilter):
                 else (_empty_rows(n), _empty_rows(n * n), _empty_rows(n * n)))
         record = loop.Record(rec.x_hat, _empty_rows(n) if rec.P is None else rec.P.reshape(rows, -1),
                              -1 if rec.P is None else 0 if rec.store_P == "diag" else 1,
-                             _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, *pred)
-        r, S, zn = np.empty(m), np.empty((m, m)), np.empty(m)
+                             _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, rec.dof, *pred)
         while k < k_end:
             x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
             try:
@@ -1111,33 +1100,39 @@ class MultirateEKF(BeliefFilter):
             except _MODEL_FAILURES:  # the model cannot step from here: step() says why
                 break
             hold0 = self._holdoff
-            buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP, r, S, zn)
-            k_next, status, self._holdoff, swapped, state, mats = self._loop(
+            buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP)
+            k_next, status, self._holdoff, swapped, state, mats, last = self._loop(
                 t, U, Y, k, k_end, hold0, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
-                self._loop_close(t, U, k, k_next, hold0, rec, r, S, mats, state)
+                self._loop_close(t, U, k, k_next, hold0, rec, last, mats, state)
                 if status == MONITOR:
-                    f.verdicts(float(t[k_next - 1]), self._all, self._loop_status)
+                    f.verdicts(float(t[k_next - 1]), last[0], f._status)
             k = k_next
             if status not in (REFRESH, REMAP):
                 break
         return k
 
-    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, r, S, mats, state) -> None:
+    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, last: tuple, mats, state) -> None:
         """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
-        test, the record's degrees of freedom) and of the last (times, input, innovations, the model's interval)."""
-        m = self.m
+        test) and of the last (times, input, the channels updated with and their innovations, the model's
+        interval); ``last`` the loop's ``(sampled, kept, r, S)`` of the last sample."""
         self.n_missing += int(self._skipped[k1 - 1] - self._skipped[k0 - 1])
-        rec.dof[k0:k1] = m
+        held = hold0
         for j in range(k0, k1):
-            self._count_update(t[j], float(rec.nis[j]), m, hold0 - (j - k0) > 0)
-        self._held = hold0 - (k1 - 1 - k0) > 0
+            dof = int(rec.dof[j])
+            if dof:  # an update: the hold-off counts it down (the monitors' allowance after an input step)
+                self._held = held > 0
+                held -= self._held
+                self._count_update(t[j], float(rec.nis[j]), dof, self._held)
+            else:
+                self.n_missing += 1
         self._t_prev = self._t_now = float(t[k1 - 1])
         self._u_prev = U[k1 - 1]
-        self.last_idx, self.last_innovation, self.last_S = self._all, r.copy(), S.copy()
-        self.last_nis, self.last_dof = float(rec.nis[k1 - 1]), m
+        dof = int(rec.dof[k1 - 1])
+        self.last_idx, self.last_innovation, self.last_S = (last[1], last[2], last[3]) if dof else (None, None, None)
+        self.last_nis, self.last_dof = (float(rec.nis[k1 - 1]), dof) if dof else (math.nan, 0)
         self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), state, self._x, k1)
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,

@@ -4,7 +4,9 @@
 - :func:`update`: innovation, its covariance, one Cholesky solve for the gain and ``S^-1 r``, the posterior mean
   and the Joseph-form covariance (eqs. 14-15);
 - :func:`settle`: symmetrisation, a floor on the variances and the finiteness test that end every sample;
-- :func:`predict_update`: the three in one call (what a sample with a measurement does);
+- :func:`predict_update`: the three in one call;
+- :func:`condition_on`: :func:`update` and :func:`settle` on a subset of the channels (a sample with channels
+  missing or gated); :func:`gate`: which channels the gate leaves out;
 - :func:`predict`, :func:`condition`: the same algebra as pure steps on a :class:`~.base.Belief` (new arrays; the
   filter's driver calls the kernels on its own buffers).
 
@@ -41,7 +43,9 @@ __all__ = [
     "InputStepTest",
     "apply_gain",
     "condition",
+    "condition_on",
     "fix_cov",
+    "gate",
     "normalise",
     "predict",
     "predict_cov",
@@ -356,6 +360,51 @@ def predict_update(F, P, Q, x, y, y_pred, H, Rd, floor, scratch, out):
 
 
 @_jit
+def condition_on(keep, x, P, y, y_pred, H, Rd, floor, HP, x_out, P_out):
+    """The update (:func:`update`) with the channels ``keep`` marks (the rows of ``y``, ``y_pred``, ``H``, ``Rd``
+    where ``keep`` is True, in order), then :func:`settle`: ``(nis, ok, finite, r, S)``, ``r`` and ``S`` of the kept
+    channels. With ``ok`` False (``S`` not positive definite) ``x_out`` and ``P_out`` are not written."""
+    m, n = H.shape
+    mk = 0
+    for i in range(m):
+        if keep[i]:
+            mk += 1
+    yk, ypk, Hk, Rk = y, y_pred, H, Rd
+    if mk < m:  # the kept rows, copied element by element (no fancy indexing: its checks cost compile time)
+        yk, ypk, Hk, Rk = np.empty(mk), np.empty(mk), np.empty((mk, n)), np.empty(mk)
+        j = 0
+        for i in range(m):
+            if keep[i]:
+                yk[j], ypk[j], Rk[j] = y[i], y_pred[i], Rd[i]
+                for l in range(n):
+                    Hk[j, l] = H[i, l]
+                j += 1
+    r, S = np.empty(mk), np.empty((mk, mk))
+    nis, ok = update(x, P, yk, ypk, Hk, Rk, HP, r, S, x_out, P_out)
+    return nis, ok, settle(x_out, P_out, floor) if ok else True, r, S
+
+
+@_jit
+def gate(z, threshold, n_over, keep):
+    """The gate's choice of channels (the filter's module notes), from the normalised innovations ``z`` of which
+    ``n_over`` exceed ``threshold`` (:func:`normalise`; 0 within the hold-off after an input step: no gating): a
+    channel stays in the update unless ``keep`` already leaves it out (the isolation of a faulty sensor) or its
+    ``z_i**2`` exceeds ``threshold``; where none or most of the channels (at least half) would be left out, all
+    stay (then the filter, not a sensor, is off: the NIS test sees it). Writes ``keep``, returns how many stay."""
+    m = z.shape[0]
+    n_out = 0
+    for i in range(m):
+        if not keep[i] or (n_over > 0 and z[i] * z[i] > threshold):
+            keep[i] = False
+            n_out += 1
+    if n_out == 0 or 2 * n_out >= m:
+        for i in range(m):
+            keep[i] = True
+        return m
+    return m - n_out
+
+
+@_jit
 def window_push(Z, n, sm, sq, last_t, interval, t, idx, z, clip, k_mean, hi, lo, status):  # pragma: no cover
     """:meth:`.ekf.ChannelMonitor.push`'s arithmetic, compiled: the clipped ``z`` of channels ``idx`` into their
     moving windows ``Z`` (sums ``sm``, ``sq`` kept incrementally and recomputed exactly once per window), the
@@ -492,6 +541,8 @@ def warm_up() -> None:
                    (np.empty((n, n)), np.empty((n, n)), HP), (r, np.empty((m, m)), np.empty(n), out))
     apply_gain(x, P, H, HP, np.ones(m), r, np.ones((m, n + 1)), x, out)
     settle(x, out, np.zeros(n))
+    condition_on(np.ones(m, dtype=np.bool_), x, P, np.ones(m), np.zeros(m), H, np.ones(m), np.zeros(n), HP, x, out)
+    gate(np.zeros(m), 1.0, 0, np.ones(m, dtype=np.bool_))
     normalise(r, np.eye(m), 1.0, np.empty(m))
     step_statistic(np.zeros(1), np.ones(1), np.ones(1))
     window_seen(np.zeros(m), np.zeros(m), 0.0, np.arange(m))

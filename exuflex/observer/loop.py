@@ -1,18 +1,21 @@
 """The filter's compiled sample loop: samples of a log, each exactly as :meth:`.ekf.MultirateEKF.step` takes it,
 over a model's compiled interval and measurement (:class:`.base.CompiledModel`).
 
-Per sample ``k`` (the interval from ``t[k-1]``, input ``U[k-1]`` held, measurement ``Y[k]``, every channel
-sampled)::
+Per sample ``k`` (the interval from ``t[k-1]``, input ``U[k-1]`` held, measurement ``Y[k]``, NaN where a
+channel has no sample)::
 
     the filter's input-step test                        (:func:`.kalman.step_statistic`)
     z, F, Q = the model's interval from x               (:func:`.expansion.cached_interval`)
+    P = F P F' + Q                                      (:func:`.kalman.predict_cov`, eq. 13)
     y_pred, H = the model's measurement at z            (:func:`.expansion.cached_rows`)
-    x, P = predict and update                           (:func:`.kalman.predict_update`, eqs. 13-15)
-    gate, hold-off, sensor-fault windows                (:func:`.kalman.normalise`, :func:`.kalman.window_push`)
+    x, P = the update with the channels sampled         (:func:`.kalman.condition_on`, eqs. 14-15)
+    the gate; if it leaves a minority out, the update   (:func:`.kalman.normalise`, :func:`.kalman.gate`)
+      again without them
+    hold-off, sensor-fault windows                      (:func:`.kalman.window_push`)
     record x, P, innovations, NIS
 
-until a sample needs more (the model's arrays renewed, a sample for :meth:`~.ekf.MultirateEKF.step`: see
-:data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs that alternate (``x, P`` current,
+(a sample without a channel: the prediction alone, settled), until a sample needs more (the model's arrays
+renewed, a sample for :meth:`~.ekf.MultirateEKF.step`: see :data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs that alternate (``x, P`` current,
 ``x_alt, P_alt`` written): a sample left undone has written nothing but scratch. ``tests/test_sample_loop.py``
 holds the loop and ``step`` bit-identical.
 """
@@ -20,6 +23,7 @@ holds the loop and ``step`` bit-identical.
 from __future__ import annotations
 
 import logging
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -37,7 +41,16 @@ from .expansion import (
     cached_interval,
     cached_rows,
 )
-from .kalman import normalise, predict_update, step_statistic, window_push, window_seen
+from .kalman import (
+    condition_on,
+    gate,
+    normalise,
+    predict_cov,
+    settle,
+    step_statistic,
+    window_push,
+    window_seen,
+)
 
 __all__ = ["Buffers", "Monitors", "Record", "plain", "samples", "warm_up"]
 
@@ -46,8 +59,7 @@ log = logging.getLogger(__name__)
 
 class Buffers(NamedTuple):
     """The filter's state and scratch: the current ``x, P`` and the pair written (``x_alt, P_alt``), the predicted
-    covariance, work space, ``H P``, the innovation ``r``, its covariance ``S`` and the normalised innovation
-    ``zn``."""
+    covariance, work space and ``H P``."""
 
     x: np.ndarray
     x_alt: np.ndarray
@@ -56,19 +68,18 @@ class Buffers(NamedTuple):
     P_pred: np.ndarray
     work: np.ndarray
     HP: np.ndarray
-    r: np.ndarray
-    S: np.ndarray
-    zn: np.ndarray
 
 
 class Monitors(NamedTuple):
     """The filter's measurement noise and tests: ``R``'s diagonal, the covariance's floor, the gate (chi-square(1)
-    quantile), the sensor-fault windows (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their
-    tests ``(clip, k_mean, hi, lo)`` and verdicts, and the input-step test ``step_w``, ``step_thr``."""
+    quantile) with the count of channels it left out, ``rejected``, the sensor-fault windows
+    (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their tests ``(clip, k_mean, hi, lo)`` and
+    verdicts and the time of the monitor's first sample ``t0``, and the input-step test ``step_w``, ``step_thr``."""
 
     Rd: np.ndarray
     floor: np.ndarray
     gate: float
+    rejected: np.ndarray
     win_Z: np.ndarray
     win_n: np.ndarray
     win_sum: np.ndarray
@@ -77,6 +88,7 @@ class Monitors(NamedTuple):
     win_int: np.ndarray
     win_tests: np.ndarray
     win_status: np.ndarray
+    t0: float
     step_w: np.ndarray
     step_thr: float
 
@@ -84,7 +96,8 @@ class Monitors(NamedTuple):
 class Record(NamedTuple):
     """Where each sample done is recorded (:class:`.ekf.RunRecord`'s arrays): ``x[k]``, ``P[k]`` (``P_kind`` 0 its
     diagonal, 1 all of it flattened, -1 nothing), ``theta[k]`` the covariance's payload-scale column (empty: none),
-    ``inn[k]``, ``S[k]`` (flattened; empty: none), ``nis[k]``, and the prediction ``x_pred[k]``, ``F[k]``,
+    ``inn[k]``, ``S[k]`` (flattened; empty: none; the channels not updated with left as they are), ``nis[k]``, the
+    number of channels updated with ``dof[k]`` (0: a prediction only), and the prediction ``x_pred[k]``, ``F[k]``,
     ``Q[k]`` (flattened; empty: none; what a smoother's backward pass needs)."""
 
     x: np.ndarray
@@ -94,6 +107,7 @@ class Record(NamedTuple):
     inn: np.ndarray
     S: np.ndarray
     nis: np.ndarray
+    dof: np.ndarray
     x_pred: np.ndarray
     F: np.ndarray
     Q: np.ndarray
@@ -104,9 +118,10 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
     the filter's :class:`Buffers`, :class:`Monitors` and :class:`Record`, the model's :class:`.base.LoopModel`
     parts ``step``, ``state``, ``extras`` (None for a plain state: numba prunes the augmented branches).
 
-    Returns ``(k, status, holdoff, swapped, state, mats)``: the first sample not done, why, the hold-off left,
-    whether the current state is in the ``_alt`` buffers, the model's carried state and the last interval's held
-    matrices (for :meth:`.base.CompiledModel.loop_done`).
+    Returns ``(k, status, holdoff, swapped, state, mats, last)``: the first sample not done, why, the hold-off left,
+    whether the current state is in the ``_alt`` buffers, the model's carried state, the last interval's held
+    matrices (for :meth:`.base.CompiledModel.loop_done`) and of the last sample done the channels sampled, those
+    updated with, their innovations and its covariance.
 
     The named tuples arrive as plain tuples (:func:`plain`) and are named here: numba types a plain tuple of arrays
     from its fingerprint, a named one through a slower path that keeps a few objects alive per call."""
@@ -114,55 +129,106 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
     step = CachedStep(*step[:-1], HeldSystem(*step[-1]))
     state = LoopState(LoopMap(*state[0]), state[1], state[2], state[3])
     x, x_alt, P, P_alt = buf.x, buf.x_alt, buf.P, buf.P_alt
-    r, S, zn = buf.r, buf.S, buf.zn
     m = Y.shape[1]
     n_x = x.shape[0]
-    idx = np.empty(m, np.int64)  # the channels 0 .. m-1 (a loop: numba's np.arange costs more to compile)
-    for i in range(m):
-        idx[i] = i
+    sampled = np.empty(m, np.bool_)
+    keep = np.empty(m, np.bool_)
     y_pred = np.empty(m)
     H = np.zeros((m, n_x))  # (the columns beyond the model's rows stay zero)
     none = np.empty((0, 0))
     mats = (none, none, none, none)
+    windows = mon.win_Z.shape[0] > 0
+    no_idx = np.empty(0, np.int64)
+    last = (no_idx, no_idx, np.empty(0), none)
     swapped = False
     status = LOOP_DONE
     k = k0
     while k < k1:
-        u = U[k - 1]
-        u1 = U[k]
-        if step_statistic(u, u1, mon.step_w) > mon.step_thr:
+        if step_statistic(U[k - 1], U[k], mon.step_w) > mon.step_thr:
             status = GENERAL
             break
-        status, z, F, Qk, mats_k, state = cached_interval(step, extras, state, x, u, u1, t[k] - t[k - 1], k == k0,
-                                                          k, P)
-        if status != LOOP_DONE:
-            break
-        if not cached_rows(step, z, y_pred, H):
-            status = GENERAL
-            break
-        nis, ok, finite = predict_update(F, P, Qk, z, Y[k], y_pred, H, mon.Rd, mon.floor,
-                                         (buf.P_pred, buf.work, buf.HP), (r, S, x_alt, P_alt))
-        if not (ok and finite):
-            status = GENERAL
-            break
-        n_over = normalise(r, S, mon.gate, zn)
-        n_bad = 0
-        if holdoff > 0:
-            holdoff -= 1
-            if mon.win_Z.shape[0]:
-                window_seen(mon.win_last, mon.win_int, t[k], idx)
-        else:
-            if n_over:
+        n_s = 0
+        for i in range(m):
+            sampled[i] = math.isfinite(Y[k, i])
+            if sampled[i]:
+                n_s += 1
+        if windows and n_s < m:  # would the sensor-fault monitor call a channel missing? (then step() takes it)
+            due = False
+            for i in range(m):  # no sample for a window of its own intervals (:class:`.ekf.ChannelMonitor`)
+                last_t = mon.win_last[i] if math.isfinite(mon.win_last[i]) else mon.t0
+                due |= not sampled[i] and t[k] - last_t > mon.win_Z.shape[0] * mon.win_int[i]
+            if due:
                 status = GENERAL
                 break
-            if mon.win_Z.shape[0]:
+        status, z, F, Qk, mats_k, state = cached_interval(step, extras, state, x, U[k - 1], U[k], t[k] - t[k - 1],
+                                                          k == k0, k, P)
+        if status != LOOP_DONE:
+            break
+        predict_cov(F, P, Qk, buf.P_pred, buf.work)
+        idx = np.empty(n_s, np.int64)  # the channels sampled
+        j = 0
+        for i in range(m):
+            if sampled[i]:
+                idx[j] = i
+                j += 1
+        kept, n_keep, nis, r, S = idx, n_s, math.nan, np.empty(0), none
+        zn = np.empty(n_s)
+        if n_s == 0:  # a prediction only
+            for i in range(n_x):
+                x_alt[i] = z[i]
+                for j in range(n_x):
+                    P_alt[i, j] = buf.P_pred[i, j]
+            finite = settle(x_alt, P_alt, mon.floor)
+        else:
+            if not cached_rows(step, z, y_pred, H):
+                status = GENERAL
+                break
+            nis, ok, finite, r, S = condition_on(sampled, z, buf.P_pred, Y[k], y_pred, H, mon.Rd, mon.floor,
+                                                 buf.HP, x_alt, P_alt)
+            if not ok:
+                status = GENERAL
+                break
+            n_over = normalise(r, S, mon.gate, zn)
+            gated = np.ones(n_s, np.bool_)
+            n_keep = gate(zn, mon.gate, 0 if holdoff > 0 else n_over, gated)
+            if n_keep < n_s:  # a minority gated: the update without them
+                kept = np.empty(n_keep, np.int64)
+                j = 0
+                for i in range(m):
+                    keep[i] = False
+                for i in range(n_s):
+                    if gated[i]:
+                        keep[idx[i]] = True
+                        kept[j] = idx[i]
+                        j += 1
+                nis, ok, finite, r, S = condition_on(keep, z, buf.P_pred, Y[k], y_pred, H, mon.Rd, mon.floor,
+                                                     buf.HP, x_alt, P_alt)
+                if not ok:
+                    status = GENERAL
+                    break
+        if not finite:
+            status = GENERAL
+            break
+        # the sample is done: the monitors' windows and counts (nothing was written to them before)
+        n_bad = 0
+        if n_s:
+            if holdoff > 0:
+                holdoff -= 1
+                if windows:
+                    window_seen(mon.win_last, mon.win_int, t[k], idx)
+            elif windows:
                 n_bad = window_push(mon.win_Z, mon.win_n, mon.win_sum, mon.win_sq, mon.win_last, mon.win_int, t[k],
                                     idx, zn, mon.win_tests[0], mon.win_tests[1], mon.win_tests[2], mon.win_tests[3],
                                     mon.win_status)
+            if n_keep < n_s:
+                for i in range(n_s):
+                    if not gated[i]:
+                        mon.rejected[idx[i]] += 1
         x, x_alt = x_alt, x
         P, P_alt = P_alt, P
         swapped = not swapped
         mats = mats_k
+        last = (idx, kept, r, S)
         # the record, element by element (a row or slice assignment compiles numba's shape checks and their
         # messages into the loop, which then takes far longer to compile)
         for i in range(n_x):
@@ -172,12 +238,13 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
             elif rec.P_kind == 1:
                 for j in range(n_x):
                     rec.P[k, i * n_x + j] = P[i, j]
-        if rec.inn.shape[0]:
-            for i in range(m):
-                rec.inn[k, i] = r[i]
-                for j in range(m):
-                    rec.S[k, i * m + j] = S[i, j]
+        if rec.inn.shape[0]:  # the channels updated with (the others stay NaN)
+            for i in range(n_keep):
+                rec.inn[k, kept[i]] = r[i]
+                for j in range(n_keep):
+                    rec.S[k, kept[i] * m + kept[j]] = S[i, j]
         rec.nis[k] = nis
+        rec.dof[k] = n_keep
         if rec.x_pred.shape[0]:
             for i in range(n_x):
                 rec.x_pred[k, i] = z[i]
@@ -192,7 +259,7 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
         if n_bad:
             status = MONITOR
             break
-    return k, status, holdoff, swapped, state, mats
+    return k, status, holdoff, swapped, state, mats, last
 
 
 try:  # numba is a core dependency; without it the loop runs as plain (slow) Python
@@ -214,9 +281,9 @@ def warm_up(augmented: bool | None = None) -> None:
     with no sample to do (``k0 = k1``), it returns at once. ``augmented`` None: the plain state's specialisation;
     True: the augmented states' (with :func:`.expansion.extra_interval`)."""
     v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
-    buf = Buffers(v, v, m, m, m, m, m, v, m, v)
-    mon = Monitors(v, v, 0.0, m, n, v, v, v, v, v, n, v, 0.0)
-    rec = Record(m, m, 0, m, m, m, v, m, m, m)
+    buf = Buffers(v, v, m, m, m, m, m)
+    mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, 0.0, v, 0.0)
+    rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
     step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c, c, v,
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
