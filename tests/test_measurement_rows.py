@@ -64,9 +64,9 @@ def _exact(m, x, channels, eps=1e-6):
 def _errors(m, iv, channels, x):
     """``(|y - y_exact|, |H - H_exact|, first-order errors of both)``: the held rows with their change against the
     exact measurement, and the held configuration's rows alone (``c0 + Hm x``) against it."""
-    rows = m.rows_about(iv, channels, 0.15)
+    centre = m.rows_about(iv, 0.15)
     meas = m.measure(x, channels)
-    assert m._meas[channels] is rows  # iv's rows served: none rebuilt
+    assert m._centre is centre  # iv's rows served: none rebuilt
     y, H = _exact(m, x, channels)
     c0, Hm = m._affine(iv, channels)
     return np.abs(meas.y - y), np.abs(meas.H - H), np.abs(c0 + Hm @ x - y), np.abs(Hm - H)
@@ -123,7 +123,7 @@ def test_measurement_jacobian_is_the_derivative_of_the_returned_channels(case):
     nq, r = m.nq, m.r
     x = m.initial_state(iv.q0 + 0.05 * _directions(nq)[-1])
     x[nq:r] = pe
-    rows = m.rows_about(iv, channels, 0.15)
+    centre = m.rows_about(iv, 0.15)
     H = m.measure(x, channels).H
     D = m._rows(iv, channels)[2]
     H[:, :nq] += np.einsum("jic,c->ij", D, x[:r])  # the left-out term
@@ -134,7 +134,7 @@ def test_measurement_jacobian_is_the_derivative_of_the_returned_channels(case):
         xp[j] += eps
         xm[j] -= eps
         fd[:, j] = (m.measure(xp, channels).y - m.measure(xm, channels).y) / (2 * eps)
-    assert m._meas[channels] is rows
+    assert m._centre is centre
     np.testing.assert_allclose(H, fd, rtol=1e-6, atol=1e-9 * np.abs(H).max())
 
 
@@ -157,7 +157,7 @@ def test_slider_channel_is_third_order(slider_model, q0):
         err2, err1 = [], []
         for h in hs:
             x = m.initial_state([q0 + sign * h])
-            m.rows_about(iv, SLIDER, 0.05)
+            m.rows_about(iv, 0.05)
             exact = _exact(m, x, SLIDER)[0][1]
             err2.append(abs(m.measure(x, SLIDER).y[1] - exact))
             c0, Hm = m._affine(iv, SLIDER)

@@ -51,8 +51,8 @@ def test_rebuild_measures_the_slider_taylor_remainder(q_old):
         return r * math.cos(q) + math.sqrt(l * l - (r * math.sin(q)) ** 2)
 
     for d in (0.02, 0.04, -0.04):
-        old = m.rows_about(m._rows_at(np.array([q_old])), SLIDER, 0.05)
-        new = m.rows_about(m._rows_at(np.array([q_old + d])), SLIDER, 0.05)
+        old = m.rows_about(m._rows_at(np.array([q_old])), 0.05)
+        new = m.rows_about(m._rows_at(np.array([q_old + d])), 0.05)
         x = m.initial_state([q_old + d])
         expected = abs(xb(q_old + d) - xb(q_old) - f1 * d - 0.5 * f2 * d * d) / sig
         assert m._rows_error(old, new, x, SLIDER) == pytest.approx(expected, rel=1e-2)

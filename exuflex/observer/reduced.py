@@ -217,17 +217,18 @@ class _RowsAt:
 
 
 @dataclass
-class _MeasRows:
-    """The measurement rows of a channel tuple about ``q0`` (:meth:`ReducedObserverModel._expansion`) and the
-    measurement radius ``rad`` (max norm, rad) within which they serve (:meth:`ReducedObserverModel._rows_radius`)."""
+class _RowsCentre:
+    """The configuration ``at`` the measurement rows are taken about (a held one or one evaluated for them), its
+    ``q0`` and the measurement radius ``rad`` (max norm, rad) within which its rows serve
+    (:meth:`ReducedObserverModel._rows_radius`); the rows ``(c0, Hm, D, G)`` per channel tuple
+    (:meth:`ReducedObserverModel._expansion`), made as measurements ask for them. One centre serves every channel
+    tuple: a sample with some channels takes the rows of the same configuration as one with all."""
 
+    at: object
     q0: np.ndarray
     q_list: list
-    c0: np.ndarray
-    Hm: np.ndarray
-    D: np.ndarray
-    G: np.ndarray
     rad: float
+    rows: dict
 
 
 class _Pairs:
@@ -383,7 +384,7 @@ class ReducedObserverModel:
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
-        self._meas: dict = {}  # the measurement rows per channel tuple (:class:`_MeasRows`)
+        self._centre: _RowsCentre | None = None  # the measurement rows' configuration
         self.rows_errors = _Pairs()  # (error at the measurement radius, the radius) per rebuild (:meth:`_recentre`)
         self.model.kin.reset_warm_start()
 
@@ -650,25 +651,25 @@ class ReducedObserverModel:
         measurement back: the same rows as sample by sample)."""
         held = iv, _, _, sm = self._hold(z, self._input(u), dt)
         self._renewed = (z.copy(), dt, held)  # for predict(), if the loop hands this interval back
-        mr = self._meas.get(channels)
-        if mr is None:  # none yet: the loop hands the first measurement back (measure() builds them there)
-            mr = self._meas_none(channels)
+        c = self._centre
+        # none yet: the loop hands the first measurement back (measure() makes them there)
+        c0, Hm, D, G = self._rows_none(channels) if c is None else self._centre_rows(c, channels)
+        q_rows, rad_rows = (np.zeros(self.nq), -1.0) if c is None else (c.q0, c.rad)
         d = iv.d if iv.old is not None else _NONE
         step = CachedStep(self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
                           min(self.h, iv.h_stable), self.dt_tol, self.remap_ahead, self.remap_horizon,
-                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, mr.c0, mr.Hm, mr.D, mr.G,
-                          mr.q0, mr.rad, d, iv.dd,
+                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, D, G,
+                          q_rows, rad_rows, d, iv.dd,
                           *sm.tail[:3], self._map_errs, iv.system)
         state = LoopState(LoopMap(sm.q, self.map_rad, sm.dt, sm.n, sm.Pn, sm.S, sm.L, sm.Q), 0, -1,
                           (False, 0.0, sm.Pn, sm.S, sm.L, sm.Q))
         self._loop_step = (iv, sm)
         return LoopModel(step, state, None)
 
-    def _meas_none(self, channels: tuple) -> _MeasRows:
-        """Rows of the right shapes that serve nowhere (radius -1)."""
+    def _rows_none(self, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)`` of the right shapes for a loop without rows yet."""
         m, nq = len(channels), self.nq
-        return _MeasRows(np.zeros(nq), [], np.zeros(m), np.zeros((m, self.nx)), np.zeros((nq, m, self.r)),
-                         np.zeros((m, nq, nq)), -1.0)
+        return np.zeros(m), np.zeros((m, self.nx)), np.zeros((nq, m, self.r)), np.zeros((m, nq, nq))
 
     @property
     def loop_step(self) -> tuple:
@@ -866,19 +867,27 @@ class ReducedObserverModel:
                 cache[channels] = rows
         return rows
 
-    def _measurement_rows(self, x: np.ndarray, channels: tuple) -> _MeasRows:
-        """The measurement rows of ``channels`` that serve at ``x``: the present ones while q lies within their
-        radius, else rebuilt (:meth:`_recentre`)."""
-        mr = self._meas.get(channels)
-        if mr is None or max(map(abs, map(sub, x[: self.nq].tolist(), mr.q_list))) > mr.rad:
-            mr = self._recentre(x, channels, mr)
-        return mr
+    def _measurement_rows(self, x: np.ndarray, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G, q0)``: the measurement rows of ``channels`` that serve at ``x`` and their centre: the
+        present centre's while q lies within its radius, else a new centre's (:meth:`_recentre`)."""
+        c = self._centre
+        if c is None or max(map(abs, map(sub, x[: self.nq].tolist(), c.q_list))) > c.rad:
+            c = self._recentre(x, channels, c)
+        return (*self._centre_rows(c, channels), c.q0)
 
-    def _recentre(self, x: np.ndarray, channels: tuple, old: _MeasRows | None) -> _MeasRows:
-        """New measurement rows for the state ``x``: about the held configuration if it lies within the radius of
-        q and ahead of it along its motion (no evaluation), else about a configuration evaluated for them ahead of
-        q along its motion (``lookahead`` radii: the rows are as good behind their centre as ahead of it). With the
-        rows they replace, their error sets the new radius (:meth:`_rows_error`, :meth:`_rows_radius`)."""
+    def _centre_rows(self, c: _RowsCentre, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)`` of ``channels`` about the centre ``c``, made once."""
+        rows = c.rows.get(channels)
+        if rows is None:
+            rows = c.rows[channels] = self._rows(c.at, channels)
+        return rows
+
+    def _recentre(self, x: np.ndarray, channels: tuple, old: _RowsCentre | None) -> _RowsCentre:
+        """A new centre of the measurement rows for the state ``x``: the held configuration if it lies within the
+        radius of q and ahead of it along its motion (no evaluation), else a configuration evaluated for them ahead
+        of q along its motion (``lookahead`` radii: the rows are as good behind their centre as ahead of it). With
+        the centre it replaces, the replaced rows' error (of ``channels``) sets the new radius
+        (:meth:`_rows_error`, :meth:`_rows_radius`)."""
         nq = self.nq
         rad = self.rows_rad if old is None else old.rad
         q, qd = x[:nq], x[self.r : self.r + nq]
@@ -893,19 +902,18 @@ class ReducedObserverModel:
                     iv = None
             if iv is None:
                 iv = self._rows_at(q)
-        new = self.rows_about(iv, channels, rad)
+        new = self.rows_about(iv, rad)
         if old is not None:
             err = self._rows_error(old, new, x, channels)
             new.rad = self._rows_radius(old.rad, _max_abs(new.q0 - old.q0), err)
             self.rows_errors.append((err, new.rad))
         return new
 
-    def rows_about(self, iv: _Held | _RowsAt, channels: tuple, rad: float) -> _MeasRows:
-        """Make the measurement rows of ``channels`` about the configuration ``iv`` (:meth:`_expansion`) those that
-        :meth:`measure` takes, within ``rad`` of it (until q leaves that radius)."""
-        c0, Hm, D, G = self._rows(iv, channels)
+    def rows_about(self, iv: _Held | _RowsAt, rad: float) -> _RowsCentre:
+        """Make the configuration ``iv`` the centre of the measurement rows :meth:`measure` takes, within ``rad`` of
+        it (until q leaves that radius)."""
         q0 = iv.q0.copy()
-        new = self._meas[channels] = _MeasRows(q0, q0.tolist(), c0, Hm, D, G, float(rad))
+        new = self._centre = _RowsCentre(iv, q0, q0.tolist(), float(rad), {})
         self.n_rows += 1
         return new
 
@@ -916,7 +924,7 @@ class ReducedObserverModel:
         self.n_evaluations += 1
         return _RowsAt(np.array(q, float), rc, pose.Sz[2::3].copy(), pose.z[2::3].copy())
 
-    def _rows_error(self, old: _MeasRows, new: _MeasRows, x: np.ndarray, channels: tuple) -> float:
+    def _rows_error(self, old: _RowsCentre, new: _RowsCentre, x: np.ndarray, channels: tuple) -> float:
         """The replaced rows' error where the new ones are exact: at the filter's state ``x`` moved to the new
         centre, ``max_i |y_old,i - y_new,i| / s_i`` with ``s_i`` the smaller of channel ``i``'s noise and the
         filter's standard deviation of it, ``sqrt(H_i P H_i^T)`` (when the model watches the filter's covariance).
@@ -927,13 +935,15 @@ class ReducedObserverModel:
         over all of them)."""
         xq = np.array(x[: self.nx], float)
         xq[: self.nq] = new.q0
-        y_old, H = np.empty(len(old.c0)), np.empty_like(old.Hm)
-        measurement_rows(old.c0, old.Hm, old.D, old.G, xq, new.q0 - old.q0, y_old, H)
-        dy = np.abs(y_old - new.c0 - new.Hm @ xq)
+        c0, Hm, D, G = self._centre_rows(old, channels)
+        y_old, H = np.empty(len(c0)), np.empty_like(Hm)
+        measurement_rows(c0, Hm, D, G, xq, new.q0 - old.q0, y_old, H)
+        c0, Hm = self._centre_rows(new, channels)[:2]
+        dy = np.abs(y_old - c0 - Hm @ xq)
         s = self._noise(channels)
         if self.state_cov is not None:
             P = self.state_cov()[: self.nx, : self.nx]
-            s = np.minimum(s, np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", new.Hm, P, new.Hm), 1e-300)))
+            s = np.minimum(s, np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Hm, P, Hm), 1e-300)))
         return float(np.max(dy / s))
 
     def _noise(self, channels: tuple) -> np.ndarray:
@@ -964,10 +974,10 @@ class ReducedObserverModel:
         an error of 22 mrad on the full-order ERLS log. Left out, q is informed by the encoders and the rigid
         rows as before; the value ``y`` follows q, which is what the filter's consistency needs."""
         x = np.asarray(x, float)
-        mr = self._measurement_rows(x, tuple(channels))
-        H = np.empty_like(mr.Hm)
-        y = np.empty(len(mr.c0))
-        measurement_rows(mr.c0, mr.Hm, mr.D, mr.G, x, x[: self.nq] - mr.q0, y, H)
+        c0, Hm, D, G, q0 = self._measurement_rows(x, tuple(channels))
+        H = np.empty_like(Hm)
+        y = np.empty(len(c0))
+        measurement_rows(c0, Hm, D, G, x, x[: self.nq] - q0, y, H)
         return Measurement(y, H)
 
     def _affine(self, iv: _Held | _RowsAt, channels: tuple) -> tuple[np.ndarray, np.ndarray]:
