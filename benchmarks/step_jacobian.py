@@ -7,6 +7,10 @@
     python benchmarks/step_jacobian.py terms [--models a,b] [--truth-dir DIR] [--engine erls] [--seed 1]
                                              [--every 50] [--json terms.json]
     python benchmarks/step_jacobian.py oracle --variant exact -- GALLERY_ARGUMENTS
+    python benchmarks/step_jacobian.py own [--model models/sixbar.toml] [--truth-dir DIR] [--seeds 1-5]
+                                           [--variants default,exact,...] [--phases-every 50] [--json own.json]
+    python benchmarks/step_jacobian.py own-entries [--json own_entries.json]
+    python benchmarks/step_jacobian.py own-page --own own.json [--entries own_entries.json] [--text TEXT]
     python benchmarks/step_jacobian.py page [--hold hold.json] [--entries entries.json]
                                             [--gallery after.json [--before before.json]]
                                             [--acceptance acc.json [--acceptance-before acc_before.json]]
@@ -38,6 +42,12 @@ filter's predicted standard deviations (:func:`left_out_terms`).
 ``oracle``: ``benchmarks/gallery.py`` (its arguments after ``--``) with the filter's step Jacobian replaced by an
 oracle of the same step: ``exact``, central differences of the whole cached step (:func:`oracle_jacobian`): what
 the left-out terms would change in the acceptance figures, without touching the kernels.
+
+``own``: the filter on its own model's truth (``DIR/reduced/<model>/s<seed>``) with each step Jacobian of
+:data:`OWN_VARIANTS` (:func:`own_model`): where the exact Jacobian changes the figures and why. ``own-entries``: the
+exact Jacobian (:func:`exuflex.observer.expansion.exact_jacobian`) against central differences of the step per
+model (``tests/test_step_jacobian.py``'s ``exact_entries``). ``own-page``: their section of the page, written in
+place (:func:`own_page`).
 
 ``page``: the markdown page from those JSON files and ``python benchmarks/gallery.py --engine erls,exudyn
 --truth-dir DIR --json FILE`` (cached against rk4 per model; ``--before``: the same from another checkout).
@@ -143,8 +153,8 @@ def refreshes(model: str, run: str) -> dict:
         zq[:nq] = iv.q0
         dl = iv.q0 - old.q0
         pe = zq[nq:r]
-        Mh, Kh, Ch, Gh = held_system(dl, s_old, pe, *old.system)
-        Me, Ke, Ce, Ge = held_system(np.zeros(nq), 0.0, pe, *iv.system)
+        Mh, Kh, Ch, Gh = held_system(dl, s_old, pe, tuple(old.system))
+        Me, Ke, Ce, Ge = held_system(np.zeros(nq), 0.0, pe, tuple(iv.system))
         fh, fe = forces(old.system, zq, s_old, nq, r), forces(iv.system, zq, 0.0, nq, r)
         p, pd = zq[:r], zq[r:]
         acc = np.linalg.solve(Me, Ge @ u + fe - Ke @ p - Ce @ pd)
@@ -175,7 +185,8 @@ def entries() -> dict:
 
 
 #: the oracle filters' step Jacobians (:func:`oracle_jacobian`)
-ORACLES = ("exact", "map", "q_columns", "elastic_columns", "python", "q_midpoint", "q_midpoint_exact")
+ORACLES = ("exact", "map", "q_columns", "elastic_columns", "python", "q_midpoint", "q_midpoint_exact",
+           "exact_after_start_up")
 
 
 def _position_forces(hs, z, z_next, dt):
@@ -212,7 +223,9 @@ def oracle_jacobian(variant: str):
     default Jacobian on the same sample-by-sample path (the control). Two variants of the step itself:
     ``q_midpoint``, the held matrices at the interval's midpoint configuration ``q + dt/2 q'`` as well as its
     midpoint elastic coordinates (the default holds ``q`` at the start), the default Jacobian and noise;
-    ``q_midpoint_exact``, the same with ``exact``'s Jacobian of that step."""
+    ``q_midpoint_exact``, the same with ``exact``'s Jacobian of that step. ``exact_after_start_up``: ``exact``
+    from the filter's default start-up (``ObserverConfig.start_up``, where the score starts) on, the default
+    before (the intervals counted from the model's last ``reset``)."""
     from exuflex.observer import expansion as ex
     from exuflex.observer import reduced as R
 
@@ -231,7 +244,7 @@ def oracle_jacobian(variant: str):
         _, _, _, _, h, n = self._interval_matrices
         z = np.asarray(z, float)
         dl = z[:nq] - iv.q0 + 0.5 * dt * z[r : r + nq]
-        x, *mats = ex.held_step(z, u, dl, R._secant_factor(iv, dl), h, n, *iv.system)
+        x, *mats = ex.held_step(z, u, dl, R._secant_factor(iv, dl), h, n, iv.system)
         if not np.isfinite(x[0]):
             return pred
         self._interval_matrices = (*mats, h, n)
@@ -243,8 +256,23 @@ def oracle_jacobian(variant: str):
             cls._cached = midpoint
             return
 
+    from exuflex.observer.session import ObserverConfig
+
+    start_up = ObserverConfig().start_up
+    reset = cls.reset
+
+    def reset_clock(self):
+        reset(self)
+        self._oracle_t = 0.0
+
+    cls.reset = reset_clock
+
     def cached(self, z, u, dt):
         pred = orig(self, z, u, dt)
+        t = getattr(self, "_oracle_t", 0.0)
+        self._oracle_t = t + dt
+        if variant == "exact_after_start_up" and t < start_up:
+            return pred
         iv, _ = self.last_step
         nq, r = self.nq, self.r
         Mr, Kr, Cr, Gr, h, n = self._interval_matrices
@@ -259,7 +287,7 @@ def oracle_jacobian(variant: str):
         s0 = R._secant_factor(iv, z[:nq] - iv.q0 + mid * z[r : r + nq])
 
         def step(x):
-            return ex.held_step(x, u, x[:nq] - iv.q0 + mid * x[r : r + nq], s0, h, n, *iv.system)[0]
+            return ex.held_step(x, u, x[:nq] - iv.q0 + mid * x[r : r + nq], s0, h, n, iv.system)[0]
 
         F = _central_step(step, np.asarray(z, float), nq, r)
         if variant == "q_columns":
@@ -350,7 +378,7 @@ def left_out_terms(model: str, run: str, every: int = 50) -> dict:
         s0 = R._secant_factor(iv, z[:nq] - iv.q0)
 
         def fd(hs):
-            return _central_step(lambda x: ex.held_step(x, u, x[:nq] - iv.q0, s0, h, n, *hs)[0], z, nq, r)
+            return _central_step(lambda x: ex.held_step(x, u, x[:nq] - iv.q0, s0, h, n, hs)[0], z, nq, r)
 
         F_ex = fd(iv.system)
         if not np.all(np.isfinite(F_ex)):
@@ -383,6 +411,133 @@ def left_out_terms(model: str, run: str, every: int = 50) -> dict:
         res["terms"][name] = {k: {"max": float(np.max(v)), "median": float(np.median(v))} for k, v in o.items()}
         print(res["model"], name, {k: round(v["max"], 4) for k, v in res["terms"][name].items()}, flush=True)
     return res
+
+
+#: the own-model experiment's step Jacobians (:func:`own_model`)
+OWN_VARIANTS = ("default", "exact", "exact_after_start_up", "exact_at_truth", "truth_map_at_truth")
+
+
+def _reduced_truth_states(mech) -> tuple:
+    """The reduced truth's states and torques (:func:`exuflex.truth.reduced_truth`'s loop, the reduced state kept):
+    the truth's motion is the same for every seed."""
+    from exuflex.observer.reduced import ReducedObserverModel
+    from exuflex.observer.session import make_observer
+    from exuflex.truth.engines import plan_drive
+
+    drive = plan_drive(mech, mech.manoeuvre.duration, 1e-4)
+    rm = make_observer(mech).model.rm
+    som = ReducedObserverModel(rm, h=1e-4, method="rk4")
+    dt = 1.0 / mech.sample_rate_hz
+    n = int(round(mech.manoeuvre.duration / dt)) + 1
+    t = np.arange(n) * dt
+    dt_tab = drive.t[1] - drive.t[0]
+    tau = drive.tau[np.minimum(np.round(t / dt_tab).astype(int), len(drive.tau) - 1)]
+    z = som.initial_state(drive.q0, drive.qd0)
+    Z = np.empty((n, len(z)))
+    for k in range(n):
+        Z[k] = z
+        if k < n - 1:
+            z = som.frozen_interval(z, tau[k], dt)[0].x
+    return Z, tau, som
+
+
+def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0) -> dict:
+    """The filter on its own model's truth (``DIR/reduced/<model>/s<seed>``: the reduced model stepped by its frozen
+    RK4 map, :func:`exuflex.truth.reduced_truth`, no model error beyond the cached step's) with each step Jacobian
+    of :data:`OWN_VARIANTS` (the step, noise, rows and bound the default's): ``default``; ``exact``, the cached
+    step's exact Jacobian at the estimate (:func:`exuflex.observer.expansion.exact_jacobian`);
+    ``exact_after_start_up``, the same from the filter's ``start_up`` on (the default before); ``exact_at_truth``,
+    the cached step's exact Jacobian at the true state (no linearisation error at the estimate);
+    ``truth_map_at_truth``, the truth map's own Jacobian at the true state (central differences of the frozen RK4
+    map: what the bound would take if it held every term; slow). Per variant and seed: RMS / bound per quantity,
+    NIS, and the normalised error of each reduced state (RMS of ``e_i / sigma_i`` after the start-up with the
+    filter's own ``sigma``). ``phases_every``: along the default filter on the first seed, every so many intervals
+    (and every third in the start-up), the filter's and the cached step's exact Jacobian at the truth against the
+    truth map's Jacobian there: ``max_i sqrt((dF P dF^T)_ii / (F P F^T + Q)_ii)`` with the filter's ``P``."""
+    import test_step_jacobian as tsj
+
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer import expansion as ex
+    from exuflex.observer import reduced as R
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.runs import read_run
+    from exuflex.scoring.run import observe_run
+
+    mech = load_mechanism(model)
+    cfg = ObserverConfig.for_model(mech)
+    Z, TAU, tsom = _reduced_truth_states(mech)
+    dt = 1.0 / mech.sample_rate_hz
+    cls = R.ReducedObserverModel
+    cls.compiled = property(lambda self: False)
+    orig = cls._cached
+    out = {"model": Path(model).stem, "start_up_s": cfg.start_up, "runs": {}, "phases": []}
+
+    def truth_jacobian(x, u):
+        return _central_step(lambda y: tsom.frozen_interval(y, u, dt)[0].x, x, tsom.nq, tsom.r)
+
+    for seed in seeds:
+        run = read_run(Path(truth_dir) / "reduced" / Path(model).stem / f"s{seed}")
+        for variant in variants:
+            count = [0]
+
+            def cached(self, z, u, dt_, variant=variant, count=count, seed=seed):
+                pred = orig(self, z, u, dt_)
+                k = count[0]
+                count[0] += 1
+                iv, _ = self.last_step
+                nq, r = self.nq, self.r
+                _, _, _, _, h, n = self._interval_matrices
+                d, dd = cls._secant(iv)
+                z = np.asarray(z, float)
+                at = Z[k] if k < len(Z) else z
+
+                def exact(x):
+                    dl = x[:nq] - iv.q0
+                    return ex.exact_jacobian(x, u, dl, R._secant_factor(iv, dl), d, dd, h, n, iv.system)[1]
+
+                F = pred.F
+                if variant == "exact" or (variant == "exact_after_start_up" and k * dt_ >= cfg.start_up):
+                    F = exact(z)
+                elif variant == "exact_at_truth":
+                    F = exact(at)
+                elif variant == "truth_map_at_truth":
+                    F = truth_jacobian(at, u)
+                if phases_every and variant == "default" and seed == seeds[0] and self.state_cov is not None \
+                        and k > 0 and k < len(Z) and (k % phases_every == 0 or (k * dt_ < cfg.start_up and k % 3 == 0)):
+                    P = self.state_cov()[: self.nx, : self.nx]
+                    Ft = truth_jacobian(at, u)
+                    cov = np.diagonal(Ft @ P @ Ft.T + pred.Q)
+
+                    def std(A):
+                        D = A - Ft
+                        return float(np.sqrt(np.maximum(np.diagonal(D @ P @ D.T), 0) / cov).max())
+
+                    Fx = exact(at)
+                    out["phases"].append({"t": k * dt_, "default": std(pred.F), "exact": std(Fx),
+                                          "dqdd_dq_truth": (Ft[r : r + nq, :nq] / dt_).tolist(),
+                                          "dqdd_dq_exact": (Fx[r : r + nq, :nq] / dt_).tolist()})
+                return R.Prediction(pred.x, F, pred.Q)
+
+            cls._cached = cached
+            try:
+                res = observe_run(mech, run, cfg, observer=make_observer(mech, cfg))
+            finally:
+                cls._cached = orig
+            s = res.summary
+            X = np.asarray(res.estimate.result.x_hat)[:, : Z.shape[1]]
+            Pd = np.asarray(res.estimate.result.P)
+            Pd = Pd if Pd.ndim == 2 else np.diagonal(Pd, axis1=1, axis2=2)
+            k0 = int(round(cfg.start_up / dt))
+            n = min(len(X), len(Z))
+            E = X[k0:n] - Z[k0:n]
+            norm = np.sqrt(np.mean(E ** 2 / Pd[k0:n, : Z.shape[1]], axis=0))
+            out["runs"].setdefault(variant, {})[seed] = {
+                "ratio_to_bound": s["ratio_to_bound"], "nis_mean": s["nis_mean"], "nis_expected": s["nis_expected"],
+                "normalised_q": norm[: tsom.nq].tolist(), "normalised_qd": norm[tsom.r : tsom.r + tsom.nq].tolist(),
+                "normalised_max": float(norm.max())}
+            print(out["model"], variant, seed, {q: round(v, 3) for q, v in s["ratio_to_bound"].items()},
+                  "normalised q", np.round(norm[: tsom.nq], 2).tolist(), flush=True)
+    return out
 
 
 def oracle(variant: str, gallery_args: list[str]) -> int:
@@ -695,13 +850,105 @@ def _oracle_section(base: str, oracles: dict) -> list[str]:
               "q-derivatives of the held model carried through every sub-step. The large terms are `dM/dq a` and "
               "`dK/dq p`, products of a change of q with the elastic state, and they largely cancel (the elastic "
               "part of `M a + K p` is balanced by the forces: `all` against the two alone in the terms table). "
-              "Why the whole Jacobian makes the six-bar's figures worse on every truth is not established here: "
-              "it is not that the filter does not know the terms' coefficients (the elastic state is estimated "
-              "well above its uncertainty, `elastic_snr` in the terms section). The other sources (the damping "
+              + _ESTABLISHED + " The other sources (the damping "
               "and input matrix along the secant, the elastic coordinates' rows) change the predicted deviations "
               "by a few per cent at most; the step map's own departure (`map`) is what the map radius controls "
               "against `remap_tol` (its medians are near that target; single intervals exceed it).", ""]
     return lines
+
+
+OWN_HEADING = "## Why the exact Jacobian does not help: the filter on its own model"
+_NOT_ESTABLISHED = ("Why the whole Jacobian makes the six-bar's figures worse on every truth is not established here: "
+                    "it is not that the filter does not know the terms' coefficients (the elastic state is estimated "
+                    "well above its uncertainty, `elastic_snr` in the terms section).")
+_ESTABLISHED = ("Why the whole Jacobian makes the six-bar's figures worse: the next section (the exact Jacobian of a "
+                "step that is itself inexact in the start-up).")
+
+
+def _own_section(path: str, entries_path: str | None = None) -> list[str]:
+    """The section of :func:`own_model`'s JSON (and ``exact_entries`` per model, ``own --entries``)."""
+    res = json.loads(Path(path).read_text())
+    runs = res["runs"]
+    base = runs.get("default", {})
+    seeds = sorted(base, key=int)
+    qs = list(next(iter(base.values()))["ratio_to_bound"])
+    slow = [q for q in qs if q.startswith("q") or q.startswith("dq")]
+    lines = [OWN_HEADING, "",
+             f"`python benchmarks/step_jacobian.py own --model models/{res['model']}.toml --truth-dir DIR --seeds S "
+             "--phases-every 50 --json FILE`, then `python benchmarks/step_jacobian.py own-page --own FILE`: the "
+             "filter on the reduced truth (`DIR/reduced/<model>/s<seed>`: the observer's own reduced model stepped "
+             "by its frozen RK4 map, so only the filter's approximations matter), with the step, process noise, rows "
+             "and bound the default's and the step Jacobian of each row: `default`; `exact`, the cached step's exact "
+             "Jacobian at the estimate (`expansion.exact_jacobian`, the tangent of its RK4 sub-steps, every term in: "
+             "`tests/test_step_jacobian.py` checks it against central differences of the step entry by entry); "
+             f"`exact_after_start_up`, the same from the filter's start-up ({res['start_up_s']:g} s, where the "
+             "score starts) on; `exact_at_truth`, the cached step's exact Jacobian at the true state; "
+             "`truth_map_at_truth`, the truth map's own Jacobian there. RMS / bound per quantity, mean over the "
+             "seeds, and the normalised error of the rigid coordinates and rates (RMS of `e_i / sigma_i` after the "
+             "start-up, `sigma` the filter's own; 1 for a consistent filter).", "",
+             "| step Jacobian | seeds | " + " | ".join(slow) + " | worst | NIS / channels | normalised q | normalised q' |",
+             "|---|---|" + "---|" * (len(slow) + 4)]
+    for v, rs in runs.items():
+        ss = sorted(rs, key=int)
+        mean = {q: np.mean([rs[s]["ratio_to_bound"][q] for s in ss]) for q in slow}
+        worst = np.mean([max(rs[s]["ratio_to_bound"].values()) for s in ss])
+        nis = np.mean([rs[s]["nis_mean"] / rs[s]["nis_expected"] for s in ss])
+        nq_ = np.mean([rs[s]["normalised_q"] for s in ss], axis=0)
+        nqd = np.mean([rs[s]["normalised_qd"] for s in ss], axis=0)
+        lines.append(f"| {v} | {len(ss)} | " + " | ".join(_fmt(mean[q]) for q in slow) + f" | {_fmt(worst)} | "
+                     f"{_fmt(nis, 3)} | " + ", ".join(_fmt(x) for x in nq_) + " | " + ", ".join(_fmt(x) for x in nqd)
+                     + " |")
+    ph = res.get("phases") or []
+    if ph:
+        su = res["start_up_s"]
+        bands = [(0.0, su / 3), (su / 3, 2 * su / 3), (2 * su / 3, su), (su, 1.0), (1.0, 1e9)]
+        lines += ["", f"Along the default filter on seed {seeds[0]}: the filter's `F` and the cached step's exact "
+                  "Jacobian, both at the true state, against the truth map's Jacobian there (central differences "
+                  "of the frozen RK4 map), as their effect on the predicted standard deviations "
+                  "(`max_i sqrt((dF P dF^T)_ii / (F P F^T + Q)_ii)`, the filter's `P`); per time band the largest "
+                  "and the median over the intervals measured, and the largest `dq''/dq` entry (1/s^2) of the "
+                  "truth map and of the exact Jacobian.", "",
+                  "| time (s) | intervals | default F: largest (median) | exact: largest (median) | truth map's largest dq''/dq | exact's largest dq''/dq |",
+                  "|---|---|---|---|---|---|"]
+        for lo, hi in bands:
+            b = [p for p in ph if lo <= p["t"] < hi]
+            if not b:
+                continue
+            dq_t = max(np.abs(np.asarray(p["dqdd_dq_truth"])).max() for p in b)
+            dq_x = max(np.abs(np.asarray(p["dqdd_dq_exact"])).max() for p in b)
+            lines.append(f"| {lo:.2f}-{min(hi, 3.0):.2f} | {len(b)} | {_fmt(max(p['default'] for p in b))} "
+                         f"({_fmt(np.median([p['default'] for p in b]))}) | {_fmt(max(p['exact'] for p in b))} "
+                         f"({_fmt(np.median([p['exact'] for p in b]))}) | {dq_t:.0f} | {dq_x:.0f} |")
+    if entries_path:
+        ent = json.loads(Path(entries_path).read_text())
+        lines += ["", "`python benchmarks/step_jacobian.py own-entries --json FILE` (`tests/test_step_jacobian.py`'s "
+                  "`exact_entries`): per model, at a moving state with a secant partner (q on the secant's line, "
+                  "factor -0.4: every term of the step in use), the exact Jacobian against central differences of "
+                  "the step (largest `|F - F_d| / (1e-5 |F_d| + 1e-8 nat)`, at most 1 to pass) and the filter's `F` "
+                  "against the exact one over the natural scale (the terms it leaves out).", "",
+                  "| model | exact: entry error | filter's F: left out / natural scale |", "|---|---|---|"]
+        for name, e in ent.items():
+            lines.append(f"| {name} | {e['exact']:.2g} | {e['left_out']:.2g} |")
+    return lines + [""]
+
+
+def own_page(own_json: str, md: str, entries_json: str | None = None, text: str = "") -> None:
+    """Write :func:`_own_section` (and ``text`` after its tables) into the page ``md``: in place of the section
+    of the same heading, else before the acceptance oracle's section (else at the end)."""
+    page_lines = Path(md).read_text().split("\n")
+    new = _own_section(own_json, entries_json) + ([text, ""] if text else [])
+    head = [i for i, ln in enumerate(page_lines) if ln == OWN_HEADING]
+    if head:
+        i = head[0]
+        j = next((k for k in range(i + 1, len(page_lines)) if page_lines[k].startswith("## ")), len(page_lines))
+        page_lines[i:j] = new
+    else:
+        j = next((k for k, ln in enumerate(page_lines) if ln.startswith("## What the left-out terms change")),
+                 len(page_lines))
+        page_lines[j:j] = new
+    out = "\n".join(page_lines).replace(_NOT_ESTABLISHED, _ESTABLISHED)
+    Path(md).write_text(out)
+    print("wrote", md)
 
 
 def _gap_section(paths: list[str]) -> list[str]:
@@ -837,6 +1084,20 @@ def main(argv=None) -> int:
     p.add_argument("--midpoint", default=None, help="oracle --variant q_midpoint's --json")
     p.add_argument("--rk4-seeds", default=None, help="per-seed rk4 runs on the six-bar's Exudyn truths (JSON lines)")
     p.add_argument("--md", default=str(ROOT / "docs" / "step_jacobian.md"))
+    w = sub.add_parser("own", help="the filter on its own model's truth with each step Jacobian (own_model)")
+    w.add_argument("--model", default=str(ROOT / "models" / "sixbar.toml"))
+    w.add_argument("--truth-dir", default="/tmp/acc/final_truth", help="DIR/reduced/<model>/s<seed>")
+    w.add_argument("--seeds", default="1-5")
+    w.add_argument("--variants", default=",".join(OWN_VARIANTS[:-1]))
+    w.add_argument("--phases-every", type=int, default=0)
+    w.add_argument("--json", default="own.json")
+    wp = sub.add_parser("own-page", help="write the own section into the page (own_page)")
+    wp.add_argument("--own", required=True)
+    wp.add_argument("--entries", default=None, help="own-entries --json output")
+    wp.add_argument("--text", default="", help="the conclusions, after the tables")
+    wp.add_argument("--md", default=str(ROOT / "docs" / "step_jacobian.md"))
+    we = sub.add_parser("own-entries", help="test_step_jacobian.exact_entries on every model")
+    we.add_argument("--json", default="own_entries.json")
     a = ap.parse_args(argv)
     if a.cmd == "hold":
         Path(a.json).write_text(json.dumps(hold(a.model, a.run), indent=1))
@@ -853,6 +1114,21 @@ def main(argv=None) -> int:
             Path(a.json).write_text(json.dumps(res, indent=1))
     elif a.cmd == "oracle":
         return oracle(a.variant, [x for x in a.gallery_args if x != "--"])
+    elif a.cmd == "own":
+        lo, _, hi = a.seeds.partition("-")
+        seeds = list(range(int(lo), int(hi or lo) + 1))
+        variants = a.variants.split(",")
+        bad = [v for v in variants if v not in OWN_VARIANTS]
+        if bad:
+            raise SystemExit(f"--variants: expected names from {OWN_VARIANTS}, got {bad}")
+        Path(a.json).write_text(json.dumps(own_model(a.model, a.truth_dir, seeds, variants, a.phases_every),
+                                           indent=1))
+    elif a.cmd == "own-page":
+        own_page(a.own, a.md, a.entries, a.text)
+    elif a.cmd == "own-entries":
+        import test_step_jacobian as tsj
+
+        Path(a.json).write_text(json.dumps({n: tsj.exact_entries(n) for n in tsj.MODELS}, indent=1))
     elif a.cmd == "entries":
         Path(a.json).write_text(json.dumps(entries(), indent=1))
     else:

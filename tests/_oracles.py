@@ -119,8 +119,11 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
     if hs.has_old:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))
-    if hs.Wg.shape[0]:  # the weight by its gradient in q instead of along the secant
-        f = f + hs.Wg[:, :nq] @ dl - (s * (hs.fg - hs.old_fg) if hs.has_old else 0.0)
+    if hs.Wg.shape[0]:  # the weight by its gradient in q and, with a partner, its curvature along the secant
+        w = hs.Wg[:, :nq] @ dl
+        if hs.has_old:  # fg + (1 + s) Wg dl - s^2 (fg - old_fg), less the secant's s (fg - old_fg) in f already
+            w = (1.0 + s) * w - (s + s * s) * (hs.fg - hs.old_fg)
+        f = f + w
     if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
         f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
     return rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr

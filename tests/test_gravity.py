@@ -195,3 +195,101 @@ def test_prescribed_truth_held_horizontal_sags_by_euler_bernoulli():
     rec = simulate_prescribed(mech, lambda t: np.array([0.0]), 0.6, [probe], h=1e-3, damping="rayleigh")
     tip_y = rec.values[probe.key][rec.t >= 0.5, 1]
     assert np.mean(tip_y) == pytest.approx(want, rel=0.03)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the reduced model (the observer's) under gravity
+
+
+def _reduced(mech):
+    from exuflex.erls.model import ErlsModel
+    from exuflex.reduction import CraigBampton, ReducedModel
+
+    return ReducedModel(CraigBampton(ErlsModel(mech)))
+
+
+@pytest.mark.parametrize("theta", [0.0, -0.6, 0.9])
+def test_reduced_static_sag_and_holding_torque_are_euler_bernoulli(theta):
+    """The reduced model's weight ``(W J)^T M_N g`` on a cantilever clamped at the hub's angle ``theta``: the elastic
+    rows' static solution ``K_r p = f_g`` gives the tip deflection across the link of Euler-Bernoulli, ``q L^4 /
+    (8 EI) + P L^3 / (3 EI)`` (cubic elements with consistent loads are nodally exact; the Craig-Bampton basis
+    holds the tip's static shape exactly and the interior load's response to its modes' truncation), and the
+    joint row's force at that state is the weight's moment about the hub, ``g_n (rho A L^2 / 2 + m_t L)``, less
+    the sag's lever (relative size the deflection over the length)."""
+    tip = {"mass": 0.3}
+    mech = _cantilever(theta, tip)
+    rm = _reduced(mech)
+    nq = rm.nq
+    mats = rm.matrices(np.array([theta]))
+    pe = np.linalg.solve(mats.Kr[nq:, nq:], mats.fr[nq:])
+    p = np.concatenate([[theta], pe])
+    x = mats.rc.H @ p
+    rows = rm.model.point_displacement_rows(mats.rc.cfg, "arm", L)
+    normal = np.array([-math.sin(theta), math.cos(theta)])
+    want = _euler_bernoulli_tip(theta, tip["mass"])
+    assert (rows @ x[nq:]) @ normal == pytest.approx(want, rel=2e-3)
+    # the full-order model's static solution at the same angle: the reduced one within the basis's truncation
+    cfg = rm.model.configuration(np.array([theta]))
+    Kuu = rm.model.T.T @ cfg.K_N @ rm.model.T
+    u_full = np.linalg.solve(Kuu, rm.model.generalized_forces(cfg, np.zeros(1))[nq:])
+    assert np.abs(rows @ (x[nq:] - u_full)).max() <= 2e-3 * abs(want)
+    A = math.pi * D**2 / 4
+    moment = -G * math.cos(theta) * (RHO * A * L**2 / 2 + tip["mass"] * L)
+    held = rm.matrices(p)
+    assert (held.fr - held.Kr @ p)[0] == pytest.approx(moment, rel=5 * abs(want) / L + 1e-9)
+
+
+def _held_pair(som, q0: float, d: float):
+    """The cached step's held configuration at ``q0`` with its secant partner at ``q0 - d`` (the configurations
+    undeformed at rest), as :meth:`ReducedObserverModel._refresh` builds them."""
+    r = som.r
+
+    def held(q):
+        z = np.zeros(2 * r)
+        z[0] = q
+        iv = som._configuration(z, held=True)
+        iv.Ca = iv.mats.Cr - som.model.beta * iv.mats.Kr
+        return iv
+
+    old, iv = held(q0 - d), held(q0)
+    old.system = som._held_system(old)
+    iv.old, iv.d = old, np.array([d])
+    iv.dd = d * d
+    iv.system = som._held_system(iv)
+    return iv
+
+
+def test_held_weight_follows_the_configuration_to_second_order():
+    """The cached step's weight about a held configuration with a secant partner: ``fg + (1 + s) Wg dl - s^2 (fg -
+    fg_old)`` (:func:`exuflex.observer.expansion._held_model`), second order along the secant, so its error falls
+    as the cube of the radius (the partner as far behind as ``q`` is ahead, as the refreshes place them; first
+    order: the square). The vertical link at rest, 40 degrees below the horizontal, undeformed: one interval's
+    state error against the configuration evaluated exactly, and the weight itself."""
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.expansion import held_step
+    from exuflex.observer.reduced import ReducedObserverModel
+
+    mech = load_mechanism(VERTICAL_LINK)
+    som = ReducedObserverModel(_reduced(mech))
+    rm = som.rm
+    r, dt, q0 = som.r, 1e-3, -0.7
+    u, zero = np.zeros(1), np.zeros(1)
+    radii = (0.04, 0.02, 0.01)
+    step, first, weight = [], [], []
+    for h in radii:
+        iv, exact = _held_pair(som, q0, h), _held_pair(som, q0 + h, h)
+        z = np.zeros(2 * r)
+        z[0] = q0 + h
+        n = som.substeps(iv, dt)
+        want = held_step(z, u, zero, 0.0, dt / n, n, exact.system)[0]
+        change = np.abs(want - held_step(z, u, zero, 0.0, dt / n, n, iv.system)[0]).max()
+        step.append(np.abs(held_step(z, u, np.array([h]), 1.0, dt / n, n, iv.system)[0] - want).max() / change)
+        # without the partner's curvature: the weight to first order (s = 0 drops the secant altogether)
+        first.append(np.abs(held_step(z, u, np.array([h]), 0.0, dt / n, n, iv.system)[0] - want).max() / change)
+        fg0, fg_old, fg_h = iv.forces.fg, iv.old.forces.fg, exact.forces.fg
+        expanded = fg0 + 2.0 * iv.forces.Wg[:, 0] * h - (fg0 - fg_old)  # s = 1
+        weight.append(np.abs(expanded - fg_h).max() / np.abs(fg_h - fg0).max())
+    for rel, order in ((step, 2), (first, 1), (weight, 2)):  # relative errors: the order less one
+        assert np.all(np.log2(np.array(rel[:-1]) / np.array(rel[1:])) > order - 0.2), (rel, order)
+    assert np.all(np.array(step) < 0.1 * np.array(first))
+    assert weight[0] < 1e-2

@@ -14,6 +14,10 @@ What it leaves out, the held matrices' change with the positions (and, through t
 which they are held, with the rates), is measured against central differences of the whole step, per model of the gallery and
 on a mechanism written here (a double pendulum in a vertical plane: the weight's force changes with q and with the
 elastic coordinates); docs/step_jacobian.md gives the reason it is left out.
+
+The whole step's exact Jacobian, every term in (:func:`exuflex.observer.expansion.exact_jacobian`, the tangent of
+the step's RK4 sub-steps), is compared with central differences of the step entry by entry on every model, with a
+secant partner in use (``exact_entries``): the reference the filter's ``F`` is measured against.
 """
 
 import functools
@@ -119,9 +123,9 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
     dl0 = z[:nq] - iv.q0
 
     def step(x):
-        return ex.held_step(x, u, x[:nq] - iv.q0, 0.0, h, n, *hs)[0]
+        return ex.held_step(x, u, x[:nq] - iv.q0, 0.0, h, n, hs)[0]
 
-    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl0, 0.0, h, n, *hs)
+    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl0, 0.0, h, n, hs)
 
     def forces(x):  # the held forces at x
         f = oracle.quadratic_forces(x[:r], x[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
@@ -140,7 +144,7 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
 
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
     tensors = iv.forces.jacobian_tensors()
-    F = ex.held_interval(z, u, dl0, 0.0, h, n, *tensors, Pn, S, *hs)[1]  # the cached step's own F
+    F = ex.held_interval(z, u, dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]  # the cached step's own F
     Fp = hs.Wg
     if hs.Wg.shape[0]:  # gravity: F holds the held matrices' change with q as forces at z (position_forces)
         Fp = ex.position_forces(z, step(z), dt, hs.Wg, hs.dM, hs.dK, hs.beta)
@@ -200,7 +204,7 @@ def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
 
     def step(x):
         dl = x[:nq] - iv.q0
-        return ex.held_step(x, u, dl, _secant_factor(iv, dl), h, n, *iv.system)[0]
+        return ex.held_step(x, u, dl, _secant_factor(iv, dl), h, n, iv.system)[0]
 
     dl = z[:nq] - iv.q0
     s = _secant_factor(iv, dl)
@@ -208,9 +212,9 @@ def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
     x_ref = step(z)
     assert np.allclose(x1, x_ref, rtol=1e-12, atol=1e-13 * np.abs(x_ref).max())
     Fd = _central(step, z, r)
-    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl, s, h, n, *iv.system)
+    _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl, s, h, n, iv.system)
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
-    F_filter = ex.held_interval(z, u, dl, s, h, n, *iv.forces.jacobian_tensors(), Pn, S, *iv.system)[1]
+    F_filter = ex.held_interval(z, u, dl, s, h, n, *iv.forces.jacobian_tensors(), Pn, S, tuple(iv.system))[1]
     return {"s": s, "exact": float(entry_error(F, Fd, 1e-5, 1e-8).max()),
             "left_out": float((np.abs(F_filter - F) / natural_scale(F)).max())}
 

@@ -328,9 +328,10 @@ class AugmentedModel:
         inc = self.increment(iv, z, fresh)
         n = inner.substeps(iv, dt)
         dl = z[: inner.nq] - iv.q0
-        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, *iv.system, *inc)[0]
+        hs, inc = tuple(iv.system), tuple(inc)
+        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, hs, inc)[0]
         if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
-            out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, *iv.system, *inc)[0]
+            out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, hs, inc)[0]
         return out
 
     def _scaled_interval(self, z, u, dt, a, theta, dtheta):
@@ -353,9 +354,9 @@ class AugmentedModel:
         mp = self._map
         ok = mp is not None and mp[0] is sm
         rows, x, F, Qx, L, scaled_map, Mr, Kr, Cr, Gr = payload_interval(
-            z, u, dl, s, dt / n, n, a, theta, dtheta, self.payload_std**2 * dt, self.nx, rho, inner.refresh_tol, ok,
-            *(mp[1:] if ok else NO_SCALED_MAP), inner.torque_var, inner.q_extra_diag, sm.tail[0], dTs, sm.tail[1],
-            sm.tail[2], sm.Pn, sm.S, sm.L, sm.Q, *iv.system, *inc)
+            z, u, dl, s, dt / n, n, a, theta, self.nx, (dtheta, self.payload_std**2 * dt, rho, inner.refresh_tol),
+            (ok, *(mp[1:] if ok else NO_SCALED_MAP)), (sm.Pn, sm.S, sm.L, sm.Q, inner.torque_var, inner.q_extra_diag),
+            (sm.tail[0], dTs, sm.tail[1], sm.tail[2]), tuple(iv.system), tuple(inc))
         if scaled_map[0]:
             self._map = (sm, *scaled_map[1:])
         inner.interval_system = (Mr, Kr, Cr, Gr, dt / n, n)
@@ -546,12 +547,14 @@ def warm_up() -> None:
     for has_old in (False, True):
         hs = _example_system(r, nq, has_old)
         inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.C2, hs.old_dM, M, hs.old_fg, hs.old_T2, hs.old_C2)
-        scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, *hs, *inc)
+        hs, inc = tuple(hs), tuple(inc)
+        nominal = (*maps, np.ones(nq), np.zeros(0))
+        scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, hs, inc)
         for ok in (False, True):
-            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 1e-4, 1.0, 2 * r + 1, 1.0, 0.0, ok, 0.0, *maps,
-                             np.ones(nq), np.zeros(0), T3, T3, V3, C3, *maps, *hs, *inc)
-        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, True, 1.0, 1e-4, 1.0, 0.03, T3, False, 0.0,
-                       *maps, np.ones(nq), 0.0, np.ones(nq), np.zeros(0), T3, V3, C3, *maps, *hs, *inc)
+            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 2 * r + 1, (1e-4, 1.0, 1.0, 0.0), (ok, 0.0, *maps),
+                             nominal, (T3, T3, V3, C3), hs, inc)
+        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, (True, 1.0, 1e-4, 1.0, 0.03, T3), inc,
+                       (np.ones(nq), 0.0), (False, 0.0, *maps), nominal, (T3, V3, C3), hs)
     warm_up_loop(True)
 
 

@@ -78,8 +78,9 @@ class HeldSystem(NamedTuple):
     matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
     empty: none). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
     (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
-    column): the weight follows ``q`` by it over the radius (:func:`_held_model`) and the step Jacobian holds it
-    (:func:`_step_jacobian`); empty (0, 0) without gravity, where both are the held arrays' alone.
+    column): the weight follows ``q`` by it over the radius, and with a secant partner by its curvature along the
+    secant too (:func:`_held_model`: second order), and the step Jacobian holds it (:func:`_step_jacobian`); empty
+    (0, 0) without gravity, where both are the held arrays' alone.
     """
 
     has_old: bool
@@ -396,9 +397,13 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
 def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
     the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
-    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. The weight follows ``q`` by its gradient
-    instead (``fg + Wg[:, :nq] dl``, first order in every direction; the secant's is first order along its line
-    only), where the held system has one (gravity).
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. Where the held system has a weight gradient
+    (gravity) the weight follows ``q`` to second order instead, as ``M_r`` and ``K_r`` do: its gradient in every
+    direction and, with a secant partner (``d = q0 - q_old``, ``s = (dl . d) / (d . d)``), its curvature along the
+    secant from the partner's weight, ``fg_old = fg - Wg d + 1/2 D2(d, d)``, so ``1/2 D2(dl, dl) = s^2 (fg_old - fg)
+    + s Wg dl`` on the line and ``f_g = fg + (1 + s) Wg dl - s^2 (fg - fg_old)``. To first order only, the
+    weight's error ``1/2 D2(dl, dl)`` is of one sign over the whole radius: a bias the filter takes for signal
+    (docs/gravity.md measures what it did to the filter on its own model).
 
     The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
     interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
@@ -426,13 +431,13 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-    if hs.Wg.shape[0]:  # the weight by its gradient in q, its secant taken out again
+    if hs.Wg.shape[0]:  # the weight to second order: its gradient, and its curvature along the secant
         for i in range(r):
             acc = 0.0
             for j in range(nq):
                 acc += hs.Wg[i, j] * dl[j]
-            if hs.has_old:
-                acc -= s * (hs.fg[i] - hs.old_fg[i])
+            if hs.has_old:  # the secant's first-order term taken out, the curvature along it put in: (1 + s) x
+                acc = (1.0 + s) * (acc - s * (hs.fg[i] - hs.old_fg[i]))
             f[i] += acc
     n_el = hs.pG.shape[0]
     if n_el:  # the weight's change with the elastic coordinates (pG's last column, :func:`_elastic_terms`)
@@ -444,28 +449,16 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr, f
 
 
-def _held_step(z, u, dl, s, h, n, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                  old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
-    """One interval of the cached step: the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
-    sub-steps of ``h``. Returns ``(z_next, M_r, K_r, C_r, G_r)``; ``z_next`` is NaN if the held ``M_r`` is not
-    positive definite there. The held system's arrays are passed one by one (their names are
-    :class:`HeldSystem`'s fields: call with ``*system``): numba passes separate arrays at a fraction of the cost
-    of a tuple of arrays."""
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
-    Mr, Kr, Cr, Gr, f = _held_model(z, dl, s, 0.5 * h * n, hs)
-    return _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
-
-
-def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                                           old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
-    """:func:`_held_step` and :func:`_step_jacobian` in one call (what the cached step does per interval):
+def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no cover - compiled
+    """One interval of the cached step, the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
+    sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`) (what the cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
-    then serves :func:`held_step` too (see :func:`_inline` for why one). The helpers are
-    called here directly rather than through :func:`_held_step`: numba copies an inlined helper's whole code once
-    per block, so one large helper costs far more to inline than its parts."""
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
+    then serves :func:`held_step` too (see :func:`_inline` for why one). ``z_next`` is NaN if the held ``M_r``
+    is not positive definite at the start either. The helpers are called here directly: numba copies an inlined helper's whole code once
+    per block, so one large helper costs far more to inline than its parts. ``hs``: the held system
+    (:class:`HeldSystem`'s fields as a plain tuple: numba types a plain tuple from its fingerprint, a named one
+    through a slower path)."""
+    hs = HeldSystem(*hs)
     Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.5 * h * n, hs)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
@@ -515,20 +508,18 @@ def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - com
     return Fp
 
 
-def held_step(z, u, dl, s, h, n, *system):
-    """One interval of the cached step (:func:`_held_step`): ``(z_next, M_r, K_r, C_r, G_r)``. Called with
-    ``*system`` (:class:`HeldSystem`); through :func:`held_interval` without the Jacobian."""
+def held_step(z, u, dl, s, h, n, system: HeldSystem):
+    """One interval of the cached step (:func:`held_interval` without the Jacobian): ``(z_next, M_r, K_r, C_r,
+    G_r)`` of the held ``system``."""
     z_next, _, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, h, n, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR, _NO_MATRIX,
-                                              _NO_MATRIX, *system)
+                                              _NO_MATRIX, tuple(system))
     return z_next, Mr, Kr, Cr, Gr
 
 
-def _held_system(dl, s, pe, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
-    """:func:`_system` (call with ``*system``, see :func:`_held_step`); its own kernel, as the filter calls it at
-    every step-map rebuild."""
-    return _system(dl, s, pe, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca,
-                                     old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg))
+def _held_system(dl, s, pe, hs):  # pragma: no cover - compiled
+    """:func:`_system` of the held system ``hs`` (a plain tuple, see :func:`_held_interval`); its own kernel, as the
+    filter calls it at every step-map rebuild."""
+    return _system(dl, s, pe, HeldSystem(*hs))
 
 
 def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray, np.ndarray]:
@@ -536,8 +527,8 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     with the secant factor ``s`` of the secant ``d``, ``dd = d . d``; ``d`` empty without a partner) and its
     exact Jacobian in ``z``, by the tangent of its RK4 sub-steps: the reference for :func:`step_jacobian`, which
     leaves terms out (``tests/test_step_jacobian.py`` compares both with finite differences of the step, entry
-    by entry). NumPy, about a hundred times the compiled step's cost on the six-bar: a reference, not the
-    filter's.
+    by entry). NumPy: a reference and a measurement, not the filter's (it carries the tangent of every state
+    component through every RK4 stage).
 
     Every input of the held system ``M p'' + C p' + K p = G u + f`` (:func:`_held_model`) that the step takes
     from ``z`` is differentiated: ``M_r``, ``K_r`` in ``q`` (the gradients, the secant's second order and, where
@@ -558,7 +549,7 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     tm = 0.5 * h * n
     for tm in (tm, 0.0):  # the midpoint elastic coordinates; the start where M_r is not positive definite there
         pem = p[nq:] + tm * pd[nq:]
-        M, K, C, G = held_system(dl, s, pem if n_el else pem[:0], *hs)
+        M, K, C, G = held_system(dl, s, pem if n_el else pem[:0], tuple(hs))
         try:
             Minv = np.linalg.inv(np.linalg.cholesky(M))
         except np.linalg.LinAlgError:
@@ -638,17 +629,19 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
                 dCj[j, :nq, :] += c * Pc
                 dCj[j, :, :nq] += c * Pc.T
                 dGj[j, :nq, :] += c * hs.pG[k].reshape(nq, mg)[:, :m]
-    # the sub-steps with their tangent
-    Ak, Ac = Minv @ K, Minv @ C
+    # the sub-steps with their tangent (the derivatives stacked: one product per stage and kind)
+    KC = np.hstack([K, C])
+    A = Minv @ KC  # [M^-1 K, M^-1 C]
     b0 = G @ u + f
-    g0 = dF + np.einsum("jac,c->aj", dGj, u)
+    g0 = (dF + np.einsum("jac,c->aj", dGj, u)).T.copy()  # (nx, r): row j the forcing of column j
+    dKC = np.concatenate([dKj, dCj], axis=2).reshape(nx * r, 2 * r)
+    dM2 = dMj.reshape(nx * r, r)
     x, X = z.copy(), np.eye(nx)
 
     def rate(y, Y):
-        a = Minv @ (b0 - K @ y[:r] - C @ y[r:])
-        g = g0 - np.einsum("jab,b->aj", dKj, y[:r]) - np.einsum("jab,b->aj", dCj, y[r:]) \
-            - np.einsum("jab,b->aj", dMj, a)
-        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g - Ak @ Y[:r] - Ac @ Y[r:]])
+        a = Minv @ (b0 - KC @ y)
+        g = g0 - (dKC @ y).reshape(nx, r) - (dM2 @ a).reshape(nx, r)
+        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g.T - A @ Y])
 
     for _ in range(n):
         k1, K1 = rate(x, X)
@@ -776,7 +769,8 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
     propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
     ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
-    step, docs/step_jacobian.md gives the reason)."""
+    step and with the step's exact Jacobian :func:`exact_jacobian`; docs/step_jacobian.md measures what the
+    left-out terms change and why they stay out)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
@@ -807,15 +801,13 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     return F
 
 
-def _prediction_error(dl, s, Mr_exact, Kr_exact, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                                 old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
+def _prediction_error(dl, s, Mr_exact, Kr_exact, hs):  # pragma: no cover - compiled
     """How well the held model predicts ``M_r`` and ``K_r`` at ``q0 + dl`` against the exact ``Mr``, ``Kr`` there:
     the largest entry of the differences whitened by the exact mass matrix, ``L^-1 (M_pred - M) L^-T``
     (``M = L L^T``; near 1 the prediction may be indefinite), and of ``K_r``'s relative to the largest entry of
     ``L^-1 K L^-T`` (within a factor ``r`` of the spectral norms, at a tenth of their cost). ``inf`` if ``Mr`` is
-    not positive definite. (Call with ``*system``, see :func:`_held_step`.)"""
-    Mp, Kp = _mass_stiffness(dl, s, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                                               old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg))
+    not positive definite. ``hs``: the held system (a plain tuple, see :func:`_held_interval`)."""
+    Mp, Kp = _mass_stiffness(dl, s, HeldSystem(*hs))
     Mr, Kr = Mr_exact, Kr_exact
     Li = _inverse_cholesky_factor(Mr)  # NaN if Mr is not positive definite
     if not np.isfinite(Li[0, 0]):
@@ -1125,7 +1117,7 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
                 return REMAP, z, F, Qk, mats, st
             # the step map rebuilt ahead of q, its radius from the replaced map's error
             q_new, Pn_new, SQM, L, Q_new = rebuild_map(x[:n0], cs.q0, cs.meas_rad, sm.rad, cs.ahead, cs.horizon, cs.d,
-                                                       cs.dd, dt, n, cs.torque_var, cs.q_extra, *hs)
+                                                       cs.dd, dt, n, cs.torque_var, cs.q_extra, hs)
             err = map_error(sm.Pn, Pn_new, sm.Q, Q_new, P)
             rad = next_map_radius(q_new, sm.q, err, sm.rad, cs.rad_tol, cs.rad_min, cs.rad_max)
             cs.errs[n_maps] = err
@@ -1141,16 +1133,15 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
         if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
             return GENERAL, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
         if pay or n_in:
-            z, F, Qk, Mo, Ko, Co, Go, p_ok, p_c, p_Pn, p_S, p_L, p_Q = extra_interval(
-                x, uu, dl, s, dt, n, pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, *scaled,
-                ex.inp_var, ex.inp_tau, cs.torque_var, cs.q_extra, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, sm.L, sm.Q, *hs,
-                ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM, ex.iold_Ca, ex.iold_fg, ex.iold_T2,
-                ex.iold_C2)
-            scaled = (p_ok, p_c, p_Pn, p_S, p_L, p_Q)
+            z, F, Qk, Mo, Ko, Co, Go, scaled = extra_interval(
+                x, uu, dl, s, dt, n, (pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs),
+                (ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM, ex.iold_Ca, ex.iold_fg, ex.iold_T2,
+                 ex.iold_C2), (ex.inp_var, ex.inp_tau), scaled, (sm.Pn, sm.SQM, sm.L, sm.Q, cs.torque_var, cs.q_extra),
+                (cs.Ts, cs.Vs, cs.C3), hs)
             mats = (Mo, Ko, Co, Go)
             extra = True
     if not extra:
-        z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, *hs)
+        z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, hs)
         Qk = sm.Q
         mats = (Mo, Ko, Co, Go)
     return LOOP_DONE, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
@@ -1166,19 +1157,23 @@ def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
     return True
 
 
-def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, pay_ok, pay_c, pay_Pn,
-                    pay_S, pay_L, pay_Q, inp_var, inp_tau, torque_var, q_extra, Ts, Vs, C3, Pn, SQM, L, Q, has_old,
-                    beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2,
-                    old_V2, old_C2, pM, pK, pC, pG, Wg, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg,
-                    iold_T2, iold_C2):  # pragma: no cover - compiled
-    """One interval of an augmented state (:func:`cached_interval`'s ``pay`` and ``inp_*``, the torques ``u`` with
-    the disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)``, the
-    scaled step map as this interval leaves it. With the payload scale (not at exactly 1) the interval is
-    :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c`` (which chooses, and rebuilds, the step map: the
-    nominal one or the scaled ``pay_*``); without, :func:`held_interval`'s. The
-    disturbances then decay, gain their noise and enter through the map's torque response."""
+def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, hs):  # pragma: no cover - compiled
+    """One interval of an augmented state (:func:`cached_interval`'s ``ex``, the torques ``u`` with the
+    disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled)``, the scaled step map ``scaled = (pay_ok, pay_c,
+    pay_Pn, pay_S, pay_L, pay_Q)`` as this interval leaves it. ``payload = (pay, pay_var, pay_dtheta, pay_rho, pay_tol,
+    pay_dTs)`` the payload scale's parameters (:class:`LoopExtras`), ``inc`` its increment, ``inp = (inp_var,
+    inp_tau)`` the disturbances'; ``maps = (Pn, SQM, L, Q, torque_var, q_extra)`` the nominal step map with the
+    noise's parts, ``forms = (Ts, Vs, C3)`` the step Jacobian's; ``hs`` the held system (plain tuples, see
+    :func:`_held_interval`). With the payload scale (not at exactly 1) the interval is :func:`payload_interval`'s
+    at ``c + pay_dtheta`` and ``c`` (which chooses, and rebuilds, the step map: the nominal one or the scaled
+    ``pay_*``); without, :func:`held_interval`'s. The disturbances then decay, gain their noise and enter through
+    the map's torque response."""
+    pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs = payload
+    inp_var, inp_tau = inp
+    Pn, SQM, L, Q = maps[0], maps[1], maps[2], maps[3]
+    Ts, Vs, C3 = forms
     n_x = x.shape[0]
-    n0 = 2 * Mr.shape[0]
+    n0 = 2 * hs[2].shape[0]
     n_in = inp_var.shape[0]
     s0 = n_x - n_in
     if pay:
@@ -1187,16 +1182,11 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
         scales = np.empty(2)
         scales[0] = c + pay_dtheta
         scales[1] = c
-        _, z, F, Qk, L_u, scaled_map, Mo, Ko, Co, Go = payload_interval(
-            x[:n0], u, dl, s, dt / n, n, scales, th, pay_dtheta, pay_var * dt, n_x, pay_rho, pay_tol, pay_ok, pay_c,
-            pay_Pn, pay_S, pay_L, pay_Q, torque_var, q_extra, Ts, pay_dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr,
-            Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr,
-            iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
-        pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q = scaled_map
+        _, z, F, Qk, L_u, scaled, Mo, Ko, Co, Go = payload_interval(
+            x[:n0], u, dl, s, dt / n, n, scales, th, n_x, (pay_dtheta, pay_var * dt, pay_rho, pay_tol), scaled, maps,
+            (Ts, pay_dTs, Vs, C3), hs, inc)
     else:
-        z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, has_old, beta, Mr,
-                                               Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr,
-                                               old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
+        z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
         z, F, Qk = _augmented(z0, F0, Q, n_x)
         L_u = L
     if n_in:  # the disturbances: their decay, noise and the step's response to them
@@ -1207,7 +1197,7 @@ def _extra_interval(x, u, dl, s, dt, n, pay, pay_var, pay_dtheta, pay_rho, pay_t
             Qk[s0 + j, s0 + j] = inp_var[j] * (1.0 - phi * phi) if inp_tau > 0.0 else inp_var[j] * dt
             for i in range(n0):
                 F[i, s0 + j] = L_u[i, j]
-    return z, F, Qk, Mo, Ko, Co, Go, pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q
+    return z, F, Qk, Mo, Ko, Co, Go, scaled
 
 
 def _augmented(z, F, Q, nx):  # pragma: no cover - compiled
@@ -1256,22 +1246,20 @@ def _map_error(Pn_old, Pn_new, Q_old, Q_new, P):  # pragma: no cover - compiled
     return err
 
 
-def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, q_extra, has_old, beta, Mr, Kr, Ca,
-                 Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2,
-                 old_C2, pM, pK, pC, pG, Wg):  # pragma: no cover - compiled
+def _rebuild_map(z, q0, lim, map_rad, ahead, horizon, d, dd, dt, n, torque_var, q_extra, hs):  # pragma: no cover - compiled
     """A step map of the held configuration ``q0`` for an interval of ``dt`` in ``n`` sub-steps, built ahead of
     ``q`` along its motion (:func:`map_lookahead`, not beyond ``lim`` from ``q0``): the held model there,
     undeformed (:func:`_system`, along the secant ``d``; the elastic coordinates of the instant of the rebuild
     would stay in the map while they oscillate, measured in docs/step_jacobian.md) and its maps :func:`step_maps_noise`, ``q_extra`` (may be empty)
-    added to the noise's diagonal. Returns ``(q_map, P^n, S, L, Q)`` (:meth:`.reduced.ReducedObserverModel._step_map`)."""
+    added to the noise's diagonal. ``hs``: the held system (a plain tuple, see :func:`_held_interval`). Returns
+    ``(q_map, P^n, S, L, Q)`` (:meth:`.reduced.ReducedObserverModel._step_map`)."""
     nq = q0.shape[0]
     shift = map_lookahead(z, nq, map_rad, ahead, horizon)
     dla = np.empty(nq)
     for i in range(nq):
         dla[i] = min(max((z[i] - q0[i]) + shift[i], -lim), lim)
     s = secant_factor(dla, d, dd)
-    Ma, Ka, Ca_, Ga = _system(dla, s, z[:0], HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                                                 old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg))
+    Ma, Ka, Ca_, Ga = _system(dla, s, z[:0], HeldSystem(*hs))
     Pn, S, L, Q = step_maps_noise(Ma, Ka, Ca_, Ga, dt / n, n, torque_var)
     for i in range(q_extra.shape[0]):
         Q[i, i] += q_extra[i]
@@ -1293,29 +1281,28 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
     return min(max(rad, rmin), 2.0 * map_rad, rmax)
 
 
-def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK,
-                  old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca,
-                  iold_fg, iold_T2, iold_C2):  # pragma: no cover - compiled
+def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
     row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
-    C_r, G_r)``, the held matrices those of the last scale. The held arrays come one by one
-    (``*system, *increment``), as the expansion's kernels take them.
+    C_r, G_r)``, the held matrices those of the last scale. ``hs``: the held system (a plain tuple, see
+    :func:`_held_interval`); ``inc``: the payload's increment ``dS`` (:class:`.augmented.PayloadIncrement`'s fields,
+    a plain tuple).
 
     The held model (:func:`_held_model`) is linear in the held arrays, and the stiffness, input matrix
     and geometric forms do not depend on the payload: it is evaluated once for ``S`` and once for ``dS`` (with
     zero stiffness, input and geometric arrays) and combined per scale, ``M_r = M_r(S) + a_k M_r(dS)``, likewise
     the damping and the forces (the weight, the velocity forms and the bias force ``J^T M a_b``, the increment's
     ``iC2``); each scale then costs its Cholesky factor and RK4 sub-steps only."""
-    r = Mr.shape[0]
-    hs = HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg,
-                    old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg)
-    zr, zg, zq = np.zeros((r, r)), np.zeros(Gr.shape), np.zeros(dK.shape)
-    zv = np.zeros(V2.shape)
+    hs = HeldSystem(*hs)
+    iMr, iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2 = inc
+    r = hs.Mr.shape[0]
+    zr, zg, zq = np.zeros((r, r)), np.zeros(hs.Gr.shape), np.zeros(hs.dK.shape)
+    zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
-    di = HeldSystem(has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
+    di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
                     iold_T2, zv, iold_C2, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
-    G0 = np.empty(Gr.shape)
+    G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
     for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
         Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, 0.5 * h * n, hs if k == 0 else di)
@@ -1338,21 +1325,20 @@ def _scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, f
     return out, M, K0, C, G0
 
 
-def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, tol, map_ok, map_c, map_Pn, map_S,
-                      map_L, map_Q, torque_var, q_extra, Ts, dTs, Vs, C3, Pn, SQM, L, Q, has_old, beta, Mr, Kr, Ca,
-                      Gr, dM, dK, fg, T2, V2, C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr,
-                      iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
-                      iold_C2):  # pragma: no cover - compiled
+def _payload_interval(z, u, dl, s, h, n, a, theta, nx, scale, scaled, maps, forms, hs, inc):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
 
-    The steps at the scales ``1 + a_k`` (:func:`scaled_steps`; the last entry of ``a`` is the interval's own
-    scale ``c``), taken again without the secant (``s = 0``, first order) if one is not finite; the held matrices
-    at ``c``; the step map: the nominal one (``Pn``, ``SQM``, ``L``, ``Q``) where the payload's change of the modal
-    masses ``|c| rho`` is within ``tol``, else the scaled one: ``map_*``, built at the scale ``map_c``, where it is
-    the current nominal map's (``map_ok``) and ``c`` is within ``tol / rho`` of ``map_c``, else rebuilt as the
-    maps of the held linear system at ``c`` (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the
-    noise's diagonal); and the step's Jacobian in the state (:func:`step_jacobian`) with that map and the
-    velocity forms ``Ts + c dTs`` and bias form ``C3 + c iC2`` (``Ts``, ``C3`` with the nominal map).
+    The steps at the scales ``1 + a_k`` (:func:`scaled_steps` of the held system ``hs`` and the increment ``inc``;
+    the last entry of ``a`` is the interval's own scale ``c``), taken again without the secant (``s = 0``, first
+    order) if one is not finite; the held matrices at ``c``; the step map: the nominal one, ``maps = (Pn, SQM, L,
+    Q, torque_var, q_extra)`` with the noise's parts, where the payload's change of the modal masses ``|c| rho`` is
+    within ``tol`` (``scale = (dtheta, theta_var, rho, tol)``), else the scaled one, ``scaled = (map_ok, map_c,
+    map_Pn, map_S, map_L, map_Q)``, built at the scale ``map_c``, where it is the current nominal map's
+    (``map_ok``) and ``c`` is within ``tol / rho`` of ``map_c``, else rebuilt as the maps of the held linear system
+    at ``c`` (:func:`step_maps_noise`, ``q_extra``, may be empty, added to the noise's diagonal); and the step's
+    Jacobian in the state (:func:`step_jacobian`) with that map and, of ``forms = (Ts, dTs, Vs, C3)``, the velocity
+    forms ``Ts + c dTs`` and bias form ``C3 + c iC2`` (``Ts``, ``C3`` with the nominal map). The tuples are plain
+    (see :func:`_held_interval`).
 
     Returns ``(rows, x, F, Qx, L, (map_ok, map_c, map_Pn, map_S, map_L, map_Q), M_r, K_r, C_r, G_r)`` with the
     augmented state's prediction (``nx`` states, the scale ``theta`` after the ``n0 = 2 r`` reduced ones, zeros
@@ -1360,19 +1346,19 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, dtheta, theta_var, nx, rho, t
     ``F`` the step's Jacobian in its leading block, the scale's column the forward difference
     ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``, ``Qx`` the process
     noise ``Q`` in its leading block and ``theta_var`` the scale's."""
-    rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2, C2,
-                                        old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr, iCa,
-                                        idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2, iold_C2)
+    dtheta, theta_var, rho, tol = scale
+    map_ok, map_c, map_Pn, map_S, map_L, map_Q = scaled
+    Pn, SQM, L, Q, torque_var, q_extra = maps
+    Ts, dTs, Vs, C3 = forms
+    iC2 = inc[5]
+    rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, hs, inc)
     finite = True
     for k in range(rows.shape[0]):
         for i in range(rows.shape[1]):
             if not math.isfinite(rows[k, i]):
                 finite = False
     if not finite:  # as the nominal step's rescue: first order only
-        rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, has_old, beta, Mr, Kr, Ca, Gr, dM, dK, fg, T2, V2,
-                                            C2, old_dM, old_dK, old_Ca, old_Gr, old_fg, old_T2, old_V2, old_C2, pM, pK, pC, pG, Wg, iMr,
-                                            iCa, idM, ifg, iT2, iC2, iold_dM, iold_Ca, iold_fg, iold_T2,
-                                            iold_C2)
+        rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, hs, inc)
     c = a[a.shape[0] - 1]
     scaled = abs(c) * rho > tol
     cT = c if scaled else 0.0
@@ -1418,7 +1404,6 @@ map_lookahead = _shared(map_lookahead)
 _rk4_linear = _inline(_rk4_linear)
 _quadratic_forces = _inline(_quadratic_forces)
 _held_model = _inline(_held_model)
-_held_step = _inline(_held_step)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)
@@ -1461,7 +1446,7 @@ def warm_up_held() -> None:
     dl = np.zeros(nq)
     M = np.eye(r)
     for has_old in (False, True):
-        prediction_error(dl, 0.0, M, M, *_example_system(r, nq, has_old))
+        prediction_error(dl, 0.0, M, M, tuple(_example_system(r, nq, has_old)))
 
 
 def warm_up_interval() -> None:
@@ -1472,7 +1457,7 @@ def warm_up_interval() -> None:
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     step_jacobian(z, *jac, np.zeros((0, 0)))
     for has_old in (False, True):
-        held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, *_example_system(r, nq, has_old))
+        held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, tuple(_example_system(r, nq, has_old)))
 
 
 def warm_up_maps() -> None:
@@ -1484,7 +1469,7 @@ def warm_up_maps() -> None:
     M, G = np.eye(r), np.zeros((r, nq))
     step_maps_noise(M, M, M, G, 1e-4, 1, np.ones(nq))
     secant_factor(dl, dl, 1.0)
-    rebuild_map(z, dl, 1.0, 0.1, 0.0, 0.0, dl, 0.0, 1e-4, 1, np.ones(nq), np.zeros(2 * r), *_example_system(r, nq))
+    rebuild_map(z, dl, 1.0, 0.1, 0.0, 0.0, dl, 0.0, 1e-4, 1, np.ones(nq), np.zeros(2 * r), tuple(_example_system(r, nq)))
     map_error(np.eye(2 * r), np.eye(2 * r), M, M, np.eye(2 * r))
     next_map_radius(dl, dl, 0.0, 0.1, 0.5, 0.01, 1.0)
     measurement_rows(np.zeros(1), np.zeros((1, 2 * r)), np.zeros((nq, 1, r)), np.zeros((1, nq, nq)), z, dl,

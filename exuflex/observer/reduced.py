@@ -526,9 +526,9 @@ class ReducedObserverModel:
         zq[: self.nq] = iv.q0
         n = self.substeps(old, dt)
         dl = iv.q0 - old.q0
-        held = held_step(zq, u, dl, s_old, dt / n, n, *old.system)[0]
+        held = held_step(zq, u, dl, s_old, dt / n, n, old.system)[0]
         # iv's own held system at its centre (no offset, no secant step): the exact configuration
-        exact = held_step(zq, u, np.zeros(self.nq), 0.0, dt / n, n, *iv.system)[0]
+        exact = held_step(zq, u, np.zeros(self.nq), 0.0, dt / n, n, iv.system)[0]
         dz = np.abs(held - exact)
         P = self.state_cov()
         sig = np.sqrt(np.maximum(np.diagonal(P)[: self.nx], 1e-300))
@@ -568,7 +568,7 @@ class ReducedObserverModel:
         (:func:`.expansion.prediction_error`)."""
         dl = iv.q0 - old.q0
         s = float(dl @ old.d) / old.dd if old.old is not None else 0.0
-        return float(prediction_error(dl, s, iv.mats.Mr, iv.mats.Kr, *old.system))
+        return float(prediction_error(dl, s, iv.mats.Mr, iv.mats.Kr, tuple(old.system)))
 
     def _held_system(self, iv: _Held) -> HeldSystem:
         """The arrays of the compiled cached step while iv is held (:class:`.expansion.HeldSystem`)."""
@@ -749,7 +749,7 @@ class ReducedObserverModel:
             return sm
         new = self._new_map(iv, dt, n, *rebuild_map(z, iv.q0, self._measurement_radius(iv), self.map_rad,
                                                     self.remap_ahead, self.remap_horizon, *self._secant(iv), dt, n,
-                                                    self.torque_var, self.q_extra_diag, *iv.system))
+                                                    self.torque_var, self.q_extra_diag, tuple(iv.system)))
         self.n_remap += 1
         if sm is not None and sm.n == n and abs(sm.dt - dt) <= self.dt_tol * dt and self.state_cov is not None:
             err = map_error(sm.Pn, new.Pn, sm.Q, new.Q, self.state_cov())
@@ -761,7 +761,7 @@ class ReducedObserverModel:
         """``iv``'s step map, now ``(q, P^n, S, L, Q)`` (:func:`.expansion.rebuild_map`)."""
         new = iv.map = _StepMap(q, dt, n, Pn, S, L, Q)
         new.q_list = q.tolist()
-        new.tail = (*iv.forces.jacobian_tensors(), Pn, S, *iv.system)
+        new.tail = (*iv.forces.jacobian_tensors(), Pn, S, tuple(iv.system))
         return new
 
     @property
