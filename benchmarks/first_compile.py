@@ -10,8 +10,8 @@ calls :func:`exuflex._compile.prepare` (the kernels compiled in that many proces
 Reported per repeat: the wall seconds (what the user waits) and the CPU seconds of the process and of the
 compiling subprocesses it started (``resource.getrusage(RUSAGE_CHILDREN)``), per stage where they are the
 process's own. After each such process, ``python -m exuflex observe MODEL RUN`` with another empty cache and the
-same job count: the first use as a user meets it (the command's checks and bound call kernels that no group of
-:mod:`exuflex._compile` holds; they compile at their first call). The job counts alternate within each repeat (1, 2, 1, 2, ...), so that a change in the machine's
+same job count: the first use as a user meets it (:func:`exuflex._compile.start` begins the compilation before the
+command's checks, which compile the kinematics group in the command's process). The job counts alternate within each repeat (1, 2, 1, 2, ...), so that a change in the machine's
 load hits both alike; the load average is recorded before and after. A last process with the cache left warm
 measures what the first use costs once compiled (``warm``).
 
@@ -90,7 +90,7 @@ def _first_use(args, jobs: int, cache: str) -> dict:
 
 def _first_observe(args, jobs: int, cache: str) -> dict:
     """``python -m exuflex observe MODEL RUN`` with the empty cache ``cache``: what the user runs first (the bound,
-    the checks and the report included: their kernels that no group holds compile at their first call)."""
+    the checks and the report included: the compilation starts before the checks)."""
     import re
 
     env = dict(os.environ, NUMBA_CACHE_DIR=cache, EXUFLEX_COMPILE_JOBS=str(jobs), PYTHONPATH=str(ROOT))
@@ -210,9 +210,10 @@ def _page(out: dict, argv: list) -> str:
         f"{_load(out['load_before'])}, after: {_load(out['load_after'])} (other jobs share the cores: a load above "
         "the benchmark's own processes slows the parallel runs more).\n\n"
         "The first use as a user meets it: `python -m exuflex observe MODEL RUN` in a fresh process with an empty "
-        "`NUMBA_CACHE_DIR` (the kernels compiled by `exuflex._compile.prepare` in the number of processes given by "
-        "`EXUFLEX_COMPILE_JOBS`, then the kernels no group holds, which the checks and the bound call, at their "
-        "first call; issue 29's aim: at most 30 s on 2 cores). Beside it the library's part alone: a fresh "
+        "`NUMBA_CACHE_DIR` (the kernels compiled in the number of processes given by `EXUFLEX_COMPILE_JOBS`, begun "
+        "by `exuflex._compile.start` before the command's checks, which compile the kinematics group in the "
+        "command's process, and finished by `exuflex._compile.prepare`; issue 29's aim: at most 30 s on 2 cores). "
+        "Beside it the library's part alone: a fresh "
         "process with an empty cache imports exuflex, compiles the kernels "
         "(`exuflex._compile.prepare`, in the number of processes given by `EXUFLEX_COMPILE_JOBS`), builds the "
         "six-bar's observer and filters a short log. Wall: what the user waits; CPU: the process and the "

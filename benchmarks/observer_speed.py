@@ -226,6 +226,19 @@ def _stages_child(model: str, run_dir: str) -> int:
     for mod, name, label in STAGES:
         m = importlib.import_module(mod)
         setattr(m, name, timed(getattr(m, name), label, spent))
+    from exuflex.observer import ekf
+
+    run_cpu = [0.0]
+    ekf_run = ekf.MultirateEKF.run
+
+    def run_timed(self, *a, **k):  # the filter's CPU seconds (what its printed wall times)
+        c0 = time.process_time()
+        try:
+            return ekf_run(self, *a, **k)
+        finally:
+            run_cpu[0] += time.process_time() - c0
+
+    ekf.MultirateEKF.run = run_timed
     from numba.core import caching
 
     load = caching.Cache.load_overload
@@ -251,7 +264,7 @@ def _stages_child(model: str, run_dir: str) -> int:
         raise SystemExit(f"exuflex observe returned {rc}")
     filt = float(re.search(r"^wall ([0-9.eE+-]+) s", out.getvalue(), re.MULTILINE).group(1))
     print(json.dumps({"libraries_s": t1 - t0, "package_imports_s": t2 - t1, "command_s": t4 - t3, "stages": spent,
-                      "filter_s": filt, "kernel_loads": loads[0], "kernel_load_s": loads[1],
+                      "filter_s": filt, "filter_cpu_s": run_cpu[0], "kernel_loads": loads[0], "kernel_load_s": loads[1],
                       "in_process_s": t4 - t0}))
     return 0
 
@@ -289,7 +302,7 @@ def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
 
     run(cmd)  # bytecode and numba's cache warm
     run(floor, floor_env, tmp.name)  # the trivial kernel compiled into its cache
-    wall, cpu, filt, imports, parts, floors = [], [], [], [], [], []
+    wall, cpu, filt, imports, parts, floors, floor_cpu = [], [], [], [], [], [], []
     for _ in range(repeats):
         w, c, out = run(cmd)
         wall.append(w)
@@ -298,10 +311,14 @@ def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
         imports.append(float(run(imp)[2]))
         w, _, out = run(stages)
         parts.append(dict(json.loads(out.strip().splitlines()[-1]), wall_s=w))
-        floors.append(run(floor, floor_env, tmp.name)[0])
+        w, c, _ = run(floor, floor_env, tmp.name)
+        floors.append(w)
+        floor_cpu.append(c)
     tmp.cleanup()
     med = statistics.median
-    breakdown = {"floor_s": med(floors), "floor_runs_s": floors, "wall_s": med([p["wall_s"] for p in parts]),
+    breakdown = {"floor_s": med(floors), "floor_runs_s": floors, "floor_cpu_s": med(floor_cpu), "cpu_s": med(cpu),
+                 "filter_cpu_s": med([p["filter_cpu_s"] for p in parts]),
+                 "wall_s": med([p["wall_s"] for p in parts]),
                  "filter_s": med([p["filter_s"] for p in parts]),
                  "kernel_loads": med([p["kernel_loads"] for p in parts]),
                  "kernel_load_s": med([p["kernel_load_s"] for p in parts]),
@@ -402,7 +419,11 @@ def _breakdown_section(b: dict, repeats: int) -> str:
             f"set-up), {repeats} runs alternating with the above: median {b['floor_s']:.2f} s "
             f"({', '.join(f'{w:.2f}' for w in b['floor_runs_s'])}), {100 * b['floor_s'] / outside:.0f} % of the "
             f"wall less the filter ({outside:.2f} s in these runs). The package's own share of the wait is the "
-            f"difference, {outside - b['floor_s']:.2f} s.\n\n"
+            f"difference, {outside - b['floor_s']:.2f} s. In CPU seconds, which the machine's load changes less: the "
+            f"floor {b['floor_cpu_s']:.2f} s, the command {b['cpu_s']:.2f} s of which the filter "
+            f"{b['filter_cpu_s']:.2f} s (medians), so the command less the filter "
+            f"{b['cpu_s'] - b['filter_cpu_s']:.2f} s: what its wall less the filter would be on an idle machine "
+            "(one process on a free core: wall about CPU).\n\n"
             + ("Against issue 29's aim (the wall less the filter at most 1.0 s): met in these runs.\n\n"
                if outside <= 1.0 else
                f"Against issue 29's aim (the wall less the filter at most 1.0 s): not met in these runs "

@@ -12,6 +12,9 @@ and their order are those that finish soonest (:func:`plan`) by each group's :at
 seconds of compiling it (``python benchmarks/first_compile.py --groups`` measures them; a subprocess also pays
 :data:`START_COST` for starting Python, importing the package and setting numba's compiler up).
 
+:func:`start` begins the same and returns at once (the other processes compiling while the caller checks its
+input); :func:`prepare` then finishes it.
+
 With a warm cache :func:`prepare` reads one small index file per kernel and starts nothing. It never fails the
 caller: a subprocess that fails or does not finish, or a cache folder that cannot be written, leaves the missing
 kernels to be compiled in the calling process (at their first call, as without :func:`prepare`).
@@ -26,6 +29,7 @@ compiles (their cache entries are what :func:`prepare` checks), its cost and the
 
 from __future__ import annotations
 
+import atexit
 import itertools
 import logging
 import math
@@ -39,7 +43,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "plan", "prepare"]
+__all__ = ["CHECKS_GROUP", "JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "plan", "prepare", "start"]
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +51,11 @@ log = logging.getLogger(__name__)
 JOBS_ENV = "EXUFLEX_COMPILE_JOBS"
 #: CPU seconds a compiling subprocess spends before its first compilation (Python, NumPy, numba, the package,
 #: numba's compiler set up)
-START_COST = 1.7
+START_COST = 1.1
 #: seconds to wait for a compiling subprocess before compiling its share here
 TIMEOUT_S = 900.0
+#: seconds between two looks at the other processes' progress (a line per group compiled)
+PROGRESS_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -75,29 +81,55 @@ class KernelGroup:
 def groups() -> tuple[KernelGroup, ...]:
     """The observer's kernel groups. A new kernel joins a group by being called in its warm-up and listed in its
     ``kernels``; a new group is one line here (``needs``: the groups whose kernels its kernels call)."""
-    from .erls import _assembly
+    from .erls import _assembly, _closure
     from .observer import augmented, expansion, kalman, loop
     from .reduction import _compiled, model
 
     return (
+        KernelGroup(CHECKS_GROUP, _warm_up_kinematics, (_closure.closure_newton, _closure.pose_sensitivities,
+                    _closure.coordinate_rates), cost=4.6),
         KernelGroup("reduction", model.warm_up, (_assembly.configuration, _compiled.pair_rotations,
                     _compiled.basis_at, _compiled.basis_derivative, _compiled.held_matrices,
-                    _compiled._force_terms_shared), cost=14.6),
-        KernelGroup("held", expansion.warm_up_held, (expansion.prediction_error,), cost=3.2),
+                    _compiled._force_terms_shared, _compiled.force_terms), cost=20.3, needs=(CHECKS_GROUP,)),
+        KernelGroup("held", expansion.warm_up_held, (expansion.prediction_error,), cost=2.7),
         KernelGroup("interval", expansion.warm_up_interval, (expansion.held_interval, expansion.step_jacobian),
-                    cost=5.8),
+                    cost=7.8),
         KernelGroup("step_map", expansion.warm_up_maps, (expansion.step_maps_noise, expansion.secant_factor,
                     expansion.rebuild_map, expansion.map_error, expansion.next_map_radius, expansion.measurement_rows),
-                    cost=6.5),
-        KernelGroup("kalman", kalman.warm_up, (kalman.predict_cov, kalman.update, kalman.predict_update,
+                    cost=7.8),
+        KernelGroup("kalman", _warm_up_kalman, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic, kalman.window_seen,
-                    kalman.window_push, kalman.condition_on, kalman.gate), cost=4.3),
-        KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=6.3,
+                    kalman.window_push, kalman.condition_on, kalman.gate, kalman.fix_cov), cost=5.3),
+        KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=15.1,
                     needs=("interval", "step_map", "kalman")),
         KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,
-                    expansion.extra_interval), cost=23.4,
+                    expansion.extra_interval), cost=48.3,
                     needs=("interval", "step_map", "kalman")),
     )
+
+
+def _warm_up_kinematics() -> None:
+    """The closure's kernels (:mod:`.erls._closure`: Newton, the pose's sensitivities, the coordinate rates), by
+    solving the pose of :mod:`.reduction.model`'s warm-up rod."""
+    import numpy as np
+
+    from .erls.kinematics import Kinematics
+    from .mechanism import parse_mechanism
+    from .reduction.model import _WARM_UP_MODEL
+
+    kin = Kinematics(parse_mechanism(_WARM_UP_MODEL, "warm_up"))
+    kin.coordinate_rates(kin.pose(np.zeros(kin.nq)))
+
+
+def _warm_up_kalman() -> None:
+    """The Kalman kernels (:func:`.observer.kalman.warm_up`) and the covariance repair the bound's recursion
+    calls (:func:`.observer.kalman.fix_cov`)."""
+    import numpy as np
+
+    from .observer import kalman
+
+    kalman.warm_up()
+    kalman.fix_cov(np.eye(3), np.zeros(3))
 
 
 def _cached(kernel) -> bool:
@@ -178,11 +210,12 @@ def _finish(shares: list[list[KernelGroup]]) -> float:
     return max(clock)
 
 
-def plan(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
+def plan(todo: list[KernelGroup], n: int, here: tuple[str, ...] = ()) -> list[list[KernelGroup]]:
     """``todo`` in at most ``n`` ordered shares that finish soonest (:func:`_finish`; share 0 for the calling
     process): every assignment of groups to shares is tried while there are at most ``10**5`` (else all in share
     0); in a share, the groups another share needs come first (cheapest first), those that need others last.
-    Empty shares are left out, share 0 first (possibly empty)."""
+    The groups named in ``here`` are in share 0, before all others. Empty shares are left out, share 0 first
+    (possibly empty)."""
     n = max(1, min(n, len(todo)))
 
     def shares_of(assign) -> list[list[KernelGroup]]:
@@ -191,13 +224,14 @@ def plan(todo: list[KernelGroup], n: int) -> list[list[KernelGroup]]:
             shares[k].append(g)
         wanted = {nd for k, share in enumerate(shares) for g in share for nd in g.needs
                   if not any(x.name == nd for x in share)}
-        shares = [sorted(share, key=lambda g: (g.name not in wanted, bool(g.needs), g.cost)) for share in shares]
+        shares = [sorted(share, key=lambda g: (g.name not in here, g.name not in wanted, bool(g.needs), g.cost))
+                  for share in shares]
         return [shares[0]] + [share for share in shares[1:] if share]
 
     if n ** len(todo) > 10**5:
         return shares_of([0] * len(todo))
-    best = min(itertools.product(range(n), repeat=len(todo)),
-               key=lambda a: (_finish(shares_of(a)), len(set(a))))
+    choices = [range(1) if g.name in here else range(n) for g in todo]
+    best = min(itertools.product(*choices), key=lambda a: (_finish(shares_of(a)), len(set(a))))
     return shares_of(best)
 
 
@@ -253,38 +287,57 @@ def _warm(group: KernelGroup) -> None:
 #: the groups only the augmented estimators (``ekf-payload``, ``ekf-input``) use: :func:`prepare` compiles them
 #: for those alone, so that a plain filter's first use does not wait for them
 AUGMENTED_GROUPS = ("payload",)
+#: the group whose kernels a command's checks call before :func:`prepare` (a model file's loops closed): after
+#: :func:`start` this process compiles it first, at those calls
+CHECKS_GROUP = "kinematics"
 
-_prepared: set[str] = set()  # what prepare() did in this process: "plain", "augmented"
+_prepared: set[str] = set()  # what prepare() did or start() began in this process: "plain", "augmented"
 
 
-def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = None,
-            augmented: bool = False) -> float:
-    """Compile the kernel groups that numba's cache lacks, in ``n_jobs`` processes (:func:`jobs`), so that this
-    process then loads them from the cache: the groups of :data:`AUGMENTED_GROUPS` only with ``augmented`` (an
-    augmented estimator's observer). Once per process and kind; returns the wall seconds it compiled for (0 with a
-    warm cache). ``progress``: one line when compiling starts and one when done (default: the log, INFO)."""
+@dataclass
+class _Started:
+    """The compilation :func:`start` began: this process's share, the subprocesses with their shares, the
+    clock and the progress callback."""
+
+    here: list[KernelGroup]
+    workers: list[tuple]  # (Popen, stderr file, share)
+    t0: float
+    say: Callable[[str], None]
+
+
+_started: _Started | None = None
+
+
+def start(n_jobs: int | None = None, progress: Callable[[str], None] | None = None,
+          augmented: bool = False) -> None:
+    """Begin :func:`prepare` and return at once: the groups numba's cache lacks are planned over ``n_jobs``
+    processes and the other processes' shares start compiling, while this process goes on (a command's checks of
+    its input, reading a log); :func:`prepare` then compiles this process's share and waits for the others. The
+    share of this process holds :data:`CHECKS_GROUP` first, as the checks call its kernels (they compile at those
+    calls). With a warm cache it reads one small index file per kernel and starts nothing. A process that ends
+    before :func:`prepare` stops the subprocesses (what they finished stays cached)."""
+    global _started
     if "augmented" in _prepared or (not augmented and "plain" in _prepared):
-        return 0.0
+        return
     n = jobs(n_jobs)
     _prepared.add("augmented" if augmented else "plain")
     todo = [g for g in missing() if augmented or g.name not in AUGMENTED_GROUPS]
     if not todo:
-        return 0.0
+        return
     say = progress or (lambda msg: log.info("%s", msg))
     if n > 1 and not all(_writable(k) for g in todo for k in g.kernels):
         log.info("numba's cache folder is not writable: compiling in this process")
         n = 1
-    shares = plan(todo, n)
-    known = {g.name: g for g in groups()}
+    shares = plan(todo, n, here=(CHECKS_GROUP,))
     t0 = time.perf_counter()
     say(f"compiling numba kernels (first run, {len(shares)} process{'es' if len(shares) > 1 else ''}) ...")
-    workers = []
     here = list(shares[0])
+    workers = []
     try:
         if len(shares) > 1:
             env = _worker_env()
             for share in shares[1:]:
-                err = tempfile.TemporaryFile()  # noqa: SIM115 - closed in the finally below
+                err = tempfile.TemporaryFile()  # noqa: SIM115 - closed by prepare() or _stop()
                 cmd = [sys.executable, "-m", "exuflex._compile", *(g.name for g in share)]
                 try:
                     proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -295,34 +348,98 @@ def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = 
                     here += share
                     continue
                 workers.append((proc, err, share))
-        here = _needs_first(here)
+    except BaseException:
+        _stop(workers)
+        raise
+    _started = _Started(here, workers, t0, say)
+    if workers:
+        atexit.register(_stop_started)
+
+
+def _stop(workers: list[tuple]) -> None:
+    """Stop the subprocesses that still run and close their error files."""
+    for proc, err, _ in workers:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        err.close()
+
+
+def _stop_started() -> None:
+    """At exit: the subprocesses :func:`start` began that :func:`prepare` did not wait for (the command failed
+    in between) are stopped."""
+    global _started
+    if _started is not None:
+        _stop(_started.workers)
+        _started = None
+
+
+def prepare(n_jobs: int | None = None, progress: Callable[[str], None] | None = None,
+            augmented: bool = False) -> float:
+    """Compile the kernel groups that numba's cache lacks, in ``n_jobs`` processes (:func:`jobs`), so that this
+    process then loads them from the cache: the groups of :data:`AUGMENTED_GROUPS` only with ``augmented`` (an
+    augmented estimator's observer). Once per process and kind; returns the wall seconds it compiled for (0 with a
+    warm cache), from :func:`start` where that began it. ``progress``: one line when compiling starts, one per
+    group compiled (here or in another process) and one when done (default: the log, INFO)."""
+    global _started
+    if _started is None:
+        start(n_jobs, progress, augmented)
+    elif augmented and "augmented" not in _prepared:  # a plain start, now an augmented observer: its groups too
+        prepare(n_jobs, progress)
+        start(n_jobs, progress, augmented)
+    if _started is None:
+        return 0.0
+    st, _started = _started, None
+    known = {g.name: g for g in groups()}
+    workers = st.workers
+    todo = st.here + [g for _, _, share in workers for g in share]
+    done: set[str] = set()
+
+    def tick() -> None:
+        """A line for each group compiled since the last look (here, or cached by another process)."""
+        for g in todo:
+            if g.name not in done and g.cached():
+                done.add(g.name)
+                st.say(f"compiled the {g.name} kernels ({len(done)} of {len(todo)} groups, "
+                       f"{time.perf_counter() - st.t0:.0f} s)")
+
+    def alive() -> bool:
+        tick()
+        return all(p.poll() in (None, 0) for p, _, _ in workers)
+
+    try:
+        here = _needs_first(st.here)
         local = {g.name for g in here}
         for g in here:
-            _await_needs(g, local, known, alive=lambda: all(p.poll() in (None, 0) for p, _, _ in workers))
+            _await_needs(g, local, known, alive=alive)
             _warm(g)
+            tick()
         for proc, err, share in workers:
-            try:
-                rc = proc.wait(timeout=max(1.0, TIMEOUT_S - (time.perf_counter() - t0)))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-                rc = "timeout"
+            deadline = st.t0 + TIMEOUT_S
+            while True:
+                try:
+                    rc = proc.wait(timeout=min(PROGRESS_S, max(0.01, deadline - time.perf_counter())))
+                    break
+                except subprocess.TimeoutExpired:
+                    tick()
+                    if time.perf_counter() >= deadline:
+                        proc.kill()
+                        proc.wait()
+                        rc = "timeout"
+                        break
             if rc != 0:
                 err.seek(0)
                 tail = err.read().decode(errors="replace").strip().splitlines()[-1:] or [""]
                 log.info("the process compiling %s ended with %s (%s): compiling them here",
                          ", ".join(g.name for g in share), rc, tail[0])
     finally:
-        for proc, err, _ in workers:
-            if proc.poll() is None:  # interrupted: stop the subprocesses this call started
-                proc.kill()
-                proc.wait()
-            err.close()
+        _stop(workers)  # interrupted: stop the subprocesses this process started
     for _, _, share in workers:  # loaded from the cache the subprocesses wrote (or compiled here if they did not)
         for g in share:
             _warm(g)
-    wall = time.perf_counter() - t0
-    say(f"numba kernels compiled in {wall:.0f} s (cached on disk for later runs)")
+    tick()
+    wall = time.perf_counter() - st.t0
+    st.say(f"numba kernels compiled in {wall:.0f} s (cached on disk for later runs)")
     return wall
 
 

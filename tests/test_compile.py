@@ -37,7 +37,7 @@ COVERAGE = textwrap.dedent(r"""
 
     missing_before = [g.name for g in _compile.missing()]
     if sys.argv[1] == "prepare":
-        _compile.prepare(int(sys.argv[2]))
+        _compile.prepare(int(sys.argv[2]), augmented=True)
     else:
         for g in _compile.groups():
             g.warm_up()
@@ -176,6 +176,7 @@ def test_the_number_of_processes(monkeypatch):
 
 def _fake(monkeypatch, groups, writable=True):
     monkeypatch.setattr(_compile, "_prepared", set())
+    monkeypatch.setattr(_compile, "_started", None)
     monkeypatch.setattr(_compile, "missing", lambda: list(groups))
     monkeypatch.setattr(_compile, "_writable", lambda kernel: writable)
 
@@ -190,7 +191,7 @@ def test_a_failed_compiling_process_leaves_its_groups_to_this_one(monkeypatch, c
         _compile.prepare(2, progress=lines.append)
     assert calls == ["here_only_a", "here_only_b"]
     assert lines[0] == "compiling numba kernels (first run, 2 processes) ..."
-    assert lines[1].startswith("numba kernels compiled in ")
+    assert lines[-1].startswith("numba kernels compiled in ")
     assert any("the process compiling here_only_b ended with 2" in r.message for r in caplog.records)
     assert _compile.prepare(2) == 0.0  # once per process
 
@@ -261,6 +262,7 @@ def test_nothing_to_compile_without_the_jit_or_with_a_warm_cache(monkeypatch):
     monkeypatch.setattr(numba.config, "DISABLE_JIT", False)
     calls = []
     monkeypatch.setattr(_compile, "_prepared", set())
+    monkeypatch.setattr(_compile, "_started", None)
     monkeypatch.setattr(_compile, "missing", list)
     assert _compile.prepare(2, progress=calls.append) == 0.0
     assert calls == []
@@ -284,3 +286,79 @@ def test_the_cache_check_reads_numbas_index(tmp_path, monkeypatch):
     assert _compile._cached(tiny_kernel.twice)
     assert _compile._writable(tiny_kernel.twice)
     assert _compile._cached(tiny_kernel.twice.py_func)  # not a dispatcher (NUMBA_DISABLE_JIT): nothing to do
+
+
+def test_the_checks_group_is_compiled_here_first(monkeypatch):
+    """The group a command's checks call before ``prepare`` is in this process's share, before the rest, whatever
+    the costs (here the cheaper split would send it to the other process)."""
+    monkeypatch.setattr(_compile, "START_COST", 0.0)
+    calls = []
+    g = [_group("a", 10.0, calls), _group("b", 9.0, calls), _group("kin", 1.0, calls)]
+    assert _names(_compile.plan(g, 2)) == [["a"], ["kin", "b"]]
+    assert _names(_compile.plan(g, 2, here=("kin",))) == [["kin", "b"], ["a"]]
+    assert _names(_compile.plan(g, 1, here=("kin",))) == [["kin", "b", "a"]]  # then cheapest first
+
+
+class _Running:
+    """A compiling subprocess that runs until it is killed or waited for (then it ends with 0)."""
+
+    def __init__(self, log, share):
+        self.log, self.share, self.rc = log, share, None
+
+    def poll(self):
+        return self.rc
+
+    def kill(self):
+        self.log.append(("kill", self.share))
+        self.rc = -9
+
+    def wait(self, timeout=None):
+        if self.rc is None:
+            self.log.append(("done", self.share))
+            self.rc = 0
+        return self.rc
+
+
+def _fake_popen(monkeypatch, log):
+    def popen(cmd, **kw):
+        share = tuple(cmd[3:])
+        log.append(("start", share))
+        return _Running(log, share)
+
+    monkeypatch.setattr(_compile.subprocess, "Popen", popen)
+
+
+def test_start_returns_at_once_and_prepare_finishes(monkeypatch):
+    """``start`` plans and starts the other process's share, and returns: what this process runs before
+    ``prepare`` (the checks) comes first; ``prepare`` compiles this process's share, waits for the other and
+    loads its groups; a second ``prepare`` does nothing."""
+    monkeypatch.setattr(_compile, "START_COST", 0.0)
+    calls, log, lines = [], [], []
+    _fake(monkeypatch, [_group("a", 10.0, calls), _group("b", 9.0, calls), _group(_compile.CHECKS_GROUP, 1.0, calls)])
+    _fake_popen(monkeypatch, log)
+    _compile.start(2, progress=lines.append)
+    assert log == [("start", ("a",))] and calls == []
+    assert lines == ["compiling numba kernels (first run, 2 processes) ..."]
+    calls.append("checks")
+    assert _compile.prepare(2, progress=lines.append) >= 0.0
+    assert calls == ["checks", _compile.CHECKS_GROUP, "b", "a"]  # "a" loaded from the other process's cache
+    assert log == [("start", ("a",)), ("done", ("a",))]
+    assert lines[1:-1] == [f"compiled the {name} kernels ({k} of 3 groups, 0 s)"
+                           for k, name in enumerate((_compile.CHECKS_GROUP, "b", "a"), 1)]
+    assert lines[-1].startswith("numba kernels compiled in ")
+    n = len(lines)
+    assert _compile.prepare(2, progress=lines.append) == 0.0 and len(lines) == n
+
+
+def test_a_start_without_prepare_is_stopped_at_exit(monkeypatch):
+    """The command fails between ``start`` and ``prepare`` (a bad log): at the interpreter's exit the subprocesses
+    still compiling are stopped."""
+    monkeypatch.setattr(_compile, "START_COST", 0.0)
+    calls, log = [], []
+    _fake(monkeypatch, [_group("a", 10.0, calls), _group("b", 9.0, calls)])
+    _fake_popen(monkeypatch, log)
+    _compile.start(2, progress=lambda msg: None)
+    assert log == [("start", ("b",))]
+    _compile._stop_started()
+    assert log == [("start", ("b",)), ("kill", ("b",))]
+    assert _compile._started is None and calls == []

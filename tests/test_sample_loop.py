@@ -192,3 +192,26 @@ def test_loop_takes_gated_blank_and_partial_samples(sixbar_log):
     assert looped.n_rejected[obs.channels[1]] == 1 and looped.nis_dof[520] == 5 and looped.nis_dof[500] == 0
     assert np.isnan(looped.innovations[520, 2]) and np.isnan(looped.S[520, 2]).all()
     _same(looped, _step_by_step(ekf, t, U, Y))
+
+
+def test_loop_takes_samples_while_a_sensor_fault_is_open(sixbar_log):
+    """An offset on one channel from the middle of the log: the sensor-fault windows find it, and the samples after
+    stay in the compiled loop with the fault open (the monitor's verdicts counted there; ``step`` takes the
+    samples where a verdict opens or changes a fault) with the numbers of ``step``."""
+    mech, obs, t, U, Y = sixbar_log
+    n = 700
+    t, U, Y = t[:n].copy(), U[:n].copy(), Y[:n].copy()
+    Y[300:, 2] += 6 * obs.ekf.R_std[2]
+    ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
+    assert ekf.faults is not None and not ekf.isolate
+    stepped = []
+    step = ekf.step
+    ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
+    try:
+        looped = ekf.run(t, U, Y)
+    finally:
+        del ekf.step
+    found = [f for f in looped.channel_faults if f["channel"] == obs.channels[2]]
+    assert found and found[0]["start"] < t[-100]
+    assert len([k for k in stepped if t[k] > found[0]["start"]]) < 10
+    _same(looped, _step_by_step(ekf, t, U, Y))

@@ -332,6 +332,9 @@ def _run(args) -> int:
         if v is not None and len(v) != len(mech.coordinates):
             raise UsageError(f"{flag}: expected {len(mech.coordinates)} values ({', '.join(mech.coordinate_names)}), "
                              f"got {len(v)}")
+    # the first run: the kernels start compiling in the other processes while this one checks the model and the
+    # log (compiling the closure's kernels as it does); prepare() below compiles the rest of its share and waits
+    _compile.start(progress=_say, augmented=config.estimator in AUGMENTED_ESTIMATORS)
     with setting_up():  # (numba's set-up: the first compiled kernel)
         check_configurations(mech)  # loops close, away from singularities
     path = Path(args.run_dir)
@@ -346,7 +349,6 @@ def _run(args) -> int:
     # few floats a row, all rows at once) are freed before the observer's own memory is taken
     log_check = check_run(mech, log, tuple(config.channels) if config.channels else default_channels(mech),
                           dt=config.dt or 1.0 / mech.sample_rate_hz)
-    # the first run: the kernels compiled in parallel, with a line before and after
     _compile.prepare(progress=_say, augmented=config.estimator in AUGMENTED_ESTIMATORS)
     _say("building the reduced model")
     with setting_up():  # the kernels loaded, the model built

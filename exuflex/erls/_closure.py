@@ -152,6 +152,31 @@ def _solve_lapack(J, b):  # pragma: no cover - compiled
     return x
 
 
+def _solve_columns_lapack(A, B):  # pragma: no cover - compiled
+    """``A^-1 B`` for ``B`` with several columns, as :func:`_solve_lapack` (compiled ``np.linalg.solve``'s
+    ``dgesv`` call on the same Fortran-order copies: the same numbers, and its result in Fortran order as that
+    returns it), with its errors."""
+    n = A.shape[0]
+    m = B.shape[1]
+    a = np.empty((n, n)).T
+    x = np.empty((m, n)).T
+    for i in range(n):
+        for j in range(n):
+            if not math.isfinite(A[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+            a[i, j] = A[i, j]
+    for i in range(n):
+        for j in range(m):
+            if not math.isfinite(B[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+            x[i, j] = B[i, j]
+    ipiv = np.empty(n, dtype=_F_INT)
+    info = _xgesv(_KIND_D, n, m, a.ctypes, n, ipiv.ctypes, x.ctypes, n)
+    if info != 0 or a.shape[0] != n or ipiv.shape[0] != n:  # (a and ipiv used after the call: kept alive)
+        raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+    return x
+
+
 def _solve_numpy(J, b):  # pragma: no cover - compiled where numba lacks the names _solve_lapack uses
     return np.linalg.solve(J, b)
 
@@ -283,6 +308,7 @@ if HAVE_NUMBA:
     _jacobian = _shared(_jacobian)
     _max_abs = _shared(_max_abs)
     _solve = _shared(_solve_lapack if _xgesv is not None else _solve_numpy)
+    solve_columns = _shared(_solve_columns_lapack if _xgesv is not None else _solve_numpy)
     _norm1 = _shared(_norm1)
     closure_newton = _jit(_closure_newton)
     pose_sensitivities = _jit(_pose_sensitivities)
@@ -292,5 +318,6 @@ if HAVE_NUMBA:
     coordinate_rates_inline = _inline(_coordinate_rates)
 else:  # pragma: no cover
     closure_newton = None
+    solve_columns = None
     coordinate_rates = None
     pose_sensitivities = None

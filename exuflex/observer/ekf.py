@@ -14,9 +14,10 @@ and ``S^-1 r`` come from one Cholesky solve of ``S`` (an LU solve with a warning
 definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gives the numbers of
 :meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
 compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run`` hands :func:`.loop.samples` the
-samples it can take (every channel sampled, a valid interval and input), which it processes with the same compiled kernels in
-the same order as ``step`` until one needs more (a new held configuration, an input step, a gated channel, ...):
-the model renews its arrays and the loop resumes, or ``step`` takes that sample. ``tests/test_sample_loop.py``
+samples it can take (a valid interval and input; any channels sampled), which it processes with the same compiled
+kernels in the same order as ``step`` until one needs more (a new held configuration, an input step, the model's
+own interval, a channel missing, ...): the model renews its arrays and the loop resumes, or ``step`` takes that
+sample. ``tests/test_sample_loop.py``
 holds the two bit-identical.
 
 Each interval is as long as its two time stamps say: jitter, drift and irregular sampling need no grid. A
@@ -292,6 +293,8 @@ class NISMonitor:
 
 #: the window tests' verdicts (:func:`.kalman.window_push`), 1-3
 _WINDOW_FAULTS = {1: "offset", 2: "scale", 3: "stuck"}
+#: an open fault's kind as the compiled sample loop reads it (:attr:`ChannelMonitor.window_arrays`)
+_FAULT_CODES = {"offset": 1, "scale": 2, "stuck": 3, "missing": 4}
 
 
 class ChannelMonitor:
@@ -334,6 +337,7 @@ class ChannelMonitor:
         self._last_t = np.full(m, np.nan)
         self._interval = np.full(m, self.dt)
         self._status = np.zeros(m, dtype=np.int64)
+        self._kind = np.zeros(m, dtype=np.int64)  # each channel's open fault (_FAULT_CODES; 0: none)
         self._open: dict[int, dict] = {}
         self._t0: float | None = None
         self.faults: list[dict] = []
@@ -341,12 +345,14 @@ class ChannelMonitor:
     def _set(self, i: int, kind: str, t: float, mean_z: float) -> None:
         f = {"channel": self.channels[i], "kind": kind, "start": float(t), "end": None, "mean_z": float(mean_z)}
         self._open[i] = f
+        self._kind[i] = _FAULT_CODES[kind]
         self.faults.append(f)
         log.info("channel %s: %s fault found at t=%.6g s (window mean of z %.3g)", self.channels[i], kind, t, mean_z)
 
     def _clear(self, i: int, t: float) -> None:
         f = self._open.pop(i)
         f["end"] = float(t)
+        self._kind[i] = 0
 
     def seen(self, t: float, idx: np.ndarray) -> None:
         """Channels ``idx`` were sampled at ``t`` (their innovations not tested): the "missing" test only."""
@@ -393,6 +399,12 @@ class ChannelMonitor:
         return self._z, self._n, self._sum, self._sq, self._last_t, self._interval
 
     @property
+    def verdict_arrays(self) -> tuple:
+        """What :meth:`verdicts` keeps per channel, for the compiled sample loop: the window's verdicts, the kind of
+        its open fault (0: none; offset, scale, stuck, missing: 1-4) and its count of passed tests since."""
+        return self._status, self._kind, self._ok
+
+    @property
     def window_tests(self) -> tuple:
         """``(clip, k_mean, hi, lo)``: the clip of ``z`` and the thresholds of the window tests."""
         return self.clip, self._k_mean, self._hi, self._lo
@@ -411,6 +423,7 @@ class ChannelMonitor:
                     self._set(i, _WINDOW_FAULTS[st], t, mean_z)
                 elif st == 1 and f["kind"] == "scale":  # the window filled: a mean, not only a spread
                     f["kind"], f["mean_z"] = "offset", float(mean_z)
+                    self._kind[i] = _FAULT_CODES["offset"]
             elif st == 0 and i in self._open:
                 self._ok[i] += 1
                 if self._ok[i] >= W:
@@ -864,7 +877,7 @@ class MultirateEKF(BeliefFilter):
         self._loop = loop.samples if takes_compiled_loop(model) else None
         if self._loop is not None:
             self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
-                                np.zeros(4), np.zeros(0, dtype=np.int64), math.nan)
+                                np.zeros(4), *(np.zeros(0, dtype=np.int64) for _ in range(3)), math.nan)
             loop.warm_up(True if self.hooks.i_theta is not None or self.hooks.i_inputs is not None else None)
         kalman.warm_up()
         self.reset()
@@ -1069,9 +1082,11 @@ class MultirateEKF(BeliefFilter):
 
     def _loop_ready(self, U) -> bool:
         """Can samples go to the compiled loop now? (The model has a compiled step; a run with inputs, after a first
-        sample; no sensor fault open; the input-step test one the loop computes.)"""
+        sample; the input-step test one the loop computes; no isolation of faulty sensors: a fault found at a sample
+        leaves its channel out of that sample's update, which the loop, reporting the verdicts after the sample,
+        would not.)"""
         return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
-                and (self.faults is None or not self.faults._open)
+                and not (self.isolate and self.faults is not None)
                 and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
 
     def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> int:
@@ -1082,7 +1097,7 @@ class MultirateEKF(BeliefFilter):
         step = self.input_step
         step_w, step_thr = (step.weights, step.threshold) if step is not None else (np.zeros(U.shape[1]), math.inf)
         f = self.faults
-        win = ((*f.window_arrays, np.array(f.window_tests), f._status, math.nan if f._t0 is None else f._t0)
+        win = ((*f.window_arrays, np.array(f.window_tests), *f.verdict_arrays, math.nan if f._t0 is None else f._t0)
                if f is not None else self._no_windows)
         mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected, *win, step_w, step_thr)
         inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None

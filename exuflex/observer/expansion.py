@@ -121,6 +121,12 @@ try:  # numba is a core dependency; without it the kernels run as plain (slow) P
         """Plain NumPy function outside compiled code, compiled inline where a kernel calls it."""
         return numba.extending.register_jitable(f)
 
+    def _linked(f):
+        """A large helper compiled once per process as a function of its own and linked into each kernel that
+        calls it (LLVM optimises it there again, but numba types and lowers it once): inlined (:func:`_inline`),
+        its whole code would be copied to every call site."""
+        return numba.njit(nogil=True, error_model="numpy", no_cfunc_wrapper=True)(f)
+
     def _inline(f):
         """A helper compiled into each kernel that calls it (numba's ``inline="always"``), not as a kernel of its
         own: a separately compiled kernel is compiled once on its own and optimised again inside every caller."""
@@ -131,7 +137,7 @@ except ImportError:  # pragma: no cover
     def _jit(f):
         return f
 
-    _shared = _inline = _jit
+    _shared = _inline = _linked = _jit
 
 
 @_shared
@@ -584,16 +590,16 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     if hs.has_old and d.shape[0]:
         act = not (float(dl @ d) ** 2 < 0.49 * float(dl @ dl) * dd)
     ds = d / dd if act else np.zeros(nq)
-    if act:
-        along = fk[0] - fk[1]
-        if hs.Wg.shape[0]:
-            along = along - (hs.fg - hs.old_fg)
-        dF[:, :nq] += np.outer(along, ds)
-    if hs.Wg.shape[0]:  # the weight by its gradient in q (its secant taken out again) and the elastic coordinates
-        f += hs.Wg[:, :nq] @ dl
+    along = fk[0] - fk[1] if hs.has_old else 0.0
+    if hs.Wg.shape[0]:  # the weight to second order (:func:`_held_model`): (1 + s) (Wg dl - s (fg - fg_old))
+        wdl = hs.Wg[:, :nq] @ dl
+        dfg = hs.fg - hs.old_fg
+        f += (1.0 + s) * (wdl - s * dfg) if hs.has_old else wdl
+        dF[:, :nq] += (1.0 + s) * hs.Wg[:, :nq] if hs.has_old else hs.Wg[:, :nq]
         if hs.has_old:
-            f -= s * (hs.fg - hs.old_fg)
-        dF[:, :nq] += hs.Wg[:, :nq]
+            along = along + wdl - (1.0 + 2.0 * s) * dfg
+    if act:  # the secant factor's own change moves everything along the secant
+        dF[:, :nq] += np.outer(along, ds)
     if n_el:
         mg = hs.pG.shape[1] // nq
         wcol = hs.pG.reshape(n_el, nq, mg)[:, :, mg - 1]  # (n_el, nq)
@@ -1401,9 +1407,9 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, nx, scale, scaled, maps, form
 
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
-_rk4_linear = _inline(_rk4_linear)
-_quadratic_forces = _inline(_quadratic_forces)
-_held_model = _inline(_held_model)
+_rk4_linear = _linked(_rk4_linear)
+_quadratic_forces = _linked(_quadratic_forces)
+_held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)

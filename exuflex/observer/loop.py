@@ -73,8 +73,9 @@ class Buffers(NamedTuple):
 class Monitors(NamedTuple):
     """The filter's measurement noise and tests: ``R``'s diagonal, the covariance's floor, the gate (chi-square(1)
     quantile) with the count of channels it left out, ``rejected``, the sensor-fault windows
-    (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their tests ``(clip, k_mean, hi, lo)`` and
-    verdicts and the time of the monitor's first sample ``t0``, and the input-step test ``step_w``, ``step_thr``."""
+    (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their tests ``(clip, k_mean, hi, lo)``, their
+    verdicts, each channel's open fault and its passed tests since (:attr:`.ekf.ChannelMonitor.verdict_arrays`) and
+    the time of the monitor's first sample ``t0``, and the input-step test ``step_w``, ``step_thr``."""
 
     Rd: np.ndarray
     floor: np.ndarray
@@ -88,6 +89,8 @@ class Monitors(NamedTuple):
     win_int: np.ndarray
     win_tests: np.ndarray
     win_status: np.ndarray
+    win_kind: np.ndarray
+    win_ok: np.ndarray
     t0: float
     step_w: np.ndarray
     step_thr: float
@@ -111,6 +114,29 @@ class Record(NamedTuple):
     x_pred: np.ndarray
     F: np.ndarray
     Q: np.ndarray
+
+
+def _verdicts(mon, idx):  # pragma: no cover - compiled into the loop
+    """The window tests' verdicts ``mon.win_status`` of the channels ``idx`` (:meth:`.ekf.ChannelMonitor.verdicts`):
+    where none opens, changes or clears a fault, the counts of passed tests since a fault (``win_ok``) and 0;
+    else nothing is changed and the number of such verdicts (the monitor reports them after the sample)."""
+    W = mon.win_Z.shape[0]
+    n_events = 0
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        st, kind = mon.win_status[j], mon.win_kind[i]
+        if st > 0 and (kind == 0 or (st == 1 and kind == 2)):  # found, or a scale fault's window now offset
+            n_events += 1
+        elif st == 0 and kind != 0 and mon.win_ok[i] + 1 >= W:  # cleared
+            n_events += 1
+    if n_events == 0:
+        for j in range(idx.shape[0]):
+            i, st = idx[j], mon.win_status[j]
+            if st > 0:
+                mon.win_ok[i] = 0
+            elif st == 0 and mon.win_kind[i] != 0:
+                mon.win_ok[i] += 1
+    return n_events
 
 
 def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # pragma: no cover - compiled
@@ -152,11 +178,14 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
             sampled[i] = math.isfinite(Y[k, i])
             if sampled[i]:
                 n_s += 1
-        if windows and n_s < m:  # would the sensor-fault monitor call a channel missing? (then step() takes it)
+        if windows:  # would the sensor-fault monitor find a channel missing, or one back? (then step() takes it)
             due = False
-            for i in range(m):  # no sample for a window of its own intervals (:class:`.ekf.ChannelMonitor`)
+            for i in range(m):  # missing: no sample for a window of its own intervals (:class:`.ekf.ChannelMonitor`)
                 last_t = mon.win_last[i] if math.isfinite(mon.win_last[i]) else mon.t0
-                due |= not sampled[i] and t[k] - last_t > mon.win_Z.shape[0] * mon.win_int[i]
+                if sampled[i]:
+                    due |= mon.win_kind[i] == 4
+                elif mon.win_kind[i] == 0:
+                    due |= t[k] - last_t > mon.win_Z.shape[0] * mon.win_int[i]
             if due:
                 status = GENERAL
                 break
@@ -217,9 +246,9 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
                 if windows:
                     window_seen(mon.win_last, mon.win_int, t[k], idx)
             elif windows:
-                n_bad = window_push(mon.win_Z, mon.win_n, mon.win_sum, mon.win_sq, mon.win_last, mon.win_int, t[k],
-                                    idx, zn, mon.win_tests[0], mon.win_tests[1], mon.win_tests[2], mon.win_tests[3],
-                                    mon.win_status)
+                window_push(mon.win_Z, mon.win_n, mon.win_sum, mon.win_sq, mon.win_last, mon.win_int, t[k], idx, zn,
+                            mon.win_tests[0], mon.win_tests[1], mon.win_tests[2], mon.win_tests[3], mon.win_status)
+                n_bad = _verdicts(mon, idx)
             if n_keep < n_s:
                 for i in range(n_s):
                     if not gated[i]:
@@ -265,6 +294,7 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
 try:  # numba is a core dependency; without it the loop runs as plain (slow) Python
     import numba
 
+    _verdicts = numba.njit(inline="always", nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_verdicts)
     samples = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_samples)
 except ImportError:  # pragma: no cover
     samples = _samples
@@ -282,7 +312,7 @@ def warm_up(augmented: bool | None = None) -> None:
     True: the augmented states' (with :func:`.expansion.extra_interval`)."""
     v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
     buf = Buffers(v, v, m, m, m, m, m)
-    mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, 0.0, v, 0.0)
+    mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, 0.0, v, 0.0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
     step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c, c, v,
                       _example_system(1, 1))

@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ..erls._closure import coordinate_rates_inline
+from ..erls._closure import coordinate_rates_inline, solve_columns
 
 try:
     import numba
@@ -606,7 +606,7 @@ def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consi
         MS = M_N @ np.ascontiguousarray(W[:, :nq])
         X = TJt @ MS  # alpha M_e = alpha (T^T M_N T - M_uq M_qq^-1 M_qu), ErlsModel.elastic_mass
         Mqq = np.ascontiguousarray(W[:, :nq].T) @ MS
-        Cr = alpha * (TJt @ (M_N @ TJ) - X @ np.linalg.solve(Mqq, np.ascontiguousarray(X.T))) + beta * (JtK @ Ju)
+        Cr = alpha * (TJt @ (M_N @ TJ) - X @ solve_columns(Mqq, np.ascontiguousarray(X.T))) + beta * (JtK @ Ju)
     else:
         Cr = np.zeros((r, r))
     Gr = WJt @ B_N

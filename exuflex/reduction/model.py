@@ -495,10 +495,12 @@ _WARM_UP_MODEL = {
 
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the kernels that building a reduced model and its held
-    evaluation run (the full-order configuration, :mod:`._compiled`), by building the reduction of a two-element
+    evaluation run (the closure's, the full-order configuration, :mod:`._compiled`; the held evaluation with the
+    frozen step's forces too), by building the reduction of a two-element
     rod and evaluating it once: the kernels see arguments of the very types a mechanism's model passes (the
     closure arrays, the Fortran-ordered inverses that compiled code returns)."""
     if not _compiled.HAVE_NUMBA:
         return
     rm = ReducedModel(CraigBampton(ErlsModel(parse_mechanism(_WARM_UP_MODEL, "warm_up"))))
     rm.held(np.zeros(rm.r), np.zeros(rm.r))
+    rm.held(np.zeros(rm.r), np.zeros(rm.r), fr=True, gradients=False)  # the frozen step's forces
