@@ -319,7 +319,7 @@ def warm_up(augmented: bool | None = None) -> None:
     buf = Buffers(v, v, m, m, m, m, m)
     mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, 0.0, v, 0.0, 0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
-    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, c, c, c, v,
+    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c, c, v,
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
     extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None
