@@ -271,7 +271,6 @@ def test_held_weight_follows_the_configuration_to_second_order():
 
     mech = load_mechanism(VERTICAL_LINK)
     som = ReducedObserverModel(_reduced(mech))
-    rm = som.rm
     r, dt, q0 = som.r, 1e-3, -0.7
     u, zero = np.zeros(1), np.zeros(1)
     radii = (0.04, 0.02, 0.01)

@@ -35,7 +35,6 @@ def case(request):
     m = make_observer(mech, ObserverConfig()).model  # its rows serve any of the mechanism's channels
     q0 = np.asarray(m.rm.cb.q_star, float) + 0.05
     iv = m._configuration(m.initial_state(q0), held=True)
-    iv.rad = 0.1  # the rows of iv serve up to 0.15 rad from q0
     pe = 2e-4 * np.random.default_rng(3).standard_normal(m.r - m.nq)
     return m, iv, channels, pe
 
@@ -65,9 +64,9 @@ def _exact(m, x, channels, eps=1e-6):
 def _errors(m, iv, channels, x):
     """``(|y - y_exact|, |H - H_exact|, first-order errors of both)``: the held rows with their change against the
     exact measurement, and the held configuration's rows alone (``c0 + Hm x``) against it."""
-    m._last = iv
+    centre = m.rows_about(iv, 0.15)
     meas = m.measure(x, channels)
-    assert m._last is iv  # the held rows served: no configuration evaluated anew
+    assert m._centre is centre  # iv's rows served: none rebuilt
     y, H = _exact(m, x, channels)
     c0, Hm = m._affine(iv, channels)
     return np.abs(meas.y - y), np.abs(meas.H - H), np.abs(c0 + Hm @ x - y), np.abs(Hm - H)
@@ -124,7 +123,7 @@ def test_measurement_jacobian_is_the_derivative_of_the_returned_channels(case):
     nq, r = m.nq, m.r
     x = m.initial_state(iv.q0 + 0.05 * _directions(nq)[-1])
     x[nq:r] = pe
-    m._last = iv
+    centre = m.rows_about(iv, 0.15)
     H = m.measure(x, channels).H
     D = m._rows(iv, channels)[2]
     H[:, :nq] += np.einsum("jic,c->ij", D, x[:r])  # the left-out term
@@ -135,7 +134,7 @@ def test_measurement_jacobian_is_the_derivative_of_the_returned_channels(case):
         xp[j] += eps
         xm[j] -= eps
         fd[:, j] = (m.measure(xp, channels).y - m.measure(xm, channels).y) / (2 * eps)
-    assert m._last is iv
+    assert m._centre is centre
     np.testing.assert_allclose(H, fd, rtol=1e-6, atol=1e-9 * np.abs(H).max())
 
 
@@ -153,13 +152,12 @@ def test_slider_channel_is_third_order(slider_model, q0):
     error at the smallest distance), either side of q0."""
     m = slider_model
     iv = m._configuration(m.initial_state([q0]), held=True)
-    iv.rad = 0.05
     hs = np.array([0.005, 0.01, 0.02, 0.04])
     for sign in (1.0, -1.0):
         err2, err1 = [], []
         for h in hs:
             x = m.initial_state([q0 + sign * h])
-            m._last = iv
+            m.rows_about(iv, 0.05)
             exact = _exact(m, x, SLIDER)[0][1]
             err2.append(abs(m.measure(x, SLIDER).y[1] - exact))
             c0, Hm = m._affine(iv, SLIDER)

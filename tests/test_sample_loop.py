@@ -169,7 +169,8 @@ def test_smoother_forward_pass_is_the_loop(sixbar_log):
 def test_loop_takes_gated_blank_and_partial_samples(sixbar_log):
     """A spike the gate leaves out, a blank sample (a prediction only) and samples with a channel missing stay in
     the compiled loop (the update redone without the gated channel, the channels sampled alone): ``step`` takes
-    only the samples the loop cannot (the first, the model's own intervals), with the same numbers."""
+    only the samples the loop cannot (the first, the model's own intervals, the measurements whose rows the model
+    rebuilds), with the same numbers. The log's own input step stays in the loop too (the hold-off starts there)."""
     mech, obs, t, U, Y = sixbar_log
     n = 640
     t, U, Y = t[:n].copy(), U[:n].copy(), Y[:n].copy()
@@ -181,11 +182,16 @@ def test_loop_takes_gated_blank_and_partial_samples(sixbar_log):
     stepped = []
     step = ekf.step
     ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
+    rebuilds = ekf.model.n_rows
     try:
         looped = ekf.run(t, U, Y)
     finally:
         del ekf.step
-    assert not {450, 500, 520, 530, 533} & set(stepped) and len(stepped) < 10
+    rebuilds = ekf.model.n_rows - rebuilds
+    assert not {450, 500, 520, 530, 533} & set(stepped) and len(stepped) < 10 + rebuilds
+    # the log's own input step (at 0.08 s): the hold-off set in the loop, the step recorded
+    k_step = int(np.searchsorted(t, ekf.jump_times[0]))
+    assert k_step not in stepped and looped.nis_dof[k_step] == len(obs.channels)
     assert looped.n_rejected[obs.channels[1]] == 1 and looped.nis_dof[520] == 5 and looped.nis_dof[500] == 0
     assert np.isnan(looped.innovations[520, 2]) and np.isnan(looped.S[520, 2]).all()
     _same(looped, _step_by_step(ekf, t, U, Y))

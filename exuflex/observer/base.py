@@ -26,15 +26,16 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["GENERAL", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "Belief", "CompiledModel", "DiscreteModel",
+__all__ = ["GENERAL", "INPUT_STEP", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "Belief", "CompiledModel", "DiscreteModel",
            "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "ModelHooks", "Prediction", "hooks", "takes_compiled_loop"]
 
 #: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
 #: configuration's or the step map's radius was left (the model renews its arrays, :meth:`CompiledModel.loop_model`,
-#: and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step` must take (an input
-#: step, a gated channel, an indefinite or non-finite update, the model's own reasons); a sensor-fault window test
-#: failed at the last sample done (the monitor reports it).
-LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR = 0, 1, 2, 3, 4
+#: and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step` must take (an
+#: indefinite or non-finite update, a channel found missing, the model's own reasons); a sensor-fault window test
+#: opened, changed or cleared a fault at the last sample done (the monitor reports it); an input step at the last
+#: sample done (the filter records it): after the last two the loop resumes.
+LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR, INPUT_STEP = 0, 1, 2, 3, 4, 5
 
 
 class FilterDivergedError(RuntimeError):

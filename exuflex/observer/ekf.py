@@ -78,7 +78,7 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import (MONITOR, REFRESH, REMAP, Belief, DiscreteModel, FilterDivergedError, hooks,
+from .base import (INPUT_STEP, MONITOR, REFRESH, REMAP, Belief, DiscreteModel, FilterDivergedError, hooks,
                    takes_compiled_loop)
 from .stats import chi2_ppf, norm_ppf
 
@@ -1099,7 +1099,8 @@ class MultirateEKF(BeliefFilter):
         f = self.faults
         win = ((*f.window_arrays, np.array(f.window_tests), *f.verdict_arrays, math.nan if f._t0 is None else f._t0)
                if f is not None else self._no_windows)
-        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected, *win, step_w, step_thr)
+        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected, *win, step_w, step_thr,
+                            self.fault_holdoff)
         inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None
                       else (_empty_rows(m), _empty_rows(m * m)))
         rows = len(rec.t)
@@ -1121,21 +1122,27 @@ class MultirateEKF(BeliefFilter):
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
-                self._loop_close(t, U, k, k_next, hold0, rec, last, mats, state)
+                self._loop_close(t, U, k, k_next, hold0, rec, last, mats, state, status == INPUT_STEP)
                 if status == MONITOR:
                     f.verdicts(float(t[k_next - 1]), last[0], f._status)
+                elif status == INPUT_STEP:
+                    self.jump_times.append(float(t[k_next - 1]))
             k = k_next
-            if status not in (REFRESH, REMAP):
+            if status not in (REFRESH, REMAP, MONITOR, INPUT_STEP):
                 break
         return k
 
-    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, last: tuple, mats, state) -> None:
+    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, last: tuple, mats, state,
+                    stepped: bool) -> None:
         """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
         test) and of the last (times, input, the channels updated with and their innovations, the model's
-        interval); ``last`` the loop's ``(sampled, kept, r, S)`` of the last sample."""
+        interval); ``last`` the loop's ``(sampled, kept, r, S)`` of the last sample, ``stepped`` an input step
+        there."""
         self.n_missing += int(self._skipped[k1 - 1] - self._skipped[k0 - 1])
         held = hold0
         for j in range(k0, k1):
+            if stepped and j == k1 - 1:
+                held = self.fault_holdoff
             dof = int(rec.dof[j])
             if dof:  # an update: the hold-off counts it down (the monitors' allowance after an input step)
                 self._held = held > 0

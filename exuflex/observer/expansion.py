@@ -999,11 +999,12 @@ class CachedStep(NamedTuple):
     is held.
 
     ``jump_w``, ``jump_thr``: the model's torque-jump test (:func:`.kalman.step_statistic`); ``q0`` the held
-    configuration with its refresh radius ``rad`` and measurement radius ``meas_rad``; ``h_min`` the shortest
+    configuration with its refresh radius ``rad`` and reach ``meas_rad`` (how far from it a step map may be built);
+    ``h_min`` the shortest
     sub-step; the step map's rebuild rule: the interval-length tolerance ``dt_tol``, the look-ahead ``ahead``,
     ``horizon`` (:func:`map_lookahead`), the process noise's ``torque_var`` and ``q_extra`` (may be empty), the
     radius rule ``rad_tol``, ``rad_min``, ``rad_max`` (:func:`next_map_radius`); the measurement rows ``c0, Hm,
-    D, G`` (:func:`measurement_rows`); the secant ``d``, ``dd``; the step Jacobian's velocity forms ``Ts, Vs,
+    D, G`` (:func:`measurement_rows`) about ``rows_q0``, serving within ``rows_rad`` of it; the secant ``d``, ``dd``; the step Jacobian's velocity forms ``Ts, Vs,
     C3``; ``errs``, where the replaced maps' errors go (its length bounds the rebuilds of one call); the held
     system (:class:`HeldSystem`)."""
 
@@ -1025,6 +1026,8 @@ class CachedStep(NamedTuple):
     Hm: np.ndarray
     D: np.ndarray
     G: np.ndarray
+    rows_q0: np.ndarray
+    rows_rad: float
     d: np.ndarray
     dd: float
     Ts: np.ndarray
@@ -1152,11 +1155,11 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
 
 def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
     """The measurement at the predicted state ``z`` into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.
-    measure` with every channel): False (nothing written) where ``z`` is not finite or left the held
-    configuration's measurement radius (the model's own rows then)."""
-    if not math.isfinite(z[0]) or not _within(z, cs.q0, cs.meas_rad):
+    measure` with every channel): False (nothing written) where ``z`` is not finite or left the
+    rows' radius (the model rebuilds them then)."""
+    if not math.isfinite(z[0]) or not _within(z, cs.rows_q0, cs.rows_rad):
         return False
-    measurement_rows(cs.c0, cs.Hm, cs.D, cs.G, z, z[: cs.q0.shape[0]] - cs.q0, y, H)
+    measurement_rows(cs.c0, cs.Hm, cs.D, cs.G, z, z[: cs.rows_q0.shape[0]] - cs.rows_q0, y, H)
     return True
 
 

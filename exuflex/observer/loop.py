@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .base import GENERAL, LOOP_DONE, MONITOR
+from .base import GENERAL, INPUT_STEP, LOOP_DONE, MONITOR
 from .expansion import (
     NO_DISTURBANCES,
     NO_PAYLOAD,
@@ -75,7 +75,8 @@ class Monitors(NamedTuple):
     quantile) with the count of channels it left out, ``rejected``, the sensor-fault windows
     (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their tests ``(clip, k_mean, hi, lo)``, their
     verdicts, each channel's open fault and its passed tests since (:attr:`.ekf.ChannelMonitor.verdict_arrays`) and
-    the time of the monitor's first sample ``t0``, and the input-step test ``step_w``, ``step_thr``."""
+    the time of the monitor's first sample ``t0``, and the input-step test ``step_w``, ``step_thr`` with the
+    hold-off after a step, ``step_holdoff`` updates."""
 
     Rd: np.ndarray
     floor: np.ndarray
@@ -94,6 +95,7 @@ class Monitors(NamedTuple):
     t0: float
     step_w: np.ndarray
     step_thr: float
+    step_holdoff: int
 
 
 class Record(NamedTuple):
@@ -170,9 +172,9 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
     status = LOOP_DONE
     k = k0
     while k < k1:
-        if step_statistic(U[k - 1], U[k], mon.step_w) > mon.step_thr:
-            status = GENERAL
-            break
+        stepped = step_statistic(U[k - 1], U[k], mon.step_w) > mon.step_thr
+        if stepped:  # an input step: the hold-off from this sample's update on (its transient is the model's)
+            holdoff = mon.step_holdoff
         n_s = 0
         for i in range(m):
             sampled[i] = math.isfinite(Y[k, i])
@@ -288,6 +290,9 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
         if n_bad:
             status = MONITOR
             break
+        if stepped:
+            status = INPUT_STEP
+            break
     return k, status, holdoff, swapped, state, mats, last
 
 
@@ -312,9 +317,9 @@ def warm_up(augmented: bool | None = None) -> None:
     True: the augmented states' (with :func:`.expansion.extra_interval`)."""
     v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
     buf = Buffers(v, v, m, m, m, m, m)
-    mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, 0.0, v, 0.0)
+    mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, 0.0, v, 0.0, 0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
-    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, c, c, c, v,
+    step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c, c, v,
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
     extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None

@@ -193,6 +193,43 @@ class _Held:
     def __post_init__(self):
         self.rows = {}
 
+    @property
+    def rc(self):
+        """The basis at ``q0`` (:class:`~exuflex.reduction.basis.ReducedConfiguration`)."""
+        return self.mats.rc
+
+    @property
+    def dHdq(self) -> np.ndarray | None:
+        """``d(H e_k)/dq`` of every reduced coordinate at ``q0`` if the evaluation computed it (else None)."""
+        return None if self.forces is None else self.forces.dHdq
+
+
+@dataclass
+class _RowsAt:
+    """A configuration evaluated for the measurement rows only (no reduced matrices): ``q0``, the basis there
+    ``rc``, the link-angle sensitivity ``Sz_theta`` and angles ``theta0``; ``dHdq`` None (computed with the rows)."""
+
+    q0: np.ndarray
+    rc: object
+    Sz_theta: np.ndarray
+    theta0: np.ndarray
+    dHdq: None = None
+
+
+@dataclass
+class _RowsCentre:
+    """The configuration ``at`` the measurement rows are taken about (a held one or one evaluated for them), its
+    ``q0`` and the measurement radius ``rad`` (max norm, rad) within which its rows serve
+    (:meth:`ReducedObserverModel._rows_radius`); the rows ``(c0, Hm, D, G)`` per channel tuple
+    (:meth:`ReducedObserverModel._expansion`), made as measurements ask for them. One centre serves every channel
+    tuple: a sample with some channels takes the rows of the same configuration as one with all."""
+
+    at: object
+    q0: np.ndarray
+    q_list: list
+    rad: float
+    rows: dict
+
 
 class _Pairs:
     """Float pairs appended one at a time and kept as doubles, 16 bytes a pair (a list of tuples of floats takes
@@ -243,11 +280,18 @@ class ReducedObserverModel:
         The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
     dt_tol : float
         Relative change of the interval's length before the step map is rebuilt.
+    rows_tol : float
+        Error target of the measurement rows: their error in a channel at the measurement radius, relative to the
+        smaller of the channel's noise and the filter's own standard deviation of it (:meth:`_rows_error`),
+        measured at each rebuild and kept near this by the measurement radius (:meth:`_rows_radius`).
+    rows_rad, rows_min, rows_max : float
+        The measurement radius (rad): its initial value and limits.
 
     Attributes
     ----------
     n_refresh, n_remap, n_rescue, n_evaluations : configuration evaluations of the cached step, step-map
         rebuilds, evaluations forced by a held mass matrix that lost positive definiteness, all evaluations.
+    n_rows : measurement-row rebuilds (about a held configuration or a configuration evaluated for them).
     n_jumps : intervals with a torque jump since the last :meth:`reset`.
     last_step : ``(held configuration, step map)`` of the last :meth:`predict`: the reduced matrices the interval
         was held at (``.mats``) and its maps ``Pn, S, L, Q`` (what augmented models differentiate through).
@@ -258,7 +302,8 @@ class ReducedObserverModel:
                  jump_p: float | None = None, min_substep: float = 2e-6, refresh_std_tol: float = 0.3,
                  refresh_tol: float = 3e-2,
                  refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
-                 remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3):
+                 remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3,
+                 rows_tol: float = 0.1, rows_rad: float = 5e-3, rows_min: float = 1e-3, rows_max: float = 6e-2):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -285,6 +330,14 @@ class ReducedObserverModel:
         if not 0 < self.remap_min <= self.remap_rad <= self.remap_max:
             raise ValueError(f"need 0 < remap_min <= remap_rad <= remap_max, got {remap_min}, {remap_rad}, {remap_max}")
         self.dt_tol = float(dt_tol)
+        self.rows_tol = float(rows_tol)
+        self.rows_rad = float(rows_rad)
+        self.rows_min = float(rows_min)
+        self.rows_max = float(rows_max)
+        if not 0 < self.rows_min <= self.rows_rad <= self.rows_max:
+            raise ValueError(f"need 0 < rows_min <= rows_rad <= rows_max, got {rows_min}, {rows_rad}, {rows_max}")
+        if not self.rows_tol > 0:
+            raise ValueError(f"rows_tol must be positive, got {rows_tol}")
         self.lookahead = 0.8  # radii ahead of q along its motion where a configuration is evaluated
         self.remap_ahead = 1.0  # remap radii ahead of q along its motion where a step map is built ...
         self.remap_horizon = 0.02  # ... but no further than q moves in this many seconds
@@ -304,7 +357,7 @@ class ReducedObserverModel:
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._noC2 = np.zeros((0, self.r))
         self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
-        self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = 0
+        self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = self.n_rows = 0
         self.state_cov = None  # the filter's covariance, a callable (:meth:`watch_covariance`)
         self._serial = 0
         self._map_errs = np.empty(1024)  # the step maps the compiled loop replaces: their errors, per call
@@ -331,6 +384,8 @@ class ReducedObserverModel:
         self._interval_matrices = None
         self.n_jumps = 0
         self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
+        self._centre: _RowsCentre | None = None  # the measurement rows' configuration
+        self.rows_errors = _Pairs()  # (error at the measurement radius, the radius) per rebuild (:meth:`_recentre`)
         self.model.kin.reset_warm_start()
 
     # ------------------------------------------------------------------ configurations
@@ -592,19 +647,29 @@ class ReducedObserverModel:
         """The cached step as the compiled loop takes it (:class:`.expansion.CachedStep`, its carried
         :class:`.expansion.LoopState`) for samples from the state ``z`` with the torques ``u`` over ``dt``: the held
         configuration and its step map renewed for that interval where q left their radii (as :meth:`predict`
-        would), the measurement rows of ``channels`` about it."""
+        would), the present measurement rows of ``channels`` (:meth:`measure` rebuilds them where the loop hands a
+        measurement back: the same rows as sample by sample)."""
         held = iv, _, _, sm = self._hold(z, self._input(u), dt)
         self._renewed = (z.copy(), dt, held)  # for predict(), if the loop hands this interval back
-        c0, Hm, D, G = self._rows(iv, channels)
+        c = self._centre
+        # none yet: the loop hands the first measurement back (measure() makes them there)
+        c0, Hm, D, G = self._rows_none(channels) if c is None else self._centre_rows(c, channels)
+        q_rows, rad_rows = (np.zeros(self.nq), -1.0) if c is None else (c.q0, c.rad)
         d = iv.d if iv.old is not None else _NONE
         step = CachedStep(self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
                           min(self.h, iv.h_stable), self.dt_tol, self.remap_ahead, self.remap_horizon,
-                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, D, G, d, iv.dd,
+                          self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, D, G,
+                          q_rows, rad_rows, d, iv.dd,
                           *sm.tail[:3], self._map_errs, iv.system)
         state = LoopState(LoopMap(sm.q, self.map_rad, sm.dt, sm.n, sm.Pn, sm.S, sm.L, sm.Q), 0, -1,
                           (False, 0.0, sm.Pn, sm.S, sm.L, sm.Q))
         self._loop_step = (iv, sm)
         return LoopModel(step, state, None)
+
+    def _rows_none(self, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)`` of the right shapes for a loop without rows yet."""
+        m, nq = len(channels), self.nq
+        return np.zeros(m), np.zeros((m, self.nx)), np.zeros((nq, m, self.r)), np.zeros((m, nq, nq))
 
     @property
     def loop_step(self) -> tuple:
@@ -786,61 +851,151 @@ class ReducedObserverModel:
 
     # ------------------------------------------------------------------ measurements
     def _measurement_radius(self, iv: _Held) -> float:
-        """How far from the held configuration its measurement rows are still used (beyond: evaluate anew)."""
+        """The held model's reach: 1.5 refresh radii (at least ``refresh_min``), how far from the held configuration
+        a step map may be built (:meth:`_step_map`). The measurement rows have their own radius
+        (:meth:`_rows_radius`)."""
         return 1.5 * max(iv.rad, self.refresh_min)
 
-    def _measurement_interval(self, x: np.ndarray) -> tuple[_Held, np.ndarray]:
-        """The held configuration the measurement rows at x are taken about (evaluated at x if none is near), with
-        ``dl = q - q0``."""
-        iv = self._last
-        dl = self._offset(iv, x, self._measurement_radius(iv)) if iv is not None else None
-        if dl is not None:
-            return iv, dl
-        # no held configuration near x (first sample of a run): evaluate one at x
-        iv = self._last = self._configuration(x)
-        return iv, x[: self.nq] - iv.q0
-
-    def _rows(self, iv: _Held, channels: tuple) -> tuple:
-        """``(c0, Hm, D, G)`` of the channels about the held ``iv`` (:meth:`_expansion`), kept with it."""
-        rows = iv.rows.get(channels)
+    def _rows(self, iv, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)`` of the channels about the configuration ``iv`` (:meth:`_expansion`); kept with a held
+        configuration."""
+        cache = iv.rows if isinstance(iv, _Held) else None
+        rows = None if cache is None else cache.get(channels)
         if rows is None:
-            rows = iv.rows[channels] = self._expansion(iv, channels)
+            rows = self._expansion(iv, channels)
+            if cache is not None:
+                cache[channels] = rows
         return rows
 
+    def _measurement_rows(self, x: np.ndarray, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G, q0)``: the measurement rows of ``channels`` that serve at ``x`` and their centre: the
+        present centre's while q lies within its radius, else a new centre's (:meth:`_recentre`)."""
+        c = self._centre
+        if c is None or max(map(abs, map(sub, x[: self.nq].tolist(), c.q_list))) > c.rad:
+            c = self._recentre(x, channels, c)
+        return (*self._centre_rows(c, channels), c.q0)
+
+    def _centre_rows(self, c: _RowsCentre, channels: tuple) -> tuple:
+        """``(c0, Hm, D, G)`` of ``channels`` about the centre ``c``, made once."""
+        rows = c.rows.get(channels)
+        if rows is None:
+            rows = c.rows[channels] = self._rows(c.at, channels)
+        return rows
+
+    def _recentre(self, x: np.ndarray, channels: tuple, old: _RowsCentre | None) -> _RowsCentre:
+        """A new centre of the measurement rows for the state ``x``: the held configuration if it lies within the
+        radius of q and ahead of it along its motion (no evaluation), else a configuration evaluated for them ahead
+        of q along its motion (``lookahead`` radii: the rows are as good behind their centre as ahead of it). With
+        the centre it replaces, the replaced rows' error (of ``channels``) sets the new radius
+        (:meth:`_rows_error`, :meth:`_rows_radius`)."""
+        nq = self.nq
+        rad = self.rows_rad if old is None else old.rad
+        q, qd = x[:nq], x[self.r : self.r + nq]
+        iv = self._last
+        if iv is None or _max_abs(q - iv.q0) > rad or float((iv.q0 - q) @ qd) < 0.0:
+            iv = None
+            vmax = _max_abs(qd)
+            if vmax > 0.0:
+                try:
+                    iv = self._rows_at(q + (self.lookahead * rad / vmax) * qd)
+                except KinematicsError:  # ahead lies beyond the workspace: evaluate here
+                    iv = None
+            if iv is None:
+                iv = self._rows_at(q)
+        new = self.rows_about(iv, rad)
+        if old is not None:
+            err = self._rows_error(old, new, x, channels)
+            new.rad = self._rows_radius(old.rad, _max_abs(new.q0 - old.q0), err)
+            self.rows_errors.append((err, new.rad))
+        return new
+
+    def rows_about(self, iv: _Held | _RowsAt, rad: float) -> _RowsCentre:
+        """Make the configuration ``iv`` the centre of the measurement rows :meth:`measure` takes, within ``rad`` of
+        it (until q leaves that radius)."""
+        q0 = iv.q0.copy()
+        new = self._centre = _RowsCentre(iv, q0, q0.tolist(), float(rad), {})
+        self.n_rows += 1
+        return new
+
+    def _rows_at(self, q: np.ndarray) -> _RowsAt:
+        """The configuration at ``q`` as the measurement rows need it (the basis and the link angles)."""
+        rc = self.rm.cb.at(q)
+        pose = rc.cfg.pose
+        self.n_evaluations += 1
+        return _RowsAt(np.array(q, float), rc, pose.Sz[2::3].copy(), pose.z[2::3].copy())
+
+    def _rows_error(self, old: _RowsCentre, new: _RowsCentre, x: np.ndarray, channels: tuple) -> float:
+        """The replaced rows' error where the new ones are exact: at the filter's state ``x`` moved to the new
+        centre, ``max_i |y_old,i - y_new,i| / s_i`` with ``s_i`` the smaller of channel ``i``'s noise and the
+        filter's standard deviation of it, ``sqrt(H_i P H_i^T)`` (when the model watches the filter's covariance).
+        The rows' error is of second order in the distance from their centre and proportional to the elastic
+        state (the elastic rows' change, ``O(dl^2 |p_e|)``), of third order in the rigid parts; measured against
+        the noise, what the filter can tell from its measurements; against its own standard deviation, what its
+        estimate of the channel is sure of (the filter averages many samples, and a deterministic error persists
+        over all of them)."""
+        xq = np.array(x[: self.nx], float)
+        xq[: self.nq] = new.q0
+        c0, Hm, D, G = self._centre_rows(old, channels)
+        y_old, H = np.empty(len(c0)), np.empty_like(Hm)
+        measurement_rows(c0, Hm, D, G, xq, new.q0 - old.q0, y_old, H)
+        c0, Hm = self._centre_rows(new, channels)[:2]
+        dy = np.abs(y_old - c0 - Hm @ xq)
+        s = self._noise(channels)
+        if self.state_cov is not None:
+            P = self.state_cov()[: self.nx, : self.nx]
+            s = np.minimum(s, np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Hm, P, Hm), 1e-300)))
+        return float(np.max(dy / s))
+
+    def _noise(self, channels: tuple) -> np.ndarray:
+        """The channels' noise standard deviations (the sensors' ``noise_std``; infinite for a channel without
+        noise, which no filter takes: its error is not measured)."""
+        return np.array([self.sensors[c].noise_std or math.inf for c in channels], float)
+
+    def _rows_radius(self, rad: float, dist: float, err: float) -> float:
+        """The next measurement radius from the replaced rows' error ``err`` at ``dist`` rad from their centre
+        (:meth:`_rows_error`): the error grows as ``dist^2`` (the elastic rows' second-order term; the rigid parts'
+        third-order one grows faster, so this shrinks the radius more than they need), so the radius that keeps it
+        at ``rows_tol`` is ``dist (rows_tol / err)^(1/2)`` (with a 0.9 margin, at most twice the last radius
+        ``rad``, within ``[rows_min, rows_max]``)."""
+        if not err > 0:
+            return min(2.0 * rad, self.rows_max)
+        new = 0.9 * dist * math.sqrt(self.rows_tol / err)
+        return float(min(max(new, self.rows_min), 2.0 * rad, self.rows_max))
+
     def measure(self, x: np.ndarray, channels: Sequence[str]) -> Measurement:
-        """The channels at ``x`` from the held configuration's rows and their exact first-order change with q
-        (:meth:`_expansion`): ``y_i = c0_i + (Hm + sum_k dl_k D_k)_i x + 1/2 dl^T G_i dl``, ``dl = q - q0``, and
-        ``H`` its derivative in x (:func:`.expansion.measurement_rows`) except the elastic rows' change with q,
-        ``D_j x``, in the q-columns. That term makes the gauges a source of information on q, through the
-        elastic rows' q-sensitivity times the elastic state: a detail of the reduced model less accurate than
+        """The channels at ``x`` from the measurement rows about a configuration ``q0`` and their exact first-order
+        change with q (:meth:`_expansion`): ``y_i = c0_i + (Hm + sum_k dl_k D_k)_i x + 1/2 dl^T G_i dl``,
+        ``dl = q - q0``, and ``H`` its derivative in x (:func:`.expansion.measurement_rows`) except the elastic rows'
+        change with q, ``D_j x``, in the q-columns. The rows are rebuilt where q leaves their radius, which their
+        own error controls (:meth:`_recentre`). ``D_j x`` makes the gauges a source of information on q, through
+        the elastic rows' q-sensitivity times the elastic state: a detail of the reduced model less accurate than
         the filter would then take it to be. With a channel's bias as a state (the six-bar's q1, read once:
         ``tests/test_bias.py``) the filter estimated the bias from it with a standard deviation of 1.6 mrad and
         an error of 22 mrad on the full-order ERLS log. Left out, q is informed by the encoders and the rigid
         rows as before; the value ``y`` follows q, which is what the filter's consistency needs."""
         x = np.asarray(x, float)
-        iv, dl = self._measurement_interval(x)
-        c0, Hm, D, G = self._rows(iv, tuple(channels))
+        c0, Hm, D, G, q0 = self._measurement_rows(x, tuple(channels))
         H = np.empty_like(Hm)
         y = np.empty(len(c0))
-        measurement_rows(c0, Hm, D, G, x, dl, y, H)
+        measurement_rows(c0, Hm, D, G, x, x[: self.nq] - q0, y, H)
         return Measurement(y, H)
 
-    def _affine(self, iv: _Held, channels: tuple) -> tuple[np.ndarray, np.ndarray]:
+    def _affine(self, iv: _Held | _RowsAt, channels: tuple) -> tuple[np.ndarray, np.ndarray]:
         """``y = c0 + Hm x`` for the channels, about the configuration ``iv`` (rigid parts to first order in q,
         elastic parts exact in p): the rows of :func:`.rows.sensor_rows`, for all channels at once
         (:class:`.rows.ChannelRows`)."""
         return self._affine_rows(iv, channels)[:2]
 
-    def _affine_rows(self, iv: _Held, channels: tuple) -> tuple:
+    def _affine_rows(self, iv: _Held | _RowsAt, channels: tuple) -> tuple:
         """``(c0, Hm, U, plan)``: :meth:`_affine`'s rows, the channels' u rows and their :class:`.rows.ChannelRows`."""
         nq, r = self.nq, self.r
         plan = self._channel_rows.get(channels)
         if plan is None:
             plan = self._channel_rows[channels] = channel_rows(
                 self.model, [sensor(self.mech, self.sensors, ch) for ch in channels], self.link_names)
-        U, points = plan.at(self.model, iv.mats.rc.cfg)
+        U, points = plan.at(self.model, iv.rc.cfg)
         Hm = np.zeros((len(channels), self.nx))
-        Hm[:, :r] = U @ iv.mats.rc.H[nq:]
+        Hm[:, :r] = U @ iv.rc.H[nq:]
         rows = plan.angle @ iv.Sz_theta  # the link-angle channels' rigid rows
         c0 = plan.angle @ iv.theta0 - rows @ iv.q0
         Hm[:, :nq] += rows
@@ -849,7 +1004,7 @@ class ReducedObserverModel:
             Hm[i, :nq] += Sp
         return c0, Hm, U, plan
 
-    def _expansion(self, iv: _Held, channels: tuple) -> tuple:
+    def _expansion(self, iv: _Held | _RowsAt, channels: tuple) -> tuple:
         """``(c0, Hm, D, G)``: the channels about the configuration ``iv`` to first order in ``dl = q - q0``.
 
         Every channel is ``y(q, p) = rigid(q) + U(q) H_u(q) p`` (:mod:`.rows`; ``H_u`` the basis's
@@ -864,13 +1019,13 @@ class ReducedObserverModel:
         :meth:`measure`)."""
         nq, r = self.nq, self.r
         c0, Hm, U, plan = self._affine_rows(iv, channels)
-        rc = iv.mats.rc
+        rc = iv.rc
         Ut, G = plan.rates(self.model, rc.cfg)
         # dU/dq_k = U_theta dtheta_l/dq_k, l each channel's link (none: the encoders)
         turn = np.where((plan.link >= 0)[:, None], iv.Sz_theta[plan.link], 0.0)  # (m, nq)
         m, ne = U.shape
         # d(H_u e_c)/dq_k of the elastic coordinates c (the basis's q-columns do not change)
-        dH = None if iv.forces is None else iv.forces.dHdq  # the held evaluation's, else computed here
+        dH = iv.dHdq  # the held evaluation's, else computed here
         if dH is None:
             dH = self.rm.cb.basis_derivative(rc, np.eye(r)[:, nq:])
         else:
