@@ -21,6 +21,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from _pages import publish  # (a script: its folder is on the path)
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "tests" / "data" / "sixbar_erls_3s"
@@ -121,9 +122,8 @@ def main(argv=None) -> int:
                      + " / ".join(f"{r['ratio'][q]:.1f}" for q in ("q1", "q2", "q3")) + " | "
                      + " / ".join(f"{r['mean_error'][q]:+.4f}" for q in ("q1", "q2", "q3")) + " | "
                      + (f"{r['bias_end'][0]:+.5f} +- {r['bias_end'][1]:.5f}" if r["bias_end"] else "-") + " |")
-    lines.append("")
-    Path(args.doc).write_text("\n".join(lines))
-    print("\n".join(lines))
+    lines += ["", ""]
+    publish("\n".join(lines), args.doc)
     return 0
 
 

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _pages import publish  # (a script: its folder is on the path)
 
 from exuflex.erls.kinematics import Kinematics
 from exuflex.erls.modal import modal_analysis
@@ -146,8 +147,7 @@ def main() -> None:
         for name, ratio in obs["ratio_to_bound"].items():
             doc.append(f"| {name} | {obs['rms_error'][name]:.3g} | {obs['bound_rms'][name]:.3g} | {ratio:.2f} |")
         doc.append("")
-    Path(args.out).write_text("\n".join(doc) + "\n")
-    print("\n".join(doc))
+    publish("\n".join(doc) + "\n", args.out)
 
 
 if __name__ == "__main__":

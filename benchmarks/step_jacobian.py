@@ -457,6 +457,7 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
     import test_step_jacobian as tsj
 
     from exuflex.mechanism import load_mechanism
+    from exuflex.observer import FilterDivergedError
     from exuflex.observer import expansion as ex
     from exuflex.observer import reduced as R
     from exuflex.observer.session import ObserverConfig, make_observer
@@ -521,6 +522,10 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
             cls._cached = cached
             try:
                 res = observe_run(mech, run, cfg, observer=make_observer(mech, cfg))
+            except FilterDivergedError as exc:  # (recorded: the filter went non-finite)
+                out["runs"].setdefault(variant, {})[seed] = {"diverged": str(exc)}
+                print(out["model"], variant, seed, "diverged:", exc, flush=True)
+                continue
             finally:
                 cls._cached = orig
             s = res.summary
@@ -861,12 +866,15 @@ OWN_HEADING = "## Why the exact Jacobian does not help: the filter on its own mo
 _NOT_ESTABLISHED = ("Why the whole Jacobian makes the six-bar's figures worse on every truth is not established here: "
                     "it is not that the filter does not know the terms' coefficients (the elastic state is estimated "
                     "well above its uncertainty, `elastic_snr` in the terms section).")
-_ESTABLISHED = ("Why the whole Jacobian makes the six-bar's figures worse: the next section (the exact Jacobian of a "
-                "step that is itself inexact in the start-up).")
+_ESTABLISHED = ("Why the whole Jacobian makes the six-bar's figures worse: the section \"Why the exact Jacobian does "
+                "not help\" above (the start-up, where the cached step's exact Jacobian departs from the truth map's).")
 
 
-def _own_section(path: str, entries_path: str | None = None) -> list[str]:
-    """The section of :func:`own_model`'s JSON (and ``exact_entries`` per model, ``own --entries``)."""
+def _own_section(path: str, entries_path: str | None = None, oracle_base: str | None = None,
+                 oracles: dict | None = None) -> list[str]:
+    """The section of :func:`own_model`'s JSON (``exact_entries`` per model, ``own-entries``; the gallery's
+    figures with oracle Jacobians against the control ``python`` on the same code, :func:`_oracle_section`'s
+    tables)."""
     res = json.loads(Path(path).read_text())
     runs = res["runs"]
     base = runs.get("default", {})
@@ -878,18 +886,26 @@ def _own_section(path: str, entries_path: str | None = None) -> list[str]:
              "--phases-every 50 --json FILE`, then `python benchmarks/step_jacobian.py own-page --own FILE`: the "
              "filter on the reduced truth (`DIR/reduced/<model>/s<seed>`: the observer's own reduced model stepped "
              "by its frozen RK4 map, so only the filter's approximations matter), with the step, process noise, rows "
-             "and bound the default's and the step Jacobian of each row: `default`; `exact`, the cached step's exact "
-             "Jacobian at the estimate (`expansion.exact_jacobian`, the tangent of its RK4 sub-steps, every term in: "
-             "`tests/test_step_jacobian.py` checks it against central differences of the step entry by entry); "
-             f"`exact_after_start_up`, the same from the filter's start-up ({res['start_up_s']:g} s, where the "
-             "score starts) on; `exact_at_truth`, the cached step's exact Jacobian at the true state; "
-             "`truth_map_at_truth`, the truth map's own Jacobian there. RMS / bound per quantity, mean over the "
+             "and bound the default's and the step Jacobian of each row: "
+             + "; ".join(d for v, d in (
+                 ("default", "`default`"),
+                 ("exact", "`exact`, the cached step's exact Jacobian at the estimate (`expansion.exact_jacobian`, "
+                           "the tangent of its RK4 sub-steps, every term in: `tests/test_step_jacobian.py` checks it "
+                           "against central differences of the step entry by entry)"),
+                 ("exact_after_start_up", f"`exact_after_start_up`, the same from the filter's start-up "
+                                          f"({res['start_up_s']:g} s, where the score starts) on"),
+                 ("exact_at_truth", "`exact_at_truth`, the cached step's exact Jacobian at the true state"),
+                 ("truth_map_at_truth", "`truth_map_at_truth`, the truth map's own Jacobian there"))
+                 if v in runs) + ". RMS / bound per quantity, mean over the "
              "seeds, and the normalised error of the rigid coordinates and rates (RMS of `e_i / sigma_i` after the "
              "start-up, `sigma` the filter's own; 1 for a consistent filter).", "",
              "| step Jacobian | seeds | " + " | ".join(slow) + " | worst | NIS / channels | normalised q | normalised q' |",
              "|---|---|" + "---|" * (len(slow) + 4)]
-    for v, rs in runs.items():
+    for v, rs_all in runs.items():
+        rs = {k: x for k, x in rs_all.items() if "diverged" not in x}
         ss = sorted(rs, key=int)
+        if len(rs) < len(rs_all):
+            v = f"{v} (diverged on seed {', '.join(k for k, x in rs_all.items() if 'diverged' in x)})"
         mean = {q: np.mean([rs[s]["ratio_to_bound"][q] for s in ss]) for q in slow}
         worst = np.mean([max(rs[s]["ratio_to_bound"].values()) for s in ss])
         nis = np.mean([rs[s]["nis_mean"] / rs[s]["nis_expected"] for s in ss])
@@ -929,14 +945,23 @@ def _own_section(path: str, entries_path: str | None = None) -> list[str]:
                   "| model | exact: entry error | filter's F: left out / natural scale |", "|---|---|---|"]
         for name, e in ent.items():
             lines.append(f"| {name} | {e['exact']:.2g} | {e['left_out']:.2g} |")
+    if oracle_base and oracles:
+        orc = _oracle_section(oracle_base, oracles)
+        end = next(i for i, ln in enumerate(orc) if ln.startswith("Why the left-out terms stay out"))
+        lines += ["", "### The gallery with the exact Jacobian, and with it after the start-up", "",
+                  "`python benchmarks/step_jacobian.py oracle --variant V -- --acceptance --truth-dir DIR --models "
+                  "M --engine erls,reduced --seeds 1-3 --md '' --json FILE` for `V` = `python` (the default "
+                  "Jacobian on the oracle's sample-by-sample path: the control, the base below), `exact` and "
+                  "`exact_after_start_up`, on this tree's code."] + orc[3:end]
     return lines + [""]
 
 
-def own_page(own_json: str, md: str, entries_json: str | None = None, text: str = "") -> None:
+def own_page(own_json: str, md: str, entries_json: str | None = None, text: str = "", oracle_base=None,
+             oracles=None) -> None:
     """Write :func:`_own_section` (and ``text`` after its tables) into the page ``md``: in place of the section
     of the same heading, else before the acceptance oracle's section (else at the end)."""
     page_lines = Path(md).read_text().split("\n")
-    new = _own_section(own_json, entries_json) + ([text, ""] if text else [])
+    new = _own_section(own_json, entries_json, oracle_base, oracles) + ([text, ""] if text else [])
     head = [i for i, ln in enumerate(page_lines) if ln == OWN_HEADING]
     if head:
         i = head[0]
@@ -1095,6 +1120,8 @@ def main(argv=None) -> int:
     wp.add_argument("--own", required=True)
     wp.add_argument("--entries", default=None, help="own-entries --json output")
     wp.add_argument("--text", default="", help="the conclusions, after the tables")
+    wp.add_argument("--oracle-base", default=None, help="oracle --variant python's --json (the control)")
+    wp.add_argument("--oracle", action="append", default=[], help="NAME=FILE: oracle --variant NAME's --json")
     wp.add_argument("--md", default=str(ROOT / "docs" / "step_jacobian.md"))
     we = sub.add_parser("own-entries", help="test_step_jacobian.exact_entries on every model")
     we.add_argument("--json", default="own_entries.json")
@@ -1124,7 +1151,7 @@ def main(argv=None) -> int:
         Path(a.json).write_text(json.dumps(own_model(a.model, a.truth_dir, seeds, variants, a.phases_every),
                                            indent=1))
     elif a.cmd == "own-page":
-        own_page(a.own, a.md, a.entries, a.text)
+        own_page(a.own, a.md, a.entries, a.text, a.oracle_base, dict(o.split("=", 1) for o in a.oracle))
     elif a.cmd == "own-entries":
         import test_step_jacobian as tsj
 

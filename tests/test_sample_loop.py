@@ -166,6 +166,17 @@ def test_smoother_forward_pass_is_the_loop(sixbar_log):
         assert np.array_equal(getattr(looped, name), getattr(stepped, name), equal_nan=True), name
 
 
+def _run_counting_steps(ekf, t, U, Y):
+    """``ekf.run`` of the log, and the samples it handed to ``step`` (the rest went through the compiled loop)."""
+    stepped = []
+    step = ekf.step
+    ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
+    try:
+        return ekf.run(t, U, Y), stepped
+    finally:
+        del ekf.step
+
+
 def test_loop_takes_gated_blank_and_partial_samples(sixbar_log):
     """A spike the gate leaves out, a blank sample (a prediction only) and samples with a channel missing stay in
     the compiled loop (the update redone without the gated channel, the channels sampled alone): ``step`` takes
@@ -179,14 +190,8 @@ def test_loop_takes_gated_blank_and_partial_samples(sixbar_log):
     Y[520, 2] = np.nan
     Y[530:560:3, 4] = np.nan
     ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
-    stepped = []
-    step = ekf.step
-    ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
     rebuilds = ekf.model.n_rows
-    try:
-        looped = ekf.run(t, U, Y)
-    finally:
-        del ekf.step
+    looped, stepped = _run_counting_steps(ekf, t, U, Y)
     rebuilds = ekf.model.n_rows - rebuilds
     assert not {450, 500, 520, 530, 533} & set(stepped) and len(stepped) < 10 + rebuilds
     # the log's own input step (at 0.08 s): the hold-off set in the loop, the step recorded
@@ -207,13 +212,7 @@ def test_loop_takes_samples_while_a_sensor_fault_is_open(sixbar_log):
     Y[300:, 2] += 6 * obs.ekf.R_std[2]
     ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
     assert ekf.faults is not None and not ekf.isolate
-    stepped = []
-    step = ekf.step
-    ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
-    try:
-        looped = ekf.run(t, U, Y)
-    finally:
-        del ekf.step
+    looped, stepped = _run_counting_steps(ekf, t, U, Y)
     found = [f for f in looped.channel_faults if f["channel"] == obs.channels[2]]
     assert found and found[0]["start"] < t[-100]
     assert len([k for k in stepped if t[k] > found[0]["start"]]) < 10
