@@ -105,8 +105,13 @@ parts' `O(dl^3)` grows faster, so the rule shrinks the radius more than they nee
 `0.9 dist (rows_tol / e)^(1/2)` with `dist` the distance of the two centres, at most twice the last radius,
 within `[rows_min, rows_max]` = [0.001, 0.06] rad (`_rows_radius`): an adaptive step size with an error estimate.
 `rows_tol` = 0.1: a deterministic error of a tenth of a channel's standard deviation adds 1 % to its expected
-NIS; on the long arm's consistent truth the observer's errors are those of rows evaluated exactly at every
-measurement (table below; 0.03 gives the same, 0.3 a few percent more).
+NIS; on the runs below the observer's errors are those of rows evaluated exactly at every measurement (the last
+two columns of the run table).
+
+The estimate takes the filter's elastic state at the rebuild: where the elastic coordinates oscillate (the long
+arm's hand gauge) the error between two rebuilds can exceed the tolerance (the run table's largest error), and a
+radius grown while the arm was at rest is too large once it bends. The filter's figures do not see it (exact rows give the same), but an estimate from the elastic state's
+amplitude (its coordinates and rates over each mode's frequency) would bound it.
 
 The rows' centre is not the held configuration's: where a measurement left the radius before, the configuration
 at the measured state replaced the held one, and the next interval evaluated a held configuration anew at the
