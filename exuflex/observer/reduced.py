@@ -20,10 +20,13 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   standard deviations (:meth:`ReducedObserverModel._held_error`, every held quantity included: ``M_r``, ``K_r``,
   damping, input matrix, velocity forces; reported as ``held_model_error`` by ``observe``, with the error
   relative to the interval's process noise), near ``refresh_std_tol``: a deterministic prediction error of
-  ``a`` standard deviations adds about ``a^2`` to a channel's expected NIS, so 0.3 keeps the filter's
-  consistency within 10 %. The second alone is not enough: during the start-up the filter's standard deviations
-  are large, the radius grows until the held mass matrix is no longer valid, and the filter fails (the
-  six-bar's Exudyn log, seed 2). Without a filter's covariance (the model used alone) only the first applies.
+  ``a`` standard deviations adds about ``a^2`` to a channel's expected NIS if it does not repeat; but the held
+  model's error has one sign over the whole radius, so it repeats over the intervals the radius spans and the
+  filter accumulates it for as many intervals as its gain takes to forget it (more at a slower sample rate):
+  the target, 0.1, keeps three intervals' worth of it within the 10 % NIS budget ((3 x 0.1)^2 = 0.09; the
+  six-bar's log decimated to 250 Hz, ``tests/test_log_bound.py``, is where 0.3 did not). The second alone is
+  not enough: during the start-up the filter's standard deviations are large, the radius grows until the held
+  mass matrix is no longer valid, and the filter fails (the six-bar's Exudyn log, seed 2). Without a filter's covariance (the model used alone) only the first applies.
   The step Jacobian
   and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
   the interval's length changes. The map radius is controlled by the map's effect on the filter's own
@@ -299,7 +302,7 @@ class ReducedObserverModel:
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
-                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_std_tol: float = 0.3,
+                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_std_tol: float = 0.1,
                  refresh_tol: float = 3e-2,
                  refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
                  remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3,
