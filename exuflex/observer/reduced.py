@@ -146,6 +146,15 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
+def _radius_limits(name: str, rad, lo, hi) -> tuple[float, float, float]:
+    """An adaptive radius's start and limits as floats, ``0 < lo <= rad <= hi`` checked (the argument names
+    ``{name}_rad``, ``{name}_min``, ``{name}_max`` in the message)."""
+    rad, lo, hi = float(rad), float(lo), float(hi)
+    if not 0 < lo <= rad <= hi:
+        raise ValueError(f"need 0 < {name}_min <= {name}_rad <= {name}_max, got {lo}, {rad}, {hi}")
+    return rad, lo, hi
+
+
 def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
     """``s = (dl . d) / (d . d)``: how far along the secant to the previous held configuration q has moved
     (:func:`.expansion.secant_factor`).
@@ -327,18 +336,10 @@ class ReducedObserverModel:
         self.refresh_min = float(refresh_min)
         self.refresh_max = float(refresh_max)
         self.remap_tol = float(remap_tol)
-        self.remap_rad = float(remap_rad)
-        self.remap_min = float(remap_min)
-        self.remap_max = float(remap_max)
-        if not 0 < self.remap_min <= self.remap_rad <= self.remap_max:
-            raise ValueError(f"need 0 < remap_min <= remap_rad <= remap_max, got {remap_min}, {remap_rad}, {remap_max}")
+        self.remap_rad, self.remap_min, self.remap_max = _radius_limits("remap", remap_rad, remap_min, remap_max)
         self.dt_tol = float(dt_tol)
         self.rows_tol = float(rows_tol)
-        self.rows_rad = float(rows_rad)
-        self.rows_min = float(rows_min)
-        self.rows_max = float(rows_max)
-        if not 0 < self.rows_min <= self.rows_rad <= self.rows_max:
-            raise ValueError(f"need 0 < rows_min <= rows_rad <= rows_max, got {rows_min}, {rows_rad}, {rows_max}")
+        self.rows_rad, self.rows_min, self.rows_max = _radius_limits("rows", rows_rad, rows_min, rows_max)
         if not self.rows_tol > 0:
             raise ValueError(f"rows_tol must be positive, got {rows_tol}")
         self.lookahead = 0.8  # radii ahead of q along its motion where a configuration is evaluated
