@@ -26,10 +26,10 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   the target, 0.1, keeps three intervals' worth of it within the 10 % NIS budget ((3 x 0.1)^2 = 0.09; the
   six-bar's log decimated to 250 Hz, ``tests/test_log_bound.py``, is where 0.3 did not). The second alone is
   not enough: during the start-up the filter's standard deviations are large, the radius grows until the held
-  mass matrix is no longer valid, and the filter fails (the six-bar's Exudyn log, seed 2). Without a filter's covariance (the model used alone) only the first applies.
-  The step Jacobian
-  and process noise (the *step map*) are rebuilt when q moved the map radius from where they were built, or when
-  the interval's length changes. The map radius is controlled by the map's effect on the filter's own
+  mass matrix is no longer valid, and the filter fails (the six-bar's Exudyn log, seed 2). Without a filter's
+  covariance (the model used alone) only the first applies. The step Jacobian and process noise (the *step
+  map*) are rebuilt when q moved the map radius from where they were built, or when the interval's length
+  changes. The map radius is controlled by the map's effect on the filter's own
   uncertainty: at each rebuild the replaced map's covariance prediction is compared with the new one's on the
   filter's present covariance (:func:`.expansion.map_error`, a relative error of the predicted
   standard deviations), and the next radius keeps that error near ``remap_tol`` (the error grows linearly with
