@@ -53,7 +53,7 @@ def numpy_filter(model, channels, R_std, x0, P0, t, U, Y, p_floor=1e-18):
 def held_matrices(dl, s, hs: HeldSystem, pe=None):
     """``(M_r, K_r, C_r, G_r)`` of the held system at ``q0 + dl`` with the elastic coordinates ``pe`` (None: zero):
     the q-expansion, then the elastic coordinates' first-order rows (and, for the symmetric ``M_r`` and damping,
-    columns) as matrices."""
+    columns) as matrices, and the second-order rigid block of ``M_r`` and the damping as a double sum."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     gM, gK = dl @ hs.dM, dl @ hs.dK
@@ -77,6 +77,9 @@ def held_matrices(dl, s, hs: HeldSystem, pe=None):
         Kr = Kr + rows["pK"]
         Ca = Ca + rows["pC"] + rows["pC"].T + hs.beta * rows["pK"].T
         Gr = Gr + np.vstack([dG, np.zeros((r - nq, m))])
+        n_el = len(pe)  # the rigid block's second order: sum_kl p_k p_l X_kl
+        Mr[:nq, :nq] += np.einsum("k,l,klij->ij", pe, pe, hs.p2M.reshape(n_el, n_el, nq, nq))
+        Ca[:nq, :nq] += np.einsum("k,l,klij->ij", pe, pe, hs.p2C.reshape(n_el, n_el, nq, nq))
     return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 

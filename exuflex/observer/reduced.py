@@ -587,10 +587,9 @@ class ReducedObserverModel:
 
     @staticmethod
     def _elastic(fm) -> dict:
-        """The held system's elastic-coordinate terms (``pM, pK, pC, pG``; empty in the paper's form)."""
-        if fm.elastic is None:
-            return {"pM": _NO_ROWS, "pK": _NO_ROWS, "pC": _NO_ROWS, "pG": _NO_ROWS}
-        return dict(zip(("pM", "pK", "pC", "pG"), fm.elastic))
+        """The held system's elastic-coordinate terms (``pM, pK, pC, pG, p2M, p2C``; empty in the paper's form)."""
+        names = ("pM", "pK", "pC", "pG", "p2M", "p2C")
+        return dict.fromkeys(names, _NO_ROWS) if fm.elastic is None else dict(zip(names, fm.elastic, strict=True))
 
     def _c2(self, fm) -> np.ndarray:
         return self._noC2 if fm.C2 is None else fm.C2
