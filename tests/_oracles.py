@@ -77,9 +77,11 @@ def held_matrices(dl, s, hs: HeldSystem, pe=None):
         Kr = Kr + rows["pK"]
         Ca = Ca + rows["pC"] + rows["pC"].T + hs.beta * rows["pK"].T
         Gr = Gr + np.vstack([dG, np.zeros((r - nq, m))])
-        n_el = len(pe)  # the rigid block's second order: sum_kl p_k p_l X_kl
-        Mr[:nq, :nq] += np.einsum("k,l,klij->ij", pe, pe, hs.p2M.reshape(n_el, n_el, nq, nq))
-        Ca[:nq, :nq] += np.einsum("k,l,klij->ij", pe, pe, hs.p2C.reshape(n_el, n_el, nq, nq))
+        k, l = np.triu_indices(len(pe))  # the rigid block's second order: the pairs k <= l, the entries i <= j
+        for X, p2 in ((Mr, hs.p2M), (Ca, hs.p2C)):
+            B = np.zeros((nq, nq))
+            B[np.triu_indices(nq)] = p2 @ (pe[k] * pe[l])
+            X[:nq, :nq] += B + np.triu(B, 1).T
     return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 

@@ -36,10 +36,8 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
     oC2 = np.zeros((0, r)) if noC else old[6]["C2"]
     pf = [1e-1 * rng.normal(size=(r - nq, nq * r)) for _ in range(3)]  # the elastic coordinates' terms
     pG = rng.normal(size=(r - nq, nq * (Gr.shape[1] + 1)))
-    p2 = []  # the second-order rigid blocks, X_kl = X_lk^T
-    for _ in range(2):
-        X = rng.normal(size=(r - nq, r - nq, nq, nq))
-        p2.append((X + np.transpose(X, (1, 0, 3, 2))).reshape(r - nq, -1))
+    # the second-order rigid blocks, packed per pair k <= l and entry i <= j
+    p2 = [rng.normal(size=(nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2)) for _ in range(2)]
     Wg = rng.normal(size=(r, r))  # the weight's gradient (gravity)
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
                            grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG, *p2, Wg)

@@ -48,6 +48,7 @@ __all__ = [
     "map_lookahead",
     "measurement_rows",
     "next_map_radius",
+    "pair_blocks",
     "payload_interval",
     "position_forces",
     "power_sum",
@@ -77,8 +78,8 @@ class HeldSystem(NamedTuple):
     same of the previous held configuration (the secant partner; the held configuration's own arrays when
     ``has_old`` is False). ``pM``, ``pK``, ``pC`` (r - nq, nq*r) and ``pG`` (r - nq, nq*(n_motors + 1)): the
     matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
-    empty: none), ``p2M``, ``p2C`` (r - nq, (r - nq)*nq*nq) the second-order rigid block of ``M_r`` and of the
-    damping per pair of elastic coordinates. ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
+    empty: none), ``p2M``, ``p2C`` (nq (nq + 1) / 2, n (n + 1) / 2; ``n = r - nq``) the second-order rigid block
+    of ``M_r`` and of the damping, packed by symmetry (:meth:`.ReducedModel.elastic_forms`). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
     (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
     column): the weight follows ``q`` by it over the radius, and with a secant partner by its curvature along the
     secant too (:func:`_held_model`: second order), and the step Jacobian holds it (:func:`_step_jacobian`); empty
@@ -345,9 +346,10 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
     motion) and ``pG_k = A_k^T B_N`` (rows ``[i * ncol + j]``, :meth:`.ReducedModel.elastic_forms`); ``M_r`` and
     the alpha damping gain the transposed columns too (symmetric forms), the beta damping ``beta J_u^T K_uu
     J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). ``M_r`` and the damping are quadratic
-    in ``J``: their rigid block gains ``sum_kl p_k p_l p2M_kl`` and ``sum_kl p_k p_l p2C_kl`` (``A_k^T M_N A_l``,
-    and ``alpha A_k^T P A_l`` with the beta damping's ``(d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq``); ``K_r = J_u^T
-    K_uu H_u`` and ``G_r`` are linear in it. So the matrices are exact in the elastic coordinates at the held
+    in ``J``: their rigid block gains ``sum_kl p_k p_l X_kl`` (``A_k^T M_N A_l``; the damping's ``alpha A_k^T P A_l``
+    with the beta damping's ``(d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq``), symmetric in ``(k, l)`` and in its entries,
+    so ``p2M``, ``p2C`` hold it per pair ``k <= l`` and entry ``i <= j`` (:meth:`.ReducedModel.elastic_forms`);
+    ``K_r = J_u^T K_uu H_u`` and ``G_r`` are linear in it. So the matrices are exact in the elastic coordinates at the held
     configuration. The second order matters where the links turn fast while deformed: the beta damping's
     ``d(H_u e_k)/dq`` is the elastic displacement turned with its link, which the axial stiffness sees, and
     left out its damping force on the joints is of one sign (``tests/test_held_elastic.py``)."""
@@ -382,23 +384,28 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
             Ca[j, i] += c + hs.beta * gK[i * r + j]
         for j in range(m):
             Gr[i, j] += gG[i * mg + j]
-    if hs.p2M.shape[0]:  # the rigid block's second order, sum_kl p_k p_l p2*_kl
-        nq2 = nq * nq
-        g2M = np.zeros(nq2)
-        g2C = np.zeros(nq2)
+    n2 = hs.p2M.shape[1] if hs.p2M.shape[0] else 0
+    if n2:  # the rigid block's second order: per entry i <= j a dot product over the pairs k <= l
+        w2 = np.empty(n2)
+        cp = 0
         for k in range(n_el):
-            w = pe[k]
-            if w != 0.0:
-                for l in range(n_el):
-                    wl = w * pe[l]
-                    o = l * nq2
-                    for j in range(nq2):
-                        g2M[j] += wl * hs.p2M[k, o + j]
-                        g2C[j] += wl * hs.p2C[k, o + j]
+            for l in range(k, n_el):
+                w2[cp] = pe[k] * pe[l]
+                cp += 1
+        t = 0
         for i in range(nq):
-            for j in range(nq):
-                Mr[i, j] += g2M[i * nq + j]
-                Ca[i, j] += g2C[i * nq + j]
+            for j in range(i, nq):
+                am = 0.0
+                ac = 0.0
+                for cp in range(n2):
+                    am += w2[cp] * hs.p2M[t, cp]
+                    ac += w2[cp] * hs.p2C[t, cp]
+                Mr[i, j] += am
+                Ca[i, j] += ac
+                if j != i:
+                    Mr[j, i] += am
+                    Ca[j, i] += ac
+                t += 1
 
 
 @_inline
@@ -650,14 +657,14 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
         dCj[j] += hs.beta * dKj[j]
     if n_el:
         mg = hs.pG.shape[1] // nq
-        X2M, X2C = hs.p2M.reshape(n_el, n_el, nq, nq), hs.p2C.reshape(n_el, n_el, nq, nq)
+        X2M, X2C = pair_blocks(hs.p2M, n_el, nq), pair_blocks(hs.p2C, n_el, nq)
         for k in range(n_el):
             Pm = hs.pM[k].reshape(nq, r)
             Pk = hs.pK[k].reshape(nq, r)
             Pc = hs.pC[k].reshape(nq, r) + hs.beta * Pk
-            # the second order's derivative, d/dp_k sum_ab p_a p_b X_ab = sum_b p_b (X_kb + X_bk)
-            dM2 = np.einsum("b,bij->ij", pem, X2M[k] + X2M[:, k])
-            dC2 = np.einsum("b,bij->ij", pem, X2C[k] + X2C[:, k])
+            # the second order's derivative, d/dp_k sum_ab p_a p_b X_ab = 2 sum_b p_b X_kb (X symmetric)
+            dM2 = 2.0 * np.einsum("b,bij->ij", pem, X2M[k])
+            dC2 = 2.0 * np.einsum("b,bij->ij", pem, X2C[k])
             for j, c in ((nq + k, 1.0), (r + nq + k, tm)):
                 dMj[j, :nq, :nq] += c * dM2
                 dCj[j, :nq, :nq] += c * dC2
@@ -689,6 +696,20 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
         x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         X = X + h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
     return x, X
+
+
+def pair_blocks(p2: np.ndarray, n: int, nq: int) -> np.ndarray:
+    """The second-order forms ``p2M`` or ``p2C`` of :class:`HeldSystem` (packed per pair ``k <= l`` and entry
+    ``i <= j``) as the symmetric blocks ``X`` (n, n, nq, nq) with ``sum_kl p_k p_l X_kl`` the rigid block's second
+    order (NumPy, for :func:`exact_jacobian`)."""
+    X = np.zeros((n, n, nq, nq))
+    iu = np.triu_indices(nq)
+    for c, (k, l) in enumerate(zip(*np.triu_indices(n))):
+        B = np.zeros((nq, nq))
+        B[iu] = p2[:, c] if k == l else 0.5 * p2[:, c]
+        B = B + np.triu(B, 1).T
+        X[k, l] = X[l, k] = B
+    return X
 
 
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
@@ -1470,7 +1491,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
     G = np.zeros((r, nq))
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
-    p2 = np.zeros((r - nq, (r - nq) * nq * nq))
+    p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
                       p2, p2, np.zeros((0, 0)))
 

@@ -229,9 +229,10 @@ class ReducedModel:
     def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
         """``(pM, pK, pC, pG, p2M, p2C)``: the change of the reduced matrices with the elastic coordinates at a
         configuration: per unit elastic coordinate ``p_k`` (``k >= nq``) the first-order rows, flattened ``[k - nq,
-        i * ncol + j]`` over the ``nq`` rigid rows ``i``, and per pair ``p_k p_l`` the second-order rigid block of
-        ``M_r`` and of the damping, flattened ``[k - nq, (l - nq) * nq * nq + i * nq + j]``. None in the paper's
-        form (``J = H`` does not depend on ``p``).
+        i * ncol + j]`` over the ``nq`` rigid rows ``i``, and the second-order rigid block of ``M_r`` and of the
+        damping, ``sum_kl p_k p_l X_kl``, packed by its symmetries: column ``c`` the pair ``k <= l`` (row-major, of
+        the elastic coordinates) with ``X_kl + X_lk`` (``X_kk`` where ``k = l``), row ``t`` the entry ``i <= j``
+        (row-major). None in the paper's form (``J = H`` does not depend on ``p``).
 
         ``J = H + [d(H p)/dq, 0]`` is linear in ``p`` and changes only the rigid columns: with ``A_k = T d(H_u
         e_k)/dq`` (N, nq) the rigid columns of ``W J`` gain ``sum_k p_k A_k``, so to first order ``M_r`` gains
@@ -267,7 +268,12 @@ class ReducedModel:
         M2 = np.einsum("kai,laj->klij", A, MA)
         C2 = model.alpha * np.einsum("kai,laj->klij", A, PA) + model.beta * np.einsum("kai,laj->klij", dHu,
                                                                                       rc.Kuu @ dHu)
-        return tuple(np.ascontiguousarray(x.reshape(r - nq, -1)) for x in (*out, M2, C2))
+        k, l = np.triu_indices(r - nq)
+        i, j = np.triu_indices(nq)
+        off = (k != l)[:, None, None]
+        M2, C2 = ((X[k, l] + off * X[l, k])[:, i, j].T for X in (M2, C2))  # per pair k <= l, entry i <= j
+        out = tuple(np.ascontiguousarray(x.reshape(r - nq, -1)) for x in out)
+        return (*out, np.ascontiguousarray(M2), np.ascontiguousarray(C2))
 
     def _held_compiled(self, p: np.ndarray, gradients: bool) -> tuple[ReducedMatrices, QuadraticForces]:
         """:meth:`held` without ``fr`` through :func:`._compiled.held_evaluation`: the basis, its derivative, the
