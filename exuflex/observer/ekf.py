@@ -78,7 +78,7 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import (INPUT_STEP, MONITOR, REFRESH, REMAP, Belief, DiscreteModel, FilterDivergedError, hooks,
+from .base import (INPUT_STEP, MONITOR, REFRESH, REMAP, ROWS, Belief, DiscreteModel, FilterDivergedError, hooks,
                    takes_compiled_loop)
 from .stats import chi2_ppf, norm_ppf
 
@@ -1109,6 +1109,7 @@ class MultirateEKF(BeliefFilter):
         record = loop.Record(rec.x_hat, _empty_rows(n) if rec.P is None else rec.P.reshape(rows, -1),
                              -1 if rec.P is None else 0 if rec.store_P == "diag" else 1,
                              _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, rec.dof, *pred)
+        rows_made = False
         while k < k_end:
             x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
             try:
@@ -1118,7 +1119,8 @@ class MultirateEKF(BeliefFilter):
             hold0 = self._holdoff
             buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP)
             k_next, status, self._holdoff, swapped, state, mats, last = self._loop(
-                t, U, Y, k, k_end, hold0, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
+                t, U, Y, k, k_end, hold0, rows_made, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
+            z = x if swapped else x_alt  # (the buffer not current: the prediction where the rows stopped the loop)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
@@ -1128,7 +1130,13 @@ class MultirateEKF(BeliefFilter):
                 elif status == INPUT_STEP:
                     self.jump_times.append(float(t[k_next - 1]))
             k = k_next
-            if status not in (REFRESH, REMAP, MONITOR, INPUT_STEP):
+            rows_made = status == ROWS
+            if rows_made:  # the model's rows made for the prediction (as step()'s update makes them); resumed there
+                try:
+                    model.measure(z, self.channels)
+                except _MODEL_FAILURES:  # step() says why
+                    break
+            if status not in (REFRESH, REMAP, MONITOR, INPUT_STEP, ROWS):
                 break
         return k
 

@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .base import GENERAL, LOOP_DONE, REFRESH, REMAP
+from .base import GENERAL, LOOP_DONE, REFRESH, REMAP, ROWS
 from .kalman import step_statistic
 
 __all__ = [
@@ -1153,14 +1153,16 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
     return LOOP_DONE, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
 
 
-def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
+def _cached_rows(cs, z, y, H, made):  # pragma: no cover - compiled
     """The measurement at the predicted state ``z`` into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.
-    measure` with every channel): False (nothing written) where ``z`` is not finite or left the
-    rows' radius (the model rebuilds them then)."""
-    if not math.isfinite(z[0]) or not _within(z, cs.rows_q0, cs.rows_rad):
-        return False
+    measure` with every channel): ``LOOP_DONE``; nothing written where ``z`` is not finite (``GENERAL``) or
+    left the rows' radius (``ROWS``: the model rebuilds them; not where they were ``made`` for ``z``)."""
+    if not math.isfinite(z[0]):
+        return GENERAL
+    if not made and not _within(z, cs.rows_q0, cs.rows_rad):
+        return ROWS
     measurement_rows(cs.c0, cs.Hm, cs.D, cs.G, z, z[: cs.rows_q0.shape[0]] - cs.rows_q0, y, H)
-    return True
+    return LOOP_DONE
 
 
 def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, hs):  # pragma: no cover - compiled
