@@ -219,3 +219,18 @@ def test_loop_takes_samples_while_a_sensor_fault_is_open(sixbar_log):
     assert found and found[0]["start"] < t[-100]
     assert len([k for k in stepped if t[k] > found[0]["start"]]) < 10
     _same(looped, _step_by_step(ekf, t, U, Y))
+
+
+def test_rows_rebuilt_at_partial_samples_as_step_rebuilds_them(sixbar_log):
+    """Measurement rows rebuilt in the loop at samples where a channel is blank: made from the channels sampled there
+    (their error sets the next radius), as ``step``'s update makes them: the numbers of ``step``, and ``step``
+    takes only the first sample."""
+    mech, obs, t, U, Y = sixbar_log
+    n = 400
+    t, U, Y = t[:n], U[:n], Y[:n].copy()
+    Y[::2, obs.channels.index("c4")] = np.nan
+    ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
+    rebuilds = ekf.model.n_rows
+    looped, stepped = _run_counting_steps(ekf, t, U, Y)
+    assert stepped == [0] and ekf.model.n_rows - rebuilds > 3
+    _same(looped, _step_by_step(ekf, t, U, Y))

@@ -15,9 +15,11 @@ channel has no sample)::
     record x, P, innovations, NIS
 
 (a sample without a channel: the prediction alone, settled), until a sample needs more (the model's arrays
-renewed, a sample for :meth:`~.ekf.MultirateEKF.step`: see :data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs that alternate (``x, P`` current,
-``x_alt, P_alt`` written): a sample left undone has written nothing but scratch. ``tests/test_sample_loop.py``
-holds the loop and ``step`` bit-identical.
+renewed: a new held configuration or step map, measurement rows made for the prediction; a sample for
+:meth:`~.ekf.MultirateEKF.step`: see :data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs
+that alternate (``x, P`` current, ``x_alt, P_alt`` written): a sample left undone has written nothing but scratch
+(and the prediction, where the measurement rows stopped it). ``tests/test_sample_loop.py`` holds the loop and
+``step`` bit-identical.
 """
 
 from __future__ import annotations
