@@ -10,7 +10,7 @@ from exuflex.erls.model import ErlsModel
 from exuflex.erls.sensing import channel_matrix
 from exuflex.mechanism import load_mechanism
 from exuflex.reduction import CraigBampton
-from exuflex.reduction.static import _scales, load_amplitudes, load_shapes, rebase
+from exuflex.reduction.static import STATIC_MAX, _scales, load_amplitudes, load_shapes, rebase
 from exuflex.reduction.truncation import PlannedInput
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -20,7 +20,7 @@ MODELS = Path(__file__).resolve().parents[1] / "models"
 def heavy():
     """The slider-crank with its slider twice as heavy: the case the corrections are for."""
     mech = load_mechanism(MODELS / "slider_crank.toml").with_payload_scale(2.0)
-    return CraigBampton(ErlsModel(mech))
+    return CraigBampton(ErlsModel(mech), static_max=STATIC_MAX)
 
 
 def _statics(cb, q):
@@ -141,5 +141,5 @@ def test_off_and_fixed_counts_add_nothing():
     mech = load_mechanism(MODELS / "slider_crank.toml").with_payload_scale(2.0)
     cb = CraigBampton(ErlsModel(mech), static_max=0)
     assert cb.static is None and cb.n_static == 0
-    cb = CraigBampton(ErlsModel(mech), n_interior=3)
+    cb = CraigBampton(ErlsModel(mech), n_interior=3, static_max=STATIC_MAX)
     assert cb.static is None and cb.n_interior == 3
