@@ -262,18 +262,21 @@ class ReducedModel:
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
         out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
-        # the second order: the rigid block's A_k^T M_N A_l and the damping's, per pair (k, l)
-        MA = cfg.M_N @ A  # (r - nq, N, nq)
-        PA = MA - MS @ np.linalg.solve(S.T @ MS, MS.T @ A)
-        M2 = np.einsum("kai,laj->klij", A, MA)
-        C2 = model.alpha * np.einsum("kai,laj->klij", A, PA) + model.beta * np.einsum("kai,laj->klij", dHu,
-                                                                                      rc.Kuu @ dHu)
-        k, l = np.triu_indices(r - nq)
+        # the second order: the rigid block's A_k^T M_N A_l and the damping's, as Gram matrices over (k, i)
+        n = r - nq
+        A2 = A.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: A_k e_i
+        MA2 = cfg.M_N @ A2
+        PA2 = MA2 - MS @ np.linalg.solve(S.T @ MS, MS.T @ A2)
+        dH2 = dHu.transpose(1, 0, 2).reshape(-1, n * nq)
+        GM = A2.T @ MA2
+        GC = model.alpha * (A2.T @ PA2) + model.beta * (dH2.T @ (rc.Kuu @ dH2))
+        k, l = np.triu_indices(n)
         i, j = np.triu_indices(nq)
-        off = (k != l)[:, None, None]
-        M2, C2 = ((X[k, l] + off * X[l, k])[:, i, j].T for X in (M2, C2))  # per pair k <= l, entry i <= j
-        out = tuple(np.ascontiguousarray(x.reshape(r - nq, -1)) for x in out)
-        return (*out, np.ascontiguousarray(M2), np.ascontiguousarray(C2))
+        kl = ((k * nq)[None, :] + i[:, None], (l * nq)[None, :] + j[:, None])  # X_kl's entry i <= j
+        lk = ((l * nq)[None, :] + i[:, None], (k * nq)[None, :] + j[:, None])  # X_lk's (k < l)
+        second = tuple(np.ascontiguousarray(G[kl] + (k != l) * G[lk]) for G in (GM, GC))
+        out = tuple(np.ascontiguousarray(x.reshape(n, -1)) for x in out)
+        return (*out, *second)
 
     def _held_compiled(self, p: np.ndarray, gradients: bool) -> tuple[ReducedMatrices, QuadraticForces]:
         """:meth:`held` without ``fr`` through :func:`._compiled.held_evaluation`: the basis, its derivative, the
