@@ -85,7 +85,8 @@ def intervals(model: str, run: str, every: int) -> dict:
         e = np.array(e)
         rows.append({"variant": v, "reference": ref, "mean": e.mean(0).tolist(),
                      "rms": np.sqrt((e**2).mean(0)).tolist()})
-    return {"model": str(Path(model).relative_to(ROOT)) if Path(model).resolve().is_relative_to(ROOT) else model,
+    path = Path(model).resolve()
+    return {"model": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else model,
             "run": run, "every": every, "n_intervals": len(rec), "rates": [f"d{q}" for q in mech.coordinate_names],
             "rows": rows, "indefinite_share": float(np.mean(indefinite)),
             "ratio_to_bound": out.summary["ratio_to_bound"],

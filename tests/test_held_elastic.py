@@ -94,7 +94,7 @@ def test_left_out_term_is_of_second_order_in_the_step(reach):
     r, nq = m.r, m.nq
     iv, hs, first = _held(m, z)
     n = m.substeps(iv, dt)
-    Q = m.linear_maps(iv.mats.Mr, iv.mats.Kr, iv.mats.Cr, iv.mats.Gr, dt, n)[3]
+    Q = m._maps(iv.mats.Mr, iv.mats.Kr, iv.mats.Cr, iv.mats.Gr, dt, n)[3]
     rigid = np.r_[0:nq, r : r + nq]
 
     def diff(a):
@@ -139,7 +139,7 @@ def test_held_step_against_the_reduced_model(reach):
             y = y + hk / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         return y
 
-    Q = m.linear_maps(iv.mats.Mr, iv.mats.Kr, iv.mats.Cr, iv.mats.Gr, dt, n)[3]
+    Q = m._maps(iv.mats.Mr, iv.mats.Kr, iv.mats.Cr, iv.mats.Gr, dt, n)[3]
     sq = np.sqrt(np.diag(Q))
     rigid = np.r_[0:nq, r : r + nq]
     y = fine(16)
