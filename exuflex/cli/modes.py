@@ -12,7 +12,7 @@ With ``--json`` one JSON object is printed::
      "full": {"ndof": 30, "n_elastic": 27, "frequencies_hz": [...], "damping_ratio": [...]},
      "exudyn": {"frequencies_hz": [...], "damping_ratio": [...], "beam": "ancf", "locked": false,
                 "elements_per_link": "file", "n_elements": 30},  # with --exudyn
-     "reduced": {..., "along": {...}, "truncation": {...}}}   # with --reduced
+     "reduced": {..., "along": {...}, "truncation": {...}, "static": {...}}}   # with --reduced
 
 ``damping_ratio``: each mode's ratio (a fraction, aligned with ``frequencies_hz``) from the damped eigenvalues
 ``s`` of the linearised system, ``-Re s / |s|`` (ERLS: :func:`exuflex.erls.modal.damping_ratios`; Exudyn:
@@ -220,6 +220,16 @@ def _table(rep: dict) -> str:
                 f"filter (docs/reduction.md): the steady filter's mean-square error on the linearised full model under "
                 f"the manoeuvre, over the bound's variance: {bi} (limit {tr['bias_max']:g}; without interior modes "
                 f"{tr['bias_without_interior']:.3g}){'' if tr['bias_met'] else ', ABOVE THE LIMIT'}")
+    st = red.get("static") if red is not None else None
+    if st:
+        hz = ", ".join(f"{f:.0f}" for f in st["ritz_hz"])
+        acc = ", ".join(f"{k} {v:.3g}" for k, v in st["max_acceleration"].items())
+        rate = ", ".join(f"{k} {v:.3g}" for k, v in st["max_rate"].items())
+        lines.append(
+            f"static corrections (docs/reduction.md): {st['count']} kept{f' (Ritz {hz} Hz)' if hz else ''}; the largest "
+            f"quasi-static reading the basis misses under the loads the inputs can produce (q'' up to {acc} rad/s^2, "
+            f"q' up to {rate} rad/s) is {st['figure']:.3g} noise sd ({st['worst_row']}; limit {st['limit']:.3g}; "
+            f"without them {st['figure_without']:.3g}){'' if st['met'] else ', ABOVE THE LIMIT'}")
     return "\n".join(lines)
 
 

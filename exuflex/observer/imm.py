@@ -250,12 +250,8 @@ class IMMFilter(BeliefFilter):
         jumps = self.hooks.n_jumps()
         c = self.mode_p
         alive = np.ones(len(self.models), dtype=bool)
-        if self._t_prev is not None:
-            dt = t - self._t_prev
-            if not dt > 1e-9 * self.dt or dt > self.max_gap:
-                raise ValueError(f"sample time {t!r} s: expected after the previous sample ({self._t_prev!r} s) by at "
-                                 f"most max_gap={self.max_gap:g} s")
-            self.n_missing += max(round(dt / self.dt) - 1, 0)
+        dt = self._interval(t)
+        if dt is not None:
             c, self._beliefs = mix(self.mode_p, self._transition(dt), self._beliefs)
             self.intervals = [None] * len(self.models)
             for j, b in enumerate(self._beliefs):
@@ -281,17 +277,7 @@ class IMMFilter(BeliefFilter):
                 kalman.settle(b.x, b.P, self._floor[: len(b.x)])
             self.mode_p = c
         self._x, self._P = combine(self.mode_p, self._beliefs, self.tails)
-        if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
-            self._flag(t, "non-finite state or covariance")
-            self.nonfinite = True
-            if self.nonfinite_action == "raise":
-                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
-            return np.full(self.nx, np.nan)
-        if self.last_idx is not None:
-            self._count_update(t, self.last_nis, self.last_dof, self._held)
-        elif self.faults is not None:
-            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
-        return self._x.copy()
+        return self._close(t, bool(np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))))
 
     def _update(self, c: np.ndarray, alive: np.ndarray, y: np.ndarray, idx: np.ndarray) -> None:
         """Steps 2-3 of the module notes on the channels ``idx``, the mixture's innovations through the monitors

@@ -20,7 +20,8 @@ def reduced_modes_report(model, q=None, masters=None, n_interior=None, q_star=No
     ``freq_error_pct`` aligned with the full model's modes below ``fmax``, plus the basis' details, and
     ``along``: the worst NCO and frequency error over ``along`` configurations of the model's manoeuvre
     (equally spaced in time; not those the interior modes were chosen on), where they occur and at which full
-    mode (``None`` without a manoeuvre or with ``along=0``).
+    mode (``None`` without a manoeuvre or with ``along=0``); ``static``: the static corrections' figures
+    (:func:`_static`).
     """
     if isinstance(n_interior, str) and n_interior != "auto":
         n_interior = int(n_interior)
@@ -43,6 +44,31 @@ def reduced_modes_report(model, q=None, masters=None, n_interior=None, q_star=No
         "basis_s": cb.build_seconds,
         "along": _along(cb, along) if along else None,
         "truncation": cb.truncation,
+        "static": _static(cb),
+    }
+
+
+def _static(cb: CraigBampton) -> dict | None:
+    """The static corrections' figures (:mod:`.static`): their count (included in ``interior_modes``), the largest
+    residual reading without and with them (noise sd) and where, the limit, what each was taken from, their Ritz
+    frequencies at q* and the load amplitudes; None where none were considered (a fixed count, no planned input)."""
+    st = cb.static
+    if st is None:
+        return None
+    a, v = st.amplitudes
+    row, c = st.worst[st.n] if st.worst[st.n] is not None else (None, 0)
+    return {
+        "count": int(st.n),
+        "figure_without": float(st.figure[0]),
+        "figure": float(st.figure[st.n]),
+        "limit": st.limit,
+        "met": st.met,
+        "worst_row": row,
+        "worst_q": cb.path_q[c].tolist(),
+        "picked": [{"q": cb.path_q[i].tolist(), "from": what} for i, what in st.picked],
+        "ritz_hz": [float(f) for f in cb.interior_frequencies_hz[st.rest[: st.n]]],
+        "max_acceleration": dict(zip(cb.model.mech.coordinate_names, map(float, a))),
+        "max_rate": dict(zip(cb.model.mech.coordinate_names, map(float, v))),
     }
 
 
