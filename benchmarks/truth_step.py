@@ -49,9 +49,10 @@ def rms_over(a, b, scale: dict) -> dict:
 def measure(model: str, h: float, bounds: dict, exudyn: bool, reference: str = "fine") -> dict:
     from exuflex.erls.implicit import accumulated_error, band_modes, band_step
     from exuflex.erls.model import ErlsModel
+    from exuflex.groundtruth import simulate_truth
     from exuflex.mechanism import load_mechanism
-    from exuflex.sensors import true_states
-    from exuflex.truth.engines import erls_truth, exudyn_mesh, exudyn_step, plan_drive, simulate
+    from exuflex.sensors import monotonic_record, true_states
+    from exuflex.truth.engines import erls_truth, exudyn_mesh, exudyn_step, plan_drive
 
     mech = load_mechanism(model_path(model))
     name = model_path(model).stem
@@ -96,7 +97,9 @@ def measure(model: str, h: float, bounds: dict, exudyn: bool, reference: str = "
         runs = {}
         for label, s in (("old", h), ("new", step), ("reference", step / 2)):
             t0 = time.perf_counter()
-            runs[label] = (simulate(mech, drive, "exudyn", duration, s).truth, time.perf_counter() - t0)
+            probes = simulate_truth(mech, drive.t, drive.tau, duration, h=s, output_dt=out, q0=drive.q0,
+                                    elements_per_link=mesh, formulation="ancf")
+            runs[label] = (true_states(mech, monotonic_record(probes)), time.perf_counter() - t0)
         row["exudyn"] = {"step_s": step, "accumulated": stepping["phase_error"],
                          **{label: {"step_s": s, "wall_s": runs[label][1],
                                     "error": rms_over(runs[label][0], runs["reference"][0], scale)}
