@@ -827,6 +827,30 @@ class BeliefFilter:
                                                   for f in self.faults.faults]
         return iv, faults
 
+    def _run_steps(self, t, U, Y, reset: bool, x0, P0, innovations: bool, each=None) -> EstimationResult:
+        """:meth:`step` over a record (``each(k)`` after sample ``k``), each sample recorded. A step that fails where
+        a covariance lost definiteness ends the run: raised as diverged, or (``nonfinite="flag"``) flagged with no
+        estimates from there."""
+        t, U, Y = check_log(t, U, Y, self.m)
+        if reset or x0 is not None or P0 is not None:
+            self.reset(x0, P0)
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
+        w0 = time.perf_counter()
+        for k in range(len(t)):
+            try:
+                x = self.step(t[k], None if U is None else U[k], Y[k])
+            except (np.linalg.LinAlgError, ArithmeticError) as exc:
+                if self.nonfinite_action == "raise":
+                    raise FilterDivergedError(f"{type(self).__name__} failed at t={t[k]:.6g} s: {exc}") from exc
+                self.nonfinite, self.diverged = True, True
+                self.diverged_at = self.diverged_at or float(t[k])
+                rec.fail_from(k)
+                break
+            rec.put(k, x, self._P, self)
+            if each is not None:
+                each(k)
+        return self._result(rec, time.perf_counter() - w0)
+
     def _result(self, rec: RunRecord, wall_s: float) -> EstimationResult:
         """The run's :class:`EstimationResult` with the monitors' findings."""
         intervals, faults = self.fault_report()

@@ -85,8 +85,6 @@ from .ekf import (
     BeliefFilter,
     EstimationResult,
     Monitoring,
-    RunRecord,
-    check_log,
     step_arguments,
 )
 from .smoother import SmoothedResult
@@ -328,21 +326,17 @@ class IMMFilter(BeliefFilter):
         """:meth:`step` over a record (as :meth:`.ekf.MultirateEKF.run`); the result's ``nominal_p`` is the first
         mode's probability at each sample. ``predictions``: each mode's posterior and interval per sample kept in
         ``track`` (:class:`ModeTrack`, what :meth:`smooth` needs)."""
-        t, U, Y = check_log(t, U, Y, self.m)
-        if reset or x0 is not None or P0 is not None:
-            self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
-        mode_p = np.empty((len(t), len(self.models)))
+        mode_p = np.full((len(np.reshape(t, -1)), len(self.models)), np.nan)
         self.track = ModeTrack(mode_p, [], [], []) if predictions else None
-        w0 = time.perf_counter()
-        for k in range(len(t)):
-            rec.put(k, self.step(t[k], None if U is None else U[k], Y[k]), self._P, self)
+
+        def each(k: int) -> None:
             mode_p[k] = self.mode_p
             if predictions:
                 self.track.beliefs.append(list(self._beliefs))
                 self.track.intervals.append(self.intervals)
                 self.track.updates.append(self.updates)
-        return replace(self._result(rec, time.perf_counter() - w0), nominal_p=mode_p[:, 0])
+
+        return replace(self._run_steps(t, U, Y, reset, x0, P0, innovations, each), nominal_p=mode_p[:, 0])
 
     def smooth(self, t, U, Y, *, x0=None, P0=None) -> SmoothedResult:
         """Filter a record (from the prior, or ``x0``/``P0``) and smooth it backwards (module notes, "Smoothing"):

@@ -42,14 +42,13 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
 
-from .base import FilterDivergedError, Prediction
-from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
+from .base import Prediction
+from .ekf import BeliefFilter, EstimationResult, Monitoring, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -211,24 +210,8 @@ class UnscentedKF(BeliefFilter):
         return np.ascontiguousarray(y[idx] - zm), Ls, C
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
-        """:meth:`step` over a record (as :meth:`MultirateEKF.run`)."""
-        t, U, Y = check_log(t, U, Y, self.m)
-        if reset or x0 is not None or P0 is not None:
-            self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
-        w0 = time.perf_counter()
-        for k in range(len(t)):
-            try:
-                x = self.step(t[k], None if U is None else U[k], Y[k])
-            except (np.linalg.LinAlgError, ArithmeticError) as exc:  # a covariance lost definiteness
-                if self.nonfinite_action == "raise":
-                    raise FilterDivergedError(f"UKF failed at t={t[k]:.6g} s: {exc}") from exc
-                self.nonfinite, self.diverged = True, True
-                self.diverged_at = self.diverged_at or float(t[k])
-                rec.fail_from(k)
-                break
-            rec.put(k, x, self._P, self)
-        return self._result(rec, time.perf_counter() - w0)
+        """:meth:`step` over a record (as :meth:`MultirateEKF.run`; :meth:`.ekf.BeliefFilter._run_steps`)."""
+        return self._run_steps(t, U, Y, reset, x0, P0, innovations)
 
 
 def _lower_from_qr(A: np.ndarray) -> np.ndarray:
