@@ -9,7 +9,7 @@ and in the filter's figures; writes ``docs/held_elastic.md``.
 ``intervals``: the default filter on the log of ``--run``; at every ``--every``-th interval (after the first 100) the
 interval's step from the filter's state is taken three ways, each with the held configuration at the state's own
 configuration (so only the elastic coordinates' terms differ): the cached step (:func:`exuflex.observer.expansion.
-held_step`), the same without the second-order forms (``p2M``, ``p2C`` zero: the first-order model), and two
+held_step`), the same without the damping's second-order form (``p2C`` zero: the first-order model), and two
 references, the reduced model's frozen step (:meth:`~exuflex.observer.reduced.ReducedObserverModel.frozen_interval`,
 the consistent truth's step) and a fine RK4 of the reduced model's equations (every stage at its own state, 8 times
 the sub-steps). Per variant and reference: the mean and RMS of the joint rates' error over the filter's standard
@@ -64,7 +64,7 @@ def intervals(model: str, run: str, every: int) -> dict:
         iv = m._configuration(x, held=True)
         iv.Ca = iv.mats.Cr - m.model.beta * iv.mats.Kr
         hs = m._held_system(iv)
-        first = hs._replace(p2M=np.zeros_like(hs.p2M), p2C=np.zeros_like(hs.p2C))
+        first = hs._replace(p2C=np.zeros_like(hs.p2C))
         n = m.substeps(iv, dt)
         frozen = m.frozen_interval(x, u, dt)[0].x
         y, h = x.copy(), dt / (8 * n)
@@ -117,16 +117,19 @@ def page(intervals_json: str, acceptance: list | None, labels: tuple, md: str) -
          "of `W J` gain `sum_k e_k A_k`. So `M_r = (W J)^T M_N W J` and the damping `alpha (T J_u)^T P T J_u + "
          "beta J_u^T K_uu J_u` are quadratic in `e`, `K_r = J_u^T K_uu H_u`, `G_r` and the weight linear. The first "
          "order (`pM`, `pK`, `pC`, `pG`) left out the rigid block's second order, `e_k e_l A_k^T M_N A_l` in `M_r` "
-         "and `e_k e_l (alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq)` in the damping; with them "
-         "(`p2M`, `p2C`, `ReducedModel.elastic_forms`) the held matrices are exact in `e` at `q0`. The part that "
-         "matters is the beta damping's: `d(H_u e)/dq` is the deflection turned with its link, which the axial "
-         "stiffness sees, so a deflected link that turns is damped in proportion to `e^2 q'`. Left out, the "
-         "first-order damping matrix is indefinite at the deflections of a manoeuvre (it feeds energy into the "
-         "joints), and its error has one sign over a whole refresh radius; the held error (`ReducedObserverModel."
-         "_held_error`) cannot see it, since it compares two held models of the same form. "
-         "`tests/test_held_elastic.py` measures the order (the matrices' error four times at twice the amplitude, "
-         "the step's too as the amplitude falls), the damping's definiteness, and the step against the reduced "
-         "model entry by entry."), ""]
+         "and `e_k e_l (alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq)` in the damping. The "
+         "damping's is in now (`p2C`, `ReducedModel.elastic_forms`): the beta damping's `d(H_u e)/dq` is the "
+         "deflection turned with its link, which the axial stiffness sees, so a deflected link that turns is damped "
+         "in proportion to `e^2 q'`. Left out, the first-order damping matrix is indefinite at the deflections of a "
+         "manoeuvre (it feeds energy into the joints), and its error has one sign over a whole refresh radius; the "
+         "held error (`ReducedObserverModel._held_error`) cannot see it, since it compares two held models of the "
+         "same form. `M_r`'s second order stays out: its error has no sign of its own, and where the elastic "
+         "coordinates are poorly observed it did harm (the six-bar's 3 s ERLS log without its gauge c4, "
+         "`tests/test_log_bound.py`: x25 went from 0.88 to 1.64 of its bound with it in, q3 1.36 either way): the "
+         "filter's estimates of them enter squared, and the step Jacobian leaves the matrices' change with them "
+         "out. `tests/test_held_elastic.py` measures the orders (the first-order damping's and `M_r`'s error four "
+         "times at twice the amplitude, the step's too as the amplitude falls), the damping's definiteness, and the "
+         "step against the reduced model entry by entry."), ""]
     q = it["rates"]
     L += ["## Per interval", "",
           f"`python benchmarks/held_elastic.py intervals --model {it['model']} --run RUN --every {it['every']}` "
