@@ -58,7 +58,7 @@ def intervals(model: str, run: str, every: int) -> dict:
     out = observe_run(mech, read_run(run), cfg, observer=obs)
     m.__class__ = ReducedObserverModel
     rm, r, nq = m.rm, m.r, m.nq
-    err = {(v, ref): [] for v in ("second order", "first order") for ref in ("frozen", "fine")}
+    err = {(v, ref): [] for v in ("damping to second order", "first order") for ref in ("frozen", "fine")}
     indefinite = []
     for x, u, dt, sig in rec:
         iv = m._configuration(x, held=True)
@@ -74,7 +74,7 @@ def intervals(model: str, run: str, every: int) -> dict:
             k3 = rm.rhs(0.0, y + 0.5 * h * k2, u)
             k4 = rm.rhs(0.0, y + h * k3, u)
             y = y + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        for v, sysv in (("second order", hs), ("first order", first)):
+        for v, sysv in (("damping to second order", hs), ("first order", first)):
             z = held_step(x, u, np.zeros(nq), 0.0, dt / n, n, sysv)[0]
             for ref, zr in (("frozen", frozen), ("fine", y)):
                 err[(v, ref)].append(((z - zr) / sig)[r : r + nq])
@@ -124,10 +124,9 @@ def page(intervals_json: str, acceptance: list | None, labels: tuple, md: str) -
          "manoeuvre (it feeds energy into the joints), and its error has one sign over a whole refresh radius; the "
          "held error (`ReducedObserverModel._held_error`) cannot see it, since it compares two held models of the "
          "same form. `M_r`'s second order stays out: its error has no sign of its own, and where the elastic "
-         "coordinates are poorly observed it did harm (the six-bar's 3 s ERLS log without its gauge c4, "
-         "`tests/test_log_bound.py`: x25 went from 0.88 to 1.64 of its bound with it in, q3 1.36 either way): the "
-         "filter's estimates of them enter squared, and the step Jacobian leaves the matrices' change with them "
-         "out. `tests/test_held_elastic.py` measures the orders (the first-order damping's and `M_r`'s error four "
+         "coordinates are poorly observed it did harm (with it in, the six-bar's 3 s ERLS log without its gauge c4, "
+         "`tests/test_log_bound.py`, went past that test's limit in the tip position): the filter's estimates of "
+         "them enter squared, and the step Jacobian leaves the matrices' change with them out. `tests/test_held_elastic.py` measures the orders (the first-order damping's and `M_r`'s error four "
          "times at twice the amplitude, the step's too as the amplitude falls), the damping's definiteness, and the "
          "step against the reduced model entry by entry."), ""]
     q = it["rates"]
@@ -185,7 +184,7 @@ def main(argv=None) -> int:
     b.add_argument("--intervals", required=True)
     b.add_argument("--acceptance", nargs=2, default=None, metavar=("BEFORE", "AFTER"))
     b.add_argument("--label-before", default="first order")
-    b.add_argument("--label-after", default="second order")
+    b.add_argument("--label-after", default="damping to second order")
     b.add_argument("--md", default=str(ROOT / "docs" / "held_elastic.md"))
     args = ap.parse_args(argv)
     if args.cmd == "intervals":
