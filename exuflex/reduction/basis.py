@@ -56,7 +56,7 @@ from ..erls.model import Configuration, ErlsModel
 from . import _compiled
 from .masters import automatic_masters
 from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
-from .static import static_corrections
+from .static import STATIC_MAX, static_corrections
 from .truncation import BIAS_MAX, TRUNCATION_MAX, PlannedInput
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
@@ -140,7 +140,7 @@ class CraigBampton:
         also keeps interior modes until the steady filter's mean-square error on the linearised full model under the
         manoeuvre is at most ``bias_max`` times its bound's variance in every estimated quantity (:mod:`.truncation`,
         "What the filter makes of it").
-    static_max : the static corrections' limit (default 0: none; :data:`.static.STATIC_MAX` the derived one): with the automatic
+    static_max : the static corrections' limit (default :data:`.static.STATIC_MAX`; 0: none): with the automatic
         count, the interior modes not kept are re-based so that their first vectors are the slaves' quasi-static
         response to the loads the motion can produce, and kept until the largest reading of the rest is at most
         ``static_max`` noise sd in every channel (:mod:`.static`); figures in :attr:`static`.
@@ -288,7 +288,7 @@ class CraigBampton:
                         "their static shape)" if n_interior == n_needed else f"; 'auto' would keep {n_needed}")
         # the static corrections (.static): the modes not kept re-based on the slaves' quasi-static response to the
         # motion's loads, the count by their largest reading at the channels
-        self.static_max = 0.0 if static_max is None else float(static_max)
+        self.static_max = STATIC_MAX if static_max is None else float(static_max)
         self.static = None
         self.n_static = 0
         if auto and planned is not None and self.static_max > 0:
