@@ -45,7 +45,7 @@ the left-out terms would change in the acceptance figures, without touching the 
 
 ``own``: the filter on its own model's truth (``DIR/reduced/<model>/s<seed>``) with each step Jacobian of
 :data:`OWN_VARIANTS` (:func:`own_model`): where the exact Jacobian changes the figures and why. ``own-entries``: the
-exact Jacobian (:func:`exuflex.observer.expansion.exact_jacobian`) against central differences of the step per
+exact Jacobian (``exact_jacobian`` of ``tests/_oracles.py``) against central differences of the step per
 model (``tests/test_step_jacobian.py``'s ``exact_entries``). ``own-page``: their section of the page, written in
 place (:func:`own_page`).
 
@@ -445,7 +445,7 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
     """The filter on its own model's truth (``DIR/reduced/<model>/s<seed>``: the reduced model stepped by its frozen
     RK4 map, :func:`exuflex.truth.reduced_truth`, no model error beyond the cached step's) with each step Jacobian
     of :data:`OWN_VARIANTS` (the step, noise, rows and bound the default's): ``default``; ``exact``, the cached
-    step's exact Jacobian at the estimate (:func:`exuflex.observer.expansion.exact_jacobian`);
+    step's exact Jacobian at the estimate (``exact_jacobian`` of ``tests/_oracles.py``);
     ``exact_after_start_up``, the same from the filter's ``start_up`` on (the default before); ``exact_at_truth``,
     the cached step's exact Jacobian at the true state (no linearisation error at the estimate);
     ``truth_map_at_truth``, the truth map's own Jacobian at the true state (central differences of the frozen RK4
@@ -454,11 +454,11 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
     filter's own ``sigma``). ``phases_every``: along the default filter on the first seed, every so many intervals
     (and every third in the start-up), the filter's and the cached step's exact Jacobian at the truth against the
     truth map's Jacobian there: ``max_i sqrt((dF P dF^T)_ii / (F P F^T + Q)_ii)`` with the filter's ``P``."""
+    import _oracles as oracle
     import test_step_jacobian as tsj
 
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import FilterDivergedError
-    from exuflex.observer import expansion as ex
     from exuflex.observer import reduced as R
     from exuflex.observer.session import ObserverConfig, make_observer
     from exuflex.runs import read_run
@@ -494,7 +494,7 @@ def own_model(model: str, truth_dir: str, seeds, variants, phases_every: int = 0
 
                 def exact(x):
                     dl = x[:nq] - iv.q0
-                    return ex.exact_jacobian(x, u, dl, R._secant_factor(iv, dl), d, dd, h, n, iv.system)[1]
+                    return oracle.exact_jacobian(x, u, dl, R._secant_factor(iv, dl), d, dd, h, n, iv.system)[1]
 
                 F = pred.F
                 if variant == "exact" or (variant == "exact_after_start_up" and k * dt_ >= cfg.start_up):
@@ -889,9 +889,10 @@ def _own_section(path: str, entries_path: str | None = None, oracle_base: str | 
              "and bound the default's and the step Jacobian of each row: "
              + "; ".join(d for v, d in (
                  ("default", "`default`"),
-                 ("exact", "`exact`, the cached step's exact Jacobian at the estimate (`expansion.exact_jacobian`, "
-                           "the tangent of its RK4 sub-steps, every term in: `tests/test_step_jacobian.py` checks it "
-                           "against central differences of the step entry by entry)"),
+                 ("exact", "`exact`, the cached step's exact Jacobian at the estimate (`exact_jacobian` of "
+                           "`tests/_oracles.py`, the tangent of its RK4 sub-steps, every term in: "
+                           "`tests/test_step_jacobian.py` checks it against central differences of the step entry "
+                           "by entry)"),
                  ("exact_after_start_up", f"`exact_after_start_up`, the same from the filter's start-up "
                                           f"({res['start_up_s']:g} s, where the score starts) on"),
                  ("exact_at_truth", "`exact_at_truth`, the cached step's exact Jacobian at the true state"),

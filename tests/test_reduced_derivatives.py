@@ -17,7 +17,7 @@ from exuflex.erls.model import ErlsModel
 from exuflex.erls.simulate import simulate
 from exuflex.manoeuvre import computed_torque, plan
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.reduced import ReducedObserverModel
+from exuflex.observer.reduced import ReducedObserverModel, StepTolerances
 from exuflex.reduction import CraigBampton, ReducedModel
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -180,7 +180,7 @@ def test_cached_step_follows_the_reduced_equations_to_second_order():
         return np.array(out)
 
     ref = chain("rk4", grid)
-    small = {"refresh_min": 5e-4, "refresh_max": 5e-4}
+    small = {"tolerances": StepTolerances(refresh_min=5e-4, refresh_max=5e-4)}
     e_q = {dt: float(np.abs(chain("cached", dt, **small)[:, :nq] - ref[:, :nq]).max()) for dt in (4e-3, 2e-3, 1e-3)}
     assert 3.0 < e_q[4e-3] / e_q[2e-3] < 6.0 and 3.0 < e_q[2e-3] / e_q[1e-3] < 6.0, e_q
     dt = 1.0 / mech.sample_rate_hz
@@ -189,3 +189,15 @@ def test_cached_step_follows_the_reduced_equations_to_second_order():
     fine = chain("cached", 1e-3, **small)
     rates = np.abs(ref[:, r : r + nq]).max()
     assert float(np.abs(fine[:, r : r + nq] - ref[:, r : r + nq]).max()) < 0.05 * rates
+
+
+def test_step_tolerances_are_checked_by_name():
+    """The cached step's settings (:class:`StepTolerances`): floats, a radius outside its limits or a target not
+    positive refused naming the fields."""
+    assert StepTolerances(rows_tol=1).rows_tol == 1.0 and isinstance(StepTolerances(rows_tol=1).rows_tol, float)
+    with pytest.raises(ValueError, match="rows_min <= rows_rad <= rows_max"):
+        StepTolerances(rows_rad=1.0)
+    with pytest.raises(ValueError, match="remap_min <= remap_rad"):
+        StepTolerances(remap_min=0.0)
+    with pytest.raises(ValueError, match="rows_tol must be positive"):
+        StepTolerances(rows_tol=0.0)

@@ -15,7 +15,7 @@ which they are held, with the rates), is measured against central differences of
 on a mechanism written here (a double pendulum in a vertical plane: the weight's force changes with q and with the
 elastic coordinates); docs/step_jacobian.md gives the reason it is left out.
 
-The whole step's exact Jacobian, every term in (:func:`exuflex.observer.expansion.exact_jacobian`, the tangent of
+The whole step's exact Jacobian, every term in (``_oracles.exact_jacobian``, the tangent of
 the step's RK4 sub-steps), is compared with central differences of the step entry by entry on every model, with a
 secant partner in use (``exact_entries``): the reference the filter's ``F`` is measured against.
 """
@@ -178,7 +178,7 @@ def test_step_jacobian_holds_the_forces_exactly_entry_by_entry(name):
 
 
 def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
-    """The exact Jacobian of the cached step (:func:`exuflex.observer.expansion.exact_jacobian`) of model ``name``
+    """The exact Jacobian of the cached step (``_oracles.exact_jacobian``) of model ``name``
     against central differences of the whole step, entry by entry, where every term is in: a held configuration
     with a secant partner, ``q`` on the secant's line (``q0 + s_along d``: the secant factor, the matrices'
     second order and ``C_a``, ``G_r`` and the forces along the secant follow ``q``), elastic coordinates and rates
@@ -208,7 +208,7 @@ def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
 
     dl = z[:nq] - iv.q0
     s = _secant_factor(iv, dl)
-    x1, F = ex.exact_jacobian(z, u, dl, s, d, dd, h, n, iv.system)
+    x1, F = oracle.exact_jacobian(z, u, dl, s, d, dd, h, n, iv.system)
     x_ref = step(z)
     assert np.allclose(x1, x_ref, rtol=1e-12, atol=1e-13 * np.abs(x_ref).max())
     Fd = _central(step, z, r)

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GENERATOR", "beam_gyroscopic", "beam_mass", "beam_stiffness", "hermite_curvature_row", "rotation"]
+__all__ = ["GENERATOR", "beam_geometric_stiffness", "beam_gyroscopic", "beam_mass", "beam_stiffness", "hermite_curvature_row",
+           "rotation"]
 
 
 def beam_stiffness(EA: float, EI: float, L: float) -> np.ndarray:
@@ -26,6 +27,24 @@ def beam_stiffness(EA: float, EI: float, L: float) -> np.ndarray:
         ]
     )
     k[np.ix_([1, 2, 4, 5], [1, 2, 4, 5])] = kb
+    return k
+
+
+def beam_geometric_stiffness(N: float, L: float) -> np.ndarray:
+    """Local 6x6 consistent geometric stiffness of the axial force ``N`` (tension positive) on the cubic lateral
+    field: ``N / (30 L) [[36, 3L, -36, 3L], [3L, 4L^2, -3L, -L^2], ...]`` on ``(v1, th1, v2, th2)``, from the
+    virtual work ``N int v' dv' dx`` (the second-order strain). ``-K_G d`` is the force of an axial load acting
+    across the lateral displacements ``d`` (the P-delta effect; a rigid tilt ``th`` of the element gets the couple
+    ``N th L``), which the linear element leaves out."""
+    k = np.zeros((6, 6))
+    k[np.ix_([1, 2, 4, 5], [1, 2, 4, 5])] = N / (30.0 * L) * np.array(
+        [
+            [36.0, 3 * L, -36.0, 3 * L],
+            [3 * L, 4 * L * L, -3 * L, -L * L],
+            [-36.0, -3 * L, 36.0, -3 * L],
+            [3 * L, -L * L, -3 * L, 4 * L * L],
+        ]
+    )
     return k
 
 

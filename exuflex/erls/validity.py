@@ -1,4 +1,5 @@
-"""Where the ERLS model stops being valid: links turning fast against their own first clamped frequency.
+"""Where the ERLS model stops being valid: links turning fast against their own first clamped frequency, and links
+whose axial load under the weight acts across their elastic displacements.
 
 The ERLS model (:mod:`exuflex.erls.model`) has linear elasticity in the rotating frame of each link: it keeps the
 centrifugal softening but not the geometric stiffening of the centrifugal tension. A link turning at the rate
@@ -18,6 +19,32 @@ departure speed), where it passes the departure (``"departed"``) and where the r
 ``omega_c`` is computed from the link's own beam elements (its mesh in the model file, the ERLS element matrices)
 and its lumped masses (rotary inertias, offsets, the payload), clamped at each end that carries a joint; the
 lowest of those frequencies is used (a link turning about either end: the conservative choice).
+
+The weight's P-delta effect
+---------------------------
+The same linear elasticity leaves out the moment of an axial force acting across the lateral elastic
+displacements (the geometric stiffness ``K_G(N)``: a link in compression softens, in tension stiffens). Measured
+against the buckling load this is small in any mechanism that holds its shape (``N / N_cr`` of a few 1e-3 on
+``benchmarks/models/vertical_serial_arm.toml``'s forearm), but what matters to the observer is the absolute
+change of what its sensors read, and a persistent one: the forearm standing almost upright carries its payload's
+weight axially while the upper arm's sag tilts it elastically (some 4 mrad at the elbow); its own transverse
+weight is small (``cos 1.5``), so the P-delta moment is some 5 % of its bending there, 0.8 noise sd in its gauge,
+which the Exudyn truth (geometrically exact) has and the ERLS models have not (``docs/gravity.md``).
+
+:func:`weight_pdelta` estimates it at a configuration, to first order: the full model's static sag under the
+weight ``u`` with the motor torques that hold the coordinates (:func:`weight_sag`), each element's axial force
+``N_e = EA (u_2 - u_1) / L`` from it (element frame), and the static response of the elastic rows with the
+coordinates held to the P-delta forces ``f = -K_G(N) T u`` of each link's elements: ``du = K_uu^-1 T^T f``, read
+by the noisy channels (their rows of :func:`.sensing.channel_matrix`) in their noise sd. The coordinate rows'
+share ``S^T f`` the model has: the strain energy ``u^T K(q) u / 2`` of the links' rotated stiffness has the
+q-gradient ``-S^T f`` (``tests/test_validity.py``); the elastic rows have none of it. The reading is persistent
+(it follows the configuration, not the vibration), so the filter takes it for signal: a reading left to the filter
+of ``b`` noise sd is at the limit the reduction allows its own static truncation (``sqrt(0.1)``, the readings
+that move an update by at most ``b`` posterior sd; ``exuflex.reduction.truncation``), and a persistent one is
+amplified by the filter's gain at zero frequency (on the vertical serial arm 4.5-5 posterior sd of an angle per
+noise sd of a gauge, ``docs/gravity.md``). :func:`weight_warnings` warns, naming the link, the channel and the
+time, where a link's reading reaches :data:`PDELTA_WARN_SD` (``"approaching"``) and where it reaches
+:data:`PDELTA_DEPART_SD` (``"departed"``).
 """
 
 from __future__ import annotations
@@ -29,11 +56,12 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..mechanism import Mechanism
-from .elements import beam_mass, beam_stiffness
+from .elements import beam_geometric_stiffness, beam_mass, beam_stiffness
 from .kinematics import Kinematics
 
-__all__ = ["DEPARTURE_NRMS", "DEPARTURE_RATIO", "WARN_NRMS", "RateWarning", "check_link_rates",
-           "clamped_frequencies", "link_rates", "rate_warnings", "signal_warnings"]
+__all__ = ["DEPARTURE_NRMS", "DEPARTURE_RATIO", "PDELTA_DEPART_SD", "PDELTA_WARN_SD", "WARN_NRMS", "AxialWarning",
+           "RateWarning", "check_link_rates", "clamped_frequencies", "link_rates", "pdelta_forces", "rate_warnings",
+           "signal_warnings", "weight_pdelta", "weight_sag", "weight_warnings"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +72,13 @@ page and keeps the two equal)."""
 DEPARTURE_NRMS = 0.05  # the departure criterion of that benchmark
 WARN_NRMS = 0.025  # warn from this estimated error: Omega >= DEPARTURE_RATIO omega_c / sqrt(2)
 MAX_POSES = 4000  # a trajectory is checked at this many samples at most (rates are smooth on that grid)
+PDELTA_DEPART_SD = float(np.sqrt(0.1))
+"""The weight's P-delta reading (noise sd) from which the ERLS model has departed: the
+limit of the readings the reduction may leave to the filter (module docstring)."""
+PDELTA_WARN_SD = 0.1
+"""Warn from this reading: a persistent reading is amplified by the filter's gain at zero frequency (module
+docstring), some 3 posterior sd per noise sd would take this one to ``PDELTA_DEPART_SD``."""
+MAX_WEIGHT_POSES = 200  # the P-delta check's samples of a trajectory at most (it follows the configuration only)
 
 
 @dataclass(frozen=True)
@@ -158,10 +193,11 @@ def rate_warnings(mech: Mechanism, t: np.ndarray, q: np.ndarray, qd: np.ndarray)
     return warnings
 
 
-def signal_warnings(mech: Mechanism, sig) -> list[RateWarning]:
-    """:func:`rate_warnings` along a record with the coordinates ``q`` and their rates ``d`` + ``q`` as columns
-    (a truth record or the observer's physical estimates, :func:`exuflex.sensors.truth_names`); rows with a
-    missing value are skipped. ``[]`` if the record lacks a column."""
+def signal_warnings(mech: Mechanism, sig) -> list[RateWarning | AxialWarning]:
+    """:func:`rate_warnings` and :func:`weight_warnings` along a record with the coordinates ``q`` and their rates
+    ``d`` + ``q`` as columns (a truth record or the observer's physical estimates,
+    :func:`exuflex.sensors.truth_names`); rows with a missing value are skipped. ``[]`` if the record lacks a
+    column."""
     names = list(sig.names)
     qn = list(mech.coordinate_names)
     if any(n not in names or "d" + n not in names for n in qn):
@@ -169,4 +205,121 @@ def signal_warnings(mech: Mechanism, sig) -> list[RateWarning]:
     q = sig.data[:, [names.index(n) for n in qn]]
     qd = sig.data[:, [names.index("d" + n) for n in qn]]
     ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(qd), axis=1)
-    return rate_warnings(mech, np.asarray(sig.t)[ok], q[ok], qd[ok])
+    t = np.asarray(sig.t)[ok]
+    return rate_warnings(mech, t, q[ok], qd[ok]) + weight_warnings(mech, t, q[ok])
+
+
+@dataclass(frozen=True)
+class AxialWarning:
+    """A link whose axial load under the weight, acting across the elastic displacements (the geometric
+    stiffness the ERLS model has not), reads a persistent amount in a channel (module docstring)."""
+
+    link: str
+    level: str  # "approaching" (>= PDELTA_WARN_SD), "departed" (>= PDELTA_DEPART_SD)
+    time_s: float  # first time the reading reaches the level's threshold
+    peak_time_s: float
+    peak_reading_sd: float  # in the channel's noise sd
+    channel: str  # the channel that reads it most
+    compression_n: float  # the link's largest axial compression (N; negative: tension) at the peak
+
+    @property
+    def message(self) -> str:
+        what = "approaches" if self.level == "approaching" else "passes"
+        limit = PDELTA_WARN_SD if self.level == "approaching" else PDELTA_DEPART_SD
+        load = (f"{self.compression_n:.3g} N of compression" if self.compression_n > 0 else
+                f"{-self.compression_n:.3g} N of tension")
+        return (f"link {self.link!r} carries {load} under the weight at t = {self.peak_time_s:.3g} s: its P-delta "
+                f"effect (geometric stiffness, not in the ERLS model) reads {self.peak_reading_sd:.2g} noise sd in "
+                f"{self.channel} (from t = {self.time_s:.3g} s it {what} {limit:.2g} sd), a persistent error of the "
+                "model's static sag (docs/validity.md)")
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "message": self.message}
+
+
+def weight_sag(model, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, tau)``: the full-order model's static elastic displacements under its weight at the configuration
+    ``cfg``, and the motor torques that hold its coordinates. Linear statics: the coordinate rows ``S^T (M_N g + B
+    tau) = 0`` (least squares where the motors do not span them), the elastic rows ``K_uu u = T^T (M_N g + B
+    tau)`` (the coordinate rows' strain-energy term ``dV/dq``, quadratic in ``u``, left out)."""
+    g = cfg.M_N @ model.g_N
+    S, B, T = cfg.pose.S, model.B_N, model.T
+    tau = -np.linalg.lstsq(S.T @ B, S.T @ g, rcond=None)[0]
+    u = np.linalg.solve(T.T @ cfg.K_N @ T, T.T @ (g + B @ tau))
+    return u, tau
+
+
+def _channel_noise(mech) -> tuple[list[str], np.ndarray]:
+    """The channels with a stated noise (tip positions are truth-only) and their noise sd."""
+    chans = [s for s in mech.sensors if s.noise_std > 0 and s.kind not in ("tip_x", "tip_y")]
+    return [s.name for s in chans], np.array([s.noise_std for s in chans])
+
+
+def pdelta_forces(model, cfg, d: np.ndarray, elements) -> tuple[np.ndarray, np.ndarray]:
+    """``(f, N)``: the nodal P-delta forces ``f = -sum_e R_e K_G(N_e) R_e^T d_e`` (N,) of the beam ``elements``
+    at the configuration ``cfg`` and nodal elastic displacements ``d`` (global), with each element's axial force
+    ``N_e = EA (d_2 - d_1) / L`` along it (tension positive, :func:`.elements.beam_geometric_stiffness`)."""
+    mech = model.mech
+    f = np.zeros(model.N)
+    N = np.empty(len(elements))
+    for i, e in enumerate(elements):
+        lk = mech.links[model.el_link[e]]
+        R, L, dofs = cfg.R[e], model.el_len[e], model.el_dofs[e]
+        dl = R.T @ d[dofs]
+        N[i] = lk.material.E * lk.section.A * (dl[3] - dl[0]) / L
+        f[dofs] -= R @ (beam_geometric_stiffness(N[i], L) @ dl)
+    return f, N
+
+
+def weight_pdelta(model, q) -> dict[str, tuple[float, str, float]]:
+    """Per link with beam elements, ``(reading, channel, compression)`` at the configuration ``q``: the largest
+    reading (noise sd) of the static response of the elastic rows to the P-delta forces of the link's axial load under the
+    weight (module docstring), the channel that reads it, and the link's largest axial compression (N;
+    negative: in tension throughout). Empty without gravity."""
+    from .sensing import channel_matrix
+
+    mech = model.mech
+    if not np.any(model.g_N):
+        return {}
+    cfg = model.configuration(np.asarray(q, float))
+    u, _ = weight_sag(model, cfg)
+    d = model.T @ u
+    names, noise = _channel_noise(mech)
+    C = channel_matrix(model, cfg, mech, names)[:, model.nq :] / noise[:, None] if names else np.zeros((0, model.ne))
+    Kuu = model.T.T @ cfg.K_N @ model.T
+    out = {}
+    for li, lk in enumerate(mech.links):
+        els = np.flatnonzero((model.el_link == li) & (model.el_len > 0))
+        if not len(els):
+            continue
+        f, N_el = pdelta_forces(model, cfg, d, els)
+        read = np.abs(C @ np.linalg.solve(Kuu, model.T.T @ f))
+        best, chan = (float(read.max()), names[int(read.argmax())]) if len(read) else (0.0, "")
+        out[lk.name] = (best, chan, float(-N_el.min()))
+    return out
+
+
+def weight_warnings(mech: Mechanism, t: np.ndarray, q: np.ndarray) -> list[AxialWarning]:
+    """The P-delta warnings (module docstring) along a trajectory ``q`` (n_t, nq) at times ``t`` (at most
+    :data:`MAX_WEIGHT_POSES` samples of it), each logged; none without gravity."""
+    if not mech.gravity or not any(mech.gravity) or not len(t):
+        return []
+    from .model import ErlsModel
+
+    model = ErlsModel(mech)
+    t, q = np.asarray(t, float), np.atleast_2d(np.asarray(q, float))
+    keep = np.unique(np.r_[np.arange(0, len(t), max(1, -(-len(t) // MAX_WEIGHT_POSES))), len(t) - 1])
+    rows = [weight_pdelta(model, q[k]) for k in keep]
+    out = []
+    for lk in (rows[0] if rows else {}):
+        r = np.array([row[lk][0] for row in rows])
+        k = int(r.argmax())
+        for level, limit in (("departed", PDELTA_DEPART_SD), ("approaching", PDELTA_WARN_SD)):
+            if r[k] >= limit:
+                first = int(np.flatnonzero(r >= limit)[0])
+                w = AxialWarning(lk, level, float(t[keep[first]]), float(t[keep[k]]), float(r[k]), rows[k][lk][1],
+                                 rows[k][lk][2])
+                log.warning("%s", w.message)
+                out.append(w)
+                break
+    return out

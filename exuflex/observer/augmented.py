@@ -103,6 +103,7 @@ import numpy as np
 import scipy.linalg
 
 from ..erls.model import ErlsModel
+from ..erls.simulate import rk4_step
 from ..reduction import ReducedModel
 from .base import LoopModel, Measurement, Prediction
 from .expansion import (
@@ -368,11 +369,10 @@ class AugmentedModel:
         inner = self.inner
         iv, _ = inner.last_step
         n = inner.substeps(iv, dt)
-        h = dt / n
         r = self.r
         out = np.empty((len(a), self.n0))
         for k, c in enumerate(a):
-            def f(x, c=c):
+            def f(_t, x, u, c=c):
                 m1 = inner.rm.matrices(x[:r], x[r:])
                 m2 = self.twin.matrices(x[:r], x[r:])
                 M = m1.Mr + c * (m2.Mr - m1.Mr)
@@ -382,11 +382,7 @@ class AugmentedModel:
 
             x = np.array(z, float)
             for _ in range(n):
-                k1 = f(x)
-                k2 = f(x + h / 2 * k1)
-                k3 = f(x + h / 2 * k2)
-                k4 = f(x + h * k3)
-                x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+                x = rk4_step(f, 0.0, x, dt / n, u)
             out[k] = x
         return out
 

@@ -26,7 +26,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["GENERAL", "INPUT_STEP", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "Belief", "CompiledModel", "DiscreteModel",
+__all__ = ["GENERAL", "INPUT_STEP", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "ROWS", "Belief", "CompiledModel", "DiscreteModel",
            "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "ModelHooks", "Prediction", "hooks", "takes_compiled_loop"]
 
 #: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
@@ -34,8 +34,9 @@ __all__ = ["GENERAL", "INPUT_STEP", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", 
 #: and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step` must take (an
 #: indefinite or non-finite update, a channel found missing, the model's own reasons); a sensor-fault window test
 #: opened, changed or cleared a fault at the last sample done (the monitor reports it); an input step at the last
-#: sample done (the filter records it): after the last two the loop resumes.
-LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR, INPUT_STEP = 0, 1, 2, 3, 4, 5
+#: sample done (the filter records it): after the last two the loop resumes; the prediction left the measurement
+#: rows' radius (the model's :meth:`~DiscreteModel.measure` at the prediction renews them, the loop resumes there).
+LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR, INPUT_STEP, ROWS = 0, 1, 2, 3, 4, 5, 6
 
 
 class FilterDivergedError(RuntimeError):

@@ -15,10 +15,10 @@ definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gi
 :meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
 compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run`` hands :func:`.loop.samples` the
 samples it can take (a valid interval and input; any channels sampled), which it processes with the same compiled
-kernels in the same order as ``step`` until one needs more (a new held configuration, an input step, the model's
-own interval, a channel missing, ...): the model renews its arrays and the loop resumes, or ``step`` takes that
-sample. ``tests/test_sample_loop.py``
-holds the two bit-identical.
+kernels in the same order as ``step`` until one needs more: the model renews its arrays (a new held configuration
+or step map, measurement rows for the prediction) and the loop resumes, or ``step`` takes that sample (the first,
+the model's own interval at a torque jump, a channel found missing, ...). ``tests/test_sample_loop.py`` holds the
+two bit-identical.
 
 Each interval is as long as its two time stamps say: jitter, drift and irregular sampling need no grid. A
 sample whose channels are partly NaN updates with the finite ones (``R`` restricted to them: multirate
@@ -78,7 +78,7 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import (INPUT_STEP, MONITOR, REFRESH, REMAP, Belief, DiscreteModel, FilterDivergedError, hooks,
+from .base import (INPUT_STEP, MONITOR, REFRESH, REMAP, ROWS, Belief, DiscreteModel, FilterDivergedError, hooks,
                    takes_compiled_loop)
 from .stats import chi2_ppf, norm_ppf
 
@@ -696,6 +696,7 @@ class BeliefFilter:
         self.nis_flagged = False
         self.nis_flagged_at: float | None = None
         self.flagged_intervals: list[list] = []
+        self._model_failure = None  # why the model could not step (the divergence message names it)
         self.n_rejected = np.zeros(self.m, dtype=np.int64)
         self._holdoff = 0
         self._held = False
@@ -762,6 +763,37 @@ class BeliefFilter:
         self.n_rejected[idx[~keep]] += 1
         return keep
 
+    def _interval(self, t: float) -> float | None:
+        """The interval from the previous sample to ``t`` (None at the first), checked: after it, by at most
+        ``max_gap``; the grid samples it skipped counted in ``n_missing``."""
+        if self._t_prev is None:
+            return None
+        dt = t - self._t_prev
+        if not dt > 1e-9 * self.dt:
+            raise ValueError(f"sample time {t!r} s is not after the previous sample's ({self._t_prev!r} s)")
+        if dt > self.max_gap:
+            raise ValueError(
+                f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
+                f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
+        self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
+        return dt
+
+    def _close(self, t: float, finite: bool) -> np.ndarray:
+        """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""
+        if not finite:
+            self._flag(t, "non-finite state or covariance")
+            self.nonfinite = True
+            if self.nonfinite_action == "raise":
+                why = self._model_failure
+                raise FilterDivergedError(
+                    f"non-finite state or covariance at t={t:.6g} s" + (f" (model step failed: {why})" if why else ""))
+            return np.full(self.nx, np.nan)
+        if self.last_idx is not None:
+            self._count_update(t, self.last_nis, self.last_dof, self._held)
+        elif self.faults is not None:
+            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
+        return self._x.copy()
+
     def _count_update(self, t: float, nis: float, dof: int, held: bool) -> None:
         """An update done at ``t``: counted, and its NIS into the divergence test (not within the hold-off after
         an input step: the allowance for planned steps)."""
@@ -794,6 +826,30 @@ class BeliefFilter:
         faults = [] if self.faults is None else [dict(f, end=f["end"] if f["end"] is not None else t)
                                                   for f in self.faults.faults]
         return iv, faults
+
+    def _run_steps(self, t, U, Y, reset: bool, x0, P0, innovations: bool, each=None) -> EstimationResult:
+        """:meth:`step` over a record (``each(k)`` after sample ``k``), each sample recorded. A step that fails where
+        a covariance lost definiteness ends the run: raised as diverged, or (``nonfinite="flag"``) flagged with no
+        estimates from there."""
+        t, U, Y = check_log(t, U, Y, self.m)
+        if reset or x0 is not None or P0 is not None:
+            self.reset(x0, P0)
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
+        w0 = time.perf_counter()
+        for k in range(len(t)):
+            try:
+                x = self.step(t[k], None if U is None else U[k], Y[k])
+            except (np.linalg.LinAlgError, ArithmeticError) as exc:
+                if self.nonfinite_action == "raise":
+                    raise FilterDivergedError(f"{type(self).__name__} failed at t={t[k]:.6g} s: {exc}") from exc
+                self.nonfinite, self.diverged = True, True
+                self.diverged_at = self.diverged_at or float(t[k])
+                rec.fail_from(k)
+                break
+            rec.put(k, x, self._P, self)
+            if each is not None:
+                each(k)
+        return self._result(rec, time.perf_counter() - w0)
 
     def _result(self, rec: RunRecord, wall_s: float) -> EstimationResult:
         """The run's :class:`EstimationResult` with the monitors' findings."""
@@ -886,7 +942,6 @@ class MultirateEKF(BeliefFilter):
     def reset(self, x0=None, P0=None) -> None:
         """Restart from a prior (:meth:`BeliefFilter.reset`)."""
         super().reset(x0, P0)
-        self._model_failure = None
         self.last_prediction = None
 
     # ------------------------------------------------------------------ the two steps
@@ -1008,18 +1063,10 @@ class MultirateEKF(BeliefFilter):
         FilterDivergedError
             Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test (``"raise"``).
         """
-        t, u, y = self._step_arguments(t, u, y)
-        if self._t_prev is not None:
-            dt = t - self._t_prev
-            if not dt > 1e-9 * self.dt:
-                raise ValueError(f"sample time {t!r} s is not after the previous sample's ({self._t_prev!r} s)")
-            if dt > self.max_gap:
-                raise ValueError(
-                    f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than max_gap="
-                    f"{self.max_gap:g} s: a gap this long is not predicted through (restart the filter with reset())")
-            self.n_missing += max(int(round(dt / self.dt)) - 1, 0)
+        t, u, y = step_arguments(self, t, u, y)
+        dt = self._interval(t)
         jumps = self.hooks.n_jumps()
-        FQ = None if self._t_prev is None or self.nonfinite else self._predict(dt, u)
+        FQ = None if dt is None or self.nonfinite else self._predict(dt, u)
         self._t_now = t
         self._input_steps(t, u, jumps)
         self._t_prev = t
@@ -1040,25 +1087,6 @@ class MultirateEKF(BeliefFilter):
                 self._Pspare, self._P = self._P, self._Pspare
             finite = kalman.settle(self._x, self._P, self._floor)
         return self._close(t, finite)
-
-    def _step_arguments(self, t, u, y):
-        return step_arguments(self, t, u, y)
-
-    def _close(self, t: float, finite: bool) -> np.ndarray:
-        """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""
-        if not finite:
-            self._flag(t, "non-finite state or covariance")
-            self.nonfinite = True
-            if self.nonfinite_action == "raise":
-                why = self._model_failure
-                raise FilterDivergedError(
-                    f"non-finite state or covariance at t={t:.6g} s" + (f" (model step failed: {why})" if why else ""))
-            return np.full(self.nx, np.nan)
-        if self.last_idx is not None:
-            self._count_update(t, self.last_nis, self.last_dof, self._held)
-        elif self.faults is not None and self._t_prev is not None:
-            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
-        return self._x.copy()
 
     # ------------------------------------------------------------------ the compiled sample loop
     def _loop_ends(self, t, U, Y) -> np.ndarray:
@@ -1109,6 +1137,7 @@ class MultirateEKF(BeliefFilter):
         record = loop.Record(rec.x_hat, _empty_rows(n) if rec.P is None else rec.P.reshape(rows, -1),
                              -1 if rec.P is None else 0 if rec.store_P == "diag" else 1,
                              _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, rec.dof, *pred)
+        rows_made = False
         while k < k_end:
             x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
             try:
@@ -1118,7 +1147,8 @@ class MultirateEKF(BeliefFilter):
             hold0 = self._holdoff
             buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP)
             k_next, status, self._holdoff, swapped, state, mats, last = self._loop(
-                t, U, Y, k, k_end, hold0, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
+                t, U, Y, k, k_end, hold0, rows_made, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
+            z = x if swapped else x_alt  # (the buffer not current: the prediction where the rows stopped the loop)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
@@ -1128,7 +1158,13 @@ class MultirateEKF(BeliefFilter):
                 elif status == INPUT_STEP:
                     self.jump_times.append(float(t[k_next - 1]))
             k = k_next
-            if status not in (REFRESH, REMAP, MONITOR, INPUT_STEP):
+            rows_made = status == ROWS
+            if rows_made:  # the model's rows made for the prediction (as step()'s update makes them, from the
+                try:  # channels sampled there: their error sets the next radius); resumed there
+                    model.measure(z, self._channel_set(Y[k])[1])
+                except _MODEL_FAILURES:  # step() says why
+                    break
+            if status not in (REFRESH, REMAP, MONITOR, INPUT_STEP, ROWS):
                 break
         return k
 

@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .base import GENERAL, LOOP_DONE, REFRESH, REMAP
+from .base import GENERAL, LOOP_DONE, REFRESH, REMAP, ROWS
 from .kalman import step_statistic
 
 __all__ = [
@@ -38,7 +38,6 @@ __all__ = [
     "LoopState",
     "cached_interval",
     "cached_rows",
-    "exact_jacobian",
     "extra_interval",
     "held_interval",
     "held_step",
@@ -528,137 +527,6 @@ def _held_system(dl, s, pe, hs):  # pragma: no cover - compiled
     return _system(dl, s, pe, HeldSystem(*hs))
 
 
-def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray, np.ndarray]:
-    """``(z_next, F)``: the cached step over ``n`` sub-steps of ``h`` from ``z`` (:func:`held_step` at ``q0 + dl``
-    with the secant factor ``s`` of the secant ``d``, ``dd = d . d``; ``d`` empty without a partner) and its
-    exact Jacobian in ``z``, by the tangent of its RK4 sub-steps: the reference for :func:`step_jacobian`, which
-    leaves terms out (``tests/test_step_jacobian.py`` compares both with finite differences of the step, entry
-    by entry). NumPy: a reference and a measurement, not the filter's (it carries the tangent of every state
-    component through every RK4 stage).
-
-    Every input of the held system ``M p'' + C p' + K p = G u + f`` (:func:`_held_model`) that the step takes
-    from ``z`` is differentiated: ``M_r``, ``K_r`` in ``q`` (the gradients, the secant's second order and, where
-    the secant is in use, the secant factor's own change ``ds/dq = d / dd``, which also moves ``C_a``, ``G_r`` and
-    the forces along it); the rigid rows and columns of ``M_r``, ``K_r``, ``C_r``, ``G_r`` in the elastic
-    coordinates and, through the midpoint ``p_e + dt/2 p_e'``, their rates (:func:`_elastic_terms`); the forces
-    ``(1 + s) f_held - s f_old`` (the weight by ``Wg`` and ``pG``) in the whole state. The sub-steps advance the
-    state with its tangent ``X = dz_k / dz`` (``X_0 = I``): at each RK4 stage ``y`` (acceleration ``a``) the
-    tangent's rate is ``A Y + [0; M^-1 (dG u + df - dK y_p - dC y_v - dM a)]``, ``A`` the held system's."""
-    z = np.asarray(z, float)
-    u = np.asarray(u, float)
-    r = hs.Mr.shape[0]
-    nq = dl.shape[0]
-    nx = 2 * r
-    m = hs.Gr.shape[1]
-    p, pd = z[:r], z[r:]
-    n_el = hs.pM.shape[0] if r > nq else 0
-    tm = 0.5 * h * n
-    for tm in (tm, 0.0):  # the midpoint elastic coordinates; the start where M_r is not positive definite there
-        pem = p[nq:] + tm * pd[nq:]
-        M, K, C, G = held_system(dl, s, pem if n_el else pem[:0], tuple(hs))
-        try:
-            Minv = np.linalg.inv(np.linalg.cholesky(M))
-        except np.linalg.LinAlgError:
-            continue
-        Minv = Minv.T @ Minv
-        break
-    else:
-        return np.full(nx, np.nan), np.full((nx, nx), np.nan)
-    # the forces of the held and the old forms, and the derivatives of each: f = (1 + s) f_k - s f_o
-    forms = [(hs.fg, hs.T2, hs.V2, hs.C2, 1.0 + s if hs.has_old else 1.0)]
-    if hs.has_old:
-        forms.append((hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, -s))
-    f = np.zeros(r)
-    dF = np.zeros((r, nx))
-    fk = []
-    for fg, T2, V2, C2, w in forms:
-        T3 = T2.reshape(r, r, r)  # [k, i, j]
-        V3 = V2.reshape(nq, r, r)  # [i, a, b]
-        fi = fg - 0.5 * np.einsum("k,kij,j->i", pd, T3, pd)
-        fi[:nq] -= np.einsum("a,iab,b->i", p, V3, p)
-        dF[:, r:] -= 0.5 * w * (np.einsum("mij,j->im", T3, pd) + np.einsum("jim,j->im", T3, pd))
-        dF[:nq, :r] -= w * (np.einsum("imb,b->im", V3, p) + np.einsum("iam,a->im", V3, p))
-        if C2.shape[0]:
-            C3 = C2.reshape(r, nq, r)  # [k, j, c]
-            fi -= np.einsum("k,j,kjc->c", pd, pd[:nq], C3)
-            dF[:, r:] -= w * np.einsum("j,mjc->cm", pd[:nq], C3)
-            dF[:, r : r + nq] -= w * np.einsum("k,kmc->cm", pd, C3)
-        fk.append(fi)
-        f += w * fi
-    # the secant factor's change with q where the secant is in use (:func:`_secant_factor`)
-    act = False
-    if hs.has_old and d.shape[0]:
-        act = not (float(dl @ d) ** 2 < 0.49 * float(dl @ dl) * dd)
-    ds = d / dd if act else np.zeros(nq)
-    along = fk[0] - fk[1] if hs.has_old else 0.0
-    if hs.Wg.shape[0]:  # the weight to second order (:func:`_held_model`): (1 + s) (Wg dl - s (fg - fg_old))
-        wdl = hs.Wg[:, :nq] @ dl
-        dfg = hs.fg - hs.old_fg
-        f += (1.0 + s) * (wdl - s * dfg) if hs.has_old else wdl
-        dF[:, :nq] += (1.0 + s) * hs.Wg[:, :nq] if hs.has_old else hs.Wg[:, :nq]
-        if hs.has_old:
-            along = along + wdl - (1.0 + 2.0 * s) * dfg
-    if act:  # the secant factor's own change moves everything along the secant
-        dF[:, :nq] += np.outer(along, ds)
-    if n_el:
-        mg = hs.pG.shape[1] // nq
-        wcol = hs.pG.reshape(n_el, nq, mg)[:, :, mg - 1]  # (n_el, nq)
-        f[:nq] += p[nq:] @ wcol
-        dF[:nq, nq:r] += wcol.T
-    # the held matrices' derivatives per state component (zero where a component does not move them)
-    dMj = np.zeros((nx, r, r))
-    dKj = np.zeros((nx, r, r))
-    dCj = np.zeros((nx, r, r))
-    dGj = np.zeros((nx, r, m))
-    gM, hM = dl @ hs.dM, (dl @ hs.old_dM if hs.has_old else 0.0)
-    gK, hK = dl @ hs.dK, (dl @ hs.old_dK if hs.has_old else 0.0)
-    for j in range(nq):
-        vm, vk = hs.dM[j].copy(), hs.dK[j].copy()
-        if hs.has_old:
-            vm += 0.5 * s * (hs.dM[j] - hs.old_dM[j]) + 0.5 * ds[j] * (gM - hM)
-            vk += 0.5 * s * (hs.dK[j] - hs.old_dK[j]) + 0.5 * ds[j] * (gK - hK)
-            dCj[j] = ds[j] * (hs.Ca - hs.old_Ca)
-            dGj[j] = ds[j] * (hs.Gr - hs.old_Gr)
-        dMj[j] = vm.reshape(r, r)
-        dKj[j] = vk.reshape(r, r)
-        dCj[j] += hs.beta * dKj[j]
-    if n_el:
-        mg = hs.pG.shape[1] // nq
-        for k in range(n_el):
-            Pm = hs.pM[k].reshape(nq, r)
-            Pk = hs.pK[k].reshape(nq, r)
-            Pc = hs.pC[k].reshape(nq, r) + hs.beta * Pk
-            for j, c in ((nq + k, 1.0), (r + nq + k, tm)):
-                dMj[j, :nq, :] += c * Pm
-                dMj[j, :, :nq] += c * Pm.T
-                dKj[j, :nq, :] += c * Pk
-                dCj[j, :nq, :] += c * Pc
-                dCj[j, :, :nq] += c * Pc.T
-                dGj[j, :nq, :] += c * hs.pG[k].reshape(nq, mg)[:, :m]
-    # the sub-steps with their tangent (the derivatives stacked: one product per stage and kind)
-    KC = np.hstack([K, C])
-    A = Minv @ KC  # [M^-1 K, M^-1 C]
-    b0 = G @ u + f
-    g0 = (dF + np.einsum("jac,c->aj", dGj, u)).T.copy()  # (nx, r): row j the forcing of column j
-    dKC = np.concatenate([dKj, dCj], axis=2).reshape(nx * r, 2 * r)
-    dM2 = dMj.reshape(nx * r, r)
-    x, X = z.copy(), np.eye(nx)
-
-    def rate(y, Y):
-        a = Minv @ (b0 - KC @ y)
-        g = g0 - (dKC @ y).reshape(nx, r) - (dM2 @ a).reshape(nx, r)
-        return np.concatenate([y[r:], a]), np.vstack([Y[r:], Minv @ g.T - A @ Y])
-
-    for _ in range(n):
-        k1, K1 = rate(x, X)
-        k2, K2 = rate(x + 0.5 * h * k1, X + 0.5 * h * K1)
-        k3, K3 = rate(x + 0.5 * h * k2, X + 0.5 * h * K2)
-        k4, K4 = rate(x + h * k3, X + h * K3)
-        x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        X = X + h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
-    return x, X
-
-
 _NO_TENSOR = np.empty((0, 0, 0))  # held_interval's Jacobian inputs where it computes none
 _NO_MATRIX = np.empty((0, 0))
 _NO_VECTOR = np.empty(0)
@@ -775,8 +643,8 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
     propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
     ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
-    step and with the step's exact Jacobian :func:`exact_jacobian`; docs/step_jacobian.md measures what the
-    left-out terms change and why they stay out)."""
+    step and with the step's exact Jacobian, ``exact_jacobian`` of ``tests/_oracles.py``; docs/step_jacobian.md
+    measures what the left-out terms change and why they stay out)."""
     r = Ts.shape[0]
     nq = Vs.shape[0]
     p = z[:r]
@@ -1153,14 +1021,16 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
     return LOOP_DONE, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
 
 
-def _cached_rows(cs, z, y, H):  # pragma: no cover - compiled
+def _cached_rows(cs, z, y, H, made):  # pragma: no cover - compiled
     """The measurement at the predicted state ``z`` into ``y``, ``H`` (:meth:`.reduced.ReducedObserverModel.
-    measure` with every channel): False (nothing written) where ``z`` is not finite or left the
-    rows' radius (the model rebuilds them then)."""
-    if not math.isfinite(z[0]) or not _within(z, cs.rows_q0, cs.rows_rad):
-        return False
+    measure` with every channel): ``LOOP_DONE``; nothing written where ``z`` is not finite (``GENERAL``) or
+    left the rows' radius (``ROWS``: the model rebuilds them; not where they were ``made`` for ``z``)."""
+    if not math.isfinite(z[0]):
+        return GENERAL
+    if not made and not _within(z, cs.rows_q0, cs.rows_rad):
+        return ROWS
     measurement_rows(cs.c0, cs.Hm, cs.D, cs.G, z, z[: cs.rows_q0.shape[0]] - cs.rows_q0, y, H)
-    return True
+    return LOOP_DONE
 
 
 def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, hs):  # pragma: no cover - compiled

@@ -85,8 +85,6 @@ from .ekf import (
     BeliefFilter,
     EstimationResult,
     Monitoring,
-    RunRecord,
-    check_log,
     step_arguments,
 )
 from .smoother import SmoothedResult
@@ -250,12 +248,8 @@ class IMMFilter(BeliefFilter):
         jumps = self.hooks.n_jumps()
         c = self.mode_p
         alive = np.ones(len(self.models), dtype=bool)
-        if self._t_prev is not None:
-            dt = t - self._t_prev
-            if not dt > 1e-9 * self.dt or dt > self.max_gap:
-                raise ValueError(f"sample time {t!r} s: expected after the previous sample ({self._t_prev!r} s) by at "
-                                 f"most max_gap={self.max_gap:g} s")
-            self.n_missing += max(round(dt / self.dt) - 1, 0)
+        dt = self._interval(t)
+        if dt is not None:
             c, self._beliefs = mix(self.mode_p, self._transition(dt), self._beliefs)
             self.intervals = [None] * len(self.models)
             for j, b in enumerate(self._beliefs):
@@ -281,17 +275,7 @@ class IMMFilter(BeliefFilter):
                 kalman.settle(b.x, b.P, self._floor[: len(b.x)])
             self.mode_p = c
         self._x, self._P = combine(self.mode_p, self._beliefs, self.tails)
-        if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
-            self._flag(t, "non-finite state or covariance")
-            self.nonfinite = True
-            if self.nonfinite_action == "raise":
-                raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
-            return np.full(self.nx, np.nan)
-        if self.last_idx is not None:
-            self._count_update(t, self.last_nis, self.last_dof, self._held)
-        elif self.faults is not None:
-            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
-        return self._x.copy()
+        return self._close(t, bool(np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))))
 
     def _update(self, c: np.ndarray, alive: np.ndarray, y: np.ndarray, idx: np.ndarray) -> None:
         """Steps 2-3 of the module notes on the channels ``idx``, the mixture's innovations through the monitors
@@ -342,21 +326,17 @@ class IMMFilter(BeliefFilter):
         """:meth:`step` over a record (as :meth:`.ekf.MultirateEKF.run`); the result's ``nominal_p`` is the first
         mode's probability at each sample. ``predictions``: each mode's posterior and interval per sample kept in
         ``track`` (:class:`ModeTrack`, what :meth:`smooth` needs)."""
-        t, U, Y = check_log(t, U, Y, self.m)
-        if reset or x0 is not None or P0 is not None:
-            self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
-        mode_p = np.empty((len(t), len(self.models)))
+        mode_p = np.full((len(np.reshape(t, -1)), len(self.models)), np.nan)
         self.track = ModeTrack(mode_p, [], [], []) if predictions else None
-        w0 = time.perf_counter()
-        for k in range(len(t)):
-            rec.put(k, self.step(t[k], None if U is None else U[k], Y[k]), self._P, self)
+
+        def each(k: int) -> None:
             mode_p[k] = self.mode_p
             if predictions:
                 self.track.beliefs.append(list(self._beliefs))
                 self.track.intervals.append(self.intervals)
                 self.track.updates.append(self.updates)
-        return replace(self._result(rec, time.perf_counter() - w0), nominal_p=mode_p[:, 0])
+
+        return replace(self._run_steps(t, U, Y, reset, x0, P0, innovations, each), nominal_p=mode_p[:, 0])
 
     def smooth(self, t, U, Y, *, x0=None, P0=None) -> SmoothedResult:
         """Filter a record (from the prior, or ``x0``/``P0``) and smooth it backwards (module notes, "Smoothing"):

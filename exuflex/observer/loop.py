@@ -15,9 +15,11 @@ channel has no sample)::
     record x, P, innovations, NIS
 
 (a sample without a channel: the prediction alone, settled), until a sample needs more (the model's arrays
-renewed, a sample for :meth:`~.ekf.MultirateEKF.step`: see :data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs that alternate (``x, P`` current,
-``x_alt, P_alt`` written): a sample left undone has written nothing but scratch. ``tests/test_sample_loop.py``
-holds the loop and ``step`` bit-identical.
+renewed: a new held configuration or step map, measurement rows made for the prediction; a sample for
+:meth:`~.ekf.MultirateEKF.step`: see :data:`.base.LOOP_DONE` ...). The filter's state lives in two buffer pairs
+that alternate (``x, P`` current, ``x_alt, P_alt`` written): a sample left undone has written nothing but scratch
+(and the prediction, where the measurement rows stopped it). ``tests/test_sample_loop.py`` holds the loop and
+``step`` bit-identical.
 """
 
 from __future__ import annotations
@@ -141,8 +143,10 @@ def _verdicts(mon, idx):  # pragma: no cover - compiled into the loop
     return n_events
 
 
-def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # pragma: no cover - compiled
+def _samples(t, U, Y, k0, k1, holdoff, rows_made, buf, mon, rec, step, state, extras):  # pragma: no cover - compiled
     """Samples ``k0 .. k1 - 1`` (module docstring), ``holdoff`` updates of the hold-off after an input step left,
+    ``rows_made``: the model's measurement rows were made for the prediction at ``k0`` (they serve it wherever it
+    lies, as :meth:`.reduced.ReducedObserverModel.measure` takes rows it has just made),
     the filter's :class:`Buffers`, :class:`Monitors` and :class:`Record`, the model's :class:`.base.LoopModel`
     parts ``step``, ``state``, ``extras`` (None for a plain state: numba prunes the augmented branches).
 
@@ -211,8 +215,10 @@ def _samples(t, U, Y, k0, k1, holdoff, buf, mon, rec, step, state, extras):  # p
                     P_alt[i, j] = buf.P_pred[i, j]
             finite = settle(x_alt, P_alt, mon.floor)
         else:
-            if not cached_rows(step, z, y_pred, H):
-                status = GENERAL
+            status = cached_rows(step, z, y_pred, H, rows_made and k == k0)
+            if status != LOOP_DONE:  # (ROWS: the prediction, for the model's new rows, in the buffer not written)
+                for i in range(n_x):
+                    x_alt[i] = z[i]
                 break
             nis, ok, finite, r, S = condition_on(sampled, z, buf.P_pred, Y[k], y_pred, H, mon.Rd, mon.floor,
                                                  buf.HP, x_alt, P_alt)
@@ -323,4 +329,4 @@ def warm_up(augmented: bool | None = None) -> None:
                       _example_system(1, 1))
     state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
     extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if augmented else None
-    samples(v, m, m, 1, 1, 0, *plain(buf, mon, rec, step, state), extras)
+    samples(v, m, m, 1, 1, 0, False, *plain(buf, mon, rec, step, state), extras)

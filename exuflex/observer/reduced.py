@@ -74,13 +74,13 @@ from __future__ import annotations
 import math
 from array import array
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 from operator import sub
 
 import numpy as np
 
 from ..erls.kinematics import KinematicsError
-from ..erls.simulate import rk4_amplification
+from ..erls.simulate import rk4_amplification, rk4_step
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
 from .base import LoopModel, Measurement, Prediction
@@ -106,7 +106,7 @@ from .expansion import (
 from .kalman import InputStepTest
 from .rows import channel_rows, sensor
 
-__all__ = ["METHODS", "ReducedObserverModel", "rk4_substep_limit"]
+__all__ = ["METHODS", "ReducedObserverModel", "StepTolerances", "rk4_substep_limit"]
 
 METHODS = ("cached", "rk4")
 
@@ -146,13 +146,63 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
     return lo
 
 
-def _radius_limits(name: str, rad, lo, hi) -> tuple[float, float, float]:
-    """An adaptive radius's start and limits as floats, ``0 < lo <= rad <= hi`` checked (the argument names
-    ``{name}_rad``, ``{name}_min``, ``{name}_max`` in the message)."""
-    rad, lo, hi = float(rad), float(lo), float(hi)
+def _radius_limits(name: str, rad, lo, hi) -> None:
+    """An adaptive radius's start and limits checked, ``0 < lo <= rad <= hi`` (the names ``{name}_rad``,
+    ``{name}_min``, ``{name}_max`` in the message)."""
     if not 0 < lo <= rad <= hi:
         raise ValueError(f"need 0 < {name}_min <= {name}_rad <= {name}_max, got {lo}, {rad}, {hi}")
-    return rad, lo, hi
+
+
+@dataclass(frozen=True)
+class StepTolerances:
+    """The cached step's error targets and the radii that keep them (module docstring;
+    :class:`ReducedObserverModel` takes them as attributes of the same names).
+
+    Attributes
+    ----------
+    refresh_std_tol : float
+        Error target of the cached step's held model: its state error over one interval relative to the filter's
+        standard deviations (:meth:`ReducedObserverModel._held_error`), kept by the refresh radius.
+    refresh_tol, refresh_min, refresh_max : float
+        Error target of the held matrices (relative, mass metric), also kept by the refresh radius, and the
+        radius's limits (rad).
+    remap_tol : float
+        Error target of the step map: the relative error of the predicted standard deviations it causes
+        (:func:`.expansion.map_error`), measured at each rebuild and kept near this by the map radius.
+    remap_rad, remap_min, remap_max : float
+        The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
+    dt_tol : float
+        Relative change of the interval's length before the step map is rebuilt.
+    rows_tol : float
+        Error target of the measurement rows: their error in a channel at the measurement radius, relative to the
+        smaller of the channel's noise and the filter's own standard deviation of it
+        (:meth:`ReducedObserverModel._rows_error`), measured at each rebuild and kept near this by the measurement
+        radius (:meth:`ReducedObserverModel._rows_radius`).
+    rows_rad, rows_min, rows_max : float
+        The measurement radius (rad): its initial value and limits.
+    """
+
+    refresh_std_tol: float = 0.1
+    refresh_tol: float = 3e-2
+    refresh_min: float = 2e-3
+    refresh_max: float = 4e-2
+    remap_tol: float = 5e-2
+    remap_rad: float = 2e-3
+    remap_min: float = 1e-4
+    remap_max: float = 4e-2
+    dt_tol: float = 1e-3
+    rows_tol: float = 0.1
+    rows_rad: float = 5e-3
+    rows_min: float = 1e-3
+    rows_max: float = 6e-2
+
+    def __post_init__(self):
+        for f in fields(self):  # floats, whatever number was given
+            object.__setattr__(self, f.name, float(getattr(self, f.name)))
+        _radius_limits("remap", self.remap_rad, self.remap_min, self.remap_max)
+        _radius_limits("rows", self.rows_rad, self.rows_min, self.rows_max)
+        if not self.rows_tol > 0:
+            raise ValueError(f"rows_tol must be positive, got {self.rows_tol}")
 
 
 def _secant_factor(iv: _Held, dl: np.ndarray) -> float:
@@ -279,25 +329,8 @@ class ReducedObserverModel:
         False-alarm probability per interval of the torque-jump test (:meth:`input_jump`); None: no test.
     min_substep : float
         Shortest RK4 sub-step (s) the model may need for stability before it is refused (see :meth:`substeps`).
-    refresh_std_tol : float
-        Error target of the cached step's held model: its state error over one interval relative to the filter's
-        standard deviations (:meth:`_held_error`), kept by the refresh radius.
-    refresh_tol, refresh_min, refresh_max : float
-        Error target of the held matrices (relative, mass metric), also kept by the refresh radius, and the
-        radius's limits (rad).
-    remap_tol : float
-        Error target of the step map: the relative error of the predicted standard deviations it causes
-        (:func:`.expansion.map_error`), measured at each rebuild and kept near this by the map radius.
-    remap_rad, remap_min, remap_max : float
-        The map radius (rad) q moves before the step map is rebuilt (cached step): its initial value and limits.
-    dt_tol : float
-        Relative change of the interval's length before the step map is rebuilt.
-    rows_tol : float
-        Error target of the measurement rows: their error in a channel at the measurement radius, relative to the
-        smaller of the channel's noise and the filter's own standard deviation of it (:meth:`_rows_error`),
-        measured at each rebuild and kept near this by the measurement radius (:meth:`_rows_radius`).
-    rows_rad, rows_min, rows_max : float
-        The measurement radius (rad): its initial value and limits.
+    tolerances : StepTolerances
+        The cached step's error targets and the radii that keep them (each also an attribute of the model).
 
     Attributes
     ----------
@@ -311,11 +344,7 @@ class ReducedObserverModel:
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
-                 jump_p: float | None = None, min_substep: float = 2e-6, refresh_std_tol: float = 0.1,
-                 refresh_tol: float = 3e-2,
-                 refresh_min: float = 2e-3, refresh_max: float = 4e-2, remap_tol: float = 5e-2,
-                 remap_rad: float = 2e-3, remap_min: float = 1e-4, remap_max: float = 4e-2, dt_tol: float = 1e-3,
-                 rows_tol: float = 0.1, rows_rad: float = 5e-3, rows_min: float = 1e-3, rows_max: float = 6e-2):
+                 jump_p: float | None = None, min_substep: float = 2e-6, tolerances: StepTolerances = StepTolerances()):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -331,17 +360,8 @@ class ReducedObserverModel:
         self.h = float(h)
         self.method = method
         self.min_substep = float(min_substep)
-        self.refresh_std_tol = float(refresh_std_tol)
-        self.refresh_tol = float(refresh_tol)
-        self.refresh_min = float(refresh_min)
-        self.refresh_max = float(refresh_max)
-        self.remap_tol = float(remap_tol)
-        self.remap_rad, self.remap_min, self.remap_max = _radius_limits("remap", remap_rad, remap_min, remap_max)
-        self.dt_tol = float(dt_tol)
-        self.rows_tol = float(rows_tol)
-        self.rows_rad, self.rows_min, self.rows_max = _radius_limits("rows", rows_rad, rows_min, rows_max)
-        if not self.rows_tol > 0:
-            raise ValueError(f"rows_tol must be positive, got {rows_tol}")
+        self.tolerances = tolerances
+        vars(self).update(asdict(self.tolerances))  # (each an attribute: refresh_tol, rows_rad, ...)
         self.lookahead = 0.8  # radii ahead of q along its motion where a configuration is evaluated
         self.remap_ahead = 1.0  # remap radii ahead of q along its motion where a step map is built ...
         self.remap_horizon = 0.02  # ... but no further than q moves in this many seconds
@@ -719,11 +739,6 @@ class ReducedObserverModel:
     def interval_system(self, value: tuple) -> None:
         self._interval_matrices = value
 
-    def linear_maps(self, Mr, Kr, Cr, Gr, dt: float, n: int) -> tuple:
-        """``(P^n, S, L, Q)`` of ``n`` RK4 sub-steps over ``dt`` of the linear system with these matrices, the
-        process noise with this model's torque noise (and ``q_extra``)."""
-        return self._maps(Mr, Kr, Cr, Gr, dt, n)
-
     @staticmethod
     def secant_factor(iv: _Held, dl: np.ndarray) -> float:
         """How far along the secant to its previous configuration q has moved from the held ``iv`` (0 without a
@@ -786,15 +801,9 @@ class ReducedObserverModel:
         self._last = iv
         self.last_step = (iv, sm)
         n = self.substeps(iv, dt)
-        h = dt / n
-        f = self.rm.rhs
         x = np.array(z, float)
         for _ in range(n):
-            k1 = f(0.0, x, u)
-            k2 = f(0.0, x + h / 2 * k1, u)
-            k3 = f(0.0, x + h / 2 * k2, u)
-            k4 = f(0.0, x + h * k3, u)
-            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            x = rk4_step(self.rm.rhs, 0.0, x, dt / n, u)
         return Prediction(x, pred.F, pred.Q)
 
     # ------------------------------------------------------------------ the model's interface

@@ -42,14 +42,13 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
 
-from .base import FilterDivergedError, Prediction
-from .ekf import BeliefFilter, EstimationResult, Monitoring, RunRecord, check_log, step_arguments
+from .base import Prediction
+from .ekf import BeliefFilter, EstimationResult, Monitoring, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -159,15 +158,8 @@ class UnscentedKF(BeliefFilter):
             self._t_prev = t
             return np.full(self.nx, np.nan)
         jumps = self.hooks.n_jumps()
-        first = self._t_prev is None
-        if not first:
-            dt = t - self._t_prev
-            if not dt > 0:
-                raise ValueError(f"sample time {t!r} s is not after the previous sample's ({self._t_prev!r} s)")
-            if dt > self.max_gap:
-                raise ValueError(f"sample time {t:.6g} s is {dt:.6g} s after the previous sample, more than "
-                                 f"max_gap={self.max_gap:g} s")
-            self.n_missing += max(round(dt / self.dt) - 1, 0)
+        dt = self._interval(t)
+        if dt is not None:
             X = self._sigmas(self._x, self._L)
             m0 = self._predict(X[0], dt, u)  # the mean's interval: its process noise
             Xf = np.empty_like(X)
@@ -176,7 +168,7 @@ class UnscentedKF(BeliefFilter):
             for i in range(1, len(X)):
                 Xf[i] = self._predict(X[i], dt, u, ref).x
             if not np.all(np.isfinite(Xf)):
-                return self._nonfinite(t)
+                return self._close(t, False)
             self._x = self.Wm @ Xf
             self._L = self._factor(Xf - self._x, _psd_sqrt(m0.Q))
         self._t_now = t
@@ -205,13 +197,7 @@ class UnscentedKF(BeliefFilter):
         else:
             self.n_missing += 1
         self._P = self._L @ self._L.T
-        if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
-            return self._nonfinite(t)
-        if self.last_idx is not None:
-            self._count_update(t, self.last_nis, self.last_dof, self._held)
-        elif self.faults is not None and not first:
-            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
-        return self._x.copy()
+        return self._close(t, bool(np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))))
 
     def _innovation(self, X: np.ndarray, Z: np.ndarray, y: np.ndarray, idx: np.ndarray) -> tuple:
         """``(r, Ls, C)`` of the sigma points ``X`` and their channels ``Z`` (columns: the channels ``idx``): the
@@ -223,33 +209,9 @@ class UnscentedKF(BeliefFilter):
         C = (Dx.T * self.Wc) @ Dz
         return np.ascontiguousarray(y[idx] - zm), Ls, C
 
-    def _nonfinite(self, t: float) -> np.ndarray:
-        """A non-finite state or covariance: raise, or flag the run and return NaN (``nonfinite="flag"``)."""
-        self._flag(t, "non-finite state or covariance")
-        self.nonfinite = True
-        if self.nonfinite_action == "raise":
-            raise FilterDivergedError(f"non-finite state or covariance at t={t:.6g} s")
-        return np.full(self.nx, np.nan)
-
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
-        """:meth:`step` over a record (as :meth:`MultirateEKF.run`)."""
-        t, U, Y = check_log(t, U, Y, self.m)
-        if reset or x0 is not None or P0 is not None:
-            self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
-        w0 = time.perf_counter()
-        for k in range(len(t)):
-            try:
-                x = self.step(t[k], None if U is None else U[k], Y[k])
-            except (np.linalg.LinAlgError, ArithmeticError) as exc:  # a covariance lost definiteness
-                if self.nonfinite_action == "raise":
-                    raise FilterDivergedError(f"UKF failed at t={t[k]:.6g} s: {exc}") from exc
-                self.nonfinite, self.diverged = True, True
-                self.diverged_at = self.diverged_at or float(t[k])
-                rec.fail_from(k)
-                break
-            rec.put(k, x, self._P, self)
-        return self._result(rec, time.perf_counter() - w0)
+        """:meth:`step` over a record (as :meth:`MultirateEKF.run`; :meth:`.ekf.BeliefFilter._run_steps`)."""
+        return self._run_steps(t, U, Y, reset, x0, P0, innovations)
 
 
 def _lower_from_qr(A: np.ndarray) -> np.ndarray:
