@@ -13,8 +13,7 @@ from pathlib import Path
 
 from exuflex.erls.model import ErlsModel
 from exuflex.mechanism import load_mechanism
-from exuflex.reduction import CraigBampton, accuracy_along, accuracy_indices, manoeuvre_configurations
-from exuflex.reduction import static
+from exuflex.reduction import CraigBampton, accuracy_along, accuracy_indices, manoeuvre_configurations, static
 from exuflex.reduction.static import STATIC_MAX
 from exuflex.reduction.truncation import BIAS_MAX, TRUNCATION_MAX
 
@@ -209,8 +208,8 @@ def main(argv=None) -> int:
         "the scale. The paper's six-bar keeps the paper's fixed count: no corrections. Besides the gallery, the",
         "mechanism written fresh for them: " + ", ".join(f"`{f}`" for f in FRESH_STATIC) + ".",
         "",
-        "| model | payload scale | interior (dynamics) | corrections | missed without | with them (where) | a | v | "
-        "taken from | Ritz (Hz) |",
+        ("| model | payload scale | interior (dynamics) | corrections | missed without | with them (where) | a | v | "
+         "taken from | Ritz (Hz) |"),
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in names + ([] if a.models else FRESH_STATIC):
