@@ -27,7 +27,22 @@ measured), is below the tolerance. One iteration per step suffices while the rat
 ``S`` costs iterations, not accuracy.
 
 The step: :func:`band_step` picks the largest step whose frequency error at the top of the band of interest is
-within :data:`FREQ_TOL`; the error falls as ``(omega h)^2 / 12`` below it.
+within :data:`FREQ_TOL`; the error falls as ``(omega h)^2 / 12`` below it. That bounds the error per cycle, not
+its accumulation over the cycles a lightly damped mode rings for: :func:`phase_step` bounds the accumulated error
+(derivation in ``docs/theory/truth_step.md``). On ``x'' + omega^2 x = 0`` with ``Omega = omega h`` and
+``g = gamma - 1/2 = (1 - rho_inf) / (1 + rho_inf)`` (:func:`period_error`, the leading terms of the principal
+root ``lambda = exp(h s)`` of the amplification matrix)::
+
+    relative frequency error  e = -(1/12 + 3 g^2 / 8) Omega^2        (trapezoidal rule, g = 0: -Omega^2 / 12)
+    numerical damping ratio   z = g^3 Omega^3 / 2
+
+A mode of frequency ``omega`` and damping ratio ``zeta`` responds to the forcing of the last ``1 / (zeta omega)``
+seconds (its impulse response's decay time), so over a run of ``T`` seconds its phase error accumulates over
+``L = min(1 / zeta, omega T)`` radians of its motion; its response is then in error by ``|e + i z| L`` of its
+amplitude (for a steady response near resonance exactly ``|e| / zeta``: the resonance moves by ``e omega``, and the
+response's sensitivity to the frequency is ``1 / zeta``; for a free decay the peak of ``omega t exp(-zeta omega t)``
+is ``1 / (zeta e_Euler)``, smaller). :func:`phase_step` picks the largest step that divides the output interval and
+keeps ``|e + i z| L`` within :data:`PHASE_TOL` for every mode below the band (:func:`band_modes`).
 
 :func:`algorithmic_damping` gives the method's damping ratio and frequency error on an undamped mode of
 frequency ``omega`` for a step ``h`` (from the eigenvalues of its amplification matrix); :func:`erls_implicit`
@@ -48,18 +63,27 @@ from .simulate import Trajectory
 
 __all__ = [
     "FREQ_TOL",
+    "PHASE_TOL",
     "REFRESH_RATE",
     "GeneralizedAlpha",
     "HeldTable",
+    "accumulated_error",
     "algorithmic_damping",
+    "band_modes",
     "band_step",
     "erls_implicit",
     "generalized_alpha",
+    "period_error",
+    "phase_step",
 ]
 
 log = logging.getLogger(__name__)
 
 FREQ_TOL = 0.005  # band_step: the largest relative frequency error at the band's upper edge
+# phase_step: the largest accumulated relative error of a mode's response. The truth's error in a quantity is this
+# times the mode's amplitude there; its ringing amplitude reaches about 50 times the observer's bound (measured,
+# docs/truth_step.md), and the truth's error must stay within 0.2 of the bound: 0.2 / 50 = 0.004.
+PHASE_TOL = 0.004
 REFRESH_RATE = 0.02  # refactor the iteration matrix when Newton contracts slower than this per iteration
 PROBE_EVERY = 8  # steps accepted after one iteration before one is iterated twice to re-measure the rate
 MAX_ITERATIONS = 8
@@ -148,6 +172,82 @@ def band_step(band_hz: float, h: float, output_dt: float, rho_inf: float = 0.9, 
         if n_out % k == 0 and abs(algorithmic_damping(2 * math.pi * band_hz * k * h, rho_inf)[1][0]) <= freq_tol:
             best = k
     return best * h
+
+
+def period_error(omega_h, rho_inf: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """The leading terms of generalized-alpha's relative frequency error and numerical damping ratio on
+    ``x'' + omega^2 x = 0`` at ``Omega = omega h`` (closed form; :func:`algorithmic_damping` is exact)::
+
+        e = -(1/12 + 3 g^2 / 8) Omega^2,   zeta = g^3 Omega^3 / 2,   g = gamma - 1/2 = (1 - rho_inf) / (1 + rho_inf)
+
+    From the series in ``Omega`` of the principal root of the amplification matrix's characteristic polynomial
+    (``lambda = exp(i Omega (1 + e) - zeta Omega)``), with ``beta = (gamma + 1/2)^2 / 4`` (second order, the
+    engine's choice); ``rho_inf = 1`` gives the trapezoidal rule's ``-Omega^2 / 12`` and no damping. The next terms
+    are of relative order ``Omega^2``.
+
+    Returns
+    -------
+    freq_error : ``w / omega - 1`` (negative: the discrete mode is slower).
+    zeta : numerical damping ratio.
+    """
+    W = np.asarray(omega_h, float)
+    g = (1.0 - rho_inf) / (1.0 + rho_inf)
+    return -(1.0 / 12.0 + 0.375 * g * g) * W**2, 0.5 * g**3 * W**3
+
+
+def band_modes(model: ErlsModel, qs, band_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """The model's oscillating modes below ``band_hz`` at the configurations ``qs`` (joint coordinates, one per
+    row): their angular frequencies ``omega = |s|`` and damping ratios ``zeta = -Re(s) / |s|`` from the eigenvalues
+    ``s`` of the state matrix linearised at rest (:meth:`ErlsModel.state_matrix`; the model's own damping, whatever
+    its form). Rigid modes (``|s|`` zero) and overdamped ones (real ``s``) do not ring and are left out."""
+    omegas, zetas = [], []
+    for q in np.atleast_2d(np.asarray(qs, float)):
+        s = np.linalg.eigvals(model.state_matrix(model.configuration(q))[0])
+        s = s[s.imag > 1e-9 * np.maximum(1.0, np.abs(s))]
+        w = np.abs(s)
+        keep = (w > 0) & (w <= 2 * math.pi * band_hz)
+        omegas.append(w[keep])
+        zetas.append(-s.real[keep] / w[keep])
+    return np.concatenate(omegas), np.concatenate(zetas)
+
+
+def accumulated_error(omega, zeta, step: float, duration: float, rho_inf: float = 0.9) -> np.ndarray:
+    """The relative error of each mode's response after its accumulation (module docstring):
+    ``|e + i z| min(1 / zeta, omega T)``, with ``e`` and ``z`` generalized-alpha's frequency error and numerical
+    damping at ``omega h`` (:func:`algorithmic_damping`, exact) and ``zeta`` the mode's own damping ratio."""
+    omega, zeta = np.atleast_1d(np.asarray(omega, float)), np.atleast_1d(np.asarray(zeta, float))
+    if omega.size == 0:
+        return np.zeros(0)
+    z, e = algorithmic_damping(omega * step, rho_inf)
+    life = np.minimum(1.0 / np.maximum(zeta, 1e-12), omega * duration)
+    return np.hypot(e, z) * life
+
+
+def phase_step(omega, zeta, duration: float, output_dt: float, rho_inf: float = 0.9,
+               tol: float = PHASE_TOL) -> float:
+    """The largest step ``output_dt / n`` (``n = 1, 2, ...``) whose accumulated error
+    (:func:`accumulated_error`) is within ``tol`` for every mode (``omega`` rad/s, damping ratios ``zeta``) over a
+    run of ``duration`` s.
+
+    With ``|e| ~ c Omega^2`` (:func:`period_error`) the condition is ``h <= sqrt(tol / (c L)) / omega``: the
+    largest ``omega^2 L`` decides, for Rayleigh damping the highest mode (``omega^2 / zeta = 2 omega^3 / (alpha +
+    beta omega^2)`` grows with ``omega``). Assumptions: the modes are those of the model linearised at rest
+    (:func:`band_modes`); a mode rings with its linear damping and frequency along the motion.
+    """
+    omega = np.atleast_1d(np.asarray(omega, float))
+    zeta = np.atleast_1d(np.asarray(zeta, float))
+    if omega.size == 0:
+        return output_dt
+    g = (1.0 - rho_inf) / (1.0 + rho_inf)
+    life = np.minimum(1.0 / np.maximum(zeta, 1e-12), omega * duration)
+    # the closed form's step, then the exact error decides (checked one n after another from just below it)
+    h0 = float(np.min(np.sqrt(tol / ((1.0 / 12.0 + 0.375 * g * g) * life)) / omega))
+    n = max(1, math.floor(output_dt / h0 * 0.9))
+    while np.max(accumulated_error(omega, zeta, output_dt / n, duration, rho_inf)) > tol:
+        n += 1
+    while n > 1 and np.max(accumulated_error(omega, zeta, output_dt / (n - 1), duration, rho_inf)) <= tol:
+        n -= 1
+    return output_dt / n
 
 
 class HeldTable:

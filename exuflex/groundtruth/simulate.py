@@ -279,7 +279,9 @@ def simulate_truth(
     makes q drift 1.2-1.3e-3 rad from the ERLS engine. The force at ``t_k+1`` is the mean
     ``(tau_k + tau_k+1) / 2`` of the held values either side: its linear interpolation has the
     hold's impulse over every step and no lag (drift 4.5e-5 rad). A torque switched on at ``t_k``
-    thus ramps over ``[t_k-1, t_k+1]``, centred on ``t_k``. The same function refreshes the damper.
+    thus ramps over ``[t_k-1, t_k+1]``, centred on ``t_k``. A step finer than the table's takes the hold's mean
+    over ``[t_k+1 - h/2, t_k+1 + h/2]`` (the same for a step equal to it), as the ERLS engine does
+    (:func:`exuflex.erls.implicit.erls_implicit`). The same function refreshes the damper.
     """
     exu, _ = _exu()
     n_steps, every = step_grid(h, duration, output_dt)
@@ -298,6 +300,12 @@ def simulate_truth(
     t_steps = np.arange(n_steps + 1) * h
     tau = _interp_table(t_table, torque_table, t_steps, nm) if nm else np.zeros((n_steps + 1, 0))
     tau_end = 0.5 * (tau[:-1] + tau[1:])  # torque at the end t_k+1 of step k (see Notes)
+    if nm and len(t_table) > 1 and h < (t_table[1] - t_table[0]) * (1 - 1e-9):
+        # a step finer than the table: the hold's mean about t_k+1 (see Notes)
+        from ..erls.implicit import HeldTable
+
+        tau_end = HeldTable(t_table, np.asarray(torque_table, float).reshape(len(t_table), nm)).mean(
+            t_steps[1:] - h / 2, t_steps[1:] + h / 2)
 
     # coordinates needed by the probes (and all, if the damper needs q)
     need = sorted({int(i) for p in probes for (_, _, _, idx) in _probe_geometry(tm, p) for i in idx})

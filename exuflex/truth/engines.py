@@ -122,22 +122,54 @@ def plan_drive(nominal: Mechanism, duration: float, h: float,
                  np.asarray(pl.qd[0], float), time.perf_counter() - t0, plan_s, time.process_time() - c0, pl)
 
 
-def gen_alpha_step(step, h: float, output_dt: float, band_hz: float = 180.0) -> float:
+def gen_alpha_step(step, h: float, output_dt: float, band_hz: float = 180.0, modes=None,
+                   duration: float | None = None) -> float:
     """The ERLS engine's generalized-alpha step: a multiple of ``h`` that divides ``output_dt``; ``None``: ``h``;
-    ``"auto"``: :func:`~exuflex.erls.implicit.band_step` for the band ``band_hz`` (the largest whose frequency error
-    there is within its tolerance). Anything else is a :class:`~exuflex.errors.UsageError`."""
+    ``"auto"``: the smaller of :func:`~exuflex.erls.implicit.band_step` for the band ``band_hz`` (the largest whose
+    frequency error there is within its tolerance) and, given the ``modes`` below the band (``(omega, zeta)``,
+    :func:`~exuflex.erls.implicit.band_modes`) and the run's ``duration``, :func:`~exuflex.erls.implicit.phase_step`
+    (the largest ``output_dt / n`` whose phase error accumulated over each mode's ringing is within its tolerance;
+    it may be below ``h``). Anything else is a :class:`~exuflex.errors.UsageError`."""
     from ..errors import UsageError
 
     if step == "auto":
-        from ..erls.implicit import band_step
+        from ..erls.implicit import band_step, phase_step
 
-        return band_step(band_hz, h, output_dt)
+        band = band_step(band_hz, h, output_dt)
+        if modes is None:
+            return band
+        return min(band, phase_step(*modes, duration, output_dt))
     step = h if step is None else float(step)
     k = round(step / h)
     if k < 1 or abs(k * h - step) > 1e-9 * h or round(output_dt / h) % k:
         raise UsageError(f"--erls-step: expected a multiple of --h = {h:g} s that divides the sample interval "
                          f"{output_dt:g} s, got {step:g} s")
     return step
+
+
+def exudyn_step(mech: Mechanism, h: float, output_dt: float, duration: float, q0, elements_per_link,
+                formulation: str) -> tuple[float, dict]:
+    """The Exudyn truth's generalized-alpha step: the smaller of ``h`` and
+    :func:`~exuflex.erls.implicit.phase_step` for the Exudyn model's own modes below ``reduction.band_hz``
+    (:func:`~exuflex.groundtruth.modal_damping`, linearised at rest at ``q0`` and at ``q_ref``); the same rule as
+    the ERLS engine's (Exudyn's generalized-alpha with the same ``rho_inf`` has the same period error). Returns
+    the step and the settings that state it."""
+    from ..erls.implicit import GeneralizedAlpha, accumulated_error, phase_step
+    from ..groundtruth.eigen import modal_damping
+
+    band = mech.reduction.band_hz
+    f, z = [], []
+    for q in (q0, mech.q_ref):
+        fq, zq = modal_damping(mech, np.asarray(q, float), elements_per_link=elements_per_link,
+                               formulation=formulation, fmax=band)
+        f.append(fq)
+        z.append(zq)
+    w, z = 2 * np.pi * np.concatenate(f), np.concatenate(z)
+    rho = GeneralizedAlpha().rho_inf
+    step = min(h, phase_step(w, z, duration, output_dt, rho))
+    err = accumulated_error(w, z, step, duration, rho)
+    return step, {"step_s": step, "phase_error": float(err.max()) if err.size else 0.0,
+                  "modes_below_band": len(f[0])}
 
 
 def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt: float, q0, qd0,
@@ -168,12 +200,16 @@ def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt
     y0[n : n + model.nq] = qd0
     every = max(1, round(output_dt / h))
     if integrator == "gen-alpha":
-        step = gen_alpha_step(step, h, output_dt, mech.reduction.band_hz)
-        k = round(step / h)
+        from ..erls.implicit import accumulated_error, band_modes
+
+        band = mech.reduction.band_hz
+        modes = band_modes(model, np.vstack([np.asarray(q0, float), np.asarray(mech.q_ref, float)]), band)
+        step = gen_alpha_step(step, h, output_dt, band, modes, duration)
         if stats is not None:
-            stats.update(step_s=step)
-        traj = erls_implicit(model, t_tab, tau, y0, duration, step, output_every=every // k, progress=progress,
-                             stats=stats)
+            err = accumulated_error(*modes, step, duration)
+            stats.update(step_s=step, phase_error=float(err.max()) if err.size else 0.0)
+        traj = erls_implicit(model, t_tab, tau, y0, duration, step, output_every=round(output_dt / step),
+                             progress=progress, stats=stats)
         return erls_probe_record(model, traj.t, traj.y)
     dt_tab = t_tab[1] - t_tab[0]
 
@@ -319,8 +355,9 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
         from ..groundtruth import simulate_truth  # Exudyn is imported only there
 
         mesh = exudyn_mesh(truth_mech) if elements_per_link is None else elements_per_link
+        step, stepping = exudyn_step(truth_mech, h, output_dt, duration, drive.q0, mesh, BEAMS[beam])
         try:
-            probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=h, output_dt=output_dt, q0=drive.q0,
+            probes = simulate_truth(truth_mech, drive.t, drive.tau, duration, h=step, output_dt=output_dt, q0=drive.q0,
                                     progress=progress, elements_per_link=mesh, formulation=BEAMS[beam], stats=solver)
         except RuntimeError as exc:
             raise solver_failure(truth_mech, drive, "exudyn", h, exc) from exc
@@ -333,6 +370,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
             "integrator": "generalized-alpha (Exudyn)",
             "n_coordinates": solver.get("n_coordinates"),
             "newton_per_step": solver.get("newton_per_step"),
+            **stepping,
         }
     else:
         from ..erls.implicit import GeneralizedAlpha, algorithmic_damping
