@@ -5,7 +5,8 @@ configuration ``q0`` and follows the links from there: ``M_r`` and ``K_r`` to se
 analytic gradients at ``q0``, and the change of the gradients since the previous held configuration along the
 line joining the two), the damping, input matrix and velocity-dependent forces to first order along that line
 (a secant). The held arrays are those of the configuration undeformed, and the matrices follow the elastic
-coordinates exactly to first order (the consistent velocity map ``J`` is linear in them: :func:`_elastic_terms`);
+coordinates exactly (the consistent velocity map ``J`` is linear in them, the matrices at most quadratic:
+:func:`_elastic_terms`);
 held at a deformed state instead, the mass-proportional damping and ``M_r`` would keep that state's elastic
 coordinates for the whole radius, and the secant's differences would mix the change of the elastic
 coordinates between two evaluations into the change with ``q``. Per interval it then advances the linear system ``M p'' + C p' + K p = G u + f`` (forces and input
@@ -75,7 +76,8 @@ class HeldSystem(NamedTuple):
     same of the previous held configuration (the secant partner; the held configuration's own arrays when
     ``has_old`` is False). ``pM``, ``pK``, ``pC`` (r - nq, nq*r) and ``pG`` (r - nq, nq*(n_motors + 1)): the
     matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
-    empty: none). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
+    empty: none), ``p2M``, ``p2C`` (nq (nq + 1) / 2, n (n + 1) / 2; ``n = r - nq``) the second-order rigid block
+    of ``M_r`` and of the damping, packed by symmetry (:meth:`.ReducedModel.elastic_forms`). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
     (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
     column): the weight follows ``q`` by it over the radius, and with a secant partner by its curvature along the
     secant too (:func:`_held_model`: second order), and the step Jacobian holds it (:func:`_step_jacobian`); empty
@@ -106,6 +108,8 @@ class HeldSystem(NamedTuple):
     pK: np.ndarray
     pC: np.ndarray
     pG: np.ndarray
+    p2M: np.ndarray
+    p2C: np.ndarray
     Wg: np.ndarray
 
 
@@ -339,8 +343,14 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
     ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u``, ``pC_k = alpha A_k^T P T H_u`` (``P`` the mass relative to the rigid
     motion) and ``pG_k = A_k^T B_N`` (rows ``[i * ncol + j]``, :meth:`.ReducedModel.elastic_forms`); ``M_r`` and
     the alpha damping gain the transposed columns too (symmetric forms), the beta damping ``beta J_u^T K_uu
-    J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). First order in ``p`` (the second,
-    ``p^2 A^T M A``, is left out: ``tests/test_expansion.py`` measures it)."""
+    J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). ``M_r`` and the damping are quadratic
+    in ``J``: their rigid block gains ``sum_kl p_k p_l X_kl`` (``A_k^T M_N A_l``; the damping's ``alpha A_k^T P A_l``
+    with the beta damping's ``(d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq``), symmetric in ``(k, l)`` and in its entries,
+    so ``p2M``, ``p2C`` hold it per pair ``k <= l`` and entry ``i <= j`` (:meth:`.ReducedModel.elastic_forms`);
+    ``K_r = J_u^T K_uu H_u`` and ``G_r`` are linear in it. So the matrices are exact in the elastic coordinates at the held
+    configuration. The second order matters where the links turn fast while deformed: the beta damping's
+    ``d(H_u e_k)/dq`` is the elastic displacement turned with its link, which the axial stiffness sees, and
+    left out its damping force on the joints is of one sign (``tests/test_held_elastic.py``)."""
     n_el = hs.pM.shape[0] if pe.shape[0] else 0
     if n_el == 0:
         return
@@ -372,6 +382,28 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
             Ca[j, i] += c + hs.beta * gK[i * r + j]
         for j in range(m):
             Gr[i, j] += gG[i * mg + j]
+    n2 = hs.p2M.shape[1] if hs.p2M.shape[0] else 0
+    if n2:  # the rigid block's second order: per entry i <= j a dot product over the pairs k <= l
+        w2 = np.empty(n2)
+        cp = 0
+        for k in range(n_el):
+            for l in range(k, n_el):
+                w2[cp] = pe[k] * pe[l]
+                cp += 1
+        t = 0
+        for i in range(nq):
+            for j in range(i, nq):
+                am = 0.0
+                ac = 0.0
+                for cp in range(n2):
+                    am += w2[cp] * hs.p2M[t, cp]
+                    ac += w2[cp] * hs.p2C[t, cp]
+                Mr[i, j] += am
+                Ca[i, j] += ac
+                if j != i:
+                    Mr[j, i] += am
+                    Ca[j, i] += ac
+                t += 1
 
 
 @_inline
@@ -939,7 +971,8 @@ def _system_args(hs):  # pragma: no cover - compiled
     """The held system's fields as a plain tuple (numba passes ``f(a, *t)`` as a tuple concatenation, which a
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
-            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG, hs.Wg)
+            hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
+            hs.p2M, hs.p2C, hs.Wg)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1222,7 +1255,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1353,8 +1386,9 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     T2, V2, C2 = np.zeros((r, r * r)), np.zeros((nq * r, r)), np.zeros((r * nq, r))
     G = np.zeros((r, nq))
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
+    p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
-                      np.zeros((0, 0)))
+                      p2, p2, np.zeros((0, 0)))
 
 
 _warm = False
