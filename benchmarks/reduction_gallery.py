@@ -13,7 +13,8 @@ from pathlib import Path
 
 from exuflex.erls.model import ErlsModel
 from exuflex.mechanism import load_mechanism
-from exuflex.reduction import CraigBampton, accuracy_along, accuracy_indices, manoeuvre_configurations
+from exuflex.reduction import CraigBampton, accuracy_along, accuracy_indices, manoeuvre_configurations, static
+from exuflex.reduction.static import STATIC_MAX
 from exuflex.reduction.truncation import BIAS_MAX, TRUNCATION_MAX
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,14 +24,18 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = {"fourbar": [["node9.transverse"]], "single_link": [["node5.y", "node5.theta"]]}
 # mechanisms written fresh for the interior-mode criterion (issue 28), in the criterion's table
 FRESH = ["benchmarks/models/steel_arm.toml", "benchmarks/models/single_link_16.toml"]
+# mechanisms written fresh for the static corrections (issue 28, heavy payload), and payload scales they are tried at
+FRESH_STATIC = ["benchmarks/models/rocker_weight.toml"]
+STATIC_SCALES = {"slider_crank": (1.0, 1.5, 2.0), "rocker_weight": (1.0, 1.5, 2.0)}
 
 
-def _derivation() -> list[str]:
-    """The truncation requirement's derivation: the module docstring of :mod:`exuflex.reduction.truncation` from
-    its first section on, its section underlines as markdown headings."""
+def _derivation(module=None) -> list[str]:
+    """A requirement's derivation: the module docstring of ``module`` (default :mod:`exuflex.reduction.truncation`)
+    from its first section on, its section underlines as markdown headings."""
     from exuflex.reduction import truncation
 
-    text = truncation.__doc__.split("\n\n", 1)[1].strip().splitlines()
+    module = truncation if module is None else module
+    text = module.__doc__.split("\n\n", 1)[1].strip().splitlines()
     out = []
     for i, ln in enumerate(text):
         if set(ln) == {"-"} and i > 0:
@@ -101,12 +106,38 @@ def criterion_rows(path: Path) -> list[str]:
         if kw:  # scored by the default requirements with the same modes
             cb.truncation_max, cb.bias_max, cb._truncation = TRUNCATION_MAX, BIAS_MAX, False
         tr = cb.truncation
-        kept = ", ".join(f"{f:.0f}" for f in cb.interior_frequencies_hz[cb.kept]) or "-"
+        dyn = [i for i in cb.kept if cb.static is None or i not in set(cb.static.rest[: cb.n_static].tolist())]
+        kept = ", ".join(f"{f:.0f}" for f in cb.interior_frequencies_hz[dyn]) or "-"
         qu = "-" if not tr or not tr["quantities_rms"] else ", ".join(f"{k} {v:.2g}" for k, v in tr["quantities_rms"].items())
         ch = "-" if not tr else ", ".join(f"{k} {v:.2g}" for k, v in tr["rho_channels"].items() if v >= 5e-4)
-        out.append(f"| {mech.name} | {label} | {cb.n_interior} | {kept} | "
+        count = f"{len(dyn)}" + (f" (+{cb.n_static} static)" if cb.n_static else "")
+        out.append(f"| {mech.name} | {label} | {count} | {kept} | "
                    + ("-" if tr is None else f"{tr['rho']:.3g}" + ("" if tr["rho"] <= tr["rho_max"] else " (above)"))
                    + f" | {ch or '-'} | {_bias(tr)} | {qu} |")
+        print(out[-1], flush=True)
+    return out
+
+
+def static_rows(path: Path) -> list[str]:
+    """The default basis's static corrections (:mod:`exuflex.reduction.static`) at the model's payload scales
+    (:data:`STATIC_SCALES`, else the file's): the count, the largest missed reading without and with them, where,
+    the load amplitudes, what they were taken from, their Ritz frequencies at q*."""
+    nominal = load_mechanism(path)
+    out = []
+    for scale in STATIC_SCALES.get(nominal.name, (1.0,)):
+        mech = nominal.with_payload_scale(scale) if scale != 1.0 else nominal
+        cb = CraigBampton(ErlsModel(mech), static_max=STATIC_MAX)
+        st = cb.static
+        if st is None:
+            out.append(f"| {mech.name} | {scale:g} | {cb.n_interior} | 0 | - | - | - | - | - | - |")
+            continue
+        row, c = st.worst[st.n]
+        a_, v_ = st.amplitudes
+        ritz = ", ".join(f"{f:.0f}" for f in cb.interior_frequencies_hz[st.rest[: st.n]]) or "-"
+        picked = "; ".join(w for _, w in st.picked) or "-"
+        out.append(f"| {mech.name} | {scale:g} | {cb.n_interior - st.n} | {st.n} | {st.figure[0]:.3g} | "
+                   f"{st.figure[st.n]:.3g} ({row} at {_q(cb.path_q[c])}) | {', '.join(f'{x:.3g}' for x in a_)} | "
+                   f"{', '.join(f'{x:.3g}' for x in v_)} | {picked} | {ritz} |")
         print(out[-1], flush=True)
     return out
 
@@ -158,6 +189,33 @@ def main(argv=None) -> int:
     ]
     for name in names + ([] if a.models else FRESH):
         lines += criterion_rows(ROOT / name if name.endswith(".toml") else ROOT / "models" / f"{name}.toml")
+    lines += [
+        "",
+        "## Static corrections: the quasi-static response to the loads the inputs can produce",
+        "",
+        "The interior modes above keep the dynamics; what a load concentrated between the masters bends",
+        "quasi-statically in the modes not kept is added as static corrections, counted by the largest reading they",
+        "leave (the docstring of `exuflex/reduction/static.py`):",
+        "",
+        *_derivation(static),
+        "",
+        "### The gallery",
+        "",
+        "Default basis with the static corrections (`static_max` " + f"{STATIC_MAX:.3g}" + "): interior modes kept",
+        "for the dynamics, corrections kept, the largest quasi-static reading missed (noise sd) without and with them",
+        "and where, the largest acceleration and rate the loads are scaled by (rad/s^2, rad/s), what each",
+        "correction was taken from, its Ritz frequency at q*. Payload scales: the model file's payload mass times",
+        "the scale. The paper's six-bar keeps the paper's fixed count: no corrections. Besides the gallery, the",
+        "mechanism written fresh for them: " + ", ".join(f"`{f}`" for f in FRESH_STATIC) + ".",
+        "",
+        ("| model | payload scale | interior (dynamics) | corrections | missed without | with them (where) | a | v | "
+         "taken from | Ritz (Hz) |"),
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name in names + ([] if a.models else FRESH_STATIC):
+        path = ROOT / name if name.endswith(".toml") else ROOT / "models" / f"{name}.toml"
+        if load_mechanism(path).manoeuvre is not None:
+            lines += static_rows(path)
     lines += [
         "",
         "## Accuracy of the reduced models",

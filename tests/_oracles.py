@@ -54,7 +54,7 @@ def numpy_filter(model, channels, R_std, x0, P0, t, U, Y, p_floor=1e-18):
 def held_matrices(dl, s, hs: HeldSystem, pe=None):
     """``(M_r, K_r, C_r, G_r)`` of the held system at ``q0 + dl`` with the elastic coordinates ``pe`` (None: zero):
     the q-expansion, then the elastic coordinates' first-order rows (and, for the symmetric ``M_r`` and damping,
-    columns) as matrices, and the second-order rigid block of ``M_r`` and the damping as a double sum."""
+    columns) as matrices, and the damping's second-order rigid block as a sum over the pairs."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     gM, gK = dl @ hs.dM, dl @ hs.dK
@@ -79,10 +79,9 @@ def held_matrices(dl, s, hs: HeldSystem, pe=None):
         Ca = Ca + rows["pC"] + rows["pC"].T + hs.beta * rows["pK"].T
         Gr = Gr + np.vstack([dG, np.zeros((r - nq, m))])
         k, l = np.triu_indices(len(pe))  # the rigid block's second order: the pairs k <= l, the entries i <= j
-        for X, p2 in ((Mr, hs.p2M), (Ca, hs.p2C)):
-            B = np.zeros((nq, nq))
-            B[np.triu_indices(nq)] = p2 @ (pe[k] * pe[l])
-            X[:nq, :nq] += B + np.triu(B, 1).T
+        B = np.zeros((nq, nq))
+        B[np.triu_indices(nq)] = hs.p2C @ (pe[k] * pe[l])
+        Ca[:nq, :nq] += B + np.triu(B, 1).T
     return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 
@@ -153,7 +152,7 @@ def step_maps_noise(Mr, Kr, Cr, Gr, h, n, torque_var):
 
 
 def pair_blocks(p2: np.ndarray, n: int, nq: int) -> np.ndarray:
-    """The second-order forms ``p2M`` or ``p2C`` of ``HeldSystem`` (packed per pair ``k <= l`` and entry ``i <= j``)
+    """The damping's second-order form ``p2C`` of ``HeldSystem`` (packed per pair ``k <= l`` and entry ``i <= j``)
     as the symmetric blocks ``X`` (n, n, nq, nq) with ``sum_kl p_k p_l X_kl`` the rigid block's second order."""
     X = np.zeros((n, n, nq, nq))
     iu = np.triu_indices(nq)
@@ -177,7 +176,7 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     takes from ``z`` is differentiated: ``M_r``, ``K_r`` in ``q`` (the gradients, the secant's second order and,
     where the secant is in use, the secant factor's own change ``ds/dq = d / dd``, which also moves ``C_a``,
     ``G_r`` and the forces along it); the rigid rows and columns of ``M_r``, ``K_r``, ``C_r``, ``G_r`` in the
-    elastic coordinates (and the rigid block of ``M_r`` and ``C_r`` to second order) and, through the midpoint
+    elastic coordinates (and the rigid block of ``C_r`` to second order) and, through the midpoint
     ``p_e + dt/2 p_e'``, their rates (``expansion._elastic_terms``);
     the forces ``(1 + s) f_held - s f_old`` (the weight by ``Wg`` and ``pG``) in the whole state. The sub-steps
     advance the state with its tangent ``X = dz_k / dz`` (``X_0 = I``): at each RK4 stage ``y`` (acceleration
@@ -263,16 +262,14 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
         dCj[j] += hs.beta * dKj[j]
     if n_el:
         mg = hs.pG.shape[1] // nq
-        X2M, X2C = pair_blocks(hs.p2M, n_el, nq), pair_blocks(hs.p2C, n_el, nq)
+        X2C = pair_blocks(hs.p2C, n_el, nq)
         for k in range(n_el):
             Pm = hs.pM[k].reshape(nq, r)
             Pk = hs.pK[k].reshape(nq, r)
             Pc = hs.pC[k].reshape(nq, r) + hs.beta * Pk
             # the second order's derivative, d/dp_k sum_ab p_a p_b X_ab = 2 sum_b p_b X_kb (X symmetric)
-            dMe = 2.0 * np.einsum("b,bij->ij", pem, X2M[k])
             dCe = 2.0 * np.einsum("b,bij->ij", pem, X2C[k])
             for j, c in ((nq + k, 1.0), (r + nq + k, tm)):
-                dMj[j, :nq, :nq] += c * dMe
                 dCj[j, :nq, :nq] += c * dCe
                 dMj[j, :nq, :] += c * Pm
                 dMj[j, :, :nq] += c * Pm.T

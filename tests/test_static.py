@@ -143,3 +143,17 @@ def test_off_and_fixed_counts_add_nothing():
     assert cb.static is None and cb.n_static == 0
     cb = CraigBampton(ErlsModel(mech), n_interior=3, static_max=STATIC_MAX)
     assert cb.static is None and cb.n_interior == 3
+
+
+def test_modes_report_states_the_corrections():
+    """``exuflex modes --reduced`` (:func:`exuflex.reduction.reduced_modes_report`): the count, its figure against
+    the limit and one Ritz frequency per correction; a fixed count (the paper's six-bar) reports none."""
+    from exuflex.reduction import reduced_modes_report
+
+    mech = load_mechanism(MODELS / "slider_crank.toml").with_payload_scale(2.0)
+    rep = reduced_modes_report(ErlsModel(mech), along=0)
+    st = rep["static"]
+    assert st["count"] >= 1 and len(st["ritz_hz"]) == len(st["picked"]) == st["count"]
+    assert st["figure"] <= st["limit"] < st["figure_without"] and st["met"]
+    assert rep["interior_modes"] >= st["count"]
+    assert reduced_modes_report(ErlsModel(load_mechanism(MODELS / "sixbar.toml")), along=0)["static"] is None

@@ -5,8 +5,8 @@ configuration ``q0`` and follows the links from there: ``M_r`` and ``K_r`` to se
 analytic gradients at ``q0``, and the change of the gradients since the previous held configuration along the
 line joining the two), the damping, input matrix and velocity-dependent forces to first order along that line
 (a secant). The held arrays are those of the configuration undeformed, and the matrices follow the elastic
-coordinates exactly (the consistent velocity map ``J`` is linear in them, the matrices at most quadratic:
-:func:`_elastic_terms`);
+coordinates to first order, the damping to second (the consistent velocity map ``J`` is linear in them, the
+matrices at most quadratic: :func:`_elastic_terms`);
 held at a deformed state instead, the mass-proportional damping and ``M_r`` would keep that state's elastic
 coordinates for the whole radius, and the secant's differences would mix the change of the elastic
 coordinates between two evaluations into the change with ``q``. Per interval it then advances the linear system ``M p'' + C p' + K p = G u + f`` (forces and input
@@ -76,8 +76,8 @@ class HeldSystem(NamedTuple):
     same of the previous held configuration (the secant partner; the held configuration's own arrays when
     ``has_old`` is False). ``pM``, ``pK``, ``pC`` (r - nq, nq*r) and ``pG`` (r - nq, nq*(n_motors + 1)): the
     matrices' change with the elastic coordinates (:func:`_elastic_terms`; ``pG``'s last column the weight's;
-    empty: none), ``p2M``, ``p2C`` (nq (nq + 1) / 2, n (n + 1) / 2; ``n = r - nq``) the second-order rigid block
-    of ``M_r`` and of the damping, packed by symmetry (:meth:`.ReducedModel.elastic_forms`). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
+    empty: none), ``p2C`` (nq (nq + 1) / 2, n (n + 1) / 2; ``n = r - nq``) the damping's second-order rigid block,
+    packed by symmetry (:meth:`.ReducedModel.elastic_forms`). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
     (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
     column): the weight follows ``q`` by it over the radius, and with a secant partner by its curvature along the
     secant too (:func:`_held_model`: second order), and the step Jacobian holds it (:func:`_step_jacobian`); empty
@@ -108,7 +108,6 @@ class HeldSystem(NamedTuple):
     pK: np.ndarray
     pC: np.ndarray
     pG: np.ndarray
-    p2M: np.ndarray
     p2C: np.ndarray
     Wg: np.ndarray
 
@@ -343,14 +342,18 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
     ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u``, ``pC_k = alpha A_k^T P T H_u`` (``P`` the mass relative to the rigid
     motion) and ``pG_k = A_k^T B_N`` (rows ``[i * ncol + j]``, :meth:`.ReducedModel.elastic_forms`); ``M_r`` and
     the alpha damping gain the transposed columns too (symmetric forms), the beta damping ``beta J_u^T K_uu
-    J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). ``M_r`` and the damping are quadratic
-    in ``J``: their rigid block gains ``sum_kl p_k p_l X_kl`` (``A_k^T M_N A_l``; the damping's ``alpha A_k^T P A_l``
-    with the beta damping's ``(d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq``), symmetric in ``(k, l)`` and in its entries,
-    so ``p2M``, ``p2C`` hold it per pair ``k <= l`` and entry ``i <= j`` (:meth:`.ReducedModel.elastic_forms`);
-    ``K_r = J_u^T K_uu H_u`` and ``G_r`` are linear in it. So the matrices are exact in the elastic coordinates at the held
-    configuration. The second order matters where the links turn fast while deformed: the beta damping's
-    ``d(H_u e_k)/dq`` is the elastic displacement turned with its link, which the axial stiffness sees, and
-    left out its damping force on the joints is of one sign (``tests/test_held_elastic.py``)."""
+    J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). The damping is quadratic in ``J``:
+    its rigid block gains ``sum_kl p_k p_l X_kl`` (``alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu d(H_u
+    e_l)/dq``), symmetric in ``(k, l)`` and in its entries, so ``p2C`` holds it per pair ``k <= l`` and entry ``i
+    <= j`` (:meth:`.ReducedModel.elastic_forms`); ``K_r = J_u^T K_uu H_u`` and ``G_r`` are linear in it. So ``K_r``,
+    ``G_r`` and the damping are exact in the elastic coordinates at the held configuration. The damping's second
+    order matters where the links turn fast while deformed: the beta damping's ``d(H_u e_k)/dq`` is the elastic
+    displacement turned with its link, which the axial stiffness sees; left out, the first-order damping matrix is
+    indefinite and its error on the joints of one sign (``tests/test_held_elastic.py``). ``M_r`` is quadratic too,
+    its second order ``p_k p_l A_k^T M_N A_l`` left out: its error has no sign of its own, and where the elastic
+    coordinates are poorly observed (the six-bar without its gauge c4, ``tests/test_log_bound.py``) the filter's
+    estimates of them, squared, and a Jacobian without their effect on ``M_r`` did worse with it in
+    (docs/held_elastic.md)."""
     n_el = hs.pM.shape[0] if pe.shape[0] else 0
     if n_el == 0:
         return
@@ -382,8 +385,8 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
             Ca[j, i] += c + hs.beta * gK[i * r + j]
         for j in range(m):
             Gr[i, j] += gG[i * mg + j]
-    n2 = hs.p2M.shape[1] if hs.p2M.shape[0] else 0
-    if n2:  # the rigid block's second order: per entry i <= j a dot product over the pairs k <= l
+    n2 = hs.p2C.shape[1] if hs.p2C.shape[0] else 0
+    if n2:  # the damping's second order: per entry i <= j a dot product over the pairs k <= l
         w2 = np.empty(n2)
         cp = 0
         for k in range(n_el):
@@ -393,15 +396,11 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
         t = 0
         for i in range(nq):
             for j in range(i, nq):
-                am = 0.0
                 ac = 0.0
                 for cp in range(n2):
-                    am += w2[cp] * hs.p2M[t, cp]
                     ac += w2[cp] * hs.p2C[t, cp]
-                Mr[i, j] += am
                 Ca[i, j] += ac
                 if j != i:
-                    Mr[j, i] += am
                     Ca[j, i] += ac
                 t += 1
 
@@ -972,7 +971,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2M, hs.p2C, hs.Wg)
+            hs.p2C, hs.Wg)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1255,7 +1254,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1388,7 +1387,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
-                      p2, p2, np.zeros((0, 0)))
+                      p2, np.zeros((0, 0)))
 
 
 _warm = False

@@ -10,7 +10,7 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
 - ``"cached"`` (the default): the configuration (pose, basis, reduced matrices, the velocity-dependent forces as
   quadratic forms and the q-gradients of ``M_r``, ``K_r``: :meth:`ReducedModel.held`) is evaluated only when q
   leaves a refresh radius around the held one, undeformed; in between the model follows the links to second order
-  in q and the elastic coordinates exactly (:mod:`.expansion`; docs/held_elastic.md), and each interval's
+  in q and the elastic coordinates exactly but for ``M_r``'s second order (:mod:`.expansion`; docs/held_elastic.md), and each interval's
   sub-steps use the matrices at the interval's midpoint elastic coordinates ``p_e + dt/2 p_e'`` and the forces at
   its start (:func:`.expansion._held_model`). The radius adapts like an ODE step size under two error targets, the
   smaller radius winning. (1) The held matrices' validity: the previous held model's relative error of ``M_r`` and
@@ -606,8 +606,8 @@ class ReducedObserverModel:
 
     @staticmethod
     def _elastic(fm) -> dict:
-        """The held system's elastic-coordinate terms (``pM, pK, pC, pG, p2M, p2C``; empty in the paper's form)."""
-        names = ("pM", "pK", "pC", "pG", "p2M", "p2C")
+        """The held system's elastic-coordinate terms (``pM, pK, pC, pG, p2C``; empty in the paper's form)."""
+        names = ("pM", "pK", "pC", "pG", "p2C")
         return dict.fromkeys(names, _NO_ROWS) if fm.elastic is None else dict(zip(names, fm.elastic, strict=True))
 
     def _c2(self, fm) -> np.ndarray:

@@ -56,7 +56,7 @@ from ..erls.model import Configuration, ErlsModel
 from . import _compiled
 from .masters import automatic_masters
 from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
-from .static import static_corrections
+from .static import STATIC_MAX, static_corrections
 from .truncation import BIAS_MAX, TRUNCATION_MAX, PlannedInput
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
@@ -140,7 +140,7 @@ class CraigBampton:
         also keeps interior modes until the steady filter's mean-square error on the linearised full model under the
         manoeuvre is at most ``bias_max`` times its bound's variance in every estimated quantity (:mod:`.truncation`,
         "What the filter makes of it").
-    static_max : the static corrections' limit (default 0: none; :data:`.static.STATIC_MAX` the derived one): with the automatic
+    static_max : the static corrections' limit (default :data:`.static.STATIC_MAX`; 0: none): with the automatic
         count, the interior modes not kept are re-based so that their first vectors are the slaves' quasi-static
         response to the loads the motion can produce, and kept until the largest reading of the rest is at most
         ``static_max`` noise sd in every channel (:mod:`.static`); figures in :attr:`static`.
@@ -263,23 +263,6 @@ class CraigBampton:
         self.set_interior(n_interior)
         self.path_accuracy = samples.evaluate(self.kept)  # at q* and every path configuration
         self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max) if auto else False
-        # the static corrections (.static): the modes not kept re-based on the slaves' quasi-static response to the
-        # motion's loads, the count by their largest reading at the channels
-        self.static_max = 0.0 if static_max is None else float(static_max)
-        self.static = None
-        self.n_static = 0
-        if auto and planned is not None and self.static_max > 0:
-            self.static = static_corrections(self, self.kept, q_samples, planned, quantity_max, self.static_max)
-        if self.static is not None and self.static.n:
-            st = self.static
-            self.Phi_all = st.Phi
-            self.interior_frequencies_hz = np.sqrt(np.clip(st.w2, 0, None)) / (2 * np.pi)
-            new = [int(i) for i in st.rest[: st.n]]
-            self.order = np.array([int(i) for i in self.order[:n_interior]] + new
-                                  + [int(i) for i in self.order[n_interior:] if int(i) not in set(new)], int)
-            self.n_static = st.n
-            n_interior += st.n
-            self.set_interior(n_interior)
         missed = [a for a in self.path_accuracy if not a.ok(self.nco_min, self.freq_error_max_pct)]
         if missed:
             a = min(missed, key=lambda a: a.worst_nco)
@@ -302,7 +285,29 @@ class CraigBampton:
                         "channels under the manoeuvre (.truncation)%s", src, n_interior, tr["rho"], tr["rho_max"],
                         ", ".join(f"{c} {v:.2g}" for c, v in tr["rho_channels"].items()),
                         "; the modes that would lower it decay within a sample interval (a master dof would carry "
-                        "their static shape)" if n_interior - self.n_static == n_needed else f"; 'auto' would keep {n_needed}")
+                        "their static shape)" if n_interior == n_needed else f"; 'auto' would keep {n_needed}")
+        # the static corrections (.static): the modes not kept re-based on the slaves' quasi-static response to the
+        # motion's loads, the count by their largest reading at the channels
+        self.static_max = STATIC_MAX if static_max is None else float(static_max)
+        self.static = None
+        self.n_static = 0
+        if auto and planned is not None and self.static_max > 0:
+            self.static = static_corrections(self, self.kept, q_samples, planned, quantity_max, self.static_max)
+        if self.static is not None and self.static.n:
+            st = self.static
+            self.Phi_all = st.Phi
+            self.interior_frequencies_hz = np.sqrt(np.clip(st.w2, 0, None)) / (2 * np.pi)
+            new = [int(i) for i in st.rest[: st.n]]
+            self.order = np.array([int(i) for i in self.order[:n_interior]] + new
+                                  + [int(i) for i in self.order[n_interior:] if int(i) not in set(new)], int)
+            self.n_static = st.n
+            n_interior += st.n
+            self.set_interior(n_interior)
+        if self.static is not None and not self.static.met:
+            st = self.static
+            log.warning("%s: %d static corrections leave a quasi-static reading of %.3g noise sd in %s (limit %.3g) "
+                        "under the loads the inputs can produce (.static); no further correction lowers it", src,
+                        st.n, st.figure[st.n], st.worst[st.n][0], st.limit)
         self.build_seconds = time.perf_counter() - t0
         log.info("Craig-Bampton basis: %d masters + %d interior modes (%s; %d of them static corrections), built in "
                  "%.3f s", self.n_m, n_interior, ranking, self.n_static, self.build_seconds)

@@ -78,7 +78,7 @@ class QuadraticForces:
         self.T2 = Tk.reshape(r, r * r)
         self.V2 = V.reshape(nq * r, r)
         self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
-        self.elastic = None  # (pM, pK, pC, pG, p2M, p2C) of :meth:`ReducedModel.elastic_forms`, with the gradients
+        self.elastic = None  # (pM, pK, pC, pG, p2C) of :meth:`ReducedModel.elastic_forms`, with the gradients
         self.dHdq = None  # d(H e_k)/dq (r, n, nq) of :meth:`ReducedModel.held` (the measurement rows' change)
         if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
@@ -227,10 +227,10 @@ class ReducedModel:
         return mats, fm
 
     def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
-        """``(pM, pK, pC, pG, p2M, p2C)``: the change of the reduced matrices with the elastic coordinates at a
+        """``(pM, pK, pC, pG, p2C)``: the change of the reduced matrices with the elastic coordinates at a
         configuration: per unit elastic coordinate ``p_k`` (``k >= nq``) the first-order rows, flattened ``[k - nq,
-        i * ncol + j]`` over the ``nq`` rigid rows ``i``, and the second-order rigid block of ``M_r`` and of the
-        damping, ``sum_kl p_k p_l X_kl``, packed by its symmetries: column ``c`` the pair ``k <= l`` (row-major, of
+        i * ncol + j]`` over the ``nq`` rigid rows ``i``, and the damping's second-order rigid block, ``sum_kl p_k
+        p_l X_kl``, packed by its symmetries: column ``c`` the pair ``k <= l`` (row-major, of
         the elastic coordinates) with ``X_kl + X_lk`` (``X_kk`` where ``k = l``), row ``t`` the entry ``i <= j``
         (row-major). None in the paper's form (``J = H`` does not depend on ``p``).
 
@@ -241,12 +241,11 @@ class ReducedModel:
         ``alpha (T J_u)^T P (T J_u)`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass relative to the rigid
         motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains ``pC_k = alpha A_k^T P T J_u`` (and
         the transpose), and ``G_r = (W J)^T B_N`` and the weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N,
-        M_N g]`` (the weight the last column). ``M_r`` and the damping are quadratic in ``J``, so their rigid block
-        gains a second-order term too: ``p_k p_l p2M_kl`` with ``p2M_kl = A_k^T M_N A_l`` and ``p_k p_l p2C_kl``
-        with ``p2C_kl = alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu d(H_u e_l)/dq``; ``K_r = J_u^T K_uu H_u``,
-        ``G_r`` and the weight are linear in ``J``. With them the matrices are exact in the elastic coordinates at
-        the configuration; the cached observer step holds its configurations undeformed and adds these terms
-        (:func:`exuflex.observer.expansion._elastic_terms`)."""
+        M_N g]`` (the weight the last column). The damping is quadratic in ``J``, so its rigid block gains a
+        second-order term too, ``p_k p_l X_kl`` with ``X_kl = alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu
+        d(H_u e_l)/dq``; ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight are linear in ``J``; ``M_r``'s second
+        order, ``p_k p_l A_k^T M_N A_l``, is left out (:func:`exuflex.observer.expansion._elastic_terms` says why).
+        The cached observer step holds its configurations undeformed and adds these terms."""
         if not self.consistent:
             return None
         model, nq, r = self.model, self.nq, self.r
@@ -262,21 +261,19 @@ class ReducedModel:
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
         out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
-        # the second order: the rigid block's A_k^T M_N A_l and the damping's, as Gram matrices over (k, i)
+        # the damping's second order as a Gram matrix over (k, i)
         n = r - nq
         A2 = A.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: A_k e_i
         MA2 = cfg.M_N @ A2
         PA2 = MA2 - MS @ np.linalg.solve(S.T @ MS, MS.T @ A2)
         dH2 = dHu.transpose(1, 0, 2).reshape(-1, n * nq)
-        GM = A2.T @ MA2
         GC = model.alpha * (A2.T @ PA2) + model.beta * (dH2.T @ (rc.Kuu @ dH2))
         k, l = np.triu_indices(n)
         i, j = np.triu_indices(nq)
         kl = ((k * nq)[None, :] + i[:, None], (l * nq)[None, :] + j[:, None])  # X_kl's entry i <= j
         lk = ((l * nq)[None, :] + i[:, None], (k * nq)[None, :] + j[:, None])  # X_lk's (k < l)
-        second = tuple(np.ascontiguousarray(G[kl] + (k != l) * G[lk]) for G in (GM, GC))
         out = tuple(np.ascontiguousarray(x.reshape(n, -1)) for x in out)
-        return (*out, *second)
+        return (*out, np.ascontiguousarray(GC[kl] + (k != l) * GC[lk]))
 
     def _held_compiled(self, p: np.ndarray, gradients: bool) -> tuple[ReducedMatrices, QuadraticForces]:
         """:meth:`held` without ``fr`` through :func:`._compiled.held_evaluation`: the basis, its derivative, the
