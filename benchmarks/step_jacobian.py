@@ -640,8 +640,9 @@ def page(hold_json, entries_json, gallery_json, before_json, md: str, acceptance
               "linear system `M p'' + C p' + K p = G u + f` with the matrices held at the interval's start "
               "configuration and midpoint elastic coordinates `p_e + dt/2 p_e'`, the forces at its start; the held "
               "configurations are undeformed and "
-              "the matrices follow the elastic coordinates exactly (`J = H + [d(H p)/dq, 0]` is "
-              "linear in them, the matrices at most quadratic: docs/held_elastic.md); the step map (Jacobian "
+              "the matrices follow the elastic coordinates to first order, the damping to second (`J = H + "
+              "[d(H p)/dq, 0]` is linear in them, the matrices at most quadratic: docs/held_elastic.md); the step "
+              "map (Jacobian "
               "`P^n`, process noise) is that of the undeformed held model.",
               ""]
     if hold_json:
