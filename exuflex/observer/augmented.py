@@ -476,7 +476,8 @@ class AugmentedModel:
     @property
     def compiled(self) -> bool:
         """The filter's compiled sample loop (:func:`.loop.samples`) may take the intervals :meth:`predict` takes
-        with the cached step (a held scale and a scale at exactly 1 it hands back); not the reference step."""
+        with the cached step (the interval whose linearity test releases a held scale it hands back); not the
+        reference step."""
         return self.inner.method == "cached"
 
     def loop_model(self, x: np.ndarray, u: np.ndarray, dt: float, channels: tuple) -> LoopModel:
@@ -498,7 +499,9 @@ class AugmentedModel:
             mp = self._map
             ok = mp is not None and mp[0] is sm
             held = not self.released and self._cov is not None
-            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, *inc)
+            self._stats = np.zeros(2)  # (the held intervals the loop does, the last one's linearity measure)
+            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, self.linearity_tol,
+                     self._stats, *inc)
             state = state._replace(scaled=(ok, *(mp[1:] if ok else NO_SCALED_MAP)))
         inp = (NO_DISTURBANCES if self.i_inputs is None
                else (np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0)))
@@ -509,6 +512,10 @@ class AugmentedModel:
         loop_done`) and the scaled step map the loop leaves (for the current nominal map, or none)."""
         inner = self.inner
         inner.loop_done(mats, dt, state, x[: self.n0], k)
+        if self.i_theta is not None and self._stats[0]:  # the held scale's intervals the loop did
+            self.n_held += int(self._stats[0])
+            self.last_linearity = float(self._stats[1])
+            self._stats[0] = 0.0
         ok, c, Pn, S, L, Q = state.scaled
         self._map = (inner.last_step[1], c, Pn, S, L, Q) if ok else None
 
@@ -549,7 +556,8 @@ def warm_up() -> None:
         for ok in (False, True):
             payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 2 * r + 1, (1e-4, 1.0, 1.0, 0.0), (ok, 0.0, *maps),
                              nominal, (T3, T3, V3, C3), hs, inc)
-        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, (True, 1.0, 1e-4, 1.0, 0.03, T3), inc,
+        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1,
+                       (True, 1.0, 1e-4, 1.0, 0.03, T3, has_old, 1.0, np.zeros(2), 1.0), inc,
                        (np.ones(nq), 0.0), (False, 0.0, *maps), nominal, (T3, V3, C3), hs)
     warm_up_loop(True)
 

@@ -566,7 +566,9 @@ _NO_VECTOR = np.empty(0)
 class LoopExtras(NamedTuple):
     """The arrays of an augmented state that :func:`cached_interval` takes (``ex``): the payload scale's
     (``pay`` ... ``pay_Q``; its increment ``i*``, :class:`.augmented.PayloadIncrement`'s fields) and the torque
-    disturbances' (``inp_var``, ``inp_tau``). See :func:`cached_interval` for their meaning."""
+    disturbances' (``inp_var``, ``inp_tau``). See :func:`cached_interval` for their meaning; ``pay_lin_tol`` the
+    held scale's linearity test (:meth:`.augmented.AugmentedModel.predict`), ``pay_stats`` where the loop counts the
+    held intervals it did and the kernel leaves the last one's linearity measure."""
 
     pay: bool
     pay_held: bool
@@ -575,6 +577,8 @@ class LoopExtras(NamedTuple):
     pay_rho: float
     pay_tol: float
     pay_dTs: np.ndarray
+    pay_lin_tol: float
+    pay_stats: np.ndarray
     iMr: np.ndarray
     iCa: np.ndarray
     idM: np.ndarray
@@ -591,8 +595,8 @@ class LoopExtras(NamedTuple):
 
 
 #: :class:`LoopExtras`' payload fields (``pay`` ... ``iold_T2``) of a state without the payload scale
-NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX,
-              _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX)
+NO_PAYLOAD = (False, False, 0.0, 0.0, 0.0, 0.0, _NO_TENSOR, 0.0, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX,
+              _NO_VECTOR, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_VECTOR, _NO_MATRIX, _NO_MATRIX)
 #: no scaled step map, ``(c, Pn, S, L, Q)`` (:func:`payload_interval`'s ``map_c`` ... ``map_Q``)
 NO_SCALED_MAP = (0.0, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX, _NO_MATRIX)
 #: :class:`LoopExtras`' disturbance fields (``inp_var``, ``inp_tau``) of a state without torque disturbances
@@ -978,7 +982,8 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
     the carried state (:class:`LoopState`). ``status`` (:mod:`.base`'s loop codes) is ``LOOP_DONE`` where it
     served, ``REFRESH`` where q left the held configuration's radius, ``REMAP`` where the step map must be
     renewed from Python (another interval length or sub-step count; :attr:`CachedStep.errs` full), ``GENERAL``
-    where the model's own step must take the interval (a torque jump, a held or exactly nominal payload scale).
+    where the model's own step must take the interval (a torque jump, a held payload scale its linearity test
+    releases).
 
     Not at the ``first`` interval (the model renewed its arrays for it): where q leaves the step map's radius
     the map is rebuilt ahead of q (:func:`rebuild_map`), its radius from the replaced map's error in the
@@ -1000,8 +1005,6 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
     pay, n_in = False, 0
     if ex is not None:  # (pruned for a plain state, as every "ex is not None" below)
         pay, n_in = ex.pay, ex.inp_var.shape[0]
-        if pay and ex.pay_held:  # a held scale: the model's own step
-            return GENERAL, z, F, Qk, mats, st
         if n_in:  # the torques with the disturbance
             s0 = x.shape[0] - n_in
             uu, uu1 = np.empty(u.shape[0]), np.empty(u.shape[0])
@@ -1035,15 +1038,17 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
     dl = x[:nq] - cs.q0
     s = secant_factor(dl, cs.d, cs.dd)
     extra = False
-    if ex is not None:
-        if pay and max(x[n0], 0.0) == 1.0:  # the model's own step at the nominal scale
-            return GENERAL, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
+    if ex is not None:  # noqa: SIM102 (numba prunes a plain state's branch on this test alone)
         if pay or n_in:
-            z, F, Qk, Mo, Ko, Co, Go, scaled = extra_interval(
-                x, uu, dl, s, dt, n, (pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs),
+            z, F, Qk, Mo, Ko, Co, Go, new_scaled, release = extra_interval(
+                x, uu, dl, s, dt, n, (pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, ex.pay_held,
+                                      ex.pay_lin_tol, ex.pay_stats, P[n0, n0]),
                 (ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM, ex.iold_Ca, ex.iold_fg, ex.iold_T2,
                  ex.iold_C2), (ex.inp_var, ex.inp_tau), scaled, (sm.Pn, sm.SQM, sm.L, sm.Q, cs.torque_var, cs.q_extra),
                 (cs.Ts, cs.Vs, cs.C3), hs)
+            if release:  # the held scale's linearity test passes: the model's own step releases it
+                return GENERAL, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
+            scaled = new_scaled
             mats = (Mo, Ko, Co, Go)
             extra = True
     if not extra:
@@ -1067,16 +1072,24 @@ def _cached_rows(cs, z, y, H, made):  # pragma: no cover - compiled
 
 def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, hs):  # pragma: no cover - compiled
     """One interval of an augmented state (:func:`cached_interval`'s ``ex``, the torques ``u`` with the
-    disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled)``, the scaled step map ``scaled = (pay_ok, pay_c,
-    pay_Pn, pay_S, pay_L, pay_Q)`` as this interval leaves it. ``payload = (pay, pay_var, pay_dtheta, pay_rho, pay_tol,
-    pay_dTs)`` the payload scale's parameters (:class:`LoopExtras`), ``inc`` its increment, ``inp = (inp_var,
-    inp_tau)`` the disturbances'; ``maps = (Pn, SQM, L, Q, torque_var, q_extra)`` the nominal step map with the
-    noise's parts, ``forms = (Ts, Vs, C3)`` the step Jacobian's; ``hs`` the held system (plain tuples, see
-    :func:`_held_interval`). With the payload scale (not at exactly 1) the interval is :func:`payload_interval`'s
-    at ``c + pay_dtheta`` and ``c`` (which chooses, and rebuilds, the step map: the nominal one or the scaled
-    ``pay_*``); without, :func:`held_interval`'s. The disturbances then decay, gain their noise and enter through
-    the map's torque response."""
-    pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs = payload
+    disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled, release)``, the scaled step map ``scaled = (pay_ok,
+    pay_c, pay_Pn, pay_S, pay_L, pay_Q)`` as this interval leaves it. ``payload = (pay, pay_var, pay_dtheta, pay_rho,
+    pay_tol, pay_dTs, held, lin_tol, stats, var)`` the payload scale's parameters (:class:`LoopExtras`) with the
+    filter's variance of the scale, ``inc`` its increment, ``inp = (inp_var, inp_tau)`` the disturbances';
+    ``maps = (Pn, SQM, L, Q, torque_var, q_extra)`` the nominal step map with the noise's parts, ``forms = (Ts, Vs,
+    C3)`` the step Jacobian's; ``hs`` the held system (plain tuples, see :func:`_held_interval`). With the payload
+    scale not at exactly 1 the interval is :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c`` (which
+    chooses, and rebuilds, the step map: the nominal one or the scaled ``pay_*``); at exactly 1 and without the
+    scale, :func:`held_interval`'s (with the scale, the steps at ``pay_dtheta`` for its column:
+    :func:`scaled_steps`). The disturbances then decay, gain their noise and enter through
+    the map's torque response.
+
+    A ``held`` scale (:meth:`.augmented.AugmentedModel.predict`): the steps at ``c +- sigma`` (``sigma`` the
+    filter's standard deviation of the scale, within ``[pay_dtheta, 1 + c]``) and ``c``; where the first-order model
+    over them is within ``lin_tol`` of the interval's process noise (its second-order term, measured into
+    ``stats[1]``), ``release`` (the model's own step releases it), else the noise the scale's uncertainty causes
+    added to ``Q`` and no column of the scale in ``F``."""
+    pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, held, lin_tol, stats, var = payload
     inp_var, inp_tau = inp
     Pn, SQM, L, Q = maps[0], maps[1], maps[2], maps[3]
     Ts, Vs, C3 = forms
@@ -1087,12 +1100,45 @@ def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, 
     if pay:
         th = x[n0]
         c = max(th, 0.0) - 1.0
-        scales = np.empty(2)
-        scales[0] = c + pay_dtheta
-        scales[1] = c
-        _, z, F, Qk, L_u, scaled, Mo, Ko, Co, Go = payload_interval(
-            x[:n0], u, dl, s, dt / n, n, scales, th, n_x, (pay_dtheta, pay_var * dt, pay_rho, pay_tol), scaled, maps,
-            (Ts, pay_dTs, Vs, C3), hs, inc)
+        sig = max(min(math.sqrt(max(var, 0.0)), 1.0 + c), pay_dtheta) if held else pay_dtheta
+        scales = np.empty((2 if held else 1) + (1 if c != 0.0 else 0))
+        scales[0] = c + sig
+        if held:
+            scales[1] = c - sig
+        if c != 0.0:  # the held system at the scale c (and the scales of the column) in one call
+            scales[-1] = c
+            rows, z, F, Qk, L_u, scaled, Mo, Ko, Co, Go = payload_interval(
+                x[:n0], u, dl, s, dt / n, n, scales, th, n_x, (0.0 if held else pay_dtheta, pay_var * dt, pay_rho,
+                                                               pay_tol), scaled, maps, (Ts, pay_dTs, Vs, C3), hs, inc)
+            xc = rows[-1]
+        else:  # the nominal step, and the scaled steps of the same held configuration for the scale's column
+            xc, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
+            z, F, Qk = _augmented(xc, F0, Q, n_x)
+            L_u = L
+            rows = scaled_steps(x[:n0], u, dl, s, dt / n, n, scales, hs, inc)[0]
+            if not np.all(np.isfinite(rows)):  # as the nominal step's rescue: first order only
+                rows = scaled_steps(x[:n0], u, dl, 0.0, dt / n, n, scales, hs, inc)[0]
+            z[n0] = th
+            F[n0, n0] = 1.0
+            Qk[n0, n0] = pay_var * dt
+            if not held:
+                for i in range(n0):
+                    F[i, n0] = (rows[0, i] - xc[i]) / pay_dtheta
+        if held:  # the first-order model over +-sigma: its second-order term against the interval's noise
+            lin, nan = 0.0, False
+            for i in range(n0):
+                v = abs(0.5 * (rows[0, i] + rows[1, i]) - xc[i]) / math.sqrt(max(Qk[i, i], 1e-300))
+                nan |= math.isnan(v)
+                lin = max(lin, v)
+            stats[1] = math.nan if nan else lin
+            if stats[1] <= lin_tol:
+                return z, F, Qk, Mo, Ko, Co, Go, scaled, True
+            e1 = np.empty(n0)  # (the scale's uncertainty as noise: the first-order term over +-sigma)
+            for i in range(n0):
+                e1[i] = 0.5 * (rows[0, i] - rows[1, i])
+            for i in range(n0):
+                for j in range(n0):
+                    Qk[i, j] += e1[i] * e1[j]
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
         z, F, Qk = _augmented(z0, F0, Q, n_x)
@@ -1105,7 +1151,7 @@ def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, 
             Qk[s0 + j, s0 + j] = inp_var[j] * (1.0 - phi * phi) if inp_tau > 0.0 else inp_var[j] * dt
             for i in range(n0):
                 F[i, s0 + j] = L_u[i, j]
-    return z, F, Qk, Mo, Ko, Co, Go, scaled
+    return z, F, Qk, Mo, Ko, Co, Go, scaled, False
 
 
 def _augmented(z, F, Q, nx):  # pragma: no cover - compiled

@@ -288,6 +288,8 @@ def _samples(t, U, Y, k0, k1, holdoff, rows_made, buf, mon, rec, step, state, ex
                 for j in range(n_x):
                     rec.F[k, i * n_x + j] = F[i, j]
                     rec.Q[k, i * n_x + j] = Qk[i, j]
+        if extras is not None and extras.pay_held:  # (pruned for a plain state) a held scale's interval done
+            extras.pay_stats[0] += 1.0
         if extras is not None and rec.theta.shape[0]:  # (pruned for a plain state)
             n0 = 2 * step.system.Mr.shape[0]
             for i in range(n_x):
