@@ -288,7 +288,7 @@ def static_corrections(cb, kept, qs: np.ndarray, planned: PlannedInput, quantity
     Phi_all = cb.Phi_all
     w2_all = (2 * np.pi * cb.interior_frequencies_hz) ** 2
     kept = np.sort(np.asarray(kept, int))
-    rest = np.array([i for i in range(Phi_all.shape[1]) if i not in set(kept.tolist())], int)
+    rest = np.setdiff1d(np.arange(Phi_all.shape[1]), kept)
     if rest.size == 0:
         return None
     a, v = load_amplitudes(model, planned, qs)
