@@ -219,8 +219,12 @@ def accumulated_error(omega, zeta, step: float, duration: float, rho_inf: float 
     if omega.size == 0:
         return np.zeros(0)
     z, e = algorithmic_damping(omega * step, rho_inf)
-    life = np.minimum(1.0 / np.maximum(zeta, 1e-12), omega * duration)
-    return np.hypot(e, z) * life
+    return np.hypot(e, z) * _memory(omega, zeta, duration)
+
+
+def _memory(omega: np.ndarray, zeta: np.ndarray, duration: float) -> np.ndarray:
+    """The radians of each mode's motion its phase error accumulates over: ``min(1 / zeta, omega T)``."""
+    return np.minimum(1.0 / np.maximum(zeta, 1e-12), omega * duration)
 
 
 def phase_step(omega, zeta, duration: float, output_dt: float, rho_inf: float = 0.9,
@@ -238,10 +242,9 @@ def phase_step(omega, zeta, duration: float, output_dt: float, rho_inf: float = 
     zeta = np.atleast_1d(np.asarray(zeta, float))
     if omega.size == 0:
         return output_dt
-    g = (1.0 - rho_inf) / (1.0 + rho_inf)
-    life = np.minimum(1.0 / np.maximum(zeta, 1e-12), omega * duration)
+    c = -float(period_error(1.0, rho_inf)[0])  # |e| = c Omega^2
     # the closed form's step, then the exact error decides (checked one n after another from just below it)
-    h0 = float(np.min(np.sqrt(tol / ((1.0 / 12.0 + 0.375 * g * g) * life)) / omega))
+    h0 = float(np.min(np.sqrt(tol / (c * _memory(omega, zeta, duration))) / omega))
     n = max(1, math.floor(output_dt / h0 * 0.9))
     while np.max(accumulated_error(omega, zeta, output_dt / n, duration, rho_inf)) > tol:
         n += 1
