@@ -286,14 +286,16 @@ def weight_pdelta(model, q) -> dict[str, tuple[float, str, float]]:
     d = model.T @ u
     names, noise = _channel_noise(mech)
     C = channel_matrix(model, cfg, mech, names)[:, model.nq :] / noise[:, None] if names else np.zeros((0, model.ne))
-    Kuu = model.T.T @ cfg.K_N @ model.T
+    links = [(lk, els) for li, lk in enumerate(mech.links)
+             if len(els := np.flatnonzero((model.el_link == li) & (model.el_len > 0)))]
+    if not links:
+        return {}
+    forces = [pdelta_forces(model, cfg, d, els) for _, els in links]
+    # every link's response in one solve of the elastic rows
+    reads = np.abs(C @ np.linalg.solve(model.T.T @ cfg.K_N @ model.T,
+                                       model.T.T @ np.column_stack([f for f, _ in forces])))
     out = {}
-    for li, lk in enumerate(mech.links):
-        els = np.flatnonzero((model.el_link == li) & (model.el_len > 0))
-        if not len(els):
-            continue
-        f, N_el = pdelta_forces(model, cfg, d, els)
-        read = np.abs(C @ np.linalg.solve(Kuu, model.T.T @ f))
+    for (lk, _), (_, N_el), read in zip(links, forces, reads.T):
         best, chan = (float(read.max()), names[int(read.argmax())]) if len(read) else (0.0, "")
         out[lk.name] = (best, chan, float(-N_el.min()))
     return out
