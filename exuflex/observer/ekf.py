@@ -343,14 +343,14 @@ class ChannelMonitor:
         report."""
         events, n = self.loop_fields[-2], self.loop_fields[-1]
         for code, i, t, mean_z in events[: n[0]].tolist():
-            i = int(i)
+            i, mean_z = int(i), math.nan if math.isnan(mean_z) else mean_z  # (a fault found missing has no mean)
             if code == loop.CLEARED:
-                self._open.pop(i)["end"] = float(t)
+                self._open.pop(i)["end"] = t
             elif code == loop.BECAME_OFFSET:  # the window filled: a mean, not only a spread
-                self._open[i].update(kind="offset", mean_z=float(mean_z))
+                self._open[i].update(kind="offset", mean_z=mean_z)
             else:
-                f = {"channel": self.channels[i], "kind": _FAULT_KINDS[int(code)], "start": float(t), "end": None,
-                     "mean_z": float(mean_z)}
+                f = {"channel": self.channels[i], "kind": _FAULT_KINDS[int(code)], "start": t, "end": None,
+                     "mean_z": mean_z}
                 self._open[i] = f
                 self.faults.append(f)
                 log.info("channel %s: %s fault found at t=%.6g s (window mean of z %.3g)", f["channel"], f["kind"],
