@@ -586,6 +586,10 @@ class BeliefFilter:
         self._x0, self._P0 = self._prior(x0, P0)
         self._floor = np.zeros(self.nx)  # (the covariance's floor: a filter with one sets its own)
         self._n_lu = np.zeros(1, dtype=np.int64)  # updates solved by LU since the last report
+        self._loop = None  # the compiled sample loop over a model's compiled step (the EKF's)
+        self.record_theta = None  # the state whose covariance column run() records (the EKF's payload scale)
+        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (run(..., predictions=True) sets it)
+        self.record_predictions = False
 
     def _prior(self, x0, P0) -> tuple[np.ndarray, np.ndarray]:
         x = np.array(x0, dtype=float).reshape(-1)
@@ -635,6 +639,7 @@ class BeliefFilter:
         self.last_S = None
         self.last_nis = float("nan")
         self.last_dof = 0
+        self.last_prediction = None
         if self.monitor is not None:
             self.monitor.reset()
 
@@ -754,16 +759,58 @@ class BeliefFilter:
                                                   for f in self.faults.faults]
         return iv, faults
 
-    def _run_steps(self, t, U, Y, reset: bool, x0, P0, innovations: bool, each=None) -> EstimationResult:
-        """:meth:`step` over a record (``each(k)`` after sample ``k``), each sample recorded. A step that fails where
-        a covariance lost definiteness ends the run: raised as diverged, or (``nonfinite="flag"``) flagged with no
-        estimates from there."""
+    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
+            predictions: bool = False) -> EstimationResult:
+        """Filter a whole record: the numbers of :meth:`step` for every sample (the samples the model's compiled
+        step can take go to the compiled sample loop, see the module notes). A step that fails where a covariance
+        lost definiteness ends the run: raised as diverged, or (``nonfinite="flag"``) flagged with no estimates from
+        there.
+
+        Parameters
+        ----------
+        t : array_like, shape (n,)
+            Sample times (increasing; any spacing up to ``max_gap``).
+        U : array_like, shape (n, nu) or (n,), or None
+            Input at each sample time, held over the following interval.
+        Y : array_like, shape (n, m)
+            Measurements in channel order, NaN where a channel has no sample.
+        reset : bool
+            Restart from the prior first (default). With False the run continues from the current state.
+        x0, P0 : array_like, optional
+            A prior for this run (implies ``reset``).
+        innovations : bool
+            Record the innovations and their covariance (``8 m + 8 m**2`` bytes a sample; without them the
+            result's ``innovations`` and ``S`` are None). A record run in chunks of rows (``reset=False`` after
+            the first) gives the same numbers as one run of the whole record.
+        predictions : bool
+            Record each sample's prediction (the result's ``x_pred``, ``F``, ``Q``: ``8 nx + 16 nx**2`` bytes a
+            sample), what the smoother's backward pass needs (:func:`.smoother.rts_backward`).
+
+        Returns
+        -------
+        EstimationResult
+        """
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
-        w0 = time.perf_counter()
-        for k in range(len(t)):
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.record_theta, predictions)
+        self.record_predictions = predictions
+        t_start = time.perf_counter()
+        n = len(t)
+        loop_end = self._loop_ends(t, U, Y)
+        if loop_end.any():  # the compiled loop's arrays: contiguous, the inputs one column per motor
+            t, U, Y = np.ascontiguousarray(t), np.ascontiguousarray(U.reshape(n, -1)), np.ascontiguousarray(Y)
+        k = 0
+        while k < n:
+            if self._loop_ready(U) and loop_end[k] > k:
+                k, status, last = self._loop_samples(t, U, Y, k, int(loop_end[k]), rec)
+                if status in (NONFINITE, SINGULAR):
+                    rec.put(k, self._failed(float(t[k]), status, last), self._P, self)
+                    k += 1
+                    continue
+                if k >= n:
+                    break
+            self.last_prediction = None
             try:
                 x = self.step(t[k], None if U is None else U[k], Y[k])
             except (np.linalg.LinAlgError, ArithmeticError) as exc:
@@ -774,9 +821,41 @@ class BeliefFilter:
                 rec.fail_from(k)
                 break
             rec.put(k, x, self._P, self)
-            if each is not None:
-                each(k)
-        return self._result(rec, time.perf_counter() - w0)
+            self._recorded(k)
+            k += 1
+        self.record_predictions = False
+        res = self._result(rec, time.perf_counter() - t_start)
+        log.info("%s run: %s", type(self).__name__, res.summary())
+        return res
+
+    def _recorded(self, k: int) -> None:
+        """After sample ``k`` of :meth:`run` went through :meth:`step` and was recorded (a filter that keeps more of
+        each sample than the record does takes it here)."""
+
+    def _loop_ends(self, t, U, Y) -> np.ndarray:
+        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: the interval
+        valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
+        n = len(t)
+        if self._loop is None or U is None or n < 2:
+            return np.zeros(n, dtype=np.int64)
+        ok = np.isfinite(U.reshape(n, -1)).all(axis=1)
+        dt = np.diff(t)
+        ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
+        ok[0] = False
+        ok &= np.isfinite(t)
+        # the grid samples each interval skipped (step()'s count of missing samples), summed from the start
+        skipped = np.maximum(np.rint(dt / self.dt) - 1.0, 0.0)
+        self._skipped = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(skipped), skipped, 0.0))))
+        bad = np.flatnonzero(~ok)
+        # the first not-ok sample at or after k
+        pos = np.searchsorted(bad, np.arange(n))
+        return np.where(pos < len(bad), bad[np.minimum(pos, len(bad) - 1)], n).astype(np.int64)
+
+    def _loop_ready(self, U) -> bool:
+        """Can samples go to the model's compiled step now? (The model has one; a run with inputs, after a first
+        sample; the input-step test one the loop computes.)"""
+        return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
+                and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
 
     def _result(self, rec: RunRecord, wall_s: float) -> EstimationResult:
         """The run's :class:`EstimationResult` with the monitors' findings."""
@@ -854,8 +933,7 @@ class MultirateEKF(BeliefFilter):
         self._Ppred = np.empty((n, n))
         self._work = np.empty((n, n))
         self._HP = np.empty((max(self.m, 1), n))
-        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (run(..., predictions=True) sets it)
-        self.record_predictions = False
+        self.record_theta = self.hooks.i_theta
         # the compiled sample loop: run() hands it the samples it can take where the model has a compiled step;
         # step() hands it one sample with the model's prediction and measurement, in a record of two rows
         self._loop = loop.samples if takes_compiled_loop(model) else None
@@ -866,12 +944,6 @@ class MultirateEKF(BeliefFilter):
                                 _empty_rows(self.m**2), np.empty(2), np.zeros(2, dtype=np.int64), _empty_rows(n),
                                 _empty_rows(n * n), _empty_rows(n * n))
         self.reset()
-
-    # ------------------------------------------------------------------ state
-    def reset(self, x0=None, P0=None) -> None:
-        """Restart from a prior (:meth:`BeliefFilter.reset`)."""
-        super().reset(x0, P0)
-        self.last_prediction = None
 
     # ------------------------------------------------------------------ the two steps
     def _predict(self, dt: float, u_next) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -987,31 +1059,6 @@ class MultirateEKF(BeliefFilter):
         return self._fail(t)
 
     # ------------------------------------------------------------------ the compiled sample loop
-    def _loop_ends(self, t, U, Y) -> np.ndarray:
-        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: the interval
-        valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
-        n = len(t)
-        if self._loop is None or U is None or n < 2:
-            return np.zeros(n, dtype=np.int64)
-        ok = np.isfinite(U.reshape(n, -1)).all(axis=1)
-        dt = np.diff(t)
-        ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
-        ok[0] = False
-        ok &= np.isfinite(t)
-        # the grid samples each interval skipped (step()'s count of missing samples), summed from the start
-        skipped = np.maximum(np.rint(dt / self.dt) - 1.0, 0.0)
-        self._skipped = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(skipped), skipped, 0.0))))
-        bad = np.flatnonzero(~ok)
-        # the first not-ok sample at or after k
-        pos = np.searchsorted(bad, np.arange(n))
-        return np.where(pos < len(bad), bad[np.minimum(pos, len(bad) - 1)], n).astype(np.int64)
-
-    def _loop_ready(self, U) -> bool:
-        """Can samples go to the model's compiled step now? (The model has one; a run with inputs, after a first
-        sample; the input-step test one the loop computes.)"""
-        return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
-                and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
-
     def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> tuple[int, int, tuple]:
         """Samples ``k .. k_end - 1`` (valid times and inputs) through the model's compiled step (:func:`.loop.
         samples`) until one needs the model's own :meth:`predict`; the model renews its arrays where the loop asks.
@@ -1087,64 +1134,3 @@ class MultirateEKF(BeliefFilter):
         self.last_idx, self.last_innovation, self.last_S = (last[1], last[2], last[3]) if d else (None, None, None)
         self.last_nis, self.last_dof = (float(nis[k1 - 1]), d) if d else (math.nan, 0)
         self._report()
-
-    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
-            predictions: bool = False) -> EstimationResult:
-        """Filter a whole record: the numbers of :meth:`step` for every sample (the samples the model's compiled
-        loop can take go to it, see the module notes).
-
-        Parameters
-        ----------
-        t : array_like, shape (n,)
-            Sample times (increasing; any spacing up to ``max_gap``).
-        U : array_like, shape (n, nu) or (n,), or None
-            Input at each sample time, held over the following interval.
-        Y : array_like, shape (n, m)
-            Measurements in channel order, NaN where a channel has no sample.
-        reset : bool
-            Restart from the prior first (default). With False the run continues from the current state.
-        x0, P0 : array_like, optional
-            A prior for this run (implies ``reset``).
-        innovations : bool
-            Record the innovations and their covariance (``8 m + 8 m**2`` bytes a sample; without them the
-            result's ``innovations`` and ``S`` are None). A record run in chunks of rows (``reset=False`` after
-            the first) gives the same numbers as one run of the whole record.
-        predictions : bool
-            Record each sample's prediction (the result's ``x_pred``, ``F``, ``Q``: ``8 nx + 16 nx**2`` bytes a
-            sample), what the smoother's backward pass needs (:func:`.smoother.rts_backward`).
-
-        Returns
-        -------
-        EstimationResult
-        """
-        t, U, Y = check_log(t, U, Y, self.m)
-        if reset or x0 is not None or P0 is not None:
-            self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.hooks.i_theta,
-                        predictions)
-        self.record_predictions = predictions
-        t_start = time.perf_counter()
-        n = len(t)
-        loop_end = self._loop_ends(t, U, Y)
-        if loop_end.any():  # the compiled loop's arrays: contiguous, the inputs one column per motor
-            t, U, Y = np.ascontiguousarray(t), np.ascontiguousarray(U.reshape(n, -1)), np.ascontiguousarray(Y)
-        k = 0
-        while k < n:
-            if self._loop_ready(U):
-                k_end = int(loop_end[k])
-                if k_end > k:
-                    k, status, last = self._loop_samples(t, U, Y, k, k_end, rec)
-                    if status in (NONFINITE, SINGULAR):
-                        rec.put(k, self._failed(float(t[k]), status, last), self._P, self)
-                        k += 1
-                        continue
-                    if k >= n:
-                        break
-            self.last_prediction = None
-            x = self.step(t[k], None if U is None else U[k], Y[k])
-            rec.put(k, x, self._P, self)
-            k += 1
-        self.record_predictions = False
-        res = self._result(rec, time.perf_counter() - t_start)
-        log.info("EKF run: %s", res.summary())
-        return res
