@@ -11,14 +11,14 @@ One call of :meth:`MultirateEKF.step` processes one sample at time ``t``::
 then symmetrises ``P``, floors its diagonal and tests that the state and covariance are finite. The Joseph form
 keeps ``P`` symmetric positive semi-definite for any gain, where ``(I - K H) P`` loses it to rounding; the gain
 and ``S^-1 r`` come from one Cholesky solve of ``S`` (an LU solve with a warning if ``S`` is not positive
-definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gives the numbers of
-:meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
-compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run`` hands :func:`.loop.samples` the
-samples it can take (a valid interval and input; any channels sampled), which it processes with the same compiled
-kernels in the same order as ``step`` until one needs more: the model renews its arrays (a new held configuration
-or step map, measurement rows for the prediction) and the loop resumes, or ``step`` takes that sample (the first,
-the model's own interval at a torque jump, a channel found missing, ...). ``tests/test_sample_loop.py`` holds the
-two bit-identical.
+definite). Every sample goes through one compiled sample loop (:func:`.loop.samples`, over the kernels of
+:mod:`.kalman`): :meth:`~MultirateEKF.step` hands it the model's prediction and measurement for one sample;
+:meth:`~BeliefFilter.run` gives the numbers of ``step`` over a whole log, so the online and offline estimates are
+the same: where the model has a compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run``
+hands the loop the samples it can take (a valid interval and input) with the model's compiled interval and
+measurement, until one needs more: the model renews its arrays (a new held configuration or step map, measurement
+rows for the prediction) and the loop resumes, or ``step`` takes that sample (the first, the model's own interval
+at a torque jump). ``tests/test_sample_loop.py`` holds the two bit-identical.
 
 Each interval is as long as its two time stamps say: jitter, drift and irregular sampling need no grid. A
 sample whose channels are partly NaN updates with the finite ones (``R`` restricted to them: multirate
