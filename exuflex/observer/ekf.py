@@ -935,13 +935,13 @@ class MultirateEKF(BeliefFilter):
         self._HP = np.empty((max(self.m, 1), n))
         self.record_theta = self.hooks.i_theta
         # the compiled sample loop: run() hands it the samples it can take where the model has a compiled step;
-        # step() hands it one sample with the model's prediction and measurement, in a record of two rows
+        # step() hands it one sample with the model's prediction and measurement (loop.given), in a record of a row
         self._loop = loop.samples if takes_compiled_loop(model) else None
         extra = self.hooks.i_theta is not None or self.hooks.i_inputs is not None
         loop.warm_up(None if self._loop is None else "augmented" if extra else "plain")
         kalman.warm_up()
-        self._one = loop.Record(np.empty((2, n)), _empty_rows(n), -1, _empty_rows(n), _empty_rows(self.m),
-                                _empty_rows(self.m**2), np.empty(2), np.zeros(2, dtype=np.int64), _empty_rows(n),
+        self._one = loop.Record(np.empty((1, n)), _empty_rows(n), -1, _empty_rows(n), _empty_rows(self.m),
+                                _empty_rows(self.m**2), np.empty(1), np.zeros(1, dtype=np.int64), _empty_rows(n),
                                 _empty_rows(n * n), _empty_rows(n * n))
         self.reset()
 
@@ -1021,7 +1021,7 @@ class MultirateEKF(BeliefFilter):
             return np.full(self.nx, np.nan)
         n, m = self.nx, self.m
         y_pred, H = np.zeros(m), np.zeros((m, n))
-        Y = np.full((2, m), np.nan)
+        y_k = np.full(m, np.nan)
         chosen = None if y is None else self._channel_set(y)
         if chosen is not None:  # the model's measurement of the channels sampled
             idx, chans, _ = chosen
@@ -1033,18 +1033,16 @@ class MultirateEKF(BeliefFilter):
             if np.shape(meas[1]) != (len(idx), n) or np.shape(meas[0]) != (len(idx),):
                 raise ValueError(f"model.measure returned y {np.shape(meas[0])}, H {np.shape(meas[1])} for "
                                  f"{len(idx)} channels; expected ({len(idx)},) and ({len(idx)}, {n})")
-            y_pred[idx], H[idx], Y[1] = meas[0], meas[1], y
+            y_pred[idx], H[idx], y_k = meas[0], meas[1], y
         hold0 = self._holdoff
-        x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
-        buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP)
-        _, status, self._holdoff, swapped, _, _, last = loop.samples(
-            np.array([t, t]), np.zeros((2, 0)), Y, 1, 2, hold0, False, *loop.plain(buf, self._mon, self._one), None,
-            (np.ascontiguousarray(z, dtype=float), F, Q, y_pred, H))
+        x_alt, P_alt = np.empty(n), self._Pspare
+        buf = loop.Buffers(self._x, x_alt, self._P, P_alt, self._Ppred, self._work, self._HP)
+        status, self._holdoff, last = loop.given(t, y_k, hold0, *loop.plain(buf, self._mon, self._one),
+                                                 np.ascontiguousarray(z, dtype=float), F, Q, y_pred, H)
         if status != LOOP_DONE:
             return self._failed(t, status, last)
-        if swapped:
-            self._x, self._P, self._Pspare = x_alt, P_alt, P
-        self._counted(np.array([t, t]), 1, 2, hold0, self._one.nis, self._one.dof, last, False)
+        self._x, self._P, self._Pspare = x_alt, P_alt, self._P
+        self._counted((t,), 0, 1, hold0, self._one.nis, self._one.dof, last, False)
         return self._x.copy()
 
     def _failed(self, t: float, status: int, last: tuple) -> np.ndarray:
@@ -1086,7 +1084,7 @@ class MultirateEKF(BeliefFilter):
             hold0 = self._holdoff
             buf = loop.Buffers(x, x_alt, P, P_alt, self._Ppred, self._work, self._HP)
             k_next, status, self._holdoff, swapped, state, mats, last = self._loop(
-                t, U, Y, k, k_end, hold0, rows_made, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras, None)
+                t, U, Y, k, k_end, hold0, rows_made, *loop.plain(buf, mon, record, lm.step, lm.state), lm.extras)
             z = x if swapped else x_alt  # (the buffer not current: the prediction where the rows stopped the loop)
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P

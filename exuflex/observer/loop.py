@@ -217,15 +217,106 @@ def _screen(mon, t, idx, zn, n_over, holdoff, keep):  # pragma: no cover - compi
     return n_keep, holdoff
 
 
-def _samples(t, U, Y, k0, k1, holdoff, rows_made, buf, mon, rec, step, state, extras, given):  # pragma: no cover
-    """Samples ``k0 .. k1 - 1`` (module docstring), ``holdoff`` updates of the hold-off after an input step left,
-    ``rows_made``: the model's measurement rows were made for the prediction at ``k0`` (they serve it wherever it
-    lies, as :meth:`.reduced.ReducedObserverModel.measure` takes rows it has just made),
-    the filter's :class:`Buffers`, :class:`Monitors` and :class:`Record`, the model's :class:`.base.LoopModel`
-    parts ``step``, ``state``, ``extras`` (None for a plain state: numba prunes the augmented branches); or, for
-    one sample (``k1 = k0 + 1``) of a model without a compiled step (``step``, ``state`` placeholders, :func:`plain`),
-    ``given``: its prediction and measurement ``(z, F, Q, y_pred, H)`` (``F`` empty: the first sample, no interval;
-    ``H``'s rows of the channels not sampled are not read).
+def _sample(t_k, y, z, F, Qk, y_pred, H, holdoff, buf, mon, x_out, P_out):  # pragma: no cover - compiled into
+    """One sample from the prediction ``z, F, Qk`` (``F`` empty: the first sample, the prior is the prediction) and
+    the measurement ``y_pred, H`` of every channel (their rows of the channels not sampled, NaN in ``y``, not read),
+    the hold-off ``holdoff`` left: the covariance's prediction, the update with the channels sampled, the monitors
+    (:func:`screen`) and, where they leave a minority out, the update again without them, settled into ``x_out``,
+    ``P_out``. Returns ``(status, holdoff, (sampled, kept, r, S), nis)``: ``LOOP_DONE``, or the update went
+    non-finite (``NONFINITE``) or met a singular ``S`` (``SINGULAR``)."""
+    m, n_x = y.shape[0], z.shape[0]
+    if F.shape[0]:
+        predict_cov(F, buf.P, Qk, buf.P_pred, buf.work)
+    else:  # the first sample
+        for i in range(n_x):
+            for j in range(n_x):
+                buf.P_pred[i, j] = buf.P[i, j]
+    sampled = np.empty(m, np.bool_)
+    n_s = 0
+    for i in range(m):
+        sampled[i] = math.isfinite(y[i])
+        n_s += sampled[i]
+    idx = np.empty(n_s, np.int64)  # the channels sampled
+    j = 0
+    for i in range(m):
+        if sampled[i]:
+            idx[j] = i
+            j += 1
+    kept, nis, r, S = idx, math.nan, np.empty(0), np.empty((0, 0))
+    zn = np.empty(n_s)
+    gated = np.empty(n_s, np.bool_)
+    if n_s == 0:  # a prediction only, and the monitor's "missing" test
+        for i in range(n_x):
+            x_out[i] = z[i]
+            for j in range(n_x):
+                P_out[i, j] = buf.P_pred[i, j]
+        finite = settle(x_out, P_out, mon.floor)
+        if finite:
+            _screen(mon, t_k, idx, zn, 0, holdoff, gated)
+        return LOOP_DONE if finite else NONFINITE, holdoff, (idx, kept, r, S), nis
+    nis, how, finite, r, S = condition_on(sampled, z, buf.P_pred, y, y_pred, H, mon.Rd, mon.floor, buf.HP, x_out,
+                                          P_out)
+    mon.n_lu[0] += how == LU
+    if how > LU:  # S singular
+        return SINGULAR, holdoff, (idx, kept, r, S), nis
+    n_keep, holdoff = _screen(mon, t_k, idx, zn, normalise(r, S, mon.gate, zn), holdoff, gated)
+    if n_keep < n_s:  # a minority left out: the update without them
+        kept = np.empty(n_keep, np.int64)
+        j = 0
+        for i in range(n_s):
+            sampled[idx[i]] = gated[i]
+            if gated[i]:
+                kept[j] = idx[i]
+                j += 1
+        nis, how, finite, r, S = condition_on(sampled, z, buf.P_pred, y, y_pred, H, mon.Rd, mon.floor, buf.HP,
+                                              x_out, P_out)
+        mon.n_lu[0] += how == LU
+        if how > LU:
+            return SINGULAR, holdoff, (idx, kept, r, S), nis
+    return LOOP_DONE if finite else NONFINITE, holdoff, (idx, kept, r, S), nis
+
+
+def _record(rec, k, x, P, last, nis, m):  # pragma: no cover - compiled into the loop
+    """Sample ``k`` done, its posterior ``x, P``: recorded (:class:`Record`), element by element (a row or slice
+    assignment compiles numba's shape checks and their messages into the loop, which then takes far longer to
+    compile)."""
+    n_x = x.shape[0]
+    kept, r, S = last[1], last[2], last[3]
+    for i in range(n_x):
+        rec.x[k, i] = x[i]
+        if rec.P_kind == 0:
+            rec.P[k, i] = P[i, i]
+        elif rec.P_kind == 1:
+            for j in range(n_x):
+                rec.P[k, i * n_x + j] = P[i, j]
+    if rec.inn.shape[0]:  # the channels updated with (the others stay NaN)
+        for i in range(kept.shape[0]):
+            rec.inn[k, kept[i]] = r[i]
+            for j in range(kept.shape[0]):
+                rec.S[k, kept[i] * m + kept[j]] = S[i, j]
+    rec.nis[k] = nis
+    rec.dof[k] = kept.shape[0]
+
+
+def _given(t_k, y, holdoff, buf, mon, rec, z, F, Q, y_pred, H):  # pragma: no cover - compiled
+    """One sample with the model's prediction ``z, F, Q`` and measurement ``y_pred, H`` given (a model without a
+    compiled step: :meth:`.ekf.MultirateEKF.step`), at ``t_k`` with the measurement ``y``: :func:`_sample` into
+    ``buf.x_alt, buf.P_alt``, recorded in ``rec``'s row 0. Returns ``(status, holdoff, last)`` (:func:`samples`).
+    A separate entry from :func:`samples`: its arguments are few (a call costs numba's unboxing of each array)."""
+    buf, mon, rec = Buffers(*buf), Monitors(*mon), Record(*rec)
+    status, holdoff, last, nis = _sample(t_k, y, z, F, Q, y_pred, H, holdoff, buf, mon, buf.x_alt, buf.P_alt)
+    if status == LOOP_DONE:
+        _record(rec, 0, buf.x_alt, buf.P_alt, last, nis, y.shape[0])
+    return status, holdoff, last
+
+
+def _samples(t, U, Y, k0, k1, holdoff, rows_made, buf, mon, rec, step, state, extras):  # pragma: no cover - compiled
+    """Samples ``k0 .. k1 - 1`` (module docstring) through the model's compiled step, ``holdoff`` updates of the
+    hold-off after an input step left, ``rows_made``: the model's measurement rows were made for the prediction at
+    ``k0`` (they serve it wherever it lies, as :meth:`.reduced.ReducedObserverModel.measure` takes rows it has just
+    made), the filter's :class:`Buffers`, :class:`Monitors` and :class:`Record`, the model's
+    :class:`.base.LoopModel` parts ``step``, ``state``, ``extras`` (None for a plain state: numba prunes the
+    augmented branches).
 
     Returns ``(k, status, holdoff, swapped, state, mats, last)``: the first sample not done, why, the hold-off left,
     whether the current state is in the ``_alt`` buffers, the model's carried state, the last interval's held
@@ -240,8 +331,6 @@ def _samples(t, U, Y, k0, k1, holdoff, rows_made, buf, mon, rec, step, state, ex
     x, x_alt, P, P_alt = buf.x, buf.x_alt, buf.P, buf.P_alt
     m = Y.shape[1]
     n_x = x.shape[0]
-    sampled = np.empty(m, np.bool_)
-    keep = np.empty(m, np.bool_)
     y_pred = np.empty(m)
     H = np.zeros((m, n_x))  # (the columns beyond the model's rows stay zero)
     none = np.empty((0, 0))
@@ -255,96 +344,29 @@ def _samples(t, U, Y, k0, k1, holdoff, rows_made, buf, mon, rec, step, state, ex
         stepped = step_statistic(U[k - 1], U[k], mon.step_w) > mon.step_thr
         if stepped:  # an input step: the hold-off from this sample's update on (its transient is the model's)
             holdoff = mon.step_holdoff
+        status, z, F, Qk, mats_k, state = cached_interval(step, extras, state, x, U[k - 1], U[k], t[k] - t[k - 1],
+                                                          k == k0, k, P)
+        if status != LOOP_DONE:
+            break
         n_s = 0
         for i in range(m):
-            sampled[i] = math.isfinite(Y[k, i])
-            if sampled[i]:
-                n_s += 1
-        if given is None:
-            status, z, F, Qk, mats_k, state = cached_interval(step, extras, state, x, U[k - 1], U[k],
-                                                              t[k] - t[k - 1], k == k0, k, P)
-            if status != LOOP_DONE:
+            n_s += math.isfinite(Y[k, i])
+        if n_s:
+            status = cached_rows(step, z, y_pred, H, rows_made and k == k0)
+            if status != LOOP_DONE:  # (ROWS: the prediction, for the model's new rows, in the buffer not written)
+                for i in range(n_x):
+                    x_alt[i] = z[i]
                 break
-        else:
-            z, F, Qk, y_pred, H = given
-            mats_k = mats
-        if F.shape[0]:
-            predict_cov(F, P, Qk, buf.P_pred, buf.work)
-        else:  # the first sample: the prior is the prediction
-            for i in range(n_x):
-                for j in range(n_x):
-                    buf.P_pred[i, j] = P[i, j]
-        idx = np.empty(n_s, np.int64)  # the channels sampled
-        j = 0
-        for i in range(m):
-            if sampled[i]:
-                idx[j] = i
-                j += 1
-        kept, n_keep, nis, r, S = idx, n_s, math.nan, np.empty(0), none
-        if n_s == 0:  # a prediction only
-            for i in range(n_x):
-                x_alt[i] = z[i]
-                for j in range(n_x):
-                    P_alt[i, j] = buf.P_pred[i, j]
-            finite = settle(x_alt, P_alt, mon.floor)
-        else:
-            if given is None:
-                status = cached_rows(step, z, y_pred, H, rows_made and k == k0)
-                if status != LOOP_DONE:  # (ROWS: the prediction, for the model's new rows, in the buffer not written)
-                    for i in range(n_x):
-                        x_alt[i] = z[i]
-                    break
-            nis, how, finite, r, S = condition_on(sampled, z, buf.P_pred, Y[k], y_pred, H, mon.Rd, mon.floor,
-                                                  buf.HP, x_alt, P_alt)
-            mon.n_lu[0] += how == LU
-            if how > LU:  # S singular
-                status = SINGULAR
-                break
-            zn = np.empty(n_s)
-            gated = np.empty(n_s, np.bool_)
-            n_keep, holdoff = _screen(mon, t[k], idx, zn, normalise(r, S, mon.gate, zn), holdoff, gated)
-            if n_keep < n_s:  # a minority left out: the update without them
-                kept = np.empty(n_keep, np.int64)
-                j = 0
-                for i in range(m):
-                    keep[i] = False
-                for i in range(n_s):
-                    if gated[i]:
-                        keep[idx[i]] = True
-                        kept[j] = idx[i]
-                        j += 1
-                nis, how, finite, r, S = condition_on(keep, z, buf.P_pred, Y[k], y_pred, H, mon.Rd, mon.floor,
-                                                      buf.HP, x_alt, P_alt)
-                mon.n_lu[0] += how == LU
-                if how > LU:
-                    status = SINGULAR
-                    break
-        last = (idx, kept, r, S)
-        if not finite:
-            status = NONFINITE
+        status, holdoff, last, nis = _sample(t[k], Y[k], z, F, Qk, y_pred, H, holdoff,
+                                             Buffers(x, x_alt, P, P_alt, buf.P_pred, buf.work, buf.HP), mon, x_alt,
+                                             P_alt)
+        if status != LOOP_DONE:
             break
-        if n_s == 0:  # a prediction only: the monitor's "missing" test
-            _screen(mon, t[k], idx, r, 0, holdoff, keep)
         x, x_alt = x_alt, x
         P, P_alt = P_alt, P
         swapped = not swapped
         mats = mats_k
-        # the record, element by element (a row or slice assignment compiles numba's shape checks and their
-        # messages into the loop, which then takes far longer to compile)
-        for i in range(n_x):
-            rec.x[k, i] = x[i]
-            if rec.P_kind == 0:
-                rec.P[k, i] = P[i, i]
-            elif rec.P_kind == 1:
-                for j in range(n_x):
-                    rec.P[k, i * n_x + j] = P[i, j]
-        if rec.inn.shape[0]:  # the channels updated with (the others stay NaN)
-            for i in range(n_keep):
-                rec.inn[k, kept[i]] = r[i]
-                for j in range(n_keep):
-                    rec.S[k, kept[i] * m + kept[j]] = S[i, j]
-        rec.nis[k] = nis
-        rec.dof[k] = n_keep
+        _record(rec, k, x, P, last, nis, m)
         if rec.x_pred.shape[0]:
             for i in range(n_x):
                 rec.x_pred[k, i] = z[i]
@@ -373,30 +395,20 @@ try:  # numba is a core dependency; without it the loop runs as plain (slow) Pyt
     _inline = numba.njit(inline="always", nogil=True, error_model="numpy", no_cfunc_wrapper=True)
     _event, _missing, _verdicts = _inline(_event), _inline(_missing), _inline(_verdicts)
     screen = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_screen)
-    _screen = _inline(_screen)
+    _screen, _sample, _record = _inline(_screen), _inline(_sample), _inline(_record)
+    given = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_given)
     samples = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_samples)
 except ImportError:  # pragma: no cover
-    samples, screen = _samples, _screen
+    samples, screen, given = _samples, _screen, _given
 
 
 def plain(buf: Buffers, mon: Monitors, rec: Record, step=None, state=None) -> tuple:
-    """The arguments :func:`samples` takes for ``buf``, ``mon``, ``rec`` and the model's ``step``
-    (:class:`.expansion.CachedStep`) and ``state`` (:class:`.expansion.LoopState`): the same, as plain tuples
-    (None: placeholders, for a sample with its prediction given: numba prunes a branch on ``given is None`` only
-    where ``given`` is None, so the other branch must compile with the types of a model's step)."""
+    """The arguments :func:`samples` (:func:`given`: without ``step``, ``state``) takes for ``buf``, ``mon``,
+    ``rec`` and the model's ``step`` (:class:`.expansion.CachedStep`) and ``state`` (:class:`.expansion.LoopState`):
+    the same, as plain tuples."""
     if step is None:
-        global _PLACEHOLDERS
-        if _PLACEHOLDERS is None:
-            v, m, c = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1))
-            step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c,
-                              c, c, v, _example_system(1, 1))
-            state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
-            _PLACEHOLDERS = (*step[:-1], tuple(step.system)), (tuple(state.map), *state[1:])
-        return (tuple(buf), tuple(mon), tuple(rec), *_PLACEHOLDERS)
+        return tuple(buf), tuple(mon), tuple(rec)
     return tuple(buf), tuple(mon), tuple(rec), (*step[:-1], tuple(step.system)), (tuple(state.map), *state[1:])
-
-
-_PLACEHOLDERS = None
 
 
 def no_windows(m: int) -> tuple:
@@ -407,17 +419,19 @@ def no_windows(m: int) -> tuple:
 
 
 def warm_up(compiled: str | None = None) -> None:
-    """Compile (or load from numba's on-disk cache) :func:`samples` for the argument types the filter passes: called
-    with no sample to do (``k0 = k1``), it returns at once. Always the specialisation for a given sample's prediction
-    and :func:`screen`; ``compiled`` "plain" or "augmented": that of a model's compiled step for a plain or an
-    augmented state (with :func:`.expansion.extra_interval`)."""
-    v, m, n = np.zeros(1), np.zeros((1, 1)), np.zeros(1, dtype=np.int64)
+    """Compile (or load from numba's on-disk cache) the loop for the argument types the filter passes: called with
+    no sample to do (``k0 = k1``), :func:`samples` returns at once. Always :func:`given` and :func:`screen`;
+    ``compiled`` "plain" or "augmented": :func:`samples` over a model's compiled step for a plain or an augmented
+    state (with :func:`.expansion.extra_interval`)."""
+    v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
     buf = Buffers(v, v, m, m, m, m, m)
     mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, v, m, n, False, n, v, 0.0, 0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
-    args = plain(buf, mon, rec)
-    samples(v, m, m, 1, 1, 0, False, *args, None, (v, m, m, v, m))
+    given(0.0, v, 0, *plain(buf, mon, rec), v, m, m, v, m)
     screen(mon, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
     if compiled is not None:
+        step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c,
+                          c, v, _example_system(1, 1))
+        state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
         extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if compiled == "augmented" else None
-        samples(v, m, m, 1, 1, 0, False, *args, extras, None)
+        samples(v, m, m, 1, 1, 0, False, *plain(buf, mon, rec, step, state), extras)
