@@ -472,7 +472,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     start. ``stats`` (a dict) receives the solver's
     statistics and the setup time.
     """
-    from .simulate import DamperSchedule, _interp_table
+    from .simulate import DamperSchedule, _interp_table, step_end_torques
 
     exu, _ = _exu()
     n_steps, every = step_grid(h, duration, output_dt)
@@ -483,7 +483,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     nm = len(mech.motors)
     t_steps = np.arange(n_steps + 1) * h
     tau = _interp_table(t_table, torque_table, t_steps, nm) if nm else np.zeros((n_steps + 1, 0))
-    tau_end = 0.5 * (tau[:-1] + tau[1:])  # torque at the end t_k+1 of step k (simulate_truth's Notes)
+    tau_end = step_end_torques(t_table, torque_table, h, n_steps, every, nm)  # at the end t_k+1 of step k
     sd = mbs.systemData
     ref = np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Reference))
     n_out = n_steps // every + 1
