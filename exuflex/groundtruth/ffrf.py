@@ -462,9 +462,9 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
                   newton_tol: float = 1e-4, spectral_radius: float = 0.9, stats: dict | None = None) -> ProbeRecord:
     """Simulate the FFRF model of ``mech`` from rest at ``q0`` under tabulated motor torques; record the probes.
 
-    Same contract as :func:`exuflex.groundtruth.simulate_truth` (torque table in ``mech.motors`` order, linearly
-    interpolated at the step times and applied as the mean of the held values either side of each step's end, so
-    that generalized-alpha sees the ERLS engine's zero-order hold without lag; probes every ``output_dt``; slopes
+    Same contract as :func:`exuflex.groundtruth.simulate_truth` (torque table in ``mech.motors`` order, its zero-order
+    hold applied at each step's end as the ERLS engine's generalized-alpha does, :func:`.simulate.step_end_torques`:
+    without lag, and a record holds nothing of a torque switched at its instant; probes every ``output_dt``; slopes
     on the branch of the ERLS pose at ``q0``). ``messages`` receives the meshing and modes' progress lines;
     ``mesh_scale``, ``mode_factor``, ``damping``: :func:`build_ffrf`; the alpha damper is refreshed on
     :class:`~exuflex.groundtruth.simulate.DamperSchedule` (``damping_update``, ``damping_tol``: as in
