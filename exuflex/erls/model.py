@@ -277,17 +277,89 @@ class ErlsModel:
         K[self.nq :, self.nq :] = self.T.T @ cfg.K_N @ self.T
         return K
 
-    def damping(self, cfg: Configuration) -> np.ndarray:
-        """The damping matrix C (n x n) of the form: ``"lagrange"``: ``diag(0, alpha M_e + beta K_uu)`` with
-        :meth:`elastic_mass` ``M_e``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
+    def damping(self, cfg: Configuration, x: np.ndarray | None = None) -> np.ndarray:
+        """The damping matrix C (n x n) of the form at the configuration ``cfg`` and state ``x`` (``None``: the
+        elastic coordinates zero). ``"lagrange"``: ``C(x) = L^T (alpha P + beta K_N) L`` with the strain-rate map
+        ``L = [-Y(x), T]`` (:meth:`turned_rates`) and ``P`` the mass relative to the rigid motion, so that ``v^T C
+        v / 2`` is the dissipation function of the link-relative rates; at ``u = 0``: ``diag(0, alpha M_e + beta
+        K_uu)`` (:meth:`elastic_mass`). ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
         docstring, "Damping")."""
         C = np.zeros((self.n, self.n))
         if self.form == "eq2":
             C[:, self.nq :] = cfg.W.T @ (self.alpha * (cfg.M_N @ self.T) + self.beta * (cfg.K_N @ self.T))
             return C
-        Tt = self.T.T
-        C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
-        return C
+        if x is None or not np.any(x[self.nq :]):
+            Tt = self.T.T
+            C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
+            return C
+        L = np.hstack([-self.turned_rates(cfg, x), self.T])
+        return L.T @ self._damping_products(cfg, L)
+
+    def turned_rates(self, cfg: Configuration, x: np.ndarray) -> np.ndarray:
+        """``Y`` (N, nq): the nodal rates of the elastic displacements ``d = T u`` turned with their links per unit
+        ``q'``, ``Y q' = Omega d`` with ``Omega`` the block-diagonal ``theta_n' G3`` over the nodes (``theta_n'``
+        the rate of node n's link, ``G3 = [[0, -1, 0], [1, 0, 0], [0, 0, 0]]``). The strain rate in the global frame
+        is ``s = T u' - Y q' = R d(R^T d)/dt`` (module docstring, "Damping"); ``Y`` is linear in ``u``."""
+        d = self.T @ x[self.nq :]
+        Gd = np.zeros(self.N)
+        Gd[0::3], Gd[1::3] = -d[1::3], d[0::3]
+        return Gd[:, None] * self._node_rates(cfg)
+
+    def _node_rates(self, cfg: Configuration) -> np.ndarray:
+        """(N, nq): the rate of every nodal dof's link angle per unit ``q'`` (the rigid rotation rows of ``S``)."""
+        return np.repeat(cfg.pose.S[2::3], 3, axis=0)
+
+    def _damping_products(self, cfg: Configuration, s: np.ndarray) -> np.ndarray:
+        """``(alpha P + beta K_N) s`` for nodal rates ``s`` (N,) or (N, k), ``P = M_N - M_N S (S^T M_N S)^-1 S^T
+        M_N``."""
+        S = cfg.pose.S
+        MS = cfg.M_N @ S
+        f = self.beta * (cfg.K_N @ s)
+        if self.alpha:
+            f = f + self.alpha * (cfg.M_N @ s - MS @ np.linalg.solve(S.T @ MS, MS.T @ s))
+        return f
+
+    def damping_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``C(x) v`` (n,) as products (:meth:`damping`), the gradient in ``v`` of the dissipation function ``v^T
+        C(x) v / 2`` (the generalized damping force is its negative). ``"lagrange"``: ``L^T (alpha P + beta K_N) s``
+        with the strain rate ``s = T u' - Y q'``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T u'``."""
+        nq = self.nq
+        Tud = self.T @ v[nq:]
+        if self.form == "eq2":
+            return cfg.W.T @ (self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud))
+        out = np.zeros(self.n)
+        if np.any(x[nq:]):
+            Y = self.turned_rates(cfg, x)
+            f = self._damping_products(cfg, Tud - Y @ v[:nq])
+            out[:nq] = -Y.T @ f
+        else:
+            f = self._damping_products(cfg, Tud)
+        out[nq:] = self.T.T @ f
+        return out
+
+    def damping_position_jacobian(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``d(C(x) v)/du`` (n, ne) of the ``"lagrange"`` form's damping forces, exact (they are bilinear in ``u``
+        and ``v`` at a configuration): with ``s = T u' - Y q'``, ``ds/du = -diag(w) G3 T`` (``w``: every nodal dof's
+        link rate) and ``f = (alpha P + beta K_N) s``, ``d(L^T f)/du = L^T (alpha P + beta K_N) ds/du`` plus the
+        change of ``-Y^T`` in the q rows, ``-(diag(f) Sigma)^T G3 T`` (``Sigma``: :meth:`_node_rates`). Their change
+        with ``q`` (through ``S``, ``P``, ``K_N``) is not part of it; the eq2 form: zero (its damping does not depend
+        on ``u``)."""
+        nq = self.nq
+        if self.form == "eq2" or not (self.alpha or self.beta):
+            return np.zeros((self.n, self.ne))
+        Sig = self._node_rates(cfg)
+        w = Sig @ v[:nq]
+        GT = np.zeros((self.N, self.ne))
+        GT[0::3], GT[1::3] = -self.T[1::3], self.T[0::3]
+        dsdu = -w[:, None] * GT
+        Y = self.turned_rates(cfg, x)
+        s = self.T @ v[nq:] - Y @ v[:nq]
+        f = self._damping_products(cfg, s)
+        Zd = self._damping_products(cfg, dsdu)
+        out = np.empty((self.n, self.ne))
+        out[:nq] = -Y.T @ Zd - (Sig * f[:, None]).T @ GT
+        out[nq:] = self.T.T @ Zd
+        return out
 
     def elastic_mass(self, cfg: Configuration) -> np.ndarray:
         """``M_e = M_uu - M_uq M_qq^-1 M_qu`` (ne x ne): the mass of the elastic rates relative to the rigid
@@ -405,16 +477,19 @@ class ErlsModel:
 
     def state_matrix(self, cfg: Configuration, x: np.ndarray | None = None,
                      v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 K, -M^-1 (C + dh/dv)]]``
-        (2n x 2n), with the velocity forces' Jacobian at ``(x, v)`` if given (none at rest)."""
+        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 (K + dCv/du), -M^-1 (C
+        + dh/dv)]]`` (2n x 2n), with the damping at ``x`` and the velocity forces' and damping forces' Jacobians at
+        ``(x, v)`` if given (none at rest; ``dCv/du``: :meth:`damping_position_jacobian`, in the u columns)."""
         n = self.n
         Minv = np.linalg.inv(self.mass(cfg))
-        C = self.damping(cfg)
+        C = self.damping(cfg, x)
+        K = self.stiffness(cfg)
         if v is not None:
             C = C + self.velocity_force_jacobian(cfg, x, v)
+            K[:, self.nq :] += self.damping_position_jacobian(cfg, x, v)
         A = np.zeros((2 * n, 2 * n))
         A[:n, n:] = np.eye(n)
-        A[n:, :n] = -Minv @ self.stiffness(cfg)
+        A[n:, :n] = -Minv @ K
         A[n:, n:] = -Minv @ C
         return A, Minv
 
@@ -480,14 +555,7 @@ class ErlsModel:
         # K_uu u = T^T K_N T u and the damping as matrix-vector products
         rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
         if self.alpha or self.beta:
-            Tud = T @ v[nq:]
-            Cud = self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud)
-            if self.form == "eq2":  # W^T C_N T u': also the q rows
-                rhs -= cfg.W.T @ Cud
-            else:  # (alpha M_e + beta K_uu) u' with M_e = M_uu - M_uq M_qq^-1 M_qu
-                S = cfg.pose.S
-                MS = cfg.M_N @ S
-                rhs[nq:] -= Tt @ Cud - self.alpha * (Tt @ (MS @ np.linalg.solve(S.T @ MS, MS.T @ Tud)))
+            rhs -= self.damping_forces(cfg, x, v)
         return rhs
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
@@ -515,8 +583,8 @@ class ErlsModel:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
         M_uu = self.mass(cfg)[nq:, nq:]
-        D = (self.damping(cfg) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
-        K_uu = self.T.T @ cfg.K_N @ self.T
+        D = (self.damping(cfg, x) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
+        K_uu = self.T.T @ cfg.K_N @ self.T + self.damping_position_jacobian(cfg, x, v)[nq:]
         return -np.linalg.solve(M_uu, np.hstack([K_uu, D]))
 
     def rhs(self, t: float, y: np.ndarray, tau: np.ndarray) -> np.ndarray:

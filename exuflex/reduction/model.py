@@ -171,7 +171,7 @@ class ReducedModel:
         if self.compiled and not forces and (dHdq is not None or not self.consistent):
             J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
                 p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
-                rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
+                cfg.K_N, rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
             return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
         J = H
         a_b = None
@@ -191,12 +191,15 @@ class ReducedModel:
         Kuu = rc.Kuu
         JtK = Ju.T @ Kuu
         Kr = JtK @ Hu
-        if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha M_e + beta K_uu) J_u, thin products only
+        if model.alpha or model.beta:  # J^T C(H p) J: the dissipation of the strain rate T J_u p' - Y q'
             TJ = T @ Ju
+            turned = self.consistent and np.any(p[nq:])
+            if turned:  # the elastic displacement turned with the links is no strain rate (ErlsModel.damping)
+                TJ[:, :nq] -= model.turned_rates(cfg, H @ p)
             MS = cfg.M_N @ cfg.pose.S
             X = TJ.T @ MS  # M_e = T^T M_N T - M_uq M_qq^-1 M_qu (ErlsModel.elastic_mass)
             Cr = (model.alpha * (TJ.T @ (cfg.M_N @ TJ) - X @ np.linalg.solve(cfg.pose.S.T @ MS, X.T))
-                  + model.beta * (JtK @ Ju))
+                  + model.beta * (TJ.T @ (cfg.K_N @ TJ) if turned else JtK @ Ju))
         else:
             Cr = np.zeros((self.r, self.r))
         Gr = WJ.T @ model.B_N
@@ -253,21 +256,29 @@ class ReducedModel:
         H = rc.H
         dHu = dHdq[nq:, nq:, :]  # (r - nq, ne, nq): d(H_u e_k)/dq of the elastic coordinates
         A = model.T @ dHu  # (r - nq, N, nq)
+        # the strain rate's rigid columns: A_k minus the turned rates of H e_k (ErlsModel.turned_rates)
+        x_k = np.zeros(model.n)
+        E = np.empty_like(A)
+        for k in range(r - nq):
+            x_k[nq:] = H[nq:, nq + k]
+            E[k] = model.turned_rates(cfg, x_k)
         At = np.swapaxes(A, 1, 2)
+        As = A - E
+        Ast = np.swapaxes(As, 1, 2)
         WH = cfg.W @ H
         S = cfg.pose.S
         MS = cfg.M_N @ S
         TH = model.T @ H[nq:]
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
-        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
+        pC = model.alpha * (Ast @ PTH) - model.beta * (np.swapaxes(E, 1, 2) @ (cfg.K_N @ TH))
+        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), pC, At @ BG)
         # the damping's second order as a Gram matrix over (k, i)
         n = r - nq
-        A2 = A.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: A_k e_i
+        A2 = As.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: (A_k - E_k) e_i
         MA2 = cfg.M_N @ A2
         PA2 = MA2 - MS @ np.linalg.solve(S.T @ MS, MS.T @ A2)
-        dH2 = dHu.transpose(1, 0, 2).reshape(-1, n * nq)
-        GC = model.alpha * (A2.T @ PA2) + model.beta * (dH2.T @ (rc.Kuu @ dH2))
+        GC = model.alpha * (A2.T @ PA2) + model.beta * (A2.T @ (cfg.K_N @ A2))
         k, l = np.triu_indices(n)
         i, j = np.triu_indices(nq)
         kl = ((k * nq)[None, :] + i[:, None], (l * nq)[None, :] + j[:, None])  # X_kl's entry i <= j
