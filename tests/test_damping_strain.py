@@ -82,7 +82,7 @@ def _turned(model: ErlsModel, x: np.ndarray, qd: np.ndarray, h: float = 1e-6) ->
         dth = model.configuration(x[:nq] + t * qd).pose.link_angles - th0
         Rn = rotation(dth[model.kin.node_link])[:, :3, :3]
         d = np.einsum("nij,nj->ni", Rn, d0).ravel()
-        u, res, *_ = np.linalg.lstsq(model.T, d, rcond=None)
+        u, *_ = np.linalg.lstsq(model.T, d, rcond=None)
         assert np.abs(model.T @ u - d).max() < 1e-12  # the turned field is one of the model's
         return u
 

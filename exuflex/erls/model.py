@@ -29,10 +29,10 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]`` with the symmetric
     ``M_N' = sum_e theta_e' R_e (G m_e - m_e G) R_e^T`` (``S' = dS/dt``; the terms of ``dW/dq``
     cancel because ``d^2 r/dq_j dq_k`` is symmetric). The two q-row terms are second order in the
-    elastic motion. ``C = diag(0, C_uu)`` with ``C_uu = alpha M_e + beta K_uu``: Rayleigh damping as the
-    dissipation function ``u'^T C_uu u' / 2`` of the elastic rates (see "Damping" below). Exactly
-    energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q`` (``tests/test_energy.py``). ``M_N' S q'`` is not
-    zero under pure rigid motion.
+    elastic motion. ``C(x) = L^T (alpha P + beta K_N) L``: Rayleigh damping as the dissipation function
+    ``v^T C v / 2`` of the strain rate ``s = L v`` (see "Damping" below; ``diag(0, alpha M_e + beta K_uu)`` at
+    ``u = 0``). Exactly energy-consistent, ``dE/dt = -v^T C v + v^T Q`` (``tests/test_energy.py``).
+    ``M_N' S q'`` is not zero under pure rigid motion.
 ``form="eq2"`` (the paper's eq. 2 as written)
     Virtual work with ``delta p = R N R^T delta b`` and the acceleration
     ``p'' = R N R^T b'' + 2 theta' R (G2 N - N G) R^T u' + (terms in theta'^2 u and theta'' u)``, the
@@ -45,19 +45,42 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
 
 Damping. The model file's ``alpha``, ``beta`` are the Rayleigh damping of the free elastic modes: each mode
 of ``M(q) x'' + C x' + K x = 0`` at rest (motors free) has the damping ratio ``alpha / (2 w) + beta w / 2``.
-``K = diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, and the elastic modes
-are M-orthogonal to them: ``M_qq phi_q + M_qu phi_u = 0``, the ERLS counter-rotates against the deformation.
-A mode's kinetic energy is therefore ``phi^T M phi = phi_u^T M_e phi_u`` with the Schur complement
-``M_e = M_uu - M_uq M_qq^-1 M_qu`` (``M_qq = S^T M_N S``, ``M_qu = S^T M_N T``), and
-``u'^T M_e u' = min_a |S a + T u'|^2_{M_N}``: twice the kinetic energy of the elastic rates relative to the
-rigid mechanism motion that carries their momentum. ``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K =
-diag(0, alpha M_e + beta K_uu)`` then gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on the
-mass-normalised elastic modes and ``C E = 0``: the Rayleigh ratios exactly, no force on rigid motion and none
-on a counter-rotation of the ERLS that leaves the bodies' motion rigid (``alpha M_uu`` would damp it).
-``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I] + beta K`` in the u columns): also the
-Rayleigh ratios (its state matrix is block-triangular in rigid and elastic modal coordinates), but with
-forces in the q rows that no dissipation function gives. ``tests/test_damping.py`` checks both forms' ratios
-against the formula from the state matrix's eigenvalues.
+
+The ``"lagrange"`` form damps the strain rate, not the global rate ``u'``. ``u`` is global, so ``d = T u``
+turns with the links: with the element-frame displacement ``e = R^T d`` (``R`` the element's, i.e. its link's,
+rotation), ``R e' = d' - theta' G d``. A bent link turning rigidly has ``e' = 0`` but ``d' = theta' G d != 0``:
+a damping on ``u'`` would brake it, a joint damping that material damping (a law in the strain rate, invariant
+under rigid rotation; Exudyn's beams' ``bendingDamping`` and ``axialDamping``) does not have. The strain rate in
+global components, node by node with its link's rate ``theta_n' = S_n q'`` (the rotation rows of ``S``), is
+
+``s = T u' - Y(u) q' = L v``, ``L = [-Y, T]``, ``Y[:, j] = (G3 T u) * S_theta[:, j]``
+
+(:meth:`ErlsModel.turned_rates`; ``G3`` turns each node's translation by 90 degrees and leaves its rotation
+alone; ``Y`` is linear in ``u``). The dissipation function is
+
+``D = beta/2 s^T K_N s + alpha/2 min_a |S a + s|^2_{M_N} = v^T C(x) v / 2``,
+``C(x) = L^T (alpha P + beta K_N) L``, ``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``,
+
+``beta s^T K_N s = beta sum_e e_e'^T K_e e_e'``: the element strain energy's form in the element-frame rates,
+the Kelvin-Voigt law of the beam elements. ``alpha``: the kinetic energy of the strain rates relative to the rigid
+mechanism motion that carries their momentum (the ERLS counter-rotates against the deformation; ``alpha M_uu``
+on ``u'`` would damp that rigid counter-rotation). The generalized damping force is ``-dD/dv = -C(x) v`` on all
+coordinates: the q rows get ``Y^T (alpha P + beta K_N) s`` (the rotation rate is part of the strain rate). ``C``
+is symmetric positive semidefinite, so the damping only dissipates, and ``s = 0``, ``C v = 0`` for the rates of
+a rigid turning with every link's deflection held (``T u' = Y q'``). Its change with ``u`` at fixed ``v`` is
+:meth:`ErlsModel.damping_position_jacobian` (the implicit engine's iteration matrix and the state matrix
+use it).
+
+At rest (``u = 0``) ``L = [0, T]`` and ``C = diag(0, alpha M_e + beta K_uu)`` with the Schur complement ``M_e =
+M_uu - M_uq M_qq^-1 M_qu`` (:meth:`ErlsModel.elastic_mass`), so the free modes' ratios are Rayleigh's: ``K =
+diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, the elastic modes are
+M-orthogonal to them (``M_qq phi_q + M_qu phi_u = 0``), a mode's kinetic energy is ``phi_u^T M_e phi_u``, and
+``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K`` gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on
+the mass-normalised elastic modes and ``C E = 0``. ``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I]
++ beta K`` in the u columns, on the global ``u'``): also the Rayleigh ratios (its state matrix is
+block-triangular in rigid and elastic modal coordinates), but with forces in the q rows that no dissipation
+function gives. ``tests/test_damping.py`` checks both forms' ratios against the formula from the state matrix's
+eigenvalues; ``tests/test_damping_strain.py`` the strain-rate law against element-frame rates by differences.
 
 On rigid motion (``u = u' = 0``) the q rows of the two forms coincide (``M_N'`` and the ``dT/dq`` term
 cancel on rigid fields). On a uniformly spinning link the elastic rows of ``"eq2"`` are exactly the
@@ -293,7 +316,7 @@ class ErlsModel:
             C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
             return C
         L = np.hstack([-self.turned_rates(cfg, x), self.T])
-        return L.T @ self._damping_products(cfg, L)
+        return L.T @ self.damping_products(cfg, L)
 
     def turned_rates(self, cfg: Configuration, x: np.ndarray) -> np.ndarray:
         """``Y`` (N, nq): the nodal rates of the elastic displacements ``d = T u`` turned with their links per unit
@@ -309,7 +332,7 @@ class ErlsModel:
         """(N, nq): the rate of every nodal dof's link angle per unit ``q'`` (the rigid rotation rows of ``S``)."""
         return np.repeat(cfg.pose.S[2::3], 3, axis=0)
 
-    def _damping_products(self, cfg: Configuration, s: np.ndarray) -> np.ndarray:
+    def damping_products(self, cfg: Configuration, s: np.ndarray) -> np.ndarray:
         """``(alpha P + beta K_N) s`` for nodal rates ``s`` (N,) or (N, k), ``P = M_N - M_N S (S^T M_N S)^-1 S^T
         M_N``."""
         S = cfg.pose.S
@@ -330,10 +353,10 @@ class ErlsModel:
         out = np.zeros(self.n)
         if np.any(x[nq:]):
             Y = self.turned_rates(cfg, x)
-            f = self._damping_products(cfg, Tud - Y @ v[:nq])
+            f = self.damping_products(cfg, Tud - Y @ v[:nq])
             out[:nq] = -Y.T @ f
         else:
-            f = self._damping_products(cfg, Tud)
+            f = self.damping_products(cfg, Tud)
         out[nq:] = self.T.T @ f
         return out
 
@@ -354,8 +377,8 @@ class ErlsModel:
         dsdu = -w[:, None] * GT
         Y = self.turned_rates(cfg, x)
         s = self.T @ v[nq:] - Y @ v[:nq]
-        f = self._damping_products(cfg, s)
-        Zd = self._damping_products(cfg, dsdu)
+        f = self.damping_products(cfg, s)
+        Zd = self.damping_products(cfg, dsdu)
         out = np.empty((self.n, self.ne))
         out[:nq] = -Y.T @ Zd - (Sig * f[:, None]).T @ GT
         out[nq:] = self.T.T @ Zd

@@ -5,7 +5,8 @@ Two forms:
 - ``consistent=True`` (default): the velocity transformation is exact. Since ``H`` depends on ``q``,
   ``x' = J p'`` with ``J = H + [d(H p)/dq, 0]`` (the slave displacements follow the links as they turn and
   the static shapes change with the configuration), and the reduced equations are those of Lagrange on
-  the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C J``, ``K_r p -> J^T K H p`` and
+  the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C(H p) J`` (the damping of the strain rate,
+:meth:`~exuflex.erls.model.ErlsModel.damping`), ``K_r p -> J^T K H p`` and
   ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = 2 d(H p')/dq q'``. The exact
   ``(dJ/dt) p'`` also holds ``d^2(H p)/dq^2 [q', q']``, quadratic in ``q'`` and linear in the elastic
   coordinates; it is left out (it vanishes on undeformed states).
@@ -240,15 +241,21 @@ class ReducedModel:
         ``J = H + [d(H p)/dq, 0]`` is linear in ``p`` and changes only the rigid columns: with ``A_k = T d(H_u
         e_k)/dq`` (N, nq) the rigid columns of ``W J`` gain ``sum_k p_k A_k``, so to first order ``M_r`` gains
         ``pM_k = A_k^T M_N W J`` in its rigid rows and the transpose in its rigid columns, ``K_r = J_u^T K_uu
-        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, the alpha damping
-        ``alpha (T J_u)^T P (T J_u)`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass relative to the rigid
-        motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains ``pC_k = alpha A_k^T P T J_u`` (and
-        the transpose), and ``G_r = (W J)^T B_N`` and the weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N,
-        M_N g]`` (the weight the last column). The damping is quadratic in ``J``, so its rigid block gains a
-        second-order term too, ``p_k p_l X_kl`` with ``X_kl = alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu
-        d(H_u e_l)/dq``; ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight are linear in ``J``; ``M_r``'s second
-        order, ``p_k p_l A_k^T M_N A_l``, is left out (:func:`exuflex.observer.expansion._elastic_terms` says why).
-        The cached observer step holds its configurations undeformed and adds these terms."""
+        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, and ``G_r = (W J)^T B_N`` and the
+        weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N, M_N g]`` (the weight the last column). The damping acts
+        on the strain rate (:meth:`~exuflex.erls.model.ErlsModel.damping`), ``T J_u p' - Y(H p) q'`` with ``Y``
+        the deflection's rates turned with the links, linear in ``p``: per unit ``p_k`` its rigid columns gain
+        ``A_k - E_k``, ``E_k = Y(H e_k)`` (:meth:`~exuflex.erls.model.ErlsModel.turned_rates`). So ``C_r = (T J_u
+        - [Y, 0])^T (alpha P + beta K_N) (T J_u - [Y, 0])`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass
+        relative to the rigid motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains in its rigid rows
+        ``pC_k = alpha (A_k - E_k)^T P T H_u - beta E_k^T K_N T H_u`` (and the transpose; its remaining ``beta
+        A_k^T K_N T H_u`` is ``beta pK_k``, which the kernel adds with ``K_r``), and, being quadratic, its rigid
+        block ``p_k p_l X_kl`` with ``X_kl = (A_k - E_k)^T (alpha P + beta K_N) (A_l - E_l)``. Where the basis
+        turns with its links, ``E_k`` holds most of ``A_k``: what is damped is the shapes' change with the
+        configuration, not the deflection turned with its link. ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight
+        are linear in ``J``; ``M_r``'s second order, ``p_k p_l A_k^T M_N A_l``, is left out
+        (:func:`exuflex.observer.expansion._elastic_terms` says why). The cached observer step holds its
+        configurations undeformed and adds these terms."""
         if not self.consistent:
             return None
         model, nq, r = self.model, self.nq, self.r
