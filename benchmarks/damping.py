@@ -2,8 +2,8 @@
 and after; writes ``docs/damping.md``.
 
     python benchmarks/damping.py [--models NAME,...] [--acceptance BEFORE.json[,...] AFTER.json[,...]]
-                                 [--long BEFORE.json[,...] AFTER.json[,...]] [--label-before TEXT]
-                                 [--label-after TEXT] [--md docs/damping.md]
+                                 [--acceptance-labels BEFORE AFTER] [--long BEFORE.json[,...] AFTER.json[,...]]
+                                 [--long-labels BEFORE AFTER] [--md docs/damping.md]
 
 Turned deflection: for every model (the gallery and ``benchmarks/models/``), at ``q_ref`` with the first free
 elastic mode's shape scaled to a largest nodal translation of 1 mm, every coordinate ``q_j`` turned at 1 rad/s with
@@ -68,7 +68,7 @@ def turned_deflection(name: str, amplitude: float = 1e-3) -> dict:
             "names": list(mech.coordinate_names)}
 
 
-def page(models: list, acceptance: list | None, long: list | None, labels: tuple, md: str) -> None:
+def page(models: list, acceptance: list | None, long: list | None, labels: dict, md: str) -> None:
     from held_elastic import _acceptance
 
     L = ["# Damping on the strain rate", "",
@@ -107,25 +107,27 @@ def page(models: list, acceptance: list | None, long: list | None, labels: tuple
             L.append(f"| {r['model'] if j == 0 else ''} | {r['f1_hz']:.1f} | {q} | {r['old'][j]:.3g} | "
                      f"{r['new'][j]:.3g} |")
     L.append("")
-    for title, pair in (("The gallery", acceptance), ("The long arms", long)):
+    for title, pair, lab in (("The gallery", acceptance, labels["acceptance"]), ("The long arms", long,
+                                                                                 labels["long"])):
         if not pair:
             continue
         before, after = (_acceptance(p) for p in pair)
+        models_run = sorted({Path(m).stem for _, m in after})
         L += [f"## {title}: the filter's figures", "",
-              (f"`python benchmarks/gallery.py --acceptance --truth-dir DIR --models ... --seeds 1-10`, {labels[0]} "
-               f"against {labels[1]} (files: {pair[0]}; {pair[1]}): per quantity the mean over the seeds of RMS / "
-               "bound, and the NIS / channels. The Exudyn truths are the same runs before and after (Exudyn's "
-               "damping is its own); the ERLS and the reduced truths carry the model's damping and were made anew."),
-              ""]
+              (f"`python benchmarks/gallery.py --acceptance --truth-dir DIR --models MODELS --seeds 1-10` "
+               f"({', '.join(f'`{m}`' for m in models_run)}); before: {lab[0]}; after: {lab[1]} (the JSONs "
+               f"{pair[0]} and {pair[1]}): per quantity the mean over the seeds of RMS / bound, and the NIS / channels. The Exudyn "
+               "truths are the same runs before and after (Exudyn's damping is its own); the ERLS and the reduced "
+               "truths carry each code's damping and were made by it."), ""]
         for key in sorted(after):
             if key not in before:
                 continue
             quants = list(after[key])
             L += [f"### {key[1]}, {key[0]} truth (N = {after[key][quants[0]][1]})", "",
                   "| | " + " | ".join(quants) + " |", "|---|" + "---|" * len(quants),
-                  f"| {labels[0]} | " + " | ".join(f"{before[key][x][0]:.2f}" if x in before[key] else "-"
-                                                  for x in quants) + " |",
-                  f"| {labels[1]} | " + " | ".join(f"{after[key][x][0]:.2f}" for x in quants) + " |", ""]
+                  "| before | " + " | ".join(f"{before[key][x][0]:.2f}" if x in before[key] else "-"
+                                               for x in quants) + " |",
+                  "| after | " + " | ".join(f"{after[key][x][0]:.2f}" for x in quants) + " |", ""]
     Path(md).write_text("\n".join(L).rstrip() + "\n")
     print(f"wrote {md}")
 
@@ -135,11 +137,11 @@ def main(argv=None) -> int:
     ap.add_argument("--models", default=",".join(GALLERY + EXTRA))
     ap.add_argument("--acceptance", nargs=2, metavar=("BEFORE", "AFTER"), default=None)
     ap.add_argument("--long", nargs=2, metavar=("BEFORE", "AFTER"), default=None)
-    ap.add_argument("--label-before", default="global-rate law")
-    ap.add_argument("--label-after", default="strain-rate law")
+    ap.add_argument("--acceptance-labels", nargs=2, default=("global-rate law", "strain-rate law"))
+    ap.add_argument("--long-labels", nargs=2, default=("global-rate law", "strain-rate law"))
     ap.add_argument("--md", default=str(ROOT / "docs" / "damping.md"))
     a = ap.parse_args(argv)
-    page(a.models.split(","), a.acceptance, a.long, (a.label_before, a.label_after), a.md)
+    page(a.models.split(","), a.acceptance, a.long, {"acceptance": a.acceptance_labels, "long": a.long_labels}, a.md)
     return 0
 
 
