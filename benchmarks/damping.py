@@ -69,7 +69,7 @@ def turned_deflection(name: str, amplitude: float = 1e-3) -> dict:
 
 
 def page(models: list, acceptance: list | None, long: list | None, labels: dict, md: str) -> None:
-    from held_elastic import _acceptance
+    from held_elastic import _acceptance, comparison_tables
 
     L = ["# Damping on the strain rate", "",
          ("Written by `python benchmarks/damping.py` (its docstring has the options; the figures below come from "
@@ -119,15 +119,7 @@ def page(models: list, acceptance: list | None, long: list | None, labels: dict,
                f"{pair[0]} and {pair[1]}): per quantity the mean over the seeds of RMS / bound, and the NIS / channels. The Exudyn "
                "truths are the same runs before and after (Exudyn's damping is its own); the ERLS and the reduced "
                "truths carry each code's damping and were made by it."), ""]
-        for key in sorted(after):
-            if key not in before:
-                continue
-            quants = list(after[key])
-            L += [f"### {key[1]}, {key[0]} truth (N = {after[key][quants[0]][1]})", "",
-                  "| | " + " | ".join(quants) + " |", "|---|" + "---|" * len(quants),
-                  "| before | " + " | ".join(f"{before[key][x][0]:.2f}" if x in before[key] else "-"
-                                               for x in quants) + " |",
-                  "| after | " + " | ".join(f"{after[key][x][0]:.2f}" for x in quants) + " |", ""]
+        L += comparison_tables(before, after, ("before", "after"))
     Path(md).write_text("\n".join(L).rstrip() + "\n")
     print(f"wrote {md}")
 
