@@ -59,7 +59,7 @@ def noiseless_truth(path: Path, out: Path) -> Path:
     mech = load_mechanism(path)
     d = mech.manoeuvre.duration
     drive = plan_drive(mech, d, 1e-4, None)
-    rec = simulate(mech, drive, "erls", d, 1e-4)
+    rec = simulate(mech, drive, "erls", d, 1e-4, erls_step="auto")  # the truth step rule, as `exuflex simulate`
     meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=1, noise=False, quantisation=False, t_end=d)
     write_run(out, meas.signals, rec.truth, {"engine": "erls", "mechanism": mech.name, "seed": 1,
                                              "settings": {"duration_s": d, "noise": False}}, motors=mech.motor_names)
@@ -116,7 +116,7 @@ def observe(path: Path, run_dir: Path, cbs, repeats: int) -> dict:
 
 
 def page(rows: list[dict], args: str) -> str:
-    qs = lambda d: ", ".join(f"{k} {v:.2f}" for k, v in d.items())  # noqa: E731
+    qs = lambda d: ", ".join(f"{k} {v:.2f}" for k, v in d.items())
     lines = [
         "# The interior modes' filter requirement, checked",
         "",
@@ -127,8 +127,8 @@ def page(rows: list[dict], args: str) -> str:
         "For every model: the automatic interior modes without the filter requirement (the band's thresholds and the",
         "channels' truncated output, `CraigBampton(..., bias_max=0)`) and with it (the default), and the",
         "requirement's figure for each: per estimated quantity the steady filter's RMS error on the linearised full",
-        "model under the manoeuvre, in units of its bound (the square root of the figure limited to "
-        f"{BIAS_MAX:g}, i.e. {np.sqrt(BIAS_MAX):.2f}).",
+        ("model under the manoeuvre, in units of its bound (the square root of the figure limited to "
+        f"{BIAS_MAX:g}, i.e. {np.sqrt(BIAS_MAX):.2f})."),
         "Where the choices differ, the observer filters the full-order ERLS model's log without noise (no",
         "quantisation): its RMS error over the bound (this run's bound, along its truth) is the part of the",
         "acceptance ratio the reduction makes; with noise the ratio is about sqrt(1 + this^2). CPU: the filter's",
