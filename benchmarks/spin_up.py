@@ -75,7 +75,7 @@ def erls_tip(mech, form: str, law, duration: float, h: float, output_dt: float):
         x, v = xv(t, y)
         A = np.zeros((2 * ne, 2 * ne))
         A[:ne, ne:] = np.eye(ne)
-        A[ne:] = m.prescribed_jacobian(x, v)
+        A[ne:] = m.prescribed_jacobian(x, v, qdd=[law(t)[2]])
         return A
 
     tr = simulate(rhs, np.zeros(2 * ne), duration, lambda t: None, h=h, method="trapezoid", jac=jac,

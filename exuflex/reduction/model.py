@@ -172,7 +172,7 @@ class ReducedModel:
             J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
                 p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
                 rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
-            return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
+            return ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         J = H
         a_b = None
         if self.consistent:
@@ -190,7 +190,7 @@ class ReducedModel:
         T = model.T
         Kuu = rc.Kuu
         JtK = Ju.T @ Kuu
-        Kr = JtK @ Hu
+        Kr = JtK @ Hu + self.geometric_stiffness(rc, J)
         if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha M_e + beta K_uu) J_u, thin products only
             TJ = T @ Ju
             MS = cfg.M_N @ cfg.pose.S
@@ -225,6 +225,22 @@ class ReducedModel:
         if gradients:
             fm.elastic = self.elastic_forms(rc, dHdq)
         return mats, fm
+
+    def geometric_stiffness(self, rc: ReducedConfiguration, J: np.ndarray) -> np.ndarray:
+        """``J_u^T T^T K_G T H_u`` (r, r): the geometric stiffness of the static axial loads at the configuration
+        (:meth:`~exuflex.erls.model.ErlsModel.static_geometric`: the weight with the holding torques) reduced as
+        ``K_uu`` is, ``K_r = J_u^T (K_uu + T^T K_G T) H_u``; zero without (no gravity, or a model built with
+        ``geometric=False``). The basis stays that of ``K_uu`` (the Craig-Bampton shapes of the linear elastic
+        links; the static corrections take the model's stiffness with ``K_G``, :mod:`.static`). Left out: the
+        change of the axial loads with the motion (the full model's ``K_G(q, q', tau)``,
+        :meth:`~exuflex.erls.model.ErlsModel.net_forces`) and ``K_G``'s change with q in the held step's
+        gradients (``dKr2``, ``elastic_forms``: the linear elastic stiffness's only)."""
+        K_G = rc.cfg.K_G
+        if K_G is None:
+            return np.zeros((self.r, self.r))
+        nq, T = self.nq, self.model.T
+        TH = T @ rc.H[nq:]
+        return (T @ J[nq:]).T @ (K_G @ TH)
 
     def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
         """``(pM, pK, pC, pG, p2C)``: the change of the reduced matrices with the elastic coordinates at a
@@ -289,7 +305,8 @@ class ReducedModel:
             cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
             model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
             self.consistent, gradients)
-        mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
+        rc = ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
+        mats = ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, gradients)
         fm.dHdq = dHdq
         if gradients:
