@@ -124,10 +124,12 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
     if hs.has_old:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))
-    if hs.Wg.shape[0]:  # the weight by its gradient in q and, with a partner, its curvature along the secant
-        w = hs.Wg[:, :nq] @ dl
-        if hs.has_old:  # fg + (1 + s) Wg dl - s^2 (fg - old_fg), less the secant's s (fg - old_fg) in f already
-            w = (1.0 + s) * w - (s + s * s) * (hs.fg - hs.old_fg)
+    if hs.Wg.shape[0]:  # the weight by its gradient in q and, with a partner, half the gradient's change along the
+        # secant: fg + (Wg + s/2 (Wg - old_Wg)) dl, less the secant's s (fg - old_fg) in f already
+        Wq = hs.Wg[:, :nq] + 0.5 * s * (hs.Wg[:, :nq] - hs.old_Wg[:, :nq]) if hs.has_old else hs.Wg[:, :nq]
+        w = Wq @ dl
+        if hs.has_old:
+            w = w - s * (hs.fg - hs.old_fg)
         f = f + w
     if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
         f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
@@ -229,13 +231,16 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
         act = not (float(dl @ d) ** 2 < 0.49 * float(dl @ dl) * dd)
     ds = d / dd if act else np.zeros(nq)
     along = fk[0] - fk[1] if hs.has_old else 0.0
-    if hs.Wg.shape[0]:  # the weight to second order (expansion._held_model): (1 + s) (Wg dl - s (fg - fg_old))
+    if hs.Wg.shape[0]:  # the weight to second order (expansion._held_model): (Wg + s/2 dW) dl - s (fg - fg_old)
         wdl = hs.Wg[:, :nq] @ dl
-        dfg = hs.fg - hs.old_fg
-        f += (1.0 + s) * (wdl - s * dfg) if hs.has_old else wdl
-        dF[:, :nq] += (1.0 + s) * hs.Wg[:, :nq] if hs.has_old else hs.Wg[:, :nq]
+        f += wdl
+        dF[:, :nq] += hs.Wg[:, :nq]
         if hs.has_old:
-            along = along + wdl - (1.0 + 2.0 * s) * dfg
+            dW = hs.Wg[:, :nq] - hs.old_Wg[:, :nq]
+            dfg = hs.fg - hs.old_fg
+            f += 0.5 * s * (dW @ dl) - s * dfg
+            dF[:, :nq] += 0.5 * s * dW
+            along = along + 0.5 * (dW @ dl) - dfg
     if act:  # the secant factor's own change moves everything along the secant
         dF[:, :nq] += np.outer(along, ds)
     if n_el:

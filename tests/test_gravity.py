@@ -261,8 +261,8 @@ def _held_pair(som, q0: float, d: float):
 
 
 def test_held_weight_follows_the_configuration_to_second_order():
-    """The cached step's weight about a held configuration with a secant partner: ``fg + (1 + s) Wg dl - s^2 (fg -
-    fg_old)`` (:func:`exuflex.observer.expansion._held_model`), second order along the secant, so its error falls
+    """The cached step's weight about a held configuration with a secant partner: ``fg + (Wg + s/2 (Wg - Wg_old))
+    dl`` (:func:`exuflex.observer.expansion._held_model`), second order along the secant, so its error falls
     as the cube of the radius (the partner as far behind as ``q`` is ahead, as the refreshes place them; first
     order: the square). The vertical link at rest, 40 degrees below the horizontal, undeformed: one interval's
     state error against the configuration evaluated exactly, and the weight itself. On the linear elastic model:
@@ -289,8 +289,9 @@ def test_held_weight_follows_the_configuration_to_second_order():
         step.append(np.abs(held_step(z, u, np.array([h]), 1.0, dt / n, n, iv.system)[0] - want).max() / change)
         # without the partner's curvature: the weight to first order (s = 0 drops the secant altogether)
         first.append(np.abs(held_step(z, u, np.array([h]), 0.0, dt / n, n, iv.system)[0] - want).max() / change)
-        fg0, fg_old, fg_h = iv.forces.fg, iv.old.forces.fg, exact.forces.fg
-        expanded = fg0 + 2.0 * iv.forces.Wg[:, 0] * h - (fg0 - fg_old)  # s = 1
+        fg0, fg_h = iv.forces.fg, exact.forces.fg
+        W0, W_old = iv.forces.Wg[:, 0], iv.old.forces.Wg[:, 0]
+        expanded = fg0 + (W0 + 0.5 * (W0 - W_old)) * h  # s = 1
         weight.append(np.abs(expanded - fg_h).max() / np.abs(fg_h - fg0).max())
     for rel, order in ((step, 2), (first, 1), (weight, 2)):  # relative errors: the order less one
         assert np.all(np.log2(np.array(rel[:-1]) / np.array(rel[1:])) > order - 0.2), (rel, order)

@@ -134,8 +134,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "--erls-step", type=_erls_step_arg, default="auto", metavar="S|auto",
         help="generalized-alpha step of the ERLS engine (s): a multiple of --h that divides the sample interval; "
-        "auto (default): the largest whose frequency error at the model's band_hz is within 0.5 %% (the error "
-        "at a mode f is about (2 pi f S)^2 / 12)",
+        "auto (default): the truth step rule, the largest sample interval / n that keeps the phase error each "
+        "mode below the model's band_hz accumulates over the cycles it rings within 0.004 (and the frequency "
+        "error at band_hz within 0.5 %%; docs/theory/truth_step.md); it may be below --h",
     )
     p.add_argument(
         "--write-plan", action="store_true",

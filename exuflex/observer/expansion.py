@@ -79,9 +79,9 @@ class HeldSystem(NamedTuple):
     empty: none), ``p2C`` (nq (nq + 1) / 2, n (n + 1) / 2; ``n = r - nq``) the damping's second-order rigid block,
     packed by symmetry (:meth:`.ReducedModel.elastic_forms`). ``Wg`` (r, r): the weight's gradient in the positions, ``d fg / dp``
     (:meth:`exuflex.reduction.model.ReducedModel.weight_gradient`; its q rows' elastic columns are ``pG``'s last
-    column): the weight follows ``q`` by it over the radius, and with a secant partner by its curvature along the
-    secant too (:func:`_held_model`: second order), and the step Jacobian holds it (:func:`_step_jacobian`); empty
-    (0, 0) without gravity, where both are the held arrays' alone.
+    column): the weight follows ``q`` by it over the radius, and with a secant partner by the gradient's change
+    along the secant too, from the partner's ``old_Wg`` (:func:`_held_model`: second order), and the step Jacobian
+    holds it (:func:`_step_jacobian`); empty (0, 0) without gravity, where both are the held arrays' alone.
     """
 
     has_old: bool
@@ -110,6 +110,7 @@ class HeldSystem(NamedTuple):
     pG: np.ndarray
     p2C: np.ndarray
     Wg: np.ndarray
+    old_Wg: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -435,11 +436,15 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
     the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. Where the held system has a weight gradient
     (gravity) the weight follows ``q`` to second order instead, as ``M_r`` and ``K_r`` do: its gradient in every
-    direction and, with a secant partner (``d = q0 - q_old``, ``s = (dl . d) / (d . d)``), its curvature along the
-    secant from the partner's weight, ``fg_old = fg - Wg d + 1/2 D2(d, d)``, so ``1/2 D2(dl, dl) = s^2 (fg_old - fg)
-    + s Wg dl`` on the line and ``f_g = fg + (1 + s) Wg dl - s^2 (fg - fg_old)``. To first order only, the
-    weight's error ``1/2 D2(dl, dl)`` is of one sign over the whole radius: a bias the filter takes for signal
-    (docs/gravity.md measures what it did to the filter on its own model).
+    direction and, with a secant partner (``d = q0 - q_old``, ``s = (dl . d) / (d . d)``), half the gradient's
+    change along the secant, ``f_g = fg + (Wg + s/2 (Wg - Wg_old)) dl``: with ``Wg - Wg_old = D2(d, .)`` to first
+    order and ``dl = s d + w``, its error is ``1/2 D2(w, dl)``, third order on the secant's line (``w = 0``) and
+    second order off it (``tests/test_held_weight.py``). To first order only, the weight's error ``1/2 D2(dl, dl)``
+    is of one sign over the whole radius: a bias the filter takes for signal (docs/gravity.md measures what it did
+    to the filter on its own model). The weight must not be extrapolated along the secant from the two weights
+    alone (``fg + (1 + s) Wg dl - s^2 (fg - fg_old)``, exact on the line): off the line that leaves the first-order
+    error ``s Wg w``, of one sign too, which on an arm whose weight gradient is large (the crane arm's upright mast,
+    ``benchmarks/models/crane_arm.toml``) biased the filter on its own model (docs/held_step.md).
 
     The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
     interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
@@ -467,13 +472,16 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
-    if hs.Wg.shape[0]:  # the weight to second order: its gradient, and its curvature along the secant
+    if hs.Wg.shape[0]:  # the weight to second order: its gradient, and half the gradient's change along the secant
         for i in range(r):
             acc = 0.0
             for j in range(nq):
-                acc += hs.Wg[i, j] * dl[j]
-            if hs.has_old:  # the secant's first-order term taken out, the curvature along it put in: (1 + s) x
-                acc = (1.0 + s) * (acc - s * (hs.fg[i] - hs.old_fg[i]))
+                g = hs.Wg[i, j]
+                if hs.has_old:
+                    g += 0.5 * s * (hs.Wg[i, j] - hs.old_Wg[i, j])
+                acc += g * dl[j]
+            if hs.has_old:  # the forms' secant moved the weight along it already: taken out
+                acc -= s * (hs.fg[i] - hs.old_fg[i])
             f[i] += acc
     n_el = hs.pG.shape[0]
     if n_el:  # the weight's change with the elastic coordinates (pG's last column, :func:`_elastic_terms`)
@@ -971,7 +979,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg)
+            hs.p2C, hs.Wg, hs.old_Wg)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1254,7 +1262,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1387,7 +1395,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
-                      p2, np.zeros((0, 0)))
+                      p2, np.zeros((0, 0)), np.zeros((0, 0)))
 
 
 _warm = False

@@ -602,7 +602,7 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg)
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg)
 
     @staticmethod
     def _elastic(fm) -> dict:
