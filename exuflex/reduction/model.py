@@ -216,15 +216,41 @@ class ReducedModel:
         call after the configuration's (:meth:`_held_compiled`)."""
         p = np.asarray(p, float)
         if not fr and self.one_call and self.compiled and self.cb.compiled and self.model.kin.compiled:
-            return self._held_compiled(p, gradients)
-        rc = self.cb.at(p[: self.nq])
-        dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
-        mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
-        fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
-        fm.dHdq = dHdq
-        if gradients:
-            fm.elastic = self.elastic_forms(rc, dHdq)
+            mats, fm = self._held_compiled(p, gradients)
+        else:
+            rc = self.cb.at(p[: self.nq])
+            dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
+            mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
+            fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+            fm.dHdq = dHdq
+            if gradients:
+                fm.elastic = self.elastic_forms(rc, dHdq)
+        if gradients and mats.rc.cfg.K_G is not None:
+            fm.dKr2 = fm.dKr2 + self.geometric_gradient(mats.rc, fm.dHdq).reshape(self.nq, -1)
         return mats, fm
+
+    def geometric_gradient(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> np.ndarray:
+        """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as
+        ``dKr2`` holds the linear elastic stiffness's (its q rows' ``d(H p)/dq`` part not differentiated): the
+        basis turning with the links, ``dH_u^T K_Guu H_u`` and its transpose (``K_Guu = T^T K_G T``), and the
+        nodal ``K_G``'s own change, the elements turning and their static axial forces changing with the
+        configuration, by central differences of :meth:`~exuflex.erls.model.ErlsModel.static_geometric` over
+        ``1e-6`` (rad or m; ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds
+        ``K_r`` to first order in q with it (second along its secant), as it holds the linear elastic part."""
+        model, nq = self.model, self.nq
+        T, H, q = model.T, rc.H, rc.cfg.q
+        TH = T @ H[nq:]
+        KH = (T.T @ (rc.cfg.K_G @ TH))  # K_Guu H_u
+        out = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_Guu H_u per q_i
+        out = out + np.swapaxes(out, 1, 2)
+        h = 1e-6
+        for i in range(nq):
+            e = np.zeros(nq)
+            e[i] = h
+            dK = (model.configuration(q + e).K_G - model.configuration(q - e).K_G) / (2 * h)
+            out[i] += TH.T @ (dK @ TH)
+        model.configuration(q)  # leave the closure solver warm-started at q
+        return out
 
     def geometric_stiffness(self, rc: ReducedConfiguration, J: np.ndarray) -> np.ndarray:
         """``J_u^T T^T K_G T H_u`` (r, r): the geometric stiffness of the static axial loads at the configuration
@@ -233,8 +259,7 @@ class ReducedModel:
         ``geometric=False``). The basis stays that of ``K_uu`` (the Craig-Bampton shapes of the linear elastic
         links; the static corrections take the model's stiffness with ``K_G``, :mod:`.static`). Left out: the
         change of the axial loads with the motion (the full model's ``K_G(q, q', tau)``,
-        :meth:`~exuflex.erls.model.ErlsModel.net_forces`) and ``K_G``'s change with q in the held step's
-        gradients (``dKr2``, ``elastic_forms``: the linear elastic stiffness's only)."""
+        :meth:`~exuflex.erls.model.ErlsModel.net_forces`); its q-gradient is :meth:`geometric_gradient`."""
         K_G = rc.cfg.K_G
         if K_G is None:
             return np.zeros((self.r, self.r))
@@ -276,7 +301,8 @@ class ReducedModel:
         TH = model.T @ H[nq:]
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
-        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
+        Kel = rc.Kuu if cfg.K_G is None else rc.Kuu + model.T.T @ cfg.K_G @ model.T  # K_r's stiffness (with K_G)
+        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (Kel @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
         # the damping's second order as a Gram matrix over (k, i)
         n = r - nq
         A2 = A.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: A_k e_i
