@@ -2,8 +2,10 @@
 model without the geometric stiffness) links whose axial load under the weight acts across their elastic
 displacements.
 
-The ERLS model (:mod:`exuflex.erls.model`) has linear elasticity in the rotating frame of each link: it keeps the
-centrifugal softening but not the geometric stiffening of the centrifugal tension. A link turning at the rate
+With linear elasticity in the rotating frame of each link (:mod:`exuflex.erls.model` with ``geometric=False``, and
+the observer's reduced model, whose geometric stiffness is the weight's static part only) the ERLS keeps the
+centrifugal softening but not the geometric stiffening of the centrifugal tension (the full-order model's default
+holds it: ``docs/validity.md``, where it follows Exudyn through the spin-up). A link turning at the rate
 ``Omega`` misses a stiffness of order ``rho A Omega^2 L^2`` against its bending stiffness of order
 ``rho A omega_c^2 L^2`` (``omega_c``: its first clamped-free frequency, the link clamped at the joint it turns
 about), so to first order the relative error of its elastic response grows as ``(Omega / omega_c)^2``, and the
