@@ -106,6 +106,23 @@ def _acceptance(paths: str) -> dict:
     return {k: {q: (float(np.mean(v)), len(v)) for q, v in d.items()} for k, d in out.items()}
 
 
+def comparison_tables(before: dict, after: dict, labels: tuple) -> list:
+    """Markdown lines: per (engine, model) of :func:`_acceptance`'s ``after`` also in ``before``, a table of the
+    per-quantity means, one row per label."""
+    L = []
+    for key in sorted(after):
+        if key not in before:
+            continue
+        quants = list(after[key])
+        L += [f"### {key[1]}, {key[0]} truth (N = {after[key][quants[0]][1]})", "",
+              "| | " + " | ".join(quants) + " |", "|---|" + "---|" * len(quants)]
+        for label, d in zip(labels, (before, after)):
+            L.append(f"| {label} | " + " | ".join(f"{d[key][x][0]:.2f}" if x in d[key] else "-" for x in quants)
+                     + " |")
+        L.append("")
+    return L
+
+
 def page(intervals_json: str, acceptance: list | None, labels: tuple, md: str) -> None:
     it = json.loads(Path(intervals_json).read_text())
     L = ["# The held step's elastic coordinates", "",
@@ -160,14 +177,7 @@ def page(intervals_json: str, acceptance: list | None, labels: tuple, md: str) -
               "strain it): there the first-order model's error happened to lie closer, and the figures in the "
               "rates are worse. The gap to Exudyn on these arms includes that difference of the ERLS model's "
               "damping, which the held step now follows.", ""]
-        for key in sorted(after):
-            if key not in before:
-                continue
-            quants = list(after[key])
-            L += [f"### {key[1]}, {key[0]} truth (N = {after[key][quants[0]][1]})", "",
-                  "| | " + " | ".join(quants) + " |", "|---|" + "---|" * len(quants),
-                  f"| {labels[0]} | " + " | ".join(f"{before[key][x][0]:.2f}" for x in quants) + " |",
-                  f"| {labels[1]} | " + " | ".join(f"{after[key][x][0]:.2f}" for x in quants) + " |", ""]
+        L += comparison_tables(before, after, labels)
     Path(md).write_text("\n".join(L).rstrip() + "\n")
     print(f"wrote {md}")
 

@@ -147,7 +147,7 @@ def test_net_forces_apply_the_damping_matrix():
     undamped = mech.replace(damping=type(mech.damping)(0.0, 0.0))
     m0 = ErlsModel(undamped)
     diff = m0.net_forces(m0.configuration(mech.q_ref), x, v, tau) - model.net_forces(cfg, x, v, tau)
-    np.testing.assert_allclose(diff, model.damping(cfg) @ v, rtol=1e-9, atol=1e-12 * np.abs(diff).max())
+    np.testing.assert_allclose(diff, model.damping(cfg, x) @ v, rtol=1e-9, atol=1e-12 * np.abs(diff).max())
 
 
 # ------------------------------------------------------------------ the Exudyn truth
@@ -222,8 +222,8 @@ def test_truth_damping_survives_a_broken_erls_model(monkeypatch):
 
 @pytest.mark.parametrize("compiled", [False, True])
 def test_reduced_damping_is_the_full_damping_projected(compiled):
-    """``C_r = J_u^T C_uu J_u`` with the full-order Lagrange form's ``C_uu = alpha M_e + beta K_uu``, NumPy and
-    compiled paths, on the serial arm away from q*."""
+    """``C_r = J^T C(H p) J`` with the full-order Lagrange form's damping at the deformed state ``x = H p`` (the
+    strain-rate law: rigid rows and columns too), NumPy and compiled paths, on the serial arm away from q*."""
     from exuflex.reduction import CraigBampton, ReducedModel
 
     mech = load_mechanism(MODELS / "serial_arm.toml")
@@ -234,9 +234,7 @@ def test_reduced_damping_is_the_full_damping_projected(compiled):
         rng = np.random.default_rng(5)
         p = np.concatenate([np.asarray(mech.q_ref) + 0.2, 1e-4 * rng.standard_normal(rm.r - rm.nq)])
         mats, _ = rm.held(p, rng.standard_normal(rm.r))
-        nq = model.nq
-        C_uu = model.damping(mats.rc.cfg)[nq:, nq:]
-        expected = mats.J[nq:].T @ C_uu @ mats.J[nq:]
+        expected = mats.J.T @ model.damping(mats.rc.cfg, mats.rc.H @ p) @ mats.J
         np.testing.assert_allclose(mats.Cr, expected, rtol=0, atol=1e-10 * np.abs(expected).max())
     finally:
         model.compiled = rm.cb.compiled = rm.compiled = True

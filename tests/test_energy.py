@@ -48,7 +48,7 @@ def _power_terms(model, y, tau):
     M, K = model.mass(cfg), model.stiffness(cfg)
     dE = np.array([v @ M @ a, 0.5 * v @ Md @ v, v @ K @ x, 0.5 * x @ Kd @ x])
     p_motor = v @ model.input_matrix(cfg) @ tau
-    p_damp = -v @ model.damping(cfg) @ v
+    p_damp = -v @ model.damping(cfg, x) @ v
     p_damp += v[nq:] @ model.geometric_forces(cfg, model.rigid_axial_forces(cfg, v[:nq], tau), x[nq:])
     return dE, p_motor, p_damp
 

@@ -29,10 +29,10 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]`` with the symmetric
     ``M_N' = sum_e theta_e' R_e (G m_e - m_e G) R_e^T`` (``S' = dS/dt``; the terms of ``dW/dq``
     cancel because ``d^2 r/dq_j dq_k`` is symmetric). The two q-row terms are second order in the
-    elastic motion. ``C = diag(0, C_uu)`` with ``C_uu = alpha M_e + beta K_uu``: Rayleigh damping as the
-    dissipation function ``u'^T C_uu u' / 2`` of the elastic rates (see "Damping" below). Exactly
-    energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q`` (``tests/test_energy.py``). ``M_N' S q'`` is not
-    zero under pure rigid motion.
+    elastic motion. ``C(x) = L^T (alpha P + beta K_N) L``: Rayleigh damping as the dissipation function
+    ``v^T C v / 2`` of the strain rate ``s = L v`` (see "Damping" below; ``diag(0, alpha M_e + beta K_uu)`` at
+    ``u = 0``). Exactly energy-consistent, ``dE/dt = -v^T C v + v^T Q`` (``tests/test_energy.py``).
+    ``M_N' S q'`` is not zero under pure rigid motion.
 ``form="eq2"`` (the paper's eq. 2 as written)
     Virtual work with ``delta p = R N R^T delta b`` and the acceleration
     ``p'' = R N R^T b'' + 2 theta' R (G2 N - N G) R^T u' + (terms in theta'^2 u and theta'' u)``, the
@@ -45,19 +45,42 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
 
 Damping. The model file's ``alpha``, ``beta`` are the Rayleigh damping of the free elastic modes: each mode
 of ``M(q) x'' + C x' + K x = 0`` at rest (motors free) has the damping ratio ``alpha / (2 w) + beta w / 2``.
-``K = diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, and the elastic modes
-are M-orthogonal to them: ``M_qq phi_q + M_qu phi_u = 0``, the ERLS counter-rotates against the deformation.
-A mode's kinetic energy is therefore ``phi^T M phi = phi_u^T M_e phi_u`` with the Schur complement
-``M_e = M_uu - M_uq M_qq^-1 M_qu`` (``M_qq = S^T M_N S``, ``M_qu = S^T M_N T``), and
-``u'^T M_e u' = min_a |S a + T u'|^2_{M_N}``: twice the kinetic energy of the elastic rates relative to the
-rigid mechanism motion that carries their momentum. ``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K =
-diag(0, alpha M_e + beta K_uu)`` then gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on the
-mass-normalised elastic modes and ``C E = 0``: the Rayleigh ratios exactly, no force on rigid motion and none
-on a counter-rotation of the ERLS that leaves the bodies' motion rigid (``alpha M_uu`` would damp it).
-``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I] + beta K`` in the u columns): also the
-Rayleigh ratios (its state matrix is block-triangular in rigid and elastic modal coordinates), but with
-forces in the q rows that no dissipation function gives. ``tests/test_damping.py`` checks both forms' ratios
-against the formula from the state matrix's eigenvalues.
+
+The ``"lagrange"`` form damps the strain rate, not the global rate ``u'``. ``u`` is global, so ``d = T u``
+turns with the links: with the element-frame displacement ``e = R^T d`` (``R`` the element's, i.e. its link's,
+rotation), ``R e' = d' - theta' G d``. A bent link turning rigidly has ``e' = 0`` but ``d' = theta' G d != 0``:
+a damping on ``u'`` would brake it, a joint damping that material damping (a law in the strain rate, invariant
+under rigid rotation; Exudyn's beams' ``bendingDamping`` and ``axialDamping``) does not have. The strain rate in
+global components, node by node with its link's rate ``theta_n' = S_n q'`` (the rotation rows of ``S``), is
+
+``s = T u' - Y(u) q' = L v``, ``L = [-Y, T]``, ``Y[:, j] = (G3 T u) * S_theta[:, j]``
+
+(:meth:`ErlsModel.turned_rates`; ``G3`` turns each node's translation by 90 degrees and leaves its rotation
+alone; ``Y`` is linear in ``u``). The dissipation function is
+
+``D = beta/2 s^T K_N s + alpha/2 min_a |S a + s|^2_{M_N} = v^T C(x) v / 2``,
+``C(x) = L^T (alpha P + beta K_N) L``, ``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``,
+
+``beta s^T K_N s = beta sum_e e_e'^T K_e e_e'``: the element strain energy's form in the element-frame rates,
+the Kelvin-Voigt law of the beam elements. ``alpha``: the kinetic energy of the strain rates relative to the rigid
+mechanism motion that carries their momentum (the ERLS counter-rotates against the deformation; ``alpha M_uu``
+on ``u'`` would damp that rigid counter-rotation). The generalized damping force is ``-dD/dv = -C(x) v`` on all
+coordinates: the q rows get ``Y^T (alpha P + beta K_N) s`` (the rotation rate is part of the strain rate). ``C``
+is symmetric positive semidefinite, so the damping only dissipates, and ``s = 0``, ``C v = 0`` for the rates of
+a rigid turning with every link's deflection held (``T u' = Y q'``). Its change with ``u`` at fixed ``v`` is
+:meth:`ErlsModel.damping_position_jacobian` (the implicit engine's iteration matrix and the state matrix
+use it).
+
+At rest (``u = 0``) ``L = [0, T]`` and ``C = diag(0, alpha M_e + beta K_uu)`` with the Schur complement ``M_e =
+M_uu - M_uq M_qq^-1 M_qu`` (:meth:`ErlsModel.elastic_mass`), so the free modes' ratios are Rayleigh's: ``K =
+diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, the elastic modes are
+M-orthogonal to them (``M_qq phi_q + M_qu phi_u = 0``), a mode's kinetic energy is ``phi_u^T M_e phi_u``, and
+``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K`` gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on
+the mass-normalised elastic modes and ``C E = 0``. ``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I]
++ beta K`` in the u columns, on the global ``u'``): also the Rayleigh ratios (its state matrix is
+block-triangular in rigid and elastic modal coordinates), but with forces in the q rows that no dissipation
+function gives. ``tests/test_damping.py`` checks both forms' ratios against the formula from the state matrix's
+eigenvalues; ``tests/test_damping_strain.py`` the strain-rate law against element-frame rates by differences.
 
 Geometric stiffness (``geometric=True``, the default). Linear elasticity in the links' frames leaves out the work
 of an axial force ``N`` across the lateral displacements, ``N int v'^2 / 2 dx`` (the second-order strain), whose
@@ -321,17 +344,89 @@ class ErlsModel:
         K[self.nq :, self.nq :] = self.elastic_stiffness(cfg)
         return K
 
-    def damping(self, cfg: Configuration) -> np.ndarray:
-        """The damping matrix C (n x n) of the form: ``"lagrange"``: ``diag(0, alpha M_e + beta K_uu)`` with
-        :meth:`elastic_mass` ``M_e``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
+    def damping(self, cfg: Configuration, x: np.ndarray | None = None) -> np.ndarray:
+        """The damping matrix C (n x n) of the form at the configuration ``cfg`` and state ``x`` (``None``: the
+        elastic coordinates zero). ``"lagrange"``: ``C(x) = L^T (alpha P + beta K_N) L`` with the strain-rate map
+        ``L = [-Y(x), T]`` (:meth:`turned_rates`) and ``P`` the mass relative to the rigid motion, so that ``v^T C
+        v / 2`` is the dissipation function of the link-relative rates; at ``u = 0``: ``diag(0, alpha M_e + beta
+        K_uu)`` (:meth:`elastic_mass`). ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
         docstring, "Damping")."""
         C = np.zeros((self.n, self.n))
         if self.form == "eq2":
             C[:, self.nq :] = cfg.W.T @ (self.alpha * (cfg.M_N @ self.T) + self.beta * (cfg.K_N @ self.T))
             return C
-        Tt = self.T.T
-        C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
-        return C
+        if x is None or not np.any(x[self.nq :]):
+            Tt = self.T.T
+            C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
+            return C
+        L = np.hstack([-self.turned_rates(cfg, x), self.T])
+        return L.T @ self.damping_products(cfg, L)
+
+    def turned_rates(self, cfg: Configuration, x: np.ndarray) -> np.ndarray:
+        """``Y`` (N, nq): the nodal rates of the elastic displacements ``d = T u`` turned with their links per unit
+        ``q'``, ``Y q' = Omega d`` with ``Omega`` the block-diagonal ``theta_n' G3`` over the nodes (``theta_n'``
+        the rate of node n's link, ``G3 = [[0, -1, 0], [1, 0, 0], [0, 0, 0]]``). The strain rate in the global frame
+        is ``s = T u' - Y q' = R d(R^T d)/dt`` (module docstring, "Damping"); ``Y`` is linear in ``u``."""
+        d = self.T @ x[self.nq :]
+        Gd = np.zeros(self.N)
+        Gd[0::3], Gd[1::3] = -d[1::3], d[0::3]
+        return Gd[:, None] * self._node_rates(cfg)
+
+    def _node_rates(self, cfg: Configuration) -> np.ndarray:
+        """(N, nq): the rate of every nodal dof's link angle per unit ``q'`` (the rigid rotation rows of ``S``)."""
+        return np.repeat(cfg.pose.S[2::3], 3, axis=0)
+
+    def damping_products(self, cfg: Configuration, s: np.ndarray) -> np.ndarray:
+        """``(alpha P + beta K_N) s`` for nodal rates ``s`` (N,) or (N, k), ``P = M_N - M_N S (S^T M_N S)^-1 S^T
+        M_N``."""
+        S = cfg.pose.S
+        MS = cfg.M_N @ S
+        f = self.beta * (cfg.K_N @ s)
+        if self.alpha:
+            f = f + self.alpha * (cfg.M_N @ s - MS @ np.linalg.solve(S.T @ MS, MS.T @ s))
+        return f
+
+    def damping_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``C(x) v`` (n,) as products (:meth:`damping`), the gradient in ``v`` of the dissipation function ``v^T
+        C(x) v / 2`` (the generalized damping force is its negative). ``"lagrange"``: ``L^T (alpha P + beta K_N) s``
+        with the strain rate ``s = T u' - Y q'``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T u'``."""
+        nq = self.nq
+        Tud = self.T @ v[nq:]
+        if self.form == "eq2":
+            return cfg.W.T @ (self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud))
+        out = np.zeros(self.n)
+        if np.any(x[nq:]):
+            Y = self.turned_rates(cfg, x)
+            f = self.damping_products(cfg, Tud - Y @ v[:nq])
+            out[:nq] = -Y.T @ f
+        else:
+            f = self.damping_products(cfg, Tud)
+        out[nq:] = self.T.T @ f
+        return out
+
+    def damping_position_jacobian(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``d(C(x) v)/du`` (n, ne) of the ``"lagrange"`` form's damping forces, exact (they are bilinear in ``u``
+        and ``v`` at a configuration): with ``s = T u' - Y q'``, ``ds/du = -diag(w) G3 T`` (``w``: every nodal dof's
+        link rate) and ``f = (alpha P + beta K_N) s``, ``d(L^T f)/du = L^T (alpha P + beta K_N) ds/du`` plus the
+        change of ``-Y^T`` in the q rows, ``-(diag(f) Sigma)^T G3 T`` (``Sigma``: :meth:`_node_rates`). Their change
+        with ``q`` (through ``S``, ``P``, ``K_N``) is not part of it; the eq2 form: zero (its damping does not depend
+        on ``u``)."""
+        nq = self.nq
+        if self.form == "eq2" or not (self.alpha or self.beta):
+            return np.zeros((self.n, self.ne))
+        Sig = self._node_rates(cfg)
+        w = Sig @ v[:nq]
+        GT = np.zeros((self.N, self.ne))
+        GT[0::3], GT[1::3] = -self.T[1::3], self.T[0::3]
+        dsdu = -w[:, None] * GT
+        Y = self.turned_rates(cfg, x)
+        s = self.T @ v[nq:] - Y @ v[:nq]
+        f = self.damping_products(cfg, s)
+        Zd = self.damping_products(cfg, dsdu)
+        out = np.empty((self.n, self.ne))
+        out[:nq] = -Y.T @ Zd - (Sig * f[:, None]).T @ GT
+        out[nq:] = self.T.T @ Zd
+        return out
 
     def elastic_mass(self, cfg: Configuration) -> np.ndarray:
         """``M_e = M_uu - M_uq M_qq^-1 M_qu`` (ne x ne): the mass of the elastic rates relative to the rigid
@@ -449,16 +544,19 @@ class ErlsModel:
 
     def state_matrix(self, cfg: Configuration, x: np.ndarray | None = None,
                      v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 K, -M^-1 (C + dh/dv)]]``
-        (2n x 2n), with the velocity forces' Jacobian at ``(x, v)`` if given (none at rest)."""
+        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 (K + dCv/du), -M^-1 (C
+        + dh/dv)]]`` (2n x 2n), with the damping at ``x`` and the velocity forces' and damping forces' Jacobians at
+        ``(x, v)`` if given (none at rest; ``dCv/du``: :meth:`damping_position_jacobian`, in the u columns)."""
         n = self.n
         Minv = np.linalg.inv(self.mass(cfg))
-        C = self.damping(cfg)
+        C = self.damping(cfg, x)
+        K = self.stiffness(cfg)
         if v is not None:
             C = C + self.velocity_force_jacobian(cfg, x, v)
+            K[:, self.nq :] += self.damping_position_jacobian(cfg, x, v)
         A = np.zeros((2 * n, 2 * n))
         A[:n, n:] = np.eye(n)
-        A[n:, :n] = -Minv @ self.stiffness(cfg)
+        A[n:, :n] = -Minv @ K
         A[n:, n:] = -Minv @ C
         return A, Minv
 
@@ -612,14 +710,7 @@ class ErlsModel:
         if self.geometric:
             rhs[nq:] += self.geometric_forces(cfg, self.rigid_axial_forces(cfg, v[:nq], tau, qdd), x[nq:])
         if self.alpha or self.beta:
-            Tud = T @ v[nq:]
-            Cud = self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud)
-            if self.form == "eq2":  # W^T C_N T u': also the q rows
-                rhs -= cfg.W.T @ Cud
-            else:  # (alpha M_e + beta K_uu) u' with M_e = M_uu - M_uq M_qq^-1 M_qu
-                S = cfg.pose.S
-                MS = cfg.M_N @ S
-                rhs[nq:] -= Tt @ Cud - self.alpha * (Tt @ (MS @ np.linalg.solve(S.T @ MS, MS.T @ Tud)))
+            rhs -= self.damping_forces(cfg, x, v)
         return rhs
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
@@ -649,8 +740,8 @@ class ErlsModel:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
         M_uu = self.mass(cfg)[nq:, nq:]
-        D = (self.damping(cfg) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
-        K_uu = self.T.T @ cfg.K_N @ self.T
+        D = (self.damping(cfg, x) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
+        K_uu = self.T.T @ cfg.K_N @ self.T + self.damping_position_jacobian(cfg, x, v)[nq:]
         if self.geometric:
             N = self.rigid_axial_forces(cfg, v[:nq], None, np.zeros(nq) if qdd is None else qdd)
             K_uu = K_uu + self.T.T @ self.geometric_stiffness(cfg, N) @ self.T

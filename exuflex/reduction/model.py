@@ -5,7 +5,8 @@ Two forms:
 - ``consistent=True`` (default): the velocity transformation is exact. Since ``H`` depends on ``q``,
   ``x' = J p'`` with ``J = H + [d(H p)/dq, 0]`` (the slave displacements follow the links as they turn and
   the static shapes change with the configuration), and the reduced equations are those of Lagrange on
-  the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C J``, ``K_r p -> J^T K H p`` and
+  the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C(H p) J`` (the damping of the strain rate,
+:meth:`~exuflex.erls.model.ErlsModel.damping`), ``K_r p -> J^T K H p`` and
   ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = 2 d(H p')/dq q'``. The exact
   ``(dJ/dt) p'`` also holds ``d^2(H p)/dq^2 [q', q']``, quadratic in ``q'`` and linear in the elastic
   coordinates; it is left out (it vanishes on undeformed states).
@@ -171,7 +172,7 @@ class ReducedModel:
         if self.compiled and not forces and (dHdq is not None or not self.consistent):
             J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
                 p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
-                rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
+                cfg.K_N, rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
             return ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         J = H
         a_b = None
@@ -191,12 +192,15 @@ class ReducedModel:
         Kuu = rc.Kuu
         JtK = Ju.T @ Kuu
         Kr = JtK @ Hu + self.geometric_stiffness(rc, J)
-        if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha M_e + beta K_uu) J_u, thin products only
+        if model.alpha or model.beta:  # J^T C(H p) J: the dissipation of the strain rate T J_u p' - Y q'
             TJ = T @ Ju
+            turned = self.consistent and np.any(p[nq:])
+            if turned:  # the elastic displacement turned with the links is no strain rate (ErlsModel.damping)
+                TJ[:, :nq] -= model.turned_rates(cfg, H @ p)
             MS = cfg.M_N @ cfg.pose.S
             X = TJ.T @ MS  # M_e = T^T M_N T - M_uq M_qq^-1 M_qu (ErlsModel.elastic_mass)
             Cr = (model.alpha * (TJ.T @ (cfg.M_N @ TJ) - X @ np.linalg.solve(cfg.pose.S.T @ MS, X.T))
-                  + model.beta * (JtK @ Ju))
+                  + model.beta * (TJ.T @ (cfg.K_N @ TJ) if turned else JtK @ Ju))
         else:
             Cr = np.zeros((self.r, self.r))
         Gr = WJ.T @ model.B_N
@@ -278,15 +282,21 @@ class ReducedModel:
         ``J = H + [d(H p)/dq, 0]`` is linear in ``p`` and changes only the rigid columns: with ``A_k = T d(H_u
         e_k)/dq`` (N, nq) the rigid columns of ``W J`` gain ``sum_k p_k A_k``, so to first order ``M_r`` gains
         ``pM_k = A_k^T M_N W J`` in its rigid rows and the transpose in its rigid columns, ``K_r = J_u^T K_uu
-        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, the alpha damping
-        ``alpha (T J_u)^T P (T J_u)`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass relative to the rigid
-        motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains ``pC_k = alpha A_k^T P T J_u`` (and
-        the transpose), and ``G_r = (W J)^T B_N`` and the weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N,
-        M_N g]`` (the weight the last column). The damping is quadratic in ``J``, so its rigid block gains a
-        second-order term too, ``p_k p_l X_kl`` with ``X_kl = alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu
-        d(H_u e_l)/dq``; ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight are linear in ``J``; ``M_r``'s second
-        order, ``p_k p_l A_k^T M_N A_l``, is left out (:func:`exuflex.observer.expansion._elastic_terms` says why).
-        The cached observer step holds its configurations undeformed and adds these terms."""
+        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, and ``G_r = (W J)^T B_N`` and the
+        weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N, M_N g]`` (the weight the last column). The damping acts
+        on the strain rate (:meth:`~exuflex.erls.model.ErlsModel.damping`), ``T J_u p' - Y(H p) q'`` with ``Y``
+        the deflection's rates turned with the links, linear in ``p``: per unit ``p_k`` its rigid columns gain
+        ``A_k - E_k``, ``E_k = Y(H e_k)`` (:meth:`~exuflex.erls.model.ErlsModel.turned_rates`). So ``C_r = (T J_u
+        - [Y, 0])^T (alpha P + beta K_N) (T J_u - [Y, 0])`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass
+        relative to the rigid motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains in its rigid rows
+        ``pC_k = alpha (A_k - E_k)^T P T H_u - beta E_k^T K_N T H_u`` (and the transpose; its remaining ``beta
+        A_k^T K_N T H_u`` is ``beta pK_k``, which the kernel adds with ``K_r``), and, being quadratic, its rigid
+        block ``p_k p_l X_kl`` with ``X_kl = (A_k - E_k)^T (alpha P + beta K_N) (A_l - E_l)``. Where the basis
+        turns with its links, ``E_k`` holds most of ``A_k``: what is damped is the shapes' change with the
+        configuration, not the deflection turned with its link. ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight
+        are linear in ``J``; ``M_r``'s second order, ``p_k p_l A_k^T M_N A_l``, is left out
+        (:func:`exuflex.observer.expansion._elastic_terms` says why). The cached observer step holds its
+        configurations undeformed and adds these terms."""
         if not self.consistent:
             return None
         model, nq, r = self.model, self.nq, self.r
@@ -294,22 +304,30 @@ class ReducedModel:
         H = rc.H
         dHu = dHdq[nq:, nq:, :]  # (r - nq, ne, nq): d(H_u e_k)/dq of the elastic coordinates
         A = model.T @ dHu  # (r - nq, N, nq)
+        # the strain rate's rigid columns: A_k minus the turned rates of H e_k (ErlsModel.turned_rates)
+        x_k = np.zeros(model.n)
+        E = np.empty_like(A)
+        for k in range(r - nq):
+            x_k[nq:] = H[nq:, nq + k]
+            E[k] = model.turned_rates(cfg, x_k)
         At = np.swapaxes(A, 1, 2)
+        As = A - E
+        Ast = np.swapaxes(As, 1, 2)
         WH = cfg.W @ H
         S = cfg.pose.S
         MS = cfg.M_N @ S
         TH = model.T @ H[nq:]
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
+        pC = model.alpha * (Ast @ PTH) - model.beta * (np.swapaxes(E, 1, 2) @ (cfg.K_N @ TH))
         Kel = rc.Kuu if cfg.K_G is None else rc.Kuu + model.T.T @ cfg.K_G @ model.T  # K_r's stiffness (with K_G)
-        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (Kel @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
+        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (Kel @ H[nq:]), pC, At @ BG)
         # the damping's second order as a Gram matrix over (k, i)
         n = r - nq
-        A2 = A.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: A_k e_i
+        A2 = As.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: (A_k - E_k) e_i
         MA2 = cfg.M_N @ A2
         PA2 = MA2 - MS @ np.linalg.solve(S.T @ MS, MS.T @ A2)
-        dH2 = dHu.transpose(1, 0, 2).reshape(-1, n * nq)
-        GC = model.alpha * (A2.T @ PA2) + model.beta * (dH2.T @ (rc.Kuu @ dH2))
+        GC = model.alpha * (A2.T @ PA2) + model.beta * (A2.T @ (cfg.K_N @ A2))
         k, l = np.triu_indices(n)
         i, j = np.triu_indices(nq)
         kl = ((k * nq)[None, :] + i[:, None], (l * nq)[None, :] + j[:, None])  # X_kl's entry i <= j
