@@ -448,28 +448,32 @@ def markdown(rows: list[dict], command: str) -> str:
             "",
             ("**The vertical serial arm.** Its reduced and full models agree in what the weight does to the motion "
              "(the holding torques and the static sag against the full model and Euler-Bernoulli: "
-             "`tests/test_gravity.py`). What the gauges read of the sag the basis holds since the static corrections "
-             "(`exuflex.reduction.static`, the weight among their loads): the `truncation` column, where the basis "
-             "of masters and interior modes alone missed a third of a noise sd at `c_upper`, a constant reading "
-             "that the steady filter's gain at zero frequency (about 5 posterior sd of q1 per noise sd of "
-             "`c_upper`) turned into the q1 excess of 1.6-1.7 on the ERLS truths. The P-delta effect (the `P-delta` "
-             "column): the forearm stands almost upright with its payload's weight along it (3 N) while the upper "
-             "arm's sag tilts it elastically; its own weight across it is small (`cos 1.5`), so the moment of the "
-             "axial load across the tilt is some 5 % of its bending, 0.8 noise sd at `c_fore`, which the filter "
-             "would turn into some 2.4 posterior sd of q2 (the `bias` column): the Exudyn truth's q2 excess "
-             "(2.2-2.3) while the ERLS elastic rows had no geometric stiffness; they and the reduction now hold it."),
+             "`tests/test_gravity.py`). What the gauges read of the sag the basis holds with the static corrections "
+             "(`exuflex.reduction.static`, the weight among their loads: the `truncation` column); without them the "
+             "masters and interior modes alone miss a third of a noise sd at `c_upper`, a constant reading that the "
+             "steady filter's gain at zero frequency (about 5 posterior sd of q1 per noise sd of `c_upper`) turns "
+             "into some 1.8 posterior sd of q1 on the ERLS truths, which the corrections' count criterion "
+             "(`STATIC_MAX`, a reading of at most `sqrt(0.1)` sd) already takes into the basis. The P-delta effect "
+             "(the `P-delta` column): the forearm stands almost upright with its payload's weight along it (3 N) "
+             "while the upper arm's sag tilts it elastically; its own weight across it is small (`cos 1.5`), so the "
+             "moment of the axial load across the tilt is some 5 % of its bending, 0.8 noise sd at `c_fore`, which "
+             "the filter would turn into some 2.4 posterior sd of q2 (the `bias` column) against the geometrically "
+             "exact truth if its model left it out; the ERLS elastic rows and the reduction hold it. The fresh "
+             "upright two-link arm's slender upper link carries its payload at some 9 % of its Euler load: the "
+             "P-delta reads several noise sd there."),
             "",
-            ("**The tip's second-order kinematics.** What remains above the bound on the Exudyn truth is the tip's "
-             "elastic displacement along the forearm (`y23`): the forearm turned by the elbow's elastic rotation and "
-             "bent by its own load shortens along its axis by `int v'^2 / 2` (its tilt some 3.5 mrad under the "
-             "weight), which linear elastic displacements leave out and the geometrically exact truth's tip has. The "
-             "table below gives that shortening at the tip and the observer's bound for the tip: of the bound's "
-             "size on the vertical serial arm, a persistent offset of the true tip against what the linear model "
-             "can say (the gauges and encoders do not read it: the coordinates are within their bounds)."),
+            ("**The tip's second-order kinematics.** What remains above the bound on the Exudyn truths is the tip's "
+             "elastic displacement along the tip link (`y23` on the vertical serial arm, `y29` on the upright "
+             "two-link arm, `x22` along the crane arm's near-horizontal boom): the tip link turned by its joint's "
+             "elastic rotation and bent by its own load shortens along its axis by `int v'^2 / 2`, which linear "
+             "elastic displacements leave out and the geometrically exact truth's tip has. The table below gives "
+             "that shortening at the tip against the observer's bound for the tip: of the bound's size on the "
+             "upright arms, four times it along the crane's boom; a persistent offset of the true tip against what "
+             "a linear elastic model can say (the gauges and encoders do not read it)."),
             "",
-            ("**The crane arm** (written fresh) reads both kinds, the truncation most (its boom's bending is large "
-             "against the gauge's noise, so a small share of it is a large reading), and its filter's gain turns "
-             "them into the largest biases here."),
+            ("**The crane arm** (written fresh) reads the P-delta of its mast and boom (the `P-delta` column) and the "
+             "basis's truncation little since the static corrections; its coordinates are within about 1.3 of their "
+             "bounds on every truth."),
         ]
     short = [r for r in rows if "tip_shortening" in r]
     if short:
