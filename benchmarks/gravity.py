@@ -5,7 +5,7 @@ by ``[0, 0]`` for comparison with ``--flat``), in a temporary copy of the file:
 
 1. the truths of the model's manoeuvre under the same computed torque (:func:`exuflex.truth.simulate_runs`,
    ``exuflex simulate MODEL --engine ENGINE``), one per engine, measured with each seed's noise: ``exudyn``
-   (ANCF), ``erls`` (the full-order ERLS model by generalized-alpha at the step its band gives, the acceptance's
+   (ANCF), ``erls`` (the full-order ERLS model by generalized-alpha at the truth step rule's step, the acceptance's
    truth), ``erls-rk4`` (the same model by RK4, exact to the model: ``--integrator rk4``) and ``reduced`` (the
    observer's own model, the consistent truth: what the observer gets wrong there is the filter's, not the
    model's). The largest joint-coordinate difference of the Exudyn and ERLS truths and the tip's elastic
@@ -371,7 +371,7 @@ def markdown(rows: list[dict], command: str) -> str:
         ("Each model file is copied with its `model.gravity` replaced. The computed torque of the manoeuvre "
          "includes gravity; every truth runs under the same torque table: Exudyn (ANCF cables, geometrically exact; "
          "the weight of every element, hub body and lumped mass, `exuflex.groundtruth.build_truth`), the "
-         "full-order ERLS model by generalized-alpha at the step its band gives (`erls`, the acceptance's truth) or "
+         "full-order ERLS model by generalized-alpha at the truth step rule's step (`erls`, the acceptance's truth) or "
          "by RK4 (`erls-rk4`, exact to the model), and the observer's own reduced model (`reduced`). Both ERLS "
          "models hold the geometric stiffness of the links' axial loads in their elastic rows (the P-delta effect: "
          "`exuflex.erls.model`, \"Geometric stiffness\"; the full model's of the rigid motion's loads, "
