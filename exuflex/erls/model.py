@@ -82,6 +82,20 @@ block-triangular in rigid and elastic modal coordinates), but with forces in the
 function gives. ``tests/test_damping.py`` checks both forms' ratios against the formula from the state matrix's
 eigenvalues; ``tests/test_damping_strain.py`` the strain-rate law against element-frame rates by differences.
 
+Geometric stiffness (``geometric=True``, the default). Linear elasticity in the links' frames leaves out the work
+of an axial force ``N`` across the lateral displacements, ``N int v'^2 / 2 dx`` (the second-order strain), whose
+second variation is the geometric stiffness ``K_G(N)`` (:func:`~exuflex.erls.elements.beam_geometric_stiffness`):
+a link in compression softens (the P-delta effect of a weight along an upright link), one in tension stiffens (the
+centrifugal stiffening of a spinning link). The elastic rows take the axial forces of the rigid motion's loads
+(:meth:`ErlsModel.rigid_loads`: motors, weight and the d'Alembert forces of the rigid accelerations and rates, in
+equilibrium), each element's from the links' quasi-static axial response (:meth:`ErlsModel.axial_forces`), so the
+elastic rows' stiffness is ``K_uu + T^T K_G(N(q, q', tau)) T``: linear in ``u``, first order in the loads. The
+coordinate rows already hold the P-delta's share: the rotated stiffness's ``dV/dq`` above is the moment of the
+elastic axial force across the tilt (``tests/test_pdelta.py``). The weight's static part, ``K_G`` of the weight
+with the holding torques, is the configuration's (:meth:`ErlsModel.static_geometric`): the linearised models and
+the reduction hold it. ``K_G(q, q', tau)`` derives from no potential: its power ``-u'^T K_G u`` enters the energy
+balance (``tests/test_energy.py``).
+
 On rigid motion (``u = u' = 0``) the q rows of the two forms coincide (``M_N'`` and the ``dT/dq`` term
 cancel on rigid fields). On a uniformly spinning link the elastic rows of ``"eq2"`` are exactly the
 consistent nodal load of the centrifugal force; ``"lagrange"`` adds ``T^T M_N' S q'``, whose largest
@@ -97,7 +111,15 @@ import numpy as np
 from ..mechanism import ElasticDofs, Mechanism, elastic_dofs
 from ._assembly import configuration as compiled_configuration
 from ._assembly import nodal_matrices
-from .elements import GENERATOR, beam_gyroscopic, beam_mass, beam_stiffness, hermite_curvature_row, rotation
+from .elements import (
+    GENERATOR,
+    beam_geometric_stiffness,
+    beam_gyroscopic,
+    beam_mass,
+    beam_stiffness,
+    hermite_curvature_row,
+    rotation,
+)
 from .kinematics import Kinematics, Pose
 
 __all__ = ["FORMS", "Configuration", "ErlsModel"]
@@ -112,8 +134,12 @@ class Configuration:
     pose: Pose
     R: np.ndarray  # (n_el, 6, 6) element rotations
     M_N: np.ndarray  # (N, N) nodal mass (elements + lumped)
-    K_N: np.ndarray  # (N, N) nodal stiffness
+    K_N: np.ndarray  # (N, N) nodal stiffness (linear elastic)
     W: np.ndarray  # (N, n) = [S, T]
+    #: the nodal geometric stiffness of the static axial loads at q (``ErlsModel.static_geometric``; None: none,
+    #: no gravity or ``geometric=False``)
+    K_G: np.ndarray | None = None
+    N_static: np.ndarray | None = None  # (n_el,) the elements' static axial forces (N, tension positive) of K_G
 
     @property
     def q(self) -> np.ndarray:
@@ -131,12 +157,16 @@ class ErlsModel:
         The velocity-dependent forces and damping: the energy-consistent Lagrange form (default: on the six-bar's
         manoeuvre it agrees with the Exudyn truth, eq. 2 as written does not, and on the spin-up benchmark the two
         are equal; ``docs/validity.md``) or the paper's eq. 2 as written (see the module docstring).
+    geometric : bool
+        The geometric stiffness of the links' axial loads in the elastic rows (default; module docstring,
+        "Geometric stiffness"); False: linear elasticity alone.
     """
 
-    def __init__(self, mech: Mechanism, form: str = "lagrange"):
+    def __init__(self, mech: Mechanism, form: str = "lagrange", geometric: bool = True):
         if form not in FORMS:
             raise ValueError(f"ErlsModel: form must be one of {FORMS}, got {form!r}")
         self.form = form
+        self.geometric = bool(geometric)
         self._locate_cache: dict = {}
         self.mech = mech
         self.kin = Kinematics(mech)
@@ -210,6 +240,10 @@ class ErlsModel:
         self.Ml = np.array(Ml)
         self.Gl = GENERATOR @ self.Ml - self.Ml @ GENERATOR  # dM/dtheta in local form
         self.KGl = GENERATOR @ self.Kl - self.Kl @ GENERATOR
+        # the geometric stiffness per unit axial force and the axial stiffness EA / L of each beam element (zero for
+        # the offset masses' one-node elements)
+        self.el_KG1 = np.array([beam_geometric_stiffness(1.0, L) if L > 0 else np.zeros((6, 6)) for L in el_len])
+        self.el_axial = np.array([k[3, 3] for k in Kl])  # EA / L of the local stiffness' axial block
         self.MGl = np.array(Al) - self.Ml @ GENERATOR  # eq. 2's M_G per unit element rate, local form
         self.n_el = len(el_link)
         lump = np.zeros(self.N)
@@ -262,7 +296,16 @@ class ErlsModel:
     # ------------------------------------------------------------------ configuration
     def configuration(self, q, z0=None) -> Configuration:
         """Everything that depends on q only (closure warm-started from ``z0`` or the last solution); in one compiled
-        call (:func:`._assembly.configuration`) where numba is installed and Newton converges from the start."""
+        call (:func:`._assembly.configuration`) where numba is installed and Newton converges from the start. With
+        gravity (and ``geometric``) with the geometric stiffness of the static axial loads at q
+        (:meth:`static_geometric`)."""
+        cfg = self._material_configuration(q, z0)
+        if self.geometric and np.any(self.g_N):
+            return self.static_geometric(cfg)
+        return cfg
+
+    def _material_configuration(self, q, z0=None) -> Configuration:
+        """:meth:`configuration` with the material stiffness only."""
         kin = self.kin
         if self.compiled and kin.compiled and compiled_configuration is not None:
             q, start = kin.start(q, z0)
@@ -295,9 +338,10 @@ class ErlsModel:
         return cfg.W.T @ cfg.M_N @ cfg.W
 
     def stiffness(self, cfg: Configuration) -> np.ndarray:
-        """K(q) of eq. 2: zero q rows and columns, K_uu = T^T K_N T."""
+        """K(q) of eq. 2: zero q rows and columns, ``K_uu = T^T K_N T`` with the static axial loads' geometric
+        stiffness where the model has it (:meth:`elastic_stiffness`)."""
         K = np.zeros((self.n, self.n))
-        K[self.nq :, self.nq :] = self.T.T @ cfg.K_N @ self.T
+        K[self.nq :, self.nq :] = self.elastic_stiffness(cfg)
         return K
 
     def damping(self, cfg: Configuration, x: np.ndarray | None = None) -> np.ndarray:
@@ -562,6 +606,88 @@ class ErlsModel:
         """``dS/dq_j`` (N, nq) for every coordinate j (the rate of S along ``q' = e_j``)."""
         return list(self.kin.coordinate_rates(cfg.pose))
 
+    # ------------------------------------------------------------------ geometric stiffness
+    def rigid_loads(self, cfg: Configuration, qd: np.ndarray | None = None, tau: np.ndarray | None = None,
+                    qdd: np.ndarray | None = None) -> np.ndarray:
+        """The nodal loads (N,) that the rigid mechanism's motion puts on its links, in equilibrium.
+
+        ``f = B tau + M_N g - M_N (S q'' + S' q')``: the motors, the weight and the d'Alembert forces of the rigid
+        motion (the nodes moving with the ERLS, ``b' = S q'``). ``q''`` is the rigid acceleration the loads give,
+        ``(S^T M_N S) q'' = S^T (B tau + M_N g - M_N S' q')``, so that ``S^T f = 0``: no load on the rigid
+        mechanism's motions, the loads balance through the links' internal forces and the ground. With ``qdd``
+        (a prescribed motion) ``q''`` is that and ``tau`` the torques the motion needs, by least squares
+        from ``S^T B tau = S^T (M_N (S q'' + S' q') - M_N g)`` (what the motors do not span is left to the
+        acceleration, as above); ``tau=None`` without ``qdd``: the torques that hold the configuration, the same
+        with ``q'' = 0``. ``q' = None``: at rest."""
+        S, B = cfg.pose.S, self.B_N
+        f = cfg.M_N @ self.g_N
+        if qd is not None and np.any(qd):
+            f = f - cfg.M_N @ (self.kin.rates(cfg.pose, qd)[1] @ qd)
+        if qdd is not None:
+            f = f - cfg.M_N @ (S @ np.asarray(qdd, float))
+        if tau is None or qdd is not None:
+            tau = -np.linalg.lstsq(S.T @ B, S.T @ f, rcond=None)[0] if B.shape[1] else np.zeros(0)
+        f = f + B @ tau
+        MS = cfg.M_N @ S
+        return f - MS @ np.linalg.solve(S.T @ MS, S.T @ f)
+
+    def axial_forces(self, cfg: Configuration, f: np.ndarray) -> np.ndarray:
+        """Each element's axial force ``N_e`` (n_el,; N, tension positive; zero for the offset masses) under the
+        nodal loads ``f`` in equilibrium (:meth:`rigid_loads`): the elastic rows' static response ``K_uu u = T^T f``
+        (the linear elastic stiffness, the coordinates held: the loads balance, so the joints that fix the coordinates
+        carry none of them and the internal forces are those of the moving mechanism), ``N_e = (EA / L) (u_2 -
+        u_1)`` along the element (its frame). First order: the axial modes lie far above the loads' frequencies,
+        so the links' axial strain follows the loads quasi-statically."""
+        T = self.T
+        d = T @ np.linalg.solve(T.T @ cfg.K_N @ T, T.T @ f)
+        de = d[self.el_dofs]  # (n_el, 6)
+        R = cfg.R
+        ax = R[:, 0, 0] * (de[:, 3] - de[:, 0]) + R[:, 1, 0] * (de[:, 4] - de[:, 1])  # (R^T d)_3 - (R^T d)_0
+        return self.el_axial * ax
+
+    def geometric_stiffness(self, cfg: Configuration, N: np.ndarray) -> np.ndarray:
+        """The nodal geometric stiffness ``sum_e N_e R_e K_G1 R_e^T`` (N, N) of the elements' axial forces ``N``
+        (``K_G1``: :func:`.elements.beam_geometric_stiffness` per unit force): the second variation of the axial
+        forces' work ``sum_e N_e int (v'^2 / 2) dx`` across the lateral displacements ``v`` (each element's
+        frame), the P-delta effect that linear elasticity leaves out."""
+        R = cfg.R
+        return self._assemble((R @ self.el_KG1 @ np.swapaxes(R, 1, 2)) * N[:, None, None])
+
+    def geometric_forces(self, cfg: Configuration, N: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``-T^T K_G(N) T u`` (ne,): the elastic rows' forces of the axial forces ``N`` across the elastic
+        displacements ``u`` (:meth:`geometric_stiffness`, element by element without assembly)."""
+        R = cfg.R
+        dl = np.einsum("eji,ej->ei", R, (self.T @ u)[self.el_dofs])  # R^T d per element
+        fe = np.einsum("eij,ej->ei", R, np.einsum("eij,ej->ei", self.el_KG1, dl)) * N[:, None]
+        return -self.T.T @ np.bincount(self._el_flat, fe.reshape(-1), minlength=self.N)
+
+    def static_geometric(self, cfg: Configuration) -> Configuration:
+        """``cfg`` with the geometric stiffness of the static axial loads: the elements' axial forces ``N_s`` of the
+        weight with the torques that hold the configuration (:meth:`rigid_loads` at rest) and ``K_G(N_s)``.
+
+        The elastic rows' stiffness about the static sag (:meth:`elastic_stiffness`), which the linearised models
+        (:meth:`stiffness`) and the reduction's ``K_r`` hold as they hold ``K_N``; the equations of motion take the
+        axial forces of the motion itself (:meth:`rigid_axial_forces`, :meth:`net_forces`)."""
+        from dataclasses import replace
+
+        N_s = self.axial_forces(cfg, self.rigid_loads(cfg))
+        return replace(cfg, K_G=self.geometric_stiffness(cfg, N_s), N_static=N_s)
+
+    def rigid_axial_forces(self, cfg: Configuration, qd: np.ndarray | None, tau: np.ndarray | None = None,
+                           qdd: np.ndarray | None = None) -> np.ndarray:
+        """The elements' axial forces (n_el,) under the rigid motion's loads at ``q'`` under ``tau``, or with the
+        prescribed ``q''`` (:meth:`rigid_loads`, :meth:`axial_forces`): those of :meth:`net_forces`' ``K_G(q, q',
+        tau)``. Zeros without ``geometric``."""
+        if not self.geometric:
+            return np.zeros(self.n_el)
+        return self.axial_forces(cfg, self.rigid_loads(cfg, qd, tau, qdd))
+
+    def elastic_stiffness(self, cfg: Configuration) -> np.ndarray:
+        """The elastic rows' stiffness at rest ``K_uu + T^T K_G(N_s) T`` (ne x ne): linear elastic and the static
+        axial loads' geometric stiffness (:meth:`static_geometric`; none without it)."""
+        K = self.T.T @ cfg.K_N @ self.T
+        return K if cfg.K_G is None else K + self.T.T @ cfg.K_G @ self.T
+
     # ------------------------------------------------------------------ dynamics
     def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):
         F = cfg.W.T @ (self.B_N @ tau + cfg.M_N @ self.g_N)
@@ -569,14 +695,20 @@ class ErlsModel:
             F = F + cfg.W.T @ f_nodal
         return F
 
-    def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray,
+                   qdd: np.ndarray | None = None) -> np.ndarray:
         """Right-hand side of eq. 2, ``W^T (B tau + M_N g) - h(x, v) - C v - K x``, so that ``M v' = net_forces``
-        (``h`` and ``C`` of the model's form)."""
+        (``h`` and ``C`` of the model's form). With ``geometric`` the elastic rows' ``K_uu`` holds the geometric
+        stiffness of the links' axial forces under the rigid motion's loads, ``K_G(q, q', tau)``
+        (:meth:`rigid_axial_forces`); ``qdd``: a prescribed motion's acceleration, whose loads give the axial forces
+        instead of ``tau``'s."""
         nq = self.nq
         rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
         T, Tt = self.T, self.T.T
         # K_uu u = T^T K_N T u and the damping as matrix-vector products
         rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
+        if self.geometric:
+            rhs[nq:] += self.geometric_forces(cfg, self.rigid_axial_forces(cfg, v[:nq], tau, qdd), x[nq:])
         if self.alpha or self.beta:
             rhs -= self.damping_forces(cfg, x, v)
         return rhs
@@ -596,18 +728,23 @@ class ErlsModel:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
         M = self.mass(cfg)
-        rhs = self.net_forces(cfg, x, v, np.zeros(len(self.mech.motors)))
+        rhs = self.net_forces(cfg, x, v, np.zeros(len(self.mech.motors)), qdd=qdd)
         return np.linalg.solve(M[nq:, nq:], rhs[nq:] - M[nq:, :nq] @ np.asarray(qdd, float))
 
-    def prescribed_jacobian(self, x: np.ndarray, v: np.ndarray, cfg: Configuration | None = None) -> np.ndarray:
-        """``[d u''/d u, d u''/d u']`` (ne x 2 ne) of :meth:`prescribed_accelerations` (exact: under a prescribed
-        motion the elastic rows are linear in ``u`` and ``u'``)."""
+    def prescribed_jacobian(self, x: np.ndarray, v: np.ndarray, cfg: Configuration | None = None,
+                            qdd: np.ndarray | None = None) -> np.ndarray:
+        """``[d u''/d u, d u''/d u']`` (ne x 2 ne) of :meth:`prescribed_accelerations` at the prescribed ``q''``
+        ``qdd`` (exact: under a prescribed motion the elastic rows are linear in ``u`` and ``u'``; ``qdd=None``:
+        the geometric stiffness of the motion's axial loads at zero acceleration)."""
         if cfg is None:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
         M_uu = self.mass(cfg)[nq:, nq:]
         D = (self.damping(cfg, x) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
         K_uu = self.T.T @ cfg.K_N @ self.T + self.damping_position_jacobian(cfg, x, v)[nq:]
+        if self.geometric:
+            N = self.rigid_axial_forces(cfg, v[:nq], None, np.zeros(nq) if qdd is None else qdd)
+            K_uu = K_uu + self.T.T @ self.geometric_stiffness(cfg, N) @ self.T
         return -np.linalg.solve(M_uu, np.hstack([K_uu, D]))
 
     def rhs(self, t: float, y: np.ndarray, tau: np.ndarray) -> np.ndarray:

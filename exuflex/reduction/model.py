@@ -173,7 +173,7 @@ class ReducedModel:
             J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
                 p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
                 cfg.K_N, rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
-            return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
+            return ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         J = H
         a_b = None
         if self.consistent:
@@ -191,7 +191,7 @@ class ReducedModel:
         T = model.T
         Kuu = rc.Kuu
         JtK = Ju.T @ Kuu
-        Kr = JtK @ Hu
+        Kr = JtK @ Hu + self.geometric_stiffness(rc, J)
         if model.alpha or model.beta:  # J^T C(H p) J: the dissipation of the strain rate T J_u p' - Y q'
             TJ = T @ Ju
             turned = self.consistent and np.any(p[nq:])
@@ -220,15 +220,56 @@ class ReducedModel:
         call after the configuration's (:meth:`_held_compiled`)."""
         p = np.asarray(p, float)
         if not fr and self.one_call and self.compiled and self.cb.compiled and self.model.kin.compiled:
-            return self._held_compiled(p, gradients)
-        rc = self.cb.at(p[: self.nq])
-        dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
-        mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
-        fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
-        fm.dHdq = dHdq
-        if gradients:
-            fm.elastic = self.elastic_forms(rc, dHdq)
+            mats, fm = self._held_compiled(p, gradients)
+        else:
+            rc = self.cb.at(p[: self.nq])
+            dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
+            mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
+            fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+            fm.dHdq = dHdq
+            if gradients:
+                fm.elastic = self.elastic_forms(rc, dHdq)
+        if gradients and mats.rc.cfg.K_G is not None:
+            fm.dKr2 = fm.dKr2 + self.geometric_gradient(mats.rc, fm.dHdq).reshape(self.nq, -1)
         return mats, fm
+
+    def geometric_gradient(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> np.ndarray:
+        """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as
+        ``dKr2`` holds the linear elastic stiffness's (its q rows' ``d(H p)/dq`` part not differentiated): the
+        basis turning with the links, ``dH_u^T K_Guu H_u`` and its transpose (``K_Guu = T^T K_G T``), and the
+        nodal ``K_G``'s own change, the elements turning and their static axial forces changing with the
+        configuration, by central differences of :meth:`~exuflex.erls.model.ErlsModel.static_geometric` over
+        ``1e-6`` (rad or m; ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds
+        ``K_r`` to first order in q with it (second along its secant), as it holds the linear elastic part."""
+        model, nq = self.model, self.nq
+        T, H, q = model.T, rc.H, rc.cfg.q
+        TH = T @ H[nq:]
+        KH = (T.T @ (rc.cfg.K_G @ TH))  # K_Guu H_u
+        out = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_Guu H_u per q_i
+        out = out + np.swapaxes(out, 1, 2)
+        h = 1e-6
+        for i in range(nq):
+            e = np.zeros(nq)
+            e[i] = h
+            dK = (model.configuration(q + e).K_G - model.configuration(q - e).K_G) / (2 * h)
+            out[i] += TH.T @ (dK @ TH)
+        model.configuration(q)  # leave the closure solver warm-started at q
+        return out
+
+    def geometric_stiffness(self, rc: ReducedConfiguration, J: np.ndarray) -> np.ndarray:
+        """``J_u^T T^T K_G T H_u`` (r, r): the geometric stiffness of the static axial loads at the configuration
+        (:meth:`~exuflex.erls.model.ErlsModel.static_geometric`: the weight with the holding torques) reduced as
+        ``K_uu`` is, ``K_r = J_u^T (K_uu + T^T K_G T) H_u``; zero without (no gravity, or a model built with
+        ``geometric=False``). The basis stays that of ``K_uu`` (the Craig-Bampton shapes of the linear elastic
+        links; the static corrections take the model's stiffness with ``K_G``, :mod:`.static`). Left out: the
+        change of the axial loads with the motion (the full model's ``K_G(q, q', tau)``,
+        :meth:`~exuflex.erls.model.ErlsModel.net_forces`); its q-gradient is :meth:`geometric_gradient`."""
+        K_G = rc.cfg.K_G
+        if K_G is None:
+            return np.zeros((self.r, self.r))
+        nq, T = self.nq, self.model.T
+        TH = T @ rc.H[nq:]
+        return (T @ J[nq:]).T @ (K_G @ TH)
 
     def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
         """``(pM, pK, pC, pG, p2C)``: the change of the reduced matrices with the elastic coordinates at a
@@ -279,7 +320,8 @@ class ReducedModel:
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
         pC = model.alpha * (Ast @ PTH) - model.beta * (np.swapaxes(E, 1, 2) @ (cfg.K_N @ TH))
-        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), pC, At @ BG)
+        Kel = rc.Kuu if cfg.K_G is None else rc.Kuu + model.T.T @ cfg.K_G @ model.T  # K_r's stiffness (with K_G)
+        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (Kel @ H[nq:]), pC, At @ BG)
         # the damping's second order as a Gram matrix over (k, i)
         n = r - nq
         A2 = As.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: (A_k - E_k) e_i
@@ -307,7 +349,8 @@ class ReducedModel:
             cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
             model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
             self.consistent, gradients)
-        mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
+        rc = ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
+        mats = ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, gradients)
         fm.dHdq = dHdq
         if gradients:
