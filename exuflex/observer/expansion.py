@@ -41,6 +41,7 @@ __all__ = [
     "cached_rows",
     "extra_interval",
     "held_interval",
+    "held_jacobian",
     "held_step",
     "held_system",
     "map_error",
@@ -580,16 +581,32 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
-        if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates, differentiated
-            r = hs.Mr.shape[0]
-            nq = dl.shape[0]
-            Ge = np.zeros((r, 2 * r))
-            _velocity_terms(z[nq:r], z[r:], nq, hs.pT, hs.pC2, np.zeros(r), Ge)
-            Fe = SQM @ Ge
-            for i in range(F.shape[0]):
-                for j in range(F.shape[1]):
-                    F[i, j] += Fe[i, j]
+        _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
+    """Add to the step Jacobian ``F`` (in place) the response ``SQM dG`` to the velocity forces' first order in the
+    elastic coordinates (:func:`_velocity_terms`; nothing where ``pT`` is empty)."""
+    if pT.shape[0] == 0:
+        return
+    r = SQM.shape[1]
+    Ge = np.zeros((r, 2 * r))
+    _velocity_terms(z[nq:r], z[r:], nq, pT, pC2, np.zeros(r), Ge)
+    Fe = SQM @ Ge
+    for i in range(F.shape[0]):
+        for j in range(F.shape[1]):
+            F[i, j] += Fe[i, j]
+
+
+def _held_jacobian(z, nq, Ts, Vs, C3, Pn, SQM, Fp, hs):  # pragma: no cover - compiled
+    """The step Jacobian of the held system ``hs`` (a plain tuple, see :func:`_held_interval`) without its
+    sub-steps: :func:`_step_jacobian` with the velocity forces' first order in the elastic coordinates
+    (:func:`_velocity_jacobian`), as :func:`held_interval` returns it for the same ``Fp``."""
+    hs = HeldSystem(*hs)
+    F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
+    _velocity_jacobian(F, z, nq, SQM, hs.pT, hs.pC2)
+    return F
 
 
 def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
@@ -1439,11 +1456,13 @@ map_lookahead = _shared(map_lookahead)
 _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
 _velocity_terms = _linked(_velocity_terms)
+_velocity_jacobian = _inline(_velocity_jacobian)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
+held_jacobian = _jit(_held_jacobian)
 measurement_rows = _jit(_measurement_rows)
 secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
@@ -1488,13 +1507,14 @@ def warm_up_held() -> None:
 
 def warm_up_interval() -> None:
     """Compile (or load) :func:`held_interval` with the step Jacobian it calls (:func:`step_jacobian`, called from
-    Python too, at the step map's rebuilds)."""
+    Python too, at the step map's rebuilds), and :func:`held_jacobian` (the bound's recursion calls it)."""
     r, nq = 2, 1
     z, u, dl = np.zeros(2 * r), np.zeros(nq), np.zeros(nq)
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     step_jacobian(z, *jac, np.zeros((0, 0)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, tuple(_example_system(r, nq, has_old)))
+    held_jacobian(z, nq, *jac, np.zeros((0, 0)), tuple(_example_system(r, nq)))
 
 
 def warm_up_maps() -> None:
