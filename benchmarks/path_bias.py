@@ -33,7 +33,7 @@ def clean_run(mech, drive, engine: str, mesh):
     from exuflex.runs import Run
     from exuflex.truth import simulate
 
-    rec = simulate(mech, drive, engine, elements_per_link=mesh)
+    rec = simulate(mech, drive, engine, elements_per_link=mesh, erls_step="auto")  # the truth step rule, as `simulate`
     meas = measure(mech, rec.clean, rec.torque_t, rec.torques, seed=0, noise=False, quantisation=False,
                    t_end=mech.manoeuvre.duration)
     sensors = meas.signals

@@ -41,6 +41,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 __all__ = ["CHECKS_GROUP", "JOBS_ENV", "KernelGroup", "groups", "jobs", "missing", "plan", "prepare", "start"]
@@ -100,7 +101,7 @@ def groups() -> tuple[KernelGroup, ...]:
         KernelGroup("kalman", _warm_up_kalman, (kalman.predict_cov, kalman.update, kalman.predict_update,
                     kalman.apply_gain, kalman.settle, kalman.normalise, kalman.step_statistic, kalman.window_seen,
                     kalman.window_push, kalman.condition_on, kalman.gate, kalman.fix_cov), cost=5.3),
-        KernelGroup("sample_loop", loop.warm_up, (loop.samples,), cost=15.1,
+        KernelGroup("sample_loop", partial(loop.warm_up, "plain"), (loop.samples, loop.screen), cost=15.1,
                     needs=("interval", "step_map", "kalman")),
         KernelGroup("payload", augmented.warm_up, (expansion.scaled_steps, expansion.payload_interval,
                     expansion.extra_interval), cost=48.3,

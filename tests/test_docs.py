@@ -83,6 +83,21 @@ def test_build_fails_on_a_docstring_numpydoc_rejects(site, tmp_path):
         page.write_text(text)
 
 
+def test_theory_pages_link_to_the_code(site):
+    """Every code object a theory page names by role ({py:class}, {py:func}) resolves to its API page: an
+    unresolved role renders as plain code without a warning, so a renamed function would leave a dead name."""
+    bad = {}
+    for page in sorted((site / "out" / "html" / "theory").glob("*.html")):
+        html = page.read_text()
+        refs = re.findall(r'(<a [^>]*>)?<code class="xref py[^"]*"><span class="pre">([^<]*)</span>', html)
+        dead = [name for link, name in refs if not link]
+        if dead:
+            bad[page.name] = dead
+    assert not bad, f"theory pages name code objects that have no API page: {bad}"
+    index = (site / "out" / "html" / "theory" / "index.html").read_text()
+    assert "exuflex.erls.model.ErlsModel.html" in index  # the equation table links eq. 2 to its class
+
+
 def _readme_links() -> list[str]:
     text = (ROOT / "README.md").read_text()
     return re.findall(r"\]\(([^)\s]+)\)", text)

@@ -1,13 +1,16 @@
-"""The compiled sample loop (:func:`exuflex.observer.loop.samples`) against :meth:`MultirateEKF.step`.
+"""The compiled sample loop (:func:`exuflex.observer.loop.samples`) over a model's compiled step against the same
+loop over the model's ``predict`` and ``measure`` (:meth:`MultirateEKF.step`).
 
-:meth:`MultirateEKF.run` hands the samples it can to the model's compiled loop and the others to ``step``; both
-must give the same numbers, bit for bit, on a log that makes the run go back and forth between them: the six-bar's
-3 s log with a torque step (the hold-off), a spike (the gate), a blank sample, a late sample and a longer interval
-(the step map rebuilt for another length), in every recording mode.
+:meth:`MultirateEKF.run` hands the samples it can to the loop with the model's compiled step and the others to
+``step``, which hands the loop the model's own prediction and measurement; both must give the same numbers, bit for
+bit, on a log that makes the run go back and forth between them: the six-bar's 3 s log with a torque step (the
+hold-off), a spike (the gate), a blank sample, a late sample and a longer interval (the step map rebuilt for another
+length), sensor faults with and without isolation, in every recording mode.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -168,13 +171,13 @@ def test_smoother_forward_pass_is_the_loop(sixbar_log):
         assert np.array_equal(getattr(looped, name), getattr(stepped, name), equal_nan=True), name
 
 
-def _run_counting_steps(ekf, t, U, Y):
+def _run_counting_steps(ekf, t, U, Y, **kw):
     """``ekf.run`` of the log, and the samples it handed to ``step`` (the rest went through the compiled loop)."""
     stepped = []
     step = ekf.step
     ekf.step = lambda tk, *a: stepped.append(int(np.searchsorted(t, tk))) or step(tk, *a)
     try:
-        return ekf.run(t, U, Y), stepped
+        return ekf.run(t, U, Y, **kw), stepped
     finally:
         del ekf.step
 
@@ -235,3 +238,43 @@ def test_rows_rebuilt_at_partial_samples_as_step_rebuilds_them(sixbar_log):
     looped, stepped = _run_counting_steps(ekf, t, U, Y)
     assert stepped == [0] and ekf.model.n_rows - rebuilds > 3
     _same(looped, _step_by_step(ekf, t, U, Y))
+
+
+def test_loop_takes_isolation_and_a_channel_missing_and_back(sixbar_log):
+    """With isolation on: an offset on one channel (found, and the channel left out of the updates from the sample
+    that finds it), another channel silent for 0.6 s (found missing) and sampled again (the fault cleared, its
+    window emptied). Every sample but the first goes through the model's compiled step, with the numbers of its
+    ``predict`` and ``measure``; the isolated channel's samples after the finding are left out (counted)."""
+    mech, obs, t, U, Y = sixbar_log
+    n = 900
+    t, U, Y = t[:n].copy(), U[:n].copy(), Y[:n].copy()
+    Y[300:, 2] += 6 * obs.ekf.R_std[2]
+    Y[400:700, 4] = np.nan
+    ekf = make_observer(mech, ObserverConfig.for_model(mech, fault_isolation=True), cb=obs.model.rm.cb).ekf
+    assert ekf.isolate
+    looped, stepped = _run_counting_steps(ekf, t, U, Y)
+    assert stepped == [0]
+    kinds = {(f["channel"], f["kind"]) for f in looped.channel_faults}
+    assert (obs.channels[2], "offset") in kinds and (obs.channels[4], "missing") in kinds
+    missing = next(f for f in looped.channel_faults if f["kind"] == "missing")
+    assert t[400] < missing["start"] < t[699] and missing["end"] == t[700]
+    offset = next(f for f in looped.channel_faults if f["channel"] == obs.channels[2])
+    k_found = int(np.searchsorted(t, offset["start"]))
+    isolated = looped.nis_dof[k_found:] < np.isfinite(Y[k_found:]).sum(axis=1)
+    assert isolated.mean() > 0.5 and looped.n_rejected[obs.channels[2]] >= isolated.sum()
+    _same(looped, _step_by_step(ekf, t, U, Y))
+
+
+def test_indefinite_innovation_covariance_stays_in_the_loop(sixbar_log, caplog):
+    """A prior whose covariance is not positive definite makes the first updates' ``S`` indefinite: the loop
+    solves them by LU (the filter warns) instead of handing them back, with the numbers of the run through the
+    model's ``predict`` and ``measure``."""
+    mech, obs, t, U, Y = sixbar_log
+    ekf = make_observer(mech, ObserverConfig.for_model(mech), cb=obs.model.rm.cb).ekf
+    P0 = ekf.P0
+    P0[0, 0] = -10 * P0[0, 0] - 1e-2
+    n = 50
+    with caplog.at_level(logging.WARNING, logger="exuflex.observer.ekf"):
+        looped, stepped = _run_counting_steps(ekf, t[:n], U[:n], Y[:n], P0=P0)
+    assert "not positive definite" in caplog.text and stepped == [0] and not looped.diverged
+    _same(looped, _step_by_step(ekf, t[:n], U[:n], Y[:n], P0=P0))

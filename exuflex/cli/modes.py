@@ -219,7 +219,9 @@ def _table(rep: dict) -> str:
             lines.append(
                 f"filter (docs/reduction.md): the steady filter's mean-square error on the linearised full model under "
                 f"the manoeuvre, over the bound's variance: {bi} (limit {tr['bias_max']:g}; without interior modes "
-                f"{tr['bias_without_interior']:.3g}){'' if tr['bias_met'] else ', ABOVE THE LIMIT'}")
+                f"{tr['bias_without_interior']:.3g}){'' if tr['bias_met'] else ', ABOVE THE LIMIT'}"
+                + (f"; with the static corrections {', '.join(f'{k} {v:.3g}' for k, v in tr['bias_final'].items())}"
+                   f"{'' if tr['bias_final_met'] else ', ABOVE THE LIMIT'}" if tr.get("bias_final") else ""))
     st = red.get("static") if red is not None else None
     if st:
         hz = ", ".join(f"{f:.0f}" for f in st["ritz_hz"])

@@ -254,29 +254,64 @@ def phase_step(omega, zeta, duration: float, output_dt: float, rho_inf: float = 
 
 
 class HeldTable:
-    """A zero-order-hold table on a uniform grid ``t_tab``: value ``values[k]`` on ``[t_k, t_k+1)``, the first
+    """A zero-order-hold table on an increasing grid ``t_tab``: value ``values[k]`` on ``[t_k, t_k+1)``, the first
     value before ``t_0`` and the last after the table (as the RK4 engine reads its inputs)."""
 
     def __init__(self, t_tab, values):
         self.t = np.asarray(t_tab, float)
         self.values = np.asarray(values, float).reshape(len(self.t), -1)
-        if len(self.t) < 2 or np.any(np.abs(np.diff(self.t) - (self.t[1] - self.t[0])) > 1e-9 * (self.t[1] - self.t[0])):
-            raise ValueError("torque table: t must be a uniform grid of at least two points")
-        self.dt = self.t[1] - self.t[0]
-        self._cum = np.vstack([np.zeros((1, self.values.shape[1])), np.cumsum(self.values, axis=0) * self.dt])
+        if self.t.ndim != 1 or len(self.t) < 2 or np.any(np.diff(self.t) <= 0):
+            raise ValueError("torque table: t must be strictly increasing, with at least two points")
+        # int_{t_0}^{t_k} of the hold, k = 0 .. n-1
+        self._cum = np.vstack([np.zeros((1, self.values.shape[1])),
+                               np.cumsum(self.values[:-1] * np.diff(self.t)[:, None], axis=0)])
 
     def integral(self, t) -> np.ndarray:
         """``int_{t_0}^{t}`` of the hold, for a time or an array of times (then time-first)."""
-        s = (np.asarray(t, float) - self.t[0]) / self.dt
-        n = len(self.t)
-        k = np.clip(np.floor(s + 1e-9).astype(int), 0, n)
-        inside = self._cum[k] + ((s - k) * self.dt)[..., None] * self.values[np.minimum(k, n - 1)]
-        before = (s * self.dt)[..., None] * self.values[0]
-        return np.where((s <= 0)[..., None], before, inside)
+        t = np.asarray(t, float)
+        k = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 1)
+        inside = self._cum[k] + (t - self.t[k])[..., None] * self.values[k]
+        before = (t - self.t[0])[..., None] * self.values[0]
+        return np.where((t <= self.t[0])[..., None], before, inside)
 
     def mean(self, a, b) -> np.ndarray:
         """Mean of the hold over ``[a, b]`` (times or arrays of times)."""
         return (self.integral(b) - self.integral(a)) / (np.asarray(b, float) - np.asarray(a, float))[..., None]
+
+    def step_ends(self, h: float, n_steps: int, every: int = 0) -> np.ndarray:
+        """``(n_steps + 1, k)``: the forces generalized-alpha balances at the step ends ``t_j = j h`` under this
+        hold, with a record every ``every`` steps (0: none).
+
+        Generalized-alpha balances forces at step ends and integrates them as if linear in between: the impulse
+        it gives the step ``[t_j, t_j+1]`` is ``h (f_j + f_j+1) / 2``, so each ``f_j`` carries a weight ``h``. The
+        hold's mean over ``[t_j - h/2, t_j + h/2]``: these windows tile the time axis, so ``h (f_0 + ... + f_j)`` is
+        the hold's integral up to ``t_j + h/2``, the impulse without lag.
+
+        A record is the state at its instant ``t_j``, which under a bounded force depends on the hold before
+        ``t_j`` alone (positions and rates are continuous; a torque switched at ``t_j`` acts after it, as the
+        observer's sampled model has it: the torque sampled at ``t_j`` is held over the interval that follows). The
+        symmetric mean at a recorded ``t_j`` takes half a step of the hold after ``t_j`` into the record: a torque
+        step there ramps over ``[t_j - h, t_j + h]`` and the record carries a step's worth of the response of the
+        mesh's stiffest modes, whose instantaneous acceleration under a torque step is large (``docs/ringing.md``).
+        So at a recorded ``t_j`` (``0 < j < n_steps``, ``every >= 2``) the force is the mean over the half
+        ``[t_j - h/2, t_j]`` before it: the impulse up to ``t_j``, ``h (f_0 / 2 + f_1 + ... + f_j-1) + h f_j / 2``
+        plus the first half-window's, is then the hold's integral up to ``t_j`` exactly. The next step end takes
+        the impulse left out,
+
+        ``f_j+1 = int_{t_j}^{t_j + 3h/2} F / h - f_j / 2``,
+
+        so that ``h (f_j + f_j+1)`` is the integral over ``[t_j - h/2, t_j + 3h/2]`` and the windows tile on (a
+        torque step ``F_0 -> F_1`` at ``t_j``: ``f_j = F_0``, ``f_j+1 = (3 F_1 - F_0) / 2``; the impulse is short by
+        ``h (F_1 - F_0) / 4`` at ``t_j+1`` and exact from ``t_j+2`` on). With a record at every step (``every == 1``) no step end is free to
+        take the impulse left out: the symmetric means are kept (a causal force there would lag the hold by half a
+        step)."""
+        t = np.arange(n_steps + 1) * h
+        f = self.mean(t - h / 2, t + h / 2)
+        if every >= 2:
+            j = np.arange(every, n_steps, every)
+            f[j] = self.mean(t[j] - h / 2, t[j])
+            f[j + 1] = (self.integral(t[j] + 1.5 * h) - self.integral(t[j])) / h - 0.5 * f[j]
+        return f
 
 
 def generalized_alpha(
@@ -439,11 +474,13 @@ def erls_implicit(
 ) -> Trajectory:
     """Integrate the ERLS model's eq. 2 under a zero-order-hold torque table by :func:`generalized_alpha`.
 
-    The table (uniform grid ``t_tab``, value ``tau_tab[k]`` held over ``[t_k, t_k+1)``, as the RK4 engine
+    The table (increasing grid ``t_tab``, value ``tau_tab[k]`` held over ``[t_k, t_k+1)``, as the RK4 engine
     reads it) enters generalized-alpha, which balances forces at step ends and acts as if they were linear
-    in between, as its mean over ``[t1 - h/2, t1 + h/2]`` at each step end ``t1`` (:class:`HeldTable`): the
-    hold's impulse over every step, without lag (for ``h`` equal to the table step, the mean of the values
-    either side of ``t1``, as the Exudyn truth does).
+    in between, as its mean over ``[t1 - h/2, t1 + h/2]`` at each step end ``t1``: the hold's impulse over every
+    step, without lag (for ``h`` equal to the table step, the mean of the values either side of ``t1``, as the
+    Exudyn truth does); at a recorded step end (every ``output_every`` steps) the mean over the half before it,
+    the next step end taking the rest, so that a record depends on the torques before its instant alone
+    (:meth:`HeldTable.step_ends`).
 
     Returns
     -------
@@ -453,8 +490,7 @@ def erls_implicit(
     table = HeldTable(t_tab, tau_tab)
     n = model.n
     y0 = np.asarray(y0, float)
-    t_steps = np.arange(round(t_end / h) + 1) * h
-    tau_steps = table.mean(t_steps - h / 2, t_steps + h / 2)  # the force at every step end
+    tau_steps = table.step_ends(h, round(t_end / h), output_every)  # the force at every step end
     inv_h = 1.0 / h
     system = _ErlsSystem(model, lambda t: tau_steps[int(t * inv_h + 0.5)])
     x0, v0 = y0[:n], y0[n:]

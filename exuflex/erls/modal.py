@@ -6,6 +6,7 @@ linearised model is ``M(q) dx'' + K(q) dx = 0`` with ``K = diag(0, K_uu)``.
 - *motors free* (torque-driven): all of x vibrates; the mechanism's ``nq`` zero-frequency modes are
   reported separately and dropped;
 - *motors locked*: q is held, only u vibrates (``M_uu``, ``K_uu``).
+
 Mode shapes are also given as physical nodal displacements ``W phi`` (x, y, theta of every node).
 """
 

@@ -462,9 +462,9 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
                   newton_tol: float = 1e-4, spectral_radius: float = 0.9, stats: dict | None = None) -> ProbeRecord:
     """Simulate the FFRF model of ``mech`` from rest at ``q0`` under tabulated motor torques; record the probes.
 
-    Same contract as :func:`exuflex.groundtruth.simulate_truth` (torque table in ``mech.motors`` order, linearly
-    interpolated at the step times and applied as the mean of the held values either side of each step's end, so
-    that generalized-alpha sees the ERLS engine's zero-order hold without lag; probes every ``output_dt``; slopes
+    Same contract as :func:`exuflex.groundtruth.simulate_truth` (torque table in ``mech.motors`` order, its zero-order
+    hold applied at each step's end as the ERLS engine's generalized-alpha does, :func:`.simulate.step_end_torques`:
+    without lag, and a record holds nothing of a torque switched at its instant; probes every ``output_dt``; slopes
     on the branch of the ERLS pose at ``q0``). ``messages`` receives the meshing and modes' progress lines;
     ``mesh_scale``, ``mode_factor``, ``damping``: :func:`build_ffrf`; the alpha damper is refreshed on
     :class:`~exuflex.groundtruth.simulate.DamperSchedule` (``damping_update``, ``damping_tol``: as in
@@ -472,7 +472,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     start. ``stats`` (a dict) receives the solver's
     statistics and the setup time.
     """
-    from .simulate import DamperSchedule, _interp_table
+    from .simulate import DamperSchedule, _interp_table, step_end_torques
 
     exu, _ = _exu()
     n_steps, every = step_grid(h, duration, output_dt)
@@ -483,7 +483,7 @@ def simulate_ffrf(mech: Mechanism, t_table, torque_table, duration: float, h: fl
     nm = len(mech.motors)
     t_steps = np.arange(n_steps + 1) * h
     tau = _interp_table(t_table, torque_table, t_steps, nm) if nm else np.zeros((n_steps + 1, 0))
-    tau_end = 0.5 * (tau[:-1] + tau[1:])  # torque at the end t_k+1 of step k (simulate_truth's Notes)
+    tau_end = step_end_torques(t_table, torque_table, h, n_steps, every, nm)  # at the end t_k+1 of step k
     sd = mbs.systemData
     ref = np.asarray(sd.GetODE2Coordinates(exu.ConfigurationType.Reference))
     n_out = n_steps // every + 1

@@ -13,7 +13,7 @@ from ..mechanism import Mechanism
 from ..probes import Probe, ProbeRecord, probes_for
 from .builder import TruthModel, _exu, ancf_shape, build_truth
 
-__all__ = ["probe_values", "simulate_truth", "smooth_torque_table", "time_truth"]
+__all__ = ["probe_values", "simulate_truth", "smooth_torque_table", "step_end_torques", "time_truth"]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,20 @@ def _interp_table(t_table, torque_table, t_query, n_motors):
     if np.any(np.diff(t_table) <= 0):
         raise ValueError("t_table must be strictly increasing")
     return np.column_stack([np.interp(t_query, t_table, tau[:, j]) for j in range(n_motors)])
+
+
+def step_end_torques(t_table, torque_table, h: float, n_steps: int, every: int, n_motors: int) -> np.ndarray:
+    """``(n_steps, n_motors)``: the torque generalized-alpha balances at the end ``t_k+1`` of each step ``k`` under
+    the zero-order hold of the table, a record every ``every`` steps: the ERLS engine's
+    (:meth:`exuflex.erls.implicit.HeldTable.step_ends`: the hold's mean over ``[t_k+1 - h/2, t_k+1 + h/2]``, the half
+    before a recorded instant there and the rest at the next step end)."""
+    if not n_motors:
+        return np.zeros((n_steps, 0))
+    from ..erls.implicit import HeldTable
+
+    _interp_table(t_table, torque_table, t_table, n_motors)  # the table's shape and order, checked
+    tab = HeldTable(t_table, np.asarray(torque_table, float).reshape(len(t_table), n_motors))
+    return tab.step_ends(h, n_steps, every)[1:]
 
 
 def _probe_geometry(tm: TruthModel, probe: Probe):
@@ -281,7 +295,9 @@ def simulate_truth(
     hold's impulse over every step and no lag (drift 4.5e-5 rad). A torque switched on at ``t_k``
     thus ramps over ``[t_k-1, t_k+1]``, centred on ``t_k``. A step finer than the table's takes the hold's mean
     over ``[t_k+1 - h/2, t_k+1 + h/2]`` (the same for a step equal to it), as the ERLS engine does
-    (:func:`exuflex.erls.implicit.erls_implicit`). The same function refreshes the damper.
+    (:func:`exuflex.erls.implicit.erls_implicit`). At a recorded instant the mean is over the half step before
+    it and the next step end takes the rest of the impulse (:func:`step_end_torques`): a record depends on the
+    torques before its instant alone, as the sampled model has it. The same function refreshes the damper.
     """
     exu, _ = _exu()
     n_steps, every = step_grid(h, duration, output_dt)
@@ -299,13 +315,7 @@ def simulate_truth(
     nm = len(mech.motors)
     t_steps = np.arange(n_steps + 1) * h
     tau = _interp_table(t_table, torque_table, t_steps, nm) if nm else np.zeros((n_steps + 1, 0))
-    tau_end = 0.5 * (tau[:-1] + tau[1:])  # torque at the end t_k+1 of step k (see Notes)
-    if nm and len(t_table) > 1 and h < (t_table[1] - t_table[0]) * (1 - 1e-9):
-        # a step finer than the table: the hold's mean about t_k+1 (see Notes)
-        from ..erls.implicit import HeldTable
-
-        tau_end = HeldTable(t_table, np.asarray(torque_table, float).reshape(len(t_table), nm)).mean(
-            t_steps[1:] - h / 2, t_steps[1:] + h / 2)
+    tau_end = step_end_torques(t_table, torque_table, h, n_steps, every, nm)  # at the end t_k+1 of step k (Notes)
 
     # coordinates needed by the probes (and all, if the damper needs q)
     need = sorted({int(i) for p in probes for (_, _, _, idx) in _probe_geometry(tm, p) for i in idx})

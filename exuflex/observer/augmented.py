@@ -559,7 +559,7 @@ def warm_up() -> None:
         extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1,
                        (True, 1.0, 1e-4, 1.0, 0.03, T3, has_old, 1.0, np.zeros(2), 1.0), inc,
                        (np.ones(nq), 0.0), (False, 0.0, *maps), nominal, (T3, V3, C3), hs)
-    warm_up_loop(True)
+    warm_up_loop("augmented")
 
 
 # ---------------------------------------------------------------------------------------------------- the report

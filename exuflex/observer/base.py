@@ -26,17 +26,19 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["GENERAL", "INPUT_STEP", "LOOP_DONE", "MONITOR", "REFRESH", "REMAP", "ROWS", "Belief", "CompiledModel", "DiscreteModel",
+__all__ = ["GENERAL", "INPUT_STEP", "LOOP_DONE", "MONITOR", "NONFINITE", "REFRESH", "REMAP", "ROWS", "SINGULAR", "Belief", "CompiledModel", "DiscreteModel",
            "FilterDivergedError", "LinearDiscreteModel", "LoopModel", "Measurement", "ModelHooks", "Prediction", "hooks", "takes_compiled_loop"]
 
 #: Why the filter's compiled sample loop (:func:`.loop.samples`) stopped: the samples asked for are done; the held
 #: configuration's or the step map's radius was left (the model renews its arrays, :meth:`CompiledModel.loop_model`,
-#: and the loop resumes at that sample); a sample the filter's :meth:`~.ekf.MultirateEKF.step` must take (an
-#: indefinite or non-finite update, a channel found missing, the model's own reasons); a sensor-fault window test
-#: opened, changed or cleared a fault at the last sample done (the monitor reports it); an input step at the last
-#: sample done (the filter records it): after the last two the loop resumes; the prediction left the measurement
-#: rows' radius (the model's :meth:`~DiscreteModel.measure` at the prediction renews them, the loop resumes there).
-LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR, INPUT_STEP, ROWS = 0, 1, 2, 3, 4, 5, 6
+#: and the loop resumes at that sample); a sample whose interval the model's own :meth:`~DiscreteModel.predict` must
+#: take (a torque jump, the model's own reasons); the sensor-fault monitor's report of its findings is full (the
+#: filter reads it); an input step at the last sample done (the filter records it): after the last two the loop
+#: resumes; the prediction left the measurement
+#: rows' radius (the model's :meth:`~DiscreteModel.measure` at the prediction renews them, the loop resumes there);
+#: the sample went non-finite, or its innovation covariance was singular (the filter flags or raises: the monitors
+#: saw the sample, its state is not kept).
+LOOP_DONE, REFRESH, REMAP, GENERAL, MONITOR, INPUT_STEP, ROWS, NONFINITE, SINGULAR = 0, 1, 2, 3, 4, 5, 6, 7, 8
 
 
 class FilterDivergedError(RuntimeError):

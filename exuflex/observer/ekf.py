@@ -11,14 +11,14 @@ One call of :meth:`MultirateEKF.step` processes one sample at time ``t``::
 then symmetrises ``P``, floors its diagonal and tests that the state and covariance are finite. The Joseph form
 keeps ``P`` symmetric positive semi-definite for any gain, where ``(I - K H) P`` loses it to rounding; the gain
 and ``S^-1 r`` come from one Cholesky solve of ``S`` (an LU solve with a warning if ``S`` is not positive
-definite). The algebra is compiled (:mod:`.kalman`). :meth:`MultirateEKF.run` gives the numbers of
-:meth:`~MultirateEKF.step` over a whole log, so the online and offline estimates are the same: where the model has a
-compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run`` hands :func:`.loop.samples` the
-samples it can take (a valid interval and input; any channels sampled), which it processes with the same compiled
-kernels in the same order as ``step`` until one needs more: the model renews its arrays (a new held configuration
-or step map, measurement rows for the prediction) and the loop resumes, or ``step`` takes that sample (the first,
-the model's own interval at a torque jump, a channel found missing, ...). ``tests/test_sample_loop.py`` holds the
-two bit-identical.
+definite). Every sample goes through one compiled sample loop (:func:`.loop.samples`, over the kernels of
+:mod:`.kalman`): :meth:`~MultirateEKF.step` hands it the model's prediction and measurement for one sample;
+:meth:`~BeliefFilter.run` gives the numbers of ``step`` over a whole log, so the online and offline estimates are
+the same: where the model has a compiled step (:class:`.base.CompiledModel`: the cached reduced model), ``run``
+hands the loop the samples it can take (a valid interval and input) with the model's compiled interval and
+measurement, until one needs more: the model renews its arrays (a new held configuration or step map, measurement
+rows for the prediction) and the loop resumes, or ``step`` takes that sample (the first, the model's own interval
+at a torque jump). ``tests/test_sample_loop.py`` holds the two bit-identical.
 
 Each interval is as long as its two time stamps say: jitter, drift and irregular sampling need no grid. A
 sample whose channels are partly NaN updates with the finite ones (``R`` restricted to them: multirate
@@ -78,8 +78,8 @@ import numpy as np
 
 from ..erls.kinematics import KinematicsError
 from . import kalman, loop
-from .base import (INPUT_STEP, MONITOR, REFRESH, REMAP, ROWS, Belief, DiscreteModel, FilterDivergedError, hooks,
-                   takes_compiled_loop)
+from .base import (INPUT_STEP, LOOP_DONE, MONITOR, NONFINITE, REFRESH, REMAP, ROWS, SINGULAR, Belief, DiscreteModel,
+                   FilterDivergedError, hooks, takes_compiled_loop)
 from .stats import chi2_ppf, norm_ppf
 
 __all__ = ["BeliefFilter", "ChannelMonitor", "EstimationResult", "Monitoring", "MultirateEKF", "NISMonitor"]
@@ -291,10 +291,8 @@ class NISMonitor:
         return 1
 
 
-#: the window tests' verdicts (:func:`.kalman.window_push`), 1-3
-_WINDOW_FAULTS = {1: "offset", 2: "scale", 3: "stuck"}
-#: an open fault's kind as the compiled sample loop reads it (:attr:`ChannelMonitor.window_arrays`)
-_FAULT_CODES = {"offset": 1, "scale": 2, "stuck": 3, "missing": 4}
+#: a fault's kind as the compiled sample loop codes it (:attr:`.loop.Monitors.events`, ``win_kind``)
+_FAULT_KINDS = {1: "offset", 2: "scale", 3: "stuck", 4: "missing"}
 
 
 class ChannelMonitor:
@@ -310,7 +308,9 @@ class ChannelMonitor:
 
     and calls a channel "missing" when it has had no sample for ``window`` of its own last sample intervals. A
     fault is set at the first failed test and cleared after ``window`` consecutive passed tests (or, for
-    "missing", at the channel's next sample); ``faults`` lists them with their times.
+    "missing", at the channel's next sample); ``faults`` lists them with their times. The tests run in the
+    filter's compiled sample loop (:func:`.loop.screen`) on this monitor's arrays (:attr:`loop_fields`), which
+    reports its findings; :meth:`report` lists them.
     """
 
     def __init__(self, channels: Sequence[str], window: int = 100, p: float = 1e-6, clip: float = 5.0,
@@ -322,126 +322,40 @@ class ChannelMonitor:
         self.p = float(p)
         self.clip = float(clip)
         self.dt = float(dt)
-        self._k_mean = float(norm_ppf(1 - p / 2)) * math.sqrt(W)
-        self._hi = float(chi2_ppf(1 - p, W))
-        self._lo = float(chi2_ppf(p, W))
+        self.window_tests = np.array([self.clip, float(norm_ppf(1 - p / 2)) * math.sqrt(W), float(chi2_ppf(1 - p, W)),
+                                      float(chi2_ppf(p, W))])
         self.reset()
 
     def reset(self) -> None:
         m, W = len(self.channels), self.window
-        self._z = np.zeros((W, m))
-        self._n = np.zeros(m, dtype=np.int64)
-        self._sum = np.zeros(m)
-        self._sq = np.zeros(m)
-        self._ok = np.zeros(m, dtype=np.int64)
-        self._last_t = np.full(m, np.nan)
-        self._interval = np.full(m, self.dt)
-        self._status = np.zeros(m, dtype=np.int64)
-        self._kind = np.zeros(m, dtype=np.int64)  # each channel's open fault (_FAULT_CODES; 0: none)
+        # the moving windows, their sums, each channel's last sample time and interval (:func:`.kalman.window_push`),
+        # the window tests' verdicts, each channel's open fault (_FAULT_KINDS; 0: none) and its passed tests since,
+        # the time of the first sample, the findings and their count (:class:`.loop.Monitors`)
+        self.loop_fields = (np.zeros((W, m)), np.zeros(m, dtype=np.int64), np.zeros(m), np.zeros(m), np.full(m, np.nan),
+                            np.full(m, self.dt), self.window_tests, np.zeros(m, dtype=np.int64),
+                            np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64), np.full(1, np.nan),
+                            np.zeros((4 * m, 4)), np.zeros(1, dtype=np.int64))
         self._open: dict[int, dict] = {}
-        self._t0: float | None = None
         self.faults: list[dict] = []
 
-    def _set(self, i: int, kind: str, t: float, mean_z: float) -> None:
-        f = {"channel": self.channels[i], "kind": kind, "start": float(t), "end": None, "mean_z": float(mean_z)}
-        self._open[i] = f
-        self._kind[i] = _FAULT_CODES[kind]
-        self.faults.append(f)
-        log.info("channel %s: %s fault found at t=%.6g s (window mean of z %.3g)", self.channels[i], kind, t, mean_z)
-
-    def _clear(self, i: int, t: float) -> None:
-        f = self._open.pop(i)
-        f["end"] = float(t)
-        self._kind[i] = 0
-
-    def seen(self, t: float, idx: np.ndarray) -> None:
-        """Channels ``idx`` were sampled at ``t`` (their innovations not tested): the "missing" test only."""
-        if self._t0 is None:
-            self._t0 = t
-        if len(idx) < len(self.channels) or self._open:
-            self._missing(t, idx)
-        kalman.window_seen(self._last_t, self._interval, t, idx)
-
-    def _missing(self, t: float, idx: np.ndarray) -> None:
-        """The "missing" test of the channels not in ``idx``, and the end of the missing faults of those in it."""
-        W = self.window
-        # missing channels: no sample for a window of their own intervals
-        seen = np.zeros(len(self.channels), dtype=bool)
-        seen[idx] = True
-        for i in np.flatnonzero(~seen):
-            last = self._last_t[i] if math.isfinite(self._last_t[i]) else self._t0
-            if i not in self._open and t - last > W * self._interval[i]:
-                self._set(i, "missing", t, math.nan)
-        if self._open:
-            for i in idx:
-                f = self._open.get(int(i))
-                if f is not None and f["kind"] == "missing":
-                    self._clear(int(i), t)
-                    self._n[i] = 0
-                    self._sum[i] = self._sq[i] = 0.0
-                    self._z[:, i] = 0.0
-
-    def push(self, t: float, idx: np.ndarray, z: np.ndarray) -> None:
-        """The normalised innovations ``z`` of the channels ``idx`` sampled at ``t``."""
-        if self._t0 is None:
-            self._t0 = t
-        if len(idx) < len(self.channels) or self._open:
-            self._missing(t, idx)
-        status = self._status[: len(idx)]
-        n_bad = kalman.window_push(*self.window_arrays, t, idx, z, *self.window_tests, status)
-        if n_bad or self._open:
-            self.verdicts(t, idx, status)
-
-    @property
-    def window_arrays(self) -> tuple:
-        """The moving windows and their sums, the channels' last sample times and intervals (what
-        :func:`.kalman.window_push` updates)."""
-        return self._z, self._n, self._sum, self._sq, self._last_t, self._interval
-
-    @property
-    def verdict_arrays(self) -> tuple:
-        """What :meth:`verdicts` keeps per channel, for the compiled sample loop: the window's verdicts, the kind of
-        its open fault (0: none; offset, scale, stuck, missing: 1-4) and its count of passed tests since."""
-        return self._status, self._kind, self._ok
-
-    @property
-    def window_tests(self) -> tuple:
-        """``(clip, k_mean, hi, lo)``: the clip of ``z`` and the thresholds of the window tests."""
-        return self.clip, self._k_mean, self._hi, self._lo
-
-    def verdicts(self, t: float, idx: np.ndarray, status: np.ndarray) -> None:
-        """Open and clear faults from the window tests' ``status`` of the channels ``idx`` at ``t``
-        (:func:`.kalman.window_push`)."""
-        W = self.window
-        for j, i in enumerate(idx.tolist()):
-            st = status[j]
-            if st > 0:
-                self._ok[i] = 0
-                f = self._open.get(i)
-                mean_z = self._sum[i] / W
-                if f is None:
-                    self._set(i, _WINDOW_FAULTS[st], t, mean_z)
-                elif st == 1 and f["kind"] == "scale":  # the window filled: a mean, not only a spread
-                    f["kind"], f["mean_z"] = "offset", float(mean_z)
-                    self._kind[i] = _FAULT_CODES["offset"]
-            elif st == 0 and i in self._open:
-                self._ok[i] += 1
-                if self._ok[i] >= W:
-                    self._clear(i, t)
-
-    def suspect(self) -> np.ndarray:
-        """Mask of the channels with an open offset or stuck fault (left out of updates until it clears)."""
-        mask = np.zeros(len(self.channels), dtype=bool)
-        for i, f in self._open.items():
-            if f["kind"] in ("offset", "stuck"):  # spikes and extra noise: the gate handles them sample by sample
-                mask[i] = True
-        return mask
-
-    def close(self, t: float) -> list[dict]:
-        """Close the faults still open at ``t`` (the end of a run) and return all."""
-        for i in list(self._open):
-            self._clear(i, t)
-        return [dict(f) for f in self.faults]
+    def report(self) -> None:
+        """List the findings the compiled loop reported (faults opened, found to be offsets, cleared) and empty its
+        report."""
+        events, n = self.loop_fields[-2], self.loop_fields[-1]
+        for code, i, t, mean_z in events[: n[0]].tolist():
+            i, mean_z = int(i), math.nan if math.isnan(mean_z) else mean_z  # (a fault found missing has no mean)
+            if code == loop.CLEARED:
+                self._open.pop(i)["end"] = t
+            elif code == loop.BECAME_OFFSET:  # the window filled: a mean, not only a spread
+                self._open[i].update(kind="offset", mean_z=mean_z)
+            else:
+                f = {"channel": self.channels[i], "kind": _FAULT_KINDS[int(code)], "start": t, "end": None,
+                     "mean_z": mean_z}
+                self._open[i] = f
+                self.faults.append(f)
+                log.info("channel %s: %s fault found at t=%.6g s (window mean of z %.3g)", f["channel"], f["kind"],
+                         t, mean_z)
+        n[0] = 0
 
 
 def check_log(t, U, Y, m: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
@@ -577,6 +491,14 @@ class RunRecord:
 
 
 
+#: no channels (a prediction only, for :meth:`BeliefFilter._screen`)
+_NO_CHANNELS = np.zeros(0, dtype=np.int64)
+
+
+#: no interval (the first sample): the step Jacobian and process noise the compiled loop is given
+_NO_INTERVAL = np.zeros((0, 0))
+
+
 def _empty_rows(width: int) -> np.ndarray:
     """A record of no rows (what the compiled loop writes nothing to)."""
     return np.zeros((0, width))
@@ -662,6 +584,12 @@ class BeliefFilter:
             if mon.fault_window > 0 else None
         )
         self._x0, self._P0 = self._prior(x0, P0)
+        self._floor = np.zeros(self.nx)  # (the covariance's floor: a filter with one sets its own)
+        self._n_lu = np.zeros(1, dtype=np.int64)  # updates solved by LU since the last report
+        self._loop = None  # the compiled sample loop over a model's compiled step (the EKF's)
+        self.record_theta = None  # the state whose covariance column run() records (the EKF's payload scale)
+        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (run(..., predictions=True) sets it)
+        self.record_predictions = False
 
     def _prior(self, x0, P0) -> tuple[np.ndarray, np.ndarray]:
         x = np.array(x0, dtype=float).reshape(-1)
@@ -703,11 +631,15 @@ class BeliefFilter:
         self.jump_times: list[float] = []
         if self.faults is not None:
             self.faults.reset()
+        self._mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected,
+                                  *(self.faults.loop_fields if self.faults is not None else loop.no_windows(self.m)),
+                                  self.isolate, self._n_lu, np.zeros(0), math.inf, self.fault_holdoff)
         self.last_idx = None
         self.last_innovation = None
         self.last_S = None
         self.last_nis = float("nan")
         self.last_dof = 0
+        self.last_prediction = None
         if self.monitor is not None:
             self.monitor.reset()
 
@@ -737,31 +669,27 @@ class BeliefFilter:
             self.jump_times.append(t)
 
     def _screen(self, idx: np.ndarray, r: np.ndarray, S: np.ndarray) -> np.ndarray | None:
-        """One update's innovations ``r`` (covariance ``S``) of the channels ``idx``, normalised, through the
-        hold-off, the sensor-fault windows, the gate and the isolation (module notes): the mask of the channels to
-        keep where a minority is left out (counted in ``n_rejected``), else None (all kept)."""
+        """One update's innovations ``r`` (covariance ``S``) of the channels ``idx`` (empty: a prediction only),
+        normalised, through the monitors (:func:`.loop.screen`: the hold-off, the sensor-fault windows, the isolation
+        and the gate; module notes): the mask of the channels to keep where a minority is left out (counted in
+        ``n_rejected``), else None (all kept)."""
         m = len(idx)
-        z = np.empty(m)
-        n_over = kalman.normalise(r, S, self._gate, z)
+        z, keep = np.empty(m), np.empty(m, dtype=bool)
+        n_over = kalman.normalise(r, S, self._gate, z) if m else 0
         self._held = self._holdoff > 0
-        if self._held:
-            self._holdoff -= 1
-            n_over = 0
-            if self.faults is not None:
-                self.faults.seen(self._t_now, idx)
-        elif self.faults is not None:
-            self.faults.push(self._t_now, idx, z)
-        keep = None
-        if self.isolate and self.faults is not None and self.faults._open:
-            # isolation: a channel with an open sensor fault stays out until its innovations are back in band
-            keep = ~self.faults.suspect()[idx]
-        if not n_over and keep is None:
-            return None
-        keep = np.ones(m, dtype=bool) if keep is None else keep
-        if kalman.gate(z, self._gate, n_over, keep) == m:
-            return None  # none, or most of the channels off: the filter, not the sensors (the NIS test sees it)
-        self.n_rejected[idx[~keep]] += 1
-        return keep
+        n_keep, self._holdoff = loop.screen(self._mon, self._t_now, idx, z, n_over, self._holdoff, keep)
+        self._report()
+        return None if n_keep == m else keep
+
+    def _report(self) -> None:
+        """What the compiled monitors found: the sensor faults listed (:meth:`ChannelMonitor.report`), a warning
+        where an update solved ``S`` by LU."""
+        if self.faults is not None and self._mon.n_events[0]:
+            self.faults.report()
+        if self._n_lu[0]:
+            log.warning("innovation covariance not positive definite at %d update(s) up to t=%s; using an LU solve",
+                        self._n_lu[0], self._t_now)
+            self._n_lu[0] = 0
 
     def _interval(self, t: float) -> float | None:
         """The interval from the previous sample to ``t`` (None at the first), checked: after it, by at most
@@ -781,18 +709,22 @@ class BeliefFilter:
     def _close(self, t: float, finite: bool) -> np.ndarray:
         """The end of a sample: the divergence tests, then a copy of the estimate (NaN once non-finite)."""
         if not finite:
-            self._flag(t, "non-finite state or covariance")
-            self.nonfinite = True
-            if self.nonfinite_action == "raise":
-                why = self._model_failure
-                raise FilterDivergedError(
-                    f"non-finite state or covariance at t={t:.6g} s" + (f" (model step failed: {why})" if why else ""))
-            return np.full(self.nx, np.nan)
+            return self._fail(t)
         if self.last_idx is not None:
             self._count_update(t, self.last_nis, self.last_dof, self._held)
         elif self.faults is not None:
-            self.faults.push(t, np.empty(0, dtype=np.int64), np.empty(0))
+            self._screen(_NO_CHANNELS, _NO_CHANNELS, _NO_CHANNELS)
         return self._x.copy()
+
+    def _fail(self, t: float) -> np.ndarray:
+        """A sample that went non-finite: flagged, raised (``nonfinite="raise"``) or NaN returned."""
+        self._flag(t, "non-finite state or covariance")
+        self.nonfinite = True
+        if self.nonfinite_action == "raise":
+            why = self._model_failure
+            raise FilterDivergedError(
+                f"non-finite state or covariance at t={t:.6g} s" + (f" (model step failed: {why})" if why else ""))
+        return np.full(self.nx, np.nan)
 
     def _count_update(self, t: float, nis: float, dof: int, held: bool) -> None:
         """An update done at ``t``: counted, and its NIS into the divergence test (not within the hold-off after
@@ -827,16 +759,58 @@ class BeliefFilter:
                                                   for f in self.faults.faults]
         return iv, faults
 
-    def _run_steps(self, t, U, Y, reset: bool, x0, P0, innovations: bool, each=None) -> EstimationResult:
-        """:meth:`step` over a record (``each(k)`` after sample ``k``), each sample recorded. A step that fails where
-        a covariance lost definiteness ends the run: raised as diverged, or (``nonfinite="flag"``) flagged with no
-        estimates from there."""
+    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
+            predictions: bool = False) -> EstimationResult:
+        """Filter a whole record: the numbers of :meth:`step` for every sample (the samples the model's compiled
+        step can take go to the compiled sample loop, see the module notes). A step that fails where a covariance
+        lost definiteness ends the run: raised as diverged, or (``nonfinite="flag"``) flagged with no estimates from
+        there.
+
+        Parameters
+        ----------
+        t : array_like, shape (n,)
+            Sample times (increasing; any spacing up to ``max_gap``).
+        U : array_like, shape (n, nu) or (n,), or None
+            Input at each sample time, held over the following interval.
+        Y : array_like, shape (n, m)
+            Measurements in channel order, NaN where a channel has no sample.
+        reset : bool
+            Restart from the prior first (default). With False the run continues from the current state.
+        x0, P0 : array_like, optional
+            A prior for this run (implies ``reset``).
+        innovations : bool
+            Record the innovations and their covariance (``8 m + 8 m**2`` bytes a sample; without them the
+            result's ``innovations`` and ``S`` are None). A record run in chunks of rows (``reset=False`` after
+            the first) gives the same numbers as one run of the whole record.
+        predictions : bool
+            Record each sample's prediction (the result's ``x_pred``, ``F``, ``Q``: ``8 nx + 16 nx**2`` bytes a
+            sample), what the smoother's backward pass needs (:func:`.smoother.rts_backward`).
+
+        Returns
+        -------
+        EstimationResult
+        """
         t, U, Y = check_log(t, U, Y, self.m)
         if reset or x0 is not None or P0 is not None:
             self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations)
-        w0 = time.perf_counter()
-        for k in range(len(t)):
+        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.record_theta, predictions)
+        self.record_predictions = predictions
+        t_start = time.perf_counter()
+        n = len(t)
+        loop_end = self._loop_ends(t, U, Y)
+        if loop_end.any():  # the compiled loop's arrays: contiguous, the inputs one column per motor
+            t, U, Y = np.ascontiguousarray(t), np.ascontiguousarray(U.reshape(n, -1)), np.ascontiguousarray(Y)
+        k = 0
+        while k < n:
+            if self._loop_ready(U) and loop_end[k] > k:
+                k, status, last = self._loop_samples(t, U, Y, k, int(loop_end[k]), rec)
+                if status in (NONFINITE, SINGULAR):
+                    rec.put(k, self._failed(float(t[k]), status, last), self._P, self)
+                    k += 1
+                    continue
+                if k >= n:
+                    break
+            self.last_prediction = None
             try:
                 x = self.step(t[k], None if U is None else U[k], Y[k])
             except (np.linalg.LinAlgError, ArithmeticError) as exc:
@@ -847,9 +821,41 @@ class BeliefFilter:
                 rec.fail_from(k)
                 break
             rec.put(k, x, self._P, self)
-            if each is not None:
-                each(k)
-        return self._result(rec, time.perf_counter() - w0)
+            self._recorded(k)
+            k += 1
+        self.record_predictions = False
+        res = self._result(rec, time.perf_counter() - t_start)
+        log.info("%s run: %s", type(self).__name__, res.summary())
+        return res
+
+    def _recorded(self, k: int) -> None:
+        """After sample ``k`` of :meth:`run` went through :meth:`step` and was recorded (a filter that keeps more of
+        each sample than the record does takes it here)."""
+
+    def _loop_ends(self, t, U, Y) -> np.ndarray:
+        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: the interval
+        valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
+        n = len(t)
+        if self._loop is None or U is None or n < 2:
+            return np.zeros(n, dtype=np.int64)
+        ok = np.isfinite(U.reshape(n, -1)).all(axis=1)
+        dt = np.diff(t)
+        ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
+        ok[0] = False
+        ok &= np.isfinite(t)
+        # the grid samples each interval skipped (step()'s count of missing samples), summed from the start
+        skipped = np.maximum(np.rint(dt / self.dt) - 1.0, 0.0)
+        self._skipped = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(skipped), skipped, 0.0))))
+        bad = np.flatnonzero(~ok)
+        # the first not-ok sample at or after k
+        pos = np.searchsorted(bad, np.arange(n))
+        return np.where(pos < len(bad), bad[np.minimum(pos, len(bad) - 1)], n).astype(np.int64)
+
+    def _loop_ready(self, U) -> bool:
+        """Can samples go to the model's compiled step now? (The model has one; a run with inputs, after a first
+        sample; the input-step test one the loop computes.)"""
+        return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
+                and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
 
     def _result(self, rec: RunRecord, wall_s: float) -> EstimationResult:
         """The run's :class:`EstimationResult` with the monitors' findings."""
@@ -927,44 +933,36 @@ class MultirateEKF(BeliefFilter):
         self._Ppred = np.empty((n, n))
         self._work = np.empty((n, n))
         self._HP = np.empty((max(self.m, 1), n))
-        # keep (x_pred, F, Q) of each sample's prediction in last_prediction (run(..., predictions=True) sets it)
-        self.record_predictions = False
-        # the compiled sample loop (run() hands it the samples it can take) where the model has a compiled step
+        self.record_theta = self.hooks.i_theta
+        # the compiled sample loop: run() hands it the samples it can take where the model has a compiled step;
+        # step() hands it one sample with the model's prediction and measurement (loop.given), in a record of a row
         self._loop = loop.samples if takes_compiled_loop(model) else None
-        if self._loop is not None:
-            self._no_windows = (np.zeros((0, self.m)), np.zeros(0, dtype=np.int64), *(np.zeros(0) for _ in range(4)),
-                                np.zeros(4), *(np.zeros(0, dtype=np.int64) for _ in range(3)), math.nan)
-            loop.warm_up(True if self.hooks.i_theta is not None or self.hooks.i_inputs is not None else None)
+        extra = self.hooks.i_theta is not None or self.hooks.i_inputs is not None
+        loop.warm_up(None if self._loop is None else "augmented" if extra else "plain")
         kalman.warm_up()
+        self._one = loop.Record(np.empty((1, n)), _empty_rows(n), -1, _empty_rows(n), _empty_rows(self.m),
+                                _empty_rows(self.m**2), np.empty(1), np.zeros(1, dtype=np.int64), _empty_rows(n),
+                                _empty_rows(n * n), _empty_rows(n * n))
         self.reset()
 
-    # ------------------------------------------------------------------ state
-    def reset(self, x0=None, P0=None) -> None:
-        """Restart from a prior (:meth:`BeliefFilter.reset`)."""
-        super().reset(x0, P0)
-        self.last_prediction = None
-
     # ------------------------------------------------------------------ the two steps
-    def _predict(self, dt: float, u_next) -> tuple[np.ndarray, np.ndarray]:
-        """The model's step from the previous sample to this one (eqs. 10-12): the predicted mean becomes the
-        state; ``(F, Q)`` are returned for the covariance (eq. 13), which the update kernel propagates."""
+    def _predict(self, dt: float, u_next) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model's step from the previous sample to this one (eqs. 10-12): the predicted mean, the step
+        Jacobian and the process noise ``(x, F, Q)`` (NaN, where the model cannot step from the estimate)."""
         n = self.nx
         try:
             x, F, Q = self.model.predict(self._x, self._u_prev, dt, u_next)
         except _MODEL_FAILURES as exc:
             x, F, Q = np.full(n, np.nan), np.eye(n), np.zeros((n, n))
             self._model_failure = f"{type(exc).__name__}: {exc}"
-        x = np.asarray(x, dtype=float)
-        F = np.ascontiguousarray(F, dtype=float)
-        Q = np.asarray(Q, dtype=float)
+        x, F, Q = (np.ascontiguousarray(a, dtype=float) for a in (x, F, Q))
         if x.shape != (n,) or F.shape != (n, n) or Q.shape != (n, n):
             # the kernels read without bounds checks: never a wrong shape
             raise ValueError(f"model.predict returned x {x.shape}, F {F.shape}, Q {Q.shape}; expected ({n},), "
                              f"({n}, {n}), ({n}, {n})")
-        self._x = x
         if self.record_predictions:
             self.last_prediction = (x, F, Q)
-        return F, Q
+        return x, F, Q
 
     def _channel_set(self, y: np.ndarray) -> tuple | None:
         """``(idx, channels, R diagonal)`` of the finite entries of ``y`` (None if there are none)."""
@@ -979,62 +977,6 @@ class MultirateEKF(BeliefFilter):
             idx = np.flatnonzero(mask)
             s = self._subsets[key] = (idx, tuple(self.channels[i] for i in idx), self._Rdiag[idx])
         return s
-
-    def _update(self, y: np.ndarray, idx: np.ndarray, chans: tuple, Rd: np.ndarray, FQ) -> bool:
-        """Covariance prediction with ``FQ = (F, Q)`` (None: none, the first sample) and the measurement update
-        with the channels ``chans`` (eqs. 13-15; the monitors may leave some out, :meth:`_screen`, and the update
-        is then redone without them), settled (:func:`.kalman.condition_on`). Returns finiteness."""
-        x = self._x
-        m, n = len(idx), self.nx
-        try:
-            y_pred, H = self.model.measure(x, chans)
-        except _MODEL_FAILURES as exc:
-            self._model_failure = f"{type(exc).__name__}: {exc}"
-            return False
-        H = np.ascontiguousarray(H, dtype=float)
-        y_pred = np.ascontiguousarray(y_pred, dtype=float)
-        if H.shape != (m, n) or y_pred.shape != (m,):
-            raise ValueError(f"model.measure returned y {y_pred.shape}, H {H.shape} for {m} channels; expected "
-                             f"({m},) and ({m}, {n})")
-        y = np.ascontiguousarray(y if m == self.m else y[idx])
-        P = self._P
-        if FQ is not None:
-            P = self._Ppred
-            kalman.predict_cov(FQ[0], self._P, FQ[1], P, self._work)
-        x_new, P_new = np.empty(n), self._Pspare
-        keep = np.ones(m, dtype=bool)
-        nis, finite, r, S = self._condition(keep, x, P, y, y_pred, H, Rd, x_new, P_new)
-        gated = self._screen(idx, r, S)
-        if gated is not None:  # a minority of the channels is off: those sensors, not the filter
-            idx = idx[gated]
-            nis, finite, r, S = self._condition(gated, x, P, y, y_pred, H, Rd, x_new, P_new)
-        self._Pspare = self._P
-        self._x, self._P = x_new, P_new
-        self.last_idx, self.last_innovation, self.last_S, self.last_nis, self.last_dof = idx, r, S, nis, len(idx)
-        return finite
-
-    def _condition(self, keep, x, P, y, y_pred, H, Rd, x_new, P_new) -> tuple:
-        """The update from ``(x, P)`` with the channels ``keep`` marks, settled (:func:`.kalman.condition_on`),
-        finished by an LU solve where ``S`` is not positive definite: ``(nis, finite, r, S)``."""
-        nis, ok, finite, r, S = kalman.condition_on(keep, x, P, y, y_pred, H, Rd, self._floor, self._HP, x_new, P_new)
-        if not ok:
-            nis, finite = self._lu_update(x, P, H[keep], Rd[keep], r, S, x_new, P_new)
-        return nis, finite, r, S
-
-    def _lu_update(self, x, P, H, Rd, r, S, x_new, P_new) -> tuple[float, bool]:
-        """The update finished by an LU solve where ``S`` is not positive definite (rounding, or a wrong model),
-        with a warning: ``(nis, finite)``. ``H P`` is in the first rows of the filter's scratch (the kernel left it)."""
-        log.warning("innovation covariance not positive definite at t=%s; using an LU solve", self._t_prev)
-        m, n = H.shape
-        rhs = np.empty((m, n + 1))
-        rhs[:, :n] = self._HP[:m]
-        rhs[:, n] = r
-        try:
-            sol = np.ascontiguousarray(np.linalg.solve(S, rhs))
-        except np.linalg.LinAlgError as exc:
-            raise FilterDivergedError(f"singular innovation covariance at t={self._t_prev}") from exc
-        nis = kalman.apply_gain(x, P, H, self._HP[:m], Rd, r, sol, x_new, P_new)
-        return nis, kalman.settle(x_new, P_new, self._floor)
 
     # ------------------------------------------------------------------ public
     def step(self, t: float, u, y) -> np.ndarray:
@@ -1066,7 +1008,7 @@ class MultirateEKF(BeliefFilter):
         t, u, y = step_arguments(self, t, u, y)
         dt = self._interval(t)
         jumps = self.hooks.n_jumps()
-        FQ = None if dt is None or self.nonfinite else self._predict(dt, u)
+        z, F, Q = (self._x, _NO_INTERVAL, _NO_INTERVAL) if dt is None or self.nonfinite else self._predict(dt, u)
         self._t_now = t
         self._input_steps(t, u, jumps)
         self._t_prev = t
@@ -1077,58 +1019,53 @@ class MultirateEKF(BeliefFilter):
         if self.nonfinite:
             self.n_missing += 1
             return np.full(self.nx, np.nan)
+        n, m = self.nx, self.m
+        y_pred, H = np.zeros(m), np.zeros((m, n))
+        y_k = np.full(m, np.nan)
         chosen = None if y is None else self._channel_set(y)
-        if chosen is not None:
-            finite = self._update(y, *chosen, FQ)
-        else:  # a prediction only
-            self.n_missing += 1
-            if FQ is not None:
-                kalman.predict_cov(FQ[0], self._P, FQ[1], self._Pspare, self._work)
-                self._Pspare, self._P = self._P, self._Pspare
-            finite = kalman.settle(self._x, self._P, self._floor)
-        return self._close(t, finite)
+        if chosen is not None:  # the model's measurement of the channels sampled
+            idx, chans, _ = chosen
+            try:
+                meas = self.model.measure(z, chans)
+            except _MODEL_FAILURES as exc:
+                self._model_failure = f"{type(exc).__name__}: {exc}"
+                return self._fail(t)
+            if np.shape(meas[1]) != (len(idx), n) or np.shape(meas[0]) != (len(idx),):
+                raise ValueError(f"model.measure returned y {np.shape(meas[0])}, H {np.shape(meas[1])} for "
+                                 f"{len(idx)} channels; expected ({len(idx)},) and ({len(idx)}, {n})")
+            y_pred[idx], H[idx], y_k = meas[0], meas[1], y
+        hold0 = self._holdoff
+        x_alt, P_alt = np.empty(n), self._Pspare
+        buf = loop.Buffers(self._x, x_alt, self._P, P_alt, self._Ppred, self._work, self._HP)
+        status, self._holdoff, last = loop.given(t, y_k, hold0, *loop.plain(buf, self._mon, self._one),
+                                                 np.ascontiguousarray(z, dtype=float), F, Q, y_pred, H)
+        if status != LOOP_DONE:
+            return self._failed(t, status, last)
+        self._x, self._P, self._Pspare = x_alt, P_alt, self._P
+        self._counted((t,), 0, 1, hold0, self._one.nis, self._one.dof, last, False)
+        return self._x.copy()
+
+    def _failed(self, t: float, status: int, last: tuple) -> np.ndarray:
+        """A sample the compiled loop left non-finite (``status`` :data:`.base.NONFINITE`) or whose innovation
+        covariance was singular (:data:`.base.SINGULAR`: raised), ``last`` what it saw."""
+        self._report()
+        if status == SINGULAR:
+            raise FilterDivergedError(f"singular innovation covariance at t={t:.6g} s")
+        d = len(last[1])
+        self.last_idx, self.last_innovation, self.last_S = (last[1], last[2], last[3]) if d else (None, None, None)
+        self.last_nis, self.last_dof = math.nan, d
+        return self._fail(t)
 
     # ------------------------------------------------------------------ the compiled sample loop
-    def _loop_ends(self, t, U, Y) -> np.ndarray:
-        """Per sample ``k`` the end of the run of samples from ``k`` that the compiled loop may take: the interval
-        valid (as :meth:`step` tests it) and the input finite (empty without a loop)."""
-        n = len(t)
-        if self._loop is None or U is None or n < 2:
-            return np.zeros(n, dtype=np.int64)
-        ok = np.isfinite(U.reshape(n, -1)).all(axis=1)
-        dt = np.diff(t)
-        ok[1:] &= np.isfinite(dt) & (dt > 1e-9 * self.dt) & (dt <= self.max_gap)
-        ok[0] = False
-        ok &= np.isfinite(t)
-        # the grid samples each interval skipped (step()'s count of missing samples), summed from the start
-        skipped = np.maximum(np.rint(dt / self.dt) - 1.0, 0.0)
-        self._skipped = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(skipped), skipped, 0.0))))
-        bad = np.flatnonzero(~ok)
-        # the first not-ok sample at or after k
-        pos = np.searchsorted(bad, np.arange(n))
-        return np.where(pos < len(bad), bad[np.minimum(pos, len(bad) - 1)], n).astype(np.int64)
-
-    def _loop_ready(self, U) -> bool:
-        """Can samples go to the compiled loop now? (The model has a compiled step; a run with inputs, after a first
-        sample; the input-step test one the loop computes; no isolation of faulty sensors: a fault found at a sample
-        leaves its channel out of that sample's update, which the loop, reporting the verdicts after the sample,
-        would not.)"""
-        return (self._loop is not None and U is not None and self._t_prev is not None and not self.nonfinite
-                and not (self.isolate and self.faults is not None)
-                and (self.input_step is None or isinstance(self.input_step, kalman.InputStepTest)))
-
-    def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> int:
-        """Samples ``k .. k_end - 1`` (every channel sampled, valid times and inputs) through the compiled loop
-        (:func:`.loop.samples`: each sample as :meth:`step` does it) until one needs :meth:`step`; the model
-        renews its arrays where the loop asks. Returns the first sample not done."""
+    def _loop_samples(self, t, U, Y, k: int, k_end: int, rec: RunRecord) -> tuple[int, int, tuple]:
+        """Samples ``k .. k_end - 1`` (valid times and inputs) through the model's compiled step (:func:`.loop.
+        samples`) until one needs the model's own :meth:`predict`; the model renews its arrays where the loop asks.
+        Returns the first sample not done, the loop's status and what it saw of that sample (where it went
+        non-finite)."""
         model, m, n = self.model, self.m, self.nx
         step = self.input_step
         step_w, step_thr = (step.weights, step.threshold) if step is not None else (np.zeros(U.shape[1]), math.inf)
-        f = self.faults
-        win = ((*f.window_arrays, np.array(f.window_tests), *f.verdict_arrays, math.nan if f._t0 is None else f._t0)
-               if f is not None else self._no_windows)
-        mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected, *win, step_w, step_thr,
-                            self.fault_holdoff)
+        mon = self._mon._replace(step_w=step_w, step_thr=step_thr)
         inn, S_rec = ((rec.innovations, rec.S.reshape(len(rec.t), -1)) if rec.S is not None
                       else (_empty_rows(m), _empty_rows(m * m)))
         rows = len(rec.t)
@@ -1137,7 +1074,7 @@ class MultirateEKF(BeliefFilter):
         record = loop.Record(rec.x_hat, _empty_rows(n) if rec.P is None else rec.P.reshape(rows, -1),
                              -1 if rec.P is None else 0 if rec.store_P == "diag" else 1,
                              _empty_rows(n) if rec.P_theta is None else rec.P_theta, inn, S_rec, rec.nis, rec.dof, *pred)
-        rows_made = False
+        rows_made, status, last = False, LOOP_DONE, None
         while k < k_end:
             x, x_alt, P, P_alt = self._x, np.empty(n), self._P, self._Pspare
             try:
@@ -1152,12 +1089,19 @@ class MultirateEKF(BeliefFilter):
             if swapped:
                 self._x, self._P, self._Pspare = x_alt, P_alt, P
             if k_next > k:
-                self._loop_close(t, U, k, k_next, hold0, rec, last, mats, state, status == INPUT_STEP)
-                if status == MONITOR:
-                    f.verdicts(float(t[k_next - 1]), last[0], f._status)
-                elif status == INPUT_STEP:
+                self.n_missing += int(self._skipped[k_next - 1] - self._skipped[k - 1])
+                self._counted(t, k, k_next, hold0, rec.nis, rec.dof, last, status == INPUT_STEP)
+                self._t_prev = self._t_now = float(t[k_next - 1])
+                self._u_prev = U[k_next - 1]
+                model.loop_done(mats, float(t[k_next - 1] - t[k_next - 2]), state, self._x, k_next)
+                if status == INPUT_STEP:
                     self.jump_times.append(float(t[k_next - 1]))
             k = k_next
+            if status in (NONFINITE, SINGULAR):  # the sample at k: its interval and input
+                self.n_missing += int(self._skipped[k] - self._skipped[k - 1])
+                self._t_prev = self._t_now = float(t[k])
+                self._u_prev = U[k]
+                break
             rows_made = status == ROWS
             if rows_made:  # the model's rows made for the prediction (as step()'s update makes them, from the
                 try:  # channels sampled there: their error sets the next radius); resumed there
@@ -1166,86 +1110,25 @@ class MultirateEKF(BeliefFilter):
                     break
             if status not in (REFRESH, REMAP, MONITOR, INPUT_STEP, ROWS):
                 break
-        return k
+        return k, status, last
 
-    def _loop_close(self, t, U, k0: int, k1: int, hold0: int, rec: RunRecord, last: tuple, mats, state,
-                    stepped: bool) -> None:
-        """After the compiled loop did samples ``k0 .. k1 - 1``: what :meth:`step` keeps of each (counters, the NIS
-        test) and of the last (times, input, the channels updated with and their innovations, the model's
-        interval); ``last`` the loop's ``(sampled, kept, r, S)`` of the last sample, ``stepped`` an input step
-        there."""
-        self.n_missing += int(self._skipped[k1 - 1] - self._skipped[k0 - 1])
+    def _counted(self, t, k0: int, k1: int, hold0: int, nis, dof, last: tuple, stepped: bool) -> None:
+        """After the compiled loop did samples ``k0 .. k1 - 1`` (their NIS and degrees of freedom ``nis``, ``dof``,
+        the hold-off ``hold0`` at the first): what :meth:`step` keeps of each (counters, the NIS test) and of the
+        last (the channels updated with and their innovations); ``last`` the loop's ``(sampled, kept, r, S)`` of
+        the last sample, ``stepped`` an input step there; the monitors' findings."""
         held = hold0
         for j in range(k0, k1):
             if stepped and j == k1 - 1:
                 held = self.fault_holdoff
-            dof = int(rec.dof[j])
-            if dof:  # an update: the hold-off counts it down (the monitors' allowance after an input step)
+            d = int(dof[j])
+            if d:  # an update: the hold-off counts it down (the monitors' allowance after an input step)
                 self._held = held > 0
                 held -= self._held
-                self._count_update(t[j], float(rec.nis[j]), dof, self._held)
+                self._count_update(t[j], float(nis[j]), d, self._held)
             else:
                 self.n_missing += 1
-        self._t_prev = self._t_now = float(t[k1 - 1])
-        self._u_prev = U[k1 - 1]
-        dof = int(rec.dof[k1 - 1])
-        self.last_idx, self.last_innovation, self.last_S = (last[1], last[2], last[3]) if dof else (None, None, None)
-        self.last_nis, self.last_dof = (float(rec.nis[k1 - 1]), dof) if dof else (math.nan, 0)
-        self.model.loop_done(mats, float(t[k1 - 1] - t[k1 - 2]), state, self._x, k1)
-
-    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
-            predictions: bool = False) -> EstimationResult:
-        """Filter a whole record: the numbers of :meth:`step` for every sample (the samples the model's compiled
-        loop can take go to it, see the module notes).
-
-        Parameters
-        ----------
-        t : array_like, shape (n,)
-            Sample times (increasing; any spacing up to ``max_gap``).
-        U : array_like, shape (n, nu) or (n,), or None
-            Input at each sample time, held over the following interval.
-        Y : array_like, shape (n, m)
-            Measurements in channel order, NaN where a channel has no sample.
-        reset : bool
-            Restart from the prior first (default). With False the run continues from the current state.
-        x0, P0 : array_like, optional
-            A prior for this run (implies ``reset``).
-        innovations : bool
-            Record the innovations and their covariance (``8 m + 8 m**2`` bytes a sample; without them the
-            result's ``innovations`` and ``S`` are None). A record run in chunks of rows (``reset=False`` after
-            the first) gives the same numbers as one run of the whole record.
-        predictions : bool
-            Record each sample's prediction (the result's ``x_pred``, ``F``, ``Q``: ``8 nx + 16 nx**2`` bytes a
-            sample), what the smoother's backward pass needs (:func:`.smoother.rts_backward`).
-
-        Returns
-        -------
-        EstimationResult
-        """
-        t, U, Y = check_log(t, U, Y, self.m)
-        if reset or x0 is not None or P0 is not None:
-            self.reset(x0, P0)
-        rec = RunRecord(t, self.nx, self.m, self.store_P, innovations, self.hooks.i_theta,
-                        predictions)
-        self.record_predictions = predictions
-        t_start = time.perf_counter()
-        n = len(t)
-        loop_end = self._loop_ends(t, U, Y)
-        if loop_end.any():  # the compiled loop's arrays: contiguous, the inputs one column per motor
-            t, U, Y = np.ascontiguousarray(t), np.ascontiguousarray(U.reshape(n, -1)), np.ascontiguousarray(Y)
-        k = 0
-        while k < n:
-            if self._loop_ready(U):
-                k_end = int(loop_end[k])
-                if k_end > k:
-                    k = self._loop_samples(t, U, Y, k, k_end, rec)
-                    if k >= n:
-                        break
-            self.last_prediction = None
-            x = self.step(t[k], None if U is None else U[k], Y[k])
-            rec.put(k, x, self._P, self)
-            k += 1
-        self.record_predictions = False
-        res = self._result(rec, time.perf_counter() - t_start)
-        log.info("EKF run: %s", res.summary())
-        return res
+        d = int(dof[k1 - 1])
+        self.last_idx, self.last_innovation, self.last_S = (last[1], last[2], last[3]) if d else (None, None, None)
+        self.last_nis, self.last_dof = (float(nis[k1 - 1]), d) if d else (math.nan, 0)
+        self._report()

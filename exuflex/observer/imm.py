@@ -323,20 +323,20 @@ class IMMFilter(BeliefFilter):
 
     def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True,
             predictions: bool = False) -> EstimationResult:
-        """:meth:`step` over a record (as :meth:`.ekf.MultirateEKF.run`); the result's ``nominal_p`` is the first
+        """:meth:`step` over a record (:meth:`.ekf.BeliefFilter.run`); the result's ``nominal_p`` is the first
         mode's probability at each sample. ``predictions``: each mode's posterior and interval per sample kept in
         ``track`` (:class:`ModeTrack`, what :meth:`smooth` needs)."""
-        mode_p = np.full((len(np.reshape(t, -1)), len(self.models)), np.nan)
-        self.track = ModeTrack(mode_p, [], [], []) if predictions else None
+        self._mode_p = np.full((len(np.reshape(t, -1)), len(self.models)), np.nan)
+        self.track = ModeTrack(self._mode_p, [], [], []) if predictions else None
+        res = super().run(t, U, Y, reset=reset, x0=x0, P0=P0, innovations=innovations)
+        return replace(res, nominal_p=self._mode_p[:, 0])
 
-        def each(k: int) -> None:
-            mode_p[k] = self.mode_p
-            if predictions:
-                self.track.beliefs.append(list(self._beliefs))
-                self.track.intervals.append(self.intervals)
-                self.track.updates.append(self.updates)
-
-        return replace(self._run_steps(t, U, Y, reset, x0, P0, innovations, each), nominal_p=mode_p[:, 0])
+    def _recorded(self, k: int) -> None:
+        self._mode_p[k] = self.mode_p
+        if self.track is not None:
+            self.track.beliefs.append(list(self._beliefs))
+            self.track.intervals.append(self.intervals)
+            self.track.updates.append(self.updates)
 
     def smooth(self, t, U, Y, *, x0=None, P0=None) -> SmoothedResult:
         """Filter a record (from the prior, or ``x0``/``P0``) and smooth it backwards (module notes, "Smoothing"):

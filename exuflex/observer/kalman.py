@@ -360,10 +360,49 @@ def predict_update(F, P, Q, x, y, y_pred, H, Rd, floor, scratch, out):
 
 
 @_jit
+def _lu_solve(A, B):
+    """Solve ``A X = B`` in place (``B``, shape (m, k)) by Gaussian elimination with partial pivoting on a copy of
+    ``A`` (LAPACK's ``dgesv`` to rounding): False (``B`` partly overwritten) where a pivot is zero or NaN."""
+    m = A.shape[0]
+    LU = A.copy()
+    for j in range(m):
+        p = j
+        for i in range(j + 1, m):
+            if abs(LU[i, j]) > abs(LU[p, j]):
+                p = i
+        if not abs(LU[p, j]) > 0.0:
+            return False
+        if p != j:
+            for l in range(m):
+                LU[j, l], LU[p, l] = LU[p, l], LU[j, l]
+            for l in range(B.shape[1]):
+                B[j, l], B[p, l] = B[p, l], B[j, l]
+        for i in range(j + 1, m):
+            f = LU[i, j] / LU[j, j]
+            for l in range(j + 1, m):
+                LU[i, l] -= f * LU[j, l]
+            for l in range(B.shape[1]):
+                B[i, l] -= f * B[j, l]
+    for i in range(m - 1, -1, -1):
+        for l in range(B.shape[1]):
+            s = B[i, l]
+            for k in range(i + 1, m):
+                s -= LU[i, k] * B[k, l]
+            B[i, l] = s / LU[i, i]
+    return True
+
+
+#: how :func:`condition_on` solved ``S``: by Cholesky; by LU (``S`` not positive definite: rounding, or a wrong
+#: model; the filter warns); not at all (``S`` singular: nothing written)
+CHOLESKY, LU, SINGULAR = 0, 1, 2
+
+
+@_jit
 def condition_on(keep, x, P, y, y_pred, H, Rd, floor, HP, x_out, P_out):
     """The update (:func:`update`) with the channels ``keep`` marks (the rows of ``y``, ``y_pred``, ``H``, ``Rd``
-    where ``keep`` is True, in order), then :func:`settle`: ``(nis, ok, finite, r, S)``, ``r`` and ``S`` of the kept
-    channels. With ``ok`` False (``S`` not positive definite) ``x_out`` and ``P_out`` are not written."""
+    where ``keep`` is True, in order), then :func:`settle`: ``(nis, how, finite, r, S)``, ``r`` and ``S`` of the
+    kept channels. Where ``S`` is not positive definite the gain comes from an LU solve (:func:`apply_gain`;
+    ``how`` :data:`LU`); where it is singular nothing is written (``how`` :data:`SINGULAR`)."""
     m, n = H.shape
     mk = 0
     for i in range(m):
@@ -381,7 +420,18 @@ def condition_on(keep, x, P, y, y_pred, H, Rd, floor, HP, x_out, P_out):
                 j += 1
     r, S = np.empty(mk), np.empty((mk, mk))
     nis, ok = update(x, P, yk, ypk, Hk, Rk, HP, r, S, x_out, P_out)
-    return nis, ok, settle(x_out, P_out, floor) if ok else True, r, S
+    how = CHOLESKY
+    if not ok:  # S not positive definite: the gain system [H P, r] solved by LU
+        sol = np.empty((mk, n + 1))
+        for i in range(mk):
+            for j in range(n):
+                sol[i, j] = HP[i, j]
+            sol[i, n] = r[i]
+        if not _lu_solve(S, sol):
+            return math.nan, SINGULAR, False, r, S
+        nis = apply_gain(x, P, Hk, HP[:mk], Rk, r, sol, x_out, P_out)
+        how = LU
+    return nis, how, settle(x_out, P_out, floor), r, S
 
 
 @_jit

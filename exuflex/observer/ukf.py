@@ -48,7 +48,7 @@ import numpy as np
 import scipy.linalg
 
 from .base import Prediction
-from .ekf import BeliefFilter, EstimationResult, Monitoring, step_arguments
+from .ekf import BeliefFilter, Monitoring, step_arguments
 
 __all__ = ["UnscentedKF"]
 
@@ -208,10 +208,6 @@ class UnscentedKF(BeliefFilter):
         Ls = self._factor(Dz, np.diag(np.sqrt(self._Rdiag[idx])))  # S = Ls Ls'
         C = (Dx.T * self.Wc) @ Dz
         return np.ascontiguousarray(y[idx] - zm), Ls, C
-
-    def run(self, t, U, Y, *, reset: bool = True, x0=None, P0=None, innovations: bool = True) -> EstimationResult:
-        """:meth:`step` over a record (as :meth:`MultirateEKF.run`; :meth:`.ekf.BeliefFilter._run_steps`)."""
-        return self._run_steps(t, U, Y, reset, x0, P0, innovations)
 
 
 def _lower_from_qr(A: np.ndarray) -> np.ndarray:

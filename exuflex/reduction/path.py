@@ -206,6 +206,21 @@ class PathSamples:
         self._cache[("bv", key)] = (np.array(ms) / v, v)
         return out
 
+    def bias_of_basis(self, basis) -> np.ndarray:
+        """:meth:`bias` for the basis ``basis(q)`` (a callable giving the full-coordinate basis ``H`` (n, r) at a
+        configuration ``q``, e.g. a :class:`.basis.CraigBampton`'s with its static corrections, ``lambda q:
+        cb.at(q).H``) at the same configurations, in the same units: the mean over them of the mean-square error
+        over the mean of the bound's variance."""
+        if not self.filters:
+            return np.zeros(0)
+        ms, var = [], []
+        for t, fs in zip(self.truncation, self.filters):
+            a, b = fs.bias_of(basis(t.q))
+            ms.append(a)
+            var.append(b)
+        v = np.mean(var, axis=0)
+        return np.mean(ms, axis=0) / np.where(v > 0, v, np.inf)
+
     def _extend_for_bias(self, seq: list[int], tie) -> int:
         """Interior modes added to ``seq`` (the band's and the channels' choice) until the filter requirement holds,
         ``max bias <= bias_max`` (:meth:`bias`); returns the count. Each step keeps the mode, among those ringing for

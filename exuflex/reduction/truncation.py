@@ -444,7 +444,11 @@ class FilterSample:
         manoeuvre of the steady filter's error (its estimate ``Z H p`` minus the full model's ``z``) on the reduced
         coordinates ``cols`` (indices into ``rc.H``'s columns), and the filter's steady posterior variance there (the
         bound at this configuration, :func:`steady_gain`)."""
-        Hc = self.H[:, np.asarray(cols, int)]
+        return self.bias_of(self.H[:, np.asarray(cols, int)])
+
+    def bias_of(self, Hc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`bias` for any basis ``Hc`` (n, r) at this configuration (full coordinates, the ERLS coordinates
+        its first columns), e.g. one with static corrections (:mod:`.static`)."""
         r = Hc.shape[1]
         A, B = _discrete(Hc.T @ self.M @ Hc, Hc.T @ self.D @ Hc, Hc.T @ self.K @ Hc, Hc.T @ self.G, self.dt)
         C = np.hstack([self.C @ Hc, np.zeros((len(self.C), r))])

@@ -59,8 +59,8 @@ def simulate_runs(
     model's (a TOML file with a ``[manoeuvre]`` table, or a CSV trajectory or measured-torque table,
     :func:`exuflex.mechanism.load_manoeuvre`); ``write_plan``: also write the planned q, q', q'' as ``plan.csv`` (a
     trajectory file that plans the same motion again); ``elements_per_link``, ``beam``, ``integrator``, ``erls_step``: the
-    truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the generalized-alpha step
-    from the model's band, :func:`exuflex.truth.gen_alpha_step`); ``messages`` receives one-line setup messages (the FFRF
+    truth's mesh and solver (:func:`exuflex.truth.simulate`; ``erls_step`` ``"auto"``: the truth step rule's
+    generalized-alpha step for the model's modes below its band, :func:`exuflex.truth.gen_alpha_step`); ``messages`` receives one-line setup messages (the FFRF
     truth's meshing and modes). Bad arguments raise a
     :class:`~exuflex.errors.UsageError` naming the parameter and its command-line flag. ``progress`` is called with the phase (``"plan"``, ``"torque"``,
     the engine's name) and the fraction of it done. Every folder is claimed before the work
