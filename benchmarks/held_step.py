@@ -1,7 +1,7 @@
 """The cached (held) interval step on its own model's truth: writes ``docs/held_step.md``.
 
-    python benchmarks/held_step.py run --truth-dir DIR [--seeds 1-10] --json held_step.json
-    python benchmarks/held_step.py page --json held_step.json [--md docs/held_step.md]
+    python benchmarks/held_step.py run --truth-dir DIR [--seeds 1-10] [--models NAME,...] --json held_step.json
+    python benchmarks/held_step.py page --json held_step.json[,more.json] [--md docs/held_step.md]
 
 ``run``: on the crane arm and the vertical link (``benchmarks/models/``), each on the consistent truth (the observer's
 own reduced model generating the data, ``DIR/reduced/<model>/s<seed>``, made where missing as
@@ -30,7 +30,8 @@ CASES = (("crane_arm", "reduced", "cached"), ("crane_arm", "reduced", "rk4"),
          ("crane_arm", "reduced", "cached_on_fine_truth"),
          ("vertical_link", "reduced", "cached"), ("vertical_link", "reduced", "rk4"),
          ("vertical_link", "reduced", "cached_with_velocity_terms"),
-         ("vertical_link", "erls", "cached"), ("vertical_link", "erls", "cached_with_velocity_terms"))
+         ("vertical_link", "erls", "cached"), ("vertical_link", "erls", "cached_with_velocity_terms"),
+         ("luffing_arm", "reduced", "cached"), ("luffing_arm", "reduced", "rk4"))
 
 
 def _seeds(text: str) -> list[int]:
@@ -108,11 +109,13 @@ def _with_velocity_terms():
     return restore
 
 
-def run(truth_dir: str, seeds: list[int]) -> dict:
+def run(truth_dir: str, seeds: list[int], models: list[str] | None = None) -> dict:
     from gallery import run_chain
 
     out: dict = {"seeds": seeds, "cases": []}
     for model, engine, variant in CASES:
+        if models and model not in models:
+            continue
         path = str(ROOT / "benchmarks" / "models" / f"{model}.toml")
         observer = {"method": "rk4"} if variant == "rk4" else None
         tdir = truth_dir
@@ -141,7 +144,8 @@ def page(data: dict) -> str:
         "# The held interval step on its own model",
         "",
         "Written by `python benchmarks/held_step.py run --truth-dir DIR --seeds "
-        f"{data['seeds'][0]}-{data['seeds'][-1]} --json FILE` and `python benchmarks/held_step.py page --json FILE`",
+        f"{data['seeds'][0]}-{data['seeds'][-1]} [--models NAME,...] --json FILE` and `python benchmarks/held_step.py page",
+        "--json FILE[,FILE]`",
         "(`DIR/reduced/<model>`: the consistent truths, made where missing; `DIR/erls/vertical_link`: the",
         "acceptance's ERLS truths).",
         "",
@@ -150,7 +154,7 @@ def page(data: dict) -> str:
         "consistent, so what the default cached step adds over the exact reference step (`method=\"rk4\"`) is its",
         "own approximation: the held configuration's model followed to second order in q and in the elastic",
         "coordinates as `exuflex.observer.expansion` states it. Two mechanisms under gravity, written for the",
-        "weight's checks (`benchmarks/models/`, not part of the gallery):",
+        "weight's checks, and one written fresh for this page (`benchmarks/models/`, not part of the gallery):",
         "",
         "- **The crane arm: the weight off the secant's line.** With more than one joint, q leaves the line to the",
         "  previous held configuration; the weight follows q by its gradient and half the gradient's change along",
@@ -162,6 +166,8 @@ def page(data: dict) -> str:
         "  truth stepped by RK4 of the reduced equations themselves (every stage at its own state, sub-steps of",
         "  2.5e-5 s) instead of the frozen map. Where a quantity stays above 1 there and in the `rk4` row alike it",
         "  is not the cached step's approximation.",
+        "- **The luffing arm** (`benchmarks/models/luffing_arm.toml`): a crane-like arm written fresh, its mast",
+        "  leaning, a heavier hub and payload: the cached step against the rk4 step with default settings.",
         "- **The vertical link: the velocity forces' first order in the elastic coordinates.** The held",
         "  configuration is undeformed and its velocity forms are held; at a deformed state the velocity map",
         "  `J = J0 + sum_m p_m A_m` changes them to first order (the forms are polynomials in `J`), which the held",
@@ -214,17 +220,21 @@ def main(argv=None) -> None:
     a = sub.add_parser("run")
     a.add_argument("--truth-dir", required=True)
     a.add_argument("--seeds", default="1-10")
+    a.add_argument("--models", default="", help="comma-separated model names of CASES (default: all)")
     a.add_argument("--json", required=True)
     b = sub.add_parser("page")
-    b.add_argument("--json", required=True)
+    b.add_argument("--json", required=True, help="the run's JSON, or several, comma-separated (their cases joined)")
     b.add_argument("--md", default=str(ROOT / "docs" / "held_step.md"))
     args = ap.parse_args(argv)
     if args.cmd == "run":
-        Path(args.json).write_text(json.dumps(run(args.truth_dir, _seeds(args.seeds)), indent=1))
+        models = [m for m in args.models.split(",") if m]
+        Path(args.json).write_text(json.dumps(run(args.truth_dir, _seeds(args.seeds), models), indent=1))
     else:
         from _pages import publish
 
-        publish(page(json.loads(Path(args.json).read_text())), args.md)
+        parts = [json.loads(Path(f).read_text()) for f in args.json.split(",")]
+        data = {"seeds": parts[0]["seeds"], "cases": [c for d in parts for c in d["cases"]]}
+        publish(page(data), args.md)
 
 
 if __name__ == "__main__":
