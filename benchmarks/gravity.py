@@ -24,9 +24,14 @@ by ``[0, 0]`` for comparison with ``--flat``), in a temporary copy of the file:
 
 5. the weight's static sag at the channels, at five configurations along the plan: the reduced model's static
    solution against the full model's (the basis's truncation of the sag), and the P-delta effect of the links'
-   axial loads that the ERLS elastic rows leave out (:func:`exuflex.erls.validity.weight_pdelta`; the Exudyn
-   truth has it), each read in the channels' noise sd, and what the observer's steady filter makes of each
-   (its gain at zero frequency: a persistent reading is taken for signal), in posterior sd of the coordinates.
+   axial loads (:func:`exuflex.erls.validity.pdelta_forces`: what the geometric stiffness adds to the sag, which
+   the ERLS models and the reduction hold and the Exudyn truth has), each read in the channels' noise sd, and what
+   the observer's steady filter would make of each left to it (its gain at zero frequency: a persistent reading
+   is taken for signal), in posterior sd of the coordinates.
+
+6. the tip link's second-order shortening under the weight (its lateral elastic field's ``int v'^2 / 2``, the
+   tilt at its joint included), which linear elastic displacements leave out and the Exudyn truth's tip has,
+   against the observer's bound for the tip's elastic displacement.
 
 ``--truth-dir DIR`` keeps the truth runs (``DIR/<engine>/<model>[_g0]/s<seed>``) and reuses those there.
 
@@ -144,8 +149,10 @@ def reduced_sag(rm, q) -> np.ndarray:
 
 def sag_readings(obs, q) -> tuple[dict, np.ndarray]:
     """At the configuration ``q``, per channel of the observer ``obs`` (in noise sd): the reduced model's static
-    sag's reading less the full model's (``truncation``) and the links' P-delta effect (``pdelta``, all links'
-    elements; :func:`exuflex.erls.validity.pdelta_forces`); and the reduced static state."""
+    sag's reading less the full model's (``truncation``; both with the static axial loads' geometric stiffness)
+    and the links' P-delta effect (``pdelta``, all links' elements, to first order across the linear elastic sag:
+    :func:`exuflex.erls.validity.pdelta_forces`; what the geometric stiffness adds to the sag); and the reduced
+    static state."""
     from exuflex.erls.sensing import channel_matrix
     from exuflex.erls.validity import pdelta_forces, weight_sag
 
@@ -157,7 +164,8 @@ def sag_readings(obs, q) -> tuple[dict, np.ndarray]:
     C = channel_matrix(fm, cfg, mech, list(obs.channels))[:, nq:] / noise[:, None]
     z = reduced_sag(rm, np.asarray(q, float))
     x, _ = rm.full_state(z)
-    f, _ = pdelta_forces(fm, cfg, fm.T @ u, np.flatnonzero(fm.el_len > 0))
+    u0, _ = weight_sag(fm, cfg, material=True)  # the linear elastic sag, whose P-delta forces K_G holds
+    f, _ = pdelta_forces(fm, cfg, fm.T @ u0, np.flatnonzero(fm.el_len > 0))
     du = np.linalg.solve(fm.T.T @ cfg.K_N @ fm.T, fm.T.T @ f)
     return {"truncation": C @ (x[nq:] - u), "pdelta": C @ du}, z
 
@@ -204,10 +212,48 @@ def weight_readings(mech, points: int = 5) -> dict:
     return out
 
 
-CORRECTIONS = {"erls-rk4": ("truncation",), "exudyn": ("truncation", "pdelta")}
-"""The corrected logs (``--corrected``): the ERLS truth's channels plus the reduced basis's static truncation
-(what the reduced model reads of the sag, less the full model's), the Exudyn truth's also less the P-delta effect
-the ERLS models leave out."""
+def tip_shortening(mech, points: int = 5) -> dict:
+    """The tip link's second-order shortening under the weight (module docstring, 6.): at ``points`` configurations
+    along the plan, the full model's static sag (:func:`exuflex.erls.validity.weight_sag`), ``s = int v'^2 / 2 dx``
+    over the tip link's beam elements up to the tip's station (``v`` the lateral elastic field in each element's
+    frame, its tilt at the joint included; 3-point Gauss, exact), along the link's axis: the tip's displacement
+    ``-s (cos theta, sin theta)`` that linear elastic displacements leave out. The largest magnitude per
+    component (signed), with the tip's truth names."""
+    from exuflex.erls.model import ErlsModel
+    from exuflex.erls.validity import weight_sag
+    from exuflex.manoeuvre import plan
+    from exuflex.sensors import tip_dof_names, tip_point
+
+    link, station = tip_point(mech)
+    model = ErlsModel(mech)
+    li = [lk.name for lk in mech.links].index(link)
+    els = [e for e in np.flatnonzero((model.el_link == li) & (model.el_len > 0)) if model.el_station[e] < station]
+    xg, wg = np.polynomial.legendre.leggauss(3)
+    pl = plan(mech, dt=1e-3, t_end=mech.manoeuvre.duration)
+    worst = np.zeros(2)
+    for k in np.linspace(0, len(pl.t) - 1, points).round().astype(int):
+        cfg = model.configuration(pl.q[k])
+        u, _ = weight_sag(model, cfg)
+        d = model.T @ u
+        short = 0.0
+        for e in els:
+            L = model.el_len[e]
+            lat = (cfg.R[e].T @ d[model.el_dofs[e]])[[1, 2, 4, 5]]
+            for x, w in zip(xg, wg, strict=True):
+                xi = (x + 1) / 2
+                slope = np.array([(-6 * xi + 6 * xi**2) / L, 1 - 4 * xi + 3 * xi**2, (6 * xi - 6 * xi**2) / L,
+                                  -2 * xi + 3 * xi**2]) @ lat
+                short += w * slope**2 * L / 4
+        th = cfg.pose.link_angles[li]
+        shift = -short * np.array([np.cos(th), np.sin(th)])
+        worst = np.where(np.abs(shift) > np.abs(worst), shift, worst)
+    return {"link": link, "names": list(tip_dof_names(mech)), "shortening": worst.tolist()}
+
+
+CORRECTIONS = {"erls-rk4": ("truncation",), "exudyn": ("truncation",)}
+"""The corrected logs (``--corrected``): the truth's channels plus the reduced basis's static truncation (what the
+reduced model reads of the sag, less the full model's). (``pdelta``, taken away, was the Exudyn truth's
+correction while the ERLS models had no geometric stiffness.)"""
 
 
 def corrected_run(mech, run, kinds: tuple[str, ...], every: int = 25):
@@ -269,6 +315,7 @@ def measure(model: Path, gravity: tuple[float, float], seeds: list[int], engines
                "position_block": position_block(mech), "held_weight": held_weight(mech), "observer": {}}
         if any(gravity):
             row["weight_readings"] = weight_readings(mech)
+            row["tip_shortening"] = tip_shortening(mech)
         if "exudyn" in runs and "erls" in runs:
             row.update(truth_difference(mech, runs["exudyn"][0].truth, runs["erls"][0].truth))
         logs = {e: runs[e] for e in engines}
@@ -322,19 +369,25 @@ def markdown(rows: list[dict], command: str) -> str:
         f"Written by `{command}` (each truth simulated once and measured with each of {len(seeds)} seeds' noise).",
         "",
         ("Each model file is copied with its `model.gravity` replaced. The computed torque of the manoeuvre "
-         "includes gravity; every truth runs under the same torque table: Exudyn (ANCF cables; the weight of every "
-         "element, hub body and lumped mass, `exuflex.groundtruth.build_truth`), the full-order ERLS model by "
-         "generalized-alpha at the step its band gives (`erls`, the acceptance's truth) and by RK4 (`erls-rk4`, "
-         "exact to the model), and the observer's own reduced model (`reduced`). "
+         "includes gravity; every truth runs under the same torque table: Exudyn (ANCF cables, geometrically exact; "
+         "the weight of every element, hub body and lumped mass, `exuflex.groundtruth.build_truth`), the "
+         "full-order ERLS model by generalized-alpha at the step its band gives (`erls`, the acceptance's truth) or "
+         "by RK4 (`erls-rk4`, exact to the model), and the observer's own reduced model (`reduced`). Both ERLS "
+         "models hold the geometric stiffness of the links' axial loads in their elastic rows (the P-delta effect: "
+         "`exuflex.erls.model`, \"Geometric stiffness\"; the full model's of the rigid motion's loads, "
+         "`K_G(q, q', tau)`, the reduced model's of the weight with the holding torques, `K_G(q)`). "
          "`benchmarks/models/vertical_link.toml` is a link lifted from hanging to horizontal, "
          "`benchmarks/models/vertical_fourbar.toml` a crank-rocker lifting a payload on its rocker's overhang, both "
          "written fresh for the gravity checks; `benchmarks/models/vertical_serial_arm.toml` is the gallery's serial "
          "arm in a vertical plane (its forearm pointing up: an inverted pendulum held by the elbow motor), "
          "`benchmarks/models/crane_arm.toml` an upright mast carrying a near-horizontal boom with a payload, written "
-         "fresh for the sag checks. "
+         "fresh for the sag checks, `benchmarks/models/upright_two_link.toml` two slender steel links standing up "
+         "under a 1 kg payload (both columns in compression), written fresh for the P-delta check. "
          "`tests/test_gravity.py` checks the static deflection of a cantilever under its weight against "
          "Euler-Bernoulli in the Exudyn truth and in the reduced model, the vertical link's dynamic agreement of "
-         "the truths, and the held weight's order."),
+         "the truths, and the held weight's order; `tests/test_pdelta.py` the geometric stiffness against the "
+         "beam-column (a standing and a hanging column's first frequency and static sag, exact solutions), the "
+         "axial forces of a spinning link and of a column, and the axial forces' work entry by entry."),
     ]
     compared = [r for r in rows if "tip_nrms" in r]
     if compared:
@@ -374,13 +427,14 @@ def markdown(rows: list[dict], command: str) -> str:
             "The weight's static sag at the channels",
             ("At five configurations along the plan, per channel in its noise sd (the largest magnitude, signed): the "
              "reduced model's static sag under the weight less the full ERLS model's (`truncation`: what the basis "
-             "misses of the sag; both linear statics with the holding torques, `benchmarks/gravity.py` "
-             "`sag_readings`), and the P-delta effect of the links' axial loads across that sag, which the ERLS "
-             "models' elastic rows leave out and the geometrically exact Exudyn truth has (`pdelta`, "
-             "`exuflex.erls.validity.pdelta_forces`, docs/validity.md). Both follow the configuration: the filter "
-             "meets them as constant offsets of its channels. `bias`: what the observer's steady filter at each "
-             "configuration makes of each, its gain at zero frequency `(I - (I - K H) F)^-1 K` times the offset, "
-             "in posterior sd of each coordinate (the largest magnitude)."),
+             "misses of the sag; both linear statics with the holding torques and the static axial loads' geometric "
+             "stiffness, `benchmarks/gravity.py` `sag_readings`), and the P-delta effect of the links' axial loads "
+             "across the linear elastic sag (`pdelta`, `exuflex.erls.validity.pdelta_forces`, docs/validity.md): "
+             "what the geometric stiffness adds to the sag, which the ERLS models and the reduction hold and the "
+             "geometrically exact Exudyn truth has. Both follow the configuration: left to the filter, it meets them "
+             "as constant offsets of its channels. `bias`: what the observer's steady filter at each configuration "
+             "would make of each, its gain at zero frequency `(I - (I - K H) F)^-1 K` times the offset, in "
+             "posterior sd of each coordinate (the largest magnitude)."),
             ["model", "channels", "truncation (sd)", "P-delta (sd)", "bias from the truncation (posterior sd)",
              "bias from the P-delta (posterior sd)"])
     for r in sagged:
@@ -394,43 +448,51 @@ def markdown(rows: list[dict], command: str) -> str:
             "",
             ("**The vertical serial arm.** Its reduced and full models agree in what the weight does to the motion "
              "(the holding torques and the static sag against the full model and Euler-Bernoulli: "
-             "`tests/test_gravity.py`; the reduced equations under the truth's torque table stay within about 1e-4 "
-             "rad of the full model over the first 0.3 s, where the unstable open loop has not yet amplified the "
-             "small differences). What differs is what the gauges read of the sag: the basis (masters across the "
-             "links at the elbow and the tip, two interior modes) holds the upper arm's sag less curved at "
-             "`c_upper` (the `truncation` column; the full sag projected on the basis misses the same: the basis, "
-             "not its equations). The reading is constant, and the steady filter's gain at zero frequency turns one "
-             "noise sd of `c_upper` into about 5 posterior sd of q1 (q1's bound, about 1e-4 rad, rests on the "
-             "model, ten times below the encoder's noise): the `bias` column, q1 about 1.8 sd, is the q1 excess on "
-             "both ERLS truths. The rows `erls-rk4, corrected` show it: the same logs with their channels shifted "
-             "by the truncation reading at the truth's configuration (every 25 ms, linear between). The remedy "
-             "belongs to the basis: static corrections with the weight among their loads (the slaves' "
-             "quasi-static response), whose count must weigh a persistent reading by the filter's zero-frequency "
-             "gain: a reading of `b` noise sd that repeats costs the filter up to that gain times `b`, where "
-             "the truncation figures of `exuflex.reduction.truncation` bound what one update makes of it. The "
-             "other vertical models have readings of the same kind with smaller gains; on the vertical link the "
-             "correction brings the NIS to its channel count while q1's ratio rises (its truncation bias had "
-             "offset another one of the opposite sign there)."),
+             "`tests/test_gravity.py`). What the gauges read of the sag the basis holds with the static corrections "
+             "(`exuflex.reduction.static`, the weight among their loads: the `truncation` column); without them the "
+             "masters and interior modes alone miss a third of a noise sd at `c_upper`, a constant reading that the "
+             "steady filter's gain at zero frequency (about 5 posterior sd of q1 per noise sd of `c_upper`) turns "
+             "into some 1.8 posterior sd of q1 on the ERLS truths, which the corrections' count criterion "
+             "(`STATIC_MAX`, a reading of at most `sqrt(0.1)` sd) already takes into the basis. The P-delta effect "
+             "(the `P-delta` column): the forearm stands almost upright with its payload's weight along it (3 N) "
+             "while the upper arm's sag tilts it elastically; its own weight across it is small (`cos 1.5`), so the "
+             "moment of the axial load across the tilt is some 5 % of its bending, 0.8 noise sd at `c_fore`, which "
+             "the filter would turn into some 2.4 posterior sd of q2 (the `bias` column) against the geometrically "
+             "exact truth if its model left it out; the ERLS elastic rows and the reduction hold it. The fresh "
+             "upright two-link arm's slender upper link carries its payload at some 9 % of its Euler load: the "
+             "P-delta reads several noise sd there."),
             "",
-            ("**Exudyn's excess on the vertical serial arm** is the P-delta effect: the forearm stands almost "
-             "upright with its payload's weight along it (3 N) while the upper arm's sag tilts it elastically; its "
-             "own weight across it is small (`cos 1.5`), so the moment of the axial load across the tilt is some 5 % "
-             "of its bending (the `P-delta` column, and the upper arm's in `c_upper`). The Exudyn and ERLS truths' "
-             "`c_fore` differ by about that (0.8-1.4 sd in 0.1 s windows of the first 0.5 s, where their motions "
-             "still agree; the same seed's noise cancels). A formulation limit of ERLS (linear elasticity in the "
-             "links' frames: its coordinate rows hold the P-delta's share, its elastic rows not, "
-             "`tests/test_pdelta.py`): `exuflex simulate` and `observe` warn about it naming the link, its axial "
-             "load, the channel and the time (docs/validity.md). With both readings taken off the Exudyn logs "
-             "(`exudyn, corrected`) the coordinates come within the acceptance's limits; the tip's elastic "
-             "displacement stays above them: the truth's own deflection holds the P-delta, which the observer's "
-             "model has not."),
+            ("**The tip's second-order kinematics.** What remains above the bound on the Exudyn truths is the tip's "
+             "elastic displacement along the tip link (`y23` on the vertical serial arm, `y29` on the upright "
+             "two-link arm, `x22` along the crane arm's near-horizontal boom): the tip link turned by its joint's "
+             "elastic rotation and bent by its own load shortens along its axis by `int v'^2 / 2`, which linear "
+             "elastic displacements leave out and the geometrically exact truth's tip has. The table below gives "
+             "that shortening at the tip against the observer's bound for the tip: of the bound's size on the "
+             "upright arms, four times it along the crane's boom; a persistent offset of the true tip against what "
+             "a linear elastic model can say (the gauges and encoders do not read it)."),
             "",
-            ("**The crane arm** (written fresh) reads both kinds, the truncation most (its boom's bending is large "
-             "against the gauge's noise, so a small share of it is a large reading), and its filter's gain turns "
-             "them into the largest biases here: q2 many times its bound on the ERLS truths, which the "
-             "truncation's correction removes for the most part. It is above its bound on its own reduced model "
-             "too (q1): a filter approximation of its own, not studied here."),
+            ("**The crane arm** (written fresh) reads the P-delta of its mast and boom (the `P-delta` column) and the "
+             "basis's truncation little since the static corrections; its coordinates are within about 1.3 of their "
+             "bounds on every truth."),
         ]
+    short = [r for r in rows if "tip_shortening" in r]
+    if short:
+        lines += section(
+            "The tip link's shortening under the weight",
+            ("At five configurations along the plan, the full model's static sag under the weight: the tip link's "
+             "`int v'^2 / 2` up to the tip (its lateral elastic field in its own frame, the tilt at its joint "
+             "included) along its axis, the tip's displacement that linear elastic displacements leave out (the "
+             "largest magnitude per component, signed; `benchmarks/gravity.py` `tip_shortening`), against the "
+             "observer's bound for the tip's elastic displacement (RMS over the log, the mean over the seeds of the "
+             "Exudyn truth's runs)."),
+            ["model", "tip link", "shortening at the tip (um)", "observer's bound (um)"])
+    for r in short:
+        ts = r["tip_shortening"]
+        obs = r["observer"].get("exudyn") or next(iter(r["observer"].values()))
+        bound = [1e6 * np.mean([o["bound_rms"][n] for o in obs]) for n in ts["names"]]
+        lines.append(f"| {r['model']} | {ts['link']} | " + ", ".join(
+            f"{n} {1e6 * v:+.2f}" for n, v in zip(ts["names"], ts["shortening"], strict=True)) + " | " + ", ".join(
+            f"{n} {b:.2f}" for n, b in zip(ts["names"], bound, strict=True)) + " |")
     stepped = [r for r in rows if "erls_step_error" in r]
     if stepped:
         lines += [
@@ -525,12 +587,12 @@ def markdown(rows: list[dict], command: str) -> str:
          "causes (`expansion.position_forces`)."),
         "",
         ("How to read it: on the `reduced` truths (the model exact) the filter is consistent under gravity, the "
-         "means over the seeds near 1 and the NIS at its channel count. On the link the generalized-alpha ERLS "
-         "truth's step error is of the bound's size in the rates and the tip (the table above), so the `erls` row "
-         "measures the truth's step as much as the observer; against the same model integrated by RK4 the "
-         "observer is within the acceptance's limits. The serial arm in a vertical plane stays above its bound in "
-         "q1 on both ERLS truths with its model exact in the `reduced` row: the reduced basis's static sag at the "
-         "gauges, and on Exudyn the P-delta effect (the section \"The weight's static sag at the channels\")."),
+         "means over the seeds near 1 and the NIS at its channel count; the ERLS truths add what the reduction "
+         "and the held step leave out (among them the change of the axial loads with the motion, which the full "
+         "model's geometric stiffness follows and the reduced model's does not), the Exudyn truth what the ERLS "
+         "formulation leaves out (the tip's second-order kinematics above). Where the open-loop motion is "
+         "unstable (the upright arms) each truth is its own motion: their figures are compared seed by seed "
+         "only through the filter's errors."),
         "",
         ("The reference step (`--method rk4`: every RK4 stage of the reduced equations at its own state) is not "
          "the better model under gravity: it evaluates the weight at every stage but holds the measured torque "

@@ -9,7 +9,7 @@ included, :mod:`exuflex.reduction.static`; "without corrections": ``static_max=0
 
 1. **Modes at rest** (motors free) at five configurations of the manoeuvre: the full model's and the reduced
    model's frequencies.
-2. **The truth's motion**: the full-order ERLS model (generalized-alpha, step 1e-4 s) under the *nominal* model's
+2. **The truth's motion**: the full-order ERLS model (generalized-alpha at the truth step rule's step) under the *nominal* model's
    open-loop torques from the plan's start (the mismatch study's drive, :func:`exuflex.truth.engines.plan_drive`):
    the peak crank rate and acceleration and the peak gauge signal over its noise, overall and in the window of
    :data:`exuflex.reduction.truncation.WINDOW_SAMPLES` samples around the largest scale's peak acceleration.
@@ -37,14 +37,14 @@ import numpy as np
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _pages import publish
 
-from exuflex.erls.implicit import erls_implicit
+from exuflex.erls.implicit import band_modes, erls_implicit
 from exuflex.erls.modal import modal_analysis
 from exuflex.erls.model import ErlsModel
 from exuflex.erls.sensing import channel_matrix
 from exuflex.mechanism import load_mechanism
 from exuflex.reduction import CraigBampton, manoeuvre_configurations, reduced_modes
 from exuflex.reduction.truncation import WINDOW_SAMPLES
-from exuflex.truth.engines import plan_drive
+from exuflex.truth.engines import gen_alpha_step, plan_drive
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +69,10 @@ def truth(mech, nominal, duration):
     y0 = np.zeros(2 * n)
     y0[:nq], y0[n : n + nq] = drive.q0, drive.qd0
     dt = 1.0 / mech.sample_rate_hz
-    tr = erls_implicit(model, drive.t, drive.tau, y0, duration, 1e-4, output_every=round(dt / 1e-4))
+    band = mech.reduction.band_hz
+    modes = band_modes(model, np.vstack([drive.q0, mech.q_ref]), band)
+    step = gen_alpha_step("auto", 1e-4, dt, band, modes, duration)  # the truth step rule, as `exuflex simulate`
+    tr = erls_implicit(model, drive.t, drive.tau, y0, duration, step, output_every=round(dt / step))
     return model, tr.t, tr.y
 
 

@@ -201,11 +201,11 @@ def test_prescribed_truth_held_horizontal_sags_by_euler_bernoulli():
 # the reduced model (the observer's) under gravity
 
 
-def _reduced(mech):
+def _reduced(mech, geometric: bool = True):
     from exuflex.erls.model import ErlsModel
     from exuflex.reduction import CraigBampton, ReducedModel
 
-    return ReducedModel(CraigBampton(ErlsModel(mech)))
+    return ReducedModel(CraigBampton(ErlsModel(mech, geometric=geometric)))
 
 
 @pytest.mark.parametrize("theta", [0.0, -0.6, 0.9])
@@ -215,10 +215,11 @@ def test_reduced_static_sag_and_holding_torque_are_euler_bernoulli(theta):
     (8 EI) + P L^3 / (3 EI)`` (cubic elements with consistent loads are nodally exact; the Craig-Bampton basis
     holds the tip's static shape exactly and the interior load's response to its modes' truncation), and the
     joint row's force at that state is the weight's moment about the hub, ``g_n (rho A L^2 / 2 + m_t L)``, less
-    the sag's lever (relative size the deflection over the length)."""
+    the sag's lever (relative size the deflection over the length). Linear elasticity: the model without the
+    geometric stiffness of the axial loads (with it: ``tests/test_pdelta.py``)."""
     tip = {"mass": 0.3}
     mech = _cantilever(theta, tip)
-    rm = _reduced(mech)
+    rm = _reduced(mech, geometric=False)
     nq = rm.nq
     mats = rm.matrices(np.array([theta]))
     pe = np.linalg.solve(mats.Kr[nq:, nq:], mats.fr[nq:])
@@ -259,32 +260,46 @@ def _held_pair(som, q0: float, d: float):
     return iv
 
 
+def _held_errors(som, q0: float, h: float):
+    """``((second, first), iv, exact)``: one interval's state error of the cached step held at ``q0`` (secant partner
+    at ``q0 - h``) and evaluated at ``q0 + h``, at rest and undeformed, to second order (``s = 1``) and to first
+    (``s = 0``), each over the held state's change, against the configuration evaluated exactly; and the two held
+    intervals."""
+    from exuflex.observer.expansion import held_step
+
+    r, dt = som.r, 1e-3
+    u, zero = np.zeros(1), np.zeros(1)
+    iv, exact = _held_pair(som, q0, h), _held_pair(som, q0 + h, h)
+    z = np.zeros(2 * r)
+    z[0] = q0 + h
+    n = som.substeps(iv, dt)
+    want = held_step(z, u, zero, 0.0, dt / n, n, exact.system)[0]
+    change = np.abs(want - held_step(z, u, zero, 0.0, dt / n, n, iv.system)[0]).max()
+    # without the partner's curvature: the weight to first order (s = 0 drops the secant altogether)
+    errs = tuple(np.abs(held_step(z, u, np.array([h]), s, dt / n, n, iv.system)[0] - want).max() / change
+                 for s in (1.0, 0.0))
+    return errs, iv, exact
+
+
 def test_held_weight_follows_the_configuration_to_second_order():
     """The cached step's weight about a held configuration with a secant partner: ``fg + (Wg + s/2 (Wg - Wg_old))
     dl`` (:func:`exuflex.observer.expansion._held_model`), second order along the secant, so its error falls
     as the cube of the radius (the partner as far behind as ``q`` is ahead, as the refreshes place them; first
     order: the square). The vertical link at rest, 40 degrees below the horizontal, undeformed: one interval's
-    state error against the configuration evaluated exactly, and the weight itself."""
+    state error against the configuration evaluated exactly (``K_r`` with the static axial loads' geometric
+    stiffness, held with its gradient, :meth:`~exuflex.reduction.model.ReducedModel.geometric_gradient`), and the
+    weight itself."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.expansion import held_step
     from exuflex.observer.reduced import ReducedObserverModel
 
     mech = load_mechanism(VERTICAL_LINK)
     som = ReducedObserverModel(_reduced(mech))
-    r, dt, q0 = som.r, 1e-3, -0.7
-    u, zero = np.zeros(1), np.zeros(1)
-    radii = (0.04, 0.02, 0.01)
+    q0, radii = -0.7, (0.04, 0.02, 0.01)
     step, first, weight = [], [], []
     for h in radii:
-        iv, exact = _held_pair(som, q0, h), _held_pair(som, q0 + h, h)
-        z = np.zeros(2 * r)
-        z[0] = q0 + h
-        n = som.substeps(iv, dt)
-        want = held_step(z, u, zero, 0.0, dt / n, n, exact.system)[0]
-        change = np.abs(want - held_step(z, u, zero, 0.0, dt / n, n, iv.system)[0]).max()
-        step.append(np.abs(held_step(z, u, np.array([h]), 1.0, dt / n, n, iv.system)[0] - want).max() / change)
-        # without the partner's curvature: the weight to first order (s = 0 drops the secant altogether)
-        first.append(np.abs(held_step(z, u, np.array([h]), 0.0, dt / n, n, iv.system)[0] - want).max() / change)
+        (err, err_first), iv, exact = _held_errors(som, q0, h)
+        step.append(err)
+        first.append(err_first)
         fg0, fg_h = iv.forces.fg, exact.forces.fg
         W0, W_old = iv.forces.Wg[:, 0], iv.old.forces.Wg[:, 0]
         expanded = fg0 + (W0 + 0.5 * (W0 - W_old)) * h  # s = 1

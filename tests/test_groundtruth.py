@@ -206,7 +206,12 @@ def test_torque_step_timing_matches_erls_zero_order_hold(mech):
     assert first_motion(q_erls) == m + 1  # RK4 under the hold of tau_m over [t_m, t_m+1]
     assert first_motion(q_exu) == m  # the ramp centred on t_m: a quarter of a step's impulse by t_m
     assert np.max(np.abs(q_erls[-1] - q_erls[0])) > 5e-3  # it moved
-    np.testing.assert_allclose(q_exu[-1], q_erls[-1], atol=1.5e-6)
+    # q3: the two models' alpha dampers differ on a deflected link that turns (the ERLS model's acts on the strain
+    # rate and leaves the turn alone; Exudyn's, with the rigid fields of its refreshed configuration, brakes it a
+    # little): at alpha = 30 1/s q3 coasts 4.1e-6 rad apart at 0.2 s (the ERLS damper on the global rate, which
+    # brakes the turn fully: 1.2e-6 the other way); each engine's switch instant is checked by first_motion above
+    tol = np.array([1.5e-6, 1.5e-6, 5e-6])
+    assert np.all(np.abs(q_exu[-1] - q_erls[-1]) <= tol), q_exu[-1] - q_erls[-1]
 
 
 @pytest.mark.slow

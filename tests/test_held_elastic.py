@@ -2,9 +2,10 @@
 deformed (``benchmarks/models/three_link_reach.toml``, a state of its manoeuvre simulated by the reduced model).
 
 The held configurations are undeformed; the consistent velocity map ``J`` is linear in the elastic coordinates, so
-``M_r = (W J)^T M_N W J`` and the damping ``J_u^T D J_u`` are quadratic in them. Taken to first order only, the
-damping's rigid block missed ``beta (d(H_u e)/dq)^T K_uu d(H_u e)/dq``: the deflection turned with its link, which
-the axial stiffness sees. That first-order damping matrix is indefinite at the manoeuvre's deflections (it feeds
+``M_r = (W J)^T M_N W J`` and the damping ``J^T C J`` are quadratic in them. Taken to first order only, the
+damping's rigid block missed ``beta (A_k - E_k)^T K_N (A_l - E_l)`` (``A_k = T d(H_u e_k)/dq``, ``E_k`` the
+deflection turned with its link, which the strain-rate damping does not see: what is left is the change of the
+shapes with the configuration). That first-order damping matrix is indefinite at the manoeuvre's deflections (it feeds
 energy into the joints), and its error has one sign over a whole refresh radius, which the held model's radius
 cannot see (it compares held models of the same form). ``M_r``'s second order stays out
 (:func:`exuflex.observer.expansion._elastic_terms` says why): its error is measured here too.
@@ -81,8 +82,9 @@ def test_held_matrices_in_the_elastic_coordinates(reach):
     C1 = ex.held_system(zq, 0.0, pe, tuple(first))[2]
     scale = np.abs(C).max()
     assert np.linalg.eigvalsh(0.5 * (C + C.T)).min() >= -1e-12 * scale
-    # the first-order damping feeds energy in: a negative eigenvalue of the joints' damping's size
-    assert np.linalg.eigvalsh(0.5 * (C1 + C1.T)).min() < -0.1 * np.abs(C[:nq, :nq]).max()
+    # the first-order damping feeds energy in: a negative eigenvalue (on the strain rate, the second order holds
+    # the change of the shapes with the configuration only, not the deflection turned with its link: smaller)
+    assert np.linalg.eigvalsh(0.5 * (C1 + C1.T)).min() < -1e-3 * np.abs(C[:nq, :nq]).max()
     for i in (0, 2):  # M_r, damping
         e1 = np.abs(exact(pe)[i] - ex.held_system(zq, 0.0, pe, tuple(first))[i]).max()
         e2 = np.abs(exact(0.5 * pe)[i] - ex.held_system(zq, 0.0, 0.5 * pe, tuple(first))[i]).max()
@@ -93,7 +95,8 @@ def test_left_out_term_is_of_second_order_in_the_step(reach):
     """The first-order model's step against the step with the second order, in the joint angles and rates over one
     interval, with the elastic coordinates and rates scaled by ``a``: the difference falls as ``a^2`` (ratio 4 per
     halving; at the manoeuvre's own amplitude higher orders add to it, the first-order damping being indefinite
-    there). At the manoeuvre's amplitude it is a sizeable part of the noise the filter adds per interval."""
+    there). On the strain-rate damping it is a small part of the noise the filter adds per interval (the deflection
+    turned with its link, which made it a sizeable part on the global-rate law, is no strain rate)."""
     m, z, u, dt = reach
     r, nq = m.r, m.nq
     iv, hs, first = _held(m, z)
@@ -108,9 +111,11 @@ def test_left_out_term_is_of_second_order_in_the_step(reach):
         step = [ex.held_step(za, u, np.zeros(nq), 0.0, dt / n, n, s)[0] for s in (first, hs)]
         return (step[0] - step[1])[rigid]
 
-    assert np.max(np.abs(diff(1.0)) / np.sqrt(np.diag(Q))[rigid]) > 0.3
-    ratios = np.abs(diff(1 / 32) / diff(1 / 64))
-    assert np.all(np.abs(ratios - 4.0) < 0.15), ratios
+    sd = np.sqrt(np.diag(Q))[rigid]
+    assert 0.0 < np.max(np.abs(diff(1.0)) / sd) < 0.1
+    # in units of the noise (entries whose second-order coefficient is small converge to 4 later)
+    ratio = np.linalg.norm(diff(1 / 32) / sd) / np.linalg.norm(diff(1 / 64) / sd)
+    assert abs(ratio - 4.0) < 0.15, ratio
 
 
 def test_held_step_against_the_reduced_model(reach):

@@ -72,7 +72,7 @@ def test_erls_record_at_a_torque_step_is_the_state_before_it():
     n = model.n
     y0 = np.zeros(2 * n)
     y0[: model.nq] = mech.q_ref
-    h, out = 1e-3 / 115, 1e-3
+    h = 1e-3 / 115
     t_tab = np.arange(0, 31) * 1e-4
     base = np.full((len(t_tab), 1), 0.02)
     step = base.copy()
@@ -95,7 +95,7 @@ def test_exudyn_record_at_a_torque_step_is_the_state_before_it():
     base = np.full((len(t_tab), 1), 0.02)
     step = base.copy()
     step[t_tab >= 2e-3 - 1e-12] += 0.1
-    kw = dict(h=1e-3 / 115, output_dt=1e-3, q0=mech.q_ref)
+    kw = {"h": 1e-3 / 115, "output_dt": 1e-3, "q0": mech.q_ref}
     a = simulate_truth(mech, t_tab, base, 3e-3, **kw)
     b = simulate_truth(mech, t_tab, step, 3e-3, **kw)
     moved = 0.0

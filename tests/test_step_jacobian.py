@@ -176,11 +176,15 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
 #: the left-out entries' largest error over the natural scale in the positions' and the rates' columns, as measured
 #: (``python benchmarks/step_jacobian.py entries``) times 3, at least 1e-6: a change that makes the step depend more
 #: strongly on the positions shows here
-LEFT_OUT = {"sixbar": (2.2, 0.055), "fourbar": (0.085, 9e-5), "fivebar": (0.1, 1.8e-4), "serial_arm": (0.056, 1.1e-3),
+LEFT_OUT = {"sixbar": (2.2, 0.055), "fourbar": (0.085, 9e-5), "fivebar": (0.1, 0.011), "serial_arm": (0.056, 1.1e-3),
             "single_link": (1e-6, 3.1e-6), "slider_crank": (0.88, 0.096), "three_link_arm": (0.51, 4.3e-3),
             "l_arm": (1.2e-3, 7.6e-5), "fresh": (0.69, 0.077)}
 # three_link_arm's positions: 0.043 -> 0.169 with its two static corrections (exuflex.reduction.static; the
 # acceptance's q3 on both truths improved with them, docs/reduction.md)
+# fivebar's rates: 6e-5 -> 3.7e-3 with the damping on the strain rate (exuflex.erls.model, "Damping"): the damping
+# changes with the elastic coordinates through the deflection turned with the links (E_k in
+# ReducedModel.elastic_forms), and the held step takes its matrices at the interval's midpoint elastic coordinates
+# p_e + dt/2 p_e', a dependence on the rates that F leaves out (the matrices' change with the elastic coordinates)
 
 
 @pytest.mark.parametrize("name", MODELS)

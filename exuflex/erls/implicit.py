@@ -446,14 +446,17 @@ class _ErlsSystem:
         return self._r(self._cfg(x), t, x, v, dd)
 
     def iteration_matrix(self, t, x, v, dd, beta_p, gamma_p):
-        """``beta' M + gamma' (C + dh/dv) + K`` at ``x``: the model's analytic mass, damping, velocity-force Jacobian
-        and stiffness. Left out: the q columns' ``d(M x'' - Q)/dq`` (the change of the mass and forces with the
-        configuration), which is of order ``h^2`` relative to ``beta' M``; a simplified Newton (on the four-bar
-        with 8 elements per link the iteration counts with and without them by central differences were equal)."""
+        """``beta' M + gamma' (C + dh/dv) + K + dCv/du`` at ``x``: the model's analytic mass, damping (at ``x``),
+        velocity-force Jacobian, stiffness and the damping forces' change with the elastic coordinates
+        (:meth:`~exuflex.erls.model.ErlsModel.damping_position_jacobian`, u columns). Left out: the q columns'
+        ``d(M x'' - Q)/dq`` (the change of the mass and forces with the configuration), which is of order ``h^2``
+        relative to ``beta' M``; a simplified Newton (on the four-bar with 8 elements per link the iteration
+        counts with and without them by central differences were equal)."""
         m = self.model
         cfg = self._cfg(x)
-        return (beta_p * m.mass(cfg) + gamma_p * (m.damping(cfg) + m.velocity_force_jacobian(cfg, x, v))
-                + m.stiffness(cfg))
+        S = beta_p * m.mass(cfg) + gamma_p * (m.damping(cfg, x) + m.velocity_force_jacobian(cfg, x, v)) + m.stiffness(cfg)
+        S[:, m.nq :] += m.damping_position_jacobian(cfg, x, v)
+        return S
 
 
 def erls_implicit(

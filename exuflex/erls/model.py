@@ -29,10 +29,10 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
     ``h = W^T (M_N S' q' + M_N' b') - [dT/dq; 0] + [dV/dq; 0]`` with the symmetric
     ``M_N' = sum_e theta_e' R_e (G m_e - m_e G) R_e^T`` (``S' = dS/dt``; the terms of ``dW/dq``
     cancel because ``d^2 r/dq_j dq_k`` is symmetric). The two q-row terms are second order in the
-    elastic motion. ``C = diag(0, C_uu)`` with ``C_uu = alpha M_e + beta K_uu``: Rayleigh damping as the
-    dissipation function ``u'^T C_uu u' / 2`` of the elastic rates (see "Damping" below). Exactly
-    energy-consistent, ``dE/dt = -u'^T C_uu u' + v^T Q`` (``tests/test_energy.py``). ``M_N' S q'`` is not
-    zero under pure rigid motion.
+    elastic motion. ``C(x) = L^T (alpha P + beta K_N) L``: Rayleigh damping as the dissipation function
+    ``v^T C v / 2`` of the strain rate ``s = L v`` (see "Damping" below; ``diag(0, alpha M_e + beta K_uu)`` at
+    ``u = 0``). Exactly energy-consistent, ``dE/dt = -v^T C v + v^T Q`` (``tests/test_energy.py``).
+    ``M_N' S q'`` is not zero under pure rigid motion.
 ``form="eq2"`` (the paper's eq. 2 as written)
     Virtual work with ``delta p = R N R^T delta b`` and the acceleration
     ``p'' = R N R^T b'' + 2 theta' R (G2 N - N G) R^T u' + (terms in theta'^2 u and theta'' u)``, the
@@ -45,19 +45,56 @@ interpolating it in the global frame, and shrinks as O(h^2) with the element len
 
 Damping. The model file's ``alpha``, ``beta`` are the Rayleigh damping of the free elastic modes: each mode
 of ``M(q) x'' + C x' + K x = 0`` at rest (motors free) has the damping ratio ``alpha / (2 w) + beta w / 2``.
-``K = diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, and the elastic modes
-are M-orthogonal to them: ``M_qq phi_q + M_qu phi_u = 0``, the ERLS counter-rotates against the deformation.
-A mode's kinetic energy is therefore ``phi^T M phi = phi_u^T M_e phi_u`` with the Schur complement
-``M_e = M_uu - M_uq M_qq^-1 M_qu`` (``M_qq = S^T M_N S``, ``M_qu = S^T M_N T``), and
-``u'^T M_e u' = min_a |S a + T u'|^2_{M_N}``: twice the kinetic energy of the elastic rates relative to the
-rigid mechanism motion that carries their momentum. ``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K =
-diag(0, alpha M_e + beta K_uu)`` then gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on the
-mass-normalised elastic modes and ``C E = 0``: the Rayleigh ratios exactly, no force on rigid motion and none
-on a counter-rotation of the ERLS that leaves the bodies' motion rigid (``alpha M_uu`` would damp it).
-``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I] + beta K`` in the u columns): also the
-Rayleigh ratios (its state matrix is block-triangular in rigid and elastic modal coordinates), but with
-forces in the q rows that no dissipation function gives. ``tests/test_damping.py`` checks both forms' ratios
-against the formula from the state matrix's eigenvalues.
+
+The ``"lagrange"`` form damps the strain rate, not the global rate ``u'``. ``u`` is global, so ``d = T u``
+turns with the links: with the element-frame displacement ``e = R^T d`` (``R`` the element's, i.e. its link's,
+rotation), ``R e' = d' - theta' G d``. A bent link turning rigidly has ``e' = 0`` but ``d' = theta' G d != 0``:
+a damping on ``u'`` would brake it, a joint damping that material damping (a law in the strain rate, invariant
+under rigid rotation; Exudyn's beams' ``bendingDamping`` and ``axialDamping``) does not have. The strain rate in
+global components, node by node with its link's rate ``theta_n' = S_n q'`` (the rotation rows of ``S``), is
+
+``s = T u' - Y(u) q' = L v``, ``L = [-Y, T]``, ``Y[:, j] = (G3 T u) * S_theta[:, j]``
+
+(:meth:`ErlsModel.turned_rates`; ``G3`` turns each node's translation by 90 degrees and leaves its rotation
+alone; ``Y`` is linear in ``u``). The dissipation function is
+
+``D = beta/2 s^T K_N s + alpha/2 min_a |S a + s|^2_{M_N} = v^T C(x) v / 2``,
+``C(x) = L^T (alpha P + beta K_N) L``, ``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``,
+
+``beta s^T K_N s = beta sum_e e_e'^T K_e e_e'``: the element strain energy's form in the element-frame rates,
+the Kelvin-Voigt law of the beam elements. ``alpha``: the kinetic energy of the strain rates relative to the rigid
+mechanism motion that carries their momentum (the ERLS counter-rotates against the deformation; ``alpha M_uu``
+on ``u'`` would damp that rigid counter-rotation). The generalized damping force is ``-dD/dv = -C(x) v`` on all
+coordinates: the q rows get ``Y^T (alpha P + beta K_N) s`` (the rotation rate is part of the strain rate). ``C``
+is symmetric positive semidefinite, so the damping only dissipates, and ``s = 0``, ``C v = 0`` for the rates of
+a rigid turning with every link's deflection held (``T u' = Y q'``). Its change with ``u`` at fixed ``v`` is
+:meth:`ErlsModel.damping_position_jacobian` (the implicit engine's iteration matrix and the state matrix
+use it).
+
+At rest (``u = 0``) ``L = [0, T]`` and ``C = diag(0, alpha M_e + beta K_uu)`` with the Schur complement ``M_e =
+M_uu - M_uq M_qq^-1 M_qu`` (:meth:`ErlsModel.elastic_mass`), so the free modes' ratios are Rayleigh's: ``K =
+diag(0, K_uu)`` has the rigid mechanism motions ``E = [I; 0]`` as its null space, the elastic modes are
+M-orthogonal to them (``M_qq phi_q + M_qu phi_u = 0``), a mode's kinetic energy is ``phi_u^T M_e phi_u``, and
+``C = alpha (M - M E (E^T M E)^-1 E^T M) + beta K`` gives ``phi_i^T C phi_j = (alpha + beta w_i^2) delta_ij`` on
+the mass-normalised elastic modes and ``C E = 0``. ``"eq2"`` keeps eq. 2's ``W^T C_N T u'`` (``C = alpha M [0; I]
++ beta K`` in the u columns, on the global ``u'``): also the Rayleigh ratios (its state matrix is
+block-triangular in rigid and elastic modal coordinates), but with forces in the q rows that no dissipation
+function gives. ``tests/test_damping.py`` checks both forms' ratios against the formula from the state matrix's
+eigenvalues; ``tests/test_damping_strain.py`` the strain-rate law against element-frame rates by differences.
+
+Geometric stiffness (``geometric=True``, the default). Linear elasticity in the links' frames leaves out the work
+of an axial force ``N`` across the lateral displacements, ``N int v'^2 / 2 dx`` (the second-order strain), whose
+second variation is the geometric stiffness ``K_G(N)`` (:func:`~exuflex.erls.elements.beam_geometric_stiffness`):
+a link in compression softens (the P-delta effect of a weight along an upright link), one in tension stiffens (the
+centrifugal stiffening of a spinning link). The elastic rows take the axial forces of the rigid motion's loads
+(:meth:`ErlsModel.rigid_loads`: motors, weight and the d'Alembert forces of the rigid accelerations and rates, in
+equilibrium), each element's from the links' quasi-static axial response (:meth:`ErlsModel.axial_forces`), so the
+elastic rows' stiffness is ``K_uu + T^T K_G(N(q, q', tau)) T``: linear in ``u``, first order in the loads. The
+coordinate rows already hold the P-delta's share: the rotated stiffness's ``dV/dq`` above is the moment of the
+elastic axial force across the tilt (``tests/test_pdelta.py``). The weight's static part, ``K_G`` of the weight
+with the holding torques, is the configuration's (:meth:`ErlsModel.static_geometric`): the linearised models and
+the reduction hold it. ``K_G(q, q', tau)`` derives from no potential: its power ``-u'^T K_G u`` enters the energy
+balance (``tests/test_energy.py``).
 
 On rigid motion (``u = u' = 0``) the q rows of the two forms coincide (``M_N'`` and the ``dT/dq`` term
 cancel on rigid fields). On a uniformly spinning link the elastic rows of ``"eq2"`` are exactly the
@@ -74,7 +111,15 @@ import numpy as np
 from ..mechanism import ElasticDofs, Mechanism, elastic_dofs
 from ._assembly import configuration as compiled_configuration
 from ._assembly import nodal_matrices
-from .elements import GENERATOR, beam_gyroscopic, beam_mass, beam_stiffness, hermite_curvature_row, rotation
+from .elements import (
+    GENERATOR,
+    beam_geometric_stiffness,
+    beam_gyroscopic,
+    beam_mass,
+    beam_stiffness,
+    hermite_curvature_row,
+    rotation,
+)
 from .kinematics import Kinematics, Pose
 
 __all__ = ["FORMS", "Configuration", "ErlsModel"]
@@ -89,8 +134,12 @@ class Configuration:
     pose: Pose
     R: np.ndarray  # (n_el, 6, 6) element rotations
     M_N: np.ndarray  # (N, N) nodal mass (elements + lumped)
-    K_N: np.ndarray  # (N, N) nodal stiffness
+    K_N: np.ndarray  # (N, N) nodal stiffness (linear elastic)
     W: np.ndarray  # (N, n) = [S, T]
+    #: the nodal geometric stiffness of the static axial loads at q (``ErlsModel.static_geometric``; None: none,
+    #: no gravity or ``geometric=False``)
+    K_G: np.ndarray | None = None
+    N_static: np.ndarray | None = None  # (n_el,) the elements' static axial forces (N, tension positive) of K_G
 
     @property
     def q(self) -> np.ndarray:
@@ -108,12 +157,16 @@ class ErlsModel:
         The velocity-dependent forces and damping: the energy-consistent Lagrange form (default: on the six-bar's
         manoeuvre it agrees with the Exudyn truth, eq. 2 as written does not, and on the spin-up benchmark the two
         are equal; ``docs/validity.md``) or the paper's eq. 2 as written (see the module docstring).
+    geometric : bool
+        The geometric stiffness of the links' axial loads in the elastic rows (default; module docstring,
+        "Geometric stiffness"); False: linear elasticity alone.
     """
 
-    def __init__(self, mech: Mechanism, form: str = "lagrange"):
+    def __init__(self, mech: Mechanism, form: str = "lagrange", geometric: bool = True):
         if form not in FORMS:
             raise ValueError(f"ErlsModel: form must be one of {FORMS}, got {form!r}")
         self.form = form
+        self.geometric = bool(geometric)
         self._locate_cache: dict = {}
         self.mech = mech
         self.kin = Kinematics(mech)
@@ -187,6 +240,10 @@ class ErlsModel:
         self.Ml = np.array(Ml)
         self.Gl = GENERATOR @ self.Ml - self.Ml @ GENERATOR  # dM/dtheta in local form
         self.KGl = GENERATOR @ self.Kl - self.Kl @ GENERATOR
+        # the geometric stiffness per unit axial force and the axial stiffness EA / L of each beam element (zero for
+        # the offset masses' one-node elements)
+        self.el_KG1 = np.array([beam_geometric_stiffness(1.0, L) if L > 0 else np.zeros((6, 6)) for L in el_len])
+        self.el_axial = np.array([k[3, 3] for k in Kl])  # EA / L of the local stiffness' axial block
         self.MGl = np.array(Al) - self.Ml @ GENERATOR  # eq. 2's M_G per unit element rate, local form
         self.n_el = len(el_link)
         lump = np.zeros(self.N)
@@ -239,7 +296,16 @@ class ErlsModel:
     # ------------------------------------------------------------------ configuration
     def configuration(self, q, z0=None) -> Configuration:
         """Everything that depends on q only (closure warm-started from ``z0`` or the last solution); in one compiled
-        call (:func:`._assembly.configuration`) where numba is installed and Newton converges from the start."""
+        call (:func:`._assembly.configuration`) where numba is installed and Newton converges from the start. With
+        gravity (and ``geometric``) with the geometric stiffness of the static axial loads at q
+        (:meth:`static_geometric`)."""
+        cfg = self._material_configuration(q, z0)
+        if self.geometric and np.any(self.g_N):
+            return self.static_geometric(cfg)
+        return cfg
+
+    def _material_configuration(self, q, z0=None) -> Configuration:
+        """:meth:`configuration` with the material stiffness only."""
         kin = self.kin
         if self.compiled and kin.compiled and compiled_configuration is not None:
             q, start = kin.start(q, z0)
@@ -272,22 +338,95 @@ class ErlsModel:
         return cfg.W.T @ cfg.M_N @ cfg.W
 
     def stiffness(self, cfg: Configuration) -> np.ndarray:
-        """K(q) of eq. 2: zero q rows and columns, K_uu = T^T K_N T."""
+        """K(q) of eq. 2: zero q rows and columns, ``K_uu = T^T K_N T`` with the static axial loads' geometric
+        stiffness where the model has it (:meth:`elastic_stiffness`)."""
         K = np.zeros((self.n, self.n))
-        K[self.nq :, self.nq :] = self.T.T @ cfg.K_N @ self.T
+        K[self.nq :, self.nq :] = self.elastic_stiffness(cfg)
         return K
 
-    def damping(self, cfg: Configuration) -> np.ndarray:
-        """The damping matrix C (n x n) of the form: ``"lagrange"``: ``diag(0, alpha M_e + beta K_uu)`` with
-        :meth:`elastic_mass` ``M_e``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
+    def damping(self, cfg: Configuration, x: np.ndarray | None = None) -> np.ndarray:
+        """The damping matrix C (n x n) of the form at the configuration ``cfg`` and state ``x`` (``None``: the
+        elastic coordinates zero). ``"lagrange"``: ``C(x) = L^T (alpha P + beta K_N) L`` with the strain-rate map
+        ``L = [-Y(x), T]`` (:meth:`turned_rates`) and ``P`` the mass relative to the rigid motion, so that ``v^T C
+        v / 2`` is the dissipation function of the link-relative rates; at ``u = 0``: ``diag(0, alpha M_e + beta
+        K_uu)`` (:meth:`elastic_mass`). ``"eq2"``: ``W^T (alpha M_N + beta K_N) T`` in the u columns (module
         docstring, "Damping")."""
         C = np.zeros((self.n, self.n))
         if self.form == "eq2":
             C[:, self.nq :] = cfg.W.T @ (self.alpha * (cfg.M_N @ self.T) + self.beta * (cfg.K_N @ self.T))
             return C
-        Tt = self.T.T
-        C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
-        return C
+        if x is None or not np.any(x[self.nq :]):
+            Tt = self.T.T
+            C[self.nq :, self.nq :] = self.alpha * self.elastic_mass(cfg) + self.beta * (Tt @ cfg.K_N @ self.T)
+            return C
+        L = np.hstack([-self.turned_rates(cfg, x), self.T])
+        return L.T @ self.damping_products(cfg, L)
+
+    def turned_rates(self, cfg: Configuration, x: np.ndarray) -> np.ndarray:
+        """``Y`` (N, nq): the nodal rates of the elastic displacements ``d = T u`` turned with their links per unit
+        ``q'``, ``Y q' = Omega d`` with ``Omega`` the block-diagonal ``theta_n' G3`` over the nodes (``theta_n'``
+        the rate of node n's link, ``G3 = [[0, -1, 0], [1, 0, 0], [0, 0, 0]]``). The strain rate in the global frame
+        is ``s = T u' - Y q' = R d(R^T d)/dt`` (module docstring, "Damping"); ``Y`` is linear in ``u``."""
+        d = self.T @ x[self.nq :]
+        Gd = np.zeros(self.N)
+        Gd[0::3], Gd[1::3] = -d[1::3], d[0::3]
+        return Gd[:, None] * self._node_rates(cfg)
+
+    def _node_rates(self, cfg: Configuration) -> np.ndarray:
+        """(N, nq): the rate of every nodal dof's link angle per unit ``q'`` (the rigid rotation rows of ``S``)."""
+        return np.repeat(cfg.pose.S[2::3], 3, axis=0)
+
+    def damping_products(self, cfg: Configuration, s: np.ndarray) -> np.ndarray:
+        """``(alpha P + beta K_N) s`` for nodal rates ``s`` (N,) or (N, k), ``P = M_N - M_N S (S^T M_N S)^-1 S^T
+        M_N``."""
+        S = cfg.pose.S
+        MS = cfg.M_N @ S
+        f = self.beta * (cfg.K_N @ s)
+        if self.alpha:
+            f = f + self.alpha * (cfg.M_N @ s - MS @ np.linalg.solve(S.T @ MS, MS.T @ s))
+        return f
+
+    def damping_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``C(x) v`` (n,) as products (:meth:`damping`), the gradient in ``v`` of the dissipation function ``v^T
+        C(x) v / 2`` (the generalized damping force is its negative). ``"lagrange"``: ``L^T (alpha P + beta K_N) s``
+        with the strain rate ``s = T u' - Y q'``; ``"eq2"``: ``W^T (alpha M_N + beta K_N) T u'``."""
+        nq = self.nq
+        Tud = self.T @ v[nq:]
+        if self.form == "eq2":
+            return cfg.W.T @ (self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud))
+        out = np.zeros(self.n)
+        if np.any(x[nq:]):
+            Y = self.turned_rates(cfg, x)
+            f = self.damping_products(cfg, Tud - Y @ v[:nq])
+            out[:nq] = -Y.T @ f
+        else:
+            f = self.damping_products(cfg, Tud)
+        out[nq:] = self.T.T @ f
+        return out
+
+    def damping_position_jacobian(self, cfg: Configuration, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``d(C(x) v)/du`` (n, ne) of the ``"lagrange"`` form's damping forces, exact (they are bilinear in ``u``
+        and ``v`` at a configuration): with ``s = T u' - Y q'``, ``ds/du = -diag(w) G3 T`` (``w``: every nodal dof's
+        link rate) and ``f = (alpha P + beta K_N) s``, ``d(L^T f)/du = L^T (alpha P + beta K_N) ds/du`` plus the
+        change of ``-Y^T`` in the q rows, ``-(diag(f) Sigma)^T G3 T`` (``Sigma``: :meth:`_node_rates`). Their change
+        with ``q`` (through ``S``, ``P``, ``K_N``) is not part of it; the eq2 form: zero (its damping does not depend
+        on ``u``)."""
+        nq = self.nq
+        if self.form == "eq2" or not (self.alpha or self.beta):
+            return np.zeros((self.n, self.ne))
+        Sig = self._node_rates(cfg)
+        w = Sig @ v[:nq]
+        GT = np.zeros((self.N, self.ne))
+        GT[0::3], GT[1::3] = -self.T[1::3], self.T[0::3]
+        dsdu = -w[:, None] * GT
+        Y = self.turned_rates(cfg, x)
+        s = self.T @ v[nq:] - Y @ v[:nq]
+        f = self.damping_products(cfg, s)
+        Zd = self.damping_products(cfg, dsdu)
+        out = np.empty((self.n, self.ne))
+        out[:nq] = -Y.T @ Zd - (Sig * f[:, None]).T @ GT
+        out[nq:] = self.T.T @ Zd
+        return out
 
     def elastic_mass(self, cfg: Configuration) -> np.ndarray:
         """``M_e = M_uu - M_uq M_qq^-1 M_qu`` (ne x ne): the mass of the elastic rates relative to the rigid
@@ -405,16 +544,19 @@ class ErlsModel:
 
     def state_matrix(self, cfg: Configuration, x: np.ndarray | None = None,
                      v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 K, -M^-1 (C + dh/dv)]]``
-        (2n x 2n), with the velocity forces' Jacobian at ``(x, v)`` if given (none at rest)."""
+        """``(A, M^-1)``: the state matrix of eq. 2 linearised at ``cfg``, ``[[0, I], [-M^-1 (K + dCv/du), -M^-1 (C
+        + dh/dv)]]`` (2n x 2n), with the damping at ``x`` and the velocity forces' and damping forces' Jacobians at
+        ``(x, v)`` if given (none at rest; ``dCv/du``: :meth:`damping_position_jacobian`, in the u columns)."""
         n = self.n
         Minv = np.linalg.inv(self.mass(cfg))
-        C = self.damping(cfg)
+        C = self.damping(cfg, x)
+        K = self.stiffness(cfg)
         if v is not None:
             C = C + self.velocity_force_jacobian(cfg, x, v)
+            K[:, self.nq :] += self.damping_position_jacobian(cfg, x, v)
         A = np.zeros((2 * n, 2 * n))
         A[:n, n:] = np.eye(n)
-        A[n:, :n] = -Minv @ self.stiffness(cfg)
+        A[n:, :n] = -Minv @ K
         A[n:, n:] = -Minv @ C
         return A, Minv
 
@@ -464,6 +606,88 @@ class ErlsModel:
         """``dS/dq_j`` (N, nq) for every coordinate j (the rate of S along ``q' = e_j``)."""
         return list(self.kin.coordinate_rates(cfg.pose))
 
+    # ------------------------------------------------------------------ geometric stiffness
+    def rigid_loads(self, cfg: Configuration, qd: np.ndarray | None = None, tau: np.ndarray | None = None,
+                    qdd: np.ndarray | None = None) -> np.ndarray:
+        """The nodal loads (N,) that the rigid mechanism's motion puts on its links, in equilibrium.
+
+        ``f = B tau + M_N g - M_N (S q'' + S' q')``: the motors, the weight and the d'Alembert forces of the rigid
+        motion (the nodes moving with the ERLS, ``b' = S q'``). ``q''`` is the rigid acceleration the loads give,
+        ``(S^T M_N S) q'' = S^T (B tau + M_N g - M_N S' q')``, so that ``S^T f = 0``: no load on the rigid
+        mechanism's motions, the loads balance through the links' internal forces and the ground. With ``qdd``
+        (a prescribed motion) ``q''`` is that and ``tau`` the torques the motion needs, by least squares
+        from ``S^T B tau = S^T (M_N (S q'' + S' q') - M_N g)`` (what the motors do not span is left to the
+        acceleration, as above); ``tau=None`` without ``qdd``: the torques that hold the configuration, the same
+        with ``q'' = 0``. ``q' = None``: at rest."""
+        S, B = cfg.pose.S, self.B_N
+        f = cfg.M_N @ self.g_N
+        if qd is not None and np.any(qd):
+            f = f - cfg.M_N @ (self.kin.rates(cfg.pose, qd)[1] @ qd)
+        if qdd is not None:
+            f = f - cfg.M_N @ (S @ np.asarray(qdd, float))
+        if tau is None or qdd is not None:
+            tau = -np.linalg.lstsq(S.T @ B, S.T @ f, rcond=None)[0] if B.shape[1] else np.zeros(0)
+        f = f + B @ tau
+        MS = cfg.M_N @ S
+        return f - MS @ np.linalg.solve(S.T @ MS, S.T @ f)
+
+    def axial_forces(self, cfg: Configuration, f: np.ndarray) -> np.ndarray:
+        """Each element's axial force ``N_e`` (n_el,; N, tension positive; zero for the offset masses) under the
+        nodal loads ``f`` in equilibrium (:meth:`rigid_loads`): the elastic rows' static response ``K_uu u = T^T f``
+        (the linear elastic stiffness, the coordinates held: the loads balance, so the joints that fix the coordinates
+        carry none of them and the internal forces are those of the moving mechanism), ``N_e = (EA / L) (u_2 -
+        u_1)`` along the element (its frame). First order: the axial modes lie far above the loads' frequencies,
+        so the links' axial strain follows the loads quasi-statically."""
+        T = self.T
+        d = T @ np.linalg.solve(T.T @ cfg.K_N @ T, T.T @ f)
+        de = d[self.el_dofs]  # (n_el, 6)
+        R = cfg.R
+        ax = R[:, 0, 0] * (de[:, 3] - de[:, 0]) + R[:, 1, 0] * (de[:, 4] - de[:, 1])  # (R^T d)_3 - (R^T d)_0
+        return self.el_axial * ax
+
+    def geometric_stiffness(self, cfg: Configuration, N: np.ndarray) -> np.ndarray:
+        """The nodal geometric stiffness ``sum_e N_e R_e K_G1 R_e^T`` (N, N) of the elements' axial forces ``N``
+        (``K_G1``: :func:`.elements.beam_geometric_stiffness` per unit force): the second variation of the axial
+        forces' work ``sum_e N_e int (v'^2 / 2) dx`` across the lateral displacements ``v`` (each element's
+        frame), the P-delta effect that linear elasticity leaves out."""
+        R = cfg.R
+        return self._assemble((R @ self.el_KG1 @ np.swapaxes(R, 1, 2)) * N[:, None, None])
+
+    def geometric_forces(self, cfg: Configuration, N: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``-T^T K_G(N) T u`` (ne,): the elastic rows' forces of the axial forces ``N`` across the elastic
+        displacements ``u`` (:meth:`geometric_stiffness`, element by element without assembly)."""
+        R = cfg.R
+        dl = np.einsum("eji,ej->ei", R, (self.T @ u)[self.el_dofs])  # R^T d per element
+        fe = np.einsum("eij,ej->ei", R, np.einsum("eij,ej->ei", self.el_KG1, dl)) * N[:, None]
+        return -self.T.T @ np.bincount(self._el_flat, fe.reshape(-1), minlength=self.N)
+
+    def static_geometric(self, cfg: Configuration) -> Configuration:
+        """``cfg`` with the geometric stiffness of the static axial loads: the elements' axial forces ``N_s`` of the
+        weight with the torques that hold the configuration (:meth:`rigid_loads` at rest) and ``K_G(N_s)``.
+
+        The elastic rows' stiffness about the static sag (:meth:`elastic_stiffness`), which the linearised models
+        (:meth:`stiffness`) and the reduction's ``K_r`` hold as they hold ``K_N``; the equations of motion take the
+        axial forces of the motion itself (:meth:`rigid_axial_forces`, :meth:`net_forces`)."""
+        from dataclasses import replace
+
+        N_s = self.axial_forces(cfg, self.rigid_loads(cfg))
+        return replace(cfg, K_G=self.geometric_stiffness(cfg, N_s), N_static=N_s)
+
+    def rigid_axial_forces(self, cfg: Configuration, qd: np.ndarray | None, tau: np.ndarray | None = None,
+                           qdd: np.ndarray | None = None) -> np.ndarray:
+        """The elements' axial forces (n_el,) under the rigid motion's loads at ``q'`` under ``tau``, or with the
+        prescribed ``q''`` (:meth:`rigid_loads`, :meth:`axial_forces`): those of :meth:`net_forces`' ``K_G(q, q',
+        tau)``. Zeros without ``geometric``."""
+        if not self.geometric:
+            return np.zeros(self.n_el)
+        return self.axial_forces(cfg, self.rigid_loads(cfg, qd, tau, qdd))
+
+    def elastic_stiffness(self, cfg: Configuration) -> np.ndarray:
+        """The elastic rows' stiffness at rest ``K_uu + T^T K_G(N_s) T`` (ne x ne): linear elastic and the static
+        axial loads' geometric stiffness (:meth:`static_geometric`; none without it)."""
+        K = self.T.T @ cfg.K_N @ self.T
+        return K if cfg.K_G is None else K + self.T.T @ cfg.K_G @ self.T
+
     # ------------------------------------------------------------------ dynamics
     def generalized_forces(self, cfg: Configuration, tau: np.ndarray, f_nodal: np.ndarray | None = None):
         F = cfg.W.T @ (self.B_N @ tau + cfg.M_N @ self.g_N)
@@ -471,23 +695,22 @@ class ErlsModel:
             F = F + cfg.W.T @ f_nodal
         return F
 
-    def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    def net_forces(self, cfg: Configuration, x: np.ndarray, v: np.ndarray, tau: np.ndarray,
+                   qdd: np.ndarray | None = None) -> np.ndarray:
         """Right-hand side of eq. 2, ``W^T (B tau + M_N g) - h(x, v) - C v - K x``, so that ``M v' = net_forces``
-        (``h`` and ``C`` of the model's form)."""
+        (``h`` and ``C`` of the model's form). With ``geometric`` the elastic rows' ``K_uu`` holds the geometric
+        stiffness of the links' axial forces under the rigid motion's loads, ``K_G(q, q', tau)``
+        (:meth:`rigid_axial_forces`); ``qdd``: a prescribed motion's acceleration, whose loads give the axial forces
+        instead of ``tau``'s."""
         nq = self.nq
         rhs = self.generalized_forces(cfg, tau) - self.velocity_forces(cfg, x, v)
         T, Tt = self.T, self.T.T
         # K_uu u = T^T K_N T u and the damping as matrix-vector products
         rhs[nq:] -= Tt @ (cfg.K_N @ (T @ x[nq:]))
+        if self.geometric:
+            rhs[nq:] += self.geometric_forces(cfg, self.rigid_axial_forces(cfg, v[:nq], tau, qdd), x[nq:])
         if self.alpha or self.beta:
-            Tud = T @ v[nq:]
-            Cud = self.alpha * (cfg.M_N @ Tud) + self.beta * (cfg.K_N @ Tud)
-            if self.form == "eq2":  # W^T C_N T u': also the q rows
-                rhs -= cfg.W.T @ Cud
-            else:  # (alpha M_e + beta K_uu) u' with M_e = M_uu - M_uq M_qq^-1 M_qu
-                S = cfg.pose.S
-                MS = cfg.M_N @ S
-                rhs[nq:] -= Tt @ Cud - self.alpha * (Tt @ (MS @ np.linalg.solve(S.T @ MS, MS.T @ Tud)))
+            rhs -= self.damping_forces(cfg, x, v)
         return rhs
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, tau: np.ndarray, cfg: Configuration | None = None):
@@ -505,18 +728,23 @@ class ErlsModel:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
         M = self.mass(cfg)
-        rhs = self.net_forces(cfg, x, v, np.zeros(len(self.mech.motors)))
+        rhs = self.net_forces(cfg, x, v, np.zeros(len(self.mech.motors)), qdd=qdd)
         return np.linalg.solve(M[nq:, nq:], rhs[nq:] - M[nq:, :nq] @ np.asarray(qdd, float))
 
-    def prescribed_jacobian(self, x: np.ndarray, v: np.ndarray, cfg: Configuration | None = None) -> np.ndarray:
-        """``[d u''/d u, d u''/d u']`` (ne x 2 ne) of :meth:`prescribed_accelerations` (exact: under a prescribed
-        motion the elastic rows are linear in ``u`` and ``u'``)."""
+    def prescribed_jacobian(self, x: np.ndarray, v: np.ndarray, cfg: Configuration | None = None,
+                            qdd: np.ndarray | None = None) -> np.ndarray:
+        """``[d u''/d u, d u''/d u']`` (ne x 2 ne) of :meth:`prescribed_accelerations` at the prescribed ``q''``
+        ``qdd`` (exact: under a prescribed motion the elastic rows are linear in ``u`` and ``u'``; ``qdd=None``:
+        the geometric stiffness of the motion's axial loads at zero acceleration)."""
         if cfg is None:
             cfg = self.configuration(x[: self.nq])
         nq = self.nq
         M_uu = self.mass(cfg)[nq:, nq:]
-        D = (self.damping(cfg) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
-        K_uu = self.T.T @ cfg.K_N @ self.T
+        D = (self.damping(cfg, x) + self.velocity_force_jacobian(cfg, x, v))[nq:, nq:]
+        K_uu = self.T.T @ cfg.K_N @ self.T + self.damping_position_jacobian(cfg, x, v)[nq:]
+        if self.geometric:
+            N = self.rigid_axial_forces(cfg, v[:nq], None, np.zeros(nq) if qdd is None else qdd)
+            K_uu = K_uu + self.T.T @ self.geometric_stiffness(cfg, N) @ self.T
         return -np.linalg.solve(M_uu, np.hstack([K_uu, D]))
 
     def rhs(self, t: float, y: np.ndarray, tau: np.ndarray) -> np.ndarray:

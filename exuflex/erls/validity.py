@@ -1,8 +1,11 @@
-"""Where the ERLS model stops being valid: links turning fast against their own first clamped frequency, and links
-whose axial load under the weight acts across their elastic displacements.
+"""Where the ERLS model stops being valid: links turning fast against their own first clamped frequency, and (in a
+model without the geometric stiffness) links whose axial load under the weight acts across their elastic
+displacements.
 
-The ERLS model (:mod:`exuflex.erls.model`) has linear elasticity in the rotating frame of each link: it keeps the
-centrifugal softening but not the geometric stiffening of the centrifugal tension. A link turning at the rate
+With linear elasticity in the rotating frame of each link (:mod:`exuflex.erls.model` with ``geometric=False``, and
+the observer's reduced model, whose geometric stiffness is the weight's static part only) the ERLS keeps the
+centrifugal softening but not the geometric stiffening of the centrifugal tension (the full-order model's default
+holds it: ``docs/validity.md``, where it follows Exudyn through the spin-up). A link turning at the rate
 ``Omega`` misses a stiffness of order ``rho A Omega^2 L^2`` against its bending stiffness of order
 ``rho A omega_c^2 L^2`` (``omega_c``: its first clamped-free frequency, the link clamped at the joint it turns
 about), so to first order the relative error of its elastic response grows as ``(Omega / omega_c)^2``, and the
@@ -22,29 +25,33 @@ lowest of those frequencies is used (a link turning about either end: the conser
 
 The weight's P-delta effect
 ---------------------------
-The same linear elasticity leaves out the moment of an axial force acting across the lateral elastic
-displacements (the geometric stiffness ``K_G(N)``: a link in compression softens, in tension stiffens). Measured
-against the buckling load this is small in any mechanism that holds its shape (``N / N_cr`` of a few 1e-3 on
+Linear elasticity leaves out the moment of an axial force acting across the lateral elastic displacements (the
+geometric stiffness ``K_G(N)``: a link in compression softens, in tension stiffens). Measured against the
+buckling load this is small in any mechanism that holds its shape (``N / N_cr`` of a few 1e-3 on
 ``benchmarks/models/vertical_serial_arm.toml``'s forearm), but what matters to the observer is the absolute
 change of what its sensors read, and a persistent one: the forearm standing almost upright carries its payload's
 weight axially while the upper arm's sag tilts it elastically (some 4 mrad at the elbow); its own transverse
-weight is small (``cos 1.5``), so the P-delta moment is some 5 % of its bending there, 0.8 noise sd in its gauge,
-which the Exudyn truth (geometrically exact) has and the ERLS models have not (``docs/gravity.md``).
+weight is small (``cos 1.5``), so the P-delta moment is some 5 % of its bending there, 0.8 noise sd in its gauge
+(``docs/gravity.md``). The ERLS model's elastic rows hold it (:meth:`.model.ErlsModel.geometric_stiffness`: the
+axial forces of the rigid motion's loads, the weight's static part in the configuration's stiffness and so in the
+reduction); its coordinate rows held their share before (below). A model built with ``geometric=False`` has
+not, and for it:
 
-:func:`weight_pdelta` estimates it at a configuration, to first order: the full model's static sag under the
+:func:`weight_pdelta` estimates it at a configuration, to first order: the full model's linear static sag under the
 weight ``u`` with the motor torques that hold the coordinates (:func:`weight_sag`), each element's axial force
 ``N_e = EA (u_2 - u_1) / L`` from it (element frame), and the static response of the elastic rows with the
 coordinates held to the P-delta forces ``f = -K_G(N) T u`` of each link's elements: ``du = K_uu^-1 T^T f``, read
-by the noisy channels (their rows of :func:`.sensing.channel_matrix`) in their noise sd. The coordinate rows'
-share ``S^T f`` the model has: the strain energy ``u^T K(q) u / 2`` of the links' rotated stiffness has the
-q-gradient ``-S^T f`` (``tests/test_validity.py``); the elastic rows have none of it. The reading is persistent
-(it follows the configuration, not the vibration), so the filter takes it for signal: a reading left to the filter
-of ``b`` noise sd is at the limit the reduction allows its own static truncation (``sqrt(0.1)``, the readings
-that move an update by at most ``b`` posterior sd; ``exuflex.reduction.truncation``), and a persistent one is
-amplified by the filter's gain at zero frequency (on the vertical serial arm 4.5-5 posterior sd of an angle per
-noise sd of a gauge, ``docs/gravity.md``). :func:`weight_warnings` warns, naming the link, the channel and the
-time, where a link's reading reaches :data:`PDELTA_WARN_SD` (``"approaching"``) and where it reaches
-:data:`PDELTA_DEPART_SD` (``"departed"``).
+by the noisy channels (their rows of :func:`.sensing.channel_matrix`) in their noise sd (the material stiffness
+throughout, whichever model is given: the reading of the effect itself). The coordinate rows' share ``S^T f`` the
+model has: the strain energy ``u^T K(q) u / 2`` of the links' rotated stiffness has the q-gradient ``-S^T f``
+(``tests/test_pdelta.py``). The reading is persistent (it follows the configuration, not the vibration), so the
+filter takes it for signal: a reading left to the filter of ``b`` noise sd is at the limit the reduction allows
+its own static truncation (``sqrt(0.1)``, the readings that move an update by at most ``b`` posterior sd;
+``exuflex.reduction.truncation``), and a persistent one is amplified by the filter's gain at zero frequency (on
+the vertical serial arm 4.5-5 posterior sd of an angle per noise sd of a gauge, ``docs/gravity.md``).
+:func:`weight_warnings` (``geometric=False``) warns, naming the link, the channel and the time, where a link's
+reading reaches :data:`PDELTA_WARN_SD` (``"approaching"``) and where it reaches :data:`PDELTA_DEPART_SD`
+(``"departed"``).
 """
 
 from __future__ import annotations
@@ -237,16 +244,23 @@ class AxialWarning:
         return {**asdict(self), "message": self.message}
 
 
-def weight_sag(model, cfg) -> tuple[np.ndarray, np.ndarray]:
+def weight_sag(model, cfg, material: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(u, tau)``: the full-order model's static elastic displacements under its weight at the configuration
     ``cfg``, and the motor torques that hold its coordinates. Linear statics: the coordinate rows ``S^T (M_N g + B
     tau) = 0`` (least squares where the motors do not span them), the elastic rows ``K_uu u = T^T (M_N g + B
-    tau)`` (the coordinate rows' strain-energy term ``dV/dq``, quadratic in ``u``, left out)."""
+    tau)`` (the coordinate rows' strain-energy term ``dV/dq``, quadratic in ``u``, left out), ``K_uu`` the
+    model's (with the geometric stiffness of the static axial loads where it has one,
+    :meth:`~exuflex.erls.model.ErlsModel.static_geometric`) or with ``material`` the linear elastic one."""
     g = cfg.M_N @ model.g_N
     S, B, T = cfg.pose.S, model.B_N, model.T
     tau = -np.linalg.lstsq(S.T @ B, S.T @ g, rcond=None)[0]
-    u = np.linalg.solve(T.T @ cfg.K_N @ T, T.T @ (g + B @ tau))
+    u = np.linalg.solve(T.T @ _stiffness(cfg, material) @ T, T.T @ (g + B @ tau))
     return u, tau
+
+
+def _stiffness(cfg, material: bool) -> np.ndarray:
+    """The nodal stiffness of ``cfg``, with its static geometric stiffness unless ``material``."""
+    return cfg.K_N if material or cfg.K_G is None else cfg.K_N + cfg.K_G
 
 
 def _channel_noise(mech) -> tuple[list[str], np.ndarray]:
@@ -282,7 +296,7 @@ def weight_pdelta(model, q) -> dict[str, tuple[float, str, float]]:
     if not np.any(model.g_N):
         return {}
     cfg = model.configuration(np.asarray(q, float))
-    u, _ = weight_sag(model, cfg)
+    u, _ = weight_sag(model, cfg, material=True)
     d = model.T @ u
     names, noise = _channel_noise(mech)
     C = channel_matrix(model, cfg, mech, names)[:, model.nq :] / noise[:, None] if names else np.zeros((0, model.ne))
@@ -292,7 +306,7 @@ def weight_pdelta(model, q) -> dict[str, tuple[float, str, float]]:
         return {}
     forces = [pdelta_forces(model, cfg, d, els) for _, els in links]
     # every link's response in one solve of the elastic rows
-    reads = np.abs(C @ np.linalg.solve(model.T.T @ cfg.K_N @ model.T,
+    reads = np.abs(C @ np.linalg.solve(model.T.T @ _stiffness(cfg, True) @ model.T,
                                        model.T.T @ np.column_stack([f for f, _ in forces])))
     out = {}
     for (lk, _), (_, N_el), read in zip(links, forces, reads.T):
@@ -301,14 +315,16 @@ def weight_pdelta(model, q) -> dict[str, tuple[float, str, float]]:
     return out
 
 
-def weight_warnings(mech: Mechanism, t: np.ndarray, q: np.ndarray) -> list[AxialWarning]:
+def weight_warnings(mech: Mechanism, t: np.ndarray, q: np.ndarray, geometric: bool = True) -> list[AxialWarning]:
     """The P-delta warnings (module docstring) along a trajectory ``q`` (n_t, nq) at times ``t`` (at most
-    :data:`MAX_WEIGHT_POSES` samples of it), each logged; none without gravity."""
-    if not mech.gravity or not any(mech.gravity) or not len(t):
+    :data:`MAX_WEIGHT_POSES` samples of it), each logged, for a model without the geometric stiffness
+    (``geometric=False``); none without gravity, and none for the model with it (``ErlsModel``'s default, whose
+    elastic rows and whose reduction hold the static axial loads' P-delta effect)."""
+    if geometric or not mech.gravity or not any(mech.gravity) or not len(t):
         return []
     from .model import ErlsModel
 
-    model = ErlsModel(mech)
+    model = ErlsModel(mech, geometric=False)
     t, q = np.asarray(t, float), np.atleast_2d(np.asarray(q, float))
     keep = np.unique(np.r_[np.arange(0, len(t), max(1, -(-len(t) // MAX_WEIGHT_POSES))), len(t) - 1])
     rows = [weight_pdelta(model, q[k]) for k in keep]

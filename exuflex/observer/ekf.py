@@ -658,6 +658,48 @@ class BeliefFilter:
         """Time of the current estimate (None before the first sample)."""
         return self._t_prev
 
+    def step(self, t: float, u, y) -> np.ndarray:
+        """Process one sample: predict to ``t`` with the input of the previous call held, update with ``y``: the
+        filter's rules ``_predict_step(dt, u)`` (``dt`` None at the first sample) and ``_update_step(t, prediction,
+        y)`` (the EKF's, the UKF's sigma points, the IMM's modes) between the checks and bookkeeping every filter
+        shares.
+
+        Parameters
+        ----------
+        t : float
+            Sample time (s), after the previous sample's by at most ``max_gap``.
+        u : array_like or None
+            Input sample at ``t``, held over the next interval (zero-order hold).
+        y : array_like, shape (m,) or None
+            Measurement in channel order; NaN entries are channels without a sample at ``t``. ``None`` or
+            all-NaN: prediction only.
+
+        Returns
+        -------
+        ndarray, shape (nx,)
+            Posterior estimate at ``t`` (a new array; NaN once the filter went non-finite in ``"flag"`` mode).
+
+        Raises
+        ------
+        ValueError
+            ``t`` not finite, not after the previous sample or more than ``max_gap`` after it; an input or
+            measurement of the wrong shape; a non-finite input.
+        FilterDivergedError
+            Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test (``"raise"``).
+        """
+        t, u, y = step_arguments(self, t, u, y)
+        dt = self._interval(t)
+        jumps = self.hooks.n_jumps()
+        prediction = None if self.nonfinite else self._predict_step(dt, u)
+        self._t_now = t
+        self._input_steps(t, u, jumps)
+        self._t_prev, self._u_prev = t, u
+        self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
+        if self.nonfinite:
+            self.n_missing += 1
+            return np.full(self.nx, np.nan)
+        return self._update_step(t, prediction, y)
+
     def _input_steps(self, t: float, u, jumps: int) -> None:
         """The hold-off after a step in the input at ``t``: the filter's test of ``u`` against the previous input,
         or the model's torque-jump counter moved from ``jumps`` (the transient is the model's to follow, not a
@@ -946,10 +988,13 @@ class MultirateEKF(BeliefFilter):
         self.reset()
 
     # ------------------------------------------------------------------ the two steps
-    def _predict(self, dt: float, u_next) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _predict_step(self, dt: float | None, u_next) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The model's step from the previous sample to this one (eqs. 10-12): the predicted mean, the step
-        Jacobian and the process noise ``(x, F, Q)`` (NaN, where the model cannot step from the estimate)."""
+        Jacobian and the process noise ``(x, F, Q)`` (NaN, where the model cannot step from the estimate; at the
+        first sample, ``dt`` None, the prior mean and no interval)."""
         n = self.nx
+        if dt is None:
+            return self._x, _NO_INTERVAL, _NO_INTERVAL
         try:
             x, F, Q = self.model.predict(self._x, self._u_prev, dt, u_next)
         except _MODEL_FAILURES as exc:
@@ -979,46 +1024,10 @@ class MultirateEKF(BeliefFilter):
         return s
 
     # ------------------------------------------------------------------ public
-    def step(self, t: float, u, y) -> np.ndarray:
-        """Process one sample: predict to ``t`` with the input of the previous call held, update with ``y``.
-
-        Parameters
-        ----------
-        t : float
-            Sample time (s), after the previous sample's by at most ``max_gap``.
-        u : array_like or None
-            Input sample at ``t``, held over the next interval (zero-order hold).
-        y : array_like, shape (m,) or None
-            Measurement in channel order; NaN entries are channels without a sample at ``t``. ``None`` or
-            all-NaN: prediction only.
-
-        Returns
-        -------
-        ndarray, shape (nx,)
-            Posterior estimate at ``t`` (a new array; NaN once the filter went non-finite in ``"flag"`` mode).
-
-        Raises
-        ------
-        ValueError
-            ``t`` not finite, not after the previous sample or more than ``max_gap`` after it; an input or
-            measurement of the wrong shape; a non-finite input.
-        FilterDivergedError
-            Non-finite state/covariance (``nonfinite="raise"``) or failed NIS test (``"raise"``).
-        """
-        t, u, y = step_arguments(self, t, u, y)
-        dt = self._interval(t)
-        jumps = self.hooks.n_jumps()
-        z, F, Q = (self._x, _NO_INTERVAL, _NO_INTERVAL) if dt is None or self.nonfinite else self._predict(dt, u)
-        self._t_now = t
-        self._input_steps(t, u, jumps)
-        self._t_prev = t
-        self._u_prev = u
-        self.last_idx = None
-        self.last_nis = math.nan
-        self.last_dof = 0
-        if self.nonfinite:
-            self.n_missing += 1
-            return np.full(self.nx, np.nan)
+    def _update_step(self, t: float, prediction: tuple, y) -> np.ndarray:
+        """The update of :meth:`~BeliefFilter.step` with the model's prediction ``(x, F, Q)``: the model's
+        measurement of the channels sampled, then the sample in the compiled loop (:func:`.loop.given`)."""
+        z, F, Q = prediction
         n, m = self.nx, self.m
         y_pred, H = np.zeros(m), np.zeros((m, n))
         y_k = np.full(m, np.nan)

@@ -340,17 +340,17 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
     The consistent velocity map ``J = H + [d(H p)/dq, 0]`` is linear in the elastic coordinates and changes
     only the ``nq`` rigid columns: with ``A_k = d(W H e_k)/dq`` the rigid columns of ``W J`` gain
     ``sum_k p_k A_k``. Per unit ``p_k`` the reduced matrices' rigid rows gain ``pM_k = A_k^T M_N W H``,
-    ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u``, ``pC_k = alpha A_k^T P T H_u`` (``P`` the mass relative to the rigid
-    motion) and ``pG_k = A_k^T B_N`` (rows ``[i * ncol + j]``, :meth:`.ReducedModel.elastic_forms`); ``M_r`` and
-    the alpha damping gain the transposed columns too (symmetric forms), the beta damping ``beta J_u^T K_uu
-    J_u`` the transpose of ``K_r``'s rows (its rows come with ``beta K_r``). The damping is quadratic in ``J``:
-    its rigid block gains ``sum_kl p_k p_l X_kl`` (``alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu d(H_u
-    e_l)/dq``), symmetric in ``(k, l)`` and in its entries, so ``p2C`` holds it per pair ``k <= l`` and entry ``i
-    <= j`` (:meth:`.ReducedModel.elastic_forms`); ``K_r = J_u^T K_uu H_u`` and ``G_r`` are linear in it. So ``K_r``,
-    ``G_r`` and the damping are exact in the elastic coordinates at the held configuration. The damping's second
-    order matters where the links turn fast while deformed: the beta damping's ``d(H_u e_k)/dq`` is the elastic
-    displacement turned with its link, which the axial stiffness sees; left out, the first-order damping matrix is
-    indefinite and its error on the joints of one sign (``tests/test_held_elastic.py``). ``M_r`` is quadratic too,
+    ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u``, ``pC_k = alpha (A_k - E_k)^T P T H_u - beta E_k^T K_N T H_u`` (``P``
+    the mass relative to the rigid motion, ``E_k`` the deflection ``H e_k``'s rates turned with the links, which
+    the strain-rate damping takes out of ``A_k``) and ``pG_k = A_k^T B_N`` (rows ``[i * ncol + j]``,
+    :meth:`.ReducedModel.elastic_forms`); ``M_r`` and the damping gain the transposed columns too (symmetric
+    forms), the damping also ``beta`` times the transpose of ``K_r``'s rows (its rows come with ``beta K_r``).
+    The damping is quadratic in ``J``: its rigid block gains ``sum_kl p_k p_l X_kl`` (``(A_k - E_k)^T (alpha P +
+    beta K_N) (A_l - E_l)``), symmetric in ``(k, l)`` and in its entries, so ``p2C`` holds it per pair ``k <= l``
+    and entry ``i <= j`` (:meth:`.ReducedModel.elastic_forms`); ``K_r = J_u^T K_uu H_u`` and ``G_r`` are linear in
+    it. So ``K_r``, ``G_r`` and the damping are exact in the elastic coordinates at the held configuration.
+    Left out, the damping's second order makes the first-order damping matrix indefinite
+    (``tests/test_held_elastic.py``). ``M_r`` is quadratic too,
     its second order ``p_k p_l A_k^T M_N A_l`` left out: its error has no sign of its own, and where the elastic
     coordinates are poorly observed (the six-bar without its gauge c4, ``tests/test_log_bound.py``) the filter's
     estimates of them, squared, and a Jacobian without their effect on ``M_r`` did worse with it in

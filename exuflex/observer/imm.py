@@ -85,7 +85,6 @@ from .ekf import (
     BeliefFilter,
     EstimationResult,
     Monitoring,
-    step_arguments,
 )
 from .smoother import SmoothedResult
 
@@ -237,23 +236,17 @@ class IMMFilter(BeliefFilter):
         except (*_MODEL_FAILURES, np.linalg.LinAlgError):
             return None
 
-    def step(self, t: float, u, y) -> np.ndarray:
-        """One sample (module notes): mixing, each mode's prediction and update, the mode probabilities and the
-        combined estimate (a new array; NaN once non-finite in ``"flag"`` mode)."""
-        t, u, y = step_arguments(self, t, u, y)
+    def _predict_step(self, dt: float | None, u_next) -> tuple[np.ndarray, np.ndarray]:
+        """Steps 1-2 of the module notes up to the updates: mixing and each mode's prediction (no interval at the
+        first sample, ``dt`` None). Returns the predicted mode probabilities and which modes could step."""
         self.updates: list = [None] * len(self.models)
-        if self.nonfinite:
-            self._t_prev = t
-            return np.full(self.nx, np.nan)
-        jumps = self.hooks.n_jumps()
         c = self.mode_p
         alive = np.ones(len(self.models), dtype=bool)
-        dt = self._interval(t)
         if dt is not None:
             c, self._beliefs = mix(self.mode_p, self._transition(dt), self._beliefs)
             self.intervals = [None] * len(self.models)
             for j, b in enumerate(self._beliefs):
-                p = self._predict(b, j, dt, u)
+                p = self._predict(b, j, dt, u_next)
                 alive[j] = p is not None
                 self._beliefs[j] = b if p is None else p
             # a mode whose model cannot step from its start is dropped (probability 0); none left: diverged
@@ -262,10 +255,12 @@ class IMMFilter(BeliefFilter):
                 self._beliefs = [Belief(np.full(len(b.x), np.nan), b.P) for b in self._beliefs]
                 c = self.mode_p
             c = c / c.sum()
-        self._t_now = t
-        self._input_steps(t, u, jumps)
-        self._t_prev, self._u_prev = t, u
-        self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
+        return c, alive
+
+    def _update_step(self, t: float, prediction: tuple, y) -> np.ndarray:
+        """Steps 2-4 of the module notes from the predicted mode probabilities and the modes that could step: each
+        mode's update, the mode probabilities and the combined estimate (a new array)."""
+        c, alive = prediction
         idx = np.empty(0, dtype=np.int64) if y is None else np.flatnonzero(np.isfinite(y))
         if len(idx):
             self._update(c, alive, y, idx)

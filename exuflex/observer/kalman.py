@@ -359,39 +359,6 @@ def predict_update(F, P, Q, x, y, y_pred, H, Rd, floor, scratch, out):
     return nis, True, settle(x_out, P_out, floor)
 
 
-@_jit
-def _lu_solve(A, B):
-    """Solve ``A X = B`` in place (``B``, shape (m, k)) by Gaussian elimination with partial pivoting on a copy of
-    ``A`` (LAPACK's ``dgesv`` to rounding): False (``B`` partly overwritten) where a pivot is zero or NaN."""
-    m = A.shape[0]
-    LU = A.copy()
-    for j in range(m):
-        p = j
-        for i in range(j + 1, m):
-            if abs(LU[i, j]) > abs(LU[p, j]):
-                p = i
-        if not abs(LU[p, j]) > 0.0:
-            return False
-        if p != j:
-            for l in range(m):
-                LU[j, l], LU[p, l] = LU[p, l], LU[j, l]
-            for l in range(B.shape[1]):
-                B[j, l], B[p, l] = B[p, l], B[j, l]
-        for i in range(j + 1, m):
-            f = LU[i, j] / LU[j, j]
-            for l in range(j + 1, m):
-                LU[i, l] -= f * LU[j, l]
-            for l in range(B.shape[1]):
-                B[i, l] -= f * B[j, l]
-    for i in range(m - 1, -1, -1):
-        for l in range(B.shape[1]):
-            s = B[i, l]
-            for k in range(i + 1, m):
-                s -= LU[i, k] * B[k, l]
-            B[i, l] = s / LU[i, i]
-    return True
-
-
 #: how :func:`condition_on` solved ``S``: by Cholesky; by LU (``S`` not positive definite: rounding, or a wrong
 #: model; the filter warns); not at all (``S`` singular: nothing written)
 CHOLESKY, LU, SINGULAR = 0, 1, 2
@@ -422,12 +389,14 @@ def condition_on(keep, x, P, y, y_pred, H, Rd, floor, HP, x_out, P_out):
     nis, ok = update(x, P, yk, ypk, Hk, Rk, HP, r, S, x_out, P_out)
     how = CHOLESKY
     if not ok:  # S not positive definite: the gain system [H P, r] solved by LU
-        sol = np.empty((mk, n + 1))
+        rhs = np.empty((mk, n + 1))
         for i in range(mk):
             for j in range(n):
-                sol[i, j] = HP[i, j]
-            sol[i, n] = r[i]
-        if not _lu_solve(S, sol):
+                rhs[i, j] = HP[i, j]
+            rhs[i, n] = r[i]
+        try:
+            sol = np.linalg.solve(S, rhs)
+        except Exception:  # noqa: BLE001 (numba catches no narrower class) S singular
             return math.nan, SINGULAR, False, r, S
         nis = apply_gain(x, P, Hk, HP[:mk], Rk, r, sol, x_out, P_out)
         how = LU

@@ -81,7 +81,7 @@ class Monitors(NamedTuple):
     """The filter's measurement noise and tests: ``R``'s diagonal, the covariance's floor, the gate (chi-square(1)
     quantile) with the count of channels it left out, ``rejected``, the sensor-fault windows
     (:class:`.ekf.ChannelMonitor`'s arrays, ``win_Z`` empty: none) with their tests ``(clip, k_mean, hi, lo)``, their
-    verdicts, each channel's open fault and its passed tests since (:attr:`.ekf.ChannelMonitor.verdict_arrays`), the
+    verdicts, each channel's open fault and its passed tests since (:attr:`.ekf.ChannelMonitor.loop_fields`), the
     time of the monitor's first sample ``t0`` (one entry, NaN: none yet), the findings ``events`` (one row per
     fault found, changed or cleared: ``(code, channel, t, mean z)``, :data:`CLEARED` ...) with their count
     ``n_events`` (one entry), ``isolate`` (a channel with an open offset or stuck fault left out of the updates),

@@ -48,7 +48,7 @@ import numpy as np
 import scipy.linalg
 
 from .base import Prediction
-from .ekf import BeliefFilter, Monitoring, step_arguments
+from .ekf import BeliefFilter, Monitoring
 
 __all__ = ["UnscentedKF"]
 
@@ -150,31 +150,28 @@ class UnscentedKF(BeliefFilter):
         lin = m0.F @ (x - x0)
         return float(np.max(np.abs(xn - m0.x - lin))) > BREAKDOWN * float(np.max(np.abs(lin)))
 
-    def step(self, t: float, u, y) -> np.ndarray:
-        """Predict to ``t`` through the sigma points, update with the finite channels of ``y`` that the gate and the
-        sensor-fault isolation keep."""
-        t, u, y = step_arguments(self, t, u, y)
-        if self.nonfinite:  # flagged earlier ("flag" mode): NaN estimates from then on
-            self._t_prev = t
-            return np.full(self.nx, np.nan)
-        jumps = self.hooks.n_jumps()
-        dt = self._interval(t)
-        if dt is not None:
-            X = self._sigmas(self._x, self._L)
-            m0 = self._predict(X[0], dt, u)  # the mean's interval: its process noise
-            Xf = np.empty_like(X)
-            Xf[0] = m0.x
-            ref = (X[0], m0) if np.all(np.isfinite(m0.x)) else None
-            for i in range(1, len(X)):
-                Xf[i] = self._predict(X[i], dt, u, ref).x
-            if not np.all(np.isfinite(Xf)):
-                return self._close(t, False)
-            self._x = self.Wm @ Xf
-            self._L = self._factor(Xf - self._x, _psd_sqrt(m0.Q))
-        self._t_now = t
-        self._input_steps(t, u, jumps)
-        self._t_prev, self._u_prev = t, u
-        self.last_idx, self.last_nis, self.last_dof = None, math.nan, 0
+    def _predict_step(self, dt: float | None, u_next) -> bool:
+        """The sigma points through the model's step (module notes): the predicted mean and covariance factor;
+        whether they are finite."""
+        if dt is None:
+            return True
+        X = self._sigmas(self._x, self._L)
+        m0 = self._predict(X[0], dt, u_next)  # the mean's interval: its process noise
+        Xf = np.empty_like(X)
+        Xf[0] = m0.x
+        ref = (X[0], m0) if np.all(np.isfinite(m0.x)) else None
+        for i in range(1, len(X)):
+            Xf[i] = self._predict(X[i], dt, u_next, ref).x
+        if not np.all(np.isfinite(Xf)):
+            return False
+        self._x = self.Wm @ Xf
+        self._L = self._factor(Xf - self._x, _psd_sqrt(m0.Q))
+        return True
+
+    def _update_step(self, t: float, finite: bool, y) -> np.ndarray:
+        """The update with the finite channels of ``y`` that the gate and the sensor-fault isolation keep."""
+        if not finite:
+            return self._close(t, False)
         mask = None if y is None else np.isfinite(y)
         if mask is not None and mask.any():
             idx = np.flatnonzero(mask)

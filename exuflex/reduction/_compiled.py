@@ -571,18 +571,40 @@ def _basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_lo
     return Kuu, B, Kinv, Psi, H
 
 
-def _reduced_matrices(p, pd, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent):
+def _reduced_matrices(p, pd, H, dHdq, W, M_N, K_N, Kuu, t_index, B_N, alpha, beta, nq, consistent):
     # pragma: no cover - compiled twin of ReducedModel.matrices (forces=False, dHdq given)
     """``(J, M_r, K_r, C_r, G_r)`` of :meth:`~exuflex.reduction.model.ReducedModel.matrices` without the
     forces: ``J = H + [d(H p)/dq, 0]`` (consistent form) and the reduced matrices (``t_index``: the 0/1 part of
     ``W = [S, T]``, :func:`_w_product`)."""
-    J, _, _, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
+    J, _, _, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, K_N, Kuu, t_index, B_N, alpha, beta, nq,
+                                             consistent)
     return J, Mr, Kr, Cr, Gr
 
 
-def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent):  # pragma: no cover
+def _strain_rate_columns(TJ, p, Hu, W, t_index, nq):  # pragma: no cover - compiled
+    """Subtract in place from the rigid columns of ``T J_u`` (N, r) the nodal rates of the elastic displacement
+    ``d = T H_u p`` turned with the links, ``Y(d)`` (:meth:`~exuflex.erls.model.ErlsModel.turned_rates`:
+    ``(G3 d)_n`` times the rate of node n's link, the rows ``3 n + 2`` of ``S = W[:, :nq]``), so that ``T J_u p' -
+    Y q'`` is the strain rate."""
+    u = Hu @ p
+    for a in range(TJ.shape[0]):
+        comp = a % 3
+        if comp == 2:
+            continue
+        b = a + 1 if comp == 0 else a - 1  # (G3 d)_x = -d_y, (G3 d)_y = d_x
+        ib = t_index[b]
+        if ib < 0:
+            continue
+        g = -u[ib] if comp == 0 else u[ib]
+        row = 3 * (a // 3) + 2
+        for j in range(nq):
+            TJ[a, j] -= g * W[row, j]
+
+
+def _reduced_terms(p, H, dHdq, W, M_N, K_N, Kuu, t_index, B_N, alpha, beta, nq, consistent):  # pragma: no cover
     """``(J, W J, M_N W J, M_r, K_r, C_r, G_r)``: :func:`_reduced_matrices` with the two products the force
-    model shares (:func:`_held_evaluation`)."""
+    model shares (:func:`_held_evaluation`). The damping (consistent form, deformed ``p``) on the strain rate
+    ``T J_u p' - Y q'`` (:func:`_strain_rate_columns`)."""
     n, r = H.shape
     J = H.copy()
     if consistent:
@@ -602,11 +624,22 @@ def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consi
     Kr = JtK @ Hu
     if alpha != 0.0 or beta != 0.0:
         TJ = _t_product(t_index, Ju)
+        turned = False
+        if consistent:
+            for k in range(nq, r):
+                if p[k] != 0.0:
+                    turned = True
+        if turned:
+            _strain_rate_columns(TJ, p, Hu, W, t_index, nq)
         TJt = np.ascontiguousarray(TJ.T)
         MS = M_N @ np.ascontiguousarray(W[:, :nq])
         X = TJt @ MS  # alpha M_e = alpha (T^T M_N T - M_uq M_qq^-1 M_qu), ErlsModel.elastic_mass
         Mqq = np.ascontiguousarray(W[:, :nq].T) @ MS
-        Cr = alpha * (TJt @ (M_N @ TJ) - X @ solve_columns(Mqq, np.ascontiguousarray(X.T))) + beta * (JtK @ Ju)
+        Cr = alpha * (TJt @ (M_N @ TJ) - X @ solve_columns(Mqq, np.ascontiguousarray(X.T)))
+        if turned:
+            Cr += beta * (TJt @ (K_N @ TJ))
+        else:
+            Cr += beta * (JtK @ Ju)
     else:
         Cr = np.zeros((r, r))
     Gr = WJt @ B_N
@@ -616,6 +649,7 @@ def _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consi
 if HAVE_NUMBA:
     basis_at = _jit(_basis_at)
     _basis_at_inline = _inline(_basis_at)
+    _strain_rate_columns = _inline(_strain_rate_columns)
     _reduced_terms = _inline(_reduced_terms)
     reduced_matrices = _jit(_reduced_matrices)
 else:  # pragma: no cover
@@ -654,12 +688,13 @@ def _pair_rotations(r_nodes, S, Sz, pnode, plocal, theta_star, el_link, nq, rota
     return c, s, qc, qs, Sn, S_th
 
 
-def _held_matrices(p, H, dHdq, Kuu, M_N, W, z, Sz, Jinv, closure, node_link, node_station, t_index, B_N, alpha,
-                   beta, nq, consistent):  # pragma: no cover - compiled
+def _held_matrices(p, H, dHdq, K_N, Kuu, M_N, W, z, Sz, Jinv, closure, node_link, node_station, t_index, B_N,
+                   alpha, beta, nq, consistent):  # pragma: no cover - compiled
     """``(J, W J, M_N W J, M_r, K_r, C_r, G_r, dS/dq)`` from the basis ``H`` and its derivative ``dHdq`` at a
     pose: the reduced matrices (:func:`reduced_matrices`) with the two products the force model shares, and
     ``dS/dq`` (:func:`exuflex.erls._closure.coordinate_rates`; arguments: see :func:`held_evaluation`)."""
-    J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, Kuu, t_index, B_N, alpha, beta, nq, consistent)
+    J, WJ, MWJ, Mr, Kr, Cr, Gr = _reduced_terms(p, H, dHdq, W, M_N, K_N, Kuu, t_index, B_N, alpha, beta, nq,
+                                                consistent)
     Sd3 = coordinate_rates_inline(z, Sz, Jinv, closure, node_link, node_station)
     return J, WJ, MWJ, Mr, Kr, Cr, Gr, Sd3
 
@@ -694,7 +729,7 @@ def held_evaluation(p, K_N, M_N, R, W, z, Sz, r_nodes, S, Jinv, closure, node_li
     Kuu, B, Kinv, Psi, H = basis_at(K_N, t_index, ne, nq, im, is_, Phi_u, px, py, c, s, qc, qs, has_local)
     dHdq = basis_derivative(np.eye(H.shape[1]), nq, ne, im, is_, B, t_index, el_dofs, R, KGl, S_th, Kinv, c, s,
                             Phi_u, px, py, Sn, Kuu, qc, qs, plocal, keep, has_local)
-    J, WJ, MWJ, Mr, Kr, Cr, Gr, Sd3 = held_matrices(p, H, dHdq, Kuu, M_N, W, z, Sz, Jinv, closure, node_link,
+    J, WJ, MWJ, Mr, Kr, Cr, Gr, Sd3 = held_matrices(p, H, dHdq, K_N, Kuu, M_N, W, z, Sz, Jinv, closure, node_link,
                                                      node_station, t_index, B_N, alpha, beta, nq, consistent)
     fg, Tk, V, _, dMr, dKr, C2, Ts, Vs, Wg = _force_terms_shared(W, J, WJ, MWJ, H, M_N, t_index, Kuu, g_N, R, Gl,
                                                                  KGl, el_dofs, S_th, Sd3, dHdq, nq, consistent,

@@ -5,7 +5,8 @@ Two forms:
 - ``consistent=True`` (default): the velocity transformation is exact. Since ``H`` depends on ``q``,
   ``x' = J p'`` with ``J = H + [d(H p)/dq, 0]`` (the slave displacements follow the links as they turn and
   the static shapes change with the configuration), and the reduced equations are those of Lagrange on
-  the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C J``, ``K_r p -> J^T K H p`` and
+  the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C(H p) J`` (the damping of the strain rate,
+:meth:`~exuflex.erls.model.ErlsModel.damping`), ``K_r p -> J^T K H p`` and
   ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = 2 d(H p')/dq q'``. The exact
   ``(dJ/dt) p'`` also holds ``d^2(H p)/dq^2 [q', q']``, quadratic in ``q'`` and linear in the elastic
   coordinates; it is left out (it vanishes on undeformed states).
@@ -171,8 +172,8 @@ class ReducedModel:
         if self.compiled and not forces and (dHdq is not None or not self.consistent):
             J, Mr, Kr, Cr, Gr = _compiled.reduced_matrices(
                 p, pd, H, np.zeros((0, 1, 1)) if dHdq is None else np.ascontiguousarray(dHdq), cfg.W, cfg.M_N,
-                rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
-            return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, None)
+                cfg.K_N, rc.Kuu, model.t_index, model.B_N, float(model.alpha), float(model.beta), nq, self.consistent)
+            return ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         J = H
         a_b = None
         if self.consistent:
@@ -190,13 +191,16 @@ class ReducedModel:
         T = model.T
         Kuu = rc.Kuu
         JtK = Ju.T @ Kuu
-        Kr = JtK @ Hu
-        if model.alpha or model.beta:  # Rayleigh: J_u^T (alpha M_e + beta K_uu) J_u, thin products only
+        Kr = JtK @ Hu + self.geometric_stiffness(rc, J)
+        if model.alpha or model.beta:  # J^T C(H p) J: the dissipation of the strain rate T J_u p' - Y q'
             TJ = T @ Ju
+            turned = self.consistent and np.any(p[nq:])
+            if turned:  # the elastic displacement turned with the links is no strain rate (ErlsModel.damping)
+                TJ[:, :nq] -= model.turned_rates(cfg, H @ p)
             MS = cfg.M_N @ cfg.pose.S
             X = TJ.T @ MS  # M_e = T^T M_N T - M_uq M_qq^-1 M_qu (ErlsModel.elastic_mass)
             Cr = (model.alpha * (TJ.T @ (cfg.M_N @ TJ) - X @ np.linalg.solve(cfg.pose.S.T @ MS, X.T))
-                  + model.beta * (JtK @ Ju))
+                  + model.beta * (TJ.T @ (cfg.K_N @ TJ) if turned else JtK @ Ju))
         else:
             Cr = np.zeros((self.r, self.r))
         Gr = WJ.T @ model.B_N
@@ -216,15 +220,56 @@ class ReducedModel:
         call after the configuration's (:meth:`_held_compiled`)."""
         p = np.asarray(p, float)
         if not fr and self.one_call and self.compiled and self.cb.compiled and self.model.kin.compiled:
-            return self._held_compiled(p, gradients)
-        rc = self.cb.at(p[: self.nq])
-        dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
-        mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
-        fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
-        fm.dHdq = dHdq
-        if gradients:
-            fm.elastic = self.elastic_forms(rc, dHdq)
+            mats, fm = self._held_compiled(p, gradients)
+        else:
+            rc = self.cb.at(p[: self.nq])
+            dHdq = self.cb.basis_derivative(rc, np.eye(self.r))
+            mats = self.matrices(p, pd, forces=fr, dHdq=dHdq if self.consistent else None, rc=rc)
+            fm = self.force_model(mats, p, dHdq=dHdq, gradients=gradients)
+            fm.dHdq = dHdq
+            if gradients:
+                fm.elastic = self.elastic_forms(rc, dHdq)
+        if gradients and mats.rc.cfg.K_G is not None:
+            fm.dKr2 = fm.dKr2 + self.geometric_gradient(mats.rc, fm.dHdq).reshape(self.nq, -1)
         return mats, fm
+
+    def geometric_gradient(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> np.ndarray:
+        """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as
+        ``dKr2`` holds the linear elastic stiffness's (its q rows' ``d(H p)/dq`` part not differentiated): the
+        basis turning with the links, ``dH_u^T K_Guu H_u`` and its transpose (``K_Guu = T^T K_G T``), and the
+        nodal ``K_G``'s own change, the elements turning and their static axial forces changing with the
+        configuration, by central differences of :meth:`~exuflex.erls.model.ErlsModel.static_geometric` over
+        ``1e-6`` (rad or m; ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds
+        ``K_r`` to first order in q with it (second along its secant), as it holds the linear elastic part."""
+        model, nq = self.model, self.nq
+        T, H, q = model.T, rc.H, rc.cfg.q
+        TH = T @ H[nq:]
+        KH = (T.T @ (rc.cfg.K_G @ TH))  # K_Guu H_u
+        out = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_Guu H_u per q_i
+        out = out + np.swapaxes(out, 1, 2)
+        h = 1e-6
+        for i in range(nq):
+            e = np.zeros(nq)
+            e[i] = h
+            dK = (model.configuration(q + e).K_G - model.configuration(q - e).K_G) / (2 * h)
+            out[i] += TH.T @ (dK @ TH)
+        model.configuration(q)  # leave the closure solver warm-started at q
+        return out
+
+    def geometric_stiffness(self, rc: ReducedConfiguration, J: np.ndarray) -> np.ndarray:
+        """``J_u^T T^T K_G T H_u`` (r, r): the geometric stiffness of the static axial loads at the configuration
+        (:meth:`~exuflex.erls.model.ErlsModel.static_geometric`: the weight with the holding torques) reduced as
+        ``K_uu`` is, ``K_r = J_u^T (K_uu + T^T K_G T) H_u``; zero without (no gravity, or a model built with
+        ``geometric=False``). The basis stays that of ``K_uu`` (the Craig-Bampton shapes of the linear elastic
+        links; the static corrections take the model's stiffness with ``K_G``, :mod:`.static`). Left out: the
+        change of the axial loads with the motion (the full model's ``K_G(q, q', tau)``,
+        :meth:`~exuflex.erls.model.ErlsModel.net_forces`); its q-gradient is :meth:`geometric_gradient`."""
+        K_G = rc.cfg.K_G
+        if K_G is None:
+            return np.zeros((self.r, self.r))
+        nq, T = self.nq, self.model.T
+        TH = T @ rc.H[nq:]
+        return (T @ J[nq:]).T @ (K_G @ TH)
 
     def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
         """``(pM, pK, pC, pG, p2C)``: the change of the reduced matrices with the elastic coordinates at a
@@ -237,15 +282,21 @@ class ReducedModel:
         ``J = H + [d(H p)/dq, 0]`` is linear in ``p`` and changes only the rigid columns: with ``A_k = T d(H_u
         e_k)/dq`` (N, nq) the rigid columns of ``W J`` gain ``sum_k p_k A_k``, so to first order ``M_r`` gains
         ``pM_k = A_k^T M_N W J`` in its rigid rows and the transpose in its rigid columns, ``K_r = J_u^T K_uu
-        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, the alpha damping
-        ``alpha (T J_u)^T P (T J_u)`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass relative to the rigid
-        motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains ``pC_k = alpha A_k^T P T J_u`` (and
-        the transpose), and ``G_r = (W J)^T B_N`` and the weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N,
-        M_N g]`` (the weight the last column). The damping is quadratic in ``J``, so its rigid block gains a
-        second-order term too, ``p_k p_l X_kl`` with ``X_kl = alpha A_k^T P A_l + beta (d(H_u e_k)/dq)^T K_uu
-        d(H_u e_l)/dq``; ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight are linear in ``J``; ``M_r``'s second
-        order, ``p_k p_l A_k^T M_N A_l``, is left out (:func:`exuflex.observer.expansion._elastic_terms` says why).
-        The cached observer step holds its configurations undeformed and adds these terms."""
+        H_u`` gains ``pK_k = (d(H_u e_k)/dq)^T K_uu H_u`` in its rigid rows, and ``G_r = (W J)^T B_N`` and the
+        weight ``(W J)^T M_N g`` gain ``pG_k = A_k^T [B_N, M_N g]`` (the weight the last column). The damping acts
+        on the strain rate (:meth:`~exuflex.erls.model.ErlsModel.damping`), ``T J_u p' - Y(H p) q'`` with ``Y``
+        the deflection's rates turned with the links, linear in ``p``: per unit ``p_k`` its rigid columns gain
+        ``A_k - E_k``, ``E_k = Y(H e_k)`` (:meth:`~exuflex.erls.model.ErlsModel.turned_rates`). So ``C_r = (T J_u
+        - [Y, 0])^T (alpha P + beta K_N) (T J_u - [Y, 0])`` (``P = M_N - M_N S (S^T M_N S)^-1 S^T M_N``, the mass
+        relative to the rigid motion, :meth:`~exuflex.erls.model.ErlsModel.elastic_mass`) gains in its rigid rows
+        ``pC_k = alpha (A_k - E_k)^T P T H_u - beta E_k^T K_N T H_u`` (and the transpose; its remaining ``beta
+        A_k^T K_N T H_u`` is ``beta pK_k``, which the kernel adds with ``K_r``), and, being quadratic, its rigid
+        block ``p_k p_l X_kl`` with ``X_kl = (A_k - E_k)^T (alpha P + beta K_N) (A_l - E_l)``. Where the basis
+        turns with its links, ``E_k`` holds most of ``A_k``: what is damped is the shapes' change with the
+        configuration, not the deflection turned with its link. ``K_r = J_u^T K_uu H_u``, ``G_r`` and the weight
+        are linear in ``J``; ``M_r``'s second order, ``p_k p_l A_k^T M_N A_l``, is left out
+        (:func:`exuflex.observer.expansion._elastic_terms` says why). The cached observer step holds its
+        configurations undeformed and adds these terms."""
         if not self.consistent:
             return None
         model, nq, r = self.model, self.nq, self.r
@@ -253,21 +304,30 @@ class ReducedModel:
         H = rc.H
         dHu = dHdq[nq:, nq:, :]  # (r - nq, ne, nq): d(H_u e_k)/dq of the elastic coordinates
         A = model.T @ dHu  # (r - nq, N, nq)
+        # the strain rate's rigid columns: A_k minus the turned rates of H e_k (ErlsModel.turned_rates)
+        x_k = np.zeros(model.n)
+        E = np.empty_like(A)
+        for k in range(r - nq):
+            x_k[nq:] = H[nq:, nq + k]
+            E[k] = model.turned_rates(cfg, x_k)
         At = np.swapaxes(A, 1, 2)
+        As = A - E
+        Ast = np.swapaxes(As, 1, 2)
         WH = cfg.W @ H
         S = cfg.pose.S
         MS = cfg.M_N @ S
         TH = model.T @ H[nq:]
         PTH = cfg.M_N @ TH - MS @ np.linalg.solve(S.T @ MS, MS.T @ TH)
         BG = np.column_stack([model.B_N, cfg.M_N @ model.g_N])
-        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (rc.Kuu @ H[nq:]), model.alpha * (At @ PTH), At @ BG)
+        pC = model.alpha * (Ast @ PTH) - model.beta * (np.swapaxes(E, 1, 2) @ (cfg.K_N @ TH))
+        Kel = rc.Kuu if cfg.K_G is None else rc.Kuu + model.T.T @ cfg.K_G @ model.T  # K_r's stiffness (with K_G)
+        out = (At @ (cfg.M_N @ WH), np.swapaxes(dHu, 1, 2) @ (Kel @ H[nq:]), pC, At @ BG)
         # the damping's second order as a Gram matrix over (k, i)
         n = r - nq
-        A2 = A.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: A_k e_i
+        A2 = As.transpose(1, 0, 2).reshape(-1, n * nq)  # column k * nq + i: (A_k - E_k) e_i
         MA2 = cfg.M_N @ A2
         PA2 = MA2 - MS @ np.linalg.solve(S.T @ MS, MS.T @ A2)
-        dH2 = dHu.transpose(1, 0, 2).reshape(-1, n * nq)
-        GC = model.alpha * (A2.T @ PA2) + model.beta * (dH2.T @ (rc.Kuu @ dH2))
+        GC = model.alpha * (A2.T @ PA2) + model.beta * (A2.T @ (cfg.K_N @ A2))
         k, l = np.triu_indices(n)
         i, j = np.triu_indices(nq)
         kl = ((k * nq)[None, :] + i[:, None], (l * nq)[None, :] + j[:, None])  # X_kl's entry i <= j
@@ -289,7 +349,8 @@ class ReducedModel:
             cb._py, cb._pnode, cb._plocal, cb._keep, cb._theta_star, model.B_N, model.g_N, model.Gl, model.KGl,
             model.el_dofs, model.el_link, float(model.alpha), float(model.beta), nq, cb.rotate, cb.has_local,
             self.consistent, gradients)
-        mats = ReducedMatrices(ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv), J, Mr, Kr, Cr, Gr, None)
+        rc = ReducedConfiguration(cfg, B, Psi, H, Kuu, Kinv)
+        mats = ReducedMatrices(rc, J, Mr, Kr + self.geometric_stiffness(rc, J), Cr, Gr, None)
         fm = self._compiled_forces(fg, Tk, V, dMr, dKr, C2, Ts, Vs, Wg, gradients)
         fm.dHdq = dHdq
         if gradients:
