@@ -143,9 +143,8 @@ def page(data: dict) -> str:
     lines = [
         "# The held interval step on its own model",
         "",
-        "Written by `python benchmarks/held_step.py run --truth-dir DIR --seeds "
-        f"{data['seeds'][0]}-{data['seeds'][-1]} [--models NAME,...] --json FILE` and `python benchmarks/held_step.py page",
-        "--json FILE[,FILE]`",
+        (f"Written by `python benchmarks/held_step.py run --truth-dir DIR --seeds {data['seeds'][0]}-{data['seeds'][-1]}"
+         " [--models NAME,...] --json FILE` and `python benchmarks/held_step.py page --json FILE[,FILE]`"),
         "(`DIR/reduced/<model>`: the consistent truths, made where missing; `DIR/erls/vertical_link`: the",
         "acceptance's ERLS truths).",
         "",
