@@ -6,7 +6,7 @@ secant partner at ``q0 - d``, by half the gradient's change along the secant, ``
 ``dl = s d + w`` the error is ``1/2 D2(w, dl)`` (``D2`` the weight's second derivative): third order on the line
 (``w = 0``) and second order off it. A weight extrapolated along the secant from the two weights alone, ``fg + (1 +
 s) Wg dl - s^2 (fg - fg_old)``, is the same on the line but has the first-order error ``s Wg w`` off it (on the
-crane arm, ``benchmarks/models/crane_arm.toml``, a bias of the filter on its own model: docs/held_step.md).
+crane arm, ``benchmarks/models/crane_arm.toml``, a bias of the filter on its own model: ``benchmarks/held_step.py``).
 Measured here on that arm, entry by entry, each entry against its own change: the weight itself and one interval
 of the held step from rest against the interval of the configuration evaluated exactly.
 """

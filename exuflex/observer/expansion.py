@@ -444,7 +444,7 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     to the filter on its own model). The weight must not be extrapolated along the secant from the two weights
     alone (``fg + (1 + s) Wg dl - s^2 (fg - fg_old)``, exact on the line): off the line that leaves the first-order
     error ``s Wg w``, of one sign too, which on an arm whose weight gradient is large (the crane arm's upright mast,
-    ``benchmarks/models/crane_arm.toml``) biased the filter on its own model (docs/held_step.md).
+    ``benchmarks/models/crane_arm.toml``) biased the filter on its own model (``benchmarks/held_step.py`` measures it).
 
     The matrices change with the elastic coordinates (:func:`_elastic_terms`), which move fast: held at the
     interval's start they are wrong by ``dM/dp_e p_e' dt`` at its end, an error of first order in ``dt`` in the
