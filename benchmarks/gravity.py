@@ -111,7 +111,7 @@ def held_weight(mech, points: int = 5) -> dict:
     planned manoeuvre (its interior, evenly in time): held at ``q0`` (undeformed) with its secant partner at
     ``q0 - d`` (``d = rho`` along the planned motion's direction there, largest entry ``rho``), evaluated at
     ``q0 + d`` against the weight there; the joint rows' largest error over the points to first order (``fg + Wg
-    d``) and to second order (``fg + 2 Wg d - (fg - fg_old)``: ``s = 1``), the weight's change over ``d``, and
+    d``) and to second order (``fg + (Wg + (Wg - Wg_old) / 2) d``: ``s = 1``), the weight's change over ``d``, and
     the motors' torque noise."""
     from exuflex.manoeuvre import plan
     from exuflex.observer.session import ObserverConfig, make_observer
@@ -130,8 +130,8 @@ def held_weight(mech, points: int = 5) -> dict:
         d = rho * qd / np.abs(qd).max() if np.any(qd) else np.full(nq, rho)
         w0, w_old, w_new = weight(q0), weight(q0 - d), weight(q0 + d)
         first = max(first, float(np.abs(w0.fg + w0.Wg[:, :nq] @ d - w_new.fg)[:nq].max()))
-        second = max(second, float(np.abs(w0.fg + 2.0 * (w0.Wg[:, :nq] @ d) - (w0.fg - w_old.fg)
-                                          - w_new.fg)[:nq].max()))
+        held = w0.Wg[:, :nq] + 0.5 * (w0.Wg[:, :nq] - w_old.Wg[:, :nq])
+        second = max(second, float(np.abs(w0.fg + held @ d - w_new.fg)[:nq].max()))
         change = max(change, float(np.abs(w_new.fg - w0.fg)[:nq].max()))
     return {"radius": rho, "points": points, "first_order": first, "second_order": second, "change": change,
             "torque_noise": [float(mo.noise_std) for mo in mech.motors]}
@@ -528,8 +528,8 @@ def markdown(rows: list[dict], command: str) -> str:
          "weight held at `q0` with its secant partner at `q0 - d`, evaluated at `q0 + d`, `d` the largest refresh "
          "radius (its largest entry, along the planned motion), at five configurations along the manoeuvre: the "
          "joint rows' largest error, to first order (`fg + Wg d`, "
-         "the gradient alone) and to second order (`fg + (1 + s) Wg dl - s^2 (fg - fg_old)`, `s = 1`: the "
-         "gradient and the curvature along the secant, the cached step's), against the weight's change and the "
+         "the gradient alone) and to second order (`fg + (Wg + s/2 (Wg - Wg_old)) dl`, `s = 1`: the "
+         "gradient and half its change along the secant, the cached step's), against the weight's change and the "
          "motors' torque noise (N m, or N for a linear motor)."),
         "",
         ("| model | gravity (m/s^2) | radius (rad) | weight's change | error, first order | error, second order | "
@@ -551,10 +551,10 @@ def markdown(rows: list[dict], command: str) -> str:
          "`w^2` is about 20 1/s^2 and the position's deviation about 80 urad, so a weight error of a few "
          "thousandths of a N m (a fraction of the torque noise per interval) shifts the angle by more than its "
          "deviation. The cached step therefore holds the weight to second order, as it holds `M_r` and `K_r`: "
-         "along the secant the partner's weight gives the curvature, `fg_old = fg - Wg d + 1/2 D2(d, d)`, so "
-         "`1/2 D2(dl, dl) = s^2 (fg_old - fg) + s Wg dl` (`expansion._held_model`; `tests/test_gravity.py` fits "
-         "the error's order, 3, and the step's). Off the secant's line (`s = 0`) it stays first order, as the "
-         "matrices do."),
+         "the gradient held at `q0` with half its change along the secant to the partner's, `fg + (Wg + s/2 (Wg - "
+         "Wg_old)) dl`, whose error is `1/2 D2(w, dl)` for `dl = s d + w`: third order along the secant's line, "
+         "second order off it, as the matrices' (`expansion._held_model`; `tests/test_held_weight.py` fits both "
+         "orders, `tests/test_gravity.py` the step's)."),
         "",
         "## The step Jacobian's configuration block at rest",
         "",
