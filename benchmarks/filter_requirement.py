@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _pages import publish  # (a script: its folder is on the path)
 
 from exuflex.erls.model import ErlsModel
 from exuflex.mechanism import load_mechanism
@@ -174,9 +175,7 @@ def main(argv=None) -> int:
         rows.append(r)
         print(json.dumps(r), flush=True)
     args = (f" --models {a.models}" if a.models else "") + (f" --repeats {a.repeats}" if a.repeats != 5 else "")
-    text = page(rows, args)
-    Path(a.out).write_text(text)
-    print(text)
+    publish(page(rows, args) + "\n", a.out)
     if a.json:
         from exuflex.runs import package_versions
 
