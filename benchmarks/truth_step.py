@@ -32,7 +32,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _pages import publish
+from _pages import COMMIT, publish
 
 GALLERY = "fivebar,fourbar,l_arm,serial_arm,single_link,sixbar,slider_crank,three_link_arm"
 
@@ -112,7 +112,7 @@ def worst(err: dict) -> str:
     return f"{k} {err[k]:.2f}"
 
 
-def page(rows: list[dict], command: str) -> str:
+def page(rows: list[dict], command: str, models: list[str] | None = None) -> str:
     lines = ["# The truths' step: accumulated phase error", "",
              (f"Written by `{command}` (ERLS truths one after the other in one process; CPU ratios of runs made "
               "one after the other, on a shared machine)."), "",
@@ -139,15 +139,22 @@ def page(rows: list[dict], command: str) -> str:
             lines.append(f"| {r['model']} | {e['old']['step_s']:.3g} | {worst(e['old']['error'])} | "
                          f"{e['new']['step_s']:.3g} | {e['accumulated']:.4f} | {worst(e['new']['error'])} | "
                          f"{e['new']['wall_s'] / e['old']['wall_s']:.1f} |")
-    lines += ["", *notes(rows)]
+    lines += ["", *notes(rows, models)]
     return "\n".join(lines) + "\n\n"
 
 
-def notes(rows: list[dict]) -> list[str]:
+def notes(rows: list[dict], models: list[str] | None = None) -> list[str]:
     """The page's remarks, from the rows: the models scored over the reference's RMS, and the rows whose error at
     the new step is above the tolerance's aim (0.2 of the bound: the rule's 0.004 times the factor of 50 its
     derivation allows a mode's ringing against the bound, {doc}`/theory/truth_step`)."""
     out = []
+    missing = [model_path(m).stem for m in models or () if model_path(m).stem not in {r["model"] for r in rows}]
+    if missing:
+        out.append(f"Not measured in this run (the command's models the JSON does not hold yet): {', '.join(missing)}.")
+    commits = sorted({r.get("commit") or "?" for r in rows})
+    if len(commits) > 1:
+        out.append("The rows were measured on the code at commits " + ", ".join(
+            f"{c} ({', '.join(r['model'] for r in rows if (r.get('commit') or '?') == c)})" for c in commits) + ".")
     rms = [r["model"] for r in rows if r["scale"] == "rms"]
     if rms:
         out.append(f"{', '.join(rms)}: no acceptance bound in `--bounds`, errors over the reference's RMS.")
@@ -169,13 +176,14 @@ def main(argv=None) -> None:
     ap.add_argument("--reference", choices=("fine", "rk4"), default="fine")
     ap.add_argument("--h", type=float, default=1e-4)
     ap.add_argument("--md", default=None)
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", default=None, help="the rows, written after each model; a rerun of the same command "
+                    "with it resumes (keeps the models it holds)")
     ap.add_argument("--from-json", default=None, help="re-render the page from an earlier run's --json (its "
                     "\"command\" kept) instead of measuring")
     a = ap.parse_args(argv)
     if a.from_json:
         saved = json.loads(Path(a.from_json).read_text())
-        publish(page(saved["rows"], saved["command"]), a.md)
+        publish(page(saved["rows"], saved["command"], a.models.split(",")), a.md)
         return
     bounds = {}
     if a.bounds:
@@ -183,10 +191,16 @@ def main(argv=None) -> None:
             if r["engine"] == "erls" and r["model"] not in bounds:
                 bounds[r["model"]] = r["bound_rms"]
     exudyn = {Path(m).stem for m in a.exudyn.split(",") if m}
-    rows = []
     command = _command(a)
+    done = {}
+    if a.json and Path(a.json).exists():  # resume: the models an earlier run of the same command measured
+        saved = json.loads(Path(a.json).read_text())
+        if saved.get("command") == command:
+            done = {r["model"]: r for r in saved["rows"]}
+    rows = []
     for m in a.models.split(","):
-        rows.append(measure(m, a.h, bounds, model_path(m).stem in exudyn, a.reference))
+        name = model_path(m).stem
+        rows.append(done.get(name) or dict(measure(m, a.h, bounds, name in exudyn, a.reference), commit=COMMIT))
         print(json.dumps(rows[-1]), flush=True)
         if a.json:
             Path(a.json).write_text(json.dumps({"rows": rows, "command": command}, indent=1))
