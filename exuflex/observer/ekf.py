@@ -987,6 +987,12 @@ class MultirateEKF(BeliefFilter):
                                 _empty_rows(n * n), _empty_rows(n * n))
         self.reset()
 
+    def reset(self, x0=None, P0=None) -> None:
+        """:meth:`.BeliefFilter.reset`, and the monitors with the one-sample record as :func:`.loop.given` takes
+        them."""
+        super().reset(x0, P0)
+        self._given = loop.one_sample(self._mon, self._one)
+
     # ------------------------------------------------------------------ the two steps
     def _predict_step(self, dt: float | None, u_next) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The model's step from the previous sample to this one (eqs. 10-12): the predicted mean, the step
@@ -1045,9 +1051,9 @@ class MultirateEKF(BeliefFilter):
             y_pred[idx], H[idx], y_k = meas[0], meas[1], y
         hold0 = self._holdoff
         x_alt, P_alt = np.empty(n), self._Pspare
-        buf = loop.Buffers(self._x, x_alt, self._P, P_alt, self._Ppred, self._work, self._HP)
-        status, self._holdoff, last = loop.given(t, y_k, hold0, *loop.plain(buf, self._mon, self._one),
-                                                 np.ascontiguousarray(z, dtype=float), F, Q, y_pred, H)
+        buf = (self._x, x_alt, self._P, P_alt, self._Ppred, self._work, self._HP)  # (loop.Buffers)
+        status, self._holdoff, last = loop.given(t, y_k, hold0, buf, self._given, np.ascontiguousarray(z, dtype=float),
+                                                 F, Q, y_pred, H)
         if status != LOOP_DONE:
             return self._failed(t, status, last)
         self._x, self._P, self._Pspare = x_alt, P_alt, self._P
