@@ -61,7 +61,8 @@ from .kalman import (
     window_seen,
 )
 
-__all__ = ["Buffers", "Monitors", "OneSample", "Record", "given", "one_sample", "plain", "samples", "screen", "warm_up"]
+__all__ = ["Buffers", "Monitors", "OneSample", "Record", "given", "one_sample", "plain", "samples", "screen",
+           "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -147,8 +148,9 @@ class _OneSampleType(types.StructRef):
 
 class OneSample(structref.StructRefProxy):
     """A filter's :class:`Monitors` and a :class:`Record` of one row, their fields as one compiled structure: what
-    :func:`given` takes at every :meth:`.ekf.MultirateEKF.step`. Its arrays are the named tuples' own (written in
-    place); one argument where the named tuples' thirty-odd arrays each cost numba's conversion at every call."""
+    :func:`given` takes at every :meth:`.ekf.MultirateEKF.step` and :func:`screen` at every update of the UKF and
+    the IMM. Its arrays are the named tuples' own (written in place); one argument where the named tuples'
+    thirty-odd arrays each cost numba's conversion at every call."""
 
 
 structref.define_proxy(OneSample, _OneSampleType, [*Monitors._fields, *Record._fields])
@@ -452,8 +454,9 @@ def warm_up(compiled: str | None = None) -> None:
     buf = Buffers(v, v, m, m, m, m, m)
     mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, v, m, n, False, n, v, 0.0, 0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
-    given(0.0, v, 0, tuple(buf), one_sample(mon, rec), v, m, m, v, m)
-    screen(mon, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
+    one = one_sample(mon, rec)
+    given(0.0, v, 0, tuple(buf), one, v, m, m, v, m)
+    screen(one, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
     if compiled is not None:
         step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c,
                           c, v, _example_system(1, 1))
