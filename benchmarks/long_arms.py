@@ -75,50 +75,6 @@ def _strain_model():
     return StrainAxial
 
 
-def _von_karman_model():
-    """The second-order axial strain ``u' + v'^2 / 2`` (von Karman) per element: the energy ``(EA / L) (D + s)^2 / 2``
-    with ``D`` the element's axial elongation and ``s = int v'^2 / 2 dx = e^T K_G1 e / 2`` its bending's
-    foreshortening (element frame ``e``), so the axial force ``N = (EA / L) (D + s)`` carries every load and acts
-    across the bending (``N K_G1 e``), and the foreshortening pulls on the axis (``(EA / L) s`` at the ends). Its
-    Hessian goes to the implicit engine's iteration matrix."""
-    from exuflex.erls.model import ErlsModel
-
-    class VonKarman(ErlsModel):
-        def __init__(self, mech, form="lagrange", geometric=True):
-            super().__init__(mech, form=form, geometric=False)
-
-        def _element_terms(self, cfg, u):
-            R = cfg.R
-            el = np.einsum("eji,ej->ei", R, (self.T @ u)[self.el_dofs])  # element-frame displacements
-            g = np.einsum("eij,ej->ei", self.el_KG1, el)  # ds/de
-            s = 0.5 * np.einsum("ei,ei->e", el, g)
-            a = np.zeros_like(el)
-            a[:, 0], a[:, 3] = -1.0, 1.0  # dD/de
-            N = self.el_axial * (el[:, 3] - el[:, 0] + s)
-            return R, g, s, a, N
-
-        def net_forces(self, cfg, x, v, tau, qdd=None):
-            rhs = super().net_forces(cfg, x, v, tau, qdd)
-            R, g, s, a, N = self._element_terms(cfg, x[self.nq:])
-            fl = -(N[:, None] * g + (self.el_axial * s)[:, None] * a)  # minus the gradient beyond the linear part
-            fg = np.einsum("eij,ej->ei", R, fl)
-            rhs[self.nq:] += self.T.T @ np.bincount(self._el_flat, fg.reshape(-1), minlength=self.N)
-            return rhs
-
-        def damping_position_jacobian(self, cfg, x, v):
-            """The implicit engine's iteration matrix takes the u columns' extra stiffness from here: add the
-            Hessian ``N K_G1 + (EA / L) (g a^T + a g^T + g g^T)`` per element, rotated and assembled."""
-            out = super().damping_position_jacobian(cfg, x, v)
-            R, g, s, a, N = self._element_terms(cfg, x[self.nq:])
-            k = self.el_axial[:, None, None]
-            H = N[:, None, None] * self.el_KG1 + k * (g[:, :, None] * a[:, None, :] + a[:, :, None] * g[:, None, :]
-                                                      + g[:, :, None] * g[:, None, :])
-            out[self.nq:] += self.T.T @ self._assemble(R @ H @ np.swapaxes(R, 1, 2)) @ self.T
-            return out
-
-    return VonKarman
-
-
 def _nokg_model():
     from exuflex.erls.model import ErlsModel
 
@@ -129,7 +85,7 @@ def _nokg_model():
     return NoKG
 
 
-VARIANTS = {"nokg": _nokg_model, "strain": _strain_model, "vonkarman": _von_karman_model}
+VARIANTS = {"nokg": _nokg_model, "strain": _strain_model}
 
 
 @contextlib.contextmanager
@@ -209,7 +165,6 @@ PAIR_VARIANTS = (
     ("exudyn-10-per-link", {"exudyn_mesh": 10}),
     ("erls-no-KG", {"erls": "nokg"}),
     ("erls-KG-of-strain", {"erls": "strain"}),
-    ("erls-von-Karman", {"erls": "vonkarman"}),
 )
 
 
