@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import sys
 import time
@@ -412,7 +413,7 @@ def _page(out: dict, argv: list, repeats: int) -> str:
     versions = versions_text()
     return (
         "# Where the observer's time goes\n\n"
-        f"Written by `{' '.join(['python benchmarks/observer_speed.py', *argv])}` (see its docstring).\n\n"
+        f"Written by `python benchmarks/observer_speed.py {shlex.join(argv)}` (see its docstring).\n\n"
         f"Model {out['model']}, {out['samples']} samples over {out['span_s']:.3g} s, default settings: median real-time "
         f"factor **{out['median_real_time_factor']:.1f}** over {repeats} runs "
         f"({', '.join(f'{r:.1f}' for r in out['real_time_factors'])}); the configuration evaluated "
