@@ -360,8 +360,8 @@ def _second_order_along(second: tuple, dQ: np.ndarray, qd: np.ndarray) -> tuple:
 def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.ndarray, nq: int, r: int) -> None:
     """Add to ``Cb`` (m, k, nx) the Jacobian of the tip's second order ``w = C (Gr p)^2`` and of its rate ``w' =
     C' g^2 + 2 C (g (Gr p' + Gr' p))`` (``g = Gr p``, ``'`` the change along q') at the states ``z`` (m, nx): in
-    ``p``, ``p'`` and (the position) ``q``; the rate's q-derivative, second derivatives of the maps, is left out
-    as it is for the linear rows."""
+    ``p``, ``p'``, ``q'`` and ``q`` (the rate's in q: of ``2 C (g (Gr p'))``; that of its turning terms along q',
+    second derivatives of the maps, is left out as it is for the linear rows)."""
     p, v, qd = z[:, :r], z[:, r : 2 * r], z[:, r : r + nq]
     Cw, Gw, Cwd, Gwd = _second_order_along(second, z[:, :nq] - q0, qd)
     _, dC, _, dG = second
@@ -370,11 +370,18 @@ def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.
     two_Cg = 2.0 * Cw * g[:, None, :]  # (m, 2, n_g): dw/dg
     e, ed = slice(2 * nq, 2 * nq + 2), slice(2 * nq + 2, 2 * nq + 4)
     Cb[:, e, :r] += two_Cg @ Gw
-    # dw/dq_i = dC_i g^2 + 2 C (g dGr_i p)
-    Cb[:, e, :nq] += (np.einsum("iaj,kj->kai", dC, g * g)
-                      + np.einsum("kaj,kij->kai", two_Cg, np.einsum("ijl,kl->kij", dG, p)))
+    # dw/dq_i = dC_i g^2 + 2 C (g dGr_i p), also the rate's derivative in q'_i (its turning terms)
+    dwdq = (np.einsum("iaj,kj->kai", dC, g * g)
+            + np.einsum("kaj,kij->kai", two_Cg, np.einsum("ijl,kl->kij", dG, p)))
+    Cb[:, e, :nq] += dwdq
+    Cb[:, ed, r : r + nq] += dwdq
     Cb[:, ed, r:] += two_Cg @ Gw
     Cb[:, ed, :r] += 2.0 * (Cwd * g[:, None, :]) @ Gw + 2.0 * (Cw * gd[:, None, :]) @ Gw + two_Cg @ Gwd
+    # d/dq_i of 2 C (g (Gr p')): 2 dC_i (g gv) + 2 C ((dGr_i p) gv + g (dGr_i p')), gv = Gr p'
+    gv = _apply_rows(Gw, v)
+    dGp, dGv = np.einsum("ijl,kl->kij", dG, p), np.einsum("ijl,kl->kij", dG, v)  # (m, nq, n_g)
+    Cb[:, ed, :nq] += 2.0 * (np.einsum("iaj,kj->kai", dC, g * gv)
+                             + np.einsum("kaj,kij->kai", Cw, dGp * gv[:, None, :] + g[:, None, :] * dGv))
 
 
 def _rows_along(A0, dA: np.ndarray, dQ: np.ndarray) -> np.ndarray:
