@@ -5,6 +5,11 @@ rigid point coordinate (tip position, slider), the elastic part a row acting on 
 (global frame) at the configuration: the elastic rotation at a joint, the Hermite curvature at a gauge
 station, or the interpolated displacement of a link point. :func:`channel_matrix` linearises the rigid parts in q,
 giving each channel's row on the full coordinates (what a mode's shape reads in the channel).
+
+A link point's position and angle also have a second order in ``u``, the links' foreshortening
+(:class:`SecondOrderPlan`): the ERLS engine's probes (:func:`exuflex.sensors.erls_probe_record`) and the
+observer's physical tip carry it; the channels' rows here are linear (a slider's second order is some 1e-3 of
+its noise on the gallery, docs/shortening.md).
 """
 
 from __future__ import annotations
