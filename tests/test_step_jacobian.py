@@ -145,6 +145,8 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
             f[:nq] += (x[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
         if hs.Wg.shape[0]:  # ... and with q
             f += hs.Wg[:, :nq] @ (x[:nq] - iv.q0)
+        if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
+            f += oracle.velocity_terms(x[nq:r], x[r:], nq, hs.pT, hs.pC2)[0]
         return f
 
     def held_matrices_step(x):  # the step with its matrices held at z's: only the forces follow the state (and,

@@ -41,6 +41,7 @@ __all__ = [
     "cached_rows",
     "extra_interval",
     "held_interval",
+    "held_jacobian",
     "held_step",
     "held_system",
     "map_error",
@@ -82,6 +83,9 @@ class HeldSystem(NamedTuple):
     column): the weight follows ``q`` by it over the radius, and with a secant partner by the gradient's change
     along the secant too, from the partner's ``old_Wg`` (:func:`_held_model`: second order), and the step Jacobian
     holds it (:func:`_step_jacobian`); empty (0, 0) without gravity, where both are the held arrays' alone.
+    ``pT`` (r - nq, r^3) and ``pC2`` (r - nq, r nq r): the velocity forms' change per unit elastic coordinate,
+    ``d T / dp_m`` and ``d C2 / dp_m`` flattened as ``T2`` and ``C2`` (:meth:`.ReducedObserverModel._velocity_forms`;
+    empty (0, 0): none), which the held forces add to first order (:func:`_velocity_terms`).
     """
 
     has_old: bool
@@ -111,6 +115,8 @@ class HeldSystem(NamedTuple):
     p2C: np.ndarray
     Wg: np.ndarray
     old_Wg: np.ndarray
+    pT: np.ndarray
+    pC2: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -298,6 +304,63 @@ def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
     return f
 
 
+def _velocity_terms(pe, pd, nq, pT, pC2, f, G):  # pragma: no cover - compiled
+    """Add to ``f`` (in place) the velocity forces' first order in the elastic coordinates ``pe``: ``-sum_m pe_m (1/2
+    (p' pT_m p') + (p' (x) q') pC2_m)`` (:class:`HeldSystem`'s ``pT``, ``pC2``: the forms ``T2``, ``C2``
+    differentiated in ``p_m``), and with ``G`` not empty (r, 2r) its derivative in the state into ``G``: the
+    forces per unit ``p_m`` in position column ``nq + m``, and their change with the rates in the rate columns.
+
+    The held forms are those of the configuration undeformed; the velocity map ``J = H + [d(H p)/dq, 0]`` is linear
+    in the elastic coordinates and the forms are polynomials in ``J``, so at a deformed state the velocity forces
+    gain terms of first order in them times the rates squared: a link turning while bent, its deflection's velocity
+    turning with it (``J^T h(J p')`` and the bias force ``J^T M a_b``, both through ``J``)."""
+    r = pd.shape[0]
+    n_el = pT.shape[0]
+    rr = r * r
+    w = np.empty(rr)  # p'_k p'_j
+    for k in range(r):
+        for j in range(r):
+            w[k * r + j] = pd[k] * pd[j]
+    jac = G.shape[0] > 0
+    Te = np.zeros(r * rr) if jac else np.zeros(0)  # sum_m pe_m pT_m (for the rate columns)
+    Ce = np.zeros(r * nq * r) if jac else np.zeros(0)
+    for m in range(n_el):
+        e = pe[m]
+        if e == 0.0 and not jac:
+            continue
+        for i in range(r):  # g_i: the forces per unit p_m
+            acc = 0.0
+            for k in range(r):
+                base = k * rr + i * r
+                for j in range(r):
+                    acc += pT[m, base + j] * w[k * r + j]
+            g = -0.5 * acc
+            for k in range(r):
+                for j in range(nq):
+                    g -= pC2[m, (k * nq + j) * r + i] * w[k * r + j]
+            f[i] += e * g
+            if jac:
+                G[i, nq + m] += g
+        if jac and e != 0.0:
+            for t in range(r * rr):
+                Te[t] += e * pT[m, t]
+            for t in range(r * nq * r):
+                Ce[t] += e * pC2[m, t]
+    if jac:  # d/dp'_a of -1/2 p' Te p' and of -sum p'_k p'_j Ce[k, j] (j < nq)
+        for i in range(r):
+            for a in range(r):
+                acc = 0.0
+                for j in range(r):
+                    acc += (Te[a * rr + i * r + j] + Te[j * rr + i * r + a]) * pd[j]
+                d = -0.5 * acc
+                for j in range(nq):
+                    d -= Ce[(a * nq + j) * r + i] * pd[j]
+                if a < nq:
+                    for k in range(r):
+                        d -= Ce[(k * nq + a) * r + i] * pd[k]
+                G[i, r + a] += d
+
+
 @_inline
 def _along(dl, dA, dB):  # pragma: no cover - compiled
     """The changes ``sum_i dl_i dA[i]`` and ``sum_i dl_i dB[i]`` of two matrices (rows of ``dA``, ``dB``: their
@@ -472,6 +535,8 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
+    if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
+        _velocity_terms(p[nq:], pd, nq, hs.pT, hs.pC2, f, np.empty((0, 0)))
     if hs.Wg.shape[0]:  # the weight to second order: its gradient, and half the gradient's change along the secant
         for i in range(r):
             acc = 0.0
@@ -516,7 +581,32 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
+        _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
+    """Add to the step Jacobian ``F`` (in place) the response ``SQM dG`` to the velocity forces' first order in the
+    elastic coordinates (:func:`_velocity_terms`; nothing where ``pT`` is empty)."""
+    if pT.shape[0] == 0:
+        return
+    r = SQM.shape[1]
+    Ge = np.zeros((r, 2 * r))
+    _velocity_terms(z[nq:r], z[r:], nq, pT, pC2, np.zeros(r), Ge)
+    Fe = SQM @ Ge
+    for i in range(F.shape[0]):
+        for j in range(F.shape[1]):
+            F[i, j] += Fe[i, j]
+
+
+def _held_jacobian(z, nq, Ts, Vs, C3, Pn, SQM, Fp, hs):  # pragma: no cover - compiled
+    """The step Jacobian of the held system ``hs`` (a plain tuple, see :func:`_held_interval`) without its
+    sub-steps: :func:`_step_jacobian` with the velocity forces' first order in the elastic coordinates
+    (:func:`_velocity_jacobian`), as :func:`held_interval` returns it for the same ``Fp``."""
+    hs = HeldSystem(*hs)
+    F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
+    _velocity_jacobian(F, z, nq, SQM, hs.pT, hs.pC2)
+    return F
 
 
 def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
@@ -979,7 +1069,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1262,7 +1352,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1365,11 +1455,14 @@ _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
 _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
+_velocity_terms = _linked(_velocity_terms)
+_velocity_jacobian = _inline(_velocity_jacobian)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
+held_jacobian = _jit(_held_jacobian)
 measurement_rows = _jit(_measurement_rows)
 secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
@@ -1395,7 +1488,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
-                      p2, np.zeros((0, 0)), np.zeros((0, 0)))
+                      p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
 
 
 _warm = False
@@ -1414,13 +1507,14 @@ def warm_up_held() -> None:
 
 def warm_up_interval() -> None:
     """Compile (or load) :func:`held_interval` with the step Jacobian it calls (:func:`step_jacobian`, called from
-    Python too, at the step map's rebuilds)."""
+    Python too, at the step map's rebuilds), and :func:`held_jacobian` (the bound's recursion calls it)."""
     r, nq = 2, 1
     z, u, dl = np.zeros(2 * r), np.zeros(nq), np.zeros(nq)
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     step_jacobian(z, *jac, np.zeros((0, 0)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, tuple(_example_system(r, nq, has_old)))
+    held_jacobian(z, nq, *jac, np.zeros((0, 0)), tuple(_example_system(r, nq)))
 
 
 def warm_up_maps() -> None:
