@@ -221,15 +221,17 @@ def test_prediction_error_kernel_equals_numpy_oracle(has_old):
 
 def test_held_force_model_reproduces_the_reduced_forces(sixbar_observer_state):
     """The held quadratic forms (:class:`~exuflex.reduction.model.QuadraticForces`: velocity force tensor, q-row
-    geometric term, bias term) evaluated at the held state equal the forces ``fr`` of the reduced model's direct
-    evaluation there (measured: 5e-17 against 0.05 N m)."""
+    geometric term, bias term with its curvature part) evaluated at the held state equal the forces ``fr`` of the
+    reduced model's direct evaluation there (measured: 6e-10 against 0.02 N m: ``fr`` takes the bias acceleration's
+    curvature term by a forward difference, :meth:`~exuflex.reduction.ReducedModel.basis_curvature`, the force model
+    by central ones)."""
     model, _, z, _ = sixbar_observer_state
     rm, r = model.rm, model.r
     mats, forces = rm.held(z[:r], z[r:], fr=True, gradients=False)
     fq = forces(z[:r], z[r:])
     scale = np.abs(mats.fr - forces.fg).max()  # the state-dependent part
     assert scale > 0
-    assert np.abs(fq - mats.fr).max() <= 1e-9 * scale, (np.abs(fq - mats.fr).max(), scale)
+    assert np.abs(fq - mats.fr).max() <= 1e-7 * scale, (np.abs(fq - mats.fr).max(), scale)
 
 
 def test_rk4_substep_limit_is_the_stability_boundary():

@@ -80,6 +80,9 @@ def test_bias_acceleration_is_the_rate_of_J(name):
     big = scale > 1e-6 * scale.max()  # entries above the differences' round-off
     assert np.all(np.abs(a_b - fd)[big] <= 1e-5 * scale[big])
     assert np.abs(a_b - fd).max() <= 1e-7 * scale.max()
+    # the forward difference from D(q) q' (what ReducedModel.matrices evaluates)
+    a_f = 2.0 * D + rm.basis_curvature(p, pd[:nq], at_q=cbm.basis_derivative(cbm.at(p[:nq]), p)[0] @ pd[:nq])
+    assert np.all(np.abs(a_f - fd)[big] <= 1e-4 * scale[big])
     assert np.max(np.abs(2.0 * D - fd)[big] / scale[big]) > 1e-3  # the test sees the curvature term
     assert not np.any(rm.basis_curvature(np.r_[p[:nq], np.zeros(r - nq)], pd[:nq]))  # undeformed: none
 

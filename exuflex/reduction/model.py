@@ -186,7 +186,7 @@ class ReducedModel:
             J = H.copy()
             J[:, :nq] += D[0]
             if np.any(pd[:nq]):
-                a_b = 2.0 * (D[1] @ pd[:nq]) + self.basis_curvature(p, pd[:nq])
+                a_b = 2.0 * (D[1] @ pd[:nq]) + self.basis_curvature(p, pd[:nq], at_q=D[0] @ pd[:nq])
         WJ = cfg.W @ J
         Mr = WJ.T @ cfg.M_N @ WJ
         Hu, Ju = H[nq:], J[nq:]
@@ -214,29 +214,35 @@ class ReducedModel:
             fr -= (WJ.T @ cfg.M_N @ cfg.W) @ a_b  # J^T M a_b
         return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr)
 
-    def basis_curvature(self, p: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    def basis_curvature(self, p: np.ndarray, qd: np.ndarray, at_q: np.ndarray | None = None) -> np.ndarray:
         """``d^2(H p)/dq^2 [q', q']`` (n,): the bias acceleration's part quadratic in the joint rates.
 
         ``x = H(q) p`` gives ``x'' = J p'' + (dJ/dt) p'`` with ``(dJ/dt) p' = 2 d(H p')/dq q' + d^2(H p)/dq^2 [q',
         q']``; the second term is the curvature of the slave displacements ``H p`` along the joint motion (zero on
         undeformed states: ``H p`` depends on ``q`` through the elastic coordinates only). It is the derivative of
-        the exact first derivative ``d(H p)/dq q'`` (:meth:`CraigBampton.basis_derivative`) along ``u = q'/|q'|``,
-        by a central difference over ``+-1e-5`` rad: ``(D(q + d u) - D(q - d u)) q' / (2 d) |q'|``, whose error is
-        ``d^2/6`` of the third derivative (some 1e-10 relative, the basis being smooth in q). The configurations
-        are the material ones (the basis is that of ``K_uu``; the static ``K_G`` does not enter it)."""
+        the exact first derivative ``D(q) = d(H p)/dq`` (:meth:`CraigBampton.basis_derivative`) along ``u = q' /
+        |q'|``: with ``at_q = D(q) q'`` given (:meth:`matrices` has it), the forward difference ``(D(q + d u) q' -
+        at_q) / d |q'|`` over ``d = CURVATURE_STEP / 10`` (one configuration more; error ``d/2`` of the third
+        derivative, some 1e-6 relative), else the central difference over ``CURVATURE_STEP`` (two; error
+        ``d^2/6``, some 1e-10). The configurations are the material ones (the basis is that of ``K_uu``; the
+        static ``K_G`` does not enter it)."""
         nq = self.nq
         p = np.asarray(p, float)
         s = float(np.linalg.norm(qd))
         if s == 0.0 or not np.any(p[nq:]):
             return np.zeros(nq + self.model.ne)
-        d = CURVATURE_STEP
         u = np.asarray(qd, float) / s
         P = p[:, None]
-        out = []
-        for sign in (1.0, -1.0):
-            rc = self.cb.at(self.model._material_configuration(p[:nq] + sign * d * u))
-            out.append(self.cb.basis_derivative(rc, P)[0] @ qd)
-        return (out[0] - out[1]) * (s / (2.0 * d))
+
+        def along(d):
+            rc = self.cb.at(self.model._material_configuration(p[:nq] + d * u))
+            return self.cb.basis_derivative(rc, P)[0] @ qd
+
+        if at_q is not None:
+            d = 0.1 * CURVATURE_STEP
+            return (along(d) - at_q) * (s / d)
+        d = CURVATURE_STEP
+        return (along(d) - along(-d)) * (s / (2.0 * d))
 
     def basis_hessian(self, q: np.ndarray) -> np.ndarray:
         """``d^2(H e_m)/dq_i dq_j`` (r - nq, n, nq, nq) for every elastic coordinate ``m``: the second derivatives
