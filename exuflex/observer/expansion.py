@@ -41,7 +41,6 @@ __all__ = [
     "cached_rows",
     "extra_interval",
     "held_interval",
-    "held_jacobian",
     "held_step",
     "held_system",
     "map_error",
@@ -560,7 +559,9 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
 
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no cover - compiled
     """One interval of the cached step, the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
-    sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`) (what the cached step does per interval):
+    sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`, with the velocity forces' and the held
+    matrices' change with the elastic coordinates, :func:`_velocity_jacobian`, :func:`_elastic_tangent`) (what the
+    cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
     then serves :func:`held_step` too (see :func:`_inline` for why one). ``z_next`` is NaN if the held ``M_r``
     is not positive definite at the start either. The helpers are called here directly: numba copies an inlined helper's whole code once
@@ -568,12 +569,14 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
     (:class:`HeldSystem`'s fields as a plain tuple: numba types a plain tuple from its fingerprint, a named one
     through a slower path)."""
     hs = HeldSystem(*hs)
-    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.5 * h * n, hs)
+    tm = 0.5 * h * n
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
         # M_r not positive definite at the midpoint's elastic coordinates: a long interval (a gap, a log sampled
         # far below the modes), over which their linear advance means nothing; the matrices at the start
-        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.0, hs)
+        tm = 0.0
+        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
         z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
@@ -582,6 +585,13 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
         _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
+        Y = _elastic_tangent(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
+        nq = dl.shape[0]
+        r = nq + Y.shape[1]
+        for k in range(Y.shape[1]):
+            for i in range(F.shape[0]):
+                F[i, nq + k] += Y[i, k]
+                F[i, r + nq + k] += tm * Y[i, k]
     return z_next, F, Mr_, Kr_, Cr_, Gr_
 
 
@@ -599,14 +609,105 @@ def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
             F[i, j] += Fe[i, j]
 
 
-def _held_jacobian(z, nq, Ts, Vs, C3, Pn, SQM, Fp, hs):  # pragma: no cover - compiled
-    """The step Jacobian of the held system ``hs`` (a plain tuple, see :func:`_held_interval`) without its
-    sub-steps: :func:`_step_jacobian` with the velocity forces' first order in the elastic coordinates
-    (:func:`_velocity_jacobian`), as :func:`held_interval` returns it for the same ``Fp``."""
-    hs = HeldSystem(*hs)
-    F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
-    _velocity_jacobian(F, z, nq, SQM, hs.pT, hs.pC2)
-    return F
+def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover - compiled
+    """``Y`` (2r, n_el): the change of the interval's end state per unit elastic coordinate ``p_k`` at which the
+    held matrices are taken (``p_e + tm p_e'``, :func:`_held_model`; ``tm = dt/2``, or 0 where the interval fell back
+    to its start), through the matrices alone: the step Jacobian's columns of ``p_k`` gain ``Y[:, k]`` and those of
+    ``p'_k`` ``tm Y[:, k]``. Per unit ``p_k`` the held system ``M p'' + C p' + K p = G u + f`` changes by ``dM_k``,
+    ``dC_k``, ``dK_k``, ``dG_k`` (:func:`_elastic_terms`: ``pM_k``, ``pK_k``, ``pC_k`` with ``beta pK_k``, since
+    ``C_r = C_a + beta K_r``, ``pG_k``, and the damping's second order ``p2C`` differentiated at the held point), a
+    force ``g_k = dG_k u - dM_k a - dC_k p' - dK_k p`` along the interval's motion; ``Y`` is the tangent of the
+    same RK4 sub-steps driven by it from zero (stage by stage at the stage's state and acceleration: the elastic
+    modes oscillate within an interval, and a force taken at the interval's mean motion is no approximation of
+    it). Exact for the step as computed (``tests/_oracles.py``'s ``exact_jacobian`` carries the same tangent)."""
+    n_el = hs.pM.shape[0]
+    r = Mr.shape[0]
+    if n_el == 0 or r == n_el:
+        return np.zeros((2 * r, 0))
+    nq = r - n_el
+    m = u.shape[0]
+    mg = hs.pG.shape[1] // nq
+    pe = np.empty(n_el)
+    for k in range(n_el):
+        pe[k] = z[nq + k] + tm * z[r + nq + k]
+    # the matrices' changes per unit p_k, stacked by rows: D[k * r + c, :]
+    dM = np.zeros((n_el * r, r))
+    dK = np.zeros((n_el * r, r))
+    dC = np.zeros((n_el * r, r))
+    dGu = np.zeros((r, n_el))
+    n2 = hs.p2C.shape[1] if hs.p2C.shape[0] else 0
+    for k in range(n_el):
+        o = k * r
+        for i in range(nq):
+            for j in range(r):
+                t = i * r + j
+                a = hs.pM[k, t]
+                kk = hs.pK[k, t]
+                cc = hs.pC[k, t] + hs.beta * kk
+                dM[o + i, j] += a
+                dM[o + j, i] += a
+                dK[o + i, j] += kk
+                dC[o + i, j] += cc
+                dC[o + j, i] += cc
+            for j in range(m):
+                dGu[i, k] += hs.pG[k, i * mg + j] * u[j]
+        if n2:  # d/dp_k of sum_{a <= b} p_a p_b X_ab (p2C's packing, :func:`_elastic_terms`)
+            cp = 0
+            for a_ in range(n_el):
+                for b_ in range(a_, n_el):
+                    w = 0.0
+                    if a_ == k:
+                        w += pe[b_]
+                    if b_ == k:
+                        w += pe[a_]
+                    if w != 0.0:
+                        t = 0
+                        for i in range(nq):
+                            for j in range(i, nq):
+                                x = w * hs.p2C[t, cp]
+                                dC[o + i, j] += x
+                                if j != i:
+                                    dC[o + j, i] += x
+                                t += 1
+                    cp += 1
+    rhs = np.empty((r, 2 * r + 1 + n_el))
+    for i in range(r):
+        for j in range(r):
+            rhs[i, j] = Kr[i, j]
+            rhs[i, r + j] = Cr[i, j]
+        acc = f[i]
+        for j in range(m):
+            acc += Gr[i, j] * u[j]
+        rhs[i, 2 * r] = acc
+        for k in range(n_el):
+            rhs[i, 2 * r + 1 + k] = dGu[i, k]
+    X = _cholesky_solve(Mr, rhs)  # M^-1 [K, C, G u + f, dG u]
+    AK = np.ascontiguousarray(X[:, :r])
+    AC = np.ascontiguousarray(X[:, r : 2 * r])
+    b = np.ascontiguousarray(X[:, 2 * r])
+    bG = np.ascontiguousarray(X[:, 2 * r + 1 :])
+    Minv = _cholesky_solve(Mr, np.eye(r))
+    y = z.copy()
+    Y = np.zeros((2 * r, n_el))
+    ky = np.empty((4, 2 * r))
+    kY = np.empty((4, 2 * r, n_el))
+    cs = (0.0, 0.5 * h, 0.5 * h, h)
+    for _ in range(n):
+        for st in range(4):
+            ys = y.copy()
+            Ys = Y.copy()
+            if st:
+                ys += cs[st] * ky[st - 1]
+                Ys += cs[st] * kY[st - 1]
+            a = b - AK @ ys[:r] - AC @ ys[r:]
+            g = -((dM @ a + dC @ ys[r:] + dK @ ys[:r]).reshape(n_el, r)).T  # (r, n_el): the forces less dG u
+            ky[st, :r] = ys[r:]
+            ky[st, r:] = a
+            kY[st, :r] = Ys[r:]
+            kY[st, r:] = Minv @ g + bG - AK @ Ys[:r] - AC @ Ys[r:]
+        y += h / 6.0 * (ky[0] + 2.0 * ky[1] + 2.0 * ky[2] + ky[3])
+        Y += h / 6.0 * (kY[0] + 2.0 * kY[1] + 2.0 * kY[2] + kY[3])
+    return Y
 
 
 def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
@@ -774,8 +875,10 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     gravity ``Fp``, the weight's gradient with the held matrices' change with q, :func:`position_forces`; empty
     without gravity), and ``SQM`` is the interval's response to a held generalised force. Leaving the second term
     out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
-    propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
-    ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
+    propagates its covariance as if the mechanism had no gravity stiffness. The cached step adds the held
+    matrices' change with the elastic coordinates (:func:`_elastic_tangent`, in :func:`held_interval`). Without
+    gravity the q-dependence of ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F``
+    with finite differences of the
     step and with the step's exact Jacobian, ``exact_jacobian`` of ``tests/_oracles.py``; docs/step_jacobian.md
     measures what the left-out terms change and why they stay out)."""
     r = Ts.shape[0]
@@ -1457,12 +1560,12 @@ _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
 _velocity_terms = _linked(_velocity_terms)
 _velocity_jacobian = _inline(_velocity_jacobian)
+_elastic_tangent = _linked(_elastic_tangent)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
-held_jacobian = _jit(_held_jacobian)
 measurement_rows = _jit(_measurement_rows)
 secant_factor = _jit(_secant_factor)
 prediction_error = _jit(_prediction_error)
@@ -1507,14 +1610,13 @@ def warm_up_held() -> None:
 
 def warm_up_interval() -> None:
     """Compile (or load) :func:`held_interval` with the step Jacobian it calls (:func:`step_jacobian`, called from
-    Python too, at the step map's rebuilds), and :func:`held_jacobian` (the bound's recursion calls it)."""
+    Python too, at the step map's rebuilds)."""
     r, nq = 2, 1
     z, u, dl = np.zeros(2 * r), np.zeros(nq), np.zeros(nq)
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     step_jacobian(z, *jac, np.zeros((0, 0)))
     for has_old in (False, True):
         held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, tuple(_example_system(r, nq, has_old)))
-    held_jacobian(z, nq, *jac, np.zeros((0, 0)), tuple(_example_system(r, nq)))
 
 
 def warm_up_maps() -> None:
