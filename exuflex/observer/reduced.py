@@ -79,6 +79,7 @@ from operator import sub
 import numpy as np
 
 from ..erls.kinematics import KinematicsError
+from ..erls.sensing import SecondOrderPlan
 from ..erls.simulate import rk4_amplification, rk4_step
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
@@ -378,6 +379,7 @@ class ReducedObserverModel:
         self.link_names = [lk.name for lk in self.mech.links]
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
+        self._second_order: dict = {}  # the tip points' SecondOrderPlan, per (link, station)
         self._noC2 = np.zeros((0, self.r))
         self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = self.n_rows = 0
@@ -1055,6 +1057,20 @@ class ReducedObserverModel:
         return z
 
     def tip_rows(self, q, link: str, station: float) -> np.ndarray:
-        """(2, r) map from p to the tip elastic displacement (global frame) at configuration q."""
+        """(2, r) map from p to the tip elastic displacement (global frame) at configuration q, to first order."""
         rc = self.rm.cb.at(q)
         return self.model.point_displacement_rows(rc.cfg, link, station) @ rc.H[self.nq :]
+
+    def tip_maps(self, q, link: str, station: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A, C, Gr)`` at configuration q: the tip's elastic displacement (global frame) to second order in p,
+        ``e = A p + C (Gr p)^2`` (squares entry by entry): ``A`` (2, r) the linear rows (:meth:`tip_rows`), ``C``
+        (2, n_g) and ``Gr = G H_u`` (n_g, r) the links' foreshortening in the basis's elastic displacements
+        ``u = H_u p`` (:class:`~exuflex.erls.sensing.SecondOrderPlan`)."""
+        rc = self.rm.cb.at(q)
+        Hu = rc.H[self.nq :]
+        key = (link, float(station))
+        plan = self._second_order.get(key)
+        if plan is None:
+            plan = self._second_order[key] = SecondOrderPlan(self.model, [key])
+        so = plan.at(rc.cfg.pose)
+        return self.model.point_displacement_rows(rc.cfg, link, station) @ Hu, so.C[0, :2], so.G @ Hu

@@ -809,8 +809,10 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
         out[names[nq + i]] = float(sd[r + i])
     tp = tip_point(mech)
     if tp is not None:
-        # the maps of Observer.physical linearised at z: e = A(q) p, e' = A(q) p' + sum_i (dA/dq_i p) q'_i
-        A, dA, _ = obs.tip_rows_and_rates(q, tp)
+        # the maps of Observer.physical linearised at z: e = A(q) p + w, e' = A(q) p' + sum_i (dA/dq_i p) q'_i + w'
+        # (w = C (Gr p)^2 the second order: at rest its Jacobian in p, 2 C diag(Gr p) Gr, joins A)
+        A, dA, _, (Cw, _, Gw, _) = obs.tip_rows_and_rates(q, tp)
+        A = A + 2.0 * (Cw * (Gw @ z[:r])) @ Gw
         dAp = np.einsum("iaj,j->ai", dA, z[:r])
         for k in range(2):
             C = np.zeros(som.nx)
