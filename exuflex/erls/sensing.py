@@ -8,8 +8,8 @@ giving each channel's row on the full coordinates (what a mode's shape reads in 
 
 A link point's position and angle also have a second order in ``u``, the links' foreshortening
 (:class:`SecondOrderPlan`): the ERLS engine's probes (:func:`exuflex.sensors.erls_probe_record`) and the
-observer's physical tip carry it; the channels' rows here are linear (a slider's second order is some 1e-3 of
-its noise on the gallery, docs/shortening.md).
+observer's physical tip carry it; the channels' rows here are linear (a point channel's second order, the
+slider-crank's slider, is 1.5e-5 of its noise: docs/shortening.md).
 """
 
 from __future__ import annotations

@@ -1111,14 +1111,10 @@ class ReducedObserverModel:
             z[self.r : self.r + self.nq] = qd
         return z
 
-    def tip_rows(self, q, link: str, station: float) -> np.ndarray:
-        """(2, r) map from p to the tip elastic displacement (global frame) at configuration q, to first order."""
-        rc = self.rm.cb.at(q)
-        return self.model.point_displacement_rows(rc.cfg, link, station) @ rc.H[self.nq :]
-
     def tip_maps(self, q, link: str, station: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(A, C, Gr)`` at configuration q: the tip's elastic displacement (global frame) to second order in p,
-        ``e = A p + C (Gr p)^2`` (squares entry by entry): ``A`` (2, r) the linear rows (:meth:`tip_rows`), ``C``
+        ``e = A p + C (Gr p)^2`` (squares entry by entry): ``A`` (2, r) the linear rows (the point's displacement
+        rows, :meth:`~exuflex.erls.model.ErlsModel.point_displacement_rows`, in the basis), ``C``
         (2, n_g) and ``Gr = G H_u`` (n_g, r) the links' foreshortening in the basis's elastic displacements
         ``u = H_u p`` (:class:`~exuflex.erls.sensing.SecondOrderPlan`)."""
         rc = self.rm.cb.at(q)

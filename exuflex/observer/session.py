@@ -201,7 +201,7 @@ class Observer:
                  ) -> Signals:
         """Physical estimates (q, dq/dt, tip elastic displacement and rate) from reduced states (n, nx).
 
-        The tip's elastic displacement is ``e = A(q) p + w`` with ``A`` the tip rows (:meth:`tip_rows`, global
+        The tip's elastic displacement is ``e = A(q) p + w`` with ``A`` the tip rows (global
         frame) and ``w = C(q) (Gr(q) p)^2`` its second order, the links' foreshortening
         (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`, what the truth's tip position holds and
         linear elastic displacements do not), and its rate, what the truth's ``p_tip' - J q'`` is,
