@@ -2,8 +2,10 @@
 
 At rest the two are the same linear system, damping included: every free mode's frequency and damping ratio agree
 with each other and with the model file's Rayleigh ratio. Under the manoeuvre they part by a coupling of second
-order in the motion (the axial forces of the moving links across their bending), so with the torques scaled down
-the two truths agree, and their difference, as a fraction of the ringing, falls in proportion to the torques.
+order in the motion, which the ERLS formulation carries to first order only (mostly the relative elbow's ERLS frame,
+which puts the upper arm's elastic rotation at the elbow into the forearm's elastic field as a rigid turn; the rest
+the axial forces of the moving links across their bending: docs/long_arms.md), so with the torques scaled down the
+two truths agree, and their difference, as a fraction of the ringing, falls in proportion to the torques.
 """
 
 from __future__ import annotations

@@ -604,7 +604,51 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg)
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv))
+
+    def _velocity_forms(self, iv: _Held) -> dict:
+        """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held
+        configuration differentiated in each elastic coordinate ``p_m`` (empty in the paper's form, ``J = H``).
+
+        The held configuration is undeformed; a deformed one has the velocity map ``J = J_0 + sum_m p_m A_m``,
+        ``A_m = [d(H e_m)/dq, 0]`` (its rigid columns). The velocity tensor ``T(J)`` (``J^T h(J w) = 1/2 sum_k w_k
+        T_k w``, :meth:`~exuflex.erls.model.ErlsModel.velocity_force_tensor`) is quadratic in ``J`` (through ``W J``),
+        so its derivative along ``A_m`` is the central difference ``(T(J_0 + c A_m) - T(J_0 - c A_m)) / 2c``
+        exactly, for any ``c`` (``c |A_m| = |J_0|``: the differences' round-off at the forms' own scale); the bias
+        form ``C2[k, j] = 2 (W J)^T M_N W d(H e_k)/dq_j`` is linear in ``J``: ``pC2_m`` takes ``W A_m`` for ``W J``.
+        The bias acceleration's curvature term ``d^2(H p)/dq^2 [q', q']`` (:meth:`.ReducedModel.basis_curvature`)
+        is linear in the elastic coordinates and zero at the held configuration: its force ``-(W J_0)^T M_N W
+        d^2(H e_m)/dq_k dq_j q'_k q'_j p_m`` is a bilinear form in the joint rates per unit ``p_m``, added to
+        ``pC2_m``'s entries ``k < nq`` (:meth:`.ReducedModel.basis_hessian`). The geometric q-row form ``V`` is
+        exact in the elastic coordinates already."""
+        nq, r = self.nq, self.r
+        fm = iv.forces
+        if fm.elastic is None or fm.dHdq is None or r == nq:
+            return {"pT": _NO_ROWS, "pC2": _NO_ROWS}
+        model = self.model
+        cfg = iv.mats.rc.cfg
+        J0 = iv.mats.J
+        dHdq = fm.dHdq  # (r, n, nq): d(H e_k)/dq
+        Sd = model.coordinate_derivatives(cfg)
+        MW = cfg.M_N @ cfg.W
+        n_el = r - nq
+        pT = np.empty((n_el, r * r * r))
+        pC2 = np.empty((n_el, r * nq * r))
+        scale = float(np.abs(J0).max())
+        for m in range(n_el):
+            A = np.zeros_like(J0)
+            A[:, :nq] = dHdq[nq + m]
+            c = scale / max(float(np.abs(A).max()), 1e-300)
+            dT = (model.velocity_force_tensor(cfg, J0 + c * A, Sd) - model.velocity_force_tensor(cfg, J0 - c * A, Sd))
+            pT[m] = (dT / (2.0 * c)).ravel()
+            dJtM = (cfg.W @ A).T @ MW  # (r, n): d((W J)^T M_N W) along A_m, rows j < nq only
+            pC2[m] = (2.0 * np.swapaxes(dJtM @ dHdq, 1, 2)).ravel()
+        # the curvature of the bias acceleration: (W J_0)^T M_N W Z_m[:, k, j] in pC2_m[k, j, :], k < nq
+        Z = self.rm.basis_hessian(cfg.pose.q)  # (r - nq, n, nq, nq)
+        JtMW = (cfg.W @ J0).T @ MW  # (r, n)
+        pC = pC2.reshape(n_el, r, nq, r)
+        pC[:, :nq] += np.einsum("cx,mxkj->mkjc", JtMW, Z)
+        return {"pT": pT, "pC2": pC2}
 
     @staticmethod
     def _elastic(fm) -> dict:
@@ -800,11 +844,22 @@ class ReducedObserverModel:
         pred, iv, sm = self.frozen_interval(z, u, dt)
         self._last = iv
         self.last_step = (iv, sm)
+        return Prediction(self.advance(z, u, dt, iv), pred.F, pred.Q)
+
+    def advance(self, z: np.ndarray, u, dt: float, iv: _Held | None = None) -> np.ndarray:
+        """The reduced equations ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')`` integrated over
+        ``dt`` from ``z`` with ``u`` held: RK4 sub-steps (:meth:`substeps`, of the configuration ``iv`` at ``z``,
+        evaluated if not given), every stage at its own state. The reference step's state, and the reduced truth's
+        (:func:`exuflex.truth.reduced_truth`)."""
+        u = self._input(u)
+        z = np.asarray(z, float)
+        if iv is None:
+            iv = self._configuration(z)
         n = self.substeps(iv, dt)
-        x = np.array(z, float)
+        x = z.copy()
         for _ in range(n):
             x = rk4_step(self.rm.rhs, 0.0, x, dt / n, u)
-        return Prediction(x, pred.F, pred.Q)
+        return x
 
     # ------------------------------------------------------------------ the model's interface
     def _input(self, u) -> np.ndarray:

@@ -49,7 +49,7 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..observer import kalman
 from ..observer.base import DiscreteModel
-from ..observer.expansion import held_interval, step_jacobian
+from ..observer.expansion import held_interval
 from ..observer.reduced import ReducedObserverModel
 from ..observer.session import LogColumns, Observer, physical_names, start_configuration
 from ..observer.tuning import van_loan
@@ -669,19 +669,19 @@ BOUND_TIP_RADIUS = 3e-2
 
 
 def _step_linearisation(model: ReducedObserverModel):
-    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` without its sub-steps (the
-    held configuration and step map as :meth:`exuflex.observer.reduced.ReducedObserverModel.predict` renews them, and the step
-    Jacobian kernel :func:`exuflex.observer.expansion.step_jacobian` it calls with them); None for the reference step (``rk4``:
-    through ``predict``). ``tests/test_bound.py`` checks that it returns ``predict``'s ``F`` and ``Q``."""
+    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` (the held configuration and
+    step map as :meth:`exuflex.observer.reduced.ReducedObserverModel.predict` renews them, and the interval kernel
+    :func:`exuflex.observer.expansion.held_interval` it calls with them: the Jacobian takes the interval's mean
+    motion, :func:`~exuflex.observer.expansion.position_forces` and the held matrices' change with the elastic
+    coordinates); None for the reference step (``rk4``: through ``predict``). ``tests/test_bound.py`` checks that
+    it returns ``predict``'s ``F`` and ``Q``."""
     if model.method != "cached":
         return None
 
     def linearise(x, u, dt):
         u = model.torques(u)
-        iv, dl, s, n, sm = model.prepare(x, u, dt)
-        if iv.system.Wg.shape[0]:  # gravity: the Jacobian takes the interval's held matrices (position_forces)
-            return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
-        return step_jacobian(x, *sm.tail[:5], iv.system.Wg), sm.Q
+        _, dl, s, n, sm = model.prepare(x, u, dt)
+        return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
 
     return linearise
 
