@@ -40,9 +40,11 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
     p2 = rng.normal(size=(nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     Wg = rng.normal(size=(r, r))  # the weight's gradient (gravity), and the secant partner's
     old_Wg = Wg + 1e-1 * rng.normal(size=(r, r))
+    # the motion's geometric stiffness as a form in [1, u, q'q'] (a few percent of K_r)
+    KGd = 1e-2 * np.abs(Kr).max() * rng.normal(size=(1 + Gr.shape[1] + nq * (nq + 1) // 2, r * r))
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
                            grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG, p2, Wg,
-                           old_Wg)
+                           old_Wg, KGd)
 
 
 def test_kernels_take_the_held_system_as_one_argument():
@@ -375,7 +377,7 @@ def test_elastic_forms_are_the_derivatives_of_the_reduced_matrices(name):
     hs = ex.HeldSystem(False, beta, mats.Mr, mats.Kr, mats.Cr - beta * mats.Kr, mats.Gr, fm.dMr2, fm.dKr2, fm.fg,
                        fm.T2, fm.V2, fm.C2 if fm.C2 is not None else np.zeros((0, r)), fm.dMr2, fm.dKr2,
                        mats.Cr - beta * mats.Kr, mats.Gr, fm.fg, fm.T2, fm.V2,
-                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg, fm.Wg)
+                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg, fm.Wg, fm.KGd)
     first = hs._replace(p2C=np.zeros_like(hs.p2C))
     zq = np.zeros(nq)
 

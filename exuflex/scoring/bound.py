@@ -49,7 +49,7 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..observer import kalman
 from ..observer.base import DiscreteModel
-from ..observer.expansion import held_interval, step_jacobian
+from ..observer.expansion import held_interval, motion_gradient, motion_rates, motion_stiffness, step_jacobian
 from ..observer.reduced import ReducedObserverModel
 from ..observer.session import LogColumns, Observer, physical_names, start_configuration
 from ..observer.tuning import van_loan
@@ -681,7 +681,13 @@ def _step_linearisation(model: ReducedObserverModel):
         iv, dl, s, n, sm = model.prepare(x, u, dt)
         if iv.system.Wg.shape[0]:  # gravity: the Jacobian takes the interval's held matrices (position_forces)
             return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
-        return step_jacobian(x, *sm.tail[:5], iv.system.Wg), sm.Q
+        Fp, KGd = iv.system.Wg, iv.system.KGd
+        Kd = motion_stiffness(u, x, model.nq, KGd)  # the motion's geometric stiffness, as held_interval takes it
+        if KGd.shape[0]:
+            Fp = motion_gradient(Fp, Kd)
+        F = step_jacobian(x, *sm.tail[:5], Fp)
+        motion_rates(F, x, u, model.nq, sm.tail[4], KGd, Kd, dt)
+        return F, sm.Q
 
     return linearise
 
