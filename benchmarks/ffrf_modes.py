@@ -175,7 +175,7 @@ def markdown(res: list[dict], conv: list[dict], cmd: str, damping_cmd: str | Non
             if f <= r["band_hz"]:
                 lines.append(f"| {r['model']} | {f:.2f} | {100 * z:.3f} | {100 * zs:.3f} | {z / zs:.4f} |")
     lines.append("")
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:

@@ -354,10 +354,13 @@ def acceptance_page(rows: list[dict], settings: dict) -> str:
                   "once per engine and measured with every seed's noise (the truth's motion does not depend on the "
                   "seed). Truths: "
                   + ", ".join(f"{k} (limit {v}x)" for k, v in ACCEPTANCE.items())
-                  + f", and the consistent reference `{CONSISTENT}` (the observer's own reduced model generating the "
-                  "data: what a consistent filter's figures and their scatter look like; it is stepped by the frozen "
-                  "map of each interval's start configuration, `exuflex.truth.reduced_truth`, so the paired "
-                  "excess over it includes that map's departure from the continuous dynamics)."), ""]
+                  + (f", and the consistent reference `{CONSISTENT}` (the observer's own reduced model generating "
+                     "the data: what a consistent filter's figures and their scatter look like; RK4 of the reduced "
+                     "equations with every stage at its own state, `exuflex.truth.reduced_truth`, so the paired "
+                     "excess over it is the filter's own step's departure from its continuous model)."
+                     if any(r["engine"] == CONSISTENT for r in rows) else
+                     f"; the consistent reference `{CONSISTENT}` was not run in this rerun (`--engine` without it), "
+                     "so its columns are blank.")), ""]
     stats = seed_statistics(rows, pc)
     engines = list(dict.fromkeys(r["engine"] for r in rows))
     models = list(dict.fromkeys(r["model"] for r in rows))

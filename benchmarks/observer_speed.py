@@ -17,6 +17,11 @@ filters it once more with timers around the parts of a sample (each timer costs 
 The split says what a faster sample would have to remove: the real-time factor with the rest taken away is
 printed as the ceiling of the present arithmetic.
 
+The online use: the same log through :meth:`~exuflex.observer.ekf.BeliefFilter.step`, sample by sample (the model's
+own interval and measurement in Python, the rest of each sample in the compiled loop's one-sample entry,
+:func:`exuflex.observer.loop.given`), against ``run`` on it (the compiled loop), ``--repeats`` pairs in turn in
+one interpreter: the median ratio of their times.
+
 What a user waits for: ``python -m exuflex observe MODEL RUN`` in a fresh interpreter ``--repeats`` times (numba's
 cache and Python's bytecode warm: one run first), its wall time against the filter's own (the ``wall`` it
 prints), with the import of the command line and the observer timed apart. Where the rest goes: as many fresh
@@ -27,7 +32,7 @@ set: no exuflex code runs); the runs of the three kinds alternate. ``--against D
 another version, e.g. ``git worktree add /tmp/base main``): the filter's time on the log in a fresh interpreter
 of each checkout (the median of 5 runs), in turn, ``--repeats`` pairs; the median of the pairs' ratios (each pair
 ran at nearly the same moment, so the machine's drift cancels); the same for the wall time of ``exuflex observe``
-and for that wall less the filter's own time. Figures are ratios and fractions of one run (the machine's
+and for that wall less the filter's own time, and for the log filtered through ``step`` sample by sample. Figures are ratios and fractions of one run (the machine's
 speed drifts); the absolute factor holds for this machine at this moment only. The figures go to the markdown page
 ``--md`` with the machine's load average at the end of the run.
 """
@@ -37,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import sys
 import time
@@ -111,6 +117,7 @@ def main(argv=None) -> int:
     Y = S.select(obs.channels).data
     estimate(obs, S.t, U, Y)  # compile and warm
     rtf = [estimate(obs, S.t, U, Y).real_time_factor for _ in range(args.repeats)]
+    online = [(_run_s(obs.ekf, S.t, U, Y), _steps_s(obs.ekf, S.t, U, Y)) for _ in range(args.repeats)]
     n = len(S.t)
     span = float(S.t[-1] - S.t[0])
 
@@ -133,7 +140,11 @@ def main(argv=None) -> int:
            "real_time_factors": rtf, "timed_run_us_per_sample": 1e6 * wall / n, "us_per_sample": us,
            "fraction": {k: v / wall for k, v in parts.items()},
            "calls": {k: t.calls for k, t in timers.items()}, "step_map_rebuilds": obs.model.n_remap - maps0,
-           "real_time_factor_without_the_rest": ceiling}
+           "real_time_factor_without_the_rest": ceiling,
+           "step_over_run": statistics.median(b / a for a, b in online),
+           "step_over_run_ratios": [b / a for a, b in online],
+           "step_us_per_sample": 1e6 * statistics.median(b for _, b in online) / n,
+           "run_us_per_sample": 1e6 * statistics.median(a for a, _ in online) / n}
     out["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     out["observe"] = _observe_wall(args.model, args.run, args.repeats)
     if args.against:
@@ -151,6 +162,8 @@ def main(argv=None) -> int:
         c = out["calls"].get(k)
         print(f"  {k:40s} {v:7.1f} us  {100 * out['fraction'][k]:5.1f} %" + (f"  ({c} calls)" if c is not None else ""))
     print(f"real-time factor with the rest removed: {ceiling:.1f}")
+    print(f"step() sample by sample over run(): median of {args.repeats} pairs {out['step_over_run']:.3f} "
+          f"({out['step_us_per_sample']:.1f} / {out['run_us_per_sample']:.1f} us per sample)")
     ob = out["observe"]
     print(f"exuflex observe: median wall {ob['median_wall_s']:.2f} s, the filter {ob['median_filter_s']:.3f} s, "
           f"imports {ob['median_import_s']:.2f} s ({args.repeats} runs)")
@@ -159,6 +172,7 @@ def main(argv=None) -> int:
         a = out["against"]
         print(f"filter time / {a['dir']}'s: median of {args.repeats} pairs {a['median_ratio']:.3f} "
               f"({', '.join(f'{r:.3f}' for r in a['ratios'])})")
+        print(f"step() sample by sample / {a['dir']}'s: median of {args.repeats} pairs {a['median_step_ratio']:.3f}")
         print(f"observe wall / {a['dir']}'s: median of {args.repeats} pairs {a['median_observe_wall_ratio']:.3f}; "
               f"wall less the filter: {a['median_observe_rest_ratio']:.3f}")
     return 0
@@ -171,9 +185,25 @@ def _env(tree: Path) -> dict:
     return env
 
 
+def _run_s(ekf, t, U, Y) -> float:
+    """The wall time of ``ekf.run`` on the log (the compiled loop)."""
+    t0 = time.perf_counter()
+    ekf.run(t, U, Y)
+    return time.perf_counter() - t0
+
+
+def _steps_s(ekf, t, U, Y) -> float:
+    """The wall time of the log through ``ekf.step``, sample by sample from the prior (the online use)."""
+    t0 = time.perf_counter()
+    ekf.reset()
+    for k in range(len(t)):
+        ekf.step(t[k], U[k], Y[k])
+    return time.perf_counter() - t0
+
+
 def _child(model: str, run_dir: str) -> int:
-    """The median time of :data:`CHILD_RUNS` filter runs on the log after a warm-up, printed as JSON (``--against``'s
-    measurement)."""
+    """The median time of :data:`CHILD_RUNS` filter runs on the log after a warm-up, and of as many passes through
+    ``step`` sample by sample, printed as JSON (``--against``'s measurement)."""
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
     from exuflex.runs import read_run
@@ -189,7 +219,8 @@ def _child(model: str, run_dir: str) -> int:
         t0 = time.perf_counter()
         estimate(obs, S.t, U, Y)
         times.append(time.perf_counter() - t0)
-    print(json.dumps({"filter_s": statistics.median(times)}))
+    steps = [_steps_s(obs.ekf, S.t, U, Y) for _ in range(CHILD_RUNS)]
+    print(json.dumps({"filter_s": statistics.median(times), "step_s": statistics.median(steps)}))
     return 0
 
 
@@ -340,10 +371,10 @@ def _paired(model: str, run_dir: str, repeats: int, other: Path) -> dict:
     import re
     import subprocess
 
-    def filter_s(tree: Path) -> float:
+    def filter_s(tree: Path) -> dict:
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--model", model, "--run", run_dir]
         res = subprocess.run(cmd, env=_env(tree), cwd=tree, capture_output=True, text=True, check=True)
-        return json.loads(res.stdout.strip().splitlines()[-1])["filter_s"]
+        return json.loads(res.stdout.strip().splitlines()[-1])
 
     def observe_s(tree: Path) -> tuple[float, float]:
         cmd = [sys.executable, "-m", "exuflex", "observe", model, run_dir]
@@ -357,11 +388,15 @@ def _paired(model: str, run_dir: str, repeats: int, other: Path) -> dict:
         return [(once(ROOT), once(other)) if i % 2 == 0 else tuple(reversed((once(other), once(ROOT))))
                 for i in range(repeats)]
 
-    ratios = [a / b for a, b in pairs(filter_s)]
+    filters = pairs(filter_s)
+    ratios = [a["filter_s"] / b["filter_s"] for a, b in filters]
+    # (a checkout whose child does not time step() reports no step ratio)
+    step_ratios = [a["step_s"] / b["step_s"] for a, b in filters if "step_s" in b]
     walls = pairs(observe_s)
     wall_ratios = [a[0] / b[0] for a, b in walls]
     rest_ratios = [a[1] / b[1] for a, b in walls]
     return {"dir": str(other), "ratios": ratios, "median_ratio": statistics.median(ratios),
+            "step_ratios": step_ratios, "median_step_ratio": statistics.median(step_ratios) if step_ratios else None,
             "observe_wall_ratios": wall_ratios, "median_observe_wall_ratio": statistics.median(wall_ratios),
             "observe_rest_ratios": rest_ratios, "median_observe_rest_ratio": statistics.median(rest_ratios),
             "observe_walls": walls}
@@ -378,7 +413,7 @@ def _page(out: dict, argv: list, repeats: int) -> str:
     versions = versions_text()
     return (
         "# Where the observer's time goes\n\n"
-        f"Written by `{' '.join(['python benchmarks/observer_speed.py', *argv])}` (see its docstring).\n\n"
+        f"Written by `python benchmarks/observer_speed.py {shlex.join(argv)}` (see its docstring).\n\n"
         f"Model {out['model']}, {out['samples']} samples over {out['span_s']:.3g} s, default settings: median real-time "
         f"factor **{out['median_real_time_factor']:.1f}** over {repeats} runs "
         f"({', '.join(f'{r:.1f}' for r in out['real_time_factors'])}); the configuration evaluated "
@@ -390,6 +425,10 @@ def _page(out: dict, argv: list, repeats: int) -> str:
         "| part | us per sample | share | calls |\n|---|---|---|---|\n" + rows + "\n\n"
         f"Real-time factor with the rest taken away (the ceiling of the present arithmetic): "
         f"{out['real_time_factor_without_the_rest']:.1f}.\n\n"
+        f"The online use, the log through `step()` sample by sample (the model's own interval and measurement, the "
+        f"rest in the loop's one-sample entry) over `run()` (the compiled loop), {repeats} pairs in turn: median ratio "
+        f"**{out['step_over_run']:.3f}** ({', '.join(f'{r:.3f}' for r in out['step_over_run_ratios'])}); "
+        f"{out['step_us_per_sample']:.1f} against {out['run_us_per_sample']:.1f} us per sample (medians).\n\n"
         + _observe_section(out, repeats)
         + f"Versions: {versions}.\n"
     )
@@ -452,7 +491,10 @@ def _observe_section(out: dict, repeats: int) -> str:
                  + (f"`{a['dir']}`: {a['label']}.\n\n" if a.get("label") else "")
                  + f"The filter's time on the log, this checkout over `{a['dir']}`, {repeats} pairs run in turn: median "
                  f"ratio **{a['median_ratio']:.3f}** ({', '.join(f'{r:.3f}' for r in a['ratios'])}).\n\n"
-                 f"`exuflex observe` on the log, this checkout over `{a['dir']}`, {repeats} pairs in turn: median ratio of "
+                 + (f"The log through `step()` sample by sample, in the same interpreters: median ratio "
+                    f"**{a['median_step_ratio']:.3f}** ({', '.join(f'{r:.3f}' for r in a['step_ratios'])}).\n\n"
+                    if a.get("median_step_ratio") is not None else "")
+                 + f"`exuflex observe` on the log, this checkout over `{a['dir']}`, {repeats} pairs in turn: median ratio of "
                  f"the wall times **{a['median_observe_wall_ratio']:.3f}** "
                  f"({', '.join(f'{r:.3f}' for r in a['observe_wall_ratios'])}); of the wall less the filter's own "
                  f"time **{a['median_observe_rest_ratio']:.3f}** "

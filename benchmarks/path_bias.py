@@ -86,7 +86,7 @@ def markdown(res: dict, cmd: str) -> str:
     for r in res["rows"]:
         lines.append(f"| {r['engine']} ({r['elements_per_link']}) | {r['path']} | "
                      + " | ".join(f"{r['ratio_to_bound'][q]:.2f}" for q in qs) + " |")
-    lines += ["", "| | bound | " + " | ".join(f"{res['rows'][0]['bound_rms'][q]:.3g}" for q in qs) + " |", ""]
+    lines += ["", "The bound: " + ", ".join(f"{q} {res['rows'][0]['bound_rms'][q]:.3g}" for q in qs) + ".", "", ""]
     return "\n".join(lines)
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from .erls.elements import GENERATOR
 from .erls.kinematics import Kinematics, KinematicsError
 from .erls.model import ErlsModel
+from .erls.sensing import SecondOrderPlan
 from .mechanism import Mechanism, elastic_dofs
 from .probes import Probe, ProbeRecord, probes_for
 
@@ -514,9 +515,12 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
         Values and exact time rates:
 
         - slope = rigid link angle + elastic rotation (the node's rotation dof at a node, else the
-          Hermite slope of the local transverse displacement); rate ``S_th q' + A u' + theta' A_th u``;
-        - point = rigid point (``Kinematics.point``) + ``A u`` (the rows of ``point_displacement_rows``);
-          rate ``J q' + A u' + theta' A_th u``;
+          Hermite slope of the local transverse displacement) + its second order ``w_th``; rate
+          ``S_th q' + A u' + theta' A_th u + w_th'``;
+        - point = rigid point (``Kinematics.point``) + ``A u`` (the rows of ``point_displacement_rows``) + its
+          second order ``w`` (the links' foreshortening, :class:`~exuflex.erls.sensing.SecondOrderPlan`: the
+          model's elastic displacements are linear, its axial ones the links' stretch); rate
+          ``J q' + A u' + theta' A_th u + w'``;
         - curvature = ``A u`` (the rows of ``curvature_row``); rate ``A u' + theta' A_th u``.
     """
     probes = probes_for(model.mech) if probes is None else probes
@@ -542,6 +546,10 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
                 row = None
         plan.append((p, li[p.link], row))
     T = model.T
+    # the points' and slopes' second order in u (the links' foreshortening, SecondOrderPlan): index per probe
+    second = [j for j, (p, _, _) in enumerate(plan) if p.kind != "curvature"]
+    so_plan = SecondOrderPlan(model, [(plan[j][0].link, plan[j][0].station) for j in second]) if second else None
+    so_index = {j: i for i, j in enumerate(second)}
     z = None
     for k in range(len(t)):
         q, u, qd, ud = Y[k, :nq], Y[k, nq:n], Y[k, n : n + nq], Y[k, n + nq :]
@@ -549,10 +557,13 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
         pose = cfg.pose
         z = pose.z
         d, dd = T @ u, T @ ud  # nodal elastic displacements and rates
-        for p, i, row in plan:
+        if so_plan is not None:
+            so = so_plan.at(pose, qd)
+            w2, w2d = so.values(u), so.rates(u, ud)
+        for j, (p, i, row) in enumerate(plan):
             thd = pose.Sz[3 * i + 2] @ qd
             if p.kind == "slope":
-                rig, rig_d = pose.z[3 * i + 2], thd
+                rig, rig_d = pose.z[3 * i + 2] + w2[so_index[j], 2], thd + w2d[so_index[j], 2]
                 if row is not None:
                     vals[p.key][k] = rig + d[row]
                     rates[p.key][k] = rig_d + dd[row]
@@ -560,7 +571,7 @@ def erls_probe_record(model: ErlsModel, t, Y, probes: tuple[Probe, ...] | None =
                 A, A_th = _nodal_rows(model, cfg, p.link, p.station, "slope")
             elif p.kind == "point":
                 rig, J = kin.point(pose, p.link, p.station)
-                rig_d = J @ qd
+                rig, rig_d = rig + w2[so_index[j], :2], J @ qd + w2d[so_index[j], :2]
                 A, A_th = _nodal_rows(model, cfg, p.link, p.station, "point")
             else:
                 rig, rig_d = 0.0, 0.0

@@ -95,6 +95,22 @@ def quadratic_forces(p, pd, nq, fg, T2, V2, C2):
     return f
 
 
+def velocity_terms(pe, pd, nq, pT, pC2):
+    """The velocity forces' first order in the elastic coordinates (``expansion._velocity_terms``) and their
+    derivatives: ``(f, df/dpe, df/dp')`` with ``f = -sum_m pe_m (1/2 p' T_m p' + sum_{j < nq} p'_k p'_j C_m[k, j])``."""
+    r = pd.shape[0]
+    n_el = pT.shape[0]
+    T4 = pT.reshape(n_el, r, r, r)  # [m, k, i, j]
+    C4 = pC2.reshape(n_el, r, nq, r)  # [m, k, j, c]
+    g = -0.5 * np.einsum("mkij,k,j->im", T4, pd, pd) - np.einsum("mkjc,k,j->cm", C4, pd, pd[:nq])
+    Te = np.einsum("m,mkij->kij", pe, T4)
+    Ce = np.einsum("m,mkjc->kjc", pe, C4)
+    dv = -0.5 * (np.einsum("aij,j->ia", Te, pd) + np.einsum("jia,j->ia", Te, pd))
+    dv -= np.einsum("ajc,j->ca", Ce, pd[:nq])
+    dv[:, :nq] -= np.einsum("kac,k->ca", Ce, pd)
+    return g @ pe, g, dv
+
+
 def rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):
     """``n`` RK4 steps of ``M p'' + C p' + K p = G u + f`` from ``z = [p; p']``."""
     r = Mr.shape[0]
@@ -142,6 +158,8 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
     if hs.has_old:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))
+    if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
+        f = f + velocity_terms(z[nq:r], z[r:], nq, hs.pT, hs.pC2)[0]
     if hs.Wg.shape[0]:  # the weight by its gradient in q and, with a partner, half the gradient's change along the
         # secant: fg + (Wg + s/2 (Wg - old_Wg)) dl, less the secant's s (fg - old_fg) in f already
         Wq = hs.Wg[:, :nq] + 0.5 * s * (hs.Wg[:, :nq] - hs.old_Wg[:, :nq]) if hs.has_old else hs.Wg[:, :nq]
@@ -245,6 +263,11 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
             dF[:, r : r + nq] -= w * np.einsum("k,kmc->cm", pd, C3)
         fk.append(fi)
         f += w * fi
+    if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
+        fv, dfe, dfv = velocity_terms(p[nq:], pd, nq, hs.pT, hs.pC2)
+        f += fv
+        dF[:, nq:r] += dfe
+        dF[:, r:] += dfv
     # the secant factor's change with q where the secant is in use (expansion._secant_factor)
     act = False
     if hs.has_old and d.shape[0]:

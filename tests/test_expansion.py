@@ -40,11 +40,16 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
     p2 = rng.normal(size=(nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     Wg = rng.normal(size=(r, r))  # the weight's gradient (gravity), and the secant partner's
     old_Wg = Wg + 1e-1 * rng.normal(size=(r, r))
+    # the velocity forms' change with the elastic coordinates
+    pT = 1e-1 * rng.normal(size=(r - nq, r * r * r))
+    pC2 = np.zeros((0, 0)) if noC else 1e-1 * rng.normal(size=(r - nq, r * nq * r))
+    if noC:
+        pT = np.zeros((0, 0))
     # the motion's geometric stiffness as a form in [1, u, q'q'] (a few percent of K_r)
     KGd = 1e-2 * np.abs(Kr).max() * rng.normal(size=(1 + Gr.shape[1] + nq * (nq + 1) // 2, r * r))
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
                            grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG, p2, Wg,
-                           old_Wg, KGd)
+                           old_Wg, pT, pC2, KGd)
 
 
 def test_kernels_take_the_held_system_as_one_argument():
@@ -218,15 +223,17 @@ def test_prediction_error_kernel_equals_numpy_oracle(has_old):
 
 def test_held_force_model_reproduces_the_reduced_forces(sixbar_observer_state):
     """The held quadratic forms (:class:`~exuflex.reduction.model.QuadraticForces`: velocity force tensor, q-row
-    geometric term, bias term) evaluated at the held state equal the forces ``fr`` of the reduced model's direct
-    evaluation there (measured: 5e-17 against 0.05 N m)."""
+    geometric term, bias term with its curvature part) evaluated at the held state equal the forces ``fr`` of the
+    reduced model's direct evaluation there (measured: 6e-10 against 0.02 N m: ``fr`` takes the bias acceleration's
+    curvature term by a forward difference, :meth:`~exuflex.reduction.ReducedModel.basis_curvature`, the force model
+    by central ones)."""
     model, _, z, _ = sixbar_observer_state
     rm, r = model.rm, model.r
     mats, forces = rm.held(z[:r], z[r:], fr=True, gradients=False)
     fq = forces(z[:r], z[r:])
     scale = np.abs(mats.fr - forces.fg).max()  # the state-dependent part
     assert scale > 0
-    assert np.abs(fq - mats.fr).max() <= 1e-9 * scale, (np.abs(fq - mats.fr).max(), scale)
+    assert np.abs(fq - mats.fr).max() <= 1e-7 * scale, (np.abs(fq - mats.fr).max(), scale)
 
 
 def test_rk4_substep_limit_is_the_stability_boundary():
@@ -377,7 +384,8 @@ def test_elastic_forms_are_the_derivatives_of_the_reduced_matrices(name):
     hs = ex.HeldSystem(False, beta, mats.Mr, mats.Kr, mats.Cr - beta * mats.Kr, mats.Gr, fm.dMr2, fm.dKr2, fm.fg,
                        fm.T2, fm.V2, fm.C2 if fm.C2 is not None else np.zeros((0, r)), fm.dMr2, fm.dKr2,
                        mats.Cr - beta * mats.Kr, mats.Gr, fm.fg, fm.T2, fm.V2,
-                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg, fm.Wg, fm.KGd)
+                       fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg, fm.Wg,
+                       np.zeros((0, 0)), np.zeros((0, 0)), fm.KGd)
     first = hs._replace(p2C=np.zeros_like(hs.p2C))
     zq = np.zeros(nq)
 

@@ -124,8 +124,9 @@ def test_held_step_against_the_reduced_model(reach):
     (:func:`tests._oracles.rk4_linear`): equal entry by entry to rounding; and (2) a fine RK4 of the reduced model's equations themselves (every stage at its own
     state, 16 times the sub-steps), in the joint angles and rates, against the noise the filter adds per interval
     (``sqrt(Q_ii)``): the scheme with all the reduced model's matrices (``M_r`` too) within half of it (what is left
-    is the forces held over the interval), the cached step, which leaves ``M_r``'s second order out, within 2
-    (1.56 measured at this state, the largest deflection of the manoeuvre's start)."""
+    is the forces held over the interval), the cached step, which leaves ``M_r``'s second order out, within 2 (at
+    this state, the largest deflection of the manoeuvre's start). The held forces are the undeformed forms with the
+    velocity forces' first order in the elastic coordinates (``tests/test_held_velocity.py``)."""
     m, z, u, dt = reach
     r, nq = m.r, m.nq
     rm = m.rm
@@ -137,9 +138,11 @@ def test_held_step_against_the_reduced_model(reach):
     pm[nq:] += 0.5 * dt * z[r + nq :]
     mats = rm.matrices(pm, z[r:], forces=False)
     Mh = ex.held_system(np.zeros(nq), 0.0, pm[nq:], tuple(hs))[0]
+    # the held forces: the undeformed forms, and the velocity forces' first order in the elastic coordinates
+    fh = iv.forces(z[:r], z[r:]) + oracle.velocity_terms(z[nq:r], z[r:], nq, hs.pT, hs.pC2)[0]
     # the motion's geometric forces at the midpoint positions, held as the step holds them
-    fd = -oracle.motion_stiffness(u, z, nq, hs.KGd)[0] @ (z[:r] + 0.5 * dt * z[r:])
-    ref = oracle.rk4_linear(z, u, Mh, mats.Kr, mats.Cr, mats.Gr, iv.forces(z[:r], z[r:]) + fd, h, n)
+    fh = fh - oracle.motion_stiffness(u, z, nq, hs.KGd)[0] @ (z[:r] + 0.5 * dt * z[r:])
+    ref = oracle.rk4_linear(z, u, Mh, mats.Kr, mats.Cr, mats.Gr, fh, h, n)
     assert np.all(np.abs(x - ref) <= 1e-8 * np.abs(ref) + 1e-10 * np.abs(ref).max())
 
     def fine(k):
@@ -157,6 +160,6 @@ def test_held_step_against_the_reduced_model(reach):
     rigid = np.r_[0:nq, r : r + nq]
     y = fine(16)
     assert np.max(np.abs(y - fine(8))[rigid] / sq[rigid]) < 1e-3  # the reference converged
-    exact = oracle.rk4_linear(z, u, mats.Mr, mats.Kr, mats.Cr, mats.Gr, iv.forces(z[:r], z[r:]) + fd, h, n)
+    exact = oracle.rk4_linear(z, u, mats.Mr, mats.Kr, mats.Cr, mats.Gr, fh, h, n)
     assert np.max(np.abs(exact - y)[rigid] / sq[rigid]) < 0.5
     assert np.max(np.abs(x - y)[rigid] / sq[rigid]) < 2.0

@@ -474,8 +474,9 @@ def test_tip_rate_is_the_time_derivative_of_the_tip_deflection(arm):
 def test_physical_in_blocks_is_one_call_and_the_row_formula(arm):
     """:meth:`Observer.physical` on a record cut into blocks (``carry``) gives the numbers of one call on the whole
     record, bit for bit, with non-finite rows left NaN and not moving the evaluation; each row is the stated
-    formula ``A p``, ``A p' + sum_i (dA/dq_i p) q'_i`` with ``A`` moved to first order from the evaluation in
-    force (rows evaluated where q left the radius), computed here sample by sample."""
+    formula ``A p + C (G p)^2``, ``A p' + sum_i (dA/dq_i p) q'_i + C' (G p)^2 + 2 C ((G p) (G p' + G' p))``
+    (``'``: along q') with ``A``, ``C``, ``G`` moved to first order from the evaluation in force (maps evaluated
+    where q left the radius), computed here sample by sample."""
     mech, observer = arm
     t, Z = _turning_states(observer, mech, n=300)
     Z[[17, 18, 140]] = np.nan
@@ -493,11 +494,14 @@ def test_physical_in_blocks_is_one_call_and_the_row_formula(arm):
     for k in np.flatnonzero(np.all(np.isfinite(Z), axis=1)):
         q, p, v = Z[k, :nq], Z[k, :r], Z[k, r : 2 * r]
         if rows is None or np.max(np.abs(q - rows[2])) > 0.05:
-            rows = (observer.model.tip_rows(q, *tp), None, q.copy())
-            rows = (rows[0], np.array([(observer.model.tip_rows(q + 1e-6 * e, *tp) - rows[0]) / 1e-6
-                                       for e in np.eye(nq)]), rows[2])
-        A = rows[0] + np.tensordot(q - rows[2], rows[1], axes=1)
-        want = np.concatenate([A @ p, A @ v + np.tensordot(Z[k, r : r + nq], rows[1], axes=1) @ p])
+            at = observer.model.tip_maps(q, *tp)
+            d = [np.array([(m1 - m0) / 1e-6 for m1 in (observer.model.tip_maps(q + 1e-6 * e, *tp)[i]
+                                                        for e in np.eye(nq))]) for i, m0 in enumerate(at)]
+            rows = (at, d, q.copy())
+        A, C, G = (m + np.tensordot(q - rows[2], dm, axes=1) for m, dm in zip(rows[0], rows[1], strict=True))
+        Ad, Cd, Gd = (np.tensordot(Z[k, r : r + nq], dm, axes=1) for dm in rows[1])
+        g = G @ p
+        want = np.concatenate([A @ p + C @ g**2, A @ v + Ad @ p + Cd @ g**2 + 2 * C @ (g * (G @ v + Gd @ p))])
         np.testing.assert_allclose(tip[k], want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 
 

@@ -11,6 +11,7 @@ import pytest
 
 from exuflex.cli import main
 from exuflex.erls.model import ErlsModel
+from exuflex.erls.sensing import SecondOrderPlan
 from exuflex.errors import LogFormatError
 from exuflex.manoeuvre import plan
 from exuflex.measure import ADC_BITS, measure, quantise
@@ -22,6 +23,7 @@ from exuflex.sensors import (
     erls_probe_record,
     sensor_channels,
     tip_dof_names,
+    tip_point,
     true_states,
     truth_names,
 )
@@ -70,11 +72,14 @@ def test_erls_probe_rates_are_time_derivatives(mech, model):
         assert rec.values[key][1, 0] == pytest.approx(
             model.curvature_row(cfg, s.link, s.station) @ u0, abs=1e-15
         )
-    # the tip truth of an ERLS state is its tip node's elastic dofs
+    # the tip truth of an ERLS state is its tip node's elastic dofs plus their second order (the foreshortening)
     tr = true_states(mech, rec)
-    for name in ("x25", "y26"):
-        assert tr[name][1] == pytest.approx(u0[model.dofs.index(name)], abs=1e-12)
-        assert tr["d" + name][1] == pytest.approx(ud[model.dofs.index(name)], abs=1e-12)
+    so = SecondOrderPlan(model, [tip_point(mech)]).at(cfg.pose, qd)
+    w, wd = so.values(u0)[0], so.rates(u0, ud)[0]
+    assert np.abs(w[:2]).max() > 1e-8  # (of the order of the slopes squared times the links' lengths)
+    for k, name in enumerate(("x25", "y26")):
+        assert tr[name][1] == pytest.approx(u0[model.dofs.index(name)] + w[k], abs=1e-12)
+        assert tr["d" + name][1] == pytest.approx(ud[model.dofs.index(name)] + wd[k], abs=1e-12)
     np.testing.assert_allclose(tr.data[1, :3], q0, atol=1e-12)
 
 

@@ -529,7 +529,7 @@ class AugmentedModel:
 
     # ------------------------------------------------------------------ delegated
     def __getattr__(self, name):
-        # physical maps (tip_rows, initial_state, rm, nq, ...) are the inner model's
+        # physical maps (tip_maps, initial_state, rm, nq, ...) are the inner model's
         if name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)

@@ -585,6 +585,10 @@ class BeliefFilter:
         )
         self._x0, self._P0 = self._prior(x0, P0)
         self._floor = np.zeros(self.nx)  # (the covariance's floor: a filter with one sets its own)
+        n = self.nx  # a record of one sample (what loop.given records a step in)
+        self._one = loop.Record(np.empty((1, n)), _empty_rows(n), -1, _empty_rows(n), _empty_rows(self.m),
+                                _empty_rows(self.m**2), np.empty(1), np.zeros(1, dtype=np.int64), _empty_rows(n),
+                                _empty_rows(n * n), _empty_rows(n * n))
         self._n_lu = np.zeros(1, dtype=np.int64)  # updates solved by LU since the last report
         self._loop = None  # the compiled sample loop over a model's compiled step (the EKF's)
         self.record_theta = None  # the state whose covariance column run() records (the EKF's payload scale)
@@ -634,6 +638,7 @@ class BeliefFilter:
         self._mon = loop.Monitors(self._Rdiag, self._floor, self._gate, self.n_rejected,
                                   *(self.faults.loop_fields if self.faults is not None else loop.no_windows(self.m)),
                                   self.isolate, self._n_lu, np.zeros(0), math.inf, self.fault_holdoff)
+        self._one_sample = loop.one_sample(self._mon, self._one)  # (the two as loop.given and loop.screen take them)
         self.last_idx = None
         self.last_innovation = None
         self.last_S = None
@@ -719,7 +724,7 @@ class BeliefFilter:
         z, keep = np.empty(m), np.empty(m, dtype=bool)
         n_over = kalman.normalise(r, S, self._gate, z) if m else 0
         self._held = self._holdoff > 0
-        n_keep, self._holdoff = loop.screen(self._mon, self._t_now, idx, z, n_over, self._holdoff, keep)
+        n_keep, self._holdoff = loop.screen(self._one_sample, self._t_now, idx, z, n_over, self._holdoff, keep)
         self._report()
         return None if n_keep == m else keep
 
@@ -982,9 +987,6 @@ class MultirateEKF(BeliefFilter):
         extra = self.hooks.i_theta is not None or self.hooks.i_inputs is not None
         loop.warm_up(None if self._loop is None else "augmented" if extra else "plain")
         kalman.warm_up()
-        self._one = loop.Record(np.empty((1, n)), _empty_rows(n), -1, _empty_rows(n), _empty_rows(self.m),
-                                _empty_rows(self.m**2), np.empty(1), np.zeros(1, dtype=np.int64), _empty_rows(n),
-                                _empty_rows(n * n), _empty_rows(n * n))
         self.reset()
 
     # ------------------------------------------------------------------ the two steps
@@ -1045,8 +1047,8 @@ class MultirateEKF(BeliefFilter):
             y_pred[idx], H[idx], y_k = meas[0], meas[1], y
         hold0 = self._holdoff
         x_alt, P_alt = np.empty(n), self._Pspare
-        buf = loop.Buffers(self._x, x_alt, self._P, P_alt, self._Ppred, self._work, self._HP)
-        status, self._holdoff, last = loop.given(t, y_k, hold0, *loop.plain(buf, self._mon, self._one),
+        buf = (self._x, x_alt, self._P, P_alt, self._Ppred, self._work, self._HP)  # (loop.Buffers)
+        status, self._holdoff, last = loop.given(t, y_k, hold0, buf, self._one_sample,
                                                  np.ascontiguousarray(z, dtype=float), F, Q, y_pred, H)
         if status != LOOP_DONE:
             return self._failed(t, status, last)

@@ -86,6 +86,9 @@ class HeldSystem(NamedTuple):
     column): the weight follows ``q`` by it over the radius, and with a secant partner by the gradient's change
     along the secant too, from the partner's ``old_Wg`` (:func:`_held_model`: second order), and the step Jacobian
     holds it (:func:`_step_jacobian`); empty (0, 0) without gravity, where both are the held arrays' alone.
+    ``pT`` (r - nq, r^3) and ``pC2`` (r - nq, r nq r): the velocity forms' change per unit elastic coordinate,
+    ``d T / dp_m`` and ``d C2 / dp_m`` flattened as ``T2`` and ``C2`` (:meth:`.ReducedObserverModel._velocity_forms`;
+    empty (0, 0): none), which the held forces add to first order (:func:`_velocity_terms`).
     ``KGd`` (k, r*r): the geometric stiffness of the motion's axial loads as a linear form in ``[1, u, (q'_a
     q'_b)_{a <= b}]`` (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`, flattened; empty (0, 0):
     none), which each interval contracts with its torques and start rates and holds as a force (:func:`_motion_forces`).
@@ -118,6 +121,8 @@ class HeldSystem(NamedTuple):
     p2C: np.ndarray
     Wg: np.ndarray
     old_Wg: np.ndarray
+    pT: np.ndarray
+    pC2: np.ndarray
     KGd: np.ndarray
 
 
@@ -306,6 +311,63 @@ def _quadratic_forces(p, pd, nq, fg, T2, V2, C2):  # pragma: no cover - compiled
     return f
 
 
+def _velocity_terms(pe, pd, nq, pT, pC2, f, G):  # pragma: no cover - compiled
+    """Add to ``f`` (in place) the velocity forces' first order in the elastic coordinates ``pe``: ``-sum_m pe_m (1/2
+    (p' pT_m p') + (p' (x) q') pC2_m)`` (:class:`HeldSystem`'s ``pT``, ``pC2``: the forms ``T2``, ``C2``
+    differentiated in ``p_m``), and with ``G`` not empty (r, 2r) its derivative in the state into ``G``: the
+    forces per unit ``p_m`` in position column ``nq + m``, and their change with the rates in the rate columns.
+
+    The held forms are those of the configuration undeformed; the velocity map ``J = H + [d(H p)/dq, 0]`` is linear
+    in the elastic coordinates and the forms are polynomials in ``J``, so at a deformed state the velocity forces
+    gain terms of first order in them times the rates squared: a link turning while bent, its deflection's velocity
+    turning with it (``J^T h(J p')`` and the bias force ``J^T M a_b``, both through ``J``)."""
+    r = pd.shape[0]
+    n_el = pT.shape[0]
+    rr = r * r
+    w = np.empty(rr)  # p'_k p'_j
+    for k in range(r):
+        for j in range(r):
+            w[k * r + j] = pd[k] * pd[j]
+    jac = G.shape[0] > 0
+    Te = np.zeros(r * rr) if jac else np.zeros(0)  # sum_m pe_m pT_m (for the rate columns)
+    Ce = np.zeros(r * nq * r) if jac else np.zeros(0)
+    for m in range(n_el):
+        e = pe[m]
+        if e == 0.0 and not jac:
+            continue
+        for i in range(r):  # g_i: the forces per unit p_m
+            acc = 0.0
+            for k in range(r):
+                base = k * rr + i * r
+                for j in range(r):
+                    acc += pT[m, base + j] * w[k * r + j]
+            g = -0.5 * acc
+            for k in range(r):
+                for j in range(nq):
+                    g -= pC2[m, (k * nq + j) * r + i] * w[k * r + j]
+            f[i] += e * g
+            if jac:
+                G[i, nq + m] += g
+        if jac and e != 0.0:
+            for t in range(r * rr):
+                Te[t] += e * pT[m, t]
+            for t in range(r * nq * r):
+                Ce[t] += e * pC2[m, t]
+    if jac:  # d/dp'_a of -1/2 p' Te p' and of -sum p'_k p'_j Ce[k, j] (j < nq)
+        for i in range(r):
+            for a in range(r):
+                acc = 0.0
+                for j in range(r):
+                    acc += (Te[a * rr + i * r + j] + Te[j * rr + i * r + a]) * pd[j]
+                d = -0.5 * acc
+                for j in range(nq):
+                    d -= Ce[(a * nq + j) * r + i] * pd[j]
+                if a < nq:
+                    for k in range(r):
+                        d -= Ce[(k * nq + a) * r + i] * pd[k]
+                G[i, r + a] += d
+
+
 @_inline
 def _along(dl, dA, dB):  # pragma: no cover - compiled
     """The changes ``sum_i dl_i dA[i]`` and ``sum_i dl_i dB[i]`` of two matrices (rows of ``dA``, ``dB``: their
@@ -480,6 +542,8 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     if hs.has_old:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
+    if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
+        _velocity_terms(p[nq:], pd, nq, hs.pT, hs.pC2, f, np.empty((0, 0)))
     if hs.Wg.shape[0]:  # the weight to second order: its gradient, and half the gradient's change along the secant
         for i in range(r):
             acc = 0.0
@@ -563,7 +627,9 @@ def _motion_rates(F, z, u, nq, SQM, KGd, Kd, dt):  # pragma: no cover - compiled
 
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no cover - compiled
     """One interval of the cached step, the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
-    sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`) (what the cached step does per interval):
+    sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`, with the velocity forces' and the held
+    matrices' change with the elastic coordinates, :func:`_velocity_jacobian`, :func:`_elastic_tangent`) (what the
+    cached step does per interval):
     ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
     then serves :func:`held_step` too (see :func:`_inline` for why one). ``z_next`` is NaN if the held ``M_r``
     is not positive definite at the start either. The helpers are called here directly: numba copies an inlined helper's whole code once
@@ -573,13 +639,15 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
     hs = HeldSystem(*hs)
     nq = dl.shape[0]
     Kd = motion_stiffness(u, z, nq, hs.KGd)
-    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.5 * h * n, hs)
+    tm = 0.5 * h * n
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
     motion_forces(f, z, 0.5 * h * n, Kd)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
         # M_r not positive definite at the midpoint's elastic coordinates: a long interval (a gap, a log sampled
         # far below the modes), over which their linear advance means nothing; the matrices at the start
-        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, 0.0, hs)
+        tm = 0.0
+        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
         motion_forces(f, z, 0.5 * h * n, Kd)
         z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
@@ -591,7 +659,130 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
             Fp = motion_gradient(Fp, Kd)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
         motion_rates(F, z, u, nq, SQM, hs.KGd, Kd, h * n)
+        _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
+        Y = _elastic_tangent(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
+        nq = dl.shape[0]
+        r = nq + Y.shape[1]
+        for k in range(Y.shape[1]):
+            for i in range(F.shape[0]):
+                F[i, nq + k] += Y[i, k]
+                F[i, r + nq + k] += tm * Y[i, k]
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
+    """Add to the step Jacobian ``F`` (in place) the response ``SQM dG`` to the velocity forces' first order in the
+    elastic coordinates (:func:`_velocity_terms`; nothing where ``pT`` is empty)."""
+    if pT.shape[0] == 0:
+        return
+    r = SQM.shape[1]
+    Ge = np.zeros((r, 2 * r))
+    _velocity_terms(z[nq:r], z[r:], nq, pT, pC2, np.zeros(r), Ge)
+    Fe = SQM @ Ge
+    for i in range(F.shape[0]):
+        for j in range(F.shape[1]):
+            F[i, j] += Fe[i, j]
+
+
+def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover - compiled
+    """``Y`` (2r, n_el): the change of the interval's end state per unit elastic coordinate ``p_k`` at which the
+    held matrices are taken (``p_e + tm p_e'``, :func:`_held_model`; ``tm = dt/2``, or 0 where the interval fell back
+    to its start), through the matrices alone: the step Jacobian's columns of ``p_k`` gain ``Y[:, k]`` and those of
+    ``p'_k`` ``tm Y[:, k]``. Per unit ``p_k`` the held system ``M p'' + C p' + K p = G u + f`` changes by ``dM_k``,
+    ``dC_k``, ``dK_k``, ``dG_k`` (:func:`_elastic_terms`: ``pM_k``, ``pK_k``, ``pC_k`` with ``beta pK_k``, since
+    ``C_r = C_a + beta K_r``, ``pG_k``, and the damping's second order ``p2C`` differentiated at the held point), a
+    force ``g_k = dG_k u - dM_k a - dC_k p' - dK_k p`` along the interval's motion; ``Y`` is the tangent of the
+    same RK4 sub-steps driven by it from zero (stage by stage at the stage's state and acceleration: the elastic
+    modes oscillate within an interval, and a force taken at the interval's mean motion is no approximation of
+    it). Exact for the step as computed (``tests/_oracles.py``'s ``exact_jacobian`` carries the same tangent)."""
+    n_el = hs.pM.shape[0]
+    r = Mr.shape[0]
+    if n_el == 0 or r == n_el:
+        return np.zeros((2 * r, 0))
+    nq = r - n_el
+    m = u.shape[0]
+    mg = hs.pG.shape[1] // nq
+    pe = np.empty(n_el)
+    for k in range(n_el):
+        pe[k] = z[nq + k] + tm * z[r + nq + k]
+    # the matrices' changes per unit p_k, stacked by rows: D[k * r + c, :]
+    dM = np.zeros((n_el * r, r))
+    dK = np.zeros((n_el * r, r))
+    dC = np.zeros((n_el * r, r))
+    dGu = np.zeros((r, n_el))
+    n2 = hs.p2C.shape[1] if hs.p2C.shape[0] else 0
+    for k in range(n_el):
+        o = k * r
+        for i in range(nq):
+            for j in range(r):
+                t = i * r + j
+                a = hs.pM[k, t]
+                kk = hs.pK[k, t]
+                cc = hs.pC[k, t] + hs.beta * kk
+                dM[o + i, j] += a
+                dM[o + j, i] += a
+                dK[o + i, j] += kk
+                dC[o + i, j] += cc
+                dC[o + j, i] += cc
+            for j in range(m):
+                dGu[i, k] += hs.pG[k, i * mg + j] * u[j]
+        if n2:  # d/dp_k of sum_{a <= b} p_a p_b X_ab (p2C's packing, :func:`_elastic_terms`)
+            cp = 0
+            for a_ in range(n_el):
+                for b_ in range(a_, n_el):
+                    w = 0.0
+                    if a_ == k:
+                        w += pe[b_]
+                    if b_ == k:
+                        w += pe[a_]
+                    if w != 0.0:
+                        t = 0
+                        for i in range(nq):
+                            for j in range(i, nq):
+                                x = w * hs.p2C[t, cp]
+                                dC[o + i, j] += x
+                                if j != i:
+                                    dC[o + j, i] += x
+                                t += 1
+                    cp += 1
+    rhs = np.empty((r, 2 * r + 1 + n_el))
+    for i in range(r):
+        for j in range(r):
+            rhs[i, j] = Kr[i, j]
+            rhs[i, r + j] = Cr[i, j]
+        acc = f[i]
+        for j in range(m):
+            acc += Gr[i, j] * u[j]
+        rhs[i, 2 * r] = acc
+        for k in range(n_el):
+            rhs[i, 2 * r + 1 + k] = dGu[i, k]
+    X = _cholesky_solve(Mr, rhs)  # M^-1 [K, C, G u + f, dG u]
+    AK = np.ascontiguousarray(X[:, :r])
+    AC = np.ascontiguousarray(X[:, r : 2 * r])
+    b = np.ascontiguousarray(X[:, 2 * r])
+    bG = np.ascontiguousarray(X[:, 2 * r + 1 :])
+    Minv = _cholesky_solve(Mr, np.eye(r))
+    y = z.copy()
+    Y = np.zeros((2 * r, n_el))
+    ky = np.empty((4, 2 * r))
+    kY = np.empty((4, 2 * r, n_el))
+    cs = (0.0, 0.5 * h, 0.5 * h, h)
+    for _ in range(n):
+        for st in range(4):
+            ys = y.copy()
+            Ys = Y.copy()
+            if st:
+                ys += cs[st] * ky[st - 1]
+                Ys += cs[st] * kY[st - 1]
+            a = b - AK @ ys[:r] - AC @ ys[r:]
+            g = -((dM @ a + dC @ ys[r:] + dK @ ys[:r]).reshape(n_el, r)).T  # (r, n_el): the forces less dG u
+            ky[st, :r] = ys[r:]
+            ky[st, r:] = a
+            kY[st, :r] = Ys[r:]
+            kY[st, r:] = Minv @ g + bG - AK @ Ys[:r] - AC @ Ys[r:]
+        y += h / 6.0 * (ky[0] + 2.0 * ky[1] + 2.0 * ky[2] + ky[3])
+        Y += h / 6.0 * (kY[0] + 2.0 * kY[1] + 2.0 * kY[2] + kY[3])
+    return Y
 
 
 def _motion_forces(f, z, tm, Kd):  # pragma: no cover - compiled
@@ -786,8 +977,10 @@ def _step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp):  # pragma: no cover - compiled
     gravity ``Fp``, the weight's gradient with the held matrices' change with q, :func:`position_forces`; empty
     without gravity), and ``SQM`` is the interval's response to a held generalised force. Leaving the second term
     out lets the filter diverge in start-up transients, where the elastic rates are large; without ``Fp`` it
-    propagates its covariance as if the mechanism had no gravity stiffness. Without gravity the q-dependence of
-    ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F`` with finite differences of the
+    propagates its covariance as if the mechanism had no gravity stiffness. The cached step adds the held
+    matrices' change with the elastic coordinates (:func:`_elastic_tangent`, in :func:`held_interval`). Without
+    gravity the q-dependence of ``M_r`` and ``K_r`` is left out (``tests/test_step_jacobian.py`` compares ``F``
+    with finite differences of the
     step and with the step's exact Jacobian, ``exact_jacobian`` of ``tests/_oracles.py``; docs/step_jacobian.md
     measures what the left-out terms change and why they stay out)."""
     r = Ts.shape[0]
@@ -1081,7 +1274,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg, hs.KGd)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1364,7 +1557,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1471,6 +1664,9 @@ motion_forces = _shared(_motion_forces)
 motion_rates = _shared(_motion_rates)
 _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
+_velocity_terms = _linked(_velocity_terms)
+_velocity_jacobian = _inline(_velocity_jacobian)
+_elastic_tangent = _linked(_elastic_tangent)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
@@ -1501,7 +1697,8 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
-                      p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
+                      p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
+                      np.zeros((0, 0)))
 
 
 _warm = False

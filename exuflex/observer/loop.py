@@ -33,6 +33,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba.core import types
+from numba.experimental import structref
 
 from .base import INPUT_STEP, LOOP_DONE, MONITOR, NONFINITE, SINGULAR
 from .expansion import (
@@ -59,7 +61,8 @@ from .kalman import (
     window_seen,
 )
 
-__all__ = ["Buffers", "Monitors", "Record", "plain", "samples", "warm_up"]
+__all__ = ["Buffers", "Monitors", "OneSample", "Record", "given", "one_sample", "plain", "samples", "screen",
+           "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +138,26 @@ class Record(NamedTuple):
     x_pred: np.ndarray
     F: np.ndarray
     Q: np.ndarray
+
+
+@structref.register
+class _OneSampleType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)
+
+
+class OneSample(structref.StructRefProxy):
+    """A filter's :class:`Monitors` and a :class:`Record` of one row, their fields as one compiled structure: what
+    :func:`given` takes at every :meth:`.ekf.MultirateEKF.step` and :func:`screen` at every update of the UKF and
+    the IMM. Its arrays are the named tuples' own (written in place); one argument where the named tuples'
+    thirty-odd arrays each cost numba's conversion at every call."""
+
+
+structref.define_proxy(OneSample, _OneSampleType, [*Monitors._fields, *Record._fields])
+
+
+def _one_sample(mon, rec):  # pragma: no cover - compiled (the proxy's own constructor is compiled at every start)
+    return OneSample(*mon, *rec)
 
 
 def _event(mon, code, i, t, mean_z):  # pragma: no cover - compiled into the loop
@@ -298,15 +321,15 @@ def _record(rec, k, x, P, last, nis, m):  # pragma: no cover - compiled into the
     rec.dof[k] = kept.shape[0]
 
 
-def _given(t_k, y, holdoff, buf, mon, rec, z, F, Q, y_pred, H):  # pragma: no cover - compiled
+def _given(t_k, y, holdoff, buf, one, z, F, Q, y_pred, H):  # pragma: no cover - compiled
     """One sample with the model's prediction ``z, F, Q`` and measurement ``y_pred, H`` given (a model without a
     compiled step: :meth:`.ekf.MultirateEKF.step`), at ``t_k`` with the measurement ``y``: :func:`_sample` into
-    ``buf.x_alt, buf.P_alt``, recorded in ``rec``'s row 0. Returns ``(status, holdoff, last)`` (:func:`samples`).
-    A separate entry from :func:`samples`: its arguments are few (a call costs numba's unboxing of each array)."""
-    buf, mon, rec = Buffers(*buf), Monitors(*mon), Record(*rec)
-    status, holdoff, last, nis = _sample(t_k, y, z, F, Q, y_pred, H, holdoff, buf, mon, buf.x_alt, buf.P_alt)
+    ``buf.x_alt, buf.P_alt`` (``buf`` a plain tuple of :class:`Buffers`), recorded in row 0 of ``one``'s record
+    (:class:`OneSample`). Returns ``(status, holdoff, last)`` (:func:`samples`)."""
+    buf = Buffers(*buf)
+    status, holdoff, last, nis = _sample(t_k, y, z, F, Q, y_pred, H, holdoff, buf, one, buf.x_alt, buf.P_alt)
     if status == LOOP_DONE:
-        _record(rec, 0, buf.x_alt, buf.P_alt, last, nis, y.shape[0])
+        _record(one, 0, buf.x_alt, buf.P_alt, last, nis, y.shape[0])
     return status, holdoff, last
 
 
@@ -397,18 +420,22 @@ try:  # numba is a core dependency; without it the loop runs as plain (slow) Pyt
     screen = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_screen)
     _screen, _sample, _record = _inline(_screen), _inline(_sample), _inline(_record)
     given = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_given)
+    _one_sample = numba.njit(cache=True, nogil=True, no_cfunc_wrapper=True)(_one_sample)
     samples = numba.njit(cache=True, nogil=True, error_model="numpy", no_cfunc_wrapper=True)(_samples)
 except ImportError:  # pragma: no cover
     samples, screen, given = _samples, _screen, _given
 
 
-def plain(buf: Buffers, mon: Monitors, rec: Record, step=None, state=None) -> tuple:
-    """The arguments :func:`samples` (:func:`given`: without ``step``, ``state``) takes for ``buf``, ``mon``,
-    ``rec`` and the model's ``step`` (:class:`.expansion.CachedStep`) and ``state`` (:class:`.expansion.LoopState`):
-    the same, as plain tuples."""
-    if step is None:
-        return tuple(buf), tuple(mon), tuple(rec)
+def plain(buf: Buffers, mon: Monitors, rec: Record, step, state) -> tuple:
+    """The arguments :func:`samples` takes for ``buf``, ``mon``, ``rec`` and the model's ``step``
+    (:class:`.expansion.CachedStep`) and ``state`` (:class:`.expansion.LoopState`): the same, as plain tuples."""
     return tuple(buf), tuple(mon), tuple(rec), (*step[:-1], tuple(step.system)), (tuple(state.map), *state[1:])
+
+
+def one_sample(mon: Monitors, rec: Record) -> OneSample:
+    """``mon`` and the one-row record ``rec`` as :func:`given` takes them (:class:`OneSample`: their arrays, not
+    copies)."""
+    return _one_sample(tuple(mon), tuple(rec))
 
 
 def no_windows(m: int) -> tuple:
@@ -427,8 +454,9 @@ def warm_up(compiled: str | None = None) -> None:
     buf = Buffers(v, v, m, m, m, m, m)
     mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, v, m, n, False, n, v, 0.0, 0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
-    given(0.0, v, 0, *plain(buf, mon, rec), v, m, m, v, m)
-    screen(mon, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
+    one = one_sample(mon, rec)
+    given(0.0, v, 0, tuple(buf), one, v, m, m, v, m)
+    screen(one, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
     if compiled is not None:
         step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c,
                           c, v, _example_system(1, 1))

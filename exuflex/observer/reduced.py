@@ -81,6 +81,7 @@ from operator import sub
 import numpy as np
 
 from ..erls.kinematics import KinematicsError
+from ..erls.sensing import SecondOrderPlan
 from ..erls.simulate import rk4_amplification, rk4_step
 from ..reduction import CraigBampton, ReducedModel
 from ..reduction.model import ReducedMatrices
@@ -384,6 +385,7 @@ class ReducedObserverModel:
         self.link_names = [lk.name for lk in self.mech.links]
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
+        self._second_order: dict = {}  # the tip points' SecondOrderPlan, per (link, station)
         self._noC2 = np.zeros((0, self.r))
         self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = self.n_rows = 0
@@ -617,7 +619,52 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, KGd=fm.KGd)
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv),
+            KGd=fm.KGd)
+
+    def _velocity_forms(self, iv: _Held) -> dict:
+        """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held
+        configuration differentiated in each elastic coordinate ``p_m`` (empty in the paper's form, ``J = H``).
+
+        The held configuration is undeformed; a deformed one has the velocity map ``J = J_0 + sum_m p_m A_m``,
+        ``A_m = [d(H e_m)/dq, 0]`` (its rigid columns). The velocity tensor ``T(J)`` (``J^T h(J w) = 1/2 sum_k w_k
+        T_k w``, :meth:`~exuflex.erls.model.ErlsModel.velocity_force_tensor`) is quadratic in ``J`` (through ``W J``),
+        so its derivative along ``A_m`` is the central difference ``(T(J_0 + c A_m) - T(J_0 - c A_m)) / 2c``
+        exactly, for any ``c`` (``c |A_m| = |J_0|``: the differences' round-off at the forms' own scale); the bias
+        form ``C2[k, j] = 2 (W J)^T M_N W d(H e_k)/dq_j`` is linear in ``J``: ``pC2_m`` takes ``W A_m`` for ``W J``.
+        The bias acceleration's curvature term ``d^2(H p)/dq^2 [q', q']`` (:meth:`.ReducedModel.basis_curvature`)
+        is linear in the elastic coordinates and zero at the held configuration: its force ``-(W J_0)^T M_N W
+        d^2(H e_m)/dq_k dq_j q'_k q'_j p_m`` is a bilinear form in the joint rates per unit ``p_m``, added to
+        ``pC2_m``'s entries ``k < nq`` (:meth:`.ReducedModel.basis_hessian`). The geometric q-row form ``V`` is
+        exact in the elastic coordinates already."""
+        nq, r = self.nq, self.r
+        fm = iv.forces
+        if fm.elastic is None or fm.dHdq is None or r == nq:
+            return {"pT": _NO_ROWS, "pC2": _NO_ROWS}
+        model = self.model
+        cfg = iv.mats.rc.cfg
+        J0 = iv.mats.J
+        dHdq = fm.dHdq  # (r, n, nq): d(H e_k)/dq
+        Sd = model.coordinate_derivatives(cfg)
+        MW = cfg.M_N @ cfg.W
+        n_el = r - nq
+        pT = np.empty((n_el, r * r * r))
+        pC2 = np.empty((n_el, r * nq * r))
+        scale = float(np.abs(J0).max())
+        for m in range(n_el):
+            A = np.zeros_like(J0)
+            A[:, :nq] = dHdq[nq + m]
+            c = scale / max(float(np.abs(A).max()), 1e-300)
+            dT = (model.velocity_force_tensor(cfg, J0 + c * A, Sd) - model.velocity_force_tensor(cfg, J0 - c * A, Sd))
+            pT[m] = (dT / (2.0 * c)).ravel()
+            dJtM = (cfg.W @ A).T @ MW  # (r, n): d((W J)^T M_N W) along A_m, rows j < nq only
+            pC2[m] = (2.0 * np.swapaxes(dJtM @ dHdq, 1, 2)).ravel()
+        # the curvature of the bias acceleration: (W J_0)^T M_N W Z_m[:, k, j] in pC2_m[k, j, :], k < nq
+        Z = self.rm.basis_hessian(cfg.pose.q)  # (r - nq, n, nq, nq)
+        JtMW = (cfg.W @ J0).T @ MW  # (r, n)
+        pC = pC2.reshape(n_el, r, nq, r)
+        pC[:, :nq] += np.einsum("cx,mxkj->mkjc", JtMW, Z)
+        return {"pT": pT, "pC2": pC2}
 
     @staticmethod
     def _elastic(fm) -> dict:
@@ -813,11 +860,22 @@ class ReducedObserverModel:
         pred, iv, sm = self.frozen_interval(z, u, dt)
         self._last = iv
         self.last_step = (iv, sm)
+        return Prediction(self.advance(z, u, dt, iv), pred.F, pred.Q)
+
+    def advance(self, z: np.ndarray, u, dt: float, iv: _Held | None = None) -> np.ndarray:
+        """The reduced equations ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')`` integrated over
+        ``dt`` from ``z`` with ``u`` held: RK4 sub-steps (:meth:`substeps`, of the configuration ``iv`` at ``z``,
+        evaluated if not given), every stage at its own state. The reference step's state, and the reduced truth's
+        (:func:`exuflex.truth.reduced_truth`)."""
+        u = self._input(u)
+        z = np.asarray(z, float)
+        if iv is None:
+            iv = self._configuration(z)
         n = self.substeps(iv, dt)
-        x = np.array(z, float)
+        x = z.copy()
         for _ in range(n):
             x = rk4_step(self.rm.rhs, 0.0, x, dt / n, u)
-        return Prediction(x, pred.F, pred.Q)
+        return x
 
     # ------------------------------------------------------------------ the model's interface
     def _input(self, u) -> np.ndarray:
@@ -1069,7 +1127,17 @@ class ReducedObserverModel:
             z[self.r : self.r + self.nq] = qd
         return z
 
-    def tip_rows(self, q, link: str, station: float) -> np.ndarray:
-        """(2, r) map from p to the tip elastic displacement (global frame) at configuration q."""
+    def tip_maps(self, q, link: str, station: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A, C, Gr)`` at configuration q: the tip's elastic displacement (global frame) to second order in p,
+        ``e = A p + C (Gr p)^2`` (squares entry by entry): ``A`` (2, r) the linear rows (the point's displacement
+        rows, :meth:`~exuflex.erls.model.ErlsModel.point_displacement_rows`, in the basis), ``C``
+        (2, n_g) and ``Gr = G H_u`` (n_g, r) the links' foreshortening in the basis's elastic displacements
+        ``u = H_u p`` (:class:`~exuflex.erls.sensing.SecondOrderPlan`)."""
         rc = self.rm.cb.at(q)
-        return self.model.point_displacement_rows(rc.cfg, link, station) @ rc.H[self.nq :]
+        Hu = rc.H[self.nq :]
+        key = (link, float(station))
+        plan = self._second_order.get(key)
+        if plan is None:
+            plan = self._second_order[key] = SecondOrderPlan(self.model, [key])
+        so = plan.at(rc.cfg.pose)
+        return self.model.point_displacement_rows(rc.cfg, link, station) @ Hu, so.C[0, :2], so.G @ Hu

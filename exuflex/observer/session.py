@@ -201,13 +201,15 @@ class Observer:
                  ) -> Signals:
         """Physical estimates (q, dq/dt, tip elastic displacement and rate) from reduced states (n, nx).
 
-        The tip's elastic displacement is ``e = A(q) p`` with ``A`` the tip rows (:meth:`tip_rows`, global frame)
-        and its rate, what the truth's ``p_tip' - J q'`` is, ``e' = A(q) p' + sum_i (dA/dq_i p) q'_i``: the rows
-        turn with the links, so a deflection across a turning link has a global rate even when it is constant in
-        the link's frame. ``A`` and ``dA/dq`` are evaluated where q moved by more than ``refresh_rad`` from the
-        last evaluation; in between ``A`` follows q to first order (error of order ``refresh_rad^2 / 2`` of the
-        deflection) and ``dA/dq`` is held (error of order ``refresh_rad`` of the rate's turning term, itself the
-        deflection times q').
+        The tip's elastic displacement is ``e = A(q) p + w`` with ``A`` the tip rows (global
+        frame) and ``w = C(q) (Gr(q) p)^2`` its second order, the links' foreshortening
+        (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`, what the truth's tip position holds and
+        linear elastic displacements do not), and its rate, what the truth's ``p_tip' - J q'`` is,
+        ``e' = A(q) p' + sum_i (dA/dq_i p) q'_i + w'``: the rows turn with the links, so a deflection across a
+        turning link has a global rate even when it is constant in the link's frame. ``A``, ``C``, ``Gr`` and their
+        q-derivatives are evaluated where q moved by more than ``refresh_rad`` from the last evaluation; in between
+        they follow q to first order (error of order ``refresh_rad^2 / 2`` of the deflection) and the derivatives
+        are held (error of order ``refresh_rad`` of the rate's turning term, itself the deflection times q').
 
         The rows are solved by the filter's model with its closure solver, from this computation's own warm start
         (the first from the initial guess), and the filter's is set back after: the estimates depend on neither
@@ -245,11 +247,15 @@ class Observer:
     def _tip_columns(self, Z: np.ndarray, out: np.ndarray, tp, refresh_rad: float, carry: dict) -> None:
         """The tip elastic displacement and rate columns of :meth:`physical` into ``out``."""
         nq, r = self.model.nq, self.model.r
-        for a, b, (A0, dA, q0) in self._tip_segments(Z, tp, refresh_rad, carry):
+        for a, b, (A0, dA, q0, second) in self._tip_segments(Z, tp, refresh_rad, carry):
             p, v, qd = Z[a:b, :r], Z[a:b, r : 2 * r], Z[a:b, r : r + nq]
             A = _rows_along(A0, dA, Z[a:b, :nq] - q0)  # (n, 2, r)
-            out[a:b, 2 * nq : 2 * nq + 2] = _apply_rows(A, p)
-            out[a:b, 2 * nq + 2 : 2 * nq + 4] = _apply_rows(A, v) + _apply_rows(_rows_along(0.0, dA, qd), p)
+            Cw, Gw, Cwd, Gwd = _second_order_along(second, Z[a:b, :nq] - q0, qd)
+            g = _apply_rows(Gw, p)  # (n, n_g): the slopes at the Gauss points
+            out[a:b, 2 * nq : 2 * nq + 2] = _apply_rows(A, p) + _apply_rows(Cw, g * g)
+            out[a:b, 2 * nq + 2 : 2 * nq + 4] = (_apply_rows(A, v) + _apply_rows(_rows_along(0.0, dA, qd), p)
+                                                 + _apply_rows(Cwd, g * g)
+                                                 + _apply_rows(Cw, 2.0 * g * (_apply_rows(Gw, v) + _apply_rows(Gwd, p))))
 
     def _tip_segments(self, Z: np.ndarray, tp, refresh_rad: float, carry: dict, lookahead: int = 64):
         """The runs of rows of ``Z`` that share one evaluation of the tip rows: ``(a, b, (A, dA/dq, q0))`` for rows
@@ -284,22 +290,24 @@ class Observer:
         carry["rows"] = rows
 
     def tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
-        """``(A, dA/dq, q)``: the tip rows (2, r) at ``q`` and their derivatives (nq, 2, r) by forward differences
-        of step ``eps`` rad (the rows are smooth in q, rotations and Guyan shapes: the truncation error is of order
-        ``eps`` relative, far below the first-order interpolation's ``refresh_rad^2``); None where the loops do not
-        close."""
+        """``(A, dA/dq, q, (C, dC/dq, Gr, dGr/dq))``: the tip rows (2, r) at ``q``, the maps of their second order
+        ``C (Gr p)^2`` (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`) and their derivatives
+        (nq, ...) by forward differences of step ``eps`` rad (the maps are smooth in q, rotations and Guyan shapes:
+        the truncation error is of order ``eps`` relative, far below the first-order interpolation's
+        ``refresh_rad^2``); None where the loops do not close."""
         som = self.model
         q = np.array(q, float)
         try:
-            A = som.tip_rows(q, *tp)
-            dA = np.empty((som.nq, *A.shape))
+            maps = som.tip_maps(q, *tp)
+            d = [np.empty((som.nq, *m.shape)) for m in maps]
             for i in range(som.nq):
                 e = np.zeros(som.nq)
                 e[i] = eps
-                dA[i] = (som.tip_rows(q + e, *tp) - A) / eps
+                for m, dm, m1 in zip(maps, d, som.tip_maps(q + e, *tp), strict=True):
+                    dm[i] = (m1 - m) / eps
         except KinematicsError:
             return None
-        return A, dA, q
+        return maps[0], d[0], q, (maps[1], d[1], maps[2], d[2])
 
     def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3, *,
                             carry: dict | None = None) -> np.ndarray:
@@ -323,7 +331,7 @@ class Observer:
         if tp is None:
             return C @ P[:, :nx, :nx] @ C.T
         out = np.full((len(Z), k, k), np.nan)  # (rows in no run of tip rows: no tip value)
-        for a, b, (A0, dA, q0) in self._tip_segments(Z[:, :nx], tp, refresh_rad, carry):
+        for a, b, (A0, dA, q0, second) in self._tip_segments(Z[:, :nx], tp, refresh_rad, carry):
             z = Z[a:b, :nx]
             A = _rows_along(A0, dA, z[:, :nq] - q0)  # (m, 2, r)
             dAp = np.einsum("iaj,kj->kai", dA, z[:, :r])  # d(A p)/dq (m, 2, nq)
@@ -337,8 +345,43 @@ class Observer:
             # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
             # left out: of the order of q' times the deflection per radian, times q's small uncertainty
             Cb[:, 2 * nq + 2 :, :nq] += np.einsum("iaj,kj->kai", dA, z[:, r:])
+            _second_order_jacobian(Cb, second, z, q0, nq, r)
             out[a:b] = Cb @ P[a:b, :nx, :nx] @ Cb.transpose(0, 2, 1)
         return out
+
+
+def _second_order_along(second: tuple, dQ: np.ndarray, qd: np.ndarray) -> tuple:
+    """``(C, Gr, dC/dt, dGr/dt)`` per row (n, ...) of the tip's second order ``C (Gr p)^2`` moved to first order in
+    ``dQ = q - q0`` (:func:`_rows_along`), their rates along ``qd`` (the derivatives held)."""
+    C0, dC, G0, dG = second
+    return _rows_along(C0, dC, dQ), _rows_along(G0, dG, dQ), _rows_along(0.0, dC, qd), _rows_along(0.0, dG, qd)
+
+
+def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.ndarray, nq: int, r: int) -> None:
+    """Add to ``Cb`` (m, k, nx) the Jacobian of the tip's second order ``w = C (Gr p)^2`` and of its rate ``w' =
+    C' g^2 + 2 C (g (Gr p' + Gr' p))`` (``g = Gr p``, ``'`` the change along q') at the states ``z`` (m, nx): in
+    ``p``, ``p'``, ``q'`` and ``q`` (the rate's in q: of ``2 C (g (Gr p'))``; that of its turning terms along q',
+    second derivatives of the maps, is left out as it is for the linear rows)."""
+    p, v, qd = z[:, :r], z[:, r : 2 * r], z[:, r : r + nq]
+    Cw, Gw, Cwd, Gwd = _second_order_along(second, z[:, :nq] - q0, qd)
+    _, dC, _, dG = second
+    g = _apply_rows(Gw, p)  # (m, n_g)
+    gd = _apply_rows(Gw, v) + _apply_rows(Gwd, p)
+    two_Cg = 2.0 * Cw * g[:, None, :]  # (m, 2, n_g): dw/dg
+    e, ed = slice(2 * nq, 2 * nq + 2), slice(2 * nq + 2, 2 * nq + 4)
+    Cb[:, e, :r] += two_Cg @ Gw
+    # dw/dq_i = dC_i g^2 + 2 C (g dGr_i p), also the rate's derivative in q'_i (its turning terms)
+    dwdq = (np.einsum("iaj,kj->kai", dC, g * g)
+            + np.einsum("kaj,kij->kai", two_Cg, np.einsum("ijl,kl->kij", dG, p)))
+    Cb[:, e, :nq] += dwdq
+    Cb[:, ed, r : r + nq] += dwdq
+    Cb[:, ed, r:] += two_Cg @ Gw
+    Cb[:, ed, :r] += 2.0 * (Cwd * g[:, None, :]) @ Gw + 2.0 * (Cw * gd[:, None, :]) @ Gw + two_Cg @ Gwd
+    # d/dq_i of 2 C (g (Gr p')): 2 dC_i (g gv) + 2 C ((dGr_i p) gv + g (dGr_i p')), gv = Gr p'
+    gv = _apply_rows(Gw, v)
+    dGp, dGv = np.einsum("ijl,kl->kij", dG, p), np.einsum("ijl,kl->kij", dG, v)  # (m, nq, n_g)
+    Cb[:, ed, :nq] += 2.0 * (np.einsum("iaj,kj->kai", dC, g * gv)
+                             + np.einsum("kaj,kij->kai", Cw, dGp * gv[:, None, :] + g[:, None, :] * dGv))
 
 
 def _rows_along(A0, dA: np.ndarray, dQ: np.ndarray) -> np.ndarray:

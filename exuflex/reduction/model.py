@@ -7,15 +7,14 @@ Two forms:
   the static shapes change with the configuration), and the reduced equations are those of Lagrange on
   the constrained coordinates: ``M_r = J^T M J``, ``C_r = J^T C(H p) J`` (the damping of the strain rate,
 :meth:`~exuflex.erls.model.ErlsModel.damping`), ``K_r p -> J^T K H p`` and
-  ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = 2 d(H p')/dq q'``. The exact
-  ``(dJ/dt) p'`` also holds ``d^2(H p)/dq^2 [q', q']``, quadratic in ``q'`` and linear in the elastic
-  coordinates; it is left out (it vanishes on undeformed states).
+  ``F_r = J^T (F - h(H p, J p') - M a_b)`` with the bias acceleration ``a_b = (dJ/dt) p' = 2 d(H p')/dq q' +
+  d^2(H p)/dq^2 [q', q']`` (the second term quadratic in ``q'``, linear in the elastic coordinates:
+  :meth:`ReducedModel.basis_curvature`).
 - ``consistent=False``: the paper's eq. 7 as printed, ``x' ~ H p'`` (``J = H``, no bias term).
 
 What the tests show (``tests/test_reduced_derivatives.py``): ``J`` equals the finite-difference derivative of
-``H(q) p`` to 1e-6; ``a_b`` equals the finite-difference rate of ``J p'`` to 1e-6 on undeformed states, and the
-left-out term is 0.6 % of ``a_b`` on the six-bar at elastic coordinates 1e-4, elastic rates 1e-2 and joint
-rates about 1 rad/s. Over the first 0.1 s of the six-bar's manoeuvre (RK4, 0.1 ms, the same computed torques
+``H(q) p`` to 1e-6; ``a_b`` equals the finite-difference rate of ``J p'`` entry by entry on deformed moving
+states. Over the first 0.1 s of the six-bar's manoeuvre (RK4, 0.1 ms, the same computed torques
 and start), the consistent form's coordinates stay within 3e-5 rad of the full-order model's and the paper's
 form drifts by 2.5-3.2e-4 rad (the neglected terms are Coriolis forces of the elastic rates in the rotating
 links); exuflex therefore defaults to the consistent form.
@@ -37,6 +36,9 @@ from . import _compiled
 from .basis import CraigBampton, ReducedConfiguration
 
 __all__ = ["ReducedMatrices", "ReducedModel", "motion_coefficients", "warm_up"]
+
+#: the central differences' step (rad) of :meth:`ReducedModel.basis_curvature` and :meth:`ReducedModel.basis_hessian`
+CURVATURE_STEP = 1e-5
 
 
 @dataclass(frozen=True)
@@ -195,7 +197,7 @@ class ReducedModel:
             J = H.copy()
             J[:, :nq] += D[0]
             if np.any(pd[:nq]):
-                a_b = 2.0 * (D[1] @ pd[:nq])
+                a_b = 2.0 * (D[1] @ pd[:nq]) + self.basis_curvature(p, pd[:nq], at_q=D[0] @ pd[:nq])
         WJ = cfg.W @ J
         Mr = WJ.T @ cfg.M_N @ WJ
         Hu, Ju = H[nq:], J[nq:]
@@ -223,6 +225,56 @@ class ReducedModel:
             fr -= (WJ.T @ cfg.M_N @ cfg.W) @ a_b  # J^T M a_b
         return ReducedMatrices(rc, J, Mr, Kr, Cr, Gr, fr)
 
+    def basis_curvature(self, p: np.ndarray, qd: np.ndarray, at_q: np.ndarray | None = None) -> np.ndarray:
+        """``d^2(H p)/dq^2 [q', q']`` (n,): the bias acceleration's part quadratic in the joint rates.
+
+        ``x = H(q) p`` gives ``x'' = J p'' + (dJ/dt) p'`` with ``(dJ/dt) p' = 2 d(H p')/dq q' + d^2(H p)/dq^2 [q',
+        q']``; the second term is the curvature of the slave displacements ``H p`` along the joint motion (zero on
+        undeformed states: ``H p`` depends on ``q`` through the elastic coordinates only). It is the derivative of
+        the exact first derivative ``D(q) = d(H p)/dq`` (:meth:`CraigBampton.basis_derivative`) along ``u = q' /
+        |q'|``: with ``at_q = D(q) q'`` given (:meth:`matrices` has it), the forward difference ``(D(q + d u) q' -
+        at_q) / d |q'|`` over ``d = CURVATURE_STEP / 10`` (one configuration more; error ``d/2`` of the third
+        derivative, some 1e-6 relative), else the central difference over ``CURVATURE_STEP`` (two; error
+        ``d^2/6``, some 1e-10). The configurations are the material ones (the basis is that of ``K_uu``; the
+        static ``K_G`` does not enter it)."""
+        nq = self.nq
+        p = np.asarray(p, float)
+        s = float(np.linalg.norm(qd))
+        if s == 0.0 or not np.any(p[nq:]):
+            return np.zeros(nq + self.model.ne)
+        u = np.asarray(qd, float) / s
+        P = p[:, None]
+
+        def along(d):
+            rc = self.cb.at(self.model._material_configuration(p[:nq] + d * u))
+            return self.cb.basis_derivative(rc, P)[0] @ qd
+
+        if at_q is not None:
+            d = 0.1 * CURVATURE_STEP
+            return (along(d) - at_q) * (s / d)
+        d = CURVATURE_STEP
+        return (along(d) - along(-d)) * (s / (2.0 * d))
+
+    def basis_hessian(self, q: np.ndarray) -> np.ndarray:
+        """``d^2(H e_m)/dq_i dq_j`` (r - nq, n, nq, nq) for every elastic coordinate ``m``: the second derivatives
+        whose contraction with ``p_m q'_i q'_j`` is :meth:`basis_curvature`, by central differences of the exact
+        first derivative (:meth:`CraigBampton.basis_derivative`) over ``+-1e-5`` rad in each ``q_i`` (error some
+        1e-10 relative; :meth:`basis_curvature` says why). The cached observer step holds it at an undeformed
+        configuration for the bias force's first order in the elastic coordinates."""
+        nq, r = self.nq, self.r
+        q = np.asarray(q, float)
+        d = CURVATURE_STEP
+        E = np.eye(r)[:, nq:]
+        out = np.empty((r - nq, nq + self.model.ne, nq, nq))
+        for i in range(nq):
+            e = np.zeros(nq)
+            e[i] = d
+            Dp = self.cb.basis_derivative(self.cb.at(self.model._material_configuration(q + e)), E)
+            Dm = self.cb.basis_derivative(self.cb.at(self.model._material_configuration(q - e)), E)
+            out[:, :, :, i] = (Dp - Dm) / (2.0 * d)
+        self.model.configuration(q)  # leave the closure solver warm-started at q
+        return out
+
     def held(self, p, pd, *, fr: bool = False, gradients: bool = True) -> tuple[ReducedMatrices, QuadraticForces]:
         """The reduced matrices and :meth:`force_model` at a configuration, computed once with shared terms
         (one basis derivative for both). The cached observer step holds them with the q-gradients of ``M_r``
@@ -245,7 +297,22 @@ class ReducedModel:
         KGd = self.motion_geometric(mats.rc)
         if KGd.shape[0]:
             fm.KGd = np.ascontiguousarray(KGd.reshape(len(KGd), -1))
+        if fr and fm.C2 is not None and np.any(p[self.nq :]):
+            fm.C2 = self._curved_bias_form(mats, fm.C2, p)
         return mats, fm
+
+    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The bias form ``C2`` (r nq, r: the force ``-sum p'_k p'_j C2[k, j]``, ``j < nq``) of a deformed state
+        with the bias acceleration's curvature term in it: at the state's ``p``, ``-(W J)^T M_N W d^2(H p)/dq_k dq_j
+        q'_k q'_j`` is a bilinear form in the joint rates, added to the entries ``k < nq``
+        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state."""
+        nq, r = self.nq, self.r
+        cfg = mats.rc.cfg
+        Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
+        JtMW = (cfg.W @ mats.J).T @ (cfg.M_N @ cfg.W)  # (r, n)
+        out = np.array(C2, float).reshape(r, nq, r)
+        out[:nq] += np.einsum("cx,xkj->kjc", JtMW, Zp)
+        return out.reshape(r * nq, r)
 
     def geometric_gradient(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> np.ndarray:
         """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as

@@ -49,7 +49,7 @@ from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..observer import kalman
 from ..observer.base import DiscreteModel
-from ..observer.expansion import held_interval, motion_gradient, motion_rates, motion_stiffness, step_jacobian
+from ..observer.expansion import held_interval
 from ..observer.reduced import ReducedObserverModel
 from ..observer.session import LogColumns, Observer, physical_names, start_configuration
 from ..observer.tuning import van_loan
@@ -669,25 +669,19 @@ BOUND_TIP_RADIUS = 3e-2
 
 
 def _step_linearisation(model: ReducedObserverModel):
-    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` without its sub-steps (the
-    held configuration and step map as :meth:`exuflex.observer.reduced.ReducedObserverModel.predict` renews them, and the step
-    Jacobian kernel :func:`exuflex.observer.expansion.step_jacobian` it calls with them); None for the reference step (``rk4``:
-    through ``predict``). ``tests/test_bound.py`` checks that it returns ``predict``'s ``F`` and ``Q``."""
+    """``(x, u, dt) -> (F, Q)``: the cached step's Jacobian and process noise at ``x`` (the held configuration and
+    step map as :meth:`exuflex.observer.reduced.ReducedObserverModel.predict` renews them, and the interval kernel
+    :func:`exuflex.observer.expansion.held_interval` it calls with them: the Jacobian takes the interval's mean
+    motion, :func:`~exuflex.observer.expansion.position_forces` and the held matrices' change with the elastic
+    coordinates); None for the reference step (``rk4``: through ``predict``). ``tests/test_bound.py`` checks that
+    it returns ``predict``'s ``F`` and ``Q``."""
     if model.method != "cached":
         return None
 
     def linearise(x, u, dt):
         u = model.torques(u)
-        iv, dl, s, n, sm = model.prepare(x, u, dt)
-        if iv.system.Wg.shape[0]:  # gravity: the Jacobian takes the interval's held matrices (position_forces)
-            return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
-        Fp, KGd = iv.system.Wg, iv.system.KGd
-        Kd = motion_stiffness(u, x, model.nq, KGd)  # the motion's geometric stiffness, as held_interval takes it
-        if KGd.shape[0]:
-            Fp = motion_gradient(Fp, Kd)
-        F = step_jacobian(x, *sm.tail[:5], Fp)
-        motion_rates(F, x, u, model.nq, sm.tail[4], KGd, Kd, dt)
-        return F, sm.Q
+        _, dl, s, n, sm = model.prepare(x, u, dt)
+        return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
 
     return linearise
 
@@ -815,8 +809,10 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
         out[names[nq + i]] = float(sd[r + i])
     tp = tip_point(mech)
     if tp is not None:
-        # the maps of Observer.physical linearised at z: e = A(q) p, e' = A(q) p' + sum_i (dA/dq_i p) q'_i
-        A, dA, _ = obs.tip_rows_and_rates(q, tp)
+        # the maps of Observer.physical linearised at z: e = A(q) p + w, e' = A(q) p' + sum_i (dA/dq_i p) q'_i + w'
+        # (w = C (Gr p)^2 the second order: at rest its Jacobian in p, 2 C diag(Gr p) Gr, joins A)
+        A, dA, _, (Cw, _, Gw, _) = obs.tip_rows_and_rates(q, tp)
+        A = A + 2.0 * (Cw * (Gw @ z[:r])) @ Gw
         dAp = np.einsum("iaj,j->ai", dA, z[:r])
         for k in range(2):
             C = np.zeros(som.nx)

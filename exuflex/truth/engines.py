@@ -229,12 +229,18 @@ def erls_truth(mech: Mechanism, t_tab, tau, duration: float, h: float, output_dt
 def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float = 1e-4) -> TruthRecord:
     """The observer's own model as the truth (engine ``"reduced"``): a test of the filter's consistency.
 
-    The reduced model of ``truth_mech`` (the observer's default reduction) is stepped exactly as the filter
-    assumes: the frozen RK4 step map (``h``) over each sample interval, the torque held at its value at the
-    sample time (so the torque table of the result is the sampled one). Its states are mapped to the full
-    ERLS state (``x = H p``, ``x' = J p'``), so that the sensors and true states come from the same functions
-    as for the other engines. A filter with the same model and the stated noise has no model error on this
-    truth: its NEES and NIS must be consistent (``benchmarks/observer_accuracy.py --engine reduced``).
+    The reduced model of ``truth_mech`` (the observer's default reduction) is integrated as the continuous
+    equations it states, ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')``: RK4 sub-steps of at most
+    ``h`` (fewer where the spectrum needs them for stability), every stage at its own state
+    (:meth:`~exuflex.observer.reduced.ReducedObserverModel.advance`, the observer's reference step), the torque
+    held at its value at the sample time over each sample interval (so the torque table of the result is the
+    sampled one). Not a step map frozen at the interval's start: its held matrices and forces are a first-order
+    approximation of its own, which would put into the truth an error the filter's step does not share
+    (``tests/test_truth_reduced.py`` compares the result with a fine RK4 of the same equations). Its states are
+    mapped to the full ERLS state (``x = H p``, ``x' = J p'``), so that the sensors and true states come from the
+    same functions as for the other engines. A filter with the same model and the stated noise has no model error
+    on this truth but its own step's approximations: its NEES and NIS must be consistent
+    (``benchmarks/observer_accuracy.py --engine reduced``).
     """
     from ..observer.reduced import ReducedObserverModel
     from ..observer.session import make_observer
@@ -253,7 +259,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
         x, v = rm.full_state(z)
         Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
         if k < n - 1:
-            z = som.frozen_interval(z, tau[k], dt)[0].x
+            z = som.advance(z, tau[k], dt)
     rec = erls_probe_record(rm.model, t, Y)
     return TruthRecord(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
                        {"plan_and_torque_s": drive.seconds})
@@ -337,8 +343,8 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
     if engine == "reduced":
         rec = reduced_truth(truth_mech, drive, duration, h)
         rec.timings.update(timings, truth_s=time.perf_counter() - t0, truth_cpu_s=time.process_time() - c0)
-        rec.settings = {"engine": "reduced", "integrator": "the observer's reduced model, RK4 step map over each "
-                        "sample interval, torque sampled"}
+        rec.settings = {"engine": "reduced", "integrator": "the observer's reduced model, RK4 of its equations "
+                        "(every stage at its own state), torque sampled"}
         return rec
     solver: dict = {}
     if engine == "exudyn" and BEAMS[beam] == "ffrf":
