@@ -130,6 +130,24 @@ def rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):
     return np.concatenate([p, v])
 
 
+def motion_stiffness(u, z, nq, KGd) -> tuple[np.ndarray, np.ndarray]:
+    """``(K_d, dK_d/dq')`` ((r, r), (nq, r, r)): the motion's geometric stiffness ``sum_k c_k KGd[k]``, ``c = [1, u,
+    (q'_a q'_b)_{a <= b}]`` (``expansion.motion_stiffness``) and its change with the rates; zeros where ``KGd`` is
+    empty."""
+    r = z.shape[0] // 2
+    if KGd.shape[0] == 0:
+        return np.zeros((r, r)), np.zeros((nq, r, r))
+    a, b = np.triu_indices(nq)
+    qd = z[r : r + nq]
+    c = np.concatenate([[1.0], u, qd[a] * qd[b]])
+    dc = np.zeros((nq, len(c)))
+    for k, (i, j) in enumerate(zip(a, b, strict=True)):
+        dc[i, 1 + len(u) + k] += qd[j]
+        dc[j, 1 + len(u) + k] += qd[i]
+    K3 = KGd.reshape(-1, r, r)
+    return np.tensordot(c, K3, 1), np.tensordot(dc, K3, 1)
+
+
 def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``, the matrices at the interval's midpoint elastic
     coordinates, the forces at its start."""
@@ -151,6 +169,8 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
         f = f + w
     if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
         f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
+    # the motion's geometric forces at the interval's midpoint positions (expansion._motion_forces)
+    f = f - motion_stiffness(u, z, nq, hs.KGd)[0] @ (z[:r] + tm * z[r:])
     return rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
@@ -266,6 +286,13 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
             along = along + 0.5 * (dW @ dl) - dfg
     if act:  # the secant factor's own change moves everything along the secant
         dF[:, :nq] += np.outer(along, ds)
+    # the motion's geometric forces -K_d(q') (p + dt/2 p') (expansion._motion_forces), K_d a function of the rates
+    Kd, dKd = motion_stiffness(u, z, nq, hs.KGd)
+    pm = p + 0.5 * h * n * pd
+    f -= Kd @ pm
+    dF[:, :r] -= Kd
+    dF[:, r:] -= 0.5 * h * n * Kd
+    dF[:, r : r + nq] -= np.einsum("aij,j->ia", dKd, pm)
     if n_el:
         mg = hs.pG.shape[1] // nq
         wcol = hs.pG.reshape(n_el, nq, mg)[:, :, mg - 1]  # (n_el, nq)

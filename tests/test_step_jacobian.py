@@ -140,9 +140,9 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
         return ex.held_step(x, u, x[:nq] - iv.q0, 0.0, h, n, hs)[0]
 
     _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl0, 0.0, h, n, hs)
-
-    def forces(x):  # the held forces at x
+    def forces(x):  # the held forces at x (the motion's geometric forces -K_d (p + dt/2 p'), expansion.motion_forces)
         f = oracle.quadratic_forces(x[:r], x[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
+        f -= oracle.motion_stiffness(u, x, nq, hs.KGd)[0] @ (x[:r] + 0.5 * dt * x[r:])
         if hs.pG.shape[0]:  # the weight's change with the elastic coordinates
             f[:nq] += (x[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
         if hs.Wg.shape[0]:  # ... and with q

@@ -637,13 +637,15 @@ class ErlsModel:
         (the linear elastic stiffness, the coordinates held: the loads balance, so the joints that fix the coordinates
         carry none of them and the internal forces are those of the moving mechanism), ``N_e = (EA / L) (u_2 -
         u_1)`` along the element (its frame). First order: the axial modes lie far above the loads' frequencies,
-        so the links' axial strain follows the loads quasi-statically."""
+        so the links' axial strain follows the loads quasi-statically. ``f`` (N, k): k load cases at once, the
+        forces (n_el, k)."""
         T = self.T
         d = T @ np.linalg.solve(T.T @ cfg.K_N @ T, T.T @ f)
-        de = d[self.el_dofs]  # (n_el, 6)
+        de = d[self.el_dofs]  # (n_el, 6) or (n_el, 6, k)
         R = cfg.R
-        ax = R[:, 0, 0] * (de[:, 3] - de[:, 0]) + R[:, 1, 0] * (de[:, 4] - de[:, 1])  # (R^T d)_3 - (R^T d)_0
-        return self.el_axial * ax
+        cx, cy = (R[:, 0, 0], R[:, 1, 0]) if d.ndim == 1 else (R[:, 0, 0, None], R[:, 1, 0, None])
+        ax = cx * (de[:, 3] - de[:, 0]) + cy * (de[:, 4] - de[:, 1])  # (R^T d)_3 - (R^T d)_0
+        return (self.el_axial if d.ndim == 1 else self.el_axial[:, None]) * ax
 
     def geometric_stiffness(self, cfg: Configuration, N: np.ndarray) -> np.ndarray:
         """The nodal geometric stiffness ``sum_e N_e R_e K_G1 R_e^T`` (N, N) of the elements' axial forces ``N``

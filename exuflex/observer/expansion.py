@@ -46,6 +46,10 @@ __all__ = [
     "map_error",
     "map_lookahead",
     "measurement_rows",
+    "motion_forces",
+    "motion_gradient",
+    "motion_rates",
+    "motion_stiffness",
     "next_map_radius",
     "payload_interval",
     "position_forces",
@@ -85,6 +89,9 @@ class HeldSystem(NamedTuple):
     ``pT`` (r - nq, r^3) and ``pC2`` (r - nq, r nq r): the velocity forms' change per unit elastic coordinate,
     ``d T / dp_m`` and ``d C2 / dp_m`` flattened as ``T2`` and ``C2`` (:meth:`.ReducedObserverModel._velocity_forms`;
     empty (0, 0): none), which the held forces add to first order (:func:`_velocity_terms`).
+    ``KGd`` (k, r*r): the geometric stiffness of the motion's axial loads as a linear form in ``[1, u, (q'_a
+    q'_b)_{a <= b}]`` (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`, flattened; empty (0, 0):
+    none), which each interval contracts with its torques and start rates and holds as a force (:func:`_motion_forces`).
     """
 
     has_old: bool
@@ -116,6 +123,7 @@ class HeldSystem(NamedTuple):
     old_Wg: np.ndarray
     pT: np.ndarray
     pC2: np.ndarray
+    KGd: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -557,6 +565,66 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr, f
 
 
+def _motion_stiffness(u, z, nq, KGd):  # pragma: no cover - compiled
+    """``sum_k c_k KGd[k]`` (r, r), ``c = [1, u, (q'_a q'_b)_{a <= b}]`` with the rates ``q'`` of ``z``: the geometric
+    stiffness of the motion's axial loads beyond the static ones at the held configuration
+    (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`; zeros where ``KGd`` is empty)."""
+    r = z.shape[0] // 2
+    K = np.zeros((r, r))
+    nk = KGd.shape[0]
+    if nk == 0:
+        return K
+    c = np.empty(nk)
+    c[0] = 1.0
+    nm = u.shape[0]
+    for j in range(nm):
+        c[1 + j] = u[j]
+    k = 1 + nm
+    for a in range(nq):
+        for b in range(a, nq):
+            c[k] = z[r + a] * z[r + b]
+            k += 1
+    for k in range(nk):
+        w = c[k]
+        if w != 0.0:
+            for i in range(r):
+                for j in range(r):
+                    K[i, j] += w * KGd[k, i * r + j]
+    return K
+
+
+def _motion_rates(F, z, u, nq, SQM, KGd, Kd, dt):  # pragma: no cover - compiled
+    """Add to the step Jacobian ``F`` (in place) the response ``SQM g`` to the motion's geometric forces' change with
+    the rates: the force ``-K_d (p + dt/2 p')`` held over the interval (:func:`_motion_forces`) in rate column ``m``
+    ``-dt/2 K_d e_m``, and ``K_d`` itself changes with the rates, ``-d(K_d)/dq'_a (p + dt/2 p')`` (the centripetal
+    axial loads, ``c_k = q'_a q'_b``); nothing where ``KGd`` is empty."""
+    nk = KGd.shape[0]
+    if nk == 0:
+        return
+    r = z.shape[0] // 2
+    nm = u.shape[0]
+    g = np.empty((r, r))
+    for i in range(r):
+        for m in range(r):
+            g[i, m] = -0.5 * dt * Kd[i, m]
+    k = 1 + nm
+    for a in range(nq):
+        for b in range(a, nq):
+            for i in range(r):  # d(q'_a q'_b)/dq'_a = q'_b, /dq'_b = q'_a
+                acc = 0.0
+                for j in range(r):
+                    acc += KGd[k, i * r + j] * (z[j] + 0.5 * dt * z[r + j])
+                g[i, a] -= z[r + b] * acc
+                g[i, b] -= z[r + a] * acc
+            k += 1
+    for i in range(F.shape[0]):
+        for m in range(r):
+            acc = 0.0
+            for c in range(r):
+                acc += SQM[i, c] * g[c, m]
+            F[i, r + m] += acc
+
+
 def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no cover - compiled
     """One interval of the cached step, the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
     sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`, with the velocity forces' and the held
@@ -569,21 +637,28 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
     (:class:`HeldSystem`'s fields as a plain tuple: numba types a plain tuple from its fingerprint, a named one
     through a slower path)."""
     hs = HeldSystem(*hs)
+    nq = dl.shape[0]
+    Kd = motion_stiffness(u, z, nq, hs.KGd)
     tm = 0.5 * h * n
     Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
+    motion_forces(f, z, 0.5 * h * n, Kd)
     z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
         # M_r not positive definite at the midpoint's elastic coordinates: a long interval (a gap, a log sampled
         # far below the modes), over which their linear advance means nothing; the matrices at the start
         tm = 0.0
         Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
+        motion_forces(f, z, 0.5 * h * n, Kd)
         z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
         Fp = hs.Wg
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
+        if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
+            Fp = motion_gradient(Fp, Kd)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
+        motion_rates(F, z, u, nq, SQM, hs.KGd, Kd, h * n)
         _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
         Y = _elastic_tangent(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
         nq = dl.shape[0]
@@ -708,6 +783,33 @@ def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover
         y += h / 6.0 * (ky[0] + 2.0 * ky[1] + 2.0 * ky[2] + ky[3])
         Y += h / 6.0 * (kY[0] + 2.0 * kY[1] + 2.0 * kY[2] + kY[3])
     return Y
+
+
+def _motion_forces(f, z, tm, Kd):  # pragma: no cover - compiled
+    """``f -= K_d (p + tm p')`` (in place): the motion's geometric forces (:func:`_motion_stiffness`) at the
+    interval's midpoint positions (``tm = dt/2``), held over it as the other forces are. As a force, not in the held
+    ``K_r``: the step map's ``P^n`` and the step Jacobian then take it exactly (:func:`_motion_gradient`,
+    :func:`_motion_rates`); held at the midpoint its error over the interval is second order, ``(w dt)^2 / 24`` of
+    ``K_d p`` for a mode of ``w`` rad/s (some percent of a few percent of the stiffness at the gauges' modes)."""
+    r = f.shape[0]
+    if Kd.shape[0] == 0:
+        return
+    for i in range(r):
+        acc = 0.0
+        for j in range(r):
+            acc += Kd[i, j] * (z[j] + tm * z[r + j])
+        f[i] -= acc
+
+
+def _motion_gradient(Fp, Kd):  # pragma: no cover - compiled
+    """``Fp - Kd`` (r, r; ``Fp`` empty: ``-Kd``): the held forces' position gradient with the motion's geometric
+    forces (:func:`_motion_forces`); their change with the rates: :func:`_motion_rates`."""
+    r = Kd.shape[0]
+    out = np.empty((r, r))
+    for i in range(r):
+        for j in range(r):
+            out[i, j] = (Fp[i, j] if Fp.shape[0] else 0.0) - Kd[i, j]
+    return out
 
 
 def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
@@ -1172,7 +1274,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1455,7 +1557,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1556,6 +1658,10 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, nx, scale, scaled, maps, form
 
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
+motion_stiffness = _shared(_motion_stiffness)
+motion_gradient = _shared(_motion_gradient)
+motion_forces = _shared(_motion_forces)
+motion_rates = _shared(_motion_rates)
 _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
 _velocity_terms = _linked(_velocity_terms)
@@ -1591,7 +1697,8 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     pf, pg = np.zeros((r - nq, nq * r)), np.zeros((r - nq, nq * (nq + 1)))
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
-                      p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
+                      p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
+                      np.zeros((0, 0)))
 
 
 _warm = False

@@ -12,7 +12,9 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   leaves a refresh radius around the held one, undeformed; in between the model follows the links to second order
   in q and the elastic coordinates exactly but for ``M_r``'s second order (:mod:`.expansion`; docs/held_elastic.md), and each interval's
   sub-steps use the matrices at the interval's midpoint elastic coordinates ``p_e + dt/2 p_e'`` and the forces at
-  its start (:func:`.expansion._held_model`). The radius adapts like an ODE step size under two error targets, the
+  its start (:func:`.expansion._held_model`), the geometric stiffness of the motion's axial loads (a form in the
+  torques and rates held with the configuration, :meth:`ReducedModel.motion_geometric`) as a force at its midpoint
+  positions (:func:`.expansion._motion_forces`). The radius adapts like an ODE step size under two error targets, the
   smaller radius winning. (1) The held matrices' validity: the previous held model's relative error of ``M_r`` and
   ``K_r`` (mass metric, :func:`.expansion.prediction_error`) near ``refresh_tol``. (2) What the held model costs the filter: the
   replaced held model's state error over one interval against the exact configuration, relative to the filter's
@@ -93,6 +95,10 @@ from .expansion import (
     held_step,
     map_error,
     measurement_rows,
+    motion_forces,
+    motion_gradient,
+    motion_rates,
+    motion_stiffness,
     next_map_radius,
     position_forces,
     prediction_error,
@@ -474,11 +480,20 @@ class ReducedObserverModel:
         m = iv.mats
         n = self.substeps(iv, dt)
         Pn, S, L, Q = self._maps(m.Mr, m.Kr, m.Cr, m.Gr, dt, n)
-        x = Pn @ z + L @ u + S @ m.fr
+        # the motion's geometric forces at the start's rates and the held torques, at the interval's midpoint
+        # positions, as the cached step takes them (expansion.motion_forces)
+        KGd = iv.forces.KGd
+        Kd = motion_stiffness(u, z, self.nq, KGd)
+        f = m.fr.copy()
+        motion_forces(f, z, 0.5 * dt, Kd)
+        x = Pn @ z + L @ u + S @ f
         Fp = iv.forces.Wg
         if Fp.shape[0]:
             Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
+        if KGd.shape[0]:
+            Fp = motion_gradient(Fp, Kd)
         F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
+        motion_rates(F, z, u, self.nq, S, KGd, Kd, dt)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
 
@@ -604,7 +619,8 @@ class ReducedObserverModel:
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv))
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv),
+            KGd=fm.KGd)
 
     def _velocity_forms(self, iv: _Held) -> dict:
         """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held

@@ -35,7 +35,7 @@ from ..mechanism import parse_mechanism
 from . import _compiled
 from .basis import CraigBampton, ReducedConfiguration
 
-__all__ = ["ReducedMatrices", "ReducedModel", "warm_up"]
+__all__ = ["ReducedMatrices", "ReducedModel", "motion_coefficients", "warm_up"]
 
 #: the central differences' step (rad) of :meth:`ReducedModel.basis_curvature` and :meth:`ReducedModel.basis_hessian`
 CURVATURE_STEP = 1e-5
@@ -52,6 +52,14 @@ class ReducedMatrices:
     Cr: np.ndarray
     Gr: np.ndarray  # (r, n_motors) generalised forces of unit motor torques
     fr: np.ndarray  # (r,) gravity minus velocity-dependent forces at the state
+
+
+def motion_coefficients(tau: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    """``c = [1, tau, (q'_a q'_b)_{a <= b}]`` (pairs row-major): :meth:`ReducedModel.motion_geometric`'s form is
+    ``sum_k c_k KGd[k]``."""
+    nq = len(qd)
+    a, b = np.triu_indices(nq)
+    return np.concatenate([[1.0], np.asarray(tau, float), np.asarray(qd, float)[a] * np.asarray(qd, float)[b]])
 
 
 class QuadraticForces:
@@ -83,6 +91,9 @@ class QuadraticForces:
         self.C2 = C2  # the flattened bias form, if computed already (:func:`._compiled.force_terms`)
         self.elastic = None  # (pM, pK, pC, pG, p2C) of :meth:`ReducedModel.elastic_forms`, with the gradients
         self.dHdq = None  # d(H e_k)/dq (r, n, nq) of :meth:`ReducedModel.held` (the measurement rows' change)
+        #: the motion's geometric stiffness as a linear form, flattened (k, r*r) (:meth:`ReducedModel.motion_geometric`
+        #: of the configuration undeformed; empty (0, 0): none), set by :meth:`ReducedModel.held`
+        self.KGd = np.zeros((0, 0))
         if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
@@ -283,6 +294,9 @@ class ReducedModel:
                 fm.elastic = self.elastic_forms(rc, dHdq)
         if gradients and mats.rc.cfg.K_G is not None:
             fm.dKr2 = fm.dKr2 + self.geometric_gradient(mats.rc, fm.dHdq).reshape(self.nq, -1)
+        KGd = self.motion_geometric(mats.rc)
+        if KGd.shape[0]:
+            fm.KGd = np.ascontiguousarray(KGd.reshape(len(KGd), -1))
         if fr and fm.C2 is not None and np.any(p[self.nq :]):
             fm.C2 = self._curved_bias_form(mats, fm.C2, p)
         return mats, fm
@@ -328,15 +342,72 @@ class ReducedModel:
         (:meth:`~exuflex.erls.model.ErlsModel.static_geometric`: the weight with the holding torques) reduced as
         ``K_uu`` is, ``K_r = J_u^T (K_uu + T^T K_G T) H_u``; zero without (no gravity, or a model built with
         ``geometric=False``). The basis stays that of ``K_uu`` (the Craig-Bampton shapes of the linear elastic
-        links; the static corrections take the model's stiffness with ``K_G``, :mod:`.static`). Left out: the
-        change of the axial loads with the motion (the full model's ``K_G(q, q', tau)``,
-        :meth:`~exuflex.erls.model.ErlsModel.net_forces`); its q-gradient is :meth:`geometric_gradient`."""
+        links; the static corrections take the model's stiffness with ``K_G``, :mod:`.static`). The change of the
+        axial loads with the motion (the rest of the full model's ``K_G(q, q', tau)``,
+        :meth:`~exuflex.erls.model.ErlsModel.net_forces`) is :meth:`motion_geometric`'s; the static part's
+        q-gradient is :meth:`geometric_gradient`."""
         K_G = rc.cfg.K_G
         if K_G is None:
             return np.zeros((self.r, self.r))
         nq, T = self.nq, self.model.T
         TH = T @ rc.H[nq:]
         return (T @ J[nq:]).T @ (K_G @ TH)
+
+    def motion_geometric(self, rc: ReducedConfiguration, J: np.ndarray | None = None) -> np.ndarray:
+        """``KGd`` (k, r, r): the geometric stiffness of the motion's axial loads beyond the static ones,
+        ``J_u^T T^T K_G(N(q, q', tau) - N_s) T H_u`` (reduced as :meth:`geometric_stiffness`; ``J=None``: ``H``, the
+        configuration undeformed), as a linear form in ``c = [1, tau, (q'_a q'_b)_{a <= b}]`` (``k = 1 + n_motors
+        + nq (nq + 1) / 2``, the pairs row-major): the stiffness is ``sum_k c_k KGd[k]`` (:func:`motion_coefficients`).
+
+        The full model's elastic rows carry ``K_G`` of the axial forces of the rigid motion's loads
+        (:meth:`~exuflex.erls.model.ErlsModel.net_forces`): ``f = P (M_N g + B tau - M_N S' q')`` with ``P`` the
+        projection that leaves the rigid motions unloaded (:meth:`~exuflex.erls.model.ErlsModel.rigid_loads`), and
+        ``N = A f`` the links' quasi-static axial response, linear in ``f`` (:meth:`~exuflex.erls.model.ErlsModel.
+        axial_forces`). ``S' q' = sum_ab q'_a q'_b dS/dq_a e_b``, so at a configuration ``N`` is affine in ``tau``
+        and quadratic in ``q'``, and ``K_G`` is linear in ``N``. The static part (the weight with the holding
+        torques, ``N_s``) is :meth:`geometric_stiffness`'s; the rest, under the motors' torques beyond holding and
+        the rates' centripetal loads, is this one: on a slider-crank with a heavy slider the rod's axial force is
+        some percent of its buckling load and changes the rod's stiffness by as much, against gauge readings of
+        tens of noise standard deviations. The cached observer step holds the form with its configuration (its
+        change with q over the refresh radius left out: first order there, where ``K_r``'s is second) and contracts
+        it with each interval's torques and start rates (:func:`exuflex.observer.expansion.motion_stiffness`).
+        Empty (0, r, r) for a model built with ``geometric=False``."""
+        model, nq, r = self.model, self.nq, self.r
+        if not model.geometric:
+            return np.zeros((0, r, r))
+        cfg = rc.cfg
+        S = cfg.pose.S
+        Sd = model.coordinate_derivatives(cfg)
+        nm = model.B_N.shape[1]
+        pairs = [(a, b) for a in range(nq) for b in range(a, nq)]
+        F = np.empty((model.N, 1 + nm + len(pairs)))
+        F[:, 0] = cfg.M_N @ model.g_N
+        F[:, 1 : 1 + nm] = model.B_N
+        for k, (a, b) in enumerate(pairs):  # the coefficient of q'_a q'_b in -M_N S' q'
+            acc = Sd[a][:, b] + Sd[b][:, a] if a != b else Sd[a][:, a]
+            F[:, 1 + nm + k] = -(cfg.M_N @ acc)
+        MS = cfg.M_N @ S
+        F -= MS @ np.linalg.solve(S.T @ MS, S.T @ F)
+        N = model.axial_forces(cfg, F)  # (n_el, k)
+        if cfg.N_static is not None:
+            N[:, 0] -= cfg.N_static
+        TH = model.T @ rc.H[nq:]
+        TJ = TH if J is None else model.T @ J[nq:]
+        return np.stack([TJ.T @ (model.geometric_stiffness(cfg, N[:, k]) @ TH) for k in range(N.shape[1])])
+
+    def motion_stiffness(self, rc: ReducedConfiguration, J: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """``J_u^T T^T K_G(N(q, q', tau) - N_s) T H_u`` (r, r) at one state and torque: :meth:`motion_geometric`'s
+        stiffness evaluated directly (the full model's axial forces, :meth:`~exuflex.erls.model.ErlsModel.
+        rigid_axial_forces`); zeros without geometric stiffness."""
+        model, nq = self.model, self.nq
+        if not model.geometric:
+            return np.zeros((self.r, self.r))
+        cfg = rc.cfg
+        N = model.rigid_axial_forces(cfg, np.asarray(qd, float), np.asarray(tau, float))
+        if cfg.N_static is not None:
+            N = N - cfg.N_static
+        TH = model.T @ rc.H[nq:]
+        return (model.T @ J[nq:]).T @ (model.geometric_stiffness(cfg, N) @ TH)
 
     def elastic_forms(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> tuple | None:
         """``(pM, pK, pC, pG, p2C)``: the change of the reduced matrices with the elastic coordinates at a
@@ -570,9 +641,12 @@ class ReducedModel:
         return Wg
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
+        """``p''`` of ``M_r p'' + C_r p' + (K_r + K_Gd) p = G_r tau + f_r`` at ``(p, p')`` under ``tau``, ``K_Gd`` the
+        motion's geometric stiffness (:meth:`motion_stiffness`)."""
         if mats is None:
             mats = self.matrices(p, pd)
-        F = mats.Gr @ tau + mats.fr - mats.Kr @ p - mats.Cr @ pd
+        F = mats.Gr @ tau + mats.fr - (mats.Kr + self.motion_stiffness(mats.rc, mats.J, pd[: self.nq], tau)) @ p \
+            - mats.Cr @ pd
         return np.linalg.solve(mats.Mr, F)
 
     def rhs(self, t: float, z: np.ndarray, tau: np.ndarray) -> np.ndarray:
