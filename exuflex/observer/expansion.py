@@ -1567,6 +1567,8 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
             M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
         else:
             Mb, Cb, fb = Mk, Ck, fk
+    # the nominal's geometric forces of the motion (held_interval's; the payload's share of the axial loads left out)
+    motion_forces(f0, z, 0.5 * h * n, motion_stiffness(u, z, dl.shape[0], hs.KGd))
     out = np.empty((a.shape[0], z.shape[0]))
     M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
     for k in range(a.shape[0]):
