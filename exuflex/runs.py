@@ -603,7 +603,10 @@ def _parse_chunk(path: Path, lines: Sequence[tuple[int, str]], header: Sequence[
     n_col = len(header)
     joined = "\n".join(texts)
     literal_non_finite = any(ch in joined for ch in "nNiI")  # nan, inf: only the reference parser names them
-    if not literal_non_finite and (decimal == "." or "." not in joined) and (
+    # every line with its field count (np.loadtxt strips a whitespace delimiter at a line's end: a tab-separated
+    # line with one empty cell too many would pass)
+    fields_ok = all(t.count(delimiter) == n_col - 1 for t in texts)
+    if fields_ok and not literal_non_finite and (decimal == "." or "." not in joined) and (
             delimiter in _EMPTY_CELL or not allow_empty):
         if decimal != ".":
             joined = joined.replace(decimal, ".")
