@@ -169,6 +169,8 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
         f = f + w
     if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
         f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
+    if hs.We.shape[0]:  # ... and the cross term with q: sum_m p_m We[m] dl
+        f[:nq] += np.einsum("m,mij,j->i", z[nq:r], hs.We.reshape(-1, nq, nq), dl)
     # the motion's geometric forces at the interval's midpoint positions (expansion._motion_forces)
     f = f - motion_stiffness(u, z, nq, hs.KGd)[0] @ (z[:r] + tm * z[r:])
     return rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
@@ -298,6 +300,11 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
         wcol = hs.pG.reshape(n_el, nq, mg)[:, :, mg - 1]  # (n_el, nq)
         f[:nq] += p[nq:] @ wcol
         dF[:nq, nq:r] += wcol.T
+    if hs.We.shape[0]:  # the weight's cross term sum_m p_m We[m] dl, in q and in the elastic coordinates
+        We3 = hs.We.reshape(-1, nq, nq)
+        f[:nq] += np.einsum("m,mij,j->i", p[nq:], We3, dl)
+        dF[:nq, :nq] += np.einsum("m,mij->ij", p[nq:], We3)
+        dF[:nq, nq:r] += np.einsum("mij,j->im", We3, dl)
     # the held matrices' derivatives per state component (zero where a component does not move them)
     dMj = np.zeros((nx, r, r))
     dKj = np.zeros((nx, r, r))

@@ -147,6 +147,8 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
             f[:nq] += (x[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
         if hs.Wg.shape[0]:  # ... and with q
             f += hs.Wg[:, :nq] @ (x[:nq] - iv.q0)
+        if hs.We.shape[0]:  # ... and with both: the weight's q-gradient at the sag
+            f[:nq] += np.einsum("m,mij,j->i", x[nq:r], hs.We.reshape(-1, nq, nq), x[:nq] - iv.q0)
         if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
             f += oracle.velocity_terms(x[nq:r], x[r:], nq, hs.pT, hs.pC2)[0]
         return f

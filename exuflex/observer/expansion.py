@@ -92,6 +92,10 @@ class HeldSystem(NamedTuple):
     ``KGd`` (k, r*r): the geometric stiffness of the motion's axial loads as a linear form in ``[1, u, (q'_a
     q'_b)_{a <= b}]`` (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`, flattened; empty (0, 0):
     none), which each interval contracts with its torques and start rates and holds as a force (:func:`_motion_forces`).
+    ``We`` (r - nq, nq*nq): the weight's q rows differentiated in q and in each elastic coordinate,
+    ``d^2 fg_i / dq_j dp_m`` at ``[m, i*nq + j]`` (:meth:`exuflex.reduction.model.ReducedModel.weight_curvature`;
+    empty (0, 0): none): the held weight's q-gradient at a deformed state (the sag) is ``Wg + sum_m p_m We[m]``
+    (:func:`_held_model`, :func:`_weight_curvature_forces`).
     """
 
     has_old: bool
@@ -124,6 +128,7 @@ class HeldSystem(NamedTuple):
     pT: np.ndarray
     pC2: np.ndarray
     KGd: np.ndarray
+    We: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -562,6 +567,14 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
             w = p[nq + k]
             for i in range(nq):
                 f[i] += w * hs.pG[k, i * mg + mg - 1]
+    for k in range(hs.We.shape[0]):  # ... and its change with q: the weight's moment across the sag turning
+        w = p[nq + k]
+        if w != 0.0:
+            for i in range(nq):
+                acc = 0.0
+                for j in range(nq):
+                    acc += hs.We[k, i * nq + j] * dl[j]
+                f[i] += w * acc
     return Mr, Kr, Cr, Gr, f
 
 
@@ -655,6 +668,7 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
         Fp = hs.Wg
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
+            _weight_curvature_forces(Fp, z, dl, hs.We)
         if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
             Fp = motion_gradient(Fp, Kd)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
@@ -810,6 +824,25 @@ def _motion_gradient(Fp, Kd):  # pragma: no cover - compiled
         for j in range(r):
             out[i, j] = (Fp[i, j] if Fp.shape[0] else 0.0) - Kd[i, j]
     return out
+
+
+def _weight_curvature_forces(Fp, z, dl, We):  # pragma: no cover - compiled
+    """Add to the held forces' position gradient ``Fp`` (r, r; in place) the held weight's cross term
+    ``sum_m p_m We[m] dl`` (:func:`_held_model`) differentiated: ``sum_m p_m We[m]`` in the q columns (the weight's
+    q-gradient at the state's sag) and ``We[m] dl`` in the elastic columns; nothing where ``We`` is empty."""
+    n_el = We.shape[0]
+    if n_el == 0:
+        return
+    nq = dl.shape[0]
+    for k in range(n_el):
+        w = z[nq + k]
+        for i in range(nq):
+            acc = 0.0
+            for j in range(nq):
+                x = We[k, i * nq + j]
+                Fp[i, j] += w * x
+                acc += x * dl[j]
+            Fp[i, nq + k] += acc
 
 
 def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - compiled
@@ -1274,7 +1307,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1557,7 +1590,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1672,6 +1705,7 @@ _elastic_tangent = _linked(_elastic_tangent)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
+_weight_curvature_forces = _shared(_weight_curvature_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
 measurement_rows = _jit(_measurement_rows)
@@ -1700,7 +1734,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
                       p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
-                      np.zeros((0, 0)))
+                      np.zeros((0, 0)), np.zeros((0, 0)))
 
 
 _warm = False

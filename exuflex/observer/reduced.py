@@ -615,14 +615,20 @@ class ReducedObserverModel:
         fm, m = iv.forces, iv.mats
         old = iv.old
         o, om, oCa = (fm, m, iv.Ca) if old is None else (old.forces, old.mats, old.Ca)
+        hess, We = None, _NO_ROWS
+        if self._weight and self.rm.consistent and fm.dHdq is not None and self.r > self.nq:
+            # the weight's q-gradient at the sag (ReducedModel.weight_curvature), with the basis's second derivatives
+            # the velocity forms take as well
+            hess = self.rm.basis_hessian(m.rc.cfg.pose.q)
+            We = self.rm.weight_curvature(m, fm.dHdq, hess)
         return HeldSystem(
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
-            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv),
-            KGd=fm.KGd)
+            old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv, hess),
+            KGd=fm.KGd, We=We)
 
-    def _velocity_forms(self, iv: _Held) -> dict:
+    def _velocity_forms(self, iv: _Held, hess: np.ndarray | None = None) -> dict:
         """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held
         configuration differentiated in each elastic coordinate ``p_m`` (empty in the paper's form, ``J = H``).
 
@@ -660,7 +666,7 @@ class ReducedObserverModel:
             dJtM = (cfg.W @ A).T @ MW  # (r, n): d((W J)^T M_N W) along A_m, rows j < nq only
             pC2[m] = (2.0 * np.swapaxes(dJtM @ dHdq, 1, 2)).ravel()
         # the curvature of the bias acceleration: (W J_0)^T M_N W Z_m[:, k, j] in pC2_m[k, j, :], k < nq
-        Z = self.rm.basis_hessian(cfg.pose.q)  # (r - nq, n, nq, nq)
+        Z = self.rm.basis_hessian(cfg.pose.q) if hess is None else hess  # (r - nq, n, nq, nq)
         JtMW = (cfg.W @ J0).T @ MW  # (r, n)
         pC = pC2.reshape(n_el, r, nq, r)
         pC[:, :nq] += np.einsum("cx,mxkj->mkjc", JtMW, Z)

@@ -297,18 +297,43 @@ class ReducedModel:
         KGd = self.motion_geometric(mats.rc)
         if KGd.shape[0]:
             fm.KGd = np.ascontiguousarray(KGd.reshape(len(KGd), -1))
-        if fr and fm.C2 is not None and np.any(p[self.nq :]):
-            fm.C2 = self._curved_bias_form(mats, fm.C2, p)
+        if fr and np.any(p[self.nq :]):
+            hess = None
+            if fm.C2 is not None:
+                hess = self.basis_hessian(p[: self.nq])
+                fm.C2 = self._curved_bias_form(mats, fm.C2, p, hess)
+            if self.consistent and fm.Wg.shape[0]:
+                fm.Wg = self._curved_weight_gradient(mats, fm.Wg, p, hess)
         return mats, fm
 
-    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def _curved_weight_gradient(self, mats: ReducedMatrices, Wg: np.ndarray, p: np.ndarray,
+                                hess: np.ndarray | None = None) -> np.ndarray:
+        """The weight's gradient :meth:`weight_gradient` of a deformed state with the basis's second derivatives
+        times the elastic coordinates in it: the q rows' weight ``(W J_q)^T M_N g`` with ``J_q = H_q + d(H p)/dq``
+        changes with ``q_i`` by ``(W d^2(H p)/dq_i dq_j)^T M_N g`` as well (:meth:`basis_hessian`), the weight
+        turning the sag's displacement with the links. Under gravity the sag is always there, and the term is of the
+        weight's moment across it: on the crane arm (``benchmarks/models/crane_arm.toml``) 0.013 N m of the
+        shoulder's 12 N m/rad, which the small boom inertia behind the elbow turns into a fifth of ``dq2''/dq1``
+        (docs/gravity.md)."""
+        nq = self.nq
+        cfg = mats.rc.cfg
+        if hess is None:
+            hess = self.basis_hessian(p[:nq])
+        Zp = np.tensordot(p[nq:], hess, axes=(0, 0))  # (n, nq, nq): d^2(H p)/dq_i dq_j
+        wg = cfg.W.T @ (cfg.M_N @ self.model.g_N)  # (n,)
+        out = np.array(Wg, float)
+        out[:nq, :nq] += np.einsum("xij,x->ji", Zp, wg)
+        return out
+
+    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray,
+                          hess: np.ndarray | None = None) -> np.ndarray:
         """The bias form ``C2`` (r nq, r: the force ``-sum p'_k p'_j C2[k, j]``, ``j < nq``) of a deformed state
         with the bias acceleration's curvature term in it: at the state's ``p``, ``-(W J)^T M_N W d^2(H p)/dq_k dq_j
         q'_k q'_j`` is a bilinear form in the joint rates, added to the entries ``k < nq``
         (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state."""
         nq, r = self.nq, self.r
         cfg = mats.rc.cfg
-        Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
+        Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]) if hess is None else hess, axes=(0, 0))  # (n, nq, nq)
         JtMW = (cfg.W @ mats.J).T @ (cfg.M_N @ cfg.W)  # (r, n)
         out = np.array(C2, float).reshape(r, nq, r)
         out[:nq] += np.einsum("cx,xkj->kjc", JtMW, Zp)
@@ -318,21 +343,42 @@ class ReducedModel:
         """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as
         ``dKr2`` holds the linear elastic stiffness's (its q rows' ``d(H p)/dq`` part not differentiated): the
         basis turning with the links, ``dH_u^T K_Guu H_u`` and its transpose (``K_Guu = T^T K_G T``), and the
-        nodal ``K_G``'s own change, the elements turning and their static axial forces changing with the
-        configuration, by central differences of :meth:`~exuflex.erls.model.ErlsModel.static_geometric` over
-        ``1e-6`` (rad or m; ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds
-        ``K_r`` to first order in q with it (second along its secant), as it holds the linear elastic part."""
+        nodal ``K_G``'s own change, the elements turning and their axial forces changing with the configuration
+        under the torques that hold the configuration at ``rc`` (``tau_0``), by central differences of
+        ``K_G(N(q, 0, tau_0))`` (:meth:`~exuflex.erls.model.ErlsModel.rigid_axial_forces`) over ``1e-6`` (rad or m;
+        ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds ``K_r`` to first
+        order in q with it (second along its secant), as it holds the linear elastic part.
+
+        Why the torques held at ``tau_0`` and not the static ``K_G(N_s(q))`` differentiated: the equations of motion
+        carry ``K_G`` of the axial forces under the torques actually applied, ``N(q, q', tau)``
+        (:meth:`~exuflex.erls.model.ErlsModel.net_forces`); the static part ``N_s(q)`` is that with the torques that
+        hold each ``q``, and :meth:`motion_geometric` adds the rest, ``N(q, q', tau) - N_s(q)``, held with the
+        configuration. At fixed torques a change of q does not change them: the holding torques' change with q,
+        which ``dN_s/dq`` contains, the motion's part takes back (a form held at ``q0``, it cannot). On the crane arm
+        (``benchmarks/models/crane_arm.toml``) under its sag the two differ by the whole gradient of the mast's
+        ``K_G`` in the shoulder angle (the elastic rows' force ``dK_G/dq1 p`` some 0.03-0.07 of the weight's, which
+        the mass matrix's coupling turns into a quarter of ``dq2''/dq1``: docs/gravity.md). Left out: ``(tau -
+        tau_0) dK_G(N_B)/dq`` (the torques' departure from holding times the change), second order with ``q - q0``."""
         model, nq = self.model, self.nq
         T, H, q = model.T, rc.H, rc.cfg.q
         TH = T @ H[nq:]
         KH = (T.T @ (rc.cfg.K_G @ TH))  # K_Guu H_u
         out = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_Guu H_u per q_i
         out = out + np.swapaxes(out, 1, 2)
+        cfg0 = rc.cfg
+        S, B = cfg0.pose.S, model.B_N
+        tau0 = (-np.linalg.lstsq(S.T @ B, S.T @ (cfg0.M_N @ model.g_N), rcond=None)[0] if B.shape[1]
+                else np.zeros(0))  # the torques that hold q (ErlsModel.rigid_loads)
+
+        def K_G(qq):
+            cfg = model._material_configuration(qq)
+            return model.geometric_stiffness(cfg, model.rigid_axial_forces(cfg, None, tau0))
+
         h = 1e-6
         for i in range(nq):
             e = np.zeros(nq)
             e[i] = h
-            dK = (model.configuration(q + e).K_G - model.configuration(q - e).K_G) / (2 * h)
+            dK = (K_G(q + e) - K_G(q - e)) / (2 * h)
             out[i] += TH.T @ (dK @ TH)
         model.configuration(q)  # leave the closure solver warm-started at q
         return out
@@ -639,6 +685,35 @@ class ReducedModel:
         if self.consistent:
             Wg[:nq, nq:] = dW[:, nq:]
         return Wg
+
+    def weight_curvature(self, mats: ReducedMatrices, dHdq: np.ndarray, hess: np.ndarray) -> np.ndarray:
+        """``We`` (r - nq, nq * nq): the weight's q rows differentiated in ``q`` and in an elastic coordinate,
+        ``We[m, i * nq + j] = d^2 fg_i / dq_j dp_m`` (i, j < nq) at ``mats``' configuration (undeformed); empty
+        (0, 0) without gravity or in the paper's form (``J = H``: ``fg`` does not depend on ``p``).
+
+        ``fg_q = (S + T d(H_u p)/dq)^T M_N g`` is linear in the elastic coordinates, so its q-gradient at a deformed
+        state is the undeformed one's (:meth:`weight_gradient`) plus ``sum_m p_m We[m]``: per unit ``p_m`` the basis's
+        second derivative ``(W d^2(H e_m)/dq_i dq_j)^T M_N g`` (``hess``, :meth:`basis_hessian`) and the element masses
+        turning with the links against the sag's velocity map, ``sum_e dtheta_e/dq_i (W d(H e_m)/dq_j)_e^T R_e G_e
+        R_e^T g_e`` (:meth:`weight_gradient`'s rotation term with ``W A_m`` for ``W J``). The cached observer step
+        holds the configuration undeformed and follows the elastic coordinates to first order; under gravity the
+        sag is always there, and the weight's moment across it changes with q by ``We p``: on the crane arm
+        (``benchmarks/models/crane_arm.toml``) 0.013 N m/rad of the shoulder's 12 N m/rad, which the boom's small
+        inertia behind the elbow turns into a fifth of ``dq2''/dq1`` (docs/gravity.md)."""
+        model, nq, r = self.model, self.nq, self.r
+        if not (self.consistent and np.any(model.g_N)) or r == nq:
+            return np.zeros((0, 0))
+        cfg = mats.rc.cfg
+        wg = cfg.W.T @ (cfg.M_N @ model.g_N)  # (n,)
+        out = np.einsum("mxij,x->mij", hess, wg)  # (r - nq, nq, nq): [m, i, j], symmetric in i, j
+        RGR = cfg.R @ model.Gl @ np.swapaxes(cfg.R, 1, 2)  # dM_N/dtheta_e per element
+        S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
+        ge = np.einsum("eab,eb->ea", RGR, model.g_N[model.el_dofs])  # (n_el, 6)
+        for m in range(r - nq):
+            WA = cfg.W @ dHdq[nq + m]  # (N, nq): W d(H e_m)/dq_j
+            Ee = np.einsum("eaj,ea->ej", WA[model.el_dofs], ge)  # (n_el, nq) [e, j]
+            out[m] += (S_th.T @ Ee).T  # row i = j of the q rows (the velocity map's column), column the angle's q
+        return np.ascontiguousarray(out.reshape(r - nq, nq * nq))
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         """``p''`` of ``M_r p'' + C_r p' + (K_r + K_Gd) p = G_r tau + f_r`` at ``(p, p')`` under ``tau``, ``K_Gd`` the
