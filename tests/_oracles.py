@@ -148,6 +148,14 @@ def motion_stiffness(u, z, nq, KGd) -> tuple[np.ndarray, np.ndarray]:
     return np.tensordot(c, K3, 1), np.tensordot(dc, K3, 1)
 
 
+def motion_form(hs: HeldSystem, dl):
+    """The motion's geometric stiffness form at ``q0 + dl``: ``KGd + dKGd . dl`` (``expansion._motion_form``)."""
+    if hs.dKGd.shape[0] == 0:
+        return hs.KGd
+    k, rr = hs.KGd.shape
+    return hs.KGd + np.einsum("kit,i->kt", hs.dKGd.reshape(k, len(dl), rr), dl)
+
+
 def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``, the matrices at the interval's midpoint elastic
     coordinates, the forces at its start."""
@@ -171,8 +179,8 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
         f[:nq] += (z[nq:r] @ hs.pG).reshape(nq, -1)[:, -1]
     if hs.We.shape[0]:  # ... and the cross term with q: sum_m p_m We[m] dl
         f[:nq] += np.einsum("m,mij,j->i", z[nq:r], hs.We.reshape(-1, nq, nq), dl)
-    # the motion's geometric forces at the interval's midpoint positions (expansion._motion_forces)
-    f = f - motion_stiffness(u, z, nq, hs.KGd)[0] @ (z[:r] + tm * z[r:])
+    # the motion's geometric forces at the interval's midpoint positions (expansion._motion_forces), the form at q
+    f = f - motion_stiffness(u, z, nq, motion_form(hs, dl))[0] @ (z[:r] + tm * z[r:])
     return rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n), Mr, Kr, Cr, Gr
 
 
@@ -289,10 +297,14 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     if act:  # the secant factor's own change moves everything along the secant
         dF[:, :nq] += np.outer(along, ds)
     # the motion's geometric forces -K_d(q') (p + dt/2 p') (expansion._motion_forces), K_d a function of the rates
-    Kd, dKd = motion_stiffness(u, z, nq, hs.KGd)
+    Kd, dKd = motion_stiffness(u, z, nq, motion_form(hs, dl))
     pm = p + 0.5 * h * n * pd
     f -= Kd @ pm
     dF[:, :r] -= Kd
+    if hs.dKGd.shape[0]:  # the form's change with q (expansion._motion_form)
+        rr = r * r
+        for i in range(nq):
+            dF[:, i] -= motion_stiffness(u, z, nq, hs.dKGd[:, i * rr : (i + 1) * rr])[0] @ pm
     dF[:, r:] -= 0.5 * h * n * Kd
     dF[:, r : r + nq] -= np.einsum("aij,j->ia", dKd, pm)
     if n_el:

@@ -46,6 +46,7 @@ __all__ = [
     "map_error",
     "map_lookahead",
     "measurement_rows",
+    "motion_form_gradient",
     "motion_forces",
     "motion_gradient",
     "motion_rates",
@@ -95,7 +96,10 @@ class HeldSystem(NamedTuple):
     ``We`` (r - nq, nq*nq): the weight's q rows differentiated in q and in each elastic coordinate,
     ``d^2 fg_i / dq_j dp_m`` at ``[m, i*nq + j]`` (:meth:`exuflex.reduction.model.ReducedModel.weight_curvature`;
     empty (0, 0): none): the held weight's q-gradient at a deformed state (the sag) is ``Wg + sum_m p_m We[m]``
-    (:func:`_held_model`, :func:`_weight_curvature_forces`).
+    (:func:`_held_model`, :func:`_weight_curvature_forces`). ``dKGd`` (k, nq*r*r): ``KGd``'s q-gradient under
+    gravity (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric_gradient`; empty (0, 0): none): the form
+    at ``q0 + dl`` is ``KGd + dKGd . dl`` (:func:`_motion_form`), so the geometric stiffness follows q at the
+    interval's torques, not at the holding ones the static part's gradient carries.
     """
 
     has_old: bool
@@ -129,6 +133,7 @@ class HeldSystem(NamedTuple):
     pC2: np.ndarray
     KGd: np.ndarray
     We: np.ndarray
+    dKGd: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -606,6 +611,59 @@ def _motion_stiffness(u, z, nq, KGd):  # pragma: no cover - compiled
     return K
 
 
+def _motion_form(KGd, dKGd, dl):  # pragma: no cover - compiled
+    """``KGd + dKGd . dl`` (k, r*r): the motion's geometric stiffness form at ``q0 + dl`` to first order in q
+    (:class:`HeldSystem`'s ``dKGd``); ``KGd`` itself where ``dKGd`` is empty."""
+    if dKGd.shape[0] == 0:
+        return KGd
+    nk, rr = KGd.shape
+    nq = dl.shape[0]
+    out = KGd.copy()
+    for k in range(nk):
+        for i in range(nq):
+            a = dl[i]
+            if a != 0.0:
+                for t in range(rr):
+                    out[k, t] += a * dKGd[k, i * rr + t]
+    return out
+
+
+def _motion_form_gradient(Fp, u, z, tm, dKGd, nq):  # pragma: no cover - compiled
+    """Subtract from the held forces' position gradient ``Fp`` (r, r; in place) the motion's geometric forces'
+    change with q through the form's gradient: ``-sum_k c_k dKGd[k, i] (p + tm p')`` in column ``i < nq``
+    (:func:`_motion_form`, :func:`_motion_forces`; ``c = [1, u, (q'_a q'_b)_{a <= b}]``); nothing where ``dKGd`` is
+    empty."""
+    nk = dKGd.shape[0]
+    if nk == 0:
+        return
+    r = z.shape[0] // 2
+    rr = r * r
+    nm = u.shape[0]
+    c = np.empty(nk)
+    c[0] = 1.0
+    for j in range(nm):
+        c[1 + j] = u[j]
+    k = 1 + nm
+    for a in range(nq):
+        for b in range(a, nq):
+            c[k] = z[r + a] * z[r + b]
+            k += 1
+    pm = np.empty(r)
+    for j in range(r):
+        pm[j] = z[j] + tm * z[r + j]
+    for k in range(nk):
+        w = c[k]
+        if w == 0.0:
+            continue
+        for i in range(nq):
+            o = i * rr
+            for a in range(r):
+                acc = 0.0
+                for b in range(r):
+                    acc += dKGd[k, o + a * r + b] * pm[b]
+                Fp[a, i] -= w * acc
+
+
 def _motion_rates(F, z, u, nq, SQM, KGd, Kd, dt):  # pragma: no cover - compiled
     """Add to the step Jacobian ``F`` (in place) the response ``SQM g`` to the motion's geometric forces' change with
     the rates: the force ``-K_d (p + dt/2 p')`` held over the interval (:func:`_motion_forces`) in rate column ``m``
@@ -651,7 +709,8 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
     through a slower path)."""
     hs = HeldSystem(*hs)
     nq = dl.shape[0]
-    Kd = motion_stiffness(u, z, nq, hs.KGd)
+    KGe = _motion_form(hs.KGd, hs.dKGd, dl)
+    Kd = motion_stiffness(u, z, nq, KGe)
     tm = 0.5 * h * n
     Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
     motion_forces(f, z, 0.5 * h * n, Kd)
@@ -671,8 +730,9 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
             _weight_curvature_forces(Fp, z, dl, hs.We)
         if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
             Fp = motion_gradient(Fp, Kd)
+            motion_form_gradient(Fp, u, z, 0.5 * h * n, hs.dKGd, nq)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
-        motion_rates(F, z, u, nq, SQM, hs.KGd, Kd, h * n)
+        motion_rates(F, z, u, nq, SQM, KGe, Kd, h * n)
         _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
         Y = _elastic_tangent(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
         nq = dl.shape[0]
@@ -1307,7 +1367,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We, hs.dKGd)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1590,7 +1650,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1601,7 +1661,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
         else:
             Mb, Cb, fb = Mk, Ck, fk
     # the nominal's geometric forces of the motion (held_interval's; the payload's share of the axial loads left out)
-    motion_forces(f0, z, 0.5 * h * n, motion_stiffness(u, z, dl.shape[0], hs.KGd))
+    motion_forces(f0, z, 0.5 * h * n, motion_stiffness(u, z, dl.shape[0], _motion_form(hs.KGd, hs.dKGd, dl)))
     out = np.empty((a.shape[0], z.shape[0]))
     M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
     for k in range(a.shape[0]):
@@ -1697,6 +1757,8 @@ motion_stiffness = _shared(_motion_stiffness)
 motion_gradient = _shared(_motion_gradient)
 motion_forces = _shared(_motion_forces)
 motion_rates = _shared(_motion_rates)
+_motion_form = _shared(_motion_form)
+motion_form_gradient = _shared(_motion_form_gradient)
 _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
 _velocity_terms = _linked(_velocity_terms)
@@ -1734,7 +1796,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
                       p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
-                      np.zeros((0, 0)), np.zeros((0, 0)))
+                      np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
 
 
 _warm = False

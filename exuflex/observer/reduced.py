@@ -95,6 +95,7 @@ from .expansion import (
     held_step,
     map_error,
     measurement_rows,
+    motion_form_gradient,
     motion_forces,
     motion_gradient,
     motion_rates,
@@ -492,6 +493,7 @@ class ReducedObserverModel:
             Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
         if KGd.shape[0]:
             Fp = motion_gradient(Fp, Kd)
+            motion_form_gradient(Fp, u, z, 0.5 * dt, iv.forces.dKGd, self.nq)
         F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
         motion_rates(F, z, u, self.nq, S, KGd, Kd, dt)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
@@ -626,7 +628,7 @@ class ReducedObserverModel:
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
             old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv, hess),
-            KGd=fm.KGd, We=We)
+            KGd=fm.KGd, We=We, dKGd=fm.dKGd)
 
     def _velocity_forms(self, iv: _Held, hess: np.ndarray | None = None) -> dict:
         """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held

@@ -94,6 +94,9 @@ class QuadraticForces:
         #: the motion's geometric stiffness as a linear form, flattened (k, r*r) (:meth:`ReducedModel.motion_geometric`
         #: of the configuration undeformed; empty (0, 0): none), set by :meth:`ReducedModel.held`
         self.KGd = np.zeros((0, 0))
+        #: its q-gradient under gravity, flattened (k, nq*r*r) (:meth:`ReducedModel.motion_geometric_gradient`; empty
+        #: (0, 0): none)
+        self.dKGd = np.zeros((0, 0))
         if C2 is None and dHdq is not None:
             C = np.swapaxes(JtM @ dHdq, 1, 2)  # (r, nq, r): [k, j, :] = J^T M dH/dq_j e_k
             self.C2 = 2.0 * C.reshape(r * nq, r)
@@ -297,6 +300,8 @@ class ReducedModel:
         KGd = self.motion_geometric(mats.rc)
         if KGd.shape[0]:
             fm.KGd = np.ascontiguousarray(KGd.reshape(len(KGd), -1))
+            if gradients and mats.rc.cfg.K_G is not None:  # under gravity: the form follows q with the static part
+                fm.dKGd = np.ascontiguousarray(self.motion_geometric_gradient(mats.rc).reshape(len(KGd), -1))
         if fr and np.any(p[self.nq :]):
             hess = None
             if fm.C2 is not None:
@@ -343,44 +348,56 @@ class ReducedModel:
         """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as
         ``dKr2`` holds the linear elastic stiffness's (its q rows' ``d(H p)/dq`` part not differentiated): the
         basis turning with the links, ``dH_u^T K_Guu H_u`` and its transpose (``K_Guu = T^T K_G T``), and the
-        nodal ``K_G``'s own change, the elements turning and their axial forces changing with the configuration
-        under the torques that hold the configuration at ``rc`` (``tau_0``), by central differences of
-        ``K_G(N(q, 0, tau_0))`` (:meth:`~exuflex.erls.model.ErlsModel.rigid_axial_forces`) over ``1e-6`` (rad or m;
-        ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds ``K_r`` to first
-        order in q with it (second along its secant), as it holds the linear elastic part.
-
-        Why the torques held at ``tau_0`` and not the static ``K_G(N_s(q))`` differentiated: the equations of motion
-        carry ``K_G`` of the axial forces under the torques actually applied, ``N(q, q', tau)``
-        (:meth:`~exuflex.erls.model.ErlsModel.net_forces`); the static part ``N_s(q)`` is that with the torques that
-        hold each ``q``, and :meth:`motion_geometric` adds the rest, ``N(q, q', tau) - N_s(q)``, held with the
-        configuration. At fixed torques a change of q does not change them: the holding torques' change with q,
-        which ``dN_s/dq`` contains, the motion's part takes back (a form held at ``q0``, it cannot). On the crane arm
-        (``benchmarks/models/crane_arm.toml``) under its sag the two differ by the whole gradient of the mast's
-        ``K_G`` in the shoulder angle (the elastic rows' force ``dK_G/dq1 p`` some 0.03-0.07 of the weight's, which
-        the mass matrix's coupling turns into a quarter of ``dq2''/dq1``: docs/gravity.md). Left out: ``(tau -
-        tau_0) dK_G(N_B)/dq`` (the torques' departure from holding times the change), second order with ``q - q0``."""
+        nodal ``K_G``'s own change, the elements turning and their static axial forces changing with the
+        configuration, by central differences of :meth:`~exuflex.erls.model.ErlsModel.static_geometric` over
+        ``1e-6`` (rad or m; ``K_G`` is smooth in q, the differences' error some 1e-10 of it). The cached step holds
+        ``K_r`` to first order in q with it (second along its secant), as it holds the linear elastic part; the
+        holding torques' change with q that ``N_s(q)`` carries the motion's form takes back at the torques applied
+        (:meth:`motion_geometric_gradient`)."""
         model, nq = self.model, self.nq
         T, H, q = model.T, rc.H, rc.cfg.q
         TH = T @ H[nq:]
         KH = (T.T @ (rc.cfg.K_G @ TH))  # K_Guu H_u
         out = np.swapaxes(np.swapaxes(dHdq[:, nq:, :], 1, 2) @ KH, 0, 1)  # dH_u^T K_Guu H_u per q_i
         out = out + np.swapaxes(out, 1, 2)
-        cfg0 = rc.cfg
-        S, B = cfg0.pose.S, model.B_N
-        tau0 = (-np.linalg.lstsq(S.T @ B, S.T @ (cfg0.M_N @ model.g_N), rcond=None)[0] if B.shape[1]
-                else np.zeros(0))  # the torques that hold q (ErlsModel.rigid_loads)
-
-        def K_G(qq):
-            cfg = model._material_configuration(qq)
-            return model.geometric_stiffness(cfg, model.rigid_axial_forces(cfg, None, tau0))
-
         h = 1e-6
         for i in range(nq):
             e = np.zeros(nq)
             e[i] = h
-            dK = (K_G(q + e) - K_G(q - e)) / (2 * h)
+            dK = (model.configuration(q + e).K_G - model.configuration(q - e).K_G) / (2 * h)
             out[i] += TH.T @ (dK @ TH)
         model.configuration(q)  # leave the closure solver warm-started at q
+        return out
+
+    def motion_geometric_gradient(self, rc: ReducedConfiguration) -> np.ndarray:
+        """``dKGd`` (k, nq, r, r): :meth:`motion_geometric`'s form (``J = H``) differentiated in q, by central
+        differences of the form at ``q +- 1e-6`` (rad or m: the basis, the elements' rotations, the axial response
+        and the static part ``N_s(q)`` all follow; the differences' error some 1e-10 of the form).
+
+        Why: the equations of motion carry ``K_G`` of the axial forces under the torques applied, ``N(q, q', tau)``
+        (:meth:`~exuflex.erls.model.ErlsModel.net_forces`). The held ``K_r`` carries the static part ``N_s(q)``, under
+        the torques that hold each q, with its q-gradient (:meth:`geometric_gradient`); at fixed torques the holding
+        torques' change with q is not there, and the motion's part ``N - N_s`` takes it back: held at ``q0`` without
+        its own gradient, it cannot, and the sum follows q by the static gradient alone. On the crane arm
+        (``benchmarks/models/crane_arm.toml``) at its sag the two differ by the whole change of the mast's ``K_G``
+        with the shoulder angle (the elastic rows' force ``dK_G/dq1 p``, 0.03-0.07 N, which the mass matrix's coupling
+        turns into a sixth of ``dq2''/dq1``: docs/gravity.md). With this gradient the cached step's ``K_G`` follows q
+        at the interval's torques and rates, ``sum_k c_k (KGd_k + dKGd_k . dl)``, to first order, as its static part
+        does. Empty (0, nq, r, r) without geometric stiffness."""
+        model, nq, r = self.model, self.nq, self.r
+        if not model.geometric:
+            return np.zeros((0, nq, r, r))
+        q = rc.cfg.q
+        h = 1e-6
+        out = None
+        for i in range(nq):
+            e = np.zeros(nq)
+            e[i] = h
+            d = (self.motion_geometric(self.cb.at(q + e)) - self.motion_geometric(self.cb.at(q - e))) / (2 * h)
+            if out is None:
+                out = np.empty((d.shape[0], nq, r, r))
+            out[:, i] = d
+        self.model.configuration(q)  # leave the closure solver warm-started at q
         return out
 
     def geometric_stiffness(self, rc: ReducedConfiguration, J: np.ndarray) -> np.ndarray:
@@ -723,6 +740,27 @@ class ReducedModel:
         F = mats.Gr @ tau + mats.fr - (mats.Kr + self.motion_stiffness(mats.rc, mats.J, pd[: self.nq], tau)) @ p \
             - mats.Cr @ pd
         return np.linalg.solve(mats.Mr, F)
+
+    def quasi_static(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray, passes: int = 2) -> np.ndarray:
+        """The elastic coordinates (r - nq,) at which the reduced equations hold at ``q, q'`` under ``tau`` with the
+        elastic rates and accelerations zero: ``M_r[:, :nq] q'' + (K_r + K_Gd) p = G_r tau + f_r - C_r p'``
+        (:meth:`accelerations`' terms; every row, ``q''`` and ``p_e`` the unknowns), solved with the matrices at the
+        undeformed state, then again at the solution (``J`` and the forces change with ``p_e``: each pass moves it by
+        the sag's square relative). Under gravity the links' quasi-static sag under the weight, the torques and the
+        rates' loads, about which the elastic coordinates vibrate."""
+        nq, r = self.nq, self.r
+        p = np.zeros(r)
+        p[:nq] = q
+        pd = np.zeros(r)
+        pd[:nq] = qd
+        tau = np.asarray(tau, float)
+        for _ in range(passes):
+            m = self.matrices(p, pd)
+            K = m.Kr + self.motion_stiffness(m.rc, m.J, pd[:nq], tau)
+            A = np.hstack([m.Mr[:, :nq], K[:, nq:]])
+            b = m.Gr @ tau + m.fr - K[:, :nq] @ p[:nq] - m.Cr @ pd
+            p[nq:] = np.linalg.solve(A, b)[nq:]
+        return p[nq:].copy()
 
     def rhs(self, t: float, z: np.ndarray, tau: np.ndarray) -> np.ndarray:
         r = self.r

@@ -573,7 +573,8 @@ class _Trajectory:
     the times ``t`` from a truth (linear interpolation of its samples) or from the plan (cubic Hermite from the
     plan's grid at the log's interval). The truth files hold the tip's elastic displacement, not the reduced model's
     coordinates: the elastic rates are taken at zero, and the elastic coordinates at zero without gravity and at
-    their quasi-static value under it (:meth:`quasi_static`, once :attr:`U` holds the torques): a mechanism in a
+    their quasi-static value under it (:meth:`~exuflex.reduction.ReducedModel.quasi_static`, once :attr:`U` holds the
+    torques): a mechanism in a
     vertical plane always carries its sag, and the step's Jacobian at the undeformed state differs from the one
     at the sagged state by more than its own size (the crane arm's ``dq2''/dq2``: -6 1/s^2 undeformed, +52 with the
     sag, docs/gravity.md), so a bound linearised at zero would be the bound of a mechanism that does not exist."""
@@ -632,29 +633,8 @@ class _Trajectory:
         if self.U is not None and np.any(som.model.g_N):
             U = np.asarray(self.U[rows], float)
             for k in range(len(ts)):
-                X[k, som.nq : som.r] = self.quasi_static(X[k], U[k])
+                X[k, som.nq : som.r] = som.rm.quasi_static(X[k, : som.nq], X[k, som.r : som.r + som.nq], U[k])
         return X
-
-    def quasi_static(self, z: np.ndarray, u: np.ndarray, passes: int = 2) -> np.ndarray:
-        """The elastic coordinates (r - nq,) at which the reduced equations hold with the elastic rates and
-        accelerations zero at ``z``'s ``q, q'`` under the torques ``u``: ``M_r[:, :nq] q'' + (K_r + K_Gd) p = G_r u +
-        f_r`` (every row: ``q''`` and ``p_e`` the unknowns; :meth:`~exuflex.reduction.ReducedModel.accelerations`'s
-        terms, ``K_Gd`` the motion's geometric stiffness) solved with the matrices at the undeformed state, then
-        again at the solution (``J`` and the forces change with ``p_e``: a second pass moves it by the sag's square
-        relative)."""
-        rm = self.obs.model.rm
-        nq, r = rm.nq, rm.r
-        p = np.array(z[:r], float)
-        p[nq:] = 0.0
-        pd = np.zeros(r)
-        pd[:nq] = z[r : r + nq]
-        for _ in range(passes):
-            m = rm.matrices(p, pd)
-            K = m.Kr + rm.motion_stiffness(m.rc, m.J, pd[:nq], u)
-            A = np.hstack([m.Mr[:, :nq], K[:, nq:]])
-            b = m.Gr @ u + m.fr - K[:, :nq] @ p[:nq] - m.Cr @ pd
-            p[nq:] = np.linalg.solve(A, b)[nq:]
-        return p[nq:]
 
 
 def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None = None,
