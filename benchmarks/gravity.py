@@ -375,7 +375,9 @@ def markdown(rows: list[dict], command: str) -> str:
          "by RK4 (`erls-rk4`, exact to the model), and the observer's own reduced model (`reduced`). Both ERLS "
          "models hold the geometric stiffness of the links' axial loads in their elastic rows (the P-delta effect: "
          "`exuflex.erls.model`, \"Geometric stiffness\"; the full model's of the rigid motion's loads, "
-         "`K_G(q, q', tau)`, the reduced model's of the weight with the holding torques, `K_G(q)`). "
+         "`K_G(q, q', tau)`, and the reduced model's of the same loads: the weight with the holding torques, "
+         "`K_G(N_s(q))`, in `K_r`, and the rest, `K_G(N(q, q', tau) - N_s(q))`, as a form in the torques and rates, "
+         "both following q, docs/gravity.md \"The reduced equations under gravity\"). "
          "`benchmarks/models/vertical_link.toml` is a link lifted from hanging to horizontal, "
          "`benchmarks/models/vertical_fourbar.toml` a crank-rocker lifting a payload on its rocker's overhang, both "
          "written fresh for the gravity checks; `benchmarks/models/vertical_serial_arm.toml` is the gallery's serial "
@@ -582,14 +584,16 @@ def markdown(rows: list[dict], command: str) -> str:
          "positions, `Wg[c, m] = d fg_c / dp_m` (`ReducedModel.weight_gradient`): in `q_i`, `(d(W J)/dq_i)^T "
          "M_N g + (W J)^T (dM_N/dq_i) g` (the links and the element masses turn, the static shapes change with "
          "the configuration); in the elastic coordinates (q rows, consistent form), `(W dH/dq_i e_m)^T M_N g`; "
-         "exact on undeformed states (`tests/test_step_jacobian.py`, central differences entry by entry). The "
-         "step Jacobian `F = P^n + S df/dz` gains `Wg` less the held matrices' change with q as the forces it "
-         "causes (`expansion.position_forces`)."),
+         "exact on undeformed states (`tests/test_step_jacobian.py`, central differences entry by entry); at a "
+         "deformed state the q block gains the basis's second derivatives and the element masses turning against "
+         "the sag, `sum_m p_m We[m]` (`ReducedModel.weight_curvature`: `fg_q` is linear in the elastic "
+         "coordinates). The step Jacobian `F = P^n + S df/dz` gains `Wg` (and `We p`) less the held matrices' change "
+         "with q as the forces it causes (`expansion.position_forces`)."),
         "",
         ("How to read it: on the `reduced` truths (the model exact) the filter is consistent under gravity, the "
          "means over the seeds near 1 and the NIS at its channel count; the ERLS truths add what the reduction "
-         "and the held step leave out (among them the change of the axial loads with the motion, which the full "
-         "model's geometric stiffness follows and the reduced model's does not), the Exudyn truth what the ERLS "
+         "and the held step leave out (the truncation; the reduced model's geometric stiffness follows the "
+         "motion's axial loads as the full model's does), the Exudyn truth what the ERLS "
          "formulation leaves out (the tip's second-order kinematics above). Where the open-loop motion is "
          "unstable (the upright arms) each truth is its own motion: their figures are compared seed by seed "
          "only through the filter's errors."),

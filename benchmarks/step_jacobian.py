@@ -10,6 +10,9 @@
     python benchmarks/step_jacobian.py own [--model models/sixbar.toml] [--truth-dir DIR] [--seeds 1-5]
                                            [--variants default,exact,...] [--phases-every 50] [--json own.json]
     python benchmarks/step_jacobian.py own-entries [--json own_entries.json]
+    python benchmarks/step_jacobian.py sag [--md docs/step_jacobian.md]
+    python benchmarks/step_jacobian.py reduced-ode --model M --truth DIR/erls/M/s1 [--duration T]
+                                                   [--n-interior auto,1,2] [--sampled]
     python benchmarks/step_jacobian.py own-page --own own.json [--entries own_entries.json] [--text TEXT]
     python benchmarks/step_jacobian.py page [--hold hold.json] [--entries entries.json]
                                             [--gallery after.json [--before before.json]]
@@ -48,6 +51,16 @@ the left-out terms would change in the acceptance figures, without touching the 
 exact Jacobian (``exact_jacobian`` of ``tests/_oracles.py``) against central differences of the step per
 model (``tests/test_step_jacobian.py``'s ``exact_entries``). ``own-page``: their section of the page, written in
 place (:func:`own_page`).
+
+``sag``: under gravity, at a state with its quasi-static sag (``tests/test_step_jacobian.py``'s ``sag_entries``,
+on its ``SAG_MODELS``): each step Jacobian's ``dq''/dq`` against central differences of the reduced equations' step,
+and that block at the undeformed state and at the sag (markdown on stdout; with ``--md`` its section of the page,
+written in place: :func:`sag_page`).
+
+``reduced-ode``: the reduced equations (RK4 of :meth:`~exuflex.reduction.ReducedModel.rhs`, the reference step's
+sub-steps) under the truth's own torque table against the ERLS truth's coordinates (``truth.csv``), per interior-mode
+count; ``--sampled``: the torque held at its value at each sample over the sample interval, as the reduced truth
+(:func:`exuflex.truth.reduced_truth`) drives it.
 
 ``page``: the markdown page from those JSON files and ``python benchmarks/gallery.py --engine erls,exudyn
 --truth-dir DIR --json FILE`` (cached against rk4 per model; ``--before``: the same from another checkout).
@@ -170,6 +183,116 @@ def refreshes(model: str, run: str) -> dict:
     som._held_error = recorded
     observe_run(mech, read_run(run), cfg, observer=obs, with_bound=False)
     return {"model": str(Path(model).name), "run": str(run), "refreshes": rows}
+
+
+def sag() -> str:
+    """The ``sag`` section: :func:`test_step_jacobian.sag_entries` per model, and ``dq''/dq`` (1/s^2) of the reduced
+    equations' step undeformed and at the sag (central differences, the same state otherwise)."""
+    import test_step_jacobian as tsj
+
+    from exuflex.observer.reduced import ReducedObserverModel
+
+    lines = ["| model | cached F | reference F | cached F, the weight's gradient at the sag left out | "
+             "dq''/dq undeformed (1/s^2) | dq''/dq at the sag (1/s^2) |", "|---|---|---|---|---|---|"]
+    for name in tsj.SAG_MODELS:
+        e = tsj.sag_entries(name)
+        mech, m = tsj._gravity_model(name)
+        z, u = tsj._sagged_state(mech, m)
+        r, nq = m.r, m.nq
+        dt = 1.0 / mech.sample_rate_hz
+        ref = ReducedObserverModel(m.rm, h=m.h, method="rk4")
+
+        def block(x):
+            return np.column_stack([(ref.advance(x + d, u, dt) - ref.advance(x - d, u, dt))[r : r + nq] / 2e-6
+                                    for d in 1e-6 * np.eye(2 * r)[:nq]]) / dt
+
+        z0 = z.copy()
+        z0[nq:r] = 0.0
+
+        def fmt(B):
+            return "[" + "; ".join(", ".join(f"{v:.3g}" for v in row) for row in B) + "]"
+
+        lines.append(f"| {name} | {e['cached F']:.3f} | {e['rk4 F']:.3f} | {e['without We']:.3f} | {fmt(block(z0))} | "
+                     f"{fmt(block(z))} |")
+        print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
+SAG_HEADING = "## Under gravity: the Jacobian at the sag"
+
+
+def sag_page(table: str, md: str) -> None:
+    """Write the ``sag`` section into the page ``md``: in place of the section of the same heading, else before
+    the left-out terms' section (else at the end)."""
+    page_lines = Path(md).read_text().split("\n")
+    new = [SAG_HEADING, "",
+           ("`python benchmarks/step_jacobian.py sag --md docs/step_jacobian.md` (`tests/test_step_jacobian.py`'s "
+            "`sag_entries`, on its `SAG_MODELS`: the fresh double pendulum and the crane and luffing arms of "
+            "`benchmarks/models/`): at a state under gravity with the joints turning at about 0.5 rad/s, the torques "
+            "the holding ones plus a tenth and the elastic coordinates at their quasi-static sag "
+            "(`ReducedModel.quasi_static`), the step Jacobians' `dq''/dq` against central differences of the reduced "
+            "equations' step, the largest `|F - F_d| / (|F_d| + 1e-2 max|F_d|)`; and the exact block undeformed and at "
+            "the sag. The sag changes the block by more than its size: linearised undeformed (as the bound was, "
+            "docs/gravity.md) the filter's yardstick belonged to a mechanism without sag. The cached step holds the "
+            "weight's q-gradient at the sag (`HeldSystem.We`) and the motion's geometric stiffness form's q-gradient "
+            "(`HeldSystem.dKGd`), and its `F` is its own step's derivative (1e-6 of each entry); what is left is named "
+            "in docs/gravity.md, \"The reduced equations under gravity\"."), "", table, ""]
+    head = [i for i, ln in enumerate(page_lines) if ln == SAG_HEADING]
+    if head:
+        i = head[0]
+        j = next((k for k in range(i + 1, len(page_lines)) if page_lines[k].startswith("## ")), len(page_lines))
+        page_lines[i:j] = new
+    else:
+        j = next((k for k, ln in enumerate(page_lines) if ln.startswith("## The left-out terms along a run")),
+                 len(page_lines))
+        page_lines[j:j] = new
+    Path(md).write_text("\n".join(page_lines))
+    print("wrote", md)
+
+
+def reduced_ode(model: str, truth: str, duration: float | None, n_interior: list, sampled: bool) -> list:
+    """The reduced equations against the ERLS truth's coordinates (the ``reduced-ode`` command): per interior-mode
+    count (None: the observer's default reduction), the largest and RMS difference of each coordinate over the
+    record's samples up to ``duration``."""
+    from exuflex.erls.model import ErlsModel
+    from exuflex.mechanism import load_mechanism
+    from exuflex.observer.reduced import ReducedObserverModel
+    from exuflex.observer.session import make_observer
+    from exuflex.reduction import CraigBampton, ReducedModel
+    from exuflex.runs import read_run
+    from exuflex.truth.engines import plan_drive
+
+    mech = load_mechanism(model)
+    run = read_run(truth)
+    names = list(mech.coordinate_names)
+    T = run.truth
+    t_end = float(T.t[-1]) if duration is None else duration
+    drive = plan_drive(mech, float(T.t[-1]), 1e-4)
+    dtt = float(drive.t[1] - drive.t[0])
+    dt = 1.0 / mech.sample_rate_hz
+    per = round(dt / dtt)
+    ns = int(round(t_end / dt))
+    qe = np.column_stack([T[n] for n in names])[: ns + 1]
+    out = []
+    for ni in n_interior:
+        rm = make_observer(mech).model.rm if ni is None else ReducedModel(CraigBampton(ErlsModel(mech), n_interior=ni))
+        som = ReducedObserverModel(rm, h=1e-4, method="rk4")
+        z = som.initial_state(drive.q0, drive.qd0)
+        q = [z[: rm.nq].copy()]
+        for k in range(ns):
+            iv = som._configuration(z)
+            if sampled:
+                z = som.advance(z, drive.tau[min(k * per, len(drive.tau) - 1)], dt, iv)
+            else:
+                for j in range(per):
+                    z = som.advance(z, drive.tau[min(k * per + j, len(drive.tau) - 1)], dtt, iv)
+            q.append(z[: rm.nq].copy())
+        d = np.abs(np.array(q) - qe[: len(q)])
+        row = {"n_interior": rm.cb.n_interior, "r": rm.r, "max": d.max(0).tolist(),
+               "rms": np.sqrt((d**2).mean(0)).tolist(), "duration": t_end, "sampled": sampled}
+        print(row, flush=True)
+        out.append(row)
+    return out
 
 
 def entries() -> dict:
@@ -1128,6 +1251,15 @@ def main(argv=None) -> int:
     wp.add_argument("--md", default=str(ROOT / "docs" / "step_jacobian.md"))
     we = sub.add_parser("own-entries", help="test_step_jacobian.exact_entries on every model")
     we.add_argument("--json", default="own_entries.json")
+    sg = sub.add_parser("sag", help="the step Jacobians at the sag under gravity (markdown on stdout)")
+    sg.add_argument("--md", default=None, help="write its section into this page (docs/step_jacobian.md)")
+    ro = sub.add_parser("reduced-ode", help="the reduced equations against the ERLS truth's coordinates")
+    ro.add_argument("--model", required=True)
+    ro.add_argument("--truth", required=True, help="an ERLS truth run folder (truth.csv)")
+    ro.add_argument("--duration", type=float, default=None)
+    ro.add_argument("--n-interior", default="auto", help="comma-separated counts, 'auto': the observer's")
+    ro.add_argument("--sampled", action="store_true", help="the torque held at each sample, as the reduced truth")
+    ro.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.cmd == "hold":
         Path(a.json).write_text(json.dumps(hold(a.model, a.run), indent=1))
@@ -1161,6 +1293,16 @@ def main(argv=None) -> int:
         Path(a.json).write_text(json.dumps({n: tsj.exact_entries(n) for n in tsj.MODELS}, indent=1))
     elif a.cmd == "entries":
         Path(a.json).write_text(json.dumps(entries(), indent=1))
+    elif a.cmd == "sag":
+        table = sag()
+        print(table)
+        if a.md:
+            sag_page(table, a.md)
+    elif a.cmd == "reduced-ode":
+        counts = [None if c == "auto" else int(c) for c in a.n_interior.split(",")]
+        res = reduced_ode(a.model, a.truth, a.duration, counts, a.sampled)
+        if a.json:
+            Path(a.json).write_text(json.dumps(res, indent=1))
     else:
         page(a.hold, a.entries, a.gallery, a.before, a.md, a.acceptance, a.acceptance_before, a.refreshes, a.speed,
              a.terms, a.oracle_base, dict(o.split("=", 1) for o in a.oracle), a.gap, a.midpoint, a.rk4_seeds)
