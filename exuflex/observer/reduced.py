@@ -386,6 +386,10 @@ class ReducedObserverModel:
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._second_order: dict = {}  # the tip points' SecondOrderPlan, per (link, station)
+        G = self.model.coordinate_reading_rows()
+        #: (nq, ne) the coordinates' encoder readings beyond q (:meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`);
+        #: None where every row is zero (no relative angle coordinate): the physical q is the state's q
+        self.reading_G = G if np.any(G) else None
         self._noC2 = np.zeros((0, self.r))
         self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = self.n_rows = 0
@@ -1130,7 +1134,8 @@ class ReducedObserverModel:
     def tip_maps(self, q, link: str, station: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(A, C, Gr)`` at configuration q: the tip's elastic displacement (global frame) to second order in p,
         ``e = A p + C (Gr p)^2`` (squares entry by entry): ``A`` (2, r) the linear rows (the point's displacement
-        rows, :meth:`~exuflex.erls.model.ErlsModel.point_displacement_rows`, in the basis), ``C``
+        rows, :meth:`~exuflex.erls.model.ErlsModel.point_displacement_rows`, in the basis; with a relative angle
+        coordinate less the rigid tip's move from q to the coordinates' readings, :meth:`reading_maps`), ``C``
         (2, n_g) and ``Gr = G H_u`` (n_g, r) the links' foreshortening in the basis's elastic displacements
         ``u = H_u p`` (:class:`~exuflex.erls.sensing.SecondOrderPlan`)."""
         rc = self.rm.cb.at(q)
@@ -1140,4 +1145,19 @@ class ReducedObserverModel:
         if plan is None:
             plan = self._second_order[key] = SecondOrderPlan(self.model, [key])
         so = plan.at(rc.cfg.pose)
-        return self.model.point_displacement_rows(rc.cfg, link, station) @ Hu, so.C[0, :2], so.G @ Hu
+        A = self.model.point_displacement_rows(rc.cfg, link, station) @ Hu
+        if self.reading_G is not None:
+            # the tip's elastic displacement is taken from the rigid tip at the coordinates' readings q + G u (what
+            # a truth's q is), not at the ERLS frames' q: e = p_tip - p_rigid(q + G u) moves by -J G u to first
+            # order (J the rigid tip's q-Jacobian); the second order, 1/2 (G u)' d2p/dq2 (G u), is left out
+            J = self.model.kin.point(rc.cfg.pose, link, station)[1]
+            A = A - J @ (self.reading_G @ Hu)
+        return A, so.C[0, :2], so.G @ Hu
+
+    def reading_maps(self, q) -> np.ndarray:
+        """(nq, r) rows ``R`` of the coordinates' encoder readings beyond q in the reduced coordinates p at
+        configuration q: the physical q (what a relative encoder reads, what a truth reports) is ``q + R p``,
+        ``R = G H_u`` (:attr:`reading_G`, ``u = H_u p``); zero rows without a relative angle coordinate."""
+        if self.reading_G is None:
+            return np.zeros((self.nq, self.r))
+        return self.reading_G @ self.rm.cb.at(q).H[self.nq :]
