@@ -307,21 +307,6 @@ def elastic_loads(model, cfg, inp: PlannedInput) -> np.ndarray:
     return F
 
 
-def quantity_rows(model, cfg, tip) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(Zq, Zt)``: the estimated quantities' rows on the elastic coordinates u at ``cfg`` beyond the ERLS
-    coordinates (first order): the coordinates as their encoders read them, ``q + G u`` (``Zq = G``,
-    :meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`), and the tip's elastic displacement from the rigid
-    tip at that reading, ``A u - J G u`` (``Zt``, 2 x ne: ``A`` the tip's displacement rows, ``J`` the rigid tip's
-    q-Jacobian; None without a tip) -- what the observer reports (:meth:`exuflex.observer.session.Observer.physical`)."""
-    G = model.coordinate_reading_rows()
-    if tip is None:
-        return G, None
-    A = model.point_displacement_rows(cfg, *tip)
-    if np.any(G):
-        A = A - model.kin.point(cfg.pose, *tip)[1] @ G
-    return G, A
-
-
 def truncation_sample(cb, rc, full: ModalResult, inp: PlannedInput) -> TruncationSample:
     """The :class:`TruncationSample` at ``rc`` (the basis of ``cb`` with every interior mode, at a configuration)
     with the full modes ``full`` there (q held: ``modal_analysis(..., locked=True, hold_readings=False)``), under the planned motion
@@ -355,10 +340,8 @@ def truncation_sample(cb, rc, full: ModalResult, inp: PlannedInput) -> Truncatio
     M = model.mass(cfg)
     recoil = -np.linalg.solve(M[:nq, :nq], M[:nq, nq:])  # (nq, ne)
     C_el = C[:, nq:] + C[:, :nq] @ recoil
-    # the estimated quantities' displacement rows: the coordinates' recoil and readings and the tip's elastic
-    # deflection
-    Zq, Zt = quantity_rows(model, cfg, inp.tip)
-    Z = recoil + Zq if Zt is None else np.vstack([recoil + Zq, Zt])
+    # the estimated quantities' displacement rows: the coordinates' recoil and the tip's elastic deflection
+    Z = recoil if inp.tip is None else np.vstack([recoil, model.point_displacement_rows(cfg, *inp.tip)])
     # the series at the sample times (every other point of the grid): what the filter reads
     return TruncationSample(np.asarray(cfg.q, float).copy(), np.ascontiguousarray(S[::2]), C_el @ X[nq:],
                             C_el @ phi[nq:], Z @ X[nq:], Z @ phi[nq:], f_hz, zeta, f_hz > cb.band_hz, F, inp.dt, C_el,
@@ -434,10 +417,10 @@ class FilterSample:
         self.H = rc.H
         self.M, self.D, self.K, self.G = model.mass(cfg), model.damping(cfg), model.stiffness(cfg), model.input_matrix(cfg)
         self.C = channel_matrix(model, cfg, mech, planned.channels)
-        Zq, Zt = quantity_rows(model, cfg, planned.tip)
-        Z = np.hstack([np.eye(nq), Zq])
-        if Zt is not None:
-            Z = np.vstack([Z, np.hstack([np.zeros((2, nq)), Zt])])
+        Z = np.zeros((nq, n))
+        Z[:, :nq] = np.eye(nq)
+        if planned.tip is not None:
+            Z = np.vstack([Z, np.hstack([np.zeros((2, nq)), model.point_displacement_rows(cfg, *planned.tip)])])
         self.Z = Z
         self.n_q = nq
         self.noise = planned.noise
