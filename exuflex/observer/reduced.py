@@ -397,8 +397,9 @@ class ReducedObserverModel:
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._second_order: dict = {}  # the tip points' SecondOrderPlan, per (link, station)
         G = self.model.coordinate_reading_rows()
-        #: (nq, ne) the coordinates' encoder readings beyond q (:meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`);
-        #: None where every row is zero (no relative angle coordinate): the physical q is the state's q
+        #: (nq, ne) the coordinates' encoder readings beyond q
+        #: (:meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`); None where every row is zero (no
+        #: relative angle coordinate): the physical q is the state's q
         self.reading_G = G if np.any(G) else None
         self._noC2 = np.zeros((0, self.r))
         self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian

@@ -313,8 +313,8 @@ class Observer:
 
     def physical_maps(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(A, C, Gr)`` at ``q``: the rows the physical quantities add to the state's (:meth:`row_columns`),
-        ``A p + C (Gr p)^2``: the coordinates' readings beyond q (:meth:`~exuflex.observer.reduced.
-        ReducedObserverModel.reading_maps`, no second order) where a coordinate reads beyond q, then the tip's
+        ``A p + C (Gr p)^2``: the coordinates' readings beyond q where a coordinate reads beyond q, no second order
+        (:meth:`~exuflex.observer.reduced.ReducedObserverModel.reading_maps`), then the tip's
         (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`)."""
         som = self.model
         tp = tip_point(self.mech)
