@@ -237,17 +237,22 @@ def sag_page(table: str, md: str) -> None:
             "weight's q-gradient at the sag (`HeldSystem.We`) and the motion's geometric stiffness form's q-gradient "
             "(`HeldSystem.dKGd`), and its `F` is its own step's derivative (1e-6 of each entry); what is left is named "
             "in docs/gravity.md, \"The reduced equations under gravity\"."), "", table, ""]
-    head = [i for i, ln in enumerate(page_lines) if ln == SAG_HEADING]
+    _put_section(page_lines, SAG_HEADING, new, "## The left-out terms along a run")
+    Path(md).write_text("\n".join(page_lines))
+    print("wrote", md)
+
+
+def _put_section(page_lines: list, heading: str, new: list, before: str) -> None:
+    """Put the section ``new`` into ``page_lines`` (in place): in place of the section headed ``heading``, else before
+    the first line starting with ``before`` (else at the end)."""
+    head = [i for i, ln in enumerate(page_lines) if ln == heading]
     if head:
         i = head[0]
         j = next((k for k in range(i + 1, len(page_lines)) if page_lines[k].startswith("## ")), len(page_lines))
         page_lines[i:j] = new
     else:
-        j = next((k for k, ln in enumerate(page_lines) if ln.startswith("## The left-out terms along a run")),
-                 len(page_lines))
+        j = next((k for k, ln in enumerate(page_lines) if ln.startswith(before)), len(page_lines))
         page_lines[j:j] = new
-    Path(md).write_text("\n".join(page_lines))
-    print("wrote", md)
 
 
 def reduced_ode(model: str, truth: str, duration: float | None, n_interior: list, sampled: bool) -> list:
@@ -1088,15 +1093,7 @@ def own_page(own_json: str, md: str, entries_json: str | None = None, text: str 
     of the same heading, else before the acceptance oracle's section (else at the end)."""
     page_lines = Path(md).read_text().split("\n")
     new = _own_section(own_json, entries_json, oracle_base, oracles) + ([text, ""] if text else [])
-    head = [i for i, ln in enumerate(page_lines) if ln == OWN_HEADING]
-    if head:
-        i = head[0]
-        j = next((k for k in range(i + 1, len(page_lines)) if page_lines[k].startswith("## ")), len(page_lines))
-        page_lines[i:j] = new
-    else:
-        j = next((k for k, ln in enumerate(page_lines) if ln.startswith("## What the left-out terms change")),
-                 len(page_lines))
-        page_lines[j:j] = new
+    _put_section(page_lines, OWN_HEADING, new, "## What the left-out terms change")
     out = "\n".join(page_lines).replace(_NOT_ESTABLISHED, _ESTABLISHED)
     Path(md).write_text(out)
     print("wrote", md)

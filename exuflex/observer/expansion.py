@@ -583,15 +583,10 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr, f
 
 
-def _motion_stiffness(u, z, nq, KGd):  # pragma: no cover - compiled
-    """``sum_k c_k KGd[k]`` (r, r), ``c = [1, u, (q'_a q'_b)_{a <= b}]`` with the rates ``q'`` of ``z``: the geometric
-    stiffness of the motion's axial loads beyond the static ones at the held configuration
-    (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`; zeros where ``KGd`` is empty)."""
+def _motion_coefficients(u, z, nq, nk):  # pragma: no cover - compiled
+    """``c = [1, u, (q'_a q'_b)_{a <= b}]`` (nk,), the rates ``q'`` of ``z``: the coefficients of the motion's
+    geometric stiffness form (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`)."""
     r = z.shape[0] // 2
-    K = np.zeros((r, r))
-    nk = KGd.shape[0]
-    if nk == 0:
-        return K
     c = np.empty(nk)
     c[0] = 1.0
     nm = u.shape[0]
@@ -602,6 +597,19 @@ def _motion_stiffness(u, z, nq, KGd):  # pragma: no cover - compiled
         for b in range(a, nq):
             c[k] = z[r + a] * z[r + b]
             k += 1
+    return c
+
+
+def _motion_stiffness(u, z, nq, KGd):  # pragma: no cover - compiled
+    """``sum_k c_k KGd[k]`` (r, r), ``c = [1, u, (q'_a q'_b)_{a <= b}]`` with the rates ``q'`` of ``z``: the geometric
+    stiffness of the motion's axial loads beyond the static ones at the held configuration
+    (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric`; zeros where ``KGd`` is empty)."""
+    r = z.shape[0] // 2
+    K = np.zeros((r, r))
+    nk = KGd.shape[0]
+    if nk == 0:
+        return K
+    c = _motion_coefficients(u, z, nq, nk)
     for k in range(nk):
         w = c[k]
         if w != 0.0:
@@ -638,16 +646,7 @@ def _motion_form_gradient(Fp, u, z, tm, dKGd, nq):  # pragma: no cover - compile
         return
     r = z.shape[0] // 2
     rr = r * r
-    nm = u.shape[0]
-    c = np.empty(nk)
-    c[0] = 1.0
-    for j in range(nm):
-        c[1 + j] = u[j]
-    k = 1 + nm
-    for a in range(nq):
-        for b in range(a, nq):
-            c[k] = z[r + a] * z[r + b]
-            k += 1
+    c = _motion_coefficients(u, z, nq, nk)
     pm = np.empty(r)
     for j in range(r):
         pm[j] = z[j] + tm * z[r + j]
@@ -1749,6 +1748,7 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, nx, scale, scaled, maps, form
 
 _times_hA = _shared(_times_hA)
 map_lookahead = _shared(map_lookahead)
+_motion_coefficients = _shared(_motion_coefficients)
 motion_stiffness = _shared(_motion_stiffness)
 motion_gradient = _shared(_motion_gradient)
 motion_forces = _shared(_motion_forces)
