@@ -301,14 +301,17 @@ class ReducedModel:
             fm.C2 = self._curved_bias_form(mats, fm.C2, p)
         return mats, fm
 
-    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray,
+                          Zp: np.ndarray | None = None) -> np.ndarray:
         """The bias form ``C2`` (r nq, r: the force ``-sum p'_k p'_j C2[k, j]``, ``j < nq``) of a deformed state
         with the bias acceleration's curvature term in it: at the state's ``p``, ``-(W J)^T M_N W d^2(H p)/dq_k dq_j
         q'_k q'_j`` is a bilinear form in the joint rates, added to the entries ``k < nq``
-        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state."""
+        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state. ``Zp``: ``d^2(H p)/dq^2``
+        (n, nq, nq) if computed already (it depends on the basis only, not on the masses)."""
         nq, r = self.nq, self.r
         cfg = mats.rc.cfg
-        Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
+        if Zp is None:
+            Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
         JtMW = (cfg.W @ mats.J).T @ (cfg.M_N @ cfg.W)  # (r, n)
         out = np.array(C2, float).reshape(r, nq, r)
         out[:nq] += np.einsum("cx,xkj->kjc", JtMW, Zp)
