@@ -311,8 +311,9 @@ class AugmentedModel:
         if C2.shape[0] and np.any(p[nq:]):
             # the bias acceleration's curvature term d2(H p)/dq2 [q', q'] at z's elastic coordinates: its force
             # -(W J)^T M_N W d2(H p)/dq_k dq_j q'_k q'_j is linear in M_N on the shared basis, so the payload's
-            # share is the twin's form less the nominal one's, with the basis's second derivatives computed once
-            Zp = np.tensordot(p[nq:], self.twin.basis_hessian(p[:nq]), axes=(0, 0))
+            # share is the twin's form less the nominal one's, on the basis's second derivatives at the held
+            # configuration (the nominal model's, which its velocity forms computed there)
+            Zp = np.tensordot(p[nq:], self.inner.rm.basis_hessian(p[:nq]), axes=(0, 0))
             C2 = self.twin._curved_bias_form(mats, C2, p, Zp)
             nom = (*nom[:5], self._plain._curved_bias_form(m0, nom[5], p, Zp))
         own = (mats.Mr - nom[0], (mats.Cr - beta * mats.Kr) - nom[1], fm.dMr2 - nom[2], fm.fg - nom[3],

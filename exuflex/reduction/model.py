@@ -164,6 +164,7 @@ class ReducedModel:
         self.nx = 2 * cb.r
         self.names = cb.names
         self.consistent = consistent
+        self._hessian = (None, None)  # the last configuration's basis_hessian, (q as bytes, the array)
 
     # ------------------------------------------------------------------ matrices
     def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
@@ -260,9 +261,12 @@ class ReducedModel:
         whose contraction with ``p_m q'_i q'_j`` is :meth:`basis_curvature`, by central differences of the exact
         first derivative (:meth:`CraigBampton.basis_derivative`) over ``+-1e-5`` rad in each ``q_i`` (error some
         1e-10 relative; :meth:`basis_curvature` says why). The cached observer step holds it at an undeformed
-        configuration for the bias force's first order in the elastic coordinates."""
+        configuration for the bias force's first order in the elastic coordinates (the nominal model and the payload
+        estimator's increment alike: the last configuration's is kept, read-only)."""
         nq, r = self.nq, self.r
         q = np.asarray(q, float)
+        if self._hessian[0] == q.tobytes():
+            return self._hessian[1]
         d = CURVATURE_STEP
         E = np.eye(r)[:, nq:]
         out = np.empty((r - nq, nq + self.model.ne, nq, nq))
@@ -273,6 +277,8 @@ class ReducedModel:
             Dm = self.cb.basis_derivative(self.cb.at(self.model._material_configuration(q - e)), E)
             out[:, :, :, i] = (Dp - Dm) / (2.0 * d)
         self.model.configuration(q)  # leave the closure solver warm-started at q
+        out.flags.writeable = False
+        self._hessian = (q.tobytes(), out)
         return out
 
     def held(self, p, pd, *, fr: bool = False, gradients: bool = True) -> tuple[ReducedMatrices, QuadraticForces]:
