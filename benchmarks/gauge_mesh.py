@@ -100,8 +100,9 @@ def model_rows(path: Path) -> list[dict]:
     return rows
 
 
-def acceptance_rows(paths: str | None) -> dict:
-    """``(model, engine) -> (worst quantity, its mean RMS / bound, mean NIS / channels, N)`` from gallery JSONs."""
+def acceptance_rows(paths: str | None, seeds: dict | None = None) -> dict:
+    """``(model, engine) -> (worst quantity, its mean RMS / bound, mean NIS / channels, N, seeds)`` from gallery
+    JSONs; with ``seeds`` (the same map's) only those seeds of each model and truth."""
     out = {}
     for one in (paths or "").split(","):
         if not one:
@@ -109,7 +110,9 @@ def acceptance_rows(paths: str | None) -> dict:
         data = json.loads(Path(one).read_text())
         per: dict = {}
         for run in data["runs"]:
-            per.setdefault((run["model"], run["engine"]), []).append(run)
+            key = (run["model"], run["engine"])
+            if seeds is None or run["seed"] in seeds.get(key, ()):
+                per.setdefault(key, []).append(run)
         for key, runs in per.items():
             ratios: dict = {}
             for run in runs:
@@ -118,7 +121,8 @@ def acceptance_rows(paths: str | None) -> dict:
             means = {q: float(np.mean(v)) for q, v in ratios.items()}
             worst = max(means, key=means.get)
             nis = [run["nis_mean"] / run["nis_expected"] for run in runs if run.get("nis_expected")]
-            out[key] = (worst, means[worst], float(np.mean(nis)) if nis else math.nan, len(runs))
+            out[key] = (worst, means[worst], float(np.mean(nis)) if nis else math.nan, len(runs),
+                        sorted(run["seed"] for run in runs))
     return out
 
 
@@ -183,12 +187,12 @@ def page(rows: list[dict], after: dict, before: dict, command: str) -> str:
         lines += ["", "## The observer on the rule's meshes", "",
                   "Acceptance runs (`benchmarks/gallery.py --acceptance`, default settings): per model and truth the "
                   "worst quantity's mean RMS / bound over the seeds and the mean NIS / channels, on the rule's "
-                  "meshes" + (" and on the files' meshes before it." if before else "."), "",
+                  "meshes" + (" and on the files' meshes before it, the same seeds." if before else "."), "",
                   "| model | truth | N | rule: worst, mean RMS / bound | NIS / channels | "
                   + ("file: worst, mean RMS / bound | NIS / channels |" if before else ""),
                   "|---|---|---|---|---|" + ("---|---|" if before else "")]
         for key in sorted(after):
-            w, v, nis, n = after[key]
+            w, v, nis, n, _ = after[key]
             row = f"| {key[0]} | {key[1]} | {n} | {w} {v:.2f} | {nis:.3f} |"
             if before:
                 b = before.get(key)
@@ -208,7 +212,9 @@ def main(argv=None) -> int:
     paths = ([Path(m) for m in args.models.split(",")] if args.models
              else sorted((ROOT / "benchmarks" / "models").glob("*.toml")) + sorted((ROOT / "models").glob("*.toml")))
     rows = [r for p in paths for r in model_rows(p)]
-    text = page(rows, acceptance_rows(args.acceptance), acceptance_rows(args.before),
+    after = acceptance_rows(args.acceptance)
+    before = acceptance_rows(args.before, {k: v[4] for k, v in after.items()})
+    text = page(rows, after, before,
                 "python benchmarks/gauge_mesh.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])))
     publish(text + "\n", args.md)
     return 0
