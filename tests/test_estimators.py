@@ -187,6 +187,19 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     assert not np.any(Qx[n0:, :n0]) and not np.any(Qx[:n0, n0:]) and Qx[n0 + 1, n0 + 1] == 0.0
 
 
+def _scaled(aug, z, u, dt, a):
+    """The cached step's states at the payload scales ``1 + a_k`` (:func:`scaled_steps`, one row each), from the
+    held configuration of the model's last interval."""
+    from exuflex.observer.augmented import scaled_steps
+
+    inner = aug.inner
+    iv, _ = inner.last_step
+    n = inner.substeps(iv, dt)
+    dl = z[: inner.nq] - iv.q0
+    return scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, np.asarray(a, float), tuple(iv.system),
+                        tuple(aug.increment(iv, z)))[0]
+
+
 @pytest.mark.parametrize("theta", [1.0, 1.6])
 def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_run, theta):
     """With the filter's covariance watched the scale is held until the test passes: its left-hand side is
@@ -208,7 +221,7 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
         aug = AugmentedModel(obs.model, payload_std=0.01, linearity_tol=tol)
         aug.watch_covariance(lambda: P)
         p = aug.predict(x, u, dt)
-        xp, xm, x0 = aug._scaled_cached(z, u, dt, np.array([c + s, c - s, c]), False)
+        xp, xm, x0 = _scaled(aug, z, u, dt, [c + s, c - s, c])
         e2 = 0.5 * (xp + xm) - x0
         col = p.F[: aug.n0, aug.i_theta]
         Qs[released] = p.Q[: aug.n0, : aug.n0]
@@ -231,7 +244,7 @@ def test_payload_scale_is_held_until_its_step_is_linear_over_its_deviation(mid_r
                                        atol=1e-9 * np.abs(e1).max() ** 2)
         # the second-order term is not zero (the step is not linear in the payload: M_r^-1), and it is the
         # curvature: it scales as s^2 (the halved deviation's term a quarter, up to the next order)
-        hp, hm = aug._scaled_cached(z, u, dt, np.array([c + s / 2, c - s / 2]), False)
+        hp, hm = _scaled(aug, z, u, dt, [c + s / 2, c - s / 2])
         e2h = 0.5 * (hp + hm) - x0
         assert np.abs(e2).max() > 1e-6 * np.abs(xp - xm).max()
         assert np.max(np.abs(4 * e2h - e2)) <= 0.1 * np.abs(e2).max()

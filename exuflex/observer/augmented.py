@@ -113,6 +113,7 @@ from .expansion import (
     NO_PAYLOAD,
     NO_SCALED_MAP,
     LoopExtras,
+    extra_interval,
     payload_interval,
     scaled_steps,
 )
@@ -334,48 +335,6 @@ class AugmentedModel:
         self._shares[iv.serial] = share
         return inc
 
-    def _scaled_cached(self, z, u, dt, a, fresh):
-        """The cached step at the payload scales ``1 + a_k`` (one row each, :func:`scaled_steps`), from the
-        held configuration of the last interval."""
-        inner = self.inner
-        iv, _ = inner.last_step
-        inc = self.increment(iv, z, fresh)
-        n = inner.substeps(iv, dt)
-        dl = z[: inner.nq] - iv.q0
-        hs, inc = tuple(iv.system), tuple(inc)
-        out = scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, a, hs, inc)[0]
-        if not np.all(np.isfinite(out)):  # as the nominal step's rescue: first order only
-            out = scaled_steps(z, u, dl, 0.0, dt / n, n, a, hs, inc)[0]
-        return out
-
-    def _scaled_interval(self, z, u, dt, a, theta, dtheta):
-        """The cached step's interval with the payload scaled (:func:`payload_interval`): the steps at the scales
-        ``1 + a_k`` (rows; the last entry of ``a`` is the interval's own scale ``c``), the augmented state's
-        prediction ``(x, F, Q)`` (the scale ``theta``, its column the forward difference over ``dtheta``, zero
-        where that is zero) and the torque response ``L``.
-
-        Those are the nominal step map's where the payload's change of the modal masses, ``|c| rho``
-        (``rho = max eig(dM_r, M_r)``), is within the error the cached step holds its matrices to
-        (``inner.refresh_tol``, relative in the mass metric); else the maps of the held linear system at the scale
-        ``c`` (rebuilt when the nominal step map is, or when ``c`` moved by more than that tolerance: the kernel
-        decides, and hands back the scaled map it leaves), and the force Jacobian with the payload's velocity
-        forms. The interval's held matrices (for a torque jump) are those at ``c``."""
-        inner = self.inner
-        n_refresh = inner.n_refresh
-        iv, dl, s, n, sm = inner.prepare(z, u, dt)
-        inc = self.increment(iv, z, inner.n_refresh != n_refresh)
-        rho, dTs = self._shares[iv.serial]
-        mp = self._map
-        ok = mp is not None and mp[0] is sm
-        rows, x, F, Qx, L, scaled_map, Mr, Kr, Cr, Gr = payload_interval(
-            z, u, dl, s, dt / n, n, a, theta, self.nx, (dtheta, self.payload_std**2 * dt, rho, inner.refresh_tol),
-            (ok, *(mp[1:] if ok else NO_SCALED_MAP)), (sm.Pn, sm.S, sm.L, sm.Q, inner.torque_var, inner.q_extra_diag),
-            (sm.tail[0], dTs, sm.tail[1], sm.tail[2]), tuple(iv.system), tuple(inc))
-        if scaled_map[0]:
-            self._map = (sm, *scaled_map[1:])
-        inner.interval_system = (Mr, Kr, Cr, Gr, dt / n, n)
-        return rows, x, F, Qx, L
-
     def _scaled_rk4(self, z, u, dt, a):
         """The reference step at the payload scales ``1 + a_k``: RK4 of the nonlinear reduced equations of
         ``S(1) + a_k dS`` at every stage, with the nominal model's geometric stiffness of the motion
@@ -402,90 +361,68 @@ class AugmentedModel:
             out[k] = x
         return out
 
-    # ------------------------------------------------------------------ the model's interface
-    def predict(self, x: np.ndarray, u, dt: float, u_next=None) -> Prediction:
-        """``x_next = [f(z, u + d; theta); theta; phi d]`` and its Jacobian (module docstring)."""
-        x = np.asarray(x, float)
-        n0, N = self.n0, self.nx
-        inner = self.inner
-        z = x[:n0]
-        u = inner.torques(u)
-        if self.i_inputs is not None:
-            d = x[self.i_inputs]
-            u = u + d
-        c = 0.0
+    def _reference(self, x: np.ndarray, u: np.ndarray, dt: float) -> tuple:
+        """The reference step (``method="rk4"``) of the augmented state: the inner model's, its state at the scale
+        ``c`` (:meth:`_scaled_rk4`) and the scale's column its forward difference over :data:`DTHETA` (the scale
+        learned at every interval: the linearity hold is the cached step's, :func:`.expansion.extra_interval`);
+        ``(x, F, Q)``, the disturbances entering through the nominal map's torque response."""
+        inner, n0, N = self.inner, self.n0, self.nx
+        xn, F, Q = np.zeros(N), np.zeros((N, N)), np.zeros((N, N))
+        xn[:n0], F[:n0, :n0], Q[:n0, :n0] = inner.predict(x[:n0], u, dt)
         if self.i_theta is not None:
             it = self.i_theta
-            th = float(x[it])
-            c = max(th, 0.0) - 1.0
-            # while held (a filter's covariance watched): the step at c +- sigma for the linearity test; once
-            # released: at c + DTHETA for the derivative; and at c itself where the nominal step is not that
-            held = not self.released and self._cov is not None
-            if held:
-                sig = max(min(math.sqrt(max(self._cov()[it, it], 0.0)), 1.0 + c), DTHETA)
-                a = [c + sig, c - sig]
-            else:
-                a = [c + DTHETA]
-            if c != 0.0:
-                a.append(c)
-        # the step: with the payload scaled (cached step), the held system's at the scales of a and the augmented
-        # prediction in one call (the nominal sub-steps would be discarded); else the nominal step and, for the
-        # scale's column, the scaled steps of the same held configuration. A torque jump is added below.
-        if c != 0.0 and inner.method == "cached":
-            rows, xn, F, Q, L_in = self._scaled_interval(z, u, dt, np.array(a), th, 0.0 if held else DTHETA)
-            xc = rows[-1]
+            c = max(float(x[it]), 0.0) - 1.0
+            rows = self._scaled_rk4(x[:n0], u, dt, [c + DTHETA] + ([c] if c != 0.0 else []))
+            xn[:n0] = rows[-1] if c != 0.0 else xn[:n0]
+            F[:n0, it] = (rows[0] - xn[:n0]) / DTHETA
+            xn[it], F[it, it], Q[it, it] = x[it], 1.0, self.payload_std**2 * dt
+        if self.i_inputs is not None:  # the disturbances' decay and noise (as extra_interval's)
+            s, tau = self.i_inputs, self.input_tau
+            phi = 1.0 if tau is None else math.exp(-dt / tau)
+            xn[s], F[s, s] = phi * x[s], phi * np.eye(self.nu)
+            Q[s, s] = np.diag(self.input_std**2 * (dt if tau is None else 1.0 - phi * phi))
+            F[:n0, s] = inner.last_step[1].L
+        return xn, F, Q
+
+    # ------------------------------------------------------------------ the model's interface
+    def predict(self, x: np.ndarray, u, dt: float, u_next=None) -> Prediction:
+        """``x_next = [f(z, u + d; theta); theta; phi d]`` and its Jacobian (module docstring): the cached step's
+        interval in the compiled loop's own kernel (:func:`.expansion.extra_interval`: the held scale's linearity
+        test, the scaled maps, the disturbances), or the reference step (:meth:`_reference`); ``u_next`` (the
+        sample that ends the interval): a torque jump within it adds its effect."""
+        x = np.asarray(x, float)
+        inner, n0 = self.inner, self.n0
+        d = 0.0 if self.i_inputs is None else x[self.i_inputs]
+        u = inner.torques(u) + d
+        if inner.method != "cached":
+            xn, F, Q = self._reference(x, u, dt)
         else:
+            z = x[:n0]
             n_refresh = inner.n_refresh
-            xc, Fz, Qz = inner.predict(z, u, dt)
-            L_in = inner.last_step[1].L
-            xn = np.empty(N)
-            F = np.zeros((N, N))
-            Q = np.zeros((N, N))
-            xn[:n0] = xc
-            F[:n0, :n0] = Fz
-            Q[:n0, :n0] = Qz
-            if self.i_theta is not None:
-                if inner.method == "cached":
-                    rows = self._scaled_cached(z, u, dt, np.array(a), inner.n_refresh != n_refresh)
-                else:
-                    rows = self._scaled_rk4(z, u, dt, a)
-                    if c != 0.0:  # (the nominal configuration's Jacobian and noise)
-                        xc = xn[:n0] = rows[-1]
-                if not held:
-                    F[:n0, it] = (rows[0] - xc) / DTHETA
-                xn[it] = th
-                F[it, it] = 1.0
-                Q[it, it] = self.payload_std**2 * dt
-        if self.i_theta is not None and held:
-            # the first-order model over +-sigma: its second-order term against the interval's process noise
-            e2 = 0.5 * (rows[0] + rows[1]) - xc
-            q = np.diagonal(Q)[:n0]
-            self.last_linearity = float(np.max(np.abs(e2) / np.sqrt(np.maximum(q, 1e-300))))
-            if self.last_linearity <= self.linearity_tol:
-                self.released = True
-                F[:n0, it] = (rows[0] - rows[1]) / (2.0 * sig)
-            else:
-                # held: the scale's uncertainty enters the prediction as the noise it causes (module docstring)
-                self.n_held += 1
-                e1 = 0.5 * (rows[0] - rows[1])
-                Q[:n0, :n0] += np.outer(e1, e1)
+            iv, dl, s, n, sm = inner.prepare(z, u, dt)
+            extras, scaled = self._extras(iv, sm, z, inner.n_refresh != n_refresh)
+            for rescue in (False, True):
+                var = self._cov()[n0, n0] if extras.pay_held else 0.0
+                xn, F, Q, Mo, Ko, Co, Go, scaled_out, release = extra_interval(
+                    x, u, dl, s, dt, n, extras, var, scaled, (sm.Pn, sm.S, sm.L, sm.Q, inner.torque_var,
+                                                              inner.q_extra_diag), sm.tail[:3], sm.tail[5])
+                if rescue or math.isfinite(xn[0]) or not (s or np.any(dl)):
+                    break
+                iv, dl, s, n, sm = inner.rescue(z, u, dt)  # (the held model broke down: evaluated anew)
+                extras, scaled = self._extras(iv, sm, z, True)
+            if scaled_out[0]:
+                self._map = (sm, *scaled_out[1:])
+            if extras.pay_held:
+                self.last_linearity = float(extras.pay_stats[1])
+                self.released = bool(release)
+                self.n_held += not release
+            inner.interval_system = (Mo, Ko, Co, Go, dt / n, n)
         if u_next is not None:
-            jump = inner.input_jump(u, np.asarray(u_next, float) + (0.0 if self.i_inputs is None else d))
+            jump = inner.input_jump(u, np.asarray(u_next, float) + d)
             if jump is not None:
                 dx, dQ = inner.input_jump_moments(jump)
                 xn[:n0] += dx
                 Q[:n0, :n0] += dQ
-        if self.i_inputs is not None:
-            s = self.i_inputs
-            F[:n0, s] = L_in
-            if self.input_tau is None:
-                phi, q = 1.0, self.input_std**2 * dt
-            else:
-                phi = math.exp(-dt / self.input_tau)
-                q = self.input_std**2 * (1.0 - phi * phi)
-            xn[s] = phi * d
-            F[s, s] = phi * np.eye(self.nu)
-            Q[s, s] = np.diag(q)
         return Prediction(xn, F, Q)
 
     # ------------------------------------------------------------------ the filter's compiled sample loop
@@ -500,28 +437,36 @@ class AugmentedModel:
         """The inner model's cached step (:meth:`.reduced.ReducedObserverModel.loop_model`, at the torques with the
         disturbances) with the extra states' arrays (:class:`.expansion.LoopExtras`): the payload's (the increment
         of the held configuration, its payload share and velocity forms, the scaled step map where it is the
-        current nominal map's, :meth:`_scaled_interval`) and the disturbances' noise."""
+        current nominal map's: :meth:`_extras`) and the disturbances' noise."""
         inner, n0 = self.inner, self.n0
         z = x[:n0]
         if self.i_inputs is not None:
             u = inner.torques(u) + x[self.i_inputs]
         n_refresh = inner.n_refresh
         step, state, _ = inner.loop_model(z, u, dt, channels)
-        extra = NO_PAYLOAD
+        iv, sm = inner.loop_step
+        extras, scaled = self._extras(iv, sm, z, inner.n_refresh != n_refresh)
+        return LoopModel(step, state._replace(scaled=scaled), extras)
+
+    def _extras(self, iv, sm, z: np.ndarray, fresh: bool) -> tuple:
+        """The extra states' arrays for intervals of the held configuration ``iv`` with the step map ``sm``
+        (:class:`.expansion.LoopExtras`: the payload's, with the increment of ``iv``, :meth:`increment`, ``fresh``
+        where ``iv`` was evaluated at ``z`` for this interval, its payload share and velocity forms and whether the
+        scale is held; the disturbances' noise) and the scaled step map where it is ``sm``'s
+        (:func:`.expansion.payload_interval`)."""
+        extra, scaled = NO_PAYLOAD, (False, *NO_SCALED_MAP)
         if self.i_theta is not None:
-            iv, sm = inner.loop_step
-            inc = self.increment(iv, z, inner.n_refresh != n_refresh)
+            inc = self.increment(iv, z, fresh)
             rho, dTs = self._shares[iv.serial]
-            mp = self._map
-            ok = mp is not None and mp[0] is sm
             held = not self.released and self._cov is not None
             self._stats = np.zeros(2)  # (the held intervals the loop does, the last one's linearity measure)
-            extra = (True, held, self.payload_std**2, DTHETA, rho, inner.refresh_tol, dTs, self.linearity_tol,
+            extra = (True, held, self.payload_std**2, DTHETA, rho, self.inner.refresh_tol, dTs, self.linearity_tol,
                      self._stats, *inc)
-            state = state._replace(scaled=(ok, *(mp[1:] if ok else NO_SCALED_MAP)))
+            if self._map is not None and self._map[0] is sm:
+                scaled = (True, *self._map[1:])
         inp = (NO_DISTURBANCES if self.i_inputs is None
                else (np.ascontiguousarray(self.input_std**2), float(self.input_tau or 0.0)))
-        return LoopModel(step, state, LoopExtras(*extra, *inp))
+        return LoopExtras(*extra, *inp), scaled
 
     def loop_done(self, mats: tuple, dt: float, state, x: np.ndarray, k: int) -> None:
         """After the compiled loop's samples up to ``k``: the inner model's (:meth:`.reduced.ReducedObserverModel.
@@ -556,7 +501,7 @@ def warm_up() -> None:
     and the compiled sample loop pass: :func:`scaled_steps`, :func:`payload_interval` (which calls it, with the
     step map's and the step Jacobian's kernels) and :func:`.expansion.extra_interval` (the loop's interval of an
     augmented state), and the filter's sample loop's specialisation for augmented states (:func:`.loop.warm_up`)."""
-    from .expansion import _example_system, extra_interval
+    from .expansion import _example_system
     from .loop import warm_up as warm_up_loop
 
     r, nq = 2, 1
@@ -572,9 +517,9 @@ def warm_up() -> None:
         for ok in (False, True):
             payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 2 * r + 1, (1e-4, 1.0, 1.0, 0.0), (ok, 0.0, *maps),
                              nominal, (T3, T3, V3, C3), hs, inc)
-        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1,
-                       (True, 1.0, 1e-4, 1.0, 0.03, T3, has_old, 1.0, np.zeros(2), 1.0), inc,
-                       (np.ones(nq), 0.0), (False, 0.0, *maps), nominal, (T3, V3, C3), hs)
+        extras = LoopExtras(True, has_old, 1.0, 1e-4, 1.0, 0.03, T3, 1.0, np.zeros(2), *inc, np.ones(nq), 0.0)
+        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, extras, 1.0, (False, 0.0, *maps), nominal,
+                       (T3, V3, C3), hs)
     warm_up_loop("augmented")
 
 

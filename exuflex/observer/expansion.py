@@ -1344,10 +1344,7 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
     if ex is not None:  # noqa: SIM102 (numba prunes a plain state's branch on this test alone)
         if pay or n_in:
             z, F, Qk, Mo, Ko, Co, Go, new_scaled, release = extra_interval(
-                x, uu, dl, s, dt, n, (pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs, ex.pay_held,
-                                      ex.pay_lin_tol, ex.pay_stats, P[n0, n0]),
-                (ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM, ex.iold_Ca, ex.iold_fg, ex.iold_T2,
-                 ex.iold_C2), (ex.inp_var, ex.inp_tau), scaled, (sm.Pn, sm.SQM, sm.L, sm.Q, cs.torque_var, cs.q_extra),
+                x, uu, dl, s, dt, n, ex, P[n0, n0], scaled, (sm.Pn, sm.SQM, sm.L, sm.Q, cs.torque_var, cs.q_extra),
                 (cs.Ts, cs.Vs, cs.C3), hs)
             if release:  # the held scale's linearity test passes: the model's own step releases it
                 return GENERAL, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
@@ -1373,13 +1370,11 @@ def _cached_rows(cs, z, y, H, made):  # pragma: no cover - compiled
     return LOOP_DONE
 
 
-def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, hs):  # pragma: no cover - compiled
+def _extra_interval(x, u, dl, s, dt, n, ex, var, scaled, maps, forms, hs):  # pragma: no cover - compiled
     """One interval of an augmented state (:func:`cached_interval`'s ``ex``, the torques ``u`` with the
-    disturbances): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled, release)``, the scaled step map ``scaled = (pay_ok,
-    pay_c, pay_Pn, pay_S, pay_L, pay_Q)`` as this interval leaves it. ``payload = (pay, pay_var, pay_dtheta, pay_rho,
-    pay_tol, pay_dTs, held, lin_tol, stats, var)`` the payload scale's parameters (:class:`LoopExtras`) with the
-    filter's variance of the scale, ``inc`` its increment, ``inp = (inp_var, inp_tau)`` the disturbances';
-    ``maps = (Pn, SQM, L, Q, torque_var, q_extra)`` the nominal step map with the noise's parts, ``forms = (Ts, Vs,
+    disturbances; ``var`` the filter's variance of the payload scale): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled,
+    release)``, the scaled step map ``scaled = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)`` as this interval
+    leaves it; ``maps = (Pn, SQM, L, Q, torque_var, q_extra)`` the nominal step map with the noise's parts, ``forms = (Ts, Vs,
     C3)`` the step Jacobian's; ``hs`` the held system (plain tuples, see :func:`_held_interval`). With the payload
     scale not at exactly 1 the interval is :func:`payload_interval`'s at ``c + pay_dtheta`` and ``c`` (which
     chooses, and rebuilds, the step map: the nominal one or the scaled ``pay_*``); at exactly 1 and without the
@@ -1390,16 +1385,18 @@ def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, 
     A ``held`` scale (:meth:`.augmented.AugmentedModel.predict`): the steps at ``c +- sigma`` (``sigma`` the
     filter's standard deviation of the scale, within ``[pay_dtheta, 1 + c]``) and ``c``; where the first-order model
     over them is within ``lin_tol`` of the interval's process noise (its second-order term, measured into
-    ``stats[1]``), ``release`` (the model's own step releases it), else the noise the scale's uncertainty causes
-    added to ``Q`` and no column of the scale in ``F``."""
-    pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs, held, lin_tol, stats, var = payload
-    inp_var, inp_tau = inp
+    ``stats[1]``), ``release`` and the scale's column their central difference (the model's own step releases it),
+    else the noise the scale's uncertainty causes added to ``Q`` and no column of the scale in ``F``."""
+    pay, pay_var, pay_dtheta, pay_rho, pay_tol, pay_dTs = ex.pay, ex.pay_var, ex.pay_dtheta, ex.pay_rho, ex.pay_tol, ex.pay_dTs
+    held, lin_tol, stats, inp_var, inp_tau = ex.pay_held, ex.pay_lin_tol, ex.pay_stats, ex.inp_var, ex.inp_tau
+    inc = (ex.iMr, ex.iCa, ex.idM, ex.ifg, ex.iT2, ex.iC2, ex.iold_dM, ex.iold_Ca, ex.iold_fg, ex.iold_T2, ex.iold_C2)
     Pn, SQM, L, Q = maps[0], maps[1], maps[2], maps[3]
     Ts, Vs, C3 = forms
     n_x = x.shape[0]
     n0 = 2 * hs[2].shape[0]
     n_in = inp_var.shape[0]
     s0 = n_x - n_in
+    release = False
     if pay:
         th = x[n0]
         c = max(th, 0.0) - 1.0
@@ -1434,14 +1431,13 @@ def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, 
                 nan |= math.isnan(v)
                 lin = max(lin, v)
             stats[1] = math.nan if nan else lin
-            if stats[1] <= lin_tol:
-                return z, F, Qk, Mo, Ko, Co, Go, scaled, True
-            e1 = np.empty(n0)  # (the scale's uncertainty as noise: the first-order term over +-sigma)
-            for i in range(n0):
-                e1[i] = 0.5 * (rows[0, i] - rows[1, i])
-            for i in range(n0):
+            release = stats[1] <= lin_tol
+            for i in range(n0):  # released: the column over +-sigma; else the scale's uncertainty as noise
+                e1 = 0.5 * (rows[0, i] - rows[1, i])
+                if release:
+                    F[i, n0] = e1 / sig
                 for j in range(n0):
-                    Qk[i, j] += e1[i] * e1[j]
+                    Qk[i, j] += 0.0 if release else e1 * 0.5 * (rows[0, j] - rows[1, j])
     else:
         z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
         z, F, Qk = _augmented(z0, F0, Q, n_x)
@@ -1454,7 +1450,7 @@ def _extra_interval(x, u, dl, s, dt, n, payload, inc, inp, scaled, maps, forms, 
             Qk[s0 + j, s0 + j] = inp_var[j] * (1.0 - phi * phi) if inp_tau > 0.0 else inp_var[j] * dt
             for i in range(n0):
                 F[i, s0 + j] = L_u[i, j]
-    return z, F, Qk, Mo, Ko, Co, Go, scaled, False
+    return z, F, Qk, Mo, Ko, Co, Go, scaled, release
 
 
 def _augmented(z, F, Q, nx):  # pragma: no cover - compiled

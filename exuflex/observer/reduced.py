@@ -128,6 +128,16 @@ def _max_abs(v: np.ndarray) -> float:
     return max(map(abs, v.tolist()))
 
 
+def _by_rows(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` one row at a time: each row the same numbers whichever other rows ``A`` has (a matrix product's
+    blocking, and so its rounding, changes with the number of rows; the rows of a subset of the channels must be
+    those of all of them, as the filter's compiled loop takes them)."""
+    out = np.empty((A.shape[0], B.shape[1]))
+    for i in range(A.shape[0]):
+        out[i] = A[i] @ B
+    return out
+
+
 def rk4_substep_limit(lam: np.ndarray) -> float:
     """Longest RK4 sub-step stable, with :data:`SUBSTEP_MARGIN`, for every decaying eigenvalue ``lam``.
 
@@ -705,20 +715,25 @@ class ReducedObserverModel:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
         followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
         correction and process noise (:meth:`_step_map`)."""
-        iv, dl, n, sm = self._hold(z, u, dt)
-        s = _secant_factor(iv, dl)
+        iv, dl, s, n, sm = self.prepare(z, u, dt)
         z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
         if not math.isfinite(z_next[0]) and (s or np.any(dl)):
-            # the held model broke down before the radius said so (M_r not positive definite): evaluate anew
-            self.n_rescue += 1
-            iv = self._refresh(z, u, dt)
-            dl = z[: self.nq] - iv.q0
-            n = self.substeps(iv, dt)
-            sm = self._step_map(iv, z, dl, dt, n)
-            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, 0.0, dt / n, n, *sm.tail)
+            iv, dl, s, n, sm = self.rescue(z, u, dt)
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
-        self.last_step = (iv, sm)
         return Prediction(z_next, F, sm.Q)
+
+    def rescue(self, z: np.ndarray, u: np.ndarray, dt: float) -> tuple:
+        """Where the held model broke down before its radius said so (``M_r`` not positive definite: a step that
+        went non-finite): the configuration evaluated anew at ``z`` and its step map, ``(iv, dl, s, n, sm)`` as
+        :meth:`prepare` returns them, the secant left out (``s = 0``)."""
+        self.n_rescue += 1
+        iv = self._refresh(z, u, dt)
+        dl = z[: self.nq] - iv.q0
+        n = self.substeps(iv, dt)
+        sm = self._step_map(iv, z, dl, dt, n)
+        self.last_step = (iv, sm)
+        return iv, dl, 0.0, n, sm
 
     # ------------------------------------------------------------------ the filter's compiled sample loop
     @property
@@ -1079,8 +1094,8 @@ class ReducedObserverModel:
                 self.model, [sensor(self.mech, self.sensors, ch) for ch in channels], self.link_names)
         U, points = plan.at(self.model, iv.rc.cfg)
         Hm = np.zeros((len(channels), self.nx))
-        Hm[:, :r] = U @ iv.rc.H[nq:]
-        rows = plan.angle @ iv.Sz_theta  # the link-angle channels' rigid rows
+        Hm[:, :r] = _by_rows(U, iv.rc.H[nq:])
+        rows = _by_rows(plan.angle, iv.Sz_theta)  # the link-angle channels' rigid rows
         c0 = plan.angle @ iv.theta0 - rows @ iv.q0
         Hm[:, :nq] += rows
         for i, p0, Sp in points:
@@ -1115,9 +1130,9 @@ class ReducedObserverModel:
         else:
             dH = dH[nq:]
         dHu = dH[:, nq:, :]  # (r - nq, ne, nq)
-        UdH = (U @ dHu.transpose(1, 0, 2).reshape(ne, -1)).reshape(m, r - nq, nq)
+        UdH = _by_rows(U, dHu.transpose(1, 0, 2).reshape(ne, -1)).reshape(m, r - nq, nq)
         D = np.zeros((nq, m, r))
-        D[:, :, nq:] = UdH.transpose(2, 0, 1) + turn.T[:, :, None] * (Ut @ rc.H[nq:, nq:])[None]
+        D[:, :, nq:] = UdH.transpose(2, 0, 1) + turn.T[:, :, None] * _by_rows(Ut, rc.H[nq:, nq:])[None]
         return c0, Hm, D, np.ascontiguousarray(G)
 
     # ------------------------------------------------------------------ physical states
