@@ -43,9 +43,9 @@ def test_held_velocity_forces_follow_the_elastic_coordinates_to_first_order(name
     change from the undeformed state at the same rates. With the first-order terms what remains is of second order
     in the elastic coordinates: halving them divides each entry's error by about 4 (at most 0.3 here, above the
     force extraction's round-off, 1e-7 of the largest force, and 1e-5 of the change: the reference's curvature is a
-    forward difference, :meth:`~exuflex.reduction.ReducedModel.basis_curvature`), and it is within 3e-4 of the change (the six-bar's joint rows 1.3e-4: the curvature's force taken with
-    the held velocity map, ``(J - J_0)^T M a_b``); without them a first-order error of more than a tenth of the
-    change in some entry."""
+    forward difference, :meth:`~exuflex.reduction.ReducedModel.basis_curvature`), and it is within 3e-4 of the
+    change (the six-bar's joint rows 1.3e-4: the curvature's force taken with the held velocity map, ``(J -
+    J_0)^T M a_b``); without them a first-order error of more than a tenth of the change in some entry."""
     som = ReducedObserverModel(ReducedModel(CraigBampton(ErlsModel(load_mechanism(ROOT / name)))))
     rm, nq, r = som.rm, som.nq, som.r
     z0 = np.zeros(2 * r)

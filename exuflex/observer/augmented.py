@@ -24,9 +24,9 @@ linearly (``dM_r/dtheta = A^T diag(m_p, m_p, I_p) A``, :func:`payload_rows`; the
 Per interval the step is the cached step's RK4 sub-steps of that held system (:func:`scaled_steps`), the
 stiffness, input matrix and geometric terms unchanged: the payload's share of the links' axial loads (its weight
 and inertia in the geometric stiffness, static and of the motion) is left out (on the serial arm at a turning
-state some 0.2-4 % of the payload's effect on the accelerations; ``tests/test_estimators.py`` bounds it). Its derivative in the
-state and the process noise are the nominal step map's where the payload's change of the modal masses,
-``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
+state some 0.2-4 % of the payload's effect on the accelerations; ``tests/test_estimators.py`` bounds it). Its
+derivative in the state and the process noise are the nominal step map's where the payload's change of the modal
+masses, ``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
 matrices to (``refresh_tol``); beyond it, the maps of the scaled held linear system (the step's own matrices at
 the interval's start: ``M_r + (theta - 1) dM_r`` and the damping's increment), rebuilt with the nominal step map
 or when ``theta`` moved by that tolerance, and the force Jacobian with the payload's velocity forms (one compiled
