@@ -262,30 +262,30 @@ def test_gauge_sag_error_is_w_h2_over_12EI_at_a_node(n):
 
 
 def test_gauge_rule_refines_next_to_the_gauges_under_gravity_only():
-    """The loader's gauge rule (:func:`exuflex.mechanism.refine.gauge_mesh`): under gravity every curvature gauge's
-    neighbouring elements are within :func:`gauge_sag_length` (its sag reading within a tenth of the noise), the
-    model file's nodes kept with their ids; without gravity the file's mesh is untouched."""
-    from exuflex.mechanism.refine import GAUGE_SAG_TOL, gauge_sag_length
+    """The gauge rule (:func:`exuflex.mechanism.refine.gauge_mesh`): under gravity every curvature gauge's
+    neighbouring elements are within :func:`gauge_sag_length` (its sag reading within a tenth of the noise) and no
+    added element is shorter than half of it, the model file's nodes kept with their ids; without gravity the
+    mechanism is returned as it is."""
+    from exuflex.mechanism.refine import GAUGE_SAG_TOL, gauge_mesh, gauge_sag_length
 
     root = Path(__file__).resolve().parents[1]
-    mech = load_mechanism(root / "benchmarks/models/drooping_fourbar.toml")
-    with open(root / "benchmarks/models/drooping_fourbar.toml", "rb") as fh:
-        file_stations = next(lk for lk in tomllib.load(fh)["links"] if lk["name"] == "coupler")["stations"]
-    lk = mech.link("coupler")
-    assert set(file_stations) <= set(np.round(lk.stations, 12))
+    own = load_mechanism(root / "benchmarks/models/drooping_fourbar.toml")
+    mech = gauge_mesh(own)
+    for lk0, lk in zip(own.links, mech.links, strict=True):
+        kept = dict(zip(lk.node_ids, lk.stations, strict=True))
+        assert all(abs(kept[i] - s) < 1e-12 for i, s in zip(lk0.node_ids, lk0.stations, strict=True))
+    assert mech.link("coupler").n_elements > own.link("coupler").n_elements
     for s in mech.sensors:
         if s.kind != "curvature":
             continue
         h = gauge_sag_length(mech, s)
-        sec = mech.link(s.link).section
-        w = mech.link(s.link).material.rho * sec.A * 9.81
-        np.testing.assert_allclose(w * h**2 / (12 * mech.link(s.link).material.E * sec.I), GAUGE_SAG_TOL * s.noise_std)
-        st = np.asarray(mech.link(s.link).stations)
+        lk = mech.link(s.link)
+        w = lk.material.rho * lk.section.A * 9.81
+        np.testing.assert_allclose(w * h**2 / (12 * lk.material.E * lk.section.I), GAUGE_SAG_TOL * s.noise_std)
+        st = np.asarray(lk.stations)
         i = int(np.argmin(abs(st - s.station)))
         assert abs(st[i] - s.station) < 1e-12
         assert st[i] - st[i - 1] <= h * (1 + 1e-9) and st[i + 1] - st[i] <= h * (1 + 1e-9)
         assert min(np.diff(st)) >= 0.5 * h * (1 - 1e-9)
     flat = load_mechanism(root / "models/fourbar.toml")
-    with open(root / "models/fourbar.toml", "rb") as fh:
-        n_file = [lk.get("n_elements", len(lk.get("stations", [0, 0])) - 1) for lk in tomllib.load(fh)["links"]]
-    assert [lk.n_elements for lk in flat.links] == n_file
+    assert gauge_mesh(flat) is flat

@@ -100,7 +100,7 @@ import numpy as np
 
 from ..erls.kinematics import Kinematics
 from ..mechanism import Mechanism
-from ..mechanism.refine import gauge_sag_length, split_segments
+from ..mechanism.refine import split_segments
 
 __all__ = [
     "DAMPINGS",
@@ -419,9 +419,7 @@ def link_mesh_stations(
     """Element boundaries of a link's Exudyn mesh.
 
     The stations of the link's joints and lumped masses (and ``extra``, e.g. gauges) are always
-    element boundaries, and under gravity so are the curvature gauges and the stations ``h_g`` on either side of
-    them (the gauge rule, :func:`~exuflex.mechanism.refine.gauge_sag_length`, where no boundary is nearer); between
-    them, segments are split evenly so that no element is longer than
+    element boundaries; between them, segments are split evenly so that no element is longer than
     ``length / elements_per_link`` (``None``: one element per segment; ``"file"``: the mechanism's
     own element boundaries, the ERLS mesh, e.g. as refined by
     :func:`~exuflex.mechanism.refine_mechanism` or :func:`~exuflex.mechanism.remesh_mechanism`).
@@ -441,16 +439,6 @@ def link_mesh_stations(
         if not 0.0 <= s <= L:
             raise ValueError(f"station {s} m is outside link {link!r} (length {L} m)")
         req.add(float(s))
-    for sn in mech.sensors:  # the gauge rule under gravity: the elements next to a gauge within h_g
-        h = gauge_sag_length(mech, sn)
-        if sn.link == link and math.isfinite(h):
-            g = float(sn.station)
-            near = sorted(req)
-            req.add(g)
-            if g - h > 0.0 and not any(g - h <= x < g for x in near):
-                req.add(g - h)
-            if g + h < L and not any(g < x <= g + h for x in near):
-                req.add(g + h)
     if elements_per_link == MESH_FILE:
         req.update(float(s) for s in lk.stations)
     req = sorted(req)

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 from .limits import element_count_error, limit_errors
-from .refine import gauge_mesh
 from .spec import (
     ESTIMATOR_NAMES,
     JOINT_KINDS,
@@ -448,7 +447,6 @@ def parse_mechanism(data: dict, source: str = "<model>") -> Mechanism:
         description=description,
     )
     _check_topology(mech)
-    mech = gauge_mesh(mech)  # the elements next to the curvature gauges under gravity (docs/gauge_mesh.md)
     for fld, expected, got in limit_errors(mech):  # size and conditioning (exuflex.mechanism.limits)
         raise ModelFileError(source, fld, expected, got)
     return mech

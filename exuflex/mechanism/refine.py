@@ -4,8 +4,8 @@
 - :func:`remesh_mechanism`: split every element into the fewest equal parts such that no element is
   longer than ``length / elements_per_link`` of its link (at least that many elements per link);
 - :func:`gauge_mesh`: the gauge rule under gravity, the elements next to each curvature gauge no longer than
-  :func:`gauge_sag_length` (nodes added at that distance on either side); :func:`~exuflex.mechanism.load_mechanism`
-  applies it to every model file (``docs/gauge_mesh.md`` derives it).
+  :func:`gauge_sag_length` (nodes added at that distance on either side; ``docs/gauge_mesh.md`` derives it and
+  says why the loader does not apply it by default).
 
 Both refuse meshes of more than :data:`~exuflex.mechanism.limits.MAX_ELEMENTS` elements (``ValueError``).
 

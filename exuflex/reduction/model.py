@@ -164,7 +164,7 @@ class ReducedModel:
         self.nx = 2 * cb.r
         self.names = cb.names
         self.consistent = consistent
-        self._hessian = (None, None)  # the last configuration's basis_hessian, (q as bytes, the array)
+        self._hessian = (None, None)  # the last configuration's basis_hessian: (its key, the array)
 
     # ------------------------------------------------------------------ matrices
     def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
@@ -265,7 +265,8 @@ class ReducedModel:
         estimator's increment alike: the last configuration's is kept, read-only)."""
         nq, r = self.nq, self.r
         q = np.asarray(q, float)
-        if self._hessian[0] == q.tobytes():
+        key = (q.tobytes(), self.cb.compiled, self.model.kin.compiled)  # (the basis derivative's own arithmetic)
+        if self._hessian[0] == key:
             return self._hessian[1]
         d = CURVATURE_STEP
         E = np.eye(r)[:, nq:]
@@ -278,7 +279,7 @@ class ReducedModel:
             out[:, :, :, i] = (Dp - Dm) / (2.0 * d)
         self.model.configuration(q)  # leave the closure solver warm-started at q
         out.flags.writeable = False
-        self._hessian = (q.tobytes(), out)
+        self._hessian = (key, out)
         return out
 
     def held(self, p, pd, *, fr: bool = False, gradients: bool = True) -> tuple[ReducedMatrices, QuadraticForces]:

@@ -18,9 +18,7 @@ Each returns a :class:`TruthRecord`: the clean sensor channels and the true stat
 
 from __future__ import annotations
 
-import itertools
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -63,19 +61,15 @@ with a more refined link raises it (:func:`exudyn_mesh`)."""
 
 
 def exudyn_mesh(mech: Mechanism) -> int:
-    """The Exudyn truth's default elements per link: :data:`EXUDYN_ELEMENTS_PER_LINK`, or, if larger, the count that
-    makes the truth's elements no longer than the longest element of the model's most refined link (``ceil(L /
-    h_max)``; a uniform link's own count). The elements the gauge rule adds beside the gauges under gravity
-    (:func:`~exuflex.mechanism.refine.gauge_mesh`) do not raise it: the truth's link mesh keeps its own boundaries
-    beside the gauges (:func:`exuflex.groundtruth.builder.link_mesh_stations`).
+    """The Exudyn truth's default elements per link: :data:`EXUDYN_ELEMENTS_PER_LINK`, or the element count of
+    the model file's most refined link if larger.
 
     A truth coarser than the model it checks measures its own discretisation error: a cubic element's curvature
     is linear, and a gauge's curvature converges more slowly than the modes (the slider-crank's rod, 8 elements
     in its model file: with 4 ANCF elements per link its gauges' curvature is off the finer meshes' values by a
     bias of the order of the gauge noise, which the observer turns into a crank-angle error; measured by
     ``benchmarks/truth_mesh.py`` in ``docs/truth_mesh.md``)."""
-    return max(EXUDYN_ELEMENTS_PER_LINK, max(
-        math.ceil(lk.length / max(b - a for a, b in itertools.pairwise(lk.stations)) - 1e-9) for lk in mech.links))
+    return max(EXUDYN_ELEMENTS_PER_LINK, max(len(lk.stations) - 1 for lk in mech.links))
 
 
 @dataclass
