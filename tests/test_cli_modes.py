@@ -122,7 +122,7 @@ def test_subprocess():
 def test_reduced_reports_the_filter_requirement(capsys):
     """``--reduced`` reports the filter requirement's figure per estimated quantity (``truncation.bias``, the same
     numbers as :meth:`PathSamples.bias` with the kept modes), its limit and whether the count meets it; the text
-    names it. The fresh steel-forearm arm: the automatic count meets it."""
+    names it. The fresh steel-forearm arm: the automatic count with its static corrections meets it."""
     from exuflex.erls.model import ErlsModel
     from exuflex.mechanism import load_mechanism
     from exuflex.reduction import CraigBampton, PathSamples
@@ -139,6 +139,9 @@ def test_reduced_reports_the_filter_requirement(capsys):
     b = PathSamples(every, cb.path_q, planned).bias(cb.kept)
     assert list(tr["bias"]) == list(planned.quantities)
     assert np.allclose(list(tr["bias"].values()), b, rtol=1e-9, atol=0)
-    assert tr["bias_max"] == BIAS_MAX and tr["bias_met"] and max(b) <= BIAS_MAX < tr["bias_without_interior"]
+    assert tr["bias_max"] == BIAS_MAX and max(b) <= 2 * BIAS_MAX < tr["bias_without_interior"]
+    # the final basis, its static corrections in (the elbow motor's reaction on the upper arm's node, a load the
+    # dynamic modes carry only partly: reduction.static), meets it
+    assert tr["bias_final_met"] and max(tr["bias_final"].values()) <= BIAS_MAX
     assert main(["modes", steel, "--reduced", "--along", "0"]) == 0
     assert "filter (docs/reduction.md): the steady filter's mean-square error" in capsys.readouterr().out

@@ -5,7 +5,13 @@ linearised model is ``M(q) dx'' + K(q) dx = 0`` with ``K = diag(0, K_uu)``.
 
 - *motors free* (torque-driven): all of x vibrates; the mechanism's ``nq`` zero-frequency modes are
   reported separately and dropped;
-- *motors locked*: q is held, only u vibrates (``M_uu``, ``K_uu``).
+- *motors locked*: the coordinates' encoder readings ``q + G u`` are held
+  (:meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`), only u vibrates and q follows it,
+  ``dq = -G du``: ``Z' M Z``, ``Z' K Z`` with ``Z = [-G; I]`` (``M_uu``, ``K_uu`` where ``G = 0``: no
+  relative angle coordinate, whose reading adds the other link's elastic rotation at the joint);
+- *q held* (``hold_readings=False``): the ERLS coordinates themselves held, ``M_uu``, ``K_uu``: the constraint of
+  the Craig-Bampton interior (:mod:`exuflex.reduction`), the same as *motors locked* without a relative angle
+  coordinate.
 
 Mode shapes are also given as physical nodal displacements ``W phi`` (x, y, theta of every node).
 """
@@ -38,18 +44,18 @@ class ModalResult:
         return self.frequencies_hz[self.frequencies_hz <= fmax]
 
 
-def modal_analysis(model: ErlsModel, q=None, locked: bool = False) -> ModalResult:
-    """Eigenfrequencies and modes of the linearised model at ``q`` (default: the model's q_ref)."""
+def modal_analysis(model: ErlsModel, q=None, locked: bool = False, hold_readings: bool = True) -> ModalResult:
+    """Eigenfrequencies and modes of the linearised model at ``q`` (default: the model's q_ref); ``locked``: the
+    motors locked, the encoders' readings held (``hold_readings``, module docstring) or q itself."""
     q = np.asarray(model.mech.q_ref if q is None else q, float)
     cfg = model.configuration(q)
     M = model.mass(cfg)
     K = model.stiffness(cfg)
     nq = model.nq
     if locked:
-        Mi, Ki = M[nq:, nq:], K[nq:, nq:]
-        w2, V = sla.eigh(Ki, Mi)
-        full = np.zeros((model.n, V.shape[1]))
-        full[nq:] = V
+        Z = _locked_basis(model, hold_readings)
+        w2, V = sla.eigh(Z.T @ K @ Z, Z.T @ M @ Z)
+        full = Z @ V
         n_rigid = 0
         names = model.names
     else:
@@ -74,12 +80,23 @@ def damping_ratios(model: ErlsModel, q=None, locked: bool = False) -> tuple[np.n
     q = np.asarray(model.mech.q_ref if q is None else q, float)
     cfg = model.configuration(q)
     A, _ = model.state_matrix(cfg)
-    if locked:  # u only: [[0, I], [-M_uu^-1 K_uu, -M_uu^-1 C_uu]]
-        nq, ne = model.nq, model.ne
-        MK = np.linalg.solve(model.mass(cfg)[nq:, nq:],
-                             np.hstack([model.stiffness(cfg)[nq:, nq:], model.damping(cfg)[nq:, nq:]]))
+    if locked:  # u only, the readings held (x = Z u): [[0, I], [-M_L^-1 K_L, -M_L^-1 C_L]], M_L = Z' M Z, ...
+        ne = model.ne
+        Z = _locked_basis(model)
+        MK = np.linalg.solve(Z.T @ model.mass(cfg) @ Z,
+                             np.hstack([Z.T @ model.stiffness(cfg) @ Z, Z.T @ model.damping(cfg) @ Z]))
         A = np.block([[np.zeros((ne, ne)), np.eye(ne)], [-MK[:, :ne], -MK[:, ne:]]])
     return _oscillating(sla.eigvals(A))
+
+
+def _locked_basis(model: ErlsModel, hold_readings: bool = True) -> np.ndarray:
+    """(n, ne) ``Z = [-G; I]``: the motions with every coordinate's encoder reading ``q + G u`` held (else
+    ``[0; I]``, q held)."""
+    Z = np.zeros((model.n, model.ne))
+    if hold_readings:
+        Z[: model.nq] = -model.coordinate_reading_rows()
+    Z[model.nq :] = np.eye(model.ne)
+    return Z
 
 
 def _oscillating(s: np.ndarray, rigid_hz: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

@@ -829,3 +829,19 @@ class ErlsModel:
     def rotation_row(self, link: str, joint: str) -> np.ndarray:
         """(ne,) map from u to the elastic rotation of ``link``'s node at ``joint``."""
         return self.T[self._joint_node_dof(joint, link, 2)]
+
+    def coordinate_reading_rows(self) -> np.ndarray:
+        """(nq, ne) map ``G`` from u to what each coordinate's encoder reads beyond ``q``: the encoder of an angle
+        coordinate of ``link`` at ``joint`` reads ``q + G u``, the tangents' angle difference at the joint
+        (``theta_link - theta_ref`` of the two nodes there, ERLS frame plus elastic rotation, minus the offset).
+        The coordinate's own node turns with its frame (:func:`exuflex.mechanism.elastic_dofs`), so an absolute
+        angle's and a slide's rows are zero and a relative angle's is minus the other link's elastic rotation at
+        the joint. ``G`` is constant: rotations are the same in every planar frame."""
+        G = np.zeros((self.nq, self.ne))
+        for j, co in enumerate(self.mech.coordinates):
+            if co.kind == "slide":
+                continue
+            G[j] = self.rotation_row(co.link, co.joint)
+            if co.relative_to is not None:
+                G[j] -= self.rotation_row(co.relative_to, co.joint)
+        return G

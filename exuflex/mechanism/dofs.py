@@ -8,10 +8,12 @@ The ERLS-defining constraints (derived from the joints and the coordinates, neve
   direction, so this is one nodal component);
 - the nodes of a joint share their translations; the lowest node id owns them; the two nodes of a
   weld share their rotation too;
-- an absolute ERLS coordinate of link L at joint J fixes the rotation of L's node at J (so that
-  ``q`` is the angle an encoder there reads); a relative one ties it to the other link's node; a
-  slide coordinate fixes the slider node's translation along the axis (so that ``q`` is what a linear
-  encoder on the slider reads).
+- an ERLS angle coordinate of link L at joint J, absolute or relative, fixes the rotation of L's node at J,
+  so that L's ERLS frame is its own tangent there (an absolute ``q`` is the angle an encoder there reads; a
+  relative ``q`` is the difference of the two links' ERLS frames, and the relative encoder reads it plus the
+  other link's elastic rotation at J with a minus, :meth:`exuflex.erls.model.ErlsModel.coordinate_reading_rows`:
+  docs/long_arms.md says why the frame is not the other link's turned by ``q``); a slide coordinate fixes the
+  slider node's translation along the axis (so that ``q`` is what a linear encoder on the slider reads).
 
 The free displacements, taken node by node (ascending id) and component by component, are the
 elastic dofs ``u``. They are named ``x{k}``, ``y{k}``, ``theta{k}`` with ``k`` the 1-based index
@@ -157,12 +159,7 @@ def elastic_dofs(mech: Mechanism) -> ElasticDofs:
             c = 0 if abs(j.axis[0]) > 0.5 else 1
             fixed.add(3 * pos[mech.node_at(co.link, st)] + c)
             continue
-        d = 3 * pos[mech.node_at(co.link, st)] + 2
-        if co.relative_to is None:
-            fixed.add(d)
-        else:
-            st2 = next(p.station for p in j.points if p.link == co.relative_to)
-            tie(d, 3 * pos[mech.node_at(co.relative_to, st2)] + 2)
+        fixed.add(3 * pos[mech.node_at(co.link, st)] + 2)  # absolute or relative: the link's frame is its tangent
     fixed_roots = {find(d) for d in fixed}
     to_u = [ZERO] * nn
     free: list[tuple[int, str]] = []

@@ -137,9 +137,12 @@ class Coordinate:
     """An ERLS coordinate: the absolute angle of ``link`` (or relative to ``relative_to``) at ``joint``,
     or (kind ``slide``) the position of the prismatic ``joint`` along its axis.
 
-    Its ERLS-defining constraint sets the elastic rotation of ``link``'s node at ``joint`` to zero
-    (absolute) or equal to that of ``relative_to``'s node there (relative), so that ``q`` is the
-    angle an encoder at that joint reads; for a slide coordinate it sets the elastic displacement of
+    Its ERLS-defining constraint sets the elastic rotation of ``link``'s node at ``joint`` to zero, absolute or
+    relative, so that ``link``'s ERLS frame is its tangent there: an absolute ``q`` is the angle an encoder at that
+    joint reads, a relative ``q`` the difference of the two links' ERLS frames (``relative_to``'s frame is its own
+    tangent at its own coordinate's joint), which the relative encoder reads plus the difference of the two nodes'
+    elastic rotations at ``joint`` (:meth:`exuflex.erls.model.ErlsModel.coordinate_reading_rows`; the truths and the
+    observer's estimates report the reading); for a slide coordinate it sets the elastic displacement of
     the slider's node along the axis to zero (``link``: the link of the joint's first point), so that
     ``q = axis . (p - ground) - offset`` is what a linear encoder on the slider reads.
     """
@@ -148,7 +151,7 @@ class Coordinate:
     link: str
     joint: str
     relative_to: str | None = None
-    offset: float = 0.0  # q = angle(link) - angle(relative_to) - offset (slide: axis . (p - ground) - offset)
+    offset: float = 0.0  # q = frame(link) - frame(relative_to) - offset (slide: axis . (p - ground) - offset)
     kind: str = "angle"  # angle | slide
 
 

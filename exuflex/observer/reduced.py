@@ -396,6 +396,11 @@ class ReducedObserverModel:
         self.sensors = {s.name: s for s in self.mech.sensors}
         self._channel_rows: dict = {}  # configuration-independent parts of the sensor rows, per channel tuple
         self._second_order: dict = {}  # the tip points' SecondOrderPlan, per (link, station)
+        G = self.model.coordinate_reading_rows()
+        #: (nq, ne) the coordinates' encoder readings beyond q
+        #: (:meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`); None where every row is zero (no
+        #: relative angle coordinate): the physical q is the state's q
+        self.reading_G = G if np.any(G) else None
         self._noC2 = np.zeros((0, self.r))
         self._weight = bool(np.any(self.model.g_N))  # gravity: the weight's gradient enters the step Jacobian
         self.n_refresh = self.n_remap = self.n_rescue = self.n_evaluations = self.n_rows = 0
@@ -1145,7 +1150,9 @@ class ReducedObserverModel:
     def tip_maps(self, q, link: str, station: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(A, C, Gr)`` at configuration q: the tip's elastic displacement (global frame) to second order in p,
         ``e = A p + C (Gr p)^2`` (squares entry by entry): ``A`` (2, r) the linear rows (the point's displacement
-        rows, :meth:`~exuflex.erls.model.ErlsModel.point_displacement_rows`, in the basis), ``C``
+        rows, :meth:`~exuflex.erls.model.ErlsModel.point_displacement_rows`, in the basis; with a relative angle
+        coordinate less the rigid tip's move from q to the coordinates' readings to second order,
+        :meth:`_tip_from_reading`), ``C``
         (2, n_g) and ``Gr = G H_u`` (n_g, r) the links' foreshortening in the basis's elastic displacements
         ``u = H_u p`` (:class:`~exuflex.erls.sensing.SecondOrderPlan`)."""
         rc = self.rm.cb.at(q)
@@ -1155,4 +1162,40 @@ class ReducedObserverModel:
         if plan is None:
             plan = self._second_order[key] = SecondOrderPlan(self.model, [key])
         so = plan.at(rc.cfg.pose)
-        return self.model.point_displacement_rows(rc.cfg, link, station) @ Hu, so.C[0, :2], so.G @ Hu
+        A = self.model.point_displacement_rows(rc.cfg, link, station) @ Hu
+        C, Gr = so.C[0, :2], so.G @ Hu
+        if self.reading_G is not None:
+            A, C, Gr = self._tip_from_reading(rc, link, station, Hu, A, C, Gr)
+        return A, C, Gr
+
+    def _tip_from_reading(self, rc, link: str, station: float, Hu, A, C, Gr):
+        """The tip maps ``(A, C, Gr)`` of the elastic displacement from the rigid tip at the coordinates' readings
+        ``q + d``, ``d = R p`` (:meth:`reading_maps`: what a truth's q is), instead of at the ERLS frames' q:
+        ``p_rigid(q) - p_rigid(q + d) = -J d - 1/2 d' H_c d`` to second order (``J`` the rigid tip's q-Jacobian,
+        ``H_c`` its Hessian per component ``c``). The first order joins ``A``; the second, written as squares like
+        the foreshortening's, joins ``C`` and ``Gr``: ``d' H d = sum_i (H_ii - sum_(j != i) H_ij) d_i^2 + sum_(i < j)
+        H_ij (d_i + d_j)^2``, rows ``R_i`` and ``R_i + R_j`` that do not depend on H (so that their q-derivatives are
+        smooth, unlike an eigenbasis')."""
+        kin = self.model.kin
+        R = self.reading_G @ Hu  # (nq, r)
+        J = kin.point(rc.cfg.pose, link, station)[1]
+        li = np.array([kin.link_names.index(link)], dtype=np.int64)
+        Hs = kin.coordinate_rates(rc.cfg.pose, li, np.array([float(station)]))  # (nq, 3, nq): d2 x_c / dq_j dq
+        nq = self.nq
+        pairs = [(i, j) for i in range(nq) for j in range(i + 1, nq)]
+        rows = np.vstack([R] + [R[i] + R[j] for i, j in pairs]) if pairs else R
+        weights = np.zeros((2, len(rows)))
+        for c in range(2):
+            H = 0.5 * (Hs[:, c, :] + Hs[:, c, :].T)
+            weights[c, :nq] = -0.5 * (2.0 * np.diag(H) - H.sum(axis=1))  # H_ii - sum_(j != i) H_ij
+            for k, (i, j) in enumerate(pairs):
+                weights[c, nq + k] = -0.5 * H[i, j]
+        return A - J @ R, np.hstack([C, weights]), np.vstack([Gr, rows])
+
+    def reading_maps(self, q) -> np.ndarray:
+        """(nq, r) rows ``R`` of the coordinates' encoder readings beyond q in the reduced coordinates p at
+        configuration q: the physical q (what a relative encoder reads, what a truth reports) is ``q + R p``,
+        ``R = G H_u`` (:attr:`reading_G`, ``u = H_u p``); zero rows without a relative angle coordinate."""
+        if self.reading_G is None:
+            return np.zeros((self.nq, self.r))
+        return self.reading_G @ self.rm.cb.at(q).H[self.nq :]

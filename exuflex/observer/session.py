@@ -201,15 +201,20 @@ class Observer:
                  ) -> Signals:
         """Physical estimates (q, dq/dt, tip elastic displacement and rate) from reduced states (n, nx).
 
+        ``q`` is what each coordinate's encoder reads, as in the truths (:func:`exuflex.sensors.true_states`): the
+        state's q plus ``R(q) p`` (:meth:`~exuflex.observer.reduced.ReducedObserverModel.reading_maps`, zero but for
+        a relative angle coordinate, whose ERLS frame is its link's own tangent: the reading adds the difference of
+        the two links' elastic rotations at the joint), its rate ``q' + R p' + sum_i (dR/dq_i p) q'_i``.
         The tip's elastic displacement is ``e = A(q) p + w`` with ``A`` the tip rows (global
         frame) and ``w = C(q) (Gr(q) p)^2`` its second order, the links' foreshortening
         (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`, what the truth's tip position holds and
         linear elastic displacements do not), and its rate, what the truth's ``p_tip' - J q'`` is,
         ``e' = A(q) p' + sum_i (dA/dq_i p) q'_i + w'``: the rows turn with the links, so a deflection across a
-        turning link has a global rate even when it is constant in the link's frame. ``A``, ``C``, ``Gr`` and their
-        q-derivatives are evaluated where q moved by more than ``refresh_rad`` from the last evaluation; in between
-        they follow q to first order (error of order ``refresh_rad^2 / 2`` of the deflection) and the derivatives
-        are held (error of order ``refresh_rad`` of the rate's turning term, itself the deflection times q').
+        turning link has a global rate even when it is constant in the link's frame. ``R``, ``A``, ``C``, ``Gr`` and
+        their q-derivatives are evaluated where q moved by more than ``refresh_rad`` from the last evaluation; in
+        between they follow q to first order (error of order ``refresh_rad^2 / 2`` of the deflection) and the
+        derivatives are held (error of order ``refresh_rad`` of the rate's turning term, itself the deflection times
+        q').
 
         The rows are solved by the filter's model with its closure solver, from this computation's own warm start
         (the first from the initial guess), and the filter's is set back after: the estimates depend on neither
@@ -223,12 +228,27 @@ class Observer:
         out = np.full((len(t), len(names)), np.nan)
         out[:, :nq] = Z[:, :nq]
         out[:, nq : 2 * nq] = Z[:, r : r + nq]
-        tp = tip_point(self.mech)
+        value, rate = self.row_columns()
         carry = {} if carry is None else carry
-        if tp is not None:
+        if len(value):
+            base = out.copy()
+            base[:, 2 * nq :] = 0.0  # rows in no run of the rows: the state's q, no tip value
             with self._own_warm_start(carry):
-                self._tip_columns(Z, out, tp, refresh_rad, carry)
+                self._row_values(Z, base, out, value, rate, refresh_rad, carry)
         return Signals(np.asarray(t, float), names, out, physical_units(self.mech))
+
+    def row_columns(self) -> tuple[np.ndarray, np.ndarray]:
+        """The :meth:`physical` columns that the rows of :meth:`physical_rows_and_rates` add to: the values' (the
+        q columns where a coordinate reads beyond q, then the tip's two) and the rates' (dq, then the tip's)."""
+        nq = self.model.nq
+        value, rate = [], []
+        if getattr(self.model, "reading_G", None) is not None:
+            value += list(range(nq))
+            rate += list(range(nq, 2 * nq))
+        if tip_point(self.mech) is not None:
+            value += [2 * nq, 2 * nq + 1]
+            rate += [2 * nq + 2, 2 * nq + 3]
+        return np.array(value, dtype=np.int64), np.array(rate, dtype=np.int64)
 
     @contextmanager
     def _own_warm_start(self, carry: dict):
@@ -244,26 +264,28 @@ class Observer:
             carry["warm"] = kin.warm_start
             kin.warm_start = saved
 
-    def _tip_columns(self, Z: np.ndarray, out: np.ndarray, tp, refresh_rad: float, carry: dict) -> None:
-        """The tip elastic displacement and rate columns of :meth:`physical` into ``out``."""
+    def _row_values(self, Z: np.ndarray, base: np.ndarray, out: np.ndarray, value: np.ndarray, rate: np.ndarray,
+                    refresh_rad: float, carry: dict) -> None:
+        """The ``value`` and ``rate`` columns of ``out``: ``base``'s plus the rows' values and rates
+        (:meth:`physical`)."""
         nq, r = self.model.nq, self.model.r
-        for a, b, (A0, dA, q0, second) in self._tip_segments(Z, tp, refresh_rad, carry):
+        for a, b, (A0, dA, q0, second) in self._row_segments(Z, refresh_rad, carry):
             p, v, qd = Z[a:b, :r], Z[a:b, r : 2 * r], Z[a:b, r : r + nq]
-            A = _rows_along(A0, dA, Z[a:b, :nq] - q0)  # (n, 2, r)
+            A = _rows_along(A0, dA, Z[a:b, :nq] - q0)  # (n, k, r)
             Cw, Gw, Cwd, Gwd = _second_order_along(second, Z[a:b, :nq] - q0, qd)
             g = _apply_rows(Gw, p)  # (n, n_g): the slopes at the Gauss points
-            out[a:b, 2 * nq : 2 * nq + 2] = _apply_rows(A, p) + _apply_rows(Cw, g * g)
-            out[a:b, 2 * nq + 2 : 2 * nq + 4] = (_apply_rows(A, v) + _apply_rows(_rows_along(0.0, dA, qd), p)
-                                                 + _apply_rows(Cwd, g * g)
-                                                 + _apply_rows(Cw, 2.0 * g * (_apply_rows(Gw, v) + _apply_rows(Gwd, p))))
+            out[a:b, value] = base[a:b, value] + _apply_rows(A, p) + _apply_rows(Cw, g * g)
+            out[a:b, rate] = base[a:b, rate] + (_apply_rows(A, v) + _apply_rows(_rows_along(0.0, dA, qd), p)
+                               + _apply_rows(Cwd, g * g)
+                               + _apply_rows(Cw, 2.0 * g * (_apply_rows(Gw, v) + _apply_rows(Gwd, p))))
 
-    def _tip_segments(self, Z: np.ndarray, tp, refresh_rad: float, carry: dict, lookahead: int = 64):
-        """The runs of rows of ``Z`` that share one evaluation of the tip rows: ``(a, b, (A, dA/dq, q0))`` for rows
-        ``a:b``, all finite and with ``max |q - q0| <= refresh_rad``. A row beyond that radius starts a new
-        evaluation at its own ``q``; rows with a non-finite entry, and rows where the loops do not close (no
-        evaluation), are in no run. ``carry["rows"]`` holds the evaluation from one block of rows to the next. The
-        rows' end is searched ``lookahead`` rows at a time, doubling (a run's cost is its length, not the
-        record's)."""
+    def _row_segments(self, Z: np.ndarray, refresh_rad: float, carry: dict, lookahead: int = 64):
+        """The runs of rows of ``Z`` that share one evaluation of the rows (:meth:`physical_rows_and_rates`):
+        ``(a, b, (A, dA/dq, q0, second))`` for rows ``a:b``, all finite and with ``max |q - q0| <= refresh_rad``. A
+        row beyond that radius starts a new evaluation at its own ``q``; rows with a non-finite entry, and rows where
+        the loops do not close (no evaluation), are in no run. ``carry["rows"]`` holds the evaluation from one block
+        of rows to the next. The rows' end is searched ``lookahead`` rows at a time, doubling (a run's cost is its
+        length, not the record's)."""
         nq = self.model.nq
         rows = carry.get("rows")
         finite = np.all(np.isfinite(Z), axis=1)
@@ -273,7 +295,7 @@ class Observer:
                 k += 1
                 continue
             if rows is None or np.max(np.abs(Z[k, :nq] - rows[2])) > refresh_rad:
-                rows = self.tip_rows_and_rates(Z[k, :nq], tp)
+                rows = self.physical_rows_and_rates(Z[k, :nq])
                 if rows is None:  # a runaway estimate where the loops cannot close: no tip value
                     k += 1
                     continue
@@ -289,21 +311,38 @@ class Observer:
             k = b
         carry["rows"] = rows
 
-    def tip_rows_and_rates(self, q: np.ndarray, tp, eps: float = 1e-6):
-        """``(A, dA/dq, q, (C, dC/dq, Gr, dGr/dq))``: the tip rows (2, r) at ``q``, the maps of their second order
-        ``C (Gr p)^2`` (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`) and their derivatives
-        (nq, ...) by forward differences of step ``eps`` rad (the maps are smooth in q, rotations and Guyan shapes:
-        the truncation error is of order ``eps`` relative, far below the first-order interpolation's
-        ``refresh_rad^2``); None where the loops do not close."""
+    def physical_maps(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A, C, Gr)`` at ``q``: the rows the physical quantities add to the state's (:meth:`row_columns`),
+        ``A p + C (Gr p)^2``: the coordinates' readings beyond q where a coordinate reads beyond q, no second order
+        (:meth:`~exuflex.observer.reduced.ReducedObserverModel.reading_maps`), then the tip's
+        (:meth:`~exuflex.observer.reduced.ReducedObserverModel.tip_maps`)."""
+        som = self.model
+        tp = tip_point(self.mech)
+        A, C, Gr = [], [], np.zeros((0, som.r))
+        if tp is not None:
+            At, Ct, Gr = som.tip_maps(q, *tp)
+        if getattr(som, "reading_G", None) is not None:
+            A.append(som.reading_maps(q))
+            C.append(np.zeros((som.nq, Gr.shape[0])))
+        if tp is not None:
+            A.append(At)
+            C.append(Ct)
+        return np.vstack(A), np.vstack(C), Gr
+
+    def physical_rows_and_rates(self, q: np.ndarray, eps: float = 1e-6):
+        """``(A, dA/dq, q, (C, dC/dq, Gr, dGr/dq))``: the rows of :meth:`physical_maps` at ``q`` (``A`` (k, r)) and
+        their derivatives (nq, ...) by forward differences of step ``eps`` rad (the maps are smooth in q, rotations
+        and Guyan shapes: the truncation error is of order ``eps`` relative, far below the first-order
+        interpolation's ``refresh_rad^2``); None where the loops do not close."""
         som = self.model
         q = np.array(q, float)
         try:
-            maps = som.tip_maps(q, *tp)
+            maps = self.physical_maps(q)
             d = [np.empty((som.nq, *m.shape)) for m in maps]
             for i in range(som.nq):
                 e = np.zeros(som.nq)
                 e[i] = eps
-                for m, dm, m1 in zip(maps, d, som.tip_maps(q + e, *tp), strict=True):
+                for m, dm, m1 in zip(maps, d, self.physical_maps(q + e), strict=True):
                     dm[i] = (m1 - m) / eps
         except KinematicsError:
             return None
@@ -314,8 +353,8 @@ class Observer:
         """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
         from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through
         their maps linearised at each state (the filter's extra states, if any, are left out; the rate's turning
-        term is linearised in p and q', not in q). For NEES against a truth of the physical quantities. The tip
-        rows are evaluated as in :meth:`physical` (its own warm start; ``carry`` as there)."""
+        term is linearised in p and q', not in q). For NEES against a truth of the physical quantities. The rows
+        are evaluated as in :meth:`physical` (its own warm start; ``carry`` as there)."""
         carry = {} if carry is None else carry
         with self._own_warm_start(carry):
             return self._physical_covariance(Z, P, refresh_rad, carry)
@@ -328,26 +367,34 @@ class Observer:
         C = np.zeros((k, nx))
         C[:nq, :nq] = np.eye(nq)
         C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        if tp is None:
+        value, rate = self.row_columns()
+        if not len(value):
             return C @ P[:, :nx, :nx] @ C.T
-        out = np.full((len(Z), k, k), np.nan)  # (rows in no run of tip rows: no tip value)
-        for a, b, (A0, dA, q0, second) in self._tip_segments(Z[:, :nx], tp, refresh_rad, carry):
+        out = np.full((len(Z), k, k), np.nan)  # (rows in no run of the rows: no value)
+        for a, b, (A0, dA, q0, second) in self._row_segments(Z[:, :nx], refresh_rad, carry):
             z = Z[a:b, :nx]
-            A = _rows_along(A0, dA, z[:, :nq] - q0)  # (m, 2, r)
-            dAp = np.einsum("iaj,kj->kai", dA, z[:, :r])  # d(A p)/dq (m, 2, nq)
             Cb = np.zeros((b - a, k, nx))
             Cb[:] = C
-            Cb[:, 2 * nq : 2 * nq + 2, :r] = A
-            Cb[:, 2 * nq : 2 * nq + 2, :nq] += dAp
-            Cb[:, 2 * nq + 2 :, r:] = A
-            Cb[:, 2 * nq + 2 :, :r] = _rows_along(0.0, dA, z[:, r : r + nq])
-            Cb[:, 2 * nq + 2 :, r : r + nq] += dAp
-            # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
-            # left out: of the order of q' times the deflection per radian, times q's small uncertainty
-            Cb[:, 2 * nq + 2 :, :nq] += np.einsum("iaj,kj->kai", dA, z[:, r:])
-            _second_order_jacobian(Cb, second, z, q0, nq, r)
+            _rows_jacobian(Cb, A0, dA, q0, z, value, rate, nq, r)
+            _second_order_jacobian(Cb, second, z, q0, nq, r, value, rate)
             out[a:b] = Cb @ P[a:b, :nx, :nx] @ Cb.transpose(0, 2, 1)
         return out
+
+
+def _rows_jacobian(Cb: np.ndarray, A0: np.ndarray, dA: np.ndarray, q0: np.ndarray, z: np.ndarray, value: np.ndarray,
+                   rate: np.ndarray, nq: int, r: int) -> None:
+    """Add to ``Cb`` (m, k, nx) the Jacobian of the rows' values ``A(q) p`` and rates ``A p' + sum_i (dA/dq_i p)
+    q'_i`` (:meth:`Observer.physical`) in the ``value`` and ``rate`` rows of ``Cb``, at the states ``z`` (m, nx)."""
+    A = _rows_along(A0, dA, z[:, :nq] - q0)  # (m, k, r)
+    dAp = np.einsum("iaj,kj->kai", dA, z[:, :r])  # d(A p)/dq (m, k, nq)
+    Cb[:, value, :r] += A
+    Cb[:, value, :nq] += dAp
+    Cb[:, rate, r:] += A
+    Cb[:, rate, :r] += _rows_along(0.0, dA, z[:, r : r + nq])
+    Cb[:, rate, r : r + nq] += dAp
+    # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
+    # left out: of the order of q' times the deflection per radian, times q's small uncertainty
+    Cb[:, rate, :nq] += np.einsum("iaj,kj->kai", dA, z[:, r:])
 
 
 def _second_order_along(second: tuple, dQ: np.ndarray, qd: np.ndarray) -> tuple:
@@ -357,7 +404,8 @@ def _second_order_along(second: tuple, dQ: np.ndarray, qd: np.ndarray) -> tuple:
     return _rows_along(C0, dC, dQ), _rows_along(G0, dG, dQ), _rows_along(0.0, dC, qd), _rows_along(0.0, dG, qd)
 
 
-def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.ndarray, nq: int, r: int) -> None:
+def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.ndarray, nq: int, r: int,
+                           e: np.ndarray, ed: np.ndarray) -> None:
     """Add to ``Cb`` (m, k, nx) the Jacobian of the tip's second order ``w = C (Gr p)^2`` and of its rate ``w' =
     C' g^2 + 2 C (g (Gr p' + Gr' p))`` (``g = Gr p``, ``'`` the change along q') at the states ``z`` (m, nx): in
     ``p``, ``p'``, ``q'`` and ``q`` (the rate's in q: of ``2 C (g (Gr p'))``; that of its turning terms along q',
@@ -368,7 +416,6 @@ def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.
     g = _apply_rows(Gw, p)  # (m, n_g)
     gd = _apply_rows(Gw, v) + _apply_rows(Gwd, p)
     two_Cg = 2.0 * Cw * g[:, None, :]  # (m, 2, n_g): dw/dg
-    e, ed = slice(2 * nq, 2 * nq + 2), slice(2 * nq + 2, 2 * nq + 4)
     Cb[:, e, :r] += two_Cg @ Gw
     # dw/dq_i = dC_i g^2 + 2 C (g dGr_i p), also the rate's derivative in q'_i (its turning terms)
     dwdq = (np.einsum("iaj,kj->kai", dC, g * g)

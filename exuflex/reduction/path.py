@@ -160,7 +160,7 @@ class PathSamples:
             self.PMH.append(Phi.T @ M @ H)
             self.n1.append(np.einsum("ij,ik,kj->j", Phi, M, Phi))
             if planned is not None and self.rho_max > 0 and len(self.band_hz) % 2 == 1:  # q* and every other sample
-                locked = modal_analysis(model, q, locked=True)
+                locked = modal_analysis(model, q, locked=True, hold_readings=False)  # the interior's constraint
                 t = truncation_sample(cb, rc, locked, planned)
                 self.truncation.append(t)
                 self._tix.append(len(self.band_hz) - 1)

@@ -17,6 +17,9 @@ At every sampled configuration ``q_c`` (q* and the manoeuvre's, :mod:`.path`) th
 - the inertial load of each coordinate's acceleration, ``-M_uq e_i`` (the payload's mass is in ``M``),
 - the velocity loads ``-h_u(q' = e_i)`` and ``-(h_u(e_i + e_j) - h_u(e_i) - h_u(e_j))`` (``h`` is quadratic in q'),
 - the weight (with gravity),
+- each motor's own elastic load, ``G_u e_j`` (the reaction of a motor between two links on the other link's node:
+  the joint's relative coordinate puts each link's ERLS frame on its own tangent, :mod:`exuflex.mechanism.dofs`),
+  scaled by the motor's largest planned torque ``|tau_j|``,
 
 (the slaves' static response to a load concentrated there is what the interior modes kept for the dynamics miss),
 each scaled by the largest value its factor can take (:func:`load_amplitudes`): 
@@ -79,7 +82,7 @@ from ..erls.sensing import channel_matrix
 from ..manoeuvre import plan
 from .truncation import TRUNCATION_MAX, PlannedInput
 
-__all__ = ["STATIC_MAX", "StaticCorrections", "load_amplitudes", "load_shapes", "reading_rows", "rebase",
+__all__ = ["STATIC_MAX", "StaticCorrections", "load_amplitudes", "load_shapes", "motor_loads", "reading_rows", "rebase",
            "static_corrections"]
 
 #: the count's limit on the largest residual reading, in noise sd (module docstring)
@@ -99,7 +102,7 @@ def _velocity_pairs(nq: int) -> list[tuple[int, int]]:
 def load_shapes(model, cfg) -> tuple[np.ndarray, list[str]]:
     """``(L, names)``: the elastic rows (ne, k) of the load patterns at ``cfg`` (module docstring), unscaled: ``-M_uq
     e_i`` per coordinate, the velocity loads ``-h_u`` of the rate pairs (``(i, i)``: ``q'_i^2``; ``(i, j)``: the cross
-    term of ``q'_i q'_j``) and, with gravity, the weight."""
+    term of ``q'_i q'_j``), with gravity the weight, and the motors' own elastic loads (:func:`motor_loads`)."""
     nq = model.nq
     cn = model.mech.coordinate_names
     names = [f"inertia {c}" for c in cn]
@@ -108,7 +111,16 @@ def load_shapes(model, cfg) -> tuple[np.ndarray, list[str]]:
     if np.any(model.g_N):
         cols.append((cfg.W.T @ (cfg.M_N @ model.g_N))[nq:, None])
         names.append("weight")
+    m = motor_loads(model)
+    cols.append((model.T.T @ model.B_N)[:, m])
+    names += [f"motor {model.mech.motors[j].name}" for j in m]
     return np.hstack(cols), names
+
+
+def motor_loads(model) -> np.ndarray:
+    """The motors whose torque loads the elastic coordinates directly (``T' B_N`` non-zero: a motor reacting on a
+    link whose node at the joint turns elastically), in :func:`load_shapes`' order."""
+    return np.flatnonzero(np.any(model.T.T @ model.B_N != 0.0, axis=0))
 
 
 def _velocity_coefficients(model, cfg) -> np.ndarray:
@@ -151,11 +163,13 @@ def load_amplitudes(model, planned: PlannedInput, qs: np.ndarray) -> tuple[np.nd
     return a, v
 
 
-def _scales(a: np.ndarray, v: np.ndarray, n_cols: int) -> np.ndarray:
-    """The amplitude of each column of :func:`load_shapes` (the weight's: 1)."""
+def _scales(a: np.ndarray, v: np.ndarray, n_cols: int, tau: np.ndarray | None = None) -> np.ndarray:
+    """The amplitude of each column of :func:`load_shapes` (the weight's: 1; the motors' loads: ``tau``, their
+    largest planned torques)."""
     nq = len(a)
+    tau = np.zeros(0) if tau is None else np.asarray(tau, float)
     s = np.r_[a, [v[i] * v[j] for i, j in _velocity_pairs(nq)]]
-    return np.r_[s, np.ones(n_cols - len(s))]
+    return np.r_[s, np.ones(n_cols - len(s) - len(tau)), tau]
 
 
 @dataclass(frozen=True)
@@ -264,7 +278,8 @@ def _sample(cb, q, a, v, planned, quantity_max) -> _Sample:
     qc, qs = cb._frame_cs(cfg)
     Kw = cb._congruence(model.stiffness(cfg)[cb.nq:, cb.nq:], qc, qs)[np.ix_(cb.is_, cb.is_)]
     L, loads = load_shapes(model, cfg)
-    F = cb._to_frame(L * _scales(a, v, L.shape[1])[None, :], qc, qs)[cb.is_]
+    tau = np.abs(planned.u).max(axis=0)[motor_loads(model)]
+    F = cb._to_frame(L * _scales(a, v, L.shape[1], tau)[None, :], qc, qs)[cb.is_]
     Y, rows = reading_rows(cb, cfg, planned, quantity_max)
     E = np.zeros((model.ne, len(cb.is_)))
     E[cb.is_] = np.eye(len(cb.is_))

@@ -309,8 +309,8 @@ def elastic_loads(model, cfg, inp: PlannedInput) -> np.ndarray:
 
 def truncation_sample(cb, rc, full: ModalResult, inp: PlannedInput) -> TruncationSample:
     """The :class:`TruncationSample` at ``rc`` (the basis of ``cb`` with every interior mode, at a configuration)
-    with the full modes ``full`` there (q held: ``modal_analysis(..., locked=True)``), under the planned motion
-    ``inp`` (its loads: :func:`elastic_loads`)."""
+    with the full modes ``full`` there (q held: ``modal_analysis(..., locked=True, hold_readings=False)``), under
+    the planned motion ``inp`` (its loads: :func:`elastic_loads`)."""
     model, nq = cb.model, cb.nq
     cfg = rc.cfg
     n_int = rc.Psi.shape[1]

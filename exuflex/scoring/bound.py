@@ -53,7 +53,7 @@ from ..observer.expansion import held_interval
 from ..observer.reduced import ReducedObserverModel
 from ..observer.session import LogColumns, Observer, physical_names, start_configuration
 from ..observer.tuning import van_loan
-from ..sensors import Signals, tip_point
+from ..sensors import Signals
 
 log = logging.getLogger(__name__)
 
@@ -803,27 +803,30 @@ def _bound_at(obs: Observer, q, qd=None, log_check=None) -> dict[str, float]:
     q = np.asarray(q, float)
     names = physical_names(mech)
     out = {}
-    sd = np.sqrt(np.diag(P))
-    for i in range(nq):
-        out[names[i]] = float(sd[i])
-        out[names[nq + i]] = float(sd[r + i])
-    tp = tip_point(mech)
-    if tp is not None:
-        # the maps of Observer.physical linearised at z: e = A(q) p + w, e' = A(q) p' + sum_i (dA/dq_i p) q'_i + w'
-        # (w = C (Gr p)^2 the second order: at rest its Jacobian in p, 2 C diag(Gr p) Gr, joins A)
-        A, dA, _, (Cw, _, Gw, _) = obs.tip_rows_and_rates(q, tp)
-        A = A + 2.0 * (Cw * (Gw @ z[:r])) @ Gw
-        dAp = np.einsum("iaj,j->ai", dA, z[:r])
-        for k in range(2):
-            C = np.zeros(som.nx)
-            C[:r] = A[k]
-            C[:nq] += dAp[k]
-            out[names[2 * nq + k]] = float(np.sqrt(C @ P @ C))
-            Cd = np.zeros(som.nx)
-            Cd[r:] = A[k]
-            Cd[:r] += np.tensordot(z[r : r + nq], dA, axes=1)[k]
-            Cd[r : r + nq] += dAp[k]
-            out[names[2 * nq + 2 + k]] = float(np.sqrt(Cd @ P @ Cd))
+    value, _ = obs.row_columns()
+    if not len(value):
+        sd = np.sqrt(np.diag(P))
+        for i in range(nq):
+            out[names[i]] = float(sd[i])
+            out[names[nq + i]] = float(sd[r + i])
+        return out
+    # the maps of Observer.physical linearised at z: the rows' values A(q) p + w and rates A(q) p' +
+    # sum_i (dA/dq_i p) q'_i + w' (w = C (Gr p)^2 the tip's second order: at rest its Jacobian in p,
+    # 2 C diag(Gr p) Gr, joins A), added to q and dq (the coordinates' readings) or to nothing (the tip's)
+    A, dA, _, (Cw, _, Gw, _) = obs.physical_rows_and_rates(q)
+    A = A + 2.0 * (Cw * (Gw @ z[:r])) @ Gw
+    dAp = np.einsum("iaj,j->ai", dA, z[:r])
+    base = np.zeros((len(names), som.nx))
+    base[np.arange(nq), np.arange(nq)] = 1.0
+    base[nq + np.arange(nq), r + np.arange(nq)] = 1.0
+    for k, (iv, ir) in enumerate(zip(*obs.row_columns(), strict=True)):
+        base[iv, :r] += A[k]
+        base[iv, :nq] += dAp[k]
+        base[ir, r:] += A[k]
+        base[ir, :r] += np.tensordot(z[r : r + nq], dA, axes=1)[k]
+        base[ir, r : r + nq] += dAp[k]
+    for i, name in enumerate(names):
+        out[name] = float(np.sqrt(base[i] @ P @ base[i]))
     return out
 
 
