@@ -104,7 +104,7 @@ def markdown(data: dict, cmd: str, figure: str) -> str:
     d1, d5 = crossing(x, err2, 1.0), crossing(x, err2, 5.0)
 
     def at(v):
-        return f"L/d = {v:.1f}" if v is not None else "not within the levels"
+        return f"at L/d = {v:.1f}" if v is not None else "at none of the levels"
 
     e0 = modes[str(x[0])]
     reach = (f"is above {LIMIT}x the bound already at the most slender level (L/d = {x[0]:g}: {worst[0]:.2f}, "
@@ -114,12 +114,12 @@ def markdown(data: dict, cmd: str, figure: str) -> str:
              "on 16 elements per link) puts the same observer at the same ratio, because the file mesh's gauge "
              "curvature is about 1 % off the converged beam's and the solid's ({doc}`/ffrf_gap`))"
              if worst[0] >= LIMIT else
-             f"reaches {LIMIT}x the bound at {at(crossing(x, worst, LIMIT))}")
+             f"reaches {LIMIT}x the bound {at(crossing(x, worst, LIMIT))}")
     lines += [
         "",
-        f"On the FFRF truth the mean worst ratio {reach}, and twice that value at {at(c2x)}, while the ERLS truth's "
+        f"On the FFRF truth the mean worst ratio {reach}, and twice that value {at(c2x)}, while the ERLS truth's "
         f"stays at {min(base):.2f}-{max(base):.2f} over the levels. The ERLS first mode departs from the solid's by "
-        f"1 % at {at(c1)} and by 5 % at {at(c5)}; the second mode by 1 % at {at(d1)} and by 5 % at {at(d5)}. The sweep at constant material ({{doc}}`/beam_validity`: 1 % at "
+        f"1 % {at(c1)} and by 5 % {at(c5)}; the second mode by 1 % {at(d1)} and by 5 % {at(d5)}. The sweep at constant material ({{doc}}`/beam_validity`: 1 % at "
         "L/d = 12.3, 5 % at 5.4) departs sooner: there the stubby link outweighs the hub and the tip mass, and its "
         "first mode is the free-pinned beam's, whose shorter wavelength feels shear more; here the link keeps its "
         "mass, and its first mode stays the hub-clamped one.",

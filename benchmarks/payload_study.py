@@ -72,7 +72,7 @@ def page(summary: dict, tip_rms: dict, command: str, timing: dict) -> str:
           "with default settings on the nominal model. The same study as `exuflex study payload` and the payload "
           "part of `exuflex reproduce` (whose report holds the same table with its figure)."), "",
          (f"Wall time of the call that computed the runs: {timing['wall_s']:.0f} s ({timing['runs_computed']} runs, "
-          f"{timing['workers']} workers; a machine shared with other jobs)."), "",
+          f"{timing['workers']} worker{'s' if timing['workers'] != 1 else ''}; a machine shared with other jobs)."), "",
          "## Runs per level", "",
          "| level | runs | diverged | non-finite | NIS window test flags | mean NIS (expected) |",
          "|---|---|---|---|---|---|"]
