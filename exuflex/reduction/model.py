@@ -164,6 +164,7 @@ class ReducedModel:
         self.nx = 2 * cb.r
         self.names = cb.names
         self.consistent = consistent
+        self._hessian = (None, None)  # the last configuration's basis_hessian: (its key, the array)
 
     # ------------------------------------------------------------------ matrices
     def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
@@ -260,9 +261,13 @@ class ReducedModel:
         whose contraction with ``p_m q'_i q'_j`` is :meth:`basis_curvature`, by central differences of the exact
         first derivative (:meth:`CraigBampton.basis_derivative`) over ``+-1e-5`` rad in each ``q_i`` (error some
         1e-10 relative; :meth:`basis_curvature` says why). The cached observer step holds it at an undeformed
-        configuration for the bias force's first order in the elastic coordinates."""
+        configuration for the bias force's first order in the elastic coordinates (the nominal model and the payload
+        estimator's increment alike: the last configuration's is kept, read-only)."""
         nq, r = self.nq, self.r
         q = np.asarray(q, float)
+        key = (q.tobytes(), self.cb.compiled, self.model.kin.compiled)  # (the basis derivative's own arithmetic)
+        if self._hessian[0] == key:
+            return self._hessian[1]
         d = CURVATURE_STEP
         E = np.eye(r)[:, nq:]
         out = np.empty((r - nq, nq + self.model.ne, nq, nq))
@@ -273,6 +278,8 @@ class ReducedModel:
             Dm = self.cb.basis_derivative(self.cb.at(self.model._material_configuration(q - e)), E)
             out[:, :, :, i] = (Dp - Dm) / (2.0 * d)
         self.model.configuration(q)  # leave the closure solver warm-started at q
+        out.flags.writeable = False
+        self._hessian = (key, out)
         return out
 
     def held(self, p, pd, *, fr: bool = False, gradients: bool = True) -> tuple[ReducedMatrices, QuadraticForces]:
@@ -301,14 +308,17 @@ class ReducedModel:
             fm.C2 = self._curved_bias_form(mats, fm.C2, p)
         return mats, fm
 
-    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray,
+                          Zp: np.ndarray | None = None) -> np.ndarray:
         """The bias form ``C2`` (r nq, r: the force ``-sum p'_k p'_j C2[k, j]``, ``j < nq``) of a deformed state
         with the bias acceleration's curvature term in it: at the state's ``p``, ``-(W J)^T M_N W d^2(H p)/dq_k dq_j
         q'_k q'_j`` is a bilinear form in the joint rates, added to the entries ``k < nq``
-        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state."""
+        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state. ``Zp``: ``d^2(H p)/dq^2``
+        (n, nq, nq) if computed already (it depends on the basis only, not on the masses)."""
         nq, r = self.nq, self.r
         cfg = mats.rc.cfg
-        Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
+        if Zp is None:
+            Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
         JtMW = (cfg.W @ mats.J).T @ (cfg.M_N @ cfg.W)  # (r, n)
         out = np.array(C2, float).reshape(r, nq, r)
         out[:nq] += np.einsum("cx,xkj->kjc", JtMW, Zp)
