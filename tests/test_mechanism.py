@@ -231,3 +231,61 @@ def test_solid_sections_area_and_inertia():
     assert tube.I == pytest.approx(np.pi * (0.02**4 - 0.016**4) / 64)
     assert rect.shape == "rectangle" and rect.A == pytest.approx(2e-4) and rect.I == pytest.approx(0.01 * 0.02**3 / 12)
     assert mech.links[0].section.shape == "round"
+
+
+def _cantilever_root_curvature(L: float, n: int, w: float, EI: float) -> float:
+    """The two-node cubic beam elements' curvature at the clamped root of a cantilever under a uniform load
+    (consistent load vector), a NumPy oracle independent of the ERLS model."""
+    h = L / n
+    k = EI / h**3 * np.array([[12, 6 * h, -12, 6 * h], [6 * h, 4 * h * h, -6 * h, 2 * h * h],
+                              [-12, -6 * h, 12, -6 * h], [6 * h, 2 * h * h, -6 * h, 4 * h * h]])
+    f = w * h * np.array([0.5, h / 12, 0.5, -h / 12])
+    K, F = np.zeros((2 * n + 2, 2 * n + 2)), np.zeros(2 * n + 2)
+    for e in range(n):
+        K[2 * e : 2 * e + 4, 2 * e : 2 * e + 4] += k
+        F[2 * e : 2 * e + 4] += f
+    u = np.zeros(2 * n + 2)
+    u[2:] = np.linalg.solve(K[2:, 2:], F[2:])
+    v2, t2 = u[2], u[3]  # the first element's far node (the root's are zero)
+    return 6 * v2 / h**2 - 2 * t2 / h  # v''(0) of the Hermite cubic
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 20])
+def test_gauge_sag_error_is_w_h2_over_12EI_at_a_node(n):
+    """The derivation of :func:`gauge_sag_length`: the cubic elements' curvature at a node under a uniform load
+    errs by ``w h^2 / (12 EI)`` (the nodal values exact, the quartic bubble's curvature at the element's end),
+    whatever the rest of the mesh: the cantilever's root curvature against the exact ``w L^2 / (2 EI)``."""
+    L, w, EI = 0.8, 2.0, 30.0
+    exact = w * L**2 / (2 * EI)
+    got = _cantilever_root_curvature(L, n, w, EI)
+    np.testing.assert_allclose(exact - got, w * (L / n) ** 2 / (12 * EI), rtol=0, atol=1e-10 * exact)  # (round-off)
+
+
+def test_gauge_rule_refines_next_to_the_gauges_under_gravity_only():
+    """The gauge rule (:func:`exuflex.mechanism.refine.gauge_mesh`): under gravity every curvature gauge's
+    neighbouring elements are within :func:`gauge_sag_length` (its sag reading within a tenth of the noise) and no
+    added element is shorter than half of it, the model file's nodes kept with their ids; without gravity the
+    mechanism is returned as it is."""
+    from exuflex.mechanism.refine import GAUGE_SAG_TOL, gauge_mesh, gauge_sag_length
+
+    root = Path(__file__).resolve().parents[1]
+    own = load_mechanism(root / "benchmarks/models/drooping_fourbar.toml")
+    mech = gauge_mesh(own)
+    for lk0, lk in zip(own.links, mech.links, strict=True):
+        kept = dict(zip(lk.node_ids, lk.stations, strict=True))
+        assert all(abs(kept[i] - s) < 1e-12 for i, s in zip(lk0.node_ids, lk0.stations, strict=True))
+    assert mech.link("coupler").n_elements > own.link("coupler").n_elements
+    for s in mech.sensors:
+        if s.kind != "curvature":
+            continue
+        h = gauge_sag_length(mech, s)
+        lk = mech.link(s.link)
+        w = lk.material.rho * lk.section.A * 9.81
+        np.testing.assert_allclose(w * h**2 / (12 * lk.material.E * lk.section.I), GAUGE_SAG_TOL * s.noise_std)
+        st = np.asarray(lk.stations)
+        i = int(np.argmin(abs(st - s.station)))
+        assert abs(st[i] - s.station) < 1e-12
+        assert st[i] - st[i - 1] <= h * (1 + 1e-9) and st[i + 1] - st[i] <= h * (1 + 1e-9)
+        assert min(np.diff(st)) >= 0.5 * h * (1 - 1e-9)
+    flat = load_mechanism(root / "models/fourbar.toml")
+    assert gauge_mesh(flat) is flat

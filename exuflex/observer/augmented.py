@@ -22,9 +22,11 @@ the same evaluation of a twin model whose payload is doubled (:func:`payload_twi
 doubled payload's full-order model). ``dS`` is the analytic derivative ``dS/dtheta``: the payload enters
 linearly (``dM_r/dtheta = A^T diag(m_p, m_p, I_p) A``, :func:`payload_rows`; the tests compare the two).
 Per interval the step is the cached step's RK4 sub-steps of that held system (:func:`scaled_steps`), the
-stiffness, input matrix and geometric terms unchanged. Its derivative in the
-state and the process noise are the nominal step map's where the payload's change of the modal masses,
-``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
+stiffness, input matrix and geometric terms unchanged: the payload's share of the links' axial loads (its weight
+and inertia in the geometric stiffness, static and of the motion) is left out (on the serial arm at a turning
+state some 0.2-4 % of the payload's effect on the accelerations; ``tests/test_estimators.py`` bounds it). Its
+derivative in the state and the process noise are the nominal step map's where the payload's change of the modal
+masses, ``|theta - 1| rho`` with ``rho = max eig(dM_r, M_r)``, is within the tolerance the cached step holds its
 matrices to (``refresh_tol``); beyond it, the maps of the scaled held linear system (the step's own matrices at
 the interval's start: ``M_r + (theta - 1) dM_r`` and the damping's increment), rebuilt with the nominal step map
 or when ``theta`` moved by that tolerance, and the force Jacobian with the payload's velocity forms (one compiled
@@ -285,8 +287,10 @@ class AugmentedModel:
         ``iv``'s q with the coordinates of ``z`` less the nominal one there. ``fresh``: ``iv`` was evaluated at
         ``z`` in this interval (its q ahead along the motion), so the nominal arrays are ``iv``'s own where ``z``
         is undeformed as ``iv`` is held; else the nominal model is evaluated too (the increment is taken at
-        ``z``'s elastic coordinates: the payload's share of the matrices' change with them is held). The secant partner's increment comes
-        from the cache (its own if that is gone: the payload's share is then held, not followed)."""
+        ``z``'s elastic coordinates: the payload's share of the matrices' change with them is held). The bias form
+        ``C2`` carries the bias acceleration's curvature term at those coordinates (zero where they are), as the
+        reduced model's forces ``fr`` do (:meth:`.ReducedModel.basis_curvature`). The secant partner's increment
+        comes from the cache (its own if that is gone: the payload's share is then held, not followed)."""
         hit = self._increments.get(iv.serial)
         if hit is not None:
             return hit
@@ -304,8 +308,17 @@ class AugmentedModel:
                 self._plain = payload_twin(self.inner.rm, scale=1.0)
             m0, f0 = self._plain.held(p, z[r:])
             nom = (m0.Mr, m0.Cr - beta * m0.Kr, f0.dMr2, f0.fg, f0.T2, c2(f0))
+        C2 = c2(fm)
+        if C2.shape[0] and np.any(p[nq:]):
+            # the bias acceleration's curvature term d2(H p)/dq2 [q', q'] at z's elastic coordinates: its force
+            # -(W J)^T M_N W d2(H p)/dq_k dq_j q'_k q'_j is linear in M_N on the shared basis, so the payload's
+            # share is the twin's form less the nominal one's, on the basis's second derivatives at the held
+            # configuration (the nominal model's, which its velocity forms computed there)
+            Zp = np.tensordot(p[nq:], self.inner.rm.basis_hessian(p[:nq]), axes=(0, 0))
+            C2 = self.twin._curved_bias_form(mats, C2, p, Zp)
+            nom = (*nom[:5], self._plain._curved_bias_form(m0, nom[5], p, Zp))
         own = (mats.Mr - nom[0], (mats.Cr - beta * mats.Kr) - nom[1], fm.dMr2 - nom[2], fm.fg - nom[3],
-               fm.T2 - nom[4], c2(fm) - nom[5])
+               fm.T2 - nom[4], C2 - nom[5])
         old = self._increments.get(iv.old.serial) if iv.old is not None else None
         o = own[1:] if old is None else (old.Ca, old.dM, old.fg, old.T2, old.C2)
         inc = PayloadIncrement(own[0], own[1], own[2], own[3], own[4], own[5], o[1], o[0], o[2], o[3], o[4])
@@ -324,7 +337,9 @@ class AugmentedModel:
 
     def _scaled_rk4(self, z, u, dt, a):
         """The reference step at the payload scales ``1 + a_k``: RK4 of the nonlinear reduced equations of
-        ``S(1) + a_k dS`` at every stage."""
+        ``S(1) + a_k dS`` at every stage, with the nominal model's geometric stiffness of the motion
+        (:meth:`.ReducedModel.accelerations`; the payload's share of the axial loads is left out, as the cached
+        step leaves it out)."""
         inner = self.inner
         iv, _ = inner.last_step
         n = inner.substeps(iv, dt)
@@ -336,7 +351,8 @@ class AugmentedModel:
                 m2 = self.twin.matrices(x[:r], x[r:])
                 M = m1.Mr + c * (m2.Mr - m1.Mr)
                 C = m1.Cr + c * (m2.Cr - m1.Cr)
-                rhs = m1.Gr @ u + m1.fr + c * (m2.fr - m1.fr) - C @ x[r:] - m1.Kr @ x[:r]
+                K = m1.Kr + inner.rm.motion_stiffness(m1.rc, m1.J, x[r : r + inner.nq], u)
+                rhs = m1.Gr @ u + m1.fr + c * (m2.fr - m1.fr) - C @ x[r:] - K @ x[:r]
                 return np.concatenate([x[r:], np.linalg.solve(M, rhs)])
 
             x = np.array(z, float)

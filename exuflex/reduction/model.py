@@ -167,6 +167,7 @@ class ReducedModel:
         self.nx = 2 * cb.r
         self.names = cb.names
         self.consistent = consistent
+        self._hessian = (None, None)  # the last configuration's basis_hessian: (its key, the array)
 
     # ------------------------------------------------------------------ matrices
     def matrices(self, p, pd=None, *, forces: bool = True, dHdq: np.ndarray | None = None,
@@ -263,9 +264,13 @@ class ReducedModel:
         whose contraction with ``p_m q'_i q'_j`` is :meth:`basis_curvature`, by central differences of the exact
         first derivative (:meth:`CraigBampton.basis_derivative`) over ``+-1e-5`` rad in each ``q_i`` (error some
         1e-10 relative; :meth:`basis_curvature` says why). The cached observer step holds it at an undeformed
-        configuration for the bias force's first order in the elastic coordinates."""
+        configuration for the bias force's first order in the elastic coordinates (the nominal model and the payload
+        estimator's increment alike: the last configuration's is kept, read-only)."""
         nq, r = self.nq, self.r
         q = np.asarray(q, float)
+        key = (q.tobytes(), self.cb.compiled, self.model.kin.compiled)  # (the basis derivative's own arithmetic)
+        if self._hessian[0] == key:
+            return self._hessian[1]
         d = CURVATURE_STEP
         E = np.eye(r)[:, nq:]
         out = np.empty((r - nq, nq + self.model.ne, nq, nq))
@@ -276,6 +281,8 @@ class ReducedModel:
             Dm = self.cb.basis_derivative(self.cb.at(self.model._material_configuration(q - e)), E)
             out[:, :, :, i] = (Dp - Dm) / (2.0 * d)
         self.model.configuration(q)  # leave the closure solver warm-started at q
+        out.flags.writeable = False
+        self._hessian = (key, out)
         return out
 
     def held(self, p, pd, *, fr: bool = False, gradients: bool = True) -> tuple[ReducedMatrices, QuadraticForces]:
@@ -302,43 +309,43 @@ class ReducedModel:
             fm.KGd = np.ascontiguousarray(KGd.reshape(len(KGd), -1))
             if gradients and mats.rc.cfg.K_G is not None:  # under gravity: the form follows q with the static part
                 fm.dKGd = np.ascontiguousarray(self.motion_geometric_gradient(mats.rc).reshape(len(KGd), -1))
-        if fr and np.any(p[self.nq :]):
-            hess = None
+        if fr and np.any(p[self.nq :]) and (fm.C2 is not None or (self.consistent and fm.Wg.shape[0])):
+            Zp = np.tensordot(p[self.nq :], self.basis_hessian(p[: self.nq]), axes=(0, 0))  # d^2(H p)/dq^2
             if fm.C2 is not None:
-                hess = self.basis_hessian(p[: self.nq])
-                fm.C2 = self._curved_bias_form(mats, fm.C2, p, hess)
+                fm.C2 = self._curved_bias_form(mats, fm.C2, p, Zp)
             if self.consistent and fm.Wg.shape[0]:
-                fm.Wg = self._curved_weight_gradient(mats, fm.Wg, p, hess)
+                fm.Wg = self._curved_weight_gradient(mats, fm.Wg, p, Zp)
         return mats, fm
 
     def _curved_weight_gradient(self, mats: ReducedMatrices, Wg: np.ndarray, p: np.ndarray,
-                                hess: np.ndarray | None = None) -> np.ndarray:
+                                Zp: np.ndarray | None = None) -> np.ndarray:
         """The weight's gradient :meth:`weight_gradient` of a deformed state with the basis's second derivatives
         times the elastic coordinates in it: the q rows' weight ``(W J_q)^T M_N g`` with ``J_q = H_q + d(H p)/dq``
         changes with ``q_i`` by ``(W d^2(H p)/dq_i dq_j)^T M_N g`` as well (:meth:`basis_hessian`), the weight
         turning the sag's displacement with the links. Under gravity the sag is always there, and the term is of the
         weight's moment across it: on the crane arm (``benchmarks/models/crane_arm.toml``) 0.013 N m of the
         shoulder's 12 N m/rad, which the small boom inertia behind the elbow turns into a fifth of ``dq2''/dq1``
-        (docs/gravity.md)."""
+        (docs/gravity.md). ``Zp``: ``d^2(H p)/dq^2`` (n, nq, nq) if computed already."""
         nq = self.nq
         cfg = mats.rc.cfg
-        if hess is None:
-            hess = self.basis_hessian(p[:nq])
-        Zp = np.tensordot(p[nq:], hess, axes=(0, 0))  # (n, nq, nq): d^2(H p)/dq_i dq_j
+        if Zp is None:
+            Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq): d^2(H p)/dq_i dq_j
         wg = cfg.W.T @ (cfg.M_N @ self.model.g_N)  # (n,)
         out = np.array(Wg, float)
         out[:nq, :nq] += np.einsum("xij,x->ji", Zp, wg)
         return out
 
     def _curved_bias_form(self, mats: ReducedMatrices, C2: np.ndarray, p: np.ndarray,
-                          hess: np.ndarray | None = None) -> np.ndarray:
+                          Zp: np.ndarray | None = None) -> np.ndarray:
         """The bias form ``C2`` (r nq, r: the force ``-sum p'_k p'_j C2[k, j]``, ``j < nq``) of a deformed state
         with the bias acceleration's curvature term in it: at the state's ``p``, ``-(W J)^T M_N W d^2(H p)/dq_k dq_j
         q'_k q'_j`` is a bilinear form in the joint rates, added to the entries ``k < nq``
-        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state."""
+        (:meth:`basis_hessian`), so that the force model equals ``fr`` at the state. ``Zp``: ``d^2(H p)/dq^2``
+        (n, nq, nq) if computed already (it depends on the basis only, not on the masses)."""
         nq, r = self.nq, self.r
         cfg = mats.rc.cfg
-        Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]) if hess is None else hess, axes=(0, 0))  # (n, nq, nq)
+        if Zp is None:
+            Zp = np.tensordot(p[nq:], self.basis_hessian(p[:nq]), axes=(0, 0))  # (n, nq, nq)
         JtMW = (cfg.W @ mats.J).T @ (cfg.M_N @ cfg.W)  # (r, n)
         out = np.array(C2, float).reshape(r, nq, r)
         out[:nq] += np.einsum("cx,xkj->kjc", JtMW, Zp)
