@@ -161,6 +161,9 @@ def simulate_runs(
             "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
             "mechanism": mech.name,
             "seed": None,
+            # every engine runs under the smooth torque table at its step: between two samples the torque is the
+            # table's, which the observer's step takes linear (exuflex.runs.INPUT_HOLDS)
+            "input_hold": "linear",
             "settings": {
                 "duration_s": duration,
                 "h_s": h,
