@@ -75,25 +75,25 @@ MANOEUVRE_FILE = "manoeuvre.toml"
 TIME = "time"
 INPUT_HOLDS = ("zoh", "linear")
 """What a log's torques did between two samples (``meta.json``'s ``input_hold``): ``"zoh"``, each sample held to
-the next (a digital controller's zero-order hold: a lab rig); ``"linear"``, a smooth signal sampled (every
-exuflex truth: the torque table runs at the integration step), which the observer's step takes linear between the
-two samples (:attr:`exuflex.observer.reduced.ReducedObserverModel.input_hold`)."""
-#: the truth engines whose logs sample a smooth torque table (the default of a log without ``input_hold``)
-_SMOOTH_ENGINES = ("erls", "exudyn")
+the next (a digital controller's zero-order hold: a lab rig; a truth whose planned torque steps at samples);
+``"linear"``, a smooth signal sampled, which the observer's step takes linear between the two samples
+(:attr:`exuflex.observer.reduced.ReducedObserverModel.input_hold`), delayed by ``input_delay_s`` (a truth's
+torque table held over its own step: half of it). A log without ``input_hold`` is "zoh" (every log before the
+field existed was filtered so), without ``input_delay_s`` 0."""
 
 
-def input_hold_of(meta: Mapping, where: str = META_FILE) -> str:
-    """The log's ``input_hold`` (:data:`INPUT_HOLDS`); a :class:`~exuflex.errors.LogFormatError` naming ``where``
-    and the field if it is another value. A log without the field (written before it existed, or by hand): "linear"
-    for the ERLS and Exudyn truths (they always ran under the smooth torque table), else "zoh" (a lab's log; the
-    reduced truth, which held the torque at each sample before it ran under the table)."""
-    v = meta.get("input_hold")
-    if v is None:
-        return "linear" if meta.get("engine") in _SMOOTH_ENGINES else "zoh"
+def input_hold_of(meta: Mapping, where: str = META_FILE) -> tuple[str, float]:
+    """The log's ``(input_hold, input_delay_s)`` (:data:`INPUT_HOLDS`; defaults "zoh" and 0); a
+    :class:`~exuflex.errors.LogFormatError` naming ``where`` and the field if either is out of its range."""
+    v = meta.get("input_hold", "zoh")
     if v not in INPUT_HOLDS:
         raise LogFormatError(f"{where}: field 'input_hold' must be one of {', '.join(map(repr, INPUT_HOLDS))} (what "
                              f"the torques did between two samples), got {v!r}")
-    return v
+    d = meta.get("input_delay_s", 0.0)
+    if isinstance(d, bool) or not isinstance(d, (int, float)) or not (math.isfinite(d) and d >= 0):
+        raise LogFormatError(f"{where}: field 'input_delay_s' must be a number of seconds >= 0 (how long after their "
+                             f"samples the torques act), got {d!r}")
+    return v, float(d)
 
 
 @dataclass(frozen=True)
@@ -114,8 +114,8 @@ class Run:
         return tuple(self.meta.get("sensors", ()))
 
     @property
-    def input_hold(self) -> str:
-        """What the torques did between two samples, ``"zoh"`` or ``"linear"`` (:func:`input_hold_of`)."""
+    def input_hold(self) -> tuple[str, float]:
+        """What the torques did between two samples: ``("zoh" or "linear", delay in s)`` (:func:`input_hold_of`)."""
         return input_hold_of(self.meta, str(self.path / META_FILE) if self.path.is_dir() else str(self.path))
 
     @property
@@ -291,7 +291,7 @@ def write_run(
         raise ValueError(
             f"write_run: motor column(s) {missing} not in the sensor channels {list(sensors.names)}"
         )
-    meta["input_hold"] = input_hold_of(meta, "write_run: meta")
+    meta["input_hold"], meta["input_delay_s"] = input_hold_of(meta, "write_run: meta")
     meta.setdefault("format", FORMAT)
     meta.setdefault("created", _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
     meta.setdefault("versions", package_versions())

@@ -398,8 +398,11 @@ class AugmentedModel:
         x = np.asarray(x, float)
         inner, n0 = self.inner, self.n0
         d = 0.0 if self.i_inputs is None else x[self.i_inputs]
-        u = inner.torques(u) + d
-        du = inner.input_increment(u, None if u_next is None else inner.torques(u_next) + d)
+        u0 = inner.torques(u)
+        du = inner.input_increment(u0, u_next)  # (of the measured torques: the disturbances do not change over it)
+        u = u0 + d
+        if du.size and inner.input_delay:  # the compiled step's order of operations (expansion.cached_interval)
+            u = (u0 - (inner.input_delay / dt) * du) + d
         if inner.method != "cached":
             xn, F, Q = self._reference(x, u, dt, du)
         else:

@@ -228,8 +228,8 @@ def _ramps(du):  # pragma: no cover - compiled
 
 def _rk4_linear(z, u, du, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
     """``n`` RK4 steps of ``h`` of ``M p'' + C p' + K p = G u(t) + f`` from ``z = [p; p']`` (NaN if ``M`` is not
-    positive definite), the input linear over the interval ``T = n h``: ``u(t) = u + (t / T) du`` (``du`` zero:
-    held). Each stage takes the input at its own time (``t = i h``, ``+ h/2``, ``+ h``): RK4's order holds for an
+    positive definite), the input linear over the interval ``T = n h``: ``u(t) = u + (t / T) du`` (``du`` zero or
+    empty: held). Each stage takes the input at its own time (``t = i h``, ``+ h/2``, ``+ h``): RK4's order holds for an
     input linear in time, whereas the input held at its start errs by ``G du / 2`` on average, a first-order lag
     of half an interval (docs/held_step.md, "The input over a sample interval")."""
     r = Mr.shape[0]
@@ -536,10 +536,12 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr
 
 
-def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
+def _held_model(z, dl, s, tm, hs, tf=0.0):  # pragma: no cover - compiled
     """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
     the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
-    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. Where the held system has a weight gradient
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``; the weight at the configuration ``tf``
+    seconds on, ``q + tf q'`` (:func:`held_interval`: the interval's midpoint with a linear input, its start with a
+    held one). Where the held system has a weight gradient
     (gravity) the weight follows ``q`` to second order instead, as ``M_r`` and ``K_r`` do: its gradient in every
     direction and, with a secant partner (``d = q0 - q_old``, ``s = (dl . d) / (d . d)``), half the gradient's
     change along the secant, ``f_g = fg + (Wg + s/2 (Wg - Wg_old)) dl``: with ``Wg - Wg_old = D2(d, .)`` to first
@@ -586,7 +588,7 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
                 g = hs.Wg[i, j]
                 if hs.has_old:
                     g += 0.5 * s * (hs.Wg[i, j] - hs.old_Wg[i, j])
-                acc += g * dl[j]
+                acc += g * (dl[j] + tf * pd[j])
             if hs.has_old:  # the forms' secant moved the weight along it already: taken out
                 acc -= s * (hs.fg[i] - hs.old_fg[i])
             f[i] += acc
@@ -603,7 +605,7 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
             for i in range(nq):
                 acc = 0.0
                 for j in range(nq):
-                    acc += hs.We[k, i * nq + j] * dl[j]
+                    acc += hs.We[k, i * nq + j] * (dl[j] + tf * pd[j])
                 f[i] += w * acc
     return Mr, Kr, Cr, Gr, f
 
@@ -725,9 +727,14 @@ def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: n
     sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`, with the velocity forces' and the held
     matrices' change with the elastic coordinates, :func:`_velocity_jacobian`, :func:`_elastic_tangent`) (what the
     cached step does per interval):
-    ``(z_next, F, M_r, K_r, C_r, G_r)``. The torques ``u + (t / T) du`` over the interval ``T = n h`` (``du``
-    zero: held; :func:`_rk4_linear`); the motion's geometric stiffness, a force held over the interval at its
-    midpoint positions, takes them at the midpoint too, ``u + du / 2`` (with the Jacobian's terms in them). An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
+    ``(z_next, F, M_r, K_r, C_r, G_r)``. The input over the interval ``T = n h``: ``du`` empty, the torques ``u``
+    held (a log's zero-order hold); else linear, ``u + (t / T) du`` (:func:`_rk4_linear`), and the forces that
+    follow the configuration with it: the motion's geometric stiffness, a force held over the interval at its
+    midpoint positions, at the midpoint torques ``u + du / 2``, and the weight at the midpoint configuration
+    ``q + T/2 q'`` (:func:`_held_model`), with the Jacobian's terms in them (:func:`_weight_rates`). With the
+    torques held the weight stays at the interval's start: a table's torque that carries a link against its
+    weight follows the weight, so the held torque lags it by half an interval as the weight held at the start
+    does, and the two lags cancel (docs/held_step.md, "The input over a sample interval"). An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
     then serves :func:`held_step` too (see :func:`_inline` for why one). ``z_next`` is NaN if the held ``M_r``
     is not positive definite at the start either. The helpers are called here directly: numba copies an inlined helper's whole code once
     per block, so one large helper costs far more to inline than its parts. ``hs``: the held system
@@ -735,20 +742,23 @@ def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: n
     through a slower path)."""
     hs = HeldSystem(*hs)
     nq = dl.shape[0]
-    um = np.empty(u.shape[0])  # the torques at the interval's midpoint
-    for j in range(u.shape[0]):
-        um[j] = u[j] + 0.5 * du[j]
+    linear = du.shape[0] > 0
+    um = u.copy()  # the torques at the interval's midpoint
+    if linear:
+        for j in range(u.shape[0]):
+            um[j] += 0.5 * du[j]
+    tf = 0.5 * h * n if linear else 0.0  # where the weight is taken
     KGe = _motion_form(hs.KGd, hs.dKGd, dl)
     Kd = motion_stiffness(um, z, nq, KGe)
     tm = 0.5 * h * n
-    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs, tf)
     motion_forces(f, z, 0.5 * h * n, Kd)
     z_next = _rk4_linear(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
         # M_r not positive definite at the midpoint's elastic coordinates: a long interval (a gap, a log sampled
         # far below the modes), over which their linear advance means nothing; the matrices at the start
         tm = 0.0
-        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
+        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs, tf)
         motion_forces(f, z, 0.5 * h * n, Kd)
         z_next = _rk4_linear(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
@@ -756,12 +766,17 @@ def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: n
         Fp = hs.Wg
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
-            _weight_curvature_forces(Fp, z, dl, hs.We)
+            dlw = dl.copy()  # where the weight is taken (:func:`_held_model`)
+            for j in range(nq):
+                dlw[j] += tf * z[Mr_.shape[0] + j]
+            _weight_curvature_forces(Fp, z, dlw, hs.We)
         if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
             Fp = motion_gradient(Fp, Kd)
             motion_form_gradient(Fp, um, z, 0.5 * h * n, hs.dKGd, nq)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
         motion_rates(F, z, um, nq, SQM, KGe, Kd, h * n)
+        if tf != 0.0:
+            _weight_rates(F, z, s, tf, SQM, hs)
         _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
         Y = _elastic_tangent(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
         nq = dl.shape[0]
@@ -771,6 +786,36 @@ def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: n
                 F[i, nq + k] += Y[i, k]
                 F[i, r + nq + k] += tm * Y[i, k]
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _weight_rates(F, z, s, tf, SQM, hs):  # pragma: no cover - compiled
+    """Add to the step Jacobian ``F`` (in place) the response ``SQM g`` to the weight taken ``tf`` seconds into the
+    interval (:func:`_held_model`: ``q + tf q'``): in rate column ``j < nq`` ``tf`` times the held weight's
+    q-gradient, ``Wg + s/2 (Wg - Wg_old)`` with the sag's ``sum_m p_m We[m]`` in the q rows; nothing without
+    gravity."""
+    if hs.Wg.shape[0] == 0:
+        return
+    r = SQM.shape[1]
+    nq = hs.dM.shape[0]
+    g = np.zeros((r, nq))
+    for i in range(r):
+        for j in range(nq):
+            x = hs.Wg[i, j]
+            if hs.has_old:
+                x += 0.5 * s * (hs.Wg[i, j] - hs.old_Wg[i, j])
+            g[i, j] = tf * x
+    for k in range(hs.We.shape[0]):
+        w = z[nq + k]
+        if w != 0.0:
+            for i in range(nq):
+                for j in range(nq):
+                    g[i, j] += tf * w * hs.We[k, i * nq + j]
+    for i in range(F.shape[0]):
+        for j in range(nq):
+            acc = 0.0
+            for c in range(r):
+                acc += SQM[i, c] * g[c, j]
+            F[i, r + j] += acc
 
 
 def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
@@ -832,6 +877,7 @@ def _elastic_tangent(z, u, du, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no c
                 dC[o + j, i] += cc
             for j in range(m):
                 dGu[i, k] += hs.pG[k, i * mg + j] * u[j]
+            for j in range(du.shape[0]):
                 dGd[i, k] += hs.pG[k, i * mg + j] * du[j] / T
         if n2:  # d/dp_k of sum_{a <= b} p_a p_b X_ab (p2C's packing, :func:`_elastic_terms`)
             cp = 0
@@ -862,6 +908,7 @@ def _elastic_tangent(z, u, du, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no c
         acc1 = 0.0
         for j in range(m):
             acc += Gr[i, j] * u[j]
+        for j in range(du.shape[0]):
             acc1 += Gr[i, j] * du[j] / T
         rhs[i, 2 * r] = acc
         rhs[i, 2 * r + 1 + n_el] = acc1
@@ -984,7 +1031,7 @@ def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - com
 def held_step(z, u, dl, s, h, n, system: HeldSystem, du=None):
     """One interval of the cached step (:func:`held_interval` without the Jacobian): ``(z_next, M_r, K_r, C_r,
     G_r)`` of the held ``system``, the torques ``u`` held (``du`` None) or ``u + (t / T) du``."""
-    du = np.zeros(len(u)) if du is None else np.ascontiguousarray(du, float)
+    du = _NO_VECTOR if du is None else np.ascontiguousarray(du, float)
     z_next, _, Mr, Kr, Cr, Gr = held_interval(z, u, du, dl, s, h, n, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR,
                                               _NO_MATRIX, _NO_MATRIX, tuple(system))
     return z_next, Mr, Kr, Cr, Gr
@@ -1342,7 +1389,9 @@ class CachedStep(NamedTuple):
     is held.
 
     ``jump_w``, ``jump_thr``: the model's torque-jump test (:func:`.kalman.step_statistic`); ``ramp`` the input
-    over an interval: 0.0 held at its start sample, 1.0 linear to the next one (the log's input hold); ``q0`` the held
+    over an interval: 0.0 held at its start sample, 1.0 linear to the next one (the log's input hold), ``delay`` the
+    time (s) by which the linear torques reach the mechanism after their samples (a truth's table held over its
+    own step: half of it); ``q0`` the held
     configuration with its refresh radius ``rad`` and reach ``meas_rad`` (how far from it a step map may be built);
     ``h_min`` the shortest
     sub-step; the step map's rebuild rule: the interval-length tolerance ``dt_tol``, the look-ahead ``ahead``,
@@ -1355,6 +1404,7 @@ class CachedStep(NamedTuple):
     jump_w: np.ndarray
     jump_thr: float
     ramp: float
+    delay: float
     q0: np.ndarray
     rad: float
     meas_rad: float
@@ -1480,9 +1530,21 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
                 scaled = (False, scaled[1], scaled[2], scaled[3], scaled[4], scaled[5])
     dl = x[:nq] - cs.q0
     s = secant_factor(dl, cs.d, cs.dd)
-    du = np.empty(u.shape[0])  # the torques' change over the interval: linear (ramp 1) or held (ramp 0)
-    for j in range(u.shape[0]):
-        du[j] = cs.ramp * (u1[j] - u[j])
+    du = np.empty(u.shape[0] if cs.ramp else 0)  # the torques' change over the interval: linear (empty: held)
+    for j in range(du.shape[0]):
+        du[j] = u1[j] - u[j]
+    if cs.ramp and cs.delay != 0.0:  # the ramp delayed: its value at the interval's start
+        c = cs.delay / dt
+        u0 = np.empty(u.shape[0])
+        for j in range(u.shape[0]):
+            u0[j] = u[j] - c * du[j]
+        u = u0
+        if ex is not None:  # the torques with the disturbance, delayed as well
+            if n_in:
+                for j in range(n_in):
+                    uu[j] = u0[j] + x[x.shape[0] - n_in + j]
+            else:
+                uu = u0
     extra = False
     if ex is not None:  # noqa: SIM102 (numba prunes a plain state's branch on this test alone)
         if pay or n_in:
@@ -1702,15 +1764,16 @@ def _scaled_steps(z, u, du, dl, s, h, n, a, hs, inc):  # pragma: no cover - comp
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
     for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
-        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, 0.5 * h * n, hs if k == 0 else di)
+        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, 0.5 * h * n, hs if k == 0 else di,
+                                         0.5 * h * n if du.shape[0] else 0.0)
         if k == 0:
             M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
         else:
             Mb, Cb, fb = Mk, Ck, fk
     # the nominal's geometric forces of the motion (held_interval's; the payload's share of the axial loads left out)
-    um = np.empty(u.shape[0])  # the torques at the interval's midpoint (held_interval's)
-    for j in range(u.shape[0]):
-        um[j] = u[j] + 0.5 * du[j]
+    um = u.copy()  # the torques at the interval's midpoint (held_interval's)
+    for j in range(du.shape[0]):
+        um[j] += 0.5 * du[j]
     motion_forces(f0, z, 0.5 * h * n, motion_stiffness(um, z, dl.shape[0], _motion_form(hs.KGd, hs.dKGd, dl)))
     out = np.empty((a.shape[0], z.shape[0]))
     M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
@@ -1818,6 +1881,7 @@ _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
 _velocity_terms = _linked(_velocity_terms)
 _velocity_jacobian = _inline(_velocity_jacobian)
+_weight_rates = _inline(_weight_rates)
 _elastic_tangent = _linked(_elastic_tangent)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)

@@ -458,7 +458,7 @@ def warm_up(compiled: str | None = None) -> None:
     given(0.0, v, 0, tuple(buf), one, v, m, m, v, m)
     screen(one, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
     if compiled is not None:
-        step = CachedStep(v, 0.0, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0,
+        step = CachedStep(v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0,
                           c, c, c, v, _example_system(1, 1))
         state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
         extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if compiled == "augmented" else None

@@ -1,7 +1,8 @@
 """The reduced flexible-multibody model as the filter's discrete-time model (eqs. 8-9).
 
 State ``z = [p; p']`` with ``p = [q; u_m; eta]`` (:class:`exuflex.reduction.ReducedModel`); input the measured
-motor torques, held over each interval between two samples; output any of the mechanism's sensor channels
+motor torques, held over each interval between two samples or linear between them as the log declares
+(:attr:`ReducedObserverModel.input_hold`; docs/held_step.md, "The input over a sample interval"); output any of the mechanism's sensor channels
 (encoders, curvature gauges, tip position) as the nonlinear functions of the state they are.
 
 Over an interval of ``dt`` seconds the reduced equations ``M_r p'' + C_r p' + K_r p = G_r u + f_r(p, p')`` are
@@ -371,6 +372,9 @@ class ReducedObserverModel:
         The cached step's error targets and the radii that keep them (each also an attribute of the model).
     input_hold : {"zoh", "linear"}
         What the torques did between two samples (:attr:`input_hold`, the log's declaration).
+    input_delay : float
+        With a linear input, the time (s) by which the torques reach the mechanism after their samples
+        (:attr:`input_delay`).
 
     Attributes
     ----------
@@ -387,11 +391,15 @@ class ReducedObserverModel:
         own time (a smooth signal sampled: every exuflex truth). Held, a smooth torque lags by half an interval
         (docs/held_step.md, "The input over a sample interval"). The torque-jump test (``jump_p``) applies to a
         held input only.
+    input_delay : with a linear input, the time (s) by which the torques act after their samples, settable (a
+        log declares it): an exuflex truth holds its torque table over the table's step ``h``, a staircase that
+        follows the smooth torque by ``h / 2`` on average; the step then takes ``u(t - delay)``, linear, i.e. the
+        interval's start torque ``u - (delay / dt) du``.
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
                  jump_p: float | None = None, min_substep: float = 2e-6, tolerances: StepTolerances = StepTolerances(),
-                 input_hold: str = "zoh"):
+                 input_hold: str = "zoh", input_delay: float = 0.0):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
@@ -399,6 +407,7 @@ class ReducedObserverModel:
         if not (h > 0 and math.isfinite(h)):
             raise ValueError(f"h must be a positive number of seconds, got {h}")
         self.input_hold = input_hold
+        self.input_delay = float(input_delay)
         self.rm = reduced
         self.model = reduced.model
         self.mech = self.model.mech
@@ -457,12 +466,20 @@ class ReducedObserverModel:
             raise ValueError(f"input_hold must be one of {INPUT_HOLDS}, got {value!r}")
         self._input_hold = value
 
+    def interval_input(self, u: np.ndarray, u_next, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(u0, du)``: the torques at the interval's start and their change over it as the step takes them
+        (:meth:`input_increment`; with a linear input the start torque delayed by :attr:`input_delay`)."""
+        du = self.input_increment(u, u_next)
+        if du.size and self.input_delay:
+            u = u - (self.input_delay / dt) * du
+        return u, du
+
     def input_increment(self, u: np.ndarray, u_next) -> np.ndarray:
-        """``du``: the torques' change over the interval as the step takes it, ``u_next - u`` with a linear input
-        and a next sample, else zeros (held)."""
-        if self._input_hold == "zoh" or u_next is None:
-            return np.zeros(self._u_shape)
-        return self._input(u_next) - u
+        """``du``: the torques' change over the interval as the step takes it (:func:`.expansion.held_interval`):
+        empty with a held input; with a linear one ``u_next - u`` (zeros without a next sample)."""
+        if self._input_hold == "zoh":
+            return _NONE
+        return np.zeros(self._u_shape) if u_next is None else self._input(u_next) - u
 
     def watch_covariance(self, get_P) -> None:
         """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
@@ -546,8 +563,8 @@ class ReducedObserverModel:
         The linearisation of the steady-state bound and the observability test, and the reference step's Jacobian."""
         z = np.asarray(z, float)
         u = self._input(u)
-        du = np.zeros(self._u_shape) if du is None else np.asarray(du, float)
-        um = u + 0.5 * du  # the torques at the interval's midpoint
+        du = _NONE if du is None else np.asarray(du, float)
+        um = u + 0.5 * du if du.size else u  # the torques at the interval's midpoint
         iv = self._configuration(z, frozen_forces=True)
         m = iv.mats
         n = self.substeps(iv, dt)
@@ -559,7 +576,7 @@ class ReducedObserverModel:
         f = m.fr.copy()
         motion_forces(f, z, 0.5 * dt, Kd)
         x = Pn @ z + L @ u + S @ f
-        if np.any(du):  # the response to the torques' ramp (the linear system's: zero start, zero force)
+        if du.size and np.any(du):  # the response to the torques' ramp (the linear system's: zero start and force)
             zero = np.zeros(self.nx)
             x = x + held_ramp(zero, zero[: len(u)], du, m.Mr, m.Kr, m.Cr, m.Gr, zero[: self.r], dt / n, n)
         Fp = iv.forces.Wg
@@ -827,7 +844,7 @@ class ReducedObserverModel:
         c0, Hm, D, G = self._rows_none(channels) if c is None else self._centre_rows(c, channels)
         q_rows, rad_rows = (np.zeros(self.nq), -1.0) if c is None else (c.q0, c.rad)
         d = iv.d if iv.old is not None else _NONE
-        step = CachedStep(self.jump_test.weights, self._jump_threshold, self.ramp, iv.q0, iv.rad, self._measurement_radius(iv),
+        step = CachedStep(self.jump_test.weights, self._jump_threshold, self.ramp, self.input_delay, iv.q0, iv.rad, self._measurement_radius(iv),
                           min(self.h, iv.h_stable), self.dt_tol, self.remap_ahead, self.remap_horizon,
                           self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, D, G,
                           q_rows, rad_rows, d, iv.dd,
@@ -993,7 +1010,8 @@ class ReducedObserverModel:
         jump within the interval (``u_next`` far from ``u``, :meth:`input_jump`) adds its effect."""
         u = self._input(u)
         x = np.asarray(x, float)
-        pred = self.interval(x, u, dt, self.input_increment(u, u_next))
+        u0, du = self.interval_input(u, u_next, dt)
+        pred = self.interval(x, u0, dt, du)
         if u_next is not None and self._input_hold == "zoh":
             jump = self.input_jump(u, u_next)
             if jump is not None:
