@@ -180,6 +180,7 @@ def test_loop_is_step_with_a_linear_input(linear_sixbar, estimator):
     assert not np.array_equal(held.x_hat, looped.x_hat)
 
 
+@pytest.mark.slow
 def test_reference_step_follows_the_reduced_truth_with_a_linear_input():
     """The shaken link's reduced truth under its manoeuvre's torque table (10 kHz, held over each table step)
     against the reference step from its sampled torques (1 kHz), from the truth's start over 0.5 s (the lift and

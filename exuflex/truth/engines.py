@@ -233,8 +233,9 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     equations it states, ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')``: RK4 sub-steps over each
     sample interval, at most ``h`` long (shorter where the spectrum needs them for stability: the observer's
     reference step's count, :meth:`~exuflex.observer.reduced.ReducedObserverModel.substeps`), every stage at its own
-    state and under the drive's torque table as the ERLS engine's RK4 takes it (the table's value in force at the
-    stage's time: its zero-order hold at the table's step), the input of the other engines, so that what this
+    state and under the drive's torque table held over each table step (the value in force at the sub-step's
+    midpoint for all its stages: sub-steps of at most ``h``, the table's step, lie within one table step), the
+    input of the other engines, so that what this
     truth measures is the reduced model alone (docs/gravity.md, "The reduced equations under gravity"). Not a step map frozen at the interval's start: its held matrices and forces are a first-order
     approximation of its own, which would put into the truth an error the filter's step does not share
     (``tests/test_truth_reduced.py`` compares the result with a fine RK4 of the same equations). Its states are
@@ -255,7 +256,7 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     t_tab, tau_tab = np.asarray(drive.t, float), np.asarray(drive.tau, float).reshape(len(drive.t), -1)
     dt_tab = t_tab[1] - t_tab[0]
 
-    def table(s: float) -> np.ndarray:  # the table's value in force at s (the ERLS engine's RK4 input)
+    def table(s: float) -> np.ndarray:  # the table's value in force at s
         return tau_tab[min(int(np.floor((s - t_tab[0]) / dt_tab + 1e-6)), len(tau_tab) - 1)]
 
     z = som.initial_state(drive.q0, drive.qd0)
@@ -267,12 +268,11 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
             m = som.substeps_at(z, dt)
             hs = dt / m
             for i in range(m):
-                s = t[k] + i * hs
-                f0, fm, f1 = table(s), table(s + 0.5 * hs), table(s + hs)
-                k1 = rm.rhs(0.0, z, f0)
-                k2 = rm.rhs(0.0, z + hs / 2 * k1, fm)
-                k3 = rm.rhs(0.0, z + hs / 2 * k2, fm)
-                k4 = rm.rhs(0.0, z + hs * k3, f1)
+                f = table(t[k] + (i + 0.5) * hs)  # held over the sub-step (it lies within one table step)
+                k1 = rm.rhs(0.0, z, f)
+                k2 = rm.rhs(0.0, z + hs / 2 * k1, f)
+                k3 = rm.rhs(0.0, z + hs / 2 * k2, f)
+                k4 = rm.rhs(0.0, z + hs * k3, f)
                 z = z + hs / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     rec = erls_probe_record(rm.model, t, Y)
     return TruthRecord(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t_tab, tau_tab,
