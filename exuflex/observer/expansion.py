@@ -714,8 +714,15 @@ def _motion_rates(F, z, u, nq, SQM, KGd, Kd, dt):  # pragma: no cover - compiled
                 g[i, a] -= z[r + b] * acc
                 g[i, b] -= z[r + a] * acc
             k += 1
+    _rate_response(F, SQM, g)
+
+
+def _rate_response(F, SQM, g):  # pragma: no cover - compiled
+    """``F[:, r + m] += SQM g[:, m]`` (in place): the step's response to generalised forces ``g`` (r, k) per unit
+    change of the first ``k`` rates."""
+    r = SQM.shape[1]
     for i in range(F.shape[0]):
-        for m in range(r):
+        for m in range(g.shape[1]):
             acc = 0.0
             for c in range(r):
                 acc += SQM[i, c] * g[c, m]
@@ -810,12 +817,7 @@ def _weight_rates(F, z, s, tf, SQM, hs):  # pragma: no cover - compiled
             for i in range(nq):
                 for j in range(nq):
                     g[i, j] += tf * w * hs.We[k, i * nq + j]
-    for i in range(F.shape[0]):
-        for j in range(nq):
-            acc = 0.0
-            for c in range(r):
-                acc += SQM[i, c] * g[c, j]
-            F[i, r + j] += acc
+    _rate_response(F, SQM, g)
 
 
 def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
@@ -1872,6 +1874,7 @@ _motion_coefficients = _shared(_motion_coefficients)
 motion_stiffness = _shared(_motion_stiffness)
 motion_gradient = _shared(_motion_gradient)
 motion_forces = _shared(_motion_forces)
+_rate_response = _shared(_rate_response)
 motion_rates = _shared(_motion_rates)
 _motion_form = _shared(_motion_form)
 motion_form_gradient = _shared(_motion_form_gradient)
