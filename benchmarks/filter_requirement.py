@@ -82,14 +82,14 @@ def figures(path: Path) -> dict:
     for label, cb in (("without", old), ("with", new)):
         # the dynamic modes the choice keeps (indices of the model's interior modes, ascending frequency); the
         # static corrections that follow them re-base modes not kept (their columns are not those modes)
-        dyn = np.sort(cb.order[: cb.n_interior - cb.n_static])
+        dyn = np.sort(cb.order[: cb.truncation["dynamic"]["n_interior"]])
         b = ps.bias(dyn)
         final = ps.bias_of_basis(lambda q, cb=cb: cb.at(q).H)
-        out["choices"][label] = {"n_interior": int(cb.n_interior - cb.n_static), "n_static": int(cb.n_static),
+        out["choices"][label] = {"n_interior": int(len(dyn)), "n_static": int(cb.n_static),
                                  "kept_hz": [float(f) for f in every.interior_frequencies_hz[dyn]],
                                  "kept": [int(i) for i in dyn],
                                  "predicted": {k: float(np.sqrt(v)) for k, v in zip(planned.quantities, b)},
-                                 "met": bool(b.max() <= BIAS_MAX),
+                                 "met": bool(b.max() <= BIAS_MAX), "n_total": int(cb.n_interior),
                                  "final": {k: float(np.sqrt(v)) for k, v in zip(planned.quantities, final)},
                                  "final_met": bool(final.max() <= BIAS_MAX)}
     out["_cbs"] = (old, new)
@@ -138,7 +138,7 @@ def page(rows: list[dict], args: str) -> str:
         ("model under the manoeuvre, in units of its bound (the square root of the figure limited to "
         f"{BIAS_MAX:g}, i.e. {np.sqrt(BIAS_MAX):.2f}), with the choice's dynamic modes alone (what the criterion "
          "ranks) and with the final basis the observer uses: those modes and the static corrections that follow "
-         "them ({doc}`/theory/reduction`; `CraigBampton.truncation['bias_final']`)."),
+         "them ({doc}`/theory/reduction`; `CraigBampton.truncation['bias']`, on which the count is judged)."),
         "Where the choices differ, the observer filters the full-order ERLS model's log without noise (no",
         "quantisation): its RMS error over the bound (this run's bound, along its truth) is the part of the",
         "acceptance ratio the reduction makes; with noise the ratio is about sqrt(1 + this^2). CPU: the filter's",
