@@ -35,6 +35,8 @@ from exuflex.reduction.truncation import BIAS_MAX, PlannedInput
 
 ROOT = Path(__file__).resolve().parents[1]
 FRESH = ["benchmarks/models/steel_arm.toml", "benchmarks/models/single_link_16.toml"]
+# a relative-coordinate arm whose innovations the channels' rho does not see (the innovations' requirement)
+EVIDENCE = ["benchmarks/models/long_two_link.toml"]
 
 
 def _path(name: str) -> Path:
@@ -46,7 +48,7 @@ def _path(name: str) -> Path:
 
 def models() -> list[str]:
     out = [p.stem for p in sorted((ROOT / "models").glob("*.toml")) if load_mechanism(p).manoeuvre is not None]
-    return out + FRESH
+    return out + FRESH + EVIDENCE
 
 
 def noiseless_truth(path: Path, out: Path) -> Path:
