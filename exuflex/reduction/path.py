@@ -40,9 +40,10 @@ less than 0.01 (``rho`` by 1 % of ``rho_max``), and says so (:attr:`PathSamples.
 
 Last, the filter requirement (:mod:`.truncation`, "What the filter makes of it"): the steady filter's error on the
 linearised full model under the manoeuvre, per estimated quantity over the bound's variance, ``b <= bias_max``
-(:meth:`PathSamples.bias`); modes are added until it holds (:meth:`PathSamples.extend_for_bias`,
-:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` does this on the final basis, after the static
-corrections (:mod:`.static`), with samples of the re-based interior modes.
+(:meth:`PathSamples.bias`) and the steady filter's whitened innovations at most ``INNOVATION_MAX`` summed over the
+channels (:meth:`PathSamples.innovation`); modes are added until both hold (:meth:`PathSamples.extend_for_bias`,
+:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` judges them again on the final basis, after the static
+corrections (:mod:`.static`), and where they are still not met adds modes the same way among the re-based ones.
 """
 
 from __future__ import annotations
@@ -457,7 +458,7 @@ class PathSamples:
                 break
         return float(least)
 
-    def choose(self, ranking: str, n_max: int | None = None, truncation: bool = True, bias: bool = True
+    def choose(self, ranking: str, n_max: int | None = None, truncation: bool = True
                ) -> tuple[np.ndarray, int, list[AccuracyResult]]:
         """``(order, n_needed, accuracy)``: the interior modes in the order they are kept, how many the
         requirements need at every sample (module docstring) and the samples' indices with that many.
@@ -468,9 +469,8 @@ class PathSamples:
         thresholds hold, only modes that ring for a sample interval are candidates (:attr:`dynamic`); the
         automatic count stops where the next raises the worst margin by less than 0.01 (1 % of ``rho_max``)
         (:attr:`truncation_met` False); ``truncation=False``: the band's thresholds alone (a fixed count keeps the
-        modes the band needs, as the paper's). ``bias``: then the filter requirement's modes
-        (:meth:`extend_for_bias`); False leaves them to the caller (:class:`.basis.CraigBampton` adds them on the
-        final basis, its static corrections in). ``"frequency"``: the lowest modes first. Where no count meets the
+        modes the band needs, as the paper's); the automatic count then adds the filter requirement's modes
+        (:meth:`extend_for_bias`). ``"frequency"``: the lowest modes first. Where no count meets the
         band's thresholds at every sample (:attr:`reachable` False; e.g. a global master that becomes a link's
         axial direction), the smallest count meeting them wherever some count does."""
         n_all = self.scores.shape[1]
@@ -510,7 +510,7 @@ class PathSamples:
                 if n_max is None:
                     break
             seq.append(best)
-        if bias and use and n_max is None and n_needed is not None and self.filters:
+        if use and n_max is None and n_needed is not None and self.filters:
             n_needed = self.extend_for_bias(seq)
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
         order = np.array(seq + [int(i) for i in rest if i not in set(seq)], int)
