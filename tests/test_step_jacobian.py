@@ -385,12 +385,7 @@ def _sagged_state(mech, m, seed=0):
     return z, u
 
 
-@pytest.mark.parametrize("name", [
-    "fresh", "crane_arm",
-    # after the links' relative frames landed (main 56a00b0) the differences show an entry of 1.2e-5 of the block
-    # where We has none (elastic coordinate 7, the q2 column): not found yet
-    pytest.param("luffing_arm", marks=pytest.mark.xfail(strict=True, reason="after the relative frames: 1.2e-5")),
-])
+@pytest.mark.parametrize("name", SAG_MODELS)
 def test_weight_curvature_is_the_weights_gradient_at_the_sag_entry_by_entry(name):
     """``We[m] = d(d fg_q / dq) / dp_m`` (:meth:`~exuflex.reduction.model.ReducedModel.weight_curvature`, what the
     cached step holds), and the weight's q-gradient at a deformed state (``held(..., fr=True)``, the reference
@@ -408,16 +403,19 @@ def test_weight_curvature_is_the_weights_gradient_at_the_sag_entry_by_entry(name
                                 for e in 1e-5 * np.eye(r)[:nq]])
 
     for k in range(r - nq):
-        eps = 1e-3 / max(float(np.abs(rm.cb.at(p0[:nq]).H[nq:, nq + k]).max()), 1e-12)  # 1 mm: fg_q is linear in p
+        # 10 cm at the largest slave: fg_q is linear in p, so the differences are exact for any step, and a large one
+        # keeps the q-differences' round-off (1e-10 N over 2 eps) below the entries; at 1 mm it was 1.2e-5 of the
+        # block on the luffing arm's stiff static correction (eps 1.4e-5), in an entry that is zero
+        eps = 0.1 / max(float(np.abs(rm.cb.at(p0[:nq]).H[nq:, nq + k]).max()), 1e-12)
         e = np.zeros(r)
         e[nq + k] = eps
         fd = (grad_q(p0 + e) - grad_q(p0 - e)) / (2 * eps)
         held = (rm.held(p0 + e, np.zeros(r), fr=True)[1].Wg - rm.held(p0 - e, np.zeros(r), fr=True)[1].Wg)[:nq, :nq]
         scale = np.abs(fd).max()
         assert scale > 0
-        # the floor: the differences of differences' own error, 1.2e-7 of the block measured (luffing arm)
-        assert np.all(np.abs(We[k] - fd) <= 1e-5 * np.abs(fd) + 1e-6 * scale), (k, We[k], fd)
-        assert np.all(np.abs(held / (2 * eps) - fd) <= 1e-5 * np.abs(fd) + 1e-6 * scale), (k, held / (2 * eps), fd)
+        # the floor: the differences of differences' own error
+        assert np.all(np.abs(We[k] - fd) <= 1e-5 * np.abs(fd) + 1e-7 * scale), (k, We[k], fd)
+        assert np.all(np.abs(held / (2 * eps) - fd) <= 1e-5 * np.abs(fd) + 1e-7 * scale), (k, held / (2 * eps), fd)
 
 
 @pytest.mark.parametrize("name", SAG_MODELS)
