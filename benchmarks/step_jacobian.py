@@ -257,7 +257,9 @@ def sag_page(table: str, md: str) -> None:
             "'cached step'): the forces and matrices held over an interval in which its elastic modes ring, which the "
             "gradient's absence happened to offset at 2 ms; the reference `F` against the reduced equations' step "
             "over intervals of 0.25, 0.5, 1 and 2 ms: 0.009, 0.096, 0.008, 0.077 with the gradient, 0.055, 0.099, "
-            "0.066, 0.012 without it."), ""]
+            "0.066, 0.012 without it. What the term changes in the filter's figures (docs/gravity.md, \"The reduced "
+            "equations under gravity\": the crane, luffing, vertical serial and upright two-link arms on both truths, "
+            "3 seeds): at most 3.4 % of a quantity's RMS error, the NIS under 0.001."), ""]
     _put_section(page_lines, SAG_HEADING, new, "## The left-out terms along a run")
     Path(md).write_text("\n".join(page_lines))
     print("wrote", md)
