@@ -375,11 +375,10 @@ class ReducedModel:
         Why: the forces of the rates (centrifugal, Coriolis, the bias acceleration's) and the elastic forces turned
         with the elements change with the configuration as the weight does, and under gravity the step Jacobian's
         q columns carry every force's q-gradient (:func:`exuflex.observer.expansion.position_forces`): at a sagged
-        state the weight's and the elastic stiffness's gradients cancel to a small remainder (the crane arm's
-        ``dq1''/dq2``: 0.017 1/s^2 of terms of 125, ``benchmarks/models/crane_arm.toml``), and the rates' forces'
-        gradient, 0.8 1/s^2 there at 0.5 rad/s, is then larger than the entry itself (docs/step_jacobian.md). The
-        cached step holds the forms at its configuration and follows ``q`` by these gradients to first order
-        (:func:`exuflex.observer.expansion._held_model`)."""
+        state the weight's and the elastic stiffness's gradients can cancel to a remainder smaller than the rates'
+        forces' gradient (a relative joint's ``dq1''/dq2`` on the crane arm, ``benchmarks/models/crane_arm.toml``;
+        docs/step_jacobian.md measures it). The cached step holds the forms at its configuration and follows ``q``
+        by these gradients to first order (:func:`exuflex.observer.expansion._held_model`)."""
         nq, r = self.nq, self.r
         q = np.asarray(q, float)
         dT2 = np.empty((nq * r, r * r))
