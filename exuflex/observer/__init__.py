@@ -7,8 +7,7 @@
   the second-order expansion about held configurations in :mod:`.expansion`; :mod:`.full`: the full-order model.
 - :mod:`.session`: the observer as users run it (:func:`make_observer`, :func:`estimate`); scored against a
   truth and its bound in :mod:`exuflex.scoring`.
-- :mod:`.observability`, :mod:`.tuning`, :mod:`.stats`: observability, process-noise construction, the filter's
-  quantiles.
+- :mod:`.stats`: the filter's quantiles.
 - Beyond the paper: :mod:`.augmented` (:class:`AugmentedModel`: the payload scale and motor torque disturbances as
   states), :mod:`.smoother` (:func:`rts_smooth`), :mod:`.ukf` (:class:`UnscentedKF`), :mod:`.imm` (:class:`IMMFilter`:
   interacting multiple models, the payload estimator with a nominal mode).

@@ -985,8 +985,10 @@ class MultirateEKF(BeliefFilter):
         # step() hands it one sample with the model's prediction and measurement (loop.given), in a record of a row
         self._loop = loop.samples if takes_compiled_loop(model) else None
         extra = self.hooks.i_theta is not None or self.hooks.i_inputs is not None
-        loop.warm_up(None if self._loop is None else "augmented" if extra else "plain")
-        kalman.warm_up()
+        # the kernels the filter calls loaded now (not in its first sample's time); those of the Python steps
+        # only where there is no compiled loop
+        loop.warm_up(None if self._loop is None else "augmented" if extra else "plain", screened=self._loop is None)
+        kalman.warm_up(python_steps=self._loop is None)
         self.reset()
 
     # ------------------------------------------------------------------ the two steps

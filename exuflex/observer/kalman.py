@@ -544,9 +544,13 @@ def condition(belief: Belief, measurement: Measurement, y, R_diag, floor=0.0) ->
     return Belief(x_out, P_out), Innovation(r, S, nis)
 
 
-def warm_up() -> None:
+def warm_up(python_steps: bool = True) -> None:
     """Compile (or load from numba's on-disk cache) the kernels for C-ordered float64 arrays, so that the
-    first sample of a filter does not carry the compilation."""
+    first sample of a filter does not carry the compilation: every kernel, or without ``python_steps`` the one a
+    filter whose samples go to the compiled loop calls from Python (the input-step test, :func:`step_statistic`)."""
+    step_statistic(np.zeros(1), np.ones(1), np.ones(1))
+    if not python_steps:
+        return
     n, m = 3, 2
     P = np.eye(n)
     out = np.empty((n, n))
@@ -563,7 +567,6 @@ def warm_up() -> None:
     condition_on(np.ones(m, dtype=np.bool_), x, P, np.ones(m), np.zeros(m), H, np.ones(m), np.zeros(n), HP, x, out)
     gate(np.zeros(m), 1.0, 0, np.ones(m, dtype=np.bool_))
     normalise(r, np.eye(m), 1.0, np.empty(m))
-    step_statistic(np.zeros(1), np.ones(1), np.ones(1))
     window_seen(np.zeros(m), np.zeros(m), 0.0, np.arange(m))
     window_push(np.zeros((2, m)), np.zeros(m, dtype=np.int64), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), 0.0,
                 np.arange(m), np.zeros(m), 1.0, 1.0, 1.0, 0.0, np.zeros(m, dtype=np.int64))

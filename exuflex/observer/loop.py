@@ -445,18 +445,20 @@ def no_windows(m: int) -> tuple:
             np.zeros((4 * m, 4)), np.zeros(1, dtype=np.int64))
 
 
-def warm_up(compiled: str | None = None) -> None:
+def warm_up(compiled: str | None = None, screened: bool = True) -> None:
     """Compile (or load from numba's on-disk cache) the loop for the argument types the filter passes: called with
-    no sample to do (``k0 = k1``), :func:`samples` returns at once. Always :func:`given` and :func:`screen`;
-    ``compiled`` "plain" or "augmented": :func:`samples` over a model's compiled step for a plain or an augmented
-    state (with :func:`.expansion.extra_interval`)."""
+    no sample to do (``k0 = k1``), :func:`samples` returns at once. Always :func:`given`; ``screened``:
+    :func:`screen` (what an update screened in Python calls: not the EKF's over a compiled step, whose updates
+    :func:`given` screens); ``compiled`` "plain" or "augmented": :func:`samples` over a model's compiled step for a
+    plain or an augmented state (with :func:`.expansion.extra_interval`)."""
     v, m, c, n = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 1)), np.zeros(1, dtype=np.int64)
     buf = Buffers(v, v, m, m, m, m, m)
     mon = Monitors(v, v, 0.0, n, m, n, v, v, v, v, v, n, n, n, v, m, n, False, n, v, 0.0, 0)
     rec = Record(m, m, 0, m, m, m, v, n, m, m, m)
     one = one_sample(mon, rec)
     given(0.0, v, 0, tuple(buf), one, v, m, m, v, m)
-    screen(one, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
+    if screened:
+        screen(one, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
     if compiled is not None:
         step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c,
                           c, v, _example_system(1, 1))

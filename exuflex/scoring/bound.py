@@ -43,7 +43,7 @@ import logging
 
 import numpy as np
 import scipy.linalg
-from scipy.linalg import solve_discrete_are
+from scipy.linalg import expm, solve_discrete_are
 
 from ..manoeuvre import plan
 from ..mechanism import Mechanism
@@ -52,13 +52,34 @@ from ..observer.base import DiscreteModel
 from ..observer.expansion import held_interval
 from ..observer.reduced import ReducedObserverModel
 from ..observer.session import LogColumns, Observer, physical_names, start_configuration
-from ..observer.tuning import van_loan
 from ..sensors import Signals
 
 log = logging.getLogger(__name__)
 
 __all__ = ["BoundTrack", "UnobservableError", "bound_rms", "bound_track", "check_observable", "estimation_bound", "linearise", "periodic_posterior", "riccati_predict", "riccati_track",
-           "riccati_update", "smoothed_covariances", "steady_bound", "steady_posterior", "steady_state_covariance", "unobservable_states"]
+           "riccati_update", "smoothed_covariances", "steady_bound", "steady_posterior", "steady_state_covariance", "unobservable_states", "van_loan"]
+
+
+def van_loan(A_c: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation of ``x' = A_c x + w`` with white ``w`` of intensity ``Qc`` over ``dt`` (Van Loan).
+
+    Returns
+    -------
+    A : ndarray
+        ``expm(A_c dt)``.
+    Q : ndarray
+        ``int_0^dt expm(A_c s) Qc expm(A_c s)' ds``.
+    """
+    A_c = np.asarray(A_c, float)
+    n = A_c.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -A_c
+    M[:n, n:] = Qc
+    M[n:, n:] = A_c.T
+    E = expm(M * dt)
+    A = E[n:, n:].T
+    Q = A @ E[:n, n:]
+    return A, 0.5 * (Q + Q.T)
 
 
 def steady_state_covariance(
