@@ -122,6 +122,8 @@ def input_entries(name: str, seed: int = 0) -> dict:
                                 x[:nq] - iv.q0 + 0.5 * dt * x[r : r + nq])
         if hs.pT.shape[0]:
             f += oracle.velocity_terms(x[nq:r], x[r:], nq, hs.pT, hs.pC2)[0]
+        if hs.dT2.shape[0]:  # the forms' change with q (gravity)
+            f += oracle.forms_gradient(x[:r], x[r:], nq, hs.dT2, hs.dV2, hs.dC2) @ (x[:nq] - iv.q0)
         return f
 
     def held_matrices_step(x):
