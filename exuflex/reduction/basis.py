@@ -54,7 +54,7 @@ import scipy.linalg as sla
 
 from ..erls.model import Configuration, ErlsModel
 from . import _compiled
-from .masters import automatic_masters
+from .masters import automatic_masters, reading_masters
 from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
 from .static import STATIC_MAX, static_corrections
 from .truncation import BIAS_MAX, INNOVATION_MAX, TRUNCATION_MAX, PlannedInput
@@ -124,7 +124,8 @@ class CraigBampton:
     masters : elastic master dof names (e.g. ``("x14", "y15", "theta24", "x25", "y26")`` or
         ``("node9.transverse",)``); the ERLS coordinates are always masters. Default: the model file's
         ``[reduction] masters``, else (and for ``"auto"``) the transverse dofs at the joints and tips
-        (:mod:`.masters`).
+        (:mod:`.masters`); the elastic rotations the coordinates' encoders read are added to either
+        (:func:`.masters.reading_masters`).
     q_star : configuration of the interior modes. Default: the model file's ``q_star`` or ``q_ref``.
     n_interior : number of interior modes, or ``"auto"`` (the smallest set meeting ``nco_min`` and
         ``freq_error_max_pct`` for every full mode below ``band_hz``, and the truncation requirement
@@ -207,6 +208,11 @@ class CraigBampton:
         im = [r.index for r in refs]
         if len(set(im)) != len(im):
             raise ValueError(f"{src}: reduction masters repeat a dof: {list(masters)}")
+        # the elastic rotations the coordinates' encoders read are masters whatever was named (.masters)
+        extra = [model.dofs.locate(m) for m in reading_masters(model)]
+        refs += [r for r in extra if r.index not in set(im)]
+        masters = tuple(masters) + tuple(r.name for r in extra if r.index not in set(im))
+        im = [r.index for r in refs]
         self.masters = masters
         self.im = np.array(im, int)
         self.is_ = np.array([k for k in range(model.ne) if k not in set(im)], int)

@@ -14,7 +14,21 @@ elastic motion is bending, so the masters are chosen across the links, in their 
   compliance over the given configurations (q* and the manoeuvre's) is largest, so that the master stays
   compliant along the whole motion. Ground joints carry no translation.
 
-Interior modes then complete the basis (:mod:`.path`); rotations are left to them.
+Interior modes then complete the basis (:mod:`.path`); rotations are left to them, but for one kind, whatever the
+masters named (:func:`reading_masters`):
+
+- the **elastic rotations a coordinate's encoder reads**: a relative angle coordinate's encoder reads ``q + G u``,
+  ``G u`` minus the other link's elastic rotation at the joint (each link's ERLS frame is its own tangent there,
+  :meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`), and the motor between the two links puts its
+  reaction on that same rotation dof. As a slave it is the point where a concentrated moment acts and a reading
+  is taken that only the interior modes reach: the Craig-Bampton basis reproduces the static response to loads
+  at its masters exactly (the Guyan shapes) but to a load at a slave only in the part its interior modes span,
+  and the encoder sees the rest at a few hundredths of its noise, so no channel asks for it, while the estimated
+  tip, a link length further out, moves by that length times the missing rotation: a constant bias under the
+  weight's static moment (``benchmarks/models/crane_arm.toml``: the reduced sag missed 5.4e-5 rad of the mast's
+  1.06e-3 rad at the elbow and the boom's tip 2.8e-5 m of its 3.15e-3 m sag, 5.6 times the tip's bound;
+  ``docs/long_arms.md``). As masters, the readings are reduced coordinates like q and the motor's reaction a
+  master load.
 """
 
 from __future__ import annotations
@@ -23,7 +37,7 @@ import numpy as np
 
 from ..erls.model import ErlsModel
 
-__all__ = ["automatic_masters"]
+__all__ = ["automatic_masters", "reading_masters"]
 
 
 def automatic_masters(model: ErlsModel, qs) -> tuple[str, ...]:
@@ -60,3 +74,11 @@ def automatic_masters(model: ErlsModel, qs) -> tuple[str, ...]:
             if n not in in_joint:
                 names.append(f"node{n}.transverse")
     return tuple(names)
+
+
+def reading_masters(model: ErlsModel) -> tuple[str, ...]:
+    """The names of the elastic dofs the coordinates' encoder readings hold beyond q (the non-zero columns of
+    :meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`: at each relative angle coordinate's joint the
+    other link's elastic rotation), in dof order; empty without a relative angle coordinate (module docstring)."""
+    G = model.coordinate_reading_rows()
+    return tuple(model.dofs.names[k] for k in np.flatnonzero(np.any(G != 0.0, axis=0)))
