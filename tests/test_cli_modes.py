@@ -123,8 +123,9 @@ def test_reduced_reports_the_filter_requirement(capsys):
     """``--reduced`` reports the filter requirement's figure per estimated quantity (``truncation.bias``, the same
     numbers as :meth:`PathSamples.bias` on the final basis, its static corrections in), its limit and whether the
     count meets it, and the dynamic modes' figures alone (``truncation.dynamic``); the text names them. The fresh
-    steel-forearm arm: the dynamic modes alone miss it in q1 (the elbow motor's reaction on the upper arm's node, a
-    load they carry only partly: reduction.static); with the static corrections the count meets it."""
+    steel-forearm arm: the dynamic modes alone come near it in q1 (0.099 of 0.1 with the encoders' rotations as
+    masters, reduction.masters.reading_masters; the elbow motor's reaction on the upper arm's node is a load they
+    carry only partly: reduction.static); with the static corrections the count meets it with a margin."""
     from exuflex.erls.model import ErlsModel
     from exuflex.mechanism import load_mechanism
     from exuflex.reduction import CraigBampton, PathSamples
@@ -143,7 +144,7 @@ def test_reduced_reports_the_filter_requirement(capsys):
     assert dyn["n_interior"] == cb.n_interior
     assert list(tr["bias"]) == list(dyn["bias"]) == list(planned.quantities)
     assert np.allclose(list(dyn["bias"].values()), b, rtol=1e-9, atol=0)
-    assert max(b) > BIAS_MAX and max(b) < tr["bias_without_interior"]
+    assert max(tr["bias"].values()) < max(b) < tr["bias_without_interior"]
     assert tr["bias_max"] == BIAS_MAX and tr["bias_met"] and max(tr["bias"].values()) <= BIAS_MAX
     assert main(["modes", steel, "--reduced", "--along", "0"]) == 0
     out = capsys.readouterr().out
