@@ -1,7 +1,8 @@
 """``exuflex modes MODEL``: natural frequencies of the full-order ERLS model at a configuration.
 
 The model is linearised at rest at ``q`` (default: the model's ``q_ref``) with the motors free
-(torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (q held). Optional
+(torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (the encoders' readings held:
+q, plus for a relative angle the other link's elastic rotation at the joint). Optional
 comparisons: ``--exudyn`` (the independent Exudyn model, :func:`exuflex.groundtruth.exudyn_frequencies`, on
 the same mesh as the ERLS model, with the same motors free or locked; ``--beam``) and ``--reduced`` (the
 Craig-Bampton reduced model, :func:`exuflex.reduction.reduced_modes_report`). The mesh is the model file's,
@@ -50,7 +51,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--q", type=_floats, default=None, help="configuration Q1,Q2,... (rad); default: the model's q_ref")
     p.add_argument("--fmax", type=positive_float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
-    p.add_argument("--locked", action="store_true", help="motors locked (q held) instead of free")
+    p.add_argument("--locked", action="store_true", help="motors locked (the encoders' readings held) instead of free")
     p.add_argument("--refine", type=positive_int, default=1, help="split every element into this many (default 1)")
     p.add_argument("--elements-per-link", type=elements_per_link_arg, default="file", metavar="N|file",
                    help="then split elements so that no element is longer than 1/N of its link (default: file)")
