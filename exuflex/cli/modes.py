@@ -1,8 +1,8 @@
 """``exuflex modes MODEL``: natural frequencies of the full-order ERLS model at a configuration.
 
 The model is linearised at rest at ``q`` (default: the model's ``q_ref``) with the motors free
-(torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (the encoders' readings held:
-q, plus for a relative angle the other link's elastic rotation at the joint). Optional
+(torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (the encoders' readings
+held: q, plus for a relative angle the other link's elastic rotation at the joint). Optional
 comparisons: ``--exudyn`` (the independent Exudyn model, :func:`exuflex.groundtruth.exudyn_frequencies`, on
 the same mesh as the ERLS model, with the same motors free or locked; ``--beam``) and ``--reduced`` (the
 Craig-Bampton reduced model, :func:`exuflex.reduction.reduced_modes_report`). The mesh is the model file's,
