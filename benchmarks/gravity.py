@@ -664,11 +664,11 @@ REDUCED_EQUATIONS = "\n".join([
      "against central differences of the reduced equations' step, `tests/test_step_jacobian.py` "
      "`sag_entries`):"),
     "",
-    "| model | cached F | reference F | cached F, the weight's gradient at the sag left out | dq''/dq undeformed (1/s^2) | dq''/dq at the sag (1/s^2) |",
-    "|---|---|---|---|---|---|",
-    "| fresh (tests/test_step_jacobian.py's double pendulum) | 0.014 | 0.004 | 0.017 | [-46.2, 12.8; 27.6, -40.8] | [-46.2, 384; 27.9, -144] |",
-    "| crane_arm | 0.099 | 0.098 | 0.314 | [10.4, -0.457; 10.7, -6.92] | [10.4, -6.35; 10.6, 60] |",
-    "| luffing_arm | 0.036 | 0.094 | 3.320 | [3.68, -0.0145; 1.01, 10.8] | [3.68, -8.62; 1.02, 203] |",
+    "| model | cached F | reference F | cached F, the weight's gradient at the sag left out | cached F, the rates' forces' q-gradient left out | dq''/dq undeformed (1/s^2) | dq''/dq at the sag (1/s^2) |",
+    "|---|---|---|---|---|---|---|",
+    "| fresh (tests/test_step_jacobian.py's double pendulum) | 0.081 | 0.077 | 0.105 | 0.008 | [-50.1, 10.7; 64.9, -15.6] | [-50.2, 14.8; 65.1, 836] |",
+    "| crane_arm | 0.023 | 0.006 | 0.149 | 2.161 | [9.4, -0.259; -9.39, 2.08] | [9.4, 0.019; -9.42, 31.3] |",
+    "| luffing_arm | 0.020 | 0.019 | 0.571 | 0.522 | [3.78, -0.0422; -4.64, 3.37] | [3.8, 0.0261; -4.65, 105] |",
     "",
     ("Three terms were missing at the sag, each now held: (1) the weight's q-gradient at a deformed state,"
      " `sum_m p_m We[m]` (`ReducedModel.weight_curvature`: the basis's second derivatives and the element "
@@ -681,12 +681,27 @@ REDUCED_EQUATIONS = "\n".join([
      "`dq2''/dq1` was 37 % high at the sag in continuous time; (3) the bound (`exuflex.scoring.bound`, the"
      " Riccati recursion along the truth) linearised at the elastic coordinates' quasi-static sag instead "
      "of zero (the truth files hold the tip, not the reduced coordinates): at zero it was the bound of a "
-     "mechanism without sag (the crane arm's `dq2''/dq2` -6.9 1/s^2 there, +60 at the sag). What is left "
-     "(the table's first two columns): the velocity forces' change with q (held along the secant; 3 % of "
-     "the crane arm's `dq1''/dq2`), the held matrices' second order in the elastic coordinates, and the "
-     "reference step's `dM/dq` at the sag (`mass_derivative_analytic` leaves the basis's second "
-     "derivatives times the elastic coordinates out). `tests/test_step_jacobian.py` holds these bounds "
-     "(times about 1.5) and that without (1) the cached `F` misses by more than three times as much."),
+     "mechanism without sag (the crane arm's `dq2''/dq2` -6.9 1/s^2 there, +60 at the sag). "
+     "A fourth came with the links' relative frames (docs/long_arms.md), which left the crane and "
+     "luffing arms' rows at 2.16 and 0.52 (the column of the rates' forces' q-gradient left out): (4) the "
+     "q-gradient of the forces' "
+     "quadratic forms, the forces of the rates, the bias force and the q rows' elastic forces turned "
+     "with the elements (`ReducedModel.velocity_forms_gradient`, `HeldSystem.dT2`, `dV2`, `dC2`: the "
+     "cached step's forms follow q by them to first order instead of along the secant; the reference "
+     "step takes central differences of the reduced forces, `ReducedModel.velocity_force_gradient`). Not "
+     "a dependence the frames added: with q2 the forearm's angle to the upper arm's own tangent the "
+     "weight's and the elastic stiffness's q2-gradients cancel in `dq1''/dq2` at the sag (the crane "
+     "arm's: 0.017 1/s^2 of terms of +-125; -9.2 before the frames), and the rates' forces' gradient, "
+     "0.79 1/s^2 at 0.5 rad/s there before the frames and after, left out, went from 8 % of the entry to "
+     "2.2 times its own scale. What is left (the table's first two columns): on the arms the held "
+     "matrices' second order in the elastic coordinates and the reference step's `dM/dq` at the sag "
+     "(`mass_derivative_analytic` leaves the basis's second derivatives times the elastic coordinates "
+     "out: 0.086 of the luffing arm's `dq2''/dq1` scale in continuous time); on the double pendulum, "
+     "sampled at 2 ms, the held step itself, whose own central differences depart from the reduced "
+     "equations' step by as much as its `F` (its elastic modes ring within the interval: 0.008-0.096 "
+     "over intervals of 0.25-2 ms, docs/step_jacobian.md). `tests/test_step_jacobian.py` holds these "
+     "bounds (times about 1.5), that without (1) the cached `F` misses by more than three times as much "
+     "and without (4) by more than ten times on the arms."),
     "",
     ("The acceptance before and after (`python benchmarks/gallery.py --acceptance --engine erls "
      "--truth-dir /tmp/acc/t24b --models benchmarks/models/crane_arm.toml,benchmarks/models/luffing_arm.to"
@@ -710,6 +725,31 @@ REDUCED_EQUATIONS = "\n".join([
      "with the Jacobian or the bound), and the vertical press's NIS (seed 3: 2.88; seeds 1, 2: 1.01), "
      "which none of these terms moves either; on its reduced truth the crank's motion is another one "
      "(above)."),
+    "",
+    ("The acceptance with (4) (`python benchmarks/gallery.py --acceptance --engine erls,exudyn --truth-"
+     "dir DIR --models "
+     "benchmarks/models/crane_arm.toml,benchmarks/models/luffing_arm.toml,benchmarks/models/vertical_serial_arm.toml,benchmarks/models/upright_two_link.toml"
+     " --seeds 1-3 --md FILE --json FILE`, before: main e5fabf9, after: the same with (4), on the same "
+     "truths, written at e5fabf9): the paired runs (the same truth and noise) move by at most 3.4 % per "
+     "quantity (upright_two_link's y29; the crane arm's q1 2.7 %), the NIS by under 0.001: the step "
+     "Jacobian's q columns at the sag were wrong in an entry the weight's and the elastic stiffness's "
+     "gradients nearly cancel, and the filter barely reads it. The crane arm's y23 (its tip's elastic y "
+     "displacement, 5.6 bounds on both truths before and after; x22 1.19 before the relative frames at "
+     "031703c) is a constant bias of 2.6e-5 m (seed 1, ERLS truth: RMS 2.63e-5, mean 2.58e-5, the "
+     "filter's deviation 4.7e-6) that no term of the Jacobian moves; its source is not found here. The "
+     "gallery's serial_arm and three_link_arm have no gravity: their held systems carry no forms' "
+     "gradients (`dT2` empty), and their steps and Jacobians are the same arithmetic as before."),
+    "",
+    "| model | truth | N | worst quantity: mean (p90), before | after | largest change (after / before, mean) | NIS / channels before, after |",
+    "|---|---|---|---|---|---|---|",
+    "| crane_arm | erls | 3 | y23 5.61 (5.64) | y23 5.61 (5.64) | q1 1.027 | 1.002, 1.002 |",
+    "| crane_arm | exudyn | 3 | y23 5.60 (5.63) | y23 5.60 (5.63) | q1 1.025 | 1.010, 1.010 |",
+    "| luffing_arm | erls | 3 | q2 1.24 (1.51) | q2 1.23 (1.51) | q1 1.003 | 1.032, 1.032 |",
+    "| luffing_arm | exudyn | 3 | dq1 1.48 (1.54) | dq1 1.48 (1.54) | q2 0.994 | 1.247, 1.247 |",
+    "| vertical_serial_arm | erls | 3 | q2 1.03 (1.11) | y23 1.03 (1.06) | q2 0.997 | 1.000, 1.000 |",
+    "| vertical_serial_arm | exudyn | 3 | q2 1.03 (1.11) | q2 1.03 (1.11) | q2 0.999 | 1.025, 1.025 |",
+    "| upright_two_link | erls | 3 | x28 1.51 (1.57) | x28 1.52 (1.59) | y29 1.034 | 0.995, 0.996 |",
+    "| upright_two_link | exudyn | 3 | x28 1.50 (1.57) | x28 1.51 (1.58) | y29 1.029 | 1.002, 1.003 |",
 ])
 
 

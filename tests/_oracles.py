@@ -156,6 +156,26 @@ def motion_form(hs: HeldSystem, dl):
     return hs.KGd + np.einsum("kit,i->kt", hs.dKGd.reshape(k, len(dl), rr), dl)
 
 
+def forms_gradient(p, pd, nq, dT2, dV2, dC2) -> np.ndarray:
+    """``g`` (r, nq): the held forms' forces differentiated in q (``expansion._forms_gradient``), column ``i``
+    ``-1/2 p' dT_i p' - [p dV_{i,c} p]_c - sum_{k, j < nq} p'_k p'_j dC_i[k, j]``."""
+    r = p.shape[0]
+    g = -0.5 * np.einsum("ikab,k,b->ai", dT2.reshape(nq, r, r, r), pd, pd)
+    g[:nq] -= np.einsum("icab,a,b->ci", dV2.reshape(nq, nq, r, r), p, p)
+    if dC2.shape[0]:
+        g -= np.einsum("ikjc,k,j->ci", dC2.reshape(nq, r, nq, r), pd, pd[:nq])
+    return g
+
+
+def _forms_along(dl, hs: HeldSystem) -> tuple:
+    """The forms' change ``sum_i dl_i (dT2, dV2, dC2)_i`` for the step ``dl`` (shaped as ``T2``, ``V2``, ``C2``)."""
+    nq, r = dl.shape[0], hs.Mr.shape[0]
+    T = np.einsum("i,ix->x", dl, hs.dT2.reshape(nq, -1)).reshape(r, r * r)
+    V = np.einsum("i,ix->x", dl, hs.dV2.reshape(nq, -1)).reshape(nq * r, r)
+    C = np.einsum("i,ix->x", dl, hs.dC2.reshape(nq, -1)).reshape(r * nq, r) if hs.dC2.shape[0] else hs.dC2
+    return T, V, C
+
+
 def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     """One cached interval: ``(z_next, M_r, K_r, C_r, G_r)``, the matrices at the interval's midpoint elastic
     coordinates, the forces at its start."""
@@ -164,15 +184,19 @@ def held_step(z, u, dl, s, h, n, hs: HeldSystem):
     tm = 0.5 * h * n  # the matrices at the interval's midpoint elastic coordinates p_e + tm p_e'
     Mr, Kr, Cr, Gr = held_matrices(dl, s, hs, z[nq:r] + tm * z[r + nq :])
     f = quadratic_forces(z[:r], z[r:], nq, hs.fg, hs.T2, hs.V2, hs.C2)
-    if hs.has_old:
+    grad = hs.dT2.shape[0] > 0  # the forms follow q by their gradients, not along the secant
+    secant = hs.has_old and not grad
+    if secant:
         f = f + s * (f - quadratic_forces(z[:r], z[r:], nq, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2))
+    if grad:
+        f = f + forms_gradient(z[:r], z[r:], nq, hs.dT2, hs.dV2, hs.dC2) @ dl
     if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
         f = f + velocity_terms(z[nq:r], z[r:], nq, hs.pT, hs.pC2)[0]
     if hs.Wg.shape[0]:  # the weight by its gradient in q and, with a partner, half the gradient's change along the
         # secant: fg + (Wg + s/2 (Wg - old_Wg)) dl, less the secant's s (fg - old_fg) in f already
         Wq = hs.Wg[:, :nq] + 0.5 * s * (hs.Wg[:, :nq] - hs.old_Wg[:, :nq]) if hs.has_old else hs.Wg[:, :nq]
         w = Wq @ dl
-        if hs.has_old:
+        if secant:
             w = w - s * (hs.fg - hs.old_fg)
         f = f + w
     if hs.pG.shape[0]:  # the weight's change with the elastic coordinates: pG's last column
@@ -253,9 +277,13 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     else:
         return np.full(nx, np.nan), np.full((nx, nx), np.nan)
     # the forces of the held and the old forms, and the derivatives of each: f = (1 + s) f_k - s f_o
-    forms = [(hs.fg, hs.T2, hs.V2, hs.C2, 1.0 + s if hs.has_old else 1.0)]
-    if hs.has_old:
+    grad = hs.dT2.shape[0] > 0  # the forms follow q by their gradients (first order), not along the secant
+    secant = hs.has_old and not grad
+    forms = [(hs.fg, hs.T2, hs.V2, hs.C2, 1.0 + s if secant else 1.0)]
+    if secant:
         forms.append((hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, -s))
+    if grad:  # the forms' change along dl, as forms of their own (their derivatives in p and p' alike)
+        forms.append((np.zeros(r), *_forms_along(dl, hs), 1.0))
     f = np.zeros(r)
     dF = np.zeros((r, nx))
     fk = []
@@ -283,14 +311,16 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
     if hs.has_old and d.shape[0]:
         act = not (float(dl @ d) ** 2 < 0.49 * float(dl @ dl) * dd)
     ds = d / dd if act else np.zeros(nq)
-    along = fk[0] - fk[1] if hs.has_old else 0.0
+    along = fk[0] - fk[1] if secant else 0.0
+    if grad:  # ... and in q
+        dF[:, :nq] += forms_gradient(p, pd, nq, hs.dT2, hs.dV2, hs.dC2)
     if hs.Wg.shape[0]:  # the weight to second order (expansion._held_model): (Wg + s/2 dW) dl - s (fg - fg_old)
         wdl = hs.Wg[:, :nq] @ dl
         f += wdl
         dF[:, :nq] += hs.Wg[:, :nq]
         if hs.has_old:
             dW = hs.Wg[:, :nq] - hs.old_Wg[:, :nq]
-            dfg = hs.fg - hs.old_fg
+            dfg = hs.fg - hs.old_fg if secant else 0.0 * hs.fg  # (the forms' secant's weight, taken out)
             f += 0.5 * s * (dW @ dl) - s * dfg
             dF[:, :nq] += 0.5 * s * dW
             along = along + 0.5 * (dW @ dl) - dfg

@@ -29,7 +29,7 @@ def sixbar_observer_state():
     return obs.model, obs.model._last, obs.ekf.x, U[300].copy()
 
 
-def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
+def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False, forms_grad=False):
     rng, Mr, Kr, Ca, Gr, grad, fo = _system(r, nq, seed)
     old = _system(r, nq, seed=seed + 1)
     C2 = np.zeros((0, r)) if noC else fo["C2"]
@@ -49,9 +49,15 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False):
     KGd = 1e-2 * np.abs(Kr).max() * rng.normal(size=(1 + Gr.shape[1] + nq * (nq + 1) // 2, r * r))
     We = rng.normal(size=(r - nq, nq * nq))  # the weight's q-gradient per unit elastic coordinate
     dKGd = 1e-1 * np.abs(KGd).max() * rng.normal(size=(KGd.shape[0], nq * r * r))  # the form's q-gradient
+    # the forms' q-gradients (gravity: the forms follow q by them instead of along the secant)
+    e = np.zeros((0, 0))
+    dT2, dV2 = rng.normal(size=(nq * r, r * r)), rng.normal(size=(nq * nq * r, r))
+    dC2 = e if noC else rng.normal(size=(nq * r * nq, r))
+    if not forms_grad:
+        dT2 = dV2 = dC2 = e
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
                            grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG, p2, Wg,
-                           old_Wg, pT, pC2, KGd, We, dKGd)
+                           old_Wg, pT, pC2, KGd, We, dKGd, dT2, dV2, dC2)
 
 
 def test_kernels_take_the_held_system_as_one_argument():
@@ -85,10 +91,11 @@ def _system(r=13, nq=3, seed=0):
     return rng, Mr, Kr, Ca, Gr, grad, forces
 
 
+@pytest.mark.parametrize("forms_grad", [False, True])
 @pytest.mark.parametrize("has_old", [False, True])
-def test_held_step_kernel_equals_numpy_oracle(has_old):
+def test_held_step_kernel_equals_numpy_oracle(has_old, forms_grad):
     r, nq = 13, 3
-    rng, hs = _held(r, nq, has_old)
+    rng, hs = _held(r, nq, has_old, forms_grad=forms_grad)
     z, u, dl = 0.1 * rng.normal(size=2 * r), rng.normal(size=nq), 1e-3 * rng.normal(size=nq)
     ref = oracle.held_step(z, u, dl, 0.4, 1e-4, 20, hs)
     fast = ex.held_step(z, u, dl, 0.4, 1e-4, 20, hs)
@@ -387,7 +394,8 @@ def test_elastic_forms_are_the_derivatives_of_the_reduced_matrices(name):
                        fm.T2, fm.V2, fm.C2 if fm.C2 is not None else np.zeros((0, r)), fm.dMr2, fm.dKr2,
                        mats.Cr - beta * mats.Kr, mats.Gr, fm.fg, fm.T2, fm.V2,
                        fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg, fm.Wg,
-                       np.zeros((0, 0)), np.zeros((0, 0)), fm.KGd, np.zeros((0, 0)), np.zeros((0, 0)))
+                       np.zeros((0, 0)), np.zeros((0, 0)), fm.KGd, np.zeros((0, 0)), np.zeros((0, 0)),
+                       np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
     first = hs._replace(p2C=np.zeros_like(hs.p2C))
     zq = np.zeros(nq)
 

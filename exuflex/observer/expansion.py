@@ -99,7 +99,11 @@ class HeldSystem(NamedTuple):
     (:func:`_held_model`, :func:`_weight_curvature_forces`). ``dKGd`` (k, nq*r*r): ``KGd``'s q-gradient under
     gravity (:meth:`exuflex.reduction.model.ReducedModel.motion_geometric_gradient`; empty (0, 0): none): the form
     at ``q0 + dl`` is ``KGd + dKGd . dl`` (:func:`_motion_form`), so the geometric stiffness follows q at the
-    interval's torques, not at the holding ones the static part's gradient carries.
+    interval's torques, not at the holding ones the static part's gradient carries. ``dT2`` (nq*r, r*r), ``dV2``
+    (nq*nq*r, r), ``dC2`` (nq*r*nq, r; empty in the paper's form): ``T2``, ``V2``, ``C2`` differentiated in each
+    ``q_i``, stacked over ``i`` (:meth:`exuflex.reduction.model.ReducedModel.velocity_forms_gradient`; empty (0, 0):
+    none, as without gravity): the forms follow ``q`` by them to first order instead of along the secant
+    (:func:`_held_model`), and the step Jacobian's q columns hold the forces they give (:func:`_forms_gradient`).
     """
 
     has_old: bool
@@ -134,6 +138,9 @@ class HeldSystem(NamedTuple):
     KGd: np.ndarray
     We: np.ndarray
     dKGd: np.ndarray
+    dT2: np.ndarray
+    dV2: np.ndarray
+    dC2: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -532,7 +539,10 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
     configuration ``q`` stays at the start: advanced too, the step depends on the rates through ``dM/dq q'``, a
     term the step Jacobian leaves out, strong where ``M`` changes fast with ``q`` (a slider-crank near its dead
     centres); both measured in docs/step_jacobian.md. The forces stay at the start (their advance needs the
-    accelerations of the fast elastic modes)."""
+    accelerations of the fast elastic modes). Where the held system has the forms' q-gradients (``dT2``, ``dV2``,
+    ``dC2``: under gravity) the forces of the rates and the q rows' elastic term follow ``q`` by them, to first
+    order, in place of the secant (:func:`_forms_gradient`), so that the step's q-derivative is the one its
+    Jacobian holds."""
     r = hs.Mr.shape[0]
     nq = dl.shape[0]
     p = z[:r]
@@ -549,9 +559,15 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
             f = fk
         else:
             fo = fk
-    if hs.has_old:
+    secant = hs.has_old and hs.dT2.shape[0] == 0  # the forms along the secant, or by their q-gradients
+    if secant:
         for i in range(r):
             f[i] += s * (f[i] - fo[i])
+    elif hs.dT2.shape[0]:  # the forms' forces follow q by their gradients, to first order
+        g = _forms_gradient(p, pd, nq, hs.dT2, hs.dV2, hs.dC2)
+        for i in range(r):
+            for j in range(nq):
+                f[i] += g[i, j] * dl[j]
     if hs.pT.shape[0]:  # the velocity forces' first order in the elastic coordinates
         _velocity_terms(p[nq:], pd, nq, hs.pT, hs.pC2, f, np.empty((0, 0)))
     if hs.Wg.shape[0]:  # the weight to second order: its gradient, and half the gradient's change along the secant
@@ -562,7 +578,7 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
                 if hs.has_old:
                     g += 0.5 * s * (hs.Wg[i, j] - hs.old_Wg[i, j])
                 acc += g * dl[j]
-            if hs.has_old:  # the forms' secant moved the weight along it already: taken out
+            if secant:  # the forms' secant moved the weight along it already: taken out
                 acc -= s * (hs.fg[i] - hs.old_fg[i])
             f[i] += acc
     n_el = hs.pG.shape[0]
@@ -727,6 +743,7 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
             _weight_curvature_forces(Fp, z, dl, hs.We)
+            _forms_gradient_forces(Fp, z, nq, hs.dT2, hs.dV2, hs.dC2)
         if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
             Fp = motion_gradient(Fp, Kd)
             motion_form_gradient(Fp, u, z, 0.5 * h * n, hs.dKGd, nq)
@@ -883,6 +900,55 @@ def _motion_gradient(Fp, Kd):  # pragma: no cover - compiled
         for j in range(r):
             out[i, j] = (Fp[i, j] if Fp.shape[0] else 0.0) - Kd[i, j]
     return out
+
+
+def _forms_gradient(p, pd, nq, dT2, dV2, dC2):  # pragma: no cover - compiled
+    """``g`` (r, nq): the forces of the held quadratic forms (:func:`_quadratic_forces` without the weight)
+    differentiated in ``q``, column ``i`` ``-1/2 p' dT_i p' - [p dV_{i,c} p]_c - sum_{k, j < nq} p'_k p'_j dC_i[k,
+    j]`` at ``(p, p')`` from the forms' q-gradients (:class:`HeldSystem`'s ``dT2``, ``dV2``, ``dC2``; zeros where
+    ``dT2`` is empty)."""
+    r = p.shape[0]
+    g = np.zeros((r, nq))
+    if dT2.shape[0] == 0:
+        return g
+    for i in range(nq):
+        for k in range(r):
+            w = pd[k]
+            if w != 0.0:
+                row = i * r + k
+                for a in range(r):
+                    acc = 0.0
+                    for b in range(r):
+                        acc += dT2[row, a * r + b] * pd[b]
+                    g[a, i] -= 0.5 * w * acc
+        for c in range(nq):
+            for a in range(r):
+                acc = 0.0
+                row = (i * nq + c) * r + a
+                for b in range(r):
+                    acc += dV2[row, b] * p[b]
+                g[c, i] -= acc * p[a]
+        if dC2.shape[0]:
+            for k in range(r):
+                for j in range(nq):
+                    w = pd[k] * pd[j]
+                    if w != 0.0:
+                        row = (i * r + k) * nq + j
+                        for c in range(r):
+                            g[c, i] -= w * dC2[row, c]
+    return g
+
+
+def _forms_gradient_forces(Fp, z, nq, dT2, dV2, dC2):  # pragma: no cover - compiled
+    """Add to the forces' position gradient ``Fp`` (r, r; in place) the held forms' forces' q-gradient at ``z``
+    (:func:`_forms_gradient`) in its q columns; nothing where ``dT2`` is empty."""
+    if dT2.shape[0] == 0:
+        return
+    r = z.shape[0] // 2
+    g = _forms_gradient(z[:r], z[r:], nq, dT2, dV2, dC2)
+    for c in range(r):
+        for i in range(nq):
+            Fp[c, i] += g[c, i]
 
 
 def _weight_curvature_forces(Fp, z, dl, We):  # pragma: no cover - compiled
@@ -1366,7 +1432,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We, hs.dKGd)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We, hs.dKGd, hs.dT2, hs.dV2, hs.dC2)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1645,7 +1711,7 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1764,6 +1830,8 @@ _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 _weight_curvature_forces = _shared(_weight_curvature_forces)
+_forms_gradient = _shared(_forms_gradient)
+_forms_gradient_forces = _shared(_forms_gradient_forces)
 held_system = _jit(_held_system)
 held_interval = _jit(_held_interval)
 measurement_rows = _jit(_measurement_rows)
@@ -1792,7 +1860,8 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     p2 = np.zeros((nq * (nq + 1) // 2, (r - nq) * (r - nq + 1) // 2))
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
                       p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
-                      np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
+                      np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
+                      np.zeros((0, 0)))
 
 
 _warm = False

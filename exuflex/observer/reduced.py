@@ -506,6 +506,7 @@ class ReducedObserverModel:
         Fp = iv.forces.Wg
         if Fp.shape[0]:
             Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
+            Fp[:, : self.nq] += self.rm.velocity_force_gradient(z[: self.r], z[self.r :])  # the rates' forces too
         if KGd.shape[0]:
             Fp = motion_gradient(Fp, Kd)
             motion_form_gradient(Fp, u, z, 0.5 * dt, iv.forces.dKGd, self.nq)
@@ -638,12 +639,15 @@ class ReducedObserverModel:
             # the velocity forms take as well
             hess = self.rm.basis_hessian(m.rc.cfg.pose.q)
             We = self.rm.weight_curvature(m, fm.dHdq, hess)
+        # under gravity every force's q-gradient enters the step Jacobian: the velocity forms' too
+        # (ReducedModel.velocity_forms_gradient)
+        dT2, dV2, dC2 = self.rm.velocity_forms_gradient(m.rc.cfg.pose.q) if self._weight else (_NO_ROWS,) * 3
         return HeldSystem(
             has_old=old is not None, beta=float(self.model.beta), Mr=m.Mr, Kr=m.Kr, Ca=iv.Ca, Gr=m.Gr,
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
             old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv, hess),
-            KGd=fm.KGd, We=We, dKGd=fm.dKGd)
+            KGd=fm.KGd, We=We, dKGd=fm.dKGd, dT2=dT2, dV2=dV2, dC2=dC2)
 
     def _velocity_forms(self, iv: _Held, hess: np.ndarray | None = None) -> dict:
         """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held

@@ -351,6 +351,77 @@ class ReducedModel:
         out[:nq] += np.einsum("cx,xkj->kjc", JtMW, Zp)
         return out.reshape(r * nq, r)
 
+    def _forms(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(T2, V2, C2)`` of :meth:`force_model` at ``p`` (``C2`` empty (0, 0) in the paper's form), without the
+        gradients and the geometric forms :meth:`held` adds."""
+        nq, r = self.nq, self.r
+        if self.one_call and self.compiled and self.cb.compiled and self.model.kin.compiled:
+            _, fm = self._held_compiled(p, False)
+        else:
+            rc = self.cb.at(p[:nq])
+            dHdq = self.cb.basis_derivative(rc, np.eye(r))
+            mats = self.matrices(p, None, forces=False, dHdq=dHdq if self.consistent else None, rc=rc)
+            fm = self.force_model(mats, p, dHdq=dHdq, gradients=False)
+        return fm.T2, fm.V2, np.zeros((0, 0)) if fm.C2 is None else fm.C2
+
+    def velocity_forms_gradient(self, q: np.ndarray, h: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(dT2, dV2, dC2)``: the forces' quadratic forms of :class:`QuadraticForces` at the configuration ``q``
+        undeformed (``T2`` (r, r*r) of the velocity forces, ``V2`` (nq*r, r) of the q rows' term of the elastic
+        forces turned with the elements, ``C2`` (r*nq, r) of the bias force) differentiated in each ``q_i`` and
+        stacked over ``i``: (nq*r, r*r), (nq*nq*r, r), (nq*r*nq, r) (``dC2`` empty (0, 0) in the paper's form); by
+        central differences over ``h`` (rad or m; the forms are smooth in q, the differences' error some 1e-10 of
+        them).
+
+        Why: the forces of the rates (centrifugal, Coriolis, the bias acceleration's) and the elastic forces turned
+        with the elements change with the configuration as the weight does, and under gravity the step Jacobian's
+        q columns carry every force's q-gradient (:func:`exuflex.observer.expansion.position_forces`): at a sagged
+        state the weight's and the elastic stiffness's gradients can cancel to a remainder smaller than the rates'
+        forces' gradient (a relative joint's ``dq1''/dq2`` on the crane arm, ``benchmarks/models/crane_arm.toml``;
+        docs/step_jacobian.md measures it). The cached step holds the forms at its configuration and follows ``q``
+        by these gradients to first order (:func:`exuflex.observer.expansion._held_model`)."""
+        nq, r = self.nq, self.r
+        q = np.asarray(q, float)
+        dT2 = np.empty((nq * r, r * r))
+        dV2 = np.empty((nq * nq * r, r))
+        dC2 = np.empty((nq * r * nq, r)) if self.consistent else np.zeros((0, 0))
+        for i in range(nq):
+            p = np.zeros(r)
+            p[:nq] = q
+            p[i] += h
+            Tp, Vp, Cp = self._forms(p)
+            p[i] -= 2 * h
+            Tm, Vm, Cm = self._forms(p)
+            dT2[i * r : (i + 1) * r] = (Tp - Tm) / (2 * h)
+            dV2[i * nq * r : (i + 1) * nq * r] = (Vp - Vm) / (2 * h)
+            if self.consistent:
+                dC2[i * r * nq : (i + 1) * r * nq] = (Cp - Cm) / (2 * h)
+        self.model.configuration(q)  # leave the closure solver warm-started at q
+        return dT2, dV2, dC2
+
+    def velocity_force_gradient(self, p: np.ndarray, pd: np.ndarray, h: float = 1e-6) -> np.ndarray:
+        """``d f_v / dq`` (r, nq) at the state ``(p, p')``: the forces ``f_r`` (:meth:`matrices`) less the weight
+        ``(W J)^T M_N g`` (whose gradient is :meth:`weight_gradient`'s), the forces of the rates and the q rows' term
+        of the elastic forces turned with the elements, differentiated in q at fixed elastic coordinates and rates,
+        by central differences over ``h`` (the reference step's Jacobian under gravity: :meth:`velocity_forms_gradient`
+        says why)."""
+        nq, r = self.nq, self.r
+        p = np.asarray(p, float)
+        pd = np.asarray(pd, float)
+        g_N = self.model.g_N
+        out = np.empty((r, nq))
+
+        def fv(x):
+            m = self.matrices(x, pd)
+            cfg = m.rc.cfg
+            return m.fr - (cfg.W @ m.J).T @ (cfg.M_N @ g_N)
+
+        for i in range(nq):
+            e = np.zeros(r)
+            e[i] = h
+            out[:, i] = (fv(p + e) - fv(p - e)) / (2 * h)
+        self.model.configuration(p[:nq])  # leave the closure solver warm-started at q
+        return out
+
     def geometric_gradient(self, rc: ReducedConfiguration, dHdq: np.ndarray) -> np.ndarray:
         """``d(H_u^T K_Guu H_u)/dq_i`` (nq, r, r): the q-gradient of :meth:`geometric_stiffness`'s elastic rows, as
         ``dKr2`` holds the linear elastic stiffness's (its q rows' ``d(H p)/dq`` part not differentiated): the
