@@ -50,7 +50,7 @@ def test_steady_gain_solves_the_filter_riccati_equation():
 
 
 def test_filter_error_against_scipy_and_filterpy(single_link):
-    """:meth:`FilterSample.bias` against an independent chain: the full and reduced linear models discretised by
+    """:meth:`FilterSample.bias` (the estimates' errors and the innovations) against an independent chain: the full and reduced linear models discretised by
     ``scipy.signal.cont2discrete`` (zero-order hold) and simulated by ``dlsim``, the filter run by filterpy's
     ``KalmanFilter`` started at the steady prior covariance (which it keeps: a fixed point of its recursion)."""
     from filterpy.kalman import KalmanFilter
@@ -59,7 +59,7 @@ def test_filter_error_against_scipy_and_filterpy(single_link):
     q = np.array([0.7])
     fs = FilterSample(single_link, cb.at(q), planned)
     cols = np.r_[np.arange(cb.n_m), cb.n_m + np.array([0])]
-    ms, var = fs.bias(cols)
+    ms, var, nu = fs.bias(cols)
 
     def continuous(M, D, K, G):
         n = len(M)
@@ -87,8 +87,10 @@ def test_filter_error_against_scipy_and_filterpy(single_link):
     kf.x, kf.P = np.zeros(2 * r), P.copy()
     Zr = np.block([[Z @ Hc, np.zeros((k, r))], [np.zeros((k, r)), Z @ Hc]])
     err = np.empty((nt, 2 * k))
+    innov = np.empty((nt, len(fs.C)))
     for j in range(nt):
         kf.update(y[j])
+        innov[j] = kf.y / fs.noise  # the residual against the prior, whitened
         err[j] = Zr @ kf.x - z[j]
         Pp = kf.P.copy()
         kf.predict(u=fs.u[j])
@@ -102,6 +104,10 @@ def test_filter_error_against_scipy_and_filterpy(single_link):
     for a, b in zip(var, var_ref):
         assert a == pytest.approx(b, rel=1e-6, abs=1e-12 * var_ref.max())
     assert ms.max() > 0  # one interior mode leaves an error: the comparison is not between zeros
+    nu_ref = (innov**2).mean(axis=0)  # the innovations' whitened mean square per channel
+    assert nu.shape == nu_ref.shape and nu_ref.max() > 0
+    for a, b in zip(nu, nu_ref):
+        assert a == pytest.approx(b, rel=1e-6)
 
 
 def test_every_interior_mode_leaves_no_error(single_link):
@@ -109,10 +115,11 @@ def test_every_interior_mode_leaves_no_error(single_link):
     model in other coordinates and the filter, started at the exact rest state with the exact torques, has no error."""
     cb, planned = _every_mode(single_link)
     fs = FilterSample(single_link, cb.at(np.array([0.4])), planned)
-    ms, var = fs.bias(np.arange(cb.r))
-    ms0, _ = fs.bias(np.arange(cb.n_m))
+    ms, var, nu = fs.bias(np.arange(cb.r))
+    ms0, _, nu0 = fs.bias(np.arange(cb.n_m))
     assert np.all(ms <= 1e-16 * ms0.max() + 1e-20)
     assert np.all(var > 0)
+    assert np.all(nu <= 1e-16 * nu0.max() + 1e-20)  # nor any innovation
 
 
 def _axial(cb, tol=1e-9):

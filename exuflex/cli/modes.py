@@ -1,8 +1,8 @@
 """``exuflex modes MODEL``: natural frequencies of the full-order ERLS model at a configuration.
 
 The model is linearised at rest at ``q`` (default: the model's ``q_ref``) with the motors free
-(torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (the encoders' readings
-held: q, plus for a relative angle the other link's elastic rotation at the joint). Optional
+(torque-driven; the mechanism's zero-frequency modes are dropped) or ``--locked`` (every encoder's reading held:
+``q + G u`` for a relative coordinate, :meth:`~exuflex.erls.model.ErlsModel.coordinate_reading_rows`). Optional
 comparisons: ``--exudyn`` (the independent Exudyn model, :func:`exuflex.groundtruth.exudyn_frequencies`, on
 the same mesh as the ERLS model, with the same motors free or locked; ``--beam``) and ``--reduced`` (the
 Craig-Bampton reduced model, :func:`exuflex.reduction.reduced_modes_report`). The mesh is the model file's,
@@ -51,7 +51,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("model", help="model file (TOML), e.g. models/sixbar.toml")
     p.add_argument("--q", type=_floats, default=None, help="configuration Q1,Q2,... (rad); default: the model's q_ref")
     p.add_argument("--fmax", type=positive_float, default=180.0, help="report modes up to this frequency (Hz, default 180)")
-    p.add_argument("--locked", action="store_true", help="motors locked (the encoders' readings held) instead of free")
+    p.add_argument("--locked", action="store_true", help="motors locked (every encoder's reading held) instead of free")
     p.add_argument("--refine", type=positive_int, default=1, help="split every element into this many (default 1)")
     p.add_argument("--elements-per-link", type=elements_per_link_arg, default="file", metavar="N|file",
                    help="then split elements so that no element is longer than 1/N of its link (default: file)")
@@ -220,9 +220,15 @@ def _table(rep: dict) -> str:
             lines.append(
                 f"filter (docs/reduction.md): the steady filter's mean-square error on the linearised full model under "
                 f"the manoeuvre, over the bound's variance: {bi} (limit {tr['bias_max']:g}; without interior modes "
-                f"{tr['bias_without_interior']:.3g}){'' if tr['bias_met'] else ', ABOVE THE LIMIT'}"
-                + (f"; with the static corrections {', '.join(f'{k} {v:.3g}' for k, v in tr['bias_final'].items())}"
-                   f"{'' if tr['bias_final_met'] else ', ABOVE THE LIMIT'}" if tr.get("bias_final") else ""))
+                f"{tr['bias_without_interior']:.3g}); its whitened innovations' mean square summed over the channels "
+                f"{tr['innovation']:.3g} (limit {tr['innovation_max']:g}){'' if tr['bias_met'] else ', ABOVE THE LIMIT'}")
+        dy = tr.get("dynamic")
+        if dy:
+            lines.append(
+                f"both figures are the basis's the observer uses (static corrections in); its {dy['n_interior']} "
+                f"dynamic modes alone: rho = {dy['rho']:.3g}"
+                + (f", filter {max(dy['bias'].values()):.3g} ({max(dy['bias'], key=dy['bias'].get)}), innovations "
+                   f"{dy['innovation']:.3g}" if dy.get("bias") else ""))
     st = red.get("static") if red is not None else None
     if st:
         hz = ", ".join(f"{f:.0f}" for f in st["ritz_hz"])

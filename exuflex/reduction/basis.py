@@ -57,7 +57,7 @@ from . import _compiled
 from .masters import automatic_masters
 from .path import PathSamples, interior_mode_scores, manoeuvre_configurations
 from .static import STATIC_MAX, static_corrections
-from .truncation import BIAS_MAX, TRUNCATION_MAX, PlannedInput
+from .truncation import BIAS_MAX, INNOVATION_MAX, TRUNCATION_MAX, PlannedInput
 
 __all__ = ["CraigBampton", "ReducedConfiguration", "interior_mode_scores"]
 
@@ -85,9 +85,12 @@ def _truncation_report(samples: PathSamples, planned, kept, rho_max: float) -> d
     (:mod:`.truncation`): ``rho`` (the whitened mean-square truncated output summed over the channels), its share per
     channel, the RMS of the tip deflection's truncated part (m), where (q), the limit; the filter requirement's
     ``bias`` per estimated quantity (the steady filter's mean-square error on the linearised full model over the
-    bound's variance, "What the filter makes of it"), its limit ``bias_max`` and its value without interior modes;
-    ``met``: both requirements hold. None without a planned input. :class:`CraigBampton` adds ``bias_final`` and
-    ``bias_final_met``: the filter requirement's figure of the final basis, with the static corrections."""
+    bound's variance, "What the filter makes of it"), its limit ``bias_max`` and its value without interior modes,
+    ``innovation`` (the steady filter's whitened innovations' mean square summed over the channels) and its limit,
+    ``bias_met`` both within their limits;
+    ``met``: both requirements hold. None without a planned input. :class:`CraigBampton` reports these of the final
+    basis (its static corrections in) and adds ``dynamic``: ``rho``, ``rho_channels``, ``bias``, ``q`` and
+    ``n_interior`` of the dynamic modes alone."""
     if not samples.truncation:
         return None
     rho = samples.rho(kept)
@@ -99,9 +102,11 @@ def _truncation_report(samples: PathSamples, planned, kept, rho_max: float) -> d
         met = met and bool(np.all(zr.max(axis=0) <= samples.quantity_max))
     b = samples.bias(kept)
     bias = {k: float(v) for k, v in zip(planned.quantities, b)} if b.size else {}
-    bias_met = bool(b.max() <= samples.bias_max) if b.size else True
+    nu = samples.innovation(kept) if b.size else None
+    bias_met = bool(samples.filter_excess(kept) <= 1.0) if b.size else True
     return {"rho": float(rho[i]), "rho_max": rho_max, "met": met and bias_met,
             "bias": bias, "bias_max": samples.bias_max, "bias_met": bias_met,
+            "innovation": nu, "innovation_max": INNOVATION_MAX,
             "bias_without_interior": float(samples.bias([]).max()) if b.size else None,
             "rho_channels": dict(zip(planned.channels, map(float, samples.rho_channels(kept)[i]))),
             "q": samples.truncation[i].q.tolist(), "rho_without_interior": float(samples.rho([]).max()),
@@ -273,20 +278,13 @@ class CraigBampton:
             log.warning("%s: %d interior modes miss the accuracy thresholds at %d of %d sampled configurations "
                         "(worst NCO %.4f at q = %s); %s", src, n_interior, len(missed), len(self.path_accuracy),
                         a.worst_nco, np.round(a.q, 4).tolist(), hint)
-        elif auto and self.truncation is not None and not self.truncation["bias_met"]:
-            pass  # reported with the static corrections, which may meet it (below)
-        elif auto and self.truncation is not None and not self.truncation["met"]:
-            tr = self.truncation
-            log.warning("%s: %d interior modes leave a truncated output of rho = %.3g (limit %.3g; %s) in the "
-                        "channels under the manoeuvre (.truncation)%s", src, n_interior, tr["rho"], tr["rho_max"],
-                        ", ".join(f"{c} {v:.2g}" for c, v in tr["rho_channels"].items()),
-                        "; the modes that would lower it decay within a sample interval (a master dof would carry "
-                        "their static shape)" if n_interior == n_needed else f"; 'auto' would keep {n_needed}")
         # the static corrections (.static): the modes not kept re-based on the slaves' quasi-static response to the
         # motion's loads, the count by their largest reading at the channels
         self.static_max = STATIC_MAX if static_max is None else float(static_max)
         self.static = None
         self.n_static = 0
+        self.bias_tried: list[int] = []  # the modes the filter requirement tried (.path.PathSamples.extend_for_bias)
+        n_dynamic = n_interior
         if auto and planned is not None and self.static_max > 0:
             self.static = static_corrections(self, self.kept, q_samples, planned, quantity_max, self.static_max)
         if self.static is not None and self.static.n:
@@ -299,21 +297,42 @@ class CraigBampton:
             self.n_static = st.n
             n_interior += st.n
             self.set_interior(n_interior)
-        tr = self._truncation
-        if auto and isinstance(tr, dict) and tr.get("bias"):
-            # the filter requirement's figure of the final basis: the static corrections carry quasi-static slave
-            # motion the dynamic modes left out, and enter the filter's model as every other column does
-            final = (samples.bias_of_basis(lambda q: self.at(q).H) if self.n_static
-                     else np.array(list(tr["bias"].values())))
-            tr["bias_final"] = dict(zip(tr["bias"], map(float, final)))
-            tr["bias_final_met"] = bool(final.max() <= self.bias_max)
-            if not tr["bias_final_met"] and not missed:
-                worst = max(tr["bias_final"], key=tr["bias_final"].get)
-                log.warning("%s: %d interior modes (%d of them static corrections) leave the steady filter a "
-                            "mean-square error of %.3g x its bound's variance in %s (limit %.3g) on the linearised "
-                            "full model under the manoeuvre (.truncation); no further interior mode that rings for a "
-                            "sample interval lowers it", src, n_interior, self.n_static, tr["bias_final"][worst],
-                            worst, tr["bias_max"])
+        dynamic = self._truncation
+        if auto and isinstance(dynamic, dict):
+            # the requirements on the basis the observer uses: the static corrections carry quasi-static slave motion
+            # the dynamic modes leave out (a relative motor's reaction on the other link's node) and enter the
+            # filter's model as every other column does. Where the filter requirement is still not met there, modes
+            # are added among the re-based modes that ring for a sample interval (.path.PathSamples.extend_for_bias)
+            final = samples
+            if self.n_static:
+                self.set_interior(len(self.order))  # every interior mode, ascending (as PathSamples wants)
+                final = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max, self.bias_max)
+            seq = [int(i) for i in self.order[:n_interior]]
+            self.bias_tried = list(samples.bias_tried)
+            if self.n_static and final.filters:
+                final.extend_for_bias(seq)
+                self.bias_tried += final.bias_tried
+            self.order = np.array(seq + [int(i) for i in self.order if int(i) not in set(seq)], int)
+            if len(seq) != n_interior or self.n_static:
+                n_interior = len(seq)
+                self.set_interior(n_interior)
+                self.path_accuracy = final.evaluate(self.kept)
+            self._truncation = tr = _truncation_report(final, planned, self.kept, self.truncation_max)
+            tr["dynamic"] = {k: dynamic[k] for k in ("rho", "rho_channels", "bias", "innovation", "q")}
+            tr["dynamic"]["n_interior"] = n_dynamic
+            if not missed and not tr["met"]:
+                bad = [f"rho = {tr['rho']:.3g} (limit {tr['rho_max']:.3g}; "
+                       + ", ".join(f"{c} {v:.2g}" for c, v in tr["rho_channels"].items()) + ") in the channels"
+                       ] if tr["rho"] > tr["rho_max"] else []
+                if not tr["bias_met"]:
+                    worst = max(tr["bias"], key=tr["bias"].get)
+                    bad.append(f"a steady filter's mean-square error of {tr['bias'][worst]:.3g} x its bound's "
+                               f"variance in {worst} (limit {tr['bias_max']:.3g}) and whitened innovations of mean "
+                               f"square {tr['innovation']:.3g} over the channels (limit {tr['innovation_max']:.3g}) "
+                               "on the linearised full model")
+                log.warning("%s: %d interior modes (%d of them static corrections) leave %s under the manoeuvre "
+                            "(.truncation); no further interior mode that rings for a sample interval lowers it",
+                            src, n_interior, self.n_static, " and ".join(bad))
         if self.static is not None and not self.static.met:
             st = self.static
             log.warning("%s: %d static corrections leave a quasi-static reading of %.3g noise sd in %s (limit %.3g) "

@@ -40,8 +40,10 @@ less than 0.01 (``rho`` by 1 % of ``rho_max``), and says so (:attr:`PathSamples.
 
 Last, the filter requirement (:mod:`.truncation`, "What the filter makes of it"): the steady filter's error on the
 linearised full model under the manoeuvre, per estimated quantity over the bound's variance, ``b <= bias_max``
-(:meth:`PathSamples.bias`); modes are added until it holds (:meth:`PathSamples._extend_for_bias`,
-:attr:`PathSamples.bias_met`).
+(:meth:`PathSamples.bias`) and the steady filter's whitened innovations at most ``INNOVATION_MAX`` summed over the
+channels (:meth:`PathSamples.innovation`); modes are added until both hold (:meth:`PathSamples.extend_for_bias`,
+:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` judges them again on the final basis, after the static
+corrections (:mod:`.static`), and where they are still not met adds modes the same way among the re-based ones.
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ from ..erls.modal import ModalResult, modal_analysis
 from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from .accuracy import AccuracyResult
-from .truncation import (BIAS_MAX, TRUNCATION_MAX, WINDOW_SAMPLES, FilterSample, PlannedInput, modal_response,
+from .truncation import (BIAS_MAX, INNOVATION_MAX, TRUNCATION_MAX, WINDOW_SAMPLES, FilterSample, PlannedInput, modal_response,
                          quantity_columns, truncation_sample, window_mean_square)
 
 __all__ = ["PathSamples", "interior_mode_scores", "manoeuvre_configurations", "margin"]
@@ -179,7 +181,7 @@ class PathSamples:
         self.reachable = True  # every sample's band thresholds met by some count (:meth:`choose`)
         self.truncation_met = True  # the truncation requirement met by the count chosen
         self.bias_met = True  # the filter requirement met by the count chosen
-        self.bias_tried: list[int] = []  # the modes the filter requirement tried, in order (:meth:`_extend_for_bias`)
+        self.bias_tried: list[int] = []  # the modes the filter requirement tried, in order (:meth:`extend_for_bias`)
 
     def bias(self, kept) -> np.ndarray:
         """Per estimated quantity (:attr:`.truncation.PlannedInput.quantities`), the filter requirement's figure with
@@ -194,17 +196,39 @@ class PathSamples:
             return hit
         cb = self.cb
         cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(kept, int))].astype(int)
-        ms, var = [], []
+        ms, var, nu = [], [], []
         for fs in self.filters:
-            a, b = fs.bias(cols)
+            a, b, c = fs.bias(cols)
             ms.append(a)
             var.append(b)
+            nu.append(c.sum())
         v = np.mean(var, axis=0)
         v = np.where(v > 0, v, np.inf)
         out = np.mean(ms, axis=0) / v
         self._cache[key] = out
-        self._cache[("bv", key)] = (np.array(ms) / v, v)
+        self._cache[("bv", key)] = (np.array(ms) / v, v, np.array(nu))
         return out
+
+    def innovation(self, kept) -> float:
+        """The filter requirement's innovation figure with the interior modes ``kept``: the mean square of the steady
+        filter's whitened innovations on the linearised full model, summed over the channels, averaged over the
+        sampled configurations (:mod:`.truncation`, "What the filter makes of it"); 0 without filter samples."""
+        if not self.filters:
+            return 0.0
+        self.bias(kept)
+        return float(self._cache[("bv", ("b", _key(kept)))][2].mean())
+
+    def _excess(self, per: np.ndarray, nu: np.ndarray) -> np.ndarray:
+        """Per configuration, the filter requirement's figures over their limits, the largest: ``b`` over
+        ``bias_max`` (``per``: configurations x quantities) and the innovations over :data:`INNOVATION_MAX`."""
+        return np.maximum(per.max(axis=1) / self.bias_max, np.asarray(nu) / INNOVATION_MAX)
+
+    def filter_excess(self, kept) -> float:
+        """The filter requirement with ``kept``, its figures over their limits, the largest (met at most 1): every
+        quantity's ``b`` over ``bias_max`` and the innovations over :data:`INNOVATION_MAX`."""
+        if not self.filters:
+            return 0.0
+        return max(float(self.bias(kept).max()) / self.bias_max, self.innovation(kept) / INNOVATION_MAX)
 
     def bias_of_basis(self, basis) -> np.ndarray:
         """:meth:`bias` for the basis ``basis(q)`` (a callable giving the full-coordinate basis ``H`` (n, r) at a
@@ -215,47 +239,52 @@ class PathSamples:
             return np.zeros(0)
         ms, var = [], []
         for t, fs in zip(self.truncation, self.filters):
-            a, b = fs.bias_of(basis(t.q))
+            a, b, _ = fs.bias_of(basis(t.q))
             ms.append(a)
             var.append(b)
         v = np.mean(var, axis=0)
         return np.mean(ms, axis=0) / np.where(v > 0, v, np.inf)
 
-    def _extend_for_bias(self, seq: list[int], tie) -> int:
+    def extend_for_bias(self, seq: list[int]) -> int:
         """Interior modes added to ``seq`` (the band's and the channels' choice) until the filter requirement holds,
-        ``max bias <= bias_max`` (:meth:`bias`); returns the count. Each step keeps the mode, among those ringing for
-        a sample interval (:attr:`dynamic`), that makes the largest figure smallest at the configuration where it is
-        largest now (ties: the IMR order at q*), if it lowers it there by 1 % of ``bias_max``. Where none does, or
+        ``max bias <= bias_max`` (:meth:`bias`) and the innovations' figure at most :data:`INNOVATION_MAX`
+        (:meth:`innovation`; :meth:`filter_excess` at most 1); returns the count. Each step keeps the mode, among
+        those ringing for a sample interval (:attr:`dynamic`), that makes the largest figure over its limit smallest
+        at the configuration where it is largest now (ties: the IMR order at q*), if it lowers it there by 1 % of
+        its limit. Where none does, or
         three modes in a row lower the figure over all configurations by less, or none is left, the requirement
         cannot be met: ``seq`` is left as it was (the modes would make the filter's model larger and stiffer for a
         figure still above the limit; :attr:`bias_met` False, the figure reported). A mode the input, the loads and
         the channels do not couple to changes no figure, so it is never kept. :attr:`bias_tried`: the modes added,
         in order, before the outcome."""
+        tie = np.argsort(-self.scores[0], kind="stable")  # q*'s IMR order
         n0 = len(seq)
-        best_n, best_b = len(seq), float(self.bias(seq).max())
+        best_n, best_b = len(seq), self.filter_excess(seq)
         stall = 0
         cb = self.cb
-        while best_b > self.bias_max and stall < 3:
+        while best_b > 1.0 and stall < 3:
             cands = [int(i) for i in tie if i not in seq and self.dynamic[i]]
             if not cands:
                 break
             self.bias(seq)
-            per, v = self._cache[("bv", ("b", _key(seq)))]  # (configurations, quantities)
-            j = int(np.argmax(per.max(axis=1)))
+            per, v, nu = self._cache[("bv", ("b", _key(seq)))]  # (configurations, quantities), (configurations,)
+            ex = self._excess(per, nu)
+            j = int(np.argmax(ex))
             scores = []
             for i in cands:
                 cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(seq + [i], int))].astype(int)
-                scores.append(float((self.filters[j].bias(cols)[0] / v).max()))
-            if min(scores) > per[j].max() - 0.01 * self.bias_max:
+                a, _, c = self.filters[j].bias(cols)
+                scores.append(float(self._excess((a / v)[None, :], [c.sum()])[0]))
+            if min(scores) > ex[j] - 0.01:
                 break
             seq.append(cands[int(np.argmin(scores))])
-            b = float(self.bias(seq).max())
-            if b < best_b - 0.01 * self.bias_max:
+            b = self.filter_excess(seq)
+            if b < best_b - 0.01:
                 best_n, best_b, stall = len(seq), b, 0
             else:
                 stall += 1
         self.bias_tried = list(seq[n0:])
-        self.bias_met = best_b <= self.bias_max
+        self.bias_met = best_b <= 1.0
         del seq[best_n if self.bias_met else n0:]
         return len(seq)
 
@@ -440,7 +469,8 @@ class PathSamples:
         thresholds hold, only modes that ring for a sample interval are candidates (:attr:`dynamic`); the
         automatic count stops where the next raises the worst margin by less than 0.01 (1 % of ``rho_max``)
         (:attr:`truncation_met` False); ``truncation=False``: the band's thresholds alone (a fixed count keeps the
-        modes the band needs, as the paper's). ``"frequency"``: the lowest modes first. Where no count meets the
+        modes the band needs, as the paper's); the automatic count then adds the filter requirement's modes
+        (:meth:`extend_for_bias`). ``"frequency"``: the lowest modes first. Where no count meets the
         band's thresholds at every sample (:attr:`reachable` False; e.g. a global master that becomes a link's
         axial direction), the smallest count meeting them wherever some count does."""
         n_all = self.scores.shape[1]
@@ -481,7 +511,7 @@ class PathSamples:
                     break
             seq.append(best)
         if use and n_max is None and n_needed is not None and self.filters:
-            n_needed = self._extend_for_bias(seq, tie)
+            n_needed = self.extend_for_bias(seq)
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
         order = np.array(seq + [int(i) for i in rest if i not in set(seq)], int)
         if n_needed is None:  # a fixed count below the need, or every mode: the need by the order's prefixes

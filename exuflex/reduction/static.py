@@ -80,7 +80,7 @@ import scipy.linalg as sla
 
 from ..erls.sensing import channel_matrix
 from ..manoeuvre import plan
-from .truncation import TRUNCATION_MAX, PlannedInput
+from .truncation import TRUNCATION_MAX, PlannedInput, quantity_rows
 
 __all__ = ["STATIC_MAX", "StaticCorrections", "load_amplitudes", "load_shapes", "motor_loads", "reading_rows", "rebase",
            "static_corrections"]
@@ -248,7 +248,8 @@ def reading_rows(cb, cfg, planned: PlannedInput, quantity_max=None) -> tuple[np.
     rows = [C[:, nq:] + C[:, :nq] @ recoil]
     names = list(planned.channels)
     if quantity_max is not None:
-        Z = recoil if planned.tip is None else np.vstack([recoil, model.point_displacement_rows(cfg, *planned.tip)])
+        Zq, Zt = quantity_rows(model, cfg, planned.tip)
+        Z = recoil + Zq if Zt is None else np.vstack([recoil + Zq, Zt])
         qn = [k for k in planned.quantities if not k.startswith("d")][: Z.shape[0]]
         lim = np.array([quantity_max.get(k, np.inf) for k in qn], float)
         ok = np.isfinite(lim) & (lim > 0)
