@@ -98,7 +98,7 @@ def _held_step_class(fq: float, fe: float):
             p[:nq] += fq * dt * z[r : r + nq]
             p[nq:] += fe * dt * z[r + nq :]
             m = self.rm.matrices(p, z[r:], forces=False)
-            x = _rk4_linear(z, u, m.Mr, m.Kr, m.Cr, m.Gr, iv.mats.fr, dt / n, n)
+            x = _rk4_linear(z, u, np.empty(0), m.Mr, m.Kr, m.Cr, m.Gr, iv.mats.fr, dt / n, n)
             return Prediction(x, pred.F, pred.Q)
 
     return Held

@@ -8,7 +8,8 @@ A run folder (format ``exuflex-run/1``, specified in ``docs/run_format.md``) hol
 - ``truth.csv``: ``time`` then the true states (``q1..``, ``dq1..``, tip elastic ``x25,y26,dx25,dy26``);
   optional (a lab run has none);
 - ``meta.json``: engine, model file and its sha256, mechanism name, settings, seed, package versions,
-  creation time, and the unit of every column.
+  creation time, the unit of every column, and ``input_hold``: what the torques did between two samples
+  (:data:`INPUT_HOLDS`, :func:`input_hold_of`).
 
 Files are written atomically (temporary file in the same folder, then ``os.replace``). The readers
 raise :class:`~exuflex.errors.LogFormatError` naming the file, the column or row, and what was expected.
@@ -44,6 +45,7 @@ from .sensors import Signals
 __all__ = [
     "DELIMITER_NAMES",
     "FORMAT",
+    "INPUT_HOLDS",
     "Run",
     "SignalsCsvWriter",
     "atomic_write_bytes",
@@ -52,6 +54,7 @@ __all__ = [
     "check_not_foreign",
     "dump_json",
     "file_sha256",
+    "input_hold_of",
     "output_folder",
     "package_versions",
     "read_csv_log",
@@ -70,6 +73,27 @@ SENSORS_FILE, TRUTH_FILE, META_FILE = "sensors.csv", "truth.csv", "meta.json"
 MANOEUVRE_FILE = "manoeuvre.toml"
 """The copy of the manoeuvre file a simulated run was made with (``exuflex simulate --manoeuvre``)."""
 TIME = "time"
+INPUT_HOLDS = ("zoh", "linear")
+"""What a log's torques did between two samples (``meta.json``'s ``input_hold``): ``"zoh"``, each sample held to
+the next (a digital controller's zero-order hold: a lab rig; a truth whose planned torque steps at samples);
+``"linear"``, a smooth signal sampled, which the observer's step takes linear between the two samples
+(:attr:`exuflex.observer.reduced.ReducedObserverModel.input_hold`), delayed by ``input_delay_s`` (a truth's
+torque table held over its own step: half of it). A log without ``input_hold`` is "zoh" (every log before the
+field existed was filtered so), without ``input_delay_s`` 0."""
+
+
+def input_hold_of(meta: Mapping, where: str = META_FILE) -> tuple[str, float]:
+    """The log's ``(input_hold, input_delay_s)`` (:data:`INPUT_HOLDS`; defaults "zoh" and 0); a
+    :class:`~exuflex.errors.LogFormatError` naming ``where`` and the field if either is out of its range."""
+    v = meta.get("input_hold", "zoh")
+    if v not in INPUT_HOLDS:
+        raise LogFormatError(f"{where}: field 'input_hold' must be one of {', '.join(map(repr, INPUT_HOLDS))} (what "
+                             f"the torques did between two samples), got {v!r}")
+    d = meta.get("input_delay_s", 0.0)
+    if isinstance(d, bool) or not isinstance(d, (int, float)) or not (math.isfinite(d) and d >= 0):
+        raise LogFormatError(f"{where}: field 'input_delay_s' must be a number of seconds >= 0 (how long after their "
+                             f"samples the torques act), got {d!r}")
+    return v, float(d)
 
 
 @dataclass(frozen=True)
@@ -88,6 +112,11 @@ class Run:
     @property
     def sensor_names(self) -> tuple[str, ...]:
         return tuple(self.meta.get("sensors", ()))
+
+    @property
+    def input_hold(self) -> tuple[str, float]:
+        """What the torques did between two samples: ``("zoh" or "linear", delay in s)`` (:func:`input_hold_of`)."""
+        return input_hold_of(self.meta, str(self.path / META_FILE) if self.path.is_dir() else str(self.path))
 
     @property
     def inputs(self) -> Signals:
@@ -243,8 +272,9 @@ def write_run(
     truth : Signals or None
         True states (same or different time grid).
     meta : mapping
-        Run metadata (engine, model, settings, seed, ...); ``format``, ``created``, ``versions``,
-        ``motors``, ``sensors``, ``truth`` and ``units`` are filled in if absent.
+        Run metadata (engine, model, settings, seed, ``input_hold``, ...); ``format``, ``created``, ``versions``,
+        ``motors``, ``sensors``, ``truth`` and ``units`` are filled in if absent, ``input_hold`` with its default
+        (:func:`input_hold_of`).
     motors : sequence of str
         Which columns of ``sensors`` are measured torques (default: ``meta['motors']``).
     """
@@ -261,6 +291,7 @@ def write_run(
         raise ValueError(
             f"write_run: motor column(s) {missing} not in the sensor channels {list(sensors.names)}"
         )
+    meta["input_hold"], meta["input_delay_s"] = input_hold_of(meta, "write_run: meta")
     meta.setdefault("format", FORMAT)
     meta.setdefault("created", _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
     meta.setdefault("versions", package_versions())
@@ -766,6 +797,7 @@ def read_run(run_dir: str | os.PathLike) -> Run:
         raise LogFormatError(
             f"{mp}: field 'units' is not an object {{file: {{column: unit}}}}, got {units!r}"
         )
+    input_hold_of(meta, str(mp))
     sensors = read_signals_csv(
         d / SENSORS_FILE, meta["motors"] + meta["sensors"], allow_empty=True, units=units.get(SENSORS_FILE)
     )
@@ -935,6 +967,7 @@ def read_lab_run(
     decimal: str = ".",
     truth: str | os.PathLike | None = None,
     columns_name: str = "columns",
+    input_hold: str = "zoh",
 ) -> Run:
     """A lab's CSV log as a :class:`Run` of the mechanism ``mech``: what ``exuflex observe MODEL LOG.csv`` reads.
 
@@ -943,7 +976,8 @@ def read_lab_run(
     name); the other arguments as :func:`read_csv_log`. The log must have every motor's torque (the observer's
     input); its sensor columns are the channels it offers. ``truth``: an optional truth CSV (time column
     ``time``, columns named like the truth states) for the error metrics. ``columns_name`` names the argument
-    in error messages (the command line's ``--map``)."""
+    in error messages (the command line's ``--map``). ``input_hold``: what the torques did between two samples
+    (:data:`INPUT_HOLDS`; default "zoh", a digital controller's output held over its period)."""
     from .errors import UsageError
     from .mechanism import Mechanism
 
@@ -990,7 +1024,8 @@ def read_lab_run(
                              f"{list(sig.names)} (map your columns with {columns_name})")
     tr = read_csv_log(truth, time_column="time", delimiter=delimiter, decimal=decimal) if truth else None
     sensors = [n for n in sig.names if n not in motors and n in names]
-    meta = {"engine": "csv", "source": str(path), "motors": motors, "sensors": sensors}
+    meta = {"engine": "csv", "source": str(path), "motors": motors, "sensors": sensors, "input_hold": input_hold}
+    input_hold_of(meta, "input_hold")
     return Run(Path(path), sig, tr, meta)
 
 

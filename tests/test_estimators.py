@@ -155,7 +155,7 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     dl = z[: inner.nq] - iv.q0
     s = inner.secant_factor(iv, dl)
     a = np.array([0.9, -0.4, 0.6])
-    rows, Mr, Kr, Cr, Gr = scaled_steps(z, u, dl, s, dt / n, n, a, tuple(iv.system), tuple(inc))
+    rows, Mr, Kr, Cr, Gr = scaled_steps(z, u, np.empty(0), dl, s, dt / n, n, a, tuple(iv.system), tuple(inc))
     scaled = {"Mr": "Mr", "Ca": "Ca", "dM": "dM", "fg": "fg", "T2": "T2", "C2": "C2", "old_dM": "old_dM",
               "old_Ca": "old_Ca", "old_fg": "old_fg", "old_T2": "old_T2", "old_C2": "old_C2"}
     for k, c in enumerate(a):
@@ -168,7 +168,7 @@ def test_scaled_steps_are_the_held_steps_of_the_scaled_system(mid_run):
     Ts, Vs, C3 = iv.forces.jacobian_tensors()
     n0 = len(z)
     # (no scaled map yet and any scale beyond the tolerance: the scaled map is built at a[-1])
-    out = payload_interval(z, u, dl, s, dt / n, n, a, 1.6, n0 + 2, (0.2, 0.3, 1.0, 0.0),
+    out = payload_interval(z, (u, np.empty(0)), dl, s, dt / n, n, a, 1.6, n0 + 2, (0.2, 0.3, 1.0, 0.0),
                            (False, 0.0, sm.Pn, sm.S, sm.L, sm.Q), (sm.Pn, sm.S, sm.L, sm.Q, inner.torque_var, np.zeros(0)),
                            (Ts, dTs, Vs, C3), tuple(iv.system), tuple(inc))
     np.testing.assert_array_equal(out[0], rows)
@@ -196,7 +196,7 @@ def _scaled(aug, z, u, dt, a):
     iv, _ = inner.last_step
     n = inner.substeps(iv, dt)
     dl = z[: inner.nq] - iv.q0
-    return scaled_steps(z, u, dl, inner.secant_factor(iv, dl), dt / n, n, np.asarray(a, float), tuple(iv.system),
+    return scaled_steps(z, u, np.empty(0), dl, inner.secant_factor(iv, dl), dt / n, n, np.asarray(a, float), tuple(iv.system),
                         tuple(aug.increment(iv, z)))[0]
 
 
@@ -669,7 +669,7 @@ def test_cached_and_reference_payload_steps_agree_to_the_held_configurations_ord
         n = m.substeps(iv, dt)
         dl = z[:nq] - iv.q0
         assert not np.any(dl)
-        c = scaled_steps(z, u, dl, 0.0, dt / n, n, a, tuple(iv.system), tuple(inc))[0]
+        c = scaled_steps(z, u, np.empty(0), dl, 0.0, dt / n, n, a, tuple(iv.system), tuple(inc))[0]
         ref.reset()
         aug_r.reset()
         aug_r.predict(np.concatenate([z, [1.0]]), u, dt)

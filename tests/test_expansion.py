@@ -154,7 +154,7 @@ def test_rk4_kernel_is_n_rk4_steps_of_the_linear_system():
     z, u, f = rng.normal(size=2 * r), rng.normal(size=nq), rng.normal(size=r)
     Pn, SQM, L = ex.step_maps(np.linalg.inv(Mr), Kr, Cr, Gr, 1e-4, 20)
     expected = Pn @ z + L @ u + SQM @ f
-    np.testing.assert_allclose(ex._rk4_linear(z, u, Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
+    np.testing.assert_allclose(ex._rk4_linear(z, u, np.empty(0), Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
                                atol=1e-12 * np.abs(expected).max())
     np.testing.assert_allclose(oracle.rk4_linear(z, u, Mr, Kr, Cr, Gr, f, 1e-4, 20), expected, rtol=1e-9,
                                atol=1e-12 * np.abs(expected).max())
@@ -163,7 +163,7 @@ def test_rk4_kernel_is_n_rk4_steps_of_the_linear_system():
 def test_a_mass_matrix_that_is_not_positive_definite_gives_nan_not_garbage():
     r = 4
     Mr = -np.eye(r)
-    out = ex._rk4_linear(np.ones(2 * r), np.zeros(1), Mr, np.eye(r), np.eye(r), np.ones((r, 1)), np.zeros(r),
+    out = ex._rk4_linear(np.ones(2 * r), np.zeros(1), np.empty(0), Mr, np.eye(r), np.eye(r), np.ones((r, 1)), np.zeros(r),
                               1e-4, 2)
     assert np.all(np.isnan(out))
 

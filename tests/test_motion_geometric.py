@@ -84,8 +84,8 @@ def test_cached_interval_carries_the_motion_stiffness_as_the_reduced_equations_d
     n = som.substeps(iv, dt)
     jac = (np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
     dl = np.zeros(nq)
-    cached = held_interval(z, tau, dl, 0.0, dt / n, n, *jac, tuple(iv.system))[0]
-    cached0 = held_interval(z, tau, dl, 0.0, dt / n, n, *jac, tuple(iv.system._replace(KGd=np.zeros((0, 0)))))[0]
+    cached = held_interval(z, tau, np.empty(0), dl, 0.0, dt / n, n, *jac, tuple(iv.system))[0]
+    cached0 = held_interval(z, tau, np.empty(0), dl, 0.0, dt / n, n, *jac, tuple(iv.system._replace(KGd=np.zeros((0, 0)))))[0]
     exact = ReducedObserverModel(rm, method="rk4").predict(z, tau, dt).x
     rm.motion_stiffness = lambda *a: np.zeros((r, r))  # the reduced equations without it
     exact0 = ReducedObserverModel(rm, method="rk4").predict(z, tau, dt).x

@@ -174,13 +174,13 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
         f = forces(x) + held_matrices_step.extra @ (x[:nq] - z[:nq])
         pem = x[nq:r] + 0.5 * h * n * x[r + nq :]
         M, K, C, G = ex.held_system(dl0, 0.0, pem, tuple(hs))
-        return ex._rk4_linear(x, u, M, K, C, G, f, h, n)
+        return ex._rk4_linear(x, u, np.empty(0), M, K, C, G, f, h, n)
 
     held_matrices_step.extra = np.zeros((r, nq))
 
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
     tensors = iv.forces.jacobian_tensors()
-    F = ex.held_interval(z, u, dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]  # the cached step's own F
+    F = ex.held_interval(z, u, np.empty(0), dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]  # the cached step's own F
     Fp = hs.Wg
     if hs.Wg.shape[0]:  # gravity: F holds the held matrices' change with q as forces at z (position_forces)
         Fp = ex.position_forces(z, step(z), dt, hs.Wg, hs.dM, hs.dK, hs.beta)
@@ -258,7 +258,7 @@ def exact_entries(name: str, seed: int = 0, s_along: float = -0.4) -> dict:
     Fd = _central(step, z, r)
     _, Mr, Kr, Cr, Gr = ex.held_step(z, u, dl, s, h, n, iv.system)
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
-    F_filter = ex.held_interval(z, u, dl, s, h, n, *iv.forces.jacobian_tensors(), Pn, S, tuple(iv.system))[1]
+    F_filter = ex.held_interval(z, u, np.empty(0), dl, s, h, n, *iv.forces.jacobian_tensors(), Pn, S, tuple(iv.system))[1]
     return {"s": s, "exact": float(entry_error(F, Fd, 1e-5, 1e-8).max()),
             "left_out": float((np.abs(F_filter - F) / natural_scale(F)).max())}
 
@@ -480,7 +480,7 @@ def sag_entries(name: str, seed: int = 0) -> dict:
 
     _, Mr, Kr, Cr, Gr = ex.held_step(z, u, zero, 0.0, h, n, hs)
     Pn, S, _, _ = ex.step_maps_noise(Mr, Kr, Cr, Gr, h, n, m.torque_var)
-    Fc = ex.held_interval(z, u, zero, 0.0, h, n, *iv.forces.jacobian_tensors(), Pn, S, tuple(hs))[1]
+    Fc = ex.held_interval(z, u, np.empty(0), zero, 0.0, h, n, *iv.forces.jacobian_tensors(), Pn, S, tuple(hs))[1]
     Fr = ref.frozen_interval(z, u, dt)[0].F
 
     def rows(F):
@@ -491,7 +491,7 @@ def sag_entries(name: str, seed: int = 0) -> dict:
 
     Fd = cols(lambda x: ref.advance(x, u, dt)) / dt
     Fs = cols(cached) / dt
-    F0 = ex.held_interval(z, u, zero, 0.0, h, n, *iv.forces.jacobian_tensors(), Pn, S,
+    F0 = ex.held_interval(z, u, np.empty(0), zero, 0.0, h, n, *iv.forces.jacobian_tensors(), Pn, S,
                           tuple(hs._replace(We=np.zeros((0, 0)))))[1]  # the weight's q-gradient at the sag left out
     scale = np.abs(Fd) + 1e-2 * np.abs(Fd).max()
 

@@ -117,6 +117,7 @@ from .expansion import (
     payload_interval,
     scaled_steps,
 )
+from .reduced import rk4_input_steps
 
 __all__ = ["AugmentedModel", "PayloadIncrement", "nominal_mixture", "payload_interval", "payload_rows",
            "payload_twin", "scaled_steps", "warm_up"]
@@ -335,9 +336,10 @@ class AugmentedModel:
         self._shares[iv.serial] = share
         return inc
 
-    def _scaled_rk4(self, z, u, dt, a):
+    def _scaled_rk4(self, z, u, dt, a, du=None):
         """The reference step at the payload scales ``1 + a_k``: RK4 of the nonlinear reduced equations of
-        ``S(1) + a_k dS`` at every stage, with the nominal model's geometric stiffness of the motion
+        ``S(1) + a_k dS`` at every stage (the torques ``u + (t / dt) du``, :func:`.reduced.rk4_input_steps`), with
+        the nominal model's geometric stiffness of the motion
         (:meth:`.ReducedModel.accelerations`; the payload's share of the axial loads is left out, as the cached
         step leaves it out)."""
         inner = self.inner
@@ -355,24 +357,27 @@ class AugmentedModel:
                 rhs = m1.Gr @ u + m1.fr + c * (m2.fr - m1.fr) - C @ x[r:] - K @ x[:r]
                 return np.concatenate([x[r:], np.linalg.solve(M, rhs)])
 
-            x = np.array(z, float)
-            for _ in range(n):
-                x = rk4_step(f, 0.0, x, dt / n, u)
+            if du is None or not np.any(du):
+                x = np.array(z, float)
+                for _ in range(n):
+                    x = rk4_step(f, 0.0, x, dt / n, u)
+            else:
+                x = rk4_input_steps(f, z, u, du, dt, n)
             out[k] = x
         return out
 
-    def _reference(self, x: np.ndarray, u: np.ndarray, dt: float) -> tuple:
+    def _reference(self, x: np.ndarray, u: np.ndarray, dt: float, du: np.ndarray) -> tuple:
         """The reference step (``method="rk4"``) of the augmented state: the inner model's, its state at the scale
         ``c`` (:meth:`_scaled_rk4`) and the scale's column its forward difference over :data:`DTHETA` (the scale
         learned at every interval: the linearity hold is the cached step's, :func:`.expansion.extra_interval`);
         ``(x, F, Q)``, the disturbances entering through the nominal map's torque response."""
         inner, n0, N = self.inner, self.n0, self.nx
         xn, F, Q = np.zeros(N), np.zeros((N, N)), np.zeros((N, N))
-        xn[:n0], F[:n0, :n0], Q[:n0, :n0] = inner.predict(x[:n0], u, dt)
+        xn[:n0], F[:n0, :n0], Q[:n0, :n0] = inner.interval(x[:n0], u, dt, du)
         if self.i_theta is not None:
             it = self.i_theta
             c = max(float(x[it]), 0.0) - 1.0
-            rows = self._scaled_rk4(x[:n0], u, dt, [c + DTHETA] + ([c] if c != 0.0 else []))
+            rows = self._scaled_rk4(x[:n0], u, dt, [c + DTHETA] + ([c] if c != 0.0 else []), du)
             xn[:n0] = rows[-1] if c != 0.0 else xn[:n0]
             F[:n0, it] = (rows[0] - xn[:n0]) / DTHETA
             xn[it], F[it, it], Q[it, it] = x[it], 1.0, self.payload_std**2 * dt
@@ -393,9 +398,13 @@ class AugmentedModel:
         x = np.asarray(x, float)
         inner, n0 = self.inner, self.n0
         d = 0.0 if self.i_inputs is None else x[self.i_inputs]
-        u = inner.torques(u) + d
+        u0 = inner.torques(u)
+        du = inner.input_increment(u0, u_next)  # (of the measured torques: the disturbances do not change over it)
+        u = u0 + d
+        if du.size and inner.input_delay:  # the compiled step's order of operations (expansion.cached_interval)
+            u = (u0 - (inner.input_delay / dt) * du) + d
         if inner.method != "cached":
-            xn, F, Q = self._reference(x, u, dt)
+            xn, F, Q = self._reference(x, u, dt, du)
         else:
             z = x[:n0]
             n_refresh = inner.n_refresh
@@ -404,7 +413,7 @@ class AugmentedModel:
             for rescue in (False, True):
                 var = self._cov()[n0, n0] if extras.pay_held else 0.0
                 xn, F, Q, Mo, Ko, Co, Go, scaled_out, release = extra_interval(
-                    x, u, dl, s, dt, n, extras, var, scaled, (sm.Pn, sm.S, sm.L, sm.Q, inner.torque_var,
+                    x, u, du, dl, s, dt, n, extras, var, scaled, (sm.Pn, sm.S, sm.L, sm.Q, inner.torque_var,
                                                               inner.q_extra_diag), sm.tail[:3], sm.tail[5])
                 if rescue or math.isfinite(xn[0]) or not (s or np.any(dl)):
                     break
@@ -417,7 +426,7 @@ class AugmentedModel:
                 self.released = bool(release)
                 self.n_held += not release
             inner.interval_system = (Mo, Ko, Co, Go, dt / n, n)
-        if u_next is not None:
+        if u_next is not None and inner.input_hold == "zoh":
             jump = inner.input_jump(u, np.asarray(u_next, float) + d)
             if jump is not None:
                 dx, dQ = inner.input_jump_moments(jump)
@@ -513,12 +522,12 @@ def warm_up() -> None:
         inc = PayloadIncrement(M, M, hs.dM, hs.fg, hs.T2, hs.C2, hs.old_dM, M, hs.old_fg, hs.old_T2, hs.old_C2)
         hs, inc = tuple(hs), tuple(inc)
         nominal = (*maps, np.ones(nq), np.zeros(0))
-        scaled_steps(z, u, dl, 0.0, 1e-4, 1, a, hs, inc)
+        scaled_steps(z, u, u, dl, 0.0, 1e-4, 1, a, hs, inc)
         for ok in (False, True):
-            payload_interval(z, u, dl, 0.0, 1e-4, 1, a, 1.0, 2 * r + 1, (1e-4, 1.0, 1.0, 0.0), (ok, 0.0, *maps),
+            payload_interval(z, (u, u), dl, 0.0, 1e-4, 1, a, 1.0, 2 * r + 1, (1e-4, 1.0, 1.0, 0.0), (ok, 0.0, *maps),
                              nominal, (T3, T3, V3, C3), hs, inc)
         extras = LoopExtras(True, has_old, 1.0, 1e-4, 1.0, 0.03, T3, 1.0, np.zeros(2), *inc, np.ones(nq), 0.0)
-        extra_interval(np.zeros(2 * r + 1 + nq), u, dl, 0.0, 1e-3, 1, extras, 1.0, (False, 0.0, *maps), nominal,
+        extra_interval(np.zeros(2 * r + 1 + nq), u, u, dl, 0.0, 1e-3, 1, extras, 1.0, (False, 0.0, *maps), nominal,
                        (T3, V3, C3), hs)
     warm_up_loop("augmented")
 

@@ -11,9 +11,10 @@ Conventions
 -----------
 - An *interval* runs from one sample to the next; its length ``dt`` is whatever the two time stamps say (a lab
   clock's jitter and drift included). The model integrates over it with its own sub-steps.
-- The input ``u`` (measured torques) is held over the interval (zero-order hold, eq. 10); ``u_next`` is the
-  sample that ends it, which a model may use to detect a step within the interval. Either may be ``None`` for
-  an autonomous model.
+- The input ``u`` (measured torques) is the sample that starts the interval, ``u_next`` the sample that ends it:
+  a model holds ``u`` over the interval (zero-order hold, eq. 10) or takes the input linear between the two (a
+  smooth signal sampled: :attr:`.reduced.ReducedObserverModel.input_hold`), or uses ``u_next`` to detect a step
+  within the interval. Either may be ``None`` for an autonomous model.
 - Every channel is a *scalar* signal; a multi-component sensor is several channels (``"tip_x"``, ``"tip_y"``).
 - States are 1-D ``(nx,)``, matrices ``(nx, nx)`` and ``(m, nx)``, float64.
 """

@@ -41,6 +41,7 @@ __all__ = [
     "cached_rows",
     "extra_interval",
     "held_interval",
+    "held_ramp",
     "held_step",
     "held_system",
     "map_error",
@@ -224,11 +225,24 @@ def _cholesky_solve(A, B):  # pragma: no cover - compiled
     return X
 
 
-def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
-    """``n`` RK4 steps of ``h`` of ``M p'' + C p' + K p = G u + f`` from ``z = [p; p']`` (NaN if ``M`` is not
-    positive definite)."""
+def _ramps(du):  # pragma: no cover - compiled
+    """Whether the input changes over the interval (``du`` not all zero: a linear input, :func:`_rk4_linear`)."""
+    for j in range(du.shape[0]):
+        if du[j] != 0.0:
+            return True
+    return False
+
+
+def _rk4_linear(z, u, du, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
+    """``n`` RK4 steps of ``h`` of ``M p'' + C p' + K p = G u(t) + f`` from ``z = [p; p']`` (NaN if ``M`` is not
+    positive definite), the input linear over the interval ``T = n h``: ``u(t) = u + (t / T) du`` (``du`` zero or
+    empty: held). Each stage takes the input at its own time (``t = i h``, ``+ h/2``, ``+ h``): RK4's order holds for an
+    input linear in time, whereas the input held at its start errs by ``G du / 2`` on average, a first-order lag
+    of half an interval (docs/held_step.md, "The input over a sample interval")."""
     r = Mr.shape[0]
-    rhs = np.empty((r, 2 * r + 1))
+    ramp = _ramps(du)
+    nc = 2 * r + 2 if ramp else 2 * r + 1
+    rhs = np.empty((r, nc))
     for i in range(r):  # element copies, not slice assignments (whose shape check links numba's message code)
         for j in range(r):
             rhs[i, j] = Kr[i, j]
@@ -237,15 +251,21 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
         for j in range(u.shape[0]):
             acc += Gr[i, j] * u[j]
         rhs[i, 2 * r] = acc
+        if ramp:  # the input's rate over the interval
+            acc = 0.0
+            for j in range(du.shape[0]):
+                acc += Gr[i, j] * du[j]
+            rhs[i, 2 * r + 1] = acc / (h * n)
     X = _cholesky_solve(Mr, rhs)
     # the vectors padded with zeros to a whole number of SIMD lanes: the sweeps then have no scalar remainder;
     # the padding stays zero
     rp = (r + 3) // 4 * 4
-    XT = np.zeros((2 * r + 1, rp))  # column j of the operator is the contiguous row XT[j]
+    XT = np.zeros((nc, rp))  # column j of the operator is the contiguous row XT[j]
     for i in range(r):
-        for j in range(2 * r + 1):
+        for j in range(nc):
             XT[j, i] = X[i, j]
     b = XT[2 * r]
+    b1 = XT[nc - 1]  # (ramp: M^-1 G du / T)
     p = np.zeros(rp)
     v = np.zeros(rp)
     for i in range(r):
@@ -256,21 +276,26 @@ def _rk4_linear(z, u, Mr, Kr, Cr, Gr, f, h, n):  # pragma: no cover - compiled
     yp = np.empty(rp)  # stage position
     asum = np.empty(rp)  # weighted sums of the stage rates (1, 2, 2, 1)
     wsum = np.empty(rp)
-    for _ in range(n):
+    for step in range(n):
         for st in range(4):
+            c = 0.0 if st == 0 else 0.5 * h if st < 3 else h
             if st == 0:  # stage st at (p + c w_{st-1}, v + c a_{st-1})
                 for i in range(rp):
                     yp[i] = p[i]
                     w[i] = v[i]
             else:
-                c = 0.5 * h if st < 3 else h
                 for i in range(rp):
                     yp[i] = p[i] + c * w[i]
                     w[i] = v[i] + c * a[i]
             # a = b - X_K yp - X_C w, as axpy sweeps over contiguous rows, a position and a velocity column
             # per sweep (independent lanes: no serial add chain)
-            for i in range(rp):
-                a[i] = b[i]
+            if ramp:  # the input at the stage's time
+                ts = step * h + c
+                for i in range(rp):
+                    a[i] = b[i] + ts * b1[i]
+            else:
+                for i in range(rp):
+                    a[i] = b[i]
             for j in range(r):
                 xk = XT[j]
                 xc = XT[r + j]
@@ -518,10 +543,12 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
     return Mr, Kr, Cr, Gr
 
 
-def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
+def _held_model(z, dl, s, tm, hs, tf=0.0):  # pragma: no cover - compiled
     """The held model over an interval from ``z`` (``q = q0 + dl``): the matrices (:func:`_system`) at ``q`` with
     the elastic coordinates ``tm`` seconds on, ``p_e + tm p_e'`` (the interval's midpoint for ``tm = dt/2``), and
-    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``. Where the held system has a weight gradient
+    the forces at ``z`` along the secant: ``(M_r, K_r, C_r, G_r, f)``; the weight at the configuration ``tf``
+    seconds on, ``q + tf q'`` (:func:`held_interval`: the interval's midpoint with a linear input, its start with a
+    held one). Where the held system has a weight gradient
     (gravity) the weight follows ``q`` to second order instead, as ``M_r`` and ``K_r`` do: its gradient in every
     direction and, with a secant partner (``d = q0 - q_old``, ``s = (dl . d) / (d . d)``), half the gradient's
     change along the secant, ``f_g = fg + (Wg + s/2 (Wg - Wg_old)) dl``: with ``Wg - Wg_old = D2(d, .)`` to first
@@ -577,7 +604,7 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
                 g = hs.Wg[i, j]
                 if hs.has_old:
                     g += 0.5 * s * (hs.Wg[i, j] - hs.old_Wg[i, j])
-                acc += g * dl[j]
+                acc += g * (dl[j] + tf * pd[j])
             if secant:  # the forms' secant moved the weight along it already: taken out
                 acc -= s * (hs.fg[i] - hs.old_fg[i])
             f[i] += acc
@@ -594,7 +621,7 @@ def _held_model(z, dl, s, tm, hs):  # pragma: no cover - compiled
             for i in range(nq):
                 acc = 0.0
                 for j in range(nq):
-                    acc += hs.We[k, i * nq + j] * dl[j]
+                    acc += hs.We[k, i * nq + j] * (dl[j] + tf * pd[j])
                 f[i] += w * acc
     return Mr, Kr, Cr, Gr, f
 
@@ -703,20 +730,34 @@ def _motion_rates(F, z, u, nq, SQM, KGd, Kd, dt):  # pragma: no cover - compiled
                 g[i, a] -= z[r + b] * acc
                 g[i, b] -= z[r + a] * acc
             k += 1
+    _rate_response(F, SQM, g)
+
+
+def _rate_response(F, SQM, g):  # pragma: no cover - compiled
+    """``F[:, r + m] += SQM g[:, m]`` (in place): the step's response to generalised forces ``g`` (r, k) per unit
+    change of the first ``k`` rates."""
+    r = SQM.shape[1]
     for i in range(F.shape[0]):
-        for m in range(r):
+        for m in range(g.shape[1]):
             acc = 0.0
             for c in range(r):
                 acc += SQM[i, c] * g[c, m]
             F[i, r + m] += acc
 
 
-def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no cover - compiled
+def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no cover - compiled
     """One interval of the cached step, the model at ``q0 + dl`` (:func:`_held_model`) advanced by ``n`` RK4
     sub-steps of ``h``, and its Jacobian (:func:`_step_jacobian`, with the velocity forces' and the held
     matrices' change with the elastic coordinates, :func:`_velocity_jacobian`, :func:`_elastic_tangent`) (what the
     cached step does per interval):
-    ``(z_next, F, M_r, K_r, C_r, G_r)``. An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
+    ``(z_next, F, M_r, K_r, C_r, G_r)``. The input over the interval ``T = n h``: ``du`` empty, the torques ``u``
+    held (a log's zero-order hold); else linear, ``u + (t / T) du`` (:func:`_rk4_linear`), and the forces that
+    follow the configuration with it: the motion's geometric stiffness, a force held over the interval at its
+    midpoint positions, at the midpoint torques ``u + du / 2``, and the weight at the midpoint configuration
+    ``q + T/2 q'`` (:func:`_held_model`), with the Jacobian's terms in them (:func:`_weight_rates`). With the
+    torques held the weight stays at the interval's start: a table's torque that carries a link against its
+    weight follows the weight, so the held torque lags it by half an interval as the weight held at the start
+    does, and the two lags cancel (docs/held_step.md, "The input over a sample interval"). An empty ``Pn`` leaves the Jacobian out (``F`` empty): the one kernel
     then serves :func:`held_step` too (see :func:`_inline` for why one). ``z_next`` is NaN if the held ``M_r``
     is not positive definite at the start either. The helpers are called here directly: numba copies an inlined helper's whole code once
     per block, so one large helper costs far more to inline than its parts. ``hs``: the held system
@@ -724,33 +765,44 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
     through a slower path)."""
     hs = HeldSystem(*hs)
     nq = dl.shape[0]
+    linear = du.shape[0] > 0
+    um = u.copy()  # the torques at the interval's midpoint
+    if linear:
+        for j in range(u.shape[0]):
+            um[j] += 0.5 * du[j]
+    tf = 0.5 * h * n if linear else 0.0  # where the weight is taken
     KGe = _motion_form(hs.KGd, hs.dKGd, dl)
-    Kd = motion_stiffness(u, z, nq, KGe)
+    Kd = motion_stiffness(um, z, nq, KGe)
     tm = 0.5 * h * n
-    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
+    Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs, tf)
     motion_forces(f, z, 0.5 * h * n, Kd)
-    z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
+    z_next = _rk4_linear(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n)
     if not math.isfinite(z_next[0]):
         # M_r not positive definite at the midpoint's elastic coordinates: a long interval (a gap, a log sampled
         # far below the modes), over which their linear advance means nothing; the matrices at the start
         tm = 0.0
-        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs)
+        Mr_, Kr_, Cr_, Gr_, f = _held_model(z, dl, s, tm, hs, tf)
         motion_forces(f, z, 0.5 * h * n, Kd)
-        z_next = _rk4_linear(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n)
+        z_next = _rk4_linear(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n)
     F = np.empty((0, 0))
     if Pn.shape[0]:  # the kernel itself, not inlined: the filter calls it from Python as well
         Fp = hs.Wg
         if hs.Wg.shape[0]:  # gravity: the held matrices' change with q as well (position_forces)
             Fp = position_forces(z, z_next, h * n, hs.Wg, hs.dM, hs.dK, hs.beta)
-            _weight_curvature_forces(Fp, z, dl, hs.We)
+            dlw = dl.copy()  # where the weight is taken (:func:`_held_model`)
+            for j in range(nq):
+                dlw[j] += tf * z[Mr_.shape[0] + j]
+            _weight_curvature_forces(Fp, z, dlw, hs.We)
             _forms_gradient_forces(Fp, z, nq, hs.dT2, hs.dV2, hs.dC2)
         if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
             Fp = motion_gradient(Fp, Kd)
-            motion_form_gradient(Fp, u, z, 0.5 * h * n, hs.dKGd, nq)
+            motion_form_gradient(Fp, um, z, 0.5 * h * n, hs.dKGd, nq)
         F = step_jacobian(z, Ts, Vs, C3, Pn, SQM, Fp)
-        motion_rates(F, z, u, nq, SQM, KGe, Kd, h * n)
+        motion_rates(F, z, um, nq, SQM, KGe, Kd, h * n)
+        if tf != 0.0:
+            _weight_rates(F, z, s, tf, SQM, hs)
         _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
-        Y = _elastic_tangent(z, u, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
+        Y = _elastic_tangent(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
         nq = dl.shape[0]
         r = nq + Y.shape[1]
         for k in range(Y.shape[1]):
@@ -758,6 +810,31 @@ def _held_interval(z, u, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: no co
                 F[i, nq + k] += Y[i, k]
                 F[i, r + nq + k] += tm * Y[i, k]
     return z_next, F, Mr_, Kr_, Cr_, Gr_
+
+
+def _weight_rates(F, z, s, tf, SQM, hs):  # pragma: no cover - compiled
+    """Add to the step Jacobian ``F`` (in place) the response ``SQM g`` to the weight taken ``tf`` seconds into the
+    interval (:func:`_held_model`: ``q + tf q'``): in rate column ``j < nq`` ``tf`` times the held weight's
+    q-gradient, ``Wg + s/2 (Wg - Wg_old)`` with the sag's ``sum_m p_m We[m]`` in the q rows; nothing without
+    gravity."""
+    if hs.Wg.shape[0] == 0:
+        return
+    r = SQM.shape[1]
+    nq = hs.dM.shape[0]
+    g = np.zeros((r, nq))
+    for i in range(r):
+        for j in range(nq):
+            x = hs.Wg[i, j]
+            if hs.has_old:
+                x += 0.5 * s * (hs.Wg[i, j] - hs.old_Wg[i, j])
+            g[i, j] = tf * x
+    for k in range(hs.We.shape[0]):
+        w = z[nq + k]
+        if w != 0.0:
+            for i in range(nq):
+                for j in range(nq):
+                    g[i, j] += tf * w * hs.We[k, i * nq + j]
+    _rate_response(F, SQM, g)
 
 
 def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
@@ -774,7 +851,7 @@ def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
             F[i, j] += Fe[i, j]
 
 
-def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover - compiled
+def _elastic_tangent(z, u, du, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover - compiled
     """``Y`` (2r, n_el): the change of the interval's end state per unit elastic coordinate ``p_k`` at which the
     held matrices are taken (``p_e + tm p_e'``, :func:`_held_model`; ``tm = dt/2``, or 0 where the interval fell back
     to its start), through the matrices alone: the step Jacobian's columns of ``p_k`` gain ``Y[:, k]`` and those of
@@ -784,7 +861,8 @@ def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover
     force ``g_k = dG_k u - dM_k a - dC_k p' - dK_k p`` along the interval's motion; ``Y`` is the tangent of the
     same RK4 sub-steps driven by it from zero (stage by stage at the stage's state and acceleration: the elastic
     modes oscillate within an interval, and a force taken at the interval's mean motion is no approximation of
-    it). Exact for the step as computed (``tests/_oracles.py``'s ``exact_jacobian`` carries the same tangent)."""
+    it). The torques at each stage's time, ``u + (t / T) du`` (:func:`_rk4_linear`), in ``G u`` and ``dG_k u``.
+    Exact for the step as computed (``tests/_oracles.py``'s ``exact_jacobian`` carries the same tangent)."""
     n_el = hs.pM.shape[0]
     r = Mr.shape[0]
     if n_el == 0 or r == n_el:
@@ -800,6 +878,8 @@ def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover
     dK = np.zeros((n_el * r, r))
     dC = np.zeros((n_el * r, r))
     dGu = np.zeros((r, n_el))
+    dGd = np.zeros((r, n_el))  # dG_k du: the input matrix's change times the input's change over the interval
+    T = h * n
     n2 = hs.p2C.shape[1] if hs.p2C.shape[0] else 0
     for k in range(n_el):
         o = k * r
@@ -816,6 +896,8 @@ def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover
                 dC[o + j, i] += cc
             for j in range(m):
                 dGu[i, k] += hs.pG[k, i * mg + j] * u[j]
+            for j in range(du.shape[0]):
+                dGd[i, k] += hs.pG[k, i * mg + j] * du[j] / T
         if n2:  # d/dp_k of sum_{a <= b} p_a p_b X_ab (p2C's packing, :func:`_elastic_terms`)
             cp = 0
             for a_ in range(n_el):
@@ -835,35 +917,46 @@ def _elastic_tangent(z, u, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover
                                     dC[o + j, i] += x
                                 t += 1
                     cp += 1
-    rhs = np.empty((r, 2 * r + 1 + n_el))
+    o1 = 2 * r + 2 + n_el  # the input's rates' columns: G du / T, dG du / T
+    rhs = np.empty((r, o1 + n_el))
     for i in range(r):
         for j in range(r):
             rhs[i, j] = Kr[i, j]
             rhs[i, r + j] = Cr[i, j]
         acc = f[i]
+        acc1 = 0.0
         for j in range(m):
             acc += Gr[i, j] * u[j]
+        for j in range(du.shape[0]):
+            acc1 += Gr[i, j] * du[j] / T
         rhs[i, 2 * r] = acc
+        rhs[i, 2 * r + 1 + n_el] = acc1
         for k in range(n_el):
             rhs[i, 2 * r + 1 + k] = dGu[i, k]
-    X = _cholesky_solve(Mr, rhs)  # M^-1 [K, C, G u + f, dG u]
+            rhs[i, o1 + k] = dGd[i, k]
+    X = _cholesky_solve(Mr, rhs)  # M^-1 [K, C, G u + f, dG u, G du / T, dG du / T]
     AK = np.ascontiguousarray(X[:, :r])
     AC = np.ascontiguousarray(X[:, r : 2 * r])
-    b = np.ascontiguousarray(X[:, 2 * r])
-    bG = np.ascontiguousarray(X[:, 2 * r + 1 :])
+    b0 = np.ascontiguousarray(X[:, 2 * r])
+    bG0 = np.ascontiguousarray(X[:, 2 * r + 1 : 2 * r + 1 + n_el])
+    b1 = np.ascontiguousarray(X[:, 2 * r + 1 + n_el])
+    bG1 = np.ascontiguousarray(X[:, o1:])
     Minv = _cholesky_solve(Mr, np.eye(r))
     y = z.copy()
     Y = np.zeros((2 * r, n_el))
     ky = np.empty((4, 2 * r))
     kY = np.empty((4, 2 * r, n_el))
     cs = (0.0, 0.5 * h, 0.5 * h, h)
-    for _ in range(n):
+    for step in range(n):
         for st in range(4):
             ys = y.copy()
             Ys = Y.copy()
             if st:
                 ys += cs[st] * ky[st - 1]
                 Ys += cs[st] * kY[st - 1]
+            ts = step * h + cs[st]  # the stage's time: its input
+            b = b0 + ts * b1
+            bG = bG0 + ts * bG1
             a = b - AK @ ys[:r] - AC @ ys[r:]
             g = -((dM @ a + dC @ ys[r:] + dK @ ys[:r]).reshape(n_el, r)).T  # (r, n_el): the forces less dG u
             ky[st, :r] = ys[r:]
@@ -1003,11 +1096,12 @@ def _position_forces(z, z_next, dt, Wg, dM, dK, beta):  # pragma: no cover - com
     return Fp
 
 
-def held_step(z, u, dl, s, h, n, system: HeldSystem):
+def held_step(z, u, dl, s, h, n, system: HeldSystem, du=None):
     """One interval of the cached step (:func:`held_interval` without the Jacobian): ``(z_next, M_r, K_r, C_r,
-    G_r)`` of the held ``system``."""
-    z_next, _, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, h, n, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR, _NO_MATRIX,
-                                              _NO_MATRIX, tuple(system))
+    G_r)`` of the held ``system``, the torques ``u`` held (``du`` None) or ``u + (t / T) du``."""
+    du = _NO_VECTOR if du is None else np.ascontiguousarray(du, float)
+    z_next, _, Mr, Kr, Cr, Gr = held_interval(z, u, du, dl, s, h, n, _NO_TENSOR, _NO_TENSOR, _NO_TENSOR,
+                                              _NO_MATRIX, _NO_MATRIX, tuple(system))
     return z_next, Mr, Kr, Cr, Gr
 
 
@@ -1362,7 +1456,10 @@ class CachedStep(NamedTuple):
     loop_model`): what :func:`cached_interval` and :func:`cached_rows` read, fixed while the held configuration
     is held.
 
-    ``jump_w``, ``jump_thr``: the model's torque-jump test (:func:`.kalman.step_statistic`); ``q0`` the held
+    ``jump_w``, ``jump_thr``: the model's torque-jump test (:func:`.kalman.step_statistic`); ``ramp`` the input
+    over an interval: 0.0 held at its start sample, 1.0 linear to the next one (the log's input hold), ``delay`` the
+    time (s) by which the linear torques reach the mechanism after their samples (a truth's table held over its
+    own step: half of it); ``q0`` the held
     configuration with its refresh radius ``rad`` and reach ``meas_rad`` (how far from it a step map may be built);
     ``h_min`` the shortest
     sub-step; the step map's rebuild rule: the interval-length tolerance ``dt_tol``, the look-ahead ``ahead``,
@@ -1374,6 +1471,8 @@ class CachedStep(NamedTuple):
 
     jump_w: np.ndarray
     jump_thr: float
+    ramp: float
+    delay: float
     q0: np.ndarray
     rad: float
     meas_rad: float
@@ -1438,7 +1537,8 @@ def _system_args(hs):  # pragma: no cover - compiled
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
     """One interval of the cached step as :meth:`.reduced.ReducedObserverModel.predict` (or, with ``ex``,
     :meth:`.augmented.AugmentedModel.predict`) takes it from the filter's state ``x`` with the torques ``u``
-    held over ``dt`` (``u1`` the sample that ends it), where the held arrays ``cs`` (:class:`CachedStep`) serve:
+    over ``dt`` (``u1`` the sample that ends it: the torques ``u + (t / dt) cs.ramp (u1 - u)``, held where
+    ``ramp`` is 0, linear where 1, the log's input hold), where the held arrays ``cs`` (:class:`CachedStep`) serve:
     ``(status, z, F, Q, mats, st)``, the prediction, the interval's held matrices ``(M_r, K_r, C_r, G_r)`` and
     the carried state (:class:`LoopState`). ``status`` (:mod:`.base`'s loop codes) is ``LOOP_DONE`` where it
     served, ``REFRESH`` where q left the held configuration's radius, ``REMAP`` where the step map must be
@@ -1498,11 +1598,26 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
                 scaled = (False, scaled[1], scaled[2], scaled[3], scaled[4], scaled[5])
     dl = x[:nq] - cs.q0
     s = secant_factor(dl, cs.d, cs.dd)
+    du = np.empty(u.shape[0] if cs.ramp else 0)  # the torques' change over the interval: linear (empty: held)
+    for j in range(du.shape[0]):
+        du[j] = u1[j] - u[j]
+    if cs.ramp and cs.delay != 0.0:  # the ramp delayed: its value at the interval's start
+        c = cs.delay / dt
+        u0 = np.empty(u.shape[0])
+        for j in range(u.shape[0]):
+            u0[j] = u[j] - c * du[j]
+        u = u0
+        if ex is not None:  # the torques with the disturbance, delayed as well
+            if n_in:
+                for j in range(n_in):
+                    uu[j] = u0[j] + x[x.shape[0] - n_in + j]
+            else:
+                uu = u0
     extra = False
     if ex is not None:  # noqa: SIM102 (numba prunes a plain state's branch on this test alone)
         if pay or n_in:
             z, F, Qk, Mo, Ko, Co, Go, new_scaled, release = extra_interval(
-                x, uu, dl, s, dt, n, ex, P[n0, n0], scaled, (sm.Pn, sm.SQM, sm.L, sm.Q, cs.torque_var, cs.q_extra),
+                x, uu, du, dl, s, dt, n, ex, P[n0, n0], scaled, (sm.Pn, sm.SQM, sm.L, sm.Q, cs.torque_var, cs.q_extra),
                 (cs.Ts, cs.Vs, cs.C3), hs)
             if release:  # the held scale's linearity test passes: the model's own step releases it
                 return GENERAL, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
@@ -1510,7 +1625,7 @@ def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover
             mats = (Mo, Ko, Co, Go)
             extra = True
     if not extra:
-        z, F, Mo, Ko, Co, Go = held_interval(x, u, dl, s, dt / n, n, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, hs)
+        z, F, Mo, Ko, Co, Go = held_interval(x, u, du, dl, s, dt / n, n, cs.Ts, cs.Vs, cs.C3, sm.Pn, sm.SQM, hs)
         Qk = sm.Q
         mats = (Mo, Ko, Co, Go)
     return LOOP_DONE, z, F, Qk, mats, LoopState(sm, n_maps, k_map, scaled)
@@ -1528,9 +1643,9 @@ def _cached_rows(cs, z, y, H, made):  # pragma: no cover - compiled
     return LOOP_DONE
 
 
-def _extra_interval(x, u, dl, s, dt, n, ex, var, scaled, maps, forms, hs):  # pragma: no cover - compiled
+def _extra_interval(x, u, du, dl, s, dt, n, ex, var, scaled, maps, forms, hs):  # pragma: no cover - compiled
     """One interval of an augmented state (:func:`cached_interval`'s ``ex``, the torques ``u`` with the
-    disturbances; ``var`` the filter's variance of the payload scale): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled,
+    disturbances, ``u + (t / dt) du`` over the interval; ``var`` the filter's variance of the payload scale): ``(x_next, F, Q, M_r, K_r, C_r, G_r, scaled,
     release)``, the scaled step map ``scaled = (pay_ok, pay_c, pay_Pn, pay_S, pay_L, pay_Q)`` as this interval
     leaves it; ``maps = (Pn, SQM, L, Q, torque_var, q_extra)`` the nominal step map with the noise's parts, ``forms = (Ts, Vs,
     C3)`` the step Jacobian's; ``hs`` the held system (plain tuples, see :func:`_held_interval`). With the payload
@@ -1566,16 +1681,16 @@ def _extra_interval(x, u, dl, s, dt, n, ex, var, scaled, maps, forms, hs):  # pr
         if c != 0.0:  # the held system at the scale c (and the scales of the column) in one call
             scales[-1] = c
             rows, z, F, Qk, L_u, scaled, Mo, Ko, Co, Go = payload_interval(
-                x[:n0], u, dl, s, dt / n, n, scales, th, n_x, (0.0 if held else pay_dtheta, pay_var * dt, pay_rho,
+                x[:n0], (u, du), dl, s, dt / n, n, scales, th, n_x, (0.0 if held else pay_dtheta, pay_var * dt, pay_rho,
                                                                pay_tol), scaled, maps, (Ts, pay_dTs, Vs, C3), hs, inc)
             xc = rows[-1]
         else:  # the nominal step, and the scaled steps of the same held configuration for the scale's column
-            xc, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
+            xc, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, du, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
             z, F, Qk = _augmented(xc, F0, Q, n_x)
             L_u = L
-            rows = scaled_steps(x[:n0], u, dl, s, dt / n, n, scales, hs, inc)[0]
+            rows = scaled_steps(x[:n0], u, du, dl, s, dt / n, n, scales, hs, inc)[0]
             if not np.all(np.isfinite(rows)):  # as the nominal step's rescue: first order only
-                rows = scaled_steps(x[:n0], u, dl, 0.0, dt / n, n, scales, hs, inc)[0]
+                rows = scaled_steps(x[:n0], u, du, dl, 0.0, dt / n, n, scales, hs, inc)[0]
             z[n0] = th
             F[n0, n0] = 1.0
             Qk[n0, n0] = pay_var * dt
@@ -1597,7 +1712,7 @@ def _extra_interval(x, u, dl, s, dt, n, ex, var, scaled, maps, forms, hs):  # pr
                 for j in range(n0):
                     Qk[i, j] += 0.0 if release else e1 * 0.5 * (rows[0, j] - rows[1, j])
     else:
-        z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
+        z0, F0, Mo, Ko, Co, Go = held_interval(x[:n0], u, du, dl, s, dt / n, n, Ts, Vs, C3, Pn, SQM, hs)
         z, F, Qk = _augmented(z0, F0, Q, n_x)
         L_u = L
     if n_in:  # the disturbances: their decay, noise and the step's response to them
@@ -1692,10 +1807,11 @@ def _next_map_radius(q_new, q_old, err, map_rad, tol, rmin, rmax):  # pragma: no
     return min(max(rad, rmin), 2.0 * map_rad, rmax)
 
 
-def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
+def _scaled_steps(z, u, du, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     """The held step (:func:`held_step`) of the system ``S + a_k dS`` for each entry ``a_k`` of ``a``:
     row ``k`` is the state at the interval's end for the payload scale ``1 + a_k``. Returns ``(rows, M_r, K_r,
-    C_r, G_r)``, the held matrices those of the last scale. ``hs``: the held system (a plain tuple, see
+    C_r, G_r)``, the held matrices those of the last scale; the torques ``u + (t / T) du`` (:func:`held_interval`).
+    ``hs``: the held system (a plain tuple, see
     :func:`_held_interval`); ``inc``: the payload's increment ``dS`` (:class:`.augmented.PayloadIncrement`'s fields,
     a plain tuple).
 
@@ -1716,13 +1832,17 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
     for k in range(2):  # the nominal's and the increment's held model, one inlined copy of it for both
-        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, 0.5 * h * n, hs if k == 0 else di)
+        Mk, Kk, Ck, Gk, fk = _held_model(z, dl, s, 0.5 * h * n, hs if k == 0 else di,
+                                         0.5 * h * n if du.shape[0] else 0.0)
         if k == 0:
             M0, K0, C0, G0, f0 = Mk, Kk, Ck, Gk, fk
         else:
             Mb, Cb, fb = Mk, Ck, fk
     # the nominal's geometric forces of the motion (held_interval's; the payload's share of the axial loads left out)
-    motion_forces(f0, z, 0.5 * h * n, motion_stiffness(u, z, dl.shape[0], _motion_form(hs.KGd, hs.dKGd, dl)))
+    um = u.copy()  # the torques at the interval's midpoint (held_interval's)
+    for j in range(du.shape[0]):
+        um[j] += 0.5 * du[j]
+    motion_forces(f0, z, 0.5 * h * n, motion_stiffness(um, z, dl.shape[0], _motion_form(hs.KGd, hs.dKGd, dl)))
     out = np.empty((a.shape[0], z.shape[0]))
     M, C, f = np.empty((r, r)), np.empty((r, r)), np.empty(r)
     for k in range(a.shape[0]):
@@ -1732,13 +1852,13 @@ def _scaled_steps(z, u, dl, s, h, n, a, hs, inc):  # pragma: no cover - compiled
                 M[i, j] = M0[i, j] + c * Mb[i, j]
                 C[i, j] = C0[i, j] + c * Cb[i, j]
             f[i] = f0[i] + c * fb[i]
-        x = _rk4_linear(z, u, M, K0, C, G0, f, h, n)
+        x = _rk4_linear(z, u, du, M, K0, C, G0, f, h, n)
         for i in range(z.shape[0]):
             out[k, i] = x[i]
     return out, M, K0, C, G0
 
 
-def _payload_interval(z, u, dl, s, h, n, a, theta, nx, scale, scaled, maps, forms, hs, inc):  # pragma: no cover - compiled
+def _payload_interval(z, ud, dl, s, h, n, a, theta, nx, scale, scaled, maps, forms, hs, inc):  # pragma: no cover - compiled
     """One interval of the cached step with the payload scaled (:meth:`.augmented.AugmentedModel.predict`).
 
     The steps at the scales ``1 + a_k`` (:func:`scaled_steps` of the held system ``hs`` and the increment ``inc``;
@@ -1758,20 +1878,22 @@ def _payload_interval(z, u, dl, s, h, n, a, theta, nx, scale, scaled, maps, form
     beyond), the map's torque response and the scaled map as the interval leaves it: ``x = [rows[-1]; theta; 0]``,
     ``F`` the step's Jacobian in its leading block, the scale's column the forward difference
     ``(rows[0] - rows[-1]) / dtheta`` (zero where ``dtheta`` is zero) and ``F[n0, n0] = 1``, ``Qx`` the process
-    noise ``Q`` in its leading block and ``theta_var`` the scale's."""
+    noise ``Q`` in its leading block and ``theta_var`` the scale's. ``ud = (u, du)``: the torques ``u + (t / T) du``
+    over the interval (:func:`held_interval`)."""
+    u, du = ud
     dtheta, theta_var, rho, tol = scale
     map_ok, map_c, map_Pn, map_S, map_L, map_Q = scaled
     Pn, SQM, L, Q, torque_var, q_extra = maps
     Ts, dTs, Vs, C3 = forms
     iC2 = inc[5]
-    rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, s, h, n, a, hs, inc)
+    rows, Mo, Ko, Co, Go = scaled_steps(z, u, du, dl, s, h, n, a, hs, inc)
     finite = True
     for k in range(rows.shape[0]):
         for i in range(rows.shape[1]):
             if not math.isfinite(rows[k, i]):
                 finite = False
     if not finite:  # as the nominal step's rescue: first order only
-        rows, Mo, Ko, Co, Go = scaled_steps(z, u, dl, 0.0, h, n, a, hs, inc)
+        rows, Mo, Ko, Co, Go = scaled_steps(z, u, du, dl, 0.0, h, n, a, hs, inc)
     c = a[a.shape[0] - 1]
     scaled = abs(c) * rho > tol
     cT = c if scaled else 0.0
@@ -1818,13 +1940,17 @@ _motion_coefficients = _shared(_motion_coefficients)
 motion_stiffness = _shared(_motion_stiffness)
 motion_gradient = _shared(_motion_gradient)
 motion_forces = _shared(_motion_forces)
+_rate_response = _shared(_rate_response)
 motion_rates = _shared(_motion_rates)
 _motion_form = _shared(_motion_form)
 motion_form_gradient = _shared(_motion_form_gradient)
+_ramps = _inline(_ramps)
+held_ramp = _jit(_rk4_linear)  # called from Python (the reference step's response to a torque ramp)
 _rk4_linear = _linked(_rk4_linear)
 _quadratic_forces = _linked(_quadratic_forces)
 _velocity_terms = _linked(_velocity_terms)
 _velocity_jacobian = _inline(_velocity_jacobian)
+_weight_rates = _inline(_weight_rates)
 _elastic_tangent = _linked(_elastic_tangent)
 _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
@@ -1886,7 +2012,7 @@ def warm_up_interval() -> None:
     jac = (np.zeros((r, r, r)), np.zeros((nq, r, r)), np.zeros((r, nq, r)), np.eye(2 * r), np.zeros((2 * r, r)))
     step_jacobian(z, *jac, np.zeros((0, 0)))
     for has_old in (False, True):
-        held_interval(z, u, dl, 0.0, 1e-4, 1, *jac, tuple(_example_system(r, nq, has_old)))
+        held_interval(z, u, u, dl, 0.0, 1e-4, 1, *jac, tuple(_example_system(r, nq, has_old)))
 
 
 def warm_up_maps() -> None:

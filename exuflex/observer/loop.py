@@ -460,8 +460,8 @@ def warm_up(compiled: str | None = None, screened: bool = True) -> None:
     if screened:
         screen(one, 0.0, n[:0], v[:0], 0, 0, np.zeros(0, np.bool_))
     if compiled is not None:
-        step = CachedStep(v, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0, c, c,
-                          c, v, _example_system(1, 1))
+        step = CachedStep(v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, v, v, 0.0, 0.0, 0.0, v, m, c, c, v, 0.0, v, 0.0,
+                          c, c, c, v, _example_system(1, 1))
         state = LoopState(LoopMap(v, 0.0, 0.0, 1, m, m, m, m), 0, -1, (False, 0.0, m, m, m, m))
         extras = LoopExtras(*NO_PAYLOAD, *NO_DISTURBANCES) if compiled == "augmented" else None
         samples(v, m, m, 1, 1, 0, False, *plain(buf, mon, rec, step, state), extras)

@@ -1,7 +1,8 @@
 """The reduced flexible-multibody model as the filter's discrete-time model (eqs. 8-9).
 
 State ``z = [p; p']`` with ``p = [q; u_m; eta]`` (:class:`exuflex.reduction.ReducedModel`); input the measured
-motor torques, held over each interval between two samples; output any of the mechanism's sensor channels
+motor torques, held over each interval between two samples or linear between them as the log declares
+(:attr:`ReducedObserverModel.input_hold`; docs/held_step.md, "The input over a sample interval"); output any of the mechanism's sensor channels
 (encoders, curvature gauges, tip position) as the nonlinear functions of the state they are.
 
 Over an interval of ``dt`` seconds the reduced equations ``M_r p'' + C_r p' + K_r p = G_r u + f_r(p, p')`` are
@@ -88,6 +89,7 @@ from ..reduction.model import ReducedMatrices
 from .base import LoopModel, Measurement, Prediction
 from .expansion import (
     CachedStep,
+    held_ramp,
     HeldSystem,
     LoopMap,
     LoopState,
@@ -113,9 +115,12 @@ from .expansion import (
 from .kalman import InputStepTest
 from .rows import channel_rows, sensor
 
-__all__ = ["METHODS", "ReducedObserverModel", "StepTolerances", "rk4_substep_limit"]
+__all__ = ["INPUT_HOLDS", "METHODS", "ReducedObserverModel", "StepTolerances", "rk4_input_steps", "rk4_substep_limit"]
 
 METHODS = ("cached", "rk4")
+#: what a log's torques did between two samples (:data:`exuflex.runs.INPUT_HOLDS`): held at each sample ("zoh", a
+#: digital controller's output) or a smooth signal sampled, taken linear between the samples ("linear")
+INPUT_HOLDS = ("zoh", "linear")
 
 _NO_ROWS = np.empty((0, 0))  # rows of a term that is absent
 _NONE = np.empty(0)
@@ -161,6 +166,23 @@ def rk4_substep_limit(lam: np.ndarray) -> float:
         else:
             hi = mid
     return lo
+
+
+def rk4_input_steps(f, z: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, n: int) -> np.ndarray:
+    """``n`` RK4 sub-steps of ``z' = f(t, z, u(t))`` over ``dt`` with the input linear over the interval,
+    ``u(t) = u + (t / dt) du`` (``du`` zero: held), each stage at its own time and input (RK4's order holds for
+    an input linear in time)."""
+    h = dt / n
+    x = np.array(z, float)
+    for i in range(n):
+        t = i * h
+        u0, um, u1 = u + (t / dt) * du, u + ((t + 0.5 * h) / dt) * du, u + ((t + h) / dt) * du
+        k1 = f(t, x, u0)
+        k2 = f(t + h / 2, x + h / 2 * k1, um)
+        k3 = f(t + h / 2, x + h / 2 * k2, um)
+        k4 = f(t + h, x + h * k3, u1)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
 
 
 def _radius_limits(name: str, rad, lo, hi) -> None:
@@ -348,6 +370,11 @@ class ReducedObserverModel:
         Shortest RK4 sub-step (s) the model may need for stability before it is refused (see :meth:`substeps`).
     tolerances : StepTolerances
         The cached step's error targets and the radii that keep them (each also an attribute of the model).
+    input_hold : {"zoh", "linear"}
+        What the torques did between two samples (:attr:`input_hold`, the log's declaration).
+    input_delay : float
+        With a linear input, the time (s) by which the torques reach the mechanism after their samples
+        (:attr:`input_delay`).
 
     Attributes
     ----------
@@ -358,16 +385,29 @@ class ReducedObserverModel:
     last_step : ``(held configuration, step map)`` of the last :meth:`predict`: the reduced matrices the interval
         was held at (``.mats``) and its maps ``Pn, S, L, Q`` (what augmented models differentiate through).
     torque_var : variances of the measured torques (the process noise's), per motor.
+    input_hold : the input over an interval (settable: a log declares it, :func:`exuflex.runs.read_run`): "zoh",
+        each torque sample held to the next (a digital controller's zero-order hold; the paper's eq. 10); "linear",
+        the torques linear between the interval's two samples at the actual sample times, each RK4 stage at its
+        own time (a smooth signal sampled: every exuflex truth). Held, a smooth torque lags by half an interval
+        (docs/held_step.md, "The input over a sample interval"). The torque-jump test (``jump_p``) applies to a
+        held input only.
+    input_delay : with a linear input, the time (s) by which the torques act after their samples, settable (a
+        log declares it): an exuflex truth holds its torque table over the table's step ``h``, a staircase that
+        follows the smooth torque by ``h / 2`` on average; the step then takes ``u(t - delay)``, linear, i.e. the
+        interval's start torque ``u - (delay / dt) du``.
     """
 
     def __init__(self, reduced, h: float = 1e-4, method: str = "cached", torque_std=None, q_extra=None,
-                 jump_p: float | None = None, min_substep: float = 2e-6, tolerances: StepTolerances = StepTolerances()):
+                 jump_p: float | None = None, min_substep: float = 2e-6, tolerances: StepTolerances = StepTolerances(),
+                 input_hold: str = "zoh", input_delay: float = 0.0):
         if isinstance(reduced, CraigBampton):
             reduced = ReducedModel(reduced)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if not (h > 0 and math.isfinite(h)):
             raise ValueError(f"h must be a positive number of seconds, got {h}")
+        self.input_hold = input_hold
+        self.input_delay = float(input_delay)
         self.rm = reduced
         self.model = reduced.model
         self.mech = self.model.mech
@@ -414,6 +454,32 @@ class ReducedObserverModel:
             z = self.rm.rest_state(np.asarray(self.rm.cb.q_star, float))
             self.rm.held(z[: self.r], z[self.r :])
             self.model.kin.reset_warm_start()
+
+    @property
+    def input_hold(self) -> str:
+        """The input over an interval, "zoh" or "linear" (class docstring)."""
+        return self._input_hold
+
+    @input_hold.setter
+    def input_hold(self, value: str) -> None:
+        if value not in INPUT_HOLDS:
+            raise ValueError(f"input_hold must be one of {INPUT_HOLDS}, got {value!r}")
+        self._input_hold = value
+
+    def interval_input(self, u: np.ndarray, u_next, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(u0, du)``: the torques at the interval's start and their change over it as the step takes them
+        (:meth:`input_increment`; with a linear input the start torque delayed by :attr:`input_delay`)."""
+        du = self.input_increment(u, u_next)
+        if du.size and self.input_delay:
+            u = u - (self.input_delay / dt) * du
+        return u, du
+
+    def input_increment(self, u: np.ndarray, u_next) -> np.ndarray:
+        """``du``: the torques' change over the interval as the step takes it (:func:`.expansion.held_interval`):
+        empty with a held input; with a linear one ``u_next - u`` (zeros without a next sample)."""
+        if self._input_hold == "zoh":
+            return _NONE
+        return np.zeros(self._u_shape) if u_next is None else self._input(u_next) - u
 
     def watch_covariance(self, get_P) -> None:
         """Give the model the filter's covariance (``get_P()`` returns it): the held model's error is then
@@ -472,6 +538,11 @@ class ReducedObserverModel:
             iv.h_stable = self._stable_substep(iv.mats)
         return max(1, math.ceil(dt / min(self.h, iv.h_stable) - 1e-9))
 
+    def substeps_at(self, z: np.ndarray, dt: float) -> int:
+        """:meth:`substeps` over ``dt`` of the configuration evaluated at the state ``z`` (the reference step's
+        count, :meth:`advance`)."""
+        return self.substeps(self._configuration(np.asarray(z, float)), dt)
+
     def _stable_substep(self, mats: ReducedMatrices) -> float:
         """The longest RK4 sub-step stable on a configuration's spectrum (:func:`rk4_substep_limit`); an error
         naming the stiffest mode if stability needs sub-steps shorter than ``min_substep``."""
@@ -485,33 +556,38 @@ class ReducedObserverModel:
                 "master dof with a stiff Guyan mode (e.g. an axial one) causes this: choose other masters")
         return h_stable
 
-    def frozen_interval(self, z: np.ndarray, u, dt: float) -> tuple[Prediction, _Held, _StepMap]:
+    def frozen_interval(self, z: np.ndarray, u, dt: float, du=None) -> tuple[Prediction, _Held, _StepMap]:
         """The configuration evaluated at ``z`` and held over the interval: the linear system with the forces at
-        ``z`` advanced by its sub-steps (``x = P^n z + L u + S f_r``), its Jacobian and process noise. The
-        linearisation of the steady-state bound and the observability test, and the step of the reduced model as
-        a truth (the filter's own model)."""
+        ``z`` advanced by its sub-steps (``x = P^n z + L u + S f_r``, and the response to the torques' change
+        ``du`` over the interval where they are linear, :meth:`input_increment`), its Jacobian and process noise.
+        The linearisation of the steady-state bound and the observability test, and the reference step's Jacobian."""
         z = np.asarray(z, float)
         u = self._input(u)
+        du = _NONE if du is None else np.asarray(du, float)
+        um = u + 0.5 * du if du.size else u  # the torques at the interval's midpoint
         iv = self._configuration(z, frozen_forces=True)
         m = iv.mats
         n = self.substeps(iv, dt)
         Pn, S, L, Q = self._maps(m.Mr, m.Kr, m.Cr, m.Gr, dt, n)
-        # the motion's geometric forces at the start's rates and the held torques, at the interval's midpoint
+        # the motion's geometric forces at the start's rates and the midpoint's torques, at the interval's midpoint
         # positions, as the cached step takes them (expansion.motion_forces)
         KGd = iv.forces.KGd
-        Kd = motion_stiffness(u, z, self.nq, KGd)
+        Kd = motion_stiffness(um, z, self.nq, KGd)
         f = m.fr.copy()
         motion_forces(f, z, 0.5 * dt, Kd)
         x = Pn @ z + L @ u + S @ f
+        if du.size and np.any(du):  # the response to the torques' ramp (the linear system's: zero start and force)
+            zero = np.zeros(self.nx)
+            x = x + held_ramp(zero, zero[: len(u)], du, m.Mr, m.Kr, m.Cr, m.Gr, zero[: self.r], dt / n, n)
         Fp = iv.forces.Wg
         if Fp.shape[0]:
             Fp = position_forces(z, x, dt, Fp, iv.forces.dMr2, iv.forces.dKr2, float(self.model.beta))
             Fp[:, : self.nq] += self.rm.velocity_force_gradient(z[: self.r], z[self.r :])  # the rates' forces too
         if KGd.shape[0]:
             Fp = motion_gradient(Fp, Kd)
-            motion_form_gradient(Fp, u, z, 0.5 * dt, iv.forces.dKGd, self.nq)
+            motion_form_gradient(Fp, um, z, 0.5 * dt, iv.forces.dKGd, self.nq)
         F = step_jacobian(z, *iv.forces.jacobian_tensors(), Pn, S, Fp)
-        motion_rates(F, z, u, self.nq, S, KGd, Kd, dt)
+        motion_rates(F, z, um, self.nq, S, KGd, Kd, dt)
         self._interval_matrices = (m.Mr, m.Kr, m.Cr, m.Gr, dt / n, n)
         return Prediction(x, F, Q), iv, _StepMap(z[: self.nq].copy(), dt, n, Pn, S, L, Q)
 
@@ -728,15 +804,15 @@ class ReducedObserverModel:
         n = self.substeps(iv, dt)
         return iv, dl, n, self._step_map(iv, z, dl, dt, n)
 
-    def _cached(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
+    def _cached(self, z: np.ndarray, u: np.ndarray, dt: float, du: np.ndarray) -> Prediction:
         """The cached step: the held configuration (evaluated anew when q left its radius), the model at z
-        followed from it to second order and advanced by the interval's sub-steps, with the step map's Jacobian
-        correction and process noise (:meth:`_step_map`)."""
+        followed from it to second order and advanced by the interval's sub-steps (the torques ``u + (t/dt) du``),
+        with the step map's Jacobian correction and process noise (:meth:`_step_map`)."""
         iv, dl, s, n, sm = self.prepare(z, u, dt)
-        z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
+        z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, du, dl, s, dt / n, n, *sm.tail)
         if not math.isfinite(z_next[0]) and (s or np.any(dl)):
             iv, dl, s, n, sm = self.rescue(z, u, dt)
-            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, dl, s, dt / n, n, *sm.tail)
+            z_next, F, Mr, Kr, Cr, Gr = held_interval(z, u, du, dl, s, dt / n, n, *sm.tail)
         self._interval_matrices = (Mr, Kr, Cr, Gr, dt / n, n)
         return Prediction(z_next, F, sm.Q)
 
@@ -772,7 +848,7 @@ class ReducedObserverModel:
         c0, Hm, D, G = self._rows_none(channels) if c is None else self._centre_rows(c, channels)
         q_rows, rad_rows = (np.zeros(self.nq), -1.0) if c is None else (c.q0, c.rad)
         d = iv.d if iv.old is not None else _NONE
-        step = CachedStep(self.jump_test.weights, self.jump_test.threshold, iv.q0, iv.rad, self._measurement_radius(iv),
+        step = CachedStep(self.jump_test.weights, self._jump_threshold, self.ramp, self.input_delay, iv.q0, iv.rad, self._measurement_radius(iv),
                           min(self.h, iv.h_stable), self.dt_tol, self.remap_ahead, self.remap_horizon,
                           self.torque_var, self.q_extra_diag, *self._map_radius_limits, c0, Hm, D, G,
                           q_rows, rad_rows, d, iv.dd,
@@ -786,6 +862,16 @@ class ReducedObserverModel:
         """``(c0, Hm, D, G)`` of the right shapes for a loop without rows yet."""
         m, nq = len(channels), self.nq
         return np.zeros(m), np.zeros((m, self.nx)), np.zeros((nq, m, self.r)), np.zeros((m, nq, nq))
+
+    @property
+    def ramp(self) -> float:
+        """The compiled step's input over an interval (:class:`.expansion.CachedStep`): 1.0 linear, 0.0 held."""
+        return 1.0 if self._input_hold == "linear" else 0.0
+
+    @property
+    def _jump_threshold(self) -> float:
+        """The torque-jump test's threshold as the compiled step takes it: infinite (no test) with a linear input."""
+        return self.jump_test.threshold if self._input_hold == "zoh" else math.inf
 
     @property
     def loop_step(self) -> tuple:
@@ -886,28 +972,30 @@ class ReducedObserverModel:
         return (iv.d, iv.dd) if iv.old is not None else (_NONE, 0.0)
 
     # ------------------------------------------------------------------ the reference step
-    def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float) -> Prediction:
-        """Every RK4 stage of the nonlinear reduced equations at its own state; ``F`` and ``Q`` those of the
-        configuration at the interval's start (:meth:`frozen_interval`)."""
-        pred, iv, sm = self.frozen_interval(z, u, dt)
+    def _rk4(self, z: np.ndarray, u: np.ndarray, dt: float, du: np.ndarray) -> Prediction:
+        """Every RK4 stage of the nonlinear reduced equations at its own state and input; ``F`` and ``Q`` those of
+        the configuration at the interval's start (:meth:`frozen_interval`)."""
+        pred, iv, sm = self.frozen_interval(z, u, dt, du)
         self._last = iv
         self.last_step = (iv, sm)
-        return Prediction(self.advance(z, u, dt, iv), pred.F, pred.Q)
+        return Prediction(self.advance(z, u, dt, iv, du), pred.F, pred.Q)
 
-    def advance(self, z: np.ndarray, u, dt: float, iv: _Held | None = None) -> np.ndarray:
+    def advance(self, z: np.ndarray, u, dt: float, iv: _Held | None = None, du=None) -> np.ndarray:
         """The reduced equations ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')`` integrated over
-        ``dt`` from ``z`` with ``u`` held: RK4 sub-steps (:meth:`substeps`, of the configuration ``iv`` at ``z``,
-        evaluated if not given), every stage at its own state. The reference step's state, and the reduced truth's
-        (:func:`exuflex.truth.reduced_truth`)."""
+        ``dt`` from ``z`` with the torques ``u`` held (``du`` None) or ``u + (t / dt) du``: RK4 sub-steps
+        (:meth:`substeps`, of the configuration ``iv`` at ``z``, evaluated if not given), every stage at its own
+        state and input (:func:`rk4_input_steps`). The reference step's state."""
         u = self._input(u)
         z = np.asarray(z, float)
         if iv is None:
             iv = self._configuration(z)
         n = self.substeps(iv, dt)
-        x = z.copy()
-        for _ in range(n):
-            x = rk4_step(self.rm.rhs, 0.0, x, dt / n, u)
-        return x
+        if du is None or not np.any(du):
+            x = z.copy()
+            for _ in range(n):
+                x = rk4_step(self.rm.rhs, 0.0, x, dt / n, u)
+            return x
+        return rk4_input_steps(self.rm.rhs, z, u, np.asarray(du, float), dt, n)
 
     # ------------------------------------------------------------------ the model's interface
     def _input(self, u) -> np.ndarray:
@@ -921,17 +1009,26 @@ class ReducedObserverModel:
         return u
 
     def predict(self, x: np.ndarray, u, dt: float, u_next=None) -> Prediction:
-        """Advance ``x`` over ``dt`` with the torques ``u`` held (:class:`~exuflex.observer.base.Prediction`); with
-        ``u_next`` (the sample that ends the interval) a torque jump within the interval adds its effect."""
+        """Advance ``x`` over ``dt`` from the torques ``u`` (:class:`~exuflex.observer.base.Prediction`): held, or
+        linear to ``u_next`` (the sample that ends the interval) with a linear :attr:`input_hold`; held, a torque
+        jump within the interval (``u_next`` far from ``u``, :meth:`input_jump`) adds its effect."""
         u = self._input(u)
         x = np.asarray(x, float)
-        pred = self._cached(x, u, dt) if self.method == "cached" else self._rk4(x, u, dt)
-        if u_next is not None:
+        u0, du = self.interval_input(u, u_next, dt)
+        pred = self.interval(x, u0, dt, du)
+        if u_next is not None and self._input_hold == "zoh":
             jump = self.input_jump(u, u_next)
             if jump is not None:
                 dx, dQ = self.input_jump_moments(jump)
                 pred = Prediction(pred.x + dx, pred.F, pred.Q + dQ)
         return pred
+
+    def interval(self, x: np.ndarray, u, dt: float, du: np.ndarray) -> Prediction:
+        """The step over ``dt`` from ``x`` with the torques ``u + (t / dt) du`` (:meth:`predict` without the
+        torque-jump test): the cached step or the reference."""
+        u = self._input(u)
+        x = np.asarray(x, float)
+        return self._cached(x, u, dt, du) if self.method == "cached" else self._rk4(x, u, dt, du)
 
     def input_jump(self, u0, u1):
         """The increment ``u1 - u0`` of two successive torque samples if it is a jump: beyond what the sample

@@ -197,6 +197,14 @@ class Observer:
     basis_s: float
     info: dict = field(default_factory=dict)
 
+    def use_input_hold(self, hold: str, delay: float = 0.0) -> None:
+        """Step every reduced model the filter uses with the input a log declares between two samples, ``"zoh"``
+        or ``"linear"`` delayed by ``delay`` s (:attr:`.reduced.ReducedObserverModel.input_hold`,
+        :func:`exuflex.runs.input_hold_of`)."""
+        for m in (self.model, *getattr(self.ekf, "models", (self.ekf.model,))):
+            m = getattr(m, "inner", m)
+            m.input_hold, m.input_delay = hold, float(delay)
+
     def physical(self, t: np.ndarray, Z: np.ndarray, refresh_rad: float = 1e-2, *, carry: dict | None = None
                  ) -> Signals:
         """Physical estimates (q, dq/dt, tip elastic displacement and rate) from reduced states (n, nx).

@@ -716,7 +716,7 @@ def _step_linearisation(model: ReducedObserverModel):
     def linearise(x, u, dt):
         u = model.torques(u)
         _, dl, s, n, sm = model.prepare(x, u, dt)
-        return held_interval(x, u, dl, s, dt / n, n, *sm.tail)[1], sm.Q
+        return held_interval(x, u, np.empty(0), dl, s, dt / n, n, *sm.tail)[1], sm.Q
 
     return linearise
 

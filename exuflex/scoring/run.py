@@ -16,6 +16,7 @@ from ..mechanism import Mechanism
 from ..observer.session import (Estimate, EstimateChunk, LogColumns, Observer, ObserverConfig, check_arguments,
                                 estimate, estimate_chunks, extra_states, last_state, make_observer, physical_names,
                                 physical_units)
+from ..runs import input_hold_of
 from ..sensors import Signals
 from .bound import UnobservableError, _Sampled, bound_track, check_observable
 
@@ -165,6 +166,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     say = report or (lambda msg: log.info("%s", msg))
     config = config or ObserverConfig.for_model(mech)
     obs = observer or make_observer(mech, config)
+    obs.use_input_hold(*input_hold_of(run.meta, str(run.path)))  # the log's torques between two samples
     if log_check is None:
         log_check = check_run(mech, run, obs.channels, dt=obs.ekf.dt)
     elif set(log_check.channel_rate_hz) != set(obs.channels) or log_check.dt != obs.ekf.dt:

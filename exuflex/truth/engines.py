@@ -230,11 +230,13 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     """The observer's own model as the truth (engine ``"reduced"``): a test of the filter's consistency.
 
     The reduced model of ``truth_mech`` (the observer's default reduction) is integrated as the continuous
-    equations it states, ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')``: RK4 sub-steps of at most
-    ``h`` (fewer where the spectrum needs them for stability), every stage at its own state
-    (:meth:`~exuflex.observer.reduced.ReducedObserverModel.advance`, the observer's reference step), the torque
-    held at its value at the sample time over each sample interval (so the torque table of the result is the
-    sampled one). Not a step map frozen at the interval's start: its held matrices and forces are a first-order
+    equations it states, ``M_r(p) p'' + C_r(p) p' + K_r(p) p = G_r(p) u + f_r(p, p')``: RK4 sub-steps over each
+    sample interval, at most ``h`` long (shorter where the spectrum needs them for stability: the observer's
+    reference step's count, :meth:`~exuflex.observer.reduced.ReducedObserverModel.substeps`), every stage at its own
+    state and under the drive's torque table held over each table step (the value in force at the sub-step's
+    midpoint for all its stages: sub-steps of at most ``h``, the table's step, lie within one table step), the
+    input of the other engines, so that what this
+    truth measures is the reduced model alone (docs/gravity.md, "The reduced equations under gravity"). Not a step map frozen at the interval's start: its held matrices and forces are a first-order
     approximation of its own, which would put into the truth an error the filter's step does not share
     (``tests/test_truth_reduced.py`` compares the result with a fine RK4 of the same equations). Its states are
     mapped to the full ERLS state (``x = H p``, ``x' = J p'``), so that the sensors and true states come from the
@@ -251,17 +253,29 @@ def reduced_truth(truth_mech: Mechanism, drive: Drive, duration: float, h: float
     dt = 1.0 / truth_mech.sample_rate_hz
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
-    dt_tab = drive.t[1] - drive.t[0]
-    tau = drive.tau[np.minimum(np.round(t / dt_tab).astype(int), len(drive.tau) - 1)]
+    t_tab, tau_tab = np.asarray(drive.t, float), np.asarray(drive.tau, float).reshape(len(drive.t), -1)
+    dt_tab = t_tab[1] - t_tab[0]
+
+    def table(s: float) -> np.ndarray:  # the table's value in force at s
+        return tau_tab[min(int(np.floor((s - t_tab[0]) / dt_tab + 1e-6)), len(tau_tab) - 1)]
+
     z = som.initial_state(drive.q0, drive.qd0)
     Y = np.empty((n, 2 * rm.model.n))
     for k in range(n):
         x, v = rm.full_state(z)
         Y[k, : rm.model.n], Y[k, rm.model.n :] = x, v
         if k < n - 1:
-            z = som.advance(z, tau[k], dt)
+            m = som.substeps_at(z, dt)
+            hs = dt / m
+            for i in range(m):
+                f = table(t[k] + (i + 0.5) * hs)  # held over the sub-step (it lies within one table step)
+                k1 = rm.rhs(0.0, z, f)
+                k2 = rm.rhs(0.0, z + hs / 2 * k1, f)
+                k3 = rm.rhs(0.0, z + hs / 2 * k2, f)
+                k4 = rm.rhs(0.0, z + hs * k3, f)
+                z = z + hs / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     rec = erls_probe_record(rm.model, t, Y)
-    return TruthRecord(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t, tau,
+    return TruthRecord(sensor_channels(truth_mech, rec), true_states(truth_mech, rec), t_tab, tau_tab,
                        {"plan_and_torque_s": drive.seconds})
 
 
@@ -344,7 +358,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
         rec = reduced_truth(truth_mech, drive, duration, h)
         rec.timings.update(timings, truth_s=time.perf_counter() - t0, truth_cpu_s=time.process_time() - c0)
         rec.settings = {"engine": "reduced", "integrator": "the observer's reduced model, RK4 of its equations "
-                        "(every stage at its own state), torque sampled"}
+                        "(every stage at its own state), under the torque table"}
         return rec
     solver: dict = {}
     if engine == "exudyn" and BEAMS[beam] == "ffrf":

@@ -161,6 +161,13 @@ def simulate_runs(
             "model": {"path": str(model_path.resolve()), "sha256": file_sha256(model_path)},
             "mechanism": mech.name,
             "seed": None,
+            # between two samples the torque is the table's (every engine holds it over the table's step, h / 2
+            # behind the smooth torque): linear where the planned torque is continuous, held where the time law's
+            # acceleration steps (a trapezoid: the torque steps at its switches, which fall on samples, and a line
+            # between the samples around a step misses by half the step; exuflex.runs.INPUT_HOLDS)
+            "input_hold": "zoh" if man.kind in ("joint", "tip_arc", "tip_line", "tip_polyline")
+            and man.time_law == "trapezoid" else "linear",
+            "input_delay_s": 0.5 * float(drive.t[1] - drive.t[0]),
             "settings": {
                 "duration_s": duration,
                 "h_s": h,
