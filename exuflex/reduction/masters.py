@@ -25,10 +25,8 @@ masters named (:func:`reading_masters`):
   at its masters exactly (the Guyan shapes) but to a load at a slave only in the part its interior modes span,
   and the encoder sees the rest at a few hundredths of its noise, so no channel asks for it, while the estimated
   tip, a link length further out, moves by that length times the missing rotation: a constant bias under the
-  weight's static moment (``benchmarks/models/crane_arm.toml``: the reduced sag missed 5.4e-5 rad of the mast's
-  1.06e-3 rad at the elbow and the boom's tip 2.8e-5 m of its 3.15e-3 m sag, 5.6 times the tip's bound;
-  ``docs/long_arms.md``). As masters, the readings are reduced coordinates like q and the motor's reaction a
-  master load.
+  weight's static moment (measured in ``docs/long_arms.md``). As masters, the readings are reduced coordinates
+  like q and the motor's reaction a master load.
 """
 
 from __future__ import annotations
