@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 from test_sample_loop import _same, _step_by_step, sixbar_log  # noqa: F401 (a fixture)
-from test_step_jacobian import _central4, _model, _moving_state, entry_error
+from test_step_jacobian import _central4, entry_error, held_interval_at
 
 from exuflex.errors import LogFormatError
 from exuflex.mechanism import load_mechanism
@@ -96,16 +96,9 @@ def input_entries(name: str, seed: int = 0) -> dict:
     ``test_step_jacobian.jacobian_entries``, whose ``exact`` this is with the ramp): ``linear``, the largest entry
     error of the filter's ``F`` (``entry_error``, rtol 1e-6, eta 1e-8); ``held_terms``, that of ``F`` with the
     held input's terms (the Jacobian of ``du = 0``) against the same differences."""
-    mech, m = _model(name)
-    z, u = _moving_state(mech, m, seed)
+    mech, m, z, u, dt, iv, n, h = held_interval_at(name, seed)
     du = np.random.default_rng(seed + 7).normal(size=len(u))
-    dt = 1.0 / mech.sample_rate_hz
-    m.reset()
-    m.predict(z, u, dt)
-    iv = m._last
     r, nq = m.r, m.nq
-    n = m.substeps(iv, dt)
-    h = dt / n
     hs = iv.system
     dl0 = z[:nq] - iv.q0
     um = u + 0.5 * du

@@ -129,6 +129,19 @@ def _moving_state(mech, m, seed):
     return z, rng.normal(size=nq)
 
 
+def held_interval_at(name: str, seed: int = 0):
+    """``(mech, m, z, u, dt, iv, n, h)``: model ``name``'s observer predicted over one sample interval from its moving
+    state (:func:`_moving_state`), the interval it held (``iv``) with its substep count ``n`` and length ``h``."""
+    mech, m = _model(name)
+    z, u = _moving_state(mech, m, seed)
+    dt = 1.0 / mech.sample_rate_hz
+    m.reset()
+    m.predict(z, u, dt)
+    iv = m._last
+    n = m.substeps(iv, dt)
+    return mech, m, z, u, dt, iv, n, dt / n
+
+
 def jacobian_entries(name: str, seed: int = 0) -> dict:
     """The cached step of model ``name`` at a moving state (its held configuration evaluated there, no secant
     partner) against central differences: ``exact``, the largest entry error of ``F`` against the step with its
@@ -136,15 +149,8 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
     interval's midpoint; ``entry_error`` with rtol 1e-6, eta 1e-8); ``positions`` and ``rates``, the largest error of
     ``F`` against the whole step over the natural scale in the positions' and the rates' columns (what ``F``
     leaves out); ``dqdd_dq``, the largest q' row, q column entry of that difference over ``dt`` (1/s^2)."""
-    mech, m = _model(name)
-    z, u = _moving_state(mech, m, seed)
-    dt = 1.0 / mech.sample_rate_hz
-    m.reset()
-    m.predict(z, u, dt)
-    iv = m._last
+    mech, m, z, u, dt, iv, n, h = held_interval_at(name, seed)
     r, nq = m.r, m.nq
-    n = m.substeps(iv, dt)
-    h = dt / n
     hs = iv.system
     assert not hs.has_old
     dl0 = z[:nq] - iv.q0
