@@ -94,18 +94,20 @@ The rows are rebuilt where q leaves the measurement radius around their centre
 along its motion (no evaluation: the held evaluation's basis and `dH/dq` serve), else about a configuration
 evaluated for the rows alone (the basis and the link angles, no reduced matrices) 0.8 radii ahead of q along its
 motion (the rows are as good behind their centre as ahead of it). At each rebuild the rows they replace are
-compared with the new ones where the new ones are exact: at the filter's state moved to the new centre,
-
-    e = max_i |y_old,i - y_new,i| / s_i ,   s_i = min(sigma_i, sqrt(H_i P H_i^T))
-
-(`_rows_error`): against the channel's noise `sigma_i`, and against the filter's own standard deviation of the
-channel when it is smaller (the filter averages many samples, and the rows' error is deterministic: it persists
-over all of them). The error grows as `dist^2` (the elastic rows' second-order term, `O(dl^2 |p_e|)`; the rigid
+compared with the new ones where the new ones are exact: at the filter's state moved to the new centre, the
+channels' error `dy = y_old - y_new`, a bias of one sign that persists over every update the rows serve
+(`_rows_error`). Its figure `e` is what that bias does to the estimate: the filter's steady response to `dy` at
+every update, `b = -(I - A)^-1 K dy` with `A = (I - K H) F` the filter's error map, in the coordinates' readings
+and rates over the filter's standard deviation of them (`_persistent_bias`; docs/reading_floor.md); without the
+filter's covariance, `max_i |dy_i| / sigma_i` against the channels' noise. (Against each channel's own noise or
+standard deviation, as before, a gauge's bias of a tenth of its standard deviation left a steady 0.5 of the bound
+on the three-link arm's wrist reading: the filter averages several hundred samples of the gauge.) The error grows
+as `dist^2` (the elastic rows' second-order term, `O(dl^2 |p_e|)`; the rigid
 parts' `O(dl^3)` grows faster, so the rule shrinks the radius more than they need), so the next radius is
 `0.9 dist (rows_tol / e)^(1/2)` with `dist` the distance of the two centres, at most twice the last radius,
 within `[rows_min, rows_max]` = [0.001, 0.06] rad (`_rows_radius`): an adaptive step size with an error estimate.
-`rows_tol` = 0.1: a deterministic error of a tenth of a channel's standard deviation adds 1 % to its expected
-NIS; on the runs below the observer's errors are those of rows evaluated exactly at every measurement (the last
+`rows_tol` = 0.1: a steady bias of a tenth of a coordinate's standard deviation adds 1 % to its mean square
+error; on the runs below the observer's errors are those of rows evaluated exactly at every measurement (the last
 two columns of the run table).
 
 The estimate takes the filter's elastic state at the rebuild: where the elastic coordinates oscillate (the long

@@ -18,15 +18,17 @@ advanced by ``n`` RK4 sub-steps (the paper's scheme). Two ways (``method``):
   positions (:func:`.expansion._motion_forces`). The radius adapts like an ODE step size under two error targets, the
   smaller radius winning. (1) The held matrices' validity: the previous held model's relative error of ``M_r`` and
   ``K_r`` (mass metric, :func:`.expansion.prediction_error`) near ``refresh_tol``. (2) What the held model costs the filter: the
-  replaced held model's state error over one interval against the exact configuration, relative to the filter's
-  standard deviations (:meth:`ReducedObserverModel._held_error`, every held quantity included: ``M_r``, ``K_r``,
-  damping, input matrix, velocity forces; reported as ``held_model_error`` by ``observe``, with the error
-  relative to the interval's process noise), near ``refresh_std_tol``: a deterministic prediction error of
-  ``a`` standard deviations adds about ``a^2`` to a channel's expected NIS if it does not repeat; but the held
-  model's error has one sign over the whole radius, so it repeats over the intervals the radius spans and the
-  filter accumulates it for as many intervals as its gain takes to forget it (more at a slower sample rate):
-  the target, 0.1, keeps three intervals' worth of it within the 10 % NIS budget ((3 x 0.1)^2 = 0.09; the
-  six-bar's log decimated to 250 Hz, ``tests/test_log_bound.py``, is where 0.3 did not). The second alone is
+  replaced held model's state error over one interval against the exact configuration
+  (:meth:`ReducedObserverModel._held_error`, every held quantity included: ``M_r``, ``K_r``, damping, input
+  matrix, velocity forces; reported as ``held_model_error`` by ``observe``, with the error relative to the
+  interval's process noise), near ``refresh_std_tol`` in the bias it leaves: the held model's error has one sign
+  over the whole radius, so it repeats over the intervals the radius spans and the filter accumulates it for as
+  many intervals as its gain takes to forget it (several hundred on a gauge-informed arm at 1 kHz); its figure is
+  the filter's steady response to the error repeated at every interval, in the coordinates' readings and rates
+  over the filter's standard deviation of them (:meth:`ReducedObserverModel._persistent_bias`), 0.1 of it
+  adding 1 % to their mean square error. (Per interval against each state's standard deviation instead, errors of
+  a hundredth of it left 0.2 to 0.4 of the bound on the relative readings of noiseless logs:
+  docs/reading_floor.md.) The second alone is
   not enough: during the start-up the filter's standard deviations are large, the radius grows until the held
   mass matrix is no longer valid, and the filter fails (the six-bar's Exudyn log, seed 2). Without a filter's
   covariance (the model used alone) only the first applies. The step Jacobian and process noise (the *step
@@ -200,8 +202,9 @@ class StepTolerances:
     Attributes
     ----------
     refresh_std_tol : float
-        Error target of the cached step's held model: its state error over one interval relative to the filter's
-        standard deviations (:meth:`ReducedObserverModel._held_error`), kept by the refresh radius.
+        Error target of the cached step's held model: the filter's steady bias from its state error over one
+        interval repeated, relative to the filter's standard deviations of the coordinates' readings and rates
+        (:meth:`ReducedObserverModel._held_error`), kept by the refresh radius.
     refresh_tol, refresh_min, refresh_max : float
         Error target of the held matrices (relative, mass metric), also kept by the refresh radius, and the
         radius's limits (rad).
@@ -213,9 +216,10 @@ class StepTolerances:
     dt_tol : float
         Relative change of the interval's length before the step map is rebuilt.
     rows_tol : float
-        Error target of the measurement rows: their error in a channel at the measurement radius, relative to the
-        smaller of the channel's noise and the filter's own standard deviation of it
-        (:meth:`ReducedObserverModel._rows_error`), measured at each rebuild and kept near this by the measurement
+        Error target of the measurement rows: the filter's steady bias from their error at the measurement radius
+        repeated at every update, relative to its standard deviations of the coordinates' readings and rates
+        (without the filter's covariance: the error relative to each channel's noise;
+        :meth:`ReducedObserverModel._rows_error`), measured at each rebuild and kept near this by the measurement
         radius (:meth:`ReducedObserverModel._rows_radius`).
     rows_rad, rows_min, rows_max : float
         The measurement radius (rad): its initial value and limits.
@@ -498,6 +502,7 @@ class ReducedObserverModel:
         self.n_jumps = 0
         self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
         self._centre: _RowsCentre | None = None  # the measurement rows' configuration
+        self._measured: tuple = ()  # the channels of the last measurement (the filter's gain in _held_error)
         self.rows_errors = _Pairs()  # (error at the measurement radius, the radius) per rebuild (:meth:`_recentre`)
         self.model.kin.reset_warm_start()
 
@@ -649,13 +654,15 @@ class ReducedObserverModel:
                     dt: float) -> tuple[float, float]:
         """The state error over one interval that the held model ``old`` (at secant factor ``s_old``) causes where it
         is replaced by the
-        configuration ``iv`` evaluated exactly, against the filter's uncertainty: ``(max_i |dz_i| / sigma_i,
-        max_i |dz_i| / sqrt(Q_ii))`` with ``dz`` the difference of the two interval steps from the filter's state
-        (its configuration moved to ``iv``'s), ``sigma`` the filter's standard deviations before the interval and
-        ``Q`` the interval's process noise. Every held quantity enters (``M_r``, ``K_r``, damping, input matrix,
-        velocity forces, all along the secant): the first ratio well below 1 means the approximation is lost in
-        the filter's uncertainty, the second below 1 that it is smaller than the noise the filter adds per
-        interval (consistent with its own model)."""
+        configuration ``iv`` evaluated exactly, against the filter's uncertainty: ``(b, max_i |dz_i| / sqrt(Q_ii))``
+        with ``dz`` the difference of the two interval steps from the filter's state (its configuration moved to
+        ``iv``'s) and ``Q`` the interval's process noise; ``b`` the filter's steady bias from ``dz`` repeated at
+        every interval (:meth:`_persistent_bias`, with the channels of the measurement rows in use), or, before
+        any rows or where the filter's error map does not contract, ``max_i |dz_i| / sigma_i`` with ``sigma`` the
+        filter's standard deviations before the interval. Every held quantity enters (``M_r``, ``K_r``, damping,
+        input matrix, velocity forces, all along the secant): the first figure well below 1 means the
+        approximation is lost in the filter's uncertainty, the second below 1 that it is smaller than the noise
+        the filter adds per interval (consistent with its own model)."""
         zq = z.copy()
         zq[: self.nq] = iv.q0
         n = self.substeps(old, dt)
@@ -666,9 +673,8 @@ class ReducedObserverModel:
         P = self.state_cov()
         q = old.map.Q.diagonal() if old.map is not None else None
         e_q = float(np.max(np.abs(held - exact) / np.sqrt(np.maximum(q, 1e-300)))) if q is not None else math.nan
-        c = self._centre
-        if c is not None and c.rows:  # the filter's channels: the rows it measured last
-            channels = max(c.rows, key=len)
+        c, channels = self._centre, self._measured
+        if c is not None and channels:  # the filter's gain: the channels it measured last
             bias = self._persistent_bias(P[: self.nx, : self.nx], self._centre_rows(c, channels)[1],
                                          self._noise(channels), iv.rc, dz=held - exact)
             if bias is not None:
@@ -1090,6 +1096,7 @@ class ReducedObserverModel:
         """``(c0, Hm, D, G, q0)``: the measurement rows of ``channels`` that serve at ``x`` and their centre: the
         present centre's while q lies within its radius, else a new centre's (:meth:`_recentre`)."""
         c = self._centre
+        self._measured = channels
         if c is None or max(map(abs, map(sub, x[: self.nq].tolist(), c.q_list))) > c.rad:
             c = self._recentre(x, channels, c)
         return (*self._centre_rows(c, channels), c.q0)
