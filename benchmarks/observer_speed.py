@@ -546,9 +546,7 @@ def _without_truth_section(ob: dict, repeats: int) -> str:
     """The same log without its truth (a lab's log): nothing to score, no bound (``--bound`` asks for it)."""
     nt = ob["without_truth"]
     rest = nt["median_rest_s"]
-    return ("### The same log without a truth
-
-"
+    return ("### The same log without a truth\n\n"
             f"The run folder copied without `truth.csv` (a lab's log: no score, so no bound unless `--bound` asks for "
             f"it), {repeats} runs alternating with the above: median wall **{nt['median_wall_s']:.2f} s**, of which "
             f"the filter {nt['median_filter_s']:.3f} s; the wall less the filter **{rest:.2f} s** (median of the "
