@@ -50,8 +50,8 @@ import json, resource, sys, time
 w0, t0 = time.perf_counter(), time.process_time()
 from exuflex import _compile
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
-from exuflex.runs import read_run
+from exuflex.observer.session import ObserverConfig, estimate, make_observer
+from exuflex.runs import held_torques, read_run
 w1, t1 = time.perf_counter(), time.process_time()
 _compile.prepare()
 w2, t2 = time.perf_counter(), time.process_time()
@@ -59,7 +59,7 @@ mech = load_mechanism(sys.argv[1]); run = read_run(sys.argv[2])
 obs = make_observer(mech, ObserverConfig.for_model(mech))
 w3, t3 = time.perf_counter(), time.process_time()
 S = run.sensors
-estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+estimate(obs, S.t, held_torques(S.select(mech.motor_names).data), S.select(obs.channels).data)
 w4, t4 = time.perf_counter(), time.process_time()
 ch = resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({"wall": {"import": w1 - w0, "compile": w2 - w1, "make_observer": w3 - w2, "first_run": w4 - w3,

@@ -108,14 +108,15 @@ def main(argv=None) -> int:
 
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import reduced
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     mech = load_mechanism(args.model)
     run = read_run(args.run)
     obs = make_observer(mech, ObserverConfig.for_model(mech))
     S = run.sensors
-    U = _hold(S.select(mech.motor_names).data)
+    U = held_torques(S.select(mech.motor_names).data)
     Y = S.select(obs.channels).data
     estimate(obs, S.t, U, Y)  # compile and warm
     rtf = [estimate(obs, S.t, U, Y).real_time_factor for _ in range(args.repeats)]
@@ -208,13 +209,14 @@ def _child(model: str, run_dir: str) -> int:
     """The median time of :data:`CHILD_RUNS` filter runs on the log after a warm-up, and of as many passes through
     ``step`` sample by sample, printed as JSON (``--against``'s measurement)."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     mech = load_mechanism(model)
     S = read_run(run_dir).sensors
     obs = make_observer(mech, ObserverConfig.for_model(mech))
-    U = _hold(S.select(mech.motor_names).data)
+    U = held_torques(S.select(mech.motor_names).data)
     Y = S.select(obs.channels).data
     estimate(obs, S.t, U, Y)
     times = []

@@ -17,7 +17,8 @@ from filterpy.kalman import KalmanFilter
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
 from exuflex.scoring.bound import riccati_track
-from exuflex.observer.session import LogColumns, ObserverConfig, make_observer, physical_names
+from exuflex.observer.session import ObserverConfig, make_observer, physical_names
+from exuflex.runs import LogColumns
 from exuflex.scoring.bound import _bound_model, _mid_q, _Sampled, _step_linearisation, _Trajectory, bound_track, estimation_bound, steady_bound
 from exuflex.scoring.run import _scored, observe_run
 from exuflex.runs import Run, read_run

@@ -357,7 +357,7 @@ def _run(args) -> int:
     with setting_up():  # the kernels loaded, the model built
         obs = make_observer(mech, config)
         if args.q0 is not None or args.qd0 is not None:
-            from ..observer.session import start_configuration
+            from ..manoeuvre import start_configuration
 
             q0 = args.q0 if args.q0 is not None else start_configuration(mech)
             x0 = obs.model.initial_state(q0, args.qd0)
