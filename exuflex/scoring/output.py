@@ -222,6 +222,8 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
         lines.append(f"{'quantity':10s} {'unit':>6s} {'bound':>11s}")
         for k, b in bnd.items():
             lines.append(f"{k:10s} {units.get(k, ''):>6s} {b:11.3g}")
+    elif not bnd:
+        lines.append("no truth to score against and no bound (exuflex observe --bound: the bound along the plan)")
     if bnd and (met or bound):
         along = (s.get("bound_for") or {}).get("along", "truth")
         words = {"truth": "true trajectory", "plan": "planned trajectory (the log has no truth)",

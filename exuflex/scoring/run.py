@@ -169,7 +169,7 @@ class Outcome:
 KEEP = ("all", "physical", "summary")
 
 
-def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
+def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool | str = True,
                 observer: Observer | None = None, report=None, smooth: bool = False, keep: str = "all",
                 sink=None, log_check=None) -> Outcome:
     """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
@@ -181,7 +181,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     else along the plan, on its times, torques and sampled channels; with ``smooth`` the smoothed bound), its RMS
     over the samples :func:`metrics` scores (``bound_rms``, ``ratio_to_bound``; with ``smooth`` also
     ``filtered_bound_rms`` and ``filtered_ratio_to_bound`` for the filter's errors); it is computed before
-    filtering, and an unobservable channel set is reported at once.
+    filtering, and an unobservable channel set is reported at once. ``with_bound``: True (default) the bound along
+    the truth or the plan; ``"truth"`` only along a truth (a log without one: the observability test alone, no
+    bound: along the plan the recursion costs about as much as the filter and scores nothing); False neither.
     ``report``: a callable taking one-line stage messages (the CLI prints them on stderr). ``log_check``: the
     log's check if the caller made it already (:func:`exuflex.validate.check_run` with the observer's channels and
     sample interval; the command line checks a log before it builds the model).
@@ -202,6 +204,8 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
 
     if keep not in KEEP:
         raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
+    if with_bound not in (True, False, "truth"):
+        raise ValueError(f"with_bound must be True, False or 'truth', got {with_bound!r}")
     check_mechanism_argument(mech)
     check_arguments(config=config, observer=observer)
     if not hasattr(run, "sensors") or not hasattr(run, "meta"):
@@ -248,7 +252,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             from ..errors import LogFormatError
 
             raise LogFormatError(f"{Path(run.path) / 'truth.csv'}: {exc}") from None
-    if with_bound and unobservable is None:
+    if with_bound and unobservable is None and (with_bound is True or run.truth is not None):
         track, along = bound_track(obs, S.t, U, _Sampled(S, obs.channels), truth=run.truth, smooth=smooth)
         scored = _scored(S.t, start_up, None if run.truth is None else run.truth.t)
         names = physical_names(mech)
