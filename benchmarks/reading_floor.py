@@ -52,7 +52,8 @@ coordinates' readings and rates over the filter's standard deviation of them
 iterated). The figures below are of that code. Measured on the same truths before it (per channel and per
 interval): three_link_arm on the reduced truth q3 0.43, q2 0.13, dq3 0.13 and on the ERLS truth q3 0.42 (0.21
 after); three_link_reach on the reduced truth q1 0.55, q2 0.39, q3 0.68, dq3 0.27 (25 held configurations and
-39 row centres against 175 and 67 after; its filter's CPU time 1.75 times less, one run each);
+39 row centres against 175 and 67 after; `observe`'s wall time with the bound 21 s against 37 s, one run
+each on the loaded machine);
 long_two_link on its reduced truth q1 0.52, q2 1.33 (after: 0.18, 0.38; `--models
 benchmarks/models/long_two_link.toml --engines reduced`, not in the table: its filter took over 400 s on the
 loaded machine). swing_arm's floor on its reduced truth was 0.21 (q1) before: its 0.40 to 0.44 on the ERLS truth
