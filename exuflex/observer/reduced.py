@@ -502,7 +502,7 @@ class ReducedObserverModel:
         self.n_jumps = 0
         self.held_errors = _Pairs()  # (vs std, vs process noise) per refresh
         self._centre: _RowsCentre | None = None  # the measurement rows' configuration
-        self._measured: tuple = ()  # the channels of the last measurement (the filter's gain in _held_error)
+        self._measured: tuple = ()  # the channels of the last rows rebuilt (the filter's gain in _held_error)
         self.rows_errors = _Pairs()  # (error at the measurement radius, the radius) per rebuild (:meth:`_recentre`)
         self.model.kin.reset_warm_start()
 
@@ -657,8 +657,9 @@ class ReducedObserverModel:
         configuration ``iv`` evaluated exactly, against the filter's uncertainty: ``(b, max_i |dz_i| / sqrt(Q_ii))``
         with ``dz`` the difference of the two interval steps from the filter's state (its configuration moved to
         ``iv``'s) and ``Q`` the interval's process noise; ``b`` the filter's steady bias from ``dz`` repeated at
-        every interval (:meth:`_persistent_bias`, with the channels of the measurement rows in use), or, before
-        any rows or where the filter's error map does not contract, ``max_i |dz_i| / sigma_i`` with ``sigma`` the
+        every interval (:meth:`_persistent_bias`, with the channels the measurement rows were last rebuilt for),
+        or, before any rows or where the filter's error map does not contract, ``max_i |dz_i| / sigma_i`` with
+        ``sigma`` the
         filter's standard deviations before the interval. Every held quantity enters (``M_r``, ``K_r``, damping,
         input matrix, velocity forces, all along the secant): the first figure well below 1 means the
         approximation is lost in the filter's uncertainty, the second below 1 that it is smaller than the noise
@@ -1081,7 +1082,6 @@ class ReducedObserverModel:
         """``(c0, Hm, D, G, q0)``: the measurement rows of ``channels`` that serve at ``x`` and their centre: the
         present centre's while q lies within its radius, else a new centre's (:meth:`_recentre`)."""
         c = self._centre
-        self._measured = channels
         if c is None or max(map(abs, map(sub, x[: self.nq].tolist(), c.q_list))) > c.rad:
             c = self._recentre(x, channels, c)
         return (*self._centre_rows(c, channels), c.q0)
@@ -1100,6 +1100,7 @@ class ReducedObserverModel:
         the centre it replaces, the replaced rows' error (of ``channels``) sets the new radius
         (:meth:`_rows_error`, :meth:`_rows_radius`)."""
         nq = self.nq
+        self._measured = channels  # (the same samples whether the compiled loop or step by step makes the rows)
         rad = self.rows_rad if old is None else old.rad
         q, qd = x[:nq], x[self.r : self.r + nq]
         iv = self._last
