@@ -311,7 +311,8 @@ def _bound_split(obs, mech, run, repeats: int) -> dict:
     then one more bound with timers around the step Jacobian kernel it calls (the filter's interval kernel,
     :func:`exuflex.observer.expansion.held_interval`) and the configuration evaluations of its own model."""
     from exuflex.observer import reduced
-    from exuflex.observer.session import LogColumns, estimate
+    from exuflex.observer.session import estimate
+    from exuflex.runs import LogColumns
     from exuflex.scoring import bound
 
     S = run.sensors
