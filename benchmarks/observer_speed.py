@@ -210,8 +210,12 @@ def _child(model: str, run_dir: str) -> int:
     ``step`` sample by sample, printed as JSON (``--against``'s measurement)."""
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig, estimate, make_observer
-    from exuflex.runs import held_torques
     from exuflex.runs import read_run
+
+    try:
+        from exuflex.runs import held_torques
+    except ImportError:  # (an older checkout under --against: the observer's session held it)
+        from exuflex.observer.session import _hold as held_torques
 
     mech = load_mechanism(model)
     S = read_run(run_dir).sensors
