@@ -16,6 +16,12 @@ without the geometric stiffness of the motion's loads; the ERLS truth with the e
 their own axial strain (``N_e = EA/L (e_2 - e_1)``: every load the link carries, the elastic motion's inertia
 included, instead of the rigid motion's loads; an experiment defined here, not a model of the package).
 
+``ringing``: in the two truths' logs of one seed (``DIR/erls/<model>/s<seed>``, ``DIR/exudyn/<model>/s<seed>``), a
+channel's dominant ringing between two of the trapezoid's torque steps, fitted as a cubic trend plus two damped
+sinusoids by least squares: each truth's frequency, decay rate and amplitude of the first, and the RMS of the two
+logs' difference over the channel's noise (the two logs carry noise of the same seed; a difference of the noise
+alone reads about 1.4). Markdown on stdout.
+
 ``truths``: ERLS truth runs of such a variant (``--variant nokg`` or ``strain``) in a gallery truth folder, for
 ``benchmarks/gallery.py --acceptance --engine erls --truth-dir DIR`` (which reuses runs already there).
 
@@ -23,6 +29,7 @@ Usage:
     python benchmarks/long_arms.py modes --models M1,M2 --json OUT
     python benchmarks/long_arms.py pairs --models M1,M2 --json OUT
     python benchmarks/long_arms.py truths --variant strain --models M1,M2 --truth-dir DIR
+    python benchmarks/long_arms.py ringing --model luffing_arm --channel c_fore --windows 0.01-0.29,0.61-1.19 --f0 36 --truth-dir DIR
     python benchmarks/long_arms.py page --modes JSON --pairs JSON --acceptance LABEL=ENGINE:JSON ... --md docs/long_arms.md
 """
 
@@ -243,6 +250,47 @@ def _acceptance_means(path: str, engine: str) -> dict:
                   "N": len(m["nis"])} for mod, m in by.items()}
 
 
+def ringing(truth_dir: Path, model: str, channel: str, windows, f0: float, seed: int = 1) -> str:
+    """The ``ringing`` table (module docstring): per window and truth, the fitted frequency (Hz), decay rate (1/s),
+    damping ratio and amplitude of the ringing nearest ``f0``, and the two logs' RMS difference over the noise."""
+    from scipy.optimize import least_squares
+
+    from exuflex.mechanism import load_mechanism
+    from exuflex.runs import read_run
+
+    logs = {e: read_run(truth_dir / e / model / f"s{seed}").sensors for e in ("erls", "exudyn")}
+    mech = load_mechanism(ROOT / "benchmarks" / "models" / f"{model}.toml")
+    sd = next(s.noise_std for s in mech.sensors if s.name == channel)
+    out = [f"| window (s) | truth | f (Hz) | decay (1/s) | zeta | amplitude | RMS difference / noise |", "|---|---|---|---|---|---|---|"]
+    for lo, hi in windows:
+        ys = {}
+        for e, S in logs.items():
+            t = S.t
+            sel = (t >= lo) & (t < hi)
+            tt, y = t[sel] - lo, S.select([channel]).data[sel, 0]
+            ys[e] = y
+
+            def res(x, tt=tt, y=y):
+                f, sg, A, B, c0, c1, c2, c3, f2, s2, A2, B2 = x
+                return (c0 + c1 * tt + c2 * tt**2 + c3 * tt**3 + np.exp(-sg * tt) * (A * np.cos(2 * np.pi * f * tt)
+                        + B * np.sin(2 * np.pi * f * tt)) + np.exp(-s2 * tt) * (A2 * np.cos(2 * np.pi * f2 * tt)
+                        + B2 * np.sin(2 * np.pi * f2 * tt)) - y)
+
+            # the second sinusoid: the strongest other peak of the detrended spectrum
+            d = y - np.polyval(np.polyfit(tt, y, 3), tt)
+            F = np.abs(np.fft.rfft(d * np.hanning(len(d))))
+            fr = np.fft.rfftfreq(len(d), float(np.median(np.diff(t))))
+            F[np.abs(fr - f0) < 0.15 * f0] = 0.0
+            f2 = float(fr[np.argmax(F)])
+            x = least_squares(res, [f0, 2.0, d.std(), 0.0, y.mean(), 0, 0, 0, f2, 2.0, 0.0, 0.0], x_scale="jac").x
+            out.append(f"| {lo:g}-{hi:g} | {e} | {x[0]:.4f} | {x[1]:.3f} | {x[1] / (2 * np.pi * x[0]):.5f} | "
+                       f"{np.hypot(x[2], x[3]):.3e} | |")
+        n = min(len(v) for v in ys.values())
+        dif = np.sqrt(np.mean((ys["exudyn"][:n] - ys["erls"][:n]) ** 2)) / sd
+        out[-1] = out[-1][:-3] + f"| {dif:.2f} |"
+    return "\n".join(out)
+
+
 def page(modes_json: str | None, pairs_json: str | None, acceptance: list[str], commands: list[str]) -> str:
     lines = ["# Long, slender arms: the ERLS and Exudyn truths", "",
              "Written by `python benchmarks/long_arms.py page` (its docstring has the subcommands; each section "
@@ -387,6 +435,13 @@ def main(argv=None) -> int:
             p.add_argument("--variant", choices=sorted(VARIANTS), required=True)
             p.add_argument("--truth-dir", required=True)
             p.add_argument("--seeds", default="1-10")
+    p = sub.add_parser("ringing")
+    p.add_argument("--model", required=True)
+    p.add_argument("--channel", required=True)
+    p.add_argument("--windows", required=True, help="comma-separated LO-HI time windows (s) between torque steps")
+    p.add_argument("--f0", type=float, required=True, help="the ringing's frequency guess (Hz)")
+    p.add_argument("--truth-dir", required=True)
+    p.add_argument("--seed", type=int, default=1)
     p = sub.add_parser("page")
     p.add_argument("--modes")
     p.add_argument("--pairs")
@@ -398,6 +453,10 @@ def main(argv=None) -> int:
         from _pages import publish
 
         publish(page(a.modes, a.pairs, a.acceptance, a.command), a.md)
+        return 0
+    if a.cmd == "ringing":
+        wins = [tuple(map(float, w.split("-"))) for w in a.windows.split(",") if w]
+        print(ringing(Path(a.truth_dir), a.model, a.channel, wins, a.f0, a.seed))
         return 0
     models = [m for m in a.models.split(",") if m]
     if a.cmd == "modes":
