@@ -189,7 +189,9 @@ def jacobian_entries(name: str, seed: int = 0) -> dict:
     F = ex.held_interval(z, u, np.empty(0), dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]  # the cached step's own F
     Fp = hs.Wg
     if hs.Wg.shape[0]:  # gravity: F holds the held matrices' change with q as forces at z (position_forces)
-        Fp = ex.position_forces(z, step(z), dt, hs.Wg, hs.dM, hs.dK, hs.beta)
+        z1 = step(z)
+        Fp = ex.position_forces(z, z1, dt, hs.Wg, hs.dM, hs.dK, hs.beta)
+        ex._mass_curvature_forces(Fp, z, z1, h * n, 0.5 * h * n, nq, hs.Me)  # ... and M_r's cross term at the sag
         held_matrices_step.extra = (Fp - hs.Wg)[:, :nq]
     exact = float(entry_error(F, _central4(held_matrices_step, z, r), 1e-6, 1e-8).max())
     Fd = _central(step, z, r)
