@@ -109,8 +109,7 @@ def main(argv=None) -> int:
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import reduced
     from exuflex.observer.session import ObserverConfig, estimate, make_observer
-    from exuflex.runs import held_torques
-    from exuflex.runs import read_run
+    from exuflex.runs import held_torques, read_run
 
     mech = load_mechanism(args.model)
     run = read_run(args.run)
@@ -244,7 +243,7 @@ def _stages_child(model: str, run_dir: str) -> int:
     t0 = time.perf_counter()
     import numba  # noqa: F401 - the libraries first: their import is the floor's, not the package's
     import numpy  # noqa: F401
-    import scipy.linalg  # noqa: F401
+    import scipy.linalg
     import scipy.special  # noqa: F401
 
     t1 = time.perf_counter()
@@ -348,9 +347,8 @@ KERNEL = "import numba\n\n\n@numba.njit(cache=True)\ndef one(x):\n    return x +
 def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
     """``exuflex observe`` in fresh interpreters: wall times, the filter's (its printed ``wall``) and the imports'."""
     import re
-    import subprocess
-
     import resource
+    import subprocess
     import tempfile
 
     env = _env(ROOT)
