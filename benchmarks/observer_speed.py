@@ -109,8 +109,7 @@ def main(argv=None) -> int:
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import reduced
     from exuflex.observer.session import ObserverConfig, estimate, make_observer
-    from exuflex.runs import held_torques
-    from exuflex.runs import read_run
+    from exuflex.runs import held_torques, read_run
 
     mech = load_mechanism(args.model)
     run = read_run(args.run)
@@ -210,8 +209,12 @@ def _child(model: str, run_dir: str) -> int:
     ``step`` sample by sample, printed as JSON (``--against``'s measurement)."""
     from exuflex.mechanism import load_mechanism
     from exuflex.observer.session import ObserverConfig, estimate, make_observer
-    from exuflex.runs import held_torques
     from exuflex.runs import read_run
+
+    try:
+        from exuflex.runs import held_torques
+    except ImportError:  # (an older checkout under --against: the observer's session held it)
+        from exuflex.observer.session import _hold as held_torques
 
     mech = load_mechanism(model)
     S = read_run(run_dir).sensors
@@ -240,7 +243,7 @@ def _stages_child(model: str, run_dir: str) -> int:
     t0 = time.perf_counter()
     import numba  # noqa: F401 - the libraries first: their import is the floor's, not the package's
     import numpy  # noqa: F401
-    import scipy.linalg  # noqa: F401
+    import scipy.linalg
     import scipy.special  # noqa: F401
 
     t1 = time.perf_counter()
@@ -311,7 +314,8 @@ def _bound_split(obs, mech, run, repeats: int) -> dict:
     then one more bound with timers around the step Jacobian kernel it calls (the filter's interval kernel,
     :func:`exuflex.observer.expansion.held_interval`) and the configuration evaluations of its own model."""
     from exuflex.observer import reduced
-    from exuflex.observer.session import LogColumns, estimate
+    from exuflex.observer.session import estimate
+    from exuflex.runs import LogColumns
     from exuflex.scoring import bound
 
     S = run.sensors
@@ -343,9 +347,8 @@ KERNEL = "import numba\n\n\n@numba.njit(cache=True)\ndef one(x):\n    return x +
 def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
     """``exuflex observe`` in fresh interpreters: wall times, the filter's (its printed ``wall``) and the imports'."""
     import re
-    import subprocess
-
     import resource
+    import subprocess
     import tempfile
 
     env = _env(ROOT)

@@ -694,12 +694,13 @@ class ReducedObserverModel:
         fm, m = iv.forces, iv.mats
         old = iv.old
         o, om, oCa = (fm, m, iv.Ca) if old is None else (old.forces, old.mats, old.Ca)
-        hess, We = None, _NO_ROWS
+        hess, We, Me = None, _NO_ROWS, _NO_ROWS
         if self._weight and self.rm.consistent and fm.dHdq is not None and self.r > self.nq:
-            # the weight's q-gradient at the sag (ReducedModel.weight_curvature), with the basis's second derivatives
-            # the velocity forms take as well
+            # the weight's and the mass matrix's q-gradients at the sag (ReducedModel.weight_curvature,
+            # ReducedModel.mass_curvature), with the basis's second derivatives the velocity forms take as well
             hess = self.rm.basis_hessian(m.rc.cfg.pose.q)
             We = self.rm.weight_curvature(m, fm.dHdq, hess)
+            Me = self.rm.mass_curvature(m, fm.dHdq, hess)
         # under gravity every force's q-gradient enters the step Jacobian: the velocity forms' too
         # (ReducedModel.velocity_forms_gradient)
         dT2, dV2, dC2 = self.rm.velocity_forms_gradient(m.rc.cfg.pose.q) if self._weight else (_NO_ROWS,) * 3
@@ -708,7 +709,7 @@ class ReducedObserverModel:
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
             old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv, hess),
-            KGd=fm.KGd, We=We, dKGd=fm.dKGd, dT2=dT2, dV2=dV2, dC2=dC2)
+            KGd=fm.KGd, We=We, dKGd=fm.dKGd, dT2=dT2, dV2=dV2, dC2=dC2, Me=Me)
 
     def _velocity_forms(self, iv: _Held, hess: np.ndarray | None = None) -> dict:
         """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held
