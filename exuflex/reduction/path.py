@@ -305,9 +305,11 @@ class PathSamples:
         first, is dropped where the requirements hold without it: no single added mode can be left out.
 
         ``until_met`` False (the dynamic modes' stage, before the static corrections, :class:`.basis.CraigBampton`):
-        the search also stops where three modes in a row lower the largest figure over every configuration by less
-        than 1 % of its limit, and then leaves ``seq`` as it was (the static corrections may meet the requirements
-        with fewer columns; :attr:`bias_met` False). ``until_met`` True (the final basis): no such stop.
+        the filter requirement alone, among the modes that ring for a sample interval (:attr:`dynamic`; ``every_mode``:
+        every mode); the search also stops where no mode lowers the figure at that configuration by 1 % of its limit
+        or three modes in a row lower the largest figure over every configuration by less, and then leaves ``seq``
+        as it was (the static corrections may meet the requirements with fewer columns; :attr:`bias_met` False).
+        ``until_met`` True (the final basis): every requirement, every mode, no such stop.
         :attr:`bias_tried`: the modes added, in order, before the outcome."""
         tie = np.argsort(-self.scores[0], kind="stable")  # q*'s IMR order
         n0 = len(seq)
@@ -323,6 +325,8 @@ class PathSamples:
             j = int(np.argmax(self.excess(seq, until_met)))
             v = self._cache[("bv", ("b", _key(seq)))][1] if self.filters else None
             scores = [self._excess_at(j, seq + [i], v, until_met) for i in cands]
+            if not until_met and min(scores) > self._excess_at(j, seq, None, False) - 0.01:
+                break  # no mode lowers the figure where it is largest
             seq.append(cands[int(np.argmin(scores))])
             b = self.requirement_excess(seq, until_met)
             if b < best_b - 0.01:
