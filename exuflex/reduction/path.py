@@ -42,8 +42,9 @@ Last, the filter requirement (:mod:`.truncation`, "What the filter makes of it")
 linearised full model under the manoeuvre, per estimated quantity over the bound's variance, ``b <= bias_max``
 (:meth:`PathSamples.bias`) and the steady filter's whitened innovations at most ``INNOVATION_MAX`` summed over the
 channels (:meth:`PathSamples.innovation`); modes are added until both hold (:meth:`PathSamples.extend_for_bias`,
-:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` judges them again on the final basis, after the static
-corrections (:mod:`.static`), and where they are still not met adds modes the same way among the re-based ones.
+:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` judges every requirement again on the final basis, after
+the static corrections (:mod:`.static`), and adds modes among every re-based one until they hold
+(:meth:`PathSamples.requirement_excess` at most 1).
 """
 
 from __future__ import annotations
