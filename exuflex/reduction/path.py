@@ -568,6 +568,17 @@ class PathSamples:
                 if n_max is None:
                     break
             seq.append(best)
+        if n_max is None and n_needed is None and len(seq) == n_all and self.margins(seq, use).min() >= 0:
+            n_needed = len(seq)  # met only with every mode in
+        if n_max is None and n_needed is not None and n_needed == len(seq) > 1 and self.truncation_met:
+            # a mode added early can be left out once later ones are in (two modes that meet a requirement only
+            # together are added last, after every mode that helps alone): each, the last first, is dropped where
+            # every sample still meets the requirements without it
+            for i in list(reversed(seq)):
+                rest = [k for k in seq if k != i]
+                if self.margins(rest, use).min() >= 0:
+                    seq.remove(i)
+            n_needed = len(seq)
         if use and n_max is None and n_needed is not None and self.filters:
             n_needed = self.extend_for_bias(seq)
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
