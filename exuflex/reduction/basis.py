@@ -303,7 +303,9 @@ class CraigBampton:
             self._restore(first)
             seq = [int(i) for i in self.order[:n_interior_dynamic]]
             samples.extend_for_bias(seq, every_mode=True)
-            if samples.bias_met and len(seq) > n_interior_dynamic:
+            # the static corrections and the final search only add columns: a dynamic count already at the first
+            # basis' count cannot give fewer
+            if samples.bias_met and n_interior_dynamic < len(seq) < n_interior:
                 self.order = np.array(seq + [int(i) for i in self.order if int(i) not in set(seq)], int)
                 self.set_interior(len(seq))
                 self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max)
