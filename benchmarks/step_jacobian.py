@@ -193,8 +193,9 @@ def sag() -> str:
     from exuflex.observer.reduced import ReducedObserverModel
 
     lines = ["| model | cached F | reference F | cached step (its own differences) | cached F, the weight's gradient at "
-             "the sag left out | cached F, the rates' forces' q-gradient left out | dq''/dq undeformed (1/s^2) | "
-             "dq''/dq at the sag (1/s^2) |", "|---|---|---|---|---|---|---|---|"]
+             "the sag left out | cached F, the rates' forces' q-gradient left out | cached F, the mass matrix's "
+             "q-gradient at the sag left out | dq''/dq undeformed (1/s^2) | dq''/dq at the sag (1/s^2) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name in tsj.SAG_MODELS:
         e = tsj.sag_entries(name)
         mech, m = tsj._gravity_model(name)
@@ -214,7 +215,7 @@ def sag() -> str:
             return "[" + "; ".join(", ".join(f"{v:.3g}" for v in row) for row in B) + "]"
 
         lines.append(f"| {name} | {e['cached F']:.3f} | {e['rk4 F']:.3f} | {e['cached step']:.3f} | "
-                     f"{e['without We']:.3f} | {e[NO_FORMS]:.3f} | {fmt(block(z0))} | "
+                     f"{e['without We']:.3f} | {e[NO_FORMS]:.3f} | {e['without Me']:.3f} | {fmt(block(z0))} | "
                      f"{fmt(block(z))} |")
         print(lines[-1], flush=True)
     return "\n".join(lines)
@@ -237,7 +238,9 @@ def sag_page(table: str, md: str) -> None:
             "equations' step, the largest `|F - F_d| / (|F_d| + 1e-2 max|F_d|)`; and the exact block undeformed and at "
             "the sag. The sag changes the block by more than its size: linearised undeformed (as the bound was, "
             "docs/gravity.md) the filter's yardstick belonged to a mechanism without sag. The cached step holds the "
-            "weight's q-gradient at the sag (`HeldSystem.We`), the motion's geometric stiffness form's q-gradient "
+            "weight's and the mass matrix's q-gradients at the sag (`HeldSystem.We`, `HeldSystem.Me`: the basis's "
+            "second derivatives times the sag, `ReducedModel.weight_curvature`, `ReducedModel.mass_curvature`; the "
+            "reference step's at its own deformed state), the motion's geometric stiffness form's q-gradient "
             "(`HeldSystem.dKGd`) and the q-gradients of the forces' quadratic forms (`HeldSystem.dT2`, `dV2`, `dC2`, "
             "`ReducedModel.velocity_forms_gradient`: the forces of the rates, the bias force and the q rows' elastic "
             "forces turned with the elements; the reference step takes central differences of the reduced forces, "
@@ -250,9 +253,14 @@ def sag_page(table: str, md: str) -> None:
             "(0.78 before the frames: `ReducedModel.matrices` differenced in q at the same state), was left out (its "
             "forms held along the secant), an error of 8 % of the entry before and 2.2 times its own scale after: the "
             "xfails that the frames left were this term, not a dependence the frames added (the table's column 'the "
-            "rates' forces' q-gradient left out'). What is left on the arms is the mass matrix's q-gradient at the sag (its basis's second "
-            "derivatives times the sag, `ReducedModel.mass_derivative_analytic`: 0.086 of the luffing arm's "
-            "`dq2''/dq1` scale instantaneously, 0.009 of the crane arm's). On the double pendulum (2 ms intervals) "
+            "rates' forces' q-gradient left out'). The mass matrix's q-gradient at the sag, `d M_r/dq_i` gaining "
+            "`sum_m p_m d^2 M_r/dq_i dp_m` (the basis's second derivatives, the element masses and the velocity map "
+            "turning, against the sag's velocity map: `ReducedModel.mass_curvature`, entry by entry against central "
+            "differences of `M_r` in `tests/test_step_jacobian.py`), was left out of both steps: 0.086 of the luffing "
+            "arm's `dq2''/dq1` scale instantaneously, 0.009 of the crane arm's; with it the arms' figures halve (the "
+            "column 'the mass matrix's q-gradient left out': what the cached `F` was without it; the reference `F` "
+            "was 0.006 and 0.019 without it). What is left on the arms, about 0.01 of an entry, is below the cached "
+            "step's own departure on the double pendulum. On the double pendulum (2 ms intervals) "
             "the cached step itself departs from the reduced equations' step by as much as its `F` (the column "
             "'cached step'): the forces and matrices held over an interval in which its elastic modes ring, which the "
             "gradient's absence happened to offset at 2 ms; the reference `F` against the reduced equations' step "

@@ -82,6 +82,10 @@ def held_matrices(dl, s, hs: HeldSystem, pe=None):
         B = np.zeros((nq, nq))
         B[np.triu_indices(nq)] = hs.p2C @ (pe[k] * pe[l])
         Ca[:nq, :nq] += B + np.triu(B, 1).T
+        if hs.Me.shape[0]:  # M_r's cross term in q and the elastic coordinates: sum_mi p_m dl_i (X_mi + X_mi^T)
+            X = np.zeros((r, r))
+            X[:nq] = np.einsum("m,i,miab->ab", pe, dl, hs.Me.reshape(len(pe), nq, nq, r))
+            Mr = Mr + X + X.T
     return Mr, Kr, Ca + hs.beta * Kr, Gr
 
 
@@ -364,11 +368,19 @@ def exact_jacobian(z, u, dl, s, d, dd, h, n, hs: HeldSystem) -> tuple[np.ndarray
         dMj[j] = vm.reshape(r, r)
         dKj[j] = vk.reshape(r, r)
         dCj[j] += hs.beta * dKj[j]
+    Me4 = hs.Me.reshape(n_el, nq, nq, r) if n_el and hs.Me.shape[0] else None
+    if Me4 is not None:  # M_r's cross term in q (and in the elastic coordinates below): sum_m pem_m (X_mj + X_mj^T)
+        for j in range(nq):
+            X = np.zeros((r, r))
+            X[:nq] = np.einsum("m,mab->ab", pem, Me4[:, j])
+            dMj[j] += X + X.T
     if n_el:
         mg = hs.pG.shape[1] // nq
         X2C = pair_blocks(hs.p2C, n_el, nq)
         for k in range(n_el):
             Pm = hs.pM[k].reshape(nq, r)
+            if Me4 is not None:
+                Pm = Pm + np.einsum("i,iab->ab", dl, Me4[k])
             Pk = hs.pK[k].reshape(nq, r)
             Pc = hs.pC[k].reshape(nq, r) + hs.beta * Pk
             # the second order's derivative, d/dp_k sum_ab p_a p_b X_ab = 2 sum_b p_b X_kb (X symmetric)

@@ -17,14 +17,15 @@ def sixbar_observer_state():
     from pathlib import Path
 
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, make_observer
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     root = Path(__file__).resolve().parents[1]
     mech = load_mechanism(root / "models" / "sixbar.toml")
     S = read_run(root / "tests" / "data" / "sixbar_erls_3s").sensors
     obs = make_observer(mech, ObserverConfig())
-    U = _hold(S.select(mech.motor_names).data)
+    U = held_torques(S.select(mech.motor_names).data)
     obs.ekf.run(S.t[:300], U[:300], S.select(obs.channels).data[:300])
     return obs.model, obs.model._last, obs.ekf.x, U[300].copy()
 
@@ -48,6 +49,7 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False, forms_grad=False):
     # the motion's geometric stiffness as a form in [1, u, q'q'] (a few percent of K_r)
     KGd = 1e-2 * np.abs(Kr).max() * rng.normal(size=(1 + Gr.shape[1] + nq * (nq + 1) // 2, r * r))
     We = rng.normal(size=(r - nq, nq * nq))  # the weight's q-gradient per unit elastic coordinate
+    Me = 1e-1 * rng.normal(size=(r - nq, nq * nq * r))  # the mass matrix's, its rigid rows
     dKGd = 1e-1 * np.abs(KGd).max() * rng.normal(size=(KGd.shape[0], nq * r * r))  # the form's q-gradient
     # the forms' q-gradients (gravity: the forms follow q by them instead of along the secant)
     e = np.zeros((0, 0))
@@ -57,7 +59,7 @@ def _held(r, nq, has_old, beta=1e-3, seed=0, noC=False, forms_grad=False):
         dT2 = dV2 = dC2 = e
     return rng, HeldSystem(has_old, beta, Mr, Kr, Ca, Gr, grad(), grad(), fo["fg"], fo["T2"], fo["V2"], C2, grad(),
                            grad(), old[3], old[4], old[6]["fg"], old[6]["T2"], old[6]["V2"], oC2, *pf, pG, p2, Wg,
-                           old_Wg, pT, pC2, KGd, We, dKGd, dT2, dV2, dC2)
+                           old_Wg, pT, pC2, KGd, We, dKGd, dT2, dV2, dC2, Me)
 
 
 def test_kernels_take_the_held_system_as_one_argument():
@@ -395,7 +397,7 @@ def test_elastic_forms_are_the_derivatives_of_the_reduced_matrices(name):
                        mats.Cr - beta * mats.Kr, mats.Gr, fm.fg, fm.T2, fm.V2,
                        fm.C2 if fm.C2 is not None else np.zeros((0, r)), *fm.elastic, fm.Wg, fm.Wg,
                        np.zeros((0, 0)), np.zeros((0, 0)), fm.KGd, np.zeros((0, 0)), np.zeros((0, 0)),
-                       np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
+                       np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)))
     first = hs._replace(p2C=np.zeros_like(hs.p2C))
     zq = np.zeros(nq)
 

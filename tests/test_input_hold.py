@@ -130,7 +130,9 @@ def input_entries(name: str, seed: int = 0) -> dict:
     tensors = iv.forces.jacobian_tensors()
     if hs.Wg.shape[0]:
         z1 = ex.held_step(z, u, dl0, 0.0, h, n, hs, du)[0]
-        held_matrices_step.extra = (ex.position_forces(z, z1, dt, hs.Wg, hs.dM, hs.dK, hs.beta) - hs.Wg)[:, :nq]
+        Fp = ex.position_forces(z, z1, dt, hs.Wg, hs.dM, hs.dK, hs.beta)
+        ex._mass_curvature_forces(Fp, z, z1, h * n, 0.5 * h * n, nq, hs.Me)  # ... and M_r's cross term at the sag
+        held_matrices_step.extra = (Fp - hs.Wg)[:, :nq]
     Fd = _central4(held_matrices_step, z, r)  # (the slider-crank's 2.4 kHz mode: fourth order)
     F = ex.held_interval(z, u, du, dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]
     F_start = ex.held_interval(z, u, np.empty(0), dl0, 0.0, h, n, *tensors, Pn, S, tuple(hs))[1]

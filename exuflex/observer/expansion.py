@@ -105,6 +105,12 @@ class HeldSystem(NamedTuple):
     ``q_i``, stacked over ``i`` (:meth:`exuflex.reduction.model.ReducedModel.velocity_forms_gradient`; empty (0, 0):
     none, as without gravity): the forms follow ``q`` by them to first order instead of along the secant
     (:func:`_held_model`), and the step Jacobian's q columns hold the forces they give (:func:`_forms_gradient`).
+    ``Me`` (r - nq, nq*nq*r): ``M_r`` differentiated in ``q_i`` and in each elastic coordinate ``p_m``, its rigid
+    rows ``X`` at ``[m, (i*nq + a)*r + b]`` (``d^2 M_r / dq_i dp_m = X + X^T``,
+    :meth:`exuflex.reduction.model.ReducedModel.mass_curvature`; empty (0, 0): none, as without gravity): the held
+    ``M_r`` at ``q0 + dl`` with the elastic coordinates ``p`` gains ``sum_mi p_m dl_i (X + X^T)``
+    (:func:`_mass_curvature_terms`), so that its q-gradient at the sag, which the step Jacobian holds
+    (:func:`_mass_curvature_forces`), is the mass matrix's there.
     """
 
     has_old: bool
@@ -142,6 +148,7 @@ class HeldSystem(NamedTuple):
     dT2: np.ndarray
     dV2: np.ndarray
     dC2: np.ndarray
+    Me: np.ndarray
 
 
 try:  # numba is a core dependency; without it the kernels run as plain (slow) Python
@@ -519,6 +526,31 @@ def _elastic_terms(pe, hs, Mr, Kr, Ca, Gr):  # pragma: no cover - compiled
 
 
 @_inline
+def _mass_curvature_terms(dl, pe, Me, Mr):  # pragma: no cover - compiled
+    """Add to the held ``M_r`` (in place) its cross term in ``q`` and the elastic coordinates, ``sum_{m, i} p_m dl_i (X_mi
+    + X_mi^T)`` (:class:`HeldSystem`'s ``Me``: ``X_mi`` the rigid rows of ``d^2 M_r / dq_i dp_m``); nothing where
+    ``Me`` or ``pe`` is empty."""
+    n_el = Me.shape[0] if pe.shape[0] else 0
+    if n_el == 0:
+        return
+    r = Mr.shape[0]
+    nq = dl.shape[0]
+    g = np.zeros(nq * r)
+    for k in range(n_el):
+        for i in range(nq):
+            w = pe[k] * dl[i]
+            if w != 0.0:
+                o = i * nq * r
+                for t in range(nq * r):
+                    g[t] += w * Me[k, o + t]
+    for a in range(nq):
+        for b in range(r):
+            x = g[a * r + b]
+            Mr[a, b] += x
+            Mr[b, a] += x
+
+
+@_inline
 def _system(dl, s, pe, hs):  # pragma: no cover - compiled
     """``(M_r, K_r, C_r, G_r)`` of the held model at ``q0 + dl`` with the elastic coordinates ``pe`` (empty: the
     configuration undeformed); ``C_a`` and ``G_r`` along the secant (:func:`_elastic_terms`)."""
@@ -536,6 +568,7 @@ def _system(dl, s, pe, hs):  # pragma: no cover - compiled
             for j in range(Gr.shape[1]):
                 Gr[i, j] += s * (hs.Gr[i, j] - hs.old_Gr[i, j])
     _elastic_terms(pe, hs, Mr, Kr, Ca, Gr)
+    _mass_curvature_terms(dl, pe, hs.Me, Mr)
     Cr = np.empty((r, r))
     for i in range(r):  # + beta K_r
         for j in range(r):
@@ -793,6 +826,7 @@ def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: n
             for j in range(nq):
                 dlw[j] += tf * z[Mr_.shape[0] + j]
             _weight_curvature_forces(Fp, z, dlw, hs.We)
+            _mass_curvature_forces(Fp, z, z_next, h * n, tm, nq, hs.Me)
             _forms_gradient_forces(Fp, z, nq, hs.dT2, hs.dV2, hs.dC2)
         if hs.KGd.shape[0]:  # the step map's P^n holds the static K_r: the motion's stiffness as a force gradient
             Fp = motion_gradient(Fp, Kd)
@@ -802,7 +836,7 @@ def _held_interval(z, u, du, dl, s, h, n, Ts, Vs, C3, Pn, SQM, hs):  # pragma: n
         if tf != 0.0:
             _weight_rates(F, z, s, tf, SQM, hs)
         _velocity_jacobian(F, z, dl.shape[0], SQM, hs.pT, hs.pC2)
-        Y = _elastic_tangent(z, u, du, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
+        Y = _elastic_tangent(z, u, du, dl, Mr_, Kr_, Cr_, Gr_, f, h, n, tm, hs)  # the matrices' change with p_e
         nq = dl.shape[0]
         r = nq + Y.shape[1]
         for k in range(Y.shape[1]):
@@ -851,7 +885,7 @@ def _velocity_jacobian(F, z, nq, SQM, pT, pC2):  # pragma: no cover - compiled
             F[i, j] += Fe[i, j]
 
 
-def _elastic_tangent(z, u, du, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover - compiled
+def _elastic_tangent(z, u, du, dl, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no cover - compiled
     """``Y`` (2r, n_el): the change of the interval's end state per unit elastic coordinate ``p_k`` at which the
     held matrices are taken (``p_e + tm p_e'``, :func:`_held_model`; ``tm = dt/2``, or 0 where the interval fell back
     to its start), through the matrices alone: the step Jacobian's columns of ``p_k`` gain ``Y[:, k]`` and those of
@@ -887,6 +921,9 @@ def _elastic_tangent(z, u, du, Mr, Kr, Cr, Gr, f, h, n, tm, hs):  # pragma: no c
             for j in range(r):
                 t = i * r + j
                 a = hs.pM[k, t]
+                if hs.Me.shape[0]:  # M_r's cross term in q and p_k at q0 + dl (:func:`_mass_curvature_terms`)
+                    for c in range(nq):
+                        a += dl[c] * hs.Me[k, c * nq * r + t]
                 kk = hs.pK[k, t]
                 cc = hs.pC[k, t] + hs.beta * kk
                 dM[o + i, j] += a
@@ -1042,6 +1079,34 @@ def _forms_gradient_forces(Fp, z, nq, dT2, dV2, dC2):  # pragma: no cover - comp
     for c in range(r):
         for i in range(nq):
             Fp[c, i] += g[c, i]
+
+
+def _mass_curvature_forces(Fp, z, z_next, dt, tm, nq, Me):  # pragma: no cover - compiled
+    """Subtract from the held forces' position gradient ``Fp`` (r, r; in place) the held ``M_r``'s cross term
+    (:func:`_mass_curvature_terms`) differentiated in ``q_i`` times the interval's mean acceleration, as
+    :func:`_position_forces` takes ``dM/dq_i a``: ``sum_m p_m (X_mi + X_mi^T) a`` in column ``i``, ``p`` the elastic
+    coordinates the matrices are held at (``p_e + tm p_e'``, :func:`_held_model`), ``a = (p'_next - p') / dt``; its
+    change with the elastic coordinates is :func:`_elastic_tangent`'s. Nothing where ``Me`` is empty."""
+    n_el = Me.shape[0]
+    if n_el == 0:
+        return
+    r = z.shape[0] // 2
+    am = np.empty(r)
+    for k in range(r):
+        am[k] = (z_next[r + k] - z[r + k]) / dt
+    for k in range(n_el):
+        w = z[nq + k] + tm * z[r + nq + k]
+        if w == 0.0:
+            continue
+        for i in range(nq):
+            o = i * nq * r
+            for a in range(nq):
+                acc = 0.0  # (X a)_a
+                for b in range(r):
+                    x = w * Me[k, o + a * r + b]
+                    acc += x * am[b]
+                    Fp[b, i] -= x * am[a]  # (X^T a)_b
+                Fp[a, i] -= acc
 
 
 def _weight_curvature_forces(Fp, z, dl, We):  # pragma: no cover - compiled
@@ -1531,7 +1596,7 @@ def _system_args(hs):  # pragma: no cover - compiled
     named tuple does not join)."""
     return (hs.has_old, hs.beta, hs.Mr, hs.Kr, hs.Ca, hs.Gr, hs.dM, hs.dK, hs.fg, hs.T2, hs.V2, hs.C2, hs.old_dM,
             hs.old_dK, hs.old_Ca, hs.old_Gr, hs.old_fg, hs.old_T2, hs.old_V2, hs.old_C2, hs.pM, hs.pK, hs.pC, hs.pG,
-            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We, hs.dKGd, hs.dT2, hs.dV2, hs.dC2)
+            hs.p2C, hs.Wg, hs.old_Wg, hs.pT, hs.pC2, hs.KGd, hs.We, hs.dKGd, hs.dT2, hs.dV2, hs.dC2, hs.Me)
 
 
 def _cached_interval(cs, ex, st, x, u, u1, dt, first, k, P):  # pragma: no cover - compiled
@@ -1827,7 +1892,7 @@ def _scaled_steps(z, u, du, dl, s, h, n, a, hs, inc):  # pragma: no cover - comp
     zv = np.zeros(hs.V2.shape)
     ze = np.zeros((0, 0))  # the increment's elastic-coordinate terms: none (the payload's share of them is left out)
     di = HeldSystem(hs.has_old, 0.0, iMr, zr, iCa, zg, idM, zq, ifg, iT2, zv, iC2, iold_dM, zq, iold_Ca, zg, iold_fg,
-                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
+                    iold_T2, zv, iold_C2, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze, ze)
     M0 = K0 = C0 = Mb = Cb = np.empty((r, r))
     G0 = np.empty(hs.Gr.shape)
     f0 = fb = np.empty(r)
@@ -1956,6 +2021,7 @@ _held_model = _linked(_held_model)
 step_jacobian = _jit(_step_jacobian)
 position_forces = _jit(_position_forces)
 _weight_curvature_forces = _shared(_weight_curvature_forces)
+_mass_curvature_forces = _shared(_mass_curvature_forces)
 _forms_gradient = _shared(_forms_gradient)
 _forms_gradient_forces = _shared(_forms_gradient_forces)
 held_system = _jit(_held_system)
@@ -1987,7 +2053,7 @@ def _example_system(r: int = 2, nq: int = 1, has_old: bool = False) -> HeldSyste
     return HeldSystem(has_old, 0.0, M, M, M, G, g2, g2, f, T2, V2, C2, g2, g2, M, G, f, T2, V2, C2, pf, pf, pf, pg,
                       p2, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
                       np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((0, 0)),
-                      np.zeros((0, 0)))
+                      np.zeros((0, 0)), np.zeros((0, 0)))
 
 
 _warm = False

@@ -670,21 +670,6 @@ class ReducedObserverModel:
         e_q = float(np.max(dz / np.sqrt(np.maximum(q, 1e-300)))) if q is not None else math.nan
         return float(np.max(dz / sig)), e_q
 
-    def held_error_summary(self) -> dict:
-        """The recorded :meth:`_held_error` ratios since the last :meth:`reset` (count, median and largest), and
-        the replaced step maps' errors (:func:`.expansion.map_error`: count, median, largest, the last map radius)."""
-        out = {"n": len(self.held_errors)}
-        if self.held_errors:
-            a = self.held_errors.asarray()
-            out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
-                       vs_process_noise_median=float(np.nanmedian(a[:, 1])),
-                       vs_process_noise_max=float(np.nanmax(a[:, 1])))
-        out["map_n"] = len(self.map_errors)
-        if self.map_errors:
-            e = np.asarray(self.map_errors)
-            out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=self.map_rad)
-        return out
-
     def _radius(self, old: _Held, dist: float, err: float, tol: float, p: float) -> float:
         """Next refresh radius from the error ``err`` of the last held model after ``dist`` rad: the error grows
         as ``dist^p`` (3: second order, with a secant partner; 2: first order), so the radius that keeps it at
@@ -709,12 +694,13 @@ class ReducedObserverModel:
         fm, m = iv.forces, iv.mats
         old = iv.old
         o, om, oCa = (fm, m, iv.Ca) if old is None else (old.forces, old.mats, old.Ca)
-        hess, We = None, _NO_ROWS
+        hess, We, Me = None, _NO_ROWS, _NO_ROWS
         if self._weight and self.rm.consistent and fm.dHdq is not None and self.r > self.nq:
-            # the weight's q-gradient at the sag (ReducedModel.weight_curvature), with the basis's second derivatives
-            # the velocity forms take as well
+            # the weight's and the mass matrix's q-gradients at the sag (ReducedModel.weight_curvature,
+            # ReducedModel.mass_curvature), with the basis's second derivatives the velocity forms take as well
             hess = self.rm.basis_hessian(m.rc.cfg.pose.q)
             We = self.rm.weight_curvature(m, fm.dHdq, hess)
+            Me = self.rm.mass_curvature(m, fm.dHdq, hess)
         # under gravity every force's q-gradient enters the step Jacobian: the velocity forms' too
         # (ReducedModel.velocity_forms_gradient)
         dT2, dV2, dC2 = self.rm.velocity_forms_gradient(m.rc.cfg.pose.q) if self._weight else (_NO_ROWS,) * 3
@@ -723,7 +709,7 @@ class ReducedObserverModel:
             dM=fm.dMr2, dK=fm.dKr2, fg=fm.fg, T2=fm.T2, V2=fm.V2, C2=self._c2(fm),
             old_dM=o.dMr2, old_dK=o.dKr2, old_Ca=oCa, old_Gr=om.Gr, old_fg=o.fg, old_T2=o.T2, old_V2=o.V2,
             old_C2=self._c2(o), **self._elastic(fm), Wg=fm.Wg, old_Wg=o.Wg, **self._velocity_forms(iv, hess),
-            KGd=fm.KGd, We=We, dKGd=fm.dKGd, dT2=dT2, dV2=dV2, dC2=dC2)
+            KGd=fm.KGd, We=We, dKGd=fm.dKGd, dT2=dT2, dV2=dV2, dC2=dC2, Me=Me)
 
     def _velocity_forms(self, iv: _Held, hess: np.ndarray | None = None) -> dict:
         """``pT``, ``pC2`` (:class:`.expansion.HeldSystem`): the velocity forms ``T`` and ``C2`` of the held

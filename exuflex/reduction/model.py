@@ -309,12 +309,15 @@ class ReducedModel:
             fm.KGd = np.ascontiguousarray(KGd.reshape(len(KGd), -1))
             if gradients and mats.rc.cfg.K_G is not None:  # under gravity: the form follows q with the static part
                 fm.dKGd = np.ascontiguousarray(self.motion_geometric_gradient(mats.rc).reshape(len(KGd), -1))
-        if fr and np.any(p[self.nq :]) and (fm.C2 is not None or (self.consistent and fm.Wg.shape[0])):
+        curved_mass = self.consistent and fm.dMr2 is not None
+        if fr and np.any(p[self.nq :]) and (fm.C2 is not None or curved_mass or (self.consistent and fm.Wg.shape[0])):
             Zp = np.tensordot(p[self.nq :], self.basis_hessian(p[: self.nq]), axes=(0, 0))  # d^2(H p)/dq^2
             if fm.C2 is not None:
                 fm.C2 = self._curved_bias_form(mats, fm.C2, p, Zp)
             if self.consistent and fm.Wg.shape[0]:
                 fm.Wg = self._curved_weight_gradient(mats, fm.Wg, p, Zp)
+            if curved_mass:  # the mass matrix's q-gradient of the deformed state (the reference step's, under gravity)
+                fm.dMr2 = self._curved_mass_gradient(mats, fm.dMr2, Zp)
         return mats, fm
 
     def _curved_weight_gradient(self, mats: ReducedMatrices, Wg: np.ndarray, p: np.ndarray,
@@ -725,8 +728,11 @@ class ReducedModel:
         """``d M_r / d q_i`` (nq, r, r) from the element rotations, ``dS/dq_i`` and ``dH/dq_i``.
 
         ``M_r = (W J)^T M_N (W J)``; the second derivatives of the basis in q times the elastic coordinates
-        (``d D0 / dq``, consistent form only) are left out: exact on undeformed states, 3e-4 relative on the
-        six-bar at elastic coordinates 1e-4 (``tests/test_reduced_derivatives.py``, central differences). ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
+        (``d D0 / dq``, consistent form only) are left out here: exact on undeformed states, 3e-4 relative on the
+        six-bar at elastic coordinates 1e-4 (``tests/test_reduced_derivatives.py``, central differences). Where a
+        deformed state's gradient is wanted (the reference step under gravity, :meth:`held` with ``fr``) they are
+        added (:meth:`_curved_mass_gradient`); the cached step holds them per unit elastic coordinate
+        (:meth:`mass_curvature`). ``Sd`` (``dS/dq_i``), ``WJ = W J`` and
         ``SE`` (:meth:`~exuflex.erls.model.ErlsModel.element_rotation_term`) if already computed.
         """
         model = self.model
@@ -809,6 +815,54 @@ class ReducedModel:
             Ee = np.einsum("eaj,ea->ej", WA[model.el_dofs], ge)  # (n_el, nq) [e, j]
             out[m] += (S_th.T @ Ee).T  # row i = j of the q rows (the velocity map's column), column the angle's q
         return np.ascontiguousarray(out.reshape(r - nq, nq * nq))
+
+    def mass_curvature(self, mats: ReducedMatrices, dHdq: np.ndarray, hess: np.ndarray) -> np.ndarray:
+        """``Me`` (r - nq, nq * nq * r): the reduced mass matrix differentiated in ``q`` and in an elastic coordinate
+        at ``mats``' configuration (undeformed), ``d^2 M_r / dq_i dp_m = X_mi + X_mi^T`` with ``X_mi`` (r, r) zero but
+        in its first ``nq`` rows, which ``Me[m, (i * nq + a) * r + b]`` holds (``a < nq``); empty (0, 0) in the
+        paper's form (``J = H``: ``M_r`` does not depend on ``p``) or without elastic coordinates.
+
+        ``M_r = (W J)^T M_N (W J)`` with ``J = H + [d(H p)/dq, 0]``: per unit ``p_m`` the rigid columns of ``W J`` gain
+        ``W A_m``, ``A_m = d(H e_m)/dq`` (its q rows zero, so ``dS/dq_i`` does not act on it), and ``M_r``'s rigid rows
+        ``pM_m = (W A_m)^T M_N W J`` (:meth:`elastic_forms`). Its q-gradient is ``X_mi = (W d^2(H e_m)/dq_. dq_i)^T M_N W
+        J + (W A_m)^T (dM_N/dq_i) W J + (W A_m)^T M_N d(W J)/dq_i``: the basis's second derivatives (``hess``,
+        :meth:`basis_hessian`), the element masses turning with the links (``dM_N/dq_i = sum_e dtheta_e/dq_i R_e G_e
+        R_e^T``, as in :meth:`weight_gradient`) and the velocity map turning (:meth:`_velocity_map_gradient`). So at a
+        deformed state (the sag under gravity) ``d M_r/dq_i = dMr_i + sum_m p_m Me[m, i]`` to first order in ``p``
+        (``M_r``'s second order in ``p``, ``p_k p_l A_k^T M_N A_l``, is left out of the held model altogether,
+        :func:`exuflex.observer.expansion._elastic_terms`). The cached observer step holds it under gravity, where the
+        sag is always there (docs/step_jacobian.md)."""
+        model, nq, r = self.model, self.nq, self.r
+        if not self.consistent or r == nq:
+            return np.zeros((0, 0))
+        cfg = mats.rc.cfg
+        Sd = model.coordinate_derivatives(cfg)
+        WJ = cfg.W @ mats.J  # (N, r)
+        MWJ = cfg.M_N @ WJ
+        dWJ = self._velocity_map_gradient(mats, dHdq, Sd)  # (nq, N, r)
+        MdWJ = np.einsum("xy,iyc->ixc", cfg.M_N, dWJ)  # (nq, N, r): M_N d(W J)/dq_i
+        RGR = cfg.R @ model.Gl @ np.swapaxes(cfg.R, 1, 2)  # dM_N/dtheta_e per element
+        S_th = cfg.pose.Sz[2::3][model.el_link]  # (n_el, nq)
+        RWJ = np.einsum("eab,ebc->eac", RGR, WJ[model.el_dofs])  # (n_el, 6, r)
+        out = np.empty((r - nq, nq, nq, r))  # [m, i, a, b]
+        for m in range(r - nq):
+            WA = cfg.W @ dHdq[nq + m]  # (N, nq): W d(H e_m)/dq_a
+            WZ = np.einsum("Nx,xai->iNa", cfg.W, hess[m])  # (nq, N, nq): W d^2(H e_m)/dq_a dq_i
+            X = np.einsum("iNa,Nb->iab", WZ, MWJ) + np.einsum("Na,iNb->iab", WA, MdWJ)
+            X += np.einsum("ei,eca,ecb->iab", S_th, WA[model.el_dofs], RWJ)
+            out[m] = X
+        return np.ascontiguousarray(out.reshape(r - nq, nq * nq * r))
+
+    def _curved_mass_gradient(self, mats: ReducedMatrices, dMr: np.ndarray, Zp: np.ndarray) -> np.ndarray:
+        """``dMr`` (nq, r*r, :meth:`mass_derivative_analytic` at a deformed state) with the basis's second derivatives
+        times the elastic coordinates in it: ``d(W J)/dq_i`` gains ``W [d^2(H p)/dq dq_i, 0]`` (``Zp``, (n, nq, nq)),
+        so ``d M_r/dq_i`` gains ``Y_i + Y_i^T``, ``Y_i`` the rigid rows ``(W Zp[:, :, i])^T M_N W J``."""
+        nq, r = self.nq, self.r
+        cfg = mats.rc.cfg
+        WZ = np.einsum("Nx,xai->iNa", cfg.W, Zp)  # (nq, N, nq)
+        Y = np.zeros((nq, r, r))
+        Y[:, :nq, :] = np.einsum("iNa,Nb->iab", WZ, cfg.M_N @ (cfg.W @ mats.J))
+        return (dMr.reshape(nq, r, r) + Y + np.swapaxes(Y, 1, 2)).reshape(nq, r * r)
 
     def accelerations(self, p: np.ndarray, pd: np.ndarray, tau: np.ndarray, mats: ReducedMatrices | None = None):
         """``p''`` of ``M_r p'' + C_r p' + (K_r + K_Gd) p = G_r tau + f_r`` at ``(p, p')`` under ``tau``, ``K_Gd`` the
