@@ -167,3 +167,54 @@ def test_the_requirement_adds_the_modes_it_needs_and_stops_when_met(single_link)
     assert n2 == n0 + 1 and ps2.bias_met and ps2.bias(order2[:n2]).max() <= lim
     ps3 = PathSamples(cb, qs, planned, bias_max=1.01 * b0)
     assert ps3.choose("imr")[1] == n0 and ps3.bias_met
+
+
+def test_the_final_search_runs_until_met_and_keeps_no_uncoupled_mode(single_link):
+    """On the final basis the search runs until the requirements hold (every interior mode makes every figure zero):
+    a limit of 1e-6, which the dynamic modes' stage gives up on, is met, and the axial modes, which change no figure,
+    are not kept (added on a tie, they are dropped again by the pruning)."""
+    cb, planned = _every_mode(single_link)
+    ps = PathSamples(cb, np.array([[0.0], [0.8], [1.5]]), planned, bias_max=1e-6)
+    seq = [0]
+    ps.extend_for_bias(seq, until_met=True)
+    assert ps.bias_met and ps.requirement_excess(seq) <= 1.0
+    assert not set(seq) & set(_axial(cb).tolist())
+    for i in seq[1:]:  # no mode the search added can be left out
+        assert ps.requirement_excess([k for k in seq if k != i]) > 1.0
+
+
+SHAKEN = Path(__file__).resolve().parents[1] / "benchmarks" / "models" / "shaken_link.toml"
+
+
+def test_automatic_count_meets_the_requirement_where_a_fixed_count_does(caplog):
+    """A single link shaken in 50 ms strokes (``benchmarks/models/shaken_link.toml``): the requirements are met with
+    four interior modes, one of which decays within a sample interval (its ringing is not what the filter needs of it:
+    the linearised full model's figures are). The automatic count meets them, with no more columns than the
+    smallest fixed count that does, and does not warn."""
+    model = ErlsModel(load_mechanism(SHAKEN))
+    with caplog.at_level("WARNING", logger="exuflex.reduction.basis"):
+        cb = CraigBampton(model)
+    tr = cb.truncation
+    assert tr["met"] and tr["bias_met"] and tr["rho"] <= tr["rho_max"]
+    assert not [r for r in caplog.records if "leave" in r.getMessage()]
+    fixed = None
+    for k in range(1, cb.n_interior + 1):
+        t = CraigBampton(model, n_interior=k, bias_max=cb.bias_max).truncation
+        if t["rho"] <= t["rho_max"] and t["bias_met"]:
+            fixed = k
+            break
+    assert fixed is not None and cb.n_interior <= fixed
+    w = 2 * np.pi * cb.interior_frequencies_hz[cb.kept]
+    assert np.any(model.alpha / 2 + model.beta * w**2 / 2 > model.mech.sample_rate_hz)  # zeta w above the rate
+
+
+def test_forward_selection_drops_modes_left_over_once_a_pair_is_in():
+    """The long two-link arm (``benchmarks/models/long_two_link.toml``): two interior modes meet the truncation
+    requirement only together, so the forward selection adds them after every mode that helps alone; the modes it
+    added before are then dropped where every sample still meets the requirements, and the count is far below every
+    interior mode (the full model in other coordinates)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "models" / "long_two_link.toml"
+    model = ErlsModel(load_mechanism(path))
+    cb = CraigBampton(model)
+    assert cb.truncation["met"]
+    assert cb.n_interior <= len(cb.order) // 3

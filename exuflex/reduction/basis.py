@@ -289,9 +289,76 @@ class CraigBampton:
         self.static_max = STATIC_MAX if static_max is None else float(static_max)
         self.static = None
         self.n_static = 0
-        self.bias_tried: list[int] = []  # the modes the filter requirement tried (.path.PathSamples.extend_for_bias)
+        self.bias_tried: list[int] = []  # the modes the requirements' search tried (.path.PathSamples.extend_for_bias)
+        args = (samples, q_samples, planned, quantity_max)
+        n_interior_dynamic = n_interior
+        first = self._state()
+        if auto:
+            n_interior = self._finish(n_interior, *args)
+        if auto and samples.filters and not samples.bias_met and self.static_max > 0:
+            # the dynamic modes that ring for a sample interval did not meet the filter requirement, so the static
+            # corrections were left to: the same search over every interior mode (.path.PathSamples.extend_for_bias)
+            # may meet it with the dynamic modes; of the two final bases the one with fewer columns is kept
+            kept = self._state()
+            self._restore(first)
+            seq = [int(i) for i in self.order[:n_interior_dynamic]]
+            samples.extend_for_bias(seq, every_mode=True)
+            # the static corrections and the final search only add columns: a dynamic count already at the first
+            # basis' count cannot give fewer
+            if samples.bias_met and n_interior_dynamic < len(seq) < n_interior:
+                self.order = np.array(seq + [int(i) for i in self.order if int(i) not in set(seq)], int)
+                self.set_interior(len(seq))
+                self._truncation = _truncation_report(samples, planned, self.kept, self.truncation_max)
+                n_alt = self._finish(len(seq), *args)
+                if n_alt < n_interior:
+                    n_interior = n_alt
+                else:
+                    self._restore(kept)
+            else:
+                self._restore(kept)
+        if auto and isinstance(self._truncation, dict):
+            tr = self._truncation
+            if not missed and not tr["met"]:
+                bad = [f"rho = {tr['rho']:.3g} (limit {tr['rho_max']:.3g}; "
+                       + ", ".join(f"{c} {v:.2g}" for c, v in tr["rho_channels"].items()) + ") in the channels"
+                       ] if tr["rho"] > tr["rho_max"] else []
+                if not tr["bias_met"]:
+                    worst = max(tr["bias"], key=tr["bias"].get)
+                    bad.append(f"a steady filter's mean-square error of {tr['bias'][worst]:.3g} x its bound's "
+                               f"variance in {worst} (limit {tr['bias_max']:.3g}) and whitened innovations of mean "
+                               f"square {tr['innovation']:.3g} over the channels (limit {tr['innovation_max']:.3g}) "
+                               "on the linearised full model")
+                log.warning("%s: %d interior modes (%d of them static corrections) leave %s under the manoeuvre "
+                            "(.truncation) although their search ran to every interior mode (the figures are "
+                            "linearised estimates, zero with every mode to roundoff)",
+                            src, n_interior, self.n_static, " and ".join(bad))
+        if self.static is not None and not self.static.met:
+            st = self.static
+            log.warning("%s: %d static corrections leave a quasi-static reading of %.3g noise sd in %s (limit %.3g) "
+                        "under the loads the inputs can produce (.static); no further correction lowers it", src,
+                        st.n, st.figure[st.n], st.worst[st.n][0], st.limit)
+        self.build_seconds = time.perf_counter() - t0
+        log.info("Craig-Bampton basis: %d masters + %d interior modes (%s; %d of them static corrections), built in "
+                 "%.3f s", self.n_m, n_interior, ranking, self.n_static, self.build_seconds)
+
+    def _state(self) -> dict:
+        """The interior basis' state the automatic count sets (:meth:`_finish`), to try another count."""
+        keys = ("Phi_all", "interior_frequencies_hz", "order", "static", "n_static", "bias_tried", "_truncation",
+                "path_accuracy", "n_interior")
+        return {k: getattr(self, k) for k in keys}
+
+    def _restore(self, state: dict) -> None:
+        """Back to a :meth:`_state`."""
+        for k, v in state.items():
+            setattr(self, k, v)
+        self.set_interior(state["n_interior"])
+
+    def _finish(self, n_interior: int, samples: PathSamples, q_samples, planned, quantity_max):
+        """The automatic count's last steps on the dynamic modes ``self.kept`` (``n_interior`` of them): the static
+        corrections (:mod:`.static`), then the requirements on the final basis, modes added among the re-based ones
+        until they hold (:meth:`.path.PathSamples.extend_for_bias`). Sets the basis; returns the count."""
         n_dynamic = n_interior
-        if auto and planned is not None and self.static_max > 0:
+        if planned is not None and self.static_max > 0:
             self.static = static_corrections(self, self.kept, q_samples, planned, quantity_max, self.static_max)
         if self.static is not None and self.static.n:
             st = self.static
@@ -304,19 +371,19 @@ class CraigBampton:
             n_interior += st.n
             self.set_interior(n_interior)
         dynamic = self._truncation
-        if auto and isinstance(dynamic, dict):
+        final = samples
+        if isinstance(dynamic, dict):
             # the requirements on the basis the observer uses: the static corrections carry quasi-static slave motion
             # the dynamic modes leave out (a relative motor's reaction on the other link's node) and enter the
-            # filter's model as every other column does. Where the filter requirement is still not met there, modes
-            # are added among the re-based modes that ring for a sample interval (.path.PathSamples.extend_for_bias)
-            final = samples
+            # filter's model as every other column does. Where the requirements are still not met there, modes are
+            # added among every re-based mode until they are (.path.PathSamples.extend_for_bias)
             if self.n_static:
                 self.set_interior(len(self.order))  # every interior mode, ascending (as PathSamples wants)
                 final = PathSamples(self, q_samples, planned, self.truncation_max, quantity_max, self.bias_max)
             seq = [int(i) for i in self.order[:n_interior]]
             self.bias_tried = list(samples.bias_tried)
-            if self.n_static and final.filters:
-                final.extend_for_bias(seq)
+            if final.filters:
+                final.extend_for_bias(seq, until_met=True)
                 self.bias_tried += final.bias_tried
             self.order = np.array(seq + [int(i) for i in self.order if int(i) not in set(seq)], int)
             if len(seq) != n_interior or self.n_static:
@@ -326,27 +393,7 @@ class CraigBampton:
             self._truncation = tr = _truncation_report(final, planned, self.kept, self.truncation_max)
             tr["dynamic"] = {k: dynamic[k] for k in ("rho", "rho_channels", "bias", "innovation", "q")}
             tr["dynamic"]["n_interior"] = n_dynamic
-            if not missed and not tr["met"]:
-                bad = [f"rho = {tr['rho']:.3g} (limit {tr['rho_max']:.3g}; "
-                       + ", ".join(f"{c} {v:.2g}" for c, v in tr["rho_channels"].items()) + ") in the channels"
-                       ] if tr["rho"] > tr["rho_max"] else []
-                if not tr["bias_met"]:
-                    worst = max(tr["bias"], key=tr["bias"].get)
-                    bad.append(f"a steady filter's mean-square error of {tr['bias'][worst]:.3g} x its bound's "
-                               f"variance in {worst} (limit {tr['bias_max']:.3g}) and whitened innovations of mean "
-                               f"square {tr['innovation']:.3g} over the channels (limit {tr['innovation_max']:.3g}) "
-                               "on the linearised full model")
-                log.warning("%s: %d interior modes (%d of them static corrections) leave %s under the manoeuvre "
-                            "(.truncation); no further interior mode that rings for a sample interval lowers it",
-                            src, n_interior, self.n_static, " and ".join(bad))
-        if self.static is not None and not self.static.met:
-            st = self.static
-            log.warning("%s: %d static corrections leave a quasi-static reading of %.3g noise sd in %s (limit %.3g) "
-                        "under the loads the inputs can produce (.static); no further correction lowers it", src,
-                        st.n, st.figure[st.n], st.worst[st.n][0], st.limit)
-        self.build_seconds = time.perf_counter() - t0
-        log.info("Craig-Bampton basis: %d masters + %d interior modes (%s; %d of them static corrections), built in "
-                 "%.3f s", self.n_m, n_interior, ranking, self.n_static, self.build_seconds)
+        return n_interior
 
     @property
     def truncation(self) -> dict | None:

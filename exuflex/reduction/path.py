@@ -42,8 +42,9 @@ Last, the filter requirement (:mod:`.truncation`, "What the filter makes of it")
 linearised full model under the manoeuvre, per estimated quantity over the bound's variance, ``b <= bias_max``
 (:meth:`PathSamples.bias`) and the steady filter's whitened innovations at most ``INNOVATION_MAX`` summed over the
 channels (:meth:`PathSamples.innovation`); modes are added until both hold (:meth:`PathSamples.extend_for_bias`,
-:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` judges them again on the final basis, after the static
-corrections (:mod:`.static`), and where they are still not met adds modes the same way among the re-based ones.
+:attr:`PathSamples.bias_met`). :class:`.basis.CraigBampton` judges every requirement again on the final basis, after
+the static corrections (:mod:`.static`), and adds modes among every re-based one until they hold
+(:meth:`PathSamples.requirement_excess` at most 1).
 """
 
 from __future__ import annotations
@@ -245,47 +246,104 @@ class PathSamples:
         v = np.mean(var, axis=0)
         return np.mean(ms, axis=0) / np.where(v > 0, v, np.inf)
 
-    def extend_for_bias(self, seq: list[int]) -> int:
-        """Interior modes added to ``seq`` (the band's and the channels' choice) until the filter requirement holds,
-        ``max bias <= bias_max`` (:meth:`bias`) and the innovations' figure at most :data:`INNOVATION_MAX`
-        (:meth:`innovation`; :meth:`filter_excess` at most 1); returns the count. Each step keeps the mode, among
-        those ringing for a sample interval (:attr:`dynamic`), that makes the largest figure over its limit smallest
-        at the configuration where it is largest now (ties: the IMR order at q*), if it lowers it there by 1 % of
-        its limit. Where none does, or
-        three modes in a row lower the figure over all configurations by less, or none is left, the requirement
-        cannot be met: ``seq`` is left as it was (the modes would make the filter's model larger and stiffer for a
-        figure still above the limit; :attr:`bias_met` False, the figure reported). A mode the input, the loads and
-        the channels do not couple to changes no figure, so it is never kept. :attr:`bias_tried`: the modes added,
-        in order, before the outcome."""
+    def requirement_excess(self, kept, truncation: bool = True) -> float:
+        """The requirements with the interior modes ``kept``, their figures over their limits, the largest (every
+        requirement met where at most 1): the filter requirement's (:meth:`filter_excess`: ``b`` and the
+        innovations, averaged over the configurations as the requirement states them), ``rho`` over ``rho_max`` at
+        the worst configuration and, with :attr:`quantity_max`, each estimated tip quantity's truncated RMS over its
+        limit at the worst; 0 without a planned input."""
+        out = self.filter_excess(kept)
+        if truncation and self.truncation and self.rho_max > 0:
+            out = max(out, float(self.rho(kept).max()) / self.rho_max)
+            if self.quantity_max is not None and self.quantity_max.size:
+                out = max(out, float((self.quantities_rms(kept) / self.quantity_max).max()))
+        return out
+
+    def excess(self, kept, truncation: bool = True) -> np.ndarray:
+        """Per configuration with a truncation figure, the requirements' figures there over their limits, the
+        largest: the configuration's share of the filter requirement (its mean square over the mean of the bound's
+        variance, its innovations; :meth:`_excess`), its ``rho`` and tip quantities over their limits. Empty without
+        a planned input. The search (:meth:`extend_for_bias`) works on the configuration where it is largest."""
+        if not self.truncation:
+            return np.zeros(0)
+        return np.array([self._excess_at(c, kept, None, truncation) for c in range(len(self.truncation))])
+
+    def _excess_at(self, c: int, kept, v: np.ndarray | None = None, truncation: bool = True) -> float:
+        """:meth:`excess` at the ``c``-th configuration with a truncation figure; with ``v`` (the bound's variance
+        averaged over the configurations, per quantity) only that configuration's filter is run (a candidate's
+        score: the mean variance barely moves with one more mode)."""
+        out = 0.0
+        if self.filters:
+            if v is None:
+                self.bias(kept)
+                per, _, nu = self._cache[("bv", ("b", _key(kept)))]
+                out = float(self._excess(per[c][None, :], [nu[c]])[0])
+            else:
+                cols = np.r_[np.arange(self.cb.n_m), self.cb.n_m + np.sort(np.asarray(kept, int))].astype(int)
+                a, _, nu = self.filters[c].bias(cols)
+                out = float(self._excess((a / v)[None, :], [nu.sum()])[0])
+        if truncation and self.rho_max > 0:
+            out = max(out, float(self._windowed_at(c, kept, False)[0].sum()) / self.rho_max)
+            if self.quantity_max is not None and self.quantity_max.size:
+                out = max(out, float((self._windowed_at(c, kept, True)[1] / self.quantity_max).max()))
+        return out
+
+    def extend_for_bias(self, seq: list[int], until_met: bool = False, every_mode: bool = False) -> int:
+        """Interior modes added to ``seq`` until every requirement holds at every configuration: the filter
+        requirement's (``max bias <= bias_max``, :meth:`bias`; the innovations' figure at most
+        :data:`INNOVATION_MAX`, :meth:`innovation`) and the truncation requirement's (``rho <= rho_max`` and the
+        estimated tip quantities' limits): :meth:`excess` at most 1. Returns the count.
+
+        The candidates are every interior mode not in ``seq``, judged by their figures on the linearised full model,
+        not by frequency: a mode that decays within a sample interval still carries the slaves' quasi-static motion
+        and the coordinates' recoil from it, which the channels read (a single link shaken in 50 ms strokes meets the
+        filter requirement only with a mode at twice the sample rate, ``docs/reduction.md``). Each step keeps the
+        mode that makes the largest figure over its limit smallest at the configuration where it is largest now
+        (ties: the IMR order at q*), whether or not it lowers it there: the figures are not monotone in the modes
+        kept (a mode whose partner is missing rings at a frequency the truth does not have). With every interior
+        mode the basis spans the elastic coordinates and every figure is zero, so continued to the end the search
+        always meets the requirements; it stops at the first count that does. Then each mode it added, the last
+        first, is dropped where the requirements hold without it: no single added mode can be left out.
+
+        ``until_met`` False (the dynamic modes' stage, before the static corrections, :class:`.basis.CraigBampton`):
+        the filter requirement alone, among the modes that ring for a sample interval (:attr:`dynamic`; ``every_mode``:
+        every mode); the search also stops where no mode lowers the figure at that configuration by 1 % of its limit
+        or three modes in a row lower the largest figure over every configuration by less, and then leaves ``seq``
+        as it was (the static corrections may meet the requirements with fewer columns; :attr:`bias_met` False).
+        ``until_met`` True (the final basis): every requirement, every mode, no such stop.
+        :attr:`bias_tried`: the modes added, in order, before the outcome."""
         tie = np.argsort(-self.scores[0], kind="stable")  # q*'s IMR order
         n0 = len(seq)
-        best_n, best_b = len(seq), self.filter_excess(seq)
+        self.bias_tried = []
+        if not self.truncation:
+            return len(seq)
+        best_n, best_b = len(seq), self.requirement_excess(seq, until_met)
         stall = 0
-        cb = self.cb
-        while best_b > 1.0 and stall < 3:
-            cands = [int(i) for i in tie if i not in seq and self.dynamic[i]]
+        while best_b > 1.0 and (until_met or stall < 3):
+            cands = [int(i) for i in tie if i not in seq and (until_met or every_mode or self.dynamic[i])]
             if not cands:
                 break
-            self.bias(seq)
-            per, v, nu = self._cache[("bv", ("b", _key(seq)))]  # (configurations, quantities), (configurations,)
-            ex = self._excess(per, nu)
-            j = int(np.argmax(ex))
-            scores = []
-            for i in cands:
-                cols = np.r_[np.arange(cb.n_m), cb.n_m + np.sort(np.asarray(seq + [i], int))].astype(int)
-                a, _, c = self.filters[j].bias(cols)
-                scores.append(float(self._excess((a / v)[None, :], [c.sum()])[0]))
-            if min(scores) > ex[j] - 0.01:
-                break
+            j = int(np.argmax(self.excess(seq, until_met)))
+            v = self._cache[("bv", ("b", _key(seq)))][1] if self.filters else None
+            scores = [self._excess_at(j, seq + [i], v, until_met) for i in cands]
+            if not until_met and min(scores) > self._excess_at(j, seq, None, False) - 0.01:
+                break  # no mode lowers the figure where it is largest
             seq.append(cands[int(np.argmin(scores))])
-            b = self.filter_excess(seq)
+            b = self.requirement_excess(seq, until_met)
             if b < best_b - 0.01:
                 best_n, best_b, stall = len(seq), b, 0
             else:
                 stall += 1
+            if b <= 1.0:
+                best_n, best_b = len(seq), b
         self.bias_tried = list(seq[n0:])
         self.bias_met = best_b <= 1.0
         del seq[best_n if self.bias_met else n0:]
+        if self.bias_met:  # the modes added, the last first, dropped where the requirements hold without them
+            for i in reversed(seq[n0:]):
+                rest = [k for k in seq if k != i]
+                if self.requirement_excess(rest, until_met) <= 1.0:
+                    seq.remove(i)
         return len(seq)
 
     def _match(self, kept) -> list[AccuracyResult]:
@@ -510,6 +568,17 @@ class PathSamples:
                 if n_max is None:
                     break
             seq.append(best)
+        if n_max is None and n_needed is None and len(seq) == n_all and self.margins(seq, use).min() >= 0:
+            n_needed = len(seq)  # met only with every mode in
+        if n_max is None and n_needed is not None and n_needed == len(seq) > 1 and self.truncation_met:
+            # a mode added early can be left out once later ones are in (two modes that meet a requirement only
+            # together are added last, after every mode that helps alone): each, the last first, is dropped where
+            # every sample still meets the requirements without it
+            for i in list(reversed(seq)):
+                rest = [k for k in seq if k != i]
+                if self.margins(rest, use).min() >= 0:
+                    seq.remove(i)
+            n_needed = len(seq)
         if use and n_max is None and n_needed is not None and self.filters:
             n_needed = self.extend_for_bias(seq)
         rest = np.argsort(-self.scores.max(axis=0), kind="stable")
