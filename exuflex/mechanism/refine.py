@@ -128,15 +128,22 @@ def gauge_sag_length(mech: Mechanism, sensor, tol: float = GAUGE_SAG_TOL) -> flo
     return math.sqrt(12.0 * lk.material.E * lk.section.I * tol * sensor.noise_std / w)
 
 
-def gauge_mesh(mech: Mechanism, tol: float = GAUGE_SAG_TOL) -> Mechanism:
-    """The mesh with the elements next to every curvature gauge no longer than :func:`gauge_sag_length` ``h_g``: for
-    a gauge at a node, a node on either side where the element there is longer, at ``h_g`` from the gauge (halfway
-    to the next node where that is within ``2 h_g``, so that no added element is shorter than ``h_g / 2``); for a
-    gauge inside an element, that element split into the fewest equal parts no longer than ``h_g``. The mechanism
-    itself where nothing is added (no gravity, no gauge, or a mesh fine enough)."""
+def gauge_mesh(mech: Mechanism, tol: float = GAUGE_SAG_TOL, lengths: dict[str, float] | None = None) -> Mechanism:
+    """The mesh with the elements next to every curvature gauge no longer than its ``h_g``: :func:`gauge_sag_length`
+    (``tol``), or ``lengths[gauge name]`` where given (then only the gauges named there; the filter's rule,
+    :func:`exuflex.reduction.gauge_rule.gauge_lengths`). For a gauge at a node, a node on either side where the
+    element there is longer, at ``h_g`` from the gauge (halfway to the next node where that is within ``2 h_g``, so
+    that no added element is shorter than ``h_g / 2``); for a gauge inside an element, that element split into the
+    fewest equal parts no longer than ``h_g``. The mechanism itself where nothing is added (no gravity, no gauge,
+    or a mesh fine enough)."""
     add: dict[str, set] = {}
     for sn in mech.sensors:
-        h = gauge_sag_length(mech, sn, tol)
+        if lengths is None:
+            h = gauge_sag_length(mech, sn, tol)
+        elif sn.kind == "curvature" and sn.name in lengths:
+            h = float(lengths[sn.name])
+        else:
+            continue
         if not math.isfinite(h):
             continue
         lk = mech.link(sn.link)
