@@ -63,7 +63,8 @@ from ..mechanism.refine import gauge_mesh
 from .path import manoeuvre_configurations
 from .truncation import FilterSample, PlannedInput, _discrete, steady_gain
 
-__all__ = ["GAUGE_MESH_MAX", "GAUGE_MESH_POSES", "bubble_factor", "gauge_errors", "gauge_lengths", "observer_mesh"]
+__all__ = ["GAUGE_MESH_MAX", "GAUGE_MESH_POSES", "bubble_factor", "gauge_errors", "gauge_lengths", "mesh_bias",
+           "observer_mesh", "rule_configurations"]
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +153,32 @@ def gauge_errors(model: ErlsModel, q, planned: PlannedInput) -> dict:
     return out
 
 
+def rule_configurations(mech: Mechanism, poses: int = GAUGE_MESH_POSES) -> list[np.ndarray]:
+    """The configurations the rule samples: ``q_ref`` and ``poses`` of the manoeuvre, equally spaced in time."""
+    qs = [np.asarray(mech.q_ref, float)]
+    path = manoeuvre_configurations(mech, poses) if poses else None
+    return qs + ([] if path is None else list(path))
+
+
+def mesh_bias(model: ErlsModel, betas: dict, poses: int = GAUGE_MESH_POSES) -> tuple[np.ndarray, tuple]:
+    """``(b, names)``: per estimated quantity the largest over the rule's configurations of ``b`` (module
+    docstring) for the gauges' reading errors ``-beta_g w / EI`` with ``betas`` (gauge name -> ``beta``, m^2; e.g.
+    the difference of two meshes' factors: what a filter on one mesh makes of a truth on the other), and the
+    quantities' names; ``b`` empty without a planned manoeuvre."""
+    planned = PlannedInput.of(model.mech)
+    if planned is None:
+        return np.zeros(0), ()
+    worst = np.zeros(len(planned.quantities))
+    for q in rule_configurations(model.mech, poses):
+        err = gauge_errors(model, q, planned)
+        d = sum(beta * err[g] for g, beta in betas.items() if g in err)
+        if np.isscalar(d):
+            continue
+        var = np.where(err["var"] > 0, err["var"], np.inf)
+        worst = np.maximum(worst, (d**2).mean(axis=0) / var)
+    return worst, planned.quantities
+
+
 def gauge_lengths(mech: Mechanism, limit: float = GAUGE_MESH_MAX, poses: int = GAUGE_MESH_POSES,
                   model: ErlsModel | None = None) -> dict:
     """Per curvature gauge (with a noise) of ``mech`` the rule's figures on its own mesh: ``beta`` (m^2), the
@@ -169,12 +196,8 @@ def gauge_lengths(mech: Mechanism, limit: float = GAUGE_MESH_MAX, poses: int = G
         return {s.name: {"beta": math.nan, "b_unit": 0.0, "b_gauge": 0.0, "h_g": math.inf, "quantity": None}
                 for s in gauges}
     model = model or ErlsModel(mech)
-    qs = [np.asarray(mech.q_ref, float)]
-    path = manoeuvre_configurations(mech, poses) if poses else None
-    if path is not None:
-        qs += list(path)
     worst = {s.name: (0.0, None) for s in gauges}
-    for q in qs:
+    for q in rule_configurations(mech, poses):
         err = gauge_errors(model, q, planned)
         var = np.where(err["var"] > 0, err["var"], np.inf)
         for s in gauges:
