@@ -74,3 +74,14 @@ def test_rule_meets_its_limit_on_the_files_nodes():
         assert set(lk.node_ids) <= set(lr.node_ids) and set(lk.stations) <= set(lr.stations)
     bare = load_mechanism(ROOT / "models" / "spin_up.toml")
     assert observer_mesh(bare) is bare
+
+
+def test_observer_builds_on_the_rules_mesh():
+    """``make_observer`` builds its full model on :func:`observer_mesh`'s mesh (the gauges' rows per reduced
+    coordinate converged), not on the file's."""
+    from exuflex.observer.session import make_observer
+
+    own = load_mechanism(REACH)
+    obs = make_observer(own)
+    assert obs.model.rm.cb.model.mech == observer_mesh(own)
+    assert obs.model.rm.cb.model.ne > ErlsModel(own).ne

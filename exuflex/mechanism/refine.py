@@ -3,13 +3,13 @@
 - :func:`refine_mechanism`: split every element into ``factor`` equal parts;
 - :func:`remesh_mechanism`: split every element into the fewest equal parts such that no element is
   longer than ``length / elements_per_link`` of its link (at least that many elements per link);
-- :func:`gauge_mesh`: the gauge rule under gravity, the elements next to each curvature gauge no longer than
-  :func:`gauge_sag_length` (nodes added at that distance on either side; ``docs/gauge_mesh.md`` derives it and
-  says why the loader does not apply it by default).
+- :func:`gauge_mesh`: the elements next to each curvature gauge no longer than a length: the static sag's
+  :func:`gauge_sag_length` or the lengths given (the filter's rule, :mod:`exuflex.reduction.gauge_rule`, which the
+  observer and the ERLS truth apply; ``docs/gauge_mesh.md``), nodes added at that distance on either side.
 
-Both refuse meshes of more than :data:`~exuflex.mechanism.limits.MAX_ELEMENTS` elements (``ValueError``).
+The first two refuse meshes of more than :data:`~exuflex.mechanism.limits.MAX_ELEMENTS` elements (``ValueError``).
 
-Both keep the original nodes and their ids (so masses, gauges and node-based dof names such as
+All keep the original nodes and their ids (so masses, gauges and node-based dof names such as
 ``node14.x`` keep their meaning); new nodes get ids above the largest existing one.
 """
 

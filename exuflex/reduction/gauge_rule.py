@@ -61,7 +61,7 @@ from ..erls.model import ErlsModel
 from ..mechanism import Mechanism
 from ..mechanism.refine import gauge_mesh
 from .path import manoeuvre_configurations
-from .truncation import FilterSample, PlannedInput, _discrete, steady_gain
+from .truncation import FilterSample, PlannedInput, steady_gain
 
 __all__ = ["GAUGE_MESH_MAX", "GAUGE_MESH_POSES", "bubble_factor", "gauge_errors", "gauge_lengths", "mesh_bias",
            "observer_mesh", "rule_configurations"]
@@ -118,13 +118,7 @@ def gauge_errors(model: ErlsModel, q, planned: PlannedInput) -> dict:
     cfg = model.configuration(np.asarray(q, float))
     n = model.n
     fs = FilterSample(model, SimpleNamespace(cfg=cfg, H=np.eye(n)), planned)
-    A, B = _discrete(fs.M, fs.D, fs.K, fs.G, fs.dt)
-    x = np.zeros(2 * n)
-    Bu = fs.u @ B.T
-    X = np.empty((len(fs.u), 2 * n))
-    for k in range(len(fs.u)):  # the linearised response as FilterSample computes it: x_k, then u_k held
-        X[k] = x
-        x = A @ x + Bu[k]
+    A, B, X = fs.A, fs.B, fs.X  # the linearised response: x_k at t_k, then u_k held
     acc = np.linalg.solve(fs.M, (fs.u @ fs.G.T - X[:, n:] @ fs.D.T - X[:, :n] @ fs.K.T).T).T  # x'' at t_k
     C = np.hstack([fs.C, np.zeros_like(fs.C)])
     Q = (B * fs.torque_var) @ B.T
