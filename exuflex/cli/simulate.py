@@ -116,8 +116,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         metavar="N|file",
         help="truth mesh: no element longer than 1/N of its link (joints and masses on nodes; the ERLS engine keeps "
         f"the file's nodes too) or 'file', the model file's mesh (default: {EXUDYN_ELEMENTS_PER_LINK} for Exudyn, "
-        "or the file's most refined link's element count if larger; for ERLS the observer's: the file's, refined next "
-        "to the curvature gauges by the gauge rule, docs/gauge_mesh.md)",
+        "or the file's most refined link's element count if larger; the file's for ERLS)",
     )
     p.add_argument(
         "--beam",

@@ -22,7 +22,6 @@ from ..erls.model import ErlsModel
 from ..manoeuvre import plan
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
-from ..reduction.gauge_rule import observer_mesh
 from ..sensors import Signals, default_channels, tip_point, truth_names
 from .augmented import AugmentedModel, nominal_mixture
 from .ekf import EstimationResult, Monitoring, MultirateEKF
@@ -488,10 +487,10 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     """Build the reduced model and the EKF for ``mech``.
 
     ``x0`` is the prior mean (reduced state); default: at rest at the manoeuvre's start, else q_ref.
-    The full model is built on the mesh of :func:`exuflex.reduction.gauge_rule.observer_mesh` (the file's, refined
-    next to the curvature gauges until their rows converge for the filter's sake, ``docs/gauge_mesh.md``).
-    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers. Without ``config``:
-    :meth:`ObserverConfig.for_model` (the model file's ``[observer]`` table over the defaults).
+    The full model is built on ``mech``'s mesh; :func:`exuflex.reduction.gauge_rule.observer_mesh` gives the mesh
+    refined next to the curvature gauges until their rows converge for the filter's sake (``docs/gauge_mesh.md``;
+    not the default). A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers. Without
+    ``config``: :meth:`ObserverConfig.for_model` (the model file's ``[observer]`` table over the defaults).
     """
     from ..validate import check_mechanism_argument, check_observer_settings
 
@@ -502,9 +501,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     # the first run with an empty kernel cache: compiled in parallel processes (._compile)
     _compile.prepare(augmented=config.estimator in AUGMENTED_ESTIMATORS)
     t0 = time.perf_counter()
-    # the full model on the file's mesh refined next to the curvature gauges (.reduction.gauge_rule): the reduced
-    # model's size does not change, the gauges' rows per reduced coordinate converge
-    model = model or (cb.model if cb is not None else ErlsModel(observer_mesh(mech)))
+    model = model or (cb.model if cb is not None else ErlsModel(mech))
     if cb is None:
         cb = CraigBampton(model, masters=config.masters, q_star=config.q_star, n_interior=config.n_interior,
                           ranking=config.ranking, channels=config.channels)

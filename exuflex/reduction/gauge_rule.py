@@ -46,6 +46,9 @@ raises an RMS error over the bound from 1 to ``sqrt(1 + b)`` (the two parts are 
 gets ``(GAUGE_MESH_MAX / m^2)`` of it alone (the filter's responses add, so their RMS adds at most), which fixes
 each gauge's largest ``|beta|`` and so its element length ``h_g = sqrt(12 |beta|)``
 (:func:`gauge_lengths`; :func:`exuflex.mechanism.refine.gauge_mesh` places the nodes).
+
+Not the default: :func:`observer_mesh` gives the mesh, and the observer and an ERLS truth built on it apply the rule
+(``docs/gauge_mesh.md`` measures what applying it by default changes, and why it is not yet the default).
 """
 
 from __future__ import annotations
@@ -214,6 +217,7 @@ def gauge_lengths(mech: Mechanism, limit: float = GAUGE_MESH_MAX, poses: int = G
 def observer_mesh(mech: Mechanism, limit: float = GAUGE_MESH_MAX) -> Mechanism:
     """``mech`` with the elements next to each curvature gauge no longer than the rule's ``h_g``
     (:func:`gauge_lengths`, :func:`exuflex.mechanism.refine.gauge_mesh`); ``mech`` itself where the file's mesh
-    is fine enough. The observer's full model and the ERLS truth are built on it."""
+    is fine enough. ``make_observer(observer_mesh(mech))`` builds the observer on it (an ERLS truth for it should be
+    at least as fine); the file's nodes, ids and masters are kept."""
     lengths = {name: r["h_g"] for name, r in gauge_lengths(mech, limit).items() if math.isfinite(r["h_g"])}
     return gauge_mesh(mech, lengths=lengths) if lengths else mech

@@ -332,9 +332,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
     with the fraction done.
 
     ``elements_per_link``: the truth's mesh, ``None`` (Exudyn: :func:`exudyn_mesh` elements per link; ERLS: the
-    observer's, the model file's refined next to the curvature gauges by
-    :func:`exuflex.reduction.gauge_rule.observer_mesh`, so that the ERLS truth is at least as fine as the filter's
-    model), a positive integer (no element longer than 1/N of its link) or ``"file"``; ``beam``: Exudyn's
+    model file's), a positive integer (no element longer than 1/N of its link) or ``"file"``; ``beam``: Exudyn's
     beam, a key of :data:`BEAMS`; ``integrator``: the ERLS engine's, one of :data:`INTEGRATORS`, ``erls_step`` its
     generalized-alpha step (:func:`gen_alpha_step`). The record's ``settings`` state them with the solver's
     statistics; ``messages`` receives one-line setup messages (the FFRF truth's meshing and modes)."""
@@ -399,11 +397,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
         from ..mechanism import remesh_mechanism
 
         mech = truth_mech
-        if elements_per_link is None:
-            from ..reduction.gauge_rule import observer_mesh
-
-            mech = observer_mesh(truth_mech)
-        elif elements_per_link != "file":
+        if elements_per_link not in (None, "file"):
             mech = remesh_mechanism(truth_mech, elements_per_link)
         try:
             probes = erls_truth(mech, drive.t, drive.tau, duration, h, output_dt, drive.q0, drive.qd0, progress,
@@ -412,7 +406,7 @@ def simulate(truth_mech: Mechanism, drive: Drive, engine: str = "exudyn", durati
             raise solver_failure(truth_mech, drive, "erls", h, exc) from exc
         settings = {
             "engine": "erls",
-            "elements_per_link": "gauge rule" if elements_per_link is None else elements_per_link,
+            "elements_per_link": "file" if elements_per_link is None else elements_per_link,
             "n_elements": sum(lk.n_elements for lk in mech.links),
             "integrator": integrator,
             **({"rho_inf": GeneralizedAlpha().rho_inf, "band_hz": mech.reduction.band_hz,
