@@ -73,7 +73,8 @@ def modal_analysis(model: ErlsModel, q=None, locked: bool = False, hold_readings
 def damping_ratios(model: ErlsModel, q=None, locked: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(f_hz, zeta)``: the modes' natural frequencies ``|s| / 2 pi`` and damping ratios ``-Re s / |s|`` from
     the eigenvalues ``s`` (``Im s > 0``) of the state matrix at rest at ``q``
-    (:meth:`~exuflex.erls.model.ErlsModel.state_matrix`; ``locked``: its elastic block, q held), ascending, the
+    (:meth:`~exuflex.erls.model.ErlsModel.state_matrix`; ``locked``: its elastic motions with every encoder's
+    reading ``q + G u`` held, the constraint :func:`modal_analysis` holds by default), ascending, the
     mechanism's zero modes dropped. With the model's damping (module docstring of :mod:`exuflex.erls.model`,
     "Damping") the free modes' ``zeta`` is ``alpha / (2 w) + beta w / 2`` mode by mode (the stated damping is
     that of the free modes; locked modes have other ratios)."""
