@@ -43,7 +43,9 @@ def run_one(model: str, seed: int, engine: str = "exudyn") -> dict:
     """Truth, log, observer (filtered and smoothed) and the bounds for one model and seed: a JSON-ready dict."""
     from exuflex.mechanism import load_mechanism
     from exuflex.scoring.bound import riccati_track
-    from exuflex.observer.session import LogColumns, make_observer, physical_names
+    from exuflex.observer.session import make_observer, physical_names
+    from exuflex.runs import LogColumns
+    from exuflex.scoring.physical import physical_covariance
     from exuflex.scoring.bound import _bound_model, _Sampled, _step_linearisation, _Trajectory, bound_track, steady_bound
     from exuflex.scoring.run import _scored, observe_run
     from exuflex.runs import read_run
@@ -80,7 +82,7 @@ def run_one(model: str, seed: int, engine: str = "exudyn") -> dict:
     bm = _bound_model(obs)
     el = riccati_track(bm, S.t, X, U, obs.channels, np.asarray(obs.ekf.R_std) ** 2, obs.ekf.P0[: som.nx, : som.nx],
                        _Sampled(S, obs.channels), linearise=_step_linearisation(bm),
-                       outputs=lambda a, b, Xb, Pb: np.diagonal(obs.physical_covariance(Xb, Pb, refresh_rad=3e-2,
+                       outputs=lambda a, b, Xb, Pb: np.diagonal(physical_covariance(obs, Xb, Pb, refresh_rad=3e-2,
                                                                                         carry=carry), axis1=1, axis2=2))
     el_rms = dict(zip(names, map(float, el.rms(sel)), strict=True))
     err, b = s["rms_error"], s["bound_rms"]
@@ -161,7 +163,7 @@ def markdown(rows: list[dict], settings: dict) -> str:
         "hold it). The true state is the truth's `q` and `q'` mapped into the reduced coordinates with the elastic "
         "coordinates and their rates at zero (the truth files hold the tip's elastic displacement, not the reduced "
         "model's coordinates; the column *elastic from estimate* below measures what that choice changes). The tip "
-        "quantities' variances come through the same maps as the estimates' (`Observer.physical_covariance`).",
+        "quantities' variances come through the same maps as the estimates' (`exuflex.scoring.physical.physical_covariance`).",
         "",
         "Without a truth (a lab log) the recursion runs along the manoeuvre's plan at the log's times; `estimation_"
         "bound(obs)` without a log runs along the plan at the model's rate with every channel and the plan's "

@@ -1,7 +1,7 @@
 """Wall and CPU time of the first use with an empty numba cache: import, the kernels' compilation, building the
 six-bar's observer, a short log.
 
-    python benchmarks/first_compile.py [--repeats 3] [--jobs 1,2] [--groups] [--md docs/first_compile.md]
+    python benchmarks/first_compile.py [--repeats 3] [--jobs 1,2] [--groups] [--kernels] [--md docs/first_compile.md]
                                        [--model models/sixbar.toml] [--run tests/data/sixbar_short] [--json]
 
 Each repeat runs a fresh Python process with ``NUMBA_CACHE_DIR`` set to an empty temporary folder (so every kernel
@@ -20,6 +20,11 @@ measures what the first use costs once compiled (``warm``).
 process that imports them and sets numba's compiler up (a trivial kernel): the CPU seconds that
 :attr:`exuflex._compile.KernelGroup.cost`
 and :data:`exuflex._compile.START_COST` hold (the plan's weights).
+
+``--kernels``: ``exuflex observe`` twice more in one process with an empty cache under a listener on numba's
+compile events (:data:`KERNELS_CHILD`): each compilation's CPU seconds without those nested in it, per kernel; numba's
+own implementations; the same signature compiled twice; and, with the groups' warm-ups switched off, what the
+command itself calls (the rest is what the warm-ups compile that it does not need).
 
 ``--md``: the figures as a markdown page ('' for none).
 """
@@ -45,8 +50,8 @@ import json, resource, sys, time
 w0, t0 = time.perf_counter(), time.process_time()
 from exuflex import _compile
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
-from exuflex.runs import read_run
+from exuflex.observer.session import ObserverConfig, estimate, make_observer
+from exuflex.runs import held_torques, read_run
 w1, t1 = time.perf_counter(), time.process_time()
 _compile.prepare()
 w2, t2 = time.perf_counter(), time.process_time()
@@ -54,7 +59,7 @@ mech = load_mechanism(sys.argv[1]); run = read_run(sys.argv[2])
 obs = make_observer(mech, ObserverConfig.for_model(mech))
 w3, t3 = time.perf_counter(), time.process_time()
 S = run.sensors
-estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+estimate(obs, S.t, held_torques(S.select(mech.motor_names).data), S.select(obs.channels).data)
 w4, t4 = time.perf_counter(), time.process_time()
 ch = resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({"wall": {"import": w1 - w0, "compile": w2 - w1, "make_observer": w3 - w2, "first_run": w4 - w3,
@@ -62,6 +67,44 @@ print(json.dumps({"wall": {"import": w1 - w0, "compile": w2 - w1, "make_observer
                   "cpu": {"import": t1 - t0, "compile": t2 - t1, "make_observer": t3 - t2, "first_run": t4 - t3,
                           "total": t4 - t0},
                   "cpu_subprocesses": ch.ru_utime + ch.ru_stime}))
+"""
+
+# ``exuflex observe`` in this process under a listener on numba's compile events: per compilation the dispatcher, its
+# signature and its CPU seconds less those of the compilations nested in it (a kernel compiles the kernels it calls
+# that are not compiled yet inside its own event); argv[3] "lazy": exuflex._compile's warm-ups switched off, so that
+# only what the command calls compiles
+KERNELS_CHILD = r"""
+import contextlib, io, json, sys, time
+from numba.core import event
+rows, stack = [], []
+
+def name(d):
+    try:
+        return f"{d.py_func.__module__}.{d.py_func.__qualname__}"
+    except Exception:
+        return repr(d)[:80]
+
+class Listener(event.Listener):
+    def on_start(self, ev):
+        stack.append([time.process_time(), 0.0])
+
+    def on_end(self, ev):
+        c0, nested = stack.pop()
+        total = time.process_time() - c0
+        if stack:
+            stack[-1][1] += total
+        rows.append({"kernel": name(ev.data.get("dispatcher")), "args": str(ev.data.get("args")), "self_s": total - nested})
+
+event.register("numba:compile", Listener())
+from exuflex import _compile
+if sys.argv[3] == "lazy":
+    _compile.start = lambda *a, **k: None
+    _compile.prepare = lambda *a, **k: 0.0
+from exuflex.cli import main
+c0 = time.process_time()
+with contextlib.redirect_stdout(io.StringIO()):
+    rc = main(["observe", sys.argv[1], sys.argv[2]])
+print(json.dumps({"rc": rc, "cpu_s": time.process_time() - c0, "rows": rows}))
 """
 
 # the groups imported and numba's compiler set up (a trivial kernel compiled): what every compiling process pays once
@@ -123,11 +166,74 @@ def _groups(repeats: int) -> dict:
             "runs": cpu}
 
 
+def _kernels(args) -> dict:
+    """What compiles in ``exuflex observe`` with an empty cache, in one process (:data:`KERNELS_CHILD`): with the
+    kernel groups' warm-ups (what a first use compiles) and without them (what the command calls)."""
+    out = {}
+    for kind in ("groups", "lazy"):
+        print(f"kernels: exuflex observe with an empty cache ({kind}) ...", file=sys.stderr, flush=True)
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, NUMBA_CACHE_DIR=cache, EXUFLEX_COMPILE_JOBS="1", PYTHONPATH=str(ROOT))
+            res = subprocess.run([sys.executable, "-c", KERNELS_CHILD, args.model, args.run, kind], env=env,
+                                 cwd=ROOT, check=True, capture_output=True, text=True)
+        out[kind] = json.loads(res.stdout.strip().splitlines()[-1])
+    return out
+
+
+def _kernels_section(k: dict) -> str:
+    """Per kernel, what compiles (:func:`_kernels`), as markdown."""
+    import collections
+
+    def per_kernel(rows):
+        agg = collections.defaultdict(lambda: {"s": 0.0, "n": 0, "sigs": set()})
+        for r in rows:
+            a = agg[r["kernel"]]
+            a["s"] += r["self_s"]
+            a["n"] += 1
+            a["sigs"].add(r["args"])
+        return agg
+
+    rows = k["groups"]["rows"]
+    agg = per_kernel(rows)
+    total = sum(r["self_s"] for r in rows)
+    own = sum(r["self_s"] for r in rows if r["kernel"].startswith("numba."))
+    twice = collections.Counter((r["kernel"], r["args"]) for r in rows)
+    again = sum(r["self_s"] for r in rows if twice[(r["kernel"], r["args"])] > 1) * 0.5  # (two of a kind: one spare)
+    again_names = sorted({r["kernel"].rsplit(".", 1)[-1] if not r["kernel"].startswith("numba.") else r["kernel"]
+                          for r in rows if twice[(r["kernel"], r["args"])] > 1 and r["self_s"] > 0.2})
+    lazy = per_kernel(k["lazy"]["rows"])
+    lazy_total = sum(r["self_s"] for r in k["lazy"]["rows"])
+    unused = {n: a["s"] for n, a in agg.items() if n not in lazy and not n.startswith("numba.")}
+    top = sorted(((n, a) for n, a in agg.items() if not n.startswith("numba.")), key=lambda kv: -kv[1]["s"])[:20]
+    table = "\n".join(f"| `{n.replace('exuflex.', '')}` | {a['s']:.2f} | {a['n']} | {len(a['sigs'])} |" for n, a in top)
+    return (
+        "## What compiles, kernel by kernel\n\n"
+        "`exuflex observe MODEL RUN` in one process (`EXUFLEX_COMPILE_JOBS=1`) with an empty cache, under a listener "
+        "on numba's compile events (`numba.core.event`, `numba:compile`): per compilation its CPU seconds less those "
+        "of the compilations nested in it (a kernel compiles the not yet compiled kernels it calls, and numba's own "
+        "implementations of the NumPy functions it uses, inside its own event). The command took "
+        f"{k['groups']['cpu_s']:.1f} s CPU, of which {total:.1f} s compiling ({len(rows)} compilations). The 20 "
+        "largest of the package's kernels (seconds summed over their compilations; a helper compiled into several "
+        "kernels, `inline='always'` or `register_jitable`, is typed and lowered in each):\n\n"
+        "| kernel | CPU s | compilations | signatures |\n|---|---|---|---|\n" + table + "\n\n"
+        f"numba's own implementations (`np.linalg`'s, array constructors, ...): {own:.1f} s over "
+        f"{sum(1 for r in rows if r['kernel'].startswith('numba.'))} compilations: they are not cached on their own "
+        "(their code is cached inside each kernel that uses them), so every process that compiles such a kernel "
+        "compiles them again. The same kernel with the same signature compiled more than once: "
+        f"{again:.1f} s spare ({', '.join(again_names) or 'none above 0.2 s'}). "
+        f"With the groups' warm-ups switched off (only what the command calls compiles, at its first call): "
+        f"{k['lazy']['cpu_s']:.1f} s CPU, {lazy_total:.1f} s compiling; compiled by the warm-ups but not called "
+        "by the command: " + (", ".join(f"`{n.replace('exuflex.', '')}` {v:.2f} s" for n, v in
+                                        sorted(unused.items(), key=lambda kv: -kv[1]) if v > 0.05) or "nothing")
+        + ".\n\n")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--jobs", default="1,2", help="compiling processes to compare, alternating (e.g. 1,2)")
     ap.add_argument("--groups", action="store_true", help="also the CPU cost of each kernel group alone")
+    ap.add_argument("--kernels", action="store_true", help="also what compiles, kernel by kernel (numba's events)")
     ap.add_argument("--group-repeats", type=int, default=None, help="repeats of --groups (default: --repeats)")
     ap.add_argument("--model", default=str(ROOT / "models" / "sixbar.toml"))
     ap.add_argument("--run", default=str(ROOT / "tests" / "data" / "sixbar_short"))
@@ -156,6 +262,8 @@ def main(argv=None) -> int:
     if args.groups:
         print("kernel groups alone ...", file=sys.stderr, flush=True)
         out["groups"] = _groups(args.group_repeats or args.repeats)
+    if args.kernels:
+        out["kernels"] = _kernels(args)
     out["load_after"] = os.getloadavg()
     out["median"] = {j: {"wall_s": statistics.median(r["process_wall_s"] for r in out["runs"] if r["jobs"] == j),
                          "cpu_s": statistics.median(r["process_cpu_s"] for r in out["runs"] if r["jobs"] == j),
@@ -239,6 +347,8 @@ def _page(out: dict, argv: list) -> str:
             + ", ".join(f"{k} {v:.1f}" for k, v in g["group_cpu_s"].items())
             + " (the weights `exuflex._compile.plan` shares the groups out by).\n\n"
         )
+    if "kernels" in out:
+        page += _kernels_section(out["kernels"])
     return page + f"Versions: {versions}.\n"
 
 

@@ -37,6 +37,7 @@ from _lablog import MODEL, LabTruth, lab_signals, lab_truth
 
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.scoring.physical import physical_covariance
 from exuflex.scoring.run import observe_run
 from exuflex.runs import Run
 from exuflex.sensors import Signals
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
             bound = np.array([s["bound_rms"][k] for k in names])
             sq, cnt = np.zeros((len(edges) - 1, len(names))), np.zeros(len(edges) - 1)
             res = out.estimate.result
-            sd = np.sqrt(np.diagonal(obs.physical_covariance(res.x_hat, res.P), axis1=1, axis2=2))
+            sd = np.sqrt(np.diagonal(physical_covariance(obs, res.x_hat, res.P), axis1=1, axis2=2))
             w = np.digitize(res.t - res.t[0], edges) - 1
             sd_win = np.array([np.sqrt(np.mean(sd[w == j] ** 2, axis=0)) / bound for j in range(len(edges) - 1)])
             obs.ekf.store_P = "diag"

@@ -326,7 +326,7 @@ FINDING = (
     "channel) and the observer's estimates report, and the acceptance scores, the reading: `Observer.physical` adds "
     "R(q) p = G H_u(q) p to the state's q and its rate to q', and takes the tip's elastic displacement from the rigid "
     "tip at the reading (to second order, `ReducedObserverModel._tip_from_reading`); the bound and the estimates' "
-    "standard deviations go through the same rows (`Observer.physical_covariance`). `truth.csv`'s and "
+    "standard deviations go through the same rows (`exuflex.scoring.physical.physical_covariance`). `truth.csv`'s and "
     "`estimates.csv`'s q columns keep their meaning, the encoder's reading (`docs/run_format.md`). Motors locked "
     "(`exuflex modes --locked`) holds the readings, as Exudyn's locked system does. The drive keeps its meaning, a "
     "motor's torque between two links: it acts on the two nodes at the joint, and its reaction on the proximal link "

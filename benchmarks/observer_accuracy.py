@@ -26,6 +26,7 @@ import numpy as np
 from exuflex.measure import measure
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, make_observer, physical_names
+from exuflex.scoring.physical import physical_covariance
 from exuflex.scoring.run import metrics
 from exuflex.scoring.bound import steady_bound
 from exuflex.scoring.stats import fft_peaks, match_peaks, mc_consistency
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
         m = metrics(phys, tr, start)
         rms.append([m["rms_error"][n] for n in names])
         e = np.column_stack([phys[n] - np.interp(phys.t, tr.t, tr[n]) for n in names])
-        Pp = obs.physical_covariance(res.x_hat, res.P)
+        Pp = physical_covariance(obs, res.x_hat, res.P)
         nees.append(np.einsum("ki,ki->k", e, np.linalg.solve(Pp, e[:, :, None])[:, :, 0]))
         nis.append(res.nis)
         nis_dof.append(res.nis_dof)

@@ -24,7 +24,8 @@ one interpreter: the median ratio of their times.
 
 What a user waits for: ``python -m exuflex observe MODEL RUN`` in a fresh interpreter ``--repeats`` times (numba's
 cache and Python's bytecode warm: one run first), its wall time against the filter's own (the ``wall`` it
-prints), with the import of the command line and the observer timed apart. Where the rest goes: as many fresh
+prints), with the import of the command line and the observer timed apart; beside each run the same command on
+the log copied without its truth (a lab's log: nothing to score, no bound without ``--bound``). Where the rest goes: as many fresh
 interpreters that run the same command with timers around its parts (:data:`STAGES`; each part's wall, and the
 kernels loaded from numba's cache wherever they load), and as many that only start Python, import NumPy, SciPy's
 ``linalg`` and ``special`` and numba and call one trivial kernel from numba's cache (the floor those libraries
@@ -43,6 +44,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import statistics
 import sys
 import time
@@ -106,14 +108,15 @@ def main(argv=None) -> int:
 
     from exuflex.mechanism import load_mechanism
     from exuflex.observer import reduced
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     mech = load_mechanism(args.model)
     run = read_run(args.run)
     obs = make_observer(mech, ObserverConfig.for_model(mech))
     S = run.sensors
-    U = _hold(S.select(mech.motor_names).data)
+    U = held_torques(S.select(mech.motor_names).data)
     Y = S.select(obs.channels).data
     estimate(obs, S.t, U, Y)  # compile and warm
     rtf = [estimate(obs, S.t, U, Y).real_time_factor for _ in range(args.repeats)]
@@ -145,6 +148,7 @@ def main(argv=None) -> int:
            "step_over_run_ratios": [b / a for a, b in online],
            "step_us_per_sample": 1e6 * statistics.median(b for _, b in online) / n,
            "run_us_per_sample": 1e6 * statistics.median(a for a, _ in online) / n}
+    out["bound"] = _bound_split(obs, mech, run, args.repeats)
     out["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     out["observe"] = _observe_wall(args.model, args.run, args.repeats)
     if args.against:
@@ -205,13 +209,14 @@ def _child(model: str, run_dir: str) -> int:
     """The median time of :data:`CHILD_RUNS` filter runs on the log after a warm-up, and of as many passes through
     ``step`` sample by sample, printed as JSON (``--against``'s measurement)."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     mech = load_mechanism(model)
     S = read_run(run_dir).sensors
     obs = make_observer(mech, ObserverConfig.for_model(mech))
-    U = _hold(S.select(mech.motor_names).data)
+    U = held_torques(S.select(mech.motor_names).data)
     Y = S.select(obs.channels).data
     estimate(obs, S.t, U, Y)
     times = []
@@ -300,6 +305,37 @@ def _stages_child(model: str, run_dir: str) -> int:
     return 0
 
 
+def _bound_split(obs, mech, run, repeats: int) -> dict:
+    """The bound along the log (:func:`exuflex.scoring.bound.bound_track`, along the truth where the run has one)
+    against the filter on it: ``repeats`` pairs in turn in this interpreter (the median of the ratios of their walls),
+    then one more bound with timers around the step Jacobian kernel it calls (the filter's interval kernel,
+    :func:`exuflex.observer.expansion.held_interval`) and the configuration evaluations of its own model."""
+    from exuflex.observer import reduced
+    from exuflex.observer.session import LogColumns, estimate
+    from exuflex.scoring import bound
+
+    S = run.sensors
+    U = LogColumns.of(S, run.motors or mech.motor_names, hold=True)
+    sampled = bound._Sampled(S, obs.channels)
+
+    def once() -> float:
+        return bound.bound_track(obs, S.t, U, sampled, truth=run.truth)[0].wall_s
+
+    once()
+    ratios = []
+    for _ in range(repeats):
+        f = estimate(obs, S.t, U[:], S.select(obs.channels).data).wall_s
+        ratios.append(once() / f)
+    timers = {"the step Jacobians (the filter's interval kernel)": _Timer(bound, "held_interval"),
+              "configuration evaluations": _Timer(reduced.ReducedObserverModel, "_refresh")}
+    wall = once()
+    for t in timers.values():
+        t.restore()
+    return {"over_filter": ratios, "median_over_filter": statistics.median(ratios), "wall_s": wall,
+            "along": "truth" if run.truth is not None else "plan",
+            "fraction": {k: t.total / wall for k, t in timers.items()}, "calls": {k: t.calls for k, t in timers.items()}}
+
+
 FLOOR = "import numpy, scipy.linalg, scipy.special, numba\nfrom one_kernel import one\none(1.0)\n"
 KERNEL = "import numba\n\n\n@numba.njit(cache=True)\ndef one(x):\n    return x + 1.0\n"
 
@@ -331,14 +367,29 @@ def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
         c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         return wall, (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime), res.stdout
 
+    # the same log without its truth (a lab's log: no score, so no bound unless --bound asks for it)
+    bare = Path(tmp.name, "without_truth")
+    bare.mkdir()
+    for f in Path(run_dir).iterdir():
+        if f.is_file() and f.name not in ("truth.csv", "meta.json"):
+            shutil.copy(f, bare / f.name)
+    meta = json.loads(Path(run_dir, "meta.json").read_text())
+    meta["truth"] = []
+    (bare / "meta.json").write_text(json.dumps(meta))
+    cmd_bare = [sys.executable, "-m", "exuflex", "observe", model, str(bare)]
     run(cmd)  # bytecode and numba's cache warm
     run(floor, floor_env, tmp.name)  # the trivial kernel compiled into its cache
     wall, cpu, filt, imports, parts, floors, floor_cpu = [], [], [], [], [], [], []
+    bare_wall, bare_cpu, bare_filt = [], [], []
     for _ in range(repeats):
         w, c, out = run(cmd)
         wall.append(w)
         cpu.append(c)
         filt.append(float(re.search(r"^wall ([0-9.eE+-]+) s", out, re.MULTILINE).group(1)))
+        w, c, out = run(cmd_bare)
+        bare_wall.append(w)
+        bare_cpu.append(c)
+        bare_filt.append(float(re.search(r"^wall ([0-9.eE+-]+) s", out, re.MULTILINE).group(1)))
         imports.append(float(run(imp)[2]))
         w, _, out = run(stages)
         parts.append(dict(json.loads(out.strip().splitlines()[-1]), wall_s=w))
@@ -361,7 +412,11 @@ def _observe_wall(model: str, run_dir: str, repeats: int) -> dict:
                  "physical_s": med([p["stages"][STAGES[-2][2]] - p["filter_s"] for p in parts])}
     return {"wall_s": wall, "cpu_s": cpu, "filter_s": filt, "import_s": imports, "median_wall_s": med(wall),
             "median_cpu_s": med(cpu), "median_filter_s": med(filt), "median_import_s": med(imports),
-            "breakdown": breakdown}
+            "breakdown": breakdown,
+            "without_truth": {"wall_s": bare_wall, "cpu_s": bare_cpu, "filter_s": bare_filt,
+                              "median_wall_s": med(bare_wall), "median_cpu_s": med(bare_cpu),
+                              "median_filter_s": med(bare_filt),
+                              "median_rest_s": med([w - f for w, f in zip(bare_wall, bare_filt, strict=True)])}}
 
 
 def _paired(model: str, run_dir: str, repeats: int, other: Path) -> dict:
@@ -429,7 +484,7 @@ def _page(out: dict, argv: list, repeats: int) -> str:
         f"rest in the loop's one-sample entry) over `run()` (the compiled loop), {repeats} pairs in turn: median ratio "
         f"**{out['step_over_run']:.3f}** ({', '.join(f'{r:.3f}' for r in out['step_over_run_ratios'])}); "
         f"{out['step_us_per_sample']:.1f} against {out['run_us_per_sample']:.1f} us per sample (medians).\n\n"
-        + _observe_section(out, repeats)
+        + _observe_section(out, repeats) + _bound_section(out["bound"], repeats)
         + f"Versions: {versions}.\n"
     )
 
@@ -473,6 +528,36 @@ def _breakdown_section(b: dict, repeats: int) -> str:
                                          f"{outside - b['floor_s']:.2f} s") + ".\n\n"))
 
 
+def _bound_section(b: dict, repeats: int) -> str:
+    """What the bound along the log costs against the filter (:func:`_bound_split`), as markdown."""
+    parts = "; ".join(f"{k} {100 * v:.0f} % ({b['calls'][k]} calls)" for k, v in b["fraction"].items())
+    rest = 1.0 - sum(b["fraction"].values())
+    return ("### The bound along the log\n\n"
+            f"The bound along the {b['along']} (`exuflex.scoring.bound.bound_track`, what `exuflex observe` scores the "
+            f"errors against) over the filter on the same log, {repeats} pairs in turn in one interpreter: median ratio "
+            f"of their walls **{b['median_over_filter']:.2f}** ({', '.join(f'{r:.2f}' for r in b['over_filter'])}). "
+            f"One more bound with timers: {parts}; the rest (the Python of the recursion, the measurement rows, the "
+            f"Kalman kernels, the physical quantities' covariances) {100 * rest:.0f} %. The recursion takes the step "
+            "Jacobian at each sample of the trajectory with the same compiled interval kernel as the filter takes at "
+            "its estimate, so a compiled loop around it would remove at most that rest: the bound costs about a "
+            "filter's time however it is driven. `exuflex observe` therefore computes it where it scores something "
+            "(a log with a truth) and, for a log without one, only with `--bound` (the bound along the plan).\n\n")
+
+
+def _without_truth_section(ob: dict, repeats: int) -> str:
+    """The same log without its truth (a lab's log): nothing to score, no bound (``--bound`` asks for it)."""
+    nt = ob["without_truth"]
+    rest = nt["median_rest_s"]
+    return ("### The same log without a truth\n\n"
+            f"The run folder copied without `truth.csv` (a lab's log: no score, so no bound unless `--bound` asks for "
+            f"it), {repeats} runs alternating with the above: median wall **{nt['median_wall_s']:.2f} s**, of which "
+            f"the filter {nt['median_filter_s']:.3f} s; the wall less the filter **{rest:.2f} s** (median of the "
+            f"runs' differences; issue 29's aim: at most 1.0 s, "
+            + ("met" if rest <= 1.0 else "not met") + " in these runs). Walls: "
+            f"{', '.join(f'{w:.2f}' for w in nt['wall_s'])} s; CPU seconds of the process (median): "
+            f"{nt['median_cpu_s']:.2f}, against {ob['median_cpu_s']:.2f} with the truth and its bound.\n\n")
+
+
 def _observe_section(out: dict, repeats: int) -> str:
     """The user's wait (``exuflex observe``) and the paired comparison, as markdown."""
     ob = out["observe"]
@@ -484,7 +569,8 @@ def _observe_section(out: dict, repeats: int) -> str:
             f"{ob['median_wall_s'] - ob['median_filter_s'] - ob['median_import_s']:.2f} s; the wall less the filter "
             f"{ob['median_wall_s'] - ob['median_filter_s']:.2f} s (issue 29's aim: at most 1.0 s). Walls: "
             f"{', '.join(f'{w:.2f}' for w in ob['wall_s'])} s; CPU seconds of the process (median): "
-            f"{ob['median_cpu_s']:.2f}.\n\n" + _breakdown_section(ob["breakdown"], repeats))
+            f"{ob['median_cpu_s']:.2f}.\n\n" + _without_truth_section(ob, repeats)
+            + _breakdown_section(ob["breakdown"], repeats))
     if "against" in out:
         a = out["against"]
         text += ("## Against another checkout\n\n"

@@ -171,7 +171,8 @@ def run_bench(
     from .measure import measure
     from .mechanism import load_mechanism
     from .observer.ekf import MultirateEKF
-    from .observer.session import ObserverConfig, _hold, _noise_std, estimate, make_observer
+    from .observer.session import ObserverConfig, _noise_std, estimate, make_observer
+    from .runs import held_torques
     from .scoring.run import metrics
     from .sensors import monotonic_record, sensor_channels, tip_dof_names, true_states
 
@@ -200,7 +201,7 @@ def run_bench(
         truth = true_states(mech, rec)
         meas = measure(mech, sensor_channels(mech, rec), t_tab, tau, seed=seed, t_end=duration)
         S = meas.signals
-        U = _hold(S.select(mech.motor_names).data)
+        U = held_torques(S.select(mech.motor_names).data)
         start_up = min(0.3, duration / 4)
 
         say("reduced observer")

@@ -52,8 +52,8 @@ from .erls.model import ErlsModel
 from .mechanism import Manoeuvre, Mechanism, ModelFileError
 from .mechanism.loader import position_columns
 
-__all__ = ["KINDS", "TIME_LAWS", "ActuationError", "Plan", "computed_torque", "open_loop_torque", "plan", "time_law",
-           "torque_table", "trajectory_csv", "write_trajectory"]
+__all__ = ["KINDS", "TIME_LAWS", "ActuationError", "Plan", "computed_torque", "open_loop_torque", "plan",
+           "start_configuration", "time_law", "torque_table", "trajectory_csv", "write_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -503,6 +503,18 @@ _QUINTIC = np.array([  # quintic Hermite basis on u in [0, 1]: coefficients of u
     [0, 0, 0, -4, 7, -3],  # h y1'
     [0, 0, 0, 10, -15, 6],  # y1
 ], float)
+
+
+def start_configuration(mech: Mechanism) -> np.ndarray:
+    """The configuration an observer starts from: the planned manoeuvre's first (the model's ``q_ref`` without a
+    manoeuvre, or where the plan fails, with a warning)."""
+    if mech.manoeuvre is not None:
+        try:
+            p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
+            return np.asarray(p.q[0], float)
+        except Exception as exc:  # noqa: BLE001 - fall back to q_ref, with a note
+            log.warning("could not plan the manoeuvre's start (%s); starting the observer at q_ref", exc)
+    return np.asarray(mech.q_ref, float)
 
 
 def _hermite5(ts, Y, dY, ddY, t):

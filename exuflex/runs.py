@@ -46,6 +46,7 @@ __all__ = [
     "DELIMITER_NAMES",
     "FORMAT",
     "INPUT_HOLDS",
+    "LogColumns",
     "Run",
     "SignalsCsvWriter",
     "atomic_write_bytes",
@@ -54,6 +55,7 @@ __all__ = [
     "check_not_foreign",
     "dump_json",
     "file_sha256",
+    "held_torques",
     "input_hold_of",
     "output_folder",
     "package_versions",
@@ -1067,3 +1069,81 @@ def read_exudyn_sensor(path: str | os.PathLike, names: Sequence[str] | None = No
     lines = [ln for ln, k in zip(lines, keep, strict=True) if k]
     _check_time(path, data[:, 0], [n for n, _ in lines])
     return Signals(data[:, 0], names, data[:, 1:], ("",) * len(names))
+
+
+class LogColumns:
+    """Columns of a log's table, a block of rows at a time: ``cols[a:b]`` is the ``(b - a, k)`` array of the
+    columns ``cols`` of ``data`` (n, c) in rows ``a`` to ``b``, a copy of those rows only (the whole selection is
+    never copied). :meth:`of` selects a :class:`Signals`' columns by name.
+
+    ``hold``: a non-finite value is replaced by the column's last finite value before it, and by its first one
+    before that (a torque not sampled at a time is held, ``docs/run_format.md``); a column without a finite value
+    is an error naming it."""
+
+    def __init__(self, data: np.ndarray, cols: Sequence[int], names: Sequence[str] | None = None,
+                 hold: bool = False):
+        self._data = data
+        self.cols = [int(c) for c in cols]
+        self.names = tuple(names) if names is not None else tuple(str(c) for c in self.cols)
+        self.hold = bool(hold)
+        self._prev: tuple[int, np.ndarray] | None = None
+        if self.hold:
+            first = np.empty(len(self.cols))
+            for j, c in enumerate(self.cols):
+                ok = np.flatnonzero(np.isfinite(data[:, c]))
+                if not len(ok):
+                    raise ValueError(f"torque column {self.names[j]} has no finite sample")
+                first[j] = data[ok[0], c]
+            self._first = first
+
+    @classmethod
+    def of(cls, signals: Signals, names: Sequence[str], hold: bool = False) -> LogColumns:
+        """The columns ``names`` of ``signals`` (KeyError naming the missing ones, as :meth:`Signals.select`)."""
+        names = tuple(names)
+        cols = [signals.names.index(n) if n in signals.names else None for n in names]
+        missing = [n for n, c in zip(names, cols, strict=True) if c is None]
+        if missing:
+            raise KeyError(f"no channel(s) {missing}; channels are {list(signals.names)}")
+        return cls(signals.data, cols, names, hold)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (len(self._data), len(self.cols))
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        a, b, step = rows.indices(len(self._data))
+        if step != 1:
+            raise IndexError("LogColumns: contiguous rows only")
+        block = self._data[a:b, self.cols]
+        if not self.hold:
+            return block
+        prev = self._prev[1] if self._prev is not None and self._prev[0] == a else self._before(a)
+        bad = ~np.isfinite(block)
+        if bad.any():
+            for j in np.flatnonzero(bad.any(axis=0)):
+                col = block[:, j]
+                ok = np.isfinite(col)
+                idx = np.where(ok, np.arange(len(col)), -1)
+                np.maximum.accumulate(idx, out=idx)
+                col[:] = np.where(idx >= 0, col[np.maximum(idx, 0)], prev[j])
+        if b > a:
+            self._prev = (b, block[-1].copy())
+        return block
+
+    def _before(self, a: int) -> np.ndarray:
+        """Per column, the held value entering row ``a``: the last finite value before it, else the first."""
+        out = self._first.copy()
+        for j, c in enumerate(self.cols):
+            ok = np.flatnonzero(np.isfinite(self._data[:a, c]))
+            if len(ok):
+                out[j] = self._data[ok[-1], c]
+        return out
+
+
+def held_torques(U: np.ndarray) -> np.ndarray:
+    """A torque table (n, k) with its non-finite values held (:class:`LogColumns` with ``hold``), a copy."""
+    U = np.asarray(U, float)
+    return LogColumns(U, range(U.shape[1]), hold=True)[0 : len(U)]

@@ -17,7 +17,8 @@ from filterpy.kalman import KalmanFilter
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import LinearDiscreteModel, MultirateEKF
 from exuflex.scoring.bound import riccati_track
-from exuflex.observer.session import LogColumns, ObserverConfig, make_observer, physical_names
+from exuflex.observer.session import ObserverConfig, make_observer, physical_names
+from exuflex.runs import LogColumns
 from exuflex.scoring.bound import _bound_model, _mid_q, _Sampled, _step_linearisation, _Trajectory, bound_track, estimation_bound, steady_bound
 from exuflex.scoring.run import _scored, observe_run
 from exuflex.runs import Run, read_run
@@ -198,3 +199,48 @@ def test_smoothed_bound_stays_bounded_with_an_undriven_damped_mode():
     with np.errstate(all="ignore"):
         _, Prts = rts_backward(P, np.array([A] * n), np.array([Q] * n))
     assert np.nanmax(np.abs(np.diagonal(Prts, axis1=1, axis2=2)) / d) > 1e2
+
+
+def _without_truth(tmp_path: Path, rows: int = 300) -> Path:
+    """The first ``rows`` samples of the six-bar's run folder without its truth (a lab's log)."""
+    import json
+
+    src = ROOT / "tests" / "data" / "sixbar_erls_3s"
+    out = tmp_path / "no_truth"
+    out.mkdir()
+    lines = (src / "sensors.csv").read_text().splitlines(keepends=True)
+    (out / "sensors.csv").write_text("".join(lines[: rows + 1]))
+    (out / "manoeuvre.toml").write_text((src / "manoeuvre.toml").read_text())
+    meta = json.loads((src / "meta.json").read_text())
+    meta["truth"] = []
+    (out / "meta.json").write_text(json.dumps(meta))
+    return out
+
+
+def test_observe_scores_against_the_bound_and_leaves_the_plans_bound_to_bound(tmp_path, capsys):
+    """``exuflex observe``: a log without a truth has nothing to score, and its bound (along the plan) costs about
+    as much as the filter: it is computed with ``--bound`` only (the same figures as the library's default), while
+    an unobservable channel set is still reported without it. With a truth the bound is always there."""
+    import json
+
+    from exuflex.cli import main
+    from exuflex.cli.observe import run_manoeuvre
+
+    bare = _without_truth(tmp_path)
+    sixbar = str(ROOT / "models" / "sixbar.toml")
+    assert main(["observe", sixbar, str(bare), "--json"]) == 0
+    cap = capsys.readouterr()
+    s = json.loads(cap.out)
+    assert "bound_rms" not in s and "no truth: no bound (--bound" in cap.err
+    assert main(["observe", sixbar, str(bare), "--json", "--bound"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    run = read_run(bare)
+    ref = observe_run(run_manoeuvre(MECH, run), run).summary  # (the plan of the manoeuvre file the run names)
+    assert s["bound_for"]["along"] == "plan" and s["bound_rms"] == pytest.approx(ref["bound_rms"], rel=1e-12)
+    assert main(["observe", sixbar, str(bare), "--json", "--channels", "c1,c2,c4"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert "cannot observe" in s["unobservable"] and "bound_rms" not in s
+    assert main(["observe", sixbar, str(bare)]) == 0
+    assert "no truth to score against and no bound" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="with_bound"):
+        observe_run(MECH, read_run(bare), with_bound="plan")

@@ -45,13 +45,14 @@ COVERAGE = textwrap.dedent(r"""
                 if not k.signatures]
     missing_after = [g.name for g in _compile.missing()]
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
     before = signatures()
     mech = load_mechanism(sys.argv[3] + "/models/sixbar.toml")
     S = read_run(sys.argv[3] + "/tests/data/sixbar_short").sensors
     obs = make_observer(mech, ObserverConfig.for_model(mech))
-    est = estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+    est = estimate(obs, S.t, held_torques(S.select(mech.motor_names).data), S.select(obs.channels).data)
     for name in ("single_link", "serial_arm"):
         make_observer(load_mechanism(sys.argv[3] + f"/models/{name}.toml"))
     after = signatures()
@@ -70,13 +71,14 @@ def _coverage(mode: str, jobs: int = 1, env: dict | None = None) -> dict:
 
 def _sixbar_estimates() -> np.ndarray:
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     mech = load_mechanism(ROOT / "models" / "sixbar.toml")
     S = read_run(ROOT / "tests" / "data" / "sixbar_short").sensors
     obs = make_observer(mech, ObserverConfig.for_model(mech))
-    est = estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+    est = estimate(obs, S.t, held_torques(S.select(mech.motor_names).data), S.select(obs.channels).data)
     return np.asarray(est.result.x_hat)
 
 

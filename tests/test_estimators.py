@@ -10,7 +10,8 @@ import pytest
 from exuflex.erls.model import ErlsModel
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.augmented import AugmentedModel, nominal_mixture, payload_rows
-from exuflex.observer.session import ObserverConfig, _hold, estimate, estimate_chunks, make_observer
+from exuflex.observer.session import ObserverConfig, estimate, estimate_chunks, make_observer
+from exuflex.runs import held_torques
 from exuflex.runs import read_run
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -260,7 +261,7 @@ def test_payload_estimator_reports_its_posterior_mixed_with_the_nominal_hypothes
     run = read_run(DATA / "sixbar_erls_3s")
     S = run.sensors
     obs = make_observer(sixbar, ObserverConfig(estimator="ekf-payload"))
-    U, Y = _hold(S.select(run.motors).data), S.select(obs.channels).data
+    U, Y = held_torques(S.select(run.motors).data), S.select(obs.channels).data
     e = estimate(obs, S.t, U, Y)
     raw = obs.ekf.run(S.t, U, Y)
     it = obs.ekf.model.i_theta

@@ -17,14 +17,15 @@ def sixbar_observer_state():
     from pathlib import Path
 
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, make_observer
+    from exuflex.observer.session import ObserverConfig, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     root = Path(__file__).resolve().parents[1]
     mech = load_mechanism(root / "models" / "sixbar.toml")
     S = read_run(root / "tests" / "data" / "sixbar_erls_3s").sensors
     obs = make_observer(mech, ObserverConfig())
-    U = _hold(S.select(mech.motor_names).data)
+    U = held_torques(S.select(mech.motor_names).data)
     obs.ekf.run(S.t[:300], U[:300], S.select(obs.channels).data[:300])
     return obs.model, obs.model._last, obs.ekf.x, U[300].copy()
 

@@ -270,14 +270,14 @@ def test_sixbar_observer_equals_the_numpy_oracle_within_a_thousandth_of_the_boun
     """The six-bar's reduced observer: the compiled filter and the NumPy oracle filter over the same model agree
     within 1e-3 of the steady-state bound at every sample after the start-up (the model's refresh decisions
     follow the estimate, so rounding differences can grow; measured far below that)."""
-    from exuflex.observer.session import _hold
+    from exuflex.runs import held_torques
     from exuflex.scoring.bound import estimation_bound
 
     mech = load_mechanism(ROOT / "models" / "sixbar.toml")
     run = read_run(ROOT / "tests" / "data" / "sixbar_erls_3s")
     obs = make_observer(mech, ObserverConfig())
     S, n = run.sensors, 600
-    t, U, Y = S.t[:n], _hold(S.select(run.motors).data[:n]), S.select(obs.channels).data[:n].copy()
+    t, U, Y = S.t[:n], held_torques(S.select(run.motors).data[:n]), S.select(obs.channels).data[:n].copy()
     Y[100:104] = np.nan  # a gap
     Y[150:200:2, 3:] = np.nan  # gauges at half rate
     res = obs.ekf.run(t, U, Y)

@@ -13,7 +13,8 @@ import pytest
 from exuflex.mechanism import load_mechanism
 from exuflex.observer import session
 from exuflex.scoring.output import EstimatesWriter, write_outcome
-from exuflex.observer.session import LogColumns, _hold, make_observer
+from exuflex.observer.session import make_observer
+from exuflex.runs import LogColumns, held_torques
 from exuflex.scoring.run import observe_run
 from exuflex.runs import Run, read_run
 from exuflex.sensors import Signals
@@ -50,7 +51,7 @@ def test_log_columns_hold_block_by_block(seed):
         got = np.vstack([cols[a : a + step] for a in range(0, 60, step)])
         assert np.array_equal(got, ref)
     assert np.array_equal(cols[31:40], ref[31:40]) and np.array_equal(cols[5:9], ref[5:9])  # out of order
-    assert np.array_equal(_hold(data[:, 1:]), ref)
+    assert np.array_equal(held_torques(data[:, 1:]), ref)
     assert np.array_equal(LogColumns(data, [0])[3:9], data[3:9, :1], equal_nan=True)  # no hold: the rows as they are
     data[:, 2] = np.nan
     with pytest.raises(ValueError, match="torque column b has no finite sample"):

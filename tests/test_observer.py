@@ -16,7 +16,8 @@ from exuflex.manoeuvre import plan
 from exuflex.mechanism import load_mechanism
 from exuflex.observer.session import ObserverConfig, estimate, make_observer, physical_names
 from exuflex.scoring.bound import estimation_bound, steady_bound
-from exuflex.scoring.run import metrics
+from exuflex.scoring.physical import physical_covariance
+from exuflex.scoring.run import held_error_summary, metrics
 from exuflex.runs import read_run
 from exuflex.sensors import tip_point
 
@@ -389,7 +390,7 @@ def test_filter_is_consistent(engine):
         assert not res.diverged
         phys = obs.physical(res.t, res.x_hat)
         e = np.column_stack([phys[n] - np.interp(phys.t, lt.truth.t, lt.truth[n]) for n in names])
-        P = obs.physical_covariance(res.x_hat, res.P)
+        P = physical_covariance(obs, res.x_hat, res.P)
         nees_runs.append(np.einsum("ki,ki->k", e, np.linalg.solve(P, e[:, :, None])[:, :, 0]))
         nis_runs.append(res.nis)
         dof.append(res.nis_dof)
@@ -530,7 +531,7 @@ def test_physical_in_blocks_is_one_call_and_the_row_formula(arm):
 
 
 def test_physical_covariance_is_the_physical_map_s_jacobian_squared(arm):
-    """``physical_covariance`` with P = I is J J^T, J the Jacobian of :meth:`Observer.physical` at the state
+    """:func:`exuflex.scoring.physical.physical_covariance` with P = I is J J^T, J the Jacobian of :meth:`Observer.physical` at the state
     (central differences of the map, rows re-evaluated at every perturbed state); at rest in q (q' = 0, elastic
     rates not zero), where the map's linearisation leaves nothing out."""
     mech, observer = arm
@@ -546,7 +547,7 @@ def test_physical_covariance_is_the_physical_map_s_jacobian_squared(arm):
         dz = np.zeros(nx)
         dz[j] = h
         J[:, j] = (observer.physical([0.0], [z + dz]).data[0] - observer.physical([0.0], [z - dz]).data[0]) / (2 * h)
-    C = observer.physical_covariance(z[None], np.eye(nx)[None])[0]
+    C = physical_covariance(observer, z[None], np.eye(nx)[None])[0]
     np.testing.assert_allclose(C, J @ J.T, rtol=1e-4, atol=1e-7 * np.abs(J @ J.T).max())
 
 
@@ -575,20 +576,21 @@ def test_the_held_models_error_is_measured_against_the_filters_uncertainty():
     model causes (against the exact configuration), relative to the filter's standard deviations: zero where
     the held configuration is the exact one, finite and recorded along a run."""
     from exuflex.mechanism import load_mechanism
-    from exuflex.observer.session import ObserverConfig, _hold, estimate, make_observer
+    from exuflex.observer.session import ObserverConfig, estimate, make_observer
+    from exuflex.runs import held_torques
     from exuflex.runs import read_run
 
     mech = load_mechanism(MODELS / "sixbar.toml")
     run = read_run(DATA / "sixbar_short")
     obs = make_observer(mech, ObserverConfig())
     S = run.sensors
-    estimate(obs, S.t, _hold(S.select(mech.motor_names).data), S.select(obs.channels).data)
+    estimate(obs, S.t, held_torques(S.select(mech.motor_names).data), S.select(obs.channels).data)
     som = obs.model
-    summ = som.held_error_summary()
+    summ = held_error_summary(som)
     assert summ["n"] == len(som.held_errors) > 0 and np.isfinite(summ["vs_std_max"])
     assert summ["map_n"] == len(som.map_errors) > 0 and summ["map_error_max"] >= summ["map_error_median"] > 0
     assert som.remap_min <= summ["map_radius"] <= som.remap_max
     iv = som._last
     z = obs.ekf.x
-    same = som._held_error(iv, 0.0, iv, z, _hold(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)
+    same = som._held_error(iv, 0.0, iv, z, held_torques(S.select(mech.motor_names).data)[-1], 1 / mech.sample_rate_hz)
     assert same[0] == 0.0

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from exuflex.mechanism import load_mechanism
-from exuflex.observer.session import ObserverConfig, _hold, make_observer
+from exuflex.observer.session import ObserverConfig, make_observer
+from exuflex.runs import held_torques
 from exuflex.runs import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,7 +30,7 @@ def sixbar_log():
     run = read_run(ROOT / "tests" / "data" / "sixbar_erls_3s")
     obs = make_observer(mech, ObserverConfig.for_model(mech))
     S = run.sensors
-    return mech, obs, S.t.copy(), _hold(S.select(mech.motor_names).data), S.select(obs.channels).data.copy()
+    return mech, obs, S.t.copy(), held_torques(S.select(mech.motor_names).data), S.select(obs.channels).data.copy()
 
 
 def _step_by_step(ekf, t, U, Y, **kw):

@@ -1,5 +1,6 @@
 """``exuflex observe MODEL LOG``: run the reduced-order EKF on a logged run (a run folder or a lab CSV log),
-report the log's channels and rates, the estimation bound for that log, and score it against a truth if any.
+report the log's channels and rates, and score it against a truth if any, with the estimation bound for that log
+(without a truth the bound along the plan with ``--bound``).
 
 Stage messages go to stderr (``exuflex observe: ...``); the result table to stdout. Tuning (see
 ``docs/tuning.md``): the prior (``--q0``, ``--qd0`` and the ``--*-std`` flags), the noise of any motor or sensor
@@ -136,7 +137,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--isolate-faults", action="store_true", default=None,
                    help="leave a channel with a detected offset or stuck fault out of the updates until it clears "
                         "(off by default: a model error looks like a sensor offset; faults are always reported)")
-    p.add_argument("--bound", action="store_true", help="(kept for old scripts: the bound is always printed)")
+    p.add_argument("--bound", action="store_true",
+                   help="the bound for a log without a truth too (along the manoeuvre's plan; it takes about as long "
+                        "as the filter). With a truth it is always computed: the errors are scored against it")
     p.add_argument("--no-plots", action="store_true", help="skip the figures in --out")
     p.add_argument("--allow-undersampled", action="store_true",
                    help="run on a log sampled too slowly for the reduced model's in-band modes (refused otherwise) "
@@ -354,7 +357,7 @@ def _run(args) -> int:
     with setting_up():  # the kernels loaded, the model built
         obs = make_observer(mech, config)
         if args.q0 is not None or args.qd0 is not None:
-            from ..observer.session import start_configuration
+            from ..manoeuvre import start_configuration
 
             q0 = args.q0 if args.q0 is not None else start_configuration(mech)
             x0 = obs.model.initial_state(q0, args.qd0)
@@ -369,15 +372,19 @@ def _run(args) -> int:
     # what is kept of the filtered record: the physical estimates for the figures (and a truth's errors), else
     # only what the summary needs; estimates.csv is written as the filter runs (observe_run's memory notes)
     keep = "all" if args.smooth else "physical" if args.out and not args.no_plots else "summary"
+    # the bound scores the errors against a truth; without one it is the plan's, asked for with --bound
+    with_bound = True if args.bound else "truth"
+    if log.truth is None and not args.bound:
+        _say("no truth: no bound (--bound: the bound along the manoeuvre's plan for this log's sampling)")
     if args.out:
         from ..scoring.output import EstimatesWriter
 
         with EstimatesWriter(args.out, mech, observer=obs) as writer:
             out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
-                              sink=writer, log_check=log_check)
+                              sink=writer, log_check=log_check, with_bound=with_bound)
     else:
         out = observe_run(mech, log, config, observer=obs, report=_say, smooth=args.smooth, keep=keep,
-                          log_check=log_check)
+                          log_check=log_check, with_bound=with_bound)
     s = out.summary
     s["sampling"] = sampling
     if sampling["undersampled"]:

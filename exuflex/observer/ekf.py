@@ -875,6 +875,30 @@ class BeliefFilter:
         log.info("%s run: %s", type(self).__name__, res.summary())
         return res
 
+    def forward_pass(self, t, U, Y, *, x0=None, P0=None) -> EstimationResult:
+        """A smoother's forward pass over a record (from the prior, or ``x0``/``P0``): :meth:`run` with the full
+        covariance and each sample's prediction recorded, without the filter's variance floor (negative variances
+        are still set to zero): the floor adds variance that ``Q`` does not hold, and a backward pass multiplies
+        that by ``1 / lambda^2`` a sample in a direction that decays by ``lambda`` without process noise (an
+        undriven damped mode; the five-bar's smoothed estimates overflowed).
+
+        Raises
+        ------
+        FilterDivergedError
+            The pass went non-finite (a smoother cannot run back through it).
+        """
+        store, floor = self.store_P, self._floor.copy()
+        self.store_P = "full"
+        self._floor[:] = 0.0
+        try:
+            res = self.run(t, U, Y, x0=x0, P0=P0, innovations=False, predictions=True)
+        finally:
+            self.store_P, self._floor[:] = store, floor
+        if res.nonfinite:
+            raise FilterDivergedError(f"the forward pass went non-finite at t={res.diverged_at:.6g} s; nothing to "
+                                      "smooth")
+        return res
+
     def _recorded(self, k: int) -> None:
         """After sample ``k`` of :meth:`run` went through :meth:`step` and was recorded (a filter that keeps more of
         each sample than the record does takes it here)."""

@@ -79,7 +79,7 @@ import numpy as np
 import scipy.linalg
 
 from . import kalman
-from .base import Belief, FilterDivergedError, Measurement, hooks
+from .base import Belief, Measurement, hooks
 from .ekf import (
     _MODEL_FAILURES,
     BeliefFilter,
@@ -344,16 +344,7 @@ class IMMFilter(BeliefFilter):
             The forward pass went non-finite (a smoother cannot run back through it).
         """
         w0 = time.perf_counter()
-        store, floor = self.store_P, self._floor.copy()
-        self.store_P = "full"
-        self._floor[:] = 0.0  # (as the RTS smoother's forward pass, :func:`.smoother.rts_smooth`)
-        try:
-            res = self.run(t, U, Y, x0=x0, P0=P0, innovations=False, predictions=True)
-        finally:
-            self.store_P, self._floor[:] = store, floor
-        if res.nonfinite:
-            raise FilterDivergedError(f"the forward pass went non-finite at t={res.diverged_at:.6g} s; nothing to "
-                                      "smooth")
+        res = self.forward_pass(t, U, Y, x0=x0, P0=P0)  # (each mode's track kept: run's ``predictions``)
         w1 = time.perf_counter()
         tr, n = self.track, len(res.t)
         mu_s = tr.mode_p.copy()

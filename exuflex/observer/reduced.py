@@ -670,21 +670,6 @@ class ReducedObserverModel:
         e_q = float(np.max(dz / np.sqrt(np.maximum(q, 1e-300)))) if q is not None else math.nan
         return float(np.max(dz / sig)), e_q
 
-    def held_error_summary(self) -> dict:
-        """The recorded :meth:`_held_error` ratios since the last :meth:`reset` (count, median and largest), and
-        the replaced step maps' errors (:func:`.expansion.map_error`: count, median, largest, the last map radius)."""
-        out = {"n": len(self.held_errors)}
-        if self.held_errors:
-            a = self.held_errors.asarray()
-            out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
-                       vs_process_noise_median=float(np.nanmedian(a[:, 1])),
-                       vs_process_noise_max=float(np.nanmax(a[:, 1])))
-        out["map_n"] = len(self.map_errors)
-        if self.map_errors:
-            e = np.asarray(self.map_errors)
-            out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=self.map_rad)
-        return out
-
     def _radius(self, old: _Held, dist: float, err: float, tol: float, p: float) -> float:
         """Next refresh radius from the error ``err`` of the last held model after ``dist`` rad: the error grows
         as ``dist^p`` (3: second order, with a secant partner; 2: first order), so the radius that keeps it at

@@ -8,7 +8,6 @@ the bound they are compared with: :mod:`exuflex.scoring`.
 
 from __future__ import annotations
 
-import logging
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -19,7 +18,7 @@ import numpy as np
 from .. import _compile
 from ..erls.kinematics import KinematicsError
 from ..erls.model import ErlsModel
-from ..manoeuvre import plan
+from ..manoeuvre import start_configuration
 from ..mechanism import Mechanism
 from ..reduction import CraigBampton
 from ..sensors import Signals, default_channels, tip_point, truth_names
@@ -43,20 +42,15 @@ __all__ = [
     "CHUNK_ROWS",
     "ESTIMATORS",
     "EstimateChunk",
-    "LogColumns",
     "Observer",
     "ObserverConfig",
-    "augmented_estimates",
     "default_channels",
     "estimate",
     "estimate_chunks",
     "make_observer",
     "physical_names",
     "physical_units",
-    "start_configuration",
 ]
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -241,7 +235,7 @@ class Observer:
         if len(value):
             base = out.copy()
             base[:, 2 * nq :] = 0.0  # rows in no run of the rows: the state's q, no tip value
-            with self._own_warm_start(carry):
+            with self.own_warm_start(carry):
                 self._row_values(Z, base, out, value, rate, refresh_rad, carry)
         return Signals(np.asarray(t, float), names, out, physical_units(self.mech))
 
@@ -259,7 +253,7 @@ class Observer:
         return np.array(value, dtype=np.int64), np.array(rate, dtype=np.int64)
 
     @contextmanager
-    def _own_warm_start(self, carry: dict):
+    def own_warm_start(self, carry: dict):
         """The closure solver (shared with the filter's model) with ``carry["warm"]`` as its warm start (None: the
         initial guess) inside the block; on exit the warm start reached goes back into ``carry`` and the
         solver's previous one is restored."""
@@ -277,17 +271,17 @@ class Observer:
         """The ``value`` and ``rate`` columns of ``out``: ``base``'s plus the rows' values and rates
         (:meth:`physical`)."""
         nq, r = self.model.nq, self.model.r
-        for a, b, (A0, dA, q0, second) in self._row_segments(Z, refresh_rad, carry):
+        for a, b, (A0, dA, q0, second) in self.row_segments(Z, refresh_rad, carry):
             p, v, qd = Z[a:b, :r], Z[a:b, r : 2 * r], Z[a:b, r : r + nq]
-            A = _rows_along(A0, dA, Z[a:b, :nq] - q0)  # (n, k, r)
-            Cw, Gw, Cwd, Gwd = _second_order_along(second, Z[a:b, :nq] - q0, qd)
-            g = _apply_rows(Gw, p)  # (n, n_g): the slopes at the Gauss points
-            out[a:b, value] = base[a:b, value] + _apply_rows(A, p) + _apply_rows(Cw, g * g)
-            out[a:b, rate] = base[a:b, rate] + (_apply_rows(A, v) + _apply_rows(_rows_along(0.0, dA, qd), p)
-                               + _apply_rows(Cwd, g * g)
-                               + _apply_rows(Cw, 2.0 * g * (_apply_rows(Gw, v) + _apply_rows(Gwd, p))))
+            A = rows_along(A0, dA, Z[a:b, :nq] - q0)  # (n, k, r)
+            Cw, Gw, Cwd, Gwd = second_order_along(second, Z[a:b, :nq] - q0, qd)
+            g = apply_rows(Gw, p)  # (n, n_g): the slopes at the Gauss points
+            out[a:b, value] = base[a:b, value] + apply_rows(A, p) + apply_rows(Cw, g * g)
+            out[a:b, rate] = base[a:b, rate] + (apply_rows(A, v) + apply_rows(rows_along(0.0, dA, qd), p)
+                               + apply_rows(Cwd, g * g)
+                               + apply_rows(Cw, 2.0 * g * (apply_rows(Gw, v) + apply_rows(Gwd, p))))
 
-    def _row_segments(self, Z: np.ndarray, refresh_rad: float, carry: dict, lookahead: int = 64):
+    def row_segments(self, Z: np.ndarray, refresh_rad: float, carry: dict, lookahead: int = 64):
         """The runs of rows of ``Z`` that share one evaluation of the rows (:meth:`physical_rows_and_rates`):
         ``(a, b, (A, dA/dq, q0, second))`` for rows ``a:b``, all finite and with ``max |q - q0| <= refresh_rad``. A
         row beyond that radius starts a new evaluation at its own ``q``; rows with a non-finite entry, and rows where
@@ -356,90 +350,15 @@ class Observer:
             return None
         return maps[0], d[0], q, (maps[1], d[1], maps[2], d[2])
 
-    def physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float = 1e-3, *,
-                            carry: dict | None = None) -> np.ndarray:
-        """Covariance (n, k, k) of the :meth:`physical` quantities (q, dq/dt, tip elastic displacement and rate)
-        from reduced states (n, nx) and the filter's full covariances (n, nx, nx; ``store_P="full"``), through
-        their maps linearised at each state (the filter's extra states, if any, are left out; the rate's turning
-        term is linearised in p and q', not in q). For NEES against a truth of the physical quantities. The rows
-        are evaluated as in :meth:`physical` (its own warm start; ``carry`` as there)."""
-        carry = {} if carry is None else carry
-        with self._own_warm_start(carry):
-            return self._physical_covariance(Z, P, refresh_rad, carry)
 
-    def _physical_covariance(self, Z: np.ndarray, P: np.ndarray, refresh_rad: float, carry: dict) -> np.ndarray:
-        som = self.model
-        nq, r, nx = som.nq, som.r, som.nx
-        tp = tip_point(self.mech)
-        k = 2 * nq + (4 if tp is not None else 0)
-        C = np.zeros((k, nx))
-        C[:nq, :nq] = np.eye(nq)
-        C[nq : 2 * nq, r : r + nq] = np.eye(nq)
-        value, rate = self.row_columns()
-        if not len(value):
-            return C @ P[:, :nx, :nx] @ C.T
-        out = np.full((len(Z), k, k), np.nan)  # (rows in no run of the rows: no value)
-        for a, b, (A0, dA, q0, second) in self._row_segments(Z[:, :nx], refresh_rad, carry):
-            z = Z[a:b, :nx]
-            Cb = np.zeros((b - a, k, nx))
-            Cb[:] = C
-            _rows_jacobian(Cb, A0, dA, q0, z, value, rate, nq, r)
-            _second_order_jacobian(Cb, second, z, q0, nq, r, value, rate)
-            out[a:b] = Cb @ P[a:b, :nx, :nx] @ Cb.transpose(0, 2, 1)
-        return out
-
-
-def _rows_jacobian(Cb: np.ndarray, A0: np.ndarray, dA: np.ndarray, q0: np.ndarray, z: np.ndarray, value: np.ndarray,
-                   rate: np.ndarray, nq: int, r: int) -> None:
-    """Add to ``Cb`` (m, k, nx) the Jacobian of the rows' values ``A(q) p`` and rates ``A p' + sum_i (dA/dq_i p)
-    q'_i`` (:meth:`Observer.physical`) in the ``value`` and ``rate`` rows of ``Cb``, at the states ``z`` (m, nx)."""
-    A = _rows_along(A0, dA, z[:, :nq] - q0)  # (m, k, r)
-    dAp = np.einsum("iaj,kj->kai", dA, z[:, :r])  # d(A p)/dq (m, k, nq)
-    Cb[:, value, :r] += A
-    Cb[:, value, :nq] += dAp
-    Cb[:, rate, r:] += A
-    Cb[:, rate, :r] += _rows_along(0.0, dA, z[:, r : r + nq])
-    Cb[:, rate, r : r + nq] += dAp
-    # d(A p')/dq; the rate's turning term q' dA/dq p also varies with q (second derivatives of A),
-    # left out: of the order of q' times the deflection per radian, times q's small uncertainty
-    Cb[:, rate, :nq] += np.einsum("iaj,kj->kai", dA, z[:, r:])
-
-
-def _second_order_along(second: tuple, dQ: np.ndarray, qd: np.ndarray) -> tuple:
+def second_order_along(second: tuple, dQ: np.ndarray, qd: np.ndarray) -> tuple:
     """``(C, Gr, dC/dt, dGr/dt)`` per row (n, ...) of the tip's second order ``C (Gr p)^2`` moved to first order in
-    ``dQ = q - q0`` (:func:`_rows_along`), their rates along ``qd`` (the derivatives held)."""
+    ``dQ = q - q0`` (:func:`rows_along`), their rates along ``qd`` (the derivatives held)."""
     C0, dC, G0, dG = second
-    return _rows_along(C0, dC, dQ), _rows_along(G0, dG, dQ), _rows_along(0.0, dC, qd), _rows_along(0.0, dG, qd)
+    return rows_along(C0, dC, dQ), rows_along(G0, dG, dQ), rows_along(0.0, dC, qd), rows_along(0.0, dG, qd)
 
 
-def _second_order_jacobian(Cb: np.ndarray, second: tuple, z: np.ndarray, q0: np.ndarray, nq: int, r: int,
-                           e: np.ndarray, ed: np.ndarray) -> None:
-    """Add to ``Cb`` (m, k, nx) the Jacobian of the tip's second order ``w = C (Gr p)^2`` and of its rate ``w' =
-    C' g^2 + 2 C (g (Gr p' + Gr' p))`` (``g = Gr p``, ``'`` the change along q') at the states ``z`` (m, nx): in
-    ``p``, ``p'``, ``q'`` and ``q`` (the rate's in q: of ``2 C (g (Gr p'))``; that of its turning terms along q',
-    second derivatives of the maps, is left out as it is for the linear rows)."""
-    p, v, qd = z[:, :r], z[:, r : 2 * r], z[:, r : r + nq]
-    Cw, Gw, Cwd, Gwd = _second_order_along(second, z[:, :nq] - q0, qd)
-    _, dC, _, dG = second
-    g = _apply_rows(Gw, p)  # (m, n_g)
-    gd = _apply_rows(Gw, v) + _apply_rows(Gwd, p)
-    two_Cg = 2.0 * Cw * g[:, None, :]  # (m, 2, n_g): dw/dg
-    Cb[:, e, :r] += two_Cg @ Gw
-    # dw/dq_i = dC_i g^2 + 2 C (g dGr_i p), also the rate's derivative in q'_i (its turning terms)
-    dwdq = (np.einsum("iaj,kj->kai", dC, g * g)
-            + np.einsum("kaj,kij->kai", two_Cg, np.einsum("ijl,kl->kij", dG, p)))
-    Cb[:, e, :nq] += dwdq
-    Cb[:, ed, r : r + nq] += dwdq
-    Cb[:, ed, r:] += two_Cg @ Gw
-    Cb[:, ed, :r] += 2.0 * (Cwd * g[:, None, :]) @ Gw + 2.0 * (Cw * gd[:, None, :]) @ Gw + two_Cg @ Gwd
-    # d/dq_i of 2 C (g (Gr p')): 2 dC_i (g gv) + 2 C ((dGr_i p) gv + g (dGr_i p')), gv = Gr p'
-    gv = _apply_rows(Gw, v)
-    dGp, dGv = np.einsum("ijl,kl->kij", dG, p), np.einsum("ijl,kl->kij", dG, v)  # (m, nq, n_g)
-    Cb[:, ed, :nq] += 2.0 * (np.einsum("iaj,kj->kai", dC, g * gv)
-                             + np.einsum("kaj,kij->kai", Cw, dGp * gv[:, None, :] + g[:, None, :] * dGv))
-
-
-def _rows_along(A0, dA: np.ndarray, dQ: np.ndarray) -> np.ndarray:
+def rows_along(A0, dA: np.ndarray, dQ: np.ndarray) -> np.ndarray:
     """``A0 + sum_i dQ[:, i] dA[i]`` for each row of ``dQ`` (n, nq): rows (n, *A0.shape) moved to first order.
     Element by element, so that a row's numbers do not depend on the rows computed with it."""
     A = np.zeros((len(dQ), *dA.shape[1:])) + A0
@@ -448,8 +367,8 @@ def _rows_along(A0, dA: np.ndarray, dQ: np.ndarray) -> np.ndarray:
     return A
 
 
-def _apply_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``A[k] @ p[k]`` for each k (A (n, a, r), p (n, r)), row by row as :func:`_rows_along`."""
+def apply_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``A[k] @ p[k]`` for each k (A (n, a, r), p (n, r)), row by row as :func:`rows_along`."""
     return (A * p[:, None, :]).sum(axis=-1)
 
 
@@ -531,7 +450,7 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     fmodel, x0, P0 = _filter_model(som, config, x0, P0)
     monitoring = Monitoring(gate_p=config.gate_p, fault_window=config.fault_window, fault_p=config.fault_p,
                             fault_holdoff=max(0, round(config.fault_holdoff_s / dt)),
-                            input_step=_torque_step_test(som.torque_var, config.fault_p), isolate=config.fault_isolation)
+                            input_step=InputStepTest(som.torque_var, config.fault_p), isolate=config.fault_isolation)
     if config.estimator == "ukf":
         ekf = UnscentedKF(fmodel, channels, _noise_std(mech, channels), x0, P0, dt=dt, max_gap=config.max_gap,
                           monitoring=monitoring)
@@ -571,12 +490,6 @@ def _filter_model(som: ReducedObserverModel, config: ObserverConfig, x0, P0):
     return fm, _augmented_mean(fm, x0), P0x
 
 
-def _torque_step_test(torque_var, p: float) -> InputStepTest:
-    """Two successive torque samples differ by more than their noise explains (:class:`.kalman.InputStepTest`,
-    false-alarm probability ``p``)."""
-    return InputStepTest(torque_var, p)
-
-
 def _augmented_mean(ekf_model, x0) -> np.ndarray:
     """A reduced-state prior mean extended for the extra states of the filter's model (if any): the payload scale
     at 1 (nominal), disturbances at 0."""
@@ -588,18 +501,6 @@ def _augmented_mean(ekf_model, x0) -> np.ndarray:
     if i is not None:
         out[i] = 1.0
     return out
-
-
-def start_configuration(mech: Mechanism) -> np.ndarray:
-    """The configuration the observer starts from: the planned manoeuvre's first (the model's ``q_ref`` without a
-    manoeuvre, or where the plan fails, with a warning)."""
-    if mech.manoeuvre is not None:
-        try:
-            p = plan(mech, dt=mech.manoeuvre.duration, t_end=0.0)
-            return np.asarray(p.q[0], float)
-        except Exception as exc:  # noqa: BLE001 - fall back to q_ref, with a note
-            log.warning("could not plan the manoeuvre's start (%s); starting the observer at q_ref", exc)
-    return np.asarray(mech.q_ref, float)
 
 
 @dataclass
@@ -639,78 +540,6 @@ class EstimateChunk:
     wall_s: float
 
 
-class LogColumns:
-    """Columns of a log's table, a block of rows at a time: ``cols[a:b]`` is the ``(b - a, k)`` array of the
-    columns ``cols`` of ``data`` (n, c) in rows ``a`` to ``b``, a copy of those rows only (the whole selection is
-    never copied). :meth:`of` selects a :class:`Signals`' columns by name.
-
-    ``hold``: a non-finite value is replaced by the column's last finite value before it, and by its first one
-    before that (a torque not sampled at a time is held, ``docs/run_format.md``); a column without a finite value
-    is an error naming it."""
-
-    def __init__(self, data: np.ndarray, cols: Sequence[int], names: Sequence[str] | None = None,
-                 hold: bool = False):
-        self._data = data
-        self.cols = [int(c) for c in cols]
-        self.names = tuple(names) if names is not None else tuple(str(c) for c in self.cols)
-        self.hold = bool(hold)
-        self._prev: tuple[int, np.ndarray] | None = None
-        if self.hold:
-            first = np.empty(len(self.cols))
-            for j, c in enumerate(self.cols):
-                ok = np.flatnonzero(np.isfinite(data[:, c]))
-                if not len(ok):
-                    raise ValueError(f"torque column {self.names[j]} has no finite sample")
-                first[j] = data[ok[0], c]
-            self._first = first
-
-    @classmethod
-    def of(cls, signals: Signals, names: Sequence[str], hold: bool = False) -> LogColumns:
-        """The columns ``names`` of ``signals`` (KeyError naming the missing ones, as :meth:`Signals.select`)."""
-        names = tuple(names)
-        cols = [signals.names.index(n) if n in signals.names else None for n in names]
-        missing = [n for n, c in zip(names, cols, strict=True) if c is None]
-        if missing:
-            raise KeyError(f"no channel(s) {missing}; channels are {list(signals.names)}")
-        return cls(signals.data, cols, names, hold)
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return (len(self._data), len(self.cols))
-
-    def __getitem__(self, rows: slice) -> np.ndarray:
-        a, b, step = rows.indices(len(self._data))
-        if step != 1:
-            raise IndexError("LogColumns: contiguous rows only")
-        block = self._data[a:b, self.cols]
-        if not self.hold:
-            return block
-        prev = self._prev[1] if self._prev is not None and self._prev[0] == a else self._before(a)
-        bad = ~np.isfinite(block)
-        if bad.any():
-            for j in np.flatnonzero(bad.any(axis=0)):
-                col = block[:, j]
-                ok = np.isfinite(col)
-                idx = np.where(ok, np.arange(len(col)), -1)
-                np.maximum.accumulate(idx, out=idx)
-                col[:] = np.where(idx >= 0, col[np.maximum(idx, 0)], prev[j])
-        if b > a:
-            self._prev = (b, block[-1].copy())
-        return block
-
-    def _before(self, a: int) -> np.ndarray:
-        """Per column, the held value entering row ``a``: the last finite value before it, else the first."""
-        out = self._first.copy()
-        for j, c in enumerate(self.cols):
-            ok = np.flatnonzero(np.isfinite(self._data[:a, c]))
-            if len(ok):
-                out[j] = self._data[ok[-1], c]
-        return out
-
-
 def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | None = None,
                     innovations: bool = True) -> Iterator[EstimateChunk]:
     """Filter a record ``rows`` (default :data:`CHUNK_ROWS`) samples at a time (:meth:`MultirateEKF.run` on each block, continuing from the
@@ -719,7 +548,7 @@ def estimate_chunks(obs: Observer, t, U, Y, x0=None, P0=None, *, rows: int | Non
     The numbers are those of :func:`estimate` on the whole record (the filter's steps do not depend on where the
     record is cut, and :meth:`Observer.physical` carries its evaluation across blocks); what the caller keeps of
     each block is all the memory the record takes beyond the log. ``t`` (n,); ``U``, ``Y``: arrays (n, k) or
-    anything that gives the rows ``a:b`` as an array (:class:`LogColumns`); ``innovations``: record the
+    anything that gives the rows ``a:b`` as an array (:class:`exuflex.runs.LogColumns`); ``innovations``: record the
     innovations and their covariance in each block."""
     t = np.asarray(t, float)
     x0 = None if x0 is None else _augmented_mean(obs.ekf.model, x0)
@@ -773,44 +602,3 @@ def reported(obs: Observer, res, t0: float):
     if isinstance(res, SmoothedResult):
         return replace(res, x_hat=x, P=P, nominal_p=w)
     return replace(res, x_hat=x, P=P, P_theta=None, nominal_p=w)
-
-
-def last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | None]:
-    """The last sample's state, variances (None without a stored covariance) and nominal payload probability
-    (None where not reported) of a whole record, smoothed where smoothing ran."""
-    src = est.smoothed if est.smoothed is not None else est.result
-    return (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None,
-            None if src.nominal_p is None else float(src.nominal_p[-1]))
-
-
-def augmented_estimates(fmodel, est: Estimate) -> dict:
-    """The augmented states' estimates at the end of the record ``est`` of the filter model ``fmodel``
-    (:func:`extra_states`): the payload scale or the torque disturbances; empty for a plain model."""
-    return extra_states(fmodel, *last_state(est))
-
-
-def extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:
-    """The augmented states' estimates ``x`` and variances ``var`` at the end of the record (smoothed where
-    smoothing ran; NaN standard deviations without ``var``): ``{"parameters": {"payload_scale": ...,
-    "payload_scale_std": ..., "payload_nominal_p": ...}}`` (the last where reported, :func:`reported`) and
-    ``{"inputs": {motor: {"value", "std"}}}``; empty for a plain model."""
-    out: dict = {}
-    it, ii = getattr(fmodel, "i_theta", None), getattr(fmodel, "i_inputs", None)
-    if it is None and ii is None:
-        return out
-    var = np.full(len(x), np.nan) if var is None else var
-    if it is not None:
-        out["parameters"] = {"payload_scale": float(x[it]), "payload_scale_std": float(np.sqrt(var[it]))}
-        if nominal_p is not None:
-            out["parameters"]["payload_nominal_p"] = nominal_p
-    if ii is not None:
-        names = fmodel.inner.mech.motor_names
-        out["inputs"] = {m: {"value": float(v), "std": float(np.sqrt(s))}
-                         for m, v, s in zip(names, x[ii], var[ii], strict=True)}
-    return out
-
-
-def _hold(U: np.ndarray) -> np.ndarray:
-    """A torque table (n, k) with its non-finite values held (:class:`LogColumns` with ``hold``), a copy."""
-    U = np.asarray(U, float)
-    return LogColumns(U, range(U.shape[1]), hold=True)[0 : len(U)]

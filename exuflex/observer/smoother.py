@@ -23,7 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from .base import FilterDivergedError
 from .ekf import MultirateEKF
 
 __all__ = ["SmoothedResult", "rts_backward", "rts_smooth"]
@@ -71,8 +70,8 @@ class SmoothedResult:
 
 def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResult:
     """Filter a record with ``ekf`` (from its prior, or ``x0``/``P0``) and smooth it backwards (module docstring):
-    the forward pass is :meth:`MultirateEKF.run` with the full covariance and each sample's prediction recorded
-    (the compiled loop where the model has one), the backward pass :func:`rts_backward` on that record.
+    the forward pass is :meth:`~.ekf.BeliefFilter.forward_pass` (the full covariance and each sample's prediction
+    recorded; the compiled loop where the model has one), the backward pass :func:`rts_backward` on that record.
 
     Parameters
     ----------
@@ -95,21 +94,7 @@ def rts_smooth(ekf: MultirateEKF, t, U, Y, *, x0=None, P0=None) -> SmoothedResul
         raise TypeError(f"the RTS smoother runs on the EKF's linearisation (MultirateEKF), not on a "
                         f"{type(ekf).__name__}")
     w0 = time.perf_counter()
-    store = ekf.store_P
-    ekf.store_P = "full"
-    # the forward pass without the filter's variance floor (negative variances are still set to zero): the floor
-    # adds variance that Q does not hold, and the backward pass multiplies that by 1/lambda^2 a sample in a
-    # direction that decays by lambda without process noise (an undriven damped mode; the five-bar's smoothed
-    # estimates overflowed)
-    floor = ekf._floor.copy()
-    ekf._floor[:] = 0.0
-    try:
-        res = ekf.run(t, U, Y, x0=x0, P0=P0, innovations=False, predictions=True)
-    finally:
-        ekf.store_P = store
-        ekf._floor[:] = floor
-    if res.nonfinite:
-        raise FilterDivergedError(f"the forward pass went non-finite at t={res.diverged_at:.6g} s; nothing to smooth")
+    res = ekf.forward_pass(t, U, Y, x0=x0, P0=P0)
     w1 = time.perf_counter()
     xs, Ps = rts_backward(res.P, res.F, res.Q, res.x_hat, res.x_pred)
     w2 = time.perf_counter()

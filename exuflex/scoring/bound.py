@@ -45,13 +45,15 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg import expm, solve_discrete_are
 
-from ..manoeuvre import plan
+from ..manoeuvre import plan, start_configuration
 from ..mechanism import Mechanism
 from ..observer import kalman
 from ..observer.base import DiscreteModel
 from ..observer.expansion import held_interval
 from ..observer.reduced import ReducedObserverModel
-from ..observer.session import LogColumns, Observer, physical_names, start_configuration
+from ..observer.session import Observer, physical_names
+from ..runs import LogColumns
+from .physical import physical_covariance
 from ..sensors import Signals
 
 log = logging.getLogger(__name__)
@@ -672,7 +674,7 @@ def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None
     ``t`` (n,): the sample times; ``U``: the torques (n, n_motors) held over each interval (None: the plan's
     computed torques); ``sampled``: which channels of ``obs.channels`` each sample holds ((n, m) bool, default
     all). ``smooth``: also the smoothed bound. Returns the track (variances of the :func:`exuflex.observer.session.physical_names`
-    quantities, through the maps of :meth:`exuflex.observer.session.Observer.physical_covariance`) and what it runs along (``"truth"``,
+    quantities, through the maps of :func:`exuflex.scoring.physical.physical_covariance`) and what it runs along (``"truth"``,
     ``"plan"``, or ``"q_ref"`` at rest without a manoeuvre).
     """
     t = np.asarray(t, float)
@@ -690,7 +692,7 @@ def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None
     def outputs(a, b, Xb, Pb):
         if a == 0:  # a pass over the record starts (the smoothed one after the filtered one)
             carry.clear()
-        return np.diagonal(obs.physical_covariance(Xb, Pb, refresh_rad=BOUND_TIP_RADIUS, carry=carry),
+        return np.diagonal(physical_covariance(obs, Xb, Pb, refresh_rad=BOUND_TIP_RADIUS, carry=carry),
                            axis1=1, axis2=2)
 
     track = riccati_track(model, t, traj, U, obs.channels, R, P0, sampled, outputs=outputs, smooth=smooth,
@@ -698,7 +700,7 @@ def bound_track(obs: Observer, t, U=None, sampled=None, *, truth: Signals | None
     return track, traj.along
 
 
-#: the radius (rad) within which the bound's tip rows follow q to first order (:meth:`exuflex.observer.session.Observer.physical_covariance`):
+#: the radius (rad) within which the bound's tip rows follow q to first order (:func:`exuflex.scoring.physical.physical_covariance`):
 #: their error, about half its square relative, stays below 5e-4 of the tip's standard deviations
 BOUND_TIP_RADIUS = 3e-2
 

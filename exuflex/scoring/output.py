@@ -21,7 +21,7 @@ def estimates_table(mech, outcome, observer=None) -> Signals:
     the absolute tip position and velocity ``tip_x tip_y dtip_x dtip_y`` (rigid + elastic,
     :func:`exuflex.sensors.absolute_tip`), then ``std_<name>`` for every quantity whose standard deviation the
     filter's covariance gives to first order: q and dq/dt from the posterior variances; with the full covariance
-    (``store_P="full"``, :meth:`exuflex.observer.session.Observer.physical_covariance`) also the tip elastic columns and the
+    (``store_P="full"``, :func:`exuflex.scoring.physical.physical_covariance`) also the tip elastic columns and the
     absolute tip position, ``J_q P_qq J_q' + J_q P_qe + P_eq J_q' + P_ee`` with ``J_q`` the rigid tip point's
     sensitivity to q. The absolute tip velocity's standard deviation would need the second derivative of the
     kinematics and is not given. A filter with a payload-scale state adds ``payload_scale`` (its estimate) and,
@@ -69,7 +69,9 @@ class EstimatesTable:
         n = len(phys.t)
         std_names, std_cols = [], []
         if P is not None and P.ndim == 3 and observer is not None:
-            C = observer.physical_covariance(x_hat, P, carry=self._cov)
+            from .physical import physical_covariance
+
+            C = physical_covariance(observer, x_hat, P, carry=self._cov)
             sd = np.sqrt(np.clip(np.diagonal(C, axis1=1, axis2=2), 0, None))
             std_names += [f"std_{n}" for n in phys.names[: sd.shape[1]]]
             std_cols.append(sd)
@@ -220,6 +222,8 @@ def summary_table(mech, outcome, bound: bool = True) -> str:
         lines.append(f"{'quantity':10s} {'unit':>6s} {'bound':>11s}")
         for k, b in bnd.items():
             lines.append(f"{k:10s} {units.get(k, ''):>6s} {b:11.3g}")
+    elif not bnd:
+        lines.append("no truth to score against and no bound (exuflex observe --bound: the bound along the plan)")
     if bnd and (met or bound):
         along = (s.get("bound_for") or {}).get("along", "truth")
         words = {"truth": "true trajectory", "plan": "planned trajectory (the log has no truth)",

@@ -13,14 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from ..mechanism import Mechanism
-from ..observer.session import (Estimate, EstimateChunk, LogColumns, Observer, ObserverConfig, check_arguments,
-                                estimate, estimate_chunks, extra_states, last_state, make_observer, physical_names,
-                                physical_units)
-from ..runs import input_hold_of
+from ..observer.session import (Estimate, EstimateChunk, Observer, ObserverConfig, check_arguments, estimate,
+                                estimate_chunks, make_observer, physical_names, physical_units)
+from ..runs import LogColumns, input_hold_of
 from ..sensors import Signals
 from .bound import UnobservableError, _Sampled, bound_track, check_observable
 
-__all__ = ["KEEP", "NIS_GROSS_FACTOR", "NIS_WHOLE_LOG_P", "Outcome", "metrics", "nis_whole_log_flag", "observe_run"]
+__all__ = ["KEEP", "NIS_GROSS_FACTOR", "NIS_WHOLE_LOG_P", "Outcome", "extra_states", "held_error_summary",
+           "last_state", "metrics", "nis_whole_log_flag", "observe_run"]
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +32,53 @@ NIS_GROSS_FACTOR = 3.0
 """How far above a consistent filter's bound the whole log's mean NIS must lie to be flagged whatever the window:
 the windowed test judges mild mismatch; this one a gross inconsistency (several times the innovations' stated
 covariance: a log that cannot support the model, wrong units or noise)."""
+
+
+def last_state(est: Estimate) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """The last sample's state, variances (None without a stored covariance) and nominal payload probability
+    (None where not reported) of a whole record, smoothed where smoothing ran."""
+    src = est.smoothed if est.smoothed is not None else est.result
+    return (src.x_hat[-1], src.P_diag[-1] if src.P_diag is not None else None,
+            None if src.nominal_p is None else float(src.nominal_p[-1]))
+
+
+def extra_states(fmodel, x: np.ndarray, var: np.ndarray | None, nominal_p: float | None = None) -> dict:
+    """The augmented states' estimates ``x`` and variances ``var`` at the end of the record (smoothed where
+    smoothing ran; NaN standard deviations without ``var``): ``{"parameters": {"payload_scale": ...,
+    "payload_scale_std": ..., "payload_nominal_p": ...}}`` (the last where reported, :func:`exuflex.observer.session.reported`) and
+    ``{"inputs": {motor: {"value", "std"}}}``; empty for a plain model."""
+    out: dict = {}
+    it, ii = getattr(fmodel, "i_theta", None), getattr(fmodel, "i_inputs", None)
+    if it is None and ii is None:
+        return out
+    var = np.full(len(x), np.nan) if var is None else var
+    if it is not None:
+        out["parameters"] = {"payload_scale": float(x[it]), "payload_scale_std": float(np.sqrt(var[it]))}
+        if nominal_p is not None:
+            out["parameters"]["payload_nominal_p"] = nominal_p
+    if ii is not None:
+        names = fmodel.inner.mech.motor_names
+        out["inputs"] = {m: {"value": float(v), "std": float(np.sqrt(s))}
+                         for m, v, s in zip(names, x[ii], var[ii], strict=True)}
+    return out
+
+
+def held_error_summary(model) -> dict:
+    """What a reduced model's cached step recorded since its last reset (``result.json``'s ``held_model_error``): the
+    held model's error ratios (:meth:`exuflex.observer.reduced.ReducedObserverModel._held_error`: count, median and largest) and the
+    replaced step maps' errors (:func:`exuflex.observer.expansion.map_error`: count, median, largest, the last map
+    radius)."""
+    out = {"n": len(model.held_errors)}
+    if model.held_errors:
+        a = model.held_errors.asarray()
+        out.update(vs_std_median=float(np.median(a[:, 0])), vs_std_max=float(a[:, 0].max()),
+                   vs_process_noise_median=float(np.nanmedian(a[:, 1])),
+                   vs_process_noise_max=float(np.nanmax(a[:, 1])))
+    out["map_n"] = len(model.map_errors)
+    if model.map_errors:
+        e = np.asarray(model.map_errors)
+        out.update(map_error_median=float(np.median(e)), map_error_max=float(e.max()), map_radius=model.map_rad)
+    return out
 
 
 def nis_whole_log_flag(nis_mean: float, nis_expected: float, n_updates: int, p: float = NIS_WHOLE_LOG_P,
@@ -122,7 +169,7 @@ class Outcome:
 KEEP = ("all", "physical", "summary")
 
 
-def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool = True,
+def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, with_bound: bool | str = True,
                 observer: Observer | None = None, report=None, smooth: bool = False, keep: str = "all",
                 sink=None, log_check=None) -> Outcome:
     """Run the observer on a run folder's log (:class:`exuflex.runs.Run`) and score it against its truth
@@ -134,7 +181,9 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     else along the plan, on its times, torques and sampled channels; with ``smooth`` the smoothed bound), its RMS
     over the samples :func:`metrics` scores (``bound_rms``, ``ratio_to_bound``; with ``smooth`` also
     ``filtered_bound_rms`` and ``filtered_ratio_to_bound`` for the filter's errors); it is computed before
-    filtering, and an unobservable channel set is reported at once.
+    filtering, and an unobservable channel set is reported at once. ``with_bound``: True (default) the bound along
+    the truth or the plan; ``"truth"`` only along a truth (a log without one: the observability test alone, no
+    bound: along the plan the recursion costs about as much as the filter and scores nothing); False neither.
     ``report``: a callable taking one-line stage messages (the CLI prints them on stderr). ``log_check``: the
     log's check if the caller made it already (:func:`exuflex.validate.check_run` with the observer's channels and
     sample interval; the command line checks a log before it builds the model).
@@ -155,6 +204,8 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
 
     if keep not in KEEP:
         raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
+    if with_bound not in (True, False, "truth"):
+        raise ValueError(f"with_bound must be True, False or 'truth', got {with_bound!r}")
     check_mechanism_argument(mech)
     check_arguments(config=config, observer=observer)
     if not hasattr(run, "sensors") or not hasattr(run, "meta"):
@@ -201,7 +252,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
             from ..errors import LogFormatError
 
             raise LogFormatError(f"{Path(run.path) / 'truth.csv'}: {exc}") from None
-    if with_bound and unobservable is None:
+    if with_bound and unobservable is None and (with_bound is True or run.truth is not None):
         track, along = bound_track(obs, S.t, U, _Sampled(S, obs.channels), truth=run.truth, smooth=smooth)
         scored = _scored(S.t, start_up, None if run.truth is None else run.truth.t)
         names = physical_names(mech)
@@ -250,7 +301,7 @@ def observe_run(mech: Mechanism, run, config: ObserverConfig | None = None, *, w
     summary["estimator"] = config.estimator
     summary["smoothed"] = bool(smooth)
     if obs.ekf.model is obs.model and obs.model.method == "cached":
-        summary["held_model_error"] = obs.model.held_error_summary()
+        summary["held_model_error"] = held_error_summary(obs.model)
     summary.update(extra_states(obs.ekf.model, *last))
     if met is not None:
         summary.update(met)

@@ -462,9 +462,9 @@ def run_one(task: RunTask) -> dict:
     if tip_stats is not None:
         for k in stats:
             stats[k].update(tip_stats[k])
-    from ..observer.session import augmented_estimates
+    from ..scoring.run import extra_states, last_state
 
-    extra = augmented_estimates(obs.ekf.model, est)  # the payload scale (or disturbances) an augmented filter estimates
+    extra = extra_states(obs.ekf.model, *last_state(est))  # the payload scale (or disturbances) an augmented filter estimates
     if task.with_bound:
         extra.update(_bound_ratios(obs, S.t, U, lt.truth, task.start_up, stats["rms"]))
     return {
