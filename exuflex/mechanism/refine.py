@@ -3,13 +3,13 @@
 - :func:`refine_mechanism`: split every element into ``factor`` equal parts;
 - :func:`remesh_mechanism`: split every element into the fewest equal parts such that no element is
   longer than ``length / elements_per_link`` of its link (at least that many elements per link);
-- :func:`gauge_mesh`: the gauge rule under gravity, the elements next to each curvature gauge no longer than
-  :func:`gauge_sag_length` (nodes added at that distance on either side; ``docs/gauge_mesh.md`` derives it and
-  says why the loader does not apply it by default).
+- :func:`gauge_mesh`: the elements next to each curvature gauge no longer than a length: the static sag's
+  :func:`gauge_sag_length` or the lengths given (the filter's rule, :mod:`exuflex.reduction.gauge_rule`, which the
+  observer and the ERLS truth apply; ``docs/gauge_mesh.md``), nodes added at that distance on either side.
 
-Both refuse meshes of more than :data:`~exuflex.mechanism.limits.MAX_ELEMENTS` elements (``ValueError``).
+The first two refuse meshes of more than :data:`~exuflex.mechanism.limits.MAX_ELEMENTS` elements (``ValueError``).
 
-Both keep the original nodes and their ids (so masses, gauges and node-based dof names such as
+All keep the original nodes and their ids (so masses, gauges and node-based dof names such as
 ``node14.x`` keep their meaning); new nodes get ids above the largest existing one.
 """
 
@@ -128,15 +128,22 @@ def gauge_sag_length(mech: Mechanism, sensor, tol: float = GAUGE_SAG_TOL) -> flo
     return math.sqrt(12.0 * lk.material.E * lk.section.I * tol * sensor.noise_std / w)
 
 
-def gauge_mesh(mech: Mechanism, tol: float = GAUGE_SAG_TOL) -> Mechanism:
-    """The mesh with the elements next to every curvature gauge no longer than :func:`gauge_sag_length` ``h_g``: for
-    a gauge at a node, a node on either side where the element there is longer, at ``h_g`` from the gauge (halfway
-    to the next node where that is within ``2 h_g``, so that no added element is shorter than ``h_g / 2``); for a
-    gauge inside an element, that element split into the fewest equal parts no longer than ``h_g``. The mechanism
-    itself where nothing is added (no gravity, no gauge, or a mesh fine enough)."""
+def gauge_mesh(mech: Mechanism, tol: float = GAUGE_SAG_TOL, lengths: dict[str, float] | None = None) -> Mechanism:
+    """The mesh with the elements next to every curvature gauge no longer than its ``h_g``: :func:`gauge_sag_length`
+    (``tol``), or ``lengths[gauge name]`` where given (then only the gauges named there; the filter's rule,
+    :func:`exuflex.reduction.gauge_rule.gauge_lengths`). For a gauge at a node, a node on either side where the
+    element there is longer, at ``h_g`` from the gauge (halfway to the next node where that is within ``2 h_g``, so
+    that no added element is shorter than ``h_g / 2``); for a gauge inside an element, that element split into the
+    fewest equal parts no longer than ``h_g``. The mechanism itself where nothing is added (no gravity, no gauge,
+    or a mesh fine enough)."""
     add: dict[str, set] = {}
     for sn in mech.sensors:
-        h = gauge_sag_length(mech, sn, tol)
+        if lengths is None:
+            h = gauge_sag_length(mech, sn, tol)
+        elif sn.kind == "curvature" and sn.name in lengths:
+            h = float(lengths[sn.name])
+        else:
+            continue
         if not math.isfinite(h):
             continue
         lk = mech.link(sn.link)

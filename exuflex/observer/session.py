@@ -406,8 +406,10 @@ def make_observer(mech: Mechanism, config: ObserverConfig | None = None, x0=None
     """Build the reduced model and the EKF for ``mech``.
 
     ``x0`` is the prior mean (reduced state); default: at rest at the manoeuvre's start, else q_ref.
-    A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers. Without ``config``:
-    :meth:`ObserverConfig.for_model` (the model file's ``[observer]`` table over the defaults).
+    The full model is built on ``mech``'s mesh; :func:`exuflex.reduction.gauge_rule.observer_mesh` gives the mesh
+    refined next to the curvature gauges until their rows converge for the filter's sake (``docs/gauge_mesh.md``;
+    not the default). A prebuilt ``model`` or basis ``cb`` may be passed to share them between observers. Without
+    ``config``: :meth:`ObserverConfig.for_model` (the model file's ``[observer]`` table over the defaults).
     """
     from ..validate import check_mechanism_argument, check_observer_settings
 

@@ -509,6 +509,7 @@ class FilterSample:
         for k in range(len(self.u)):  # x_k at t_k, then held u_k over [t_k, t_k+1)
             X[k] = x
             x = A @ x + Bu[k]
+        self.A, self.B, self.X = A, B, X  # the exact discretisation and the response (the gauge rule reuses them)
         self.y = X[:, :n] @ self.C.T
         self.z = np.hstack([X[:, :n] @ Z.T, X[:, n:] @ Z.T])
 
