@@ -1205,10 +1205,9 @@ class ReducedObserverModel:
         nq, r = self.nq, self.r
         T = np.zeros((2 * nq, self.nx))
         T[:nq, :nq] = T[nq:, r : r + nq] = np.eye(nq)
-        if self.reading_G is not None:
-            R = self.reading_G @ rc.H[nq:]
-            T[:nq, :r] += R
-            T[nq:, r:] += R
+        R = self._reading_rows(rc)
+        T[:nq, :r] += R
+        T[nq:, r:] += R
         Pp = IKH @ P
         sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", T, Pp, T), 1e-300))
         return float(np.max(np.abs(T @ b) / sd))
@@ -1359,6 +1358,10 @@ class ReducedObserverModel:
         """(nq, r) rows ``R`` of the coordinates' encoder readings beyond q in the reduced coordinates p at
         configuration q: the physical q (what a relative encoder reads, what a truth reports) is ``q + R p``,
         ``R = G H_u`` (:attr:`reading_G`, ``u = H_u p``); zero rows without a relative angle coordinate."""
+        return self._reading_rows(self.rm.cb.at(q))
+
+    def _reading_rows(self, rc) -> np.ndarray:
+        """:meth:`reading_maps` at an evaluated configuration ``rc`` of the basis."""
         if self.reading_G is None:
             return np.zeros((self.nq, self.r))
-        return self.reading_G @ self.rm.cb.at(q).H[self.nq :]
+        return self.reading_G @ rc.H[self.nq :]
